@@ -1,0 +1,7 @@
+"""fbgcomp: compensate machine-tool structural deformations from FBG sensors.
+
+Data flow: optics -> structure -> kinematics -> models -> runtime, with io (campaign),
+cli and report at the edges. See docs/architecture.md.
+"""
+
+__version__ = "0.1.0"

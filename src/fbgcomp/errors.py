@@ -1,0 +1,47 @@
+"""Errors the user can act on.
+
+Every problem with user input is raised as :class:`InputError`; the CLI turns it into one
+line on stderr that starts with ``error:`` and names the file (and row / column or field
+when known), and exits with code 2, without a traceback.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class InputError(Exception):
+    """Bad user input: names the file and, when known, the row and the column or field.
+
+    Parameters
+    ----------
+    message : str
+        What is wrong and what was expected.
+    file : str or Path, optional
+        The offending file.
+    row : int, optional
+        1-based line number in the file (the header is line 1 of a CSV).
+    column : str, optional
+        Column name (CSV) or field path (YAML / JSON), e.g. ``sensors[2].lambda0_nm``.
+    """
+
+    def __init__(self, message: str, file: str | Path | None = None,
+                 row: int | None = None, column: str | None = None):
+        self.message = message
+        self.file = None if file is None else str(file)
+        self.row = row
+        self.column = column
+        super().__init__(self.one_line())
+
+    def one_line(self) -> str:
+        where = []
+        if self.file is not None:
+            where.append(self.file)
+        if self.row is not None:
+            where.append(f"row {self.row}")
+        if self.column is not None:
+            where.append(f"column {self.column}" if not self.column.startswith("field ")
+                         else self.column)
+        prefix = ", ".join(where)
+        text = f"{prefix}: {self.message}" if prefix else self.message
+        return " ".join(text.split())  # exactly one line
