@@ -20,7 +20,8 @@ class InputError(Exception):
     file : str or Path, optional
         The offending file.
     row : int, optional
-        1-based line number in the file (the header is line 1 of a CSV).
+        1-based data row of a CSV: data row 1 is line 2 of the file (the header is line 1).
+        The message names both, ``row 4 (line 5)``.
     column : str, optional
         Column name (CSV) or field path (YAML / JSON), e.g. ``sensors[2].lambda0_nm``.
     """
@@ -38,7 +39,7 @@ class InputError(Exception):
         if self.file is not None:
             where.append(self.file)
         if self.row is not None:
-            where.append(f"row {self.row}")
+            where.append(f"row {self.row} (line {self.row + 1})")
         if self.column is not None:
             where.append(f"column {self.column}" if not self.column.startswith("field ")
                          else self.column)
