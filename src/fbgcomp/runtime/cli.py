@@ -1,0 +1,128 @@
+"""Runtime commands: ``serve``, ``sim-interrogator`` and ``log export`` (mounted by fbgcomp.cli)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+
+from fbgcomp.errors import InputError
+
+
+def register(app: typer.Typer) -> None:
+    """Add the runtime commands to the main ``fbgcomp`` application."""
+
+    @app.command("serve")
+    def serve(
+        model: Optional[Path] = typer.Option(None, "--model", help="Model file (JSON) from fbgcomp fit."),
+        source: Optional[str] = typer.Option(
+            None, "--source", help="hyperion://HOST:PORT (stream port; command port = PORT-1 or "
+            "?command_port=N), replay://DIR?speed=S or sim://DIR?rate=HZ&speed=S."),
+        config: Optional[Path] = typer.Option(None, "--config", help="TOML configuration (docs/runtime.md)."),
+        temperatures: Optional[str] = typer.Option(
+            None, "--temperatures", help="Probe temperatures: campaign folder, temperatures CSV or "
+            "const:PROBE=°C,..."),
+        opcua: Optional[str] = typer.Option(None, "--opcua", help="OPC UA endpoint, e.g. "
+                                            "opc.tcp://127.0.0.1:4840/fbgcomp/; 'off' disables."),
+        state_dir: Optional[Path] = typer.Option(None, "--state-dir", help="Certificates and state."),
+        log_dir: Optional[Path] = typer.Option(None, "--log", help="Run-log folder (Parquet)."),
+        rate: Optional[float] = typer.Option(None, "--rate", help="OPC UA update rate, Hz (0 = every batch)."),
+        smoothing: Optional[float] = typer.Option(None, "--smoothing-tau", help="Correction smoothing time constant, s."),
+        allow_anonymous: bool = typer.Option(False, "--allow-anonymous", help="Allow anonymous read-only OPC UA sessions."),
+        users_file: Optional[Path] = typer.Option(None, "--users", help="OPC UA users file (name:pbkdf2_sha256$...)."),
+        duration: Optional[float] = typer.Option(None, "--duration", help="Stop after this many seconds."),
+        verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress to stderr."),
+    ):
+        """Run the real-time compensator: wavelengths -> model -> correction on OPC UA, logged to Parquet."""
+        from fbgcomp.runtime.service import RuntimeConfig, run_service
+
+        logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
+                            format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+        cfg = RuntimeConfig.from_toml(config) if config else RuntimeConfig()
+        if model is not None:
+            cfg.model = str(model)
+        if source is not None:
+            cfg.source.url = source
+        if not cfg.source.url:
+            raise InputError("no source given", column="--source")
+        if temperatures is not None:
+            cfg.source.temperatures = temperatures
+        if opcua is not None:
+            if opcua == "off":
+                cfg.opcua_enabled = False
+            else:
+                cfg.opcua.endpoint = opcua
+        if state_dir is not None:
+            cfg.opcua.state_dir = str(state_dir)
+        if log_dir is not None:
+            cfg.log.dir = str(log_dir)
+        if rate is not None:
+            cfg.opcua.rate_hz = rate
+        if smoothing is not None:
+            cfg.pipeline.smoothing_tau_s = smoothing
+        if allow_anonymous:
+            cfg.opcua.allow_anonymous = True
+        if users_file is not None:
+            cfg.opcua.users_file = str(users_file)
+        svc = run_service(cfg, duration)
+        typer.echo(f"processed {svc.frames} frames in {svc.batches} batches", err=True)
+
+    @app.command("sim-interrogator")
+    def sim_interrogator(
+        campaign: Path = typer.Argument(..., help="Campaign folder whose fbg.csv is served."),
+        host: str = typer.Option("127.0.0.1", "--host", help="Address to listen on."),
+        port: int = typer.Option(51972, "--port", help="Peak stream port (command port = --command-port)."),
+        command_port: int = typer.Option(51971, "--command-port", help="Command port."),
+        rate: float = typer.Option(1000.0, "--rate", help="Frames per second (up to 5000 and more)."),
+        channels: int = typer.Option(1, "--channels", help="Instrument channels the sensors are spread over."),
+        extra_peaks: int = typer.Option(0, "--extra-peaks", help="Additional non-sensor peaks per channel."),
+        speed: float = typer.Option(1.0, "--speed", help="Campaign seconds per real second."),
+        loop: bool = typer.Option(False, "--loop", help="Restart the campaign at its end."),
+        noise_pm: float = typer.Option(0.0, "--noise-pm", help="Gaussian wavelength noise, pm."),
+        fault: List[str] = typer.Option([], "--fault", help="drop:S@t, double:S@t, shift:S@t:nm, stuck:S@t, cut@t:s (t = s since start)."),
+        duration: Optional[float] = typer.Option(None, "--duration", help="Stop after this many seconds."),
+    ):
+        """Serve a campaign's wavelengths over the Hyperion TCP protocol (a simulated instrument)."""
+        import asyncio
+        import sys
+        from fbgcomp.runtime.simulator import (SignalTable, SimConfig, parse_fault,
+                                               run_simulator)
+
+        if not campaign.is_dir():
+            raise InputError("campaign folder not found", file=campaign)
+        table = SignalTable.from_campaign(campaign)
+        cfg = SimConfig(rate_hz=rate, channels=channels, extra_peaks_per_channel=extra_peaks,
+                        speed=speed, loop=loop, noise_pm=noise_pm,
+                        faults=[parse_fault(f) for f in fault])
+
+        def ready(sim):
+            print(f"serving {len(table.sensor_names)} sensors at {rate:g} Hz on {host}: "
+                  f"command {sim.command_port}, stream {sim.stream_port}", file=sys.stderr,
+                  flush=True)
+
+        try:
+            asyncio.run(run_simulator(table, cfg, host, command_port, port, ready, duration))
+        except OSError as exc:
+            raise InputError(f"cannot listen on {host}:{port}/{command_port}: {exc.strerror}",
+                             column="--port")
+        except KeyboardInterrupt:
+            pass
+
+    log_app = typer.Typer(help="Run logs written by serve.", no_args_is_help=True)
+
+    @log_app.command("export")
+    def export(
+        log: Path = typer.Argument(..., help="Run-log folder written by serve --log."),
+        output: Path = typer.Option(..., "-o", "--output", help="Campaign folder to write."),
+        name: Optional[str] = typer.Option(None, "--name", help="Campaign name."),
+        reference: Optional[Path] = typer.Option(None, "--reference", help="TTP reference CSV (time_s from the log start, dx_um, dy_um, dz_um)."),
+    ):
+        """Turn a run log back into a campaign folder (to re-fit a model on a production run)."""
+        from fbgcomp.runtime.log import export_campaign
+
+        c = export_campaign(log, output, name=name, reference_csv=reference)
+        typer.echo(f"campaign written to {output} ({len(c.fbg)} samples)")
+
+    app.add_typer(log_app, name="log")

@@ -1,0 +1,86 @@
+"""Per-sensor fault checks, vectorised over the frames of a batch.
+
+A sample of a sensor is *bad* when its peak is missing, doubled, just outside its window, NaN,
+jumps by more than a physical bound from the previous sample, or has been exactly constant
+for too long (a stuck interrogator channel). A sensor is *faulted* from its first bad sample
+until it has been good for ``recover_s`` (re-admission after a stable period). The state
+carried between batches is a handful of per-sensor vectors, so checks cost O(n·S) numpy work.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+OK, MISSING, DOUBLED, OUT_OF_WINDOW, JUMP, STUCK, NAN, RECOVERING, NO_ZERO = range(9)
+STATUS_NAMES = ("OK", "MISSING", "DOUBLED", "OUT_OF_WINDOW", "JUMP", "STUCK", "NAN",
+                "RECOVERING", "NO_ZERO")
+
+
+@dataclass
+class HealthConfig:
+    max_jump_nm: float = 0.1      # ~80 µε or ~10 K in one sample: not physical for the ram
+    stuck_s: float = 2.0          # exactly constant wavelength this long = stuck channel
+    recover_s: float = 1.0        # a recovered sensor must stay good this long
+
+
+class SensorChecks:
+    """Stateful per-sensor checks; ``check`` returns (status (n,S) uint8, faulted (n,S) bool)."""
+
+    def __init__(self, n_sensors: int, config: HealthConfig | None = None):
+        self.config = config or HealthConfig()
+        self.last_value = np.full(n_sensors, np.nan)       # last finite wavelength, nm
+        self.last_raw = np.full(n_sensors, np.nan)         # last sample as received
+        self.last_change_s = np.full(n_sensors, -np.inf)   # time the value last changed
+        self.last_bad_s = np.full(n_sensors, -np.inf)      # time of the last bad sample
+        self.never_zeroed = np.zeros(n_sensors, bool)
+
+    def check(self, time_s: np.ndarray, wavelength_nm: np.ndarray, peak_count: np.ndarray,
+              near_count: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        cfg = self.config
+        n, S = wavelength_nm.shape
+        t = time_s[:, None]
+        finite = np.isfinite(wavelength_nm)
+        status = np.zeros((n, S), np.uint8)
+
+        # Jump: against the previous finite value (carried over from the previous batch).
+        idx = np.arange(n)[:, None]
+        last_fin = np.maximum.accumulate(np.where(finite, idx, -1), axis=0)
+        prev_fin = np.vstack([np.full((1, S), -1), last_fin[:-1]])
+        prev_val = np.where(prev_fin >= 0,
+                            np.take_along_axis(wavelength_nm, np.maximum(prev_fin, 0), axis=0),
+                            self.last_value)
+        with np.errstate(invalid="ignore"):
+            jump = finite & (np.abs(wavelength_nm - prev_val) > cfg.max_jump_nm)
+
+        # Stuck: exactly the same value as the previous sample for at least stuck_s.
+        prev_raw = np.vstack([self.last_raw[None, :], wavelength_nm[:-1]])
+        changed = ~(finite & (wavelength_nm == prev_raw))
+        t_change = np.maximum.accumulate(np.where(changed, t, -np.inf), axis=0)
+        t_change = np.maximum(t_change, self.last_change_s)
+        stuck = finite & ((t - t_change) >= cfg.stuck_s)
+
+        status[stuck] = STUCK
+        status[jump] = JUMP
+        status[(peak_count == 1) & ~finite] = NAN
+        status[(peak_count == 0) & (near_count > 0)] = OUT_OF_WINDOW
+        status[(peak_count == 0) & (near_count == 0)] = MISSING
+        status[peak_count > 1] = DOUBLED
+        status[:, self.never_zeroed] = NO_ZERO
+        bad = status != OK
+
+        last_bad = np.maximum.accumulate(np.where(bad, t, -np.inf), axis=0)
+        last_bad = np.maximum(last_bad, self.last_bad_s)
+        faulted = bad | ((t - last_bad) < cfg.recover_s)
+        status[faulted & ~bad] = RECOVERING
+
+        # carry state
+        if n:
+            self.last_raw = wavelength_nm[-1].copy()
+            self.last_change_s = t_change[-1].copy()
+            self.last_bad_s = last_bad[-1].copy()
+            has = last_fin[-1] >= 0
+            self.last_value = np.where(
+                has, wavelength_nm[np.maximum(last_fin[-1], 0), np.arange(S)], self.last_value)
+        return status, faulted

@@ -1,0 +1,261 @@
+"""Durable run log: a Parquet dataset of raw wavelengths, temperatures, corrections and health.
+
+Layout of a log folder::
+
+    LOG/meta.json                      sensors, probes, model id, model sets (written atomically)
+    LOG/part-<epoch_ms>-<seq>.parquet  one file per flush, at most ``flush_s`` (≤ 1 s) of frames
+
+Each part is written to a temporary name in the same folder, fsynced and renamed, so a reader
+(or a ``kill -9``) never sees a half-written file; at most the frames of the last ``flush_s``
+are lost. Writing happens in a background thread behind a bounded queue: when the disk is
+slower than the stream the oldest unwritten batches are dropped and counted (``dropped_rows``)
+rather than ever blocking the compensation loop.
+
+Columns: ``time_s`` (instrument epoch s), ``received_s``, ``<S>_nm`` (wavelength in the sensor
+window, NaN if none), ``<S>_peaks`` (peaks in the window), ``<S>_status`` (health code),
+``<P>_C`` (probe temperatures paired with the frame), ``dev_dx_um``… (predicted deviation),
+``half_dx_um``… (95 % interval half-width), ``corr_dx_um``… (published correction),
+``health`` (0 OK, 1 DEGRADED, 2 ALARM, 3 ZEROING), ``model_set`` (index in meta.json
+``model_sets``, -1 none), ``enabled``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import queue
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from fbgcomp.errors import InputError
+
+log = logging.getLogger("fbgcomp.runtime")
+AXES = ("dx", "dy", "dz")
+
+
+def _write_atomic_bytes(path: Path, data: bytes) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+
+
+class RunLog:
+    """Background Parquet writer; ``submit`` never blocks."""
+
+    def __init__(self, folder: str | Path, meta: dict, flush_s: float = 0.5,
+                 max_queue: int = 2000, fsync: bool = True):
+        import pyarrow  # noqa: F401  (fail early if the runtime extra is missing)
+        if not 0 < flush_s <= 1.0:
+            raise InputError(f"log flush interval {flush_s} s must be in (0, 1]",
+                             column="log.flush_s")
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.meta = meta
+        self.sensor_names = list(meta["sensor_names"])
+        self.probe_names = list(meta["probe_names"])
+        self.flush_s = flush_s
+        self.fsync = fsync
+        self.dropped_rows = 0
+        self.written_rows = 0
+        self.files = 0
+        self._q: queue.Queue = queue.Queue(maxsize=max_queue)
+        self._stop = threading.Event()
+        self._seq = 0
+        _write_atomic_bytes(self.folder / "meta.json",
+                            json.dumps(meta, indent=2, default=str).encode())
+        self._thread = threading.Thread(target=self._run, name="fbgcomp-log", daemon=True)
+        self._thread.start()
+
+    def submit(self, batch, result, enabled: bool) -> None:
+        try:
+            self._q.put_nowait((batch, result, enabled))
+        except queue.Full:
+            self.dropped_rows += len(batch)
+
+    def _columns(self, items) -> dict:
+        b = [i[0] for i in items]
+        r = [i[1] for i in items]
+        cat = np.concatenate
+        cols = {"time_s": cat([x.time_s for x in b]),
+                "received_s": cat([np.full(len(x), x.received_s) for x in b])}
+        wl = cat([x.wavelength_nm for x in b])
+        pk = cat([x.peak_count for x in b])
+        st = cat([x.sensor_status for x in r])
+        for j, s in enumerate(self.sensor_names):
+            cols[f"{s}_nm"] = wl[:, j]
+            cols[f"{s}_peaks"] = pk[:, j]
+            cols[f"{s}_status"] = st[:, j]
+        temp = cat([x.temperature_C for x in r])
+        for j, p in enumerate(self.probe_names):
+            cols[f"{p}_C"] = temp[:, j]
+        for name, attr in (("dev", "deviation_um"), ("half", "half_width_um"),
+                           ("corr", "correction_um")):
+            v = cat([getattr(x, attr) for x in r])
+            for j, a in enumerate(AXES):
+                cols[f"{name}_{a}_um"] = v[:, j]
+        cols["health"] = cat([x.health for x in r])
+        cols["model_set"] = cat([x.model_set for x in r])
+        cols["enabled"] = cat([np.full(len(x), e, bool) for x, _, e in items])
+        return cols
+
+    def _write(self, items) -> None:
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+        table = pa.table(self._columns(items))
+        name = f"part-{int(time.time() * 1000):013d}-{self._seq:06d}.parquet"
+        self._seq += 1
+        fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=self.folder)
+        os.close(fd)
+        try:
+            pq.write_table(table, tmp, compression="zstd")
+            if self.fsync:
+                with open(tmp, "rb+") as f:
+                    os.fsync(f.fileno())
+            os.replace(tmp, self.folder / name)
+        except BaseException:
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
+            raise
+        self.written_rows += table.num_rows
+        self.files += 1
+
+    def _run(self) -> None:
+        pending = []
+        deadline = time.monotonic() + self.flush_s
+        while True:
+            timeout = max(0.0, deadline - time.monotonic())
+            try:
+                item = self._q.get(timeout=timeout)
+                pending.append(item)
+            except queue.Empty:
+                pass
+            now = time.monotonic()
+            stopping = self._stop.is_set()
+            if now >= deadline or stopping:
+                if stopping:
+                    while True:
+                        try:
+                            pending.append(self._q.get_nowait())
+                        except queue.Empty:
+                            break
+                if pending:
+                    try:
+                        self._write(pending)
+                    except Exception:  # a full disk must not kill the service
+                        log.exception("run log: could not write %d batches", len(pending))
+                        self.dropped_rows += sum(len(p[0]) for p in pending)
+                    pending = []
+                deadline = now + self.flush_s
+                if stopping:
+                    return
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        self._stop.set()
+        self._thread.join(timeout_s)
+
+
+# --------------------------------------------------------------------------- reading / export
+def read_log(folder: str | Path):
+    """(meta dict, DataFrame of every readable part in time order)."""
+    import pandas as pd
+    import pyarrow.parquet as pq
+    folder = Path(folder)
+    meta_path = folder / "meta.json"
+    if not meta_path.is_file():
+        raise InputError("not a run log (no meta.json)", file=folder)
+    try:
+        meta = json.loads(meta_path.read_text())
+    except json.JSONDecodeError as exc:
+        raise InputError(f"meta.json is not valid JSON: {exc}", file=meta_path)
+    parts = sorted(folder.glob("part-*.parquet"))
+    if not parts:
+        raise InputError("run log has no data files", file=folder)
+    frames = [pq.read_table(p).to_pandas() for p in parts]
+    df = pd.concat(frames, ignore_index=True).sort_values("time_s", kind="stable")
+    return meta, df.reset_index(drop=True)
+
+
+def export_campaign(log_folder: str | Path, out: str | Path, name: str | None = None,
+                    reference_csv: str | Path | None = None):
+    """Turn a run log into a campaign folder (``fbgcomp.campaign.write_campaign``).
+
+    The campaign clock starts at the first logged frame. Only frames where every sensor was
+    healthy (status OK, one peak in its window) go to ``fbg.csv`` and only frames with every
+    probe known go to ``temperatures.csv``: a campaign holds finite numbers only. A production
+    run has no measurement of the true TTP deviation; give one with ``reference_csv``
+    (``time_s`` on the campaign clock, ``dx_um``, ``dy_um``, ``dz_um``). Without it the
+    reference table holds the logged *model prediction*, labelled as such in campaign.yaml
+    (``reference.instrument = "fbgcomp prediction, model <id>"``) so it is never mistaken for
+    a measurement.
+    """
+    import pandas as pd
+    from datetime import datetime, timezone
+    from fbgcomp.campaign import Campaign, write_campaign
+
+    meta, df = read_log(log_folder)
+    df = df.drop_duplicates("time_s", keep="first")
+    t0 = float(df["time_s"].iloc[0])
+    t = df["time_s"].to_numpy() - t0
+    sensors, probes = meta["sensor_names"], meta["probe_names"]
+    ok = np.ones(len(df), bool)
+    for s in sensors:
+        ok &= (df[f"{s}_status"].to_numpy() == 0) & np.isfinite(df[f"{s}_nm"].to_numpy())
+    if not ok.any():
+        raise InputError("no frame in the log has every sensor healthy", file=log_folder)
+    fbg = pd.DataFrame({"time_s": t[ok]})
+    for s in sensors:
+        fbg[f"{s}_nm"] = df[f"{s}_nm"].to_numpy()[ok]
+    tok = np.ones(len(df), bool)
+    for p in probes:
+        tok &= np.isfinite(df[f"{p}_C"].to_numpy())
+    temps = pd.DataFrame({"time_s": t[tok]})
+    for p in probes:
+        temps[f"{p}_C"] = df[f"{p}_C"].to_numpy()[tok]
+    reference_spec = dict(meta.get("reference") or {"point": "TTP", "units": "um"})
+    if reference_csv is not None:
+        reference = pd.read_csv(reference_csv)
+        missing = [c for c in ("time_s", "dx_um", "dy_um", "dz_um") if c not in reference.columns]
+        if missing:
+            raise InputError(f"reference lacks column(s) {', '.join(missing)}",
+                             file=reference_csv)
+        reference_spec.setdefault("instrument", "laser interferometer")
+    else:
+        dev = df[[f"dev_{a}_um" for a in AXES]].to_numpy()
+        rok = np.all(np.isfinite(dev), axis=1)
+        if not rok.any():
+            raise InputError("the log holds no prediction to use as reference; give --reference",
+                             file=log_folder)
+        reference = pd.DataFrame({"time_s": t[rok], **{f"{a}_um": dev[rok, j]
+                                                       for j, a in enumerate(AXES)}})
+        reference_spec["instrument"] = f"fbgcomp prediction, model {meta.get('model_id')}"
+    known = {p["name"]: p for p in (meta.get("temperature_probes") or [])}
+    cmeta = {
+        "name": name or Path(log_folder).name,
+        "kind": meta.get("campaign_kind", "combined"),
+        "description": f"exported from run log {Path(log_folder).name} "
+                       f"(model {meta.get('model_id')})",
+        "start": datetime.fromtimestamp(t0, tz=timezone.utc),
+        "sensors": meta["sensors"],
+        "temperature_probes": [known.get(p, {"name": p, "location": "unknown"}) for p in probes],
+        "reference": reference_spec,
+    }
+    campaign = Campaign.from_arrays(cmeta, fbg=fbg, temperatures=temps, reference=reference)
+    write_campaign(campaign, out)
+    return campaign

@@ -1,0 +1,442 @@
+"""OPC UA server facing the CNC / PLC (asyncua), in its own thread and event loop.
+
+The compensation loop hands over the latest values with :meth:`OpcUaServer.publish`, which
+never blocks: the server thread writes them into the address space at most ``rate_hz`` times a
+second (latest value wins), so clients connecting, disconnecting or reading slowly - and the
+RSA work of their secure-channel handshakes - never stall the loop.
+
+Security: only ``Basic256Sha256`` Sign & Encrypt endpoints, with a self-signed application
+certificate generated on first start under ``<state_dir>/opcua/``. Anonymous sessions are
+refused unless ``allow_anonymous``; even then they may only browse, read and subscribe.
+Writing ``Enabled`` and calling ``ReloadModel`` need a user name and password (users from the
+configured users file or the ``FBGCOMP_OPCUA_USER`` / ``FBGCOMP_OPCUA_PASSWORD`` environment).
+
+Address space (namespace ``urn:fbgcomp:runtime``, string node ids ``FbgComp.<name>``) is
+documented in docs/runtime.md.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import datetime as dt
+import hashlib
+import hmac
+import ipaddress
+import logging
+import os
+import socket
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Awaitable, Callable
+
+from fbgcomp.errors import InputError
+
+log = logging.getLogger("fbgcomp.runtime")
+NAMESPACE = "urn:fbgcomp:runtime"
+APPLICATION_URI = "urn:fbgcomp:runtime:server"
+AXES = ("X", "Y", "Z")
+PBKDF2_ITERATIONS = 100_000
+
+
+# --------------------------------------------------------------------------- certificate
+def ensure_certificate(state_dir: str | Path, application_uri: str = APPLICATION_URI,
+                       days: int = 3650) -> tuple[Path, Path]:
+    """Self-signed server certificate (DER) and key (PEM) under ``state_dir/opcua``.
+
+    Generated once with ``cryptography`` and reused; both files are written atomically and the
+    key is readable by the owner only.
+    """
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import rsa
+    from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+    folder = Path(state_dir) / "opcua"
+    folder.mkdir(parents=True, exist_ok=True)
+    cert_path, key_path = folder / "server_cert.der", folder / "server_key.pem"
+    if cert_path.is_file() and key_path.is_file():
+        try:
+            cert = x509.load_der_x509_certificate(cert_path.read_bytes())
+            uris = cert.extensions.get_extension_for_class(
+                x509.SubjectAlternativeName).value.get_values_for_type(
+                x509.UniformResourceIdentifier)
+            if application_uri in uris and cert.not_valid_after_utc > dt.datetime.now(dt.timezone.utc):
+                return cert_path, key_path
+        except Exception:  # unreadable or foreign certificate: make a new one
+            pass
+    key = rsa.generate_private_key(public_exponent=65537, key_size=2048)
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "fbgcomp runtime"),
+                      x509.NameAttribute(NameOID.ORGANIZATION_NAME, "fbgcomp")])
+    now = dt.datetime.now(dt.timezone.utc)
+    host = socket.gethostname()
+    san = [x509.UniformResourceIdentifier(application_uri), x509.DNSName("localhost"),
+           x509.DNSName(host), x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]
+    cert = (x509.CertificateBuilder().subject_name(name).issuer_name(name)
+            .public_key(key.public_key()).serial_number(x509.random_serial_number())
+            .not_valid_before(now - dt.timedelta(minutes=5))
+            .not_valid_after(now + dt.timedelta(days=days))
+            .add_extension(x509.SubjectAlternativeName(san), critical=False)
+            .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+            .add_extension(x509.KeyUsage(digital_signature=True, content_commitment=True,
+                                         key_encipherment=True, data_encipherment=True,
+                                         key_agreement=False, key_cert_sign=False,
+                                         crl_sign=False, encipher_only=False,
+                                         decipher_only=False), critical=True)
+            .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH,
+                                                  ExtendedKeyUsageOID.CLIENT_AUTH]),
+                           critical=False)
+            .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()),
+                           critical=False)
+            .sign(key, hashes.SHA256()))
+    key_pem = key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
+                                serialization.NoEncryption())
+    _atomic_write(key_path, key_pem, mode=0o600)
+    _atomic_write(cert_path, cert.public_bytes(serialization.Encoding.DER))
+    return cert_path, key_path
+
+
+def _atomic_write(path: Path, data: bytes, mode: int = 0o644) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
+    with os.fdopen(fd, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+# --------------------------------------------------------------------------- users
+def hash_password(password: str, salt: bytes | None = None,
+                  iterations: int = PBKDF2_ITERATIONS) -> str:
+    """``pbkdf2_sha256$<iterations>$<salt b64>$<hash b64>`` for the users file."""
+    salt = salt or os.urandom(16)
+    digest = hashlib.pbkdf2_hmac("sha256", password.encode(), salt, iterations)
+    return (f"pbkdf2_sha256${iterations}${base64.b64encode(salt).decode()}$"
+            f"{base64.b64encode(digest).decode()}")
+
+
+def verify_password(password: str, stored: str) -> bool:
+    try:
+        algo, iters, salt, digest = stored.split("$")
+        if algo != "pbkdf2_sha256":
+            return False
+        got = hashlib.pbkdf2_hmac("sha256", password.encode(), base64.b64decode(salt), int(iters))
+        return hmac.compare_digest(got, base64.b64decode(digest))
+    except (ValueError, TypeError):
+        return False
+
+
+def load_users(users_file: str | Path | None, environ=os.environ) -> dict[str, str]:
+    """User -> password hash, from ``users_file`` (lines ``name:pbkdf2_sha256$...``) and env."""
+    users: dict[str, str] = {}
+    if users_file:
+        path = Path(users_file)
+        if not path.is_file():
+            raise InputError("OPC UA users file not found", file=path)
+        for i, line in enumerate(path.read_text().splitlines(), start=1):
+            line = line.strip()
+            if not line or line.startswith("#"):
+                continue
+            name, sep, stored = line.partition(":")
+            if not sep or not stored.startswith("pbkdf2_sha256$"):
+                raise InputError("expected name:pbkdf2_sha256$... (see docs/runtime.md)",
+                                 file=path, column=f"line {i}")
+            users[name.strip()] = stored.strip()
+    user, pwd = environ.get("FBGCOMP_OPCUA_USER"), environ.get("FBGCOMP_OPCUA_PASSWORD")
+    if user and pwd:
+        users[user] = hash_password(pwd, iterations=1000)  # in memory only
+    return users
+
+
+def make_user_manager(users: dict[str, str], allow_anonymous: bool):
+    from asyncua.crypto.permission_rules import User, UserRole
+
+    class FbgUserManager:
+        """Password users get the User role (read, write, call); anonymous only reads."""
+
+        def __init__(self):
+            self._ok_cache: dict[tuple[str, bytes], bool] = {}
+
+        def get_user(self, iserver, username=None, password=None, certificate=None):
+            if username is None:
+                return User(role=UserRole.Anonymous) if allow_anonymous else None
+            stored = users.get(username)
+            if stored is None or password is None:
+                return None
+            key = (username, hashlib.sha256(password.encode()).digest())
+            if key not in self._ok_cache:
+                self._ok_cache[key] = verify_password(password, stored)
+            return User(role=UserRole.User, name=username) if self._ok_cache[key] else None
+
+    return FbgUserManager()
+
+
+def make_ruleset():
+    from asyncua import ua
+    from asyncua.crypto.permission_rules import SimpleRoleRuleset, UserRole
+
+    class ReadOnlyAnonymousRuleset(SimpleRoleRuleset):
+        """Anonymous sessions may browse, read and subscribe, never write or call."""
+
+        def __init__(self):
+            super().__init__()
+            denied = {ua.NodeId(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary),
+                      ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary),
+                      ua.NodeId(ua.ObjectIds.HistoryReadRequest_Encoding_DefaultBinary)}
+            self._permission_dict[UserRole.Anonymous] = (
+                self._permission_dict[UserRole.User] - denied)
+
+    return ReadOnlyAnonymousRuleset()
+
+
+# --------------------------------------------------------------------------- server
+@dataclass
+class OpcUaConfig:
+    endpoint: str = "opc.tcp://127.0.0.1:4840/fbgcomp/"
+    rate_hz: float = 100.0            # address-space updates per second; 0 = every batch
+    allow_anonymous: bool = False
+    users_file: str | None = None
+    state_dir: str = "fbgcomp-state"
+    trusted_clients_dir: str | None = None   # when set, only these client certificates
+
+
+@dataclass
+class Snapshot:
+    """Values of one published sample (the last frame of a batch)."""
+
+    sample_time_s: float
+    correction_um: tuple
+    deviation_um: tuple
+    half_width_um: tuple
+    expected_rms_um: tuple
+    health: str
+    fallback: str
+    alarm: bool
+    sensor_status: list
+    sensor_wavelength_nm: list
+    source_status: str = ""
+    frames: int = 0
+    model_id: str = ""
+    received_s: float = 0.0
+
+
+class OpcUaServer:
+    """asyncua server in a background thread; ``publish`` and ``enabled`` are thread-safe."""
+
+    def __init__(self, config: OpcUaConfig, sensor_names: list[str], model_id: str,
+                 on_reload: Callable[[str], Awaitable[str]] | None = None,
+                 main_loop: asyncio.AbstractEventLoop | None = None):
+        self.config = config
+        self.sensor_names = list(sensor_names)
+        self.model_id = model_id
+        self.on_reload = on_reload
+        self.main_loop = main_loop
+        self.enabled = True
+        self.users = load_users(config.users_file)
+        self.published = 0
+        self._latest: Snapshot | None = None
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._wake: asyncio.Event | None = None
+        self._stop: asyncio.Event | None = None
+        self.cert_path, self.key_path = ensure_certificate(config.state_dir)
+
+    # -- thread-side API
+    def start(self, timeout_s: float = 30.0) -> None:
+        self._thread = threading.Thread(target=self._thread_main, name="fbgcomp-opcua",
+                                        daemon=True)
+        self._thread.start()
+        if not self._ready.wait(timeout_s):
+            raise RuntimeError("OPC UA server did not start in time")
+        if self._error is not None:
+            raise InputError(f"cannot start OPC UA server at {self.config.endpoint}: "
+                             f"{self._error}", column="opcua.endpoint")
+
+    def publish(self, snapshot: Snapshot) -> None:
+        with self._lock:
+            self._latest = snapshot
+        loop, wake = self._loop, self._wake
+        if loop is not None and wake is not None and not loop.is_closed():
+            try:
+                loop.call_soon_threadsafe(wake.set)
+            except RuntimeError:
+                pass
+
+    def set_model_id(self, model_id: str) -> None:
+        self.model_id = model_id
+        self.publish(self._latest) if self._latest is not None else None
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        if self._loop is not None and self._stop is not None and not self._loop.is_closed():
+            try:
+                self._loop.call_soon_threadsafe(self._stop.set)
+            except RuntimeError:
+                pass
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+
+    def _thread_main(self) -> None:
+        try:
+            asyncio.run(self._main())
+        except BaseException as exc:  # reported to start()
+            self._error = exc
+            self._ready.set()
+
+    # -- server thread
+    async def _main(self) -> None:
+        from asyncua import Server, ua
+
+        self._loop = asyncio.get_running_loop()
+        self._wake, self._stop = asyncio.Event(), asyncio.Event()
+        cfg = self.config
+        server = Server(user_manager=make_user_manager(self.users, cfg.allow_anonymous))
+        await server.init()
+        server.set_endpoint(cfg.endpoint)
+        server.set_server_name("fbgcomp runtime")
+        await server.set_application_uri(APPLICATION_URI)
+        await server.load_certificate(str(self.cert_path))
+        await server.load_private_key(str(self.key_path))
+        server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt],
+                                   permission_ruleset=make_ruleset())
+        tokens = [ua.UserNameIdentityToken]
+        if cfg.allow_anonymous:
+            tokens.append(ua.AnonymousIdentityToken)
+        server.set_identity_tokens(tokens)
+        if cfg.trusted_clients_dir:
+            from asyncua.crypto.truststore import TrustStore
+            from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
+            store = TrustStore([Path(cfg.trusted_clients_dir)], [])
+            await store.load()
+            server.set_certificate_validator(CertificateValidator(
+                CertificateValidatorOptions.TRUSTED_VALIDATION
+                | CertificateValidatorOptions.PEER_CLIENT, store))
+        idx = await server.register_namespace(NAMESPACE)
+        self._nodes = await self._build(server, idx)
+        self._server = server
+        async with server:
+            self._ready.set()
+            await self._publish_loop()
+
+    async def _build(self, server, idx) -> dict:
+        from asyncua import ua
+
+        def nid(name):
+            return ua.NodeId(f"FbgComp.{name}", idx)
+
+        root = await server.nodes.objects.add_object(ua.NodeId("FbgComp", idx),
+                                                     ua.QualifiedName("FbgComp", idx))
+        nodes = {}
+
+        async def var(parent, path, name, value, vtype):
+            node = await parent.add_variable(nid(path), ua.QualifiedName(name, idx),
+                                             ua.Variant(value, vtype))
+            nodes[path] = node
+            return node
+
+        D, S, B, T = (ua.VariantType.Double, ua.VariantType.String, ua.VariantType.Boolean,
+                      ua.VariantType.DateTime)
+        for prefix in ("Correction", "PredictedDeviation", "IntervalHalfWidth",
+                       "ExpectedError"):
+            for a in AXES:
+                await var(root, f"{prefix}{a}_um", f"{prefix}{a}_um", 0.0, D)
+        await var(root, "SampleTime", "SampleTime", dt.datetime.now(dt.timezone.utc), T)
+        await var(root, "Latency_ms", "Latency_ms", 0.0, D)
+        await var(root, "ModelId", "ModelId", self.model_id, S)
+        await var(root, "Health", "Health", "STARTING", S)
+        await var(root, "Alarm", "Alarm", False, B)
+        await var(root, "FallbackInUse", "FallbackInUse", "", S)
+        await var(root, "SourceStatus", "SourceStatus", "", S)
+        await var(root, "FramesProcessed", "FramesProcessed", 0, ua.VariantType.UInt64)
+        enabled = await var(root, "Enabled", "Enabled", bool(self.enabled), B)
+        await enabled.set_writable(True)
+        sensors = await root.add_folder(nid("Sensors"), ua.QualifiedName("Sensors", idx))
+        for s in self.sensor_names:
+            obj = await sensors.add_object(nid(f"Sensors.{s}"), ua.QualifiedName(s, idx))
+            await var(obj, f"Sensors.{s}.Status", "Status", "UNKNOWN", S)
+            await var(obj, f"Sensors.{s}.Wavelength_nm", "Wavelength_nm", float("nan"), D)
+        await root.add_method(nid("ReloadModel"), ua.QualifiedName("ReloadModel", idx),
+                              self._reload, [ua.VariantType.String], [ua.VariantType.String])
+        self._last_text: dict[str, object] = {}
+        return nodes
+
+    async def _reload(self, parent, path_variant):
+        from asyncua import ua
+        path = path_variant.Value if hasattr(path_variant, "Value") else str(path_variant)
+        if self.on_reload is None or self.main_loop is None:
+            return ua.StatusCode(ua.StatusCodes.BadNotSupported)
+        fut = asyncio.run_coroutine_threadsafe(self.on_reload(path), self.main_loop)
+        try:
+            message = await asyncio.wait_for(asyncio.wrap_future(fut), 30.0)
+        except Exception as exc:
+            log.warning("model reload refused: %s", exc)
+            return ua.StatusCode(ua.StatusCodes.BadInvalidArgument)
+        return [ua.Variant(message, ua.VariantType.String)]
+
+    async def _publish_loop(self) -> None:
+        period = 1.0 / self.config.rate_hz if self.config.rate_hz > 0 else 0.0
+        last = 0.0
+        stop_task = asyncio.ensure_future(self._stop.wait())
+        try:
+            while not self._stop.is_set():
+                wake_task = asyncio.ensure_future(self._wake.wait())
+                await asyncio.wait({wake_task, stop_task}, timeout=0.2,
+                                   return_when=asyncio.FIRST_COMPLETED)
+                wake_task.cancel()
+                self._wake.clear()
+                await self._read_enabled()
+                wait = last + period - time.monotonic()
+                if wait > 0:
+                    await asyncio.sleep(wait)  # rate limit: the newest snapshot wins
+                with self._lock:
+                    snap, self._latest = self._latest, None
+                if snap is not None:
+                    last = time.monotonic()
+                    await self._write(snap)
+        finally:
+            stop_task.cancel()
+
+    async def _read_enabled(self) -> None:
+        value = await self._nodes["Enabled"].read_value()
+        self.enabled = bool(value)
+
+    async def _write(self, s: Snapshot) -> None:
+        from asyncua import ua
+        server = self._server
+        now = dt.datetime.now(dt.timezone.utc)
+        src = dt.datetime.fromtimestamp(s.sample_time_s, dt.timezone.utc)
+
+        async def put(path, value, vtype, always=True):
+            if not always and self._last_text.get(path) == value:
+                return
+            self._last_text[path] = value
+            await server.write_attribute_value(
+                self._nodes[path].nodeid,
+                ua.DataValue(ua.Variant(value, vtype), SourceTimestamp=src, ServerTimestamp=now))
+
+        D = ua.VariantType.Double
+        for prefix, values in (("Correction", s.correction_um),
+                               ("PredictedDeviation", s.deviation_um),
+                               ("IntervalHalfWidth", s.half_width_um),
+                               ("ExpectedError", s.expected_rms_um)):
+            for a, v in zip(AXES, values):
+                await put(f"{prefix}{a}_um", float(v), D, always=prefix == "Correction")
+        S = ua.VariantType.String
+        await put("Health", s.health, S, False)
+        await put("Alarm", bool(s.alarm), ua.VariantType.Boolean, False)
+        await put("FallbackInUse", s.fallback, S, False)
+        await put("SourceStatus", s.source_status, S, False)
+        await put("ModelId", self.model_id, S, False)
+        await put("FramesProcessed", int(s.frames), ua.VariantType.UInt64)
+        for name, st, wl in zip(self.sensor_names, s.sensor_status, s.sensor_wavelength_nm):
+            await put(f"Sensors.{name}.Status", st, S, False)
+            await put(f"Sensors.{name}.Wavelength_nm", float(wl), D, False)
+        await put("Latency_ms", (time.time() - s.sample_time_s) * 1e3, D)
+        # SampleTime last: a client watching it sees a complete, consistent sample
+        await put("SampleTime", src, ua.VariantType.DateTime)
+        self.published += 1

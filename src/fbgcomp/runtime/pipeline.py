@@ -1,0 +1,226 @@
+"""Core real-time pipeline: sensor wavelengths (+ temperatures) -> TTP deviation -> correction.
+
+The maths is the offline model's own (``model.predictor(...).predict``); this module only adds
+what a running machine needs, vectorised over every frame of a batch:
+
+* zero state: mean of the first ``model.zero_window_s`` seconds of each signal;
+* sensor checks (:mod:`fbgcomp.runtime.health`) and, from the first bad sample on, the
+  fallback model fitted without the faulted sensor(s) (smallest stored excluded set covering
+  them) - the switch happens on the very sample the fault appears;
+* when no usable model remains: hold the last correction and ramp it linearly to zero over
+  ``ramp_s`` (alarm);
+* optional exponential smoothing of the correction (``smoothing_tau_s``).
+
+Health codes per frame: OK, DEGRADED (fallback in use), ALARM (hold / ramp), ZEROING.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fbgcomp.runtime import health as H
+
+HEALTH_OK, HEALTH_DEGRADED, HEALTH_ALARM, HEALTH_ZEROING = range(4)
+HEALTH_NAMES = ("OK", "DEGRADED", "ALARM", "ZEROING")
+
+
+@dataclass
+class PipelineConfig:
+    ramp_s: float = 2.0              # hold-then-ramp-to-zero time when no model is usable
+    smoothing_tau_s: float = 0.0     # exponential smoothing of the correction; 0 = off
+    health: H.HealthConfig = field(default_factory=H.HealthConfig)
+
+
+@dataclass
+class BatchResult:
+    """Per-frame outputs of one batch (n frames)."""
+
+    time_s: np.ndarray                 # (n,)
+    deviation_um: np.ndarray           # (n,3) predicted TTP deviation, NaN without a model
+    half_width_um: np.ndarray          # (n,3) 95 % prediction interval half-width
+    correction_um: np.ndarray          # (n,3) published correction (-deviation, held, smoothed)
+    expected_rms_um: np.ndarray        # (n,3) residual SD of the model in use
+    health: np.ndarray                 # (n,) uint8 HEALTH_*
+    sensor_status: np.ndarray          # (n,S) uint8 health.* codes
+    model_set: np.ndarray              # (n,) int16 index into Pipeline.model_sets, -1 none
+    temperature_C: np.ndarray          # (n,P) temperatures paired with the frames
+
+    def __len__(self) -> int:
+        return self.time_s.size
+
+
+class Pipeline:
+    """Stateful batch processor around a loaded model (see ``fbgcomp.models.load_model``)."""
+
+    def __init__(self, model, config: PipelineConfig | None = None):
+        self.model = model
+        self.config = config or PipelineConfig()
+        self.sensor_names = list(model.sensor_names)
+        self.probe_names = list(model.probe_names)
+        S, P = len(self.sensor_names), len(self.probe_names)
+        self.checks = H.SensorChecks(S, self.config.health)
+        self.zero_window_s = float(model.zero_window_s)
+        self._zero_sum = np.zeros(S)
+        self._zero_n = np.zeros(S)
+        self._tzero_sum = np.zeros(P)
+        self._tzero_n = np.zeros(P)
+        self._t_first: float | None = None
+        self.wavelength_zero_nm: np.ndarray | None = None
+        self.temperature_zero_C: np.ndarray | None = None
+        # model_sets[0] is the full model; the rest the stored fallbacks
+        self.model_sets: list[frozenset[str]] = [frozenset()] + sorted(
+            (frozenset(s) for s in model.fallback_sets), key=lambda s: (len(s), sorted(s)))
+        self._predictors: dict[int, object] = {}
+        self._choice_cache: dict[bytes, int] = {}
+        self._last_correction = np.zeros(3)
+        self._hold_start_s: float | None = None
+        self._hold_from = np.zeros(3)
+        self._smoothed: np.ndarray | None = None
+        self._last_t: float | None = None
+
+    # -- model selection
+    def predictor(self, k: int):
+        if k not in self._predictors:
+            self._predictors[k] = self.model.predictor(exclude=self.model_sets[k])
+        return self._predictors[k]
+
+    def _choose(self, excluded_mask: np.ndarray) -> int:
+        key = excluded_mask.tobytes()
+        if key not in self._choice_cache:
+            excluded = frozenset(n for n, m in zip(self.sensor_names, excluded_mask) if m)
+            choice = -1
+            for k, s in enumerate(self.model_sets):  # sorted smallest first
+                if excluded <= s:
+                    choice = k
+                    break
+            self._choice_cache[key] = choice
+        return self._choice_cache[key]
+
+    @property
+    def zeroed(self) -> bool:
+        return self.wavelength_zero_nm is not None
+
+    # -- zero state
+    def _accumulate_zero(self, t, wl, status, temp) -> int:
+        """Use the leading rows that fall in the zero window; return how many were used."""
+        if self._t_first is None:
+            self._t_first = float(t[0])
+        end = self._t_first + self.zero_window_s
+        m = int(np.searchsorted(t, end, side="left"))
+        if self.zero_window_s <= 0:
+            m = max(m, 1)  # zero = first frame
+        m = min(m, t.size)
+        good = (status[:m] == H.OK) & np.isfinite(wl[:m])
+        self._zero_sum += np.where(good, wl[:m], 0.0).sum(axis=0)
+        self._zero_n += good.sum(axis=0)
+        if temp.shape[1]:
+            tg = np.isfinite(temp[:m])
+            self._tzero_sum += np.where(tg, temp[:m], 0.0).sum(axis=0)
+            self._tzero_n += tg.sum(axis=0)
+        if m < t.size or (self.zero_window_s <= 0 and m >= 1):
+            with np.errstate(invalid="ignore", divide="ignore"):
+                self.wavelength_zero_nm = np.where(self._zero_n > 0,
+                                                   self._zero_sum / self._zero_n, np.nan)
+                self.temperature_zero_C = np.where(self._tzero_n > 0,
+                                                   self._tzero_sum / self._tzero_n, np.nan)
+            self.checks.never_zeroed = ~np.isfinite(self.wavelength_zero_nm)
+        return m
+
+    # -- main entry
+    def process(self, time_s: np.ndarray, wavelength_nm: np.ndarray, peak_count: np.ndarray,
+                near_count: np.ndarray, temperature_C: np.ndarray,
+                enabled: bool = True) -> BatchResult:
+        n, S = wavelength_nm.shape
+        status, faulted = self.checks.check(time_s, wavelength_nm, peak_count, near_count)
+        dev = np.full((n, 3), np.nan)
+        half = np.full((n, 3), np.nan)
+        rms = np.full((n, 3), np.nan)
+        health = np.full(n, HEALTH_ZEROING, np.uint8)
+        model_set = np.full(n, -1, np.int16)
+        start = 0
+        if not self.zeroed:
+            start = self._accumulate_zero(time_s, wavelength_nm, status, temperature_C)
+            if not self.zeroed:
+                start = n
+            elif self.checks.never_zeroed.any():
+                # sensors without a zero value are faulted from now on
+                status[start:, self.checks.never_zeroed] = H.NO_ZERO
+                faulted[start:, self.checks.never_zeroed] = True
+        if start < n:
+            rows = slice(start, n)
+            f = faulted[rows]
+            temp_ok = np.all(np.isfinite(temperature_C[rows]), axis=1) if temperature_C.shape[1] \
+                else np.ones(n - start, bool)
+            if f.any():
+                patterns, inverse = np.unique(f, axis=0, return_inverse=True)
+                choice = np.array([self._choose(p) for p in patterns])[inverse.reshape(-1)]
+            else:
+                choice = np.zeros(n - start, int)
+            choice = np.where(temp_ok, choice, -1)
+            model_set[rows] = choice
+            for k in np.unique(choice):
+                if k < 0:
+                    continue
+                sel = np.flatnonzero(choice == k) + start
+                p = self.predictor(int(k))
+                d, h = p.predict(wavelength_nm[sel], temperature_C[sel],
+                                 self.wavelength_zero_nm, self.temperature_zero_C)
+                dev[sel], half[sel] = d, h
+                rms[sel] = np.asarray(p.expected_rms_error_um, float)
+            health[rows] = np.where(choice == 0, HEALTH_OK,
+                                    np.where(choice > 0, HEALTH_DEGRADED, HEALTH_ALARM))
+        correction = self._hold_and_ramp(time_s, -dev, health)
+        correction = self._smooth(time_s, correction)
+        if not enabled:
+            correction = np.zeros_like(correction)
+        return BatchResult(time_s, dev, half, correction, rms, health, status, model_set,
+                           temperature_C)
+
+    def _hold_and_ramp(self, t: np.ndarray, corr: np.ndarray, health: np.ndarray) -> np.ndarray:
+        """Rows without a model hold the last good correction, ramped to zero over ramp_s."""
+        n = t.size
+        good = np.isfinite(corr).all(axis=1)
+        zeroing = health == HEALTH_ZEROING
+        out = np.where(zeroing[:, None], 0.0, corr)
+        hold = ~good & ~zeroing
+        if hold.any():
+            idx = np.arange(n)
+            last_good = np.maximum.accumulate(np.where(good, idx, -1))
+            from_batch = last_good >= 0
+            held_value = np.where(from_batch[:, None], corr[np.maximum(last_good, 0)],
+                                  self._last_correction)
+            # a hold starts at the first frame after the last good one
+            first_hold_t = np.where(from_batch,
+                                    t[np.minimum(last_good + 1, n - 1)],
+                                    self._hold_start_s if self._hold_start_s is not None
+                                    else t[np.argmax(hold)])
+            ramp = self.config.ramp_s
+            frac = np.clip(1.0 - (t - first_hold_t) / ramp, 0.0, 1.0) if ramp > 0 \
+                else np.zeros(n)
+            out = np.where(hold[:, None], held_value * frac[:, None], out)
+            if hold[-1]:
+                self._hold_start_s = float(first_hold_t[-1])
+                self._last_correction = held_value[-1]
+        if good.any():
+            last = np.flatnonzero(good)[-1]
+            if last == n - 1:
+                self._hold_start_s = None
+            self._last_correction = corr[last].copy()
+        return out
+
+    def _smooth(self, t: np.ndarray, corr: np.ndarray) -> np.ndarray:
+        tau = self.config.smoothing_tau_s
+        if tau <= 0 or t.size == 0:
+            return corr
+        from scipy.signal import lfilter
+        prev_t = self._last_t if self._last_t is not None else t[0]
+        dt = np.diff(np.concatenate([[prev_t], t]))
+        dt_typ = float(np.median(dt)) if dt.size else 0.0
+        a = float(np.exp(-max(dt_typ, 1e-9) / tau))
+        y0 = self._smoothed if self._smoothed is not None else corr[0]
+        y, _ = lfilter([1.0 - a], [1.0, -a], corr, axis=0, zi=(a * y0)[None, :])
+        self._smoothed = y[-1].copy()
+        self._last_t = float(t[-1])
+        return y

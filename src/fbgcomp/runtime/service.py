@@ -1,0 +1,339 @@
+"""``fbgcomp serve``: source -> pipeline -> OPC UA + run log, in one asyncio loop.
+
+The loop reads whatever frames have arrived, processes them as one vectorised batch, hands the
+batch to the run log (non-blocking queue) and the newest sample to the OPC UA thread
+(non-blocking). When no frame arrives for ``no_data_s`` the last correction is held and ramped
+to zero (alarm) while the source reconnects with capped exponential back-off.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import signal
+import time
+import tomllib
+from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fbgcomp.errors import InputError
+from fbgcomp.runtime import health as H
+from fbgcomp.runtime.opcua import OpcUaConfig, OpcUaServer, Snapshot
+from fbgcomp.runtime.pipeline import HEALTH_ALARM, HEALTH_NAMES, Pipeline, PipelineConfig
+from fbgcomp.runtime.sources import (HyperionSource, PeakMapper, ReplaySource, SensorBatch,
+                                     TableTemperatures, open_temperatures, parse_source_url)
+
+log = logging.getLogger("fbgcomp.runtime")
+
+
+@dataclass
+class SourceConfig:
+    url: str = ""
+    window_nm: float = 2.5
+    speed: float = 1.0               # replay:// and sim:// only
+    loop: bool = False               # replay:// and sim:// only
+    backoff_initial_s: float = 0.1
+    backoff_max_s: float = 5.0
+    stall_timeout_s: float = 2.0
+    no_data_s: float = 0.1           # no frame for this long = hold and ramp (alarm)
+    temperatures: str | None = None  # campaign folder, temperatures CSV or const:P=°C,...
+
+
+@dataclass
+class LogConfig:
+    dir: str | None = None
+    flush_s: float = 0.5
+    fsync: bool = True
+
+
+@dataclass
+class RuntimeConfig:
+    model: str = ""
+    source: SourceConfig = field(default_factory=SourceConfig)
+    pipeline: PipelineConfig = field(default_factory=PipelineConfig)
+    opcua: OpcUaConfig = field(default_factory=OpcUaConfig)
+    log: LogConfig = field(default_factory=LogConfig)
+    opcua_enabled: bool = True
+
+    @classmethod
+    def from_toml(cls, path: str | Path) -> "RuntimeConfig":
+        path = Path(path)
+        try:
+            data = tomllib.loads(path.read_text())
+        except FileNotFoundError:
+            raise InputError("configuration file not found", file=path)
+        except tomllib.TOMLDecodeError as exc:
+            raise InputError(f"not valid TOML: {exc}", file=path)
+        cfg = cls()
+        _update(cfg, data, str(path), "")
+        return cfg
+
+
+def _update(obj, data: dict, file: str, prefix: str) -> None:
+    known = {f.name: f for f in fields(obj)}
+    for key, value in data.items():
+        where = f"field {prefix}{key}"
+        if key not in known:
+            raise InputError(f"unknown configuration key (known: {', '.join(known)})",
+                             file=file, column=where)
+        current = getattr(obj, key)
+        if is_dataclass(current):
+            if not isinstance(value, dict):
+                raise InputError("expected a table", file=file, column=where)
+            _update(current, value, file, f"{prefix}{key}.")
+        else:
+            if current is not None and not isinstance(value, type(current)) and not (
+                    isinstance(current, float) and isinstance(value, int)):
+                raise InputError(f"expected {type(current).__name__}, got {value!r}",
+                                 file=file, column=where)
+            setattr(obj, key, float(value) if isinstance(current, float) else value)
+
+
+def model_meta(model, pipeline: Pipeline, temperature_probes=None) -> dict:
+    def dump(s):
+        return s.model_dump(mode="json") if hasattr(s, "model_dump") else dict(vars(s))
+    return {"format": "fbgcomp-runlog", "version": 1, "model_id": model.model_id,
+            "sensor_names": pipeline.sensor_names, "probe_names": pipeline.probe_names,
+            "sensors": [dump(s) for s in model.sensors],
+            "temperature_probes": temperature_probes,
+            "model_sets": [sorted(s) for s in pipeline.model_sets],
+            "health_names": list(HEALTH_NAMES), "status_names": list(H.STATUS_NAMES),
+            "zero_window_s": pipeline.zero_window_s}
+
+
+class Service:
+    """One compensation service. ``run`` returns when the duration ends or on stop()."""
+
+    def __init__(self, config: RuntimeConfig, model=None):
+        self.config = config
+        self.model = model if model is not None else self._load_model(config.model)
+        self.pipeline = Pipeline(self.model, config.pipeline)
+        self.model_id = self.model.model_id
+        self.mapper = PeakMapper([s.lambda0_nm for s in self.model.sensors],
+                                 config.source.window_nm)
+        self.frames = 0
+        self.batches = 0
+        self.busy_s = 0.0
+        self.last_result = None
+        self.opc: OpcUaServer | None = None
+        self.runlog = None
+        self.sim = None
+        self._stop = asyncio.Event()
+        self._offset_s = 0.0   # wall clock - instrument clock, for no-data hold times
+
+    @staticmethod
+    def _load_model(path):
+        from fbgcomp.models import load_model
+        if not path:
+            raise InputError("no model given", column="--model")
+        return load_model(path)
+
+    # -- set-up
+    async def _open_source(self):
+        cfg = self.config.source
+        scheme, opts = parse_source_url(cfg.url)
+        probes = self.pipeline.probe_names
+        temps = None
+        probe_specs = None
+        if scheme == "hyperion":
+            src = HyperionSource(opts["host"], int(opts["stream_port"]), int(opts["command_port"]),
+                                 self.mapper, cfg.backoff_initial_s, cfg.backoff_max_s,
+                                 cfg.stall_timeout_s)
+        elif scheme == "replay":
+            src = ReplaySource(opts["path"], self.pipeline.sensor_names, probes,
+                               float(opts.get("speed", cfg.speed)),
+                               loop=opts.get("loop", str(cfg.loop)).lower() in ("1", "true"))
+            temps = src.temperatures
+            probe_specs = _probe_specs(opts["path"])
+        else:  # sim://DIR: an in-process simulated instrument replaying the campaign
+            from fbgcomp.runtime.simulator import SignalTable, SimConfig, SimulatedHyperion
+            table = SignalTable.from_campaign(opts["path"])
+            speed = float(opts.get("speed", cfg.speed))
+            loop = opts.get("loop", str(cfg.loop)).lower() in ("1", "true")
+            sim = SimulatedHyperion(table, SimConfig(rate_hz=float(opts.get("rate", 1000)),
+                                                     channels=int(opts.get("channels", 1)),
+                                                     speed=speed, loop=loop))
+            await sim.start()
+            self.sim = sim
+            src = HyperionSource("127.0.0.1", sim.stream_port, sim.command_port, self.mapper,
+                                 cfg.backoff_initial_s, cfg.backoff_max_s, cfg.stall_timeout_s)
+            if probes:
+                temps = TableTemperatures.from_campaign(opts["path"], probes, speed, loop)
+                temps.origin = sim._t0 - table.time_s[0] / speed
+            probe_specs = _probe_specs(opts["path"])
+        if cfg.temperatures is not None or temps is None:
+            temps = open_temperatures(cfg.temperatures, probes, cfg.speed, cfg.loop)
+            if cfg.temperatures and Path(cfg.temperatures).is_dir():
+                probe_specs = _probe_specs(cfg.temperatures)
+        return src, temps, probe_specs
+
+    # -- model reload (called from the OPC UA thread through run_coroutine_threadsafe)
+    async def reload(self, path: str) -> str:
+        path = path or self.config.model
+        loop = asyncio.get_running_loop()
+        new = await loop.run_in_executor(None, self._load_model, path)
+        if list(new.sensor_names) != self.pipeline.sensor_names or \
+                list(new.probe_names) != self.pipeline.probe_names:
+            raise InputError("reloaded model expects other sensors or probes", file=path)
+        pipe = Pipeline(new, self.config.pipeline)
+        # keep the running zero state and sensor history: the machine has not been re-zeroed
+        old = self.pipeline
+        pipe.checks = old.checks
+        pipe._t_first = old._t_first
+        pipe._zero_sum, pipe._zero_n = old._zero_sum, old._zero_n
+        pipe._tzero_sum, pipe._tzero_n = old._tzero_sum, old._tzero_n
+        pipe.wavelength_zero_nm, pipe.temperature_zero_C = old.wavelength_zero_nm, \
+            old.temperature_zero_C
+        pipe._last_correction, pipe._hold_start_s = old._last_correction, old._hold_start_s
+        pipe._smoothed, pipe._last_t = old._smoothed, old._last_t
+        self.model, self.pipeline, self.model_id = new, pipe, new.model_id
+        if self.opc is not None:
+            self.opc.model_id = self.model_id
+        log.info("model reloaded from %s (%s)", path, self.model_id)
+        return f"loaded {self.model_id}"
+
+    def stop(self) -> None:
+        self._stop.set()
+
+    # -- main loop
+    async def run(self, duration_s: float | None = None) -> None:
+        source, temps, probe_specs = await self._open_source()
+        self.source, self.temps = source, temps
+        main_loop = asyncio.get_running_loop()
+        if self.config.log.dir:
+            from fbgcomp.runtime.log import RunLog
+            self.runlog = RunLog(self.config.log.dir,
+                                 model_meta(self.model, self.pipeline, probe_specs),
+                                 self.config.log.flush_s, fsync=self.config.log.fsync)
+        if self.config.opcua_enabled:
+            self.opc = OpcUaServer(self.config.opcua, self.pipeline.sensor_names, self.model_id,
+                                   on_reload=self.reload, main_loop=main_loop)
+            await main_loop.run_in_executor(None, self.opc.start)
+        queue: asyncio.Queue[SensorBatch | None] = asyncio.Queue()
+
+        async def pump():
+            try:
+                async for b in source.batches():
+                    queue.put_nowait(b)
+            finally:
+                queue.put_nowait(None)
+
+        pump_task = asyncio.create_task(pump())
+        end = None if duration_s is None else time.monotonic() + duration_s
+        try:
+            while not self._stop.is_set():
+                timeout = self.config.source.no_data_s
+                if end is not None:
+                    remaining = end - time.monotonic()
+                    if remaining <= 0:
+                        break
+                    timeout = min(timeout, remaining)
+                try:
+                    first = await asyncio.wait_for(queue.get(), timeout)
+                except asyncio.TimeoutError:
+                    if end is None or time.monotonic() < end:
+                        self._no_data()
+                    continue
+                items = [first]
+                while not queue.empty():
+                    items.append(queue.get_nowait())
+                if any(i is None for i in items):
+                    items = [i for i in items if i is not None]
+                    if items:
+                        self._process(SensorBatch.concat(items))
+                    break  # the source ended (replay finished)
+                self._process(SensorBatch.concat(items))
+        finally:
+            await source.close()
+            pump_task.cancel()
+            try:
+                await pump_task
+            except (asyncio.CancelledError, Exception):
+                pass
+            if self.sim is not None:
+                await self.sim.stop()
+            if self.opc is not None:
+                await main_loop.run_in_executor(None, self.opc.stop)
+            if self.runlog is not None:
+                await main_loop.run_in_executor(None, self.runlog.close)
+
+    def _process(self, batch: SensorBatch) -> None:
+        if len(batch) == 0:
+            return
+        t0 = time.perf_counter()
+        enabled = self.opc.enabled if self.opc is not None else True
+        temps = self.temps.latest(batch.time_s)
+        res = self.pipeline.process(batch.time_s, batch.wavelength_nm, batch.peak_count,
+                                    batch.near_count, temps, enabled)
+        self._offset_s = batch.received_s - float(batch.time_s[-1])
+        self.frames += len(batch)
+        self.batches += 1
+        self.last_result = res
+        if self.runlog is not None:
+            self.runlog.submit(batch, res, enabled)
+        if self.opc is not None:
+            self.opc.publish(self._snapshot(res, batch.wavelength_nm[-1], batch.received_s))
+        self.busy_s += time.perf_counter() - t0
+
+    def _no_data(self) -> None:
+        """No frame for no_data_s: hold / ramp the last correction (alarm), sensors missing."""
+        if not self.pipeline.zeroed:
+            return
+        t = np.array([time.time() - self._offset_s])
+        S = len(self.pipeline.sensor_names)
+        corr = self.pipeline._hold_and_ramp(t, np.full((1, 3), np.nan),
+                                            np.array([HEALTH_ALARM], np.uint8))
+        nan3 = np.full((1, 3), np.nan)
+        from fbgcomp.runtime.pipeline import BatchResult
+        res = BatchResult(t, nan3, nan3, corr, nan3, np.array([HEALTH_ALARM], np.uint8),
+                          np.full((1, S), H.MISSING, np.uint8), np.array([-1], np.int16),
+                          np.full((1, len(self.pipeline.probe_names)), np.nan))
+        self.last_result = res
+        if self.opc is not None:
+            self.opc.publish(self._snapshot(res, np.full(S, np.nan), time.time()))
+
+    def _snapshot(self, res, wavelength_nm, received_s) -> Snapshot:
+        k = int(res.model_set[-1])
+        names = self.pipeline.sensor_names
+        fallback = ",".join(sorted(self.pipeline.model_sets[k])) if k > 0 else ""
+        h = int(res.health[-1])
+        return Snapshot(
+            sample_time_s=float(res.time_s[-1]),
+            correction_um=tuple(res.correction_um[-1]),
+            deviation_um=tuple(res.deviation_um[-1]),
+            half_width_um=tuple(res.half_width_um[-1]),
+            expected_rms_um=tuple(res.expected_rms_um[-1]),
+            health=HEALTH_NAMES[h], fallback=fallback, alarm=h == HEALTH_ALARM,
+            sensor_status=[H.STATUS_NAMES[c] for c in res.sensor_status[-1]],
+            sensor_wavelength_nm=list(wavelength_nm),
+            source_status=getattr(self.source, "status", ""), frames=self.frames,
+            model_id=self.model_id, received_s=received_s)
+
+
+def _probe_specs(folder):
+    try:
+        from fbgcomp.campaign import read_campaign
+        c = read_campaign(folder)
+        return [p.model_dump(mode="json") if hasattr(p, "model_dump") else dict(vars(p))
+                for p in c.meta.temperature_probes]
+    except Exception:
+        return None
+
+
+def run_service(config: RuntimeConfig, duration_s: float | None = None) -> Service:
+    """Run until SIGINT / SIGTERM (graceful: the run log is flushed) or ``duration_s``."""
+    service = Service(config)
+
+    async def main():
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                loop.add_signal_handler(sig, service.stop)
+            except (NotImplementedError, RuntimeError):
+                pass
+        await service.run(duration_s)
+
+    asyncio.run(main())
+    return service

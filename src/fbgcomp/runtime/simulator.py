@@ -1,0 +1,332 @@
+"""Simulated Hyperion instrument: serves the Hyperion protocol on loopback from recorded signals.
+
+The signal table (a campaign's ``fbg.csv``, later the digital twin) is interpolated in time at
+the configured frame rate; sensors are laid out over channels in order. Faults can be injected
+at given times (seconds since the simulator started streaming)::
+
+    drop:S3@5          grating S3 disappears from t = 5 s
+    double:S2@3        S2 shows two peaks (the second 0.3 nm higher) from t = 3 s
+    shift:S4@2:+6      S4 moves by +6 nm (out of its window) from t = 2 s
+    cut@4:1.5          every connection is closed at t = 4 s and refused for 1.5 s
+    stuck:S1@2         S1 repeats its last value from t = 2 s
+
+Frames are produced in vectorised blocks (all frames due since the last tick) and written to
+every connected stream client; a client that does not keep up (more than ``max_buffer_bytes``
+queued) is disconnected rather than slowing the instrument down.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import re
+import struct
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from fbgcomp.errors import InputError
+from fbgcomp.runtime import hyperion
+
+_FAULT_RE = re.compile(r"^(drop|double|shift|stuck):([^@]+)@([0-9.eE+-]+)(?::([0-9.eE+-]+))?$")
+_CUT_RE = re.compile(r"^cut@([0-9.eE+-]+)(?::([0-9.eE+-]+))?$")
+
+
+@dataclass
+class Fault:
+    """One injected fault: ``kind`` on ``sensor`` from ``at_s`` (``value``: shift nm / cut s)."""
+
+    kind: str
+    sensor: str | None
+    at_s: float
+    value: float = 0.0
+
+
+def parse_fault(text: str) -> Fault:
+    """Parse one fault specification (see the module docstring)."""
+    text = text.strip()
+    m = _FAULT_RE.match(text)
+    if m:
+        kind, sensor, at, value = m.groups()
+        default = 6.0 if kind == "shift" else 0.0
+        return Fault(kind, sensor, float(at), float(value) if value else default)
+    m = _CUT_RE.match(text)
+    if m:
+        return Fault("cut", None, float(m.group(1)), float(m.group(2) or 1.0))
+    raise InputError(f"bad fault {text!r}: expected drop:S@t, double:S@t, shift:S@t:nm, "
+                     "stuck:S@t or cut@t:duration", column="--fault")
+
+
+@dataclass
+class SignalTable:
+    """Wavelength signals to serve: ``time_s`` (m,), ``wavelengths_nm`` (m, S), sensor names."""
+
+    time_s: np.ndarray
+    wavelengths_nm: np.ndarray
+    sensor_names: list[str]
+
+    @classmethod
+    def from_campaign(cls, folder: str | Path) -> "SignalTable":
+        from fbgcomp.campaign import read_campaign
+        c = read_campaign(folder)
+        names = [s.name for s in c.meta.sensors]
+        wl = c.fbg[[f"{n}_nm" for n in names]].to_numpy(dtype=np.float64)
+        return cls(c.fbg["time_s"].to_numpy(dtype=np.float64), wl, names)
+
+    def at(self, campaign_time_s: np.ndarray) -> np.ndarray:
+        """Linear interpolation of every sensor at the given campaign times, (n, S)."""
+        out = np.empty((campaign_time_s.size, len(self.sensor_names)))
+        for j in range(out.shape[1]):  # loop over sensors only, each column vectorised in time
+            out[:, j] = np.interp(campaign_time_s, self.time_s, self.wavelengths_nm[:, j])
+        return out
+
+
+@dataclass
+class SimConfig:
+    rate_hz: float = 1000.0
+    channels: int = 1
+    extra_peaks_per_channel: int = 0
+    speed: float = 1.0
+    loop: bool = False
+    noise_pm: float = 0.0
+    serial_number: str = "SIM-HYPERION-0001"
+    faults: list[Fault] = field(default_factory=list)
+    max_buffer_bytes: int = 16 << 20
+    seed: int = 0
+
+
+class SimulatedHyperion:
+    """Asyncio Hyperion instrument serving ``table`` on ``host`` (command and stream ports)."""
+
+    def __init__(self, table: SignalTable, config: SimConfig | None = None,
+                 host: str = "127.0.0.1", command_port: int = 0, stream_port: int = 0):
+        self.table = table
+        self.config = config or SimConfig()
+        if not 0 < self.config.rate_hz <= 20_000:
+            raise InputError(f"rate {self.config.rate_hz} Hz outside (0, 20000]", column="--rate")
+        if self.config.channels < 1:
+            raise InputError("at least one channel is needed", column="--channels")
+        for f in self.config.faults:
+            if f.sensor is not None and f.sensor not in table.sensor_names:
+                raise InputError(f"fault names unknown sensor {f.sensor!r}; sensors are "
+                                 f"{', '.join(table.sensor_names)}", column="--fault")
+        self.host = host
+        self._ports = (command_port, stream_port)
+        self._servers: list[asyncio.AbstractServer] = []
+        self._stream_writers: set[asyncio.StreamWriter] = set()
+        self._all_writers: set[asyncio.StreamWriter] = set()
+        self._t0: float | None = None
+        self._sent = 0
+        self._cut_until = -1.0
+        self._rng = np.random.default_rng(self.config.seed)
+        self.finished = asyncio.Event()
+        self._task: asyncio.Task | None = None
+        S = len(table.sensor_names)
+        per = -(-S // self.config.channels)
+        self._sensor_channel = np.arange(S) // per
+        self._stuck_value: dict[int, float] = {}
+        self._fired_cuts: set[int] = set()
+
+    @property
+    def command_port(self) -> int:
+        return self._servers[0].sockets[0].getsockname()[1]
+
+    @property
+    def stream_port(self) -> int:
+        return self._servers[1].sockets[0].getsockname()[1]
+
+    @property
+    def frames_sent(self) -> int:
+        return self._sent
+
+    async def start(self) -> None:
+        self._servers = [
+            await asyncio.start_server(self._serve_commands, self.host, self._ports[0]),
+            await asyncio.start_server(self._serve_stream, self.host, self._ports[1]),
+        ]
+        self._t0 = time.time()
+        self._task = asyncio.create_task(self._stream_loop())
+
+    async def stop(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            try:
+                await self._task
+            except (asyncio.CancelledError, Exception):
+                pass
+        self._close_clients()
+        for s in self._servers:
+            s.close()
+        for s in self._servers:
+            try:
+                await asyncio.wait_for(s.wait_closed(), 1.0)
+            except asyncio.TimeoutError:
+                pass
+
+    def _close_clients(self) -> None:
+        for w in list(self._all_writers):
+            w.close()
+        self._all_writers.clear()
+        self._stream_writers.clear()
+
+    def _elapsed(self) -> float:
+        return time.time() - (self._t0 or time.time())
+
+    def _link_cut(self) -> bool:
+        return self._elapsed() < self._cut_until
+
+    # -- command port
+    async def _serve_commands(self, reader, writer) -> None:
+        if self._link_cut():
+            writer.close()
+            return
+        self._all_writers.add(writer)
+        try:
+            while True:
+                _, cmd, _arg = await hyperion.read_request(reader)
+                writer.write(self._answer(cmd))
+                await writer.drain()
+        except (asyncio.IncompleteReadError, ConnectionError):
+            pass
+        finally:
+            self._all_writers.discard(writer)
+            writer.close()
+
+    def _answer(self, cmd: str) -> bytes:
+        c = cmd.strip().lower()
+        if c == "#getserialnumber":
+            return hyperion.encode_response("", self.config.serial_number.encode("ascii"))
+        if c == "#getdutchannelcount":
+            return hyperion.encode_response("", struct.pack("<I", self.config.channels))
+        if c == "#isready":
+            return hyperion.encode_response("", b"\x01")
+        if c == "#getlaserscanspeed":
+            return hyperion.encode_response("", struct.pack("<I", int(self.config.rate_hz)))
+        return hyperion.encode_response(f"unknown command {cmd}", b"", status=1)
+
+    # -- stream port
+    async def _serve_stream(self, reader, writer) -> None:
+        if self._link_cut():
+            writer.close()
+            return
+        self._all_writers.add(writer)
+        self._stream_writers.add(writer)
+        try:
+            await reader.read()  # clients never send on the stream port; wait for EOF
+        except ConnectionError:
+            pass
+        finally:
+            self._stream_writers.discard(writer)
+            self._all_writers.discard(writer)
+            writer.close()
+
+    async def _stream_loop(self) -> None:
+        cfg = self.config
+        period = 1.0 / cfg.rate_hz
+        tick = max(period, 0.0005)
+        duration = (self.table.time_s[-1] - self.table.time_s[0]) / cfg.speed
+        while True:
+            elapsed = self._elapsed()
+            for i, f in enumerate(cfg.faults):
+                if f.kind == "cut" and i not in self._fired_cuts and elapsed >= f.at_s:
+                    self._fired_cuts.add(i)
+                    self._cut_until = f.at_s + f.value
+                    self._close_clients()
+            due = int(elapsed * cfg.rate_hz) + 1
+            if due > self._sent:
+                k = np.arange(self._sent, due)
+                t_rel = k * period
+                if not cfg.loop and t_rel[0] > duration:
+                    self._close_clients()
+                    self.finished.set()
+                    return
+                if not cfg.loop:
+                    k = k[t_rel <= duration]
+                    t_rel = t_rel[: k.size]
+                self._sent = due
+                if not self._link_cut() and self._stream_writers and k.size:
+                    self._broadcast(self._frames(t_rel))
+            next_t = self._sent * period
+            await asyncio.sleep(max(0.0, min(tick, next_t - self._elapsed())))
+
+    def _broadcast(self, data: bytes) -> None:
+        for w in list(self._stream_writers):
+            if w.transport.get_write_buffer_size() > self.config.max_buffer_bytes:
+                self._stream_writers.discard(w)
+                w.close()  # a slow reader is dropped, as a real instrument would
+                continue
+            w.write(data)
+
+    def _frames(self, t_rel_s: np.ndarray) -> bytes:
+        """Encode the frames at stream-relative times ``t_rel_s`` (faults applied)."""
+        cfg = self.config
+        span = self.table.time_s[-1] - self.table.time_s[0]
+        camp_t = t_rel_s * cfg.speed
+        if cfg.loop and span > 0:
+            camp_t = np.mod(camp_t, span)
+        wl = self.table.at(self.table.time_s[0] + camp_t)
+        if cfg.noise_pm:
+            wl += self._rng.normal(0.0, cfg.noise_pm * 1e-3, wl.shape)
+        # Fault boundaries split the block into runs with one peak layout each.
+        edges = sorted({f.at_s for f in cfg.faults if f.sensor is not None})
+        seg = np.searchsorted(np.asarray(edges), t_rel_s, side="right") if edges else \
+            np.zeros(t_rel_s.size, int)
+        out = []
+        for s in np.unique(seg):
+            rows = seg == s
+            t_now = t_rel_s[rows][0]
+            out.append(self._encode_segment(self._t0 + t_rel_s[rows], wl[rows], t_now))
+        return b"".join(out)
+
+    def _encode_segment(self, stamp_s: np.ndarray, wl: np.ndarray, t_rel: float) -> bytes:
+        cfg = self.config
+        names = self.table.sensor_names
+        dropped, doubled = set(), set()
+        for f in cfg.faults:
+            if f.sensor is None or t_rel < f.at_s:
+                continue
+            j = names.index(f.sensor)
+            if f.kind == "drop":
+                dropped.add(j)
+            elif f.kind == "double":
+                doubled.add(j)
+            elif f.kind == "shift":
+                wl[:, j] += f.value
+            elif f.kind == "stuck":
+                self._stuck_value.setdefault(j, float(wl[0, j]))
+                wl[:, j] = self._stuck_value[j]
+        cols, counts = [], np.zeros(cfg.channels, np.int16)
+        for ch in range(cfg.channels):
+            members = [j for j in np.flatnonzero(self._sensor_channel == ch) if j not in dropped]
+            ch_cols = []
+            for j in members:
+                ch_cols.append(wl[:, j])
+                if j in doubled:
+                    ch_cols.append(wl[:, j] + 0.3)
+            for e in range(cfg.extra_peaks_per_channel):
+                # Other gratings on the fibre, far from every sensor window.
+                ch_cols.append(np.full(wl.shape[0], 1600.0 + 2.0 * e + 0.1 * ch))
+            if ch_cols:
+                order = np.argsort([c[0] for c in ch_cols], kind="stable")
+                ch_cols = [ch_cols[i] for i in order]
+            counts[ch] = len(ch_cols)
+            cols.extend(ch_cols)
+        peaks = np.column_stack(cols) if cols else np.zeros((wl.shape[0], 0))
+        serial = int.from_bytes(self.config.serial_number.encode()[-8:].rjust(8, b"\0"), "little")
+        return hyperion.encode_peak_frames(serial, stamp_s, counts, peaks)
+
+
+async def run_simulator(table: SignalTable, config: SimConfig, host: str, command_port: int,
+                        stream_port: int, ready=None, duration_s: float | None = None) -> None:
+    """Serve until the signals end (unless looping), ``duration_s`` passes, or cancellation."""
+    sim = SimulatedHyperion(table, config, host, command_port, stream_port)
+    await sim.start()
+    if ready is not None:
+        ready(sim)
+    try:
+        waiter = asyncio.create_task(sim.finished.wait())
+        await asyncio.wait({waiter}, timeout=duration_s)
+        waiter.cancel()
+    finally:
+        await sim.stop()

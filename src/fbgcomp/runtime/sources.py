@@ -1,0 +1,339 @@
+"""Wavelength and temperature sources behind one interface.
+
+A wavelength source is an async iterator of :class:`SensorBatch` (every frame that has arrived,
+already mapped to the model's sensors); sources that lose their link reconnect by themselves
+with capped exponential back-off. A temperature source answers the latest value per probe.
+
+Peaks are mapped to sensors by wavelength windows ``lambda0_nm ± window_nm``: exactly one peak
+in the window gives the sensor's wavelength; none (grating lost or moved out of its window) or
+more than one (doubled peak) gives NaN and a peak count the health checks turn into a fault.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import AsyncIterator, Protocol
+from urllib.parse import parse_qs, urlparse
+
+import numpy as np
+
+from fbgcomp.errors import InputError
+from fbgcomp.runtime import hyperion
+
+log = logging.getLogger("fbgcomp.runtime")
+
+
+@dataclass
+class SensorBatch:
+    """Frames mapped to sensors.
+
+    time_s : (n,) instrument time stamps, s since the epoch (replay: start + campaign time)
+    wavelength_nm : (n, S) the single peak found in each sensor's window, NaN otherwise
+    peak_count : (n, S) int8 peaks in the window (0 missing, 1 good, >1 doubled)
+    near_count : (n, S) int8 peaks in the guard band just outside the window
+    received_s : wall-clock time the batch was received (for latency figures)
+    """
+
+    time_s: np.ndarray
+    wavelength_nm: np.ndarray
+    peak_count: np.ndarray
+    near_count: np.ndarray
+    received_s: float
+
+    def __len__(self) -> int:
+        return self.time_s.size
+
+    @staticmethod
+    def concat(batches: list["SensorBatch"]) -> "SensorBatch":
+        if len(batches) == 1:
+            return batches[0]
+        return SensorBatch(np.concatenate([b.time_s for b in batches]),
+                           np.concatenate([b.wavelength_nm for b in batches]),
+                           np.concatenate([b.peak_count for b in batches]),
+                           np.concatenate([b.near_count for b in batches]),
+                           max(b.received_s for b in batches))
+
+
+class PeakMapper:
+    """Assign peaks to sensors by wavelength windows (vectorised over frames and peaks)."""
+
+    def __init__(self, lambda0_nm: np.ndarray, window_nm: float = 2.5,
+                 guard_nm: float | None = None):
+        self.lambda0_nm = np.asarray(lambda0_nm, dtype=np.float64)
+        self.window_nm = float(window_nm)
+        self.guard_nm = float(window_nm if guard_nm is None else guard_nm)
+        self.lo = self.lambda0_nm - self.window_nm
+        self.hi = self.lambda0_nm + self.window_nm
+
+    def map(self, peaks_nm: np.ndarray, received_s: float, time_s: np.ndarray) -> SensorBatch:
+        """Map (n, K) peaks (NaN = no peak) to (n, S) sensor wavelengths."""
+        p = peaks_nm[:, :, None]
+        inside = (p >= self.lo) & (p <= self.hi)                      # (n, K, S)
+        count = inside.sum(axis=1)
+        value = np.where(inside, p, 0.0).sum(axis=1)
+        wl = np.where(count == 1, value, np.nan)
+        dist = np.abs(p - self.lambda0_nm)
+        near = ((dist > self.window_nm) & (dist <= self.window_nm + self.guard_nm)).sum(axis=1)
+        return SensorBatch(time_s, wl, np.minimum(count, 127).astype(np.int8),
+                           np.minimum(near, 127).astype(np.int8), received_s)
+
+    def map_blocks(self, blocks: list[hyperion.PeakBlock], received_s: float) -> SensorBatch:
+        return SensorBatch.concat([self.map(b.wavelengths_nm, received_s, b.timestamp_s)
+                                   for b in blocks])
+
+
+class WavelengthSource(Protocol):
+    """What the service reads wavelengths from."""
+
+    def batches(self) -> AsyncIterator[SensorBatch]: ...
+    async def close(self) -> None: ...
+    status: str
+
+
+class TemperatureSource(Protocol):
+    """The latest temperature per probe (°C), in ``probe_names`` order; NaN when unknown."""
+
+    probe_names: list[str]
+
+    def latest(self, time_s: np.ndarray) -> np.ndarray:
+        """(n, P) temperatures to pair with wavelength samples stamped ``time_s``."""
+        ...
+
+
+# --------------------------------------------------------------------------- temperatures
+class NoTemperatures:
+    """For models that need no probe (eq. 11 style)."""
+
+    def __init__(self, probe_names: list[str]):
+        self.probe_names = list(probe_names)
+
+    def latest(self, time_s: np.ndarray) -> np.ndarray:
+        return np.full((time_s.size, len(self.probe_names)), np.nan)
+
+
+class ConstantTemperatures:
+    """Fixed probe temperatures, e.g. ``const:T_bulk=20.5,T_surf=21``."""
+
+    def __init__(self, probe_names: list[str], values_C: dict[str, float]):
+        missing = [p for p in probe_names if p not in values_C]
+        if missing:
+            raise InputError(f"no constant temperature for probe(s) {', '.join(missing)}",
+                             column="--temperatures")
+        self.probe_names = list(probe_names)
+        self._row = np.array([values_C[p] for p in probe_names], dtype=np.float64)
+
+    def latest(self, time_s: np.ndarray) -> np.ndarray:
+        return np.broadcast_to(self._row, (time_s.size, self._row.size)).copy()
+
+
+class TableTemperatures:
+    """Temperatures recorded in a campaign, replayed against the wavelength time stamps.
+
+    ``clock_origin_s`` is the epoch time that campaign time 0 corresponds to; it is fixed on
+    the first call (the first wavelength sample) unless given, so a campaign replayed by an
+    instrument simulator and its temperatures stay in step. Only samples at or before the
+    requested time are used (latest value per probe, no look-ahead).
+    """
+
+    def __init__(self, probe_names: list[str], time_s: np.ndarray, temperature_C: np.ndarray,
+                 speed: float = 1.0, clock_origin_s: float | None = None, loop: bool = False):
+        self.probe_names = list(probe_names)
+        self.time_s = np.asarray(time_s, dtype=np.float64)
+        self.values = np.asarray(temperature_C, dtype=np.float64).reshape(self.time_s.size, -1)
+        self.speed = float(speed)
+        self.origin = clock_origin_s
+        self.loop = loop
+
+    @classmethod
+    def from_campaign(cls, folder: str | Path, probe_names: list[str], speed: float = 1.0,
+                      loop: bool = False) -> "TableTemperatures":
+        from fbgcomp.campaign import read_campaign
+        c = read_campaign(folder)
+        return cls.from_frame(c.temperatures, probe_names, speed, str(folder), loop=loop)
+
+    @classmethod
+    def from_csv(cls, path: str | Path, probe_names: list[str], speed: float = 1.0,
+                 loop: bool = False) -> "TableTemperatures":
+        import pandas as pd
+        return cls.from_frame(pd.read_csv(path), probe_names, speed, str(path), loop=loop)
+
+    @classmethod
+    def from_frame(cls, df, probe_names, speed, where, loop=False) -> "TableTemperatures":
+        cols = [f"{p}_C" for p in probe_names]
+        missing = [c for c in cols + ["time_s"] if c not in df.columns]
+        if missing:
+            raise InputError(f"temperature table lacks column(s) {', '.join(missing)}", file=where)
+        return cls(probe_names, df["time_s"].to_numpy(float), df[cols].to_numpy(float),
+                   speed, loop=loop)
+
+    def latest(self, time_s: np.ndarray) -> np.ndarray:
+        if self.origin is None:
+            self.origin = float(time_s[0]) - self.time_s[0] / self.speed
+        camp_t = (np.asarray(time_s) - self.origin) * self.speed
+        span = self.time_s[-1] - self.time_s[0]
+        if self.loop and span > 0:
+            camp_t = self.time_s[0] + np.mod(camp_t - self.time_s[0], span)
+        idx = np.searchsorted(self.time_s, camp_t, side="right") - 1
+        out = self.values[np.clip(idx, 0, None)]
+        out[idx < 0] = np.nan
+        return out
+
+
+def open_temperatures(spec: str | None, probe_names: list[str], speed: float = 1.0,
+                      loop: bool = False) -> TemperatureSource:
+    """Temperature source from ``--temperatures``: a campaign folder, a CSV file or ``const:...``."""
+    if not probe_names:
+        return NoTemperatures([])
+    if spec is None:
+        raise InputError(f"the model needs probe temperatures ({', '.join(probe_names)}); give "
+                         "--temperatures DIR|FILE.csv|const:P=°C,...", column="--temperatures")
+    if spec.startswith("const:"):
+        try:
+            values = {k.strip(): float(v) for k, v in
+                      (item.split("=") for item in spec[6:].split(",") if item.strip())}
+        except ValueError:
+            raise InputError(f"bad constant temperatures {spec!r}", column="--temperatures")
+        return ConstantTemperatures(probe_names, values)
+    path = Path(spec)
+    if path.is_dir():
+        return TableTemperatures.from_campaign(path, probe_names, speed, loop)
+    if path.is_file():
+        return TableTemperatures.from_csv(path, probe_names, speed, loop)
+    raise InputError("temperature source not found", file=spec)
+
+
+# --------------------------------------------------------------------------- wavelength sources
+class HyperionSource:
+    """Peaks from a Hyperion instrument; reconnects with capped exponential back-off."""
+
+    def __init__(self, host: str, stream_port: int, command_port: int, mapper: PeakMapper,
+                 backoff_initial_s: float = 0.1, backoff_max_s: float = 5.0,
+                 stall_timeout_s: float = 2.0):
+        self.host, self.stream_port, self.command_port = host, stream_port, command_port
+        self.mapper = mapper
+        self.backoff_initial_s = backoff_initial_s
+        self.backoff_max_s = backoff_max_s
+        self.stall_timeout_s = stall_timeout_s
+        self.status = "connecting"
+        self.reconnects = 0
+        self.serial_number = ""
+        self._client: hyperion.HyperionClient | None = None
+        self._closed = False
+
+    async def _connect(self) -> hyperion.HyperionClient:
+        client = hyperion.HyperionClient(self.host, self.command_port, self.stream_port,
+                                         timeout_s=self.stall_timeout_s)
+        try:
+            # The command port is optional for streaming; use it when present.
+            self.serial_number = await client.serial_number()
+        except (OSError, asyncio.TimeoutError, hyperion.HyperionError, asyncio.IncompleteReadError):
+            pass
+        await client.open_stream()
+        return client
+
+    async def batches(self) -> AsyncIterator[SensorBatch]:
+        delay = self.backoff_initial_s
+        while not self._closed:
+            try:
+                self._client = await self._connect()
+                self.status = "connected"
+                delay = self.backoff_initial_s
+                while True:
+                    blocks = await self._client.read_blocks(self.stall_timeout_s)
+                    yield self.mapper.map_blocks(blocks, time.time())
+            except (OSError, ConnectionError, asyncio.TimeoutError, asyncio.IncompleteReadError,
+                    hyperion.HyperionError) as exc:
+                self.status = f"reconnecting ({type(exc).__name__})"
+                log.warning("hyperion link %s:%s lost (%s); retry in %.2f s", self.host,
+                            self.stream_port, exc, delay)
+            if self._client is not None:
+                await self._client.close()
+                self._client = None
+            if self._closed:
+                break
+            self.reconnects += 1
+            await asyncio.sleep(delay)
+            delay = min(delay * 2.0, self.backoff_max_s)
+
+    async def close(self) -> None:
+        self._closed = True
+        if self._client is not None:
+            await self._client.close()
+
+
+class ReplaySource:
+    """A campaign's wavelengths replayed at ``speed`` × real time (already one value per sensor).
+
+    Time stamps are ``start epoch + campaign time``; the matching :class:`TableTemperatures`
+    (same origin) is exposed as ``temperatures``.
+    """
+
+    def __init__(self, folder: str | Path, sensor_names: list[str], probe_names: list[str],
+                 speed: float = 1.0, chunk_s: float = 0.002, loop: bool = False):
+        from fbgcomp.campaign import read_campaign
+        c = read_campaign(folder)
+        missing = [s for s in sensor_names if f"{s}_nm" not in c.fbg.columns]
+        if missing:
+            raise InputError(f"campaign lacks sensor(s) {', '.join(missing)} the model needs",
+                             file=folder)
+        self.time_s = c.fbg["time_s"].to_numpy(float)
+        self.wavelength_nm = c.fbg[[f"{s}_nm" for s in sensor_names]].to_numpy(float)
+        self.speed = float(speed)
+        self.chunk_s = chunk_s
+        self.loop = loop
+        self.origin_s = time.time() - self.time_s[0] / self.speed
+        self.temperatures = (TableTemperatures.from_frame(c.temperatures, probe_names, speed,
+                                                          str(folder), loop=loop)
+                             if probe_names else NoTemperatures([]))
+        if probe_names:
+            self.temperatures.origin = self.origin_s
+        self.status = "replaying"
+        self._closed = False
+
+    async def batches(self) -> AsyncIterator[SensorBatch]:
+        i = 0
+        n = self.time_s.size
+        span = self.time_s[-1] - self.time_s[0]
+        lap = 0
+        while not self._closed:
+            now_camp = (time.time() - self.origin_s) * self.speed - lap * span
+            j = int(np.searchsorted(self.time_s, now_camp, side="right"))
+            if j > i:
+                wl = self.wavelength_nm[i:j]
+                ok = np.isfinite(wl)
+                stamp = self.origin_s + (self.time_s[i:j] + lap * span) / self.speed
+                yield SensorBatch(stamp, wl, ok.astype(np.int8), np.zeros(wl.shape, np.int8),
+                                  time.time())
+                i = j
+            if i >= n:
+                if not self.loop:
+                    self.status = "finished"
+                    return
+                i, lap = 0, lap + 1
+            await asyncio.sleep(self.chunk_s)
+
+    async def close(self) -> None:
+        self._closed = True
+
+
+def parse_source_url(url: str) -> tuple[str, dict]:
+    """``hyperion://HOST[:PORT]``, ``replay://DIR?speed=10``, ``sim://DIR?rate=1000``."""
+    u = urlparse(url)
+    if u.scheme not in ("hyperion", "replay", "sim"):
+        raise InputError(f"unknown source {url!r}: use hyperion://HOST:PORT, replay://DIR or "
+                         "sim://DIR", column="--source")
+    opts = {k: v[-1] for k, v in parse_qs(u.query).items()}
+    if u.scheme == "hyperion":
+        if not u.hostname:
+            raise InputError(f"no host in {url!r}", column="--source")
+        opts["host"] = u.hostname
+        opts["stream_port"] = u.port or hyperion.STREAM_PORT
+        opts.setdefault("command_port", str(hyperion.COMMAND_PORT if u.port is None
+                                            else u.port - 1))
+    else:
+        opts["path"] = (u.netloc + u.path) if u.netloc else u.path
+    return u.scheme, opts
