@@ -1,0 +1,205 @@
+"""Regressors of the TTP-deviation models (paper eq. 11-13), as pure array functions.
+
+Base features, all relative to the zero state:
+
+* ``dL_<sensor>``: the sensor path's elongation in µm (optics, eq. 2-4), temperature-compensated
+  with the sensor's assigned probe when it has one;
+* ``dT_bulk``: change of the bulk temperature since the zero state, K;
+* ``dT_surf``: change of (bulk - surface) temperature, K;
+* ``dT_flange``: change of (flange - bulk) temperature, K (paper sec. 3.2, eq. 13).
+
+Feature sets (each TTP axis gets its own coefficients; a constant term always comes first):
+
+* ``eq11``: constant + dL of every sensor (paper eq. 11);
+* ``eq13``: eq11 + dT_bulk, dT_surf, dT_flange (paper eq. 13);
+* ``eq12``: eq11 + the quadratic thermal form ``A1'·dT + dT'·A2·dT`` over the three temperature
+  features: linear terms, squares and pairwise products (paper eq. 12). The paper adds the
+  thermal form to the geometric (elongation) part, so eq12 keeps the elongations.
+
+A term is a product of base features, named ``dL_S1``, ``dT_bulk^2`` or ``dT_bulk*dT_surf``.
+The same functions build the design for a 36 h campaign and for one runtime frame.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from itertools import combinations_with_replacement
+
+import numpy as np
+
+from . import optics
+
+CONSTANT = "const"
+TEMPERATURE_FEATURES = ("dT_bulk", "dT_surf", "dT_flange")
+FEATURE_SETS = ("eq11", "eq12", "eq13")
+
+
+@dataclass(frozen=True)
+class TemperatureRoles:
+    """Which probe plays which role in the eq. 13 temperature features."""
+
+    bulk: str = "T_bulk"
+    surf: str = "T_surf"
+    flange: str = "T_flange"
+
+    def as_dict(self) -> dict:
+        return {"bulk": self.bulk, "surf": self.surf, "flange": self.flange}
+
+
+def term_name(factors: tuple[str, ...]) -> str:
+    """Name of a product term: ``('dT_bulk', 'dT_bulk') -> 'dT_bulk^2'``."""
+    if len(factors) == 2 and factors[0] == factors[1]:
+        return f"{factors[0]}^2"
+    return "*".join(factors)
+
+
+def parse_term(name: str) -> tuple[str, ...]:
+    """Inverse of :func:`term_name`."""
+    if name.endswith("^2"):
+        base = name[:-2]
+        return (base, base)
+    return tuple(name.split("*"))
+
+
+def candidate_terms(feature_set: str, sensor_names) -> list[str]:
+    """Names of the candidate terms of a feature set, constant excluded, in model order."""
+    if feature_set not in FEATURE_SETS:
+        raise ValueError(f"unknown feature set {feature_set!r}; expected one of {', '.join(FEATURE_SETS)}")
+    terms = [f"dL_{s}" for s in sensor_names]
+    if feature_set in ("eq12", "eq13"):
+        terms += list(TEMPERATURE_FEATURES)
+    if feature_set == "eq12":
+        terms += [term_name(p) for p in combinations_with_replacement(TEMPERATURE_FEATURES, 2)]
+    return terms
+
+
+def sensor_elongations_um(wavelength_nm, wavelength_zero_nm, gauge_length_mm, delta_t_C, *,
+                          photoelastic, thermo_optic_per_K, fibre_cte_per_K):
+    """Elongations of all sensor paths at once (paper eq. 2-4), µm.
+
+    Parameters
+    ----------
+    wavelength_nm : ndarray, shape (n, S)
+        Bragg wavelengths, nm.
+    wavelength_zero_nm : ndarray, shape (S,)
+        Zero-state wavelengths, nm.
+    gauge_length_mm : ndarray, shape (S,)
+        Sensor path lengths, mm.
+    delta_t_C : ndarray, shape (n, S)
+        Temperature change of each grating since the zero state (0 for uncompensated sensors), K.
+    photoelastic, thermo_optic_per_K, fibre_cte_per_K : ndarray, shape (S,)
+        Fibre constants per sensor.
+    """
+    return optics.elongation_um(wavelength_nm, wavelength_zero_nm, gauge_length_mm, delta_t_C,
+                                photoelastic=photoelastic, thermo_optic_per_K=thermo_optic_per_K,
+                                fibre_cte_per_K=fibre_cte_per_K)
+
+
+def temperature_features_C(temperature_C, temperature_zero_C, bulk: int, surf: int, flange: int):
+    """The eq. 13 temperature features (dT_bulk, dT_surf, dT_flange), K, shape (n, 3).
+
+    ``temperature_C`` is (n, P); ``bulk``, ``surf``, ``flange`` index its columns.
+    """
+    delta = np.asarray(temperature_C, dtype=float) - np.asarray(temperature_zero_C, dtype=float)
+    d_bulk = delta[:, bulk]
+    return np.column_stack([d_bulk, d_bulk - delta[:, surf], delta[:, flange] - d_bulk])
+
+
+@dataclass
+class FeatureMap:
+    """Compiled map from raw instrument arrays to base features and model terms.
+
+    Built once from sensor metadata (a model file or a campaign); then :meth:`base` and
+    :meth:`design` are cheap, vectorised and free of pandas, so the runtime can call them per
+    batch of frames.
+
+    Parameters
+    ----------
+    sensors : list of SensorSpec-like
+        Objects with ``name``, ``gauge_length_mm``, ``photoelastic``, ``thermo_optic_per_K``,
+        ``fibre_cte_per_K`` and ``temperature_probe`` (None for uncompensated sensors).
+    probe_names : list of str
+        Column order of the temperature arrays passed in.
+    uses_temperature_features : bool
+        Whether dT_bulk, dT_surf, dT_flange are computed (eq12, eq13).
+    roles : TemperatureRoles
+    """
+
+    sensors: list
+    probe_names: list
+    uses_temperature_features: bool
+    roles: TemperatureRoles = field(default_factory=TemperatureRoles)
+
+    def __post_init__(self):
+        self.sensor_names = [s.name for s in self.sensors]
+        self._gauge_mm = np.array([s.gauge_length_mm for s in self.sensors], dtype=float)
+        self._pe = np.array([s.photoelastic for s in self.sensors], dtype=float)
+        self._xi = np.array([s.thermo_optic_per_K for s in self.sensors], dtype=float)
+        self._af = np.array([s.fibre_cte_per_K for s in self.sensors], dtype=float)
+        index = {p: i for i, p in enumerate(self.probe_names)}
+        missing = [s.temperature_probe for s in self.sensors
+                   if s.temperature_probe is not None and s.temperature_probe not in index]
+        if self.uses_temperature_features:
+            missing += [p for p in self.roles.as_dict().values() if p not in index]
+        if missing:
+            raise KeyError(f"temperature probe(s) not available: {', '.join(dict.fromkeys(missing))}")
+        # Sensors without a probe get dT = 0 (uncompensated): index a column of zeros.
+        self._sensor_probe = np.array([index.get(s.temperature_probe, -1) if s.temperature_probe else -1
+                                       for s in self.sensors])
+        self._compensated = self._sensor_probe >= 0
+        if self.uses_temperature_features:
+            self._roles = (index[self.roles.bulk], index[self.roles.surf], index[self.roles.flange])
+        self.base_names = [f"dL_{s}" for s in self.sensor_names]
+        if self.uses_temperature_features:
+            self.base_names += list(TEMPERATURE_FEATURES)
+
+    @staticmethod
+    def required_probes(sensors, uses_temperature_features: bool, roles: TemperatureRoles) -> list[str]:
+        """Probes a model needs, in a stable order: sensor probes first, then roles."""
+        names = [s.temperature_probe for s in sensors if s.temperature_probe]
+        if uses_temperature_features:
+            names += [roles.bulk, roles.surf, roles.flange]
+        return list(dict.fromkeys(names))
+
+    def base(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C):
+        """Base features (n, B) in ``base_names`` order: elongations in µm, temperatures in K."""
+        wavelength_nm = np.atleast_2d(np.asarray(wavelength_nm, dtype=float))
+        n = wavelength_nm.shape[0]
+        if len(self.probe_names):
+            temperature_C = np.atleast_2d(np.asarray(temperature_C, dtype=float))
+            delta = temperature_C - np.asarray(temperature_zero_C, dtype=float)
+            sensor_dt = np.where(self._compensated, delta[:, np.maximum(self._sensor_probe, 0)], 0.0)
+        else:
+            sensor_dt = np.zeros((n, len(self.sensors)))
+        dl = sensor_elongations_um(wavelength_nm, wavelength_zero_nm, self._gauge_mm, sensor_dt,
+                                   photoelastic=self._pe, thermo_optic_per_K=self._xi,
+                                   fibre_cte_per_K=self._af)
+        if not self.uses_temperature_features:
+            return dl
+        return np.hstack([dl, temperature_features_C(temperature_C, temperature_zero_C, *self._roles)])
+
+
+def design_matrix(base, base_names, terms) -> np.ndarray:
+    """Design matrix (n, 1 + len(terms)): a constant column, then each product term.
+
+    Parameters
+    ----------
+    base : ndarray, shape (n, B)
+        Base features in ``base_names`` order.
+    terms : list of str
+        Term names (see :func:`term_name`), constant excluded.
+    """
+    base = np.atleast_2d(np.asarray(base, dtype=float))
+    index = {name: i for i, name in enumerate(base_names)}
+    out = np.empty((base.shape[0], 1 + len(terms)))
+    out[:, 0] = 1.0
+    for j, term in enumerate(terms, start=1):
+        factors = parse_term(term)
+        try:
+            col = base[:, index[factors[0]]].copy()
+            for f in factors[1:]:
+                col *= base[:, index[f]]
+        except KeyError as exc:
+            raise KeyError(f"term {term!r} needs base feature {exc.args[0]!r}") from None
+        out[:, j] = col
+    return out

@@ -1,0 +1,559 @@
+"""TTP-deviation models: the multiple-regression estimator and its JSON model file.
+
+:class:`MRAModel` is the paper's multiple regression analysis (sec. 3, eq. 11-13, Table 1): one
+linear model per TTP axis (dx, dy, dz) on the regressors of :mod:`fbgcomp.features`, optionally
+with stepwise selection (ANOVA partial F-tests). It follows the scikit-learn contract
+(hyper-parameters in ``__init__``, learned state with a trailing underscore, ``fit`` returns
+``self``) and fits from campaigns streamed in chunks through one QR factor, from which the
+stepwise search and the fallback models (fitted without one or two sensors, used by the runtime
+when a fibre fails) are all derived without re-reading the data.
+
+The model file is JSON (never pickle): feature definitions, coefficients with standard errors
+and covariance per axis, the zero-state convention, the sensors it expects, the training
+campaigns and fit statistics, and a schema version.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import tempfile
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from itertools import combinations
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+
+from . import __version__
+from .errors import InputError
+from .features import (CONSTANT, FEATURE_SETS, FeatureMap, TemperatureRoles, candidate_terms,
+                       design_matrix)
+
+AXES = ("dx", "dy", "dz")
+REFERENCE_COLUMNS = ("dx_um", "dy_um", "dz_um")
+MODEL_FORMAT = "fbgcomp-model"
+SCHEMA_VERSION = 1
+#: Upgrades of older model files, ``{from_version: function(dict) -> dict of from_version + 1}``.
+MIGRATIONS: dict = {}
+_CHUNK_ROWS = 100_000
+
+
+@dataclass
+class AxisFit:
+    """The fitted linear model of one TTP axis, as stored in the model file."""
+
+    terms: list            # term names, "const" first
+    params: np.ndarray     # µm per unit of each term
+    bse: np.ndarray
+    tvalues: np.ndarray
+    pvalues: np.ndarray
+    cov: np.ndarray        # covariance of params
+    resid_sd: float        # µm
+    df_resid: float
+    nobs: int
+    rsquared: float
+    rsquared_adj: float
+    fvalue: float
+    f_pvalue: float
+    history: list = field(default_factory=list)   # stepwise steps
+
+    @classmethod
+    def from_result(cls, result, history=()):
+        return cls(terms=list(result.feature_names), params=np.asarray(result.params, float),
+                   bse=np.asarray(result.bse, float), tvalues=np.asarray(result.tvalues, float),
+                   pvalues=np.asarray(result.pvalues, float),
+                   cov=np.asarray(result.cov_params(), float), resid_sd=float(result.resid_sd),
+                   df_resid=float(result.df_resid), nobs=int(result.nobs),
+                   rsquared=float(result.rsquared), rsquared_adj=float(result.rsquared_adj),
+                   fvalue=float(result.fvalue), f_pvalue=float(result.f_pvalue),
+                   history=[_plain(h) for h in history])
+
+    def to_dict(self) -> dict:
+        return {"terms": self.terms, "params": self.params.tolist(), "bse": self.bse.tolist(),
+                "tvalues": self.tvalues.tolist(), "pvalues": self.pvalues.tolist(),
+                "cov_params": self.cov.tolist(), "resid_sd_um": self.resid_sd,
+                "df_resid": self.df_resid, "nobs": self.nobs, "rsquared": self.rsquared,
+                "rsquared_adj": self.rsquared_adj, "fvalue": self.fvalue, "f_pvalue": self.f_pvalue,
+                "stepwise_history": self.history}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "AxisFit":
+        arr = lambda k: np.asarray(d[k], dtype=float)  # noqa: E731
+        return cls(terms=list(d["terms"]), params=arr("params"), bse=arr("bse"),
+                   tvalues=arr("tvalues"), pvalues=arr("pvalues"),
+                   cov=np.asarray(d["cov_params"], dtype=float).reshape(len(d["terms"]), -1),
+                   resid_sd=float(d["resid_sd_um"]), df_resid=float(d["df_resid"]),
+                   nobs=int(d["nobs"]), rsquared=float(d["rsquared"]),
+                   rsquared_adj=float(d["rsquared_adj"]), fvalue=float(d["fvalue"]),
+                   f_pvalue=float(d["f_pvalue"]), history=list(d.get("stepwise_history", [])))
+
+    def table(self) -> str:
+        """Paper Table 1 style coefficient table."""
+        lines = [f"{'term':<22}{'estimate':>13}{'std err':>12}{'t':>9}{'P>|t|':>9}"]
+        for name, p, se, t, pv in zip(self.terms, self.params, self.bse, self.tvalues, self.pvalues):
+            lines.append(f"{name:<22}{p:>13.5g}{se:>12.4g}{t:>9.2f}{pv:>9.3g}")
+        lines.append(f"n = {self.nobs}, R² = {self.rsquared:.5f}, adj. R² = {self.rsquared_adj:.5f}, "
+                     f"residual SD = {self.resid_sd:.4g} µm, F = {self.fvalue:.4g} (p = {self.f_pvalue:.3g})")
+        return "\n".join(lines)
+
+
+def _plain(obj):
+    """JSON-able copy of a stepwise history entry (numpy scalars -> Python)."""
+    if isinstance(obj, dict):
+        return {k: _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+class Predictor:
+    """Pure-numpy prediction of the TTP deviation for one sensor set (full or fallback).
+
+    Compiled once; :meth:`predict` is vectorised over frames and used by both the offline
+    validation and the real-time runtime, so there is a single implementation.
+    """
+
+    def __init__(self, feature_map: FeatureMap, axes: dict, exclude=frozenset(), alpha=0.05):
+        self.feature_map = feature_map
+        self.exclude = frozenset(exclude)
+        self.sensor_names = feature_map.sensor_names
+        self.probe_names = list(feature_map.probe_names)
+        terms = []
+        for a in AXES:
+            terms += [t for t in axes[a].terms if t != CONSTANT]
+        self.terms = list(dict.fromkeys(terms))
+        n_terms = 1 + len(self.terms)
+        position = {CONSTANT: 0, **{t: i + 1 for i, t in enumerate(self.terms)}}
+        self.coef = np.zeros((n_terms, len(AXES)))
+        self._cov_sqrt = np.zeros((len(AXES), n_terms, n_terms))
+        self._resid_var = np.zeros(len(AXES))
+        self._t = np.zeros(len(AXES))
+        for j, a in enumerate(AXES):
+            fit = axes[a]
+            idx = [position[t] for t in fit.terms]
+            self.coef[idx, j] = fit.params
+            w, v = np.linalg.eigh((fit.cov + fit.cov.T) / 2)
+            root = v * np.sqrt(np.clip(w, 0.0, None))
+            self._cov_sqrt[j][np.ix_(idx, range(len(idx)))] = root
+            self._resid_var[j] = fit.resid_sd ** 2
+            self._t[j] = stats.t.ppf(1 - alpha / 2, fit.df_resid)
+        self.expected_rms_error_um = np.sqrt(self._resid_var)
+
+    def design(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C):
+        base = self.feature_map.base(wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C)
+        return design_matrix(base, self.feature_map.base_names, self.terms)
+
+    def predict(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C):
+        """TTP deviation (n, 3) µm and the half-width (n, 3) µm of its 95 % prediction interval.
+
+        Parameters
+        ----------
+        wavelength_nm : ndarray, shape (n, S)
+            Bragg wavelengths in the model's sensor order, nm. Columns of excluded sensors are
+            ignored (they may be NaN).
+        temperature_C : ndarray, shape (n, P)
+            Probe temperatures in the model's probe order, °C.
+        wavelength_zero_nm, temperature_zero_C : ndarray
+            Zero state (S,) and (P,).
+        """
+        wavelength_nm = np.atleast_2d(np.asarray(wavelength_nm, dtype=float))
+        if self.exclude:
+            # Excluded gratings carry no coefficient; keep NaN from spreading through 0 * NaN.
+            cols = [i for i, s in enumerate(self.sensor_names) if s in self.exclude]
+            wavelength_nm = wavelength_nm.copy()
+            wavelength_nm[:, cols] = np.asarray(wavelength_zero_nm, dtype=float)[cols]
+        d = self.design(wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C)
+        deviation = d @ self.coef
+        spread = np.einsum("nk,akm->anm", d, self._cov_sqrt)
+        var = self._resid_var[None, :] + np.einsum("anm,anm->na", spread, spread)
+        return deviation, self._t[None, :] * np.sqrt(var)
+
+
+class MRAModel:
+    """Multiple regression of the TTP deviation on sensor elongations and temperatures.
+
+    Parameters
+    ----------
+    features : {"eq11", "eq13", "eq12"}
+        Candidate regressors (see :mod:`fbgcomp.features`).
+    stepwise : bool
+        Select terms per axis by stepwise regression with partial F-tests.
+    direction : {"both", "forward", "backward"}
+    p_enter, p_remove : float
+        Stepwise thresholds.
+    max_terms : int, optional
+        Upper bound on selected terms (constant excluded).
+    roles : TemperatureRoles or dict, optional
+        Probes playing bulk / surface / flange (default T_bulk, T_surf, T_flange).
+    zero_window_s : float
+        Zero state = mean over the first ``zero_window_s`` seconds of each signal.
+    fallbacks : {"loo", "lto", "none"}
+        Also fit models without each sensor ("loo") or each pair of sensors ("lto", implies loo)
+        for the runtime's sensor-fault fallback.
+    """
+
+    model_type = "mra"
+
+    def __init__(self, features="eq13", stepwise=False, direction="both", p_enter=0.05,
+                 p_remove=0.10, max_terms=None, roles=None, zero_window_s=10.0, fallbacks="loo"):
+        self.features = features
+        self.stepwise = stepwise
+        self.direction = direction
+        self.p_enter = p_enter
+        self.p_remove = p_remove
+        self.max_terms = max_terms
+        self.roles = roles
+        self.zero_window_s = zero_window_s
+        self.fallbacks = fallbacks
+
+    # -- fitting -------------------------------------------------------------------------
+    def _roles(self) -> TemperatureRoles:
+        if self.roles is None:
+            return TemperatureRoles()
+        if isinstance(self.roles, TemperatureRoles):
+            return self.roles
+        return TemperatureRoles(**self.roles)
+
+    def _check_params(self):
+        if self.features not in FEATURE_SETS:
+            raise ValueError(f"features must be one of {', '.join(FEATURE_SETS)}, not {self.features!r}")
+        if self.direction not in ("both", "forward", "backward"):
+            raise ValueError(f"direction must be both, forward or backward, not {self.direction!r}")
+        if self.fallbacks not in ("loo", "lto", "none"):
+            raise ValueError(f"fallbacks must be loo, lto or none, not {self.fallbacks!r}")
+
+    def fit(self, X, y=None, *, progress=None):
+        """Fit on campaigns (``X`` a campaign, a path or a list of them, ``y`` None) or on arrays.
+
+        With arrays, ``X`` is a pandas DataFrame of base features (columns ``dL_<sensor>`` and,
+        for eq12/eq13, ``dT_bulk``, ``dT_surf``, ``dT_flange``) and ``y`` an (n, 3) array of
+        TTP deviations in µm (dx, dy, dz).
+        """
+        from .regression import QRAccumulator
+
+        self._check_params()
+        if y is not None:
+            return self._fit_arrays(X, y)
+        campaigns = _as_campaign_list(X)
+        if not campaigns:
+            raise ValueError("fit needs at least one campaign")
+        sensors = list(campaigns[0].meta.sensors)
+        self.sensors_ = sensors
+        uses_t = self.features != "eq11"
+        self.probe_names_ = FeatureMap.required_probes(sensors, uses_t, self._roles())
+        self.candidates_ = candidate_terms(self.features, [s.name for s in sensors])
+        names = [CONSTANT] + self.candidates_
+        acc = QRAccumulator(len(names), len(AXES), feature_names=names, target_names=list(AXES))
+        training = []
+        for c in campaigns:
+            check_compatible(self, c)
+            aligned = c.aligned(zero_window_s=self.zero_window_s)
+            design = self._campaign_design(c, aligned)
+            for start in range(0, len(design), _CHUNK_ROWS):
+                acc.update(design[start:start + _CHUNK_ROWS], aligned.reference_um[start:start + _CHUNK_ROWS])
+            training.append({"name": c.meta.name, "kind": c.meta.kind,
+                             "path": None if c.path is None else str(c.path),
+                             "n_samples": int(len(design)), "dropped": _plain(aligned.dropped)})
+            if progress is not None:
+                progress(c.meta.name)
+        self.training_ = {"campaigns": training, "n_samples": int(sum(t["n_samples"] for t in training))}
+        return self._fit_factor(acc)
+
+    def _fit_arrays(self, X, y):
+        from .regression import QRAccumulator
+
+        base_names = list(X.columns)
+        sensor_names = [c[3:] for c in base_names if c.startswith("dL_")]
+        self.sensors_ = None
+        self.probe_names_ = []
+        self.candidates_ = candidate_terms(self.features, sensor_names)
+        self._array_base_names = base_names
+        names = [CONSTANT] + self.candidates_
+        design = design_matrix(X.to_numpy(dtype=float), base_names, self.candidates_)
+        acc = QRAccumulator(len(names), len(AXES), feature_names=names, target_names=list(AXES))
+        acc.update(design, np.asarray(y, dtype=float).reshape(len(design), len(AXES)))
+        self.training_ = {"campaigns": [], "n_samples": int(len(design))}
+        return self._fit_factor(acc)
+
+    def _fit_factor(self, acc):
+        self.axes_ = self._select(acc, exclude=frozenset())
+        self.fallbacks_ = {}
+        sensor_names = [t[3:] for t in self.candidates_ if t.startswith("dL_")]
+        sizes = {"none": (), "loo": (1,), "lto": (1, 2)}[self.fallbacks]
+        for k in sizes:
+            for drop in combinations(sensor_names, k):
+                if len(sensor_names) - k < 1:
+                    continue
+                self.fallbacks_[frozenset(drop)] = self._select(acc, exclude=frozenset(drop))
+        self.results_ = {a: f for a, f in self.axes_.items()}
+        self.coef_ = {a: dict(zip(f.terms, f.params)) for a, f in self.axes_.items()}
+        self._predictors = {}
+        return self
+
+    def _select(self, acc, exclude) -> dict:
+        from .regression import ols_from_factor, stepwise
+
+        candidates = [t for t in self.candidates_ if not any(f"dL_{s}" == t for s in exclude)]
+        axes = {}
+        for j, a in enumerate(AXES):
+            if self.stepwise:
+                sw = stepwise(acc, candidates, target=j, direction=self.direction,
+                              p_enter=self.p_enter, p_remove=self.p_remove,
+                              max_terms=self.max_terms, include=[CONSTANT])
+                history = sw.history.to_dict("records") if hasattr(sw.history, "to_dict") else list(sw.history)
+                axes[a] = AxisFit.from_result(sw.result, history)
+            else:
+                axes[a] = AxisFit.from_result(ols_from_factor(acc, [CONSTANT] + candidates, target=j))
+        return axes
+
+    def _campaign_design(self, campaign, aligned):
+        fmap = self._feature_map()
+        probe_cols = [list(aligned.probe_names).index(p) for p in self.probe_names_]
+        base = fmap.base(aligned.wavelength_nm[:, [list(aligned.sensor_names).index(s) for s in fmap.sensor_names]],
+                         aligned.temperature_C[:, probe_cols],
+                         aligned.wavelength_zero_nm[[list(aligned.sensor_names).index(s) for s in fmap.sensor_names]],
+                         aligned.temperature_zero_C[probe_cols])
+        return design_matrix(base, fmap.base_names, self.candidates_)
+
+    # -- prediction ----------------------------------------------------------------------
+    def _feature_map(self) -> FeatureMap:
+        return FeatureMap(self.sensors_, self.probe_names_, self.features != "eq11", self._roles())
+
+    @property
+    def sensors(self):
+        return self.sensors_
+
+    @property
+    def sensor_names(self) -> list:
+        return [s.name for s in self.sensors_]
+
+    @property
+    def probe_names(self) -> list:
+        return list(self.probe_names_)
+
+    @property
+    def fallback_sets(self) -> list:
+        return list(self.fallbacks_)
+
+    @property
+    def model_id(self) -> str:
+        return model_id(self.to_dict())
+
+    def predictor(self, exclude=frozenset()) -> Predictor:
+        """Compiled predictor for the full sensor set or a stored fallback (KeyError if none)."""
+        exclude = frozenset(exclude)
+        if exclude not in self._predictors:
+            axes = self.axes_ if not exclude else self.fallbacks_[exclude]
+            self._predictors[exclude] = Predictor(self._feature_map(), axes, exclude)
+        return self._predictors[exclude]
+
+    def predict(self, X):
+        """Predicted TTP deviation (n, 3) in µm for a campaign (or path) or a base-feature frame."""
+        return self.predict_interval(X)[0]
+
+    def predict_interval(self, X, exclude=frozenset()):
+        """Prediction (n, 3) µm and half-width (n, 3) µm of its 95 % prediction interval."""
+        if hasattr(X, "columns"):
+            pred = Predictor(_IdentityMap(list(X.columns)), self.axes_ if not exclude else self.fallbacks_[frozenset(exclude)])
+            return pred.predict(X.to_numpy(dtype=float), None, None, None)
+        (campaign,) = _as_campaign_list(X)
+        check_compatible(self, campaign)
+        aligned = campaign.aligned(zero_window_s=self.zero_window_s)
+        p = self.predictor(exclude)
+        w, t, w0, t0 = self.instrument_arrays(aligned)
+        return p.predict(w, t, w0, t0)
+
+    def instrument_arrays(self, aligned):
+        """Wavelengths, temperatures and zero states of an aligned campaign in the model's order."""
+        s_idx = [list(aligned.sensor_names).index(s) for s in self.sensor_names]
+        p_idx = [list(aligned.probe_names).index(p) for p in self.probe_names_]
+        return (aligned.wavelength_nm[:, s_idx], aligned.temperature_C[:, p_idx],
+                aligned.wavelength_zero_nm[s_idx], aligned.temperature_zero_C[p_idx])
+
+    # -- reporting and persistence ------------------------------------------------------
+    def summary(self) -> str:
+        """Table 1 style coefficient table per axis, with the stepwise history."""
+        out = [f"MRA model ({self.features}{', stepwise' if self.stepwise else ''}), "
+               f"{self.training_['n_samples']} samples from "
+               f"{', '.join(c['name'] for c in self.training_['campaigns']) or 'arrays'}"]
+        for a in AXES:
+            fit = self.axes_[a]
+            out.append(f"\n== {a} (µm) ==")
+            out.append(fit.table())
+            if fit.history:
+                out.append("stepwise history:")
+                out.append(f"  {'step':>4} {'action':<7}{'term':<22}{'F':>10}{'p':>10}{'terms':>6}")
+                for h in fit.history:
+                    out.append(f"  {h.get('step', ''):>4} {h.get('action', ''):<7}{str(h.get('term', '')):<22}"
+                               f"{h.get('F', float('nan')):>10.4g}{h.get('p', float('nan')):>10.3g}"
+                               f"{h.get('n_terms', ''):>6}")
+        return "\n".join(out)
+
+    def to_dict(self) -> dict:
+        d = {
+            "format": MODEL_FORMAT,
+            "schema_version": SCHEMA_VERSION,
+            "model_type": self.model_type,
+            "fbgcomp_version": __version__,
+            "features": {"set": self.features, "candidates": list(self.candidates_),
+                         "roles": self._roles().as_dict(),
+                         "stepwise": ({"direction": self.direction, "p_enter": self.p_enter,
+                                       "p_remove": self.p_remove, "max_terms": self.max_terms}
+                                      if self.stepwise else None)},
+            "zero_state": {"method": "mean_of_first_window", "window_s": self.zero_window_s},
+            "sensors": [s.model_dump(mode="json") for s in self.sensors_] if self.sensors_ else [],
+            "probes": list(self.probe_names_),
+            "axes": {a: f.to_dict() for a, f in self.axes_.items()},
+            "fallbacks": [{"exclude": sorted(k), "axes": {a: f.to_dict() for a, f in v.items()}}
+                          for k, v in self.fallbacks_.items()],
+            "fallback_policy": self.fallbacks,
+            "training": self.training_,
+        }
+        return d
+
+    def save(self, path) -> Path:
+        """Write the model file atomically."""
+        d = self.to_dict()
+        d["model_id"] = model_id(d)
+        d["created_utc"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        return write_json_atomic(path, d)
+
+    @classmethod
+    def from_dict(cls, d: dict, source="<dict>") -> "MRAModel":
+        from .campaign import SensorSpec
+
+        f = d["features"]
+        sw = f.get("stepwise")
+        m = cls(features=f["set"], stepwise=sw is not None,
+                **({k: sw[k] for k in ("direction", "p_enter", "p_remove", "max_terms")} if sw else {}),
+                roles=f.get("roles"), zero_window_s=d["zero_state"]["window_s"],
+                fallbacks=d.get("fallback_policy", "none"))
+        m.candidates_ = list(f["candidates"])
+        m.sensors_ = [SensorSpec(**s) for s in d["sensors"]]
+        m.probe_names_ = list(d["probes"])
+        m.axes_ = {a: AxisFit.from_dict(d["axes"][a]) for a in AXES}
+        m.fallbacks_ = {frozenset(fb["exclude"]): {a: AxisFit.from_dict(fb["axes"][a]) for a in AXES}
+                        for fb in d.get("fallbacks", [])}
+        m.training_ = d.get("training", {"campaigns": [], "n_samples": 0})
+        m.results_ = dict(m.axes_)
+        m.coef_ = {a: dict(zip(fit.terms, fit.params)) for a, fit in m.axes_.items()}
+        m._predictors = {}
+        return m
+
+
+class _IdentityMap:
+    """Feature map for callers that pass base features directly (arrays API)."""
+
+    def __init__(self, base_names):
+        self.base_names = base_names
+        self.sensor_names = [c[3:] for c in base_names if c.startswith("dL_")]
+        self.probe_names = []
+
+    def base(self, base, *_):
+        return np.atleast_2d(np.asarray(base, dtype=float))
+
+
+def _as_campaign_list(X) -> list:
+    from .campaign import Campaign, read_campaign
+
+    items = X if isinstance(X, (list, tuple)) else [X]
+    return [c if isinstance(c, Campaign) else read_campaign(c) for c in items]
+
+
+def check_compatible(model, campaign) -> None:
+    """Raise InputError when a campaign lacks what the model needs (sensors, probes)."""
+    where = (campaign.path / "campaign.yaml") if campaign.path is not None else campaign.meta.name
+    have = {s.name: s for s in campaign.meta.sensors}
+    for s in model.sensors_:
+        if s.name not in have:
+            raise InputError(f"model expects sensor {s.name} but the campaign has "
+                             f"{', '.join(have) or 'none'}", file=where, column="field sensors")
+        c = have[s.name]
+        if abs(c.gauge_length_mm - s.gauge_length_mm) > 1e-6 * max(1.0, s.gauge_length_mm):
+            raise InputError(f"sensor {s.name} has gauge_length_mm {c.gauge_length_mm} but the model "
+                             f"was fitted with {s.gauge_length_mm}", file=where, column="field sensors")
+        if abs(c.lambda0_nm - s.lambda0_nm) > 5.0:
+            raise InputError(f"sensor {s.name} has lambda0_nm {c.lambda0_nm} but the model expects "
+                             f"{s.lambda0_nm} ± 5 nm", file=where, column="field sensors")
+    probes = set(campaign.meta.probe_names) | set(getattr(campaign, "undeclared_probes", ()))
+    for p in model.probe_names_:
+        if p not in probes and p not in campaign.temperatures.columns.str.removesuffix("_C"):
+            raise InputError(f"model needs temperature probe {p} which the campaign does not have",
+                             file=where, column="field temperature_probes")
+
+
+def model_id(d: dict) -> str:
+    """Short stable hash of a model's content (ignores its id and creation time)."""
+    content = {k: v for k, v in d.items() if k not in ("model_id", "created_utc")}
+    blob = json.dumps(content, sort_keys=True, separators=(",", ":")).encode()
+    return hashlib.sha256(blob).hexdigest()[:12]
+
+
+def write_json_atomic(path, data) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            json.dump(data, fh, indent=1, allow_nan=False)
+            fh.write("\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+_MODEL_TYPES = {"mra": MRAModel}
+
+
+def register_model_type(name: str, cls) -> None:
+    """Make :func:`load_model` know another model type (kinematic, hybrid, dynamic …)."""
+    _MODEL_TYPES[name] = cls
+
+
+def load_model(path):
+    """Read a model file, migrating older schema versions; InputError on anything wrong."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError("model file not found", file=path) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"cannot read model file: {exc}", file=path) from None
+    try:
+        d = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputError(f"not a JSON model file: {exc.msg} at line {exc.lineno}, column {exc.colno}",
+                         file=path) from None
+    if not isinstance(d, dict) or d.get("format") != MODEL_FORMAT:
+        raise InputError(f"not an fbgcomp model file (field 'format' must be {MODEL_FORMAT!r})",
+                         file=path, column="field format")
+    version = d.get("schema_version")
+    if not isinstance(version, int):
+        raise InputError("schema_version must be an integer", file=path, column="field schema_version")
+    if version > SCHEMA_VERSION:
+        raise InputError(f"model schema version {version} is newer than this fbgcomp supports "
+                         f"({SCHEMA_VERSION}); upgrade fbgcomp", file=path, column="field schema_version")
+    while version < SCHEMA_VERSION:
+        d = MIGRATIONS[version](d)
+        version = d["schema_version"]
+    kind = d.get("model_type")
+    if kind not in _MODEL_TYPES:
+        raise InputError(f"unknown model_type {kind!r}; known: {', '.join(_MODEL_TYPES)}",
+                         file=path, column="field model_type")
+    try:
+        return _MODEL_TYPES[kind].from_dict(d, source=path)
+    except InputError:
+        raise
+    except KeyError as exc:
+        raise InputError(f"missing field {exc.args[0]!r}", file=path) from None
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"malformed model file: {exc}", file=path) from None

@@ -1,0 +1,171 @@
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy import stats
+
+from fbgcomp.campaign import read_campaign, write_campaign
+from fbgcomp.errors import InputError
+from fbgcomp.features import candidate_terms
+from fbgcomp.metrics import validation_metrics
+from fbgcomp.models import AXES, MRAModel, load_model
+from fbgcomp.synthetic import linear_truth_campaign
+
+
+@pytest.fixture(scope="module")
+def truth_campaign(tmp_path_factory):
+    c, truth = linear_truth_campaign("truth", seed=1, duration_s=4 * 3600, noise_um=0.05)
+    path = write_campaign(c, tmp_path_factory.mktemp("c") / "truth")
+    return read_campaign(path), truth
+
+
+def _slope_z_scores(model, truth):
+    """(estimate - truth) / standard error of every slope (the zero state moves the intercept)."""
+    z = []
+    for a in AXES:
+        fit = model.axes_[a]
+        for name, est, se in zip(fit.terms, fit.params, fit.bse):
+            if name != "const":
+                z.append((est - truth["coefficients"][a].get(name, 0.0)) / se)
+    return np.array(z)
+
+
+def test_every_true_coefficient_inside_its_95pct_ci(truth_campaign):
+    # 24 slopes: asking all 24 individual 95 % intervals to hold would fail by chance 71 % of
+    # the time, so a single campaign is judged with simultaneous (Bonferroni) 95 % intervals ...
+    campaign, truth = truth_campaign
+    model = MRAModel(features="eq13", fallbacks="none").fit(campaign)
+    z = _slope_z_scores(model, truth)
+    assert len(z) == 3 * 8
+    df = model.axes_["dx"].df_resid
+    assert np.all(np.abs(z) <= stats.t.ppf(1 - 0.025 / len(z), df)), z
+
+
+def test_95pct_confidence_intervals_cover_the_truth_95pct_of_the_time():
+    # ... and the individual 95 % intervals are checked for what they promise: coverage.
+    z = np.concatenate([
+        _slope_z_scores(MRAModel(features="eq13", fallbacks="none").fit(c), truth)
+        for c, truth in (linear_truth_campaign("rep", seed=100 + i, duration_s=1800) for i in range(20))])
+    coverage = np.mean(np.abs(z) <= 1.96)
+    assert 0.92 <= coverage <= 0.98, coverage       # 480 draws: binomial SD 1 %
+    assert abs(np.mean(z)) < 0.2 and 0.85 < np.std(z) < 1.15
+
+
+def test_stepwise_selects_exactly_the_true_terms(truth_campaign):
+    campaign, truth = truth_campaign
+    for direction in ("forward", "backward", "both"):
+        model = MRAModel(features="eq13", stepwise=True, direction=direction, p_enter=1e-4,
+                         p_remove=1e-3, fallbacks="none").fit(campaign)
+        for a in AXES:
+            want = {k for k, v in truth["coefficients"][a].items() if k != "const" and v != 0}
+            got = set(model.axes_[a].terms) - {"const"}
+            assert got == want, (direction, a, got, want)
+            if direction != "backward":
+                assert [h["term"] for h in model.axes_[a].history if h["action"] == "enter"]
+
+
+def test_validation_on_a_held_out_campaign_is_at_noise_level(truth_campaign):
+    campaign, truth = truth_campaign
+    model = MRAModel(features="eq13").fit(campaign)
+    other, _ = linear_truth_campaign("other", seed=7, duration_s=2 * 3600, noise_um=0.05)
+    pred, half = model.predict_interval(other)
+    ref = other.aligned().reference_um
+    m = validation_metrics(ref, pred, half)
+    for a in AXES:
+        assert m["axes"][a]["rms_error_um"] < 0.08
+        assert 0.90 < m["axes"][a]["pi95_coverage"] <= 1.0
+        assert m["axes"][a]["compensation_ratio"] > 0.95
+
+
+def test_model_file_round_trip(truth_campaign, tmp_path):
+    campaign, _ = truth_campaign
+    model = MRAModel(features="eq12", stepwise=True, fallbacks="lto").fit(campaign)
+    path = model.save(tmp_path / "model.json")
+    d = json.loads(path.read_text())
+    assert d["schema_version"] == 1 and d["model_type"] == "mra" and d["model_id"] == model.model_id
+    assert d["zero_state"] == {"method": "mean_of_first_window", "window_s": 10.0}
+    assert [s["name"] for s in d["sensors"]] == ["S1", "S2", "S3", "S4", "S5"]
+    assert d["training"]["campaigns"][0]["name"] == "truth"
+    loaded = load_model(path)
+    assert loaded.model_id == model.model_id
+    np.testing.assert_array_equal(loaded.predict(campaign), model.predict(campaign))
+    assert len(loaded.fallback_sets) == 5 + 10
+    for a in AXES:
+        assert loaded.axes_[a].terms == model.axes_[a].terms
+        np.testing.assert_array_equal(loaded.axes_[a].bse, model.axes_[a].bse)
+
+
+def test_fallback_without_a_sensor_ignores_its_wavelength(truth_campaign):
+    campaign, _ = truth_campaign
+    model = MRAModel(features="eq13").fit(campaign)
+    aligned = campaign.aligned()
+    w, t, w0, t0 = model.instrument_arrays(aligned)
+    p = model.predictor(exclude={"S3"})
+    assert all("S3" not in term for term in p.terms)
+    broken = w.copy()
+    broken[:, 2] = np.nan
+    dev, half = p.predict(broken, t, w0, t0)
+    assert np.isfinite(dev).all() and np.isfinite(half).all()
+    full, _ = model.predictor().predict(w, t, w0, t0)
+    # dy depends on S3 in the truth: the fallback is worse there but still usable.
+    assert np.sqrt(np.mean((dev - full) ** 2, axis=0))[1] > 0
+    with pytest.raises(KeyError):
+        model.predictor(exclude={"S3", "S4"})
+
+
+def test_predictor_matches_model_predict_sample_by_sample(truth_campaign):
+    campaign, _ = truth_campaign
+    model = MRAModel(features="eq12").fit(campaign)
+    aligned = campaign.aligned()
+    w, t, w0, t0 = model.instrument_arrays(aligned)
+    batch, _ = model.predictor().predict(w[:50], t[:50], w0, t0)
+    single = np.vstack([model.predictor().predict(w[i], t[i], w0, t0)[0] for i in range(50)])
+    np.testing.assert_allclose(single, batch, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(model.predict(campaign)[:50], batch, rtol=1e-12)
+
+
+def test_fit_on_arrays_matches_fit_on_campaign(truth_campaign):
+    campaign, _ = truth_campaign
+    model = MRAModel(features="eq13", fallbacks="none").fit(campaign)
+    aligned = campaign.aligned()
+    base = model._feature_map().base(*model.instrument_arrays(aligned))
+    X = pd.DataFrame(base, columns=model._feature_map().base_names)
+    other = MRAModel(features="eq13", fallbacks="none").fit(X, aligned.reference_um)
+    for a in AXES:
+        np.testing.assert_allclose(other.axes_[a].params, model.axes_[a].params, rtol=1e-10)
+    np.testing.assert_allclose(other.predict(X), model.predict(campaign), rtol=1e-9, atol=1e-9)
+
+
+def test_model_with_sensors_the_campaign_lacks_is_a_clear_error(truth_campaign, tmp_path):
+    campaign, _ = truth_campaign
+    path = MRAModel(features="eq11").fit(campaign).save(tmp_path / "m.json")
+    d = json.loads(path.read_text())
+    d["sensors"][0]["name"] = "S9"
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(d))
+    with pytest.raises(InputError, match="sensor S9"):
+        load_model(bad).predict(campaign)
+
+
+@pytest.mark.parametrize("content, match", [
+    ("{not json", "not a JSON model file"),
+    ('{"format": "other"}', "not an fbgcomp model file"),
+    ('{"format": "fbgcomp-model", "schema_version": 99}', "newer than this fbgcomp"),
+    ('{"format": "fbgcomp-model", "schema_version": 1, "model_type": "mra"}', "missing field"),
+])
+def test_bad_model_files(tmp_path, content, match):
+    p = tmp_path / "m.json"
+    p.write_text(content)
+    with pytest.raises(InputError, match=match) as exc:
+        load_model(p)
+    assert str(p) in exc.value.one_line()
+
+
+def test_candidate_terms_of_each_feature_set():
+    s = ["S1", "S2"]
+    assert candidate_terms("eq11", s) == ["dL_S1", "dL_S2"]
+    assert candidate_terms("eq13", s) == ["dL_S1", "dL_S2", "dT_bulk", "dT_surf", "dT_flange"]
+    eq12 = candidate_terms("eq12", s)
+    assert len(eq12) == 2 + 3 + 6
+    assert "dT_bulk^2" in eq12 and "dT_surf*dT_flange" in eq12
