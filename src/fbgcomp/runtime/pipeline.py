@@ -105,13 +105,14 @@ class Pipeline:
     # -- zero state
     def _accumulate_zero(self, t, wl, status, temp) -> int:
         """Use the leading rows that fall in the zero window; return how many were used."""
-        if self._t_first is None:
+        first_call = self._t_first is None
+        if first_call:
             self._t_first = float(t[0])
+        # same convention as the offline path: samples with t <= t_first + window
         end = self._t_first + self.zero_window_s
-        m = int(np.searchsorted(t, end, side="left"))
-        if self.zero_window_s <= 0:
-            m = max(m, 1)  # zero = first frame
-        m = min(m, t.size)
+        m = int(np.searchsorted(t, end, side="right"))
+        if first_call:
+            m = max(m, 1)
         good = (status[:m] == H.OK) & np.isfinite(wl[:m])
         self._zero_sum += np.where(good, wl[:m], 0.0).sum(axis=0)
         self._zero_n += good.sum(axis=0)
@@ -119,7 +120,7 @@ class Pipeline:
             tg = np.isfinite(temp[:m])
             self._tzero_sum += np.where(tg, temp[:m], 0.0).sum(axis=0)
             self._tzero_n += tg.sum(axis=0)
-        if m < t.size or (self.zero_window_s <= 0 and m >= 1):
+        if m < t.size or self.zero_window_s <= 0:
             with np.errstate(invalid="ignore", divide="ignore"):
                 self.wavelength_zero_nm = np.where(self._zero_n > 0,
                                                    self._zero_sum / self._zero_n, np.nan)

@@ -1,0 +1,133 @@
+"""Core pipeline against the offline model: same numbers, fallbacks, hold and ramp, checks."""
+
+import numpy as np
+import pytest
+
+from fbgcomp.campaign import read_campaign
+from fbgcomp.models import load_model
+from fbgcomp.runtime import health as H
+from fbgcomp.runtime.pipeline import (HEALTH_ALARM, HEALTH_DEGRADED, HEALTH_OK, HEALTH_ZEROING,
+                                      Pipeline, PipelineConfig)
+from test_runtime_support import model_and_campaign
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    model_path, campaign_path = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+    model = load_model(model_path)
+    campaign = read_campaign(campaign_path)
+    aligned = campaign.aligned(zero_window_s=model.zero_window_s)
+    w, t, w0, t0 = model.instrument_arrays(aligned)
+    return model, campaign, aligned, w, t
+
+
+def _run(pipe, time_s, wl, temp, sizes, counts=None):
+    out, i, k = [], 0, 0
+    counts = np.ones(wl.shape, np.int8) if counts is None else counts
+    while i < time_s.size:
+        j = min(time_s.size, i + sizes[k % len(sizes)])
+        out.append(pipe.process(time_s[i:j], wl[i:j], counts[i:j],
+                                np.zeros_like(counts[i:j]), temp[i:j]))
+        i, k = j, k + 1
+    cat = lambda name: np.concatenate([getattr(r, name) for r in out])  # noqa: E731
+    return {n: cat(n) for n in ("deviation_um", "half_width_um", "correction_um", "health",
+                                "sensor_status", "model_set", "expected_rms_um")}
+
+
+def test_same_prediction_as_the_offline_model_whatever_the_batching(setup):
+    model, campaign, aligned, w, t = setup
+    offline_dev, offline_half = model.predict_interval(campaign)
+    for sizes in ([1], [7, 1, 50], [10_000]):
+        r = _run(Pipeline(model), aligned.time_s, w, t, sizes)
+        zeroing = r["health"] == HEALTH_ZEROING
+        # zero state from the first zero_window_s seconds, as offline
+        assert zeroing.sum() == np.searchsorted(aligned.time_s, aligned.time_s[0] + 0.5, "right")
+        ok = ~zeroing
+        assert (r["health"][ok] == HEALTH_OK).all()
+        np.testing.assert_allclose(r["deviation_um"][ok], offline_dev[ok], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(r["half_width_um"][ok], offline_half[ok], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(r["correction_um"][ok], -offline_dev[ok], atol=1e-9)
+        assert (r["correction_um"][zeroing] == 0).all()
+
+
+def test_fault_switches_to_fallback_on_the_same_sample_and_readmits_after_stable(setup):
+    model, campaign, aligned, w, t = setup
+    time_s = aligned.time_s
+    wl = w.copy()
+    counts = np.ones(wl.shape, np.int8)
+    s3 = model.sensor_names.index("S3")
+    lost = (time_s >= 100.0) & (time_s < 150.0)
+    wl[lost, s3] = np.nan
+    counts[lost, s3] = 0
+    cfg = PipelineConfig(health=H.HealthConfig(recover_s=5.0))
+    r = _run(Pipeline(model, cfg), time_s, wl, t, [33], counts)
+    first_bad = np.argmax(lost)
+    assert r["health"][first_bad - 1] == HEALTH_OK
+    assert r["health"][first_bad] == HEALTH_DEGRADED             # within one sample
+    assert r["sensor_status"][first_bad, s3] == H.MISSING
+    fallback = model.predictor(frozenset({"S3"}))
+    dev, _ = fallback.predict(wl[lost], t[lost], *_zero(aligned, model))
+    np.testing.assert_allclose(r["deviation_um"][lost], dev, atol=1e-9)
+    np.testing.assert_allclose(r["expected_rms_um"][lost],
+                               np.broadcast_to(fallback.expected_rms_error_um, dev.shape))
+    last_bad = time_s[lost][-1]
+    stable = (time_s > last_bad) & (time_s < last_bad + 5.0 - 1e-9)
+    assert stable.sum() >= 45
+    assert (r["health"][stable] == HEALTH_DEGRADED).all()          # recovering, not re-admitted
+    assert (r["sensor_status"][stable, s3] == H.RECOVERING).all()
+    assert (r["health"][time_s >= last_bad + 5.0 + 1e-9] == HEALTH_OK).all()
+
+
+def _zero(aligned, model):
+    _, _, w0, t0 = model.instrument_arrays(aligned)
+    return w0, t0
+
+
+def test_no_usable_model_holds_then_ramps_to_zero(setup):
+    model, campaign, aligned, w, t = setup
+    time_s = aligned.time_s
+    wl = w.copy()
+    counts = np.ones(wl.shape, np.int8)
+    lost = time_s >= 50.0
+    for name in ("S1", "S2"):                      # only leave-one-out models are stored
+        j = model.sensor_names.index(name)
+        wl[lost, j] = np.nan
+        counts[lost, j] = 0
+    r = _run(Pipeline(model, PipelineConfig(ramp_s=2.0)), time_s, wl, t, [16], counts)
+    i = np.argmax(lost)
+    held = r["correction_um"][i - 1]
+    assert np.abs(held).max() > 0
+    assert (r["health"][lost] == HEALTH_ALARM).all()
+    frac = np.clip(1 - (time_s[lost] - time_s[i]) / 2.0, 0, 1)
+    np.testing.assert_allclose(r["correction_um"][lost], held * frac[:, None], atol=1e-12)
+    assert (r["correction_um"][time_s >= 52.0] == 0).all()
+
+
+def test_jump_stuck_and_doubled_are_faults(setup):
+    model, campaign, aligned, w, t = setup
+    time_s = aligned.time_s[:400]
+    wl, temp = w[:400].copy(), t[:400]
+    counts = np.ones(wl.shape, np.int8)
+    wl[100, 0] += 0.5                                # 0.5 nm in one sample: not physical
+    wl[200:, 1] = wl[200, 1]                         # S2 frozen from t = 20 s
+    counts[300, 4] = 2                               # S5 doubled once
+    wl[300, 4] = np.nan
+    r = _run(Pipeline(model), time_s, wl, temp, [25], counts)
+    st = r["sensor_status"]
+    assert st[100, 0] == H.JUMP and st[101, 0] == H.JUMP     # jump there and back
+    assert st[99, 0] == H.OK
+    stuck_from = np.searchsorted(time_s, time_s[200] + 2.0)
+    assert (st[stuck_from:, 1] == H.STUCK).all() and (st[200:stuck_from - 1, 1] != H.STUCK).all()
+    assert st[300, 4] == H.DOUBLED
+    # S2 stuck and S5 doubled at once: no leave-two-out model stored -> alarm
+    assert r["model_set"][300] == -1 and r["health"][300] == HEALTH_ALARM
+    assert r["health"][stuck_from + 1] == HEALTH_DEGRADED
+
+
+def test_smoothing_is_an_exponential_filter(setup):
+    model, campaign, aligned, w, t = setup
+    raw = _run(Pipeline(model), aligned.time_s, w, t, [64])
+    sm = _run(Pipeline(model, PipelineConfig(smoothing_tau_s=1.0)), aligned.time_s, w, t, [64])
+    a = np.exp(-0.1 / 1.0)
+    x, y = raw["correction_um"], sm["correction_um"]
+    np.testing.assert_allclose(y[1:], a * y[:-1] + (1 - a) * x[1:], atol=1e-9)

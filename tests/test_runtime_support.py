@@ -1,0 +1,76 @@
+"""Shared set-up for the runtime tests (no tests here): a real model file fitted by
+fbgcomp.models on a synthetic campaign, and a short campaign to serve."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+_CACHE: dict = {}
+
+
+def model_and_campaign(base: Path) -> tuple[Path, Path]:
+    """(model.json, campaign folder) built once per test session under ``base``."""
+    if "paths" in _CACHE:
+        return _CACHE["paths"]
+    from fbgcomp.campaign import write_campaign
+    from fbgcomp.models import MRAModel
+    from fbgcomp.synthetic import linear_truth_campaign
+
+    base.mkdir(parents=True, exist_ok=True)
+    train, _ = linear_truth_campaign("train", seed=1, duration_s=2 * 3600, noise_um=0.05)
+    model = MRAModel(features="eq13", zero_window_s=0.5, fallbacks="loo").fit(train)
+    model_path = model.save(base / "model.json")
+    serve, _ = linear_truth_campaign("serve", seed=2, duration_s=300, fbg_dt_s=0.1,
+                                     temperature_dt_s=0.1, reference_dt_s=0.1)
+    campaign = write_campaign(serve, base / "serve")
+    _CACHE["paths"] = (Path(model_path), Path(campaign))
+    return _CACHE["paths"]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def fbgcomp_process(*args, env=None, **kw) -> subprocess.Popen:
+    """Start ``python -m fbgcomp ARGS`` (the real console entry point) in a new process."""
+    full_env = dict(os.environ)
+    full_env.update(env or {})
+    return subprocess.Popen([sys.executable, "-m", "fbgcomp", *map(str, args)], env=full_env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, **kw)
+
+
+def wait_port(port: int, timeout_s: float = 20.0) -> None:
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
+                return
+        except OSError:
+            time.sleep(0.05)
+    raise TimeoutError(f"nothing listening on 127.0.0.1:{port}")
+
+
+async def secure_client(url: str, state: Path, user: str | None = None,
+                        password: str | None = None):
+    """An asyncua client with its own certificate, Basic256Sha256 SignAndEncrypt."""
+    from asyncua import Client
+    from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
+    from asyncua import ua
+
+    client = Client(url, timeout=10)
+    client.application_uri = "urn:fbgcomp:test:client"
+    cert, key = await client.setup_self_signed_certificate(state / "client_key.pem",
+                                                           state / "client_cert.der")
+    await client.set_security(SecurityPolicyBasic256Sha256, str(cert), str(key),
+                              mode=ua.MessageSecurityMode.SignAndEncrypt)
+    if user is not None:
+        client.set_user(user)
+        client.set_password(password)
+    return client
