@@ -54,7 +54,7 @@ def _smooth_signal(rng, t, amplitude, periods_s=(900.0, 3000.0), n_terms=4):
 def linear_truth_campaign(name="synthetic", *, seed=0, duration_s=3600.0, fbg_dt_s=1.0,
                           temperature_dt_s=1.0, reference_dt_s=1.0, reference_offset_s=0.0,
                           coefficients=None, noise_um=0.05, wavelength_noise_nm=0.0,
-                          kind="thermal"):
+                          kind="thermal", settle_s=60.0):
     """A campaign whose TTP deviation is an exact linear function of eq. 13 regressors.
 
     Parameters
@@ -74,6 +74,10 @@ def linear_truth_campaign(name="synthetic", *, seed=0, duration_s=3600.0, fbg_dt
         Standard deviation of the Gaussian noise added to the reference, µm.
     wavelength_noise_nm : float
         Standard deviation of the interrogator's wavelength noise, nm.
+    settle_s : float
+        The machine rests for this long before anything changes, as in a real campaign: the zero
+        state (mean of each signal's first seconds, on each instrument's own clock) is only
+        consistent across instruments when nothing moves during it.
 
     Returns
     -------
@@ -95,7 +99,8 @@ def linear_truth_campaign(name="synthetic", *, seed=0, duration_s=3600.0, fbg_dt
     temps = np.column_stack([t_bulk, t_surf, t_flange, t_amb])
 
     def sample(t, values):
-        return np.column_stack([np.interp(t, t_fine, values[:, j]) for j in range(values.shape[1])])
+        t_moving = np.maximum(np.asarray(t, dtype=float) - settle_s, 0.0)
+        return np.column_stack([np.interp(t_moving, t_fine, values[:, j]) for j in range(values.shape[1])])
 
     t_fbg = np.arange(0.0, duration_s + 1e-9, fbg_dt_s)
     t_tmp = np.arange(0.0, duration_s + 1e-9, temperature_dt_s)
@@ -104,7 +109,7 @@ def linear_truth_campaign(name="synthetic", *, seed=0, duration_s=3600.0, fbg_dt
     gauge = np.array([s.gauge_length_mm for s in meta.sensors])
     lam0 = np.array([s.lambda0_nm for s in meta.sensors])
     surf_fbg = sample(t_fbg, temps[:, [1]])[:, 0]
-    dt_sensor = (surf_fbg - t_surf[0])[:, None] * np.ones(len(SENSORS))
+    dt_sensor = (surf_fbg - surf_fbg[0])[:, None] * np.ones(len(SENSORS))
     lam = optics.wavelength_nm(sample(t_fbg, dl), lam0, gauge, dt_sensor)
     lam = lam + wavelength_noise_nm * rng.standard_normal(lam.shape)
 

@@ -1,0 +1,148 @@
+"""Command-line interface: a thin layer that parses, calls the library and prints.
+
+Bad input raises :class:`fbgcomp.errors.InputError`; :func:`main` prints its one line on stderr
+(``error: <file>, row R (line L), column C: ...``) and exits with code 2, without a traceback.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import List, Optional
+
+import typer
+from tqdm import tqdm
+
+from .errors import InputError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                  help="fbgcomp: compensate machine-tool deformations from FBG sensors.")
+
+
+def _progress(iterable, desc):
+    # disable=None: bars only on a terminal, so logs and pipes stay clean.
+    return tqdm(iterable, desc=desc, unit="campaign", disable=None, leave=False, file=sys.stderr)
+
+
+def _read_campaigns(paths):
+    from .campaign import read_campaign
+
+    return [read_campaign(p) for p in _progress(paths, "reading campaigns")]
+
+
+@app.command()
+def inspect(campaign: Path = typer.Argument(..., help="Campaign folder."),
+            as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON.")):
+    """Summarise a campaign: duration, rates, ranges, alignment overlap, problems found."""
+    from .campaign import read_campaign
+
+    c = read_campaign(campaign)
+    if as_json:
+        typer.echo(json.dumps(c.summary(), indent=1, default=str))
+    else:
+        typer.echo(c.summary_text())
+
+
+def _parse_roles(roles: Optional[str]):
+    if not roles:
+        return None
+    out = {}
+    for item in roles.split(","):
+        key, sep, value = item.partition("=")
+        if not sep or key.strip() not in ("bulk", "surf", "flange"):
+            raise InputError(f"--roles expects bulk=PROBE,surf=PROBE,flange=PROBE, got {item!r}",
+                             file="<command line>", column="option --roles")
+        out[key.strip()] = value.strip()
+    return out
+
+
+@app.command()
+def fit(campaigns: List[Path] = typer.Argument(..., help="Training campaign folders."),
+        output: Path = typer.Option(..., "-o", "--output", help="Model file to write (JSON)."),
+        features: str = typer.Option("eq13", help="Feature set: eq11, eq13 or eq12."),
+        stepwise: bool = typer.Option(False, "--stepwise", help="Stepwise selection (F-tests)."),
+        direction: str = typer.Option("both", help="Stepwise direction: both, forward, backward."),
+        p_enter: float = typer.Option(0.05, help="Stepwise p-value to enter."),
+        p_remove: float = typer.Option(0.10, help="Stepwise p-value to remove."),
+        max_terms: Optional[int] = typer.Option(None, help="Upper bound on selected terms."),
+        roles: Optional[str] = typer.Option(None, help="Probe roles, e.g. bulk=T_bulk,surf=T_surf,flange=T_flange."),
+        zero_window: float = typer.Option(10.0, "--zero-window", help="Zero state: mean of the first N seconds."),
+        fallbacks: str = typer.Option("loo", help="Fallback models for sensor faults: loo, lto or none.")):
+    """Fit the TTP-deviation model and print the coefficient table per axis (paper Table 1)."""
+    from .models import MRAModel
+
+    if features not in ("eq11", "eq12", "eq13"):
+        raise InputError(f"unknown feature set {features!r}; expected eq11, eq12 or eq13",
+                         file="<command line>", column="option --features")
+    if direction not in ("both", "forward", "backward"):
+        raise InputError(f"unknown direction {direction!r}", file="<command line>", column="option --direction")
+    if fallbacks not in ("loo", "lto", "none"):
+        raise InputError(f"unknown fallbacks {fallbacks!r}", file="<command line>", column="option --fallbacks")
+    data = _read_campaigns(campaigns)
+    model = MRAModel(features=features, stepwise=stepwise, direction=direction, p_enter=p_enter,
+                     p_remove=p_remove, max_terms=max_terms, roles=_parse_roles(roles),
+                     zero_window_s=zero_window, fallbacks=fallbacks)
+    model.fit(data)
+    model.save(output)
+    typer.echo(model.summary())
+    typer.echo(f"\nmodel {model.model_id} written to {output}")
+
+
+@app.command()
+def validate(model_file: Path = typer.Argument(..., help="Model file (JSON)."),
+             campaigns: List[Path] = typer.Argument(..., help="Campaign folders to judge the model on."),
+             json_out: Optional[Path] = typer.Option(None, "--json", help="Write the metrics as JSON.")):
+    """Judge a model on campaigns: per axis peak, max |error|, RMS, % of peak, compensation ratio."""
+    import numpy as np
+
+    from .metrics import format_metrics, validation_metrics
+    from .models import load_model, write_json_atomic
+
+    model = load_model(model_file)
+    refs, preds, halves, per_campaign = [], [], [], {}
+    for c in _read_campaigns(campaigns):
+        pred, half = model.predict_interval(c)
+        ref = c.aligned(zero_window_s=model.zero_window_s).reference_um
+        m = validation_metrics(ref, pred, half)
+        per_campaign[c.meta.name] = m
+        typer.echo(format_metrics(m, title=f"campaign {c.meta.name}") + "\n")
+        refs.append(ref), preds.append(pred), halves.append(half)
+    pooled = validation_metrics(np.vstack(refs), np.vstack(preds), np.vstack(halves))
+    if len(per_campaign) > 1:
+        typer.echo(format_metrics(pooled, title="all campaigns"))
+    pooled["campaigns"] = per_campaign
+    pooled["model_id"] = model.model_id
+    if json_out is not None:
+        write_json_atomic(json_out, pooled)
+        typer.echo(f"metrics written to {json_out}")
+
+
+def _mount_optional_commands() -> None:
+    """Commands of packages that may be absent in a minimal install (runtime needs asyncua)."""
+    try:
+        from .runtime.cli import register
+    except ImportError:
+        return
+    register(app)
+
+
+_mount_optional_commands()
+
+
+def main(argv=None) -> int:
+    try:
+        app(args=argv, prog_name="fbgcomp")
+    except InputError as exc:
+        print(f"error: {exc.one_line()}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        return 130
+    except SystemExit as exc:
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
