@@ -160,8 +160,8 @@ class Thermal(_Strict):
 class MeshSettings(_Strict):
     resolution: float = Field(default=1.0, gt=0, le=8)
     wall_elements: int = Field(default=3, ge=1)
-    span_elements: int = Field(default=12, ge=2)
-    dz_mm: float = Field(default=17.0, gt=0)
+    span_elements: int = Field(default=10, ge=2)
+    dz_mm: float = Field(default=20.0, gt=0)
     thermal_modes: int = Field(default=60, ge=1)
 
 

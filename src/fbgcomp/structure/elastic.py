@@ -1,0 +1,189 @@
+"""Linear thermo-elasticity of the ram: transversely isotropic CFRP (fibre along Z), isotropic steel.
+
+Units: mm, N, MPa (N/mm^2), K. Weak form: a(u, v) = f(v) + integral eps(v) : C : alpha * theta, with
+theta = T - T_ref the temperature above the stress-free state (paper section 2.3: the FE of the ram
+under static tool-tip loads and thermal loads feeds the regression of eqs. 11 and 13).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+from skfem import Basis, BilinearForm, ElementHex1, ElementVector, FacetBasis, LinearForm, asm
+from skfem.helpers import sym_grad
+
+from fbgcomp.structure.machine import CFRP, Steel
+
+# 2x2x2 Gauss points integrate the Hex1 stiffness and mass exactly on box-shaped elements.
+INTORDER = 3
+
+
+def transversely_isotropic_stiffness_MPa(E_L_GPa, E_T_GPa, G_LT_GPa, nu_LT, nu_TT) -> np.ndarray:
+    """6x6 Voigt stiffness (xx, yy, zz, yz, xz, xy; engineering shears), fibre axis along Z."""
+    EL, ET, GLT = 1e3 * E_L_GPa, 1e3 * E_T_GPa, 1e3 * G_LT_GPa
+    S = np.zeros((6, 6))
+    S[0, 0] = S[1, 1] = 1 / ET
+    S[2, 2] = 1 / EL
+    S[0, 1] = S[1, 0] = -nu_TT / ET
+    S[0, 2] = S[2, 0] = S[1, 2] = S[2, 1] = -nu_LT / EL
+    S[3, 3] = S[4, 4] = 1 / GLT
+    S[5, 5] = 2 * (1 + nu_TT) / ET
+    return np.linalg.inv(S)
+
+
+def isotropic_stiffness_MPa(E_GPa, nu) -> np.ndarray:
+    """6x6 Voigt stiffness of an isotropic material."""
+    E = 1e3 * E_GPa
+    lam = E * nu / ((1 + nu) * (1 - 2 * nu))
+    mu = E / (2 * (1 + nu))
+    C = np.zeros((6, 6))
+    C[:3, :3] = lam
+    C[[0, 1, 2], [0, 1, 2]] += 2 * mu
+    C[[3, 4, 5], [3, 4, 5]] = mu
+    return C
+
+
+def cfrp_stiffness_MPa(m: CFRP) -> np.ndarray:
+    return transversely_isotropic_stiffness_MPa(m.E_L_GPa, m.E_T_GPa, m.G_LT_GPa, m.nu_LT, m.nu_TT)
+
+
+def steel_stiffness_MPa(m: Steel) -> np.ndarray:
+    return isotropic_stiffness_MPa(m.E_GPa, m.nu)
+
+
+def cfrp_cte_voigt_per_K(m: CFRP) -> np.ndarray:
+    return np.array([m.cte_T_per_K, m.cte_T_per_K, m.cte_L_per_K, 0.0, 0.0, 0.0])
+
+
+def steel_cte_voigt_per_K(m: Steel) -> np.ndarray:
+    return np.array([m.cte_per_K] * 3 + [0.0] * 3)
+
+
+def _voigt(e):
+    return (e[0, 0], e[1, 1], e[2, 2], 2 * e[1, 2], 2 * e[0, 2], 2 * e[0, 1])
+
+
+def anisotropic_elasticity(C_MPa: np.ndarray) -> BilinearForm:
+    """a(u, v) = integral eps(v) . C . eps(u) with a constant 6x6 Voigt stiffness."""
+    pairs = [(i, j, float(C_MPa[i, j])) for i in range(6) for j in range(6) if C_MPa[i, j] != 0]
+
+    @BilinearForm
+    def form(u, v, w):
+        eu, ev = _voigt(sym_grad(u)), _voigt(sym_grad(v))
+        return sum(c * ev[i] * eu[j] for i, j, c in pairs)
+    return form
+
+
+def thermal_stress_load(beta_MPa_per_K: np.ndarray) -> BilinearForm:
+    """b(theta, v) = integral eps(v) . beta * theta, beta = C . alpha (trial: temperature)."""
+    terms = [(i, float(b)) for i, b in enumerate(beta_MPa_per_K) if b != 0]
+
+    @BilinearForm
+    def form(theta, v, w):
+        ev = _voigt(sym_grad(v))
+        return theta * sum(b * ev[i] for i, b in terms)
+    return form
+
+
+@LinearForm
+def _unit_x(v, w):
+    return v[0]
+
+
+@LinearForm
+def _unit_y(v, w):
+    return v[1]
+
+
+@LinearForm
+def _unit_z(v, w):
+    return v[2]
+
+
+@LinearForm
+def _z_times_x(v, w):
+    return v[2] * w.x[0]
+
+
+@LinearForm
+def _z_times_y(v, w):
+    return v[2] * w.x[1]
+
+
+@LinearForm
+def _area(v, w):
+    return v * 1.0
+
+
+def vector_element():
+    return ElementVector(ElementHex1())
+
+
+def facet_mean_rows(vbasis: Basis, facets) -> np.ndarray:
+    """(3, n_u) rows: mean ux, uy, uz over a set of boundary facets (area weighted)."""
+    fb = FacetBasis(vbasis.mesh, vbasis.elem, facets=facets, intorder=INTORDER)
+    sb = FacetBasis(vbasis.mesh, ElementHex1(), facets=facets, intorder=INTORDER)
+    area = asm(_area, sb).sum()
+    return np.vstack([asm(f, fb) for f in (_unit_x, _unit_y, _unit_z)]) / area
+
+
+def rigid_extension_rows(vbasis: Basis, facets, centre_xy_mm=(0.0, 0.0),
+                         lever_mm: float = 0.0) -> np.ndarray:
+    """(3, n_u) rows: displacement (dx, dy, dz) of a point ``lever_mm`` below a plane face.
+
+    The point sits on a rigid extension of the face: mean face translation plus the face's
+    best-fit rotation (least squares on uz) times the lever arm. By reciprocity the transposed rows
+    are the consistent load of a force applied at that point.
+    """
+    fb = FacetBasis(vbasis.mesh, vbasis.elem, facets=facets, intorder=INTORDER)
+    sb = FacetBasis(vbasis.mesh, ElementHex1(), facets=facets, intorder=INTORDER)
+    mean = facet_mean_rows(vbasis, facets)
+    x0, y0 = centre_xy_mm
+
+    @LinearForm
+    def second_moment_x(v, w):
+        return v * (w.x[0] - x0) ** 2
+
+    @LinearForm
+    def second_moment_y(v, w):
+        return v * (w.x[1] - y0) ** 2
+
+    Ixx = asm(second_moment_x, sb).sum()
+    Iyy = asm(second_moment_y, sb).sum()
+    area = asm(_area, sb).sum()
+    zx = asm(_z_times_x, fb) - x0 * mean[2] * area
+    zy = asm(_z_times_y, fb) - y0 * mean[2] * area
+    rot_x = zy / Iyy            # uz = rot_x * y - rot_y * x for a rigid rotation
+    rot_y = -zx / Ixx
+    return np.vstack([mean[0] - lever_mm * rot_y, mean[1] + lever_mm * rot_x, mean[2]])
+
+
+def assemble_elasticity(rm, cfrp: CFRP, steel: Steel):
+    """Stiffness K (n_u x n_u, N/mm) and thermal load matrix Th (n_u x n_nodes, N/K).
+
+    Returns (vbasis, sbasis, K, Th); K u = f + Th theta.
+    """
+    e = vector_element()
+    vbasis = Basis(rm.mesh, e, intorder=INTORDER)
+    sbasis = Basis(rm.mesh, ElementHex1(), intorder=INTORDER)
+    K = None
+    Th = None
+    for elements, C, alpha in ((rm.cfrp_elements, cfrp_stiffness_MPa(cfrp), cfrp_cte_voigt_per_K(cfrp)),
+                               (rm.steel_elements, steel_stiffness_MPa(steel), steel_cte_voigt_per_K(steel))):
+        if len(elements) == 0:
+            continue
+        vb = Basis(rm.mesh, e, intorder=INTORDER, elements=elements)
+        sb = Basis(rm.mesh, ElementHex1(), intorder=INTORDER, elements=elements)
+        Ki = asm(anisotropic_elasticity(C), vb)
+        Thi = asm(thermal_stress_load(C @ alpha), sb, vb)
+        K = Ki if K is None else K + Ki
+        Th = Thi if Th is None else Th + Thi
+    return vbasis, sbasis, K.tocsc(), Th.tocsr()
+
+
+def spring_matrix(rows: np.ndarray, stiffness_N_per_mm) -> sp.csc_matrix:
+    """Sum of k c c^T for constraint rows c (n_c, n): elastic supports on mean displacements."""
+    rows = np.atleast_2d(rows)
+    k = np.broadcast_to(np.asarray(stiffness_N_per_mm, dtype=float), (rows.shape[0],))
+    R = sp.csr_matrix(rows)
+    return (R.T @ sp.diags(k) @ R).tocsc()

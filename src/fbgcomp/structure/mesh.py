@@ -1,0 +1,277 @@
+"""Structured hexahedral mesh of the hollow CFRP ram and the solid steel housing.
+
+A tensor grid whose lines pass through every wall face, the housing outline, the sensor path ends,
+the probe heights and the support patches, with the cells of the box cavity removed. Every point
+functional (sensor path ends, probes) is an exact trilinear interpolation on one cell, and every
+path mean is an exact trapezoid over the grid's z-lines (the field is linear in z between them).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from skfem import MeshHex
+
+from fbgcomp.structure.machine import Machine
+
+_TOL_MM = 1e-6
+
+
+def _segment_lines(breaks_mm, step_mm: float) -> np.ndarray:
+    """Grid lines through all ``breaks_mm`` with spacing at most ``step_mm`` between them."""
+    b = np.unique(np.round(np.asarray(breaks_mm, dtype=float), 6))
+    # Break points closer than 0.5 mm would only make sliver elements: keep the first of them.
+    keep = [b[0]]
+    for v in b[1:]:
+        if v - keep[-1] > 0.5:
+            keep.append(v)
+    keep[-1] = b[-1]
+    b = np.asarray(keep)
+    lines = [b[:1]]
+    for lo, hi in zip(b[:-1], b[1:]):
+        n = max(1, int(np.ceil((hi - lo) / step_mm - 1e-9)))
+        lines.append(np.linspace(lo, hi, n + 1)[1:])
+    return np.concatenate(lines)
+
+
+def _cross_lines(outer_half_mm: float, wall_mm: float, n_wall: int, n_span: int,
+                 extra_mm=()) -> np.ndarray:
+    inner = outer_half_mm - wall_mm
+    lines = np.concatenate([
+        np.linspace(-outer_half_mm, -inner, n_wall + 1),
+        np.linspace(-inner, inner, n_span + 1)[1:-1],
+        np.linspace(inner, outer_half_mm, n_wall + 1),
+    ])
+    extra = [e for e in extra_mm if np.min(np.abs(lines - e)) > 1e-3]
+    return np.unique(np.concatenate([lines, np.asarray(extra, dtype=float)]))
+
+
+@dataclass
+class RamMesh:
+    """The hexahedral mesh plus the grid bookkeeping needed for exact point functionals.
+
+    Attributes
+    ----------
+    mesh : skfem.MeshHex
+        Coordinates in mm.
+    xs_mm, ys_mm, zs_mm : ndarray
+        Grid lines of the tensor grid the mesh was cut from.
+    node_of : ndarray (ny, nx, nz) of int
+        Mesh node at each grid point, -1 where no material is.
+    steel_elements, cfrp_elements : ndarray of int
+        Elements of the housing and of the ram.
+    """
+
+    mesh: MeshHex
+    xs_mm: np.ndarray
+    ys_mm: np.ndarray
+    zs_mm: np.ndarray
+    node_of: np.ndarray
+    cell_kept: np.ndarray
+    steel_elements: np.ndarray
+    cfrp_elements: np.ndarray
+    half_width_mm: float
+    half_depth_mm: float
+    wall_mm: float
+    length_mm: float
+
+    @property
+    def n_nodes(self) -> int:
+        return self.mesh.p.shape[1]
+
+    def _cell_of(self, x: float, y: float, z: float) -> tuple[int, int, int]:
+        cands = []
+        for lines, v in ((self.xs_mm, x), (self.ys_mm, y), (self.zs_mm, z)):
+            i = int(np.clip(np.searchsorted(lines, v) - 1, 0, len(lines) - 2))
+            opts = {i}
+            # On a grid line the neighbouring cell may be the one that holds material.
+            for j in (i - 1, i + 1):
+                if 0 <= j <= len(lines) - 2 and lines[j] - _TOL_MM <= v <= lines[j + 1] + _TOL_MM:
+                    opts.add(j)
+            cands.append(sorted(opts))
+        for ix in cands[0]:
+            for iy in cands[1]:
+                for iz in cands[2]:
+                    if self.cell_kept[iy, ix, iz]:
+                        return ix, iy, iz
+        raise ValueError(f"point ({x:g}, {y:g}, {z:g}) mm is not in the meshed structure")
+
+    def point_rows(self, points_mm) -> sp.csr_matrix:
+        """Sparse (n_points, n_nodes) trilinear interpolation of a nodal field at points (mm)."""
+        pts = np.atleast_2d(np.asarray(points_mm, dtype=float))
+        rows, cols, vals = [], [], []
+        for r, (x, y, z) in enumerate(pts):
+            ix, iy, iz = self._cell_of(x, y, z)
+            sx = np.clip((x - self.xs_mm[ix]) / (self.xs_mm[ix + 1] - self.xs_mm[ix]), 0, 1)
+            sy = np.clip((y - self.ys_mm[iy]) / (self.ys_mm[iy + 1] - self.ys_mm[iy]), 0, 1)
+            sz = np.clip((z - self.zs_mm[iz]) / (self.zs_mm[iz + 1] - self.zs_mm[iz]), 0, 1)
+            for dx, wx in ((0, 1 - sx), (1, sx)):
+                for dy, wy in ((0, 1 - sy), (1, sy)):
+                    for dz, wz in ((0, 1 - sz), (1, sz)):
+                        w = wx * wy * wz
+                        if w > 0:
+                            rows.append(r)
+                            cols.append(self.node_of[iy + dy, ix + dx, iz + dz])
+                            vals.append(w)
+        return sp.csr_matrix((vals, (rows, cols)), shape=(len(pts), self.n_nodes))
+
+    def face_point_mm(self, face: str, offset_mm: float, z_mm) -> np.ndarray:
+        """Points (n, 3) on an outer face of the ram: ``offset_mm`` across the face, at heights z."""
+        z = np.atleast_1d(np.asarray(z_mm, dtype=float))
+        sign = 1.0 if face[0] == "+" else -1.0
+        if face[1] == "X":
+            xy = (sign * self.half_width_mm, offset_mm)
+        else:
+            xy = (offset_mm, sign * self.half_depth_mm)
+        return np.column_stack([np.full_like(z, xy[0]), np.full_like(z, xy[1]), z])
+
+    def path_mean_rows(self, face: str, offset_mm: float, z_start_mm: float,
+                       z_end_mm: float) -> sp.csr_matrix:
+        """(1, n_nodes) row: mean of a nodal field along a straight path on an outer face.
+
+        Trapezoid over the grid's z-lines inside the path: exact, as the trilinear field is linear
+        in z between them.
+        """
+        inner = self.zs_mm[(self.zs_mm > z_start_mm + _TOL_MM) & (self.zs_mm < z_end_mm - _TOL_MM)]
+        z = np.concatenate([[z_start_mm], inner, [z_end_mm]])
+        dz = np.diff(z)
+        w = np.zeros_like(z)
+        w[:-1] += dz / 2
+        w[1:] += dz / 2
+        w /= z_end_mm - z_start_mm
+        rows = self.point_rows(self.face_point_mm(face, offset_mm, z))
+        return sp.csr_matrix(w[None, :] @ rows)
+
+    def facets_where(self, predicate) -> np.ndarray:
+        """Boundary facets whose midpoints (3, n) in mm satisfy ``predicate``."""
+        return self.mesh.facets_satisfying(predicate, boundaries_only=True)
+
+    def outer_facets(self) -> np.ndarray:
+        """Boundary facets exposed to the surrounding air (outside of ram and housing, end faces)."""
+        hw, hd, t = self.half_width_mm, self.half_depth_mm, self.wall_mm
+
+        def in_cavity(x):
+            return ((np.abs(x[0]) < hw - t + _TOL_MM) & (np.abs(x[1]) < hd - t + _TOL_MM)
+                    & (x[2] > -_TOL_MM) & (x[2] < self.length_mm - _TOL_MM))
+        return self.facets_where(lambda x: ~in_cavity(x))
+
+    def inner_facets(self) -> np.ndarray:
+        """Boundary facets facing the air inside the box (inner walls, housing top in the cavity)."""
+        hw, hd, t = self.half_width_mm, self.half_depth_mm, self.wall_mm
+        return self.facets_where(
+            lambda x: ((np.abs(x[0]) < hw - t + _TOL_MM) & (np.abs(x[1]) < hd - t + _TOL_MM)
+                       & (x[2] > -_TOL_MM) & (x[2] < self.length_mm - _TOL_MM)))
+
+    def face_facets(self, face: str, z_lo_mm: float = -np.inf, z_hi_mm: float = np.inf,
+                    across_half_mm: float = np.inf) -> np.ndarray:
+        """Facets on an outer ram/housing face (``+X`` ...) within a z range and a band across it."""
+        axis = 0 if face[1] == "X" else 1
+        half = self.half_width_mm if axis == 0 else self.half_depth_mm
+        sign = 1.0 if face[0] == "+" else -1.0
+        other = 1 - axis
+        return self.facets_where(
+            lambda x: ((np.abs(x[axis] - sign * half) < _TOL_MM)
+                       & (x[2] >= z_lo_mm - _TOL_MM) & (x[2] <= z_hi_mm + _TOL_MM)
+                       & (np.abs(x[other]) <= across_half_mm + _TOL_MM)))
+
+    def end_facets(self, z_mm: float) -> np.ndarray:
+        """Boundary facets in the plane z = ``z_mm`` (e.g. the ram top or the housing bottom)."""
+        return self.facets_where(lambda x: np.abs(x[2] - z_mm) < _TOL_MM)
+
+
+def build_mesh(*, half_width_mm: float, half_depth_mm: float, wall_mm: float, length_mm: float,
+               housing_half_width_mm: float | None = None,
+               housing_half_depth_mm: float | None = None, housing_height_mm: float = 0.0,
+               n_wall: int = 3, n_span: int = 12, dz_mm: float = 17.0,
+               z_breaks_mm=(), xy_breaks_mm=()) -> RamMesh:
+    """Mesh a hollow box (z = 0..length) and optionally a solid block below it (z < 0).
+
+    ``n_wall`` elements through the wall, ``n_span`` (even, so the face centre is a grid line)
+    across the inner span, elements at most ``dz_mm`` long, grid lines through ``z_breaks_mm``.
+    """
+    n_span += n_span % 2
+    has_housing = housing_height_mm > 0
+    extra_x = list(xy_breaks_mm)
+    extra_y = list(xy_breaks_mm)
+    if has_housing:
+        extra_x += [-housing_half_width_mm, housing_half_width_mm]
+        extra_y += [-housing_half_depth_mm, housing_half_depth_mm]
+    xs = _cross_lines(half_width_mm, wall_mm, n_wall, n_span, extra_x)
+    ys = _cross_lines(half_depth_mm, wall_mm, n_wall, n_span, extra_y)
+    z0 = -housing_height_mm if has_housing else 0.0
+    breaks = [z0, 0.0, length_mm] + [z for z in z_breaks_mm if z0 <= z <= length_mm]
+    zs = _segment_lines(breaks, dz_mm)
+
+    full = MeshHex.init_tensor(xs, ys, zs)
+    # Cell (iy, ix, iz) of the tensor grid; keep the wall ring above z = 0 and the housing below.
+    cx = 0.5 * (xs[:-1] + xs[1:])
+    cy = 0.5 * (ys[:-1] + ys[1:])
+    cz = 0.5 * (zs[:-1] + zs[1:])
+    CY, CX, CZ = np.meshgrid(cy, cx, cz, indexing="ij")
+    ax, ay = np.abs(CX), np.abs(CY)
+    in_ram = ((CZ > 0) & (ax < half_width_mm) & (ay < half_depth_mm)
+              & ~((ax < half_width_mm - wall_mm) & (ay < half_depth_mm - wall_mm)))
+    in_housing = np.zeros_like(in_ram)
+    if has_housing:
+        in_housing = (CZ < 0) & (ax < housing_half_width_mm) & (ay < housing_half_depth_mm)
+    kept = in_ram | in_housing
+
+    # Map skfem's element order to grid cells through the element centroids.
+    centroids = full.p[:, full.t].mean(axis=1)
+    ex = np.searchsorted(cx, centroids[0] - 1e-9)
+    ey = np.searchsorted(cy, centroids[1] - 1e-9)
+    ez = np.searchsorted(cz, centroids[2] - 1e-9)
+    keep_elements = np.nonzero(kept[ey, ex, ez])[0]
+    mesh, old_nodes = full.restrict(keep_elements, return_mapping=True)
+
+    nx, ny, nz = len(xs), len(ys), len(zs)
+    node_of = -np.ones((ny, nx, nz), dtype=np.int64)
+    # init_tensor numbers grid point (iy, ix, iz) as iy + ny*ix + ny*nx*iz.
+    iy = old_nodes % ny
+    ix = (old_nodes // ny) % nx
+    iz = old_nodes // (ny * nx)
+    node_of[iy, ix, iz] = np.arange(len(old_nodes))
+
+    zc = mesh.p[:, mesh.t].mean(axis=1)[2]
+    return RamMesh(mesh=mesh, xs_mm=xs, ys_mm=ys, zs_mm=zs, node_of=node_of, cell_kept=kept,
+                   steel_elements=np.nonzero(zc < 0)[0], cfrp_elements=np.nonzero(zc > 0)[0],
+                   half_width_mm=half_width_mm, half_depth_mm=half_depth_mm, wall_mm=wall_mm,
+                   length_mm=length_mm)
+
+
+def carriage_z_mm(machine: Machine, z_axis_mm: float | None = None) -> list[float]:
+    """Carriage stations in the ram frame at Z-axis position ``z_axis_mm`` (default: the YAML's).
+
+    The carriages are fixed in the machine and the ram slides through them (Z +up), so raising the
+    ram by d moves the stations d lower on the ram and lengthens the lever arm to the TTP.
+    """
+    s = machine.supports
+    z_axis = s.z_axis_mm if z_axis_mm is None else z_axis_mm
+    return [c.z_mm - z_axis for c in s.carriages]
+
+
+def machine_mesh(machine: Machine, resolution: float | None = None,
+                 z_axis_mm: float | None = None) -> RamMesh:
+    """The twin's mesh of ``machine``: element counts scaled by ``resolution``."""
+    m = machine.mesh
+    r = m.resolution if resolution is None else float(resolution)
+    s = machine.supports
+    breaks = [machine.supports.nut.z_mm]
+    for z in carriage_z_mm(machine, z_axis_mm):
+        breaks += [z - s.shoe_length_mm / 2, z, z + s.shoe_length_mm / 2]
+    for sensor in machine.sensors + machine.candidate_sensors:
+        breaks += [sensor.z_start_mm, sensor.z_end_mm]
+    breaks += [p.z_mm for p in machine.probes if p.kind == "point"]
+    return build_mesh(
+        half_width_mm=machine.ram.outer_width_mm / 2, half_depth_mm=machine.ram.outer_depth_mm / 2,
+        wall_mm=machine.ram.wall_mm, length_mm=machine.ram.length_mm,
+        housing_half_width_mm=machine.housing.width_mm / 2,
+        housing_half_depth_mm=machine.housing.depth_mm / 2,
+        housing_height_mm=machine.housing.height_mm,
+        n_wall=max(1, int(round(m.wall_elements * r))),
+        n_span=max(2, int(round(m.span_elements * r))),
+        dz_mm=m.dz_mm / r, z_breaks_mm=breaks,
+        # Off-centre sensor paths get their own grid line; support patches snap to the grid.
+        xy_breaks_mm=[s_.offset_mm for s_ in machine.sensors + machine.candidate_sensors])

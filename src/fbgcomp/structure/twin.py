@@ -1,0 +1,344 @@
+"""The FE digital twin of the ram: static tool-tip loads and thermal campaigns as linear operators.
+
+Everything the virtual test bench reads is a linear functional of the displacement u or of the
+temperature rise theta = T - T_ref: FBG path elongations (u_z(end) - u_z(start), µm, the host's
+total elongation, mechanical + thermal expansion, paper eq. 4), path mean temperatures (°C),
+probe temperatures (°C) and the TTP displacement (dx, dy, dz µm, a rigid extension below the
+housing, paper eqs. 10-11). The elastic matrix is factorised once and solved only for the adjoint
+(influence) right-hand sides: w_i = Th^T K^-1 g_i acts directly on the temperature field, so a
+thermal campaign never solves the elastic problem again (section 2.3, FE load designs).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from fbgcomp.structure import elastic, thermal
+from fbgcomp.structure.fe import Factorised, layer_order
+from fbgcomp.structure.machine import Machine
+from fbgcomp.structure.mesh import RamMesh, carriage_z_mm, machine_mesh
+
+UM_PER_MM = 1000.0
+
+
+@dataclass(frozen=True)
+class StaticResponse:
+    """Response to forces at the TTP: one row per load case."""
+
+    sensor_elongation_um: np.ndarray    # (n, S)
+    ttp_um: np.ndarray                  # (n, 3): dx, dy, dz
+    sensor_names: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class ThermalResponse:
+    """Thermal campaign outputs sampled at ``time_s``.
+
+    Elongations and TTP displacements are measured from the stress-free state at T_ref; use
+    :meth:`change_from_start` for changes since the first sample (what an FBG or a laser reads).
+    """
+
+    time_s: np.ndarray                  # (n,)
+    sensor_elongation_um: np.ndarray    # (n, S)
+    sensor_temperature_C: np.ndarray    # (n, S): mean temperature along each path
+    probe_C: np.ndarray                 # (n, P): in the order of probe_names
+    ttp_um: np.ndarray                  # (n, 3)
+    sensor_names: tuple[str, ...]
+    probe_names: tuple[str, ...]
+
+    def probe(self, name: str) -> np.ndarray:
+        """Temperature history (°C) of one probe."""
+        return self.probe_C[:, self.probe_names.index(name)]
+
+    def change_from_start(self) -> "ThermalResponse":
+        """The same response with every output referred to its first sample."""
+        return ThermalResponse(self.time_s, self.sensor_elongation_um - self.sensor_elongation_um[:1],
+                               self.sensor_temperature_C - self.sensor_temperature_C[:1],
+                               self.probe_C - self.probe_C[:1], self.ttp_um - self.ttp_um[:1],
+                               self.sensor_names, self.probe_names)
+
+
+@dataclass(frozen=True)
+class TemperatureLoadResponse:
+    """Steady response to a prescribed temperature-rise field (FE calibration load design)."""
+
+    sensor_elongation_um: np.ndarray    # (S,) or (n, S)
+    sensor_temperature_C: np.ndarray    # temperature rise along each path, K
+    probe_C: np.ndarray                 # temperature rise at each probe, K (the ambient probe: 0)
+    ttp_um: np.ndarray                  # (3,) or (n, 3)
+
+    def __iter__(self):
+        return iter((self.sensor_elongation_um, self.sensor_temperature_C, self.probe_C, self.ttp_um))
+
+
+@dataclass(frozen=True)
+class Influence:
+    """The twin's linear operators (µm, N, K; rows in sensor / probe order).
+
+    sensor_per_force_um_per_N : (S, 3) elongation per TTP force component
+    ttp_per_force_um_per_N : (3, 3) TTP compliance
+    elastic_per_temperature : (S + 3, n_nodes) elongations then dx, dy, dz per K at each node
+    sensor_temperature_rows : (S, n_nodes) path-mean temperature rows
+    probe_temperature_rows : (P_points, n_nodes) rows of the point probes
+    steady_per_input : (S + 3 + S + P_points, 3) steady outputs per unit input (K of ambient,
+        W of spindle heat, W/m^2 of radiant flux), rows ordered like ``output_names``
+    """
+
+    sensor_per_force_um_per_N: np.ndarray
+    ttp_per_force_um_per_N: np.ndarray
+    elastic_per_temperature: np.ndarray
+    sensor_temperature_rows: sp.csr_matrix
+    probe_temperature_rows: sp.csr_matrix
+    steady_per_input: np.ndarray
+    output_names: tuple[str, ...]
+    input_names: tuple[str, ...] = thermal.INPUT_NAMES
+
+
+@dataclass
+class BuildTimes:
+    mesh_s: float = 0.0
+    assemble_s: float = 0.0
+    elastic_factor_s: float = 0.0
+    thermal_reduction_s: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+
+def support_rows(rm: RamMesh, vbasis, machine: Machine, z_axis_mm: float | None):
+    """(6, n_u) constraint rows (mm) and stiffnesses (N/mm) of the statically determinate supports.
+
+    Per carriage station the mean ux and the mean uy over the shoe length; each lateral direction
+    acts on the pair of walls in whose plane it lies (ux on the +-Y walls, uy on the +-X walls),
+    as the carriage frame loads the walls as shear panels: a normal load on a 20 mm CFRP wall
+    would only measure its local plate bending. At the lower station also the twist, the
+    difference of the in-plane displacement between the two shoe faces; at the nut the mean uz
+    over the ram cross-section at the nut.
+    """
+    s = machine.supports
+    rows = []
+    k_shoe = s.carriage_stiffness_N_per_um * UM_PER_MM
+    stations = sorted(carriage_z_mm(machine, z_axis_mm))
+    along = 1 if s.shoe_faces[0][1] == "X" else 0    # in-plane lateral component on shoe faces
+    for j, zc in enumerate(stations):
+        lo, hi = zc - s.shoe_length_mm / 2, zc + s.shoe_length_mm / 2
+
+        def patch(face):
+            return rm.face_facets(face, lo, hi, s.shoe_width_mm / 2)
+        on_y_walls = elastic.facet_mean_rows(vbasis, np.concatenate([patch("+Y"), patch("-Y")]))
+        on_x_walls = elastic.facet_mean_rows(vbasis, np.concatenate([patch("+X"), patch("-X")]))
+        rows += [on_y_walls[0], on_x_walls[1]]
+        if j == 0:
+            m0 = elastic.facet_mean_rows(vbasis, patch(s.shoe_faces[0]))
+            m1 = elastic.facet_mean_rows(vbasis, patch(s.shoe_faces[1]))
+            rows.append(m0[along] - m1[along])
+    layer = np.nonzero(np.abs(rm.mesh.p[2] - s.nut.z_mm) < 1e-6)[0]
+    nut = np.zeros(vbasis.N)
+    nut[vbasis.nodal_dofs[2, layer]] = 1.0 / len(layer)
+    rows.append(nut)
+    k = np.array([k_shoe] * 5 + [s.nut.stiffness_N_per_um * UM_PER_MM])
+    return np.vstack(rows), k
+
+
+class Twin:
+    """FE digital twin of ``machine`` at Z-axis position ``z_axis_mm`` (mesh, operators, factors).
+
+    Parameters
+    ----------
+    machine : Machine
+    resolution : float, optional
+        Mesh refinement factor (default: ``machine.mesh.resolution``).
+    z_axis_mm : float, optional
+        Z-axis position; moves the carriage stations along the ram (default: the YAML's).
+    n_modes : int, optional
+        Retained thermal modes (default: ``machine.mesh.thermal_modes``).
+    """
+
+    def __init__(self, machine: Machine, resolution: float | None = None,
+                 z_axis_mm: float | None = None, n_modes: int | None = None):
+        self.machine = machine
+        self.z_axis_mm = machine.supports.z_axis_mm if z_axis_mm is None else float(z_axis_mm)
+        self.times = BuildTimes()
+        t0 = time.perf_counter()
+        self.mesh = rm = machine_mesh(machine, resolution, self.z_axis_mm)
+        self.times.mesh_s = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        mats = machine.materials
+        vb, sb, K, Th = elastic.assemble_elasticity(rm, mats.cfrp, mats.steel)
+        rows, k = support_rows(rm, vb, machine, self.z_axis_mm)
+        self.support_rows_mm, self.support_stiffness_N_per_mm = rows, k
+        K = (K + elastic.spring_matrix(rows, k)).tocsr()
+        Kt, Ct, Bt = thermal.assemble_thermal(rm, machine)
+        self._vbasis = vb
+        self.times.assemble_s = time.perf_counter() - t0
+
+        self.sensor_names = tuple(s.name for s in machine.sensors)
+        self.probe_names = tuple(p.name for p in machine.probes)
+        self._point_probes = [i for i, p in enumerate(machine.probes) if p.kind == "point"]
+        self._ambient_probes = [i for i, p in enumerate(machine.probes) if p.kind == "ambient"]
+
+        # Elastic output rows (µm per mm of nodal displacement): path elongations, then TTP.
+        uz = vb.nodal_dofs[2]
+        el_rows = []
+        for s in machine.sensors:
+            ends = rm.point_rows(rm.face_point_mm(s.face, s.offset_mm, [s.z_start_mm, s.z_end_mm]))
+            d = (ends[1] - ends[0]).toarray().ravel()
+            row = np.zeros(vb.N)
+            row[uz] = d
+            el_rows.append(row)
+        ttp_rows = elastic.rigid_extension_rows(vb, rm.end_facets(-machine.housing.height_mm),
+                                                lever_mm=machine.tool.ttp_below_housing_mm)
+        R = UM_PER_MM * np.vstack(el_rows + [ttp_rows])               # (S + 3, n_u)
+
+        t0 = time.perf_counter()
+        self._elastic = Factorised(K, order=layer_order(rm.mesh.p, vb.nodal_dofs))
+        X = self._elastic.solve(R.T)                                  # adjoint: K^-1 g_i
+        self.times.elastic_factor_s = time.perf_counter() - t0
+        S = len(self.sensor_names)
+        force = X.T @ ttp_rows.T                                      # (S + 3, 3) µm/N
+        W = np.asarray((Th.T @ X).T)                                  # (S + 3, n_nodes) µm/K
+
+        Tsens = sp.vstack([rm.path_mean_rows(s.face, s.offset_mm, s.z_start_mm, s.z_end_mm)
+                           for s in machine.sensors]).tocsr()
+        pts = [[machine.probes[i].x_mm, machine.probes[i].y_mm, machine.probes[i].z_mm]
+               for i in self._point_probes]
+        Tprobe = rm.point_rows(pts) if pts else sp.csr_matrix((0, rm.n_nodes))
+        O = np.vstack([W, Tsens.toarray(), Tprobe.toarray()])
+        self._O = O
+
+        t0 = time.perf_counter()
+        self._thermal_K, self._thermal_C, self._thermal_B = Kt, Ct, Bt
+        self._thermal_factor = Factorised(Kt)   # the mesh's node order is already layer-wise
+        self.reduced = thermal.ReducedThermal(Kt, Ct, Bt, O,
+                                              n_modes or machine.mesh.thermal_modes,
+                                              factor=self._thermal_factor)
+        self.times.thermal_reduction_s = time.perf_counter() - t0
+
+        names = ([f"{n}_elongation_um" for n in self.sensor_names] + ["dx_um", "dy_um", "dz_um"]
+                 + [f"{n}_temperature_C" for n in self.sensor_names]
+                 + [self.probe_names[i] for i in self._point_probes])
+        self.influence = Influence(
+            sensor_per_force_um_per_N=force[:S], ttp_per_force_um_per_N=force[S:],
+            elastic_per_temperature=W, sensor_temperature_rows=Tsens,
+            probe_temperature_rows=Tprobe.tocsr(), steady_per_input=self.reduced.steady_gain,
+            output_names=tuple(names))
+        self._Th = Th
+        self._K_elastic = K
+        self._R = R
+
+    # ----------------------------------------------------------------------------- sizes
+    @property
+    def n_nodes(self) -> int:
+        return self.mesh.n_nodes
+
+    @property
+    def n_dof(self) -> int:
+        """Thermo-elastic DOF: 3 displacements + 1 temperature per node."""
+        return 4 * self.mesh.n_nodes
+
+    # ---------------------------------------------------------------------------- static
+    def static(self, forces_N) -> StaticResponse:
+        """Response to forces (n, 3) or (3,) in N applied at the TTP (superposable)."""
+        F = np.atleast_2d(np.asarray(forces_N, dtype=float))
+        if F.shape[-1] != 3:
+            raise ValueError("forces_N must have 3 columns (Fx, Fy, Fz)")
+        inf = self.influence
+        return StaticResponse(F @ inf.sensor_per_force_um_per_N.T, F @ inf.ttp_per_force_um_per_N.T,
+                              self.sensor_names)
+
+    # --------------------------------------------------------------------------- thermal
+    def _inputs(self, time_s, ambient_C, spindle_heat_W, radiant_W_per_m2):
+        t = np.asarray(time_s, dtype=float).ravel()
+        cols = []
+        for name, v in (("ambient_C", ambient_C), ("spindle_heat_W", spindle_heat_W),
+                        ("radiant_W_per_m2", radiant_W_per_m2)):
+            a = np.broadcast_to(np.asarray(0.0 if v is None else v, dtype=float), t.shape)
+            cols.append(a)
+        u = np.column_stack(cols)
+        u[:, 0] -= self.machine.reference_temperature_C
+        return t, u
+
+    def _initial_theta(self, initial_C):
+        if initial_C is None:
+            return None
+        init = np.asarray(initial_C, dtype=float)
+        theta = np.broadcast_to(init, (self.n_nodes,)) - self.machine.reference_temperature_C
+        return np.ascontiguousarray(theta)
+
+    def _split(self, t, u, y) -> ThermalResponse:
+        S = len(self.sensor_names)
+        Tref = self.machine.reference_temperature_C
+        probe = np.empty((len(t), len(self.probe_names)))
+        probe[:, self._point_probes] = y[:, 2 * S + 3:] + Tref
+        probe[:, self._ambient_probes] = (u[:, 0] + Tref)[:, None]
+        return ThermalResponse(t, y[:, :S], y[:, S + 3:2 * S + 3] + Tref, probe, y[:, S:S + 3],
+                               self.sensor_names, self.probe_names)
+
+    def thermal(self, time_s, ambient_C, spindle_heat_W=None, radiant_W_per_m2=None,
+                initial_C=None) -> ThermalResponse:
+        """Thermal campaign: inputs (n,) sampled at ``time_s`` (s), piecewise linear in between.
+
+        ``initial_C``: None starts from the steady state of the first inputs; a scalar (uniform)
+        or an (n_nodes,) field sets the initial temperature.
+        """
+        t, u = self._inputs(time_s, ambient_C, spindle_heat_W, radiant_W_per_m2)
+        y = self.reduced.simulate(t, u, self._initial_theta(initial_C))
+        return self._split(t, u, y)
+
+    def thermal_direct(self, time_s, ambient_C, spindle_heat_W=None, radiant_W_per_m2=None,
+                       initial_C=None) -> ThermalResponse:
+        """Full-order implicit Euler reference of :meth:`thermal` (one sparse solve per step)."""
+        t, u = self._inputs(time_s, ambient_C, spindle_heat_W, radiant_W_per_m2)
+        y = thermal.implicit_euler(self._thermal_K, self._thermal_C, self._thermal_B, self._O,
+                                   t, u, self._initial_theta(initial_C))
+        return self._split(t, u, y)
+
+    # ------------------------------------------------------------ temperature load designs
+    FIELD_KINDS = ("uniform", "gradient_x", "gradient_y", "gradient_z", "housing")
+
+    def temperature_field(self, field_kind: str, magnitude_C: float = 1.0) -> np.ndarray:
+        """Nodal temperature rise (K) of a calibration load design.
+
+        uniform: everywhere; gradient_x / gradient_y: linear across the ram, +X (+Y) face minus
+        -X (-Y) face = magnitude, zero on the axis; gradient_z: linear along the ram, top minus
+        spindle end = magnitude, zero at z = 0 (housing at 0); housing: the housing only (z <= 0).
+        """
+        p = self.mesh.mesh.p
+        rm = self.mesh
+        if field_kind == "uniform":
+            shape = np.ones(rm.n_nodes)
+        elif field_kind == "gradient_x":
+            shape = p[0] / (2 * rm.half_width_mm)
+        elif field_kind == "gradient_y":
+            shape = p[1] / (2 * rm.half_depth_mm)
+        elif field_kind == "gradient_z":
+            shape = np.clip(p[2], 0, None) / rm.length_mm
+        elif field_kind == "housing":
+            shape = (p[2] <= 1e-6).astype(float)
+        else:
+            raise ValueError(f"unknown field_kind {field_kind!r}; one of {self.FIELD_KINDS}")
+        return magnitude_C * shape
+
+    def static_temperature_response(self, field_kind: str, magnitude_C=1.0) -> TemperatureLoadResponse:
+        """Steady response to a prescribed temperature rise; ``magnitude_C`` scalar or (n,).
+
+        Returns (sensor_elongation_um, sensor_temperature_C, probe_C, ttp_um); temperatures are
+        rises above T_ref (the ambient probe reads 0).
+        """
+        unit = self.temperature_field(field_kind, 1.0)
+        S = len(self.sensor_names)
+        y = self._O @ unit                                              # linear in the magnitude
+        mag = np.asarray(magnitude_C, dtype=float)
+        probe = np.zeros(len(self.probe_names))
+        probe[self._point_probes] = y[2 * S + 3:]
+        out = [y[:S], y[S + 3:2 * S + 3], probe, y[S:S + 3]]
+        if mag.ndim == 0:
+            return TemperatureLoadResponse(*(float(mag) * o for o in out))
+        return TemperatureLoadResponse(*(mag[:, None] * o[None, :] for o in out))
+
+    def elastic_response_to_field(self, theta_K: np.ndarray) -> np.ndarray:
+        """Elastic outputs (S elongations, dx, dy, dz; µm) of a nodal temperature-rise field."""
+        return self.influence.elastic_per_temperature @ theta_K
