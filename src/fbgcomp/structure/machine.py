@@ -162,7 +162,7 @@ class MeshSettings(_Strict):
     wall_elements: int = Field(default=3, ge=1)
     span_elements: int = Field(default=10, ge=2)
     dz_mm: float = Field(default=20.0, gt=0)
-    thermal_modes: int = Field(default=60, ge=1)
+    thermal_shifts: int = Field(default=12, ge=0, le=60)
 
 
 class Machine(_Strict):

@@ -152,12 +152,12 @@ class Twin:
         Mesh refinement factor (default: ``machine.mesh.resolution``).
     z_axis_mm : float, optional
         Z-axis position; moves the carriage stations along the ram (default: the YAML's).
-    n_modes : int, optional
-        Retained thermal modes (default: ``machine.mesh.thermal_modes``).
+    n_shifts : int, optional
+        Expansion points of the reduced thermal model (default: ``machine.mesh.thermal_shifts``).
     """
 
     def __init__(self, machine: Machine, resolution: float | None = None,
-                 z_axis_mm: float | None = None, n_modes: int | None = None):
+                 z_axis_mm: float | None = None, n_shifts: int | None = None):
         self.machine = machine
         self.z_axis_mm = machine.supports.z_axis_mm if z_axis_mm is None else float(z_axis_mm)
         self.times = BuildTimes()
@@ -212,9 +212,9 @@ class Twin:
         t0 = time.perf_counter()
         self._thermal_K, self._thermal_C, self._thermal_B = Kt, Ct, Bt
         self._thermal_factor = Factorised(Kt)   # the mesh's node order is already layer-wise
-        self.reduced = thermal.ReducedThermal(Kt, Ct, Bt, O,
-                                              n_modes or machine.mesh.thermal_modes,
-                                              factor=self._thermal_factor)
+        self.reduced = thermal.ReducedThermal(
+            Kt, Ct, Bt, O, machine.mesh.thermal_shifts if n_shifts is None else n_shifts,
+            factor=self._thermal_factor)
         self.times.thermal_reduction_s = time.perf_counter() - t0
 
         names = ([f"{n}_elongation_um" for n in self.sensor_names] + ["dx_um", "dy_um", "dz_um"]
