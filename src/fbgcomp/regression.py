@@ -1,0 +1,1108 @@
+"""Multiple regression of the tool-tip deviation on sensor features, by streamed QR.
+
+The compensation model of the paper (section 3, eq. 12-13) is a multiple linear regression of a
+TTP deviation component (dx, dy, dz) on FBG elongations and temperatures, tuned by "stepwise
+regression with ANOVA"; Table 1 reports its coefficients and standard errors. This module is the
+numerical engine behind that: ordinary least squares that is accurate on ill-conditioned designs
+(it passes the NIST StRD linear reference problems, Filip and Wampler included, streamed in
+chunks of any size) and that streams a 36 h campaign of any length in constant memory.
+
+Mathematics
+-----------
+Let ``A = [X | Y]`` (n x (p+k)): the design X exactly as given (the caller adds a column of ones
+for an intercept) next to the k targets. Each column is divided by a fixed scale ``s`` (the
+column's RMS in the first chunk, rounded to a power of two so that the division is exact), and
+the scaled matrix is reduced to its triangular factor ``R`` (``A_s = Q R``) by Householder QR,
+chunk by chunk: ``R <- qr([R; A_chunk])`` (the "TSQR" reduction). The normal equations are never
+formed, so the condition number is not squared.
+
+Because ``R^T R = A_s^T A_s``, every least-squares problem on a subset S of the columns of X and
+one target j is solved *exactly* from ``R`` alone: the QR factor of the (p+k) x (|S|+1) matrix
+``R[:, S + [p+j]]`` is the QR factor of ``A_s[:, S + [p+j]]``. Its leading |S| x |S| triangle
+``T`` and last column ``z`` give the scaled coefficients ``T b = z``, and the square of its last
+diagonal entry is the residual sum of squares. Sub-models, the ANOVA table and the whole stepwise
+search therefore never re-read the data.
+
+Precision
+---------
+Householder QR in double precision is backward stable: the computed factor is exact for data
+perturbed by about one rounding unit u per column, so coefficients carry a relative error of
+about ``kappa * u`` (kappa: condition number of the scaled design). That is 1e-12 for a typical
+compensation design (eq. 12 with raw temperatures: kappa ~ 1e3) but only 1e-7 for NIST Filip
+(kappa ~ 5e9), whatever the chunking. ``R`` is therefore kept in double-double arithmetic (an
+unevaluated sum ``hi + lo`` of two doubles, ~32 significant digits): merges of triangles,
+sub-model factors and triangular solves are always done in it (they are tiny), and the data pass
+itself is done in it too when the scaled design is ill-conditioned (kappa > 1e6) or has fewer
+than 2(p+k) rows so far (``precision="auto"``). Otherwise the data pass is LAPACK Householder QR
+(``geqrf``) on the stacked ``[R; chunk]``, as fast as plain numpy.
+
+Inference follows the textbook (and statsmodels) formulas: ``sigma^2 = SSR / (n - |S|)``,
+``Cov(b) = sigma^2 (X^T X)^-1 = sigma^2 T^-1 T^-T`` (through the triangular inverse, then
+unscaled), Student-t tests and intervals, and the overall F test with R^2 centred when the model
+holds a constant column and uncentred otherwise.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import linalg, stats
+
+from fbgcomp.errors import InputError
+
+__all__ = [
+    "RankDeficientError",
+    "QRAccumulator",
+    "OLSResults",
+    "StepwiseResult",
+    "ols",
+    "ols_from_factor",
+    "stepwise",
+]
+
+_EPS = np.finfo(float).eps
+# Rows per LAPACK pass inside one update: bounds the extra memory of an update (one scaled copy
+# of the block) whatever the caller's chunk size.
+_BLOCK_ROWS = 65536
+# Rows per double-double Householder pass: its ~20 temporaries of this many rows stay small.
+_DD_BLOCK_ROWS = 2048
+# Above this condition number of the scaled design, double-precision QR would lose more than
+# ~10 of the 16 digits: the "auto" precision switches the data pass to double-double.
+_KAPPA_EXTENDED = 1e6
+_PRECISIONS = ("auto", "double", "double-double")
+
+
+class RankDeficientError(InputError, ValueError):
+    """The design has (numerically) linearly dependent columns.
+
+    ``columns`` lists the names of the columns whose scaled-R diagonal is (near) zero, i.e. that
+    are (nearly) linear combinations of the columns before them in the model.
+    """
+
+    def __init__(self, message: str, columns: Sequence[str] = ()):
+        self.columns = list(columns)
+        super().__init__(message)
+
+
+# --------------------------------------------------------------------------------------------
+# Double-double arithmetic (Dekker 1971; Hida, Li & Bailey 2001), vectorised over numpy arrays.
+# A value is the pair (hi, lo) with |lo| <= ulp(hi) / 2; error-free transformations rely on
+# IEEE round-to-nearest, which numpy's separate ufunc calls honour (no FMA contraction).
+# --------------------------------------------------------------------------------------------
+
+_DEKKER = 134217729.0  # 2**27 + 1
+
+
+def _two_sum(a, b):
+    s = a + b
+    bb = s - a
+    return s, (a - (s - bb)) + (b - bb)
+
+
+def _fast_two_sum(a, b):
+    s = a + b
+    return s, b - (s - a)
+
+
+def _split(a):
+    t = _DEKKER * a
+    hi = t - (t - a)
+    return hi, a - hi
+
+
+def _two_prod(a, b):
+    p = a * b
+    ah, al = _split(a)
+    bh, bl = _split(b)
+    return p, ((ah * bh - p) + ah * bl + al * bh) + al * bl
+
+
+def _dd_add(ah, al, bh, bl):
+    s, e = _two_sum(ah, bh)
+    t, f = _two_sum(al, bl)
+    s, e = _fast_two_sum(s, e + t)
+    return _fast_two_sum(s, e + f)
+
+
+def _dd_mul(ah, al, bh, bl):
+    p, e = _two_prod(ah, bh)
+    return _fast_two_sum(p, e + (ah * bl + al * bh))
+
+
+def _dd_div(ah, al, bh, bl):
+    q1 = ah / bh
+    ph, pl = _dd_mul(q1, 0.0 * q1, bh, bl)
+    rh, rl = _dd_add(ah, al, -ph, -pl)
+    q2 = rh / bh
+    ph, pl = _dd_mul(q2, 0.0 * q2, bh, bl)
+    rh, _ = _dd_add(rh, rl, -ph, -pl)
+    q1, q2 = _fast_two_sum(q1, q2)
+    return _dd_add(q1, q2, rh / bh, 0.0 * q1)
+
+
+def _dd_sqrt(ah: float, al: float) -> tuple[float, float]:
+    if ah <= 0.0:
+        return 0.0, 0.0
+    x = math.sqrt(ah)
+    p, e = _two_prod(x, x)
+    return _fast_two_sum(x, ((ah - p) - e + al) / (2.0 * x))
+
+
+def _dd_sum_rows(h: np.ndarray, l: np.ndarray):
+    """Sum along axis 0 by a pairwise tree of double-double additions."""
+    while h.shape[0] > 1:
+        if h.shape[0] % 2:
+            h = np.concatenate([h, np.zeros_like(h[:1])])
+            l = np.concatenate([l, np.zeros_like(l[:1])])
+        h, l = _dd_add(h[0::2], l[0::2], h[1::2], l[1::2])
+    return h[0], l[0]
+
+
+def _dd_householder(mh: np.ndarray, ml: np.ndarray, ncols: int) -> tuple[np.ndarray, np.ndarray]:
+    """Apply Householder reflections in double-double to zero the first ``ncols`` columns of the
+    r x c matrix mh + ml below the diagonal; returns the whole transformed matrix (hi, lo).
+
+    Reflector ``H = I - v v^T / (sigma |v_0|)`` with ``v = x + sign(x_0) sigma e_1`` (no
+    cancellation) and ``v^T v = 2 sigma |v_0|``; Householder's method in 32-digit arithmetic.
+    """
+    mh = np.array(mh, dtype=float)
+    ml = np.array(ml, dtype=float)
+    r, c = mh.shape
+    for j in range(min(r, c, ncols)):
+        xh, xl = mh[j:, j], ml[j:, j]
+        sig_h, sig_l = _dd_sqrt(*_dd_sum_rows(*_dd_mul(xh, xl, xh, xl)))
+        if sig_h == 0.0:
+            continue
+        sign = 1.0 if xh[0] >= 0.0 else -1.0
+        vh = xh.copy()
+        vl = xl.copy()
+        vh[0], vl[0] = _dd_add(xh[0], xl[0], sign * sig_h, sign * sig_l)
+        if j + 1 < c:
+            dh, dl = _dd_mul(sig_h, sig_l, sign * vh[0], sign * vl[0])
+            th, tl = mh[j:, j + 1:], ml[j:, j + 1:]
+            wh, wl = _dd_sum_rows(*_dd_mul(vh[:, None], vl[:, None], th, tl))
+            fh, fl = _dd_div(wh, wl, dh, dl)
+            uh, ul = _dd_mul(vh[:, None], vl[:, None], fh[None, :], fl[None, :])
+            mh[j:, j + 1:], ml[j:, j + 1:] = _dd_add(th, tl, -uh, -ul)
+        mh[j, j], ml[j, j] = -sign * sig_h, -sign * sig_l
+        mh[j + 1:, j] = 0.0
+        ml[j + 1:, j] = 0.0
+    return mh, ml
+
+
+def _dd_qr_r(mh: np.ndarray, ml: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Householder QR in double-double: the c x c triangle R (hi, lo) of the r x c matrix mh + ml
+    (zero rows appended when r < c)."""
+    r, c = np.shape(mh)
+    mh, ml = _dd_householder(mh, ml, c)
+    k = min(r, c)
+    rh = np.zeros((c, c))
+    rl = np.zeros((c, c))
+    rh[:k] = np.triu(mh[:k])
+    rl[:k] = np.triu(ml[:k])
+    return rh, rl
+
+
+def _dd_solve_upper(th, tl, zh, zl) -> tuple[np.ndarray, np.ndarray]:
+    """Back substitution ``T B = Z`` in double-double (T upper triangular, non-singular; Z a
+    vector or a matrix of right-hand sides)."""
+    n = th.shape[0]
+    zh = np.asarray(zh, dtype=float)
+    zl = np.asarray(zl, dtype=float)
+    bh = np.zeros_like(zh)
+    bl = np.zeros_like(zh)
+    for i in range(n - 1, -1, -1):
+        sh, sl = zh[i], zl[i]
+        if i + 1 < n:
+            ah = th[i, i + 1:].reshape((-1,) + (1,) * (zh.ndim - 1))
+            al = tl[i, i + 1:].reshape(ah.shape)
+            qh, ql = _dd_sum_rows(*_dd_mul(ah, al, bh[i + 1:], bl[i + 1:]))
+            sh, sl = _dd_add(sh, sl, -qh, -ql)
+        bh[i], bl[i] = _dd_div(sh, sl, th[i, i], tl[i, i])
+    return bh, bl
+
+
+# --------------------------------------------------------------------------------------------
+# Streamed QR
+# --------------------------------------------------------------------------------------------
+
+def _power_of_two_scale(rms: np.ndarray) -> np.ndarray:
+    """Column scale: the RMS rounded to the nearest power of two, 1 for an all-zero column.
+
+    A power of two makes every division (and every rescaling between accumulators in
+    :meth:`QRAccumulator.merge`) exact, so scaling adds no rounding error of its own.
+    """
+    scale = np.ones_like(rms)
+    ok = np.isfinite(rms) & (rms > 0)
+    scale[ok] = np.exp2(np.round(np.log2(rms[ok])))
+    return scale
+
+
+def _lapack_triangle(a: np.ndarray, ncols: int) -> np.ndarray:
+    """Upper-triangular ncols x ncols QR factor of the Fortran-ordered ``a`` (overwritten)."""
+    (_, _), r = linalg.qr(a, mode="raw", overwrite_a=True, check_finite=False)
+    if r.shape[0] < ncols:
+        r = np.vstack([r, np.zeros((ncols - r.shape[0], ncols))])
+    return np.triu(r[:ncols])
+
+
+def _deficient_columns(diag_abs: np.ndarray, nobs: int) -> list[int]:
+    """Positions whose |R_ii| is (near) zero: <= max(n, p) * eps * max|R_ii| (LAPACK-style)."""
+    if diag_abs.size == 0:
+        return []
+    tol = max(nobs, diag_abs.size) * _EPS * float(diag_abs.max())
+    return [int(i) for i in np.flatnonzero(~(diag_abs > tol))]
+
+
+def _as_2d(values: Any, ncols: int, what: str) -> np.ndarray:
+    arr = np.asarray(values, dtype=float)
+    if arr.ndim == 1 and ncols == 1:
+        arr = arr[:, None]
+    if arr.ndim != 2 or arr.shape[1] != ncols:
+        raise ValueError(f"{what} must have shape (n, {ncols}), got {np.shape(values)}")
+    return arr
+
+
+def _check_finite(arr: np.ndarray, names: Sequence[str], first_row: int, what: str) -> None:
+    if not np.isfinite(arr).all():
+        bad_row, bad_col = np.argwhere(~np.isfinite(arr))[0]
+        raise InputError(f"non-finite {what} value {arr[bad_row, bad_col]!r} in regression data",
+                         row=first_row + int(bad_row), column=names[int(bad_col)])
+
+
+def _names(names: Sequence[str] | None, count: int, default: list[str], what: str) -> list[str]:
+    if names is None:
+        return default
+    names = [str(n) for n in names]
+    if len(names) != count:
+        raise ValueError(f"{what} has {len(names)} names for {count} columns")
+    if len(set(names)) != len(names):
+        raise ValueError(f"{what} are not unique: {names}")
+    return names
+
+
+class QRAccumulator:
+    """Streamed Householder QR (TSQR) of ``[X | Y]`` plus the moments needed for inference.
+
+    Parameters
+    ----------
+    n_features : int
+        p, number of design columns (as given: include the column of ones for an intercept).
+    n_targets : int
+        k, number of targets fitted together (e.g. 3 for dx, dy, dz).
+    feature_names, target_names : sequence of str, optional
+        Column names, used to select columns and to label results. Default ``x0..x{p-1}`` and
+        ``y`` (k = 1) or ``y0..y{k-1}``.
+    precision : {"auto", "double", "double-double"}
+        Arithmetic of the data pass (see the module notes). "auto" uses LAPACK double precision
+        while the scaled design is well conditioned (kappa <= 1e6) and double-double otherwise.
+
+    Attributes
+    ----------
+    n_obs : int
+        Rows accumulated so far.
+    R_, R_lo_ : ndarray, (p+k, p+k)
+        Upper-triangular factor of the *scaled* augmented matrix, ``R_ + R_lo_`` in
+        double-double (``R_`` alone is its double rounding).
+    scale_ : ndarray, (p+k,) or None
+        Column scales (powers of two, fixed by the first chunk).
+    extended_ : bool
+        Whether the data pass has switched to double-double for good because the scaled design
+        is ill-conditioned (the first 2(p+k) rows always go through double-double).
+    column_min_, column_max_ : ndarray, (p,)
+        Range of every design column (a column with min == max != 0 is a constant: intercept).
+    target_mean_, target_css_ : ndarray, (k,)
+        Mean and centred sum of squares of every target (Chan/Welford merge), for the total
+        sum of squares without re-reading the data.
+    """
+
+    def __init__(self, n_features: int, n_targets: int = 1, feature_names=None, target_names=None,
+                 *, precision: str = "auto"):
+        if int(n_features) < 1 or int(n_targets) < 1:
+            raise ValueError("n_features and n_targets must be at least 1")
+        if precision not in _PRECISIONS:
+            raise ValueError(f"precision must be one of {_PRECISIONS}, not {precision!r}")
+        self.n_features = int(n_features)
+        self.n_targets = int(n_targets)
+        self.precision = precision
+        self.feature_names = _names(feature_names, self.n_features,
+                                    [f"x{i}" for i in range(self.n_features)], "feature_names")
+        default_targets = ["y"] if self.n_targets == 1 else [f"y{j}" for j in range(self.n_targets)]
+        self.target_names = _names(target_names, self.n_targets, default_targets, "target_names")
+        q = self.n_features + self.n_targets
+        self.n_obs = 0
+        self.R_ = np.zeros((q, q))
+        self.R_lo_ = np.zeros((q, q))
+        self.scale_: np.ndarray | None = None
+        self.extended_ = precision == "double-double"
+        self.column_min_ = np.full(self.n_features, np.inf)
+        self.column_max_ = np.full(self.n_features, -np.inf)
+        self.target_mean_ = np.zeros(self.n_targets)
+        self.target_css_ = np.zeros(self.n_targets)
+
+    # -- accumulation --------------------------------------------------------------------------
+
+    def update(self, X_chunk, Y_chunk) -> "QRAccumulator":
+        """Add rows: ``X_chunk`` (m, p) and ``Y_chunk`` (m, k) (1-D allowed when p or k is 1)."""
+        p, k = self.n_features, self.n_targets
+        X = _as_2d(X_chunk, p, "X_chunk")
+        Y = _as_2d(Y_chunk, k, "Y_chunk")
+        m = X.shape[0]
+        if Y.shape[0] != m:
+            raise ValueError(f"X_chunk has {m} rows but Y_chunk has {Y.shape[0]}")
+        if m == 0:
+            return self
+        _check_finite(X, self.feature_names, self.n_obs + 1, "feature")
+        _check_finite(Y, self.target_names, self.n_obs + 1, "target")
+        if self.scale_ is None:
+            rms = np.concatenate([np.sqrt(np.mean(X * X, axis=0)), np.sqrt(np.mean(Y * Y, axis=0))])
+            self.scale_ = _power_of_two_scale(rms)
+        for start in range(0, m, _BLOCK_ROWS):
+            stop = min(m, start + _BLOCK_ROWS)
+            self._factor_block(X[start:stop], Y[start:stop], self.n_obs + stop)
+        self.column_min_ = np.minimum(self.column_min_, X.min(axis=0))
+        self.column_max_ = np.maximum(self.column_max_, X.max(axis=0))
+        mean_b = Y.mean(axis=0)
+        css_b = np.sum((Y - mean_b) ** 2, axis=0)
+        self._merge_moments(m, mean_b, css_b)
+        self.n_obs += m
+        return self
+
+    def _scaled_block(self, X: np.ndarray, Y: np.ndarray, top: np.ndarray) -> np.ndarray:
+        """Fortran-ordered ``[top; [X Y] / scale]`` (exact: the scales are powers of two)."""
+        p, q = self.n_features, self.n_features + self.n_targets
+        t = top.shape[0]
+        block = np.empty((t + X.shape[0], q), order="F")
+        block[:t] = top
+        np.divide(X, self.scale_[:p], out=block[t:, :p])
+        np.divide(Y, self.scale_[p:], out=block[t:, p:])
+        return block
+
+    def _factor_block(self, X: np.ndarray, Y: np.ndarray, n_after: int) -> None:
+        q = self.n_features + self.n_targets
+        extended = self.extended_ or (self.precision == "auto" and n_after < 2 * q)
+        if not extended:
+            candidate = _lapack_triangle(self._scaled_block(X, Y, self.R_), q)
+            if self.precision == "auto" and self._ill_conditioned(candidate, n_after):
+                self.extended_ = extended = True
+            else:
+                self.R_, self.R_lo_ = candidate, np.zeros((q, q))
+        if extended:
+            rh, rl = self.R_, self.R_lo_
+            for start in range(0, X.shape[0], _DD_BLOCK_ROWS):
+                stop = min(X.shape[0], start + _DD_BLOCK_ROWS)
+                block = self._scaled_block(X[start:stop], Y[start:stop], rh)
+                lo = np.zeros_like(block)
+                lo[:q] = rl
+                rh, rl = _dd_qr_r(block, lo)
+            self.R_, self.R_lo_ = rh, rl
+
+    def _ill_conditioned(self, r: np.ndarray, nobs: int) -> bool:
+        """kappa_2 of the scaled design's triangle above the threshold (deficient columns aside)."""
+        p = self.n_features
+        t = r[:p, :p]
+        keep = np.ones(p, dtype=bool)
+        keep[_deficient_columns(np.abs(np.diag(t)), nobs)] = False
+        if not keep.any():
+            return False
+        return bool(np.linalg.cond(t[np.ix_(keep, keep)]) > _KAPPA_EXTENDED)
+
+    def _merge_moments(self, n_b: int, mean_b: np.ndarray, css_b: np.ndarray) -> None:
+        """Chan et al. pairwise update of mean and centred sum of squares (before n_obs += n_b)."""
+        n_a = self.n_obs
+        n = n_a + n_b
+        delta = mean_b - self.target_mean_
+        self.target_mean_ = self.target_mean_ + delta * (n_b / n)
+        self.target_css_ = self.target_css_ + css_b + delta * delta * (n_a * n_b / n)
+
+    def merge(self, other: "QRAccumulator") -> "QRAccumulator":
+        """Fold ``other`` (same columns) into this accumulator and return self.
+
+        The two triangles are stacked and re-factored in double-double; ``other``'s columns are
+        first brought to this accumulator's scales (an exact power-of-two rescaling). The order
+        of merging does not matter beyond double-double rounding. This is the combine step of a
+        reduction over data partitions (e.g. Dask), with :meth:`to_dict` / :meth:`from_dict` to
+        ship the state.
+        """
+        if (other.n_features, other.n_targets) != (self.n_features, self.n_targets):
+            raise ValueError("cannot merge accumulators with different numbers of columns")
+        if other.feature_names != self.feature_names or other.target_names != self.target_names:
+            raise ValueError("cannot merge accumulators with different column names")
+        if other.n_obs == 0:
+            return self
+        self.extended_ = self.extended_ or other.extended_
+        if self.n_obs == 0:
+            for name in ("R_", "R_lo_", "scale_", "column_min_", "column_max_", "target_mean_",
+                         "target_css_"):
+                setattr(self, name, getattr(other, name).copy())
+            self.n_obs = other.n_obs
+            return self
+        ratio = other.scale_ / self.scale_
+        self.R_, self.R_lo_ = _dd_qr_r(np.vstack([self.R_, other.R_ * ratio]),
+                                       np.vstack([self.R_lo_, other.R_lo_ * ratio]))
+        self.column_min_ = np.minimum(self.column_min_, other.column_min_)
+        self.column_max_ = np.maximum(self.column_max_, other.column_max_)
+        self._merge_moments(other.n_obs, other.target_mean_, other.target_css_)
+        self.n_obs += other.n_obs
+        return self
+
+    def copy(self) -> "QRAccumulator":
+        return QRAccumulator.from_dict(self.to_dict())
+
+    # -- column bookkeeping --------------------------------------------------------------------
+
+    @property
+    def constant_columns(self) -> list[int]:
+        """Indices of design columns that are constant and non-zero over all rows seen."""
+        if self.n_obs == 0:
+            return []
+        const = (self.column_min_ == self.column_max_) & (self.column_max_ != 0)
+        return [int(i) for i in np.flatnonzero(const)]
+
+    def column_index(self, column) -> int:
+        """Index of a design column given by index or name."""
+        if isinstance(column, (bool, np.bool_)):
+            raise TypeError(f"column must be an index or a name, not {column!r}")
+        if isinstance(column, (int, np.integer)):
+            if not 0 <= int(column) < self.n_features:
+                raise ValueError(f"column index {column} out of range 0..{self.n_features - 1}")
+            return int(column)
+        try:
+            return self.feature_names.index(str(column))
+        except ValueError:
+            raise ValueError(f"unknown column {column!r}; columns are {self.feature_names}") from None
+
+    def column_indices(self, columns) -> list[int]:
+        """Indices for ``columns`` (None = all, one index/name, or a sequence), in the given order."""
+        if columns is None:
+            return list(range(self.n_features))
+        if isinstance(columns, (str, int, np.integer)):
+            columns = [columns]
+        idx = [self.column_index(c) for c in columns]
+        if len(set(idx)) != len(idx):
+            raise ValueError(f"duplicate columns in {list(columns)}")
+        return idx
+
+    def target_index(self, target) -> int:
+        """Index of a target given by index or name."""
+        if isinstance(target, (int, np.integer)) and not isinstance(target, (bool, np.bool_)):
+            if not 0 <= int(target) < self.n_targets:
+                raise ValueError(f"target index {target} out of range 0..{self.n_targets - 1}")
+            return int(target)
+        try:
+            return self.target_names.index(str(target))
+        except ValueError:
+            raise ValueError(f"unknown target {target!r}; targets are {self.target_names}") from None
+
+    # -- sub-model factors ---------------------------------------------------------------------
+
+    def _subset_factor(self, cols: list[int], t: int):
+        """Double-double QR factor of the scaled ``[X_S | y_t]``, from R alone.
+
+        Returns (T_hi, T_lo, z_hi, z_lo, rho) with ``T b = z`` the scaled normal solution and
+        ``rho^2`` the scaled residual sum of squares.
+        """
+        m = len(cols)
+        sel = cols + [self.n_features + t]
+        rh, rl = _dd_qr_r(self.R_[:, sel], self.R_lo_[:, sel])
+        return rh[:m, :m], rl[:m, :m], rh[:m, m], rl[:m, m], float(abs(rh[m, m]))
+
+    def _tss(self, t: int) -> tuple[float, float]:
+        """(centred, uncentred) total sum of squares of target t."""
+        css = float(self.target_css_[t])
+        return css, css + self.n_obs * float(self.target_mean_[t]) ** 2
+
+    def ols(self, columns=None, target=0) -> "OLSResults":
+        """Shorthand for :func:`ols_from_factor` on this accumulator."""
+        return ols_from_factor(self, columns, target)
+
+    # -- serialisation -------------------------------------------------------------------------
+
+    def to_dict(self) -> dict:
+        """Plain JSON-able state (lists, floats, ints, strings, bools): see :meth:`from_dict`."""
+        return {
+            "kind": "fbgcomp.regression.QRAccumulator",
+            "version": 1,
+            "n_features": self.n_features,
+            "n_targets": self.n_targets,
+            "feature_names": list(self.feature_names),
+            "target_names": list(self.target_names),
+            "precision": self.precision,
+            "extended": bool(self.extended_),
+            "n_obs": int(self.n_obs),
+            "scale": None if self.scale_ is None else self.scale_.tolist(),
+            "R": self.R_.tolist(),
+            "R_lo": self.R_lo_.tolist(),
+            "column_min": self.column_min_.tolist() if self.n_obs else None,
+            "column_max": self.column_max_.tolist() if self.n_obs else None,
+            "target_mean": self.target_mean_.tolist(),
+            "target_css": self.target_css_.tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, state: dict) -> "QRAccumulator":
+        """Rebuild an accumulator from :meth:`to_dict` output (e.g. after a JSON round trip)."""
+        try:
+            acc = cls(state["n_features"], state["n_targets"], state["feature_names"],
+                      state["target_names"], precision=state.get("precision", "auto"))
+            q = acc.n_features + acc.n_targets
+            acc.n_obs = int(state["n_obs"])
+            acc.extended_ = bool(state.get("extended", acc.extended_))
+            acc.R_ = _field_array(state, "R", (q, q))
+            acc.R_lo_ = (_field_array(state, "R_lo", (q, q)) if state.get("R_lo") is not None
+                         else np.zeros((q, q)))
+            if acc.n_obs:
+                acc.scale_ = _field_array(state, "scale", (q,))
+                acc.column_min_ = _field_array(state, "column_min", (acc.n_features,))
+                acc.column_max_ = _field_array(state, "column_max", (acc.n_features,))
+            acc.target_mean_ = _field_array(state, "target_mean", (acc.n_targets,))
+            acc.target_css_ = _field_array(state, "target_css", (acc.n_targets,))
+        except KeyError as exc:
+            raise InputError(f"missing field {exc.args[0]!r} in accumulator state",
+                             column=f"field {exc.args[0]}") from None
+        return acc
+
+    def __repr__(self) -> str:
+        return (f"QRAccumulator(n_features={self.n_features}, n_targets={self.n_targets}, "
+                f"n_obs={self.n_obs})")
+
+
+def _field_array(state: dict, key: str, shape: tuple[int, ...]) -> np.ndarray:
+    try:
+        arr = np.asarray(state[key], dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"field {key!r} is not numeric", column=f"field {key}") from None
+    if arr.shape != shape:
+        raise InputError(f"field {key!r} has shape {arr.shape}, expected {shape}",
+                         column=f"field {key}")
+    return arr
+
+
+# --------------------------------------------------------------------------------------------
+# Results
+# --------------------------------------------------------------------------------------------
+
+class OLSResults:
+    """Results of an OLS fit, in the statsmodels vocabulary (paper Table 1 style summary).
+
+    Built from the scaled triangular factor ``r_factor`` (T, with ``T^T T = X_s^T X_s`` and
+    ``X_s = X / feature_scale``), so covariances and prediction variances are computed through
+    the triangular inverse ``T^-1`` (``(X_s^T X_s)^-1 = T^-1 T^-T``), never by inverting
+    ``X^T X``. The summary is the coefficient table of the paper's Table 1 (estimate, standard
+    error) with t, p and confidence limits added. Normally obtained from
+    :func:`ols`, :func:`ols_from_factor` or :meth:`from_dict`.
+
+    Attributes
+    ----------
+    params, bse, tvalues, pvalues : ndarray
+        Estimates, standard errors, t statistics and two-sided p-values.
+    ssr, ess, centered_tss, uncentered_tss : float
+        Residual, explained and total sums of squares (ESS is relative to the centred total
+        when the model has a constant column, to the uncentred one otherwise, as statsmodels).
+    rsquared, rsquared_adj, fvalue, f_pvalue : float
+    resid_sd : float
+        sqrt(SSR / df_resid), the residual standard deviation ("standard error of regression").
+    df_model, df_resid, nobs : int
+    k_constant : int
+        1 if the design contains a constant column, else 0.
+    """
+
+    def __init__(self, params, r_factor, feature_scale, *, ssr: float, nobs: int, k_constant: int,
+                 centered_tss: float, uncentered_tss: float, feature_names: Sequence[str],
+                 target_name: str = "y"):
+        self.params = np.asarray(params, dtype=float).copy()
+        self._r = np.triu(np.asarray(r_factor, dtype=float))
+        self._scale = np.asarray(feature_scale, dtype=float).copy()
+        m = self.params.size
+        if self._r.shape != (m, m) or self._scale.shape != (m,):
+            raise ValueError("params, r_factor and feature_scale sizes disagree")
+        self.feature_names = list(feature_names)
+        self.target_name = str(target_name)
+        self.nobs = int(nobs)
+        self.k_constant = int(k_constant)
+        self.ssr = float(ssr)
+        self.centered_tss = float(centered_tss)
+        self.uncentered_tss = float(uncentered_tss)
+        self.df_resid = self.nobs - m
+        self.df_model = m - self.k_constant
+
+        with np.errstate(divide="ignore", invalid="ignore"):
+            self.mse_resid = self.ssr / self.df_resid if self.df_resid > 0 else math.nan
+            self.resid_sd = math.sqrt(self.mse_resid) if self.df_resid > 0 else math.nan
+            # Rows of T^-1 give sqrt(diag((X_s^T X_s)^-1)) without forming the inverse product.
+            # LAPACK trtri: the triangular inverse is computed to high relative accuracy.
+            self._r_inv = linalg.lapack.dtrtri(self._r, lower=0)[0] if m else np.zeros((0, 0))
+            self.bse = self.resid_sd * np.linalg.norm(self._r_inv, axis=1) / self._scale
+            self.tvalues = self.params / self.bse
+            self.pvalues = 2.0 * stats.t.sf(np.abs(self.tvalues), self.df_resid)
+            tss = self.centered_tss if self.k_constant else self.uncentered_tss
+            self.ess = tss - self.ssr
+            self.rsquared = 1.0 - self.ssr / tss if tss > 0 else math.nan
+            self.rsquared_adj = (1.0 - (self.nobs - self.k_constant) / self.df_resid
+                                 * (1.0 - self.rsquared)) if self.df_resid > 0 else math.nan
+            if self.df_model > 0 and self.df_resid > 0:
+                self.mse_model = self.ess / self.df_model
+                self.fvalue = float(self.mse_model / self.mse_resid)
+                self.f_pvalue = float(stats.f.sf(self.fvalue, self.df_model, self.df_resid))
+            else:
+                self.mse_model = self.fvalue = self.f_pvalue = math.nan
+
+    # -- inference -----------------------------------------------------------------------------
+
+    def cov_params(self) -> np.ndarray:
+        """sigma^2 (X^T X)^-1 = sigma^2 T^-1 T^-T, unscaled."""
+        g = self._r_inv @ self._r_inv.T
+        return self.mse_resid * g / np.outer(self._scale, self._scale)
+
+    def conf_int(self, alpha: float = 0.05) -> np.ndarray:
+        """(m, 2) array of two-sided 1 - alpha Student-t intervals for the coefficients."""
+        q = stats.t.ppf(1.0 - alpha / 2.0, self.df_resid)
+        return np.column_stack([self.params - q * self.bse, self.params + q * self.bse])
+
+    def _design(self, X) -> np.ndarray:
+        X = np.asarray(X, dtype=float)
+        m = self.params.size
+        if X.ndim == 1:
+            X = X[:, None] if m == 1 else X[None, :]
+        if X.ndim != 2 or X.shape[1] != m:
+            raise ValueError(f"X must have {m} columns ({self.feature_names}), got shape {X.shape}")
+        return X
+
+    def predict(self, X) -> np.ndarray:
+        """Fitted values ``X @ params`` for design rows X (n, m); 1-D X is one row (or column if m = 1)."""
+        return self._design(X) @ self.params
+
+    def prediction_interval(self, X, alpha: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+        """(lower, upper) bounds containing a *new* observation with probability 1 - alpha.
+
+        ``yhat +- t_{1-alpha/2, df_resid} * s * sqrt(1 + ||(x / scale) T^-1||^2)``: the leverage
+        is the squared norm of the row ``x T^-1`` (never ``x (X^T X)^-1 x^T``), stable on
+        ill-conditioned designs.
+        """
+        X = self._design(X)
+        z = (X / self._scale) @ self._r_inv
+        half = (stats.t.ppf(1.0 - alpha / 2.0, self.df_resid) * self.resid_sd
+                * np.sqrt(1.0 + np.sum(z * z, axis=1)))
+        yhat = X @ self.params
+        return yhat - half, yhat + half
+
+    def anova(self):
+        """ANOVA table (pandas DataFrame): Regression, Residual and Total rows.
+
+        Columns df, sum_sq, mean_sq, F, PR(>F). With a constant in the model the total is the
+        centred sum of squares on n - 1 df; otherwise the uncentred one on n df. This is the
+        overall test behind the paper's "stepwise regression with ANOVA" (section 3).
+        """
+        import pandas as pd
+
+        total_df = self.nobs - self.k_constant
+        total_ss = self.ess + self.ssr
+        return pd.DataFrame(
+            {"df": [self.df_model, self.df_resid, total_df],
+             "sum_sq": [self.ess, self.ssr, total_ss],
+             "mean_sq": [self.mse_model, self.mse_resid, math.nan],
+             "F": [self.fvalue, math.nan, math.nan],
+             "PR(>F)": [self.f_pvalue, math.nan, math.nan]},
+            index=["Regression", "Residual", "Total"])
+
+    def summary(self) -> str:
+        """Coefficient table in the style of the paper's Table 1, plus the overall fit figures."""
+        ci = self.conf_int()
+        width = max([len("term")] + [len(n) for n in self.feature_names])
+        head = (f"{'term':<{width}}  {'estimate':>13} {'std error':>12} {'t':>9} {'P>|t|':>9}"
+                f" {'[0.025':>13} {'0.975]':>13}")
+        rule = "=" * len(head)
+        lines = [f"OLS regression of {self.target_name} on {self.params.size} terms".center(len(head)),
+                 rule, head, "-" * len(head)]
+        for i, name in enumerate(self.feature_names):
+            lines.append(f"{name:<{width}}  {self.params[i]:>13.6g} {self.bse[i]:>12.4g} "
+                         f"{_fmt_t(self.tvalues[i]):>9} {_fmt_p(self.pvalues[i]):>9} "
+                         f"{ci[i, 0]:>13.6g} {ci[i, 1]:>13.6g}")
+        lines.append(rule)
+        kind = "" if self.k_constant else " (uncentred)"
+        lines.append(f"R-squared{kind}: {self.rsquared:.6f}   Adj. R-squared: {self.rsquared_adj:.6f}"
+                     f"   Residual SD: {self.resid_sd:.6g} on {self.df_resid} df")
+        lines.append(f"F-statistic: {self.fvalue:.6g} on {self.df_model} and {self.df_resid} df"
+                     f"   Prob(F): {_fmt_p(self.f_pvalue)}   n: {self.nobs}")
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        return (f"<OLSResults {self.target_name} ~ {' + '.join(self.feature_names)}: "
+                f"n={self.nobs}, R2={self.rsquared:.4g}>")
+
+    # -- serialisation -------------------------------------------------------------------------
+
+    def to_dict(self) -> dict:
+        """Plain JSON-able model (lists and floats). ``bse`` is informative; :meth:`from_dict`
+        recomputes it from the stored factor."""
+        return {
+            "kind": "fbgcomp.regression.OLSResults",
+            "version": 1,
+            "target_name": self.target_name,
+            "feature_names": list(self.feature_names),
+            "params": self.params.tolist(),
+            "bse": self.bse.tolist(),
+            "nobs": self.nobs,
+            "k_constant": self.k_constant,
+            "ssr": self.ssr,
+            "centered_tss": self.centered_tss,
+            "uncentered_tss": self.uncentered_tss,
+            "r_factor": self._r.tolist(),
+            "feature_scale": self._scale.tolist(),
+        }
+
+    @classmethod
+    def from_dict(cls, state: dict) -> "OLSResults":
+        try:
+            names = [str(n) for n in state["feature_names"]]
+            m = len(names)
+            return cls(_field_array(state, "params", (m,)), _field_array(state, "r_factor", (m, m)),
+                       _field_array(state, "feature_scale", (m,)), ssr=float(state["ssr"]),
+                       nobs=int(state["nobs"]), k_constant=int(state["k_constant"]),
+                       centered_tss=float(state["centered_tss"]),
+                       uncentered_tss=float(state["uncentered_tss"]),
+                       feature_names=names, target_name=state.get("target_name", "y"))
+        except KeyError as exc:
+            raise InputError(f"missing field {exc.args[0]!r} in regression model",
+                             column=f"field {exc.args[0]}") from None
+
+
+def _fmt_t(t: float) -> str:
+    return f"{t:.3f}" if abs(t) < 1e5 else f"{t:.3g}"
+
+
+def _fmt_p(p: float) -> str:
+    if not np.isfinite(p):
+        return "nan"
+    return f"{p:.4f}" if p >= 1e-4 else f"{p:.1e}"
+
+
+# --------------------------------------------------------------------------------------------
+# Fitting
+# --------------------------------------------------------------------------------------------
+
+def ols_from_factor(acc: QRAccumulator, columns=None, target=0) -> OLSResults:
+    """OLS of one target on a subset of the design columns, from the accumulated factor only.
+
+    Parameters
+    ----------
+    acc : QRAccumulator
+    columns : None, index, name or sequence of them
+        Model columns, in the order wanted for the results (None: all, in design order).
+    target : int or str
+        Target index or name.
+
+    Raises
+    ------
+    RankDeficientError
+        A column's scaled-R diagonal is <= max(n, p) * eps * max|diag|: it is (nearly) a linear
+        combination of the columns before it (or there are fewer rows than columns).
+    """
+    if acc.n_obs == 0:
+        raise ValueError("no data accumulated yet")
+    cols = acc.column_indices(columns)
+    if not cols:
+        raise ValueError("a model needs at least one column")
+    t = acc.target_index(target)
+    th, tl, zh, zl, rho = acc._subset_factor(cols, t)
+    bad = _deficient_columns(np.abs(np.diag(th)), acc.n_obs)
+    names = [acc.feature_names[c] for c in cols]
+    if bad:
+        culprits = [names[i] for i in bad]
+        extra = (f" (only {acc.n_obs} rows for {len(cols)} columns)"
+                 if acc.n_obs < len(cols) else "")
+        raise RankDeficientError(
+            f"design is rank deficient{extra}: column(s) {', '.join(map(repr, culprits))} "
+            f"are (nearly) linear combinations of the columns before them; drop them or "
+            f"reparametrise", culprits)
+    p = acc.n_features
+    sx = acc.scale_[cols]
+    sy = float(acc.scale_[p + t])
+    # Powers of two: unscaling the double-double solution is exact before the final rounding.
+    bh, bl = _dd_solve_upper(th, tl, zh, zl)
+    beta = (bh * sy / sx) + (bl * sy / sx)
+    const = set(acc.constant_columns)
+    centred, uncentred = acc._tss(t)
+    return OLSResults(beta, th, sx, ssr=(rho * sy) ** 2, nobs=acc.n_obs,
+                      k_constant=int(any(c in const for c in cols)), centered_tss=centred,
+                      uncentered_tss=uncentred, feature_names=names,
+                      target_name=acc.target_names[t])
+
+
+def ols(X, y, *, feature_names=None, target_name: str = "y") -> OLSResults:
+    """Ordinary least squares of ``y`` (n,) on the design ``X`` (n, p) exactly as given.
+
+    Add a column of ones yourself for an intercept. Column names default to those of a
+    DataFrame ``X``, else ``x0..x{p-1}``. Computed by Householder QR (one-chunk
+    :class:`QRAccumulator`), never through the normal equations.
+    """
+    if feature_names is None and hasattr(X, "columns"):
+        feature_names = [str(c) for c in X.columns]
+    X = np.asarray(X, dtype=float)
+    if X.ndim == 1:
+        X = X[:, None]
+    y = np.asarray(y, dtype=float)
+    if y.ndim == 2 and y.shape[1] == 1:
+        y = y[:, 0]
+    if y.ndim != 1:
+        raise ValueError(f"y must be one target (n,) or (n, 1), got shape {y.shape}")
+    if X.ndim != 2 or X.shape[0] != y.shape[0]:
+        raise ValueError(f"X must be (n, p) with n = len(y) = {y.shape[0]}, got {X.shape}")
+    acc = QRAccumulator(X.shape[1], 1, feature_names, [target_name]).update(X, y)
+    return ols_from_factor(acc)
+
+
+# --------------------------------------------------------------------------------------------
+# Stepwise selection
+# --------------------------------------------------------------------------------------------
+
+@dataclass
+class StepwiseResult:
+    """Outcome of :func:`stepwise`.
+
+    Attributes
+    ----------
+    selected : list of str
+        Terms of the final model (forced ``include`` terms too), in model order, which is
+        design-column order; equals ``result.feature_names``.
+    history : list of dict
+        One dict per step: step, action ('enter' / 'remove'), term, F, p (partial F test with
+        1 and df_resid(bigger model) degrees of freedom), n_terms, ssr, rsquared_adj (of the
+        model after the step).
+    result : OLSResults or None
+        Fit of the final model (None if it is empty).
+    """
+
+    selected: list[str]
+    history: list[dict] = field(default_factory=list)
+    result: OLSResults | None = None
+    target_name: str = "y"
+
+    def summary(self) -> str:
+        lines = [f"Stepwise regression of {self.target_name} (partial F tests)",
+                 f"{'step':>4}  {'action':<6} {'term':<16} {'F':>12} {'p':>10} {'terms':>5} "
+                 f"{'SSR':>13} {'adj. R2':>9}"]
+        for h in self.history:
+            lines.append(f"{h['step']:>4}  {h['action']:<6} {h['term']:<16} {h['F']:>12.5g} "
+                         f"{_fmt_p(h['p']):>10} {h['n_terms']:>5} {h['ssr']:>13.6g} "
+                         f"{h['rsquared_adj']:>9.5f}")
+        if not self.history:
+            lines.append("  (no step taken)")
+        lines.append("")
+        lines.append(self.result.summary() if self.result is not None else "empty model: no term selected")
+        return "\n".join(lines)
+
+
+def _adj_r2(acc: QRAccumulator, cols: list[int], t: int, ssr: float) -> float:
+    k_const = int(any(c in set(acc.constant_columns) for c in cols))
+    centred, uncentred = acc._tss(t)
+    tss = centred if k_const else uncentred
+    df_resid = acc.n_obs - len(cols)
+    if df_resid <= 0 or tss <= 0:
+        return math.nan
+    return 1.0 - (acc.n_obs - k_const) / df_resid * (ssr / tss)
+
+
+def _partial_f(ssr_drop: float, ssr_big: float, df_big: int) -> tuple[float, float]:
+    """Partial F = (SSR_small - SSR_big) / (SSR_big / df_big) on (1, df_big) dof, and its p."""
+    if df_big <= 0:
+        return math.nan, math.nan
+    ssr_drop = max(ssr_drop, 0.0)
+    if ssr_big <= 0.0:
+        f = math.inf if ssr_drop > 0 else math.nan
+    else:
+        f = ssr_drop / (ssr_big / df_big)
+    return f, (float(stats.f.sf(f, 1, df_big)) if not math.isnan(f) else math.nan)
+
+
+class _StepState:
+    """One double-double factorisation of ``R[:, model + others + [y]]`` with the model columns
+    reduced: it yields the SSR of the model, of the model plus each other column, and of the
+    model minus each of its columns, without subtracting two large sums of squares.
+
+    Entry: with ``w_c``, ``w_y`` the candidate and target residualised on the model (trailing
+    rows), ``SSR(S) - SSR(S + c) = (w_c . w_y)^2 / |w_c|^2``. Removal: with ``T b = z`` the model
+    solution, ``SSR(S - s) - SSR(S) = b_s^2 / [(X^T X)^-1]_ss`` and ``(X^T X)^-1 = T^-1 T^-T``.
+    """
+
+    def __init__(self, acc: QRAccumulator, model: list[int], others: list[int], t: int):
+        p = acc.n_features
+        m = len(model)
+        sel = model + others + [p + t]
+        mh, ml = _dd_householder(acc.R_[:, sel], acc.R_lo_[:, sel], m)
+        sy2 = float(acc.scale_[p + t]) ** 2
+        self.nobs = acc.n_obs
+        self.model, self.others, self.sy2 = model, others, sy2
+        th, tl = mh[:m, :m], ml[:m, :m]
+        self.diag = np.abs(np.diag(th))
+        self.full_rank = not _deficient_columns(self.diag, acc.n_obs)
+        yh, yl = mh[m:, -1], ml[m:, -1]
+        ssr_h, ssr_l = _dd_sum_rows(*_dd_mul(yh, yl, yh, yl))
+        self.ssr = float(ssr_h) * sy2
+        self._ssr_dd = (ssr_h, ssr_l)
+        self._trail = (mh[m:, m:-1], ml[m:, m:-1], yh, yl)
+        self._tri = (th, tl, mh[:m, -1], ml[:m, -1])
+
+    def entries(self) -> list[tuple[int, float, float, bool]]:
+        """(column, SSR drop, SSR after entry, full rank) for every other column."""
+        if not self.others:
+            return []
+        wh, wl, yh, yl = self._trail
+        nh, nl = _dd_sum_rows(*_dd_mul(wh, wl, wh, wl))
+        dh, dl = _dd_sum_rows(*_dd_mul(wh, wl, yh[:, None], yl[:, None]))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            eh, el = _dd_div(*_dd_mul(dh, dl, dh, dl), nh, nl)
+            after_h, _ = _dd_add(self._ssr_dd[0], self._ssr_dd[1], -eh, -el)
+        out = []
+        for i, c in enumerate(self.others):
+            new_diag = math.sqrt(max(float(nh[i]), 0.0))
+            ok = self.full_rank and not _deficient_columns(np.append(self.diag, new_diag),
+                                                           self.nobs)
+            drop = float(eh[i]) * self.sy2 if ok else math.nan
+            out.append((c, drop, max(float(after_h[i]), 0.0) * self.sy2, ok))
+        return out
+
+    def removals(self) -> list[tuple[int, float, float]]:
+        """(column, SSR rise, SSR after removal) for every model column."""
+        th, tl, zh, zl = self._tri
+        m = len(self.model)
+        if m == 0:
+            return []
+        bh, bl = _dd_solve_upper(th, tl, zh, zl)
+        ih, il = _dd_solve_upper(th, tl, np.eye(m), np.zeros((m, m)))
+        gh, gl = _dd_sum_rows(*_dd_mul(ih.T, il.T, ih.T, il.T))        # diag of T^-1 T^-T
+        rh, _ = _dd_div(*_dd_mul(bh, bl, bh, bl), gh, gl)
+        return [(c, float(rh[i]) * self.sy2, self.ssr + float(rh[i]) * self.sy2)
+                for i, c in enumerate(self.model)]
+
+
+def stepwise(acc: QRAccumulator, candidates=None, *, target=0, direction: str = "both",
+             p_enter: float = 0.05, p_remove: float = 0.10, max_terms: int | None = None,
+             include: Iterable = (), start=None) -> StepwiseResult:
+    """Stepwise selection by partial F tests, from the accumulated factor only.
+
+    The paper tunes its regression "with a stepwise regression ... counting or removing a
+    factor using ANOVA" (section 3; final model in Table 1). Each step compares two nested
+    models differing by one term: ``F = (SSR_small - SSR_big) / (SSR_big / df_resid_big)`` on
+    (1, df_resid_big) degrees of freedom. Every step costs one small double-double QR of the
+    factor (see :class:`_StepState`), never a pass over the data.
+
+    Parameters
+    ----------
+    candidates : None or sequence of column indices / names
+        Terms that may enter or leave (default: every column not in ``include``).
+    include : sequence of column indices / names
+        Terms always in the model (typically the intercept); never tested.
+    direction : {"forward", "backward", "both"}
+        forward: from ``start`` (default empty), add the best term while its p < p_enter.
+        backward: from ``start`` (default all candidates), drop the worst while its p > p_remove.
+        both: forward, and after every entry drop terms whose p > p_remove; a model already
+        visited is never revisited, so the search cannot cycle.
+    max_terms : int, optional
+        Maximum number of candidate terms (not counting ``include``) in the model.
+
+    A candidate that is (numerically) a linear combination of the model's terms is skipped.
+    """
+    if direction not in ("forward", "backward", "both"):
+        raise ValueError(f"direction must be 'forward', 'backward' or 'both', not {direction!r}")
+    if direction == "both" and p_enter > p_remove:
+        raise ValueError(f"p_enter ({p_enter}) must not exceed p_remove ({p_remove}): "
+                         "a term could enter and leave forever")
+    if acc.n_obs == 0:
+        raise ValueError("no data accumulated yet")
+    t = acc.target_index(target)
+    forced = acc.column_indices(list(include))
+    if candidates is None:
+        cand = [c for c in range(acc.n_features) if c not in forced]
+    else:
+        cand = [c for c in acc.column_indices(candidates) if c not in forced]
+    if start is None:
+        model = list(cand) if direction == "backward" else []
+    else:
+        model = [c for c in acc.column_indices(start) if c not in forced]
+        stray = [acc.feature_names[c] for c in model if c not in cand]
+        if stray:
+            raise ValueError(f"start terms {stray} are not candidates")
+    limit = len(cand) if max_terms is None else int(max_terms)
+
+    def ordered(terms):
+        return sorted(set(forced) | set(terms))
+
+    def state():
+        cols = ordered(model)
+        return _StepState(acc, cols, [c for c in cand if c not in model], t)
+
+    current = state()
+    if not current.full_rank:
+        raise RankDeficientError("the starting model of the stepwise search is rank deficient",
+                                 [acc.feature_names[c] for c in ordered(model)])
+    history: list[dict] = []
+    visited = {frozenset(model)}
+
+    def record(action, term, f, pval, ssr):
+        cols = ordered(model)
+        history.append({"step": len(history) + 1, "action": action,
+                        "term": acc.feature_names[term], "F": float(f), "p": float(pval),
+                        "n_terms": len(cols), "ssr": float(ssr),
+                        "rsquared_adj": _adj_r2(acc, cols, t, ssr)})
+
+    def try_enter() -> bool:
+        nonlocal current
+        if len(model) >= limit:
+            return False
+        df_big = acc.n_obs - len(current.model) - 1
+        best = None
+        for c, drop, after, ok in current.entries():
+            if not ok or frozenset(model + [c]) in visited:
+                continue   # collinear with the model (no new information), or a loop
+            f, pval = _partial_f(drop, after, df_big)
+            if not math.isnan(f) and (best is None or f > best[1]):
+                best = (c, f, pval, after)
+        if best is None or not best[2] < p_enter:
+            return False
+        model.append(best[0])
+        visited.add(frozenset(model))
+        current = state()
+        record("enter", best[0], best[1], best[2], current.ssr)
+        return True
+
+    def try_remove() -> bool:
+        nonlocal current
+        if not model:
+            return False
+        df_big = acc.n_obs - len(current.model)
+        worst = None
+        for c, rise, after in current.removals():
+            if c in forced:
+                continue
+            rest = frozenset(d for d in model if d != c)
+            if direction == "both" and rest in visited:
+                continue
+            f, pval = _partial_f(rise, current.ssr, df_big)
+            if not math.isnan(f) and (worst is None or f < worst[1]):
+                worst = (c, f, pval, after)
+        if worst is None or not worst[2] > p_remove:
+            return False
+        model.remove(worst[0])
+        visited.add(frozenset(model))
+        current = state()
+        record("remove", worst[0], worst[1], worst[2], current.ssr)
+        return True
+
+    if direction == "backward":
+        while try_remove():
+            pass
+    else:
+        while try_enter():
+            if direction == "both":
+                while try_remove():
+                    pass
+
+    final = ordered(model)
+    result = ols_from_factor(acc, final, t) if final else None
+    return StepwiseResult(selected=[acc.feature_names[c] for c in final], history=history,
+                          result=result, target_name=acc.target_names[t])
