@@ -58,12 +58,17 @@ def test_window_mapping_flags_missing_doubled_and_out_of_window():
     peaks = np.array([[1530.1, 1535.2, 1540.3, np.nan],
                       [1530.1, 1535.2, 1535.4, 1540.3],     # doubled S2
                       [1530.1, 1537.5, 1540.3, np.nan],     # S2 moved out of its window
-                      [1530.1, 1540.3, np.nan, np.nan]])    # S2 gone
-    b = m.map(peaks, 0.0, np.arange(4.0))
-    np.testing.assert_array_equal(b.peak_count[:, 1], [1, 2, 0, 0])
-    np.testing.assert_array_equal(b.near_count[:, 1], [0, 0, 1, 0])
+                      [1530.1, 1540.3, np.nan, np.nan],     # S2 gone
+                      [1532.5, 1540.3, np.nan, np.nan]])    # S2 gone, S1 moved out
+    b = m.map(peaks, 0.0, np.arange(5.0))
+    np.testing.assert_array_equal(b.peak_count[:, 1], [1, 2, 0, 0, 0])
+    # a peak in the guard band that another sensor owns is not this grating moved
+    np.testing.assert_array_equal(b.near_count[:, 1], [0, 0, 1, 0, 1])
+    np.testing.assert_array_equal(b.peak_count[:, 2], 1)
+    np.testing.assert_array_equal(b.near_count[:, 0], [0, 0, 0, 0, 1])
     assert np.isnan(b.wavelength_nm[1:, 1]).all() and b.wavelength_nm[0, 1] == 1535.2
-    np.testing.assert_array_equal(b.wavelength_nm[:, 0], 1530.1)
+    np.testing.assert_array_equal(b.wavelength_nm[:4, 0], 1530.1)
+    assert np.isnan(b.wavelength_nm[4, 0]) and b.peak_count[4, 0] == 0
 
 
 def test_fault_specifications():

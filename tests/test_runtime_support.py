@@ -25,8 +25,10 @@ def model_and_campaign(base: Path) -> tuple[Path, Path]:
     train, _ = linear_truth_campaign("train", seed=1, duration_s=2 * 3600, noise_um=0.05)
     model = MRAModel(features="eq13", zero_window_s=0.5, fallbacks="loo").fit(train)
     model_path = model.save(base / "model.json")
+    # settle_s=0: the signals move from the first sample (a resting machine would look like
+    # a stuck channel to a noise-free replay)
     serve, _ = linear_truth_campaign("serve", seed=2, duration_s=300, fbg_dt_s=0.1,
-                                     temperature_dt_s=0.1, reference_dt_s=0.1)
+                                     temperature_dt_s=0.1, reference_dt_s=0.1, settle_s=0.0)
     campaign = write_campaign(serve, base / "serve")
     _CACHE["paths"] = (Path(model_path), Path(campaign))
     return _CACHE["paths"]

@@ -32,6 +32,10 @@ def register(app: typer.Typer) -> None:
         smoothing: Optional[float] = typer.Option(None, "--smoothing-tau", help="Correction smoothing time constant, s."),
         allow_anonymous: bool = typer.Option(False, "--allow-anonymous", help="Allow anonymous read-only OPC UA sessions."),
         users_file: Optional[Path] = typer.Option(None, "--users", help="OPC UA users file (name:pbkdf2_sha256$...)."),
+        dashboard: Optional[str] = typer.Option(
+            None, "--dashboard", help="Serve the live dashboard on HOST:PORT (docs/dashboard.md)."),
+        dashboard_users: Optional[Path] = typer.Option(
+            None, "--dashboard-users", help="Dashboard users file (name:pbkdf2_sha256$...)."),
         duration: Optional[float] = typer.Option(None, "--duration", help="Stop after this many seconds."),
         verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress to stderr."),
     ):
@@ -66,6 +70,10 @@ def register(app: typer.Typer) -> None:
             cfg.opcua.allow_anonymous = True
         if users_file is not None:
             cfg.opcua.users_file = str(users_file)
+        if dashboard is not None:
+            cfg.dashboard.listen = dashboard
+        if dashboard_users is not None:
+            cfg.dashboard.users_file = str(dashboard_users)
         svc = run_service(cfg, duration)
         typer.echo(f"processed {svc.frames} frames in {svc.batches} batches", err=True)
 

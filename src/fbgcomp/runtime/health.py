@@ -21,7 +21,7 @@ STATUS_NAMES = ("OK", "MISSING", "DOUBLED", "OUT_OF_WINDOW", "JUMP", "STUCK", "N
 @dataclass
 class HealthConfig:
     max_jump_nm: float = 0.1      # ~80 µε or ~10 K in one sample: not physical for the ram
-    stuck_s: float = 2.0          # exactly constant wavelength this long = stuck channel
+    stuck_s: float = 2.0          # exactly constant wavelength this long = stuck channel (0: off)
     recover_s: float = 1.0        # a recovered sensor must stay good this long
 
 
@@ -59,7 +59,9 @@ class SensorChecks:
         changed = ~(finite & (wavelength_nm == prev_raw))
         t_change = np.maximum.accumulate(np.where(changed, t, -np.inf), axis=0)
         t_change = np.maximum(t_change, self.last_change_s)
-        stuck = finite & ((t - t_change) >= cfg.stuck_s)
+        # a live grating always shows some noise; noise-free replays must set stuck_s = 0
+        stuck = finite & ((t - t_change) >= cfg.stuck_s) if cfg.stuck_s > 0 else \
+            np.zeros((n, S), bool)
 
         status[stuck] = STUCK
         status[jump] = JUMP

@@ -353,6 +353,7 @@ class OpcUaServer:
         await var(root, "FallbackInUse", "FallbackInUse", "", S)
         await var(root, "SourceStatus", "SourceStatus", "", S)
         await var(root, "FramesProcessed", "FramesProcessed", 0, ua.VariantType.UInt64)
+        await var(root, "Heartbeat", "Heartbeat", 0, ua.VariantType.UInt32)
         enabled = await var(root, "Enabled", "Enabled", bool(self.enabled), B)
         await enabled.set_writable(True)
         sensors = await root.add_folder(nid("Sensors"), ua.QualifiedName("Sensors", idx))
@@ -390,6 +391,7 @@ class OpcUaServer:
                 wake_task.cancel()
                 self._wake.clear()
                 await self._read_enabled()
+                await self._heartbeat()
                 wait = last + period - time.monotonic()
                 if wait > 0:
                     await asyncio.sleep(wait)  # rate limit: the newest snapshot wins
@@ -400,6 +402,18 @@ class OpcUaServer:
                     await self._write(snap)
         finally:
             stop_task.cancel()
+
+    async def _heartbeat(self) -> None:
+        """Counter bumped at least every 0.2 s, data or not: a watchdog for the CNC side."""
+        from asyncua import ua
+        now = time.monotonic()
+        if now - getattr(self, "_beat_at", 0.0) < 0.2:
+            return
+        self._beat_at = now
+        self._beats = (getattr(self, "_beats", 0) + 1) % (1 << 32)
+        await self._server.write_attribute_value(
+            self._nodes["Heartbeat"].nodeid,
+            ua.DataValue(ua.Variant(self._beats, ua.VariantType.UInt32)))
 
     async def _read_enabled(self) -> None:
         value = await self._nodes["Enabled"].read_value()

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fbgcomp.dashboard.server import DashboardConfig
 from fbgcomp.errors import InputError
 from fbgcomp.runtime import health as H
 from fbgcomp.runtime.opcua import OpcUaConfig, OpcUaServer, Snapshot
@@ -56,6 +57,7 @@ class RuntimeConfig:
     opcua: OpcUaConfig = field(default_factory=OpcUaConfig)
     log: LogConfig = field(default_factory=LogConfig)
     opcua_enabled: bool = True
+    dashboard: DashboardConfig = field(default_factory=DashboardConfig)
 
     @classmethod
     def from_toml(cls, path: str | Path) -> "RuntimeConfig":
@@ -118,6 +120,8 @@ class Service:
         self.busy_s = 0.0
         self.last_result = None
         self.opc: OpcUaServer | None = None
+        self.dashboard = None             # fbgcomp.dashboard.Dashboard when configured
+        self._enabled = True              # used only without OPC UA
         self.runlog = None
         self.sim = None
         self._stop = asyncio.Event()
@@ -197,6 +201,23 @@ class Service:
     def stop(self) -> None:
         self._stop.set()
 
+    @property
+    def enabled(self) -> bool:
+        return self.opc.enabled if self.opc is not None else self._enabled
+
+    def set_enabled(self, value: bool) -> bool:
+        """Switch the correction output (dashboard control, from its thread). With OPC UA the
+        server's ``Enabled`` node is written, so the CNC and the dashboard see one state."""
+        value = bool(value)
+        opc = self.opc
+        if opc is not None and getattr(opc, "_loop", None) is not None:
+            asyncio.run_coroutine_threadsafe(opc._nodes["Enabled"].write_value(value),
+                                             opc._loop).result(5.0)
+            opc.enabled = value
+        else:
+            self._enabled = value
+        return self.enabled
+
     # -- main loop
     async def run(self, duration_s: float | None = None) -> None:
         source, temps, probe_specs = await self._open_source()
@@ -211,6 +232,12 @@ class Service:
             self.opc = OpcUaServer(self.config.opcua, self.pipeline.sensor_names, self.model_id,
                                    on_reload=self.reload, main_loop=main_loop)
             await main_loop.run_in_executor(None, self.opc.start)
+        if self.config.dashboard.listen:
+            from fbgcomp.dashboard import Dashboard
+            self.dashboard = Dashboard(self.config.dashboard, self.pipeline.sensor_names,
+                                       self.pipeline.probe_names, self.model_id,
+                                       control=self.set_enabled, enabled=lambda: self.enabled)
+            self.dashboard.start()
         queue: asyncio.Queue[SensorBatch | None] = asyncio.Queue()
 
         async def pump():
@@ -254,6 +281,8 @@ class Service:
                 pass
             if self.sim is not None:
                 await self.sim.stop()
+            if self.dashboard is not None:
+                await main_loop.run_in_executor(None, self.dashboard.stop)
             if self.opc is not None:
                 await main_loop.run_in_executor(None, self.opc.stop)
             if self.runlog is not None:
@@ -263,7 +292,7 @@ class Service:
         if len(batch) == 0:
             return
         t0 = time.perf_counter()
-        enabled = self.opc.enabled if self.opc is not None else True
+        enabled = self.enabled
         temps = self.temps.latest(batch.time_s)
         res = self.pipeline.process(batch.time_s, batch.wavelength_nm, batch.peak_count,
                                     batch.near_count, temps, enabled)
@@ -273,8 +302,7 @@ class Service:
         self.last_result = res
         if self.runlog is not None:
             self.runlog.submit(batch, res, enabled)
-        if self.opc is not None:
-            self.opc.publish(self._snapshot(res, batch.wavelength_nm[-1], batch.received_s))
+        self._publish(res, batch.wavelength_nm[-1], batch.received_s)
         self.busy_s += time.perf_counter() - t0
 
     def _no_data(self) -> None:
@@ -291,8 +319,17 @@ class Service:
                           np.full((1, S), H.MISSING, np.uint8), np.array([-1], np.int16),
                           np.full((1, len(self.pipeline.probe_names)), np.nan))
         self.last_result = res
+        self._publish(res, np.full(S, np.nan), time.time())
+
+    def _publish(self, res, wavelength_nm, received_s) -> None:
+        """Newest sample to the outputs; each only stores it (never blocks this loop)."""
+        if self.opc is None and self.dashboard is None:
+            return
+        snap = self._snapshot(res, wavelength_nm, received_s)
         if self.opc is not None:
-            self.opc.publish(self._snapshot(res, np.full(S, np.nan), time.time()))
+            self.opc.publish(snap)
+        if self.dashboard is not None:
+            self.dashboard.publish(snap, res.temperature_C[-1], self.pipeline)
 
     def _snapshot(self, res, wavelength_nm, received_s) -> Snapshot:
         k = int(res.model_set[-1])

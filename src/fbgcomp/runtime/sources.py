@@ -77,7 +77,10 @@ class PeakMapper:
         value = np.where(inside, p, 0.0).sum(axis=1)
         wl = np.where(count == 1, value, np.nan)
         dist = np.abs(p - self.lambda0_nm)
-        near = ((dist > self.window_nm) & (dist <= self.window_nm + self.guard_nm)).sum(axis=1)
+        # a peak just outside the window that belongs to no other sensor: this grating moved
+        owned = inside.any(axis=2, keepdims=True)
+        near = ((dist > self.window_nm) & (dist <= self.window_nm + self.guard_nm)
+                & ~owned).sum(axis=1)
         return SensorBatch(time_s, wl, np.minimum(count, 127).astype(np.int8),
                            np.minimum(near, 127).astype(np.int8), received_s)
 
@@ -241,9 +244,11 @@ class HyperionSource:
             try:
                 self._client = await self._connect()
                 self.status = "connected"
-                delay = self.backoff_initial_s
                 while True:
                     blocks = await self._client.read_blocks(self.stall_timeout_s)
+                    # back-off restarts only once data flows (an instrument that accepts and
+                    # drops connections must not be hammered)
+                    delay = self.backoff_initial_s
                     yield self.mapper.map_blocks(blocks, time.time())
             except (OSError, ConnectionError, asyncio.TimeoutError, asyncio.IncompleteReadError,
                     hyperion.HyperionError) as exc:
