@@ -49,7 +49,9 @@ def test_95pct_confidence_intervals_cover_the_truth_95pct_of_the_time():
         for c, truth in (linear_truth_campaign("rep", seed=100 + i, duration_s=1800) for i in range(20))])
     coverage = np.mean(np.abs(z) <= 1.96)
     assert 0.92 <= coverage <= 0.98, coverage       # 480 draws: binomial SD 1 %
-    assert abs(np.mean(z)) < 0.2 and 0.85 < np.std(z) < 1.15
+    # The 24 slopes of one campaign share its design, so their z-scores are correlated and the
+    # sample mean and SD spread more than for 480 independent draws: loose bounds on those two.
+    assert abs(np.mean(z)) < 0.25 and 0.8 < np.std(z) < 1.25
 
 
 def test_stepwise_selects_exactly_the_true_terms(truth_campaign):
