@@ -264,6 +264,55 @@ class MRAModel:
         self.training_ = {"campaigns": training, "n_samples": int(sum(t["n_samples"] for t in training))}
         return self._fit_factor(acc)
 
+    # -- fitting from statistics reduced elsewhere (fbgcomp.dataset, fbgcomp.distributed) ------
+    def new_accumulator(self, sensors, probe_names=None):
+        """Fix the sensor set (``SensorSpec`` list) and return an empty QR accumulator whose
+        columns are this model's terms (``const`` first) and whose targets are dx, dy, dz.
+
+        ``probe_names`` lists the probes the data offers; a missing required probe is an
+        InputError. Partitions accumulated on other processes with an estimator configured the
+        same way merge into it (:meth:`fbgcomp.regression.QRAccumulator.merge`).
+        """
+        from .regression import QRAccumulator
+
+        self._check_params()
+        self.sensors_ = list(sensors)
+        self.probe_names_ = FeatureMap.required_probes(self.sensors_, self.features != "eq11",
+                                                       self._roles())
+        if probe_names is not None:
+            missing = [p for p in self.probe_names_ if p not in set(probe_names)]
+            if missing:
+                raise InputError(f"the data lacks temperature probe(s) {', '.join(missing)} "
+                                 f"needed by features {self.features}",
+                                 column="field temperature_probes")
+        self.candidates_ = candidate_terms(self.features, [s.name for s in self.sensors_])
+        names = [CONSTANT] + self.candidates_
+        return QRAccumulator(len(names), len(AXES), feature_names=names, target_names=list(AXES))
+
+    def design_from_arrays(self, wavelength_nm, temperature_C, wavelength_zero_nm,
+                           temperature_zero_C):
+        """Design matrix (n, 1 + terms) from raw instrument arrays in the model's sensor and
+        probe order (nm, °C, zero states nm and °C); after :meth:`new_accumulator`."""
+        fmap = self._feature_map()
+        base = fmap.base(wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C)
+        return design_matrix(base, fmap.base_names, self.candidates_)
+
+    def fit_factor(self, acc, training=None):
+        """Finish a fit from an accumulator filled elsewhere (after :meth:`new_accumulator`):
+        selection, fallbacks and results exactly as :meth:`fit`, without reading any data.
+
+        ``training`` is the description stored in the model file (``{"campaigns": [...],
+        "n_samples": n}``); by default the accumulator's row count and no campaign list.
+        """
+        self._check_params()
+        if getattr(self, "candidates_", None) is None:
+            raise ValueError("call new_accumulator(sensors) before fit_factor")
+        if list(acc.feature_names) != [CONSTANT] + list(self.candidates_):
+            raise ValueError("the accumulator's columns are not this model's terms")
+        self.training_ = (dict(training) if training is not None
+                          else {"campaigns": [], "n_samples": int(acc.n_obs)})
+        return self._fit_factor(acc)
+
     def _fit_arrays(self, X, y):
         from .regression import QRAccumulator
 

@@ -1,0 +1,267 @@
+"""Scale-out on an existing engine (Dask distributed); in-process by default.
+
+The regression's sufficient statistics are a QR factor of ``[X | Y]`` that is small
+((p+k) x (p+k)), streamable and mergeable (:class:`fbgcomp.regression.QRAccumulator`): a fit
+over any number of rows is a *map* (one task per data file: stream it in row groups into a
+factor) followed by a *tree reduction* (merge factors pairwise on the workers). Only factors
+travel over the network, never rows; each worker holds one row group at a time, so its memory
+does not grow with the data. Stepwise selection, the ANOVA and the fallback models then run on
+the final factor in the client without reading the data again
+(:meth:`fbgcomp.models.MRAModel.fit_factor`).
+
+``dask`` arguments everywhere accept ``None`` (in-process, no Dask import), a scheduler address
+``tcp://HOST:8786``, ``local:N`` (a LocalCluster of N single-threaded worker processes, started
+and stopped around the call) or an existing ``distributed.Client``.
+
+Workers must be able to import fbgcomp and see the same paths as the client (a shared file
+system or the same machine).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+from pathlib import Path
+
+from .errors import InputError
+
+__all__ = ["cluster", "map_over_cluster", "tree_reduce", "fit_paths", "accumulate_paths",
+           "parse_dask"]
+
+_LOCAL_RE = re.compile(r"^local(?::(\d+))?$")
+
+
+def parse_dask(spec) -> tuple[str, object]:
+    """``("none", None)``, ``("client", client)``, ``("local", n_workers)`` or
+    ``("address", "tcp://...")``; InputError naming the option for anything else."""
+    if spec is None or spec == "" or spec == "none":
+        return "none", None
+    if not isinstance(spec, str):
+        return "client", spec
+    m = _LOCAL_RE.match(spec.strip())
+    if m:
+        n = int(m.group(1) or (os.cpu_count() or 1))
+        if n < 1:
+            raise InputError("local:N needs N >= 1 workers", file="<command line>",
+                             column="option --dask")
+        return "local", n
+    if re.match(r"^(tcp|tls|inproc|ws|wss|ucx)://\S+$", spec.strip()):
+        return "address", spec.strip()
+    raise InputError(f"--dask expects tcp://HOST:PORT or local:N, got {spec!r}",
+                     file="<command line>", column="option --dask")
+
+
+@contextlib.contextmanager
+def cluster(spec):
+    """Context manager yielding a ``distributed.Client`` for ``spec`` (None: yields None).
+
+    A ``local:N`` cluster is created for the duration (worker processes, one thread each, no
+    dashboard) and shut down after; a given client is left open.
+    """
+    kind, value = parse_dask(spec)
+    if kind == "none":
+        yield None
+        return
+    if kind == "client":
+        yield value
+        return
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise InputError("--dask needs the scale extra: pip install 'fbgcomp[scale]'",
+                         file="<command line>", column="option --dask") from None
+    if kind == "local":
+        with LocalCluster(n_workers=value, threads_per_worker=1, processes=True,
+                          dashboard_address=None, silence_logs=40) as lc, Client(lc) as client:
+            yield client
+        return
+    try:
+        client = Client(value, timeout="10s")
+    except (OSError, TimeoutError) as exc:
+        raise InputError(f"cannot reach the Dask scheduler at {value}: {exc}",
+                         file="<command line>", column="option --dask") from None
+    try:
+        yield client
+    finally:
+        client.close()
+
+
+def map_over_cluster(func, items, dask=None) -> list:
+    """``[func(item) for item in items]``, on a Dask cluster when ``dask`` is given.
+
+    For the FE design sweeps (sensor placement over thousands of layouts, load designs): the
+    results come back in the order of ``items``. ``func`` must be importable (or picklable by
+    cloudpickle) on the workers; each item is one task.
+    """
+    items = list(items)
+    with cluster(dask) as client:
+        if client is None:
+            return [func(item) for item in items]
+        futures = client.map(func, items, pure=False)
+        return client.gather(futures)
+
+
+def _pairwise(merge, items: list) -> object:
+    while len(items) > 1:
+        nxt = [merge(items[i], items[i + 1]) for i in range(0, len(items) - 1, 2)]
+        if len(items) % 2:
+            nxt.append(items[-1])
+        items = nxt
+    return items[0]
+
+
+def tree_reduce(func, items, merge, dask=None):
+    """``merge``-reduce ``func(item)`` over ``items`` as a balanced binary tree.
+
+    On a cluster both the map and every merge run on the workers, so the client only ever
+    receives the final value; the tree has the same shape in-process, so results are identical
+    up to the merge's rounding.
+    """
+    items = list(items)
+    if not items:
+        raise ValueError("nothing to reduce")
+    with cluster(dask) as client:
+        if client is None:
+            return _pairwise(merge, [func(item) for item in items])
+        futures = client.map(func, items, pure=False)
+        final = _pairwise(lambda a, b: client.submit(merge, a, b, pure=False), futures)
+        return final.result()
+
+
+# --------------------------------------------------------------------------------------------
+# Fitting: sources are dataset files and campaign folders
+# --------------------------------------------------------------------------------------------
+
+def _model_params(model) -> dict:
+    keys = ("features", "stepwise", "direction", "p_enter", "p_remove", "max_terms", "roles",
+            "zero_window_s", "fallbacks")
+    params = {k: getattr(model, k) for k in keys}
+    roles = params["roles"]
+    if roles is not None and not isinstance(roles, dict):
+        params["roles"] = roles.as_dict()
+    return params
+
+
+def _worker_model(spec):
+    from .campaign import SensorSpec
+    from .models import MRAModel
+
+    model = MRAModel(**spec["params"])
+    model.new_accumulator([SensorSpec(**s) for s in spec["sensors"]])
+    return model
+
+
+def _accumulate_source(source: dict, spec: dict) -> dict:
+    """One task: a dataset file or a campaign folder -> {"acc": state, "training": [...]}."""
+    from .models import _plain, check_compatible
+
+    model = _worker_model(spec)
+    if source["kind"] == "file":
+        from .dataset import Partition, accumulate_partition_file
+
+        partition = Partition.from_entry(Path(source["root"]), source["entry"])
+        acc = accumulate_partition_file(model, partition, source["file"])
+        training = [{"key": source["key"], "n_samples": int(acc.n_obs)}]
+    else:
+        from .campaign import read_campaign
+
+        campaign = read_campaign(source["path"])
+        check_compatible(model, campaign)
+        aligned = campaign.aligned(zero_window_s=model.zero_window_s)
+        acc = model.new_accumulator(model.sensors_)
+        w, t, w0, t0 = model.instrument_arrays(aligned)
+        chunk = 100_000
+        for lo in range(0, len(aligned), chunk):
+            acc.update(model.design_from_arrays(w[lo:lo + chunk], t[lo:lo + chunk], w0, t0),
+                       aligned.reference_um[lo:lo + chunk])
+        training = [{"key": source["key"], "n_samples": int(len(aligned)),
+                     "dropped": _plain(aligned.dropped)}]
+    return {"acc": acc.to_dict(), "training": training}
+
+
+def _merge_states(a: dict, b: dict) -> dict:
+    from .regression import QRAccumulator
+
+    acc = QRAccumulator.from_dict(a["acc"]).merge(QRAccumulator.from_dict(b["acc"]))
+    return {"acc": acc.to_dict(), "training": a["training"] + b["training"]}
+
+
+def _plan(model, paths) -> tuple[list, list, dict]:
+    """Sources (one per task), the training description skeleton, and the worker spec."""
+    from .campaign import _read_meta
+    from .dataset import check_partition, is_dataset, open_dataset
+
+    sources, described, first_sensors = [], [], None
+    partitions_seen = []
+    for raw in paths:
+        path = Path(raw).resolve()
+        if is_dataset(path):
+            ds = open_dataset(path)
+            for part in ds.partitions:
+                key = f"{path}::{part.machine}/{part.campaign}"
+                if first_sensors is None:
+                    first_sensors = part.sensors()
+                partitions_seen.append(part)
+                described.append({"key": key, "name": part.campaign, "kind": part.kind,
+                                  "machine": part.machine, "path": str(part.path),
+                                  "dropped": part.dropped})
+                entry = part.to_entry()
+                for f in part.file_paths:
+                    sources.append({"kind": "file", "root": str(path), "entry": entry,
+                                    "file": str(f), "key": key})
+        else:
+            if not path.is_dir():
+                raise InputError("campaign folder or dataset not found", file=raw)
+            meta = _read_meta(path)
+            if first_sensors is None:
+                first_sensors = list(meta.sensors)
+            key = str(path)
+            described.append({"key": key, "name": meta.name, "kind": meta.kind,
+                              "path": str(raw)})
+            sources.append({"kind": "campaign", "path": str(path), "key": key})
+    if not sources:
+        raise ValueError("fit needs at least one campaign or dataset")
+    model.new_accumulator(first_sensors)
+    for part in partitions_seen:
+        check_partition(model, part)
+    spec = {"params": _model_params(model),
+            "sensors": [s.model_dump(mode="json") for s in model.sensors_]}
+    return sources, described, spec
+
+
+def accumulate_paths(model, paths, dask=None):
+    """Reduce campaign folders and datasets to one factor: ``(accumulator, training)``.
+
+    ``model`` gets its sensor set from the first source (as :meth:`MRAModel.fit` does).
+    """
+    import functools
+
+    from .regression import QRAccumulator
+
+    sources, described, spec = _plan(model, paths)
+    state = tree_reduce(functools.partial(_accumulate_source, spec=spec), sources,
+                        _merge_states, dask=dask)
+    acc = QRAccumulator.from_dict(state["acc"])
+    counts: dict = {}
+    dropped: dict = {}
+    for t in state["training"]:
+        counts[t["key"]] = counts.get(t["key"], 0) + t["n_samples"]
+        if "dropped" in t:
+            dropped[t["key"]] = t["dropped"]
+    campaigns = []
+    for d in described:
+        entry = {k: v for k, v in d.items() if k != "key"}
+        entry["n_samples"] = int(counts.get(d["key"], 0))
+        if d["key"] in dropped:
+            entry["dropped"] = dropped[d["key"]]
+        campaigns.append(entry)
+    training = {"campaigns": campaigns, "n_samples": int(acc.n_obs)}
+    return acc, training
+
+
+def fit_paths(model, paths, dask=None):
+    """Fit ``model`` on campaign folders and/or datasets, in-process or on a Dask cluster; the
+    selection (stepwise, fallbacks) runs on the reduced factor. Returns the fitted model."""
+    acc, training = accumulate_paths(model, paths, dask=dask)
+    return model.fit_factor(acc, training=training)
