@@ -1,0 +1,241 @@
+// fbgcomp live dashboard: Server-Sent Events in, small hand-written canvas strip charts out.
+// No library and no CDN, so the page works on a shop-floor network without internet.
+"use strict";
+
+const WINDOW_S = 60;                 // seconds of history shown by the charts
+const COLOURS = ["#0072B2", "#D55E00", "#009E73", "#CC79A7", "#E69F00", "#56B4E9", "#000000", "#F0E442"];
+const AXES = ["dx", "dy", "dz"];
+
+// -------------------------------------------------------------------------- strip chart
+class StripChart {
+  constructor(canvas, names, unit) {
+    this.canvas = canvas;
+    this.names = names;
+    this.unit = unit;
+    this.t = [];                     // sample times, s
+    this.y = names.map(() => []);    // one array per series
+    this.dirty = true;
+  }
+  push(t, values) {
+    this.t.push(t);
+    values.forEach((v, i) => this.y[i].push(v === null || v === undefined ? NaN : v));
+    const cut = t - WINDOW_S;
+    let drop = 0;
+    while (drop < this.t.length && this.t[drop] < cut) drop++;
+    if (drop) { this.t.splice(0, drop); this.y.forEach(s => s.splice(0, drop)); }
+    this.dirty = true;
+  }
+  draw() {
+    if (!this.dirty) return;
+    this.dirty = false;
+    const c = this.canvas, ratio = window.devicePixelRatio || 1;
+    const w = c.clientWidth || c.width, h = c.clientHeight || c.height;
+    if (c.width !== Math.round(w * ratio) || c.height !== Math.round(h * ratio)) {
+      c.width = Math.round(w * ratio); c.height = Math.round(h * ratio);
+    }
+    const g = c.getContext("2d");
+    g.setTransform(ratio, 0, 0, ratio, 0, 0);
+    g.clearRect(0, 0, w, h);
+    const left = 58, right = 22, top = 24, bottom = 26;   // right: room for "now"
+    const pw = w - left - right, ph = h - top - bottom;
+    let lo = Infinity, hi = -Infinity;
+    for (const s of this.y) for (const v of s) if (Number.isFinite(v)) { if (v < lo) lo = v; if (v > hi) hi = v; }
+    if (!Number.isFinite(lo)) { lo = -1; hi = 1; }
+    if (hi - lo < 1e-6) { lo -= 0.5; hi += 0.5; }
+    const pad = 0.08 * (hi - lo); lo -= pad; hi += pad;
+    const tEnd = this.t.length ? this.t[this.t.length - 1] : 0, tStart = tEnd - WINDOW_S;
+    const X = t => left + (t - tStart) / WINDOW_S * pw;
+    const Y = v => top + (hi - v) / (hi - lo) * ph;
+    // grid and tick labels
+    g.font = "12px DejaVu Sans, Helvetica, Arial, sans-serif";
+    g.strokeStyle = "#e3e6ea"; g.fillStyle = "#333"; g.lineWidth = 1;
+    const step = niceStep((hi - lo) / 5);
+    g.textAlign = "right"; g.textBaseline = "middle";
+    for (let v = Math.ceil(lo / step) * step; v <= hi; v += step) {
+      const y = Math.round(Y(v)) + 0.5;
+      g.beginPath(); g.moveTo(left, y); g.lineTo(left + pw, y); g.stroke();
+      g.fillText(formatTick(v, step), left - 6, y);
+    }
+    g.textAlign = "center"; g.textBaseline = "top";
+    for (let s = 0; s <= WINDOW_S; s += 10) {
+      const x = Math.round(X(tStart + s)) + 0.5;
+      g.beginPath(); g.moveTo(x, top); g.lineTo(x, top + ph); g.stroke();
+      g.fillText(s === WINDOW_S ? "now" : `${s - WINDOW_S} s`, x, top + ph + 5);
+    }
+    g.strokeStyle = "#888"; g.strokeRect(left + 0.5, top + 0.5, pw, ph);
+    g.save(); g.translate(13, top + ph / 2); g.rotate(-Math.PI / 2);
+    g.textAlign = "center"; g.textBaseline = "middle"; g.fillText(this.unit, 0, 0); g.restore();
+    // series
+    g.save(); g.beginPath(); g.rect(left, top, pw, ph); g.clip();
+    this.y.forEach((s, i) => {
+      g.strokeStyle = COLOURS[i % COLOURS.length]; g.lineWidth = 2; g.beginPath();
+      let pen = false;
+      for (let k = 0; k < s.length; k++) {
+        if (!Number.isFinite(s[k])) { pen = false; continue; }
+        const x = X(this.t[k]), y = Y(s[k]);
+        if (pen) g.lineTo(x, y); else { g.moveTo(x, y); pen = true; }
+      }
+      g.stroke();
+    });
+    g.restore();
+    // legend along the top
+    g.textAlign = "left"; g.textBaseline = "middle";
+    let x = left;
+    this.names.forEach((name, i) => {
+      g.fillStyle = COLOURS[i % COLOURS.length]; g.fillRect(x, 8, 16, 4);
+      g.fillStyle = "#111"; g.fillText(name, x + 20, 10);
+      x += 28 + g.measureText(name).width;
+    });
+  }
+}
+
+function niceStep(raw) {
+  const p = Math.pow(10, Math.floor(Math.log10(raw)));
+  const m = raw / p;
+  return (m < 1.5 ? 1 : m < 3 ? 2 : m < 7 ? 5 : 10) * p;
+}
+function formatTick(v, step) {
+  const digits = Math.max(0, -Math.floor(Math.log10(step)));
+  return (Math.abs(v) < step / 1e6 ? 0 : v).toFixed(Math.min(digits, 6));
+}
+function fmt(v, digits) {
+  return v === null || v === undefined || !Number.isFinite(v) ? "—" : v.toFixed(digits);
+}
+
+// -------------------------------------------------------------------------- page state
+const state = { meta: null, charts: {}, updates: 0, last: null, times: [], user: null };
+window.fbgcomp = state;              // for the browser tests and curious engineers
+
+const $ = id => document.getElementById(id);
+
+async function api(path, body) {
+  const opts = body === undefined ? {} : {
+    method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body),
+    credentials: "same-origin" };
+  const r = await fetch(path, opts);
+  let data = null;
+  try { data = await r.json(); } catch (e) { data = null; }
+  return { ok: r.ok, status: r.status, data };
+}
+
+function buildSensorTable(names) {
+  const body = $("sensors").tBodies[0];
+  body.textContent = "";
+  names.forEach((name, i) => {
+    const tr = document.createElement("tr");
+    tr.dataset.sensor = name;
+    for (const cls of ["name", "status", "num wl", "num dl"]) {
+      const td = document.createElement("td"); td.className = cls; tr.appendChild(td);
+    }
+    tr.cells[0].textContent = name;
+    tr.cells[0].style.borderLeft = `6px solid ${COLOURS[i % COLOURS.length]}`;
+    body.appendChild(tr);
+  });
+}
+
+function showUser(user) {
+  state.user = user;
+  $("login-form").hidden = !!user;
+  $("user-line").hidden = !user;
+  $("user").textContent = user || "";
+  const canControl = !!user && state.meta && state.meta.control_available;
+  $("toggle").disabled = !canControl;
+  $("control-note").textContent = !state.meta || !state.meta.control_available
+    ? "This service has no control output."
+    : user ? "You may enable or disable the compensation."
+    : state.meta.login_possible ? "Log in to enable or disable the compensation."
+    : "No dashboard users are configured: control is off.";
+}
+
+function showEnabled(enabled) {
+  const text = enabled ? "ENABLED" : "DISABLED";
+  $("enabled-badge").textContent = `output ${text.toLowerCase()}`;
+  $("enabled-badge").dataset.state = text;
+  $("enabled-text").textContent = text.toLowerCase();
+  $("toggle").textContent = enabled ? "disable compensation" : "enable compensation";
+  $("toggle").dataset.enabled = enabled ? "true" : "false";
+}
+
+function onFrame(f) {
+  state.updates += 1;
+  state.last = f;
+  const now = performance.now();
+  state.times.push(now);
+  while (state.times.length && state.times[0] < now - 5000) state.times.shift();
+  AXES.forEach((a, j) => {
+    $(`corr-${a}`).textContent = fmt(f.correction_um[j], 3);
+    $(`dev-${a}`).textContent = fmt(f.deviation_um[j], 3);
+    $(`hw-${a}`).textContent = fmt(f.half_width_um[j], 3);
+  });
+  $("health").textContent = f.health + (f.alarm ? " · alarm" : "");
+  $("health").dataset.state = f.health;
+  $("fallback").textContent = f.fallback ? `without ${f.fallback}` : "none (full model)";
+  $("model-id").textContent = f.model_id;
+  $("source").textContent = f.source_status || "—";
+  $("latency").textContent = fmt(f.latency_ms, 1);
+  $("processing").textContent = fmt(f.processing_ms, 1);
+  $("frames").textContent = f.frames;
+  $("rate").textContent = (state.times.length > 1
+    ? (state.times.length - 1) / ((state.times[state.times.length - 1] - state.times[0]) / 1000) : 0).toFixed(1);
+  showEnabled(f.enabled);
+  const rows = $("sensors").tBodies[0].rows;
+  for (let i = 0; i < rows.length; i++) {
+    const st = f.sensor_status[i] || "—";
+    rows[i].cells[1].textContent = st;
+    rows[i].cells[1].className = st === "OK" ? "status status-OK" : "status status-bad";
+    rows[i].cells[2].textContent = fmt(f.wavelength_nm[i], 4);
+    rows[i].cells[3].textContent = fmt(f.elongation_um[i], 3);
+  }
+  state.charts.elongation.push(f.t, f.elongation_um);
+  state.charts.temperature.push(f.t, f.temperature_C);
+  state.charts.deviation.push(f.t, f.deviation_um);
+  state.charts.correction.push(f.t, f.correction_um);
+}
+
+function connect() {
+  const es = new EventSource("/api/stream");
+  es.onopen = () => { $("link").textContent = "live"; $("link").dataset.state = "LIVE"; };
+  es.onmessage = ev => onFrame(JSON.parse(ev.data));
+  es.onerror = () => { $("link").textContent = "reconnecting"; $("link").dataset.state = "LOST"; };
+}
+
+function frameLoop() {
+  for (const c of Object.values(state.charts)) c.draw();
+  requestAnimationFrame(frameLoop);
+}
+
+async function init() {
+  const meta = (await api("/api/meta")).data;
+  state.meta = meta;
+  $("max-rate").textContent = meta.max_rate_hz;
+  buildSensorTable(meta.sensors);
+  state.charts.elongation = new StripChart($("chart-elongation"), meta.sensors, "ΔS (µm)");
+  state.charts.temperature = new StripChart($("chart-temperature"), meta.probes, "T (°C)");
+  state.charts.deviation = new StripChart($("chart-deviation"), meta.axes, "deviation (µm)");
+  state.charts.correction = new StripChart($("chart-correction"), meta.axes, "correction (µm)");
+  showUser(meta.user);
+  showEnabled(meta.enabled);
+  $("login-form").addEventListener("submit", async ev => {
+    ev.preventDefault();
+    $("control-error").textContent = "";
+    const r = await api("/api/login", { username: $("username").value, password: $("password").value });
+    $("password").value = "";
+    if (r.ok) showUser(r.data.user);
+    else $("control-error").textContent = (r.data && r.data.error) || `login failed (${r.status})`;
+  });
+  $("logout").addEventListener("click", async () => { await api("/api/logout", {}); showUser(null); });
+  $("toggle").addEventListener("click", async () => {
+    $("control-error").textContent = "";
+    const want = $("toggle").dataset.enabled !== "true";
+    const r = await api("/api/enabled", { enabled: want });
+    if (r.ok) showEnabled(r.data.enabled);
+    else {
+      $("control-error").textContent = (r.data && r.data.error) || `refused (${r.status})`;
+      if (r.status === 401) showUser(null);
+    }
+  });
+  connect();
+  requestAnimationFrame(frameLoop);
+}
+
+document.addEventListener("DOMContentLoaded", init);
