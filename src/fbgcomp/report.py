@@ -185,10 +185,14 @@ def analyse_campaign(campaign, model, *, slug: str | None = None) -> CampaignSec
     check_compatible(model, campaign)
     aligned = campaign.aligned(zero_window_s=model.zero_window_s)
     pred, half = model.predict_interval(campaign)
-    w, temp, w0, t0 = model.instrument_arrays(aligned)
-    base = model._feature_map().base(w, temp, w0, t0)
-    sensors = list(model.sensor_names)
-    elongation = base[:, :len(sensors)]
+    # ΔS from the campaign's own sensor metadata and the model's zero window: the same
+    # elongations a regression model uses, and defined for every model type
+    from .features import FeatureMap
+
+    sensors = list(aligned.sensor_names)
+    elongation = FeatureMap(list(campaign.meta.sensors), list(aligned.probe_names), False).base(
+        aligned.wavelength_nm, aligned.temperature_C, aligned.wavelength_zero_nm,
+        aligned.temperature_zero_C)
     ref = aligned.reference_um
     slug = slug or _slug(campaign.name)
 
@@ -341,16 +345,24 @@ def _table(headers, rows, left=()) -> str:
 
 def _model_html(model, model_path) -> str:
     out = ["<h2 id=\"model\">Model: coefficients per axis (paper Table 1)</h2>"]
-    training = model.training_.get("campaigns", [])
+    info = getattr(model, "training_", None) or {}
+    training = info.get("campaigns", [])
+    features = getattr(model, "features", None)
     out.append(f"<p class=\"meta\">Model file <code>{_e(model_path)}</code>, id "
-               f"<code>{_e(model.model_id)}</code>; feature set <b>{_e(model.features)}</b>"
-               f"{', stepwise selection' if model.stepwise else ''}; fitted on "
-               f"{model.training_.get('n_samples', 0)} samples from "
-               f"{_e(', '.join(c['name'] for c in training) or 'arrays')}; zero state = mean of "
-               f"the first {model.zero_window_s:g} s; fallback models stored: "
-               f"{len(model.fallbacks_)}.</p>")
+               f"<code>{_e(model.model_id)}</code>, type {_e(getattr(model, 'model_type', '?'))}"
+               + (f"; feature set <b>{_e(features)}</b>" if isinstance(features, str) else "")
+               + (", stepwise selection" if getattr(model, "stepwise", False) else "")
+               + f"; fitted on {info.get('n_samples', 0)} samples from "
+               f"{_e(', '.join(c['name'] for c in training) or 'no campaign')}; zero state = mean "
+               f"of the first {model.zero_window_s:g} s; fallback models stored: "
+               f"{len(getattr(model, 'fallback_sets', []) or [])}.</p>")
+    axes = getattr(model, "axes_", None)
+    if not axes:
+        out.append(f"<p class=\"na\">Table 1 not applicable: a {_e(getattr(model, 'model_type', '?'))} "
+                   "model has no fitted regression coefficients.</p>")
+        return "\n".join(out)
     for axis in AXES:
-        fit = model.axes_[axis]
+        fit = axes[axis]
         rows = []
         for i, (term, p, se, t, pv) in enumerate(zip(fit.terms, fit.params, fit.bse,
                                                      fit.tvalues, fit.pvalues)):

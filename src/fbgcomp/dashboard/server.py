@@ -204,8 +204,15 @@ class Dashboard:
         key = id(model)
         fmap = self._feature_maps.get(key)
         if fmap is None:
-            fmap = model._feature_map()
+            # ΔS as the runtime sees it: every model type exposes its sensors and probes
+            from fbgcomp.features import FeatureMap
+            try:
+                fmap = FeatureMap(list(model.sensors), list(model.probe_names), False)
+            except (AttributeError, KeyError, TypeError):
+                fmap = False   # a model without sensor metadata: no elongations to show
             self._feature_maps = {key: fmap}   # one model at a time (reload replaces it)
+        if fmap is False:
+            return np.full(len(self.sensor_names), np.nan)
         with np.errstate(invalid="ignore"):
             base = fmap.base(np.asarray(wavelength_nm, float)[None, :],
                              np.asarray(temperature_C, float)[None, :], w0, t0)
