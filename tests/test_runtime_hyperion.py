@@ -118,3 +118,33 @@ def test_client_talks_to_the_simulated_instrument():
 def test_simulator_rejects_unknown_sensor_in_fault():
     with pytest.raises(InputError):
         SimulatedHyperion(_table(), SimConfig(faults=[parse_fault("drop:S9@1")]))
+
+
+def test_window_search_agrees_with_the_exhaustive_comparison():
+    rng = np.random.default_rng(5)
+    lam0 = 1520.0 + 5.0 * np.arange(12)
+    m = PeakMapper(lam0, window_nm=2.0)
+    peaks = lam0[rng.integers(0, 12, (400, 15))] + rng.uniform(-4.5, 4.5, (400, 15))
+    peaks[rng.random(peaks.shape) < 0.1] = np.nan
+    fast = m.map(peaks, 0.0, np.arange(400.0))
+    S = lam0.size
+    count, value, near = np.zeros(400 * S, np.int64), np.zeros(400 * S), np.zeros(400 * S, np.int64)
+    m._map_group_overlapping(peaks, np.arange(S), count, value, near)
+    np.testing.assert_array_equal(fast.peak_count, count.reshape(400, S))
+    np.testing.assert_array_equal(fast.near_count, near.reshape(400, S))
+    one = count.reshape(400, S) == 1
+    np.testing.assert_array_equal(fast.wavelength_nm[one], value.reshape(400, S)[one])
+    assert one.sum() > 1000 and (count > 1).any() and (near > 0).any()
+
+
+def test_sensors_with_a_channel_only_see_their_fibre():
+    # two fibres with gratings of the same nominal wavelengths
+    m = PeakMapper(np.array([1530.0, 1535.0, 1530.0, 1535.0]), 2.5, channel=[1, 1, 2, 2])
+    frames = hyperion.encode_peak_frames(1, np.array([1.0, 1.001]), np.array([2, 1]),
+                                         np.array([[1530.1, 1535.1, 1530.3],
+                                                   [1530.2, 1535.2, 1530.4]]))
+    blocks, _ = hyperion.decode_peak_frames(frames)
+    b = m.map_blocks(blocks, 0.0)
+    np.testing.assert_array_equal(b.peak_count, [[1, 1, 1, 0], [1, 1, 1, 0]])
+    np.testing.assert_allclose(b.wavelength_nm[:, 2], [1530.3, 1530.4])
+    np.testing.assert_allclose(b.wavelength_nm[:, 0], [1530.1, 1530.2])

@@ -91,6 +91,7 @@ def register(app: typer.Typer) -> None:
         noise_pm: float = typer.Option(0.0, "--noise-pm", help="Gaussian wavelength noise, pm."),
         fault: List[str] = typer.Option([], "--fault", help="drop:S@t, double:S@t, shift:S@t:nm, stuck:S@t, cut@t:s (t = s since start)."),
         duration: Optional[float] = typer.Option(None, "--duration", help="Stop after this many seconds."),
+        send_log: Optional[Path] = typer.Option(None, "--send-log", help="Save the wall-clock send time of every block of frames (.npy: first stamp s, frames, send time s) at exit, for latency measurements."),
     ):
         """Serve a campaign's wavelengths over the Hyperion TCP protocol (a simulated instrument)."""
         import asyncio
@@ -111,7 +112,8 @@ def register(app: typer.Typer) -> None:
                   flush=True)
 
         try:
-            asyncio.run(run_simulator(table, cfg, host, command_port, port, ready, duration))
+            asyncio.run(run_simulator(table, cfg, host, command_port, port, ready, duration,
+                                      send_log))
         except OSError as exc:
             raise InputError(f"cannot listen on {host}:{port}/{command_port}: {exc.strerror}",
                              column="--port")

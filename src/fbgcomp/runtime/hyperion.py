@@ -19,6 +19,7 @@ record array, so decoding cost per frame is a few hundred nanoseconds.
 from __future__ import annotations
 
 import asyncio
+import functools
 import struct
 from dataclasses import dataclass
 
@@ -117,6 +118,7 @@ def encode_peak_frames(serial_number: int, timestamps_s: np.ndarray, peak_counts
     return rec.tobytes()
 
 
+@functools.lru_cache(maxsize=64)
 def _frame_dtype(n_channels: int, n_peaks: int) -> np.dtype:
     fields = [("status", "u1"), ("rtype", "u1"), ("msg_len", "<u2"), ("content_length", "<u4"),
               ("length", "<u2"), ("version", "<u2"), ("reserved", "<u4"), ("serial", "<u8"),

@@ -446,11 +446,16 @@ class OpcUaServer:
         await put("FallbackInUse", s.fallback, S, False)
         await put("SourceStatus", s.source_status, S, False)
         await put("ModelId", self.model_id, S, False)
-        await put("FramesProcessed", int(s.frames), ua.VariantType.UInt64)
-        for name, st, wl in zip(self.sensor_names, s.sensor_status, s.sensor_wavelength_nm):
+        for name, st in zip(self.sensor_names, s.sensor_status):
             await put(f"Sensors.{name}.Status", st, S, False)
-            await put(f"Sensors.{name}.Wavelength_nm", float(wl), D, False)
-        await put("Latency_ms", (time.time() - s.sample_time_s) * 1e3, D)
+        mono = time.monotonic()
+        if mono - getattr(self, "_diag_at", 0.0) >= 0.1:
+            # diagnostics at <= 10 Hz: they must not slow down the correction updates
+            self._diag_at = mono
+            await put("FramesProcessed", int(s.frames), ua.VariantType.UInt64)
+            for name, wl in zip(self.sensor_names, s.sensor_wavelength_nm):
+                await put(f"Sensors.{name}.Wavelength_nm", float(wl), D)
+            await put("Latency_ms", (time.time() - s.sample_time_s) * 1e3, D)
         # SampleTime last: a client watching it sees a complete, consistent sample
         await put("SampleTime", src, ua.VariantType.DateTime)
         self.published += 1

@@ -113,8 +113,7 @@ class Service:
         self.model = model if model is not None else self._load_model(config.model)
         self.pipeline = Pipeline(self.model, config.pipeline)
         self.model_id = self.model.model_id
-        self.mapper = PeakMapper([s.lambda0_nm for s in self.model.sensors],
-                                 config.source.window_nm)
+        self.mapper = PeakMapper.for_sensors(self.model.sensors, config.source.window_nm)
         self.frames = 0
         self.batches = 0
         self.busy_s = 0.0
@@ -361,6 +360,10 @@ def _probe_specs(folder):
 
 def run_service(config: RuntimeConfig, duration_s: float | None = None) -> Service:
     """Run until SIGINT / SIGTERM (graceful: the run log is flushed) or ``duration_s``."""
+    import sys
+    # The OPC UA server and the log writer run in threads: hand the GIL over within 1 ms
+    # (default 5 ms) so a value waiting to be published is not held up by the other threads.
+    sys.setswitchinterval(0.001)
     service = Service(config)
 
     async def main():

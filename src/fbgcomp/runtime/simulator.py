@@ -65,6 +65,7 @@ class SignalTable:
     time_s: np.ndarray
     wavelengths_nm: np.ndarray
     sensor_names: list[str]
+    channel: list[int] | None = None   # 1-based instrument channel per sensor (campaign meta)
 
     @classmethod
     def from_campaign(cls, folder: str | Path) -> "SignalTable":
@@ -72,7 +73,9 @@ class SignalTable:
         c = read_campaign(folder)
         names = [s.name for s in c.meta.sensors]
         wl = c.fbg[[f"{n}_nm" for n in names]].to_numpy(dtype=np.float64)
-        return cls(c.fbg["time_s"].to_numpy(dtype=np.float64), wl, names)
+        channel = [int(getattr(s, "channel", None) or 0) for s in c.meta.sensors]
+        return cls(c.fbg["time_s"].to_numpy(dtype=np.float64), wl, names,
+                   channel if all(channel) else None)
 
     def at(self, campaign_time_s: np.ndarray) -> np.ndarray:
         """Linear interpolation of every sensor at the given campaign times, (n, S)."""
@@ -123,9 +126,15 @@ class SimulatedHyperion:
         self.finished = asyncio.Event()
         self._task: asyncio.Task | None = None
         S = len(table.sensor_names)
-        per = -(-S // self.config.channels)
-        self._sensor_channel = np.arange(S) // per
+        if table.channel is not None:
+            self._sensor_channel = np.asarray(table.channel) - 1
+            if self._sensor_channel.max() >= self.config.channels:
+                self.config.channels = int(self._sensor_channel.max()) + 1
+        else:
+            per = -(-S // self.config.channels)
+            self._sensor_channel = np.arange(S) // per
         self._stuck_value: dict[int, float] = {}
+        self.send_log: list[tuple[float, int, float]] | None = None
         self._fired_cuts: set[int] = set()
 
     @property
@@ -246,11 +255,14 @@ class SimulatedHyperion:
                     t_rel = t_rel[: k.size]
                 self._sent = due
                 if not self._link_cut() and self._stream_writers and k.size:
-                    self._broadcast(self._frames(t_rel))
+                    self._broadcast(self._frames(t_rel), self._t0 + t_rel[0], k.size)
             next_t = self._sent * period
             await asyncio.sleep(max(0.0, min(tick, next_t - self._elapsed())))
 
-    def _broadcast(self, data: bytes) -> None:
+    def _broadcast(self, data: bytes, first_stamp_s: float = 0.0, n: int = 0) -> None:
+        if self.send_log is not None:
+            # wall-clock time each block of frames left, for latency measurements
+            self.send_log.append((first_stamp_s, n, time.time()))
         for w in list(self._stream_writers):
             if w.transport.get_write_buffer_size() > self.config.max_buffer_bytes:
                 self._stream_writers.discard(w)
@@ -317,16 +329,41 @@ class SimulatedHyperion:
         return hyperion.encode_peak_frames(serial, stamp_s, counts, peaks)
 
 
+def save_send_log(sim: "SimulatedHyperion", path: str | Path) -> None:
+    """Atomically save (first frame stamp s, frames, send wall time s) rows as ``.npy``."""
+    import os
+    import tempfile
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".npy", dir=path.parent or ".")
+    os.close(fd)
+    np.save(tmp, np.array(sim.send_log or [], dtype=np.float64).reshape(-1, 3))
+    os.replace(tmp, path)
+
+
 async def run_simulator(table: SignalTable, config: SimConfig, host: str, command_port: int,
-                        stream_port: int, ready=None, duration_s: float | None = None) -> None:
+                        stream_port: int, ready=None, duration_s: float | None = None,
+                        send_log: str | Path | None = None) -> None:
     """Serve until the signals end (unless looping), ``duration_s`` passes, or cancellation."""
     sim = SimulatedHyperion(table, config, host, command_port, stream_port)
+    if send_log is not None:
+        sim.send_log = []
     await sim.start()
     if ready is not None:
         ready(sim)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    import signal
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            loop.add_signal_handler(sig, stop.set)
+        except (NotImplementedError, RuntimeError):
+            pass
     try:
-        waiter = asyncio.create_task(sim.finished.wait())
-        await asyncio.wait({waiter}, timeout=duration_s)
-        waiter.cancel()
+        waiters = {asyncio.create_task(sim.finished.wait()), asyncio.create_task(stop.wait())}
+        await asyncio.wait(waiters, timeout=duration_s, return_when=asyncio.FIRST_COMPLETED)
+        for w in waiters:
+            w.cancel()
     finally:
         await sim.stop()
+        if send_log is not None:
+            save_send_log(sim, send_log)

@@ -62,31 +62,94 @@ class PeakMapper:
     """Assign peaks to sensors by wavelength windows (vectorised over frames and peaks)."""
 
     def __init__(self, lambda0_nm: np.ndarray, window_nm: float = 2.5,
-                 guard_nm: float | None = None):
+                 guard_nm: float | None = None, channel: np.ndarray | None = None):
         self.lambda0_nm = np.asarray(lambda0_nm, dtype=np.float64)
+        # instrument channel (1-based, as the Hyperion numbers them) of each sensor, 0 = any:
+        # several fibres may carry gratings of the same nominal wavelength
+        self.channel = (np.zeros(self.lambda0_nm.size, int) if channel is None
+                        else np.asarray(channel, dtype=int))
         self.window_nm = float(window_nm)
         self.guard_nm = float(window_nm if guard_nm is None else guard_nm)
         self.lo = self.lambda0_nm - self.window_nm
         self.hi = self.lambda0_nm + self.window_nm
 
-    def map(self, peaks_nm: np.ndarray, received_s: float, time_s: np.ndarray) -> SensorBatch:
-        """Map (n, K) peaks (NaN = no peak) to (n, S) sensor wavelengths."""
-        p = peaks_nm[:, :, None]
-        inside = (p >= self.lo) & (p <= self.hi)                      # (n, K, S)
-        count = inside.sum(axis=1)
-        value = np.where(inside, p, 0.0).sum(axis=1)
-        wl = np.where(count == 1, value, np.nan)
-        dist = np.abs(p - self.lambda0_nm)
-        # a peak just outside the window that belongs to no other sensor: this grating moved
-        owned = inside.any(axis=2, keepdims=True)
-        near = ((dist > self.window_nm) & (dist <= self.window_nm + self.guard_nm)
-                & ~owned).sum(axis=1)
+    @classmethod
+    def for_sensors(cls, sensors, window_nm: float = 2.5) -> "PeakMapper":
+        """Windows from sensor specs (``lambda0_nm`` and optional extra key ``channel``)."""
+        channel = [int(getattr(s, "channel", None) or 0) for s in sensors]
+        return cls([s.lambda0_nm for s in sensors], window_nm, channel=channel)
+
+    def map(self, peaks_nm: np.ndarray, received_s: float, time_s: np.ndarray,
+            peak_channel: np.ndarray | None = None) -> SensorBatch:
+        """Map (n, K) peaks (NaN = no peak) to (n, S) sensor wavelengths.
+
+        ``peak_channel`` (K,) gives the 1-based instrument channel of each peak column; sensors
+        with a channel only look at their channel's peaks.
+        """
+        n, S = peaks_nm.shape[0], self.lambda0_nm.size
+        count = np.zeros(n * S, np.int64)
+        value = np.zeros(n * S)
+        near = np.zeros(n * S, np.int64)
+        by_channel = peak_channel is not None and self.channel.all()
+        groups = (np.unique(peak_channel) if by_channel else [None])
+        for ch in groups:
+            cols = np.flatnonzero(peak_channel == ch) if ch is not None else slice(None)
+            sens = np.flatnonzero(self.channel == ch) if ch is not None else np.arange(S)
+            if sens.size:
+                self._map_group(peaks_nm[:, cols], sens, count, value, near)
+        count = count.reshape(n, S)
+        wl = np.where(count == 1, value.reshape(n, S), np.nan)
         return SensorBatch(time_s, wl, np.minimum(count, 127).astype(np.int8),
-                           np.minimum(near, 127).astype(np.int8), received_s)
+                           np.minimum(near.reshape(n, S), 127).astype(np.int8), received_s)
+
+    def _map_group(self, peaks, sens, count, value, near) -> None:
+        """Windows of the sensors ``sens`` (one fibre) against its (n, k) peaks, O(n k log s).
+
+        Windows on one fibre do not overlap (checked at first use), so each peak falls in at
+        most one window: a binary search over the sorted window edges finds it.
+        """
+        S = self.lambda0_nm.size
+        order = sens[np.argsort(self.lambda0_nm[sens])]
+        lo, hi, lam = self.lo[order], self.hi[order], self.lambda0_nm[order]
+        n = peaks.shape[0]
+        if np.any(lo[1:] < hi[:-1]):
+            self._map_group_overlapping(peaks, sens, count, value, near)
+            return
+        row = np.broadcast_to(np.arange(n)[:, None] * S, peaks.shape)
+        finite = np.isfinite(peaks)
+        p = np.where(finite, peaks, -np.inf)
+        j = np.searchsorted(lo, p, side="right") - 1             # window starting at or below
+        jc = np.clip(j, 0, order.size - 1)
+        inside = finite & (j >= 0) & (p <= hi[jc])
+        flat = row[inside] + order[jc[inside]]
+        np.add.at(count, flat, 1)
+        np.add.at(value, flat, p[inside])
+        # peaks owned by no window but within the guard band of one: that grating moved
+        stray = finite & ~inside
+        for cand in (j, j + 1):                  # the windows just below and just above
+            valid = (cand >= 0) & (cand < order.size)
+            k = np.clip(cand, 0, order.size - 1)
+            d = np.abs(p - lam[k])
+            hit = stray & valid & (d > self.window_nm) & (d <= self.window_nm + self.guard_nm)
+            np.add.at(near, row[hit] + order[k[hit]], 1)
+
+    def _map_group_overlapping(self, peaks, sens, count, value, near) -> None:
+        """Overlapping windows: a peak may count for two sensors (both then see a fault)."""
+        S = self.lambda0_nm.size
+        n = peaks.shape[0]
+        p = peaks[:, :, None]
+        inside = (p >= self.lo[sens]) & (p <= self.hi[sens])             # (n, k, s)
+        dist = np.abs(p - self.lambda0_nm[sens])
+        owned = inside.any(axis=2, keepdims=True)
+        stray = (dist > self.window_nm) & (dist <= self.window_nm + self.guard_nm) & ~owned
+        idx = (np.arange(n)[:, None] * S + sens[None, :]).ravel()
+        count[idx] += inside.sum(axis=1).ravel()
+        value[idx] += np.where(inside, p, 0.0).sum(axis=1).ravel()
+        near[idx] += stray.sum(axis=1).ravel()
 
     def map_blocks(self, blocks: list[hyperion.PeakBlock], received_s: float) -> SensorBatch:
-        return SensorBatch.concat([self.map(b.wavelengths_nm, received_s, b.timestamp_s)
-                                   for b in blocks])
+        return SensorBatch.concat([self.map(b.wavelengths_nm, received_s, b.timestamp_s,
+                                            b.peak_channel + 1) for b in blocks])
 
 
 class WavelengthSource(Protocol):
