@@ -262,3 +262,45 @@ def test_a_client_that_stops_reading_blocks_no_one(service):
         assert frames1 - frames0 > 2 * RATE_HZ        # the compensation loop never waited
     finally:
         stalled.close()
+
+
+def test_a_lost_grating_shows_as_degraded_with_the_fallback_in_use(tmp_path):
+    """A separate simulated instrument whose grating S3 disappears after 2 s."""
+    sync_api = fbgcomp_testing.require("playwright.sync_api")
+    model, campaign = model_and_campaign(tmp_path.parent / "runtime")
+    sp, cp, dp = free_port(), free_port(), free_port()
+    sim = fbgcomp_process("sim-interrogator", campaign, "--port", sp, "--command-port", cp,
+                          "--rate", RATE_HZ, "--loop", "--fault", "drop:S3@2")
+    serve = fbgcomp_process("serve", "--model", model, "--source",
+                            f"hyperion://127.0.0.1:{sp}?command_port={cp}", "--temperatures",
+                            campaign, "--opcua", "off", "--dashboard", f"127.0.0.1:{dp}")
+    try:
+        wait_port(dp, 40)
+        with sync_api.sync_playwright() as p:
+            browser = _browser(p)
+            try:
+                page = browser.new_page(viewport={"width": 1280, "height": 1000})
+                page.goto(f"http://127.0.0.1:{dp}/")
+                page.wait_for_function("() => window.fbgcomp && fbgcomp.last && "
+                                       "fbgcomp.last.health === 'DEGRADED'", timeout=30000)
+                page.wait_for_timeout(500)   # a few more updates on screen
+                assert page.inner_text("#health").startswith("DEGRADED")
+                assert page.get_attribute("#health", "data-state") == "DEGRADED"
+                assert page.inner_text("#fallback") == "without S3"
+                statuses = page.locator("#sensors tbody td.status").all_inner_texts()
+                assert statuses[2] == "MISSING" and statuses[:2] + statuses[3:] == ["OK"] * 4
+                assert page.inner_text("#sensors tbody tr:nth-child(3) td.wl") == "—"
+                assert page.inner_text("#corr-dx") != "—"     # the fallback still corrects
+                # no dashboard user configured: nothing to log in to, the control stays off
+                assert page.is_hidden("#login-form") and page.is_disabled("#toggle")
+                page.screenshot(path=str(ARTIFACTS / "degraded-fallback.png"), full_page=True)
+            finally:
+                browser.close()
+    finally:
+        for proc in (serve, sim):
+            proc.send_signal(signal.SIGTERM)
+        for proc in (serve, sim):
+            try:
+                proc.communicate(timeout=20)
+            except Exception:
+                proc.kill()

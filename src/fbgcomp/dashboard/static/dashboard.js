@@ -17,6 +17,9 @@ class StripChart {
     this.dirty = true;
   }
   push(t, values) {
+    if (this.t.length && t < this.t[this.t.length - 1]) {   // clock went back (replay restarted)
+      this.t = []; this.y = this.names.map(() => []);
+    }
     this.t.push(t);
     values.forEach((v, i) => this.y[i].push(v === null || v === undefined ? NaN : v));
     const cut = t - WINDOW_S;
@@ -135,7 +138,7 @@ function buildSensorTable(names) {
 
 function showUser(user) {
   state.user = user;
-  $("login-form").hidden = !!user;
+  $("login-form").hidden = !!user || !(state.meta && state.meta.login_possible);
   $("user-line").hidden = !user;
   $("user").textContent = user || "";
   const canControl = !!user && state.meta && state.meta.control_available;
