@@ -243,7 +243,10 @@ class TableTemperatures:
         span = self.time_s[-1] - self.time_s[0]
         if self.loop and span > 0:
             camp_t = self.time_s[0] + np.mod(camp_t - self.time_s[0], span)
-        idx = np.searchsorted(self.time_s, camp_t, side="right") - 1
+        # tolerance of the epoch <-> campaign clock arithmetic (an epoch in float64 is only
+        # good to ~0.2 µs), so the sample stamped exactly t is not missed
+        tol = 8.0 * float(np.spacing(abs(self.origin) + 1.0)) * self.speed + 1e-9
+        idx = np.searchsorted(self.time_s, camp_t + tol, side="right") - 1
         out = self.values[np.clip(idx, 0, None)]
         out[idx < 0] = np.nan
         return out

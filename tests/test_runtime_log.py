@@ -1,0 +1,95 @@
+"""Run log and the runtime commands through the real CLI entry point (replay source)."""
+
+import json
+
+import numpy as np
+import pytest
+
+import fbgcomp_testing
+from fbgcomp.campaign import read_campaign
+from fbgcomp.cli import main
+from test_runtime_support import model_and_campaign
+
+
+@pytest.fixture(scope="module")
+def paths(tmp_path_factory):
+    fbgcomp_testing.require("pyarrow")
+    return model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+
+
+@pytest.fixture(scope="module")
+def replayed(paths, tmp_path_factory):
+    """``fbgcomp serve`` on a campaign replayed at 20x for 3 s, OPC UA off, logged."""
+    model, campaign = paths
+    out = tmp_path_factory.mktemp("replay")
+    code = main(["serve", "--model", str(model), "--source", f"replay://{campaign}?speed=20",
+                 "--opcua", "off", "--log", str(out / "log"), "--duration", "3"])
+    assert code == 0
+    return out / "log", campaign, model
+
+
+def test_replayed_run_is_logged_in_closed_parquet_parts(replayed):
+    import pyarrow.parquet as pq
+    from fbgcomp.runtime.log import read_log
+
+    log_dir, campaign, _ = replayed
+    parts = sorted(log_dir.glob("part-*.parquet"))
+    assert len(parts) >= 4                              # one file per <= 0.5 s
+    assert not list(log_dir.glob(".*.tmp"))             # nothing half-written left
+    meta, df = read_log(log_dir)
+    assert sum(pq.read_table(p).num_rows for p in parts) == len(df)
+    assert json.loads((log_dir / "meta.json").read_text())["sensor_names"] == meta["sensor_names"]
+    # the logged wavelengths and temperatures are the campaign's own samples, in order
+    src = read_campaign(campaign)
+    n = len(df)
+    assert n > 500
+    for s in meta["sensor_names"]:
+        np.testing.assert_array_equal(df[f"{s}_nm"].to_numpy(), src.fbg[f"{s}_nm"].to_numpy()[:n])
+    for p in meta["probe_names"]:
+        np.testing.assert_array_equal(df[f"{p}_C"].to_numpy(),
+                                      src.temperatures[f"{p}_C"].to_numpy()[:n])
+    assert set(df["health"].unique()) == {0, 3}         # zeroing, then OK
+
+
+def test_log_export_round_trips_to_a_campaign(replayed, tmp_path):
+    from fbgcomp.runtime.log import read_log
+
+    log_dir, campaign, model = replayed
+    out = tmp_path / "exported"
+    assert main(["log", "export", str(log_dir), "-o", str(out)]) == 0
+    c = read_campaign(out)
+    meta, df = read_log(log_dir)
+    src = read_campaign(campaign)
+    assert c.meta.sensor_names == meta["sensor_names"]
+    assert [s.lambda0_nm for s in c.meta.sensors] == [s.lambda0_nm for s in src.meta.sensors]
+    n = len(c.fbg)
+    assert n == len(df)
+    np.testing.assert_array_equal(c.fbg["S1_nm"].to_numpy(), src.fbg["S1_nm"].to_numpy()[:n])
+    # replayed at 20x: the campaign clock of the export runs 20x slower than the source's
+    np.testing.assert_allclose(np.diff(c.fbg["time_s"].to_numpy()), 0.1 / 20, atol=1e-6)
+    assert c.meta.reference.instrument.startswith("fbgcomp prediction")
+    # the exported campaign can be fitted again
+    from fbgcomp.models import MRAModel
+    refit = MRAModel(features="eq11", zero_window_s=0.5, fallbacks="none").fit(c)
+    assert refit.sensor_names == c.meta.sensor_names
+
+
+@pytest.mark.parametrize("args, fragment", [
+    (["serve", "--model", "nope.json", "--source", "replay://x", "--opcua", "off"], "nope.json"),
+    (["serve", "--model", "{model}", "--source", "ftp://x", "--opcua", "off"], "--source"),
+    (["serve", "--model", "{model}", "--source", "replay://{campaign}", "--opcua", "off",
+      "--config", "{bad_config}"], "field source.speeed"),
+    (["serve", "--model", "{model}", "--source", "hyperion://127.0.0.1:1", "--opcua", "off"],
+     "--temperatures"),
+    (["sim-interrogator", "{campaign}", "--fault", "melt:S1@2"], "--fault"),
+    (["sim-interrogator", "{campaign}", "--fault", "drop:S9@2"], "S9"),
+    (["log", "export", "{campaign}", "-o", "{tmp}/x"], "meta.json"),
+])
+def test_bad_input_is_one_line_and_exit_2(paths, tmp_path, capsys, args, fragment):
+    model, campaign = paths
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[source]\nspeeed = 3\n")
+    fill = dict(model=model, campaign=campaign, bad_config=bad, tmp=tmp_path)
+    assert main([a.format(**fill) for a in args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error:") and "\n" not in err and fragment in err, err
