@@ -3,9 +3,11 @@ the real HTML file opened in Debian's chromium. Screenshots go to test-artifacts
 
 from __future__ import annotations
 
-import html
 import re
+import subprocess
+import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -73,9 +75,15 @@ def setup(tmp_path_factory):
 
 
 def _cli(*args):
-    """The report command as mounted by fbgcomp.cli (register onto a Typer app)."""
+    """``fbgcomp report ...`` through the console entry point once fbgcomp.cli mounts the
+    command; until then through ``register`` on a Typer app, exactly as fbgcomp.cli will."""
+    from fbgcomp import cli
     from fbgcomp.report import register
 
+    if any(c.name == "report" for c in cli.app.registered_commands):
+        proc = subprocess.run([sys.executable, "-m", "fbgcomp", *map(str, args)],
+                              capture_output=True, text=True, timeout=120)
+        return SimpleNamespace(exit_code=proc.returncode, output=proc.stdout + proc.stderr)
     app = typer.Typer()
     register(app)
 
