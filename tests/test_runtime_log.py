@@ -93,3 +93,70 @@ def test_bad_input_is_one_line_and_exit_2(paths, tmp_path, capsys, args, fragmen
     assert main([a.format(**fill) for a in args]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("error:") and "\n" not in err and fragment in err, err
+
+
+def test_configuration_example_in_the_docs_is_valid():
+    import re
+    from pathlib import Path
+    from fbgcomp.runtime.service import RuntimeConfig
+
+    doc = (Path(__file__).parents[1] / "docs" / "runtime.md").read_text()
+    block = re.search(r"```toml\n(.*?)```", doc, re.S).group(1)
+    import tempfile
+    with tempfile.TemporaryDirectory() as d:
+        f = Path(d) / "serve.toml"
+        f.write_text(block)
+        cfg = RuntimeConfig.from_toml(f)
+    assert cfg.pipeline.health.stuck_s == 2.0 and cfg.opcua.rate_hz == 100.0
+    assert cfg.source.url.startswith("hyperion://") and cfg.log.flush_s == 0.5
+
+
+def test_in_process_simulated_source_keeps_temperatures_on_the_instrument_clock(paths, tmp_path):
+    import asyncio
+    from fbgcomp.runtime.log import read_log
+    from fbgcomp.runtime.service import RuntimeConfig, Service
+
+    model, campaign = paths
+    cfg = RuntimeConfig(model=str(model), opcua_enabled=False)
+    cfg.source.url = f"sim://{campaign}?rate=2000&speed=5"
+    cfg.log.dir = str(tmp_path / "log")
+    svc = Service(cfg)
+    asyncio.run(svc.run(2.0))
+    meta, df = read_log(tmp_path / "log")
+    src = read_campaign(campaign)
+    camp_t = (df["time_s"].to_numpy() - svc.sim._t0) * 5.0     # campaign clock of each frame
+    assert len(df) > 2000 and (df["health"].iloc[-100:] == 0).all()
+    np.testing.assert_allclose(df["S2_nm"], np.interp(camp_t, src.fbg["time_s"], src.fbg["S2_nm"]),
+                               atol=1e-9)
+    idx = np.searchsorted(src.temperatures["time_s"].to_numpy(), camp_t + 1e-6, "right") - 1
+    np.testing.assert_array_equal(df["T_bulk_C"], src.temperatures["T_bulk_C"].to_numpy()[idx])
+
+
+def test_model_reload_keeps_the_zero_state_and_refuses_other_sensors(paths, tmp_path):
+    import asyncio
+    from fbgcomp.errors import InputError
+    from fbgcomp.models import MRAModel
+    from fbgcomp.runtime.service import RuntimeConfig, Service
+
+    model, campaign = paths
+    src = read_campaign(campaign)
+    other = MRAModel(features="eq11", zero_window_s=0.5, fallbacks="none").fit(src).save(
+        tmp_path / "other.json")
+    cfg = RuntimeConfig(model=str(model), opcua_enabled=False)
+    cfg.source.url = f"replay://{campaign}?speed=20"
+    svc = Service(cfg)
+
+    async def main():
+        run = asyncio.create_task(svc.run(1.5))
+        await asyncio.sleep(1.0)
+        zero = svc.pipeline.wavelength_zero_nm.copy()
+        answer = await svc.reload(str(model))
+        assert answer == f"loaded {svc.model_id}"
+        np.testing.assert_array_equal(svc.pipeline.wavelength_zero_nm, zero)
+        with pytest.raises(InputError):
+            await svc.reload(str(other))                # eq11 needs no probes: other inputs
+        await run
+        return svc.last_result
+
+    last = asyncio.run(main())
+    assert last.health[-1] == 0
