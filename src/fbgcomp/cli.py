@@ -58,7 +58,7 @@ def _parse_roles(roles: Optional[str]):
 
 
 @app.command()
-def fit(campaigns: List[Path] = typer.Argument(..., help="Training campaign folders."),
+def fit(campaigns: List[Path] = typer.Argument(..., help="Training campaign folders or Parquet datasets (fbgcomp ingest)."),
         output: Path = typer.Option(..., "-o", "--output", help="Model file to write (JSON)."),
         features: str = typer.Option("eq13", help="Feature set: eq11, eq13 or eq12."),
         stepwise: bool = typer.Option(False, "--stepwise", help="Stepwise selection (F-tests)."),
@@ -68,7 +68,8 @@ def fit(campaigns: List[Path] = typer.Argument(..., help="Training campaign fold
         max_terms: Optional[int] = typer.Option(None, help="Upper bound on selected terms."),
         roles: Optional[str] = typer.Option(None, help="Probe roles, e.g. bulk=T_bulk,surf=T_surf,flange=T_flange."),
         zero_window: float = typer.Option(10.0, "--zero-window", help="Zero state: mean of the first N seconds."),
-        fallbacks: str = typer.Option("loo", help="Fallback models for sensor faults: loo, lto or none.")):
+        fallbacks: str = typer.Option("loo", help="Fallback models for sensor faults: loo, lto or none."),
+        dask: Optional[str] = typer.Option(None, "--dask", help="Reduce on a Dask cluster: tcp://HOST:8786 or local:N (default: in-process).")):
     """Fit the TTP-deviation model and print the coefficient table per axis (paper Table 1)."""
     from .models import MRAModel
 
@@ -79,11 +80,19 @@ def fit(campaigns: List[Path] = typer.Argument(..., help="Training campaign fold
         raise InputError(f"unknown direction {direction!r}", file="<command line>", column="option --direction")
     if fallbacks not in ("loo", "lto", "none"):
         raise InputError(f"unknown fallbacks {fallbacks!r}", file="<command line>", column="option --fallbacks")
-    data = _read_campaigns(campaigns)
+    from .scale_cli import any_dataset
+
+    scaled = dask is not None or any_dataset(campaigns)
+    data = None if scaled else _read_campaigns(campaigns)
     model = MRAModel(features=features, stepwise=stepwise, direction=direction, p_enter=p_enter,
                      p_remove=p_remove, max_terms=max_terms, roles=_parse_roles(roles),
                      zero_window_s=zero_window, fallbacks=fallbacks)
-    model.fit(data)
+    if scaled:
+        from .distributed import fit_paths
+
+        fit_paths(model, campaigns, dask=dask)
+    else:
+        model.fit(data)
     model.save(output)
     typer.echo(model.summary())
     typer.echo(f"\nmodel {model.model_id} written to {output}")
@@ -118,8 +127,67 @@ def validate(model_file: Path = typer.Argument(..., help="Model file (JSON)."),
         typer.echo(f"metrics written to {json_out}")
 
 
+@app.command()
+def simulate(machine: Optional[Path] = typer.Option(None, help="Machine description YAML (default: the built-in ram)."),
+             scenario: str = typer.Option(..., help="Scenario: a built-in name (static-y, static-xyz, "
+                                          "thermal-36h, thermal-36h-b, combined) or a scenario YAML."),
+             seed: int = typer.Option(0, help="Random seed of the measurement noise and random inputs."),
+             output: Path = typer.Option(..., "-o", "--output", help="Campaign folder to write.")):
+    """Run a scenario on the FE twin and write the measured campaign (virtual test bench)."""
+    from .bench import load_scenario, simulate as run
+    from .campaign import write_campaign
+    from .structure import load_machine
+
+    sc = load_scenario(scenario)
+    m = load_machine(machine)
+    campaign, _ = run(m, sc, seed=seed)
+    write_campaign(campaign, output)
+    typer.echo(f"campaign {sc.name} ({sc.duration_s() / 3600:.2f} h) written to {output}")
+
+
+@app.command("fe-calibrate")
+def fe_calibrate_cmd(machine: Optional[Path] = typer.Option(None, help="Machine description YAML (default: the built-in ram)."),
+                     output: Path = typer.Option(..., "-o", "--output", help="Model file to write (JSON)."),
+                     samples: int = typer.Option(2000, help="Random combinations of the FE load cases."),
+                     seed: int = typer.Option(0, help="Random seed.")):
+    """Fit the eq. 11 model on a design of FE load cases (paper sec. 2.3) and write a model file."""
+    from .calibrate import fe_calibrate
+    from .structure import load_machine
+
+    model, _ = fe_calibrate(load_machine(machine), n_samples=samples, seed=seed)
+    model.save(output)
+    typer.echo(model.summary())
+    typer.echo(f"\nmodel {model.model_id} written to {output}")
+
+
+@app.command()
+def resolution(machine: Optional[Path] = typer.Option(None, help="Machine description YAML (default: the built-in ram)."),
+               noise_pm: float = typer.Option(1.0, help="Interrogator wavelength noise, pm."),
+               as_json: bool = typer.Option(False, "--json", help="Print JSON.")):
+    """Smallest TTP deviation the sensor set resolves, and the condition of the sensor-to-TTP map."""
+    from .calibrate import format_resolution, resolution_report
+    from .structure import load_machine
+
+    rep = resolution_report(load_machine(machine), wavelength_noise_nm=noise_pm * 1e-3)
+    typer.echo(json.dumps(rep, indent=1) if as_json else format_resolution(rep))
+
+
+@app.command()
+def demo(output: Path = typer.Option(Path("demo-out"), "-o", "--output", help="Folder for the results."),
+         machine: Optional[Path] = typer.Option(None, help="Machine description YAML (default: the built-in ram)."),
+         seed: int = typer.Option(0, help="Random seed of the simulated campaigns."),
+         quick: bool = typer.Option(False, "--quick", help="6 h thermal campaigns instead of 36 h (for tests).")):
+    """The main job: simulate, FE-calibrate, fit and validate on the built-in default machine."""
+    from .demo import run_demo
+
+    run_demo(output, machine_path=machine, seed=seed, quick=quick)
+
+
 def _mount_optional_commands() -> None:
     """Commands of packages that may be absent in a minimal install (runtime needs asyncua)."""
+    from .report import register as register_report
+
+    register_report(app)
     try:
         from .runtime.cli import register
     except ImportError:
