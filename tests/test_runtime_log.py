@@ -160,3 +160,27 @@ def test_model_reload_keeps_the_zero_state_and_refuses_other_sensors(paths, tmp_
 
     last = asyncio.run(main())
     assert last.health[-1] == 0
+
+
+def test_a_slow_disk_drops_batches_instead_of_blocking(tmp_path):
+    from fbgcomp.runtime.log import RunLog, read_log
+    from fbgcomp.runtime.pipeline import BatchResult
+    from fbgcomp.runtime.sources import SensorBatch
+
+    meta = {"sensor_names": ["S1", "S2"], "probe_names": ["T_bulk"]}
+    log = RunLog(tmp_path / "log", meta, flush_s=0.2, max_queue=2)
+    n, total = 50, 0
+    for k in range(400):                       # far faster than parquet files can be written
+        t = 1.7e9 + k * n * 1e-3 + np.arange(n) * 1e-3
+        b = SensorBatch(t, np.full((n, 2), 1530.0), np.ones((n, 2), np.int8),
+                        np.zeros((n, 2), np.int8), float(t[-1]))
+        nan3 = np.full((n, 3), np.nan)
+        r = BatchResult(t, nan3, nan3, np.zeros((n, 3)), nan3, np.zeros(n, np.uint8),
+                        np.zeros((n, 2), np.uint8), np.zeros(n, np.int16), np.full((n, 1), 20.0))
+        log.submit(b, r, True)
+        total += n
+    log.close()
+    _, df = read_log(tmp_path / "log")
+    assert log.dropped_rows > 0
+    assert len(df) == log.written_rows == total - log.dropped_rows
+    assert (np.diff(df["time_s"].to_numpy()) > 0).all()
