@@ -19,8 +19,12 @@ from fbgcomp.structure.machine import Machine
 _TOL_MM = 1e-6
 
 
-def _segment_lines(breaks_mm, step_mm: float) -> np.ndarray:
-    """Grid lines through all ``breaks_mm`` with spacing at most ``step_mm`` between them."""
+def _segment_lines(breaks_mm, step_mm: float, single_spans_mm=()) -> np.ndarray:
+    """Grid lines through all ``breaks_mm`` with spacing at most ``step_mm`` between them.
+
+    Intervals listed in ``single_spans_mm`` ((lo, hi) pairs between consecutive breaks) stay one
+    element long.
+    """
     b = np.unique(np.round(np.asarray(breaks_mm, dtype=float), 6))
     # Break points closer than 0.5 mm would only make sliver elements: keep the first of them.
     keep = [b[0]]
@@ -30,8 +34,11 @@ def _segment_lines(breaks_mm, step_mm: float) -> np.ndarray:
     keep[-1] = b[-1]
     b = np.asarray(keep)
     lines = [b[:1]]
+    single = [(round(lo, 6), round(hi, 6)) for lo, hi in single_spans_mm]
     for lo, hi in zip(b[:-1], b[1:]):
         n = max(1, int(np.ceil((hi - lo) / step_mm - 1e-9)))
+        if (round(lo, 6), round(hi, 6)) in single:
+            n = 1
         lines.append(np.linspace(lo, hi, n + 1)[1:])
     return np.concatenate(lines)
 
@@ -185,7 +192,7 @@ def build_mesh(*, half_width_mm: float, half_depth_mm: float, wall_mm: float, le
                housing_half_width_mm: float | None = None,
                housing_half_depth_mm: float | None = None, housing_height_mm: float = 0.0,
                n_wall: int = 3, n_span: int = 12, dz_mm: float = 17.0,
-               z_breaks_mm=(), xy_breaks_mm=()) -> RamMesh:
+               z_breaks_mm=(), xy_breaks_mm=(), single_spans_mm=()) -> RamMesh:
     """Mesh a hollow box (z = 0..length) and optionally a solid block below it (z < 0).
 
     ``n_wall`` elements through the wall, ``n_span`` (even, so the face centre is a grid line)
@@ -202,7 +209,7 @@ def build_mesh(*, half_width_mm: float, half_depth_mm: float, wall_mm: float, le
     ys = _cross_lines(half_depth_mm, wall_mm, n_wall, n_span, extra_y)
     z0 = -housing_height_mm if has_housing else 0.0
     breaks = [z0, 0.0, length_mm] + [z for z in z_breaks_mm if z0 <= z <= length_mm]
-    zs = _segment_lines(breaks, dz_mm)
+    zs = _segment_lines(breaks, dz_mm, single_spans_mm)
 
     full = MeshHex.init_tensor(xs, ys, zs)
     # Cell (iy, ix, iz) of the tensor grid; keep the wall ring above z = 0 and the housing below.
@@ -259,8 +266,12 @@ def machine_mesh(machine: Machine, resolution: float | None = None,
     r = m.resolution if resolution is None else float(resolution)
     s = machine.supports
     breaks = [machine.supports.nut.z_mm]
-    for z in carriage_z_mm(machine, z_axis_mm):
-        breaks += [z - s.shoe_length_mm / 2, z, z + s.shoe_length_mm / 2]
+    # Each shoe patch is one element long: its mean-displacement constraint then couples only two
+    # node layers and leaves the band of the layer-ordered stiffness matrix at one cross-section.
+    shoes = [(z - s.shoe_length_mm / 2, z + s.shoe_length_mm / 2)
+             for z in carriage_z_mm(machine, z_axis_mm)]
+    for lo, hi in shoes:
+        breaks += [lo, hi]
     for sensor in machine.sensors + machine.candidate_sensors:
         breaks += [sensor.z_start_mm, sensor.z_end_mm]
     breaks += [p.z_mm for p in machine.probes if p.kind == "point"]
@@ -274,4 +285,5 @@ def machine_mesh(machine: Machine, resolution: float | None = None,
         n_span=max(2, int(round(m.span_elements * r))),
         dz_mm=m.dz_mm / r, z_breaks_mm=breaks,
         # Off-centre sensor paths get their own grid line; support patches snap to the grid.
-        xy_breaks_mm=[s_.offset_mm for s_ in machine.sensors + machine.candidate_sensors])
+        xy_breaks_mm=[s_.offset_mm for s_ in machine.sensors + machine.candidate_sensors],
+        single_spans_mm=shoes)
