@@ -148,3 +148,40 @@ def test_sensors_with_a_channel_only_see_their_fibre():
     np.testing.assert_array_equal(b.peak_count, [[1, 1, 1, 0], [1, 1, 1, 0]])
     np.testing.assert_allclose(b.wavelength_nm[:, 2], [1530.3, 1530.4])
     np.testing.assert_allclose(b.wavelength_nm[:, 0], [1530.1, 1530.2])
+
+
+def test_injected_faults_reach_the_sensor_checks():
+    from fbgcomp.runtime import health as H
+
+    async def main():
+        cfg = SimConfig(rate_hz=2000, channels=2, peaks_per_channel=6, noise_pm=0.2,
+                        faults=[parse_fault("double:S2@0.2"), parse_fault("shift:S4@0.3:+3.5"),
+                                parse_fault("stuck:S1@0.1")])
+        sim = SimulatedHyperion(_table(), cfg)
+        await sim.start()
+        client = hyperion.HyperionClient("127.0.0.1", sim.command_port, sim.stream_port)
+        try:
+            await client.open_stream()
+            mapper = PeakMapper(_table().wavelengths_nm[0], 2.5)
+            checks = H.SensorChecks(4, H.HealthConfig(stuck_s=0.1))
+            out, layouts = [], set()
+            loop = asyncio.get_running_loop()
+            end = loop.time() + 0.6
+            while loop.time() < end:
+                blocks = await client.read_blocks(1.0)
+                layouts |= {tuple(b.peak_counts) for b in blocks}
+                b = mapper.map_blocks(blocks, 0.0)
+                status, _ = checks.check(b.time_s, b.wavelength_nm, b.peak_count, b.near_count)
+                out.append((b.time_s - sim._t0, status))
+            return np.concatenate([t for t, _ in out]), np.vstack([s for _, s in out]), layouts
+        finally:
+            await client.close()
+            await sim.stop()
+
+    t, status, layouts = asyncio.run(main())
+    assert layouts == {(6, 6)}                           # padded to 6 peaks per channel
+    late = t > 0.35
+    assert (status[late, 1] == H.DOUBLED).all() and (status[t < 0.19, 1] == H.OK).all()
+    assert (status[late, 3] == H.OUT_OF_WINDOW).all() and (status[t < 0.29, 3] == H.OK).all()
+    assert (status[t > 0.25, 0] == H.STUCK).all() and (status[t < 0.09, 0] == H.OK).all()
+    assert (status[:, 2] == H.OK).all()

@@ -86,6 +86,7 @@ def register(app: typer.Typer) -> None:
         rate: float = typer.Option(1000.0, "--rate", help="Frames per second (up to 5000 and more)."),
         channels: int = typer.Option(1, "--channels", help="Instrument channels the sensors are spread over."),
         extra_peaks: int = typer.Option(0, "--extra-peaks", help="Additional non-sensor peaks per channel."),
+        peaks_per_channel: Optional[int] = typer.Option(None, "--peaks-per-channel", help="Pad every channel with non-sensor peaks up to this many peaks."),
         speed: float = typer.Option(1.0, "--speed", help="Campaign seconds per real second."),
         loop: bool = typer.Option(False, "--loop", help="Restart the campaign at its end."),
         noise_pm: float = typer.Option(0.0, "--noise-pm", help="Gaussian wavelength noise, pm."),
@@ -103,6 +104,7 @@ def register(app: typer.Typer) -> None:
             raise InputError("campaign folder not found", file=campaign)
         table = SignalTable.from_campaign(campaign)
         cfg = SimConfig(rate_hz=rate, channels=channels, extra_peaks_per_channel=extra_peaks,
+                        peaks_per_channel=peaks_per_channel,
                         speed=speed, loop=loop, noise_pm=noise_pm,
                         faults=[parse_fault(f) for f in fault])
 

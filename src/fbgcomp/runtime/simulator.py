@@ -90,6 +90,7 @@ class SimConfig:
     rate_hz: float = 1000.0
     channels: int = 1
     extra_peaks_per_channel: int = 0
+    peaks_per_channel: int | None = None   # pad every channel with far peaks up to this count
     speed: float = 1.0
     loop: bool = False
     noise_pm: float = 0.0
@@ -316,7 +317,9 @@ class SimulatedHyperion:
                 ch_cols.append(wl[:, j])
                 if j in doubled:
                     ch_cols.append(wl[:, j] + 0.3)
-            for e in range(cfg.extra_peaks_per_channel):
+            n_extra = cfg.extra_peaks_per_channel if cfg.peaks_per_channel is None else \
+                max(0, cfg.peaks_per_channel - len(ch_cols))
+            for e in range(n_extra):
                 # Other gratings on the fibre, far from every sensor window.
                 ch_cols.append(np.full(wl.shape[0], 1600.0 + 2.0 * e + 0.1 * ch))
             if ch_cols:
