@@ -69,9 +69,23 @@ def fit(campaigns: List[Path] = typer.Argument(..., help="Training campaign fold
         roles: Optional[str] = typer.Option(None, help="Probe roles, e.g. bulk=T_bulk,surf=T_surf,flange=T_flange."),
         zero_window: float = typer.Option(10.0, "--zero-window", help="Zero state: mean of the first N seconds."),
         fallbacks: str = typer.Option("loo", help="Fallback models for sensor faults: loo, lto or none."),
-        dask: Optional[str] = typer.Option(None, "--dask", help="Reduce on a Dask cluster: tcp://HOST:8786 or local:N (default: in-process).")):
+        dask: Optional[str] = typer.Option(None, "--dask", help="Reduce on a Dask cluster: tcp://HOST:8786 or local:N (default: in-process)."),
+        model_type: str = typer.Option("mra", "--model", help="Model type: mra, kinematic, hybrid or dynamic (docs/models.md)."),
+        machine: Optional[Path] = typer.Option(None, "--machine", help="Machine description YAML for kinematic/hybrid (default: the built-in ram).")):
     """Fit the TTP-deviation model and print the coefficient table per axis (paper Table 1)."""
     from .models import MRAModel
+
+    if model_type != "mra":
+        from .model_types import fit_from_cli
+
+        model = fit_from_cli(model_type, _read_campaigns(campaigns), machine=machine, features=features,
+                             stepwise=stepwise, direction=direction, p_enter=p_enter, p_remove=p_remove,
+                             max_terms=max_terms, roles=_parse_roles(roles), zero_window_s=zero_window,
+                             fallbacks=fallbacks)
+        model.save(output)
+        typer.echo(model.summary())
+        typer.echo(f"\nmodel {model.model_id} ({model_type}) written to {output}")
+        return
 
     if features not in ("eq11", "eq12", "eq13"):
         raise InputError(f"unknown feature set {features!r}; expected eq11, eq12 or eq13",
@@ -148,13 +162,16 @@ def simulate(machine: Optional[Path] = typer.Option(None, help="Machine descript
 @app.command("fe-calibrate")
 def fe_calibrate_cmd(machine: Optional[Path] = typer.Option(None, help="Machine description YAML (default: the built-in ram)."),
                      output: Path = typer.Option(..., "-o", "--output", help="Model file to write (JSON)."),
+                     features: str = typer.Option("eq11", help="eq11 (elongations only, as the paper) or eq13/eq12 (with probe temperatures)."),
                      samples: int = typer.Option(2000, help="Random combinations of the FE load cases."),
                      seed: int = typer.Option(0, help="Random seed.")):
     """Fit the eq. 11 model on a design of FE load cases (paper sec. 2.3) and write a model file."""
     from .calibrate import fe_calibrate
     from .structure import load_machine
 
-    model, _ = fe_calibrate(load_machine(machine), n_samples=samples, seed=seed)
+    if features not in ("eq11", "eq12", "eq13"):
+        raise InputError(f"unknown feature set {features!r}", file="<command line>", column="option --features")
+    model, _ = fe_calibrate(load_machine(machine), features=features, n_samples=samples, seed=seed)
     model.save(output)
     typer.echo(model.summary())
     typer.echo(f"\nmodel {model.model_id} written to {output}")
@@ -176,11 +193,55 @@ def resolution(machine: Optional[Path] = typer.Option(None, help="Machine descri
 def demo(output: Path = typer.Option(Path("demo-out"), "-o", "--output", help="Folder for the results."),
          machine: Optional[Path] = typer.Option(None, help="Machine description YAML (default: the built-in ram)."),
          seed: int = typer.Option(0, help="Random seed of the simulated campaigns."),
-         quick: bool = typer.Option(False, "--quick", help="6 h thermal campaigns instead of 36 h (for tests).")):
+         quick: bool = typer.Option(False, "--quick", help="6 h thermal campaigns instead of 36 h (for tests)."),
+         mesh_resolution: Optional[float] = typer.Option(None, "--mesh-resolution",
+                                                         help="FE mesh refinement (default: the machine's).")):
     """The main job: simulate, FE-calibrate, fit and validate on the built-in default machine."""
     from .demo import run_demo
 
-    run_demo(output, machine_path=machine, seed=seed, quick=quick)
+    run_demo(output, machine_path=machine, seed=seed, quick=quick, resolution=mesh_resolution)
+
+
+@app.command()
+def compare(train: List[Path] = typer.Option(..., "--train", help="Training campaign folder (repeat the option)."),
+            test: List[Path] = typer.Option(..., "--test", help="Held-out campaign folder (repeat the option)."),
+            machine: Optional[Path] = typer.Option(None, "--machine", help="Machine description YAML (default: the built-in ram)."),
+            csv_out: Path = typer.Option(Path("comparison.csv"), "--csv", help="Ranked table (CSV)."),
+            json_out: Path = typer.Option(Path("comparison.json"), "--json", help="Everything (JSON).")):
+    """Cross-campaign validation of every model type and feature set, ranked per axis."""
+    from .compare import compare as run, format_comparison, write_comparison
+    from .model_types import _machine
+
+    result = run(_read_campaigns(train), _read_campaigns(test), machine=_machine(machine))
+    typer.echo(format_comparison(result))
+    write_comparison(result, csv_out, json_out)
+    typer.echo(f"\ntable written to {csv_out} and {json_out}")
+
+
+@app.command()
+def place(k: int = typer.Option(..., "--k", help="Number of sensor paths to choose."),
+          machine: Optional[Path] = typer.Option(None, "--machine", help="Machine description YAML (default: the built-in ram)."),
+          grid: Optional[str] = typer.Option(None, "--grid", help="Candidate grid on the faces, e.g. "
+                                             "'faces=+X,-X,+Y,-Y;offsets=-80,0,80;length=400;step=200'."),
+          resolution: Optional[float] = typer.Option(None, "--resolution", help="FE mesh resolution (default: the machine's)."),
+          z_axis: Optional[float] = typer.Option(None, "--z-axis", help="Z-axis position, mm."),
+          noise_pm: float = typer.Option(1.0, "--noise-pm", help="Interrogator wavelength noise, pm."),
+          dask: Optional[str] = typer.Option(None, "--dask", help="Evaluate candidates on a Dask cluster: tcp://HOST:8786 or local:N."),
+          json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON.")):
+    """Choose K sensor paths minimising the predicted worst-case TTP error (FE load design + noise)."""
+    from .models import write_json_atomic
+    from .placement import parse_grid, place as run
+    from .structure import load_machine
+
+    m = load_machine(machine)
+    if k < 1:
+        raise InputError("--k must be at least 1", file="<command line>", column="option --k")
+    result = run(m, k, grid=parse_grid(grid) if grid else None, resolution=resolution,
+                 z_axis_mm=z_axis, dask=dask, wavelength_noise_nm=noise_pm * 1e-3)
+    typer.echo(result.format())
+    if json_out is not None:
+        write_json_atomic(json_out, result.to_dict())
+        typer.echo(f"result written to {json_out}")
 
 
 def _mount_optional_commands() -> None:

@@ -35,9 +35,24 @@ from .features import (CONSTANT, FEATURE_SETS, FeatureMap, TemperatureRoles, can
 AXES = ("dx", "dy", "dz")
 REFERENCE_COLUMNS = ("dx_um", "dy_um", "dz_um")
 MODEL_FORMAT = "fbgcomp-model"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 #: Upgrades of older model files, ``{from_version: function(dict) -> dict of from_version + 1}``.
 MIGRATIONS: dict = {}
+
+
+def _migrate_v1_to_v2(d: dict) -> dict:
+    """v2 (model types kinematic, hybrid, dynamic) adds to every file the prediction-interval
+    description ``uncertainty`` and the Z-axis position ``z_axis_mm`` the model assumes when the
+    caller gives none (v1 files are regressions: their interval is the regression's, no Z)."""
+    d = dict(d)
+    d.setdefault("model_type", "mra")
+    d.setdefault("uncertainty", {"level": 0.95, "method": "regression: covariance + residual variance"})
+    d.setdefault("z_axis_mm", None)
+    d["schema_version"] = 2
+    return d
+
+
+MIGRATIONS[1] = _migrate_v1_to_v2
 _CHUNK_ROWS = 100_000
 
 
@@ -87,8 +102,8 @@ class AxisFit:
                    cov=np.asarray(d["cov_params"], dtype=float).reshape(len(d["terms"]), -1),
                    resid_sd=float(d["resid_sd_um"]), df_resid=float(d["df_resid"]),
                    nobs=int(d["nobs"]), rsquared=float(d["rsquared"]),
-                   rsquared_adj=float(d["rsquared_adj"]), fvalue=float(d["fvalue"]),
-                   f_pvalue=float(d["f_pvalue"]), history=list(d.get("stepwise_history", [])))
+                   rsquared_adj=float(d["rsquared_adj"]), fvalue=_float_or_nan(d["fvalue"]),
+                   f_pvalue=_float_or_nan(d["f_pvalue"]), history=list(d.get("stepwise_history", [])))
 
     def table(self) -> str:
         """Paper Table 1 style coefficient table."""
@@ -98,6 +113,11 @@ class AxisFit:
         lines.append(f"n = {self.nobs}, R² = {self.rsquared:.5f}, adj. R² = {self.rsquared_adj:.5f}, "
                      f"residual SD = {self.resid_sd:.4g} µm, F = {self.fvalue:.4g} (p = {self.f_pvalue:.3g})")
         return "\n".join(lines)
+
+
+def _float_or_nan(value) -> float:
+    """JSON has no NaN: an undefined statistic (F of a constant-only model) is stored as null."""
+    return float("nan") if value is None else float(value)
 
 
 def _plain(obj):
@@ -462,6 +482,8 @@ class MRAModel:
                           for k, v in self.fallbacks_.items()],
             "fallback_policy": self.fallbacks,
             "training": self.training_,
+            "uncertainty": {"level": 0.95, "method": "regression: covariance + residual variance"},
+            "z_axis_mm": None,
         }
         return d
 
@@ -543,7 +565,22 @@ def model_id(d: dict) -> str:
     return hashlib.sha256(blob).hexdigest()[:12]
 
 
+def _json_safe(obj):
+    """Undefined numbers (NaN, ±inf: e.g. "% of peak" of an axis that never moved) become null."""
+    if isinstance(obj, float):
+        return obj if np.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return _json_safe(obj.item())
+    return obj
+
+
 def write_json_atomic(path, data) -> Path:
+    """Write JSON atomically (temporary file + rename); non-finite numbers are written as null."""
+    data = _json_safe(data)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -595,6 +632,8 @@ def load_model(path):
         d = MIGRATIONS[version](d)
         version = d["schema_version"]
     kind = d.get("model_type")
+    if kind not in _MODEL_TYPES:
+        from . import model_types  # noqa: F401  (registers kinematic, hybrid, dynamic)
     if kind not in _MODEL_TYPES:
         raise InputError(f"unknown model_type {kind!r}; known: {', '.join(_MODEL_TYPES)}",
                          file=path, column="field model_type")

@@ -1,0 +1,148 @@
+"""Virtual test bench, FE calibration, resolution check and the demo, on a coarse twin."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from fbgcomp import optics
+from fbgcomp.bench import load_scenario, simulate, true_response
+from fbgcomp.calibrate import fe_calibrate, resolution_report
+from fbgcomp.campaign import read_campaign, write_campaign
+from fbgcomp.errors import InputError
+from fbgcomp.metrics import validation_metrics
+from fbgcomp.structure import Twin, load_machine
+
+COARSE = 0.4
+
+
+@pytest.fixture(scope="module")
+def machine():
+    return load_machine(None)
+
+
+@pytest.fixture(scope="module")
+def twin(machine):
+    return Twin(machine, resolution=COARSE)
+
+
+@pytest.fixture(scope="module")
+def static_y(machine, twin, tmp_path_factory):
+    campaign, truth = simulate(machine, load_scenario("static-y"), seed=3, twin=twin)
+    path = write_campaign(campaign, tmp_path_factory.mktemp("bench") / "static-y")
+    return read_campaign(path), truth
+
+
+def _rate(frame):
+    return float(np.median(np.diff(frame["time_s"])))
+
+
+def test_static_campaign_is_valid_with_independent_clocks(static_y):
+    c, truth = static_y
+    assert c.meta.kind == "static" and c.meta.name == "static-y"
+    assert c.meta.sensor_names == ["S1", "S2", "S3", "S4", "S5"]
+    assert _rate(c.fbg) == pytest.approx(0.1) and _rate(c.reference) == pytest.approx(1.0)
+    assert _rate(c.temperatures) == pytest.approx(10.0) and _rate(c.loads) == pytest.approx(0.5)
+    assert c.reference["time_s"].iloc[0] == pytest.approx(0.35)      # its own clock offset
+    # Load steps 0, 1000 ... 4000 N along Y and back, held 60 s each (load-cell noise 1 N).
+    fy = c.loads["fy_N"].to_numpy()
+    levels = np.unique(np.round(fy / 1000.0))
+    assert set(levels) == {0.0, 1.0, 2.0, 3.0, 4.0}
+    assert np.abs(c.loads["fx_N"]).max() < 6 and np.abs(c.loads["fz_N"]).max() < 6
+    # Deflection in Y only, growing with the load.
+    assert np.abs(truth["ttp_um"][:, 1]).max() > 100 * np.abs(truth["ttp_um"][:, [0, 2]]).max()
+
+
+def test_wavelengths_follow_the_bonded_fbg_formula_with_1pm_noise(machine, twin):
+    sc = load_scenario("static-y")
+    truth = true_response(twin, sc, seed=1)
+    c, _ = simulate(machine, sc, seed=1, twin=twin)
+    t = c.fbg["time_s"].to_numpy()
+    lam = c.fbg[[f"{s}_nm" for s in c.meta.sensor_names]].to_numpy()
+    lam_init = lam[:100].mean(axis=0)          # at rest: the installed wavelength + noise
+    gauge = np.array([s.gauge_length for s in machine.sensors])
+    elong = optics.elongation_um(lam, lam_init, gauge)   # isothermal: no compensation needed
+    true = np.column_stack([np.interp(t, truth["time_s"], truth["sensor_elongation_um"][:, j])
+                            for j in range(5)])
+    resid_nm = (elong - true) / (gauge * 1e3) * optics.strain_sensitivity_nm(lam_init)
+    assert 0.7e-3 < np.std(resid_nm) < 1.3e-3                 # ~1 pm white noise
+    # installation offsets: within ±0.3 nm of lambda0, not equal to it
+    lam0 = np.array([s.lambda0_nm for s in machine.sensors])
+    assert np.all(np.abs(lam_init - lam0) < 0.31) and np.all(np.abs(lam_init - lam0) > 1e-4)
+
+
+def test_thermal_bench_is_honest(machine, twin):
+    """Sensor temperature comes from the FE field, probes have offsets and are quantised."""
+    sc = load_scenario("thermal-36h")
+    truth = true_response(twin, sc, seed=0)
+    probes = [p.name for p in machine.probes]
+    surf = truth["probe_C"][:, probes.index("T_surf")]
+    # S1 uses the T_surf probe for compensation, but its grating sees its own path's temperature.
+    assert np.max(np.abs(truth["sensor_temperature_C"][:, 0] - surf)) > 0.1
+    c, _ = simulate(machine, sc, seed=0, twin=twin)
+    read = c.temperatures["T_bulk_C"].to_numpy()
+    np.testing.assert_allclose(read * 10, np.round(read * 10), atol=1e-6)      # 0.1 °C quantum
+    peak = np.abs(truth["ttp_um"]).max(axis=0)
+    assert 5 < peak[2] < 100          # thermal drift of the paper's order (51 µm), mostly along Z
+    assert c.aligned().reference_um.shape[1] == 3
+
+
+def test_same_seed_same_campaign_other_seed_other_noise(machine, twin):
+    sc = load_scenario("static-y")
+    a, _ = simulate(machine, sc, seed=5, twin=twin)
+    b, _ = simulate(machine, sc, seed=5, twin=twin)
+    d, _ = simulate(machine, sc, seed=6, twin=twin)
+    assert a.fbg.equals(b.fbg) and a.reference.equals(b.reference)
+    assert not a.fbg.equals(d.fbg)
+
+
+def test_scenario_errors_name_the_field(tmp_path):
+    bad = tmp_path / "s.yaml"
+    bad.write_text("name: x\nkind: thermal\nduration_h: -1\n")
+    with pytest.raises(InputError, match="duration_h") as e:
+        load_scenario(bad)
+    assert str(bad) in e.value.one_line()
+    bad.write_text("name: x\nkind: nonsense\n")
+    with pytest.raises(InputError, match="field kind"):
+        load_scenario(bad)
+    with pytest.raises(InputError, match="built-in scenarios"):
+        load_scenario(tmp_path / "missing.yaml")
+
+
+def test_fe_calibrated_model_and_resolution(machine, twin, static_y, tmp_path):
+    model, cases = fe_calibrate(machine, twin, features="eq13")
+    path = model.save(tmp_path / "fe.json")
+    assert json.loads(path.read_text())["training"]["fe_design"]["n_samples"] == 2000
+    c, truth = static_y
+    pred = model.predict(c)
+    ref = c.aligned().reference_um
+    # The FE-calibrated model knows the force path: dy tracks the deflection (per-sample error is
+    # dominated by the 1 pm interrogator noise, amplified by the ram's lever arm).
+    assert np.corrcoef(pred[:, 1], ref[:, 1])[0, 1] > 0.97
+    rep = resolution_report(machine, twin)
+    assert rep["rank"] == 3 and len(rep["unobservable_combinations"]) == 2
+    # The squaring mode of the box (S1 + S2 - S3 - S4) is excited by no load case.
+    square = rep["unobservable_combinations"]
+    assert any(abs(abs(v["S1"]) - 0.5) < 0.05 and abs(v["S1"] - v["S2"]) < 0.05
+               and abs(v["S1"] + v["S3"]) < 0.05 for v in square)
+    for a in ("dx", "dy", "dz"):
+        assert np.isfinite(rep["axes"][a]["resolution_um"])
+    assert rep["axes"]["dz"]["resolution_um"] < rep["axes"]["dy"]["resolution_um"]
+
+
+def test_demo_runs_end_to_end(tmp_path):
+    out = tmp_path / "demo"
+    r = subprocess.run([sys.executable, "-m", "fbgcomp", "demo", "--quick", "--mesh-resolution",
+                        str(COARSE), "-o", str(out)], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    m = json.loads((out / "metrics.json").read_text())
+    assert set(m["validation"]) == {"thermal-36h-b", "static-xyz"}
+    thermal = m["validation"]["thermal-36h-b"]["axes"]
+    assert thermal["dz"]["compensation_ratio"] > 0.8          # the drift is mostly compensated
+    for f in ("model.json", "fe_model.json", "coefficients.txt", "resolution.txt", "report/report.html"):
+        assert (out / f).exists(), f
+    assert "held-out thermal-36h-b" in r.stdout
+    for name in ("thermal-36h", "static-y", "thermal-36h-b", "static-xyz"):
+        read_campaign(out / "campaigns" / name)
