@@ -146,7 +146,9 @@ async def _latency(url, state: Path, seconds: float, warmup_s: float):
     client.set_password("bench-password")
     async with client:
         sub = await client.create_subscription(0, Handler())
-        await sub.subscribe_data_change([client.get_node(ua.NodeId("FbgComp.SampleTime", 2))])
+        # Heartbeat keeps the subscription alive before data flows (publishing interval 0)
+        await sub.subscribe_data_change([client.get_node(ua.NodeId("FbgComp.SampleTime", 2)),
+                                         client.get_node(ua.NodeId("FbgComp.Heartbeat", 2))])
         await asyncio.sleep(seconds + warmup_s)
     return np.array(seen).reshape(-1, 2)
 

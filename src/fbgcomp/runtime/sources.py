@@ -109,10 +109,15 @@ class PeakMapper:
         most one window: a binary search over the sorted window edges finds it.
         """
         S = self.lambda0_nm.size
-        order = sens[np.argsort(self.lambda0_nm[sens])]
-        lo, hi, lam = self.lo[order], self.hi[order], self.lambda0_nm[order]
+        key = sens.tobytes()
+        cache = self.__dict__.setdefault("_groups", {})
+        if key not in cache:
+            order = sens[np.argsort(self.lambda0_nm[sens])]
+            lo, hi = self.lo[order], self.hi[order]
+            cache[key] = (order, lo, hi, self.lambda0_nm[order], bool(np.any(lo[1:] < hi[:-1])))
+        order, lo, hi, lam, overlapping = cache[key]
         n = peaks.shape[0]
-        if np.any(lo[1:] < hi[:-1]):
+        if overlapping:
             self._map_group_overlapping(peaks, sens, count, value, near)
             return
         row = np.broadcast_to(np.arange(n)[:, None] * S, peaks.shape)
@@ -122,16 +127,20 @@ class PeakMapper:
         jc = np.clip(j, 0, order.size - 1)
         inside = finite & (j >= 0) & (p <= hi[jc])
         flat = row[inside] + order[jc[inside]]
-        np.add.at(count, flat, 1)
-        np.add.at(value, flat, p[inside])
+        size = count.size
+        count += np.bincount(flat, minlength=size)
+        value += np.bincount(flat, weights=p[inside], minlength=size)
         # peaks owned by no window but within the guard band of one: that grating moved
         stray = finite & ~inside
+        if not stray.any():
+            return
         for cand in (j, j + 1):                  # the windows just below and just above
             valid = (cand >= 0) & (cand < order.size)
             k = np.clip(cand, 0, order.size - 1)
             d = np.abs(p - lam[k])
             hit = stray & valid & (d > self.window_nm) & (d <= self.window_nm + self.guard_nm)
-            np.add.at(near, row[hit] + order[k[hit]], 1)
+            if hit.any():
+                near += np.bincount(row[hit] + order[k[hit]], minlength=size)
 
     def _map_group_overlapping(self, peaks, sens, count, value, near) -> None:
         """Overlapping windows: a peak may count for two sensors (both then see a fault)."""
