@@ -198,6 +198,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer frames, shorter e2e run")
     ap.add_argument("--e2e-seconds", type=float, default=10.0)
+    ap.add_argument("--skip-core", action="store_true", help="only the end-to-end latency")
     args = ap.parse_args(argv)
     from fbgcomp.runtime.simulator import SignalTable
 
@@ -210,7 +211,7 @@ def main(argv=None):
         tables = {5: SignalTable.from_campaign(c5),
                   64: SignalTable(t64, wl64, names64, ch64)}
         print("core pipeline throughput (decode -> windows -> checks -> model -> correction)")
-        for n_sensors, model_path in ((5, m5), (64, m64)):
+        for n_sensors, model_path in (() if args.skip_core else ((5, m5), (64, m64))):
             for batch in (1, 10, 100, 1000):
                 frames = min(n_frames, 5_000 * batch) if batch < 100 else n_frames
                 fps = core_throughput(model_path, tables[n_sensors], frames, batch)
@@ -232,7 +233,7 @@ def main(argv=None):
             e2e = {"samples": 0}
         summary["e2e"] = e2e
         print("  " + ", ".join(f"{k} {v}" for k, v in e2e.items()))
-    target_core = summary["core_frames_per_s"]["5_sensors_batch_100"] >= 50_000
+    target_core = summary["core_frames_per_s"].get("5_sensors_batch_100", 0) >= 50_000
     target_e2e = e2e.get("p99_ms", float("inf")) <= 5.0
     summary["targets_met"] = {"core_5_sensors_ge_50k_fps_batch_100": target_core,
                               "e2e_p99_le_5ms": target_e2e}

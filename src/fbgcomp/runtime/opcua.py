@@ -416,8 +416,12 @@ class OpcUaServer:
             ua.DataValue(ua.Variant(self._beats, ua.VariantType.UInt32)))
 
     async def _read_enabled(self) -> None:
-        value = await self._nodes["Enabled"].read_value()
-        self.enabled = bool(value)
+        from asyncua import ua
+        # straight from the address space: no request round trip on every update
+        dv = self._server.iserver.aspace.read_attribute_value(self._nodes["Enabled"].nodeid,
+                                                              ua.AttributeIds.Value)
+        if dv.Value is not None:
+            self.enabled = bool(dv.Value.Value)
 
     async def _write(self, s: Snapshot) -> None:
         from asyncua import ua
