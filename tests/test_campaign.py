@@ -818,3 +818,25 @@ def test_sensor_spec_defaults():
     s = SensorSpec(name="S9", lambda0_nm=1560.0, gauge_length_mm=300)
     assert (s.photoelastic, s.thermo_optic_per_K, s.fibre_cte_per_K) == (0.22, 6.67e-6, 0.55e-6)
     assert s.column == "S9_nm" and s.temperature_probe is None
+
+
+def test_fast_instrument_is_averaged_onto_the_reference_clock_exactly_for_linear_signals():
+    from fbgcomp.synthetic import linear_truth_campaign
+
+    # 10 Hz interrogator, 1 Hz interferometer: linear-in-time wavelengths come through exactly,
+    # white noise drops by ~sqrt(10) compared with point interpolation.
+    c, _ = linear_truth_campaign("avg", seed=4, duration_s=600, fbg_dt_s=0.1, reference_dt_s=1.0,
+                                 reference_offset_s=0.37, settle_s=0.0)
+    t = c.fbg["time_s"].to_numpy()
+    ramp = 1530.0 + 1e-4 * t
+    rng = np.random.default_rng(0)
+    noisy = c.fbg.copy()
+    noisy["S1_nm"] = ramp + 1e-3 * rng.standard_normal(t.size)
+    noisy["S2_nm"] = ramp[:, ] + 5.0  # S2 lambda0 is 1535
+    c2 = type(c).from_arrays(c.meta, fbg=noisy, temperatures=c.temperatures, reference=c.reference)
+    a = c2.aligned()
+    exact = 1530.0 + 1e-4 * a.time_s
+    np.testing.assert_allclose(a.wavelength_nm[:, 1], exact + 5.0, atol=1e-9)
+    averaged = np.std(a.wavelength_nm[:, 0] - exact)
+    pointwise = np.std(c2.aligned(average=False).wavelength_nm[:, 0] - exact)
+    assert 2.3 < pointwise / averaged < 4.5

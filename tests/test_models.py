@@ -9,7 +9,7 @@ from fbgcomp.campaign import read_campaign, write_campaign
 from fbgcomp.errors import InputError
 from fbgcomp.features import candidate_terms
 from fbgcomp.metrics import validation_metrics
-from fbgcomp.models import AXES, MRAModel, load_model
+from fbgcomp.models import AXES, SCHEMA_VERSION, MRAModel, load_model
 from fbgcomp.synthetic import linear_truth_campaign
 
 
@@ -85,7 +85,7 @@ def test_model_file_round_trip(truth_campaign, tmp_path):
     model = MRAModel(features="eq12", stepwise=True, fallbacks="lto").fit(campaign)
     path = model.save(tmp_path / "model.json")
     d = json.loads(path.read_text())
-    assert d["schema_version"] == 1 and d["model_type"] == "mra" and d["model_id"] == model.model_id
+    assert d["schema_version"] == SCHEMA_VERSION and d["model_type"] == "mra" and d["model_id"] == model.model_id
     assert d["zero_state"] == {"method": "mean_of_first_window", "window_s": 10.0}
     assert [s["name"] for s in d["sensors"]] == ["S1", "S2", "S3", "S4", "S5"]
     assert d["training"]["campaigns"][0]["name"] == "truth"
@@ -154,7 +154,8 @@ def test_model_with_sensors_the_campaign_lacks_is_a_clear_error(truth_campaign, 
     ("{not json", "not a JSON model file"),
     ('{"format": "other"}', "not an fbgcomp model file"),
     ('{"format": "fbgcomp-model", "schema_version": 99}', "newer than this fbgcomp"),
-    ('{"format": "fbgcomp-model", "schema_version": 1, "model_type": "mra"}', "missing field"),
+    ('{"format": "fbgcomp-model", "schema_version": %d, "model_type": "mra"}' % SCHEMA_VERSION,
+     "missing field"),
 ])
 def test_bad_model_files(tmp_path, content, match):
     p = tmp_path / "m.json"

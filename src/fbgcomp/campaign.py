@@ -631,6 +631,54 @@ def _interp_columns(time_s: np.ndarray, source_time_s: np.ndarray, values: np.nd
     return out
 
 
+#: An instrument with at least this many samples per reference interval is averaged onto the
+#: reference clock instead of being interpolated.
+AVERAGE_MIN_SAMPLES = 3
+
+
+def _local_linear_columns(time_s: np.ndarray, source_time_s: np.ndarray, values: np.ndarray,
+                          half_width_s: float, chunk: int = 20_000) -> np.ndarray:
+    """Value at each ``time_s`` of the least-squares line through the source samples within
+    ``± half_width_s`` (an anti-aliasing filter: exact for linear signals, noise / sqrt(n)).
+
+    Targets whose window holds fewer than two samples are interpolated linearly instead.
+    """
+    lo = np.searchsorted(source_time_s, time_s - half_width_s, side="left")
+    hi = np.searchsorted(source_time_s, time_s + half_width_s, side="right")
+    width = int(np.max(hi - lo)) if time_s.size else 0
+    out = _interp_columns(time_s, source_time_s, values)
+    if width < 2:
+        return out
+    offsets = np.arange(width)
+    for a in range(0, time_s.size, chunk):
+        b = min(a + chunk, time_s.size)
+        idx = lo[a:b, None] + offsets[None, :]
+        valid = idx < hi[a:b, None]
+        idx = np.minimum(idx, source_time_s.size - 1)
+        n = valid.sum(axis=1)
+        ok = n >= 2
+        dt = np.where(valid, source_time_s[idx] - time_s[a:b, None], 0.0)     # centred: exact
+        mean_dt = dt.sum(axis=1) / np.maximum(n, 1)
+        ddt = np.where(valid, dt - mean_dt[:, None], 0.0)
+        sxx = (ddt ** 2).sum(axis=1)
+        for j in range(values.shape[1]):
+            v = np.where(valid, values[idx, j], 0.0)
+            mean_v = v.sum(axis=1) / np.maximum(n, 1)
+            slope = np.where(sxx > 0, (ddt * np.where(valid, v - mean_v[:, None], 0.0)).sum(axis=1)
+                             / np.where(sxx > 0, sxx, 1.0), 0.0)
+            out[a:b, j] = np.where(ok, mean_v - slope * mean_dt, out[a:b, j])
+    return out
+
+
+def _onto_reference(time_s, source_time_s, values, reference_dt_s, average: bool):
+    """Bring one instrument onto the reference times: averaged when it samples much faster."""
+    if average and source_time_s.size > 1 and time_s.size:
+        source_dt = float(np.median(np.diff(source_time_s)))
+        if reference_dt_s >= AVERAGE_MIN_SAMPLES * source_dt:
+            return _local_linear_columns(time_s, source_time_s, values, reference_dt_s / 2)
+    return _interp_columns(time_s, source_time_s, values)
+
+
 def _zero_state(time_s: np.ndarray, values: np.ndarray, window_s: float) -> np.ndarray:
     """Mean of the samples with ``t <= t_first + window_s`` (at least the first one)."""
     n = max(1, int(np.searchsorted(time_s, time_s[0] + window_s, side="right")))
@@ -782,12 +830,16 @@ class Campaign:
     def _where(self):
         return self.path if self.path is not None else self.name
 
-    def aligned(self, zero_window_s: float = 10.0) -> AlignedCampaign:
+    def aligned(self, zero_window_s: float = 10.0, average: bool = True) -> AlignedCampaign:
         """All instruments on the reference clock inside their common time range.
 
         The overlap is [latest first sample, earliest last sample] over fbg, temperatures and
         reference; reference samples outside it are dropped (and counted), the other signals are
-        interpolated linearly, never extrapolated. Loads do not restrict the overlap: they are
+        interpolated linearly, never extrapolated. With ``average`` (default), an instrument
+        that samples at least three times per reference interval (e.g. a 10 Hz interrogator
+        against a 1 Hz interferometer) is first averaged over that interval — a local
+        least-squares line centred on each reference time, exact for linear signals — so its
+        noise drops by the square root of the samples averaged instead of aliasing. Loads do not restrict the overlap: they are
         interpolated inside their own time range and NaN outside it. Zero states are the mean of
         the first ``zero_window_s`` seconds of each signal on its own clock.
         """
@@ -807,6 +859,7 @@ class Campaign:
                              "of fbg.csv, temperatures.csv and reference.csv",
                              file=self._where())
         time_s = ref_t[first:stop].copy()
+        ref_dt = float(np.median(np.diff(ref_t))) if ref_t.size > 1 else 0.0
 
         fbg_t = self.fbg[TIME_COLUMN].to_numpy()
         fbg_v = self.fbg[[s.column for s in self.meta.sensors]].to_numpy(dtype=np.float64)
@@ -828,9 +881,9 @@ class Campaign:
             name=self.name,
             meta=self.meta,
             time_s=time_s,
-            wavelength_nm=_interp_columns(time_s, fbg_t, fbg_v),
+            wavelength_nm=_onto_reference(time_s, fbg_t, fbg_v, ref_dt, average),
             wavelength_zero_nm=_zero_state(fbg_t, fbg_v, window),
-            temperature_C=_interp_columns(time_s, temp_t, temp_v),
+            temperature_C=_onto_reference(time_s, temp_t, temp_v, ref_dt, average),
             temperature_zero_C=_zero_state(temp_t, temp_v, window),
             reference_um=ref_v[first:stop] - reference_zero_um,
             reference_zero_um=reference_zero_um,
