@@ -1,0 +1,503 @@
+"""The paper's kinematic model (sec. 2.3, eq. 4-10): the ram as a chain of elementary parallel
+manipulators whose "bars" are the FBG sensor paths.
+
+Three layers, all pure and vectorised over time samples:
+
+1. **HTM core** (eq. 5-9): :func:`m_a`, :func:`m_b`, :func:`m_c` exactly as the paper writes them,
+   their product per segment (:func:`segment_htm`, eq. 5), the chain product M_0n
+   (:func:`chain_htm`, eq. 9) and the TTP position (:func:`ttp_position_mm`, eq. 10).
+2. **Segment kinematics from elongations** (eq. 4): the ram is cut into segments at every sensor
+   end, support station and material change. For a segment whose end sections are joined by bars
+   at cross-section positions (x_k, y_k) mm, small-deformation plane-section kinematics give
+
+       dL_k = c + beta * x_k - alpha * y_k          (µm, rad, mm)
+
+   **Sign convention**: the chain runs *down* the ram, from the support at the top to the TTP.
+   ``alpha`` is the rotation (rad) of a segment's lower section relative to its upper section
+   about +X, ``beta`` about +Y (right-handed, ram frame: Z up, z = 0 at the spindle end), ``c``
+   the segment's axial elongation (µm). A positive ``alpha`` moves everything below towards +Y,
+   a positive ``beta`` towards -X; a bar on the +Y face shortens when ``alpha`` > 0.
+   :func:`segment_kinematics` solves (alpha, beta, c) per segment by least squares and reports
+   which segments are determined (>= 3 independent bars), underdetermined or unsensed.
+3. **Closure and chain** (:class:`KinematicChain`): the segments the bars do not determine
+   (the paper's single S5 above S1-S4, the spans without sensors, the steel housing, the shear
+   offsets ``a``, ``b`` of eq. 6-7 which axial bars cannot see) are filled by an explicit,
+   reported beam closure built from the machine description: the bending the bars measure is
+   attributed to a tool-tip force (moment linear in the lever arm to the TTP, section stiffness
+   of the CFRP box and the steel housing, Timoshenko shear, the span between the two carriage
+   stations reacting the moment), the axial strain is the bars' mean strain, and the housing
+   expands with its probe temperature. The chain is then closed on the supports: a rigid base
+   motion puts both carriage stations back on their guides (lateral) and the nut back on the
+   screw (axial), which is where the Z position of the axis enters (it moves the carriage
+   stations along the ram and so the lever arm to the TTP).
+
+Units: geometry mm, elongations and displacements µm, angles rad, forces N, temperatures K.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+UM_PER_MM = 1000.0
+_RANK_TOL = 1e-9
+
+
+# --------------------------------------------------------------------------- HTM core (eq. 5-10)
+def _stack(entries, shape):
+    """(…, 4, 4) array from a 4x4 nested list of broadcastable entries."""
+    out = np.zeros(shape + (4, 4))
+    for i in range(4):
+        for j in range(4):
+            out[..., i, j] = entries[i][j]
+    return out
+
+
+def _shape(*args):
+    return np.broadcast_shapes(*(np.shape(a) for a in args))
+
+
+def m_a(alpha_rad, a_mm=0.0):
+    """Paper eq. 6: rotation ``alpha`` about X with translation ``a`` along X, shape (…, 4, 4)."""
+    al, a = np.asarray(alpha_rad, dtype=float), np.asarray(a_mm, dtype=float)
+    s = _shape(al, a)
+    c, sn = np.cos(al), np.sin(al)
+    return _stack([[1, 0, 0, a], [0, c, -sn, 0], [0, sn, c, 0], [0, 0, 0, 1]], s)
+
+
+def m_b(beta_rad, b_mm=0.0):
+    """Paper eq. 7: rotation ``beta`` about Y with translation ``b`` along Y, shape (…, 4, 4)."""
+    be, b = np.asarray(beta_rad, dtype=float), np.asarray(b_mm, dtype=float)
+    s = _shape(be, b)
+    c, sn = np.cos(be), np.sin(be)
+    return _stack([[c, 0, sn, 0], [0, 1, 0, b], [-sn, 0, c, 0], [0, 0, 0, 1]], s)
+
+
+def m_c(c_mm):
+    """Paper eq. 8: translation ``c`` along Z, shape (…, 4, 4)."""
+    c = np.asarray(c_mm, dtype=float)
+    return _stack([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, c], [0, 0, 0, 1]], c.shape)
+
+
+def segment_htm(alpha_rad, beta_rad, c_mm, a_mm=0.0, b_mm=0.0):
+    """Paper eq. 5: ``M_{i-1,i} = M_a(alpha, a) · M_b(beta, b) · M_c(c)``, shape (…, 4, 4)."""
+    return m_a(alpha_rad, a_mm) @ m_b(beta_rad, b_mm) @ m_c(c_mm)
+
+
+def chain_htm(segment_htms):
+    """Paper eq. 9: ``M_0n = prod_i M_{i-1,i}`` over axis -3 of (…, n_segments, 4, 4)."""
+    m = np.asarray(segment_htms, dtype=float)
+    out = m[..., 0, :, :]
+    for i in range(1, m.shape[-3]):
+        out = out @ m[..., i, :, :]
+    return out
+
+
+def chain_frames(segment_htms):
+    """Cumulative products M_00 (identity), M_01, …, M_0n: shape (…, n_segments + 1, 4, 4)."""
+    m = np.asarray(segment_htms, dtype=float)
+    frames = [np.broadcast_to(np.eye(4), m.shape[:-3] + (4, 4))]
+    for i in range(m.shape[-3]):
+        frames.append(frames[-1] @ m[..., i, :, :])
+    return np.stack(frames, axis=-3)
+
+
+def ttp_position_mm(m_0n, ttp_local_mm=(0.0, 0.0, 0.0)):
+    """Paper eq. 10: the TTP (x, y, z) in mm of a point given in the last frame, (…, 3)."""
+    p = np.append(np.asarray(ttp_local_mm, dtype=float), 1.0)
+    return (np.asarray(m_0n) @ p)[..., :3]
+
+
+# ------------------------------------------------------------------------ bars on the section
+def bar_position_mm(face: str, offset_mm: float, half_width_mm: float, half_depth_mm: float):
+    """Cross-section position (x, y) in mm of a path on an outer face (as the twin meshes it)."""
+    sign = 1.0 if face[0] == "+" else -1.0
+    if face[1] == "X":
+        return sign * half_width_mm, float(offset_mm)
+    return float(offset_mm), sign * half_depth_mm
+
+
+def bar_elongation_um(alpha_rad, beta_rad, c_um, bar_xy_mm, length_mm):
+    """Exact elongations (µm) of bars joining two sections of one segment (forward model).
+
+    The upper section is the reference frame; the lower section's frame is the segment's HTM
+    (rotation placed at mid-length, see :class:`KinematicChain`). Bars join (x, y) on both.
+    ``alpha``, ``beta``, ``c`` broadcast over leading axes; ``bar_xy_mm`` is (B, 2). Returns (…, B).
+    """
+    al, be, c = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (alpha_rad, beta_rad, c_um)))
+    xy = np.asarray(bar_xy_mm, dtype=float)
+    half = length_mm / 2.0
+    m = m_c(-half) @ segment_htm(al, be, -(half + c / UM_PER_MM))
+    upper = np.stack([xy[:, 0], xy[:, 1], np.zeros(len(xy)), np.ones(len(xy))], axis=-1)
+    lower = np.einsum("...ij,bj->...bi", m, upper)[..., :3]
+    d = lower - upper[:, :3]
+    return (np.sqrt(np.sum(d ** 2, axis=-1)) - length_mm) * UM_PER_MM
+
+
+def elongation_design(bar_xy_mm, cover) -> np.ndarray:
+    """Design A (B, 3K) of the plane-section relation: dL = A @ [alpha_1, beta_1, c_1, …].
+
+    ``cover`` (B, K) is 1 where bar b spans segment k (a bar may span several segments).
+    Columns per segment: alpha (rad, µm/rad = -y*1000), beta (x*1000), c (µm).
+    """
+    xy = np.asarray(bar_xy_mm, dtype=float)
+    cover = np.asarray(cover, dtype=float)
+    B, K = cover.shape
+    A = np.zeros((B, 3 * K))
+    A[:, 0::3] = cover * (-xy[:, 1:2] * UM_PER_MM)
+    A[:, 1::3] = cover * (xy[:, 0:1] * UM_PER_MM)
+    A[:, 2::3] = cover
+    return A
+
+
+@dataclass
+class SegmentStatus:
+    """What the bars tell about one segment."""
+
+    z_lo_mm: float
+    z_hi_mm: float
+    material: str               # cfrp, steel, tool
+    bars: list                  # sensor names spanning it
+    independent_bars: int       # rank of the segment's own columns over its bars
+    status: str                 # determined, underdetermined, unsensed, rigid
+    closure: str = ""           # how the chain fills what the bars do not give
+
+    def line(self) -> str:
+        bars = ",".join(self.bars) or "-"
+        return (f"z {self.z_lo_mm:8.1f} .. {self.z_hi_mm:8.1f} mm  {self.material:<6}"
+                f" bars {bars:<16} independent {self.independent_bars}  {self.status:<15}"
+                f" {self.closure}")
+
+
+def segment_kinematics(elongation_um, bar_xy_mm, cover):
+    """Least-squares (alpha, beta, c) of every segment from bar elongations (eq. 4 + plane sections).
+
+    Parameters
+    ----------
+    elongation_um : (n, B) bar elongations, µm
+    bar_xy_mm : (B, 2) bar positions on the cross-section, mm
+    cover : (B, K) 1 where bar b spans segment k
+
+    Returns
+    -------
+    params : (n, K, 3) alpha (rad), beta (rad), c (µm); minimum-norm where not determined
+    determined : (K,) bool, all three parameters identifiable from the bars
+    rank : (K,) int, number of independent bar equations on each segment's own parameters
+    """
+    A = elongation_design(bar_xy_mm, cover)
+    K = A.shape[1] // 3
+    pinv, identifiable = _identifiable_pinv(A)
+    params = (np.atleast_2d(elongation_um) @ pinv.T).reshape(-1, K, 3)
+    rank = np.array([np.linalg.matrix_rank(A[cover[:, k] > 0][:, 3 * k:3 * k + 3] * _col_scale(),
+                                           tol=1e-6) if np.any(cover[:, k] > 0) else 0
+                     for k in range(K)])
+    return params, identifiable.reshape(K, 3).all(axis=1), rank
+
+
+def _col_scale():
+    # alpha, beta columns are ~1e5 µm/rad, c ~1: scale to comparable size before rank tests.
+    return np.array([1e-5, 1e-5, 1.0])
+
+
+def _identifiable_pinv(A):
+    """Pseudo-inverse of A and which parameters are identifiable (not touched by the null space)."""
+    n_par = A.shape[1]
+    scale = np.tile(_col_scale(), n_par // 3)
+    As = A * scale
+    u, s, vt = np.linalg.svd(As, full_matrices=True)
+    tol = _RANK_TOL * (s[0] if s.size else 1.0) * max(As.shape)
+    r = int(np.sum(s > tol))
+    null = vt[r:].T                                     # (n_par, n_null)
+    identifiable = np.sqrt(np.sum(null ** 2, axis=1)) < 1e-6
+    pinv = np.linalg.pinv(As, rcond=max(tol / s[0], 1e-15) if s.size else 1e-15) * scale[:, None]
+    return pinv, identifiable
+
+
+# ------------------------------------------------------------------------------ section physics
+@dataclass(frozen=True)
+class Section:
+    """Beam properties of a stretch of the structure (mm, MPa)."""
+
+    EI_x: float      # bending about X (curvature alpha per mm), N mm^2
+    EI_y: float      # bending about Y, N mm^2
+    GA_x: float      # shear stiffness for forces along X, N
+    GA_y: float      # shear stiffness for forces along Y, N
+    cte_per_K: float  # axial thermal expansion
+
+
+def ram_section(machine) -> Section:
+    r, m = machine.ram, machine.materials.cfrp
+    W, D, t = r.outer_width_mm, r.outer_depth_mm, r.wall_mm
+    w, d = W - 2 * t, D - 2 * t
+    E, G = 1e3 * m.E_L_GPa, 1e3 * m.G_LT_GPa
+    # Shear is carried by the walls parallel to the force (the webs).
+    return Section(EI_x=E * (W * D ** 3 - w * d ** 3) / 12, EI_y=E * (D * W ** 3 - d * w ** 3) / 12,
+                   GA_x=G * 2 * t * W, GA_y=G * 2 * t * D, cte_per_K=m.cte_L_per_K)
+
+
+def housing_section(machine) -> Section:
+    h, s = machine.housing, machine.materials.steel
+    E = 1e3 * s.E_GPa
+    G = E / (2 * (1 + s.nu))
+    A = h.width_mm * h.depth_mm
+    return Section(EI_x=E * h.width_mm * h.depth_mm ** 3 / 12, EI_y=E * h.depth_mm * h.width_mm ** 3 / 12,
+                   GA_x=G * A * 5 / 6, GA_y=G * A * 5 / 6, cte_per_K=s.cte_per_K)
+
+
+# ------------------------------------------------------------------------------- the chain
+@dataclass
+class _Segment:
+    z_lo: float
+    z_hi: float
+    material: str
+
+
+def housing_probe(machine) -> str | None:
+    """The point probe inside (or on) the steel housing, nearest to its centre; None if none."""
+    h = machine.housing
+    best, dist = None, np.inf
+    for p in machine.probes:
+        if p.kind != "point" or p.z_mm > 1e-6 or p.z_mm < -h.height_mm - 1e-6:
+            continue
+        if abs(p.x_mm) > h.width_mm / 2 + 1e-6 or abs(p.y_mm) > h.depth_mm / 2 + 1e-6:
+            continue
+        d = np.hypot(np.hypot(p.x_mm, p.y_mm), p.z_mm + h.height_mm / 2)
+        if d < dist:
+            best, dist = p.name, d
+    return best
+
+
+@dataclass
+class KinematicChain:
+    """Compiled kinematic model of one machine, sensor set and Z position.
+
+    Parameters
+    ----------
+    machine : fbgcomp.structure.Machine
+        Geometry (ram, housing, tool), materials, supports and sensor paths.
+    sensor_names : list of str, optional
+        Bars available (default: every sensor of the machine); the others are ignored.
+    z_axis_mm : float, optional
+        Z-axis position (default: the machine description's).
+    """
+
+    machine: object
+    sensor_names: list | None = None
+    z_axis_mm: float | None = None
+    segments: list = field(init=False)
+    report: list = field(init=False)
+
+    def __post_init__(self):
+        m = self.machine
+        if self.sensor_names is None:
+            self.sensor_names = [s.name for s in m.sensors]
+        by_name = {s.name: s for s in list(m.sensors) + list(m.candidate_sensors)}
+        self.sensors = [by_name[n] for n in self.sensor_names]
+        self.z_axis_mm = m.supports.z_axis_mm if self.z_axis_mm is None else float(self.z_axis_mm)
+        s = m.supports
+        self.carriage_z_mm = sorted(c.z_mm - self.z_axis_mm for c in s.carriages)
+        self.nut_z_mm = s.nut.z_mm
+        self.ttp_z_mm = m.ttp_z_mm
+        hh, L = m.housing.height_mm, m.ram.length_mm
+        top = max(L, self.nut_z_mm, self.carriage_z_mm[1])
+        breaks = {top, L, 0.0, -hh, self.ttp_z_mm, *self.carriage_z_mm, self.nut_z_mm}
+        for sn in self.sensors:
+            breaks |= {sn.z_start_mm, sn.z_end_mm}
+        z = np.array(sorted(breaks, reverse=True))
+        z = z[np.concatenate([[True], np.abs(np.diff(z)) > 1e-6])]
+        self.segments = []
+        for hi, lo in zip(z[:-1], z[1:]):
+            mat = "cfrp" if lo >= -1e-9 else ("steel" if lo >= -hh - 1e-9 else "tool")
+            self.segments.append(_Segment(float(lo), float(hi), mat))
+        self.top_z_mm = float(z[0])
+        K = len(self.segments)
+        hw, hd = m.ram.outer_width_mm / 2, m.ram.outer_depth_mm / 2
+        self.bar_xy_mm = np.array([bar_position_mm(sn.face, sn.offset_mm, hw, hd) for sn in self.sensors]
+                                  ).reshape(-1, 2)
+        self.cover = np.array([[1.0 if (g.z_lo >= sn.z_start_mm - 1e-6 and g.z_hi <= sn.z_end_mm + 1e-6)
+                                else 0.0 for g in self.segments] for sn in self.sensors]).reshape(-1, K)
+        self.lengths_mm = np.array([g.z_hi - g.z_lo for g in self.segments])
+        self.housing_probe = housing_probe(m)
+        self._compile()
+
+    # -- closure from the machine description -------------------------------------------
+    def _closure_basis(self):
+        """Segment parameters per unit generalized load, (K, 5, 2 + G).
+
+        Generalized loads: Fx, Fy (N, at the TTP) and one axial strain per sensed CFRP segment
+        (G of them). Axial strain is local (temperature varies along the ram), so every
+        sensed segment keeps its own and unsensed CFRP segments take the nearest sensed one's
+        (the mean of both neighbours when equidistant); bending from a TTP force is global.
+        Parameters per segment: alpha rad, beta rad, c µm, a µm, b µm.
+        """
+        ram, hs = ram_section(self.machine), housing_section(self.machine)
+        z_lc, z_uc, z_t = self.carriage_z_mm[0], self.carriage_z_mm[1], self.ttp_z_mm
+        sensed = [k for k, g in enumerate(self.segments)
+                  if g.material == "cfrp" and self.cover[:, k].any()]
+        self.axial_groups = sensed
+        G = np.zeros((len(self.segments), 5, 2 + len(sensed)))
+        lever_lc = z_lc - z_t
+        mids = np.array([0.5 * (g.z_lo + g.z_hi) for g in self.segments])
+        for k, g in enumerate(self.segments):
+            if g.material == "tool":
+                continue
+            sec = ram if g.material == "cfrp" else hs
+            L = g.z_hi - g.z_lo
+            # Moment per unit TTP force M(z) and shear V: cantilever below the lower carriage,
+            # the reacting span between the carriages, nothing above the upper one.
+            zm = mids[k]
+            if zm <= z_lc:
+                moment_int = L * (zm - z_t)              # ∫ (z - z_ttp) dz over the segment
+                shear = 1.0
+            elif zm <= z_uc:
+                a = z_uc - z_lc
+                moment_int = lever_lc * L * (z_uc - zm) / a
+                shear = -lever_lc / a
+            else:
+                moment_int, shear = 0.0, 0.0
+            G[k, 0, 1] = moment_int / sec.EI_x                 # alpha from Fy
+            G[k, 1, 0] = -moment_int / sec.EI_y                # beta from Fx
+            G[k, 3, 0] = UM_PER_MM * shear * L / sec.GA_x      # a from Fx (µm)
+            G[k, 4, 1] = UM_PER_MM * shear * L / sec.GA_y      # b from Fy (µm)
+            if g.material == "cfrp" and zm <= self.nut_z_mm and sensed:
+                if k in sensed:
+                    G[k, 2, 2 + sensed.index(k)] = UM_PER_MM * L      # c = eps * L (µm)
+                else:
+                    d = np.abs(mids[sensed] - zm)
+                    near = np.nonzero(d <= d.min() + 1e-6)[0]
+                    G[k, 2, 2 + near] = UM_PER_MM * L / len(near)
+        return G
+
+    def _compile(self):
+        K, S = len(self.segments), len(self.sensors)
+        G = self._closure_basis()                                    # (K, 5, 3)
+        params_meas = np.zeros((K, 5, S))
+        if S:
+            A = elongation_design(self.bar_xy_mm, self.cover)            # (S, 3K)
+            pinv, ident = _identifiable_pinv(A)
+            determined = ident.reshape(K, 3).all(axis=1)
+            # Generalized loads from all bars: dL = A (G3 g) -> g = pinv(A G3) dL.
+            AG = A @ G[:, :3, :].reshape(3 * K, G.shape[2])
+            used = np.linalg.norm(AG, axis=0) > 0
+            gmap = np.zeros((G.shape[2], S))
+            if used.any():
+                gmap[used] = np.linalg.pinv(AG[:, used] / np.linalg.norm(AG[:, used], axis=0),
+                                            rcond=1e-10) / np.linalg.norm(AG[:, used], axis=0)[:, None]
+            self.load_identifiable = used & (np.linalg.matrix_rank(AG[:, used]) == used.sum()
+                                             if used.any() else used)
+            closure = np.einsum("kpg,gs->kps", G, gmap)              # (K, 5, S)
+            direct = pinv.reshape(K, 3, S)
+            params_meas = closure.copy()
+            params_meas[determined, :3, :] = direct[determined]
+            self.load_map = gmap
+        else:
+            determined = np.zeros(K, bool)
+            self.load_map = np.zeros((G.shape[2], 0))
+            self.load_identifiable = np.zeros(G.shape[2], bool)
+        self.determined = determined
+        self.param_map = params_meas                                 # (K, 5, S) per µm of bar
+        # Housing thermal expansion per K of its probe (steel, free expansion).
+        self.param_housing = np.zeros((K, 5))
+        hs = housing_section(self.machine)
+        for k, g in enumerate(self.segments):
+            if g.material == "steel":
+                self.param_housing[k, 2] = UM_PER_MM * hs.cte_per_K * (g.z_hi - g.z_lo)
+        self._nominal = self._chain(np.zeros((1, K, 5)))[0]
+        self.report = self._report()
+
+    def _report(self) -> list:
+        out = []
+        for k, g in enumerate(self.segments):
+            bars = [self.sensor_names[i] for i in np.nonzero(self.cover[:, k])[0]]
+            rank = 0
+            if bars:
+                A = elongation_design(self.bar_xy_mm, self.cover)
+                rows = self.cover[:, k] > 0
+                rank = int(np.linalg.matrix_rank(A[rows][:, 3 * k:3 * k + 3] * _col_scale(), tol=1e-6))
+            if g.material == "tool":
+                status, closure = "rigid", "tool: rigid extension"
+            elif self.determined[k]:
+                status, closure = "determined", "alpha, beta, c from bars; shear a, b: beam closure"
+            elif bars:
+                status = "underdetermined"
+                closure = (f"{rank} independent bar(s) < 3: bending from beam closure (TTP force), "
+                           "axial strain from its bars")
+            else:
+                status = "unsensed"
+                closure = ("beam closure (TTP force), axial strain of the nearest sensed segment"
+                           if g.material == "cfrp"
+                           else ("steel: beam closure, thermal expansion from probe "
+                                 f"{self.housing_probe}" if self.housing_probe
+                                 else "steel: beam closure, no housing probe: isothermal"))
+            out.append(SegmentStatus(g.z_lo, g.z_hi, g.material, bars, rank, status, closure))
+        return out
+
+    @property
+    def underdetermined(self) -> list:
+        """Segments the bars do not fully determine (filled by the closure), as reports."""
+        return [r for r in self.report if r.status in ("underdetermined", "unsensed")]
+
+    def format_report(self) -> str:
+        head = (f"kinematic chain at Z = {self.z_axis_mm:g} mm: carriages at "
+                f"{self.carriage_z_mm[0]:g}, {self.carriage_z_mm[1]:g} mm, nut at {self.nut_z_mm:g} mm, "
+                f"TTP at {self.ttp_z_mm:g} mm (ram frame)")
+        return "\n".join([head] + [r.line() for r in self.report])
+
+    # -- evaluation ----------------------------------------------------------------------
+    def segment_parameters(self, elongation_um, housing_dT_K=None):
+        """(n, K, 5): alpha rad, beta rad, c µm, a µm, b µm of every segment."""
+        dl = np.atleast_2d(np.asarray(elongation_um, dtype=float))
+        p = np.einsum("kps,ns->nkp", self.param_map, dl) if dl.shape[1] else \
+            np.zeros((dl.shape[0],) + self.param_map.shape[:2])
+        if housing_dT_K is not None:
+            p = p + np.asarray(housing_dT_K, dtype=float).reshape(-1, 1, 1) * self.param_housing[None]
+        return p
+
+    def _chain(self, params):
+        """Positions (n, K+1, 3) mm of the section centres, chain from the top, closed on supports."""
+        n, K = params.shape[0], len(self.segments)
+        al, be = params[..., 0], params[..., 1]
+        c_mm, a_mm, b_mm = (params[..., i] / UM_PER_MM for i in (2, 3, 4))
+        half = self.lengths_mm / 2.0
+        # Each segment: half its length, then its rotation, then the other half plus its
+        # stretch (eq. 5 with the rotation at mid-length, exact for a uniform curvature); going
+        # down the ram, so translations along Z are negative.
+        first = m_c(-np.broadcast_to(half, (n, K)))
+        second = segment_htm(al, be, -(half + c_mm), a_mm, b_mm)
+        frames = chain_frames(first @ second)                        # (n, K+1, 4, 4)
+        pos = frames[..., :3, 3]
+        return pos
+
+    def deflection_um(self, params):
+        """TTP deviation (n, 3) µm from segment parameters (n, K, 5), closed on the supports."""
+        pos = self._chain(params)
+        u = (pos - self._nominal[None]) * UM_PER_MM                  # (n, K+1, 3)
+        zb = self.top_z_mm - np.concatenate([[0.0], np.cumsum(self.lengths_mm)])
+        i_lc, i_uc = (int(np.argmin(np.abs(zb - z))) for z in self.carriage_z_mm)
+        i_nut = int(np.argmin(np.abs(zb - self.nut_z_mm)))
+        h_lc, h_uc = self.top_z_mm - zb[i_lc], self.top_z_mm - zb[i_uc]
+        # Rigid base motion (small rotation phi about the top point + translation t) that puts
+        # both carriage stations back on their guides and the nut on the screw. A base
+        # rotation about X by phi moves a point h below the top by +h*phi in Y, about Y by -h*phi in X.
+        phi_x = -(u[:, i_lc, 1] - u[:, i_uc, 1]) / ((h_lc - h_uc) * UM_PER_MM)     # rad
+        t_y = -u[:, i_uc, 1] - h_uc * UM_PER_MM * phi_x                             # µm
+        phi_y = (u[:, i_lc, 0] - u[:, i_uc, 0]) / ((h_lc - h_uc) * UM_PER_MM)
+        t_x = -u[:, i_uc, 0] + h_uc * UM_PER_MM * phi_y
+        t_z = -u[:, i_nut, 2]
+        base = segment_htm(phi_x, phi_y, t_z / UM_PER_MM, t_x / UM_PER_MM, t_y / UM_PER_MM)
+        tip_rel = pos[:, -1, :]                                       # relative to the top point
+        tip = np.einsum("nij,nj->ni", base[..., :3, :3], tip_rel) + base[..., :3, 3]
+        return (tip - self._nominal[-1][None]) * UM_PER_MM
+
+    def ttp_deviation_um(self, elongation_um, housing_dT_K=None):
+        """TTP deviation (n, 3) µm from bar elongations (n, S) µm and the housing probe's ΔT (n,) K."""
+        return self.deflection_um(self.segment_parameters(elongation_um, housing_dT_K))
+
+    def jacobian(self):
+        """Linear maps: TTP µm per µm of each bar (3, S) and per K of housing probe (3,)."""
+        S = len(self.sensors)
+        eye = np.eye(S) if S else np.zeros((0, 0))
+        J = self.ttp_deviation_um(eye).T if S else np.zeros((3, 0))
+        Jh = self.ttp_deviation_um(np.zeros((1, S)), np.ones(1))[0]
+        return J, Jh

@@ -1,0 +1,827 @@
+"""Model types beside the core regression: kinematic (fit-free), hybrid and dynamic.
+
+All share the model-file format of :mod:`fbgcomp.models` (JSON, ``schema_version``,
+``model_type``) and the runtime contract: ``predictor(exclude)`` returns a pure-numpy object
+whose ``predict(wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C)`` gives
+the TTP deviation (n, 3) µm and the half-width (n, 3) µm of its 95 % prediction interval, plus
+``expected_rms_error_um``; models expose ``sensors``, ``sensor_names``, ``probe_names``,
+``model_id``, ``zero_window_s`` and ``fallback_sets``.
+
+* ``kinematic`` — :class:`KinematicModel`: the paper's HTM chain (eq. 4-10,
+  :mod:`fbgcomp.kinematics`) built from the machine description embedded in the model file; no
+  coefficient is fitted. Its interval propagates the interrogator noise through the chain and
+  adds a model-form term (relative + floor), taken from training campaigns' residuals when the
+  model is "fitted" on campaigns (the prediction itself never changes), else a stated default.
+* ``hybrid`` — :class:`HybridModel`: the kinematic prediction plus a regression (eq. 11/12/13,
+  optionally stepwise or with the dynamic filters) on its residual. Its interval is the
+  residual regression's (covariance + residual variance), which covers the whole model error.
+* ``dynamic`` — :class:`DynamicModel`: the regression with first-order low-pass filtered
+  temperature features (thermal lag). Its predictor carries the filter state between calls
+  (``reset()`` starts over); offline validation runs exactly that streaming code from the
+  first sample of a campaign.
+
+Every ``predict`` also takes optional keywords ``z_axis_mm`` (the Z-axis position, scalar or (n,);
+used by the kinematic chain) and ``time_s`` (sample times, used by the dynamic filters).
+"""
+
+from __future__ import annotations
+
+from itertools import combinations
+
+import numpy as np
+from scipy import signal, stats
+
+from . import __version__
+from .errors import InputError
+from .features import (CONSTANT, TEMPERATURE_FEATURES, FeatureMap, TemperatureRoles,
+                       candidate_terms, design_matrix)
+from .kinematics import KinematicChain
+from .models import (AXES, MODEL_FORMAT, SCHEMA_VERSION, MRAModel, Predictor, _as_campaign_list,
+                     _plain, check_compatible, model_id, register_model_type, write_json_atomic)
+
+MODEL_TYPES = ("mra", "kinematic", "hybrid", "dynamic")
+_Z95 = float(stats.norm.ppf(0.975))
+#: Default model-form error of the kinematic chain before any campaign (relative to the
+#: prediction, and a floor in µm): the beam closure reproduces the FE twin's tool-tip
+#: compliance to ~6 % (tests/test_kinematics.py); 10 % leaves room for another structure.
+KINEMATIC_DEFAULT_RELATIVE = 0.10
+KINEMATIC_DEFAULT_FLOOR_UM = 0.5
+#: Time constants (s) of the dynamic model's first-order filters.
+DEFAULT_TAUS_S = (900.0, 3600.0, 10800.0)
+
+
+def campaign_z_axis_mm(campaign):
+    """Z-axis position recorded in a campaign's metadata (``z_axis_mm``), or None."""
+    extra = getattr(campaign.meta, "model_extra", None) or {}
+    z = extra.get("z_axis_mm", getattr(campaign.meta, "z_axis_mm", None))
+    return None if z is None else float(z)
+
+
+def _machine(machine):
+    from .structure import load_machine
+    from .structure.machine import Machine
+
+    if machine is None or isinstance(machine, (str, bytes)) or hasattr(machine, "__fspath__"):
+        return load_machine(machine)
+    if isinstance(machine, Machine):
+        return machine
+    raise TypeError("machine must be a Machine, a path or None (the built-in ram)")
+
+
+def _sensor_specs(machine):
+    from .calibrate import campaign_sensor_specs
+
+    return campaign_sensor_specs(machine)
+
+
+class _ModelFile:
+    """Properties and persistence shared by the model types of this module."""
+
+    @property
+    def sensors(self):
+        return self.sensors_
+
+    @property
+    def sensor_names(self) -> list:
+        return [s.name for s in self.sensors_]
+
+    @property
+    def probe_names(self) -> list:
+        return list(self.probe_names_)
+
+    @property
+    def model_id(self) -> str:
+        return model_id(self.to_dict())
+
+    def save(self, path):
+        from datetime import datetime, timezone
+
+        d = self.to_dict()
+        d["model_id"] = model_id(d)
+        d["created_utc"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        return write_json_atomic(path, d)
+
+    def _header(self) -> dict:
+        return {"format": MODEL_FORMAT, "schema_version": SCHEMA_VERSION,
+                "model_type": self.model_type, "fbgcomp_version": __version__}
+
+    def predict(self, X):
+        return self.predict_interval(X)[0]
+
+    def predict_interval(self, X, exclude=frozenset()):
+        """Prediction (n, 3) µm and 95 % half-width (n, 3) µm on a campaign (or its path)."""
+        (campaign,) = _as_campaign_list(X)
+        check_compatible(self, campaign)
+        aligned = campaign.aligned(zero_window_s=self.zero_window_s)
+        p = self.predictor(exclude)
+        if hasattr(p, "reset"):
+            p.reset()
+        w, t, w0, t0 = self.instrument_arrays(aligned)
+        return p.predict(w, t, w0, t0, z_axis_mm=campaign_z_axis_mm(campaign), time_s=aligned.time_s)
+
+    def instrument_arrays(self, aligned):
+        s_idx = [list(aligned.sensor_names).index(s) for s in self.sensor_names]
+        p_idx = [list(aligned.probe_names).index(p) for p in self.probe_names_]
+        return (aligned.wavelength_nm[:, s_idx], aligned.temperature_C[:, p_idx],
+                aligned.wavelength_zero_nm[s_idx], aligned.temperature_zero_C[p_idx])
+
+
+def _fallback_sets(names, policy):
+    sizes = {"none": (), "loo": (1,), "lto": (1, 2)}[policy]
+    return [frozenset(c) for k in sizes for c in combinations(names, k) if len(names) - k >= 1]
+
+
+# ================================================================================ kinematic
+class KinematicPredictor:
+    """Pure-numpy kinematic prediction for one sensor set; chains compiled per Z position."""
+
+    def __init__(self, machine, sensors, probe_names, exclude, pi_relative, pi_floor_um,
+                 wavelength_noise_nm=0.001, probe_noise_C=0.1):
+        from .calibrate import elongation_noise_um
+
+        self.machine = machine
+        self.exclude = frozenset(exclude)
+        self.sensor_names = [s.name for s in sensors]
+        self.probe_names = list(probe_names)
+        self.feature_map = FeatureMap(sensors, self.probe_names, False)
+        self._used = [i for i, s in enumerate(self.sensor_names) if s not in self.exclude]
+        self._chains: dict = {}
+        chain = self.chain(None)
+        self._housing = (self.probe_names.index(chain.housing_probe)
+                         if chain.housing_probe in self.probe_names else None)
+        self._noise_um = elongation_noise_um(sensors, wavelength_noise_nm)[self._used]
+        self._probe_noise_C = probe_noise_C
+        self._rel = np.broadcast_to(np.asarray(pi_relative, float), (3,)).copy()
+        self._floor = np.broadcast_to(np.asarray(pi_floor_um, float), (3,)).copy()
+        self.expected_rms_error_um = np.sqrt(self._noise_var(chain) + self._floor ** 2)
+
+    def chain(self, z_axis_mm) -> KinematicChain:
+        key = None if z_axis_mm is None else round(float(z_axis_mm), 3)
+        if key not in self._chains:
+            self._chains[key] = KinematicChain(self.machine, [self.sensor_names[i] for i in self._used],
+                                               z_axis_mm=key)
+        return self._chains[key]
+
+    def _noise_var(self, chain):
+        J, Jh = chain.jacobian()
+        var = (J ** 2) @ (self._noise_um ** 2)
+        if chain.housing_probe is not None:
+            var = var + (Jh * self._probe_noise_C) ** 2
+        return var
+
+    def predict(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C, *,
+                z_axis_mm=None, time_s=None):
+        """TTP deviation (n, 3) µm and 95 % half-width (n, 3) µm (see the module docstring)."""
+        w = np.atleast_2d(np.asarray(wavelength_nm, dtype=float))
+        w0 = np.asarray(wavelength_zero_nm, dtype=float)
+        if self.exclude:
+            w = w.copy()
+            cols = [i for i, s in enumerate(self.sensor_names) if s in self.exclude]
+            w[:, cols] = w0[cols]
+        n = w.shape[0]
+        dl = self.feature_map.base(w, temperature_C, w0, temperature_zero_C)[:, self._used]
+        dT = None
+        if self._housing is not None:
+            t = np.atleast_2d(np.asarray(temperature_C, dtype=float))
+            dT = t[:, self._housing] - np.asarray(temperature_zero_C, dtype=float)[self._housing]
+        zs = np.broadcast_to(np.asarray(np.nan if z_axis_mm is None else z_axis_mm, float), (n,))
+        dev = np.empty((n, 3))
+        half = np.empty((n, 3))
+        for z in np.unique(zs):
+            sel = (zs == z) if np.isfinite(z) else ~np.isfinite(zs)
+            ch = self.chain(None if not np.isfinite(z) else z)
+            d = ch.ttp_deviation_um(dl[sel], None if dT is None else dT[sel])
+            var = self._noise_var(ch)[None, :] + self._floor ** 2 + (self._rel * d) ** 2
+            dev[sel], half[sel] = d, _Z95 * np.sqrt(var)
+        return dev, half
+
+
+class KinematicModel(_ModelFile):
+    """Fit-free kinematic model (paper eq. 4-10) of a machine description.
+
+    Parameters
+    ----------
+    machine : Machine, path or None
+        The machine description (None: the built-in ram). Embedded in the model file.
+    zero_window_s : float
+    fallbacks : {"loo", "lto", "none"}
+        Sensor sets without one (or two) sensors the runtime may switch to; the chain is simply
+        rebuilt without those bars (segments that lose their bars are reported and closed).
+    pi_relative, pi_floor_um : float, optional
+        Model-form error of the 95 % interval (relative to the prediction, floor µm). None:
+        estimated from the campaigns given to :meth:`fit`, else the module defaults.
+    """
+
+    model_type = "kinematic"
+
+    def __init__(self, machine=None, zero_window_s=10.0, fallbacks="loo", pi_relative=None,
+                 pi_floor_um=None):
+        self.machine = machine
+        self.zero_window_s = zero_window_s
+        self.fallbacks = fallbacks
+        self.pi_relative = pi_relative
+        self.pi_floor_um = pi_floor_um
+
+    def _setup(self):
+        self.machine_ = _machine(self.machine)
+        self.sensors_ = _sensor_specs(self.machine_)
+        chain = KinematicChain(self.machine_)
+        probes = FeatureMap.required_probes(self.sensors_, False, TemperatureRoles())
+        if chain.housing_probe:
+            probes = list(dict.fromkeys(probes + [chain.housing_probe]))
+        self.probe_names_ = probes
+        self.segment_report_ = chain.report
+        self.pi_relative_ = np.full(3, KINEMATIC_DEFAULT_RELATIVE if self.pi_relative is None
+                                    else float(self.pi_relative))
+        self.pi_floor_um_ = np.full(3, KINEMATIC_DEFAULT_FLOOR_UM if self.pi_floor_um is None
+                                    else float(self.pi_floor_um))
+        self.pi_source_ = "default"
+        self.training_ = {"campaigns": [], "n_samples": 0}
+        self._predictors = {}
+
+    def fit(self, X=None, y=None):
+        """No coefficient is fitted. With campaigns, only the interval's model-form error is
+        estimated from their residuals (per axis: e² ≈ floor² + (relative · prediction)²)."""
+        self._setup()
+        if X is None:
+            return self
+        campaigns = _as_campaign_list(X)
+        preds, refs, training = [], [], []
+        for c in campaigns:
+            check_compatible(self, c)
+            p, _ = self.predict_interval(c)
+            preds.append(p)
+            refs.append(c.aligned(zero_window_s=self.zero_window_s).reference_um)
+            training.append({"name": c.meta.name, "kind": c.meta.kind, "n_samples": int(len(p))})
+        pred, ref = np.vstack(preds), np.vstack(refs)
+        if self.pi_relative is None and self.pi_floor_um is None:
+            self.pi_floor_um_, self.pi_relative_ = _error_model(ref - pred, pred)
+            self.pi_source_ = "training campaigns"
+        self.training_ = {"campaigns": training, "n_samples": int(len(pred))}
+        self._predictors = {}
+        return self
+
+    @property
+    def fallback_sets(self) -> list:
+        return _fallback_sets(self.sensor_names, self.fallbacks)
+
+    def predictor(self, exclude=frozenset()) -> KinematicPredictor:
+        exclude = frozenset(exclude)
+        if not hasattr(self, "machine_"):
+            self._setup()
+        if exclude and exclude not in set(self.fallback_sets):
+            raise KeyError(exclude)
+        if exclude not in self._predictors:
+            self._predictors[exclude] = KinematicPredictor(
+                self.machine_, self.sensors_, self.probe_names_, exclude, self.pi_relative_,
+                self.pi_floor_um_)
+        return self._predictors[exclude]
+
+    def chain(self, z_axis_mm=None, exclude=frozenset()) -> KinematicChain:
+        return self.predictor(exclude).chain(z_axis_mm)
+
+    def summary(self) -> str:
+        ch = self.chain()
+        J, Jh = ch.jacobian()
+        lines = ["Kinematic model (paper eq. 4-10, HTM chain; no fitted coefficient)", ch.format_report(),
+                 "TTP µm per µm of bar elongation (linearised chain):",
+                 f"{'':<6}" + "".join(f"{s:>10}" for s in ch.sensor_names)
+                 + (f"{'dT_' + ch.housing_probe:>14}" if ch.housing_probe else "")]
+        for j, a in enumerate(AXES):
+            lines.append(f"{a:<6}" + "".join(f"{v:>10.4g}" for v in J[j])
+                         + (f"{Jh[j]:>14.4g}" if ch.housing_probe else ""))
+        lines.append(f"95 % interval model-form error ({self.pi_source_}): relative "
+                     + ", ".join(f"{a} {r:.3g}" for a, r in zip(AXES, self.pi_relative_))
+                     + "; floor " + ", ".join(f"{a} {f:.3g} µm" for a, f in zip(AXES, self.pi_floor_um_)))
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        if not hasattr(self, "machine_"):
+            self._setup()
+        d = self._header()
+        d.update({
+            "zero_state": {"method": "mean_of_first_window", "window_s": self.zero_window_s},
+            "sensors": [s.model_dump(mode="json") for s in self.sensors_],
+            "probes": list(self.probe_names_),
+            "machine": self.machine_.model_dump(mode="json"),
+            "kinematic": {"segments": [_plain(vars(r)) for r in self.segment_report_]},
+            "uncertainty": {"level": 0.95, "method": "kinematic: sensor noise through the chain "
+                            "+ model-form error (relative, floor)", "source": self.pi_source_,
+                            "relative": self.pi_relative_.tolist(), "floor_um": self.pi_floor_um_.tolist()},
+            "z_axis_mm": self.machine_.supports.z_axis_mm,
+            "fallback_policy": self.fallbacks,
+            "training": self.training_,
+        })
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict, source="<dict>") -> "KinematicModel":
+        from .structure.machine import parse_machine
+
+        u = d.get("uncertainty", {})
+        m = cls(machine=parse_machine(d["machine"], file=str(source)),
+                zero_window_s=d["zero_state"]["window_s"], fallbacks=d.get("fallback_policy", "loo"))
+        m._setup()
+        if "relative" in u:
+            m.pi_relative_ = np.asarray(u["relative"], float)
+            m.pi_floor_um_ = np.asarray(u["floor_um"], float)
+            m.pi_source_ = u.get("source", "file")
+        m.training_ = d.get("training", m.training_)
+        return m
+
+
+def _error_model(resid, pred):
+    """Per-axis (floor µm, relative) with e² ≈ floor² + (relative · pred)², non-negative LS."""
+    from scipy.optimize import nnls
+
+    floor, rel = np.zeros(3), np.zeros(3)
+    for j in range(3):
+        A = np.column_stack([np.ones(len(pred)), pred[:, j] ** 2])
+        sol, _ = nnls(A, resid[:, j] ** 2)
+        floor[j], rel[j] = np.sqrt(sol)
+    return floor, rel
+
+
+# ================================================================================== dynamic
+def lowpass_name(tau_s: float, base: str) -> str:
+    return f"lp{int(round(tau_s))}s_{base}"
+
+
+def first_order_filter(x, time_s, tau_s, state=None, nominal_dt_s=1.0):
+    """First-order low-pass ``tau dy/dt = x - y`` of the columns of x (n, m), exact when each
+    input sample holds over the interval that ends at it; returns (y (n, m), state). ``state`` is ``(y_last (m,), t_last)`` or
+    None (start at the first sample's value). Vectorised (``lfilter``) when samples are evenly
+    spaced; ``time_s`` None means evenly spaced at ``nominal_dt_s``.
+    """
+    x = np.atleast_2d(np.asarray(x, dtype=float))
+    n = x.shape[0]
+    if n == 0:
+        return x.copy(), state
+    if state is None:
+        y_prev, t_prev = x[0].copy(), None
+    else:
+        y_prev, t_prev = state
+    if time_s is None:
+        dt = np.full(n, nominal_dt_s)
+        t_end = (0.0 if t_prev is None else t_prev) + n * nominal_dt_s
+    else:
+        t = np.asarray(time_s, dtype=float).ravel()
+        first = (t[0] - t_prev) if t_prev is not None else 0.0
+        dt = np.concatenate([[first], np.diff(t)])
+        t_end = t[-1]
+    if n > 1 and np.allclose(dt[1:], dt[1]):
+        e = np.exp(-dt[1] / tau_s)
+        e0 = np.exp(-max(dt[0], 0.0) / tau_s)
+        y0 = e0 * y_prev + (1 - e0) * x[0]
+        if n > 1:
+            rest, _ = signal.lfilter([1 - e], [1, -e], x[1:], axis=0, zi=(e * y0)[None, :])
+            y = np.vstack([y0[None, :], rest])
+        else:
+            y = y0[None, :]
+    else:
+        y = np.empty_like(x)
+        for i in range(n):
+            e = np.exp(-max(dt[i], 0.0) / tau_s)
+            y_prev = e * y_prev + (1 - e) * x[i]
+            y[i] = y_prev
+    return y, (y[-1].copy(), t_end)
+
+
+class FilteredFeatureMap(FeatureMap):
+    """eq. 13 base features plus low-pass filtered temperature features (stateless here; the
+    state lives in :class:`DynamicPredictor`)."""
+
+    def __init__(self, sensors, probe_names, roles, taus_s):
+        super().__init__(sensors, probe_names, True, roles)
+        self.taus_s = tuple(float(t) for t in taus_s)
+        self.static_names = list(self.base_names)
+        self.base_names = self.static_names + [lowpass_name(t, b) for t in self.taus_s
+                                               for b in TEMPERATURE_FEATURES]
+
+    def base_filtered(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C,
+                      time_s=None, state=None, nominal_dt_s=1.0):
+        static = FeatureMap.base(self, wavelength_nm, temperature_C, wavelength_zero_nm,
+                                 temperature_zero_C)
+        temps = static[:, -len(TEMPERATURE_FEATURES):]
+        state = state or {}
+        cols, new_state = [static], {}
+        for tau in self.taus_s:
+            y, new_state[tau] = first_order_filter(temps, time_s, tau, state.get(tau), nominal_dt_s)
+            cols.append(y)
+        return np.hstack(cols), new_state
+
+
+class DynamicPredictor(Predictor):
+    """Regression predictor with filter state carried between calls (streaming form).
+
+    ``predict`` on consecutive batches of one stream equals ``predict`` on the concatenation;
+    ``reset()`` forgets the state (a new zero state, a new campaign). Without ``time_s`` the
+    samples are taken as evenly spaced at the training data's median interval.
+    """
+
+    def __init__(self, feature_map, axes, exclude, nominal_dt_s):
+        super().__init__(feature_map, axes, exclude)
+        self.nominal_dt_s = float(nominal_dt_s)
+        self.state = None
+
+    def reset(self):
+        self.state = None
+
+    def design(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C,
+               time_s=None):
+        base, self.state = self.feature_map.base_filtered(
+            wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C, time_s,
+            self.state, self.nominal_dt_s)
+        self.last_base = base
+        return design_matrix(base, self.feature_map.base_names, self.terms)
+
+    def predict(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C, *,
+                z_axis_mm=None, time_s=None):
+        wavelength_nm = np.atleast_2d(np.asarray(wavelength_nm, dtype=float))
+        if self.exclude:
+            cols = [i for i, s in enumerate(self.sensor_names) if s in self.exclude]
+            wavelength_nm = wavelength_nm.copy()
+            wavelength_nm[:, cols] = np.asarray(wavelength_zero_nm, dtype=float)[cols]
+        d = self.design(wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C, time_s)
+        deviation = d @ self.coef
+        spread = np.einsum("nk,akm->anm", d, self._cov_sqrt)
+        var = self._resid_var[None, :] + np.einsum("anm,anm->na", spread, spread)
+        return deviation, self._t[None, :] * np.sqrt(var)
+
+
+class DynamicModel(MRAModel):
+    """Regression with first-order filtered temperature features (thermal lag).
+
+    Parameters as :class:`~fbgcomp.models.MRAModel` (features fixed to eq13 + filters) plus
+    ``taus_s``: the filters' time constants in s.
+    """
+
+    model_type = "dynamic"
+
+    def __init__(self, taus_s=DEFAULT_TAUS_S, stepwise=True, direction="both", p_enter=0.05,
+                 p_remove=0.10, max_terms=None, roles=None, zero_window_s=10.0, fallbacks="loo",
+                 elongation_axes=None):
+        super().__init__(features="eq13", stepwise=stepwise, direction=direction, p_enter=p_enter,
+                         p_remove=p_remove, max_terms=max_terms, roles=roles,
+                         zero_window_s=zero_window_s, fallbacks=fallbacks)
+        self.taus_s = tuple(taus_s)
+        self.elongation_axes = None if elongation_axes is None else tuple(elongation_axes)
+
+    def _feature_map(self):
+        return FilteredFeatureMap(self.sensors_, self.probe_names_, self._roles(), self.taus_s)
+
+    def _candidates(self, sensor_names):
+        terms = candidate_terms("eq13", sensor_names) + [lowpass_name(t, b) for t in self.taus_s
+                                                         for b in TEMPERATURE_FEATURES]
+        return terms
+
+    def _select(self, acc, exclude) -> dict:
+        # Axes outside ``elongation_axes`` are regressed on temperature terms only.
+        if self.elongation_axes is None:
+            return super()._select(acc, exclude)
+        saved = self.candidates_
+        try:
+            with_dl = super()._select(acc, exclude)
+            self.candidates_ = [t for t in saved if not t.startswith("dL_")]
+            without = super()._select(acc, exclude)
+        finally:
+            self.candidates_ = saved
+        return {a: (with_dl[a] if a in self.elongation_axes else without[a]) for a in AXES}
+
+    def new_accumulator(self, sensors, probe_names=None):
+        from .regression import QRAccumulator
+
+        super().new_accumulator(sensors, probe_names)
+        self.candidates_ = self._candidates([s.name for s in self.sensors_])
+        names = [CONSTANT] + self.candidates_
+        return QRAccumulator(len(names), len(AXES), feature_names=names, target_names=list(AXES))
+
+    def campaign_design(self, campaign, aligned):
+        """Design (n, 1 + terms) of a campaign, filters run from its first sample."""
+        w, t, w0, t0 = self.instrument_arrays(aligned)
+        base, _ = self._feature_map().base_filtered(w, t, w0, t0, aligned.time_s)
+        return design_matrix(base, self._feature_map().base_names, self.candidates_)
+
+    def fit(self, X, y=None, *, progress=None, targets=None):
+        """Fit on campaigns; ``targets`` (optional) maps a campaign index to the (n, 3) µm to fit
+        instead of its reference (the hybrid fits the kinematic residual)."""
+        return _fit_regression(self, X, progress=progress, targets=targets)
+
+    def _fit_factor(self, acc):
+        out = super()._fit_factor(acc)
+        return out
+
+    def predictor(self, exclude=frozenset()) -> DynamicPredictor:
+        exclude = frozenset(exclude)
+        if exclude not in self._predictors:
+            axes = self.axes_ if not exclude else self.fallbacks_[exclude]
+            self._predictors[exclude] = DynamicPredictor(self._feature_map(), axes, exclude,
+                                                         self.training_.get("dt_s", 1.0))
+        return self._predictors[exclude]
+
+    def predict_interval(self, X, exclude=frozenset()):
+        return _ModelFile.predict_interval(self, X, exclude)
+
+    def to_dict(self) -> dict:
+        d = super().to_dict()
+        d["dynamic"] = {"taus_s": list(self.taus_s), "filtered": list(TEMPERATURE_FEATURES),
+                        "elongation_axes": None if self.elongation_axes is None else list(self.elongation_axes),
+                        "filter": "first-order low-pass, exact for inputs held between samples"}
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict, source="<dict>") -> "DynamicModel":
+        base = MRAModel.from_dict(d, source)
+        m = cls(taus_s=d["dynamic"]["taus_s"], stepwise=base.stepwise, direction=base.direction,
+                p_enter=base.p_enter, p_remove=base.p_remove, max_terms=base.max_terms,
+                roles=base.roles, zero_window_s=base.zero_window_s, fallbacks=base.fallbacks,
+                elongation_axes=d["dynamic"].get("elongation_axes"))
+        for k in ("candidates_", "sensors_", "probe_names_", "axes_", "fallbacks_", "training_",
+                  "results_", "coef_"):
+            setattr(m, k, getattr(base, k))
+        m._predictors = {}
+        return m
+
+
+def _fit_regression(model, X, progress=None, targets=None):
+    """Stream campaigns into the model's QR accumulator (MRAModel or DynamicModel)."""
+    campaigns = _as_campaign_list(X)
+    if not campaigns:
+        raise ValueError("fit needs at least one campaign")
+    acc = model.new_accumulator(list(campaigns[0].meta.sensors), None)
+    training, dts = [], []
+    for i, c in enumerate(campaigns):
+        check_compatible(model, c)
+        aligned = c.aligned(zero_window_s=model.zero_window_s)
+        if isinstance(model, DynamicModel):
+            design = model.campaign_design(c, aligned)
+        else:
+            design = model._campaign_design(c, aligned)
+        y = aligned.reference_um if targets is None or i not in targets else targets[i]
+        for start in range(0, len(design), 100_000):
+            acc.update(design[start:start + 100_000], y[start:start + 100_000])
+        if len(aligned.time_s) > 1:
+            dts.append(float(np.median(np.diff(aligned.time_s))))
+        training.append({"name": c.meta.name, "kind": c.meta.kind,
+                         "path": None if c.path is None else str(c.path),
+                         "n_samples": int(len(design)), "dropped": _plain(aligned.dropped)})
+        if progress is not None:
+            progress(c.meta.name)
+    info = {"campaigns": training, "n_samples": int(sum(t["n_samples"] for t in training))}
+    if dts:
+        info["dt_s"] = float(np.median(dts))
+    return model.fit_factor(acc, info)
+
+
+# =================================================================================== hybrid
+class HybridPredictor:
+    """Thermally corrected kinematic chain + temperature regression (see :class:`HybridModel`)."""
+
+    def __init__(self, kinematic: KinematicPredictor, residual: DynamicPredictor, correction,
+                 probe_names):
+        self.kinematic, self.residual = kinematic, residual
+        self.exclude = kinematic.exclude
+        self.sensor_names = kinematic.sensor_names
+        self.probe_names = list(probe_names)
+        self._k_probe = [self.probe_names.index(p) for p in kinematic.probe_names]
+        self._r_probe = [self.probe_names.index(p) for p in residual.probe_names]
+        self._correction = np.asarray(correction, dtype=float)      # (T, S) µm per feature
+        self.expected_rms_error_um = residual.expected_rms_error_um
+        self._used = kinematic._used
+
+    def reset(self):
+        self.residual.reset()
+
+    def predict(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C, *,
+                z_axis_mm=None, time_s=None):
+        w = np.atleast_2d(np.asarray(wavelength_nm, dtype=float))
+        w0 = np.asarray(wavelength_zero_nm, dtype=float)
+        t = np.atleast_2d(np.asarray(temperature_C, dtype=float))
+        t0 = np.asarray(temperature_zero_C, dtype=float)
+        if self.exclude:
+            w = w.copy()
+            cols = [i for i, s in enumerate(self.sensor_names) if s in self.exclude]
+            w[:, cols] = w0[cols]
+        tr, tr0 = t[:, self._r_probe], t0[self._r_probe]
+        design = self.residual.design(w, tr, w0, tr0, time_s)          # const + temperature terms
+        dr = design @ self.residual.coef
+        spread = np.einsum("nk,akm->anm", design, self.residual._cov_sqrt)
+        var = self.residual._resid_var[None, :] + np.einsum("anm,anm->na", spread, spread)
+        # Elongations minus their temperature-explained part: what the structure's loads did.
+        base = self.residual.last_base
+        temps = base[:, len(self.residual.feature_map.sensor_names):]
+        k = self.kinematic
+        dl = k.feature_map.base(w, t[:, self._k_probe], w0, t0[self._k_probe])
+        dl = dl - temps @ self._correction
+        dT = None
+        if k._housing is not None:
+            dT = t[:, self._k_probe][:, k._housing] - t0[self._k_probe][k._housing]
+        n = len(dl)
+        zs = np.broadcast_to(np.asarray(np.nan if z_axis_mm is None else z_axis_mm, float), (n,))
+        dk = np.empty((n, 3))
+        for z in np.unique(zs):
+            sel = (zs == z) if np.isfinite(z) else ~np.isfinite(zs)
+            ch = k.chain(None if not np.isfinite(z) else z)
+            dk[sel] = ch.ttp_deviation_um(dl[sel][:, self._used], None if dT is None else dT[sel])
+        return dk + dr, self.residual._t[None, :] * np.sqrt(var)
+
+
+class HybridModel(_ModelFile):
+    """Kinematic chain (physics for the loads, Z-aware) + regression for what it misses.
+
+    Fitting, on the training campaigns:
+
+    1. each sensor's elongation is regressed on the temperature features (eq. 13 and, with
+       ``features="dynamic"``, their low-pass filtered versions): that part is the gratings'
+       thermal cross-sensitivity and the free thermal strain, which the chain would otherwise
+       read as bending caused by a tool-tip force and amplify through the support lever arms;
+    2. the chain runs on the corrected elongations (plus the housing's probe expansion);
+    3. the TTP residual is regressed on the temperature features (stepwise optional).
+
+    Why this form and not the segment poses (or the elongations) as regressors: on thermal
+    campaigns the lateral TTP deviation is ~0 while the elongations carry interrogator noise, so
+    any regression on elongations learns to *cancel* the force response (errors in variables)
+    and then fails on loads and on other Z positions; keeping the force path physical and letting
+    the regression see only temperatures keeps the chain's load and Z behaviour intact
+    (docs/models.md has the comparison).
+    """
+
+    model_type = "hybrid"
+
+    def __init__(self, machine=None, features="eq13", stepwise=True, taus_s=DEFAULT_TAUS_S,
+                 p_enter=0.05, p_remove=0.10, max_terms=None, roles=None, zero_window_s=10.0,
+                 fallbacks="loo", elongation_axes=("dz",)):
+        self.machine = machine
+        self.elongation_axes = elongation_axes
+        self.features = features
+        self.stepwise = stepwise
+        self.taus_s = tuple(taus_s)
+        self.p_enter, self.p_remove, self.max_terms = p_enter, p_remove, max_terms
+        self.roles = roles
+        self.zero_window_s = zero_window_s
+        self.fallbacks = fallbacks
+
+    def _residual_estimator(self):
+        if self.features not in ("eq13", "dynamic"):
+            raise ValueError(f"hybrid features must be eq13 or dynamic, not {self.features!r}")
+        return DynamicModel(taus_s=self.taus_s if self.features == "dynamic" else (),
+                            stepwise=self.stepwise, p_enter=self.p_enter, p_remove=self.p_remove,
+                            max_terms=self.max_terms, roles=self.roles,
+                            zero_window_s=self.zero_window_s, fallbacks=self.fallbacks,
+                            elongation_axes=self.elongation_axes)
+
+    def fit(self, X, y=None, *, progress=None):
+        campaigns = _as_campaign_list(X)
+        if not campaigns:
+            raise ValueError("fit needs at least one campaign")
+        self.kinematic_ = KinematicModel(self.machine, zero_window_s=self.zero_window_s,
+                                         fallbacks=self.fallbacks).fit()
+        res = self._residual_estimator()
+        res.new_accumulator(list(campaigns[0].meta.sensors), None)
+        self.residual_ = res
+        self.sensors_ = self.kinematic_.sensors_
+        self.probe_names_ = list(dict.fromkeys(list(res.probe_names_) + list(self.kinematic_.probe_names_)))
+        kin = self.kinematic_.predictor()
+        fmap = res._feature_map()
+        # 1. thermal part of each elongation (pooled least squares over all campaigns)
+        xtx, xty, cache = 0.0, 0.0, []
+        for c in campaigns:
+            check_compatible(self, c)
+            a = c.aligned(zero_window_s=self.zero_window_s)
+            w, t, w0, t0 = self.instrument_arrays(a)
+            rp = [self.probe_names_.index(p) for p in res.probe_names_]
+            kp = [self.probe_names_.index(p) for p in kin.probe_names]
+            base, _ = fmap.base_filtered(w, t[:, rp], w0, t0[rp], a.time_s)
+            # Through the origin: at the zero state both sides are zero by definition, and a
+            # constant would absorb the mean elongation of load campaigns (ΔT = 0 there).
+            temps = base[:, len(fmap.sensor_names):]
+            dl = kin.feature_map.base(w, t[:, kp], w0, t0[kp])
+            xtx = xtx + temps.T @ temps
+            xty = xty + temps.T @ dl
+            cache.append((c, a, temps, dl, t[:, kp], t0[kp]))
+        self.correction_ = np.linalg.lstsq(xtx, xty, rcond=None)[0]       # (T, S)
+        # 2-3. chain on corrected elongations, regression of the residual on temperatures
+        targets = {}
+        for i, (c, a, temps, dl, tk, tk0) in enumerate(cache):
+            corrected = dl - temps @ self.correction_
+            dT = None if kin._housing is None else tk[:, kin._housing] - tk0[kin._housing]
+            pk = kin.chain(campaign_z_axis_mm(c)).ttp_deviation_um(corrected, dT)
+            targets[i] = a.reference_um - pk
+        self.residual_ = _fit_regression(res, campaigns, progress, targets)
+        self.training_ = self.residual_.training_
+        self._predictors = {}
+        return self
+
+    @property
+    def fallback_sets(self) -> list:
+        return self.kinematic_.fallback_sets
+
+    def predictor(self, exclude=frozenset()) -> HybridPredictor:
+        exclude = frozenset(exclude)
+        if exclude not in self._predictors:
+            kin = self.kinematic_.predictor(exclude)
+            res = self.residual_.predictor(exclude)
+            self._predictors[exclude] = HybridPredictor(kin, res, self.correction_, self.probe_names_)
+        return self._predictors[exclude]
+
+    def summary(self) -> str:
+        names = self.residual_._feature_map().base_names[len(self.sensors_):]
+        lines = ["Hybrid model: thermally corrected kinematic chain + temperature regression", "",
+                 self.kinematic_.summary(), "",
+                 "Thermal part of the elongations (µm per unit feature):",
+                 f"{'':<24}" + "".join(f"{s.name:>10}" for s in self.sensors_)]
+        for name, row in zip(names, self.correction_):
+            lines.append(f"{name:<24}" + "".join(f"{v:>10.4g}" for v in row))
+        lines += ["", "Regression of the chain's residual", self.residual_.summary()]
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        d = self._header()
+        d.update({
+            "zero_state": {"method": "mean_of_first_window", "window_s": self.zero_window_s},
+            "sensors": [s.model_dump(mode="json") for s in self.sensors_],
+            "probes": list(self.probe_names_),
+            "hybrid": {"features": self.features, "kinematic": self.kinematic_.to_dict(),
+                       "thermal_correction_um": self.correction_.tolist(),
+                       "residual": self.residual_.to_dict()},
+            "uncertainty": {"level": 0.95, "method": "residual regression: covariance + residual variance"},
+            "z_axis_mm": self.kinematic_.machine_.supports.z_axis_mm,
+            "fallback_policy": self.fallbacks,
+            "training": self.training_,
+        })
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict, source="<dict>") -> "HybridModel":
+        h = d["hybrid"]
+        kin = KinematicModel.from_dict(h["kinematic"], source)
+        res = DynamicModel.from_dict(h["residual"], source)
+        m = cls(machine=kin.machine_, features=h["features"], zero_window_s=d["zero_state"]["window_s"],
+                fallbacks=d.get("fallback_policy", "loo"), taus_s=res.taus_s)
+        m.kinematic_, m.residual_ = kin, res
+        m.correction_ = np.asarray(h["thermal_correction_um"], dtype=float)
+        m.sensors_ = kin.sensors_
+        m.probe_names_ = list(d["probes"])
+        m.training_ = d.get("training", res.training_)
+        m._predictors = {}
+        return m
+
+
+# ============================================================================== construction
+def make_model(model_type: str, *, machine=None, features="eq13", stepwise=False, **kw):
+    """An unfitted estimator of a model type (``mra``, ``kinematic``, ``hybrid``, ``dynamic``)."""
+    common = {k: v for k, v in kw.items() if k in ("zero_window_s", "fallbacks")}
+    reg = {k: v for k, v in kw.items() if k in ("direction", "p_enter", "p_remove", "max_terms",
+                                                 "roles")}
+    if model_type == "mra":
+        return MRAModel(features=features, stepwise=stepwise, **reg, **common)
+    if model_type == "kinematic":
+        return KinematicModel(machine, **common)
+    if model_type == "hybrid":
+        reg.pop("direction", None)
+        return HybridModel(machine, features=features, stepwise=stepwise, **reg, **common)
+    if model_type == "dynamic":
+        return DynamicModel(stepwise=stepwise, **reg, **common)
+    raise InputError(f"unknown model type {model_type!r}; expected {', '.join(MODEL_TYPES)}",
+                     file="<command line>", column="option --model")
+
+
+def fit_model(model, campaigns, progress=None):
+    """Fit any model type on campaigns (the kinematic model only calibrates its interval)."""
+    if isinstance(model, KinematicModel):
+        return model.fit(campaigns)
+    if isinstance(model, HybridModel):
+        return model.fit(campaigns, progress=progress)
+    return model.fit(campaigns, progress=progress)
+
+
+register_model_type("kinematic", KinematicModel)
+register_model_type("hybrid", HybridModel)
+register_model_type("dynamic", DynamicModel)
+
+
+def fit_from_cli(model_type, campaigns, *, machine=None, features="eq13", stepwise=False,
+                 direction="both", p_enter=0.05, p_remove=0.10, max_terms=None, roles=None,
+                 zero_window_s=10.0, fallbacks="loo"):
+    """``fbgcomp fit --model kinematic|hybrid|dynamic``: check the options, fit, return the model."""
+    where = "<command line>"
+    if model_type not in MODEL_TYPES:
+        raise InputError(f"unknown model type {model_type!r}; expected {', '.join(MODEL_TYPES)}",
+                         file=where, column="option --model")
+    if fallbacks not in ("loo", "lto", "none"):
+        raise InputError(f"unknown fallbacks {fallbacks!r}", file=where, column="option --fallbacks")
+    if model_type == "hybrid" and features not in ("eq13", "dynamic"):
+        raise InputError(f"--model hybrid takes --features eq13 or dynamic, not {features!r}",
+                         file=where, column="option --features")
+    if model_type == "dynamic" and features != "eq13":
+        raise InputError("--model dynamic uses eq13 plus filtered temperatures: give --features eq13",
+                         file=where, column="option --features")
+    m = _machine(machine)
+    common = dict(zero_window_s=zero_window_s, fallbacks=fallbacks)
+    if model_type == "kinematic":
+        return KinematicModel(m, **common).fit(campaigns)
+    if model_type == "hybrid":
+        return HybridModel(m, features=features, stepwise=stepwise, p_enter=p_enter,
+                           p_remove=p_remove, max_terms=max_terms, roles=roles, **common).fit(campaigns)
+    return DynamicModel(stepwise=stepwise, direction=direction, p_enter=p_enter, p_remove=p_remove,
+                        max_terms=max_terms, roles=roles, **common).fit(campaigns)

@@ -1,0 +1,206 @@
+"""Model types kinematic, hybrid, dynamic: fit, model file (schema v2 + migration), runtime
+contract, streaming filters, prediction intervals on held-out campaigns, CLI."""
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from fbgcomp.bench import load_scenario, simulate
+from fbgcomp.campaign import read_campaign, write_campaign
+from fbgcomp.metrics import validation_metrics
+from fbgcomp.model_types import (DynamicModel, HybridModel, KinematicModel, first_order_filter)
+from fbgcomp.models import MRAModel, load_model
+from fbgcomp.structure import Twin, load_machine
+
+FBGCOMP = [sys.executable, "-m", "fbgcomp"]
+HOURS = 3.0
+
+
+def _short(name, hours=HOURS, **update):
+    """A built-in thermal scenario compressed in time to ``hours`` (same shapes, faster)."""
+    sc = load_scenario(name)
+    data = sc.model_dump()
+    scale = hours / sc.duration_h
+    data["duration_h"] = hours
+    for key in ("ambient_C", "spindle_W", "radiant_W_per_m2"):
+        h = data[key]
+        h["knots_h"] = [(t * scale, v) for t, v in h["knots_h"]]
+        for d in h["duty"]:
+            d["start_h"] *= scale
+            d["end_h"] *= scale
+            for k in ("on_min", "off_min"):
+                if d[k]:
+                    d[k] *= scale
+        for c in h["cycles"]:
+            c["period_h"] *= scale
+            c["phase_h"] *= scale
+        if h["random"]:
+            h["random"]["correlation_h"] *= scale
+    data["instruments"]["fbg"]["dt_s"] = 5.0
+    data["instruments"]["interferometer"]["dt_s"] = 10.0
+    data["solver_dt_s"] = 5.0
+    data.update(update)
+    return type(sc).model_validate(data)
+
+
+@pytest.fixture(scope="module")
+def campaigns(tmp_path_factory):
+    root = tmp_path_factory.mktemp("bench")
+    machine = load_machine()
+    twin = Twin(machine, resolution=0.3)
+    out = {}
+    for i, (name, sc) in enumerate([("thermal-a", _short("thermal-36h")),
+                                    ("thermal-b", _short("thermal-36h-b")),
+                                    ("static-y", load_scenario("static-y")),
+                                    ("static-xyz", load_scenario("static-xyz"))]):
+        c, _ = simulate(machine, sc, seed=10 + i, twin=twin)
+        out[name] = read_campaign(write_campaign(c, root / name))
+    tw300 = Twin(machine, resolution=0.3, z_axis_mm=300.0)
+    sc = load_scenario("static-y").model_copy(update={"z_axis_mm": 300.0})
+    c, _ = simulate(machine, sc, seed=20, twin=tw300)
+    out["static-y-z300"] = read_campaign(write_campaign(c, root / "static-y-z300"))
+    return out
+
+
+def _metrics(model, campaign):
+    pred, half = model.predict_interval(campaign)
+    return validation_metrics(campaign.aligned().reference_um, pred, half), pred, half
+
+
+def test_kinematic_model_needs_no_campaign_and_follows_z(campaigns):
+    model = KinematicModel().fit()
+    assert model.training_["n_samples"] == 0 and model.pi_source_ == "default"
+    for name in ("static-y", "static-y-z300"):
+        c = campaigns[name]
+        m, pred, half = _metrics(model, c)
+        ref = c.aligned().reference_um
+        loaded = np.abs(ref[:, 1]) > 0.5 * np.abs(ref[:, 1]).max()
+        ratio = np.median(pred[loaded, 1] / ref[loaded, 1])
+        assert ratio == pytest.approx(1.0, abs=0.2), name
+        assert 0.8 <= m["axes"]["dy"]["pi95_coverage"] <= 1.0
+    assert "underdetermined" in model.summary()
+
+
+@pytest.mark.parametrize("make", [
+    lambda: KinematicModel(),
+    lambda: HybridModel(features="eq13"),
+    lambda: HybridModel(features="dynamic", stepwise=False),
+    lambda: DynamicModel(stepwise=True),
+])
+def test_model_file_round_trip_and_runtime_contract(campaigns, tmp_path, make):
+    model = make().fit([campaigns["thermal-a"], campaigns["static-y"]])
+    path = model.save(tmp_path / "m.json")
+    d = json.loads(path.read_text())
+    assert d["schema_version"] == 2 and d["model_type"] == model.model_type
+    assert d["uncertainty"]["level"] == 0.95
+    back = load_model(path)
+    assert type(back) is type(model) and back.model_id == model.model_id
+    c = campaigns["thermal-b"]
+    p1, h1 = model.predict_interval(c)
+    p2, h2 = back.predict_interval(c)
+    np.testing.assert_allclose(p2, p1, atol=1e-9)
+    np.testing.assert_allclose(h2, h1, atol=1e-9)
+    assert np.all(h1 > 0)
+    # Runtime contract: attributes, fallbacks, predictor on raw arrays.
+    assert back.sensor_names == ["S1", "S2", "S3", "S4", "S5"] and back.zero_window_s == 10.0
+    assert back.probe_names and back.fallback_sets
+    a = c.aligned()
+    w, t, w0, t0 = back.instrument_arrays(a)
+    pred = back.predictor(back.fallback_sets[0])
+    if hasattr(pred, "reset"):
+        pred.reset()
+    w_nan = w.copy()
+    w_nan[:, back.sensor_names.index(sorted(back.fallback_sets[0])[0])] = np.nan
+    dev, half = pred.predict(w_nan, t, w0, t0, time_s=a.time_s)
+    assert dev.shape == (len(w), 3) and np.isfinite(dev).all() and np.isfinite(half).all()
+    assert np.asarray(pred.expected_rms_error_um).shape == (3,)
+
+
+def test_dynamic_predictor_streams_exactly_like_the_offline_path(campaigns):
+    model = DynamicModel(stepwise=False).fit([campaigns["thermal-a"]])
+    a = campaigns["thermal-b"].aligned()
+    w, t, w0, t0 = model.instrument_arrays(a)
+    p = model.predictor()
+    p.reset()
+    whole, _ = p.predict(w, t, w0, t0, time_s=a.time_s)
+    p.reset()
+    parts = [p.predict(w[s], t[s], w0, t0, time_s=a.time_s[s])[0]
+             for s in (slice(0, 7), slice(7, 300), slice(300, None))]
+    np.testing.assert_allclose(np.vstack(parts), whole, atol=1e-9)
+    offline, _ = model.predict_interval(campaigns["thermal-b"])
+    np.testing.assert_allclose(offline, whole, atol=1e-9)
+    # The filter itself: the input is held at each sample's value over the interval ending there,
+    # so a step that arrives at t = 1 s reaches 1 - exp(-1) one time constant after t = 0.
+    y, _ = first_order_filter(np.r_[0.0, np.ones(100)][:, None], np.arange(101.0), 50.0)
+    assert y[50, 0] == pytest.approx(1 - np.exp(-1), rel=1e-9)
+
+
+def test_hybrid_keeps_the_physics_where_regression_cannot_extrapolate(campaigns):
+    train = [campaigns["thermal-a"], campaigns["static-y"]]
+    hybrid = HybridModel(features="eq13").fit(train)
+    mra = MRAModel(features="eq13").fit(train)
+    # static-xyz has X forces and static-y-z300 another lever arm: neither is in the training set.
+    for name, axis in (("static-xyz", "dx"), ("static-y-z300", "dy")):
+        mh, _, _ = _metrics(hybrid, campaigns[name])
+        mm, _, _ = _metrics(mra, campaigns[name])
+        assert mh["axes"][axis]["rms_error_um"] < 0.5 * mm["axes"][axis]["rms_error_um"], name
+    # Held-out thermal campaign (compressed to 3 h, so smaller and faster than the 36 h one):
+    # the dominant axis dz is compensated, and the interval is not a blanket.
+    m, _, _ = _metrics(hybrid, campaigns["thermal-b"])
+    dz = m["axes"]["dz"]
+    assert dz["peak_um"] > 5 and dz["compensation_ratio"] > 0.85
+    assert 0.5 <= dz["pi95_coverage"] <= 1.0 and dz["pi95_mean_halfwidth_um"] < 0.2 * dz["peak_um"]
+
+
+def test_v1_model_file_is_migrated(campaigns, tmp_path):
+    model = MRAModel(features="eq13").fit([campaigns["thermal-a"]])
+    d = model.to_dict()
+    d["schema_version"] = 1
+    for key in ("uncertainty", "z_axis_mm"):
+        d.pop(key)
+    old = tmp_path / "v1.json"
+    old.write_text(json.dumps(d))
+    back = load_model(old)
+    assert back.to_dict()["schema_version"] == 2
+    np.testing.assert_allclose(back.predict(campaigns["thermal-b"]), model.predict(campaigns["thermal-b"]))
+
+
+def run(*args):
+    return subprocess.run([*FBGCOMP, *map(str, args)], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "PYTHONWARNINGS": "ignore"})
+
+
+def test_cli_fit_model_types_and_validate_prints_coverage(campaigns, tmp_path):
+    a, s, b = (campaigns[n].path for n in ("thermal-a", "static-y", "thermal-b"))
+    for kind in ("kinematic", "hybrid"):
+        out = tmp_path / f"{kind}.json"
+        r = run("fit", a, s, "--model", kind, "-o", out)
+        assert r.returncode == 0, r.stderr
+        assert f"({kind}) written" in r.stdout
+        r = run("validate", out, b)
+        assert r.returncode == 0, r.stderr
+        assert "PI95 cover" in r.stdout
+    r = run("fit", a, "--model", "hybrid", "--features", "eq11", "-o", tmp_path / "x.json")
+    assert r.returncode == 2 and r.stderr.startswith("error: <command line>") and "Traceback" not in r.stderr
+    r = run("fit", a, "--model", "neural", "-o", tmp_path / "x.json")
+    assert r.returncode == 2 and "unknown model type" in r.stderr
+
+
+def test_cli_compare_writes_ranked_tables(campaigns, tmp_path):
+    csv_path, json_path = tmp_path / "c.csv", tmp_path / "c.json"
+    r = run("compare", "--train", campaigns["thermal-a"].path, "--train", campaigns["static-y"].path,
+            "--test", campaigns["thermal-b"].path, "--csv", csv_path, "--json", json_path)
+    assert r.returncode == 0, r.stderr
+    result = json.loads(json_path.read_text())
+    names = {row["name"] for row in result["rows"]}
+    assert {"mra eq11", "mra eq13", "mra eq12", "mra eq13 stepwise", "ridge eq13", "pls eq13",
+            "dynamic eq13+lp", "kinematic", "hybrid eq13"} <= names
+    lines = csv_path.read_text().splitlines()
+    assert lines[0].startswith("axis,rank,name")
+    dz = [ln.split(",") for ln in lines[1:] if ln.startswith("dz,")]
+    errs = [float(x[5]) for x in dz]
+    assert errs == sorted(errs) and "== dz" in r.stdout
