@@ -172,3 +172,21 @@ def test_candidate_terms_of_each_feature_set():
     eq12 = candidate_terms("eq12", s)
     assert len(eq12) == 2 + 3 + 6
     assert "dT_bulk^2" in eq12 and "dT_surf*dT_flange" in eq12
+
+
+def test_static_plateau_metrics_average_out_noise_and_skip_ramps():
+    from fbgcomp.metrics import load_plateaus, static_level_metrics
+
+    t = np.arange(0, 300.0)
+    fy = np.interp(t, [0, 60, 62, 120, 122, 180, 182, 240, 242, 300], [0, 0, 1000, 1000, 2000, 2000, 1000, 1000, 0, 0])
+    loads = np.column_stack([np.zeros_like(t), fy, np.zeros_like(t)])
+    rng = np.random.default_rng(0)
+    ref = np.column_stack([np.zeros_like(t), 0.2 * fy, np.zeros_like(t)])
+    pred = ref * 1.02 + rng.normal(0, 5.0, ref.shape)        # 2 % gain error + noise
+    runs = load_plateaus(loads)
+    assert len(runs) == 5 and all(len(r) >= 50 for r in runs)
+    assert all(np.ptp(fy[r]) == 0 for r in runs)              # no ramp sample inside a plateau
+    m = static_level_metrics(loads, ref, pred)
+    assert m["n_levels"] == 5
+    assert m["axes"]["dy"]["max_plateau_deflection_um"] == pytest.approx(400.0)
+    assert 1.0 < m["axes"]["dy"]["error_pct_of_deflection"] < 3.0   # the gain error, not the noise

@@ -119,7 +119,8 @@ def validate(model_file: Path = typer.Argument(..., help="Model file (JSON)."),
     """Judge a model on campaigns: per axis peak, max |error|, RMS, % of peak, compensation ratio."""
     import numpy as np
 
-    from .metrics import format_metrics, validation_metrics
+    from .metrics import (format_metrics, format_static_metrics, static_level_metrics,
+                          validation_metrics)
     from .models import load_model, write_json_atomic
 
     model = load_model(model_file)
@@ -129,7 +130,12 @@ def validate(model_file: Path = typer.Argument(..., help="Model file (JSON)."),
         ref = c.aligned(zero_window_s=model.zero_window_s).reference_um
         m = validation_metrics(ref, pred, half)
         per_campaign[c.meta.name] = m
-        typer.echo(format_metrics(m, title=f"campaign {c.meta.name}") + "\n")
+        typer.echo(format_metrics(m, title=f"campaign {c.meta.name}"))
+        loads = c.aligned(zero_window_s=model.zero_window_s).loads_N
+        if loads is not None:
+            m["static_levels"] = static_level_metrics(loads, ref, pred)
+            typer.echo(format_static_metrics(m["static_levels"]))
+        typer.echo("")
         refs.append(ref), preds.append(pred), halves.append(half)
     pooled = validation_metrics(np.vstack(refs), np.vstack(preds), np.vstack(halves))
     if len(per_campaign) > 1:

@@ -19,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .metrics import dominant_axis, format_metrics, validation_metrics
+from .metrics import (dominant_axis, format_metrics, format_static_metrics, static_level_metrics,
+                      validation_metrics)
 
 TRAIN = ("thermal-36h", "static-y")
 HELD_OUT = ("thermal-36h-b", "static-xyz")
@@ -108,6 +109,11 @@ def run_demo(out_dir="demo-out", *, machine_path=None, seed=0, quick=False, feat
         texts.append(format_metrics(m, title=f"held-out {name} — fitted model"))
         fe_pred, fe_half = fe_model.predict_interval(c)
         summary["fe_model"][name] = validation_metrics(ref, fe_pred, fe_half)
+        loads = c.aligned(zero_window_s=model.zero_window_s).loads_N
+        if loads is not None:
+            m["static_levels"] = static_level_metrics(loads, ref, pred)
+            summary["fe_model"][name]["static_levels"] = static_level_metrics(loads, ref, fe_pred)
+            texts.append(format_static_metrics(m["static_levels"]))
     step(f"validated on the held-out {', '.join(HELD_OUT)}")
 
     if report:
@@ -136,11 +142,12 @@ def _summary_text(summary, res, out) -> str:
         lines.append(f"held-out {name:<14} dominant axis {a}: peak {ax['peak_um']:.2f} µm, "
                      f"max |error| {ax['max_abs_error_um']:.3f} µm ({ax['error_pct_of_peak']:.2f} % of peak), "
                      f"RMS {ax['rms_error_um']:.3f} µm, PI95 coverage {ax.get('pi95_coverage', float('nan')):.2f}")
-    fe = summary["fe_model"].get("static-xyz")
-    if fe:
-        a = dominant_axis(fe)
-        lines.append(f"FE-calibrated eq. 11 model on static-xyz, axis {a}: max |error| "
-                     f"{fe['axes'][a]['max_abs_error_um']:.3f} µm ({fe['axes'][a]['error_pct_of_peak']:.2f} % of peak)")
+    for label, results in (("fitted model", summary["validation"]), ("FE-calibrated eq. 11 model", summary["fe_model"])):
+        st = results.get("static-xyz", {}).get("static_levels")
+        if st:
+            lines.append(f"{label} on static-xyz load plateaus ({st['n_levels']} levels): "
+                         + ", ".join(f"{a} {v['max_plateau_error_um']:.2f} µm ({v['error_pct_of_deflection']:.2f} %)"
+                                     for a, v in st["axes"].items()))
     lines.append("FBG resolution (2σ): " + ", ".join(f"{a} {v['resolution_um']:.3f} µm" for a, v in res["axes"].items())
                  + f"; condition number {res['condition_number']:.3g}")
     lines.append(f"results in {out}/ (metrics.json, coefficients.txt, validation.txt, resolution.txt, report/)")

@@ -72,3 +72,58 @@ def format_metrics(metrics: dict, title: str = "") -> str:
             line += f"{m.get('pi95_coverage', float('nan')):>11.3f}"
         lines.append(line)
     return "\n".join(lines)
+
+
+def load_plateaus(loads_N, *, tolerance_N=None, min_samples=5):
+    """Index arrays of the samples on each held load level (ramps between levels excluded).
+
+    A plateau is a run of consecutive samples whose applied force vector stays within
+    ``tolerance_N`` (default: 2 % of the largest force, at least 5 N) of the run's median; the
+    first and last sample of each run are dropped as transitions.
+    """
+    loads_N = np.asarray(loads_N, dtype=float).reshape(-1, 3)
+    finite = np.all(np.isfinite(loads_N), axis=1)
+    scale = float(np.max(np.linalg.norm(loads_N[finite], axis=1))) if finite.any() else 0.0
+    tol = max(0.02 * scale, 5.0) if tolerance_N is None else tolerance_N
+    runs, start = [], 0
+    for i in range(1, len(loads_N) + 1):
+        if i == len(loads_N) or not finite[i] or np.linalg.norm(loads_N[i] - loads_N[i - 1]) > tol / 2:
+            if i - start - 2 >= min_samples and finite[start:i].all():
+                runs.append(np.arange(start + 1, i - 1))
+            start = i
+    return runs
+
+
+def static_level_metrics(loads_N, reference_um, predicted_um, **plateau_options) -> dict:
+    """Errors of the plateau means under held static loads (paper fig. 7: one point per load).
+
+    Per axis: the largest |mean prediction - mean reference| over the loaded plateaus (µm) and
+    that error as a percentage of the largest plateau deflection on the axis. Averaging over a
+    hold is what a static calibration measures; per-sample errors add the sensors' white noise.
+    """
+    reference_um = np.asarray(reference_um, dtype=float).reshape(-1, 3)
+    predicted_um = np.asarray(predicted_um, dtype=float).reshape(-1, 3)
+    levels = []
+    for idx in load_plateaus(loads_N, **plateau_options):
+        force = np.nanmean(np.asarray(loads_N, dtype=float)[idx], axis=0)
+        levels.append({"force_N": force.tolist(), "n_samples": int(idx.size),
+                       "reference_um": reference_um[idx].mean(axis=0).tolist(),
+                       "predicted_um": predicted_um[idx].mean(axis=0).tolist()})
+    axes = {}
+    for j, a in enumerate(AXES):
+        ref = np.array([lv["reference_um"][j] for lv in levels]) if levels else np.zeros(0)
+        err = np.array([lv["predicted_um"][j] - lv["reference_um"][j] for lv in levels]) if levels else np.zeros(0)
+        peak = float(np.max(np.abs(ref))) if ref.size else float("nan")
+        worst = float(np.max(np.abs(err))) if err.size else float("nan")
+        axes[a] = {"max_plateau_deflection_um": peak, "max_plateau_error_um": worst,
+                   "error_pct_of_deflection": 100.0 * worst / peak if peak > 0 else float("nan")}
+    return {"n_levels": len(levels), "levels": levels, "axes": axes}
+
+
+def format_static_metrics(m: dict) -> str:
+    lines = [f"static load plateaus: {m['n_levels']} (means over each hold)",
+             f"{'axis':<5}{'max deflection µm':>19}{'max error µm':>14}{'% of deflection':>17}"]
+    for a, v in m["axes"].items():
+        lines.append(f"{a:<5}{v['max_plateau_deflection_um']:>19.3f}{v['max_plateau_error_um']:>14.3f}"
+                     f"{v['error_pct_of_deflection']:>17.2f}")
+    return "\n".join(lines)
