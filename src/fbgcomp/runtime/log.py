@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 import logging
 import os
-import queue
+import collections
 import tempfile
 import threading
 import time
@@ -73,7 +73,10 @@ class RunLog:
         self.dropped_rows = 0
         self.written_rows = 0
         self.files = 0
-        self._q: queue.Queue = queue.Queue(maxsize=max_queue)
+        # A plain deque: appending never wakes the writer thread (waking it on every batch
+        # would hand the GIL over at the stream rate); the writer polls every flush_s.
+        self._q: collections.deque = collections.deque()
+        self.max_queue = max_queue
         self._stop = threading.Event()
         self._seq = 0
         _write_atomic_bytes(self.folder / "meta.json",
@@ -82,10 +85,10 @@ class RunLog:
         self._thread.start()
 
     def submit(self, batch, result, enabled: bool) -> None:
-        try:
-            self._q.put_nowait((batch, result, enabled))
-        except queue.Full:
+        if len(self._q) >= self.max_queue:
             self.dropped_rows += len(batch)
+            return
+        self._q.append((batch, result, enabled))
 
     def _columns(self, items) -> dict:
         b = [i[0] for i in items]
@@ -136,35 +139,26 @@ class RunLog:
         self.written_rows += table.num_rows
         self.files += 1
 
-    def _run(self) -> None:
-        pending = []
-        deadline = time.monotonic() + self.flush_s
+    def _drain(self) -> list:
+        items = []
         while True:
-            timeout = max(0.0, deadline - time.monotonic())
             try:
-                item = self._q.get(timeout=timeout)
-                pending.append(item)
-            except queue.Empty:
-                pass
-            now = time.monotonic()
-            stopping = self._stop.is_set()
-            if now >= deadline or stopping:
-                if stopping:
-                    while True:
-                        try:
-                            pending.append(self._q.get_nowait())
-                        except queue.Empty:
-                            break
-                if pending:
-                    try:
-                        self._write(pending)
-                    except Exception:  # a full disk must not kill the service
-                        log.exception("run log: could not write %d batches", len(pending))
-                        self.dropped_rows += sum(len(p[0]) for p in pending)
-                    pending = []
-                deadline = now + self.flush_s
-                if stopping:
-                    return
+                items.append(self._q.popleft())
+            except IndexError:
+                return items
+
+    def _run(self) -> None:
+        while True:
+            stopping = self._stop.wait(self.flush_s)
+            pending = self._drain()
+            if pending:
+                try:
+                    self._write(pending)
+                except Exception:  # a full disk must not kill the service
+                    log.exception("run log: could not write %d batches", len(pending))
+                    self.dropped_rows += sum(len(p[0]) for p in pending)
+            if stopping:
+                return
 
     def close(self, timeout_s: float = 5.0) -> None:
         self._stop.set()

@@ -1,9 +1,10 @@
-"""OPC UA server facing the CNC / PLC (asyncua), in its own thread and event loop.
+"""OPC UA server facing the CNC / PLC (asyncua), in its own process.
 
 The compensation loop hands over the latest values with :meth:`OpcUaServer.publish`, which
-never blocks: the server thread writes them into the address space at most ``rate_hz`` times a
+never blocks: the server process writes them into the address space at most ``rate_hz`` times a
 second (latest value wins), so clients connecting, disconnecting or reading slowly - and the
-RSA work of their secure-channel handshakes - never stall the loop.
+RSA work of their secure-channel handshakes, and the encryption of every notification - never
+stall the loop, nor compete with it for the interpreter lock.
 
 Security: only ``Basic256Sha256`` Sign & Encrypt endpoints, with a self-signed application
 certificate generated on first start under ``<state_dir>/opcua/``. Anonymous sessions are
@@ -224,75 +225,193 @@ class Snapshot:
 
 
 class OpcUaServer:
-    """asyncua server in a background thread; ``publish`` and ``enabled`` are thread-safe."""
+    """The OPC UA server, run in a child process; this is the service-side handle.
+
+    Running asyncua in its own process (not a thread) keeps its work - encryption of every
+    notification, secure-channel handshakes, clients coming and going - off the compensation
+    loop's interpreter: no GIL hand-over on every update. The two sides talk over a Unix
+    ``SOCK_SEQPACKET`` socket pair: ``publish`` sends the newest snapshot without ever blocking
+    (when the server process lags, snapshots are dropped: the newest wins anyway); the server
+    sends back changes of ``Enabled`` and ``ReloadModel`` calls, which a small reader thread
+    hands to ``on_reload`` on ``main_loop``. The server process exits when the service dies
+    (the socket closes).
+    """
 
     def __init__(self, config: OpcUaConfig, sensor_names: list[str], model_id: str,
                  on_reload: Callable[[str], Awaitable[str]] | None = None,
                  main_loop: asyncio.AbstractEventLoop | None = None):
         self.config = config
         self.sensor_names = list(sensor_names)
-        self.model_id = model_id
+        self._model_id = model_id
         self.on_reload = on_reload
         self.main_loop = main_loop
         self.enabled = True
         self.users = load_users(config.users_file)
-        self.published = 0
-        self._latest: Snapshot | None = None
-        self._lock = threading.Lock()
-        self._thread: threading.Thread | None = None
-        self._ready = threading.Event()
-        self._error: BaseException | None = None
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._wake: asyncio.Event | None = None
-        self._stop: asyncio.Event | None = None
+        self.dropped = 0
         self.cert_path, self.key_path = ensure_certificate(config.state_dir)
+        self._sock: socket.socket | None = None
+        self._proc = None
+        self._reader: threading.Thread | None = None
 
-    # -- thread-side API
-    def start(self, timeout_s: float = 30.0) -> None:
-        self._thread = threading.Thread(target=self._thread_main, name="fbgcomp-opcua",
+    @property
+    def model_id(self) -> str:
+        return self._model_id
+
+    @model_id.setter
+    def model_id(self, value: str) -> None:
+        self._model_id = value
+        self._send(("model_id", value))
+
+    def start(self, timeout_s: float = 60.0) -> None:
+        import pickle
+        import subprocess
+        import sys
+        parent, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        self._proc = subprocess.Popen(
+            [sys.executable, "-m", "fbgcomp.runtime.opcua", "--worker-fd", str(child.fileno())],
+            pass_fds=[child.fileno()])
+        child.close()
+        init = {"config": self.config.__dict__, "sensor_names": self.sensor_names,
+                "model_id": self._model_id, "users": self.users,
+                "cert": str(self.cert_path), "key": str(self.key_path),
+                "enabled": self.enabled}
+        parent.sendall(pickle.dumps(("init", init)))
+        parent.settimeout(timeout_s)
+        try:
+            kind, payload = pickle.loads(parent.recv(1 << 16))
+        except (socket.timeout, EOFError, OSError, pickle.UnpicklingError):
+            self._proc.kill()
+            raise InputError(f"OPC UA server at {self.config.endpoint} did not start",
+                             column="opcua.endpoint")
+        if kind != "ready":
+            self._proc.wait(5)
+            raise InputError(f"cannot start OPC UA server at {self.config.endpoint}: {payload}",
+                             column="opcua.endpoint")
+        parent.settimeout(None)
+        self._sock = parent
+        self._reader = threading.Thread(target=self._read_messages, name="fbgcomp-opcua-rx",
                                         daemon=True)
-        self._thread.start()
-        if not self._ready.wait(timeout_s):
-            raise RuntimeError("OPC UA server did not start in time")
-        if self._error is not None:
-            raise InputError(f"cannot start OPC UA server at {self.config.endpoint}: "
-                             f"{self._error}", column="opcua.endpoint")
+        self._reader.start()
+
+    def _send(self, message) -> bool:
+        import pickle
+        sock = self._sock
+        if sock is None:
+            return False
+        try:
+            sock.send(pickle.dumps(message), socket.MSG_DONTWAIT)
+            return True
+        except (BlockingIOError, InterruptedError):
+            self.dropped += 1          # the server process lags: never wait for it
+        except OSError:
+            pass
+        return False
 
     def publish(self, snapshot: Snapshot) -> None:
-        with self._lock:
-            self._latest = snapshot
-        loop, wake = self._loop, self._wake
-        if loop is not None and wake is not None and not loop.is_closed():
-            try:
-                loop.call_soon_threadsafe(wake.set)
-            except RuntimeError:
-                pass
+        self._send(("snap", snapshot))
 
-    def set_model_id(self, model_id: str) -> None:
-        self.model_id = model_id
-        self.publish(self._latest) if self._latest is not None else None
+    def _read_messages(self) -> None:
+        import pickle
+        sock = self._sock
+        while True:
+            try:
+                data = sock.recv(1 << 16)
+            except OSError:
+                return
+            if not data:
+                return
+            kind, payload = pickle.loads(data)
+            if kind == "enabled":
+                self.enabled = bool(payload)
+            elif kind == "reload":
+                request_id, path = payload
+                self._reload(request_id, path)
+
+    def _reload(self, request_id: int, path: str) -> None:
+        if self.on_reload is None or self.main_loop is None:
+            self._send(("reload_result", (request_id, False, "reload not supported")))
+            return
+        fut = asyncio.run_coroutine_threadsafe(self.on_reload(path), self.main_loop)
+
+        def done(f):
+            try:
+                self._send(("reload_result", (request_id, True, f.result())))
+            except Exception as exc:
+                log.warning("model reload refused: %s", exc)
+                self._send(("reload_result", (request_id, False, str(exc))))
+
+        fut.add_done_callback(done)
 
     def stop(self, timeout_s: float = 5.0) -> None:
-        if self._loop is not None and self._stop is not None and not self._loop.is_closed():
+        if self._sock is not None:
             try:
-                self._loop.call_soon_threadsafe(self._stop.set)
-            except RuntimeError:
+                self._sock.send(__import__("pickle").dumps(("stop", None)))
+            except OSError:
                 pass
-        if self._thread is not None:
-            self._thread.join(timeout_s)
+        if self._proc is not None:
+            try:
+                self._proc.wait(timeout_s)
+            except Exception:
+                self._proc.kill()
+                self._proc.wait(5)
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
 
-    def _thread_main(self) -> None:
+
+class _ServerCore:
+    """The asyncua server itself (in the worker process)."""
+
+    def __init__(self, sock: socket.socket, init: dict):
+        self.sock = sock
+        self.config = OpcUaConfig(**init["config"])
+        self.sensor_names = init["sensor_names"]
+        self.model_id = init["model_id"]
+        self.users = init["users"]
+        self.cert_path, self.key_path = init["cert"], init["key"]
+        self.enabled = bool(init["enabled"])
+        self.published = 0
+        self._latest: Snapshot | None = None
+        self._reloads: dict[int, asyncio.Future] = {}
+        self._next_reload = 0
+
+    def send(self, message) -> None:
+        import pickle
         try:
-            asyncio.run(self._main())
-        except BaseException as exc:  # reported to start()
-            self._error = exc
-            self._ready.set()
+            self.sock.send(pickle.dumps(message), socket.MSG_DONTWAIT)
+        except (BlockingIOError, InterruptedError, OSError):
+            pass
 
-    # -- server thread
-    async def _main(self) -> None:
+    def _on_readable(self) -> None:
+        import pickle
+        while True:
+            try:
+                data = self.sock.recv(1 << 16, socket.MSG_DONTWAIT)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:
+                data = b""
+            if not data:             # the service is gone: stop serving
+                self._stop.set()
+                break
+            kind, payload = pickle.loads(data)
+            if kind == "snap":
+                self._latest = payload
+                self._wake.set()
+            elif kind == "model_id":
+                self.model_id = payload
+            elif kind == "reload_result":
+                request_id, ok, message = payload
+                fut = self._reloads.pop(request_id, None)
+                if fut is not None and not fut.done():
+                    fut.set_result((ok, message))
+            elif kind == "stop":
+                self._stop.set()
+
+    async def main(self) -> None:
         from asyncua import Server, ua
 
-        self._loop = asyncio.get_running_loop()
+        loop = asyncio.get_running_loop()
         self._wake, self._stop = asyncio.Event(), asyncio.Event()
         cfg = self.config
         server = Server(user_manager=make_user_manager(self.users, cfg.allow_anonymous))
@@ -320,8 +439,12 @@ class OpcUaServer:
         self._nodes = await self._build(server, idx)
         self._server = server
         async with server:
-            self._ready.set()
-            await self._publish_loop()
+            self.send(("ready", cfg.endpoint))
+            loop.add_reader(self.sock.fileno(), self._on_readable)
+            try:
+                await self._publish_loop()
+            finally:
+                loop.remove_reader(self.sock.fileno())
 
     async def _build(self, server, idx) -> dict:
         from asyncua import ua
@@ -367,15 +490,18 @@ class OpcUaServer:
         return nodes
 
     async def _reload(self, parent, path_variant):
+        """ReloadModel: ask the service to load another model file, answer its result."""
         from asyncua import ua
         path = path_variant.Value if hasattr(path_variant, "Value") else str(path_variant)
-        if self.on_reload is None or self.main_loop is None:
-            return ua.StatusCode(ua.StatusCodes.BadNotSupported)
-        fut = asyncio.run_coroutine_threadsafe(self.on_reload(path), self.main_loop)
+        self._next_reload += 1
+        fut = asyncio.get_running_loop().create_future()
+        self._reloads[self._next_reload] = fut
+        self.send(("reload", (self._next_reload, path)))
         try:
-            message = await asyncio.wait_for(asyncio.wrap_future(fut), 30.0)
-        except Exception as exc:
-            log.warning("model reload refused: %s", exc)
+            ok, message = await asyncio.wait_for(fut, 30.0)
+        except asyncio.TimeoutError:
+            return ua.StatusCode(ua.StatusCodes.BadTimeout)
+        if not ok:
             return ua.StatusCode(ua.StatusCodes.BadInvalidArgument)
         return [ua.Variant(message, ua.VariantType.String)]
 
@@ -385,18 +511,18 @@ class OpcUaServer:
         stop_task = asyncio.ensure_future(self._stop.wait())
         try:
             while not self._stop.is_set():
-                wake_task = asyncio.ensure_future(self._wake.wait())
-                await asyncio.wait({wake_task, stop_task}, timeout=0.2,
-                                   return_when=asyncio.FIRST_COMPLETED)
-                wake_task.cancel()
+                if not self._wake.is_set():
+                    wake_task = asyncio.ensure_future(self._wake.wait())
+                    await asyncio.wait({wake_task, stop_task}, timeout=0.2,
+                                       return_when=asyncio.FIRST_COMPLETED)
+                    wake_task.cancel()
                 self._wake.clear()
                 await self._read_enabled()
                 await self._heartbeat()
                 wait = last + period - time.monotonic()
                 if wait > 0:
                     await asyncio.sleep(wait)  # rate limit: the newest snapshot wins
-                with self._lock:
-                    snap, self._latest = self._latest, None
+                snap, self._latest = self._latest, None
                 if snap is not None:
                     last = time.monotonic()
                     await self._write(snap)
@@ -420,8 +546,9 @@ class OpcUaServer:
         # straight from the address space: no request round trip on every update
         dv = self._server.iserver.aspace.read_attribute_value(self._nodes["Enabled"].nodeid,
                                                               ua.AttributeIds.Value)
-        if dv.Value is not None:
+        if dv.Value is not None and bool(dv.Value.Value) != self.enabled:
             self.enabled = bool(dv.Value.Value)
+            self.send(("enabled", self.enabled))
 
     async def _write(self, s: Snapshot) -> None:
         from asyncua import ua
@@ -463,3 +590,27 @@ class OpcUaServer:
         # SampleTime last: a client watching it sees a complete, consistent sample
         await put("SampleTime", src, ua.VariantType.DateTime)
         self.published += 1
+
+
+def _worker(fd: int) -> None:
+    """Entry point of the server process: ``python -m fbgcomp.runtime.opcua --worker-fd N``."""
+    import pickle
+    import signal
+    signal.signal(signal.SIGINT, signal.SIG_IGN)   # the service decides when to stop
+    sock = socket.socket(fileno=fd)
+    kind, init = pickle.loads(sock.recv(1 << 16))
+    core = _ServerCore(sock, init)
+    try:
+        asyncio.run(core.main())
+    except Exception as exc:
+        core.send(("error", f"{type(exc).__name__}: {exc}"))
+        raise SystemExit(1)
+
+
+if __name__ == "__main__":
+    import sys
+    logging.basicConfig(level=logging.WARNING)
+    if len(sys.argv) == 3 and sys.argv[1] == "--worker-fd":
+        _worker(int(sys.argv[2]))
+    else:
+        raise SystemExit("usage: python -m fbgcomp.runtime.opcua --worker-fd FD (started by serve)")
