@@ -23,7 +23,10 @@ def campaign_inputs(time_s: np.ndarray, machine):
     a radiant load on one face in the afternoon."""
     hours = time_s / 3600.0
     ambient_C = 30.0 - 3.0 * np.sin(2 * np.pi * hours / 24.0)
-    spindle_W = machine.thermal.nominal_spindle_heat_W * ((hours // 2) % 2 == 1)
+    # Spindle on for 2 h, off for 2 h, first switched on after a quarter of an hour (so the naive
+    # window below sees a heat step).
+    spindle_W = machine.thermal.nominal_spindle_heat_W * ((hours >= 0.25)
+                                                          & (((hours - 0.25) // 2) % 2 == 0))
     radiant = machine.thermal.nominal_radiant_W_per_m2 * ((hours % 24 > 12) & (hours % 24 < 16))
     return ambient_C, spindle_W.astype(float), radiant.astype(float)
 

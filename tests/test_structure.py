@@ -205,3 +205,16 @@ def test_thermal_steady_state_equals_static_temperature_superposition(twin):
     uniform = twin.static_temperature_response("uniform", 25.0 - Tref)
     assert h.ttp_um[-1] == pytest.approx(uniform.ttp_um, abs=1e-6 * np.abs(uniform.ttp_um).max())
     assert h.sensor_temperature_C[-1] == pytest.approx(np.full(5, 25.0))
+
+
+def test_z_axis_position_moves_the_carriages_and_the_lever_arm(machine):
+    """Raising the ram (Z+) brings the carriages closer to the TTP: the tip gets stiffer."""
+    low = Twin(machine, resolution=0.4, z_axis_mm=0.0)
+    raised = Twin(machine, resolution=0.4, z_axis_mm=300.0)
+    assert raised.z_axis_mm == 300.0
+    c_low = low.influence.ttp_per_force_um_per_N
+    c_raised = raised.influence.ttp_per_force_um_per_N
+    assert c_raised[0, 0] < 0.8 * c_low[0, 0]
+    assert c_raised[2, 2] == pytest.approx(c_low[2, 2], rel=0.02)   # the nut travels with the ram
+    with pytest.raises(InputError, match="off the ram"):
+        Twin(machine, resolution=0.4, z_axis_mm=1000.0)

@@ -19,7 +19,7 @@ import scipy.sparse as sp
 
 from fbgcomp.structure import elastic, thermal
 from fbgcomp.structure.fe import Factorised, layer_order
-from fbgcomp.structure.machine import Machine
+from fbgcomp.structure.machine import Machine, parse_machine
 from fbgcomp.structure.mesh import RamMesh, carriage_z_mm, machine_mesh
 
 UM_PER_MM = 1000.0
@@ -158,8 +158,11 @@ class Twin:
 
     def __init__(self, machine: Machine, resolution: float | None = None,
                  z_axis_mm: float | None = None, n_shifts: int | None = None):
+        if z_axis_mm is not None:
+            # Re-validate: the carriage stations must stay on the ram at this axis position.
+            machine = parse_machine(machine.with_z_axis(z_axis_mm).model_dump())
         self.machine = machine
-        self.z_axis_mm = machine.supports.z_axis_mm if z_axis_mm is None else float(z_axis_mm)
+        self.z_axis_mm = machine.supports.z_axis_mm
         self.times = BuildTimes()
         t0 = time.perf_counter()
         self.mesh = rm = machine_mesh(machine, resolution, self.z_axis_mm)
