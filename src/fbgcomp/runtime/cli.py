@@ -36,6 +36,10 @@ def register(app: typer.Typer) -> None:
             None, "--dashboard", help="Serve the live dashboard on HOST:PORT (docs/dashboard.md)."),
         dashboard_users: Optional[Path] = typer.Option(
             None, "--dashboard-users", help="Dashboard users file (name:pbkdf2_sha256$...)."),
+        cnc: Optional[str] = typer.Option(
+            None, "--cnc", help="CNC output: linuxcnc (HAL component fbgcomp, docs/linuxcnc.md) or off."),
+        cnc_address: Optional[str] = typer.Option(
+            None, "--cnc-address", help="Local channel of the CNC output: udp://127.0.0.1:47300 or unix:///path."),
         duration: Optional[float] = typer.Option(None, "--duration", help="Stop after this many seconds."),
         verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress to stderr."),
     ):
@@ -74,6 +78,10 @@ def register(app: typer.Typer) -> None:
             cfg.dashboard.listen = dashboard
         if dashboard_users is not None:
             cfg.dashboard.users_file = str(dashboard_users)
+        if cnc is not None:
+            cfg.cnc.kind = cnc
+        if cnc_address is not None:
+            cfg.cnc.address = cnc_address
         svc = run_service(cfg, duration)
         typer.echo(f"processed {svc.frames} frames in {svc.batches} batches", err=True)
 

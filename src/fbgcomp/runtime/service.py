@@ -21,6 +21,7 @@ import numpy as np
 from fbgcomp.dashboard.server import DashboardConfig
 from fbgcomp.errors import InputError
 from fbgcomp.runtime import health as H
+from fbgcomp.runtime.linuxcnc import CncConfig
 from fbgcomp.runtime.opcua import OpcUaConfig, OpcUaServer, Snapshot
 from fbgcomp.runtime.pipeline import HEALTH_ALARM, HEALTH_NAMES, Pipeline, PipelineConfig
 from fbgcomp.runtime.sources import (HyperionSource, PeakMapper, ReplaySource, SensorBatch,
@@ -58,6 +59,7 @@ class RuntimeConfig:
     log: LogConfig = field(default_factory=LogConfig)
     opcua_enabled: bool = True
     dashboard: DashboardConfig = field(default_factory=DashboardConfig)
+    cnc: CncConfig = field(default_factory=CncConfig)   # --cnc linuxcnc (docs/linuxcnc.md)
 
     @classmethod
     def from_toml(cls, path: str | Path) -> "RuntimeConfig":
@@ -120,6 +122,7 @@ class Service:
         self.last_result = None
         self.opc: OpcUaServer | None = None
         self.dashboard = None             # fbgcomp.dashboard.Dashboard when configured
+        self.cnc = None                   # fbgcomp.runtime.linuxcnc.LinuxCncOutput (--cnc)
         self._enabled = True              # used only without OPC UA
         self.runlog = None
         self.sim = None
@@ -238,6 +241,10 @@ class Service:
                                        self.pipeline.probe_names, self.model_id,
                                        control=self.set_enabled, enabled=lambda: self.enabled)
             self.dashboard.start()
+        from fbgcomp.runtime.linuxcnc import open_cnc_output
+        self.cnc = open_cnc_output(self.config.cnc)
+        if self.cnc is not None:
+            self.cnc.start()
         queue: asyncio.Queue[SensorBatch | None] = asyncio.Queue()
 
         async def pump():
@@ -277,6 +284,8 @@ class Service:
                     break  # the source ended (replay finished)
                 self._process(SensorBatch.concat(items))
         finally:
+            if self.cnc is not None:
+                self.cnc.stop()   # the CNC ramps its offsets to zero without waiting for a timeout
             await source.close()
             pump_task.cancel()
             try:
@@ -327,9 +336,11 @@ class Service:
 
     def _publish(self, res, wavelength_nm, received_s) -> None:
         """Newest sample to the outputs; each only stores it (never blocks this loop)."""
-        if self.opc is None and self.dashboard is None:
+        if self.opc is None and self.dashboard is None and self.cnc is None:
             return
         snap = self._snapshot(res, wavelength_nm, received_s)
+        if self.cnc is not None:
+            self.cnc.publish(snap, self.enabled)
         if self.opc is not None:
             self.opc.publish(snap)
         if self.dashboard is not None:
@@ -340,17 +351,18 @@ class Service:
         names = self.pipeline.sensor_names
         fallback = ",".join(sorted(self.pipeline.model_sets[k])) if k > 0 else ""
         h = int(res.health[-1])
+        # plain Python numbers: the snapshot is pickled to the OPC UA process per update
         return Snapshot(
             sample_time_s=float(res.time_s[-1]),
-            correction_um=tuple(res.correction_um[-1]),
-            deviation_um=tuple(res.deviation_um[-1]),
-            half_width_um=tuple(res.half_width_um[-1]),
-            expected_rms_um=tuple(res.expected_rms_um[-1]),
-            health=HEALTH_NAMES[h], fallback=fallback, alarm=h == HEALTH_ALARM,
-            sensor_status=[H.STATUS_NAMES[c] for c in res.sensor_status[-1]],
-            sensor_wavelength_nm=list(wavelength_nm),
-            source_status=getattr(self.source, "status", ""), frames=self.frames,
-            model_id=self.model_id, received_s=received_s)
+            correction_um=tuple(res.correction_um[-1].tolist()),
+            deviation_um=tuple(res.deviation_um[-1].tolist()),
+            half_width_um=tuple(res.half_width_um[-1].tolist()),
+            expected_rms_um=tuple(res.expected_rms_um[-1].tolist()),
+            health=HEALTH_NAMES[h], fallback=fallback, alarm=bool(h == HEALTH_ALARM),
+            sensor_status=[H.STATUS_NAMES[c] for c in res.sensor_status[-1].tolist()],
+            sensor_wavelength_nm=np.asarray(wavelength_nm, float).tolist(),
+            source_status=str(getattr(self.source, "status", "")), frames=int(self.frames),
+            model_id=self.model_id, received_s=float(received_s))
 
 
 def _probe_specs(folder):
