@@ -112,6 +112,11 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def cpu_s() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
 def current_rss_mb() -> float:
     import psutil
 
@@ -132,29 +137,31 @@ def in_process_run(rows: int, partition_rows: int, chunk_rows: int) -> dict:
     from fbgcomp.distributed import tree_reduce
 
     idle = current_rss_mb()
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), cpu_s()
     state = tree_reduce(synthetic_partition, tasks_for(rows, partition_rows, chunk_rows),
                         merge_states)
     reduce_s = time.perf_counter() - t0
-    return {"state": state, "reduce_s": reduce_s, "idle_rss_mb": idle, "peak_rss_mb": peak_rss_mb()}
+    return {"state": state, "reduce_s": reduce_s, "idle_rss_mb": idle, "peak_rss_mb": peak_rss_mb(),
+            "cpu_s": [cpu_s() - c0]}
 
 
 def dask_run(rows: int, partition_rows: int, chunk_rows: int, workers: int) -> dict:
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
-    from fbgcomp.distributed import tree_reduce
+    from fbgcomp.distributed import local_cluster, tree_reduce
 
-    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                      dashboard_address=None, silence_logs=40, memory_limit=0) as lc, \
-            Client(lc) as client:
+    with local_cluster(workers, memory_limit=0) as lc, Client(lc) as client:
         idle = client.run(current_rss_mb)
+        cpu0 = client.run(cpu_s)
         t0 = time.perf_counter()
         state = tree_reduce(synthetic_partition, tasks_for(rows, partition_rows, chunk_rows),
                             merge_states, dask=client)
         reduce_s = time.perf_counter() - t0
         peaks = client.run(peak_rss_mb)
+        cpu1 = client.run(cpu_s)
     return {"state": state, "reduce_s": reduce_s, "idle_rss_mb": sorted(idle.values()),
-            "peak_rss_mb": sorted(peaks.values())}
+            "peak_rss_mb": sorted(peaks.values()),
+            "cpu_s": sorted(cpu1[w] - cpu0[w] for w in cpu1)}
 
 
 def main(argv=None):
@@ -169,6 +176,8 @@ def main(argv=None):
     args = ap.parse_args(argv)
     sizes = [int(float(s)) for s in args.rows.split(",") if s]
 
+    print(f"load average (1/5/15 min) at start: {', '.join(f'{v:.1f}' for v in os.getloadavg())} "
+          "(a shared machine: wall times depend on the neighbours, CPU times and RSS do not)")
     print(f"bench_scale: eq13 stepwise + loo fallbacks, partitions of {args.partition_rows} rows "
           f"generated in-task in chunks of {args.chunk_rows}; LocalCluster of {args.workers} "
           f"worker processes x 1 thread; Python {platform.python_version()}, "
@@ -183,19 +192,24 @@ def main(argv=None):
                 local = ex.submit(in_process_run, rows, args.partition_rows, args.chunk_rows).result()
             model_local, select_s = fit_from_state(local["state"])
             line.update({"in_process_s": round(local["reduce_s"] + select_s, 2),
+                         "in_process_cpu_s": round(local["cpu_s"][0], 1),
+                         "load_avg_1min": round(os.getloadavg()[0], 1),
                          "in_process_peak_rss_mb": round(local["peak_rss_mb"], 1),
                          "in_process_idle_rss_mb": round(local["idle_rss_mb"], 1)})
             print(f"{rows:>12,d} rows  in-process: {line['in_process_s']:8.1f} s "
-                  f"({rows / line['in_process_s']:,.0f} rows/s), peak RSS "
+                  f"({rows / line['in_process_s']:,.0f} rows/s; CPU {local['cpu_s'][0]:.0f} s), peak RSS "
                   f"{local['peak_rss_mb']:.0f} MB (idle {local['idle_rss_mb']:.0f} MB)")
             sys.stdout.flush()
         dask = dask_run(rows, args.partition_rows, args.chunk_rows, args.workers)
         model_dask, select_s = fit_from_state(dask["state"])
         line.update({"dask_s": round(dask["reduce_s"] + select_s, 2), "select_s": round(select_s, 3),
                      "dask_peak_rss_mb_per_worker": [round(v, 1) for v in dask["peak_rss_mb"]],
-                     "dask_idle_rss_mb_per_worker": [round(v, 1) for v in dask["idle_rss_mb"]]})
+                     "dask_idle_rss_mb_per_worker": [round(v, 1) for v in dask["idle_rss_mb"]],
+                     "dask_cpu_s_per_worker": [round(v, 1) for v in dask["cpu_s"]],
+                     "load_avg_1min_after": round(os.getloadavg()[0], 1)})
         print(f"{rows:>12,d} rows  dask x{args.workers}:   {line['dask_s']:8.1f} s "
-              f"({rows / line['dask_s']:,.0f} rows/s), peak RSS per worker "
+              f"({rows / line['dask_s']:,.0f} rows/s; CPU per worker "
+              f"{', '.join(f'{v:.0f}' for v in dask['cpu_s'])} s), peak RSS per worker "
               f"{', '.join(f'{v:.0f}' for v in dask['peak_rss_mb'])} MB (idle "
               f"{', '.join(f'{v:.0f}' for v in dask['idle_rss_mb'])} MB); selection from the "
               f"factor {select_s:.2f} s")

@@ -23,9 +23,9 @@ def client():
     """A real LocalCluster: two single-threaded worker processes."""
     distributed = require("distributed")
     require("pyarrow")
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                  dashboard_address=None, silence_logs=40) as lc, \
-            distributed.Client(lc) as c:
+    from fbgcomp.distributed import local_cluster
+
+    with local_cluster(2) as lc, distributed.Client(lc) as c:
         yield c
 
 
