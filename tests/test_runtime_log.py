@@ -184,3 +184,21 @@ def test_a_slow_disk_drops_batches_instead_of_blocking(tmp_path):
     assert log.dropped_rows > 0
     assert len(df) == log.written_rows == total - log.dropped_rows
     assert (np.diff(df["time_s"].to_numpy()) > 0).all()
+
+
+def test_busy_opcua_port_is_a_one_line_error(paths, tmp_path, capsys, monkeypatch):
+    import socket
+    fbgcomp_testing.require("asyncua")
+    monkeypatch.setenv("FBGCOMP_OPCUA_USER", "operator")
+    monkeypatch.setenv("FBGCOMP_OPCUA_PASSWORD", "pw-for-test")
+    model, campaign = paths
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        code = main(["serve", "--model", str(model), "--source", f"replay://{campaign}",
+                     "--opcua", f"opc.tcp://127.0.0.1:{port}/fbgcomp/",
+                     "--state-dir", str(tmp_path / "state"), "--duration", "1"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.startswith("error:") and "\n" not in err
+    assert "opcua.endpoint" in err and "address already in use" in err

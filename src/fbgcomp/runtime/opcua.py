@@ -310,6 +310,11 @@ class OpcUaServer:
     def publish(self, snapshot: Snapshot) -> None:
         self._send(("snap", snapshot))
 
+    def set_enabled(self, value: bool) -> None:
+        """Write ``Enabled`` from the service side (e.g. the dashboard): one shared state."""
+        self.enabled = bool(value)
+        self._send(("set_enabled", self.enabled))
+
     def _read_messages(self) -> None:
         import pickle
         sock = self._sock
@@ -400,6 +405,8 @@ class _ServerCore:
                 self._wake.set()
             elif kind == "model_id":
                 self.model_id = payload
+            elif kind == "set_enabled":
+                asyncio.ensure_future(self._set_enabled(bool(payload)))
             elif kind == "reload_result":
                 request_id, ok, message = payload
                 fut = self._reloads.pop(request_id, None)
@@ -439,6 +446,7 @@ class _ServerCore:
         self._nodes = await self._build(server, idx)
         self._server = server
         async with server:
+            logging.getLogger("asyncua").setLevel(logging.WARNING)
             self.send(("ready", cfg.endpoint))
             loop.add_reader(self.sock.fileno(), self._on_readable)
             try:
@@ -541,6 +549,12 @@ class _ServerCore:
             self._nodes["Heartbeat"].nodeid,
             ua.DataValue(ua.Variant(self._beats, ua.VariantType.UInt32)))
 
+    async def _set_enabled(self, value: bool) -> None:
+        from asyncua import ua
+        self.enabled = value
+        await self._server.write_attribute_value(
+            self._nodes["Enabled"].nodeid, ua.DataValue(ua.Variant(value, ua.VariantType.Boolean)))
+
     async def _read_enabled(self) -> None:
         from asyncua import ua
         # straight from the address space: no request round trip on every update
@@ -599,6 +613,9 @@ def _worker(fd: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)   # the service decides when to stop
     sock = socket.socket(fileno=fd)
     kind, init = pickle.loads(sock.recv(1 << 16))
+    # start-up failures (busy port...) reach the user as serve's one-line error, not as
+    # asyncua tracebacks
+    logging.getLogger("asyncua").setLevel(logging.CRITICAL)
     core = _ServerCore(sock, init)
     try:
         asyncio.run(core.main())

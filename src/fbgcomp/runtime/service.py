@@ -213,28 +213,32 @@ class Service:
         server's ``Enabled`` node is written, so the CNC and the dashboard see one state."""
         value = bool(value)
         opc = self.opc
-        if opc is not None and getattr(opc, "_loop", None) is not None:
-            asyncio.run_coroutine_threadsafe(opc._nodes["Enabled"].write_value(value),
-                                             opc._loop).result(5.0)
-            opc.enabled = value
+        if opc is not None:
+            opc.set_enabled(value)      # the OPC UA process writes its Enabled node
         else:
             self._enabled = value
         return self.enabled
 
     # -- main loop
     async def run(self, duration_s: float | None = None) -> None:
-        source, temps, probe_specs = await self._open_source()
-        self.source, self.temps = source, temps
         main_loop = asyncio.get_running_loop()
+        if self.config.opcua_enabled:
+            # first: the slowest to start, and a busy port must fail before anything runs
+            self.opc = OpcUaServer(self.config.opcua, self.pipeline.sensor_names, self.model_id,
+                                   on_reload=self.reload, main_loop=main_loop)
+            await main_loop.run_in_executor(None, self.opc.start)
+        try:
+            source, temps, probe_specs = await self._open_source()
+        except BaseException:
+            if self.opc is not None:
+                await main_loop.run_in_executor(None, self.opc.stop)
+            raise
+        self.source, self.temps = source, temps
         if self.config.log.dir:
             from fbgcomp.runtime.log import RunLog
             self.runlog = RunLog(self.config.log.dir,
                                  model_meta(self.model, self.pipeline, probe_specs),
                                  self.config.log.flush_s, fsync=self.config.log.fsync)
-        if self.config.opcua_enabled:
-            self.opc = OpcUaServer(self.config.opcua, self.pipeline.sensor_names, self.model_id,
-                                   on_reload=self.reload, main_loop=main_loop)
-            await main_loop.run_in_executor(None, self.opc.start)
         if self.config.dashboard.listen:
             from fbgcomp.dashboard import Dashboard
             self.dashboard = Dashboard(self.config.dashboard, self.pipeline.sensor_names,
