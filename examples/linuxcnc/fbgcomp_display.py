@@ -1,0 +1,1 @@
+../../src/fbgcomp/cnc/fbgcomp_display.py
