@@ -396,6 +396,13 @@ class KinematicChain:
             self.load_map = np.zeros((G.shape[2], 0))
             self.load_identifiable = np.zeros(G.shape[2], bool)
         self.determined = determined
+        # Projector on what plane sections cannot explain (the bar equations' residual): zero
+        # unless bars are redundant; large when a reading contradicts its neighbours (a grating
+        # compensated with the wrong temperature, a local strain the sections do not carry).
+        if S:
+            self.inconsistency_projector = np.eye(S) - A @ pinv
+        else:
+            self.inconsistency_projector = np.zeros((0, 0))
         self.param_map = params_meas                                 # (K, 5, S) per µm of bar
         # Housing thermal expansion per K of its probe (steel, free expansion).
         self.param_housing = np.zeros((K, 5))
@@ -496,8 +503,9 @@ class KinematicChain:
 
     def jacobian(self):
         """Linear maps: TTP µm per µm of each bar (3, S) and per K of housing probe (3,)."""
-        S = len(self.sensors)
-        eye = np.eye(S) if S else np.zeros((0, 0))
-        J = self.ttp_deviation_um(eye).T if S else np.zeros((3, 0))
-        Jh = self.ttp_deviation_um(np.zeros((1, S)), np.ones(1))[0]
-        return J, Jh
+        if getattr(self, "_jacobian", None) is None:
+            S = len(self.sensors)
+            J = self.ttp_deviation_um(np.eye(S)).T if S else np.zeros((3, 0))
+            Jh = self.ttp_deviation_um(np.zeros((1, S)), np.ones(1))[0]
+            self._jacobian = (J, Jh)
+        return self._jacobian

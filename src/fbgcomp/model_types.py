@@ -47,7 +47,7 @@ _Z95 = float(stats.norm.ppf(0.975))
 KINEMATIC_DEFAULT_RELATIVE = 0.10
 KINEMATIC_DEFAULT_FLOOR_UM = 0.5
 #: Time constants (s) of the dynamic model's first-order filters.
-DEFAULT_TAUS_S = (900.0, 3600.0, 10800.0)
+DEFAULT_TAUS_S = (3600.0,)
 
 
 def campaign_z_axis_mm(campaign):
@@ -151,6 +151,16 @@ class KinematicPredictor:
                          if chain.housing_probe in self.probe_names else None)
         self._noise_um = elongation_noise_um(sensors, wavelength_noise_nm)[self._used]
         self._probe_noise_C = probe_noise_C
+        # Elongation change per K of each probe (temperature compensation, eq. 2-3): probe
+        # noise moves the compensated elongations too.
+        n_p = len(self.probe_names)
+        if n_p:
+            w0 = np.array([s.lambda0_nm for s in sensors])
+            t0 = np.zeros(n_p)
+            self._per_probe = (self.feature_map.base(np.tile(w0, (n_p, 1)), np.eye(n_p), w0, t0)
+                               [:, self._used]).T                     # (S_used, P) µm/K
+        else:
+            self._per_probe = np.zeros((len(self._used), 0))
         self._rel = np.broadcast_to(np.asarray(pi_relative, float), (3,)).copy()
         self._floor = np.broadcast_to(np.asarray(pi_floor_um, float), (3,)).copy()
         self.expected_rms_error_um = np.sqrt(self._noise_var(chain) + self._floor ** 2)
@@ -161,6 +171,34 @@ class KinematicPredictor:
             self._chains[key] = KinematicChain(self.machine, [self.sensor_names[i] for i in self._used],
                                                z_axis_mm=key)
         return self._chains[key]
+
+    def inconsistency_var(self, chain, elongation_um, jacobian=None):
+        """Extra variance (n, 3) µm² when the bars contradict plane sections beyond their noise.
+
+        The bar equations' residual rho = P dL (P: projector on what plane sections cannot
+        explain) is zero for any deformation the chain can represent. An artefact eps on one
+        bar k (a grating compensated with the wrong temperature, a local strain) leaves
+        rho = eps P[:, k], so eps = rho_k / P_kk; the chain passes J[:, k] eps to the TTP. The
+        residual cannot say which bar it is: the interval takes the worst single-bar
+        explanation, shrunk by the part of |rho|² the interrogator and probe noise explain at
+        95 % (chi² scale 3.84 on its expected power tr(P Σ P')).
+        """
+        P = chain.inconsistency_projector
+        n = len(elongation_um)
+        if not P.size or np.trace(P) < 0.5:
+            return np.zeros((n, 3))
+        sigma = np.diag(self._noise_um ** 2) + (self._per_probe * self._probe_noise_C) @ \
+            (self._per_probe * self._probe_noise_C).T
+        expected = float(np.trace(P @ sigma @ P.T))
+        rho = elongation_um @ P.T
+        rho2 = np.sum(rho ** 2, axis=1)
+        shrink = np.where(rho2 > 0, np.maximum(1.0 - 3.84 * expected / np.maximum(rho2, 1e-300), 0.0), 0.0)
+        d = np.diag(P)
+        ok = d > 1e-9
+        J = chain.jacobian()[0] if jacobian is None else jacobian
+        eps = rho[:, ok] / d[ok]                                     # (n, k) µm on one bar
+        effect = np.max((eps[:, :, None] * J.T[ok][None, :, :]) ** 2, axis=1)
+        return effect * shrink[:, None]
 
     def _noise_var(self, chain):
         J, Jh = chain.jacobian()
@@ -191,7 +229,8 @@ class KinematicPredictor:
             sel = (zs == z) if np.isfinite(z) else ~np.isfinite(zs)
             ch = self.chain(None if not np.isfinite(z) else z)
             d = ch.ttp_deviation_um(dl[sel], None if dT is None else dT[sel])
-            var = self._noise_var(ch)[None, :] + self._floor ** 2 + (self._rel * d) ** 2
+            var = (self._noise_var(ch)[None, :] + self._floor ** 2 + (self._rel * d) ** 2
+                   + self.inconsistency_var(ch, dl[sel]))
             dev[sel], half[sel] = d, _Z95 * np.sqrt(var)
         return dev, half
 
@@ -574,6 +613,18 @@ def _fit_regression(model, X, progress=None, targets=None):
 
 
 # =================================================================================== hybrid
+
+
+def hybrid_chain_part(chain, elongation_um, housing_dT_K):
+    """The chain's share of a hybrid prediction (n, 3) µm: dx, dy from the bars (the load path,
+    Z-aware); dz only from the housing's probe expansion, because on dz the bars' axial
+    readings are dominated by the gratings' thermal cross-sensitivity, and the residual
+    regression takes them as regressors instead (a chain term it would only cancel at the
+    training Z position)."""
+    out = chain.ttp_deviation_um(elongation_um, housing_dT_K)
+    out[:, 2] = chain.ttp_deviation_um(np.zeros_like(elongation_um), housing_dT_K)[:, 2]
+    return out
+
 class HybridPredictor:
     """Thermally corrected kinematic chain + temperature regression (see :class:`HybridModel`)."""
 
@@ -591,6 +642,18 @@ class HybridPredictor:
 
     def reset(self):
         self.residual.reset()
+
+    def _total_jacobian(self, chain):
+        """TTP µm per µm of each used bar: the chain's plus the residual regression's own
+        elongation terms (which, on dz, largely replace the chain's axial path)."""
+        J = chain.jacobian()[0].copy()
+        J[2] = 0.0                                   # dz: no bar path in the chain's share
+        for i, name in enumerate(self.residual.terms, start=1):
+            if name.startswith("dL_") and name[3:] in self.sensor_names:
+                col = self.sensor_names.index(name[3:])
+                if col in self._used:
+                    J[:, self._used.index(col)] += self.residual.coef[i]
+        return J
 
     def predict(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C, *,
                 z_axis_mm=None, time_s=None):
@@ -622,7 +685,10 @@ class HybridPredictor:
         for z in np.unique(zs):
             sel = (zs == z) if np.isfinite(z) else ~np.isfinite(zs)
             ch = k.chain(None if not np.isfinite(z) else z)
-            dk[sel] = ch.ttp_deviation_um(dl[sel][:, self._used], None if dT is None else dT[sel])
+            dk[sel] = hybrid_chain_part(ch, dl[sel][:, self._used], None if dT is None else dT[sel])
+            # The residual regression never saw what the training campaigns did not excite:
+            # bars contradicting plane sections widen the interval (see KinematicPredictor).
+            var[sel] += k.inconsistency_var(ch, dl[sel][:, self._used], self._total_jacobian(ch))
         return dk + dr, self.residual._t[None, :] * np.sqrt(var)
 
 
@@ -705,7 +771,7 @@ class HybridModel(_ModelFile):
         for i, (c, a, temps, dl, tk, tk0) in enumerate(cache):
             corrected = dl - temps @ self.correction_
             dT = None if kin._housing is None else tk[:, kin._housing] - tk0[kin._housing]
-            pk = kin.chain(campaign_z_axis_mm(c)).ttp_deviation_um(corrected, dT)
+            pk = hybrid_chain_part(kin.chain(campaign_z_axis_mm(c)), corrected, dT)
             targets[i] = a.reference_um - pk
         self.residual_ = _fit_regression(res, campaigns, progress, targets)
         self.training_ = self.residual_.training_
