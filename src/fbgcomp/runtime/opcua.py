@@ -200,7 +200,9 @@ class OpcUaConfig:
     rate_hz: float = 100.0            # address-space updates per second; 0 = every batch
     allow_anonymous: bool = False
     users_file: str | None = None
-    state_dir: str = "fbgcomp-state"
+    # certificates: $XDG_STATE_HOME/fbgcomp (~/.local/state/fbgcomp), never the working folder
+    state_dir: str = field(default_factory=lambda: str(
+        Path(os.environ.get("XDG_STATE_HOME") or Path.home() / ".local" / "state") / "fbgcomp"))
     trusted_clients_dir: str | None = None   # when set, only these client certificates
 
 
