@@ -202,3 +202,30 @@ def test_busy_opcua_port_is_a_one_line_error(paths, tmp_path, capsys, monkeypatc
     err = capsys.readouterr().err.strip()
     assert code == 2 and err.startswith("error:") and "\n" not in err
     assert "opcua.endpoint" in err and "address already in use" in err
+
+
+def test_sigterm_stops_gracefully_and_flushes_every_processed_frame(paths, tmp_path):
+    import re
+    import signal
+    import time
+    from fbgcomp.runtime.log import read_log
+    from test_runtime_support import fbgcomp_process
+
+    model, campaign = paths
+    serve = fbgcomp_process("serve", "--model", model, "--source",
+                            f"replay://{campaign}?speed=10", "--opcua", "off",
+                            "--log", tmp_path / "log")
+    try:
+        end = time.monotonic() + 30
+        while time.monotonic() < end and len(list((tmp_path / "log").glob("part-*"))) < 3:
+            time.sleep(0.1)
+        serve.send_signal(signal.SIGTERM)
+        _, err = serve.communicate(timeout=20)
+    finally:
+        if serve.poll() is None:
+            serve.kill()
+            serve.communicate()
+    assert serve.returncode == 0, err.decode()[-2000:]
+    frames = int(re.search(rb"processed (\d+) frames", err).group(1))
+    _, df = read_log(tmp_path / "log")
+    assert frames > 100 and len(df) == frames          # nothing lost on a graceful stop
