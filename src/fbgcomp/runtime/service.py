@@ -1,7 +1,7 @@
 """``fbgcomp serve``: source -> pipeline -> OPC UA + run log, in one asyncio loop.
 
 The loop reads whatever frames have arrived, processes them as one vectorised batch, hands the
-batch to the run log (non-blocking queue) and the newest sample to the OPC UA thread
+batch to the run log (non-blocking queue) and the newest sample to the OPC UA server process
 (non-blocking). When no frame arrives for ``no_data_s`` the last correction is held and ramped
 to zero (alarm) while the source reconnects with capped exponential back-off.
 """
@@ -176,7 +176,7 @@ class Service:
                 probe_specs = _probe_specs(cfg.temperatures)
         return src, temps, probe_specs
 
-    # -- model reload (called from the OPC UA thread through run_coroutine_threadsafe)
+    # -- model reload (OPC UA ReloadModel, run on this loop through run_coroutine_threadsafe)
     async def reload(self, path: str) -> str:
         path = path or self.config.model
         loop = asyncio.get_running_loop()
@@ -382,8 +382,8 @@ def _probe_specs(folder):
 def run_service(config: RuntimeConfig, duration_s: float | None = None) -> Service:
     """Run until SIGINT / SIGTERM (graceful: the run log is flushed) or ``duration_s``."""
     import sys
-    # The OPC UA server and the log writer run in threads: hand the GIL over within 1 ms
-    # (default 5 ms) so a value waiting to be published is not held up by the other threads.
+    # The log writer (and other outputs) run in threads: when one of them holds the GIL, hand
+    # it back within 1 ms (default 5 ms) so a frame waiting to be processed is not held up.
     sys.setswitchinterval(0.001)
     service = Service(config)
 
