@@ -45,12 +45,18 @@ class SensorChecks:
         status = np.zeros((n, S), np.uint8)
 
         # Jump: against the previous finite value (carried over from the previous batch).
-        idx = np.arange(n)[:, None]
-        last_fin = np.maximum.accumulate(np.where(finite, idx, -1), axis=0)
-        prev_fin = np.vstack([np.full((1, S), -1), last_fin[:-1]])
-        prev_val = np.where(prev_fin >= 0,
-                            np.take_along_axis(wavelength_nm, np.maximum(prev_fin, 0), axis=0),
-                            self.last_value)
+        all_finite = bool(finite.all())
+        if all_finite:        # the usual case: the previous value is simply the previous row
+            last_fin = None
+            prev_val = np.concatenate([self.last_value[None, :], wavelength_nm[:-1]])
+        else:
+            idx = np.arange(n)[:, None]
+            last_fin = np.maximum.accumulate(np.where(finite, idx, -1), axis=0)
+            prev_fin = np.vstack([np.full((1, S), -1), last_fin[:-1]])
+            prev_val = np.where(prev_fin >= 0,
+                                np.take_along_axis(wavelength_nm, np.maximum(prev_fin, 0),
+                                                   axis=0),
+                                self.last_value)
         with np.errstate(invalid="ignore"):
             jump = finite & (np.abs(wavelength_nm - prev_val) > cfg.max_jump_nm)
 
@@ -72,8 +78,11 @@ class SensorChecks:
         status[:, self.never_zeroed] = NO_ZERO
         bad = status != OK
 
-        last_bad = np.maximum.accumulate(np.where(bad, t, -np.inf), axis=0)
-        last_bad = np.maximum(last_bad, self.last_bad_s)
+        if bad.any():
+            last_bad = np.maximum.accumulate(np.where(bad, t, -np.inf), axis=0)
+            last_bad = np.maximum(last_bad, self.last_bad_s)
+        else:
+            last_bad = np.broadcast_to(self.last_bad_s, (n, S))
         faulted = bad | ((t - last_bad) < cfg.recover_s)
         status[faulted & ~bad] = RECOVERING
 
@@ -82,7 +91,11 @@ class SensorChecks:
             self.last_raw = wavelength_nm[-1].copy()
             self.last_change_s = t_change[-1].copy()
             self.last_bad_s = last_bad[-1].copy()
-            has = last_fin[-1] >= 0
-            self.last_value = np.where(
-                has, wavelength_nm[np.maximum(last_fin[-1], 0), np.arange(S)], self.last_value)
+            if all_finite:
+                self.last_value = wavelength_nm[-1].copy()
+            else:
+                has = last_fin[-1] >= 0
+                self.last_value = np.where(
+                    has, wavelength_nm[np.maximum(last_fin[-1], 0), np.arange(S)],
+                    self.last_value)
         return status, faulted
