@@ -72,6 +72,7 @@ class PeakMapper:
         self.guard_nm = float(window_nm if guard_nm is None else guard_nm)
         self.lo = self.lambda0_nm - self.window_nm
         self.hi = self.lambda0_nm + self.window_nm
+        self._all = np.arange(self.lambda0_nm.size)
 
     @classmethod
     def for_sensors(cls, sensors, window_nm: float = 2.5) -> "PeakMapper":
@@ -94,7 +95,7 @@ class PeakMapper:
         groups = (np.unique(peak_channel) if by_channel else [None])
         for ch in groups:
             cols = np.flatnonzero(peak_channel == ch) if ch is not None else slice(None)
-            sens = np.flatnonzero(self.channel == ch) if ch is not None else np.arange(S)
+            sens = np.flatnonzero(self.channel == ch) if ch is not None else self._all
             if sens.size:
                 self._map_group(peaks_nm[:, cols], sens, count, value, near)
         count = count.reshape(n, S)
@@ -157,8 +158,10 @@ class PeakMapper:
         near[idx] += stray.sum(axis=1).ravel()
 
     def map_blocks(self, blocks: list[hyperion.PeakBlock], received_s: float) -> SensorBatch:
+        by_channel = bool(self.channel.all())
         return SensorBatch.concat([self.map(b.wavelengths_nm, received_s, b.timestamp_s,
-                                            b.peak_channel + 1) for b in blocks])
+                                            b.peak_channel + 1 if by_channel else None)
+                                   for b in blocks])
 
 
 class WavelengthSource(Protocol):
