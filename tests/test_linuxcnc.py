@@ -290,3 +290,39 @@ def test_serve_drives_linuxcnc_and_heartbeat_loss_ramps_to_zero(machine, tmp_pat
         if serve.poll() is None:
             serve.kill()
         serve.communicate(timeout=10)
+
+
+def test_cnc_demo_compensates_a_program_and_stops_everything(tmp_path):
+    fbgcomp_testing.require_program("linuxcnc")
+    fbgcomp_testing.require("asyncua")
+    from test_runtime_support import model_and_campaign
+    from fbgcomp.cnc_demo import CNC_USER, run_demo
+    model, campaign = model_and_campaign(tmp_path.parent / "cnc-shared")
+    prog = tmp_path / "short.ngc"
+    prog.write_text("G21 G90\nG0 X5 Y5\nG1 X25 Y8 F1500\nM2\n")
+    lines = []
+    res = run_demo(model, campaign, speed=20, program=prog, echo=lines.append)
+    text = "\n".join(lines)
+    assert "compensated (actual) X Y Z, mm" in text and "ramped back to zero" in text
+    final = res["final"]
+    offsets = _offsets_mm(final)
+    assert np.abs(offsets).max() > 5 * COUNT_MM          # compensation was on at the end
+    # end of the program: actual = program end + external offset (two counts: the offset is
+    # still following the replayed correction between the status and the pin reads)
+    assert np.all(np.abs(np.array(final["actual"]) - ([25.0, 8.0, 0.0] + offsets))
+                  <= 2 * COUNT_MM), final
+    rows = res["rows"]
+    assert len(rows) > 10
+    # nothing of the machine is left: no process of its user (root runs it as CNC_USER)
+    if os.geteuid() == 0:
+        import pwd
+        uid = pwd.getpwnam(CNC_USER).pw_uid
+        left = [d for d in os.listdir("/proc") if d.isdigit() and _owner(d) == uid]
+        assert not left, left
+
+
+def _owner(pid):
+    try:
+        return os.stat(f"/proc/{pid}").st_uid
+    except FileNotFoundError:
+        return None

@@ -380,7 +380,7 @@ def run_demo(model_path: Path | None = None, campaign_dir: Path | None = None,
             serve = None
             m.call("wait_pin", pin="motion.eoffset-active", value=0, tol=0, timeout_s=30.0)
             echo("compensator stopped: the offsets ramped back to zero; stopping LinuxCNC")
-            return {"rows": len(rows), "final": final}
+            return {"rows": rows, "pins": pins, "final": final}
     finally:
         if serve is not None and serve.poll() is None:
             serve.kill()
