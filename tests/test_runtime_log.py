@@ -163,6 +163,7 @@ def test_model_reload_keeps_the_zero_state_and_refuses_other_sensors(paths, tmp_
 
 
 def test_a_slow_disk_drops_batches_instead_of_blocking(tmp_path):
+    fbgcomp_testing.require("pyarrow")
     from fbgcomp.runtime.log import RunLog, read_log
     from fbgcomp.runtime.pipeline import BatchResult
     from fbgcomp.runtime.sources import SensorBatch
