@@ -230,3 +230,14 @@ def test_sigterm_stops_gracefully_and_flushes_every_processed_frame(paths, tmp_p
     frames = int(re.search(rb"processed (\d+) frames", err).group(1))
     _, df = read_log(tmp_path / "log")
     assert frames > 100 and len(df) == frames          # nothing lost on a graceful stop
+
+
+def test_a_log_folder_of_another_sensor_set_is_refused(tmp_path):
+    fbgcomp_testing.require("pyarrow")
+    from fbgcomp.errors import InputError
+    from fbgcomp.runtime.log import RunLog
+
+    RunLog(tmp_path, {"sensor_names": ["S1"], "probe_names": []}).close()
+    RunLog(tmp_path, {"sensor_names": ["S1"], "probe_names": []}).close()   # same run: appends
+    with pytest.raises(InputError):
+        RunLog(tmp_path, {"sensor_names": ["S1", "S2"], "probe_names": []})

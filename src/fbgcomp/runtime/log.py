@@ -79,6 +79,17 @@ class RunLog:
         self.max_queue = max_queue
         self._stop = threading.Event()
         self._seq = 0
+        old = self.folder / "meta.json"
+        if old.is_file():
+            # appending to an earlier run is fine only with the same columns
+            try:
+                previous = json.loads(old.read_text())
+            except (OSError, json.JSONDecodeError):
+                previous = {}
+            if (previous.get("sensor_names"), previous.get("probe_names")) != \
+                    (self.sensor_names, self.probe_names):
+                raise InputError("the log folder holds a run with other sensors or probes; "
+                                 "give a new folder", file=self.folder)
         _write_atomic_bytes(self.folder / "meta.json",
                             json.dumps(meta, indent=2, default=str).encode())
         self._thread = threading.Thread(target=self._run, name="fbgcomp-log", daemon=True)
