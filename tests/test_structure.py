@@ -218,3 +218,17 @@ def test_z_axis_position_moves_the_carriages_and_the_lever_arm(machine):
     assert c_raised[2, 2] == pytest.approx(c_low[2, 2], rel=0.02)   # the nut travels with the ram
     with pytest.raises(InputError, match="off the ram"):
         Twin(machine, resolution=0.4, z_axis_mm=1000.0)
+
+
+def test_extra_paths_reproduce_the_built_in_sensors(twin, machine):
+    """Placement candidates go through the same operators: S1..S5 given as paths match."""
+    paths = twin.path_influence(machine.sensors)
+    assert paths.names == twin.sensor_names
+    assert np.allclose(paths.per_force_um_per_N, twin.influence.sensor_per_force_um_per_N)
+    t = np.arange(0.0, 3601.0, 10.0)
+    ambient = 30.0 + np.sin(t / 900)
+    spindle = np.where(t > 600, 200.0, 0.0)
+    elong, temp = twin.thermal_paths(paths, t, ambient, spindle, initial_C=30.0)
+    h = twin.thermal(t, ambient, spindle, initial_C=30.0)
+    assert np.allclose(elong, h.sensor_elongation_um, atol=1e-9)
+    assert np.allclose(temp, h.sensor_temperature_C, atol=1e-9)

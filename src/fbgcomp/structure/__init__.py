@@ -5,8 +5,8 @@ ram once and exposes static tool-tip loads and thermal campaigns as linear opera
 """
 
 from fbgcomp.structure.machine import Machine, load_machine, parse_machine
-from fbgcomp.structure.twin import (Influence, StaticResponse, TemperatureLoadResponse,
-                                    ThermalResponse, Twin)
+from fbgcomp.structure.twin import (Influence, PathInfluence, StaticResponse,
+                                    TemperatureLoadResponse, ThermalResponse, Twin)
 
-__all__ = ["Machine", "load_machine", "parse_machine", "Twin", "Influence", "StaticResponse",
-           "ThermalResponse", "TemperatureLoadResponse"]
+__all__ = ["Machine", "load_machine", "parse_machine", "Twin", "Influence", "PathInfluence",
+           "StaticResponse", "ThermalResponse", "TemperatureLoadResponse"]

@@ -168,6 +168,8 @@ class ReducedThermal:
         self.PhiB = Phi.T @ B                                  # (N, m)
         self.OPhi = O @ Phi                                    # (p, N)
         self.PhiTC = (C @ Phi).T                               # (N, n): initial-state projection
+        self.Phi = Phi
+        self._B = B
         static = O @ self.factor.solve(B)                      # (p, m) exact steady gain
         self.D = static - self.OPhi @ (self.PhiB / self.lam_per_s[:, None])
         self.steady_gain = static
@@ -181,8 +183,19 @@ class ReducedThermal:
             return (self.PhiB @ u0) / self.lam_per_s       # steady state at the first input
         return self.PhiTC @ theta0
 
-    def simulate(self, time_s: np.ndarray, u: np.ndarray, theta0: np.ndarray | None = None):
-        """Outputs (n_steps, p) for inputs u (n_steps, m) sampled at time_s (piecewise linear)."""
+    def projected_outputs(self, O):
+        """(O Phi, D) for further output rows O (k, n): new functionals without a new reduction."""
+        O = np.asarray(O.todense() if sp.issparse(O) else O)
+        OPhi = O @ self.Phi
+        static = O @ self.factor.solve(self._B)
+        return OPhi, static - OPhi @ (self.PhiB / self.lam_per_s[:, None])
+
+    def simulate(self, time_s: np.ndarray, u: np.ndarray, theta0: np.ndarray | None = None,
+                 outputs=None):
+        """Outputs (n_steps, p) for inputs u (n_steps, m) sampled at time_s (piecewise linear).
+
+        ``outputs``: optional (O Phi, D) from :meth:`projected_outputs` instead of the built-in O.
+        """
         t = np.asarray(time_s, dtype=float)
         u = np.asarray(u, dtype=float)
         q0 = self.initial_modal(u[0], theta0)
@@ -204,7 +217,8 @@ class ReducedThermal:
                 for k, hk in enumerate(h):
                     E, g0, g1 = _foh_weights(self.lam_per_s, hk)
                     q[:, k + 1] = E * q[:, k] + g0 * b[:, k] + g1 * b[:, k + 1]
-        return (self.OPhi @ q).T + u @ self.D.T
+        OPhi, D = (self.OPhi, self.D) if outputs is None else outputs
+        return (OPhi @ q).T + u @ D.T
 
 
 def implicit_euler(K, C, B, O, time_s, u, theta0=None, order=None):

@@ -98,6 +98,21 @@ class Influence:
     input_names: tuple[str, ...] = thermal.INPUT_NAMES
 
 
+@dataclass(frozen=True)
+class PathInfluence:
+    """Linear operators of arbitrary FBG paths (e.g. candidate positions for sensor placement).
+
+    per_force_um_per_N : (k, 3) elongation per TTP force component
+    per_temperature_um_per_K : (k, n_nodes) elongation per K of nodal temperature rise
+    temperature_rows : (k, n_nodes) path-mean temperature rows
+    """
+
+    names: tuple[str, ...]
+    per_force_um_per_N: np.ndarray
+    per_temperature_um_per_K: np.ndarray
+    temperature_rows: sp.csr_matrix
+
+
 @dataclass
 class BuildTimes:
     mesh_s: float = 0.0
@@ -231,6 +246,39 @@ class Twin:
         self._Th = Th
         self._K_elastic = K
         self._R = R
+
+    # ----------------------------------------------------------------------- other paths
+    def path_influence(self, sensors=None) -> PathInfluence:
+        """Operators of FBG paths given like the YAML's sensors (default: candidate_sensors).
+
+        Costs one elastic back-substitution per path; the mesh resolves the path ends by
+        trilinear interpolation when they are not grid points.
+        """
+        sensors = self.machine.candidate_sensors if sensors is None else tuple(sensors)
+        rm, vb = self.mesh, self._vbasis
+        if not sensors:
+            empty = np.zeros((0, rm.n_nodes))
+            return PathInfluence((), np.zeros((0, 3)), empty, sp.csr_matrix(empty))
+        rows = np.zeros((len(sensors), vb.N))
+        for i, s in enumerate(sensors):
+            ends = rm.point_rows(rm.face_point_mm(s.face, s.offset_mm, [s.z_start_mm, s.z_end_mm]))
+            rows[i, vb.nodal_dofs[2]] = UM_PER_MM * (ends[1] - ends[0]).toarray().ravel()
+        X = self._elastic.solve(rows.T)
+        ttp_rows = self._R[-3:] / UM_PER_MM
+        temps = sp.vstack([rm.path_mean_rows(s.face, s.offset_mm, s.z_start_mm, s.z_end_mm)
+                           for s in sensors]).tocsr()
+        return PathInfluence(tuple(s.name for s in sensors), X.T @ ttp_rows.T,
+                             np.asarray((self._Th.T @ X).T), temps)
+
+    def thermal_paths(self, paths: PathInfluence, time_s, ambient_C, spindle_heat_W=None,
+                      radiant_W_per_m2=None, initial_C=None):
+        """Elongation (n, k) µm and mean temperature (n, k) °C of extra paths in a campaign."""
+        t, u = self._inputs(time_s, ambient_C, spindle_heat_W, radiant_W_per_m2)
+        O = np.vstack([paths.per_temperature_um_per_K, paths.temperature_rows.toarray()])
+        y = self.reduced.simulate(t, u, self._initial_theta(initial_C),
+                                  outputs=self.reduced.projected_outputs(O))
+        k = len(paths.names)
+        return y[:, :k], y[:, k:] + self.machine.reference_temperature_C
 
     # ----------------------------------------------------------------------------- sizes
     @property
