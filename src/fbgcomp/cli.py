@@ -252,9 +252,11 @@ def place(k: int = typer.Option(..., "--k", help="Number of sensor paths to choo
 
 def _mount_optional_commands() -> None:
     """Commands of packages that may be absent in a minimal install (runtime needs asyncua)."""
+    from .cnc_demo import register as register_cnc_demo
     from .report import register as register_report
 
     register_report(app)
+    register_cnc_demo(app)
     try:
         from .runtime.cli import register
     except ImportError:
