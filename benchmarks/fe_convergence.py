@@ -9,8 +9,6 @@ from __future__ import annotations
 import argparse
 import time
 
-import numpy as np
-
 from fbgcomp.structure import Twin, load_machine
 
 

@@ -9,11 +9,9 @@ import numpy as np
 import pytest
 import yaml
 
+import fbgcomp_testing
 from fbgcomp.errors import InputError
-from fbgcomp.structure import Twin, load_machine
-from fbgcomp.structure import elastic
-from fbgcomp.structure.fe import Factorised, layer_order
-from fbgcomp.structure.mesh import build_mesh
+from fbgcomp.structure import load_machine
 
 DEFAULT_YAML = Path(__file__).resolve().parents[1] / "src" / "fbgcomp" / "data" / "ram.yaml"
 
@@ -24,12 +22,25 @@ def machine():
 
 
 @pytest.fixture(scope="module")
-def twin(machine):
-    return Twin(machine, resolution=0.5)
+def fe():
+    """The FE parts: scikit-fem is the optional ``fe`` extra."""
+    fbgcomp_testing.require("skfem")
+    from types import SimpleNamespace
+
+    from fbgcomp.structure import Twin, elastic
+    from fbgcomp.structure.fe import Factorised, layer_order
+    from fbgcomp.structure.mesh import build_mesh
+    return SimpleNamespace(Twin=Twin, elastic=elastic, Factorised=Factorised,
+                           layer_order=layer_order, build_mesh=build_mesh)
 
 
-def _box(machine, length_mm, resolution):
-    return build_mesh(half_width_mm=machine.ram.outer_width_mm / 2,
+@pytest.fixture(scope="module")
+def twin(machine, fe):
+    return fe.Twin(machine, resolution=0.5)
+
+
+def _box(fe, machine, length_mm, resolution):
+    return fe.build_mesh(half_width_mm=machine.ram.outer_width_mm / 2,
                       half_depth_mm=machine.ram.outer_depth_mm / 2, wall_mm=machine.ram.wall_mm,
                       length_mm=length_mm, n_wall=max(1, round(3 * resolution)),
                       n_span=round(10 * resolution), dz_mm=20 / resolution)
@@ -76,18 +87,18 @@ def test_unreadable_yaml_is_an_input_error(tmp_path):
 
 
 # ------------------------------------------------------------------------------ closed forms
-def test_cantilever_box_tip_force_matches_timoshenko(machine):
+def test_cantilever_box_tip_force_matches_timoshenko(machine, fe):
     """Slender box (L/h ~ 10) clamped at z = 0, tip force F_x at z = L: bending + shear."""
     L, F = 2400.0, 1000.0
-    rm = _box(machine, L, 0.7)
-    vb, _, K, _ = elastic.assemble_elasticity(rm, machine.materials.cfrp, machine.materials.steel)
-    tip = elastic.rigid_extension_rows(vb, rm.end_facets(L))
+    rm = _box(fe, machine, L, 0.7)
+    vb, _, K, _ = fe.elastic.assemble_elasticity(rm, machine.materials.cfrp, machine.materials.steel)
+    tip = fe.elastic.rigid_extension_rows(vb, rm.end_facets(L))
     from skfem import condense
     clamped = vb.get_dofs(lambda x: np.abs(x[2]) < 1e-6).all()
     Kc, fc, _, free = condense(K, tip[0] * F, D=clamped)
     u = np.zeros(vb.N)
-    rank = np.argsort(layer_order(rm.mesh.p, vb.nodal_dofs))     # position of each DOF in layers
-    u[free] = Factorised(Kc, order=np.argsort(rank[free])).solve(fc)
+    rank = np.argsort(fe.layer_order(rm.mesh.p, vb.nodal_dofs))     # position of each DOF in layers
+    u[free] = fe.Factorised(Kc, order=np.argsort(rank[free])).solve(fc)
     fe_um = 1e3 * tip[0] @ u
 
     a, b, t = 125.0, 105.0, 20.0
@@ -125,24 +136,24 @@ def test_uniform_heating_loads_no_support(twin):
     assert np.abs(reactions_N).max() < 1e-6 * np.abs(twin._Th @ theta).max()
 
 
-def test_linear_temperature_across_box_bends_it_with_curvature_cte_dT_over_h(machine):
+def test_linear_temperature_across_box_bends_it_with_curvature_cte_dT_over_h(machine, fe):
     """T linear in X (+X face minus -X face = dT) on a free box: tip deflection kappa L^2 / 2."""
     L, dT = 1200.0, 10.0
-    rm = _box(machine, L, 0.6)
+    rm = _box(fe, machine, L, 0.6)
     cf = machine.materials.cfrp
-    vb, _, K, Th = elastic.assemble_elasticity(rm, cf, machine.materials.steel)
+    vb, _, K, Th = fe.elastic.assemble_elasticity(rm, cf, machine.materials.steel)
     root = rm.end_facets(0.0)
     # Statically determinate root: mean translations, best-fit rotations and twist held.
-    at0 = elastic.rigid_extension_rows(vb, root)
-    at100 = elastic.rigid_extension_rows(vb, root, lever_mm=100.0)
+    at0 = fe.elastic.rigid_extension_rows(vb, root)
+    at100 = fe.elastic.rigid_extension_rows(vb, root, lever_mm=100.0)
     first = rm.zs_mm[1]
-    twist = (elastic.facet_mean_rows(vb, rm.face_facets("+X", 0.0, first))[1]
-             - elastic.facet_mean_rows(vb, rm.face_facets("-X", 0.0, first))[1])
+    twist = (fe.elastic.facet_mean_rows(vb, rm.face_facets("+X", 0.0, first))[1]
+             - fe.elastic.facet_mean_rows(vb, rm.face_facets("-X", 0.0, first))[1])
     rows = np.vstack([at0, at100[:2] - at0[:2], twist])
-    K = K + elastic.spring_matrix(rows, 1e9)
+    K = K + fe.elastic.spring_matrix(rows, 1e9)
     theta = dT * rm.mesh.p[0] / (2 * rm.half_width_mm)
-    u = Factorised(K, order=layer_order(rm.mesh.p, vb.nodal_dofs)).solve(Th @ theta)
-    tip_um = 1e3 * elastic.rigid_extension_rows(vb, rm.end_facets(L))[0] @ u
+    u = fe.Factorised(K, order=fe.layer_order(rm.mesh.p, vb.nodal_dofs)).solve(Th @ theta)
+    tip_um = 1e3 * fe.elastic.rigid_extension_rows(vb, rm.end_facets(L))[0] @ u
     kappa = -cf.cte_L_per_K * dT / (2 * rm.half_width_mm)   # hotter +X side grows: bends to -X
     assert tip_um == pytest.approx(1e3 * kappa * L**2 / 2, rel=0.05)
 
@@ -207,17 +218,17 @@ def test_thermal_steady_state_equals_static_temperature_superposition(twin):
     assert h.sensor_temperature_C[-1] == pytest.approx(np.full(5, 25.0))
 
 
-def test_z_axis_position_moves_the_carriages_and_the_lever_arm(machine):
+def test_z_axis_position_moves_the_carriages_and_the_lever_arm(machine, fe):
     """Raising the ram (Z+) brings the carriages closer to the TTP: the tip gets stiffer."""
-    low = Twin(machine, resolution=0.4, z_axis_mm=0.0)
-    raised = Twin(machine, resolution=0.4, z_axis_mm=300.0)
+    low = fe.Twin(machine, resolution=0.4, z_axis_mm=0.0)
+    raised = fe.Twin(machine, resolution=0.4, z_axis_mm=300.0)
     assert raised.z_axis_mm == 300.0
     c_low = low.influence.ttp_per_force_um_per_N
     c_raised = raised.influence.ttp_per_force_um_per_N
     assert c_raised[0, 0] < 0.8 * c_low[0, 0]
     assert c_raised[2, 2] == pytest.approx(c_low[2, 2], rel=0.02)   # the nut travels with the ram
     with pytest.raises(InputError, match="off the ram"):
-        Twin(machine, resolution=0.4, z_axis_mm=1000.0)
+        fe.Twin(machine, resolution=0.4, z_axis_mm=1000.0)
 
 
 def test_extra_paths_reproduce_the_built_in_sensors(twin, machine):
