@@ -190,3 +190,18 @@ def test_static_plateau_metrics_average_out_noise_and_skip_ramps():
     assert m["n_levels"] == 5
     assert m["axes"]["dy"]["max_plateau_deflection_um"] == pytest.approx(400.0)
     assert 1.0 < m["axes"]["dy"]["error_pct_of_deflection"] < 3.0   # the gain error, not the noise
+
+
+def test_scikit_learn_clone_and_params(truth_campaign):
+    from sklearn.base import clone
+
+    campaign, _ = truth_campaign
+    model = MRAModel(features="eq12", stepwise=True, p_enter=0.01).fit(campaign)
+    copy = clone(model)
+    assert copy.get_params() == model.get_params()
+    assert not hasattr(copy, "axes_")                     # learned state is not cloned
+    copy.set_params(features="eq11", stepwise=False)
+    assert copy.fit(campaign).axes_["dx"].terms == ["const", "dL_S1", "dL_S2", "dL_S3", "dL_S4", "dL_S5"]
+    with pytest.raises(ValueError, match="invalid parameter"):
+        copy.set_params(nonsense=1)
+    assert "MRAModel(features='eq11'" in repr(copy)

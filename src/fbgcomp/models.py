@@ -194,7 +194,39 @@ class Predictor:
         return deviation, self._t[None, :] * np.sqrt(var)
 
 
-class MRAModel:
+class EstimatorParams:
+    """scikit-learn's parameter protocol (``get_params`` / ``set_params``) from ``__init__``.
+
+    Lets ``sklearn.base.clone``, grid searches and pipelines handle fbgcomp's estimators without
+    making scikit-learn a dependency of the package.
+    """
+
+    @classmethod
+    def _param_names(cls):
+        import inspect
+
+        sig = inspect.signature(cls.__init__)
+        return [p.name for p in sig.parameters.values()
+                if p.name != "self" and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
+
+    def get_params(self, deep=True) -> dict:
+        return {name: getattr(self, name) for name in self._param_names()}
+
+    def set_params(self, **params):
+        valid = set(self._param_names())
+        for key, value in params.items():
+            if key not in valid:
+                raise ValueError(f"invalid parameter {key!r} for {type(self).__name__}; "
+                                 f"valid: {', '.join(sorted(valid))}")
+            setattr(self, key, value)
+        return self
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v!r}" for k, v in self.get_params().items())
+        return f"{type(self).__name__}({args})"
+
+
+class MRAModel(EstimatorParams):
     """Multiple regression of the TTP deviation on sensor elongations and temperatures.
 
     Parameters
