@@ -293,14 +293,23 @@ def _write_json_atomic(path: Path, data) -> None:
 
 
 def _update_index(root: Path, partition: Partition) -> None:
-    index = _read_index(root) or {"format": DATASET_FORMAT, "version": DATASET_VERSION,
-                                  "campaigns": []}
-    entry = partition.to_entry()
-    entries = [e for e in index.get("campaigns", []) if e.get("path") != entry["path"]]
-    entries.append(entry)
-    entries.sort(key=lambda e: (e["machine"], e["campaign"]))
-    index.update({"format": DATASET_FORMAT, "version": DATASET_VERSION, "campaigns": entries})
-    _write_json_atomic(root / INDEX_FILE, index)
+    # Read-modify-write under an exclusive lock so that concurrent ingests into one dataset
+    # do not lose each other's entries (the hidden lock file is ignored by every reader).
+    with open(root / ".index.lock", "a") as lock:
+        try:
+            import fcntl
+        except ImportError:  # not POSIX: the files stay the source of truth (open_dataset)
+            fcntl = None
+        if fcntl is not None:
+            fcntl.flock(lock.fileno(), fcntl.LOCK_EX)
+        index = _read_index(root) or {"format": DATASET_FORMAT, "version": DATASET_VERSION,
+                                      "campaigns": []}
+        entry = partition.to_entry()
+        entries = [e for e in index.get("campaigns", []) if e.get("path") != entry["path"]]
+        entries.append(entry)
+        entries.sort(key=lambda e: (e["machine"], e["campaign"]))
+        index.update({"format": DATASET_FORMAT, "version": DATASET_VERSION, "campaigns": entries})
+        _write_json_atomic(root / INDEX_FILE, index)
 
 
 # --------------------------------------------------------------------------------------------
