@@ -449,6 +449,11 @@ class _ServerCore:
         self._server = server
         async with server:
             logging.getLogger("asyncua").setLevel(logging.WARNING)
+            # the standard address space is tens of thousands of long-lived objects: keep them
+            # out of the cyclic collector, whose full passes would stall updates for ~10 ms
+            import gc
+            gc.collect()
+            gc.freeze()
             self.send(("ready", cfg.endpoint))
             loop.add_reader(self.sock.fileno(), self._on_readable)
             try:

@@ -259,6 +259,11 @@ class Service:
                 queue.put_nowait(None)
 
         pump_task = asyncio.create_task(pump())
+        # everything set up so far lives as long as the service: out of the cyclic collector,
+        # whose full passes over it would stall the loop
+        import gc
+        gc.collect()
+        gc.freeze()
         end = None if duration_s is None else time.monotonic() + duration_s
         try:
             while not self._stop.is_set():

@@ -351,6 +351,9 @@ async def run_simulator(table: SignalTable, config: SimConfig, host: str, comman
     if send_log is not None:
         sim.send_log = []
     await sim.start()
+    import gc
+    gc.collect()
+    gc.freeze()     # the campaign tables stay: no full collector passes over them mid-stream
     if ready is not None:
         ready(sim)
     stop = asyncio.Event()
