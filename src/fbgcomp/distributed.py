@@ -248,29 +248,75 @@ def _plan(model, paths) -> tuple[list, list, dict]:
     return sources, described, spec
 
 
+def _scaled_state(state: dict, scale: float) -> dict:
+    """The factor of the same rows multiplied by ``scale`` > 0 (a campaign's row weight is
+    ``scale**2``): ``R(s A) = s R(A)``, kept in double-double; moments and ranges follow."""
+    from .regression import QRAccumulator, _fast_two_sum, _two_prod
+
+    if scale == 1.0:
+        return state
+    acc = QRAccumulator.from_dict(state["acc"])
+    hi, err = _two_prod(acc.R_, scale)
+    acc.R_, acc.R_lo_ = _fast_two_sum(hi, err + acc.R_lo_ * scale)
+    acc.column_min_ = acc.column_min_ * scale
+    acc.column_max_ = acc.column_max_ * scale
+    acc.target_mean_ = acc.target_mean_ * scale
+    acc.target_css_ = acc.target_css_ * (scale * scale)
+    return {"acc": acc.to_dict(), "training": state["training"]}
+
+
+def _campaign_scales(model, counts: list) -> list:
+    """Row scales of the campaigns as :meth:`MRAModel.fit` pools them (``campaign_weights``);
+    all 1 for ordinary least squares or an fbgcomp without campaign weighting."""
+    from . import models
+
+    mode = getattr(model, "campaign_weights", "samples")
+    scales_of = getattr(models, "campaign_row_scales", None)
+    if scales_of is None or mode == "samples":
+        return [1.0] * len(counts)
+    return [float(v) for v in scales_of(counts, mode)]
+
+
 def accumulate_paths(model, paths, dask=None):
     """Reduce campaign folders and datasets to one factor: ``(accumulator, training)``.
 
-    ``model`` gets its sensor set from the first source (as :meth:`MRAModel.fit` does).
+    ``model`` gets its sensor set from the first source (as :meth:`MRAModel.fit` does). Files
+    are reduced per campaign (on the cluster when given); the campaign factors, a few KB each,
+    are then weighted as :meth:`MRAModel.fit` weights campaigns and merged in the client.
     """
     import functools
 
     from .regression import QRAccumulator
 
     sources, described, spec = _plan(model, paths)
-    state = tree_reduce(functools.partial(_accumulate_source, spec=spec), sources,
-                        _merge_states, dask=dask)
+    task = functools.partial(_accumulate_source, spec=spec)
+    keys = [d["key"] for d in described]
+    with cluster(dask) as client:
+        if client is None:
+            groups: dict = {k: [] for k in keys}
+            for src in sources:
+                groups[src["key"]].append(task(src))
+            per_campaign = [_pairwise(_merge_states, groups[k]) for k in keys]
+        else:
+            futures = client.map(task, sources, pure=False)
+            groups = {k: [] for k in keys}
+            for src, fut in zip(sources, futures):
+                groups[src["key"]].append(fut)
+            reduced = [_pairwise(lambda a, b: client.submit(_merge_states, a, b, pure=False),
+                                 groups[k]) for k in keys]
+            per_campaign = client.gather(reduced)
+    counts = [int(st["acc"]["n_obs"]) for st in per_campaign]
+    scales = _campaign_scales(model, counts)
+    state = _pairwise(_merge_states, [_scaled_state(st, sc)
+                                      for st, sc in zip(per_campaign, scales)])
     acc = QRAccumulator.from_dict(state["acc"])
-    counts: dict = {}
-    dropped: dict = {}
-    for t in state["training"]:
-        counts[t["key"]] = counts.get(t["key"], 0) + t["n_samples"]
-        if "dropped" in t:
-            dropped[t["key"]] = t["dropped"]
+    dropped = {t["key"]: t["dropped"] for st in per_campaign for t in st["training"]
+               if "dropped" in t}
     campaigns = []
-    for d in described:
+    for d, n, sc in zip(described, counts, scales):
         entry = {k: v for k, v in d.items() if k != "key"}
-        entry["n_samples"] = int(counts.get(d["key"], 0))
+        entry["n_samples"] = n
+        entry["row_weight"] = float(sc * sc)
         if d["key"] in dropped:
             entry["dropped"] = dropped[d["key"]]
         campaigns.append(entry)
