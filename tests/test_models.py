@@ -205,3 +205,27 @@ def test_scikit_learn_clone_and_params(truth_campaign):
     with pytest.raises(ValueError, match="invalid parameter"):
         copy.set_params(nonsense=1)
     assert "MRAModel(features='eq11'" in repr(copy)
+
+
+def test_balanced_pooling_keeps_a_short_informative_campaign_from_being_diluted():
+    """Errors in variables: a long campaign whose dL_S3 - dL_S4 is pure sensor noise pooled
+    with a short one where it carries the signal. OLS shrinks the gain; balancing does not."""
+    coef = {"dx": {}, "dy": {"dL_S3": 30.0, "dL_S4": -30.0}, "dz": {}}
+    quiet = {"dx": {}, "dy": {}, "dz": {}}
+    short, _ = linear_truth_campaign("short", seed=21, duration_s=600, coefficients=coef,
+                                     wavelength_noise_nm=1e-3, settle_s=10)
+    long_, _ = linear_truth_campaign("long", seed=22, duration_s=30 * 3600, coefficients=quiet,
+                                     wavelength_noise_nm=1e-3, settle_s=10)
+    # the long campaign's elongations: noise only (no signal in S3/S4)
+    fbg = long_.fbg.copy()
+    rng = np.random.default_rng(3)
+    for s, lam0 in (("S3", 1540.0), ("S4", 1545.0)):
+        fbg[f"{s}_nm"] = lam0 + 1e-3 * rng.standard_normal(len(fbg))
+    long_ = type(long_).from_arrays(long_.meta, fbg=fbg, temperatures=long_.temperatures,
+                                    reference=long_.reference)
+    gains = {}
+    for mode in ("samples", "balanced"):
+        m = MRAModel(features="eq11", fallbacks="none", campaign_weights=mode).fit([long_, short])
+        gains[mode] = dict(zip(m.axes_["dy"].terms, m.axes_["dy"].params))["dL_S3"]
+    assert gains["samples"] < 0.9 * 30.0            # attenuated by the pooled noise (~14 %)
+    assert gains["balanced"] == pytest.approx(30.0, rel=0.03)   # 29.6: balanced weights keep it

@@ -470,3 +470,43 @@ def test_stepwise_skips_candidates_collinear_with_the_model():
     sw = stepwise(acc, include=["const"], p_enter=1e-3, p_remove=2e-3)
     assert len(set(sw.selected) & {"S1", "S3", "S1-S3"}) == 2
     assert "T2" in sw.selected
+
+
+def test_weighted_least_squares_matches_statsmodels_wls():
+    sm = pytest.importorskip("statsmodels.api")
+    rng = np.random.default_rng(11)
+    n = 400
+    X = np.column_stack([np.ones(n), rng.normal(size=(n, 3))])
+    y = X @ np.array([1.0, 2.0, -1.0, 0.5]) + rng.normal(size=n)
+    w = rng.uniform(0.2, 3.0, n)
+    w *= n / w.sum()
+    ref = sm.WLS(y, X, weights=w).fit()
+    acc = QRAccumulator(4, 1)
+    for lo in range(0, n, 70):
+        acc.update(X[lo:lo + 70], y[lo:lo + 70], weights=w[lo:lo + 70])
+    res = ols_from_factor(acc)
+    np.testing.assert_allclose(res.params, ref.params, rtol=1e-10)
+    np.testing.assert_allclose(res.bse, ref.bse, rtol=1e-10)
+    assert res.rsquared == pytest.approx(ref.rsquared, rel=1e-10)
+    assert res.fvalue == pytest.approx(ref.fvalue, rel=1e-9)
+    assert res.k_constant == 1
+
+
+def test_merge_with_a_weight_equals_weighted_rows():
+    rng = np.random.default_rng(12)
+    X = np.column_stack([np.ones(300), rng.normal(size=(300, 2))])
+    Y = rng.normal(size=(300, 2))
+    a = QRAccumulator(3, 2).update(X[:100], Y[:100])
+    b = QRAccumulator(3, 2).update(X[100:], Y[100:])
+    merged = a.copy().merge(b, weight=4.0)
+    direct = QRAccumulator(3, 2).update(X, Y, weights=np.r_[np.ones(100), 4.0 * np.ones(200)])
+    for t in range(2):
+        m, d = ols_from_factor(merged, target=t), ols_from_factor(direct, target=t)
+        np.testing.assert_allclose(m.params, d.params, rtol=1e-12)
+        np.testing.assert_allclose(m.bse, d.bse, rtol=1e-10)
+        assert m.rsquared == pytest.approx(d.rsquared, rel=1e-12)
+    again = QRAccumulator.from_dict(json.loads(json.dumps(merged.to_dict())))
+    np.testing.assert_allclose(ols_from_factor(again).params, ols_from_factor(merged).params, rtol=0)
+    # merging into an empty accumulator applies the weight too
+    empty = QRAccumulator(3, 2).merge(b, weight=4.0).merge(a)
+    np.testing.assert_allclose(ols_from_factor(empty).params, ols_from_factor(direct).params, rtol=1e-12)

@@ -316,8 +316,16 @@ class QRAccumulator:
     column_min_, column_max_ : ndarray, (p,)
         Range of every design column (a column with min == max != 0 is a constant: intercept).
     target_mean_, target_css_ : ndarray, (k,)
-        Mean and centred sum of squares of every target (Chan/Welford merge), for the total
-        sum of squares without re-reading the data.
+        Weighted mean and weighted centred sum of squares of every target (Chan/Welford merge),
+        for the total sum of squares without re-reading the data.
+    weight_sum_ : float
+        Sum of the row weights (equals ``n_obs`` when no weights were given).
+
+    Notes
+    -----
+    Row weights make it weighted least squares, as statsmodels' WLS defines it: each row enters
+    the factor multiplied by ``sqrt(w)``; R² is centred on the weighted mean; ``df_resid`` is
+    ``n_obs - p``, so weights are best normalised to a mean of one.
     """
 
     def __init__(self, n_features: int, n_targets: int = 1, feature_names=None, target_names=None,
@@ -343,11 +351,15 @@ class QRAccumulator:
         self.column_max_ = np.full(self.n_features, -np.inf)
         self.target_mean_ = np.zeros(self.n_targets)
         self.target_css_ = np.zeros(self.n_targets)
+        self.weight_sum_ = 0.0
 
     # -- accumulation --------------------------------------------------------------------------
 
-    def update(self, X_chunk, Y_chunk) -> "QRAccumulator":
-        """Add rows: ``X_chunk`` (m, p) and ``Y_chunk`` (m, k) (1-D allowed when p or k is 1)."""
+    def update(self, X_chunk, Y_chunk, weights=None) -> "QRAccumulator":
+        """Add rows: ``X_chunk`` (m, p) and ``Y_chunk`` (m, k) (1-D allowed when p or k is 1).
+
+        ``weights``: optional non-negative row weights, a scalar or (m,) (weighted least squares).
+        """
         p, k = self.n_features, self.n_targets
         X = _as_2d(X_chunk, p, "X_chunk")
         Y = _as_2d(Y_chunk, k, "Y_chunk")
@@ -358,17 +370,33 @@ class QRAccumulator:
             return self
         _check_finite(X, self.feature_names, self.n_obs + 1, "feature")
         _check_finite(Y, self.target_names, self.n_obs + 1, "target")
+        w = None
+        if weights is not None:
+            w = np.broadcast_to(np.asarray(weights, dtype=float), (m,))
+            if not np.all(np.isfinite(w)) or np.any(w < 0):
+                raise ValueError("weights must be finite and non-negative")
+        X_raw, Y_raw = X, Y
+        if w is not None:
+            root = np.sqrt(w)[:, None]
+            X, Y = X * root, Y * root
         if self.scale_ is None:
             rms = np.concatenate([np.sqrt(np.mean(X * X, axis=0)), np.sqrt(np.mean(Y * Y, axis=0))])
             self.scale_ = _power_of_two_scale(rms)
         for start in range(0, m, _BLOCK_ROWS):
             stop = min(m, start + _BLOCK_ROWS)
             self._factor_block(X[start:stop], Y[start:stop], self.n_obs + stop)
-        self.column_min_ = np.minimum(self.column_min_, X.min(axis=0))
-        self.column_max_ = np.maximum(self.column_max_, X.max(axis=0))
-        mean_b = Y.mean(axis=0)
-        css_b = np.sum((Y - mean_b) ** 2, axis=0)
-        self._merge_moments(m, mean_b, css_b)
+        # The intercept is found on the unweighted design: a weighted column of ones is not constant.
+        self.column_min_ = np.minimum(self.column_min_, X_raw.min(axis=0))
+        self.column_max_ = np.maximum(self.column_max_, X_raw.max(axis=0))
+        if w is None:
+            w_b = float(m)
+            mean_b = Y_raw.mean(axis=0)
+            css_b = np.sum((Y_raw - mean_b) ** 2, axis=0)
+        else:
+            w_b = float(w.sum())
+            mean_b = (w @ Y_raw) / w_b if w_b > 0 else np.zeros(k)
+            css_b = w @ (Y_raw - mean_b) ** 2
+        self._merge_moments(w_b, mean_b, css_b)
         self.n_obs += m
         return self
 
@@ -411,16 +439,22 @@ class QRAccumulator:
             return False
         return bool(np.linalg.cond(t[np.ix_(keep, keep)]) > _KAPPA_EXTENDED)
 
-    def _merge_moments(self, n_b: int, mean_b: np.ndarray, css_b: np.ndarray) -> None:
-        """Chan et al. pairwise update of mean and centred sum of squares (before n_obs += n_b)."""
-        n_a = self.n_obs
-        n = n_a + n_b
+    def _merge_moments(self, w_b: float, mean_b: np.ndarray, css_b: np.ndarray) -> None:
+        """Chan et al. pairwise update of the weighted mean and centred sum of squares."""
+        w_a = self.weight_sum_
+        w = w_a + w_b
+        if w <= 0:
+            return
         delta = mean_b - self.target_mean_
-        self.target_mean_ = self.target_mean_ + delta * (n_b / n)
-        self.target_css_ = self.target_css_ + css_b + delta * delta * (n_a * n_b / n)
+        self.target_mean_ = self.target_mean_ + delta * (w_b / w)
+        self.target_css_ = self.target_css_ + css_b + delta * delta * (w_a * w_b / w)
+        self.weight_sum_ = w
 
-    def merge(self, other: "QRAccumulator") -> "QRAccumulator":
+    def merge(self, other: "QRAccumulator", weight: float = 1.0) -> "QRAccumulator":
         """Fold ``other`` (same columns) into this accumulator and return self.
+
+        ``weight`` multiplies the weight of every row of ``other`` (e.g. to pool campaigns with
+        equal total weight after accumulating each one on its own).
 
         The two triangles are stacked and re-factored in double-double; ``other``'s columns are
         first brought to this accumulator's scales (an exact power-of-two rescaling). The order
@@ -432,21 +466,27 @@ class QRAccumulator:
             raise ValueError("cannot merge accumulators with different numbers of columns")
         if other.feature_names != self.feature_names or other.target_names != self.target_names:
             raise ValueError("cannot merge accumulators with different column names")
+        if not (np.isfinite(weight) and weight >= 0):
+            raise ValueError("weight must be finite and non-negative")
         if other.n_obs == 0:
             return self
         self.extended_ = self.extended_ or other.extended_
+        root = float(np.sqrt(weight))
         if self.n_obs == 0:
             for name in ("R_", "R_lo_", "scale_", "column_min_", "column_max_", "target_mean_",
                          "target_css_"):
                 setattr(self, name, getattr(other, name).copy())
             self.n_obs = other.n_obs
+            self.weight_sum_ = other.weight_sum_ * weight
+            self.target_css_ = self.target_css_ * weight
+            self.R_, self.R_lo_ = self.R_ * root, self.R_lo_ * root
             return self
-        ratio = other.scale_ / self.scale_
+        ratio = root * other.scale_ / self.scale_
         self.R_, self.R_lo_ = _dd_qr_r(np.vstack([self.R_, other.R_ * ratio]),
                                        np.vstack([self.R_lo_, other.R_lo_ * ratio]))
         self.column_min_ = np.minimum(self.column_min_, other.column_min_)
         self.column_max_ = np.maximum(self.column_max_, other.column_max_)
-        self._merge_moments(other.n_obs, other.target_mean_, other.target_css_)
+        self._merge_moments(other.weight_sum_ * weight, other.target_mean_, other.target_css_ * weight)
         self.n_obs += other.n_obs
         return self
 
@@ -514,7 +554,7 @@ class QRAccumulator:
     def _tss(self, t: int) -> tuple[float, float]:
         """(centred, uncentred) total sum of squares of target t."""
         css = float(self.target_css_[t])
-        return css, css + self.n_obs * float(self.target_mean_[t]) ** 2
+        return css, css + self.weight_sum_ * float(self.target_mean_[t]) ** 2
 
     def ols(self, columns=None, target=0) -> "OLSResults":
         """Shorthand for :func:`ols_from_factor` on this accumulator."""
@@ -541,6 +581,7 @@ class QRAccumulator:
             "column_max": self.column_max_.tolist() if self.n_obs else None,
             "target_mean": self.target_mean_.tolist(),
             "target_css": self.target_css_.tolist(),
+            "weight_sum": float(self.weight_sum_),
         }
 
     @classmethod
@@ -561,6 +602,7 @@ class QRAccumulator:
                 acc.column_max_ = _field_array(state, "column_max", (acc.n_features,))
             acc.target_mean_ = _field_array(state, "target_mean", (acc.n_targets,))
             acc.target_css_ = _field_array(state, "target_css", (acc.n_targets,))
+            acc.weight_sum_ = float(state.get("weight_sum", acc.n_obs))
         except KeyError as exc:
             raise InputError(f"missing field {exc.args[0]!r} in accumulator state",
                              column=f"field {exc.args[0]}") from None
