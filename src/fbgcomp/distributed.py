@@ -248,33 +248,37 @@ def _plan(model, paths) -> tuple[list, list, dict]:
     return sources, described, spec
 
 
-def _scaled_state(state: dict, scale: float) -> dict:
-    """The factor of the same rows multiplied by ``scale`` > 0 (a campaign's row weight is
-    ``scale**2``): ``R(s A) = s R(A)``, kept in double-double; moments and ranges follow."""
-    from .regression import QRAccumulator, _fast_two_sum, _two_prod
-
-    if scale == 1.0:
-        return state
-    acc = QRAccumulator.from_dict(state["acc"])
-    hi, err = _two_prod(acc.R_, scale)
-    acc.R_, acc.R_lo_ = _fast_two_sum(hi, err + acc.R_lo_ * scale)
-    acc.column_min_ = acc.column_min_ * scale
-    acc.column_max_ = acc.column_max_ * scale
-    acc.target_mean_ = acc.target_mean_ * scale
-    acc.target_css_ = acc.target_css_ * (scale * scale)
-    return {"acc": acc.to_dict(), "training": state["training"]}
-
-
-def _campaign_scales(model, counts: list) -> list:
-    """Row scales of the campaigns as :meth:`MRAModel.fit` pools them (``campaign_weights``);
-    all 1 for ordinary least squares or an fbgcomp without campaign weighting."""
+def _campaign_weights(model, counts: list) -> list:
+    """Row weight of each campaign as :meth:`MRAModel.fit` pools them (``campaign_weights``);
+    all 1 for ordinary least squares."""
     from . import models
 
     mode = getattr(model, "campaign_weights", "samples")
-    scales_of = getattr(models, "campaign_row_scales", None)
-    if scales_of is None or mode == "samples":
+    weights_for = getattr(models, "campaign_weights_for", None)
+    if weights_for is None or mode == "samples":
         return [1.0] * len(counts)
-    return [float(v) for v in scales_of(counts, mode)]
+    return [float(v) for v in weights_for(counts, mode)]
+
+
+def _pool(states: list, weights: list):
+    """Merge per-campaign factors with their campaign weights (``QRAccumulator.merge``)."""
+    import inspect
+
+    from .regression import QRAccumulator
+
+    weighted = "weight" in inspect.signature(QRAccumulator.merge).parameters
+    if not weighted and any(w != 1.0 for w in weights):
+        raise RuntimeError("this fbgcomp's QRAccumulator.merge cannot weight campaigns")
+    acc = QRAccumulator.from_dict(states[0]["acc"])
+    acc = QRAccumulator(acc.n_features, acc.n_targets, acc.feature_names, acc.target_names,
+                        precision=acc.precision)
+    for st, w in zip(states, weights):
+        other = QRAccumulator.from_dict(st["acc"])
+        if weighted:
+            acc.merge(other, weight=w)
+        else:
+            acc.merge(other)
+    return acc
 
 
 def accumulate_paths(model, paths, dask=None):
@@ -285,8 +289,6 @@ def accumulate_paths(model, paths, dask=None):
     are then weighted as :meth:`MRAModel.fit` weights campaigns and merged in the client.
     """
     import functools
-
-    from .regression import QRAccumulator
 
     sources, described, spec = _plan(model, paths)
     task = functools.partial(_accumulate_source, spec=spec)
@@ -306,17 +308,15 @@ def accumulate_paths(model, paths, dask=None):
                                  groups[k]) for k in keys]
             per_campaign = client.gather(reduced)
     counts = [int(st["acc"]["n_obs"]) for st in per_campaign]
-    scales = _campaign_scales(model, counts)
-    state = _pairwise(_merge_states, [_scaled_state(st, sc)
-                                      for st, sc in zip(per_campaign, scales)])
-    acc = QRAccumulator.from_dict(state["acc"])
+    weights = _campaign_weights(model, counts)
+    acc = _pool(per_campaign, weights)
     dropped = {t["key"]: t["dropped"] for st in per_campaign for t in st["training"]
                if "dropped" in t}
     campaigns = []
-    for d, n, sc in zip(described, counts, scales):
+    for d, n, w in zip(described, counts, weights):
         entry = {k: v for k, v in d.items() if k != "key"}
         entry["n_samples"] = n
-        entry["row_weight"] = float(sc * sc)
+        entry["row_weight"] = float(w)
         if d["key"] in dropped:
             entry["dropped"] = dropped[d["key"]]
         campaigns.append(entry)
