@@ -147,14 +147,21 @@ def test_model_reload_keeps_the_zero_state_and_refuses_other_sensors(paths, tmp_
     svc = Service(cfg)
 
     async def main():
-        run = asyncio.create_task(svc.run(1.5))
-        await asyncio.sleep(1.0)
+        run = asyncio.create_task(svc.run(30.0))
+        loop = asyncio.get_running_loop()
+        end = loop.time() + 20.0
+        while not (svc.pipeline.zeroed and svc.frames > 200) and loop.time() < end:
+            await asyncio.sleep(0.05)
         zero = svc.pipeline.wavelength_zero_nm.copy()
         answer = await svc.reload(str(model))
         assert answer == f"loaded {svc.model_id}"
         np.testing.assert_array_equal(svc.pipeline.wavelength_zero_nm, zero)
         with pytest.raises(InputError):
             await svc.reload(str(other))                # eq11 needs no probes: other inputs
+        frames = svc.frames
+        while svc.frames < frames + 100 and loop.time() < end:
+            await asyncio.sleep(0.05)                    # the reloaded model keeps running
+        svc.stop()
         await run
         return svc.last_result
 
