@@ -254,9 +254,11 @@ def _mount_optional_commands() -> None:
     """Commands of packages that may be absent in a minimal install (runtime needs asyncua)."""
     from .cnc_demo import register as register_cnc_demo
     from .report import register as register_report
+    from .scale_cli import register as register_scale
 
     register_report(app)
     register_cnc_demo(app)
+    register_scale(app)
     try:
         from .runtime.cli import register
     except ImportError:

@@ -152,9 +152,7 @@ def tree_reduce(func, items, merge, dask=None):
 # --------------------------------------------------------------------------------------------
 
 def _model_params(model) -> dict:
-    keys = ("features", "stepwise", "direction", "p_enter", "p_remove", "max_terms", "roles",
-            "zero_window_s", "fallbacks")
-    params = {k: getattr(model, k) for k in keys}
+    params = model.get_params()
     roles = params["roles"]
     if roles is not None and not isinstance(roles, dict):
         params["roles"] = roles.as_dict()
@@ -249,35 +247,21 @@ def _plan(model, paths) -> tuple[list, list, dict]:
 
 
 def _campaign_weights(model, counts: list) -> list:
-    """Row weight of each campaign as :meth:`MRAModel.fit` pools them (``campaign_weights``);
-    all 1 for ordinary least squares."""
-    from . import models
+    """Row weight of each campaign exactly as :meth:`MRAModel.fit` pools them."""
+    from .models import campaign_weights_for
 
-    mode = getattr(model, "campaign_weights", "samples")
-    weights_for = getattr(models, "campaign_weights_for", None)
-    if weights_for is None or mode == "samples":
-        return [1.0] * len(counts)
-    return [float(v) for v in weights_for(counts, mode)]
+    return [float(v) for v in campaign_weights_for(counts, model.campaign_weights)]
 
 
 def _pool(states: list, weights: list):
     """Merge per-campaign factors with their campaign weights (``QRAccumulator.merge``)."""
-    import inspect
-
     from .regression import QRAccumulator
 
-    weighted = "weight" in inspect.signature(QRAccumulator.merge).parameters
-    if not weighted and any(w != 1.0 for w in weights):
-        raise RuntimeError("this fbgcomp's QRAccumulator.merge cannot weight campaigns")
-    acc = QRAccumulator.from_dict(states[0]["acc"])
-    acc = QRAccumulator(acc.n_features, acc.n_targets, acc.feature_names, acc.target_names,
-                        precision=acc.precision)
+    first = QRAccumulator.from_dict(states[0]["acc"])
+    acc = QRAccumulator(first.n_features, first.n_targets, first.feature_names,
+                        first.target_names, precision=first.precision)
     for st, w in zip(states, weights):
-        other = QRAccumulator.from_dict(st["acc"])
-        if weighted:
-            acc.merge(other, weight=w)
-        else:
-            acc.merge(other)
+        acc.merge(QRAccumulator.from_dict(st["acc"]), weight=w)
     return acc
 
 
