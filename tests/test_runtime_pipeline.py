@@ -131,3 +131,31 @@ def test_smoothing_is_an_exponential_filter(setup):
     a = np.exp(-0.1 / 1.0)
     x, y = raw["correction_um"], sm["correction_um"]
     np.testing.assert_allclose(y[1:], a * y[:-1] + (1 - a) * x[1:], atol=1e-9)
+
+
+def test_slew_limit_turns_a_fallback_switch_into_a_ramp(setup):
+    model, campaign, aligned, w, t = setup
+    time_s = aligned.time_s
+    wl = w.copy()
+    counts = np.ones(wl.shape, np.int8)
+    s3 = model.sensor_names.index("S3")
+    lost = time_s >= 100.0
+    wl[lost, s3] = np.nan
+    counts[lost, s3] = 0
+    free = _run(Pipeline(model), time_s, wl, t, [64], counts)["correction_um"]
+    i = int(np.argmax(lost))
+    jump = np.abs(free[i] - free[i - 1]).max()                  # the switch is a step
+    normal = np.abs(np.diff(free[time_s < 99.0], axis=0)).max() / 0.1   # µm/s otherwise
+    assert jump > 20 * normal * 0.1
+    rate = 2 * normal                                           # µm/s
+    outs = [_run(Pipeline(model, PipelineConfig(max_slew_um_per_s=rate)), time_s, wl, t, sizes,
+                 counts)["correction_um"] for sizes in ([1], [7, 50], [10_000])]
+    for lim in outs[1:]:
+        np.testing.assert_allclose(lim, outs[0], atol=1e-12)   # whatever the batching
+    lim = outs[0]
+    dt = np.diff(time_s)[:, None]
+    assert (np.abs(np.diff(lim, axis=0)) <= rate * dt + 1e-9).all()
+    assert np.abs(lim[i] - lim[i - 1]).max() <= rate * 0.1 + 1e-9  # limited to a ramp
+    calm = time_s < 99.0
+    np.testing.assert_allclose(lim[calm], free[calm], atol=1e-12)   # untouched elsewhere
+    assert np.abs(lim[-1] - free[-1]).max() < 1e-9                  # caught up again

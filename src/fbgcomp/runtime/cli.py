@@ -30,6 +30,7 @@ def register(app: typer.Typer) -> None:
         log_dir: Optional[Path] = typer.Option(None, "--log", help="Run-log folder (Parquet)."),
         rate: Optional[float] = typer.Option(None, "--rate", help="OPC UA update rate, Hz (0 = every batch)."),
         smoothing: Optional[float] = typer.Option(None, "--smoothing-tau", help="Correction smoothing time constant, s."),
+        max_slew: Optional[float] = typer.Option(None, "--max-slew", help="Largest rate of change of the correction, µm/s (0 = off)."),
         allow_anonymous: bool = typer.Option(False, "--allow-anonymous", help="Allow anonymous read-only OPC UA sessions."),
         users_file: Optional[Path] = typer.Option(None, "--users", help="OPC UA users file (name:pbkdf2_sha256$...)."),
         dashboard: Optional[str] = typer.Option(
@@ -70,6 +71,8 @@ def register(app: typer.Typer) -> None:
             cfg.opcua.rate_hz = rate
         if smoothing is not None:
             cfg.pipeline.smoothing_tau_s = smoothing
+        if max_slew is not None:
+            cfg.pipeline.max_slew_um_per_s = max_slew
         if allow_anonymous:
             cfg.opcua.allow_anonymous = True
         if users_file is not None:

@@ -9,7 +9,9 @@ what a running machine needs, vectorised over every frame of a batch:
   them) - the switch happens on the very sample the fault appears;
 * when no usable model remains: hold the last correction and ramp it linearly to zero over
   ``ramp_s`` (alarm);
-* optional exponential smoothing of the correction (``smoothing_tau_s``).
+* optional exponential smoothing of the correction (``smoothing_tau_s``) and a slew-rate
+  limit (``max_slew_um_per_s``) so that a model switch, a re-admitted sensor or switching the
+  output off never steps the axes.
 
 Health codes per frame: OK, DEGRADED (fallback in use), ALARM (hold / ramp), ZEROING.
 """
@@ -30,6 +32,7 @@ HEALTH_NAMES = ("OK", "DEGRADED", "ALARM", "ZEROING")
 class PipelineConfig:
     ramp_s: float = 2.0              # hold-then-ramp-to-zero time when no model is usable
     smoothing_tau_s: float = 0.0     # exponential smoothing of the correction; 0 = off
+    max_slew_um_per_s: float = 0.0   # largest rate of change of the correction; 0 = off
     health: H.HealthConfig = field(default_factory=H.HealthConfig)
 
 
@@ -79,6 +82,8 @@ class Pipeline:
         self._hold_from = np.zeros(3)
         self._smoothed: np.ndarray | None = None
         self._last_t: float | None = None
+        self._slew_y: np.ndarray | None = None
+        self._slew_t: float | None = None
 
     # -- model selection
     def predictor(self, k: int):
@@ -176,6 +181,7 @@ class Pipeline:
         correction = self._smooth(time_s, correction)
         if not enabled:
             correction = np.zeros_like(correction)
+        correction = self._slew_limit(time_s, correction)
         return BatchResult(time_s, dev, half, correction, rms, health, status, model_set,
                            temperature_C)
 
@@ -225,3 +231,40 @@ class Pipeline:
         self._smoothed = y[-1].copy()
         self._last_t = float(t[-1])
         return y
+
+    def _slew_limit(self, t: np.ndarray, corr: np.ndarray) -> np.ndarray:
+        """Limit |d correction / dt| to ``max_slew_um_per_s`` per axis.
+
+        Where the correction already respects the limit (nearly always) it passes unchanged,
+        checked for the whole batch at once; only while the limiter is engaged - a transient
+        of a few hundred samples at most - is it followed sample by sample, since each limited
+        sample depends on the previous output.
+        """
+        rate = self.config.max_slew_um_per_s
+        n = t.size
+        if rate <= 0 or n == 0:
+            return corr
+        prev = self._slew_y if self._slew_y is not None else corr[0]
+        t_prev = self._slew_t if self._slew_t is not None else float(t[0])
+        step = rate * np.maximum(np.diff(np.concatenate([[t_prev], t])), 0.0)[:, None] + 1e-12
+        out = corr.copy()
+        i = 0
+        while i < n:
+            jump = np.abs(np.diff(np.vstack([prev[None, :], corr[i:]]), axis=0)) > step[i:]
+            rows = np.flatnonzero(jump.any(axis=1))
+            if rows.size == 0:
+                break
+            k = i + int(rows[0])
+            if k > i:
+                prev = corr[k - 1]
+            j = k
+            while j < n:                   # engaged: follow the target at the limited rate
+                prev = prev + np.clip(corr[j] - prev, -step[j], step[j])
+                out[j] = prev
+                j += 1
+                if np.array_equal(prev, corr[j - 1]):
+                    break                  # caught up: back to the batch-wide check
+            i = j
+        self._slew_y = out[-1].copy()
+        self._slew_t = float(t[-1])
+        return out

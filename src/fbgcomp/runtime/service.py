@@ -195,6 +195,7 @@ class Service:
             old.temperature_zero_C
         pipe._last_correction, pipe._hold_start_s = old._last_correction, old._hold_start_s
         pipe._smoothed, pipe._last_t = old._smoothed, old._last_t
+        pipe._slew_y, pipe._slew_t = old._slew_y, old._slew_t
         self.model, self.pipeline, self.model_id = new, pipe, new.model_id
         if self.opc is not None:
             self.opc.model_id = self.model_id
