@@ -159,3 +159,21 @@ def test_slew_limit_turns_a_fallback_switch_into_a_ramp(setup):
     calm = time_s < 99.0
     np.testing.assert_allclose(lim[calm], free[calm], atol=1e-12)   # untouched elsewhere
     assert np.abs(lim[-1] - free[-1]).max() < 1e-9                  # caught up again
+
+
+def test_link_loss_ticks_hold_then_ramp_and_data_resumes(setup):
+    model, campaign, aligned, w, t = setup
+    n = 400
+    pipe = Pipeline(model, PipelineConfig(ramp_s=1.0))
+    r = _run(pipe, aligned.time_s[:n], w[:n], t[:n], [50])
+    held = r["correction_um"][-1]
+    t_last = aligned.time_s[n - 1]
+    ticks = [pipe.no_data(t_last + dt) for dt in (0.1, 0.35, 0.6, 1.2, 1.5)]
+    # the hold starts at the first tick: 1 - (t - t_first_tick) / ramp_s
+    for tick, dt in zip(ticks, (0.1, 0.35, 0.6, 1.2, 1.5)):
+        frac = max(0.0, 1.0 - (dt - 0.1) / 1.0)
+        np.testing.assert_allclose(tick.correction_um[0], held * frac, atol=1e-12)
+        assert tick.health[0] == HEALTH_ALARM
+    back = pipe.process(aligned.time_s[n:n + 5], w[n:n + 5], np.ones((5, 5), np.int8),
+                        np.zeros((5, 5), np.int8), t[n:n + 5])
+    assert (back.health == HEALTH_OK).all()

@@ -185,6 +185,22 @@ class Pipeline:
         return BatchResult(time_s, dev, half, correction, rms, health, status, model_set,
                            temperature_C)
 
+    def no_data(self, t_s: float, enabled: bool = True) -> BatchResult:
+        """No frame arrives (link lost): hold the last correction and ramp it to zero (alarm),
+        shaped like any other output (smoothing, slew limit)."""
+        t = np.array([t_s], dtype=np.float64)
+        S, P = len(self.sensor_names), len(self.probe_names)
+        nan3 = np.full((1, 3), np.nan)
+        health = np.array([HEALTH_ALARM], np.uint8)
+        corr = self._hold_and_ramp(t, nan3, health)
+        corr = self._smooth(t, corr)
+        if not enabled:
+            corr = np.zeros_like(corr)
+        corr = self._slew_limit(t, corr)
+        return BatchResult(t, nan3, nan3, corr, nan3, health,
+                           np.full((1, S), H.MISSING, np.uint8), np.array([-1], np.int16),
+                           np.full((1, P), np.nan))
+
     def _hold_and_ramp(self, t: np.ndarray, corr: np.ndarray, health: np.ndarray) -> np.ndarray:
         """Rows without a model hold the last good correction, ramped to zero over ramp_s."""
         n = t.size

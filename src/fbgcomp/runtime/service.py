@@ -332,15 +332,8 @@ class Service:
         """No frame for no_data_s: hold / ramp the last correction (alarm), sensors missing."""
         if not self.pipeline.zeroed:
             return
-        t = np.array([time.time() - self._offset_s])
         S = len(self.pipeline.sensor_names)
-        corr = self.pipeline._hold_and_ramp(t, np.full((1, 3), np.nan),
-                                            np.array([HEALTH_ALARM], np.uint8))
-        nan3 = np.full((1, 3), np.nan)
-        from fbgcomp.runtime.pipeline import BatchResult
-        res = BatchResult(t, nan3, nan3, corr, nan3, np.array([HEALTH_ALARM], np.uint8),
-                          np.full((1, S), H.MISSING, np.uint8), np.array([-1], np.int16),
-                          np.full((1, len(self.pipeline.probe_names)), np.nan))
+        res = self.pipeline.no_data(time.time() - self._offset_s, self.enabled)
         self.last_result = res
         self._publish(res, np.full(S, np.nan), time.time())
 
