@@ -46,24 +46,27 @@ def _blocks(n, k=5):
     return [np.arange(edges[i], edges[i + 1]) for i in range(k)]
 
 
-def _standardise(X):
-    mu = X[:, 1:].mean(axis=0)
-    sd = X[:, 1:].std(axis=0)
+def _standardise(X, w):
+    mu = np.average(X[:, 1:], axis=0, weights=w)
+    sd = np.sqrt(np.average((X[:, 1:] - mu) ** 2, axis=0, weights=w))
     sd[sd == 0] = 1.0
     return mu, sd
 
 
-def ridge_fit(X, Y, lambdas=np.logspace(-6, 2, 17)):
-    """Ridge on standardised columns (the constant unpenalised), penalty by blocked CV.
+def ridge_fit(X, Y, w=None, lambdas=np.logspace(-6, 2, 17)):
+    """Weighted ridge on standardised columns (the constant unpenalised), penalty by blocked CV.
 
-    ``X`` (n, 1 + p) with the constant first, ``Y`` (n, 3). Returns (coef (1 + p, 3), lambda (3,)).
+    ``X`` (n, 1 + p) with the constant first, ``Y`` (n, 3), ``w`` (n,) row weights.
+    Returns (coef (1 + p, 3), lambda (3,)).
     """
-    def solve(Xs, Ys, lam):
-        mu, sd = _standardise(Xs)
+    w_all = np.ones(len(X)) if w is None else np.asarray(w, dtype=float)
+
+    def solve(Xs, Ys, lam, ws):
+        mu, sd = _standardise(Xs, ws)
         Z = (Xs[:, 1:] - mu) / sd
-        ym = Ys.mean(axis=0)
-        A = Z.T @ Z + lam * len(Z) * np.eye(Z.shape[1])
-        b = np.linalg.solve(A, Z.T @ (Ys - ym))
+        ym = np.average(Ys, axis=0, weights=ws)
+        A = (Z * ws[:, None]).T @ Z + lam * ws.sum() * np.eye(Z.shape[1])
+        b = np.linalg.solve(A, (Z * ws[:, None]).T @ (Ys - ym))
         coef = np.vstack([ym - (mu / sd) @ b, b / sd[:, None]])
         return coef
 
@@ -72,26 +75,30 @@ def ridge_fit(X, Y, lambdas=np.logspace(-6, 2, 17)):
     for i, lam in enumerate(lambdas):
         for f in folds:
             train = np.setdiff1d(np.arange(len(X)), f)
-            c = solve(X[train], Y[train], lam)
-            err[i] += np.sum((X[f] @ c - Y[f]) ** 2, axis=0)
+            c = solve(X[train], Y[train], lam, w_all[train])
+            err[i] += np.sum(w_all[f, None] * (X[f] @ c - Y[f]) ** 2, axis=0)
     best = np.argmin(err, axis=0)
-    coef = np.column_stack([solve(X, Y[:, [j]], lambdas[best[j]])[:, 0] for j in range(Y.shape[1])])
+    coef = np.column_stack([solve(X, Y[:, [j]], lambdas[best[j]], w_all)[:, 0]
+                            for j in range(Y.shape[1])])
     return coef, lambdas[best]
 
 
-def pls_fit(X, Y, max_components=None):
-    """PLS1 (NIPALS) per axis on standardised columns, components by blocked CV.
+def pls_fit(X, Y, w=None, max_components=None):
+    """Weighted PLS1 (NIPALS) per axis on standardised columns, components by blocked CV.
 
     Returns (coef (1 + p, 3), n_components (3,)).
     """
     p = X.shape[1] - 1
     max_components = min(p, max_components or p)
+    w_all = np.ones(len(X)) if w is None else np.asarray(w, dtype=float)
 
-    def solve(Xs, ys, k):
-        mu, sd = _standardise(Xs)
-        Z = (Xs[:, 1:] - mu) / sd
-        ym = ys.mean()
-        E, f = Z.copy(), ys - ym
+    def solve(Xs, ys, k, ws):
+        mu, sd = _standardise(Xs, ws)
+        r = np.sqrt(ws)
+        # Weighted least squares = ordinary on rows scaled by sqrt(weight), after weighted centring.
+        Z = (Xs[:, 1:] - mu) / sd * r[:, None]
+        ym = np.average(ys, weights=ws)
+        E, f = Z.copy(), (ys - ym) * r
         W, P, q = [], [], []
         for _ in range(k):
             w = E.T @ f
@@ -121,10 +128,10 @@ def pls_fit(X, Y, max_components=None):
         for k in range(1, max_components + 1):
             for f in folds:
                 train = np.setdiff1d(np.arange(len(X)), f)
-                c = solve(X[train], Y[train, j], k)
-                err[k - 1] += np.sum((X[f] @ c - Y[f, j]) ** 2)
+                c = solve(X[train], Y[train, j], k, w_all[train])
+                err[k - 1] += np.sum(w_all[f] * (X[f] @ c - Y[f, j]) ** 2)
         k = int(np.argmin(err)) + 1
-        coefs.append(solve(X, Y[:, j], k))
+        coefs.append(solve(X, Y[:, j], k, w_all))
         ncomp.append(k)
     return np.column_stack(coefs), np.array(ncomp)
 
@@ -138,16 +145,22 @@ class _DesignModel:
     def fit(self, campaigns):
         self._mra = MRAModel(features=self.features, zero_window_s=self.zero_window_s, fallbacks="none")
         self._mra.new_accumulator(list(campaigns[0].meta.sensors), None)
+        from .models import campaign_weights_for
+
         X, Y = [], []
-        for c in campaigns:
-            a = c.aligned(zero_window_s=self.zero_window_s)
+        aligned = [c.aligned(zero_window_s=self.zero_window_s) for c in campaigns]
+        # Campaigns pooled like MRAModel.fit (balanced row weights, weighted least squares).
+        weights = campaign_weights_for([len(a.time_s) for a in aligned], "balanced")
+        W = []
+        for c, a, w in zip(campaigns, aligned, weights):
             X.append(self._mra._campaign_design(c, a))
             Y.append(a.reference_um)
-        X, Y = np.vstack(X), np.vstack(Y)
+            W.append(np.full(len(a.time_s), w))
+        X, Y, W = np.vstack(X), np.vstack(Y), np.concatenate(W)
         if self.kind == "ridge":
-            self.coef_, self.complexity_ = ridge_fit(X, Y)
+            self.coef_, self.complexity_ = ridge_fit(X, Y, W)
         else:
-            self.coef_, self.complexity_ = pls_fit(X, Y)
+            self.coef_, self.complexity_ = pls_fit(X, Y, W)
         return self
 
     def predict_interval(self, campaign):

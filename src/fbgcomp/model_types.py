@@ -499,10 +499,11 @@ class DynamicModel(MRAModel):
 
     def __init__(self, taus_s=DEFAULT_TAUS_S, stepwise=True, direction="both", p_enter=0.05,
                  p_remove=0.10, max_terms=None, roles=None, zero_window_s=10.0, fallbacks="loo",
-                 elongation_axes=None):
+                 elongation_axes=None, campaign_weights="balanced"):
         super().__init__(features="eq13", stepwise=stepwise, direction=direction, p_enter=p_enter,
                          p_remove=p_remove, max_terms=max_terms, roles=roles,
-                         zero_window_s=zero_window_s, fallbacks=fallbacks)
+                         zero_window_s=zero_window_s, fallbacks=fallbacks,
+                         campaign_weights=campaign_weights)
         self.taus_s = tuple(taus_s)
         self.elongation_axes = None if elongation_axes is None else tuple(elongation_axes)
 
@@ -574,7 +575,8 @@ class DynamicModel(MRAModel):
         m = cls(taus_s=d["dynamic"]["taus_s"], stepwise=base.stepwise, direction=base.direction,
                 p_enter=base.p_enter, p_remove=base.p_remove, max_terms=base.max_terms,
                 roles=base.roles, zero_window_s=base.zero_window_s, fallbacks=base.fallbacks,
-                elongation_axes=d["dynamic"].get("elongation_axes"))
+                elongation_axes=d["dynamic"].get("elongation_axes"),
+                campaign_weights=getattr(base, "campaign_weights", "samples"))
         for k in ("candidates_", "sensors_", "probe_names_", "axes_", "fallbacks_", "training_",
                   "results_", "coef_"):
             setattr(m, k, getattr(base, k))
@@ -587,23 +589,30 @@ def _fit_regression(model, X, progress=None, targets=None):
     campaigns = _as_campaign_list(X)
     if not campaigns:
         raise ValueError("fit needs at least one campaign")
+    from .models import campaign_weights_for
+
     acc = model.new_accumulator(list(campaigns[0].meta.sensors), None)
     training, dts = [], []
-    for i, c in enumerate(campaigns):
+    for c in campaigns:
         check_compatible(model, c)
-        aligned = c.aligned(zero_window_s=model.zero_window_s)
+    # Campaigns pooled as MRAModel.fit pools them (balanced by default: errors in variables).
+    aligned_all = [c.aligned(zero_window_s=model.zero_window_s) for c in campaigns]
+    weights = campaign_weights_for([len(a.time_s) for a in aligned_all],
+                                   getattr(model, "campaign_weights", "samples"))
+    for i, (c, aligned, weight) in enumerate(zip(campaigns, aligned_all, weights)):
         if isinstance(model, DynamicModel):
             design = model.campaign_design(c, aligned)
         else:
             design = model._campaign_design(c, aligned)
         y = aligned.reference_um if targets is None or i not in targets else targets[i]
         for start in range(0, len(design), 100_000):
-            acc.update(design[start:start + 100_000], y[start:start + 100_000])
+            acc.update(design[start:start + 100_000], y[start:start + 100_000], weights=weight)
         if len(aligned.time_s) > 1:
             dts.append(float(np.median(np.diff(aligned.time_s))))
         training.append({"name": c.meta.name, "kind": c.meta.kind,
                          "path": None if c.path is None else str(c.path),
-                         "n_samples": int(len(design)), "dropped": _plain(aligned.dropped)})
+                         "n_samples": int(len(design)), "row_weight": float(weight),
+                         "dropped": _plain(aligned.dropped)})
         if progress is not None:
             progress(c.meta.name)
     info = {"campaigns": training, "n_samples": int(sum(t["n_samples"] for t in training))}
@@ -716,8 +725,9 @@ class HybridModel(_ModelFile):
 
     def __init__(self, machine=None, features="eq13", stepwise=True, taus_s=DEFAULT_TAUS_S,
                  p_enter=0.05, p_remove=0.10, max_terms=None, roles=None, zero_window_s=10.0,
-                 fallbacks="loo", elongation_axes=("dz",)):
+                 fallbacks="loo", elongation_axes=("dz",), campaign_weights="balanced"):
         self.machine = machine
+        self.campaign_weights = campaign_weights
         self.elongation_axes = elongation_axes
         self.features = features
         self.stepwise = stepwise
@@ -734,7 +744,8 @@ class HybridModel(_ModelFile):
                             stepwise=self.stepwise, p_enter=self.p_enter, p_remove=self.p_remove,
                             max_terms=self.max_terms, roles=self.roles,
                             zero_window_s=self.zero_window_s, fallbacks=self.fallbacks,
-                            elongation_axes=self.elongation_axes)
+                            elongation_axes=self.elongation_axes,
+                            campaign_weights=self.campaign_weights)
 
     def fit(self, X, y=None, *, progress=None):
         campaigns = _as_campaign_list(X)
@@ -823,7 +834,8 @@ class HybridModel(_ModelFile):
         kin = KinematicModel.from_dict(h["kinematic"], source)
         res = DynamicModel.from_dict(h["residual"], source)
         m = cls(machine=kin.machine_, features=h["features"], zero_window_s=d["zero_state"]["window_s"],
-                fallbacks=d.get("fallback_policy", "loo"), taus_s=res.taus_s)
+                fallbacks=d.get("fallback_policy", "loo"), taus_s=res.taus_s,
+                elongation_axes=res.elongation_axes, campaign_weights=res.campaign_weights)
         m.kinematic_, m.residual_ = kin, res
         m.correction_ = np.asarray(h["thermal_correction_um"], dtype=float)
         m.sensors_ = kin.sensors_
