@@ -134,3 +134,18 @@ def test_kinematic_model_predicts_static_tool_tip_loads_without_fitting():
     z0 = twin.static(forces[:2]).ttp_um
     z3 = tw.static(forces[:2]).ttp_um
     assert z3[1, 1] < 0.8 * z0[1, 1]
+
+
+def test_guide_compliance_from_the_machine_description_enters_the_chain():
+    machine = load_machine()
+    soft = machine.model_copy(update={"supports": machine.supports.model_copy(
+        update={"carriage_stiffness_N_per_um": 300.0})})
+    forces = np.array([[4000.0, 0, 0], [0, -3000.0, 0]])
+    st = Twin(soft, resolution=COARSE).static(forces)
+    stiff_ttp = Twin(machine, resolution=COARSE).static(forces).ttp_um
+    assert abs(st.ttp_um[0, 0]) > 1.5 * abs(stiff_ttp[0, 0])     # the guides matter here
+    pred = KinematicChain(soft).ttp_deviation_um(st.sensor_elongation_um)
+    assert pred[0, 0] == pytest.approx(st.ttp_um[0, 0], rel=0.10)
+    assert pred[1, 1] == pytest.approx(st.ttp_um[1, 1], rel=0.10)
+    rigid = KinematicChain(machine).ttp_deviation_um(st.sensor_elongation_um)
+    assert abs(rigid[0, 0] - st.ttp_um[0, 0]) > 0.2 * abs(st.ttp_um[0, 0])

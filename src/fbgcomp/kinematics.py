@@ -476,14 +476,37 @@ class KinematicChain:
         pos = frames[..., :3, 3]
         return pos
 
-    def deflection_um(self, params):
-        """TTP deviation (n, 3) µm from segment parameters (n, K, 5), closed on the supports."""
+    def support_deflection_um(self, force_N):
+        """Lateral deflection (n, 2, 2) µm of the (lower, upper) carriage stations in (x, y)
+        under TTP forces (n, 2) N (Fx, Fy): statics of the two stations, the machine
+        description's carriage stiffness (N/µm per direction)."""
+        F = np.atleast_2d(np.asarray(force_N, dtype=float))
+        z_lc, z_uc = self.carriage_z_mm
+        a = z_uc - z_lc
+        k = self.machine.supports.carriage_stiffness_N_per_um
+        # The ram pushes on the lower station with F (z_uc - z_t) / a and pulls on the upper one
+        # with F (z_lc - z_t) / a: each station yields by its load over its stiffness.
+        lower = F * (z_uc - self.ttp_z_mm) / (a * k)
+        upper = -F * (z_lc - self.ttp_z_mm) / (a * k)
+        return np.stack([lower, upper], axis=1)
+
+    def deflection_um(self, params, support_um=None):
+        """TTP deviation (n, 3) µm from segment parameters (n, K, 5), closed on the supports.
+
+        ``support_um`` (n, 2, 2): lateral (x, y) displacement of the (lower, upper) carriage
+        stations (their guides' compliance); None: rigid guides.
+        """
         pos = self._chain(params)
         u = (pos - self._nominal[None]) * UM_PER_MM                  # (n, K+1, 3)
         zb = self.top_z_mm - np.concatenate([[0.0], np.cumsum(self.lengths_mm)])
         i_lc, i_uc = (int(np.argmin(np.abs(zb - z))) for z in self.carriage_z_mm)
         i_nut = int(np.argmin(np.abs(zb - self.nut_z_mm)))
         h_lc, h_uc = self.top_z_mm - zb[i_lc], self.top_z_mm - zb[i_uc]
+        if support_um is not None:
+            # Close on the guides' displaced positions: shift the targets by their deflection.
+            u = u.copy()
+            u[:, i_lc, :2] -= support_um[:, 0, :]
+            u[:, i_uc, :2] -= support_um[:, 1, :]
         # Rigid base motion (small rotation phi about the top point + translation t) that puts
         # both carriage stations back on their guides and the nut on the screw. A base
         # rotation about X by phi moves a point h below the top by +h*phi in Y, about Y by -h*phi in X.
@@ -499,7 +522,10 @@ class KinematicChain:
 
     def ttp_deviation_um(self, elongation_um, housing_dT_K=None):
         """TTP deviation (n, 3) µm from bar elongations (n, S) µm and the housing probe's ΔT (n,) K."""
-        return self.deflection_um(self.segment_parameters(elongation_um, housing_dT_K))
+        dl = np.atleast_2d(np.asarray(elongation_um, dtype=float))
+        force = dl @ self.load_map[:2].T if dl.shape[1] else np.zeros((len(dl), 2))
+        return self.deflection_um(self.segment_parameters(dl, housing_dT_K),
+                                  self.support_deflection_um(force))
 
     def jacobian(self):
         """Linear maps: TTP µm per µm of each bar (3, S) and per K of housing probe (3,)."""
