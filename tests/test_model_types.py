@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from fbgcomp.bench import load_scenario, simulate
+from fbgcomp.bench import Scenario, load_scenario, simulate
 from fbgcomp.campaign import read_campaign, write_campaign
 from fbgcomp.metrics import validation_metrics
 from fbgcomp.model_types import (DynamicModel, HybridModel, KinematicModel, first_order_filter)
@@ -22,29 +22,12 @@ HOURS = 3.0
 
 def _short(name, hours=HOURS, **update):
     """A built-in thermal scenario compressed in time to ``hours`` (same shapes, faster)."""
-    sc = load_scenario(name)
-    data = sc.model_dump()
-    scale = hours / sc.duration_h
-    data["duration_h"] = hours
-    for key in ("ambient_C", "spindle_W", "radiant_W_per_m2"):
-        h = data[key]
-        h["knots_h"] = [(t * scale, v) for t, v in h["knots_h"]]
-        for d in h["duty"]:
-            d["start_h"] *= scale
-            d["end_h"] *= scale
-            for k in ("on_min", "off_min"):
-                if d[k]:
-                    d[k] *= scale
-        for c in h["cycles"]:
-            c["period_h"] *= scale
-            c["phase_h"] *= scale
-        if h["random"]:
-            h["random"]["correlation_h"] *= scale
+    data = load_scenario(name).compressed(hours).model_dump()
     data["instruments"]["fbg"]["dt_s"] = 5.0
     data["instruments"]["interferometer"]["dt_s"] = 10.0
     data["solver_dt_s"] = 5.0
     data.update(update)
-    return type(sc).model_validate(data)
+    return Scenario.model_validate(data)
 
 
 @pytest.fixture(scope="module")

@@ -148,6 +148,29 @@ class Scenario(_Strict):
     load_ramp_s: float = Field(default=2.0, ge=0)
     instruments: Instruments = Instruments()
 
+    def compressed(self, hours: float) -> "Scenario":
+        """The same histories squeezed into ``hours`` (every time in the input histories scaled)."""
+        if self.duration_h is None or self.duration_h <= hours:
+            return self
+        scale = hours / self.duration_h
+        data = self.model_dump()
+        data["duration_h"] = hours
+        for key in ("ambient_C", "spindle_W", "radiant_W_per_m2"):
+            h = data[key]
+            h["knots_h"] = [(t * scale, v) for t, v in h["knots_h"]]
+            for d in h["duty"]:
+                d["start_h"] *= scale
+                d["end_h"] *= scale
+                for k in ("on_min", "off_min"):
+                    if d[k]:
+                        d[k] *= scale
+            for c in h["cycles"]:
+                c["period_h"] *= scale
+                c["phase_h"] *= scale
+            if h["random"]:
+                h["random"]["correlation_h"] *= scale
+        return type(self).model_validate(data)
+
     def duration_s(self) -> float:
         if self.duration_h is not None:
             return self.duration_h * 3600.0

@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 
 from . import optics
-from .features import FeatureMap, TemperatureRoles, design_matrix
+from .features import TemperatureRoles, design_matrix
 
 AXES = ("dx", "dy", "dz")
 
@@ -168,7 +168,7 @@ def resolution_report(machine, twin=None, wavelength_noise_nm=0.001):
 
     twin = twin or Twin(machine)
     cases = load_case_responses(twin)
-    elong, ttp, names = cases["sensor_elongation_um"], cases["ttp_um"], cases["names"]
+    elong, ttp = cases["sensor_elongation_um"], cases["ttp_um"]
     noise = elongation_noise_um(machine.sensors, wavelength_noise_nm)
     scaled = elong / noise                                   # (C, S) in noise units
     u, sv, vt = np.linalg.svd(scaled, full_matrices=True)

@@ -52,6 +52,7 @@ from pydantic import (AwareDatetime, BaseModel, ConfigDict, Field, StrictStr, Va
                       field_validator, model_validator)
 from pydantic_core import PydanticCustomError
 
+from fbgcomp.atomic import replace_dir
 from fbgcomp.errors import InputError
 
 __all__ = [
@@ -1073,17 +1074,7 @@ def write_campaign(campaign: Campaign, path: str | Path) -> Path:
             handle.write(text)
             handle.flush()
             os.fsync(handle.fileno())
-        if target.exists():
-            retired = target.parent / f".{target.name}.old-{token}"
-            os.rename(target, retired)
-            try:
-                os.rename(staging, target)
-            except BaseException:
-                os.rename(retired, target)
-                raise
-            shutil.rmtree(retired, ignore_errors=True)
-        else:
-            os.rename(staging, target)
+        replace_dir(staging, target, target.parent / f".{target.name}.old-{token}")
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise

@@ -121,7 +121,8 @@ def validate(model_file: Path = typer.Argument(..., help="Model file (JSON)."),
 
     from .metrics import (format_metrics, format_static_metrics, static_level_metrics,
                           validation_metrics)
-    from .models import load_model, write_json_atomic
+    from .atomic import write_json
+    from .models import load_model
 
     model = load_model(model_file)
     refs, preds, halves, per_campaign = [], [], [], {}
@@ -143,7 +144,7 @@ def validate(model_file: Path = typer.Argument(..., help="Model file (JSON)."),
     pooled["campaigns"] = per_campaign
     pooled["model_id"] = model.model_id
     if json_out is not None:
-        write_json_atomic(json_out, pooled)
+        write_json(json_out, pooled)
         typer.echo(f"metrics written to {json_out}")
 
 
@@ -235,7 +236,7 @@ def place(k: int = typer.Option(..., "--k", help="Number of sensor paths to choo
           dask: Optional[str] = typer.Option(None, "--dask", help="Evaluate candidates on a Dask cluster: tcp://HOST:8786 or local:N."),
           json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON.")):
     """Choose K sensor paths minimising the predicted worst-case TTP error (FE load design + noise)."""
-    from .models import write_json_atomic
+    from .atomic import write_json
     from .placement import parse_grid, place as run
     from .structure import load_machine
 
@@ -246,7 +247,7 @@ def place(k: int = typer.Option(..., "--k", help="Number of sensor paths to choo
                  z_axis_mm=z_axis, dask=dask, wavelength_noise_nm=noise_pm * 1e-3)
     typer.echo(result.format())
     if json_out is not None:
-        write_json_atomic(json_out, result.to_dict())
+        write_json(json_out, result.to_dict())
         typer.echo(f"result written to {json_out}")
 
 

@@ -23,7 +23,8 @@ from pathlib import Path
 import numpy as np
 
 from .metrics import validation_metrics
-from .models import AXES, MRAModel, write_json_atomic
+from .atomic import write_json
+from .models import AXES, MRAModel
 
 #: (name, model type, feature set, options)
 ENTRIES = (
@@ -243,7 +244,7 @@ def format_comparison(result: dict) -> str:
 def write_comparison(result: dict, csv_path=None, json_path=None):
     """CSV (one row per entry and axis, ranked) and JSON (everything), written atomically."""
     if json_path is not None:
-        write_json_atomic(json_path, _finite(result))
+        write_json(json_path, result)
     if csv_path is not None:
         buf = io.StringIO()
         cols = ["axis", "rank", "name", "model_type", "features", "max_abs_error_um", "rms_error_um",
@@ -266,13 +267,3 @@ def write_comparison(result: dict, csv_path=None, json_path=None):
             raise
 
 
-def _finite(obj):
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, float) and not np.isfinite(obj):
-        return None
-    if isinstance(obj, np.generic):
-        return _finite(obj.item())
-    return obj

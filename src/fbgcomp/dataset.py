@@ -49,6 +49,7 @@ from urllib.parse import quote
 
 import numpy as np
 
+from .atomic import json_safe, replace_dir, write_json
 from .errors import InputError
 
 __all__ = ["DATASET_FORMAT", "INDEX_FILE", "METADATA_KEY", "Partition", "Dataset", "is_dataset",
@@ -278,20 +279,6 @@ def _read_index(root: Path) -> dict:
     return data
 
 
-def _write_json_atomic(path: Path, data) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(data, fh, indent=1, allow_nan=False)
-            fh.write("\n")
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def _update_index(root: Path, partition: Partition) -> None:
     # Read-modify-write under an exclusive lock so that concurrent ingests into one dataset
     # do not lose each other's entries (the hidden lock file is ignored by every reader).
@@ -309,24 +296,12 @@ def _update_index(root: Path, partition: Partition) -> None:
         entries.append(entry)
         entries.sort(key=lambda e: (e["machine"], e["campaign"]))
         index.update({"format": DATASET_FORMAT, "version": DATASET_VERSION, "campaigns": entries})
-        _write_json_atomic(root / INDEX_FILE, index)
+        write_json(root / INDEX_FILE, index)
 
 
 # --------------------------------------------------------------------------------------------
 # Ingest
 # --------------------------------------------------------------------------------------------
-
-def _json_safe(value):
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, np.generic):
-        return _json_safe(value.item())
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    return value
-
 
 def ingest_campaign(campaign, dataset, *, machine: str | None = None, zero_window_s: float = 10.0,
                     rows_per_file: int = ROWS_PER_FILE, row_group_rows: int = ROW_GROUP_ROWS,
@@ -377,8 +352,8 @@ def ingest_campaign(campaign, dataset, *, machine: str | None = None, zero_windo
         sensor_names=list(aligned.sensor_names), probe_names=list(aligned.probe_names),
         wavelength_zero_nm=aligned.wavelength_zero_nm, temperature_zero_C=aligned.temperature_zero_C,
         reference_zero_um=aligned.reference_zero_um, zero_window_s=aligned.zero_window_s,
-        meta=_json_safe(campaign.meta.model_dump(mode="json")),
-        dropped=_json_safe({k: (list(v) if isinstance(v, tuple) else v)
+        meta=json_safe(campaign.meta.model_dump(mode="json")),
+        dropped=json_safe({k: (list(v) if isinstance(v, tuple) else v)
                             for k, v in aligned.dropped.items()}),
         columns=list(columns), source=source or (None if campaign.path is None else str(campaign.path)),
         ingested_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"))
@@ -399,17 +374,7 @@ def ingest_campaign(campaign, dataset, *, machine: str | None = None, zero_windo
                 os.fsync(fh.fileno())
         target = partition.path
         target.parent.mkdir(parents=True, exist_ok=True)
-        if target.exists():
-            retired = root / f".retired-{token}"
-            os.rename(target, retired)
-            try:
-                os.rename(staging, target)
-            except BaseException:
-                os.rename(retired, target)
-                raise
-            shutil.rmtree(retired, ignore_errors=True)
-        else:
-            os.rename(staging, target)
+        replace_dir(staging, target, root / f".retired-{token}")
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise

@@ -12,12 +12,10 @@
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 from .metrics import (dominant_axis, format_metrics, format_static_metrics, static_level_metrics,
                       validation_metrics)
@@ -39,32 +37,14 @@ class _Steps:
                   file=sys.stderr, flush=True)
 
 
-def _quick(scenario):
-    """A short variant of a thermal scenario (for tests): 6 h instead of 36 h."""
-    if scenario.duration_h and scenario.duration_h > 6:
-        scale = 6.0 / scenario.duration_h
-        data = scenario.model_dump()
-        data["duration_h"] = 6.0
-        for key in ("ambient_C", "spindle_W", "radiant_W_per_m2"):
-            h = data[key]
-            h["knots_h"] = [(t * scale, v) for t, v in h["knots_h"]]
-            for d in h["duty"]:
-                d["start_h"] *= scale
-                d["end_h"] *= scale
-            for c in h["cycles"]:
-                c["period_h"] *= scale
-                c["phase_h"] *= scale
-        return type(scenario).model_validate(data)
-    return scenario
-
-
 def run_demo(out_dir="demo-out", *, machine_path=None, seed=0, quick=False, features="eq13",
              stepwise=True, quiet=False, report=True, resolution=None) -> dict:
     """Run the demo and return its summary (also written to ``out_dir/metrics.json``)."""
     from .bench import load_scenario, simulate
     from .calibrate import fe_calibrate, format_resolution, resolution_report
     from .campaign import read_campaign, write_campaign
-    from .models import MRAModel, write_json_atomic
+    from .atomic import write_json
+    from .models import MRAModel
     from .structure import Twin, load_machine
 
     out = Path(out_dir)
@@ -78,7 +58,7 @@ def run_demo(out_dir="demo-out", *, machine_path=None, seed=0, quick=False, feat
     for name in TRAIN + HELD_OUT:
         scenario = load_scenario(name)
         if quick:
-            scenario = _quick(scenario)
+            scenario = scenario.compressed(6.0)
         campaign, _truth = simulate(machine, scenario, seed=seed, twin=twin)
         paths[name] = write_campaign(campaign, out / "campaigns" / name)
         step(f"simulated {name} ({scenario.duration_s() / 3600:.2f} h)")
@@ -86,7 +66,7 @@ def run_demo(out_dir="demo-out", *, machine_path=None, seed=0, quick=False, feat
     fe_model, _design = fe_calibrate(machine, twin, seed=seed)
     fe_model.save(out / "fe_model.json")
     res = resolution_report(machine, twin)
-    write_json_atomic(out / "resolution.json", res)
+    write_json(out / "resolution.json", res)
     (out / "resolution.txt").write_text(format_resolution(res) + "\n")
     step("FE-calibrated the eq. 11 model and checked the FBG resolution")
 
@@ -125,7 +105,7 @@ def run_demo(out_dir="demo-out", *, machine_path=None, seed=0, quick=False, feat
             write_report([read_campaign(paths[n]) for n in TRAIN + HELD_OUT], model, out / "report")
     step("wrote figures and the report")
 
-    write_json_atomic(out / "metrics.json", summary)
+    write_json(out / "metrics.json", summary)
     (out / "validation.txt").write_text("\n\n".join(texts) + "\n")
     if not quiet:
         print(_summary_text(summary, res, out))

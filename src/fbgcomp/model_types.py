@@ -36,8 +36,9 @@ from .errors import InputError
 from .features import (CONSTANT, TEMPERATURE_FEATURES, FeatureMap, TemperatureRoles,
                        candidate_terms, design_matrix)
 from .kinematics import KinematicChain
+from .atomic import write_json
 from .models import (AXES, MODEL_FORMAT, SCHEMA_VERSION, MRAModel, Predictor, _as_campaign_list,
-                     _plain, check_compatible, model_id, register_model_type, write_json_atomic)
+                     _plain, check_compatible, model_id, register_model_type)
 
 MODEL_TYPES = ("mra", "kinematic", "hybrid", "dynamic")
 _Z95 = float(stats.norm.ppf(0.975))
@@ -99,7 +100,7 @@ class _ModelFile:
         d = self.to_dict()
         d["model_id"] = model_id(d)
         d["created_utc"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
-        return write_json_atomic(path, d)
+        return write_json(path, d)
 
     def _header(self) -> dict:
         return {"format": MODEL_FORMAT, "schema_version": SCHEMA_VERSION,

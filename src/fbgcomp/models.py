@@ -17,8 +17,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import tempfile
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from itertools import combinations
@@ -28,6 +26,7 @@ import numpy as np
 from scipy import stats
 
 from . import __version__
+from .atomic import write_json
 from .errors import InputError
 from .features import (CONSTANT, FEATURE_SETS, FeatureMap, TemperatureRoles, candidate_terms,
                        design_matrix)
@@ -559,7 +558,7 @@ class MRAModel(EstimatorParams):
         d = self.to_dict()
         d["model_id"] = model_id(d)
         d["created_utc"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
-        return write_json_atomic(path, d)
+        return write_json(path, d)
 
     @classmethod
     def from_dict(cls, d: dict, source="<dict>") -> "MRAModel":
@@ -631,38 +630,6 @@ def model_id(d: dict) -> str:
     content = {k: v for k, v in d.items() if k not in ("model_id", "created_utc")}
     blob = json.dumps(content, sort_keys=True, separators=(",", ":")).encode()
     return hashlib.sha256(blob).hexdigest()[:12]
-
-
-def _json_safe(obj):
-    """Undefined numbers (NaN, ±inf: e.g. "% of peak" of an axis that never moved) become null."""
-    if isinstance(obj, float):
-        return obj if np.isfinite(obj) else None
-    if isinstance(obj, dict):
-        return {k: _json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_json_safe(v) for v in obj]
-    if isinstance(obj, np.generic):
-        return _json_safe(obj.item())
-    return obj
-
-
-def write_json_atomic(path, data) -> Path:
-    """Write JSON atomically (temporary file + rename); non-finite numbers are written as null."""
-    data = _json_safe(data)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(data, fh, indent=1, allow_nan=False)
-            fh.write("\n")
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
 
 
 _MODEL_TYPES = {"mra": MRAModel}

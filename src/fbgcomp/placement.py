@@ -34,7 +34,7 @@ from functools import partial
 
 import numpy as np
 
-from .calibrate import LOAD_CASES, elongation_noise_um
+from .calibrate import LOAD_CASES, elongation_noise_um, load_case_responses
 
 AXES = ("dx", "dy", "dz")
 FACES = ("+X", "-X", "+Y", "-Y")
@@ -79,23 +79,6 @@ class PlacementDesign:
     sensors: list = field(default_factory=list)
 
 
-def load_case_responses(twin, cases=LOAD_CASES):
-    """Elongations (C, S) µm and TTP displacements (C, 3) µm of the elementary load cases."""
-    names, elong, ttp = [], [], []
-    for name, magnitude, _unit in cases:
-        if name.startswith("force_"):
-            f = np.zeros((1, 3))
-            f[0, "xyz".index(name[-1])] = magnitude
-            r = twin.static(f)
-            e, t = np.asarray(r.sensor_elongation_um)[0], np.asarray(r.ttp_um)[0]
-        else:
-            e, _, _, t = twin.static_temperature_response(name, magnitude)
-        names.append(name)
-        elong.append(np.asarray(e, dtype=float).ravel())
-        ttp.append(np.asarray(t, dtype=float).ravel())
-    return names, np.array(elong), np.array(ttp)
-
-
 def placement_design(machine, candidates=(), *, twin=None, resolution=None, z_axis_mm=None,
                      wavelength_noise_nm=0.001) -> PlacementDesign:
     """One FE twin with every path (machine sensors + candidates) as a sensor; load-case responses."""
@@ -109,7 +92,8 @@ def placement_design(machine, candidates=(), *, twin=None, resolution=None, z_ax
     m = machine.model_copy(update={"sensors": tuple(pool), "candidate_sensors": ()})
     if twin is None:
         twin = Twin(m, resolution=resolution, z_axis_mm=z_axis_mm)
-    names, elong, ttp = load_case_responses(twin)
+    cases = load_case_responses(twin)
+    names, elong, ttp = cases["names"], cases["sensor_elongation_um"], cases["ttp_um"]
     return PlacementDesign([s.name for s in pool], names, np.asarray(elong), np.asarray(ttp),
                            elongation_noise_um(pool, wavelength_noise_nm), pool)
 

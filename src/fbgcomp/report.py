@@ -32,6 +32,7 @@ from typing import List
 import numpy as np
 import typer
 
+from .atomic import replace_dir
 from .errors import InputError
 
 __all__ = ["CampaignSection", "analyse_campaign", "sensor_health", "probe_health",
@@ -592,17 +593,7 @@ def write_report(campaigns, model, output_dir, *, model_path="", progress=None) 
                 _write_bytes(staging / file_name, png)
         # report.html last: a folder with report.html is a complete one.
         _write_bytes(staging / REPORT_FILE, document.encode("utf-8"))
-        if target.exists():
-            retired = target.parent / f".{target.name}.old-{token}"
-            os.rename(target, retired)
-            try:
-                os.rename(staging, target)
-            except BaseException:
-                os.rename(retired, target)
-                raise
-            shutil.rmtree(retired, ignore_errors=True)
-        else:
-            os.rename(staging, target)
+        replace_dir(staging, target, target.parent / f".{target.name}.old-{token}")
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise

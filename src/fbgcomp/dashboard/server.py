@@ -76,26 +76,10 @@ def parse_listen(listen: str) -> tuple[str, int]:
 
 def load_users(users_file: str | Path | None, environ=os.environ) -> dict[str, str]:
     """User -> password hash, from ``users_file`` and ``FBGCOMP_DASHBOARD_USER/PASSWORD``."""
-    from fbgcomp.runtime.opcua import hash_password
+    from fbgcomp.runtime.opcua import load_users as load
 
-    users: dict[str, str] = {}
-    if users_file:
-        path = Path(users_file)
-        if not path.is_file():
-            raise InputError("dashboard users file not found", file=path)
-        for i, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
-            line = line.strip()
-            if not line or line.startswith("#"):
-                continue
-            name, sep, stored = line.partition(":")
-            if not sep or not stored.startswith("pbkdf2_sha256$"):
-                raise InputError("expected name:pbkdf2_sha256$... (docs/dashboard.md)",
-                                 file=path, column=f"line {i}")
-            users[name.strip()] = stored.strip()
-    user, pwd = environ.get("FBGCOMP_DASHBOARD_USER"), environ.get("FBGCOMP_DASHBOARD_PASSWORD")
-    if user and pwd:
-        users[user] = hash_password(pwd, iterations=20_000)  # in memory only
-    return users
+    return load(users_file, environ, service="dashboard", env_prefix="FBGCOMP_DASHBOARD",
+                doc="docs/dashboard.md", iterations=20_000)
 
 
 def _clean(values, digits: int) -> list:

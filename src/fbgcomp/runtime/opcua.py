@@ -130,25 +130,30 @@ def verify_password(password: str, stored: str) -> bool:
         return False
 
 
-def load_users(users_file: str | Path | None, environ=os.environ) -> dict[str, str]:
-    """User -> password hash, from ``users_file`` (lines ``name:pbkdf2_sha256$...``) and env."""
+def load_users(users_file: str | Path | None, environ=os.environ, *, service="OPC UA",
+               env_prefix="FBGCOMP_OPCUA", doc="docs/runtime.md", iterations=1000) -> dict[str, str]:
+    """User -> password hash, from ``users_file`` (lines ``name:pbkdf2_sha256$...``) and the
+    environment (``<env_prefix>_USER`` / ``<env_prefix>_PASSWORD``, hashed in memory only).
+
+    Shared by every password-protected surface (OPC UA writes, the dashboard's control).
+    """
     users: dict[str, str] = {}
     if users_file:
         path = Path(users_file)
         if not path.is_file():
-            raise InputError("OPC UA users file not found", file=path)
-        for i, line in enumerate(path.read_text().splitlines(), start=1):
+            raise InputError(f"{service} users file not found", file=path)
+        for i, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
             line = line.strip()
             if not line or line.startswith("#"):
                 continue
             name, sep, stored = line.partition(":")
             if not sep or not stored.startswith("pbkdf2_sha256$"):
-                raise InputError("expected name:pbkdf2_sha256$... (see docs/runtime.md)",
+                raise InputError(f"expected name:pbkdf2_sha256$... (see {doc})",
                                  file=path, column=f"line {i}")
             users[name.strip()] = stored.strip()
-    user, pwd = environ.get("FBGCOMP_OPCUA_USER"), environ.get("FBGCOMP_OPCUA_PASSWORD")
+    user, pwd = environ.get(f"{env_prefix}_USER"), environ.get(f"{env_prefix}_PASSWORD")
     if user and pwd:
-        users[user] = hash_password(pwd, iterations=1000)  # in memory only
+        users[user] = hash_password(pwd, iterations=iterations)
     return users
 
 
