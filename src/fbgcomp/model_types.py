@@ -31,14 +31,12 @@ from itertools import combinations
 import numpy as np
 from scipy import signal, stats
 
-from . import __version__
 from .errors import InputError
 from .features import (CONSTANT, TEMPERATURE_FEATURES, FeatureMap, TemperatureRoles,
                        candidate_terms, design_matrix)
 from .kinematics import KinematicChain
-from .atomic import write_json
-from .models import (AXES, MODEL_FORMAT, SCHEMA_VERSION, MRAModel, Predictor, _as_campaign_list,
-                     _plain, check_compatible, model_id, register_model_type)
+from .models import (AXES, MRAModel, ModelFile, Predictor, _as_campaign_list, _plain,
+                     check_compatible, register_model_type)
 
 MODEL_TYPES = ("mra", "kinematic", "hybrid", "dynamic")
 _Z95 = float(stats.norm.ppf(0.975))
@@ -75,39 +73,8 @@ def _sensor_specs(machine):
     return campaign_sensor_specs(machine)
 
 
-class _ModelFile:
+class _ModelFile(ModelFile):
     """Properties and persistence shared by the model types of this module."""
-
-    @property
-    def sensors(self):
-        return self.sensors_
-
-    @property
-    def sensor_names(self) -> list:
-        return [s.name for s in self.sensors_]
-
-    @property
-    def probe_names(self) -> list:
-        return list(self.probe_names_)
-
-    @property
-    def model_id(self) -> str:
-        return model_id(self.to_dict())
-
-    def save(self, path):
-        from datetime import datetime, timezone
-
-        d = self.to_dict()
-        d["model_id"] = model_id(d)
-        d["created_utc"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
-        return write_json(path, d)
-
-    def _header(self) -> dict:
-        return {"format": MODEL_FORMAT, "schema_version": SCHEMA_VERSION,
-                "model_type": self.model_type, "fbgcomp_version": __version__}
-
-    def predict(self, X):
-        return self.predict_interval(X)[0]
 
     def predict_interval(self, X, exclude=frozenset()):
         """Prediction (n, 3) µm and 95 % half-width (n, 3) µm on a campaign (or its path)."""

@@ -245,7 +245,46 @@ class EstimatorParams:
         return f"{type(self).__name__}({args})"
 
 
-class MRAModel(EstimatorParams):
+class ModelFile:
+    """What every model type shares: the sensors and probes it expects, its id and its file.
+
+    Subclasses define ``model_type``, ``to_dict()`` and a ``from_dict`` classmethod, and set
+    ``sensors_`` and ``probe_names_`` when fitted.
+    """
+
+    @property
+    def sensors(self):
+        return self.sensors_
+
+    @property
+    def sensor_names(self) -> list:
+        return [s.name for s in self.sensors_]
+
+    @property
+    def probe_names(self) -> list:
+        return list(self.probe_names_)
+
+    @property
+    def model_id(self) -> str:
+        return model_id(self.to_dict())
+
+    def _header(self) -> dict:
+        return {"format": MODEL_FORMAT, "schema_version": SCHEMA_VERSION,
+                "model_type": self.model_type, "fbgcomp_version": __version__}
+
+    def save(self, path) -> Path:
+        """Write the model file atomically, with its id and creation time."""
+        d = self.to_dict()
+        d["model_id"] = model_id(d)
+        d["created_utc"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        return write_json(path, d)
+
+    def predict(self, X):
+        """Predicted TTP deviation (n, 3) in µm."""
+        return self.predict_interval(X)[0]
+
+
+class MRAModel(EstimatorParams, ModelFile):
     """Multiple regression of the TTP deviation on sensor elongations and temperatures.
 
     Parameters
@@ -459,24 +498,8 @@ class MRAModel(EstimatorParams):
         return FeatureMap(self.sensors_, self.probe_names_, self.features != "eq11", self._roles())
 
     @property
-    def sensors(self):
-        return self.sensors_
-
-    @property
-    def sensor_names(self) -> list:
-        return [s.name for s in self.sensors_]
-
-    @property
-    def probe_names(self) -> list:
-        return list(self.probe_names_)
-
-    @property
     def fallback_sets(self) -> list:
         return list(self.fallbacks_)
-
-    @property
-    def model_id(self) -> str:
-        return model_id(self.to_dict())
 
     def predictor(self, exclude=frozenset()) -> Predictor:
         """Compiled predictor for the full sensor set or a stored fallback (KeyError if none)."""
@@ -485,10 +508,6 @@ class MRAModel(EstimatorParams):
             axes = self.axes_ if not exclude else self.fallbacks_[exclude]
             self._predictors[exclude] = Predictor(self._feature_map(), axes, exclude)
         return self._predictors[exclude]
-
-    def predict(self, X):
-        """Predicted TTP deviation (n, 3) in µm for a campaign (or path) or a base-feature frame."""
-        return self.predict_interval(X)[0]
 
     def predict_interval(self, X, exclude=frozenset()):
         """Prediction (n, 3) µm and half-width (n, 3) µm of its 95 % prediction interval."""
@@ -552,13 +571,6 @@ class MRAModel(EstimatorParams):
             "z_axis_mm": None,
         }
         return d
-
-    def save(self, path) -> Path:
-        """Write the model file atomically."""
-        d = self.to_dict()
-        d["model_id"] = model_id(d)
-        d["created_utc"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
-        return write_json(path, d)
 
     @classmethod
     def from_dict(cls, d: dict, source="<dict>") -> "MRAModel":

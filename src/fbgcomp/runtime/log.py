@@ -32,26 +32,11 @@ from pathlib import Path
 
 import numpy as np
 
+from fbgcomp.atomic import write_bytes
 from fbgcomp.errors import InputError
 
 log = logging.getLogger("fbgcomp.runtime")
 AXES = ("dx", "dy", "dz")
-
-
-def _write_atomic_bytes(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
 
 
 class RunLog:
@@ -90,7 +75,7 @@ class RunLog:
                     (self.sensor_names, self.probe_names):
                 raise InputError("the log folder holds a run with other sensors or probes; "
                                  "give a new folder", file=self.folder)
-        _write_atomic_bytes(self.folder / "meta.json",
+        write_bytes(self.folder / "meta.json",
                             json.dumps(meta, indent=2, default=str).encode())
         self._thread = threading.Thread(target=self._run, name="fbgcomp-log", daemon=True)
         self._thread.start()
