@@ -158,3 +158,45 @@ def test_unauthenticated_writes_and_calls_are_refused(server_factory, tmp_path):
         assert srv.enabled is False and reloads == ["new.json"]
 
     asyncio.run(main())
+
+
+def test_control_messages_are_not_dropped_when_snapshots_are():
+    """A lagging OPC UA process may lose snapshots (the newest wins) but never an Enabled switch."""
+    import pickle
+    import socket
+    import threading
+    import time
+
+    from fbgcomp.runtime.opcua import send_control
+
+    parent, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    try:
+        filled = 0
+        while True:                       # the buffer is full: a snapshot would now be dropped
+            try:
+                parent.send(pickle.dumps(("snap", filled)), socket.MSG_DONTWAIT)
+                filled += 1
+            except BlockingIOError:
+                break
+        assert filled > 0
+        assert send_control(parent, ("set_enabled", False), timeout_s=0.2) is False   # reported
+
+        received = []
+
+        def drain_slowly():
+            time.sleep(0.3)
+            while True:
+                kind, payload = pickle.loads(child.recv(1 << 16))
+                received.append((kind, payload))
+                if kind == "set_enabled":
+                    return
+
+        reader = threading.Thread(target=drain_slowly)
+        reader.start()
+        assert send_control(parent, ("set_enabled", False), timeout_s=5.0) is True
+        reader.join(5.0)
+        assert received[-1] == ("set_enabled", False)
+        assert len(received) == filled + 1
+    finally:
+        parent.close()
+        child.close()

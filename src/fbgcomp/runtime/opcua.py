@@ -231,6 +231,35 @@ class Snapshot:
     received_s: float = 0.0
 
 
+def send_control(sock, message, timeout_s: float = 2.0) -> bool:
+    """Send a control message (Enabled, model id, reload) over the process socket pair.
+
+    Snapshots may be dropped when the other side lags (the newest wins anyway); a control
+    message may not: an operator's "disable" that silently vanished would leave corrections on.
+    So wait, up to ``timeout_s``, for room in the socket buffer; False (logged) if there is none.
+    """
+    import pickle
+    import select
+
+    if sock is None:
+        return False
+    data = pickle.dumps(message)
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            sock.send(data, socket.MSG_DONTWAIT)
+            return True
+        except (BlockingIOError, InterruptedError):
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                log.error("control message %r not delivered: the other process is not reading",
+                          message[0])
+                return False
+            select.select([], [sock], [], remaining)
+        except OSError:
+            return False
+
+
 class OpcUaServer:
     """The OPC UA server, run in a child process; this is the service-side handle.
 
@@ -267,7 +296,7 @@ class OpcUaServer:
     @model_id.setter
     def model_id(self, value: str) -> None:
         self._model_id = value
-        self._send(("model_id", value))
+        send_control(self._sock, ("model_id", value))
 
     def start(self, timeout_s: float = 60.0) -> None:
         import pickle
@@ -320,7 +349,7 @@ class OpcUaServer:
     def set_enabled(self, value: bool) -> None:
         """Write ``Enabled`` from the service side (e.g. the dashboard): one shared state."""
         self.enabled = bool(value)
-        self._send(("set_enabled", self.enabled))
+        send_control(self._sock, ("set_enabled", self.enabled))
 
     def _read_messages(self) -> None:
         import pickle
@@ -341,16 +370,16 @@ class OpcUaServer:
 
     def _reload(self, request_id: int, path: str) -> None:
         if self.on_reload is None or self.main_loop is None:
-            self._send(("reload_result", (request_id, False, "reload not supported")))
+            send_control(self._sock, ("reload_result", (request_id, False, "reload not supported")))
             return
         fut = asyncio.run_coroutine_threadsafe(self.on_reload(path), self.main_loop)
 
         def done(f):
             try:
-                self._send(("reload_result", (request_id, True, f.result())))
+                send_control(self._sock, ("reload_result", (request_id, True, f.result())))
             except Exception as exc:
                 log.warning("model reload refused: %s", exc)
-                self._send(("reload_result", (request_id, False, str(exc))))
+                send_control(self._sock, ("reload_result", (request_id, False, str(exc))))
 
         fut.add_done_callback(done)
 
@@ -388,11 +417,8 @@ class _ServerCore:
         self._next_reload = 0
 
     def send(self, message) -> None:
-        import pickle
-        try:
-            self.sock.send(pickle.dumps(message), socket.MSG_DONTWAIT)
-        except (BlockingIOError, InterruptedError, OSError):
-            pass
+        """Control messages to the service (Enabled written by a client, reload requests)."""
+        send_control(self.sock, message, timeout_s=1.0)
 
     def _on_readable(self) -> None:
         import pickle
