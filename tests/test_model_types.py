@@ -11,8 +11,9 @@ import pytest
 
 from fbgcomp.bench import Scenario, load_scenario, simulate
 from fbgcomp.campaign import read_campaign, write_campaign
-from fbgcomp.metrics import validation_metrics
-from fbgcomp.model_types import (DynamicModel, HybridModel, KinematicModel, first_order_filter)
+from fbgcomp.metrics import static_level_metrics, validation_metrics
+from fbgcomp.model_types import (CalibratedModel, DynamicModel, HybridModel, KinematicModel,
+                                 first_order_filter)
 from fbgcomp.models import MRAModel, load_model
 from fbgcomp.structure import Twin, load_machine
 
@@ -72,6 +73,7 @@ def test_kinematic_model_needs_no_campaign_and_follows_z(campaigns):
     lambda: KinematicModel(),
     lambda: HybridModel(features="eq13"),
     lambda: HybridModel(features="dynamic", stepwise=False),
+    lambda: CalibratedModel(features="eq13"),
     lambda: DynamicModel(stepwise=True),
 ])
 def test_model_file_round_trip_and_runtime_contract(campaigns, tmp_path, make):
@@ -159,7 +161,7 @@ def run(*args):
 
 def test_cli_fit_model_types_and_validate_prints_coverage(campaigns, tmp_path):
     a, s, b = (campaigns[n].path for n in ("thermal-a", "static-y", "thermal-b"))
-    for kind in ("kinematic", "hybrid"):
+    for kind in ("kinematic", "hybrid", "calibrated"):
         out = tmp_path / f"{kind}.json"
         r = run("fit", a, s, "--model", kind, "-o", out)
         assert r.returncode == 0, r.stderr
@@ -181,7 +183,7 @@ def test_cli_compare_writes_ranked_tables(campaigns, tmp_path):
     result = json.loads(json_path.read_text())
     names = {row["name"] for row in result["rows"]}
     assert {"mra eq11", "mra eq13", "mra eq12", "mra eq13 stepwise", "ridge eq13", "pls eq13",
-            "dynamic eq13+lp", "kinematic", "hybrid eq13"} <= names
+            "dynamic eq13+lp", "kinematic", "hybrid eq13", "calibrated eq13"} <= names
     lines = csv_path.read_text().splitlines()
     assert lines[0].startswith("axis,rank,name")
     dz = [ln.split(",") for ln in lines[1:] if ln.startswith("dz,")]
@@ -189,7 +191,8 @@ def test_cli_compare_writes_ranked_tables(campaigns, tmp_path):
     assert errs == sorted(errs) and "== dz" in r.stdout
 
 
-@pytest.mark.parametrize("make", [lambda: KinematicModel(), lambda: HybridModel(features="eq13")])
+@pytest.mark.parametrize("make", [lambda: KinematicModel(), lambda: HybridModel(features="eq13"),
+                                  lambda: CalibratedModel(features="eq13")])
 def test_runtime_pipeline_gives_the_offline_numbers(campaigns, tmp_path, make):
     from fbgcomp.runtime.pipeline import HEALTH_ZEROING, Pipeline
 
@@ -213,3 +216,96 @@ def test_runtime_pipeline_gives_the_offline_numbers(campaigns, tmp_path, make):
     offline, offline_half = p.predict(w, t, pipe.wavelength_zero_nm, pipe.temperature_zero_C)
     np.testing.assert_allclose(dev[ok], offline[ok], atol=1e-6)
     np.testing.assert_allclose(half[ok], offline_half[ok], atol=1e-6)
+
+
+# ------------------------------------------------------------------ calibrated force closure
+def _box(machine, width_mm, wall_mm):
+    """The default machine with a square ram box (and housing) of another size; probes moved
+    onto the new walls."""
+    from fbgcomp.structure.machine import Machine
+
+    d = machine.model_dump()
+    d["ram"].update(outer_width_mm=width_mm, outer_depth_mm=width_mm, wall_mm=wall_mm)
+    d["housing"].update(width_mm=width_mm, depth_mm=width_mm)
+    d["supports"]["shoe_width_mm"] = width_mm
+    d["candidate_sensors"] = []
+    for p in d["probes"]:
+        if p["name"] == "T_bulk":
+            p["y_mm"] = width_mm / 2 - wall_mm / 2
+        elif p["name"] in ("T_surf", "T_flange"):
+            p["x_mm"] = width_mm / 2
+    return Machine.model_validate(d)
+
+
+@pytest.fixture(scope="module")
+def closure_campaigns(tmp_path_factory):
+    """Full-length thermal-36h + static-y (+ static-xyz) on a coarse twin (0.5) of the default
+    box and of a slender one. The thermal campaign is the built-in one, not compressed: the
+    thermal correction fitted on a 3 h compression is poorly conditioned and leaves ~10 µm of
+    spurious bending on the static plateaus (measured), which is not what this checks."""
+    root = tmp_path_factory.mktemp("closure")
+    out = {}
+    for box, machine in (("default", load_machine()), ("slender", _box(load_machine(), 150.0, 10.0))):
+        twin = Twin(machine, resolution=0.5)
+        names = ("thermal-36h", "static-y", "static-xyz") if box == "default" else ("thermal-36h", "static-y")
+        for i, name in enumerate(names):
+            c, _ = simulate(machine, load_scenario(name), seed=30 + i, twin=twin)
+            out[box, name] = read_campaign(write_campaign(c, root / f"{box}-{name}"))
+        out[box] = machine
+    return out
+
+
+def _plateau_pct(model, campaign):
+    pred, _ = model.predict_interval(campaign)
+    a = campaign.aligned(zero_window_s=model.zero_window_s)
+    m = static_level_metrics(a.loads_N, a.reference_um, pred)
+    return np.array([m["axes"][ax]["error_pct_of_deflection"] for ax in ("dx", "dy")])
+
+
+def test_calibrated_closure_recovers_unseen_x_loads_from_y_loads(closure_campaigns):
+    cc = closure_campaigns
+    train = [cc["default", "thermal-36h"], cc["default", "static-y"]]
+    cal = CalibratedModel(cc["default"], stepwise=False).fit(train)
+    pct_cal = _plateau_pct(cal, cc["default", "static-xyz"])
+    # Measured: dx 1.21 %, dy 0.43 %; what is left on dx is mostly the test campaign's zero
+    # state (mean of 10 samples with ~10 µm of lateral noise each), an offset on every plateau.
+    assert np.all(pct_cal < 1.5), pct_cal
+    # With a zero state averaged over 50 s (the bench holds each level 60 s) the closure itself
+    # shows: measured dx 0.79 %, dy 0.62 % against the fit-free closure's 2.2 %, 3.5 %.
+    cal50 = CalibratedModel(cc["default"], stepwise=False, zero_window_s=50.0).fit(train)
+    hyb50 = HybridModel(cc["default"], stepwise=False, zero_window_s=50.0).fit(train)
+    pct_cal50 = _plateau_pct(cal50, cc["default", "static-xyz"])
+    pct_hyb50 = _plateau_pct(hyb50, cc["default", "static-xyz"])
+    assert np.all(pct_cal50 < 1.0), pct_cal50
+    assert np.all(pct_cal50 < 0.5 * pct_hyb50), (pct_cal50, pct_hyb50)
+    c = cal.calibration_
+    assert c["shared_axes"] and c["parameters"] == ["bending", "shear"]
+    assert c["campaigns"] == [{"name": cc["default", "static-y"].meta.name, "z_axis_mm": 0.0,
+                               "n_plateaus": c["n_plateaus"]}]
+    # One Z position: only the shear (the larger compliance) is pinned by the loads; the
+    # bending factor stays at its prior's width and the summary says so.
+    assert c["identified"] == [False, True]
+    assert c["standard_errors"][0] > 0.4 and c["standard_errors"][1] < 0.1
+    assert "not separated by the loads" in cal.summary()
+
+
+def test_calibrated_factors_are_near_one_where_the_beam_closure_holds(closure_campaigns):
+    cc = closure_campaigns
+    cal = CalibratedModel(cc["slender"], stepwise=False).fit(
+        [cc["slender", "thermal-36h"], cc["slender", "static-y"]])
+    f = dict(zip(cal.calibration_["parameters"], cal.calibration_["factors"]))
+    se = dict(zip(cal.calibration_["parameters"], cal.calibration_["standard_errors"]))
+    # A slender box bends like a beam: the fitted shear compliance is the nominal one within
+    # its standard error (measured 0.96 ± 0.17); the default box's webs are 3-5 % softer.
+    assert abs(f["shear"] - 1.0) < max(2 * se["shear"], 0.1), (f, se)
+    assert abs(f["bending"] - 1.0) < 0.1
+
+
+def test_calibrated_without_loads_keeps_the_nominal_closure(closure_campaigns):
+    cc = closure_campaigns
+    cal = CalibratedModel(cc["default"], stepwise=False).fit([cc["default", "thermal-36h"]])
+    assert cal.calibration_["factors"] == [1.0, 1.0]
+    assert cal.calibration_["status"].startswith("not calibrated")
+    hyb = HybridModel(cc["default"], stepwise=False).fit([cc["default", "thermal-36h"]])
+    c = cc["default", "static-y"]
+    np.testing.assert_allclose(cal.predict_interval(c)[0], hyb.predict_interval(c)[0], atol=1e-9)

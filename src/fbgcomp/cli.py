@@ -70,8 +70,8 @@ def fit(campaigns: List[Path] = typer.Argument(..., help="Training campaign fold
         zero_window: float = typer.Option(10.0, "--zero-window", help="Zero state: mean of the first N seconds."),
         fallbacks: str = typer.Option("loo", help="Fallback models for sensor faults: loo, lto or none."),
         dask: Optional[str] = typer.Option(None, "--dask", help="Reduce on a Dask cluster: tcp://HOST:8786 or local:N (default: in-process)."),
-        model_type: str = typer.Option("mra", "--model", help="Model type: mra, kinematic, hybrid or dynamic (docs/models.md)."),
-        machine: Optional[Path] = typer.Option(None, "--machine", help="Machine description YAML for kinematic/hybrid (default: the built-in ram).")):
+        model_type: str = typer.Option("mra", "--model", help="Model type: mra, kinematic, hybrid, calibrated or dynamic (docs/models.md)."),
+        machine: Optional[Path] = typer.Option(None, "--machine", help="Machine description YAML for kinematic/hybrid/calibrated (default: the built-in ram).")):
     """Fit the TTP-deviation model and print the coefficient table per axis (paper Table 1)."""
     from .models import MRAModel
 

@@ -9,7 +9,8 @@ Entries: ``mra`` with eq11, eq13, eq12 and eq13 stepwise; ``ridge`` and ``pls`` 
 squares) on eq13, both with their complexity (ridge penalty, number of PLS components) chosen by
 blocked cross-validation over contiguous time blocks of the training data (autocorrelated
 samples make random folds optimistic); ``dynamic`` (eq13 + first-order filtered temperatures);
-``kinematic`` (fit-free chain); ``hybrid`` (kinematic + regression, eq13 and dynamic).
+``kinematic`` (fit-free chain); ``hybrid`` (kinematic + regression, eq13 and dynamic);
+``calibrated`` (hybrid with the closure's compliances fitted on the training load plateaus).
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ ENTRIES = (
     ("kinematic", "kinematic", "-", {}),
     ("hybrid eq13", "hybrid", "eq13", {}),
     ("hybrid dynamic", "hybrid", "dynamic", {}),
+    ("calibrated eq13", "calibrated", "eq13", {}),
 )
 
 
@@ -171,7 +173,7 @@ class _DesignModel:
 
 # ---------------------------------------------------------------------------- comparison
 def _make(kind, features, options, machine):
-    from .model_types import DynamicModel, HybridModel, KinematicModel
+    from .model_types import CalibratedModel, DynamicModel, HybridModel, KinematicModel
 
     if kind == "mra":
         return MRAModel(features=features, fallbacks="none", **options)
@@ -183,6 +185,8 @@ def _make(kind, features, options, machine):
         return KinematicModel(machine, fallbacks="none")
     if kind == "hybrid":
         return HybridModel(machine, features=features, fallbacks="none", **options)
+    if kind == "calibrated":
+        return CalibratedModel(machine, features=features, fallbacks="none", **options)
     raise ValueError(kind)
 
 

@@ -268,6 +268,10 @@ def housing_probe(machine) -> str | None:
     return best
 
 
+#: Compliance factors of the beam closure (:class:`KinematicChain` ``closure_factors``).
+CLOSURE_FACTORS = ("bending_x", "bending_y", "shear_x", "shear_y")
+
+
 @dataclass
 class KinematicChain:
     """Compiled kinematic model of one machine, sensor set and Z position.
@@ -280,11 +284,20 @@ class KinematicChain:
         Bars available (default: every sensor of the machine); the others are ignored.
     z_axis_mm : float, optional
         Z-axis position (default: the machine description's).
+    closure_factors : dict, optional
+        Dimensionless factors on the beam closure's compliances (default: all 1, the machine
+        description's section properties): ``bending_x`` / ``bending_y`` multiply the bending
+        compliance (1/EI) of the segments the closure fills, for a TTP force along X / Y;
+        ``shear_x`` / ``shear_y`` the Timoshenko shear compliance (1/GA) of every segment. The
+        force itself is still read from the bars with the nominal sections, so a factor of 1 is
+        the fit-free closure and a factor k makes that stretch k times as compliant *relative to
+        the sensed ones* (:data:`CLOSURE_FACTORS`).
     """
 
     machine: object
     sensor_names: list | None = None
     z_axis_mm: float | None = None
+    closure_factors: dict | None = None
     segments: list = field(init=False)
     report: list = field(init=False)
 
@@ -371,7 +384,21 @@ class KinematicChain:
 
     def _compile(self):
         K, S = len(self.segments), len(self.sensors)
-        G = self._closure_basis()                                    # (K, 5, 3)
+        G = self._closure_basis()                                    # (K, 5, 2 + G)
+        f = {k: 1.0 for k in CLOSURE_FACTORS}
+        unknown = set(self.closure_factors or {}) - set(CLOSURE_FACTORS)
+        if unknown:
+            raise ValueError(f"unknown closure factors {sorted(unknown)}; expected {CLOSURE_FACTORS}")
+        f.update({k: float(v) for k, v in (self.closure_factors or {}).items()})
+        self.closure_factors = f
+        # The force is read from the bars through the nominal sections (G); the closure fills
+        # segments with the factored compliances (Gf): the factors say how compliant the
+        # unsensed stretches and the shear are relative to what the bars see.
+        Gf = G.copy()
+        Gf[:, 1, 0] *= f["bending_x"]
+        Gf[:, 0, 1] *= f["bending_y"]
+        Gf[:, 3, 0] *= f["shear_x"]
+        Gf[:, 4, 1] *= f["shear_y"]
         params_meas = np.zeros((K, 5, S))
         if S:
             A = elongation_design(self.bar_xy_mm, self.cover)            # (S, 3K)
@@ -386,7 +413,7 @@ class KinematicChain:
                                             rcond=1e-10) / np.linalg.norm(AG[:, used], axis=0)[:, None]
             self.load_identifiable = used & (np.linalg.matrix_rank(AG[:, used]) == used.sum()
                                              if used.any() else used)
-            closure = np.einsum("kpg,gs->kps", G, gmap)              # (K, 5, S)
+            closure = np.einsum("kpg,gs->kps", Gf, gmap)             # (K, 5, S)
             direct = pinv.reshape(K, 3, S)
             params_meas = closure.copy()
             params_meas[determined, :3, :] = direct[determined]
