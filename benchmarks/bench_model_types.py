@@ -9,7 +9,7 @@ import time
 import numpy as np
 
 from fbgcomp.bench import load_scenario, simulate
-from fbgcomp.model_types import DynamicModel, HybridModel, KinematicModel
+from fbgcomp.model_types import CalibratedModel, DynamicModel, HybridModel, KinematicModel
 from fbgcomp.models import MRAModel
 from fbgcomp.structure import Twin, load_machine
 
@@ -22,6 +22,7 @@ def main(n_frames=200_000, batch=5000):
     models = {"mra eq13": MRAModel(features="eq13").fit([train]),
               "kinematic": KinematicModel(machine).fit(),
               "hybrid eq13": HybridModel(machine, features="eq13").fit([train]),
+              "calibrated": CalibratedModel(machine, features="eq13").fit([train]),
               "dynamic": DynamicModel().fit([train])}
     rng = np.random.default_rng(0)
     for name, model in models.items():

@@ -309,3 +309,34 @@ def test_calibrated_without_loads_keeps_the_nominal_closure(closure_campaigns):
     hyb = HybridModel(cc["default"], stepwise=False).fit([cc["default", "thermal-36h"]])
     c = cc["default", "static-y"]
     np.testing.assert_allclose(cal.predict_interval(c)[0], hyb.predict_interval(c)[0], atol=1e-9)
+
+
+def test_closure_factors_are_per_axis_unless_the_sections_are_square():
+    from fbgcomp.model_types import closure_parameter_groups
+    from fbgcomp.structure.machine import Machine
+
+    assert list(closure_parameter_groups(load_machine())) == ["bending", "shear"]
+    d = load_machine().model_dump()
+    d["ram"]["outer_depth_mm"] = 300.0
+    d["candidate_sensors"] = []
+    for p in d["probes"]:
+        if p["name"] == "T_bulk":
+            p["y_mm"] = 140.0
+    groups = closure_parameter_groups(Machine.model_validate(d))
+    assert groups == {k: (k,) for k in ("bending_x", "bending_y", "shear_x", "shear_y")}
+
+
+def test_closure_factor_fit_leaves_unexcited_factors_at_their_prior():
+    from fbgcomp.model_types import fit_closure_factors
+
+    rng = np.random.default_rng(0)
+    load = np.repeat(np.arange(5.0), 2)                          # Y plateaus only, two campaigns
+    X = np.zeros((10, 4))                                        # bending_x, bending_y, shear_x, shear_y
+    X[:, 1], X[:, 3] = 20.0 * load, 170.0 * load
+    offset = np.tile([0, 1], 5)
+    y = X[:, 1] * 1.0 + X[:, 3] * 1.05 + np.where(offset, 3.0, -2.0) + 0.5 * rng.standard_normal(10)
+    f, cov, sd, ratio = fit_closure_factors(X, y, offset, prior_sd=0.5)
+    assert f[0] == pytest.approx(1.0) and f[2] == pytest.approx(1.0) and ratio[0] == pytest.approx(1.0) and ratio[2] == pytest.approx(1.0)
+    # The Y pair is only known as a weighted sum: 20 f_by + 170 f_sy ~= 20 + 178.5
+    assert 20 * f[1] + 170 * f[3] == pytest.approx(198.5, abs=0.5)
+    assert sd < 2.0

@@ -1034,6 +1034,13 @@ class CalibratedModel(HybridModel):
                                                       for i in range(len(se)) for j in range(i + 1, len(se))))
         if cal.get("residual_sd_um") is not None:
             lines.append(f"  plateau-mean residual sd {cal['residual_sd_um']:.3g} µm")
+        zs = sorted({c["z_axis_mm"] for c in cal["campaigns"] if c["z_axis_mm"] is not None})
+        if len(zs) == 1:
+            # Measured on the FE twin: calibrated at Z = 0 only, static-y at Z = 300 mm was off
+            # by 10 % (fit-free 5.5 %); with loads at Z = 0 and 300 both were within 1.5 %.
+            lines.append(f"  loads at one Z position ({zs[0]:g} mm): the factors are an effective "
+                         "closure for that position; give load campaigns at two Z positions to "
+                         "use other positions")
         return "\n".join(lines)
 
     def summary(self) -> str:
