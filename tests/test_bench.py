@@ -138,11 +138,16 @@ def test_demo_runs_end_to_end(tmp_path):
                         str(COARSE), "-o", str(out)], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
     m = json.loads((out / "metrics.json").read_text())
-    assert set(m["validation"]) == {"thermal-36h-b", "static-xyz"}
-    thermal = m["validation"]["thermal-36h-b"]["axes"]
-    assert thermal["dz"]["compensation_ratio"] > 0.8          # the drift is mostly compensated
-    for f in ("model.json", "fe_model.json", "coefficients.txt", "resolution.txt", "report/report.html"):
+    assert set(m["models"]) == {"regression", "calibrated", "fe_model"}
+    for key in ("regression", "calibrated"):
+        v = m["models"][key]["validation"]
+        assert set(v) == {"thermal-36h-b", "static-xyz"}
+        assert v["thermal-36h-b"]["axes"]["dz"]["compensation_ratio"] > 0.8   # drift mostly compensated
+        assert v["static-xyz"]["static_levels"]["n_levels"] >= 20
+    assert json.loads((out / "model.json").read_text())["model_type"] == "calibrated"
+    for f in ("model.json", "regression_model.json", "fe_model.json", "coefficients.txt",
+              "calibrated_model.txt", "resolution.txt", "report/report.html"):
         assert (out / f).exists(), f
-    assert "held-out thermal-36h-b" in r.stdout
+    assert "calibrated kinematic" in r.stdout and "thermal-36h-b dz" in r.stdout
     for name in ("thermal-36h", "static-y", "thermal-36h-b", "static-xyz"):
         read_campaign(out / "campaigns" / name)
