@@ -358,11 +358,23 @@ def test_unknown_sensor_column(tmp_path):
                  match="unknown sensor 'S6'.*declared: S1, S2, S3")
 
 
-def test_unexpected_column(tmp_path):
+def test_extra_columns_outside_the_format_are_ignored_and_reported(tmp_path):
+    # The format names the columns a file must hold, not the only ones it may hold (another
+    # tool's campaign may carry a status flag); an extra *_nm column is still an unknown sensor.
     tables = default_tables()
     tables["reference.csv"]["status"] = np.zeros(31)
-    expect_error(make_folder(tmp_path, tables=tables), "reference.csv", column="status",
-                 match="unexpected column")
+    tables["fbg.csv"]["channel"] = np.ones(61)
+    c = read_campaign(make_folder(tmp_path, tables=tables))
+    assert "status" not in c.reference.columns and "channel" not in c.fbg.columns
+    problems = c.summary()["problems"]
+    assert any("reference.csv: column 'status'" in p for p in problems)
+    assert any("fbg.csv: column 'channel'" in p for p in problems)
+    assert c.aligned().reference_um.shape[1] == 3
+    # still checked like every other column
+    again = make_folder(tmp_path / "again", tables=tables)
+    set_cell(again, "reference.csv", 3, "status", "ok")
+    with pytest.raises(InputError, match="status"):
+        read_campaign(again)
 
 
 # --------------------------------------------------------------------------------------------

@@ -393,9 +393,10 @@ def _check_columns(role: str, names: list[str], meta: CampaignMeta, file) -> lis
                 f"sensors (declared: {', '.join(meta.sensor_names)})", file=file, column=column)
         if role == TEMPERATURES_FILE and column.endswith("_C") and len(column) > 2:
             continue  # an undeclared probe: kept, and reported by summary()
-        raise InputError(f"unexpected column {column!r}; {role} holds {holds}",
-                         file=file, column=column)
-    return required + extra
+    # Any other extra column (a status flag, a second interferometer axis, ...) is read, checked
+    # like the rest, and left out of the campaign; summary() reports it. The format names the
+    # columns a file must hold, not the only ones it may hold.
+    return required + [n for n in extra if role == TEMPERATURES_FILE and n.endswith("_C") and len(n) > 2]
 
 
 def _cell_problem(text: str) -> str | None:
@@ -585,7 +586,10 @@ def _read_table(folder: Path, role: str, meta: CampaignMeta) -> pd.DataFrame:
     values = _parse_body(file, names, body)
     _check_values(role, names, values, meta, file)
     frame = pd.DataFrame(values, columns=names)
-    return frame[order] if order != names else frame
+    ignored = [n for n in names if n not in order]
+    frame = frame[order] if order != names else frame
+    frame.attrs["ignored_columns"] = ignored
+    return frame
 
 
 def _table_from_input(role: str, table, meta: CampaignMeta, file) -> pd.DataFrame:
@@ -962,6 +966,9 @@ class Campaign:
         for probe in self.undeclared_probes:
             problems.append(f"{TEMPERATURES_FILE}: column {probe}_C is not declared in "
                             f"campaign.yaml temperature_probes (used as probe {probe!r})")
+        for role, frame in self._tables().items():
+            for column in frame.attrs.get("ignored_columns", []):
+                problems.append(f"{role}: column {column!r} is not part of the format and was ignored")
         for i, sensor in enumerate(self.meta.sensors):
             for key in sensor.model_extra or {}:
                 problems.append(f"{META_FILE}: sensors[{i}] has unrecognised key {key!r} "
