@@ -41,13 +41,22 @@ def service(tmp_path_factory):
                            f"sim://{campaign}?rate={RATE_HZ}&loop=1", "--opcua", url,
                            "--state-dir", tmp / "state", "--dashboard", f"127.0.0.1:{dp}",
                            env=ENV)
+    def ready():
+        if proc.poll() is not None:
+            raise AssertionError(f"serve exited with {proc.returncode} during start-up")
+        try:
+            return _get(f"http://127.0.0.1:{dp}/api/state") is not None
+        except OSError:          # refused or reset while the service is still starting
+            return False
+
     try:
         wait_port(dp, 40)
         wait_port(op, 40)
-        _wait_for(lambda: _get(f"http://127.0.0.1:{dp}/api/state") is not None, 20)
-    except (TimeoutError, AssertionError):
+        _wait_for(ready, 30)
+    except BaseException as exc:   # whatever went wrong, show what the service said
         proc.kill()
-        raise AssertionError(proc.communicate(timeout=5)[1].decode()[-3000:])
+        stderr = proc.communicate(timeout=5)[1].decode()[-3000:]
+        raise AssertionError(f"{type(exc).__name__}: {exc}\nserve stderr:\n{stderr}") from exc
     yield {"base": f"http://127.0.0.1:{dp}", "port": dp, "opcua": url, "state": tmp / "state",
            "proc": proc}
     proc.send_signal(signal.SIGTERM)
