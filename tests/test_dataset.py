@@ -78,9 +78,10 @@ def test_ingest_stores_aligned_raw_samples_readable_by_pandas_duckdb_and_dask(ca
     whole = pd.read_parquet(ds)
     assert len(whole) == sum(p.n_rows for p in parts)
     assert set(whole["machine"].astype(str)) == {"ram1", "ram 2/B"}
-    counts = duckdb.sql(f"select machine, campaign, count(*) from read_parquet("
-                        f"'{ds}/machine=*/campaign=*/*.parquet', hive_partitioning=true) "
-                        f"group by all order by all").fetchall()
+    with duckdb.connect() as con:      # not the module's default connection, alive until exit
+        counts = con.sql(f"select machine, campaign, count(*) from read_parquet("
+                         f"'{ds}/machine=*/campaign=*/*.parquet', hive_partitioning=true) "
+                         f"group by all order by all").fetchall()
     assert counts == sorted([(p.machine, p.campaign, p.n_rows) for p in parts])
     mean_dd = dd.read_parquet(str(ds)).groupby("campaign")["S1_nm"].mean().compute()
     mean_pd = whole.groupby("campaign", observed=True)["S1_nm"].mean()
