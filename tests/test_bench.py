@@ -151,3 +151,22 @@ def test_demo_runs_end_to_end(tmp_path):
     assert "calibrated kinematic" in r.stdout and "thermal-36h-b dz" in r.stdout
     for name in ("thermal-36h", "static-y", "thermal-36h-b", "static-xyz"):
         read_campaign(out / "campaigns" / name)
+
+
+def test_the_scenario_example_in_the_docs_runs(machine, twin):
+    """docs/bench.md shows how to write a scenario: that example must validate and simulate."""
+    import re
+    from pathlib import Path
+
+    import yaml
+
+    from fbgcomp.bench import Scenario
+
+    text = (Path(__file__).parent.parent / "docs" / "bench.md").read_text(encoding="utf-8")
+    example = yaml.safe_load(re.search(r"```yaml\n(.*?)```", text, re.S).group(1))
+    example["z_axis_mm"] = None          # the coarse test twin is built at the default Z
+    scenario = Scenario.model_validate(example).compressed(2.0)
+    campaign, truth = simulate(machine, scenario, seed=2, twin=twin)
+    assert campaign.meta.kind == "thermal" and campaign.loads is not None
+    assert np.abs(truth["force_N"][:, 1]).max() == pytest.approx(2000.0)
+    assert campaign.aligned().reference_um.shape[0] > 1000

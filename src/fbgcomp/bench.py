@@ -149,7 +149,8 @@ class Scenario(_Strict):
     instruments: Instruments = Instruments()
 
     def compressed(self, hours: float) -> "Scenario":
-        """The same histories squeezed into ``hours`` (every time in the input histories scaled)."""
+        """The same histories squeezed into ``hours``: every time in the inputs (temperature and
+        heat histories, load start and hold times) scaled by the same factor."""
         if self.duration_h is None or self.duration_h <= hours:
             return self
         scale = hours / self.duration_h
@@ -169,6 +170,9 @@ class Scenario(_Strict):
                 c["phase_h"] *= scale
             if h["random"]:
                 h["random"]["correlation_h"] *= scale
+        data["load_start_h"] *= scale
+        for step in data["loads"]:
+            step["hold_s"] *= scale
         return type(self).model_validate(data)
 
     def duration_s(self) -> float:
