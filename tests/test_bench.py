@@ -144,11 +144,12 @@ def test_demo_runs_end_to_end(tmp_path):
         assert set(v) == {"thermal-36h-b", "static-xyz"}
         assert v["thermal-36h-b"]["axes"]["dz"]["compensation_ratio"] > 0.8   # drift mostly compensated
         assert v["static-xyz"]["static_levels"]["n_levels"] >= 20
-    assert json.loads((out / "model.json").read_text())["model_type"] == "calibrated"
-    for f in ("model.json", "regression_model.json", "fe_model.json", "coefficients.txt",
+    assert json.loads((out / "calibrated_model.json").read_text())["model_type"] == "calibrated"
+    assert json.loads((out / "regression_model.json").read_text())["model_type"] == "mra"
+    for f in ("calibrated_model.json", "regression_model.json", "fe_model.json", "coefficients.txt",
               "calibrated_model.txt", "resolution.txt", "report/report.html"):
         assert (out / f).exists(), f
-    assert "calibrated kinematic" in r.stdout and "thermal-36h-b dz" in r.stdout
+    assert "calibrated kinematic" in r.stdout and "thermal-36h-b dx" in r.stdout
     for name in ("thermal-36h", "static-y", "thermal-36h-b", "static-xyz"):
         read_campaign(out / "campaigns" / name)
 
