@@ -100,7 +100,11 @@ def test_cantilever_box_tip_force_matches_timoshenko(machine, fe):
     rank = np.argsort(fe.layer_order(rm.mesh.p, vb.nodal_dofs))     # position of each DOF in layers
     u[free] = fe.Factorised(Kc, order=np.argsort(rank[free])).solve(fc)
     fe_um = 1e3 * tip[0] @ u
+    assert fe_um == pytest.approx(_timoshenko_box_um(machine, L, F), rel=0.03)
 
+
+def _timoshenko_box_um(machine, L, F):
+    """Tip deflection (µm) of the default box as a Timoshenko cantilever (bending + shear)."""
     a, b, t = 125.0, 105.0, 20.0
     I = ((2 * a) ** 4 - (2 * b) ** 4) / 12
     E_L, G = 1e3 * machine.materials.cfrp.E_L_GPa, 1e3 * machine.materials.cfrp.G_LT_GPa
@@ -112,8 +116,7 @@ def test_cantilever_box_tip_force_matches_timoshenko(machine, fe):
     x = np.linspace(-c, c, 8001)
     q_web = q_flange[-1] + t * (c**2 - x**2) / (2 * I)
     shear = F * L * (4 * np.trapezoid(q_flange**2, s) + 2 * np.trapezoid(q_web**2, x)) / (G * t)
-    theory_um = 1e3 * (bending + shear)
-    assert fe_um == pytest.approx(theory_um, rel=0.03)
+    return 1e3 * (bending + shear)
 
 
 def test_uniform_heating_grows_the_ttp_by_sum_of_cte_times_length(twin, machine):
@@ -243,3 +246,174 @@ def test_extra_paths_reproduce_the_built_in_sensors(twin, machine):
     h = twin.thermal(t, ambient, spindle, initial_C=30.0)
     assert np.allclose(elong, h.sensor_elongation_um, atol=1e-9)
     assert np.allclose(temp, h.sensor_temperature_C, atol=1e-9)
+
+
+# --------------------------------------------------------------- generalised machine descriptions
+RAM2_YAML = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram2.yaml"
+
+
+@pytest.fixture(scope="module")
+def ram2():
+    return load_machine(RAM2_YAML)
+
+
+def test_example_machines_load(ram2):
+    assert (Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram.yaml").resolve() \
+        == DEFAULT_YAML
+    assert [r.face for r in ram2.supports.rails] == ["-Y", "-Y"]
+    assert [c.z_mm for c in ram2.supports.carriages] == [1000.0, 1350.0]     # patch centres
+    assert ram2.supports.station_ranges_mm() == [(950.0, 1050.0), (1300.0, 1400.0)]
+    assert ram2.ttp_z_mm == pytest.approx(-300.0)
+    assert [s.gauge_length for s in ram2.sensors] == [600.0] * 4 + [500.0] * 2
+    assert ram2.thermal.film_W_per_m2K("-Y") == 4.0
+    assert ram2.thermal.film_W_per_m2K("housing_bottom") == 15.0
+    assert [h.input_name for h in ram2.thermal.sources] == ["spindle_heat_W", "radiant_W_per_m2"]
+
+
+def test_built_in_ram_keeps_its_legacy_inputs(machine):
+    assert [h.input_name for h in machine.thermal.sources] == ["spindle_heat_W", "radiant_W_per_m2"]
+    assert machine.thermal.film_W_per_m2K("top") == machine.thermal.film_outer_W_per_m2K
+    assert machine.thermal.film_W_per_m2K("cavity") == machine.thermal.film_inner_W_per_m2K
+
+
+@pytest.mark.parametrize("edit, field", [
+    (lambda d: d["supports"]["rails"][0].__setitem__("across_mm", [-170.0, -105.0]),
+     "field supports.rails[0].across_mm"),
+    (lambda d: d["supports"]["rails"][0].__setitem__("across_mm", [-105.0, -150.0]),
+     "field supports.rails[0].across_mm"),
+    (lambda d: d["supports"]["rails"][0].__setitem__("locating", False), "field supports.rails"),
+    (lambda d: d["supports"]["rails"][1].__setitem__("face", "+Z"), "field supports.rails[1].face"),
+    (lambda d: d["supports"]["carriages"][1].__setitem__("z_range_mm", [1300.0, 1450.0]),
+     "field supports.carriages[1].z_mm"),
+    (lambda d: d["supports"]["carriages"].pop(), "field supports.carriages"),
+    (lambda d: d["supports"].__setitem__("carriage_stiffness_N_per_um", "stiff"),
+     "field supports.carriage_stiffness_N_per_um"),
+    (lambda d: d["supports"]["nut"].__setitem__("constraint", "ring"), "field supports.nut.constraint"),
+    (lambda d: d["thermal"]["films_W_per_m2K"].pop("cavity"), "field thermal.films_W_per_m2K.cavity"),
+    (lambda d: d["thermal"]["films_W_per_m2K"].__setitem__("roof", 3.0),
+     "field thermal.films_W_per_m2K.roof.[key]"),
+    (lambda d: d["thermal"]["heat_sources"][1].pop("face"), "field thermal.heat_sources[1]"),
+    (lambda d: d["thermal"]["heat_sources"][0].__setitem__("x_mm", [400.0, 500.0]),
+     "field thermal.heat_sources[0]"),
+    (lambda d: d["thermal"]["heat_sources"][1].__setitem__("name", "spindle_heat"),
+     "field thermal.heat_sources[1].name"),
+    (lambda d: d["tool"].__setitem__("nose_patch_mm", [400.0, 135.0]), "field tool.nose_patch_mm"),
+    (lambda d: d["mesh"].__setitem__("element", "hex20"), "field mesh.element"),
+])
+def test_generalised_schema_names_the_bad_field(tmp_path, edit, field):
+    data = yaml.safe_load(RAM2_YAML.read_text())
+    edit(data)
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(InputError) as err:
+        load_machine(path)
+    assert err.value.column == field
+    assert err.value.file == str(path)
+
+
+def test_rails_on_adjacent_faces_and_more_stations_are_valid(ram2):
+    d = ram2.model_dump(mode="json")
+    d["supports"]["rails"] = [{"face": "-Y", "across_mm": [-150, -105]},
+                              {"face": "-X", "across_mm": [-150, 150]}]
+    d["supports"]["carriages"] = [{"name": f"c{i}", "z_range_mm": [z, z + 50]}
+                                  for i, z in enumerate((700.0, 1000.0, 1300.0))]
+    from fbgcomp.structure import parse_machine
+    m = parse_machine(d)
+    assert len(m.supports.station_ranges_mm()) == 3
+
+
+@pytest.fixture(scope="module")
+def ram2_twin(ram2, fe):
+    return fe.Twin(ram2, resolution=0.5)
+
+
+def test_ram2_supports_hold_the_carriage_patches(ram2_twin, ram2):
+    """Every node of the four carriage patches is held in Y; the locating strip's also in X."""
+    rm, vb = ram2_twin.mesh, ram2_twin._vbasis
+    held = np.zeros(vb.N)
+    held[ram2_twin.support_rows_mm.indices] = 1.0
+    p = rm.mesh.p
+    on_face = np.abs(p[1] + 150.0) < 1e-6
+    in_station = ((p[2] >= 950 - 1e-6) & (p[2] <= 1050 + 1e-6)) | (p[2] >= 1300 - 1e-6)
+    strip_loc = on_face & in_station & (p[0] <= -105 + 1e-6)
+    strip_float = on_face & in_station & (p[0] >= 105 - 1e-6)
+    assert held[vb.nodal_dofs[1, strip_loc | strip_float]].all()
+    assert held[vb.nodal_dofs[0, strip_loc]].all()
+    assert not held[vb.nodal_dofs[0, strip_float]].any()
+    top = np.abs(p[2] - 1400.0) < 1e-6
+    assert held[vb.nodal_dofs[2, top]].all() and held[vb.nodal_dofs[2]].sum() == top.sum()
+
+
+def test_uniform_warming_moves_ram2_away_from_its_reference_face_and_locating_rail(ram2_twin, ram2):
+    """Rails on -Y, locating rail at x <= -105: the box grows towards +Y and +X (README sec. 4)."""
+    dT = 10.0
+    r = ram2_twin.static_temperature_response("uniform", dT)
+    dx, dy, dz = r.ttp_um
+    cte_T = ram2.materials.cfrp.cte_T_per_K
+    assert dy > 0 and dx > 0
+    # The axis is half a depth from the reference face: it moves by about cte_T dT 150 mm.
+    assert dy == pytest.approx(1e3 * cte_T * dT * 150.0, rel=0.05)
+    assert dx == pytest.approx(1e3 * cte_T * dT * 127.5, rel=0.15)   # strip centre 127.5 mm off axis
+    cf, st = ram2.materials.cfrp, ram2.materials.steel
+    assert dz == pytest.approx(-1e3 * dT * (cf.cte_L_per_K * 1400 + st.cte_per_K * 180), rel=0.01)
+
+
+def test_heat_sources_drive_the_twin_by_name_or_legacy_argument(ram2_twin):
+    t = np.arange(0.0, 3601.0, 60.0)
+    spindle = np.where(t > 300, 120.0, 0.0)
+    radiant = np.where(t > 900, 90.0, 0.0)
+    a = ram2_twin.thermal(t, 22.0, spindle, radiant, initial_C=22.0)
+    b = ram2_twin.thermal(t, 22.0, initial_C=22.0,
+                          heat={"spindle_heat": spindle, "radiant_W_per_m2": radiant})
+    assert np.array_equal(a.ttp_um, b.ttp_um)
+    assert ram2_twin.input_names == ("ambient_C", "spindle_heat_W", "radiant_W_per_m2")
+    # Spindle heat warms the housing's -X face probe; the radiant load only the +X side of the box.
+    assert a.probe("T_flange")[-1] > 22.1
+    only_rad = ram2_twin.thermal(t, 22.0, initial_C=22.0, heat={"radiant": radiant})
+    s1, s2 = only_rad.sensor_temperature_C[-1, :2]
+    assert s1 > s2 + 0.05
+    with pytest.raises(ValueError, match="unknown heat source"):
+        ram2_twin.thermal(t, 22.0, heat={"lamp": radiant})
+
+
+def test_films_per_surface_reproduce_the_outer_inner_pair(machine, fe):
+    """Listing every surface with the legacy outer/inner values assembles the same model."""
+    from fbgcomp.structure import parse_machine, thermal
+    from fbgcomp.structure.mesh import machine_mesh
+    th = machine.thermal
+    d = machine.model_dump(mode="json")
+    d["thermal"]["films_W_per_m2K"] = {s: (th.film_inner_W_per_m2K if s == "cavity"
+                                           else th.film_outer_W_per_m2K) for s in
+                                       ("+X", "-X", "+Y", "-Y", "cavity", "top", "housing_sides",
+                                        "housing_bottom")}
+    d["thermal"]["films_W_per_m2K"]["-Y"] = 2 * th.film_outer_W_per_m2K
+    rm = machine_mesh(machine, 0.4)
+    K0, _, B0 = thermal.assemble_thermal(rm, machine)
+    K1, _, B1 = thermal.assemble_thermal(rm, parse_machine(d))
+    extra = K1 - K0
+    # Only the -Y face's film changed: the difference is one more film on that face.
+    y = rm.mesh.p[1]
+    rows = np.unique(extra.tocoo().row[np.abs(extra.tocoo().data) > 1e-15])
+    assert len(rows) and np.all(np.abs(y[rows] + rm.half_depth_mm) < 1e-6)
+    assert np.allclose(B1[:, 1:], B0[:, 1:])
+
+
+def test_incompatible_modes_remove_the_bending_lock_of_the_coarse_cantilever(machine, fe):
+    """Same coarse mesh: plain hex8 is too stiff in bending + shear, hex8i within 2 %."""
+    from skfem import condense
+    L, F = 2400.0, 1000.0
+    rm = _box(fe, machine, L, 0.4)
+    tips = {}
+    for incompatible in (False, True):
+        vb, _, K, _ = fe.elastic.assemble_box_elasticity(rm, machine.materials.cfrp,
+                                                         machine.materials.steel, incompatible)
+        tip = fe.elastic.rigid_extension_rows(vb, rm.end_facets(L))
+        clamped = vb.get_dofs(lambda x: np.abs(x[2]) < 1e-6).all()
+        Kc, fc, _, free = condense(K, tip[0] * F, D=clamped)
+        u = np.zeros(vb.N)
+        rank = np.argsort(fe.layer_order(rm.mesh.p, vb.nodal_dofs))
+        u[free] = fe.Factorised(Kc, order=np.argsort(rank[free])).solve(fc)
+        tips[incompatible] = 1e3 * tip[0] @ u
+    theory_um = _timoshenko_box_um(machine, L, F)
+    assert tips[True] == pytest.approx(theory_um, rel=0.02)
+    assert abs(tips[False] / theory_um - 1) > 2 * abs(tips[True] / theory_um - 1)

@@ -183,7 +183,99 @@ def assemble_elasticity(rm, cfrp: CFRP, steel: Steel):
 
 def spring_matrix(rows: np.ndarray, stiffness_N_per_mm) -> sp.csc_matrix:
     """Sum of k c c^T for constraint rows c (n_c, n): elastic supports on mean displacements."""
-    rows = np.atleast_2d(rows)
-    k = np.broadcast_to(np.asarray(stiffness_N_per_mm, dtype=float), (rows.shape[0],))
-    R = sp.csr_matrix(rows)
+    R = sp.csr_matrix(rows if sp.issparse(rows) else np.atleast_2d(rows))
+    k = np.broadcast_to(np.asarray(stiffness_N_per_mm, dtype=float), (R.shape[0],))
     return (R.T @ sp.diags(k) @ R).tocsc()
+
+
+# ------------------------------------------------------------------ incompatible-mode hexahedra
+_GAUSS = np.array([-1.0, 1.0]) / np.sqrt(3.0)
+
+
+def _box_element_matrices(signs: np.ndarray, h_mm: np.ndarray, C_MPa: np.ndarray,
+                          beta_MPa_per_K: np.ndarray, incompatible: bool):
+    """Stiffness (24, 24) N/mm and thermal load (24, 8) N/K of one box-shaped 8-node hexahedron.
+
+    ``signs`` (8, 3): reference coordinates (+-1) of the local nodes; ``h_mm`` (3,): edge lengths.
+    Local DOF 3 i + a is component a of node i. With ``incompatible`` the element carries
+    Wilson-Taylor incompatible modes (1 - xi^2, 1 - eta^2, 1 - zeta^2 per component, as in
+    CalculiX's C3D8I), condensed out: pure bending is then represented without parasitic shear,
+    which a plain trilinear hexahedron locks on. On a box the Jacobian is constant, so no
+    patch-test correction is needed.
+    """
+    scale = 2.0 / h_mm                                         # d(xi)/dx per axis
+    detJ = np.prod(h_mm) / 8.0
+    Kuu = np.zeros((24, 24))
+    Kua = np.zeros((24, 9))
+    Kaa = np.zeros((9, 9))
+    Tu = np.zeros((24, 8))
+    Ta = np.zeros((9, 8))
+    for gx in _GAUSS:
+        for gy in _GAUSS:
+            for gz in _GAUSS:
+                g = np.array([gx, gy, gz])
+                f = 1.0 + signs * g                            # (8, 3)
+                N = np.prod(f, axis=1) / 8.0
+                dN = np.empty((8, 3))
+                for a in range(3):
+                    others = np.prod(np.delete(f, a, axis=1), axis=1)
+                    dN[:, a] = signs[:, a] * others / 8.0 * scale[a]
+                Bu = _strain_matrix(dN)                        # (6, 24)
+                dP = np.diag(-2.0 * g * scale)                 # mode b depends on coordinate b only
+                Ba = _strain_matrix(dP)                        # (6, 9)
+                w = detJ
+                Kuu += w * Bu.T @ C_MPa @ Bu
+                Tu += w * np.outer(Bu.T @ beta_MPa_per_K, N)
+                if incompatible:
+                    Kua += w * Bu.T @ C_MPa @ Ba
+                    Kaa += w * Ba.T @ C_MPa @ Ba
+                    Ta += w * np.outer(Ba.T @ beta_MPa_per_K, N)
+    if not incompatible:
+        return Kuu, Tu
+    X = np.linalg.solve(Kaa, np.hstack([Kua.T, Ta]))          # K_aa^-1 [K_au, T_a]
+    return Kuu - Kua @ X[:, :24], Tu - Kua @ X[:, 24:]
+
+
+def _strain_matrix(dN: np.ndarray) -> np.ndarray:
+    """Voigt strain-displacement matrix (6, 3 n) of shape-function gradients dN (n, 3)."""
+    n = dN.shape[0]
+    B = np.zeros((6, 3 * n))
+    x, y, z = dN[:, 0], dN[:, 1], dN[:, 2]
+    B[0, 0::3], B[1, 1::3], B[2, 2::3] = x, y, z
+    B[3, 1::3], B[3, 2::3] = z, y
+    B[4, 0::3], B[4, 2::3] = z, x
+    B[5, 0::3], B[5, 1::3] = y, x
+    return B
+
+
+def assemble_box_elasticity(rm, cfrp: CFRP, steel: Steel, incompatible: bool = True):
+    """K (n_u x n_u, N/mm) and Th (n_u x n_nodes, N/K) of the structured box mesh, assembled from
+    closed-form element matrices (one per element size and material), DOFs numbered like
+    :func:`assemble_elasticity`'s vector basis. Returns (vbasis, sbasis, K, Th)."""
+    e = vector_element()
+    vbasis = Basis(rm.mesh, e, intorder=INTORDER)
+    sbasis = Basis(rm.mesh, ElementHex1(), intorder=INTORDER)
+    p, t = rm.mesh.p, rm.mesh.t
+    xyz = p[:, t]                                              # (3, 8, n_e)
+    lo, hi = xyz.min(axis=1), xyz.max(axis=1)
+    h = (hi - lo).T                                            # (n_e, 3)
+    signs = np.sign(xyz - 0.5 * (lo + hi)[:, None, :]).transpose(2, 1, 0)   # (n_e, 8, 3)
+    material = np.zeros(t.shape[1], dtype=np.int64)
+    material[rm.steel_elements] = 1
+    props = [(cfrp_stiffness_MPa(cfrp), cfrp_cte_voigt_per_K(cfrp)),
+             (steel_stiffness_MPa(steel), steel_cte_voigt_per_K(steel))]
+    key = np.column_stack([material, np.round(h, 6), signs.reshape(len(h), -1)])
+    kinds, kind_of = np.unique(key, axis=0, return_inverse=True)
+    Ke = np.empty((len(kinds), 24, 24))
+    Te = np.empty((len(kinds), 24, 8))
+    for j, k in enumerate(kinds):
+        C, alpha = props[int(k[0])]
+        Ke[j], Te[j] = _box_element_matrices(k[4:].reshape(8, 3), k[1:4], C, C @ alpha, incompatible)
+    G = vbasis.nodal_dofs[:, t].transpose(2, 1, 0).reshape(t.shape[1], 24)   # (n_e, 24)
+    kind_of = kind_of.ravel()
+    n_u, n = vbasis.N, rm.n_nodes
+    K = sp.coo_matrix((Ke[kind_of].ravel(), (np.repeat(G, 24, axis=1).ravel(),
+                                             np.tile(G, (1, 24)).ravel())), shape=(n_u, n_u))
+    Th = sp.coo_matrix((Te[kind_of].ravel(), (np.repeat(G, 8, axis=1).ravel(),
+                                              np.tile(t.T, (1, 24)).ravel())), shape=(n_u, n))
+    return vbasis, sbasis, K.tocsc(), Th.tocsr()

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import importlib.resources
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from fbgcomp.errors import InputError
 
@@ -45,6 +45,15 @@ class Housing(_Strict):
 
 class Tool(_Strict):
     ttp_below_housing_mm: float = Field(ge=0)
+    # Size (x, y) of the central spindle-nose patch of the housing bottom face that carries the
+    # rigid tool; None: the whole bottom face.
+    nose_patch_mm: tuple[float, float] | None = None
+
+    @model_validator(mode="after")
+    def _positive_patch(self):
+        if self.nose_patch_mm is not None and min(self.nose_patch_mm) <= 0:
+            raise ValueError("nose_patch_mm must be two positive sizes (x, y)")
+        return self
 
 
 class CFRP(_Strict):
@@ -75,31 +84,139 @@ class Materials(_Strict):
     steel: Steel
 
 
+def _stiffness(v):
+    if v == "rigid":
+        return v
+    try:
+        k = float(v)            # YAML reads 1.0e6 (no sign in the exponent) as a string
+    except (TypeError, ValueError):
+        k = float("nan")
+    if isinstance(v, bool) or not k > 0:
+        raise ValueError("must be a stiffness > 0 (N/um) or 'rigid'")
+    return k
+
+
+Stiffness = Annotated[float | Literal["rigid"], BeforeValidator(_stiffness)]
+
+
+def _ordered_range(v, what: str):
+    if v is not None and not v[1] > v[0]:
+        raise ValueError(f"{what} must be [low, high] with high > low")
+    return v
+
+
 class Carriage(_Strict):
+    """A carriage (guide-shoe) station: its centre ``z_mm`` or its extent ``z_range_mm``."""
+
     name: str
-    z_mm: float
+    z_mm: float | None = None
+    z_range_mm: tuple[float, float] | None = None
+
+    @model_validator(mode="before")
+    @classmethod
+    def _centre_from_range(cls, data):
+        if isinstance(data, dict) and data.get("z_mm") is None and data.get("z_range_mm"):
+            lo, hi = data["z_range_mm"]
+            if isinstance(lo, (int, float)) and isinstance(hi, (int, float)):
+                data = {**data, "z_mm": 0.5 * (lo + hi)}
+        return data
+
+    @field_validator("z_range_mm")
+    @classmethod
+    def _range(cls, v):
+        return _ordered_range(v, "z_range_mm")
+
+    @model_validator(mode="after")
+    def _located(self):
+        if self.z_mm is None:
+            raise ValueError("a carriage needs z_mm or z_range_mm")
+        if self.z_range_mm is not None:
+            if abs(self.z_mm - 0.5 * sum(self.z_range_mm)) > 1e-6:
+                raise ValueError("z_mm must be the centre of z_range_mm (give one of them)")
+        return self
+
+
+class Rail(_Strict):
+    """A guide rail along Z on one outer face; ``across_mm`` is its strip across the face
+    (y on the +-X faces, x on the +-Y faces). Every rail holds the face-normal direction; a
+    locating rail also holds the in-plane lateral direction (the one across the face)."""
+
+    face: Face
+    across_mm: tuple[float, float]
+    locating: bool = False
+
+    @field_validator("across_mm")
+    @classmethod
+    def _strip(cls, v):
+        return _ordered_range(v, "across_mm")
 
 
 class Nut(_Strict):
     z_mm: float
-    stiffness_N_per_um: float = Field(gt=0)
+    stiffness_N_per_um: Stiffness
+    # mean: one spring on the mean u_z of the cross-section at z_mm; nodes: u_z held at every
+    # node of that cross-section (e.g. a bracket bonded to the whole top ring face).
+    constraint: Literal["mean", "nodes"] = "mean"
 
 
 class Supports(_Strict):
     z_axis_mm: float = 0.0
     shoe_faces: tuple[Face, Face] = ("+X", "-X")
-    carriages: tuple[Carriage, Carriage]
-    shoe_length_mm: float = Field(gt=0)
-    shoe_width_mm: float = Field(gt=0)
-    carriage_stiffness_N_per_um: float = Field(gt=0)
+    rails: tuple[Rail, ...] | None = None
+    carriages: tuple[Carriage, ...] = Field(min_length=2)
+    shoe_length_mm: float | None = Field(default=None, gt=0)
+    shoe_width_mm: float | None = Field(default=None, gt=0)
+    carriage_stiffness_N_per_um: Stiffness
     nut: Nut
 
     @model_validator(mode="after")
-    def _opposite_faces(self):
-        a, b = self.shoe_faces
-        if a[1] != b[1] or a == b:
-            raise ValueError("shoe_faces must be two opposite faces, e.g. ['+X', '-X']")
+    def _consistent_supports(self):
+        for i, c in enumerate(self.carriages):
+            if c.z_range_mm is None and self.shoe_length_mm is None:
+                raise _FieldError(f"supports.carriages[{i}].z_range_mm",
+                                  "give the station's z_range_mm or supports.shoe_length_mm")
+        if self.rails is None:
+            a, b = self.shoe_faces
+            if a[1] != b[1] or a == b:
+                raise _FieldError("supports.shoe_faces",
+                                  "shoe_faces must be two opposite faces, e.g. ['+X', '-X']")
+            if len(self.carriages) != 2:
+                raise _FieldError("supports.carriages", "shoe_faces supports take exactly two "
+                                  "carriage stations; give rails for more")
+            if self.shoe_width_mm is None:
+                raise _FieldError("supports.shoe_width_mm", "required field is missing "
+                                  "(or describe the guides with rails)")
+            return self
+        if not self.rails:
+            raise _FieldError("supports.rails", "give at least one rail")
+        holds = {"X": False, "Y": False}
+        for r in self.rails:
+            holds[r.face[1]] = True
+            if r.locating:
+                holds["Y" if r.face[1] == "X" else "X"] = True
+        for axis, held in holds.items():
+            if not held:
+                raise _FieldError("supports.rails", f"no rail holds the ram along {axis}: add a "
+                                  f"rail on a +-{axis} face or make a rail on the other faces locating")
         return self
+
+    @property
+    def carriage_stiffness_value_N_per_um(self) -> float:
+        """Carriage stiffness (N/µm) as a number: ``inf`` for rigid carriages."""
+        k = self.carriage_stiffness_N_per_um
+        return float("inf") if k == "rigid" else float(k)
+
+    def station_ranges_mm(self, z_axis_mm: float | None = None) -> list[tuple[float, float]]:
+        """Carriage patch z ranges in the ram frame at Z-axis position ``z_axis_mm``, by station."""
+        z_axis = self.z_axis_mm if z_axis_mm is None else z_axis_mm
+        out = []
+        for c in self.carriages:
+            if c.z_range_mm is not None:
+                lo, hi = c.z_range_mm
+            else:
+                lo, hi = c.z_mm - self.shoe_length_mm / 2, c.z_mm + self.shoe_length_mm / 2
+            out.append((lo - z_axis, hi - z_axis))
+        return out
 
 
 class Sensor(_Strict):
@@ -147,14 +264,104 @@ class Probe(_Strict):
         return self
 
 
+FilmSurface = Literal["+X", "-X", "+Y", "-Y", "cavity", "top", "housing_sides", "housing_bottom"]
+FILM_SURFACES: tuple[str, ...] = ("+X", "-X", "+Y", "-Y", "cavity", "top", "housing_sides",
+                                  "housing_bottom")
+
+
+class HeatSource(_Strict):
+    """A heat input of the thermal model, one input channel of the twin.
+
+    volume: power (W) spread uniformly over the box zone x_mm, y_mm, z_mm (each [low, high]; an
+    omitted range spans the housing). radiant: flux (W/m^2) on ``face`` for z in ``z_mm``
+    (omitted: the whole ram face), times ``absorptivity``.
+    """
+
+    name: str = Field(min_length=1, pattern=r"^[A-Za-z_][A-Za-z0-9_]*$")
+    kind: Literal["volume", "radiant"]
+    x_mm: tuple[float, float] | None = None
+    y_mm: tuple[float, float] | None = None
+    z_mm: tuple[float, float] | None = None
+    face: Face | None = None
+    absorptivity: float = Field(default=1.0, ge=0, le=1)
+    nominal_W: float | None = Field(default=None, ge=0)
+    nominal_W_per_m2: float | None = Field(default=None, ge=0)
+
+    @field_validator("x_mm", "y_mm", "z_mm")
+    @classmethod
+    def _ranges(cls, v, info):
+        return _ordered_range(v, info.field_name)
+
+    @model_validator(mode="after")
+    def _kind_fields(self):
+        if self.kind == "volume":
+            if self.face is not None or self.nominal_W_per_m2 is not None:
+                raise ValueError("a volume source takes x_mm, y_mm, z_mm and nominal_W "
+                                 "(no face, no nominal_W_per_m2)")
+        else:
+            if self.face is None:
+                raise ValueError("a radiant source needs its face")
+            if self.x_mm is not None or self.y_mm is not None or self.nominal_W is not None:
+                raise ValueError("a radiant source takes face, z_mm, absorptivity and "
+                                 "nominal_W_per_m2 (no x_mm, y_mm, nominal_W)")
+        return self
+
+    @property
+    def input_name(self) -> str:
+        """Name of the twin's input channel: ``<name>_W`` or ``<name>_W_per_m2``."""
+        return f"{self.name}_W" if self.kind == "volume" else f"{self.name}_W_per_m2"
+
+    @property
+    def nominal(self) -> float:
+        v = self.nominal_W if self.kind == "volume" else self.nominal_W_per_m2
+        return 0.0 if v is None else float(v)
+
+
 class Thermal(_Strict):
-    film_outer_W_per_m2K: float = Field(gt=0)
-    film_inner_W_per_m2K: float = Field(ge=0)
+    film_outer_W_per_m2K: float | None = Field(default=None, gt=0)
+    film_inner_W_per_m2K: float | None = Field(default=None, ge=0)
+    films_W_per_m2K: dict[FilmSurface, float] = {}
+    heat_sources: tuple[HeatSource, ...] | None = None
     spindle_heat: Literal["housing"] = "housing"
     radiant_face: Face = "+X"
     radiant_absorptivity: float = Field(default=0.9, ge=0, le=1)
     nominal_spindle_heat_W: float = Field(default=150.0, ge=0)
     nominal_radiant_W_per_m2: float = Field(default=40.0, ge=0)
+
+    @model_validator(mode="after")
+    def _films_complete(self):
+        for surface, h in self.films_W_per_m2K.items():
+            if not h >= 0:
+                raise _FieldError(f"thermal.films_W_per_m2K.{surface}", "must be >= 0")
+        for surface in FILM_SURFACES:
+            if self.film_W_per_m2K(surface) is None:
+                fallback = "film_inner_W_per_m2K" if surface == "cavity" else "film_outer_W_per_m2K"
+                raise _FieldError(f"thermal.films_W_per_m2K.{surface}",
+                                  f"no film coefficient for {surface!r}: give it or {fallback}")
+        if self.heat_sources is not None:
+            names = [h.name for h in self.heat_sources]
+            for i, n in enumerate(names):
+                if n in names[:i]:
+                    raise _FieldError(f"thermal.heat_sources[{i}].name",
+                                      f"duplicate heat source name {n!r}")
+        return self
+
+    def film_W_per_m2K(self, surface: str) -> float | None:
+        """Film coefficient of one surface (see FILM_SURFACES), falling back to outer/inner."""
+        if surface in self.films_W_per_m2K:
+            return float(self.films_W_per_m2K[surface])
+        return self.film_inner_W_per_m2K if surface == "cavity" else self.film_outer_W_per_m2K
+
+    @property
+    def sources(self) -> tuple[HeatSource, ...]:
+        """The declared heat sources; by default spindle heat in the whole housing and a radiant
+        flux on ``radiant_face`` (inputs ``spindle_heat_W``, ``radiant_W_per_m2``)."""
+        if self.heat_sources is not None:
+            return self.heat_sources
+        return (HeatSource(name="spindle_heat", kind="volume", nominal_W=self.nominal_spindle_heat_W),
+                HeatSource(name="radiant", kind="radiant", face=self.radiant_face,
+                           absorptivity=self.radiant_absorptivity,
+                           nominal_W_per_m2=self.nominal_radiant_W_per_m2))
 
 
 class MeshSettings(_Strict):
@@ -163,6 +370,9 @@ class MeshSettings(_Strict):
     span_elements: int = Field(default=10, ge=2)
     dz_mm: float = Field(default=20.0, gt=0)
     thermal_shifts: int = Field(default=12, ge=0, le=60)
+    # hex8: trilinear hexahedra; hex8i: with condensed incompatible modes (like C3D8I), which do
+    # not lock in bending and need no mesh refinement for thin plate-bending walls.
+    element: Literal["hex8", "hex8i"] = "hex8"
 
 
 class Machine(_Strict):
@@ -208,17 +418,55 @@ class Machine(_Strict):
                 if s.temperature_probe is not None and s.temperature_probe not in probe_names:
                     raise _FieldError(f"{group}[{i}].temperature_probe",
                                       f"unknown probe {s.temperature_probe!r}; known: {probe_names}")
-        for i, c in enumerate(self.supports.carriages):
-            z = c.z_mm - self.supports.z_axis_mm
-            if not (self.supports.shoe_length_mm / 2 <= z
-                    <= self.ram.length_mm - self.supports.shoe_length_mm / 2):
+        sup = self.supports
+        for i, (lo, hi) in enumerate(sup.station_ranges_mm()):
+            if not (-1e-6 <= lo and hi <= self.ram.length_mm + 1e-6):
                 raise _FieldError(f"supports.carriages[{i}].z_mm",
-                                  f"carriage station at z = {z:g} mm in the ram frame lies off the ram")
-        if self.supports.carriages[0].z_mm == self.supports.carriages[1].z_mm:
-            raise _FieldError("supports.carriages[1].z_mm", "the two carriage stations must differ")
+                                  f"carriage station at z = {lo:g}..{hi:g} mm in the ram frame "
+                                  f"lies off the ram")
+        zc = [c.z_mm for c in sup.carriages]
+        for i in range(1, len(zc)):
+            if zc[i] in zc[:i]:
+                raise _FieldError(f"supports.carriages[{i}].z_mm", "the carriage stations must differ")
+        for i, r in enumerate(sup.rails or ()):
+            across = half_d if r.face[1] == "X" else half_w
+            if r.across_mm[0] < -across - 1e-6 or r.across_mm[1] > across + 1e-6:
+                raise _FieldError(f"supports.rails[{i}].across_mm",
+                                  f"strip {r.across_mm[0]:g}..{r.across_mm[1]:g} mm lies off the "
+                                  f"{r.face} face (+-{across:g} mm)")
+        patch = self.tool.nose_patch_mm
+        if patch is not None and (patch[0] > self.housing.width_mm + 1e-6
+                                  or patch[1] > self.housing.depth_mm + 1e-6):
+            raise _FieldError("tool.nose_patch_mm", "the nose patch must fit on the housing bottom")
+        for i, h in enumerate(self.thermal.sources):
+            self._check_source(i, h)
         if not (0 < self.supports.nut.z_mm <= self.ram.length_mm):
             raise _FieldError("supports.nut.z_mm", "the nut must be on the ram")
         return self
+
+    def _check_source(self, i: int, h) -> None:
+        where = f"thermal.heat_sources[{i}]"
+        if h.kind == "radiant":
+            if h.z_mm is not None and (h.z_mm[0] < -self.housing.height_mm - 1e-6
+                                       or h.z_mm[1] > self.ram.length_mm + 1e-6):
+                raise _FieldError(f"{where}.z_mm", "the radiant zone must lie on the structure, "
+                                  f"{-self.housing.height_mm:g}..{self.ram.length_mm:g} mm")
+            return
+        lo, hi = self.volume_source_box_mm(h)
+        if hi[2] <= lo[2] or hi[0] <= lo[0] or hi[1] <= lo[1]:
+            raise _FieldError(where, f"heat zone of {h.name!r} has no volume in the housing")
+        centre = 0.5 * (lo + hi)
+        if not self.contains_point(*centre):
+            raise _FieldError(where, f"the centre of heat zone {h.name!r} is not in the material")
+
+    def volume_source_box_mm(self, h):
+        """(low, high) corners (mm) of a volume heat zone; omitted ranges span the housing."""
+        import numpy as np
+        hw, hd, H = self.housing.width_mm / 2, self.housing.depth_mm / 2, self.housing.height_mm
+        x = h.x_mm or (-hw, hw)
+        y = h.y_mm or (-hd, hd)
+        z = h.z_mm or (-H, 0.0)
+        return np.array([x[0], y[0], z[0]], float), np.array([x[1], y[1], z[1]], float)
 
     def contains_point(self, x_mm: float, y_mm: float, z_mm: float, tol_mm: float = 1e-6) -> bool:
         """True when the point lies in the ram wall or the housing (boundary included)."""

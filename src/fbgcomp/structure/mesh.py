@@ -183,16 +183,54 @@ class RamMesh:
                        & (x[2] >= z_lo_mm - _TOL_MM) & (x[2] <= z_hi_mm + _TOL_MM)
                        & (np.abs(x[other]) <= across_half_mm + _TOL_MM)))
 
-    def end_facets(self, z_mm: float) -> np.ndarray:
-        """Boundary facets in the plane z = ``z_mm`` (e.g. the ram top or the housing bottom)."""
-        return self.facets_where(lambda x: np.abs(x[2] - z_mm) < _TOL_MM)
+    def end_facets(self, z_mm: float, half_x_mm: float = np.inf,
+                   half_y_mm: float = np.inf) -> np.ndarray:
+        """Boundary facets in the plane z = ``z_mm`` (e.g. the ram top or the housing bottom),
+        optionally only the central |x| <= half_x_mm, |y| <= half_y_mm patch."""
+        return self.facets_where(lambda x: ((np.abs(x[2] - z_mm) < _TOL_MM)
+                                            & (np.abs(x[0]) <= half_x_mm + _TOL_MM)
+                                            & (np.abs(x[1]) <= half_y_mm + _TOL_MM)))
+
+    def strip_facets(self, face: str, z_lo_mm: float, z_hi_mm: float, across_lo_mm: float,
+                     across_hi_mm: float) -> np.ndarray:
+        """Facets on an outer ram face within z_lo..z_hi and across_lo..across_hi (mm; across is
+        y on the +-X faces, x on the +-Y faces): a carriage patch on a rail strip."""
+        axis = 0 if face[1] == "X" else 1
+        half = self.half_width_mm if axis == 0 else self.half_depth_mm
+        sign = 1.0 if face[0] == "+" else -1.0
+        other = 1 - axis
+        return self.facets_where(
+            lambda x: ((np.abs(x[axis] - sign * half) < _TOL_MM)
+                       & (x[2] >= z_lo_mm - _TOL_MM) & (x[2] <= z_hi_mm + _TOL_MM)
+                       & (x[other] >= across_lo_mm - _TOL_MM) & (x[other] <= across_hi_mm + _TOL_MM)))
+
+    def film_surface_facets(self, housing_height_mm: float) -> dict[str, np.ndarray]:
+        """Boundary facets by film surface: the four outer ram faces, the cavity, the top ring
+        face, the housing sides (and any housing top outside the box) and the housing bottom."""
+        f = self.mesh.boundary_facets()
+        mid = self.mesh.p[:, self.mesh.facets[:, f]].mean(axis=1)
+        x, y, z = mid
+        hw, hd, t, L = self.half_width_mm, self.half_depth_mm, self.wall_mm, self.length_mm
+        cavity = ((np.abs(x) < hw - t + _TOL_MM) & (np.abs(y) < hd - t + _TOL_MM)
+                  & (z > -_TOL_MM) & (z < L - _TOL_MM))
+        on_ram = (z > _TOL_MM) & (z < L - _TOL_MM) & ~cavity
+        out = {"cavity": f[cavity], "top": f[np.abs(z - L) < _TOL_MM],
+               "housing_bottom": f[np.abs(z + housing_height_mm) < _TOL_MM]}
+        taken = cavity | (np.abs(z - L) < _TOL_MM) | (np.abs(z + housing_height_mm) < _TOL_MM)
+        for face, axis, half in (("+X", 0, hw), ("-X", 0, -hw), ("+Y", 1, hd), ("-Y", 1, -hd)):
+            sel = on_ram & (np.abs(mid[axis] - half) < _TOL_MM)
+            out[face] = f[sel]
+            taken |= sel
+        out["housing_sides"] = f[~taken]
+        return out
 
 
 def build_mesh(*, half_width_mm: float, half_depth_mm: float, wall_mm: float, length_mm: float,
                housing_half_width_mm: float | None = None,
                housing_half_depth_mm: float | None = None, housing_height_mm: float = 0.0,
                n_wall: int = 3, n_span: int = 12, dz_mm: float = 17.0,
-               z_breaks_mm=(), xy_breaks_mm=(), single_spans_mm=()) -> RamMesh:
+               z_breaks_mm=(), xy_breaks_mm=(), single_spans_mm=(), x_breaks_mm=(),
+               y_breaks_mm=()) -> RamMesh:
     """Mesh a hollow box (z = 0..length) and optionally a solid block below it (z < 0).
 
     ``n_wall`` elements through the wall, ``n_span`` (even, so the face centre is a grid line)
@@ -200,8 +238,8 @@ def build_mesh(*, half_width_mm: float, half_depth_mm: float, wall_mm: float, le
     """
     n_span += n_span % 2
     has_housing = housing_height_mm > 0
-    extra_x = list(xy_breaks_mm)
-    extra_y = list(xy_breaks_mm)
+    extra_x = list(xy_breaks_mm) + list(x_breaks_mm)
+    extra_y = list(xy_breaks_mm) + list(y_breaks_mm)
     if has_housing:
         extra_x += [-housing_half_width_mm, housing_half_width_mm]
         extra_y += [-housing_half_depth_mm, housing_half_depth_mm]
@@ -259,6 +297,11 @@ def carriage_z_mm(machine: Machine, z_axis_mm: float | None = None) -> list[floa
     return [c.z_mm - z_axis for c in s.carriages]
 
 
+def station_ranges_mm(machine: Machine, z_axis_mm: float | None = None) -> list[tuple[float, float]]:
+    """Carriage patch z ranges (lo, hi) in the ram frame at Z-axis position ``z_axis_mm``."""
+    return machine.supports.station_ranges_mm(z_axis_mm)
+
+
 def machine_mesh(machine: Machine, resolution: float | None = None,
                  z_axis_mm: float | None = None) -> RamMesh:
     """The twin's mesh of ``machine``: element counts scaled by ``resolution``."""
@@ -266,17 +309,34 @@ def machine_mesh(machine: Machine, resolution: float | None = None,
     r = m.resolution if resolution is None else float(resolution)
     s = machine.supports
     breaks = [machine.supports.nut.z_mm]
-    # Each shoe patch is one element long: its mean-displacement constraint then couples only two
-    # node layers and leaves the band of the layer-ordered stiffness matrix at one cross-section.
-    shoes = [(z - s.shoe_length_mm / 2, z + s.shoe_length_mm / 2)
-             for z in carriage_z_mm(machine, z_axis_mm)]
-    for lo, hi in shoes:
+    x_breaks, y_breaks = [], []
+    stations = s.station_ranges_mm(z_axis_mm)
+    single = []
+    if s.rails is None:
+        # Each shoe patch is one element long: its mean-displacement constraint then couples only
+        # two node layers and leaves the band of the layer-ordered stiffness matrix at one section.
+        single = stations
+    for lo, hi in stations:
         breaks += [lo, hi]
+    for rail in s.rails or ():
+        (y_breaks if rail.face[1] == "X" else x_breaks).extend(rail.across_mm)
+    if machine.tool.nose_patch_mm is not None:
+        x_breaks += [-machine.tool.nose_patch_mm[0] / 2, machine.tool.nose_patch_mm[0] / 2]
+        y_breaks += [-machine.tool.nose_patch_mm[1] / 2, machine.tool.nose_patch_mm[1] / 2]
+    for h in machine.thermal.sources:
+        # Heat zones snap to grid lines, so the zone's volume or area is exact.
+        breaks += list(h.z_mm or ())
+        if h.kind == "volume":
+            x_breaks += list(h.x_mm or ())
+            y_breaks += list(h.y_mm or ())
     for sensor in machine.sensors + machine.candidate_sensors:
         breaks += [sensor.z_start_mm, sensor.z_end_mm]
     breaks += [p.z_mm for p in machine.probes if p.kind == "point"]
+    hw, hd = machine.ram.outer_width_mm / 2, machine.ram.outer_depth_mm / 2
+    x_breaks = [v for v in x_breaks if abs(v) < hw]
+    y_breaks = [v for v in y_breaks if abs(v) < hd]
     return build_mesh(
-        half_width_mm=machine.ram.outer_width_mm / 2, half_depth_mm=machine.ram.outer_depth_mm / 2,
+        half_width_mm=hw, half_depth_mm=hd,
         wall_mm=machine.ram.wall_mm, length_mm=machine.ram.length_mm,
         housing_half_width_mm=machine.housing.width_mm / 2,
         housing_half_depth_mm=machine.housing.depth_mm / 2,
@@ -286,4 +346,4 @@ def machine_mesh(machine: Machine, resolution: float | None = None,
         dz_mm=m.dz_mm / r, z_breaks_mm=breaks,
         # Off-centre sensor paths get their own grid line; support patches snap to the grid.
         xy_breaks_mm=[s_.offset_mm for s_ in machine.sensors + machine.candidate_sensors],
-        single_spans_mm=shoes)
+        single_spans_mm=single, x_breaks_mm=x_breaks, y_breaks_mm=y_breaks)

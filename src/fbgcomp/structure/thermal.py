@@ -3,8 +3,9 @@
 C dtheta/dt + K theta = B u(t), theta = T - T_ref (K), on the nodes of the hexahedral mesh.
 Units: mm, s, W, J. Anisotropic conduction in the CFRP (k_L along the fibres = Z, k_T across),
 film convection (Robin) to the ambient on the outer and inner surfaces, spindle heat into the
-housing, an optional radiant flux on one face. Inputs u = (ambient - T_ref [K], spindle heat [W],
-radiant flux [W/m^2]). This is the thermal load of the paper's FE study (section 2.3) and the
+housing (or any box-shaped zone), radiant fluxes on face zones. Inputs u = (ambient - T_ref [K],
+then one per declared heat source: W for a volume source, W/m^2 for a radiant one; the built-in
+ram: spindle heat [W], radiant flux [W/m^2]). This is the thermal load of the paper's FE study (section 2.3) and the
 36 h thermal test (section 3.2).
 
 A 36 h campaign at 1 s steps is integrated on a reduced basis: a rational Krylov projection
@@ -65,10 +66,36 @@ def unit_load(v, w):
     return 1.0 * v
 
 
-def assemble_thermal(rm, machine):
-    """Conductance K (W/K), capacity C (J/K) and input matrix B (n_nodes x 3) of the ram.
+def input_names(machine) -> tuple[str, ...]:
+    """Input channels of the thermal model: the ambient, then one per declared heat source."""
+    return ("ambient_C",) + tuple(h.input_name for h in machine.thermal.sources)
 
-    Column units of B: W per K of ambient, W per W of spindle heat, W per (W/m^2) of radiant flux.
+
+def _volume_source_column(rm, machine, source, e) -> np.ndarray:
+    """W per node per W of the source: uniform over the elements inside its zone."""
+    lo, hi = machine.volume_source_box_mm(source)
+    c = rm.mesh.p[:, rm.mesh.t].mean(axis=1)
+    inside = np.all((c >= lo[:, None] - 1e-6) & (c <= hi[:, None] + 1e-6), axis=0)
+    elements = np.nonzero(inside)[0]
+    if len(elements) == 0:
+        raise ValueError(f"heat source {source.name!r}: no element in its zone")
+    vol = asm(unit_load, Basis(rm.mesh, e, intorder=INTORDER, elements=elements))
+    return vol / vol.sum()
+
+
+def _radiant_column(rm, machine, source, e) -> np.ndarray:
+    """W per node per W/m^2 of incident flux on the source's face and z zone."""
+    z_lo, z_hi = source.z_mm if source.z_mm is not None else (0.0, rm.length_mm)
+    facets = rm.face_facets(source.face, z_lo, z_hi)
+    fb = FacetBasis(rm.mesh, e, facets=facets, intorder=INTORDER)
+    return 1e-6 * source.absorptivity * asm(unit_load, fb)
+
+
+def assemble_thermal(rm, machine):
+    """Conductance K (W/K), capacity C (J/K) and input matrix B (n_nodes x m) of the ram.
+
+    Column units of B: W per K of ambient, then per declared heat source W per W (volume) or
+    W per (W/m^2) of incident flux (radiant), in the order of :func:`input_names`.
     """
     cf, st, th = machine.materials.cfrp, machine.materials.steel, machine.thermal
     e = ElementHex1()
@@ -76,26 +103,26 @@ def assemble_thermal(rm, machine):
     K = asm(anisotropic_conduction(1e-3 * cf.k_T_W_per_mK, 1e-3 * cf.k_L_W_per_mK), cb)
     C = asm(capacity(1e-9 * cf.density_kg_per_m3 * cf.specific_heat_J_per_kgK), cb)
     n = rm.n_nodes
-    b_spindle = np.zeros(n)
     if len(rm.steel_elements):
         sb = Basis(rm.mesh, e, intorder=INTORDER, elements=rm.steel_elements)
         K = K + asm(isotropic_conduction(1e-3 * st.k_W_per_mK), sb)
         C = C + asm(capacity(1e-9 * st.density_kg_per_m3 * st.specific_heat_J_per_kgK), sb)
-        # The spindle bore is not meshed: its losses enter the housing volume uniformly.
-        vol = asm(unit_load, sb)
-        b_spindle = vol / vol.sum()
     b_ambient = np.zeros(n)
-    for facets, h_SI in ((rm.outer_facets(), th.film_outer_W_per_m2K),
-                         (rm.inner_facets(), th.film_inner_W_per_m2K)):
+    # Surfaces sharing a film coefficient are assembled together (the built-in ram: two groups).
+    groups: dict[float, list] = {}
+    for surface, facets in rm.film_surface_facets(machine.housing.height_mm).items():
+        groups.setdefault(th.film_W_per_m2K(surface), []).append(facets)
+    for h_SI, parts in groups.items():
+        facets = np.concatenate(parts)
         if h_SI > 0 and len(facets):
             fb = FacetBasis(rm.mesh, e, facets=facets, intorder=INTORDER)
             K = K + 1e-6 * h_SI * asm(film, fb)
             b_ambient += 1e-6 * h_SI * asm(unit_load, fb)
-    rad = rm.face_facets(machine.thermal.radiant_face, 0.0, rm.length_mm)
-    fb = FacetBasis(rm.mesh, e, facets=rad, intorder=INTORDER)
-    b_radiant = 1e-6 * th.radiant_absorptivity * asm(unit_load, fb)
-    B = np.column_stack([b_ambient, b_spindle, b_radiant])
-    return K.tocsr(), C.tocsr(), B
+    cols = [b_ambient]
+    for source in th.sources:
+        make = _volume_source_column if source.kind == "volume" else _radiant_column
+        cols.append(make(rm, machine, source, e))
+    return K.tocsr(), C.tocsr(), np.column_stack(cols)
 
 
 def _foh_weights(lam_per_s: np.ndarray, h_s: float):

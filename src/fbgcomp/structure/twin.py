@@ -95,7 +95,7 @@ class Influence:
     probe_temperature_rows: sp.csr_matrix
     steady_per_input: np.ndarray
     output_names: tuple[str, ...]
-    input_names: tuple[str, ...] = thermal.INPUT_NAMES
+    input_names: tuple[str, ...] = thermal.INPUT_NAMES   # ambient_C, then one per heat source
 
 
 @dataclass(frozen=True)
@@ -122,7 +122,67 @@ class BuildTimes:
     extra: dict = field(default_factory=dict)
 
 
-def support_rows(rm: RamMesh, vbasis, machine: Machine, z_axis_mm: float | None):
+# A rigid support is a penalty this many times the stiffest diagonal entry of K: the supported
+# DOF then moves by ~1e-7 of what the structure alone would let it, and the banded Cholesky
+# (which sees the penalty only on the diagonal) stays accurate.
+RIGID_PENALTY = 1e7
+
+
+def _node_weights(vbasis, facets) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes of a facet set and their tributary area fractions (sum 1)."""
+    from skfem import ElementHex1, FacetBasis, asm
+    fb = FacetBasis(vbasis.mesh, ElementHex1(), facets=facets, intorder=elastic.INTORDER)
+    area = asm(thermal.unit_load, fb)
+    nodes = np.nonzero(area > 0)[0]
+    return nodes, area[nodes] / area[nodes].sum()
+
+
+def _stiffness_N_per_mm(value, rigid_N_per_mm: float) -> float:
+    return rigid_N_per_mm if value == "rigid" else float(value) * UM_PER_MM
+
+
+def nodal_support_rows(rm: RamMesh, vbasis, machine: Machine, z_axis_mm: float | None,
+                       rigid_N_per_mm: float):
+    """Sparse (n_c, n_u) rows (one supported DOF each) and stiffnesses (N/mm) of rail supports.
+
+    Every node of each carriage patch (rail strip x station z range) is held along its face
+    normal, and also across the face on a locating rail; a patch's stiffness (per direction) is
+    shared among its nodes by tributary area. The nut holds u_z at its cross-section: by the
+    mean (one spring) or at every node.
+    """
+    s = machine.supports
+    dofs, ks = [], []
+    for lo, hi in s.station_ranges_mm(z_axis_mm):
+        for rail in s.rails:
+            facets = rm.strip_facets(rail.face, lo, hi, *rail.across_mm)
+            if len(facets) == 0:
+                raise ValueError(f"rail on {rail.face} at {rail.across_mm} mm: no mesh facet in "
+                                 f"the carriage patch z = {lo:g}..{hi:g} mm")
+            nodes, frac = _node_weights(vbasis, facets)
+            normal = 0 if rail.face[1] == "X" else 1
+            k_patch = _stiffness_N_per_mm(s.carriage_stiffness_N_per_um, rigid_N_per_mm)
+            for axis in ([normal, 1 - normal] if rail.locating else [normal]):
+                dofs.append(vbasis.nodal_dofs[axis, nodes])
+                ks.append(rigid_N_per_mm if k_patch == rigid_N_per_mm else k_patch * frac)
+    rows = [sp.csr_matrix((np.ones(len(d)), (np.arange(len(d)), d)), shape=(len(d), vbasis.N))
+            for d in dofs]
+    k = [np.broadcast_to(np.asarray(v, float), (len(d),)) for v, d in zip(ks, dofs)]
+    layer = np.nonzero(np.abs(rm.mesh.p[2] - s.nut.z_mm) < 1e-6)[0]
+    k_nut = _stiffness_N_per_mm(s.nut.stiffness_N_per_um, rigid_N_per_mm)
+    if s.nut.constraint == "nodes":
+        d = vbasis.nodal_dofs[2, layer]
+        rows.append(sp.csr_matrix((np.ones(len(d)), (np.arange(len(d)), d)), shape=(len(d), vbasis.N)))
+        k.append(np.full(len(d), k_nut))
+    else:
+        nut = np.zeros(vbasis.N)
+        nut[vbasis.nodal_dofs[2, layer]] = 1.0 / len(layer)
+        rows.append(sp.csr_matrix(nut))
+        k.append(np.array([k_nut]))
+    return sp.vstack(rows).tocsr(), np.concatenate(k)
+
+
+def support_rows(rm: RamMesh, vbasis, machine: Machine, z_axis_mm: float | None,
+                 rigid_N_per_mm: float = np.inf):
     """(6, n_u) constraint rows (mm) and stiffnesses (N/mm) of the statically determinate supports.
 
     Per carriage station the mean ux and the mean uy over the shoe length; each lateral direction
@@ -133,8 +193,10 @@ def support_rows(rm: RamMesh, vbasis, machine: Machine, z_axis_mm: float | None)
     over the ram cross-section at the nut.
     """
     s = machine.supports
+    if s.rails is not None:
+        return nodal_support_rows(rm, vbasis, machine, z_axis_mm, rigid_N_per_mm)
     rows = []
-    k_shoe = s.carriage_stiffness_N_per_um * UM_PER_MM
+    k_shoe = _stiffness_N_per_mm(s.carriage_stiffness_N_per_um, rigid_N_per_mm)
     stations = sorted(carriage_z_mm(machine, z_axis_mm))
     along = 1 if s.shoe_faces[0][1] == "X" else 0    # in-plane lateral component on shoe faces
     for j, zc in enumerate(stations):
@@ -153,7 +215,7 @@ def support_rows(rm: RamMesh, vbasis, machine: Machine, z_axis_mm: float | None)
     nut = np.zeros(vbasis.N)
     nut[vbasis.nodal_dofs[2, layer]] = 1.0 / len(layer)
     rows.append(nut)
-    k = np.array([k_shoe] * 5 + [s.nut.stiffness_N_per_um * UM_PER_MM])
+    k = np.array([k_shoe] * 5 + [_stiffness_N_per_mm(s.nut.stiffness_N_per_um, rigid_N_per_mm)])
     return np.vstack(rows), k
 
 
@@ -185,8 +247,12 @@ class Twin:
 
         t0 = time.perf_counter()
         mats = machine.materials
-        vb, sb, K, Th = elastic.assemble_elasticity(rm, mats.cfrp, mats.steel)
-        rows, k = support_rows(rm, vb, machine, self.z_axis_mm)
+        if machine.mesh.element == "hex8i":
+            vb, sb, K, Th = elastic.assemble_box_elasticity(rm, mats.cfrp, mats.steel)
+        else:
+            vb, sb, K, Th = elastic.assemble_elasticity(rm, mats.cfrp, mats.steel)
+        rigid = RIGID_PENALTY * float(K.diagonal().max())
+        rows, k = support_rows(rm, vb, machine, self.z_axis_mm, rigid)
         self.support_rows_mm, self.support_stiffness_N_per_mm = rows, k
         K = (K + elastic.spring_matrix(rows, k)).tocsr()
         Kt, Ct, Bt = thermal.assemble_thermal(rm, machine)
@@ -207,8 +273,9 @@ class Twin:
             row = np.zeros(vb.N)
             row[uz] = d
             el_rows.append(row)
-        ttp_rows = elastic.rigid_extension_rows(vb, rm.end_facets(-machine.housing.height_mm),
-                                                lever_mm=machine.tool.ttp_below_housing_mm)
+        patch = machine.tool.nose_patch_mm or (np.inf, np.inf)
+        nose = rm.end_facets(-machine.housing.height_mm, patch[0] / 2, patch[1] / 2)
+        ttp_rows = elastic.rigid_extension_rows(vb, nose, lever_mm=machine.tool.ttp_below_housing_mm)
         R = UM_PER_MM * np.vstack(el_rows + [ttp_rows])               # (S + 3, n_u)
 
         t0 = time.perf_counter()
@@ -242,7 +309,7 @@ class Twin:
             sensor_per_force_um_per_N=force[:S], ttp_per_force_um_per_N=force[S:],
             elastic_per_temperature=W, sensor_temperature_rows=Tsens,
             probe_temperature_rows=Tprobe.tocsr(), steady_per_input=self.reduced.steady_gain,
-            output_names=tuple(names))
+            output_names=tuple(names), input_names=thermal.input_names(machine))
         self._Th = Th
         self._K_elastic = K
         self._R = R
@@ -271,9 +338,9 @@ class Twin:
                              np.asarray((self._Th.T @ X).T), temps)
 
     def thermal_paths(self, paths: PathInfluence, time_s, ambient_C, spindle_heat_W=None,
-                      radiant_W_per_m2=None, initial_C=None):
+                      radiant_W_per_m2=None, initial_C=None, heat=None):
         """Elongation (n, k) µm and mean temperature (n, k) °C of extra paths in a campaign."""
-        t, u = self._inputs(time_s, ambient_C, spindle_heat_W, radiant_W_per_m2)
+        t, u = self._inputs(time_s, ambient_C, spindle_heat_W, radiant_W_per_m2, heat)
         O = np.vstack([paths.per_temperature_um_per_K, paths.temperature_rows.toarray()])
         y = self.reduced.simulate(t, u, self._initial_theta(initial_C),
                                   outputs=self.reduced.projected_outputs(O))
@@ -301,16 +368,36 @@ class Twin:
                               self.sensor_names)
 
     # --------------------------------------------------------------------------- thermal
-    def _inputs(self, time_s, ambient_C, spindle_heat_W, radiant_W_per_m2):
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        """Thermal input channels: ``ambient_C``, then one per heat source (``<name>_W`` for a
+        volume source, ``<name>_W_per_m2`` for a radiant one)."""
+        return self.influence.input_names
+
+    def _inputs(self, time_s, ambient_C, spindle_heat_W, radiant_W_per_m2, heat=None):
+        """Input matrix (n, m). ``spindle_heat_W`` feeds the first volume source and
+        ``radiant_W_per_m2`` the first radiant one; ``heat`` maps any source (by name or input
+        name) to its history. Sources given nothing stay at zero."""
         t = np.asarray(time_s, dtype=float).ravel()
-        cols = []
-        for name, v in (("ambient_C", ambient_C), ("spindle_heat_W", spindle_heat_W),
-                        ("radiant_W_per_m2", radiant_W_per_m2)):
-            a = np.broadcast_to(np.asarray(0.0 if v is None else v, dtype=float), t.shape)
-            cols.append(a)
-        u = np.column_stack(cols)
-        u[:, 0] -= self.machine.reference_temperature_C
-        return t, u
+        sources = self.machine.thermal.sources
+        values: dict[int, object] = {}
+        for kind, v in (("volume", spindle_heat_W), ("radiant", radiant_W_per_m2)):
+            first = next((i for i, h in enumerate(sources) if h.kind == kind), None)
+            if v is not None:
+                if first is None:
+                    raise ValueError(f"the machine declares no {kind} heat source")
+                values[first] = v
+        for key, v in (heat or {}).items():
+            match = [i for i, h in enumerate(sources) if key in (h.name, h.input_name)]
+            if not match:
+                raise ValueError(f"unknown heat source {key!r}; inputs: {self.input_names[1:]}")
+            values[match[0]] = v
+        cols = [np.broadcast_to(np.asarray(ambient_C, dtype=float), t.shape)
+                - self.machine.reference_temperature_C]
+        for i in range(len(sources)):
+            v = values.get(i)
+            cols.append(np.broadcast_to(np.asarray(0.0 if v is None else v, dtype=float), t.shape))
+        return t, np.column_stack(cols)
 
     def _initial_theta(self, initial_C):
         if initial_C is None:
@@ -329,20 +416,23 @@ class Twin:
                                self.sensor_names, self.probe_names)
 
     def thermal(self, time_s, ambient_C, spindle_heat_W=None, radiant_W_per_m2=None,
-                initial_C=None) -> ThermalResponse:
+                initial_C=None, heat=None) -> ThermalResponse:
         """Thermal campaign: inputs (n,) sampled at ``time_s`` (s), piecewise linear in between.
+
+        ``spindle_heat_W`` drives the first volume heat source, ``radiant_W_per_m2`` the first
+        radiant one; ``heat`` ({source name: history}) drives any declared source.
 
         ``initial_C``: None starts from the steady state of the first inputs; a scalar (uniform)
         or an (n_nodes,) field sets the initial temperature.
         """
-        t, u = self._inputs(time_s, ambient_C, spindle_heat_W, radiant_W_per_m2)
+        t, u = self._inputs(time_s, ambient_C, spindle_heat_W, radiant_W_per_m2, heat)
         y = self.reduced.simulate(t, u, self._initial_theta(initial_C))
         return self._split(t, u, y)
 
     def thermal_direct(self, time_s, ambient_C, spindle_heat_W=None, radiant_W_per_m2=None,
-                       initial_C=None) -> ThermalResponse:
+                       initial_C=None, heat=None) -> ThermalResponse:
         """Full-order implicit Euler reference of :meth:`thermal` (one sparse solve per step)."""
-        t, u = self._inputs(time_s, ambient_C, spindle_heat_W, radiant_W_per_m2)
+        t, u = self._inputs(time_s, ambient_C, spindle_heat_W, radiant_W_per_m2, heat)
         y = thermal.implicit_euler(self._thermal_K, self._thermal_C, self._thermal_B, self._O,
                                    t, u, self._initial_theta(initial_C))
         return self._split(t, u, y)
