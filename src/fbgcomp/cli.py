@@ -260,6 +260,7 @@ def _mount_optional_commands() -> None:
     register_report(app)
     register_cnc_demo(app)
     register_scale(app)
+    __import__("fbgcomp.twin_check", fromlist=["register"]).register(app)
     try:
         from .runtime.cli import register
     except ImportError:

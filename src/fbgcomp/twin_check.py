@@ -1,0 +1,207 @@
+"""``fbgcomp twin-check``: the FE twin of a machine against an independent model's figures.
+
+The independent model (e.g. ``../shared/reference/ram2/results.json``, CalculiX C3D8I) reports
+the TTP compliance and the sensor elongations per newton of TTP force along X, Y and Z
+(``unit_response_um_per_N``: dx, dy, dz, then the sensors, µm/N) and the response to a uniform
++10 K (``checks.uniform10``: ``fe_dx_um``, ``fe_dy_um``, ``fe_dz_um``, ``fe_elong_um``). The twin
+is built from the machine description and the same quantities are compared.
+
+Judging: a main component (the TTP displacement along the load, a sensor reading at least a
+tenth of the load case's largest sensor reading, the uniform dz) is compared in per cent; a
+cross component that small is compared absolutely, against the target times the load case's main
+TTP component (TTP rows) or largest sensor reading (sensor rows): a 0.001 µm/kN cross compliance
+has no meaningful percentage. Targets: unit-load TTP compliances and sensor responses 3 %,
+uniform +10 K dz 2 %; the uniform dx, dy and elongations are reported without a target.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import typer
+
+from .errors import InputError
+
+UNIT_LOAD_TARGET = 0.03        # relative, unit-load TTP compliances and sensor responses
+UNIFORM_DZ_TARGET = 0.02       # relative, uniform +10 K dz
+MAIN_SENSOR_FRACTION = 0.1     # a sensor reading below this share of the largest is a cross term
+UNIFORM_DT_K = 10.0
+PER_KN = 1000.0                # the table shows µm per 1000 N
+
+
+@dataclass(frozen=True)
+class Reference:
+    """The independent model's figures: µm/N per load axis, and the uniform +10 K response (µm)."""
+
+    sensor_names: tuple[str, ...]
+    unit_um_per_N: dict           # axis -> (3 + S,) dx, dy, dz, sensors
+    uniform_ttp_um: np.ndarray    # (3,)
+    uniform_elongation_um: np.ndarray   # (S,)
+
+
+@dataclass(frozen=True)
+class Row:
+    quantity: str
+    independent: float
+    twin: float
+    difference_pct: float | None
+    target: str
+    judged: str                   # "relative", "absolute" or "report"
+    passed: bool | None
+
+
+def _field(data, path: str, file: str):
+    node = data
+    for part in path.split("."):
+        if not isinstance(node, dict) or part not in node:
+            raise InputError("required field is missing", file=file, column=f"field {path}")
+        node = node[part]
+    return node
+
+
+def _numbers(value, path: str, file: str, n: int | None = None) -> np.ndarray:
+    try:
+        a = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        a = np.array([np.nan])
+    if a.ndim > 1 or not np.all(np.isfinite(a)) or (n is not None and a.size != n):
+        want = f"{n} numbers" if n is not None else "finite numbers"
+        raise InputError(f"expected {want}", file=file, column=f"field {path}")
+    return np.atleast_1d(a)
+
+
+def load_reference(path: str | Path) -> Reference:
+    """Read an independent model's ``results.json`` (errors name the file and the field)."""
+    file = str(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError as exc:
+        raise InputError(f"cannot read the independent model's results: {exc.strerror}",
+                         file=file) from None
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise InputError(f"invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}",
+                         file=file) from None
+    if not isinstance(data, dict):
+        raise InputError("the results must be a JSON object", file=file)
+    elong = _field(data, "checks.uniform10.fe_elong_um", file)
+    if not isinstance(elong, dict) or not elong:
+        raise InputError("expected an object of sensor elongations (um)", file=file,
+                         column="field checks.uniform10.fe_elong_um")
+    names = tuple(str(k) for k in elong)
+    uniform_elong = _numbers(list(elong.values()), "checks.uniform10.fe_elong_um", file)
+    uniform_ttp = np.array([float(_numbers(_field(data, f"checks.uniform10.fe_{a}_um", file),
+                                           f"checks.uniform10.fe_{a}_um", file, 1)[0])
+                            for a in ("dx", "dy", "dz")])
+    unit = {a: _numbers(_field(data, f"unit_response_um_per_N.{a}", file),
+                        f"unit_response_um_per_N.{a}", file, 3 + len(names)) for a in "xyz"}
+    return Reference(names, unit, uniform_ttp, uniform_elong)
+
+
+def _row(quantity, independent, twin, target_rel, scale=None, report_only=False) -> Row:
+    """Relative judgement, or absolute against ``target_rel * scale`` when ``scale`` is given."""
+    diff_pct = 100.0 * (twin / independent - 1.0) if independent != 0 else None
+    if report_only:
+        return Row(quantity, independent, twin, diff_pct, "-", "report", None)
+    if scale is None:
+        ok = abs(twin - independent) <= target_rel * abs(independent)
+        return Row(quantity, independent, twin, diff_pct, f"{100 * target_rel:g} %", "relative", ok)
+    tol = target_rel * abs(scale)
+    return Row(quantity, independent, twin, diff_pct, f"+-{tol:.3g}", "absolute",
+               abs(twin - independent) <= tol)
+
+
+def compare(twin, ref: Reference, machine_file: str | None = None) -> list[Row]:
+    """Rows comparing the twin with the independent model (values µm per 1000 N, or µm)."""
+    names = list(twin.sensor_names)
+    missing = [n for n in ref.sensor_names if n not in names]
+    if missing:
+        raise InputError(f"the independent model's sensors {missing} are not in the machine "
+                         f"description (it has {names})", file=machine_file, column="field sensors")
+    idx = [names.index(n) for n in ref.sensor_names]
+    inf = twin.influence
+    rows: list[Row] = []
+    for j, axis in enumerate("xyz"):
+        ind = PER_KN * ref.unit_um_per_N[axis]
+        ttp = PER_KN * inf.ttp_per_force_um_per_N[:, j]
+        sens = PER_KN * inf.sensor_per_force_um_per_N[idx, j]
+        main = ind[j]
+        for k, comp in enumerate(("dx", "dy", "dz")):
+            rows.append(_row(f"F{axis} {comp} (um/kN)", ind[k], ttp[k], UNIT_LOAD_TARGET,
+                             None if k == j else main))
+        largest = np.abs(ind[3:]).max()
+        for name, a, b in zip(ref.sensor_names, ind[3:], sens):
+            cross = abs(a) < MAIN_SENSOR_FRACTION * largest
+            rows.append(_row(f"F{axis} {name} (um/kN)", a, b, UNIT_LOAD_TARGET,
+                             largest if cross else None))
+    u = twin.static_temperature_response("uniform", UNIFORM_DT_K)
+    for k, comp in enumerate(("dx", "dy", "dz")):
+        rows.append(_row(f"+10 K {comp} (um)", ref.uniform_ttp_um[k], u.ttp_um[k],
+                         UNIFORM_DZ_TARGET, report_only=comp != "dz"))
+    for name, a, i in zip(ref.sensor_names, ref.uniform_elongation_um, idx):
+        rows.append(_row(f"+10 K {name} (um)", a, u.sensor_elongation_um[i], 0.0, report_only=True))
+    return rows
+
+
+def format_table(rows: list[Row]) -> str:
+    head = f"{'quantity':<20} {'independent':>12} {'twin':>12} {'diff %':>8} {'target':>9}  result"
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        diff = "" if r.difference_pct is None else f"{r.difference_pct:+.2f}"
+        verdict = {True: "pass", False: "FAIL", None: "report"}[r.passed]
+        lines.append(f"{r.quantity:<20} {r.independent:>12.4f} {r.twin:>12.4f} {diff:>8} "
+                     f"{r.target:>9}  {verdict}")
+    judged = [r for r in rows if r.passed is not None]
+    lines.append(f"{sum(r.passed for r in judged)} of {len(judged)} judged quantities within target")
+    return "\n".join(lines)
+
+
+def run(machine_path: str | Path, against: str | Path, resolution: float | None = None) -> dict:
+    """Build the twin of ``machine_path`` and compare it with ``against``; returns the figures."""
+    from .structure import Twin, load_machine
+
+    ref = load_reference(against)
+    machine = load_machine(machine_path)
+    twin = Twin(machine, resolution=resolution)
+    rows = compare(twin, ref, str(machine_path))
+    return {
+        "machine": str(machine_path), "against": str(against),
+        "resolution": machine.mesh.resolution if resolution is None else resolution,
+        "element": machine.mesh.element, "n_nodes": int(twin.n_nodes),
+        "rows": [asdict(r) for r in rows],
+        "passed": all(r.passed for r in rows if r.passed is not None),
+    }
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``twin-check`` to the main ``fbgcomp`` application (idempotent)."""
+    if any(getattr(c, "name", None) == "twin-check" for c in app.registered_commands):
+        return
+
+    @app.command("twin-check")
+    def twin_check_command(
+        machine: Path = typer.Argument(..., help="Machine description (YAML)."),
+        against: Path = typer.Option(..., "--against",
+                                     help="Independent model's results.json (unit responses, checks)."),
+        json_out: Optional[Path] = typer.Option(None, "--json", help="Write the figures to this JSON file."),
+        resolution: Optional[float] = typer.Option(
+            None, "--resolution", help="Mesh refinement factor (default: the machine's mesh.resolution)."),
+    ):
+        """Compare the FE twin with an independent model: TTP compliance, sensor responses, +10 K."""
+        if resolution is not None and not (math.isfinite(resolution) and resolution > 0):
+            raise InputError("--resolution must be a positive number", file="<command line>",
+                             column="option --resolution")
+        out = run(machine, against, resolution)
+        typer.echo(f"twin of {machine} ({out['element']}, resolution {out['resolution']:g}, "
+                   f"{out['n_nodes']} nodes) against {against}")
+        typer.echo(format_table([Row(**r) for r in out["rows"]]))
+        if json_out is not None:
+            from .atomic import write_json
+            write_json(json_out, out)
+            typer.echo(f"figures written to {json_out}")

@@ -1,0 +1,131 @@
+"""``fbgcomp twin-check``: the FE twin of ram2 against the independent CalculiX model's figures."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import typer
+from typer.testing import CliRunner
+
+import fbgcomp_testing
+from fbgcomp import twin_check
+from fbgcomp.errors import InputError
+
+ROOT = Path(__file__).resolve().parents[1]
+RAM2 = Path(__file__).resolve().parents[2] / "shared" / "reference" / "ram2"
+RESULTS = RAM2 / "results.json"
+RAM2_YAML = ROOT / "examples" / "machines" / "ram2.yaml"
+# Coarser than the machine's own mesh (hex8i converges fast): one FE build of a few seconds.
+RESOLUTION = 0.5
+
+
+@pytest.fixture(scope="module")
+def reference():
+    if not RESULTS.exists():
+        pytest.skip(f"independent reference not found at {RESULTS}")
+    return twin_check.load_reference(RESULTS)
+
+
+@pytest.fixture(scope="module")
+def rows(reference):
+    fbgcomp_testing.require("skfem")
+    from fbgcomp.structure import Twin, load_machine
+    twin = Twin(load_machine(RAM2_YAML), resolution=RESOLUTION)
+    return {r.quantity: r for r in twin_check.compare(twin, reference)}
+
+
+def test_reference_is_read_with_its_sensors(reference):
+    assert reference.sensor_names == ("S1", "S2", "S3", "S4", "S5", "S6")
+    assert reference.unit_um_per_N["x"].shape == (9,)
+    assert reference.uniform_ttp_um[2] < 0
+
+
+def test_twin_meets_the_unit_load_targets(rows, reference):
+    raw = json.loads(RESULTS.read_text())["unit_response_um_per_N"]
+    for j, axis in enumerate("xyz"):
+        main = rows[f"F{axis} d{axis} (um/kN)"]
+        assert main.independent == pytest.approx(1000 * raw[axis][j])
+        assert main.judged == "relative" and abs(main.twin / main.independent - 1) <= 0.03, main
+    sensor_rows = [r for q, r in rows.items() if q.startswith("F") and " S" in q]
+    assert len(sensor_rows) == 18
+    assert {r.judged for r in sensor_rows} == {"relative", "absolute"}
+    failing = [r for r in rows.values() if r.passed is False]
+    assert not failing, failing
+
+
+def test_twin_meets_the_uniform_warming_target(rows):
+    dz = rows["+10 K dz (um)"]
+    assert abs(dz.twin / dz.independent - 1) <= 0.02
+    # Growth away from the -Y reference face and the locating rail, like the independent model.
+    for q in ("+10 K dx (um)", "+10 K dy (um)"):
+        assert rows[q].twin > 0 and rows[q].independent > 0 and rows[q].passed is None
+
+
+def test_cross_components_are_judged_against_the_main_one():
+    small = twin_check._row("Fx dy", 0.001, 0.05, 0.03, scale=139.6)
+    assert small.passed and small.judged == "absolute" and small.difference_pct > 1000
+    assert not twin_check._row("Fx dy", 0.001, 5.0, 0.03, scale=139.6).passed
+    assert not twin_check._row("Fx dx", 139.6, 130.0, 0.03).passed
+
+
+def _app():
+    app = typer.Typer()
+    twin_check.register(app)
+    twin_check.register(app)               # idempotent
+
+    @app.callback()
+    def _main():
+        """fbgcomp (test app)."""
+    return app
+
+
+def test_cli_prints_the_table_and_writes_the_figures(tmp_path, reference):
+    fbgcomp_testing.require("skfem")
+    out = tmp_path / "check.json"
+    result = CliRunner().invoke(_app(), ["twin-check", str(RAM2_YAML), "--against", str(RESULTS),
+                                         "--resolution", str(RESOLUTION), "--json", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "Fx dx (um/kN)" in result.output and "28 of 28" in result.output
+    figures = json.loads(out.read_text())
+    assert figures["passed"] is True and figures["element"] == "hex8i"
+    assert len(figures["rows"]) == 36
+    assert not list(tmp_path.glob(".*.tmp"))
+
+
+@pytest.mark.parametrize("content, column", [
+    (None, None),
+    ("{not json", None),
+    (json.dumps({"checks": {"uniform10": {}}}), "field checks.uniform10.fe_elong_um"),
+    ("DROP", "field unit_response_um_per_N.y"),
+    ("SHORT", "field unit_response_um_per_N.x"),
+])
+def test_bad_results_name_the_file_and_field(tmp_path, reference, content, column):
+    path = tmp_path / "results.json"
+    if content in ("DROP", "SHORT"):
+        data = json.loads(RESULTS.read_text())
+        if content == "DROP":
+            del data["unit_response_um_per_N"]["y"]
+        else:
+            data["unit_response_um_per_N"]["x"] = data["unit_response_um_per_N"]["x"][:5]
+        content = json.dumps(data)
+    if content is not None:
+        path.write_text(content)
+    with pytest.raises(InputError) as err:
+        twin_check.load_reference(path)
+    assert err.value.file == str(path)
+    assert err.value.column == column
+
+
+def test_installed_command_reports_bad_input_on_one_line(tmp_path):
+    exe = Path(sys.executable).with_name("fbgcomp")
+    missing = tmp_path / "nowhere.json"
+    proc = subprocess.run([str(exe), "twin-check", str(RAM2_YAML), "--against", str(missing)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    line, = proc.stderr.strip().splitlines()
+    assert line.startswith("error:") and str(missing) in line
