@@ -44,6 +44,12 @@ def inspect(campaign: Path = typer.Argument(..., help="Campaign folder."),
         typer.echo(c.summary_text())
 
 
+def _any_dataset(paths) -> bool:
+    from .scale_cli import any_dataset
+
+    return any_dataset(paths)
+
+
 def _parse_roles(roles: Optional[str]):
     if not roles:
         return None
@@ -60,8 +66,8 @@ def _parse_roles(roles: Optional[str]):
 @app.command()
 def fit(campaigns: List[Path] = typer.Argument(..., help="Training campaign folders or Parquet datasets (fbgcomp ingest)."),
         output: Path = typer.Option(..., "-o", "--output", help="Model file to write (JSON)."),
-        features: str = typer.Option("eq13", help="Feature set: eq11, eq13 or eq12."),
-        stepwise: bool = typer.Option(False, "--stepwise", help="Stepwise selection (F-tests)."),
+        features: Optional[str] = typer.Option(None, help="Feature set of the paper's regression: eq11, eq13 or eq12 (selects --model mra)."),
+        stepwise: bool = typer.Option(False, "--stepwise", help="Stepwise selection (F-tests; selects --model mra)."),
         direction: str = typer.Option("both", help="Stepwise direction: both, forward, backward."),
         p_enter: float = typer.Option(0.05, help="Stepwise p-value to enter."),
         p_remove: float = typer.Option(0.10, help="Stepwise p-value to remove."),
@@ -70,11 +76,26 @@ def fit(campaigns: List[Path] = typer.Argument(..., help="Training campaign fold
         zero_window: float = typer.Option(10.0, "--zero-window", help="Zero state: mean of the first N seconds."),
         fallbacks: str = typer.Option("loo", help="Fallback models for sensor faults: loo, lto or none."),
         dask: Optional[str] = typer.Option(None, "--dask", help="Reduce on a Dask cluster: tcp://HOST:8786 or local:N (default: in-process)."),
-        model_type: str = typer.Option("mra", "--model", help="Model type: mra, kinematic, hybrid, calibrated or dynamic (docs/models.md)."),
+        model_type: Optional[str] = typer.Option(None, "--model", help="Model type: physical (the default: load signature + housing thermal with the do-no-harm policy), mra (the paper's regression), kinematic, hybrid, calibrated or dynamic (docs/models.md)."),
         machine: Optional[Path] = typer.Option(None, "--machine", help="Machine description YAML for kinematic/hybrid/calibrated (default: the built-in ram).")):
-    """Fit the TTP-deviation model and print the coefficient table per axis (paper Table 1)."""
+    """Fit the TTP-deviation model and print its coefficient tables.
+
+    Without --model, --features or --stepwise: the physical model with the do-no-harm policy
+    (docs/accuracy.md). --features/--stepwise give the paper's regression (Table 1)."""
     from .models import MRAModel
 
+    if model_type is None:
+        model_type = "mra" if (features is not None or stepwise or dask is not None
+                               or _any_dataset(campaigns)) else "physical"
+    features = features or "eq13"
+    if model_type == "physical":
+        from .physical import PhysicalModel
+
+        model = PhysicalModel(machine=machine, zero_window_s=zero_window).fit(_read_campaigns(campaigns))
+        model.save(output)
+        typer.echo(model.summary())
+        typer.echo(f"\nmodel {model.model_id} (physical) written to {output}")
+        return
     if model_type != "mra":
         from .model_types import fit_from_cli
 

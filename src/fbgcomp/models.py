@@ -680,7 +680,7 @@ def load_model(path):
         version = d["schema_version"]
     kind = d.get("model_type")
     if kind not in _MODEL_TYPES:
-        from . import model_types  # noqa: F401  (registers kinematic, hybrid, dynamic)
+        from . import model_types, physical  # noqa: F401  (register kinematic, hybrid, dynamic, physical)
     if kind not in _MODEL_TYPES:
         raise InputError(f"unknown model_type {kind!r}; known: {', '.join(_MODEL_TYPES)}",
                          file=path, column="field model_type")
