@@ -309,7 +309,11 @@ class KinematicChain:
         self.sensors = [by_name[n] for n in self.sensor_names]
         self.z_axis_mm = m.supports.z_axis_mm if self.z_axis_mm is None else float(self.z_axis_mm)
         s = m.supports
-        self.carriage_z_mm = sorted(c.z_mm - self.z_axis_mm for c in s.carriages)
+        # The chain's reacting span runs from the lowest to the highest carriage station (their
+        # patch centres): with more than two stations the inner ones are taken as riding on that
+        # span, and rails on one face are read as guides (their side does not enter the chain).
+        stations = sorted(c.z_mm - self.z_axis_mm for c in s.carriages)
+        self.carriage_z_mm = [stations[0], stations[-1]]
         self.nut_z_mm = s.nut.z_mm
         self.ttp_z_mm = m.ttp_z_mm
         hh, L = m.housing.height_mm, m.ram.length_mm
@@ -510,7 +514,7 @@ class KinematicChain:
         F = np.atleast_2d(np.asarray(force_N, dtype=float))
         z_lc, z_uc = self.carriage_z_mm
         a = z_uc - z_lc
-        k = self.machine.supports.carriage_stiffness_N_per_um
+        k = self.machine.supports.carriage_stiffness_value_N_per_um   # inf: rigid carriages
         # The ram pushes on the lower station with F (z_uc - z_t) / a and pulls on the upper one
         # with F (z_lc - z_t) / a: each station yields by its load over its stiffness.
         lower = F * (z_uc - self.ttp_z_mm) / (a * k)
