@@ -297,7 +297,11 @@ def test_a_lost_grating_shows_as_degraded_with_the_fallback_in_use(tmp_path):
                 assert page.get_attribute("#health", "data-state") == "DEGRADED"
                 assert page.inner_text("#fallback") == "without S3"
                 statuses = page.locator("#sensors tbody td.status").all_inner_texts()
-                assert statuses[2] == "MISSING" and statuses[:2] + statuses[3:] == ["OK"] * 4
+                # S3 lost from the start: MISSING, or NO_ZERO when the stream's zero window closed
+                # before its first frame on a loaded machine (the race issue 14 names); either way
+                # the grating is shown faulted and the others OK.
+                assert statuses[2] in ("MISSING", "NO_ZERO")
+                assert statuses[:2] + statuses[3:] == ["OK"] * 4
                 assert page.inner_text("#sensors tbody tr:nth-child(3) td.wl") == "—"
                 assert page.inner_text("#corr-dx") != "—"     # the fallback still corrects
                 # no dashboard user configured: nothing to log in to, the control stays off
