@@ -9,7 +9,8 @@ from fbgcomp import policy as P
 from fbgcomp.campaign import read_campaign
 from fbgcomp.metrics import validation_metrics
 from fbgcomp.models import load_model
-from fbgcomp.physical import PhysicalModel, lowpass
+from fbgcomp.model_types import first_order_filter as lowpass
+from fbgcomp.physical import PhysicalModel
 
 RAM2 = Path(__file__).resolve().parents[2] / "shared" / "reference" / "ram2" / "data"
 

@@ -56,6 +56,19 @@ def test_default_machine_is_the_papers_ram(machine):
     assert (Path(__file__).resolve().parents[1] / "examples" / "ram.yaml").resolve() == DEFAULT_YAML
 
 
+def _assert_names_file_and_field(tmp_path, source_yaml, edit, field):
+    """Load ``source_yaml`` edited by ``edit``: one-line InputError naming the file and field."""
+    data = yaml.safe_load(source_yaml.read_text())
+    edit(data)
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(data))
+    with pytest.raises(InputError) as err:
+        load_machine(path)
+    assert err.value.column == field
+    assert err.value.file == str(path)
+    assert "\n" not in str(err.value)
+
+
 @pytest.mark.parametrize("edit, field", [
     (lambda d: d["sensors"][2].__setitem__("lambda0_nm", -1530), "field sensors[2].lambda0_nm"),
     (lambda d: d["sensors"][1].__setitem__("temperature_probe", "T_nowhere"),
@@ -68,15 +81,7 @@ def test_default_machine_is_the_papers_ram(machine):
      "field supports.carriages[1].z_mm"),
 ])
 def test_yaml_errors_name_the_file_and_field(tmp_path, edit, field):
-    data = yaml.safe_load(DEFAULT_YAML.read_text())
-    edit(data)
-    path = tmp_path / "bad.yaml"
-    path.write_text(yaml.safe_dump(data))
-    with pytest.raises(InputError) as err:
-        load_machine(path)
-    assert err.value.column == field
-    assert err.value.file == str(path)
-    assert "\n" not in str(err.value)
+    _assert_names_file_and_field(tmp_path, DEFAULT_YAML, edit, field)
 
 
 def test_unreadable_yaml_is_an_input_error(tmp_path):
@@ -301,14 +306,7 @@ def test_built_in_ram_keeps_its_legacy_inputs(machine):
     (lambda d: d["mesh"].__setitem__("element", "hex20"), "field mesh.element"),
 ])
 def test_generalised_schema_names_the_bad_field(tmp_path, edit, field):
-    data = yaml.safe_load(RAM2_YAML.read_text())
-    edit(data)
-    path = tmp_path / "bad.yaml"
-    path.write_text(yaml.safe_dump(data))
-    with pytest.raises(InputError) as err:
-        load_machine(path)
-    assert err.value.column == field
-    assert err.value.file == str(path)
+    _assert_names_file_and_field(tmp_path, RAM2_YAML, edit, field)
 
 
 def test_rails_on_adjacent_faces_and_more_stations_are_valid(ram2):

@@ -87,12 +87,6 @@ class _ModelFile(ModelFile):
         w, t, w0, t0 = self.instrument_arrays(aligned)
         return p.predict(w, t, w0, t0, z_axis_mm=campaign_z_axis_mm(campaign), time_s=aligned.time_s)
 
-    def instrument_arrays(self, aligned):
-        s_idx = [list(aligned.sensor_names).index(s) for s in self.sensor_names]
-        p_idx = [list(aligned.probe_names).index(p) for p in self.probe_names_]
-        return (aligned.wavelength_nm[:, s_idx], aligned.temperature_C[:, p_idx],
-                aligned.wavelength_zero_nm[s_idx], aligned.temperature_zero_C[p_idx])
-
 
 def _fallback_sets(names, policy):
     sizes = {"none": (), "loo": (1,), "lto": (1, 2)}[policy]

@@ -283,6 +283,13 @@ class ModelFile:
         """Predicted TTP deviation (n, 3) in µm."""
         return self.predict_interval(X)[0]
 
+    def instrument_arrays(self, aligned):
+        """Wavelengths, temperatures and zero states of an aligned campaign in the model's order."""
+        s_idx = [list(aligned.sensor_names).index(s) for s in self.sensor_names]
+        p_idx = [list(aligned.probe_names).index(p) for p in self.probe_names_]
+        return (aligned.wavelength_nm[:, s_idx], aligned.temperature_C[:, p_idx],
+                aligned.wavelength_zero_nm[s_idx], aligned.temperature_zero_C[p_idx])
+
 
 class MRAModel(EstimatorParams, ModelFile):
     """Multiple regression of the TTP deviation on sensor elongations and temperatures.
@@ -520,13 +527,6 @@ class MRAModel(EstimatorParams, ModelFile):
         p = self.predictor(exclude)
         w, t, w0, t0 = self.instrument_arrays(aligned)
         return p.predict(w, t, w0, t0)
-
-    def instrument_arrays(self, aligned):
-        """Wavelengths, temperatures and zero states of an aligned campaign in the model's order."""
-        s_idx = [list(aligned.sensor_names).index(s) for s in self.sensor_names]
-        p_idx = [list(aligned.probe_names).index(p) for p in self.probe_names_]
-        return (aligned.wavelength_nm[:, s_idx], aligned.temperature_C[:, p_idx],
-                aligned.wavelength_zero_nm[s_idx], aligned.temperature_zero_C[p_idx])
 
     # -- reporting and persistence ------------------------------------------------------
     def summary(self) -> str:

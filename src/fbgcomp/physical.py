@@ -21,7 +21,8 @@ load-free campaigns) and ``Sigma_thermal`` the covariance of that prediction's e
 pattern the probes explain badly (common-mode warming) carries little weight, a differential
 pattern (bending) a lot. Frames whose residual contradicts every load the structure can carry
 (chi-square test) drop the load part (``LOAD_REFUSED``); each force component is shrunk to zero
-unless it stands clear of its uncertainty (non-negative garrote), so sensor noise and thermal
+unless it stands clear of its uncertainty and of the other components' cross-talk (firm
+shrinkage), so sensor noise and thermal
 mismatch are never published as a correction on an axis that does not move.
 
 **Thermal part**: per axis a least-squares fit, on the load-free training campaigns, of the
@@ -43,12 +44,13 @@ from __future__ import annotations
 from itertools import combinations
 
 import numpy as np
-from scipy import signal, stats
+from scipy import stats
 
 from .errors import InputError
 from .features import FeatureMap
 from .models import AXES, EstimatorParams, ModelFile, _as_campaign_list, check_compatible, register_model_type
 from . import policy as P
+from .model_types import first_order_filter
 
 _FORCE_AXES = ("fx", "fy", "fz")
 #: Low-pass of the probe temperatures before the thermal regressors, s.
@@ -58,47 +60,6 @@ PROBE_SMOOTHING_S = 60.0
 # ---------------------------------------------------------------------------------------------
 # Pure pieces
 # ---------------------------------------------------------------------------------------------
-def lowpass(x, time_s, tau_s, state=None, nominal_dt_s=1.0):
-    """First-order low-pass ``tau dy/dt = x - y`` of the columns of ``x`` (n, m).
-
-    Returns (y, state); ``state`` = ``(y_last (m,), t_last)`` carries the filter across calls so
-    that consecutive batches equal one long call. Evenly spaced samples go through ``lfilter``.
-    """
-    x = np.atleast_2d(np.asarray(x, dtype=float))
-    n = x.shape[0]
-    if n == 0:
-        return x.copy(), state
-    if state is None:
-        y_prev, t_prev = x[0].copy(), None
-    else:
-        y_prev, t_prev = state
-    if time_s is None:
-        dt = np.full(n, float(nominal_dt_s))
-        t_end = (0.0 if t_prev is None else t_prev) + n * nominal_dt_s
-        if t_prev is None:
-            dt[0] = 0.0
-    else:
-        t = np.asarray(time_s, dtype=float).ravel()
-        dt = np.concatenate([[0.0 if t_prev is None else t[0] - t_prev], np.diff(t)])
-        t_end = float(t[-1])
-    dt = np.maximum(dt, 0.0)
-    e0 = np.exp(-dt[0] / tau_s)
-    y0 = e0 * y_prev + (1 - e0) * x[0]
-    if n == 1:
-        y = y0[None, :]
-    elif np.allclose(dt[1:], dt[1]):
-        e = np.exp(-dt[1] / tau_s)
-        rest, _ = signal.lfilter([1 - e], [1, -e], x[1:], axis=0, zi=(e * y0)[None, :])
-        y = np.vstack([y0[None, :], rest])
-    else:
-        y = np.empty_like(x)
-        y[0] = y0
-        for i in range(1, n):
-            e = np.exp(-dt[i] / tau_s)
-            y[i] = e * y[i - 1] + (1 - e) * x[i]
-    return y, (y[-1].copy(), t_end)
-
-
 def gls_operator(G, Sigma):
     """GLS force estimator ``(G' W G)^-1 G' W`` (3 x S), its covariance (3 x 3) and W (S x S)
     for elongation covariance ``Sigma`` (µm²); G in µm per N."""
@@ -131,12 +92,12 @@ def thermal_regressors(delta_T_K, housing_idx, ambient_idx, lead_tau_s, time_s=N
     # Probes are quantised (0.1 K is typical) and sampled slowly: a 60 s low-pass keeps their
     # steps out of the correction (thermal drift is far slower), then the lead term is formed.
     used = list(housing_idx) + list(ambient_idx)
-    smooth, state_in = lowpass(dT[:, used], time_s, PROBE_SMOOTHING_S, state.get("in"), nominal_dt_s)
+    smooth, state_in = first_order_filter(dT[:, used], time_s, PROBE_SMOOTHING_S, state.get("in"), nominal_dt_s)
     cols = [np.ones((n, 1)), smooth]
     new_state = {"in": state_in}
     if len(housing_idx):
         housing = smooth[:, :len(housing_idx)].mean(axis=1, keepdims=True)
-        slow, new_state["lead"] = lowpass(housing, time_s, lead_tau_s, state.get("lead"), nominal_dt_s)
+        slow, new_state["lead"] = first_order_filter(housing, time_s, lead_tau_s, state.get("lead"), nominal_dt_s)
         cols.append(housing - slow)
     return np.hstack(cols), new_state
 
@@ -342,7 +303,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         envelope before they are clipped.
     load_k_sigma : float
         A force component is applied only when it stands ``load_k_sigma`` standard deviations
-        clear of zero (garrote).
+        clear of zero (firm shrinkage: zero below, a linear ramp up to twice that, unbiased beyond).
     contradiction_p : float
         Per-frame false-alarm probability of the gratings' consistency test.
     load_relative_error : float
@@ -395,7 +356,6 @@ class PhysicalModel(EstimatorParams, ModelFile):
         aligned = [c.aligned(zero_window_s=self.zero_window_s) for c in campaigns]
         dts = [np.median(np.diff(a.time_s)) for a in aligned if len(a.time_s) > 1]
         self.nominal_dt_s_ = float(np.median(dts)) if dts else 1.0
-        w_camp = np.array([1.0 / max(len(a.time_s), 1) for a in aligned])
         fmap = _grating_map(self.sensors_, self.probe_names_)
 
         # Per campaign: instrument arrays in model order, elongations, thermal regressors.
@@ -406,10 +366,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         self.thermal_resid_sd_um_ = np.zeros(3)
         rows = []
         for c, a in zip(campaigns, aligned):
-            s_idx = [a.sensor_names.index(s) for s in self.sensor_names]
-            p_idx = [a.probe_names.index(p) for p in self.probe_names_]
-            w, t = a.wavelength_nm[:, s_idx], a.temperature_C[:, p_idx]
-            w0, t0 = a.wavelength_zero_nm[s_idx], a.temperature_zero_C[p_idx]
+            w, t, w0, t0 = self.instrument_arrays(a)
             e = fmap.base(w, t, w0, t0)
             H, _ = thermal_regressors(t - t0, [self.probe_names_.index(p) for p in self.housing_probes_],
                                       [self.probe_names_.index(p) for p in self.ambient_probes_],
@@ -462,7 +419,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
             Fall = X[:, k:k + 3]
             active = np.sqrt(np.average(Fall ** 2, axis=0, weights=w_all)) > 100.0
             cols = list(range(k)) + [k + j for j in range(3) if active[j]] + list(range(k + 3, X.shape[1]))
-            Bg, cov_e = weighted_lstsq(X[:, cols], np.vstack(Es_), w_all)
+            Bg, _ = weighted_lstsq(X[:, cols], np.vstack(Es_), w_all)
             By, _ = weighted_lstsq(X[:, cols], np.vstack(Ys), w_all)
             G = np.zeros((S, 3))
             C = np.zeros((3, 3))
@@ -518,10 +475,10 @@ class PhysicalModel(EstimatorParams, ModelFile):
                           "n_samples": int(sum(len(r["y"]) for r in rows))}
         self._predictors = {}
         if self.load_ is not None:
-            self._calibrate_contradiction(rows)
+            self._calibrate_applicability(rows)
         return self
 
-    def _calibrate_contradiction(self, rows):
+    def _calibrate_applicability(self, rows):
         """Thresholds of the load part's applicability, from the training campaigns: the largest
         thermal excursion s² they reached (x 1.2), and a chi-square inflation such that their
         frames (conditions the model was validated on) are not refused (0.99 quantile x 1.5)."""
@@ -567,12 +524,6 @@ class PhysicalModel(EstimatorParams, ModelFile):
         if exclude not in self._predictors:
             self._predictors[exclude] = PhysicalPredictor(self, exclude)
         return self._predictors[exclude]
-
-    def instrument_arrays(self, aligned):
-        s_idx = [list(aligned.sensor_names).index(s) for s in self.sensor_names]
-        p_idx = [list(aligned.probe_names).index(p) for p in self.probe_names_]
-        return (aligned.wavelength_nm[:, s_idx], aligned.temperature_C[:, p_idx],
-                aligned.wavelength_zero_nm[s_idx], aligned.temperature_zero_C[p_idx])
 
     def predict_interval(self, X, exclude=frozenset(), raw=False):
         (campaign,) = _as_campaign_list(X)

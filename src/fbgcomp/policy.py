@@ -6,9 +6,8 @@ and per axis:
 
 * :func:`clip_to_envelope` keeps thermal regressors inside the training envelope (plus a margin),
   so a heat source absent from training can never drive a regression term into extrapolation;
-* :func:`firm` and :func:`garrote` shrink an estimated load component towards zero unless it stands clear of its
-  own uncertainty (non-negative garrote: ``x (1 - (k sigma / x)^2)+``, continuous, unbiased for
-  large loads, zero for noise);
+* :func:`firm` shrinks an estimated load component to zero unless it stands clear of its own
+  uncertainty (continuous, unbiased for large loads, zero for noise);
 * :func:`contradiction` flags frames whose gratings disagree with every load the structure can
   carry (a chi-square test of the generalised least-squares residual);
 * :func:`clamp_axes` bounds each axis' correction to what was validated.
@@ -27,12 +26,6 @@ from scipy import stats
 SHRUNK = np.uint8(1)
 CLAMPED = np.uint8(2)
 LOAD_REFUSED = np.uint8(4)
-FLAG_NAMES = {int(SHRUNK): "SHRUNK", int(CLAMPED): "CLAMPED", int(LOAD_REFUSED): "LOAD_REFUSED"}
-
-
-def flag_text(word: int) -> str:
-    """``'SHRUNK|CLAMPED'`` for a flag word; ``''`` for 0."""
-    return "|".join(name for bit, name in FLAG_NAMES.items() if int(word) & bit)
 
 
 def clip_to_envelope(x, low, high, margin=0.1):
@@ -48,19 +41,6 @@ def clip_to_envelope(x, low, high, margin=0.1):
     clipped = np.clip(x, lo, hi)
     outside = np.any((x < lo) | (x > hi), axis=1) if x.shape[1] else np.zeros(x.shape[0], bool)
     return clipped, outside
-
-
-def garrote(estimate, sigma, k=3.0):
-    """Non-negative garrote shrinkage ``x * max(0, 1 - (k sigma / x)^2)``, element-wise.
-
-    ``estimate`` and ``sigma`` broadcast; a component within ``k`` standard deviations of zero is
-    set to zero, one far from zero keeps its value (bias ``k^2 sigma^2 / x``).
-    """
-    x = np.asarray(estimate, dtype=float)
-    s = np.asarray(sigma, dtype=float)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        factor = 1.0 - (k * s) ** 2 / np.where(x == 0, np.inf, x * x)
-    return x * np.clip(np.nan_to_num(factor, nan=0.0), 0.0, None)
 
 
 def firm(estimate, sigma, k_low=3.0, k_high=6.0):

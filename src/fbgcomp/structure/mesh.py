@@ -174,14 +174,7 @@ class RamMesh:
     def face_facets(self, face: str, z_lo_mm: float = -np.inf, z_hi_mm: float = np.inf,
                     across_half_mm: float = np.inf) -> np.ndarray:
         """Facets on an outer ram/housing face (``+X`` ...) within a z range and a band across it."""
-        axis = 0 if face[1] == "X" else 1
-        half = self.half_width_mm if axis == 0 else self.half_depth_mm
-        sign = 1.0 if face[0] == "+" else -1.0
-        other = 1 - axis
-        return self.facets_where(
-            lambda x: ((np.abs(x[axis] - sign * half) < _TOL_MM)
-                       & (x[2] >= z_lo_mm - _TOL_MM) & (x[2] <= z_hi_mm + _TOL_MM)
-                       & (np.abs(x[other]) <= across_half_mm + _TOL_MM)))
+        return self.strip_facets(face, z_lo_mm, z_hi_mm, -across_half_mm, across_half_mm)
 
     def end_facets(self, z_mm: float, half_x_mm: float = np.inf,
                    half_y_mm: float = np.inf) -> np.ndarray:
