@@ -282,7 +282,9 @@ def test_a_lost_grating_shows_as_degraded_with_the_fallback_in_use(tmp_path):
                           "--rate", RATE_HZ, "--loop", "--fault", "drop:S3@2")
     serve = fbgcomp_process("serve", "--model", model, "--source",
                             f"hyperion://127.0.0.1:{sp}?command_port={cp}", "--temperatures",
-                            campaign, "--opcua", "off", "--dashboard", f"127.0.0.1:{dp}")
+                            campaign, "--opcua", "off", "--dashboard", f"127.0.0.1:{dp}",
+                            # a bound every prediction exceeds: the output shows as held back
+                            "--max-correction-um", "0.001")
     try:
         wait_port(dp, 40)
         with sync_api.sync_playwright() as p:
@@ -304,6 +306,14 @@ def test_a_lost_grating_shows_as_degraded_with_the_fallback_in_use(tmp_path):
                 assert statuses[:2] + statuses[3:] == ["OK"] * 4
                 assert page.inner_text("#sensors tbody tr:nth-child(3) td.wl") == "—"
                 assert page.inner_text("#corr-dx") != "—"     # the fallback still corrects
+                page.wait_for_function("() => fbgcomp.last.limited", timeout=10000)
+                page.wait_for_timeout(300)
+                assert page.is_visible("#limited")
+                flags = page.evaluate("fbgcomp.last.output_flags")
+                names = page.evaluate("fbgcomp.last.output_flag_names")
+                j = next(k for k, v in enumerate(flags) if v & 16)
+                assert "MAX_LIMITED" in names[j]
+                assert "MAX_LIMITED" in page.inner_text(f"#flags-{('dx', 'dy', 'dz')[j]}")
                 # no dashboard user configured: nothing to log in to, the control stays off
                 assert page.is_hidden("#login-form") and page.is_disabled("#toggle")
                 page.screenshot(path=str(ARTIFACTS / "degraded-fallback.png"), full_page=True)

@@ -43,6 +43,7 @@ from typing import Callable
 import numpy as np
 
 from fbgcomp.errors import InputError
+from fbgcomp.runtime.health import flag_names
 
 log = logging.getLogger("fbgcomp.dashboard")
 
@@ -214,6 +215,10 @@ class Dashboard:
             "correction_um": _clean(snap.correction_um, 3),
             "expected_rms_um": _clean(snap.expected_rms_um, 3),
             "health": snap.health, "alarm": bool(snap.alarm), "fallback": snap.fallback,
+            # per axis: the flag word (fbgcomp.runtime.health.FLAG_*) and its names
+            "output_flags": [int(v) for v in getattr(snap, "output_flags", (0, 0, 0))],
+            "output_flag_names": [flag_names(v) for v in getattr(snap, "output_flags", (0, 0, 0))],
+            "limited": any(int(v) for v in getattr(snap, "output_flags", (0, 0, 0))),
             "sensor_status": list(snap.sensor_status), "source_status": snap.source_status,
             "frames": int(snap.frames), "model_id": snap.model_id or self.model_id,
             "enabled": bool(self.enabled()),

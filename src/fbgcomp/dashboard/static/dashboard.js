@@ -169,7 +169,11 @@ function onFrame(f) {
     $(`corr-${a}`).textContent = fmt(f.correction_um[j], 3);
     $(`dev-${a}`).textContent = fmt(f.deviation_um[j], 3);
     $(`hw-${a}`).textContent = fmt(f.half_width_um[j], 3);
+    const names = (f.output_flag_names || [])[j] || [];
+    $(`flags-${a}`).textContent = names.join(" · ");
+    $(`flags-${a}`).title = names.length ? "held back: " + names.join(", ") : "";
   });
+  $("limited").hidden = !f.limited;
   $("health").textContent = f.health + (f.alarm ? " · alarm" : "");
   $("health").dataset.state = f.health;
   $("fallback").textContent = f.fallback ? `without ${f.fallback}` : "none (full model)";
