@@ -64,7 +64,10 @@ def scenario(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("e2e")
     config = tmp / "serve.toml"
     config.write_text("[source]\nbackoff_initial_s = 0.05\nbackoff_max_s = 0.4\n"
-                      "no_data_s = 0.2\n\n[pipeline]\nramp_s = 0.5\n")
+                      "no_data_s = 0.2\n\n[pipeline]\nramp_s = 0.5\n"
+                      # output policy off: the published correction is the model's own
+                      "max_slew_um_per_s = 0\nmax_correction_um = [0, 0, 0]\n"
+                      "[pipeline.output_filter]\nenabled = false\n")
     sp, cp, op = free_port(), free_port(), free_port()
     url = f"opc.tcp://127.0.0.1:{op}/fbgcomp/"
     serve = fbgcomp_process("serve", "--config", config, "--model", model_path, "--source",
@@ -187,3 +190,11 @@ def test_kill9_loses_at_most_the_last_second_and_every_file_reads(scenario):
     rows = sum(pq.read_table(p).num_rows for p in parts)
     assert rows == len(scenario["log"])
     assert scenario["log"]["received_s"].max() >= scenario["t_kill"] - 1.0 - 0.25
+
+
+def test_run_log_records_the_output_flag_word_per_axis(scenario):
+    log, meta = scenario["log"], scenario["meta"]
+    assert meta["flag_names"] == {"1": "SHRUNK", "2": "CLAMPED", "4": "LOAD_REFUSED",
+                                  "8": "RATE_LIMITED", "16": "MAX_LIMITED"}
+    for a in ("dx", "dy", "dz"):
+        assert (log[f"flags_{a}"] == 0).all()     # policy off, model without flags

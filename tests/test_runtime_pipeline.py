@@ -8,7 +8,12 @@ from fbgcomp.models import load_model
 from fbgcomp.runtime import health as H
 from fbgcomp.runtime.pipeline import (HEALTH_ALARM, HEALTH_DEGRADED, HEALTH_OK, HEALTH_ZEROING,
                                       Pipeline, PipelineConfig)
+from fbgcomp.runtime.output import OutputFilterConfig
 from test_runtime_support import model_and_campaign
+
+# Output policy off: the published correction is exactly - prediction (the model path itself).
+RAW = dict(output_filter=OutputFilterConfig(enabled=False), max_slew_um_per_s=0,
+           max_correction_um=0)
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +43,7 @@ def test_same_prediction_as_the_offline_model_whatever_the_batching(setup):
     model, campaign, aligned, w, t = setup
     offline_dev, offline_half = model.predict_interval(campaign)
     for sizes in ([1], [7, 1, 50], [10_000]):
-        r = _run(Pipeline(model), aligned.time_s, w, t, sizes)
+        r = _run(Pipeline(model, PipelineConfig(**RAW)), aligned.time_s, w, t, sizes)
         zeroing = r["health"] == HEALTH_ZEROING
         # zero state from the first zero_window_s seconds, as offline
         assert zeroing.sum() == np.searchsorted(aligned.time_s, aligned.time_s[0] + 0.5, "right")
@@ -59,7 +64,7 @@ def test_fault_switches_to_fallback_on_the_same_sample_and_readmits_after_stable
     lost = (time_s >= 100.0) & (time_s < 150.0)
     wl[lost, s3] = np.nan
     counts[lost, s3] = 0
-    cfg = PipelineConfig(health=H.HealthConfig(recover_s=5.0))
+    cfg = PipelineConfig(health=H.HealthConfig(recover_s=5.0), **RAW)
     r = _run(Pipeline(model, cfg), time_s, wl, t, [33], counts)
     first_bad = np.argmax(lost)
     assert r["health"][first_bad - 1] == HEALTH_OK
@@ -93,7 +98,7 @@ def test_no_usable_model_holds_then_ramps_to_zero(setup):
         j = model.sensor_names.index(name)
         wl[lost, j] = np.nan
         counts[lost, j] = 0
-    r = _run(Pipeline(model, PipelineConfig(ramp_s=2.0)), time_s, wl, t, [16], counts)
+    r = _run(Pipeline(model, PipelineConfig(ramp_s=2.0, **RAW)), time_s, wl, t, [16], counts)
     i = np.argmax(lost)
     held = r["correction_um"][i - 1]
     assert np.abs(held).max() > 0
@@ -126,8 +131,9 @@ def test_jump_stuck_and_doubled_are_faults(setup):
 
 def test_smoothing_is_an_exponential_filter(setup):
     model, campaign, aligned, w, t = setup
-    raw = _run(Pipeline(model), aligned.time_s, w, t, [64])
-    sm = _run(Pipeline(model, PipelineConfig(smoothing_tau_s=1.0)), aligned.time_s, w, t, [64])
+    raw = _run(Pipeline(model, PipelineConfig(**RAW)), aligned.time_s, w, t, [64])
+    sm = _run(Pipeline(model, PipelineConfig(smoothing_tau_s=1.0, **RAW)), aligned.time_s, w, t,
+              [64])
     a = np.exp(-0.1 / 1.0)
     x, y = raw["correction_um"], sm["correction_um"]
     np.testing.assert_allclose(y[1:], a * y[:-1] + (1 - a) * x[1:], atol=1e-9)
@@ -142,13 +148,15 @@ def test_slew_limit_turns_a_fallback_switch_into_a_ramp(setup):
     lost = time_s >= 100.0
     wl[lost, s3] = np.nan
     counts[lost, s3] = 0
-    free = _run(Pipeline(model), time_s, wl, t, [64], counts)["correction_um"]
+    free = _run(Pipeline(model, PipelineConfig(**RAW)), time_s, wl, t, [64],
+                counts)["correction_um"]
     i = int(np.argmax(lost))
     jump = np.abs(free[i] - free[i - 1]).max()                  # the switch is a step
     normal = np.abs(np.diff(free[time_s < 99.0], axis=0)).max() / 0.1   # µm/s otherwise
     assert jump > 20 * normal * 0.1
     rate = 2 * normal                                           # µm/s
-    outs = [_run(Pipeline(model, PipelineConfig(max_slew_um_per_s=rate)), time_s, wl, t, sizes,
+    cfg = dict(RAW, max_slew_um_per_s=rate)
+    outs = [_run(Pipeline(model, PipelineConfig(**cfg)), time_s, wl, t, sizes,
                  counts)["correction_um"] for sizes in ([1], [7, 50], [10_000])]
     for lim in outs[1:]:
         np.testing.assert_allclose(lim, outs[0], atol=1e-12)   # whatever the batching
@@ -164,7 +172,7 @@ def test_slew_limit_turns_a_fallback_switch_into_a_ramp(setup):
 def test_link_loss_ticks_hold_then_ramp_and_data_resumes(setup):
     model, campaign, aligned, w, t = setup
     n = 400
-    pipe = Pipeline(model, PipelineConfig(ramp_s=1.0))
+    pipe = Pipeline(model, PipelineConfig(ramp_s=1.0, **RAW))
     r = _run(pipe, aligned.time_s[:n], w[:n], t[:n], [50])
     held = r["correction_um"][-1]
     t_last = aligned.time_s[n - 1]

@@ -11,6 +11,20 @@ import typer
 from fbgcomp.errors import InputError
 
 
+def _per_axis_option(text: str, option: str) -> tuple:
+    """``off`` | ``V`` | ``DX,DY,DZ`` -> three floats (0 = no limit on that axis)."""
+    if text.strip().lower() == "off":
+        return (0.0, 0.0, 0.0)
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) not in (1, 3) or any(not v >= 0 for v in values):
+        raise InputError(f"expected off, one number >= 0 or three (dx,dy,dz), got {text!r}",
+                         column=option)
+    return tuple(values * 3 if len(values) == 1 else values)
+
+
 def register(app: typer.Typer) -> None:
     """Add the runtime commands to the main ``fbgcomp`` application."""
 
@@ -30,7 +44,9 @@ def register(app: typer.Typer) -> None:
         log_dir: Optional[Path] = typer.Option(None, "--log", help="Run-log folder (Parquet)."),
         rate: Optional[float] = typer.Option(None, "--rate", help="OPC UA update rate, Hz (0 = every batch)."),
         smoothing: Optional[float] = typer.Option(None, "--smoothing-tau", help="Correction smoothing time constant, s."),
-        max_slew: Optional[float] = typer.Option(None, "--max-slew", help="Largest rate of change of the correction, µm/s (0 = off)."),
+        max_slew: Optional[str] = typer.Option(None, "--max-slew", help="Largest rate of change of the correction, µm/s: one value or dx,dy,dz (default 1000; 0 or off = no limit)."),
+        max_correction: Optional[str] = typer.Option(None, "--max-correction-um", help="Largest |correction| per axis, µm: one value or dx,dy,dz (default 1000; 0 or off = none; a tighter bound in the model file still applies)."),
+        output_filter: Optional[str] = typer.Option(None, "--output-filter", help="Adaptive output filter: on (default) or off."),
         allow_anonymous: bool = typer.Option(False, "--allow-anonymous", help="Allow anonymous read-only OPC UA sessions."),
         users_file: Optional[Path] = typer.Option(None, "--users", help="OPC UA users file (name:pbkdf2_sha256$...)."),
         dashboard: Optional[str] = typer.Option(
@@ -72,7 +88,15 @@ def register(app: typer.Typer) -> None:
         if smoothing is not None:
             cfg.pipeline.smoothing_tau_s = smoothing
         if max_slew is not None:
-            cfg.pipeline.max_slew_um_per_s = max_slew
+            cfg.pipeline.max_slew_um_per_s = _per_axis_option(max_slew, "--max-slew")
+        if max_correction is not None:
+            cfg.pipeline.max_correction_um = _per_axis_option(max_correction,
+                                                              "--max-correction-um")
+        if output_filter is not None:
+            if output_filter not in ("on", "off"):
+                raise InputError(f"expected on or off, got {output_filter!r}",
+                                 column="--output-filter")
+            cfg.pipeline.output_filter.enabled = output_filter == "on"
         if allow_anonymous:
             cfg.opcua.allow_anonymous = True
         if users_file is not None:

@@ -99,3 +99,28 @@ class SensorChecks:
                     has, wavelength_nm[np.maximum(last_fin[-1], 0), np.arange(S)],
                     self.last_value)
         return status, faulted
+
+
+# --------------------------------------------------------------------------- output flags
+# One flag word per frame and TTP axis (uint8), OR-ed from the model's own policy flags
+# (its predictor's ``last_flags``) and the runtime's output limits. Published in the batch
+# result, the run log (``flags_dx``...), OPC UA (``OutputFlagsX``...) and the dashboard.
+FLAG_SHRUNK = 1          # model: inputs outside the training envelope, correction shrunk
+FLAG_CLAMPED = 2         # model: bounded to the model's own maximum
+FLAG_LOAD_REFUSED = 4    # model: the gratings contradict each other, the load part dropped
+FLAG_RATE_LIMITED = 8    # runtime: the rate limit held the published correction back
+FLAG_MAX_LIMITED = 16    # runtime: the per-axis maximum |correction| held it back
+MODEL_FLAGS = FLAG_SHRUNK | FLAG_CLAMPED | FLAG_LOAD_REFUSED
+LIMIT_FLAGS = FLAG_RATE_LIMITED | FLAG_MAX_LIMITED
+FLAG_NAMES = {FLAG_SHRUNK: "SHRUNK", FLAG_CLAMPED: "CLAMPED", FLAG_LOAD_REFUSED: "LOAD_REFUSED",
+              FLAG_RATE_LIMITED: "RATE_LIMITED", FLAG_MAX_LIMITED: "MAX_LIMITED"}
+
+
+def flag_names(word: int) -> list[str]:
+    """Names of the bits set in one flag word, lowest bit first."""
+    return [name for bit, name in FLAG_NAMES.items() if int(word) & bit]
+
+
+def describe_flags(words, axes=("X", "Y", "Z")) -> str:
+    """``"Y:RATE_LIMITED|MAX_LIMITED Z:SHRUNK"``; empty when nothing is held back."""
+    return " ".join(f"{a}:{'|'.join(flag_names(w))}" for a, w in zip(axes, words) if int(w))

@@ -15,6 +15,8 @@ Columns: ``time_s`` (instrument epoch s), ``received_s``, ``<S>_nm`` (wavelength
 window, NaN if none), ``<S>_peaks`` (peaks in the window), ``<S>_status`` (health code),
 ``<P>_C`` (probe temperatures paired with the frame), ``dev_dx_um``… (predicted deviation),
 ``half_dx_um``… (95 % interval half-width), ``corr_dx_um``… (published correction),
+``flags_dx``… (output flag word per axis, bits in meta.json ``flag_names``:
+model policy 1 SHRUNK, 2 CLAMPED, 4 LOAD_REFUSED; limits 8 RATE_LIMITED, 16 MAX_LIMITED),
 ``health`` (0 OK, 1 DEGRADED, 2 ALARM, 3 ZEROING), ``model_set`` (index in meta.json
 ``model_sets``, -1 none), ``enabled``.
 """
@@ -107,6 +109,9 @@ class RunLog:
             v = cat([getattr(x, attr) for x in r])
             for j, a in enumerate(AXES):
                 cols[f"{name}_{a}_um"] = v[:, j]
+        flags = cat([x.output_flags for x in r])
+        for j, a in enumerate(AXES):
+            cols[f"flags_{a}"] = flags[:, j]
         cols["health"] = cat([x.health for x in r])
         cols["model_set"] = cat([x.model_set for x in r])
         cols["enabled"] = cat([np.full(len(x), e, bool) for x, _, e in items])

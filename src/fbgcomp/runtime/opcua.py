@@ -229,6 +229,7 @@ class Snapshot:
     frames: int = 0
     model_id: str = ""
     received_s: float = 0.0
+    output_flags: tuple = (0, 0, 0)   # health.FLAG_* per axis: model policy | limits
 
 
 def send_control(sock, message, timeout_s: float = 2.0) -> bool:
@@ -520,6 +521,10 @@ class _ServerCore:
         await var(root, "Health", "Health", "STARTING", S)
         await var(root, "Alarm", "Alarm", False, B)
         await var(root, "FallbackInUse", "FallbackInUse", "", S)
+        for a in AXES:
+            await var(root, f"OutputFlags{a}", f"OutputFlags{a}", 0, ua.VariantType.Byte)
+        await var(root, "Limited", "Limited", False, B)
+        await var(root, "OutputFlags", "OutputFlags", "", S)
         await var(root, "SourceStatus", "SourceStatus", "", S)
         await var(root, "FramesProcessed", "FramesProcessed", 0, ua.VariantType.UInt64)
         await var(root, "Heartbeat", "Heartbeat", 0, ua.VariantType.UInt32)
@@ -627,6 +632,12 @@ class _ServerCore:
         await put("Health", s.health, S, False)
         await put("Alarm", bool(s.alarm), ua.VariantType.Boolean, False)
         await put("FallbackInUse", s.fallback, S, False)
+        from fbgcomp.runtime.health import describe_flags
+        flags = tuple(int(v) for v in s.output_flags)
+        for a, v in zip(AXES, flags):
+            await put(f"OutputFlags{a}", v, ua.VariantType.Byte, False)
+        await put("Limited", any(flags), ua.VariantType.Boolean, False)
+        await put("OutputFlags", describe_flags(flags), S, False)
         await put("SourceStatus", s.source_status, S, False)
         await put("ModelId", self.model_id, S, False)
         for name, st in zip(self.sensor_names, s.sensor_status):

@@ -9,11 +9,17 @@ what a running machine needs, vectorised over every frame of a batch:
   them) - the switch happens on the very sample the fault appears;
 * when no usable model remains: hold the last correction and ramp it linearly to zero over
   ``ramp_s`` (alarm);
-* optional exponential smoothing of the correction (``smoothing_tau_s``) and a slew-rate
-  limit (``max_slew_um_per_s``) so that a model switch, a re-admitted sensor or switching the
-  output off never steps the axes.
+* the output policy, in this order: the adaptive output filter (:mod:`fbgcomp.runtime.output`,
+  on by default: still at rest, fast on a real change), the hold / ramp above, optional
+  exponential smoothing (``smoothing_tau_s``), the output switch, a per-axis maximum
+  |correction| (``max_correction_um``, at most the model's own ``max_correction_um``) and a
+  per-axis rate limit (``max_slew_um_per_s``), so that a model switch, a re-admitted sensor or
+  switching the output off never steps the axes and no absurd value reaches the CNC.
 
-Health codes per frame: OK, DEGRADED (fallback in use), ALARM (hold / ramp), ZEROING.
+Health codes per frame: OK, DEGRADED (fallback in use), ALARM (hold / ramp), ZEROING. Beside
+them, a flag word per frame and axis (``BatchResult.output_flags``, bits in
+:mod:`fbgcomp.runtime.health`) says when the published correction was held back - by the
+model's own policy (its predictor's ``last_flags``) or by the limits.
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fbgcomp.runtime import health as H
+from fbgcomp.runtime.output import AdaptiveLevelFilter, OutputFilterConfig
 
 HEALTH_OK, HEALTH_DEGRADED, HEALTH_ALARM, HEALTH_ZEROING = range(4)
 HEALTH_NAMES = ("OK", "DEGRADED", "ALARM", "ZEROING")
@@ -32,8 +39,22 @@ HEALTH_NAMES = ("OK", "DEGRADED", "ALARM", "ZEROING")
 class PipelineConfig:
     ramp_s: float = 2.0              # hold-then-ramp-to-zero time when no model is usable
     smoothing_tau_s: float = 0.0     # exponential smoothing of the correction; 0 = off
-    max_slew_um_per_s: float = 0.0   # largest rate of change of the correction; 0 = off
+    # Per axis (dx, dy, dz) or one value for all; 0 = off on that axis (docs/runtime.md: why
+    # these defaults). A real load step of a few hundred µm is still followed within 1 s.
+    max_slew_um_per_s: tuple = (1000.0, 1000.0, 1000.0)   # largest rate of change, µm/s
+    max_correction_um: tuple = (1000.0, 1000.0, 1000.0)   # largest |correction|, µm
     health: H.HealthConfig = field(default_factory=H.HealthConfig)
+    output_filter: OutputFilterConfig = field(default_factory=OutputFilterConfig)
+
+
+def per_axis(value, name: str = "value") -> np.ndarray:
+    """One number or three (dx, dy, dz) -> a (3,) array; 0 (off) becomes +inf."""
+    v = np.asarray(value, dtype=float).reshape(-1)
+    if v.size == 1:
+        v = np.repeat(v, 3)
+    if v.size != 3 or not np.all(v >= 0):
+        raise ValueError(f"{name}: expected one value or three (dx, dy, dz), each >= 0")
+    return np.where(v > 0, v, np.inf)
 
 
 @dataclass
@@ -49,6 +70,11 @@ class BatchResult:
     sensor_status: np.ndarray          # (n,S) uint8 health.* codes
     model_set: np.ndarray              # (n,) int16 index into Pipeline.model_sets, -1 none
     temperature_C: np.ndarray          # (n,P) temperatures paired with the frames
+    output_flags: np.ndarray = None    # (n,3) uint8 health.FLAG_* (model policy | limits)
+
+    def __post_init__(self):
+        if self.output_flags is None:
+            self.output_flags = np.zeros((self.time_s.size, 3), np.uint8)
 
     def __len__(self) -> int:
         return self.time_s.size
@@ -84,6 +110,14 @@ class Pipeline:
         self._last_t: float | None = None
         self._slew_y: np.ndarray | None = None
         self._slew_t: float | None = None
+        self.max_slew_um_per_s = per_axis(self.config.max_slew_um_per_s, "max_slew_um_per_s")
+        cap = per_axis(self.config.max_correction_um, "max_correction_um")
+        own = getattr(model, "max_correction_um", None)
+        if own is not None:   # the model file's own bound wins where it is tighter
+            cap = np.minimum(cap, per_axis(own, "model max_correction_um"))
+        self.max_correction_um = cap
+        self.output_filter: AdaptiveLevelFilter | None = None
+        self._zero_frames = 0
 
     # -- model selection
     def predictor(self, k: int):
@@ -118,6 +152,7 @@ class Pipeline:
         m = int(np.searchsorted(t, end, side="right"))
         if first_call:
             m = max(m, 1)
+        self._zero_frames += m
         good = (status[:m] == H.OK) & np.isfinite(wl[:m])
         self._zero_sum += np.where(good, wl[:m], 0.0).sum(axis=0)
         self._zero_n += good.sum(axis=0)
@@ -145,6 +180,7 @@ class Pipeline:
         rms = np.full((n, 3), np.nan)
         health = np.full(n, HEALTH_ZEROING, np.uint8)
         model_set = np.full(n, -1, np.int16)
+        flags = np.zeros((n, 3), np.uint8)
         start = 0
         if not self.zeroed:
             start = self._accumulate_zero(time_s, wavelength_nm, status, temperature_C)
@@ -175,15 +211,46 @@ class Pipeline:
                                  self.wavelength_zero_nm, self.temperature_zero_C)
                 dev[sel], half[sel] = d, h
                 rms[sel] = np.asarray(p.expected_rms_error_um, float)
+                own = getattr(p, "last_flags", None)    # the model's own output policy
+                if own is not None:
+                    flags[sel] |= np.asarray(own, np.uint8).reshape(sel.size, 3) & H.MODEL_FLAGS
             health[rows] = np.where(choice == 0, HEALTH_OK,
                                     np.where(choice > 0, HEALTH_DEGRADED, HEALTH_ALARM))
-        correction = self._hold_and_ramp(time_s, -dev, health)
-        correction = self._smooth(time_s, correction)
-        if not enabled:
-            correction = np.zeros_like(correction)
-        correction = self._slew_limit(time_s, correction)
+        correction = self._filter(time_s, -dev, rms)
+        correction = self._hold_and_ramp(time_s, correction, health)
+        correction = self._shape(time_s, correction, enabled, flags)
         return BatchResult(time_s, dev, half, correction, rms, health, status, model_set,
-                           temperature_C)
+                           temperature_C, flags)
+
+    def _filter(self, t: np.ndarray, corr: np.ndarray, rms: np.ndarray) -> np.ndarray:
+        """Adaptive output filter over the rows with a prediction (the others stay NaN)."""
+        if not self.config.output_filter.enabled:
+            return corr
+        good = np.isfinite(corr).all(axis=1)
+        if not good.any():
+            return corr
+        if self.output_filter is None:
+            first = int(np.argmax(good))
+            # nominal frame interval: the zero window's frames up to the first prediction, the
+            # same numbers however the frames were batched
+            dt = (float(t[first]) - self._t_first) / max(self._zero_frames, 1)
+            self.output_filter = AdaptiveLevelFilter(self.config.output_filter, dt, rms[first])
+        out = corr.copy()
+        out[good] = self.output_filter.process(corr[good])
+        return out
+
+    def _shape(self, t, corr, enabled, flags) -> np.ndarray:
+        """Smoothing, the output switch, the per-axis maximum and rate limit (flags set)."""
+        corr = self._smooth(t, corr)
+        if not enabled:
+            corr = np.zeros_like(corr)
+        over = np.abs(corr) > self.max_correction_um
+        if over.any():
+            corr = np.clip(corr, -self.max_correction_um, self.max_correction_um)
+            flags[over] |= H.FLAG_MAX_LIMITED
+        limited = self._slew_limit(t, corr)
+        flags[np.abs(limited - corr) > 1e-9] |= H.FLAG_RATE_LIMITED
+        return limited
 
     def no_data(self, t_s: float, enabled: bool = True) -> BatchResult:
         """No frame arrives (link lost): hold the last correction and ramp it to zero (alarm),
@@ -193,13 +260,11 @@ class Pipeline:
         nan3 = np.full((1, 3), np.nan)
         health = np.array([HEALTH_ALARM], np.uint8)
         corr = self._hold_and_ramp(t, nan3, health)
-        corr = self._smooth(t, corr)
-        if not enabled:
-            corr = np.zeros_like(corr)
-        corr = self._slew_limit(t, corr)
+        flags = np.zeros((1, 3), np.uint8)
+        corr = self._shape(t, corr, enabled, flags)
         return BatchResult(t, nan3, nan3, corr, nan3, health,
                            np.full((1, S), H.MISSING, np.uint8), np.array([-1], np.int16),
-                           np.full((1, P), np.nan))
+                           np.full((1, P), np.nan), flags)
 
     def _hold_and_ramp(self, t: np.ndarray, corr: np.ndarray, health: np.ndarray) -> np.ndarray:
         """Rows without a model hold the last good correction, ramped to zero over ramp_s."""
@@ -249,20 +314,22 @@ class Pipeline:
         return y
 
     def _slew_limit(self, t: np.ndarray, corr: np.ndarray) -> np.ndarray:
-        """Limit |d correction / dt| to ``max_slew_um_per_s`` per axis.
+        """Limit |d correction / dt| to ``max_slew_um_per_s`` (per axis).
 
         Where the correction already respects the limit (nearly always) it passes unchanged,
         checked for the whole batch at once; only while the limiter is engaged - a transient
         of a few hundred samples at most - is it followed sample by sample, since each limited
         sample depends on the previous output.
         """
-        rate = self.config.max_slew_um_per_s
+        rate = self.max_slew_um_per_s
         n = t.size
-        if rate <= 0 or n == 0:
+        if np.isinf(rate).all() or n == 0:
             return corr
         prev = self._slew_y if self._slew_y is not None else corr[0]
         t_prev = self._slew_t if self._slew_t is not None else float(t[0])
-        step = rate * np.maximum(np.diff(np.concatenate([[t_prev], t])), 0.0)[:, None] + 1e-12
+        dt = np.maximum(np.diff(np.concatenate([[t_prev], t])), 0.0)[:, None]
+        step = np.where(np.isinf(rate)[None, :], np.inf,
+                        np.where(np.isinf(rate), 0.0, rate)[None, :] * dt) + 1e-12
         out = corr.copy()
         i = 0
         while i < n:

@@ -87,6 +87,14 @@ def _update(obj, data: dict, file: str, prefix: str) -> None:
             if not isinstance(value, dict):
                 raise InputError("expected a table", file=file, column=where)
             _update(current, value, file, f"{prefix}{key}.")
+        elif isinstance(current, tuple):     # per-axis (dx, dy, dz) or one value for all
+            items = value if isinstance(value, list) else [value]
+            if len(items) not in (1, 3) or not all(
+                    isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 0
+                    for v in items):
+                raise InputError(f"expected one number >= 0 or three (dx, dy, dz), got {value!r}",
+                                 file=file, column=where)
+            setattr(obj, key, tuple(float(v) for v in items) * (3 if len(items) == 1 else 1))
         else:
             if current is not None and not isinstance(value, type(current)) and not (
                     isinstance(current, float) and isinstance(value, int)):
@@ -104,6 +112,9 @@ def model_meta(model, pipeline: Pipeline, temperature_probes=None) -> dict:
             "temperature_probes": temperature_probes,
             "model_sets": [sorted(s) for s in pipeline.model_sets],
             "health_names": list(HEALTH_NAMES), "status_names": list(H.STATUS_NAMES),
+            "flag_names": {str(bit): name for bit, name in H.FLAG_NAMES.items()},
+            "max_correction_um": [float(v) for v in pipeline.max_correction_um],
+            "max_slew_um_per_s": [float(v) for v in pipeline.max_slew_um_per_s],
             "zero_window_s": pipeline.zero_window_s}
 
 
@@ -196,6 +207,7 @@ class Service:
         pipe._last_correction, pipe._hold_start_s = old._last_correction, old._hold_start_s
         pipe._smoothed, pipe._last_t = old._smoothed, old._last_t
         pipe._slew_y, pipe._slew_t = old._slew_y, old._slew_t
+        pipe._zero_frames, pipe.output_filter = old._zero_frames, old.output_filter
         self.model, self.pipeline, self.model_id = new, pipe, new.model_id
         if self.opc is not None:
             self.opc.model_id = self.model_id
@@ -362,6 +374,7 @@ class Service:
             half_width_um=tuple(res.half_width_um[-1].tolist()),
             expected_rms_um=tuple(res.expected_rms_um[-1].tolist()),
             health=HEALTH_NAMES[h], fallback=fallback, alarm=bool(h == HEALTH_ALARM),
+            output_flags=tuple(int(v) for v in res.output_flags[-1].tolist()),
             sensor_status=[H.STATUS_NAMES[c] for c in res.sensor_status[-1].tolist()],
             sensor_wavelength_nm=np.asarray(wavelength_nm, float).tolist(),
             source_status=str(getattr(self.source, "status", "")), frames=int(self.frames),

@@ -1,0 +1,191 @@
+"""Output policy: adaptive filter, per-axis maximum and rate limit, flag word (model | limits)."""
+
+import numpy as np
+import pytest
+
+from fbgcomp.models import Predictor, load_model
+from fbgcomp.campaign import read_campaign
+from fbgcomp.runtime import health as H
+from fbgcomp.runtime.output import AdaptiveLevelFilter, OutputFilterConfig
+from fbgcomp.runtime.pipeline import HEALTH_DEGRADED, Pipeline, PipelineConfig
+from test_runtime_support import model_and_campaign
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    model_path, campaign_path = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+    campaign = read_campaign(campaign_path)
+    model = load_model(model_path)
+    aligned = campaign.aligned(zero_window_s=model.zero_window_s)
+    w, t, _, _ = model.instrument_arrays(aligned)
+    return model_path, aligned, w, t
+
+
+def _run(pipe, time_s, wl, temp, sizes, counts=None):
+    out, i, k = [], 0, 0
+    counts = np.ones(wl.shape, np.int8) if counts is None else counts
+    while i < time_s.size:
+        j = min(time_s.size, i + sizes[k % len(sizes)])
+        out.append(pipe.process(time_s[i:j], wl[i:j], counts[i:j],
+                                np.zeros_like(counts[i:j]), temp[i:j]))
+        i, k = j, k + 1
+    return {n: np.concatenate([getattr(r, n) for r in out])
+            for n in ("deviation_um", "correction_um", "health", "output_flags")}
+
+
+class EnvelopePredictor(Predictor):
+    """The regression predictor with a model-side output policy, as the new default model type
+    will have: beyond ``limit_um`` on an axis it shrinks the deviation to the limit (SHRUNK),
+    and it refuses the load part (LOAD_REFUSED) on dz whenever dy is shrunk."""
+
+    limit_um = 0.2
+
+    def predict(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C):
+        dev, half = super().predict(wavelength_nm, temperature_C, wavelength_zero_nm,
+                                    temperature_zero_C)
+        over = np.abs(dev) > self.limit_um
+        flags = np.where(over, H.FLAG_SHRUNK, 0).astype(np.uint8)
+        flags[:, 2] |= np.where(over[:, 1], H.FLAG_LOAD_REFUSED, 0).astype(np.uint8)
+        self.last_flags = flags
+        return np.clip(dev, -self.limit_um, self.limit_um), half
+
+
+def _envelope_model(model_path, max_correction_um=None):
+    model = load_model(model_path)
+    base = type(model)
+
+    class EnvelopeModel(base):
+        def predictor(self, exclude=frozenset()):
+            p = base.predictor(self, exclude)
+            p.__class__ = EnvelopePredictor
+            return p
+
+    model.__class__ = EnvelopeModel
+    if max_correction_um is not None:
+        model.max_correction_um = max_correction_um
+    return model
+
+
+def test_defaults_bound_and_rate_limit_every_axis():
+    cfg = PipelineConfig()
+    assert tuple(cfg.max_correction_um) == (1000.0, 1000.0, 1000.0)
+    assert tuple(cfg.max_slew_um_per_s) == (1000.0, 1000.0, 1000.0)
+    assert cfg.output_filter.enabled
+
+
+def test_model_flags_and_limiter_flags_reach_the_batch_result(setup):
+    model_path, aligned, w, t = setup
+    model = _envelope_model(model_path, max_correction_um=(5.0, 0.15, 5.0))
+    raw = dict(output_filter=OutputFilterConfig(enabled=False))
+    runs = [_run(Pipeline(model, PipelineConfig(max_slew_um_per_s=(0, 0.02, 0), **raw)),
+                 aligned.time_s, w, t, sizes) for sizes in ([1], [13, 200], [10_000])]
+    for r in runs[1:]:
+        np.testing.assert_array_equal(r["output_flags"], runs[0]["output_flags"])
+        np.testing.assert_allclose(r["correction_um"], runs[0]["correction_um"], atol=1e-9)
+    r = runs[0]
+    flags, dev, corr = r["output_flags"], r["deviation_um"], r["correction_um"]
+    shrunk = np.abs(dev) >= EnvelopePredictor.limit_um - 1e-12
+    assert shrunk[:, 1].any()
+    # the model's bits are carried as the predictor set them
+    assert ((flags & H.FLAG_SHRUNK) > 0)[shrunk].all()
+    assert ((flags[:, 2] & H.FLAG_LOAD_REFUSED) > 0)[shrunk[:, 1]].all()
+    assert not (flags & H.MODEL_FLAGS)[~np.isfinite(dev).any(axis=1)].any()
+    # dy: the model file's own bound (0.15 µm) is tighter than the configured 1000 µm
+    assert np.abs(corr[:, 1]).max() <= 0.15 + 1e-12
+    held = np.abs(dev[:, 1]) > 0.15
+    assert held.any() and ((flags[held, 1] & H.FLAG_MAX_LIMITED) > 0).all()
+    assert not (flags[:, 0] & H.FLAG_MAX_LIMITED).any()
+    # rate limit 0.02 µm/s on dy only; flagged where it held the output back
+    dt = np.diff(aligned.time_s)
+    assert (np.abs(np.diff(corr[:, 1])) <= 0.02 * dt + 1e-9).all()
+    rate = (flags[:, 1] & H.FLAG_RATE_LIMITED) > 0
+    assert rate.any() and not (flags[:, 0] & H.FLAG_RATE_LIMITED).any()
+    assert "Y:" in H.describe_flags(flags[np.argmax(rate)])
+    assert "RATE_LIMITED" in H.describe_flags(flags[np.argmax(rate)])
+
+
+def test_lost_grating_fallback_still_obeys_the_limits(setup):
+    model_path, aligned, w, t = setup
+    model = load_model(model_path)
+    time_s = aligned.time_s
+    wl = w.copy()
+    counts = np.ones(wl.shape, np.int8)
+    s3 = model.sensor_names.index("S3")
+    lost = time_s >= 100.0
+    wl[lost, s3] = np.nan
+    counts[lost, s3] = 0
+    free = _run(Pipeline(model, PipelineConfig(output_filter=OutputFilterConfig(enabled=False),
+                                               max_slew_um_per_s=0, max_correction_um=0)),
+                time_s, wl, t, [64], counts)
+    i = int(np.argmax(lost))
+    step = np.abs(free["correction_um"][i] - free["correction_um"][i - 1])
+    cap = 0.5 * np.abs(free["correction_um"][lost]).max(axis=0)     # binds after the switch
+    rate = 0.5 * step.max() / 0.1
+    cfg = PipelineConfig(max_correction_um=tuple(cap), max_slew_um_per_s=rate)
+    runs = [_run(Pipeline(model, cfg), time_s, wl, t, sizes, counts)
+            for sizes in ([1], [9, 64], [10_000])]
+    for r in runs[1:]:
+        np.testing.assert_allclose(r["correction_um"], runs[0]["correction_um"], atol=1e-9)
+        np.testing.assert_array_equal(r["output_flags"], runs[0]["output_flags"])
+    r = runs[0]
+    assert (r["health"][lost] == HEALTH_DEGRADED).all()
+    corr, flags = r["correction_um"], r["output_flags"]
+    assert (np.abs(corr) <= cap + 1e-12).all()
+    assert (np.abs(np.diff(corr, axis=0)) <= rate * np.diff(time_s)[:, None] + 1e-9).all()
+    after = flags[lost]
+    assert (after & H.FLAG_MAX_LIMITED).any() and (after & H.FLAG_RATE_LIMITED).any()
+
+
+def _noisy_step(rate_hz=100.0, duration_s=600.0, step_at_s=400.0, step_um=300.0, sd_um=20.0,
+                seed=3):
+    rng = np.random.default_rng(seed)
+    n = int(duration_s * rate_hz)
+    t = np.arange(n) / rate_hz
+    # noise correlated over 1 s (a 1 Hz source interpolated), like the twin served live
+    knots = rng.normal(0.0, sd_um, int(duration_s) + 2)
+    noise = np.interp(t, np.arange(knots.size), knots)
+    truth = np.where(t >= step_at_s, step_um, 0.0) + 0.002 * t      # + a slow drift
+    x = np.column_stack([noise + truth, 0.3 * noise - truth, truth])
+    return t, x, truth
+
+
+def test_adaptive_filter_is_still_at_rest_and_follows_a_step():
+    import pandas as pd
+    t, x, truth = _noisy_step()
+    f = AdaptiveLevelFilter(OutputFilterConfig(), 0.01, noise_um=np.array([5.0, 5.0, 0.01]))
+    y = f.process(x)
+    df = pd.DataFrame(y, index=pd.to_timedelta(t, "s"))
+    dev = (df - df.rolling("60s", center=True).mean()).to_numpy()
+    rest = (t > 300) & (t < 370)           # settled, 30 s clear of the step
+    rms = np.sqrt((dev[rest] ** 2).mean(axis=0))
+    raw = np.sqrt(((x[rest] - x[rest].mean(axis=0)) ** 2).mean(axis=0))
+    assert (rms[:2] < 0.2).all() and raw[0] > 15 and raw[1] > 4.5
+    # follows the 300 µm step to 90 % within 1 s on every axis, and does not overshoot it
+    for j, sign in enumerate((1, -1, 1)):
+        after = t >= 400.0
+        reach = t[after][np.argmax(sign * y[after, j] >= 0.9 * 300.0)] - 400.0
+        assert reach < 1.0, (j, reach)
+        assert np.abs(y[(t > 402) & (t < 410), j] - sign * (300 + 0.002 * 405)).max() < 15
+    assert (f.restarts >= 1).all()
+
+
+def test_adaptive_filter_is_exact_whatever_the_batching():
+    t, x, _ = _noisy_step(duration_s=120.0, step_at_s=60.0)
+    whole = AdaptiveLevelFilter(OutputFilterConfig(), 0.01, [5.0, 5.0, 0.01]).process(x)
+    for sizes in ([1], [3, 250], [997]):
+        f = AdaptiveLevelFilter(OutputFilterConfig(), 0.01, [5.0, 5.0, 0.01])
+        parts, i, k = [], 0, 0
+        while i < len(x):
+            j = min(len(x), i + sizes[k % len(sizes)])
+            parts.append(f.process(x[i:j]))
+            i, k = j, k + 1
+        np.testing.assert_array_equal(np.vstack(parts), whole)
+
+
+def test_pipeline_with_default_policy_is_batch_invariant(setup):
+    model_path, aligned, w, t = setup
+    model = load_model(model_path)
+    runs = [_run(Pipeline(model), aligned.time_s, w, t, sizes) for sizes in ([1], [7, 50],
+                                                                            [10_000])]
+    for r in runs[1:]:
+        np.testing.assert_allclose(r["correction_um"], runs[0]["correction_um"], atol=1e-9)
