@@ -233,17 +233,21 @@ def demo(output: Path = typer.Option(Path("demo-out"), "-o", "--output", help="F
 @app.command()
 def compare(train: List[Path] = typer.Option(..., "--train", help="Training campaign folder (repeat the option)."),
             test: List[Path] = typer.Option(..., "--test", help="Held-out campaign folder (repeat the option)."),
-            machine: Optional[Path] = typer.Option(None, "--machine", help="Machine description YAML (default: the built-in ram)."),
-            csv_out: Path = typer.Option(Path("comparison.csv"), "--csv", help="Ranked table (CSV)."),
-            json_out: Path = typer.Option(Path("comparison.json"), "--json", help="Everything (JSON).")):
-    """Cross-campaign validation of every model type and feature set, ranked per axis."""
-    from .compare import compare as run, format_comparison, write_comparison
-    from .model_types import _machine
+            machine: Optional[Path] = typer.Option(None, "--machine", help="Machine description YAML (default: the built-in ram; the physical model then runs without one, as fbgcomp fit)."),
+            csv_out: Path = typer.Option(Path("comparison.csv"), "--csv", help="Pooled table, ranked per axis (CSV)."),
+            campaign_csv: Optional[Path] = typer.Option(None, "--campaign-csv", help="Per held-out campaign table with the uncompensated row and harm marks (CSV; default: <csv stem>_by_campaign.csv beside --csv)."),
+            json_out: Path = typer.Option(Path("comparison.json"), "--json", help="Everything (JSON)."),
+            markdown: Optional[Path] = typer.Option(None, "--markdown", help="Also write the per-campaign tables as Markdown.")):
+    """Every model type fitted on --train and judged on each --test campaign beside no compensation
+    (rows marked WORSE where an axis ends worse than uncompensated), then pooled and ranked per axis."""
+    from .compare import compare as run, default_campaign_csv, format_comparison, write_comparison
 
-    result = run(_read_campaigns(train), _read_campaigns(test), machine=_machine(machine))
+    result = run(_read_campaigns(train), _read_campaigns(test), machine=machine)
     typer.echo(format_comparison(result))
-    write_comparison(result, csv_out, json_out)
-    typer.echo(f"\ntable written to {csv_out} and {json_out}")
+    campaign_csv = campaign_csv or default_campaign_csv(csv_out)
+    write_comparison(result, csv_out, json_out, campaign_csv, markdown)
+    typer.echo(f"\ntables written to {csv_out}, {campaign_csv} and {json_out}"
+               + (f" (Markdown: {markdown})" if markdown else ""))
 
 
 @app.command()

@@ -1,11 +1,15 @@
 """Cross-campaign comparison of every model type and feature set (``fbgcomp compare``).
 
-Each entry is fitted on the training campaigns and judged on the test campaigns it never saw
-(pooled samples): per axis max |error| µm, RMS µm, max error as % of the peak, and the 95 %
-interval coverage where the entry gives intervals. The table is ranked per axis by max |error|
-and written as CSV and JSON (atomically).
+Each entry is fitted on the training campaigns and judged on the test campaigns it never saw,
+**per held-out campaign** and pooled: per axis max |error| µm, RMS µm, max error as % of the
+peak, the 95 % interval coverage where the entry gives intervals, and load-plateau errors where
+a campaign has loads. Every campaign's table begins with the ``uncompensated`` row (the error of
+a machine without compensation is its deviation itself) and marks every axis where an entry ends
+worse than that (do-no-harm, :data:`fbgcomp.metrics.HARM_TOLERANCE_UM`). The pooled table is
+ranked per axis by max |error|. Written as CSV (pooled; per campaign), JSON and Markdown,
+each atomically.
 
-Entries: ``mra`` with eq11, eq13, eq12 and eq13 stepwise; ``ridge`` and ``pls`` (partial least
+Entries: ``physical`` (the default model of ``fbgcomp fit``); ``mra`` with eq11, eq13, eq12 and eq13 stepwise; ``ridge`` and ``pls`` (partial least
 squares) on eq13, both with their complexity (ridge penalty, number of PLS components) chosen by
 blocked cross-validation over contiguous time blocks of the training data (autocorrelated
 samples make random folds optimistic); ``dynamic`` (eq13 + first-order filtered temperatures);
@@ -17,8 +21,6 @@ from __future__ import annotations
 
 import csv
 import io
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +31,7 @@ from .models import AXES, MRAModel
 
 #: (name, model type, feature set, options)
 ENTRIES = (
+    ("physical", "physical", "-", {}),
     ("mra eq11", "mra", "eq11", {}),
     ("mra eq13", "mra", "eq13", {}),
     ("mra eq12", "mra", "eq12", {}),
@@ -172,9 +175,19 @@ class _DesignModel:
 
 
 # ---------------------------------------------------------------------------- comparison
-def _make(kind, features, options, machine):
+#: The row every held-out campaign is judged against: no compensation, so the error is the
+#: reference deviation itself (max |error| = peak, RMS = RMS of the deviation).
+UNCOMPENSATED = "uncompensated"
+
+
+def _make(kind, features, options, machine, machine_given):
     from .model_types import CalibratedModel, DynamicModel, HybridModel, KinematicModel
 
+    if kind == "physical":
+        from .physical import PhysicalModel
+
+        # as `fbgcomp fit` with no flags: the machine description only when one was given
+        return PhysicalModel(machine=machine if machine_given else None, **options)
     if kind == "mra":
         return MRAModel(features=features, fallbacks="none", **options)
     if kind in ("ridge", "pls"):
@@ -190,46 +203,188 @@ def _make(kind, features, options, machine):
     raise ValueError(kind)
 
 
-def compare(train, test, *, machine=None, entries=ENTRIES, progress=None) -> dict:
-    """Fit every entry on ``train`` campaigns, judge on ``test`` campaigns.
+def _campaign_names(campaigns):
+    """Names of the held-out campaigns (campaign.yaml ``name``), made unique by a #2, #3 suffix."""
+    names, seen = [], {}
+    for c in campaigns:
+        n = c.meta.name
+        seen[n] = seen.get(n, 0) + 1
+        names.append(n if seen[n] == 1 else f"{n}#{seen[n]}")
+    return names
 
-    Returns ``{"train": [...], "test": [...], "rows": [...], "ranking": {axis: [names]}}``;
-    each row has name, model type, features, axis, max_abs_error_um, rms_error_um,
-    error_pct_of_peak, peak_um, pi95_coverage (or None), and per-campaign metrics.
+
+def _campaign_row(campaign, name, kind, features, axis, m, plateau):
+    p = (plateau or {}).get("axes", {}).get(axis, {})
+    return {"campaign": campaign, "axis": axis, "name": name, "model_type": kind, "features": features,
+            "max_abs_error_um": m["max_abs_error_um"], "rms_error_um": m["rms_error_um"],
+            "uncompensated_max_um": m["uncompensated_max_um"],
+            "uncompensated_rms_um": m["uncompensated_rms_um"], "harm": bool(m["harm"]),
+            "error_pct_of_peak": m["error_pct_of_peak"], "pi95_coverage": m.get("pi95_coverage"),
+            "plateau_max_error_um": p.get("max_plateau_error_um"),
+            "plateau_deflection_um": p.get("max_plateau_deflection_um"),
+            "plateau_error_pct_of_deflection": p.get("error_pct_of_deflection")}
+
+
+def compare(train, test, *, machine=None, entries=ENTRIES, progress=None) -> dict:
+    """Fit every entry on ``train`` campaigns, judge on each ``test`` campaign and on all pooled.
+
+    ``machine`` (a :class:`~fbgcomp.structure.Machine`, a path or None for the built-in ram) is
+    the description the kinematic types need; the physical model receives it only when given,
+    as ``fbgcomp fit`` does.
+
+    Returns ``{"train", "test", "rows", "ranking", "failures", "campaigns", "campaign_rows"}``:
+
+    * ``rows``: pooled over the test campaigns, one per entry and axis (name, model type,
+      features, axis, max_abs_error_um, rms_error_um, error_pct_of_peak, peak_um, pi95_coverage
+      or None, harm, and ``per_campaign`` metrics); ``ranking`` orders them per axis;
+    * ``campaign_rows``: one per test campaign, entry and axis, beginning with the
+      ``uncompensated`` row (error = the reference deviation itself); ``harm`` is True where
+      the entry's max |error| exceeds the uncompensated one by more than
+      :data:`fbgcomp.metrics.HARM_TOLERANCE_UM`; load-plateau errors where the campaign has loads;
+    * ``campaigns``: per test campaign, its sample count, whether it has loads, and the names of
+      the entries worse than uncompensated on some axis.
     """
-    rows, failures = [], {}
+    from .metrics import static_level_metrics
+    from .model_types import _machine
+
+    machine_given = machine is not None
+    machine = _machine(machine)          # a bad description fails here, before any fit
+    names = _campaign_names(test)
+    refs = [c.aligned(zero_window_s=10.0) for c in test]
+    campaign_rows, failures = [], {}
+    campaigns = {n: {"n_samples": int(len(a.time_s)), "has_loads": a.loads_N is not None, "harmed_by": {}}
+                 for n, a in zip(names, refs)}
+
+    def add_campaign_rows(name, kind, features, per):
+        for n, a in zip(names, refs):
+            m, plateau = per[n], per[n].get("static_levels")
+            for ax in AXES:
+                campaign_rows.append(_campaign_row(n, name, kind, features, ax, m["axes"][ax], plateau))
+            harmed = [ax for ax in AXES if m["axes"][ax]["harm"]]
+            if harmed:
+                campaigns[n]["harmed_by"][name] = harmed
+
+    def judge(predict):
+        per, pooled_parts = {}, ([], [], [])
+        for c, n, a in zip(test, names, refs):
+            pred, half = predict(c, a)
+            m = validation_metrics(a.reference_um, pred, half)
+            if a.loads_N is not None:
+                m["static_levels"] = static_level_metrics(a.loads_N, a.reference_um, pred)
+            per[n] = m
+            for part, x in zip(pooled_parts, (a.reference_um, pred, half)):
+                part.append(x)
+        return per, pooled_parts
+
+    per, parts = judge(lambda c, a: (np.zeros_like(a.reference_um), None))
+    add_campaign_rows(UNCOMPENSATED, "none", "-", per)
+    results = [(UNCOMPENSATED, "none", "-", per, parts)]
     for name, kind, features, options in entries:
         if progress:
             progress(name)
         try:
-            model = _make(kind, features, options, machine).fit(list(train))
+            model = _make(kind, features, options, machine, machine_given).fit(list(train))
+            per, parts = judge(lambda c, a: model.predict_interval(c))
         except Exception as exc:        # one failing entry must not hide the others
             failures[name] = f"{type(exc).__name__}: {exc}"
             continue
-        refs, preds, halves, per = [], [], [], {}
-        for c in test:
-            pred, half = model.predict_interval(c)
-            ref = c.aligned(zero_window_s=10.0).reference_um
-            per[c.meta.name] = validation_metrics(ref, pred, half)
-            refs.append(ref), preds.append(pred), halves.append(half)
-        has_pi = all(h is not None for h in halves)
-        pooled = validation_metrics(np.vstack(refs), np.vstack(preds),
-                                    np.vstack(halves) if has_pi else None)
+        add_campaign_rows(name, kind, features, per)
+        results.append((name, kind, features, per, parts))
+
+    rows = []
+    for name, kind, features, per, (r, p, h) in results:
+        has_pi = all(x is not None for x in h)
+        pooled = validation_metrics(np.vstack(r), np.vstack(p), np.vstack(h) if has_pi else None)
         for a in AXES:
             m = pooled["axes"][a]
             rows.append({"name": name, "model_type": kind, "features": features, "axis": a,
                          "peak_um": m["peak_um"], "max_abs_error_um": m["max_abs_error_um"],
                          "rms_error_um": m["rms_error_um"], "error_pct_of_peak": m["error_pct_of_peak"],
-                         "pi95_coverage": m.get("pi95_coverage"),
+                         "pi95_coverage": m.get("pi95_coverage"), "harm": bool(m["harm"]),
                          "per_campaign": {k: v["axes"][a] for k, v in per.items()}})
     ranking = {a: [r["name"] for r in sorted((r for r in rows if r["axis"] == a),
                                              key=lambda r: r["max_abs_error_um"])] for a in AXES}
-    return {"train": [c.meta.name for c in train], "test": [c.meta.name for c in test],
-            "rows": rows, "ranking": ranking, "failures": failures}
+    return {"train": [c.meta.name for c in train], "test": names, "rows": rows, "ranking": ranking,
+            "failures": failures, "campaigns": campaigns, "campaign_rows": campaign_rows}
+
+
+def _cell(r):
+    text = f"{r['max_abs_error_um']:.2f} ({r['rms_error_um']:.2f})"
+    return text + (" WORSE" if r["harm"] else "")
+
+
+def _plateau_cell(r):
+    if r["plateau_max_error_um"] is None or r["plateau_deflection_um"] is None:
+        return "-"
+    if r["plateau_deflection_um"] >= PLATEAU_MIN_DEFLECTION_UM:
+        return f"{r['plateau_max_error_um']:.2f} ({r['plateau_error_pct_of_deflection']:.2f} %)"
+    return f"{r['plateau_max_error_um']:.2f}"
+
+
+#: Below this largest plateau deflection an axis is not loaded: its plateau error is given in µm
+#: only (a percentage of a few hundredths of a µm says nothing).
+PLATEAU_MIN_DEFLECTION_UM = 5.0
+
+
+def _by_campaign(result):
+    out = {}
+    for r in result["campaign_rows"]:
+        out.setdefault(r["campaign"], {}).setdefault(r["name"], {})[r["axis"]] = r
+    return out
+
+
+def format_campaign_tables(result: dict) -> str:
+    """Per held-out campaign: every entry's max |error| (RMS) per axis beside the uncompensated
+    row, WORSE where an axis ends worse than uncompensated (+ the harm tolerance)."""
+    from .metrics import HARM_TOLERANCE_UM
+
+    out = [f"per held-out campaign: max |error| µm (RMS µm) per axis; uncompensated = the deviation "
+           f"itself; WORSE = max |error| above uncompensated + {HARM_TOLERANCE_UM:g} µm"]
+    for camp, models in _by_campaign(result).items():
+        info = result["campaigns"][camp]
+        out.append(f"\n== {camp} (held out, {info['n_samples']} samples) ==")
+        out.append(f"  {'model':<20}" + "".join(f"{a:>24}" for a in AXES) + f"{'PI95 cover dx/dy/dz':>22}")
+        for name, axes in models.items():
+            cov = [axes[a]["pi95_coverage"] for a in AXES]
+            cov = "-" if any(c is None for c in cov) else "/".join(f"{c:.2f}" for c in cov)
+            out.append(f"  {name:<20}" + "".join(f"{_cell(axes[a]):>24}" for a in AXES) + f"{cov:>22}")
+        if info["has_loads"]:
+            out.append(f"  load-plateau means: max error µm (% of the largest plateau deflection, "
+                       f"on axes deflected ≥ {PLATEAU_MIN_DEFLECTION_UM:g} µm)")
+            for name, axes in models.items():
+                out.append(f"  {name:<20}" + "".join(f"{_plateau_cell(axes[a]):>24}" for a in AXES))
+        harmed = info["harmed_by"]
+        out.append("  worse than uncompensated: " + ("; ".join(f"{n} ({', '.join(ax)})" for n, ax in harmed.items())
+                                                      if harmed else "none"))
+    return "\n".join(out)
+
+
+def format_campaign_markdown(result: dict) -> str:
+    """The per-campaign tables as Markdown (docs/accuracy.md)."""
+    out = []
+    for camp, models in _by_campaign(result).items():
+        info = result["campaigns"][camp]
+        out.append(f"**{camp}** ({info['n_samples']} samples): max \\|error\\| µm (RMS µm)\n")
+        head = "| model | dx | dy | dz | PI95 dx/dy/dz |"
+        if info["has_loads"]:
+            head += " plateau dx | plateau dy | plateau dz |"
+        out.append(head)
+        out.append("|" + "---|" * (head.count("|") - 1))
+        for name, axes in models.items():
+            cells = [_cell(axes[a]).replace(" WORSE", " **worse**") for a in AXES]
+            cov = [axes[a]["pi95_coverage"] for a in AXES]
+            cells.append("-" if any(c is None for c in cov) else "/".join(f"{c:.2f}" for c in cov))
+            if info["has_loads"]:
+                cells += [_plateau_cell(axes[a]) for a in AXES]
+            out.append(f"| {name} | " + " | ".join(cells) + " |")
+        out.append("")
+    return "\n".join(out)
 
 
 def format_comparison(result: dict) -> str:
-    out = [f"trained on {', '.join(result['train'])}; judged on {', '.join(result['test'])}"]
+    out = [f"trained on {', '.join(result['train'])}; judged on {', '.join(result['test'])}", ""]
+    if result.get("campaign_rows"):
+        out += [format_campaign_tables(result), "", "pooled over all held-out campaigns, ranked per axis:"]
     for a in AXES:
         rows = sorted((r for r in result["rows"] if r["axis"] == a), key=lambda r: r["max_abs_error_um"])
         if not rows:
@@ -239,35 +394,77 @@ def format_comparison(result: dict) -> str:
         for i, r in enumerate(rows, 1):
             cov = "-" if r["pi95_coverage"] is None else f"{r['pi95_coverage']:.3f}"
             out.append(f"{i:>4}  {r['name']:<20}{r['max_abs_error_um']:>12.3f}{r['rms_error_um']:>10.3f}"
-                       f"{r['error_pct_of_peak']:>11.2f}{cov:>11}")
+                       f"{r['error_pct_of_peak']:>11.2f}{cov:>11}" + ("  WORSE" if r.get("harm") else ""))
     for name, why in result.get("failures", {}).items():
         out.append(f"failed: {name}: {why}")
     return "\n".join(out)
 
 
-def write_comparison(result: dict, csv_path=None, json_path=None):
-    """CSV (one row per entry and axis, ranked) and JSON (everything), written atomically."""
-    if json_path is not None:
-        write_json(json_path, result)
-    if csv_path is not None:
-        buf = io.StringIO()
-        cols = ["axis", "rank", "name", "model_type", "features", "max_abs_error_um", "rms_error_um",
-                "error_pct_of_peak", "peak_um", "pi95_coverage"]
-        w = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore")
-        w.writeheader()
+POOLED_COLUMNS = ["axis", "rank", "name", "model_type", "features", "max_abs_error_um", "rms_error_um",
+                  "error_pct_of_peak", "peak_um", "pi95_coverage", "harm"]
+CAMPAIGN_COLUMNS = ["campaign", "axis", "rank", "name", "model_type", "features", "max_abs_error_um",
+                    "rms_error_um", "uncompensated_max_um", "uncompensated_rms_um", "harm",
+                    "error_pct_of_peak", "pi95_coverage", "plateau_max_error_um", "plateau_deflection_um",
+                    "plateau_error_pct_of_deflection"]
+
+
+def _csv_text(rows, cols) -> str:
+    from .atomic import json_safe
+
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore")
+    w.writeheader()
+    for r in rows:
+        # undefined numbers (None, NaN) as empty cells, as in the JSON's null
+        w.writerow({k: ("" if v is None else v) for k, v in json_safe(r).items()})
+    return buf.getvalue()
+
+
+def ranked_rows(result: dict):
+    """Pooled rows ranked per axis by max |error| (the CSV's order), with ``rank``."""
+    out = []
+    for a in AXES:
+        rows = sorted((r for r in result["rows"] if r["axis"] == a), key=lambda r: r["max_abs_error_um"])
+        out += [{**r, "rank": i} for i, r in enumerate(rows, 1)]
+    return out
+
+
+def ranked_campaign_rows(result: dict):
+    """Per-campaign rows in campaign, axis order, each ranked by max |error| (uncompensated included)."""
+    out = []
+    for camp in result.get("test", []):
         for a in AXES:
-            rows = sorted((r for r in result["rows"] if r["axis"] == a), key=lambda r: r["max_abs_error_um"])
-            for i, r in enumerate(rows, 1):
-                w.writerow({**r, "rank": i, "pi95_coverage": "" if r["pi95_coverage"] is None else r["pi95_coverage"]})
-        path = Path(csv_path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
-                fh.write(buf.getvalue())
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+            rows = [r for r in result.get("campaign_rows", []) if r["campaign"] == camp and r["axis"] == a]
+            order = sorted(range(len(rows)), key=lambda i: rows[i]["max_abs_error_um"])
+            rank = {i: k for k, i in enumerate(order, 1)}
+            out += [{**r, "rank": rank[i]} for i, r in enumerate(rows)]
+    return out
 
 
+def default_campaign_csv(csv_path) -> Path:
+    """``comparison.csv`` → ``comparison_by_campaign.csv`` (beside it)."""
+    p = Path(csv_path)
+    return p.with_name(f"{p.stem}_by_campaign{p.suffix or '.csv'}")
+
+
+def write_comparison(result: dict, csv_path=None, json_path=None, campaign_csv_path=None, markdown_path=None):
+    """Pooled ranking (CSV), per-campaign table (CSV), everything (JSON), per-campaign Markdown.
+
+    Every file is written atomically; the CSVs hold the same rows (and ranks) as the JSON's
+    ``rows`` and ``campaign_rows``, undefined numbers as empty cells (null in the JSON).
+    """
+    from .atomic import write_bytes
+
+    texts = []
+    if csv_path is not None:
+        texts.append((csv_path, _csv_text(ranked_rows(result), POOLED_COLUMNS)))
+    if campaign_csv_path is not None:
+        texts.append((campaign_csv_path, _csv_text(ranked_campaign_rows(result), CAMPAIGN_COLUMNS)))
+    if markdown_path is not None:
+        texts.append((markdown_path, format_campaign_markdown(result)))
+    # everything is rendered before the first file is replaced: a failure leaves the old set whole
+    if json_path is not None:
+        write_json(json_path, {**result, "rows": ranked_rows(result),
+                               "campaign_rows": ranked_campaign_rows(result)})
+    for path, text in texts:
+        write_bytes(path, text.encode("utf-8"))
