@@ -223,11 +223,14 @@ def demo(output: Path = typer.Option(Path("demo-out"), "-o", "--output", help="F
          seed: int = typer.Option(0, help="Random seed of the simulated campaigns."),
          quick: bool = typer.Option(False, "--quick", help="6 h thermal campaigns instead of 36 h (for tests)."),
          mesh_resolution: Optional[float] = typer.Option(None, "--mesh-resolution",
-                                                         help="FE mesh refinement (default: the machine's).")):
-    """The main job: simulate, FE-calibrate, fit and validate on the built-in default machine."""
+                                                         help="FE mesh refinement (default: the machine's)."),
+         ram2: Optional[Path] = typer.Option(None, "--ram2", help="The independent ram2 data set (default: "
+                                             "$FBGCOMP_RAM2, else ../shared/reference/ram2 beside the repository).")):
+    """The main job: simulate, FE-calibrate, fit and validate on the built-in default machine, then
+    the default model on the independent ram2 data set beside it (skipped in one line without it)."""
     from .demo import run_demo
 
-    run_demo(output, machine_path=machine, seed=seed, quick=quick, resolution=mesh_resolution)
+    run_demo(output, machine_path=machine, seed=seed, quick=quick, resolution=mesh_resolution, ram2=ram2)
 
 
 @app.command()

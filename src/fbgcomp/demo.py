@@ -7,22 +7,104 @@
 3. FE-calibrate the eq. 11 model and check the FBG resolution (paper sec. 2.3-2.4);
 4. fit the regression on thermal-36h + static-y, validate it on the held-out campaigns;
 5. write metrics (JSON), coefficient tables, figures in the spirit of the paper's figures 6-9,
-   and the HTML report.
+   and the HTML report;
+6. beside the twin, the independent check: the default model (``fbgcomp fit`` with no flags,
+   the physical model) fitted on the ram2 data set's thermal_a + static_xyz with its machine
+   description and judged on thermal_b, thermal_c and static_x, which it never saw. ram2 is
+   found at ``--ram2``, else ``$FBGCOMP_RAM2``, else ``../shared/reference/ram2`` beside the
+   repository; without it the demo says so in one line and carries on.
+
+Both summaries use one table: per held-out campaign and axis, the max |error| (RMS) of each
+model under the uncompensated drift (the error of a machine without compensation); static
+campaigns on load-plateau means in % of the plateau deflection; WORSE where a model leaves an
+axis worse than uncompensated (+ the 0.5 µm harm tolerance).
 """
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from pathlib import Path
 
 
-from .metrics import (format_metrics, format_static_metrics, static_level_metrics,
-                      validation_metrics)
+from .errors import InputError
+from .metrics import (HARM_TOLERANCE_UM, format_metrics, format_static_metrics,
+                      static_level_metrics, validation_metrics)
 
 TRAIN = ("thermal-36h", "static-y")
 ZERO_WINDOW_S = 30.0
 HELD_OUT = ("thermal-36h-b", "static-xyz")
+
+#: The independent data set: where to look, what to fit on and what to judge on (its README).
+RAM2_ENV = "FBGCOMP_RAM2"
+RAM2_TRAIN = ("thermal_a", "static_xyz")
+RAM2_HELD_OUT = ("thermal_b", "thermal_c", "static_x")
+#: Repository root (src/fbgcomp/demo.py → ../..), for the default ram2 place and its machine file.
+REPO = Path(__file__).resolve().parents[2]
+RAM2_MACHINE = REPO / "examples" / "machines" / "ram2.yaml"
+#: Below this largest plateau deflection an axis is not loaded; its plateau error is shown in µm.
+LOADED_UM = 5.0
+
+
+def find_ram2(path=None):
+    """The ram2 ``data`` folder: ``path``, else ``$FBGCOMP_RAM2``, else ../shared/reference/ram2
+    beside the repository (the data set's root or its ``data`` folder). Returns (folder or None,
+    where it was looked for)."""
+    where = path or os.environ.get(RAM2_ENV) or REPO.parent / "shared" / "reference" / "ram2"
+    root = Path(where)
+    for folder in (root / "data", root):
+        if all((folder / n).is_dir() for n in RAM2_TRAIN + RAM2_HELD_OUT):
+            return folder, root
+    return None, root
+
+
+def fit_default(campaigns, machine=None, zero_window_s=10.0):
+    """What ``fbgcomp fit CAMPAIGNS [--machine M] -o FILE`` fits with no other flag: the physical
+    model (src/fbgcomp/physical.py)."""
+    from .physical import PhysicalModel
+
+    return PhysicalModel(machine=machine, zero_window_s=zero_window_s).fit(list(campaigns))
+
+
+def judge(model, campaign, zero_window_s=None) -> dict:
+    """validation_metrics of ``model`` on ``campaign``, with load-plateau errors when it has loads."""
+    zero = model.zero_window_s if zero_window_s is None else zero_window_s
+    aligned = campaign.aligned(zero_window_s=zero)
+    pred, half = model.predict_interval(campaign)
+    m = validation_metrics(aligned.reference_um, pred, half)
+    if aligned.loads_N is not None:
+        m["static_levels"] = static_level_metrics(aligned.loads_N, aligned.reference_um, pred)
+    m["kind"] = campaign.meta.kind
+    return m
+
+
+def run_ram2(ram2=None, out=None) -> dict:
+    """The independent check on ram2 (see the module docstring).
+
+    Returns ``{"skipped": one-line reason}`` when the data set or its machine description is
+    missing or unreadable, else the data set's place, the model id and per held-out campaign
+    the metrics of :func:`judge`. The model is saved to ``out/ram2_model.json`` when ``out``.
+    """
+    from .campaign import read_campaign
+
+    data, looked = find_ram2(ram2)
+    if data is None:
+        return {"skipped": f"ram2 not found at {looked} (give --ram2 or set {RAM2_ENV}): "
+                           "independent check skipped, twin figures only"}
+    if not RAM2_MACHINE.is_file():
+        return {"skipped": f"ram2 machine description not found at {RAM2_MACHINE}: independent check skipped"}
+    try:
+        train = [read_campaign(data / n) for n in RAM2_TRAIN]
+        held = [read_campaign(data / n) for n in RAM2_HELD_OUT]
+        model = fit_default(train, RAM2_MACHINE)
+    except InputError as exc:
+        return {"skipped": f"ram2 unreadable ({exc.one_line()}): independent check skipped"}
+    if out is not None:
+        model.save(Path(out) / "ram2_model.json")
+    return {"data": str(data), "machine": str(RAM2_MACHINE), "model_type": model.model_type,
+            "model_id": model.model_id, "trained_on": list(RAM2_TRAIN),
+            "validation": {c.meta.name: judge(model, c) for c in held}}
 
 
 class _Steps:
@@ -39,7 +121,8 @@ class _Steps:
 
 
 def run_demo(out_dir="demo-out", *, machine_path=None, seed=0, quick=False, features="eq13",
-             stepwise=True, quiet=False, report=True, resolution=None) -> dict:
+             stepwise=True, quiet=False, report=True, resolution=None, ram2=None,
+             independent=True) -> dict:
     """Run the demo and return its summary (also written to ``out_dir/metrics.json``)."""
     from .bench import load_scenario, simulate
     from .calibrate import fe_calibrate, format_resolution, resolution_report
@@ -51,7 +134,7 @@ def run_demo(out_dir="demo-out", *, machine_path=None, seed=0, quick=False, feat
 
     out = Path(out_dir)
     (out / "campaigns").mkdir(parents=True, exist_ok=True)
-    step = _Steps(5 + len(TRAIN) + len(HELD_OUT), quiet)
+    step = _Steps(5 + len(TRAIN) + len(HELD_OUT) + bool(independent), quiet)
     machine = load_machine(machine_path)
     twin = Twin(machine, resolution=resolution)
     step(f"built the FE twin of the default ram: {twin.n_dof} degrees of freedom")
@@ -102,6 +185,7 @@ def run_demo(out_dir="demo-out", *, machine_path=None, seed=0, quick=False, feat
             m = validation_metrics(aligned.reference_um, pred, half)
             if aligned.loads_N is not None:
                 m["static_levels"] = static_level_metrics(aligned.loads_N, aligned.reference_um, pred)
+            m["kind"] = c.meta.kind
             summary["models"][key]["validation"][name] = m
             if key != "fe_model":
                 texts.append(format_metrics(m, title=f"held-out {name} — {key} model"))
@@ -118,6 +202,18 @@ def run_demo(out_dir="demo-out", *, machine_path=None, seed=0, quick=False, feat
             write_report([read_campaign(paths[n]) for n in TRAIN + HELD_OUT], regression, out / "report")
     step("wrote figures and the report")
 
+    if independent:
+        summary["ram2"] = run_ram2(ram2, out)
+        if "skipped" in summary["ram2"]:
+            step(summary["ram2"]["skipped"])
+        else:
+            step(f"fitted the default model on ram2 {' + '.join(RAM2_TRAIN)}, judged on "
+                 f"{', '.join(RAM2_HELD_OUT)}")
+            for name, m in summary["ram2"]["validation"].items():
+                texts.append(format_metrics(m, title=f"ram2 held-out {name} — default (physical) model"))
+                if "static_levels" in m:
+                    texts.append(format_static_metrics(m["static_levels"]))
+
     write_json(out / "metrics.json", summary)
     (out / "validation.txt").write_text("\n\n".join(texts) + "\n")
     if not quiet:
@@ -125,28 +221,84 @@ def run_demo(out_dir="demo-out", *, machine_path=None, seed=0, quick=False, feat
     return summary
 
 
+def _cell(m, axis, static):
+    """One table cell: max |error| (RMS) in µm; on a static campaign, the load-plateau error in %
+    of the plateau deflection on a loaded axis (µm on an axis that hardly moves)."""
+    if static:
+        v = m["static_levels"]["axes"][axis]
+        if v["max_plateau_deflection_um"] >= LOADED_UM:
+            return f"{v['error_pct_of_deflection']:.2f} %"
+        return f"{v['max_plateau_error_um']:.2f} µm"
+    a = m["axes"][axis]
+    return f"{a['max_abs_error_um']:.2f} ({a['rms_error_um']:.2f})" + (" WORSE" if a["harm"] else "")
+
+
+def _uncompensated_cell(m, axis, static):
+    if static:
+        v = m["static_levels"]["axes"][axis]
+        if v["max_plateau_deflection_um"] >= LOADED_UM:
+            return f"100 % of {v['max_plateau_deflection_um']:.1f}"
+        return f"{v['max_plateau_deflection_um']:.2f} µm"
+    a = m["axes"][axis]
+    return f"{a['uncompensated_max_um']:.2f} ({a['uncompensated_rms_um']:.2f})"
+
+
+def summary_table(validation: dict, labels: dict) -> list:
+    """The demo's summary table, one block per held-out campaign.
+
+    ``validation``: ``{campaign: {model key: metrics of judge()}}``; ``labels``: model key → name.
+    Rows: the uncompensated drift (max |deviation| and its RMS), then each model.
+    """
+    lines = [f"  held-out max |error| µm (RMS) per axis under the uncompensated drift; static campaigns: "
+             f"load-plateau means, % of the plateau deflection; WORSE = worse than uncompensated "
+             f"+ {HARM_TOLERANCE_UM:g} µm"]
+    for camp, models in validation.items():
+        first = next(iter(models.values()))
+        static = first.get("kind") == "static" and "static_levels" in first
+        lines.append(f"  {'model':<28}{camp + ' dx':>24}{'dy':>24}{'dz':>24}")
+        lines.append(f"  {'uncompensated':<28}" + "".join(f"{_uncompensated_cell(first, a, static):>24}"
+                                                         for a in ("dx", "dy", "dz")))
+        for key, m in models.items():
+            lines.append(f"  {labels.get(key, key):<28}" + "".join(f"{_cell(m, a, static):>24}"
+                                                                  for a in ("dx", "dy", "dz")))
+    harmed = {}
+    for camp, models in validation.items():
+        for key, m in models.items():
+            axes = [a for a, v in m["axes"].items() if v["harm"]]
+            if axes:
+                harmed.setdefault(labels.get(key, key), []).append(f"{camp} {'/'.join(axes)}")
+    lines.append("  worse than uncompensated per sample: "
+                 + ("; ".join(f"{k}: {', '.join(v)}" for k, v in harmed.items()) if harmed else "none"))
+    return lines
+
+
 def _summary_text(summary, res, out) -> str:
     names = {"regression": "regression (paper eq. 13)", "calibrated": "calibrated kinematic",
              "fe_model": "FE-calibrated eq. 11"}
-    lines = ["", f"fbgcomp demo — {summary['machine']}, FE twin with {summary['n_dof']} DOF; "
-                 f"trained on {', '.join(summary['trained_on'])}, zero state {summary['zero_window_s']:g} s",
-             "held-out max |error| per axis, µm (thermal: per sample; static: on load-plateau means, "
-             "% of the plateau deflection)",
-             f"  {'model':<28}{'thermal-36h-b dx':>17}{'dy':>9}{'dz':>8}   {'static-xyz dx':>14}{'dy':>9}"]
+    validation = {}
     for key, info in summary["models"].items():
-        v = info["validation"]
-        th = v.get("thermal-36h-b", {}).get("axes", {})
-        st = v.get("static-xyz", {}).get("static_levels", {}).get("axes", {})
-        cells = [f"{th[a]['max_abs_error_um']:>9.2f}" if a in th else f"{'-':>9}" for a in ("dx", "dy", "dz")]
-        cells[0] = f"{cells[0]:>17}"
-        cells[2] = f"{th['dz']['max_abs_error_um']:>8.2f}" if "dz" in th else f"{'-':>8}"
-        sx = [f"{st[a]['error_pct_of_deflection']:.2f} %" if a in st else "-" for a in ("dx", "dy")]
-        lines.append(f"  {names.get(key, key):<28}{cells[0]}{cells[1]}{cells[2]}   {sx[0]:>14}{sx[1]:>9}")
-    th_peak = {a: m["peak_um"] for a, m in summary["models"]["regression"]["validation"]["thermal-36h-b"]["axes"].items()}
-    lines.append("  true thermal-36h-b drift peaks: " + ", ".join(f"{a} {v:.2f} µm" for a, v in th_peak.items())
-                 + ". Lateral axes are noise- and heat-source-bound with this layout (docs/models.md).")
+        for camp, m in info["validation"].items():
+            validation.setdefault(camp, {})[key] = m
+    lines = ["", f"fbgcomp demo — {summary['machine']}, FE twin with {summary['n_dof']} DOF (twin-only figures: "
+                 f"our own simulator); trained on {', '.join(summary['trained_on'])}, zero state "
+                 f"{summary['zero_window_s']:g} s"]
+    lines += summary_table(validation, names)
+    lines.append("  Lateral axes are noise- and heat-source-bound with this layout (docs/models.md).")
     lines.append("FBG resolution (2σ): " + ", ".join(f"{a} {v['resolution_um']:.3f} µm" for a, v in res["axes"].items())
                  + f"; rank {res['rank']} of {len(res['sensors'])} sensor combinations observable")
+    ram2 = summary.get("ram2")
+    if ram2 is not None and "skipped" in ram2:
+        lines.append("")
+        lines.append(ram2["skipped"])
+    elif ram2 is not None:
+        lines.append("")
+        lines.append(f"independent check — ram2 ({ram2['data']}), a ram we did not simulate: the default model "
+                     f"({ram2['model_type']}, fbgcomp fit --machine examples/machines/ram2.yaml) fitted on "
+                     f"{' + '.join(ram2['trained_on'])}, judged on campaigns it never saw")
+        lines += summary_table({c: {"default": m} for c, m in ram2["validation"].items()},
+                               {"default": f"default ({ram2['model_type']})"})
+        lines.append("  figures of every model type and the targets: docs/accuracy.md")
     lines.append(f"results in {out}/ (regression_model.json, calibrated_model.json, fe_model.json, "
-                 "metrics.json, coefficients.txt, validation.txt, resolution.txt, report/)")
+                 + ("ram2_model.json, " if ram2 is not None and "skipped" not in ram2 else "")
+                 + "metrics.json, coefficients.txt, validation.txt, resolution.txt, report/)")
     return "\n".join(lines)
