@@ -65,7 +65,7 @@ def accumulate(X, y, chunk, **kw):
 @pytest.mark.parametrize("name", DATASETS)
 def test_nist_certified_values(name, chunk, record_property):
     X, y, cert = nist_problem(name)
-    res = ols(X, y) if chunk is None else ols_from_factor(accumulate(X, y, chunk))
+    res = ols(X, y, cov_type="nonrobust") if chunk is None else ols_from_factor(accumulate(X, y, chunk))
     coef_digits = lre(res.params, cert["estimate"]).min()
     record_property("coefficient_digits", round(float(coef_digits), 2))
     assert coef_digits >= 7.0, (name, lre(res.params, cert["estimate"]))
@@ -87,7 +87,7 @@ def test_nist_certified_values(name, chunk, record_property):
 def test_filip_beats_statsmodels_default_pinv(capsys):
     sm = fbgcomp_testing.require("statsmodels.api")
     X, y, cert = nist_problem("Filip")
-    ours = lre(ols(X, y).params, cert["estimate"]).min()
+    ours = lre(ols(X, y, cov_type="nonrobust").params, cert["estimate"]).min()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")            # statsmodels rightly warns: it gives up here
         theirs = lre(sm.OLS(y, X).fit().params, cert["estimate"]).min()
@@ -101,7 +101,7 @@ def test_filip_is_chunking_and_merge_order_invariant_in_double_double():
     # Filip (kappa ~ 5e9) switches the data pass to double-double: every way of streaming it
     # gives the same coefficients to far below the 7 certified digits the double pass could keep.
     X, y, cert = nist_problem("Filip")
-    one_shot = ols(X, y)
+    one_shot = ols(X, y, cov_type="nonrobust")
     bounds = [0, 27, 54, 82]
     parts = [accumulate(X[a:b], y[a:b], 3) for a, b in zip(bounds, bounds[1:])]
     assert all(p.extended_ for p in parts)
@@ -166,7 +166,7 @@ def test_agrees_with_statsmodels(with_const):
     sm = fbgcomp_testing.require("statsmodels.api")
     X, y = _well_conditioned(1, with_const=with_const)
     ref = sm.OLS(y, X).fit(method="qr")
-    res = ols(X, y)
+    res = ols(X, y, cov_type="nonrobust")
     assert res.k_constant == int(with_const) == ref.k_constant
     for attr in ("params", "bse", "tvalues", "pvalues"):
         np.testing.assert_allclose(getattr(res, attr), getattr(ref, attr), rtol=1e-10, err_msg=attr)
@@ -209,7 +209,7 @@ def test_confidence_and_prediction_intervals_deliver_their_coverage():
     covered = []
     pi_covered = []
     for _ in range(200):
-        res = ols(X, X @ beta + rng.normal(scale=0.7, size=n))
+        res = ols(X, X @ beta + rng.normal(scale=0.7, size=n), cov_type="nonrobust")
         ci = res.conf_int(0.05)
         covered.append((ci[:, 0] <= beta) & (beta <= ci[:, 1]))
         lo, hi = res.prediction_interval(x_new, alpha=0.05)
@@ -229,7 +229,7 @@ def test_multi_target_fit_equals_separate_fits():
                         target_names=["dx", "dy", "dz"]).update(X, Y)
     for j, axis in enumerate(["dx", "dy", "dz"]):
         joint = acc.ols(target=axis)
-        alone = ols(X, Y[:, j], feature_names=["const", "S1", "S2", "T1"], target_name=axis)
+        alone = ols(X, Y[:, j], feature_names=["const", "S1", "S2", "T1"], target_name=axis, cov_type="nonrobust")
         assert joint.target_name == axis and joint.feature_names == alone.feature_names
         np.testing.assert_allclose(joint.params, alone.params, rtol=1e-12)
         np.testing.assert_allclose([joint.ssr, joint.rsquared], [alone.ssr, alone.rsquared], rtol=1e-12)
@@ -243,7 +243,7 @@ def test_sub_model_from_factor_equals_refit_on_the_columns():
     for cols in (["d", "const"], [3], ["a", "b", "c"], ["const", "c", "a"]):
         sub = ols_from_factor(acc, cols)
         idx = [names.index(c) if isinstance(c, str) else c for c in cols]
-        direct = ols(X[:, idx], y)
+        direct = ols(X[:, idx], y, cov_type="nonrobust")
         assert sub.feature_names == [names[i] for i in idx]
         np.testing.assert_allclose(sub.params, direct.params, rtol=1e-11)
         np.testing.assert_allclose([sub.ssr, sub.rsquared_adj, sub.fvalue],
@@ -260,7 +260,7 @@ def test_chunked_equals_one_shot_equals_merged_in_any_order():
     # from its first chunk, which merge() must reconcile.
     X = X * np.where(np.arange(400) < 100, 1e-3, 1.0)[:, None] ** np.array([0, 1, 0, 1, 0])
     y = X @ np.array([1.0, 2.0, 3.0, 0.1, -1.0]) + np.random.default_rng(0).normal(size=400)
-    reference = ols(X, y)
+    reference = ols(X, y, cov_type="nonrobust")
     chunked = ols_from_factor(accumulate(X, y, 17))
     np.testing.assert_allclose(chunked.params, reference.params, rtol=1e-12)
     np.testing.assert_allclose(chunked.bse, reference.bse, rtol=1e-12)
@@ -363,9 +363,13 @@ def test_summary_is_a_table_one_style_report():
     res = ols(X, y, feature_names=["Intercept", "FBG1", "FBG2", "FBG3", "dT_bulk"], target_name="dz")
     text = res.summary()
     for word in ("Intercept", "dT_bulk", "estimate", "std error", "P>|t|", "[0.025", "0.975]",
-                 "R-squared", "Adj. R-squared", "Residual SD", "F-statistic", "n: 300"):
+                 "R-squared", "Adj. R-squared", "Residual SD", "Wald F (HAC)", "n: 300",
+                 "Covariance: HAC (Newey-West", "effective sample size"):
         assert word in text, word
     assert f"{res.params[4]:.6g}" in text and f"{res.bse[4]:.4g}" in text
+    naive = ols(X, y, feature_names=["Intercept", "FBG1", "FBG2", "FBG3", "dT_bulk"],
+                target_name="dz", cov_type="nonrobust").summary()
+    assert "F-statistic" in naive and "Covariance: nonrobust" in naive
 
 
 # --------------------------------------------------------------------------------------------
@@ -420,7 +424,7 @@ def test_stepwise_picks_exactly_the_true_terms(direction):
                                                  else ["enter"] * 3)
     _check_history_against_statsmodels(sw, X, y, names, ["const"],
                                        start=names[1:] if direction == "backward" else ())
-    np.testing.assert_allclose(sw.result.params, ols(X[:, [0, 1, 3, 7]], y).params, rtol=1e-11)
+    np.testing.assert_allclose(sw.result.params, ols(X[:, [0, 1, 3, 7]], y, cov_type="nonrobust").params, rtol=1e-11)
     text = sw.summary()
     assert "enter" in text or "remove" in text
     assert "T2" in text and "Adj. R-squared" in text
@@ -517,3 +521,170 @@ def test_merge_with_a_weight_equals_weighted_rows():
 def test_chunking_invariance_near_zero_rsquared():
     """The case Hypothesis found: one column, no intercept, R² ~ 8e-7 (seed 107, n 107, cut 0.5)."""
     test_chunking_invariance.hypothesis.inner_test(seed=107, n=107, p=1, k=3, cuts=[0.5])
+
+
+# --------------------------------------------------------------------------------------------
+# Autocorrelation-robust (Newey-West / HAC) inference: issue 12
+# --------------------------------------------------------------------------------------------
+
+def _ar1(rng, n, phi, scale=1.0):
+    e = np.zeros(n)
+    shocks = rng.normal(scale=scale, size=n)
+    for i in range(1, n):
+        e[i] = phi * e[i - 1] + shocks[i]
+    return e
+
+
+def _drift_problem(seed=3, n=700):
+    """Slow regressors (a random walk, a sine) and AR(1) errors: the naive SE is too small."""
+    rng = np.random.default_rng(seed)
+    X = np.column_stack([np.ones(n), np.cumsum(rng.normal(size=n)), rng.normal(size=n),
+                         np.sin(np.arange(n) / 40.0)])
+    y = X @ [1.0, 0.3, -0.2, 2.0] + _ar1(rng, n, 0.9)
+    return X, y
+
+
+@pytest.mark.parametrize("maxlags", [1, 7, 64])
+def test_hac_standard_errors_equal_statsmodels(maxlags):
+    sm = fbgcomp_testing.require("statsmodels.api")
+    X, y = _drift_problem()
+    ref = sm.OLS(y, X).fit(cov_type="HAC", cov_kwds={"maxlags": maxlags}, use_t=True)
+    res = ols(X, y, maxlags=maxlags)
+    assert res.cov_type == "HAC" and res.cov_kwds["maxlags"] == maxlags
+    np.testing.assert_allclose(res.bse, ref.bse, rtol=1e-8)
+    np.testing.assert_allclose(res.cov_params(), ref.cov_params(), rtol=1e-8,
+                               atol=1e-10 * np.abs(ref.cov_params()).max())
+    np.testing.assert_allclose(res.tvalues, ref.tvalues, rtol=1e-8)
+    np.testing.assert_allclose(res.pvalues, ref.pvalues, rtol=1e-6, atol=1e-300)
+    np.testing.assert_allclose(res.conf_int(0.1), ref.conf_int(0.1), rtol=1e-8)
+    assert res.fvalue == pytest.approx(float(ref.fvalue), rel=1e-8)
+    # streamed in uneven chunks through the lag carry, with other bandwidths kept beside it
+    acc = QRAccumulator(4, 1, hac_lags=[maxlags, 3, 200])
+    for lo, hi in [(0, 5), (5, 93), (93, 94), (94, 600), (600, 700)]:
+        acc.update(X[lo:hi], y[lo:hi])
+    np.testing.assert_allclose(ols_from_factor(acc, maxlags=maxlags).bse, ref.bse, rtol=1e-8)
+    # a wide bandwidth goes through the cumulative-sum path; a long series through several blocks
+    wide = ols(X, y, maxlags=200)
+    ref_wide = sm.OLS(y, X).fit(cov_type="HAC", cov_kwds={"maxlags": 200})
+    np.testing.assert_allclose(wide.bse, ref_wide.bse, rtol=1e-8)
+
+
+def test_hac_of_separate_series_and_weights_equals_statsmodels_per_series_sum():
+    """Campaigns are separate series (no lag spans two) with row weights (WLS): the meat is the
+    sum of each series' Newey-West meat of the weighted scores, which statsmodels gives per
+    series; merging accumulators with a weight equals accumulating weighted rows."""
+    sm = fbgcomp_testing.require("statsmodels.api")
+    sw = fbgcomp_testing.require("statsmodels.stats.sandwich_covariance")
+    rng = np.random.default_rng(5)
+    parts, L = [], 9
+    for n, w in [(300, 0.4), (120, 2.5)]:
+        X, y = _drift_problem(seed=int(rng.integers(1000)), n=n)
+        parts.append((X, y, w))
+    X = np.vstack([p[0] for p in parts])
+    y = np.concatenate([p[1] for p in parts])
+    w = np.concatenate([np.full(len(p[1]), p[2]) for p in parts])
+    fit = sm.WLS(y, X, weights=w).fit()
+    scores = fit.model.wexog * fit.wresid[:, None]
+    meat, start = 0.0, 0
+    for p in parts:
+        meat = meat + sw.S_hac_simple(scores[start:start + len(p[1])], nlags=L)
+        start += len(p[1])
+    bread = np.linalg.inv(fit.model.wexog.T @ fit.model.wexog)
+    expected = np.sqrt(np.diag(bread @ meat @ bread))
+
+    acc = QRAccumulator(4, 1, hac_lags=[L])
+    for Xp, yp, wp in parts:
+        acc.update(Xp[:50], yp[:50], weights=wp).update(Xp[50:], yp[50:], weights=wp)
+        acc.end_series()
+    np.testing.assert_allclose(ols_from_factor(acc).bse, expected, rtol=1e-8)
+    merged = QRAccumulator(4, 1, hac_lags=[L])
+    for Xp, yp, wp in parts:
+        merged.merge(QRAccumulator(4, 1, hac_lags=[L]).update(Xp, yp), weight=wp)
+    np.testing.assert_allclose(ols_from_factor(merged).bse, expected, rtol=1e-8)
+    again = QRAccumulator.from_dict(json.loads(json.dumps(merged.to_dict())))
+    np.testing.assert_allclose(ols_from_factor(again).bse, expected, rtol=1e-8)
+
+
+def test_naive_standard_errors_are_too_small_under_ar1_errors_and_hac_ones_are_not():
+    """Monte Carlo: a regressor that drifts slowly and AR(1) errors (phi 0.9). The naive 95 %
+    interval of its coefficient covers the truth far less than 95 % of the time; the HAC one
+    (Andrews bandwidth) comes close."""
+    rng = np.random.default_rng(11)
+    n, trials, slope = 400, 200, 0.3
+    hits = {"HAC": 0, "nonrobust": 0}
+    for _ in range(trials):
+        x = _ar1(rng, n, 0.95)
+        X = np.column_stack([np.ones(n), x])
+        y = X @ [1.0, slope] + _ar1(rng, n, 0.9)
+        for cov_type in hits:
+            lo, hi = ols(X, y, cov_type=cov_type).conf_int(0.05)[1]
+            hits[cov_type] += lo <= slope <= hi
+    naive, hac = hits["nonrobust"] / trials, hits["HAC"] / trials
+    assert naive < 0.7, hits          # theory for these phis: about 0.45
+    assert hac > 0.8, hits
+    assert hac - naive > 0.2, hits
+
+
+def test_stepwise_hac_rejects_spurious_random_walks_that_naive_f_tests_admit():
+    """y depends on two slow regressors; six independent random walks are irrelevant, and the
+    error is AR(1) (phi 0.98, the residual of a slow thermal drift). Naive partial F tests take
+    random walks in (spurious regression); Newey-West Wald tests select far fewer of them."""
+    n = 3000
+    spurious = {"nonrobust": 0, "HAC": 0}
+    missed = {"nonrobust": 0, "HAC": 0}
+    for seed in range(6):
+        rng = np.random.default_rng(100 + seed)
+        t = np.arange(n)
+        x1 = np.sin(2 * np.pi * t / 900.0) + 0.05 * rng.normal(size=n)
+        x2 = np.cos(2 * np.pi * t / 1300.0) + 0.05 * rng.normal(size=n)
+        walks = np.cumsum(rng.normal(size=(n, 6)), axis=0)
+        X = np.column_stack([np.ones(n), x1, x2, walks])
+        y = 2.0 * x1 - 1.0 * x2 + _ar1(rng, n, 0.98, scale=0.2)
+        names = ["const", "x1", "x2"] + [f"rw{i}" for i in range(6)]
+        acc = QRAccumulator(9, 1, feature_names=names, hac_lags="auto").update(X, y)
+        for cov_type in spurious:
+            sw = stepwise(acc, include=["const"], cov_type=cov_type)
+            spurious[cov_type] += sum(s.startswith("rw") for s in sw.selected)
+            missed[cov_type] += sum(s not in sw.selected for s in ("x1", "x2"))
+            assert sw.cov_type == cov_type and sw.result.cov_type == cov_type
+    assert missed == {"nonrobust": 0, "HAC": 0}
+    assert spurious["nonrobust"] >= 15, spurious       # most of the 36 walks
+    assert spurious["HAC"] <= spurious["nonrobust"] / 3, spurious
+
+
+def test_stepwise_hac_history_is_the_wald_test_of_the_bigger_model():
+    X, y = _drift_problem(n=500)
+    acc = QRAccumulator(4, 1, feature_names=["const", "rw", "noise", "sine"], hac_lags=16)
+    acc.update(X, y)
+    sw = stepwise(acc, include=["const"], maxlags=16)
+    assert "Newey-West (HAC) Wald tests" in sw.summary()
+    model = []
+    for h in sw.history:
+        model = model + [h["term"]] if h["action"] == "enter" else [m for m in model if m != h["term"]]
+        big = model if h["action"] == "enter" else model + [h["term"]]
+        cols = ["const"] + [c for c in acc.feature_names if c in big]
+        res = ols_from_factor(acc, cols, maxlags=16)
+        i = cols.index(h["term"])
+        assert h["F"] == pytest.approx(res.tvalues[i] ** 2, rel=1e-8)
+        assert h["maxlags"] == 16
+    naive = stepwise(acc, include=["const"], cov_type="nonrobust")
+    assert naive.cov_type == "nonrobust" and "partial F tests" in naive.summary()
+    with pytest.raises(ValueError, match="hac_lags"):
+        stepwise(QRAccumulator(4, 1).update(X, y), cov_type="HAC")
+    with pytest.raises(ValueError, match="bandwidths"):
+        ols_from_factor(acc, maxlags=5)
+
+
+def test_hac_prediction_interval_uses_the_robust_covariance():
+    X, y = _drift_problem()
+    res = ols(X, y, maxlags=32)
+    naive = ols(X, y, cov_type="nonrobust")
+    X_new = X[::50] * 1.5
+    lo, hi = res.prediction_interval(X_new)
+    t = __import__("scipy").stats.t.ppf(0.975, res.df_resid)
+    var = res.mse_resid + np.einsum("ni,ij,nj->n", X_new, res.cov_params(), X_new)
+    np.testing.assert_allclose((hi - lo) / 2, t * np.sqrt(var), rtol=1e-10)
+    nlo, nhi = naive.prediction_interval(X_new)
+    assert np.all(hi - lo >= nhi - nlo)
+    np.testing.assert_allclose(res.bse_nonrobust, naive.bse, rtol=1e-12)
+

@@ -74,6 +74,14 @@ _DD_BLOCK_ROWS = 2048
 # ~10 of the 16 digits: the "auto" precision switches the data pass to double-double.
 _KAPPA_EXTENDED = 1e6
 _PRECISIONS = ("auto", "double", "double-double")
+# Largest Newey-West bandwidth (lags) of the default grid of an autocorrelation-robust fit.
+HAC_MAX_LAG = 4096
+# Rows per pass of the lagged-score accumulation: bounds its temporaries (rows + carried lags).
+_HAC_BLOCK_ROWS = 8192
+# Bartlett sums up to this bandwidth are formed by shifted additions (exact to a few ulps);
+# wider ones through two cumulative sums over a block of at most _HAC_BLOCK_ROWS + L rows.
+_HAC_DIRECT_MAX_LAG = 32
+COV_TYPES = ("HAC", "nonrobust")
 
 
 class RankDeficientError(InputError, ValueError):
@@ -285,6 +293,75 @@ def _names(names: Sequence[str] | None, count: int, default: list[str], what: st
     return names
 
 
+def hac_lag_grid(hac_lags) -> list[int] | None:
+    """Bandwidths (Newey-West lags) whose lagged score sums an accumulator keeps.
+
+    ``None`` or ``False``: none (naive inference only). ``True`` or ``"auto"``: 1, 2, 4, ...,
+    :data:`HAC_MAX_LAG`. An int L: the powers of two below L, and L. A sequence: those lags.
+    Lag 1 is always included: the residual's lag-1 autocorrelation chooses the bandwidth.
+    """
+    if hac_lags is None or hac_lags is False:
+        return None
+    if hac_lags is True or (isinstance(hac_lags, str) and hac_lags == "auto"):
+        hac_lags = HAC_MAX_LAG
+    if isinstance(hac_lags, (int, np.integer)):
+        top = int(hac_lags)
+        if top < 1:
+            raise ValueError(f"hac_lags must be at least 1, not {hac_lags!r}")
+        lags = {1 << k for k in range(top.bit_length()) if (1 << k) <= top} | {top}
+    else:
+        try:
+            lags = {int(v) for v in hac_lags}
+        except (TypeError, ValueError):
+            raise ValueError(f"hac_lags must be None, True, 'auto', an int or a sequence of "
+                             f"ints, not {hac_lags!r}") from None
+        if not lags or min(lags) < 1:
+            raise ValueError(f"hac_lags must be positive, not {hac_lags!r}")
+    return sorted(lags | {1})
+
+
+def _bartlett_sums(w: np.ndarray, first: int, lags: Sequence[int]) -> list[np.ndarray]:
+    """For each L in ``lags``: rows ``first..`` of ``sum_{l=1..L} (1 - l/(L+1)) w[i-l]``
+    (rows before 0 count as zero): the Bartlett-weighted past of each row of ``w``."""
+    n = w.shape[0]
+    out = []
+    p_sum = q_sum = None
+    for lag in lags:
+        if lag <= _HAC_DIRECT_MAX_LAG:
+            acc = np.zeros((n - first, w.shape[1]))
+            for l in range(1, lag + 1):
+                lo = first - l
+                if lo >= 0:
+                    acc += (lag + 1 - l) * w[lo:n - l]
+                elif n - l > 0:
+                    acc[-lo:] += (lag + 1 - l) * w[:n - l]
+        else:
+            if p_sum is None:
+                # P[k] = sum_{j<k} w[j],  Q[k] = sum_{j<k} P[j]:
+                # sum_{l=1..L} (L+1-l) w[i-l] = L P[i] - Q[i] + Q[max(i-L, 0)].
+                p_sum = np.zeros((n + 1, w.shape[1]))
+                np.cumsum(w, axis=0, out=p_sum[1:])
+                q_sum = np.zeros((n + 2, w.shape[1]))
+                np.cumsum(p_sum, axis=0, out=q_sum[1:])
+            rows = np.arange(first, n)
+            acc = lag * p_sum[rows] - q_sum[rows] + q_sum[np.maximum(rows - lag, 0)]
+        out.append(acc / (lag + 1))
+    return out
+
+
+def andrews_bartlett_lags(rho: float, nobs: int) -> float:
+    """Andrews (1991) AR(1) plug-in bandwidth of the Bartlett kernel, in lags.
+
+    ``alpha(1) = 4 rho^2 / ((1 - rho)^2 (1 + rho)^2)``, ``S_T = 1.1447 (alpha(1) T)^(1/3)``; the
+    Newey-West weights ``1 - l/(L+1)`` are the Bartlett kernel at ``l / S_T``, so L = S_T - 1.
+    """
+    rho = float(np.clip(rho, -0.999999, 0.999999))
+    if not np.isfinite(rho) or nobs < 2:
+        return 0.0
+    alpha = 4.0 * rho * rho / ((1.0 - rho) ** 2 * (1.0 + rho) ** 2)
+    return max(0.0, 1.1447 * (alpha * nobs) ** (1.0 / 3.0) - 1.0)
+
+
 class QRAccumulator:
     """Streamed Householder QR (TSQR) of ``[X | Y]`` plus the moments needed for inference.
 
@@ -300,6 +377,11 @@ class QRAccumulator:
     precision : {"auto", "double", "double-double"}
         Arithmetic of the data pass (see the module notes). "auto" uses LAPACK double precision
         while the scaled design is well conditioned (kappa <= 1e6) and double-double otherwise.
+    hac_lags : None, True, "auto", int or sequence of int
+        Also keep what autocorrelation-robust (Newey-West, HAC) inference needs, for these
+        bandwidths (see :func:`hac_lag_grid`; default None: naive inference only). Rows are a
+        time series in the order given; :meth:`end_series` starts a new one (another
+        campaign), so no lag spans two series.
 
     Attributes
     ----------
@@ -320,16 +402,29 @@ class QRAccumulator:
         for the total sum of squares without re-reading the data.
     weight_sum_ : float
         Sum of the row weights (equals ``n_obs`` when no weights were given).
+    hac_lags_ : list of int or None
+        Bandwidths of the autocorrelation statistics (None: not kept).
 
     Notes
     -----
     Row weights make it weighted least squares, as statsmodels' WLS defines it: each row enters
     the factor multiplied by ``sqrt(w)``; R² is centred on the weighted mean; ``df_resid`` is
     ``n_obs - p``, so weights are best normalised to a mean of one.
+
+    Autocorrelation statistics (``hac_lags``): with ``a_i`` the scaled (and sqrt-weighted) row
+    ``[x_i | y_i] / s`` and ``u_i = x_i (x) a_i`` (all products ``a_ij a_im``, j a design column),
+    the score of any sub-model S and target t is ``g_i = x_iS e_i`` with ``e_i = a_i . c`` (c
+    holds minus the coefficients on S and 1 on the target), so every entry of its lag-l
+    autocovariance ``sum_i g_i g_{i-l}^T`` is a quadratic form in c of ``sum_i u_i u_{i-l}^T``.
+    The accumulator keeps ``sum u_i u_i^T`` and, per bandwidth L, the Bartlett-weighted
+    ``sum_i u_i (sum_{l<=L} (1 - l/(L+1)) u_{i-l})^T`` (the same for ``a_i``, which gives the
+    residual's autocorrelation), carrying the last max(L) rows between chunks: the Newey-West
+    sandwich of *every* sub-model, hence of every stepwise step, comes without re-reading the
+    data. Memory: (1 + len(grid)) (p (p+k))^2 floats, so keep it for narrow designs.
     """
 
     def __init__(self, n_features: int, n_targets: int = 1, feature_names=None, target_names=None,
-                 *, precision: str = "auto"):
+                 *, precision: str = "auto", hac_lags=None):
         if int(n_features) < 1 or int(n_targets) < 1:
             raise ValueError("n_features and n_targets must be at least 1")
         if precision not in _PRECISIONS:
@@ -352,6 +447,20 @@ class QRAccumulator:
         self.target_mean_ = np.zeros(self.n_targets)
         self.target_css_ = np.zeros(self.n_targets)
         self.weight_sum_ = 0.0
+        self.hac_lags_ = hac_lag_grid(hac_lags)
+        self._hac_reset()
+
+    def _hac_reset(self) -> None:
+        p, q = self.n_features, self.n_features + self.n_targets
+        if self.hac_lags_ is None:
+            self.hac_g0_ = self.hac_k_ = self.hac_ka_ = None
+            self._hac_tail = None
+            return
+        nl = len(self.hac_lags_)
+        self.hac_g0_ = np.zeros((p * q, p * q))          # sum u_i u_i^T
+        self.hac_k_ = np.zeros((nl, p * q, p * q))       # sum u_i (Bartlett past of u)_i^T
+        self.hac_ka_ = np.zeros((nl, q, q))              # sum a_i (Bartlett past of a)_i^T
+        self._hac_tail = np.zeros((0, q))                # last max(L) scaled rows of the series
 
     # -- accumulation --------------------------------------------------------------------------
 
@@ -385,6 +494,8 @@ class QRAccumulator:
         for start in range(0, m, _BLOCK_ROWS):
             stop = min(m, start + _BLOCK_ROWS)
             self._factor_block(X[start:stop], Y[start:stop], self.n_obs + stop)
+        if self.hac_lags_ is not None:
+            self._hac_update(np.hstack([X, Y]) / self.scale_)
         # The intercept is found on the unweighted design: a weighted column of ones is not constant.
         self.column_min_ = np.minimum(self.column_min_, X_raw.min(axis=0))
         self.column_max_ = np.maximum(self.column_max_, X_raw.max(axis=0))
@@ -398,6 +509,30 @@ class QRAccumulator:
             css_b = w @ (Y_raw - mean_b) ** 2
         self._merge_moments(w_b, mean_b, css_b)
         self.n_obs += m
+        return self
+
+    def _hac_update(self, a: np.ndarray) -> None:
+        """Add the lagged products of the scaled rows ``a`` (m, q) to the HAC statistics."""
+        p, q = self.n_features, self.n_features + self.n_targets
+        top = max(self.hac_lags_)
+        for start in range(0, a.shape[0], _HAC_BLOCK_ROWS):
+            block = a[start:start + _HAC_BLOCK_ROWS]
+            ext = np.vstack([self._hac_tail, block])
+            first = self._hac_tail.shape[0]
+            u = (ext[:, :p, None] * ext[:, None, :]).reshape(ext.shape[0], p * q)
+            w = np.hstack([u, ext])
+            u_new = u[first:]
+            self.hac_g0_ += u_new.T @ u_new
+            for i, past in enumerate(_bartlett_sums(w, first, self.hac_lags_)):
+                self.hac_k_[i] += u_new.T @ past[:, :p * q]
+                self.hac_ka_[i] += block.T @ past[:, p * q:]
+            self._hac_tail = ext[-top:].copy()
+
+    def end_series(self) -> "QRAccumulator":
+        """Rows added from now on start a new time series (e.g. the next campaign): no lag of
+        the autocorrelation statistics links them to the rows before. Returns self."""
+        if self._hac_tail is not None:
+            self._hac_tail = np.zeros((0, self.n_features + self.n_targets))
         return self
 
     def _scaled_block(self, X: np.ndarray, Y: np.ndarray, top: np.ndarray) -> np.ndarray:
@@ -480,7 +615,15 @@ class QRAccumulator:
             self.weight_sum_ = other.weight_sum_ * weight
             self.target_css_ = self.target_css_ * weight
             self.R_, self.R_lo_ = self.R_ * root, self.R_lo_ * root
+            self.hac_lags_ = None if other.hac_lags_ is None else list(other.hac_lags_)
+            self._hac_reset()
+            if self.hac_lags_ is not None:
+                # a row's weight w scales a_i by sqrt(w), u_i = x_i (x) a_i by w
+                self.hac_g0_ = other.hac_g0_ * weight ** 2
+                self.hac_k_ = other.hac_k_ * weight ** 2
+                self.hac_ka_ = other.hac_ka_ * weight
             return self
+        self._merge_hac(other, weight)
         ratio = root * other.scale_ / self.scale_
         self.R_, self.R_lo_ = _dd_qr_r(np.vstack([self.R_, other.R_ * ratio]),
                                        np.vstack([self.R_lo_, other.R_lo_ * ratio]))
@@ -489,6 +632,28 @@ class QRAccumulator:
         self._merge_moments(other.weight_sum_ * weight, other.target_mean_, other.target_css_ * weight)
         self.n_obs += other.n_obs
         return self
+
+    def _merge_hac(self, other: "QRAccumulator", weight: float) -> None:
+        """Add ``other``'s autocorrelation statistics (brought to this accumulator's scales).
+
+        The two are separate series: no lag spans them (merging pieces of one recording drops
+        the few lags across the cut). If only one side has statistics, the result has none.
+        """
+        if self.hac_lags_ is None or other.hac_lags_ is None:
+            self.hac_lags_ = None
+            self._hac_reset()
+            return
+        if list(other.hac_lags_) != list(self.hac_lags_):
+            raise ValueError(f"cannot merge autocorrelation statistics of different bandwidths "
+                             f"({other.hac_lags_} vs {self.hac_lags_})")
+        p = self.n_features
+        ratio = other.scale_ / self.scale_
+        r_u = (ratio[:p, None] * ratio[None, :]).reshape(-1)       # u = x (x) a
+        f_u = weight ** 2 * np.outer(r_u, r_u)                    # u scales by the weight
+        self.hac_g0_ += other.hac_g0_ * f_u
+        self.hac_k_ += other.hac_k_ * f_u[None]
+        self.hac_ka_ += other.hac_ka_ * (weight * np.outer(ratio, ratio))[None]
+        self.end_series()
 
     def copy(self) -> "QRAccumulator":
         return QRAccumulator.from_dict(self.to_dict())
@@ -582,14 +747,20 @@ class QRAccumulator:
             "target_mean": self.target_mean_.tolist(),
             "target_css": self.target_css_.tolist(),
             "weight_sum": float(self.weight_sum_),
+            "hac": None if self.hac_lags_ is None else {
+                "lags": list(self.hac_lags_), "g0": self.hac_g0_.tolist(),
+                "k": self.hac_k_.tolist(), "ka": self.hac_ka_.tolist(),
+                "tail": self._hac_tail.tolist()},
         }
 
     @classmethod
     def from_dict(cls, state: dict) -> "QRAccumulator":
         """Rebuild an accumulator from :meth:`to_dict` output (e.g. after a JSON round trip)."""
         try:
+            hac = state.get("hac")
             acc = cls(state["n_features"], state["n_targets"], state["feature_names"],
-                      state["target_names"], precision=state.get("precision", "auto"))
+                      state["target_names"], precision=state.get("precision", "auto"),
+                      hac_lags=None if hac is None else hac["lags"])
             q = acc.n_features + acc.n_targets
             acc.n_obs = int(state["n_obs"])
             acc.extended_ = bool(state.get("extended", acc.extended_))
@@ -603,6 +774,13 @@ class QRAccumulator:
             acc.target_mean_ = _field_array(state, "target_mean", (acc.n_targets,))
             acc.target_css_ = _field_array(state, "target_css", (acc.n_targets,))
             acc.weight_sum_ = float(state.get("weight_sum", acc.n_obs))
+            if hac is not None:
+                p, q, nl = acc.n_features, q, len(acc.hac_lags_)
+                acc.hac_g0_ = _field_array(hac, "g0", (p * q, p * q))
+                acc.hac_k_ = _field_array(hac, "k", (nl, p * q, p * q))
+                acc.hac_ka_ = _field_array(hac, "ka", (nl, q, q))
+                tail = np.asarray(hac.get("tail") or np.zeros((0, q)), dtype=float)
+                acc._hac_tail = tail.reshape(-1, q)
         except KeyError as exc:
             raise InputError(f"missing field {exc.args[0]!r} in accumulator state",
                              column=f"field {exc.args[0]}") from None
@@ -625,6 +803,82 @@ def _field_array(state: dict, key: str, shape: tuple[int, ...]) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------
+# Autocorrelation-robust (Newey-West) covariance from the accumulated statistics
+# --------------------------------------------------------------------------------------------
+
+def _resolve_cov_type(acc: "QRAccumulator", cov_type) -> str:
+    if cov_type is None:
+        return "HAC" if acc.hac_lags_ is not None else "nonrobust"
+    if cov_type not in COV_TYPES:
+        raise ValueError(f"cov_type must be one of {COV_TYPES}, not {cov_type!r}")
+    if cov_type == "HAC" and acc.hac_lags_ is None:
+        raise ValueError("cov_type='HAC' needs an accumulator created with hac_lags (it keeps the "
+                         "lagged score sums); pass cov_type='nonrobust' for naive i.i.d. inference")
+    return cov_type
+
+
+def _choose_lag(acc: "QRAccumulator", maxlags, rho: float) -> int:
+    grid = acc.hac_lags_
+    if maxlags is None or (isinstance(maxlags, str) and maxlags == "auto"):
+        want = andrews_bartlett_lags(rho, acc.n_obs)
+        for lag in grid:
+            if lag >= want:
+                return lag
+        return grid[-1]
+    lag = int(maxlags)
+    if lag not in grid:
+        raise ValueError(f"maxlags {lag} is not among the accumulated bandwidths {grid}")
+    return lag
+
+
+def _hac_cov_scaled(acc: "QRAccumulator", cols: list[int], t: int, beta_s: np.ndarray,
+                    r_inv: np.ndarray, ssr_s: float, maxlags=None) -> tuple[np.ndarray, dict]:
+    """Newey-West covariance of the *scaled* coefficients of the sub-model ``cols`` on target t.
+
+    ``beta_s``: scaled coefficients; ``r_inv``: inverse of its scaled triangular factor;
+    ``ssr_s``: scaled residual sum of squares. Returns the covariance and a dict with the
+    bandwidth ``maxlags``, the residual's lag-1 autocorrelation ``rho1`` and the effective
+    sample size ``n_eff`` = n / (residual long-run variance / variance) at that bandwidth.
+    """
+    p, q = acc.n_features, acc.n_features + acc.n_targets
+    c = np.zeros(q)
+    c[cols] = -np.asarray(beta_s, dtype=float)
+    c[p + t] = 1.0
+    i1 = acc.hac_lags_.index(1)
+    # hac_ka_ at L = 1 holds (1/2) sum a_i a_{i-1}^T
+    rho = 2.0 * float(c @ acc.hac_ka_[i1] @ c) / ssr_s if ssr_s > 0 else 0.0
+    lag = _choose_lag(acc, maxlags, rho)
+    il = acc.hac_lags_.index(lag)
+    lrv = ssr_s + 2.0 * float(c @ acc.hac_ka_[il] @ c)
+    n_eff = acc.n_obs * ssr_s / lrv if lrv > 0 else math.nan
+    k = acc.hac_k_[il]
+    meat4 = (acc.hac_g0_ + k + k.T).reshape(p, q, p, q)
+    sub = meat4[np.ix_(cols, range(q), cols, range(q))]
+    omega = np.einsum("imjn,m,n->ij", sub, c, c)
+    bread = r_inv @ r_inv.T
+    cov = bread @ omega @ bread
+    info = {"kernel": "bartlett", "maxlags": int(lag), "rho1": float(rho),
+            "n_eff": float(n_eff), "bandwidth": "andrews-ar1" if maxlags in (None, "auto")
+            else "fixed"}
+    return (cov + cov.T) / 2.0, info
+
+
+def _double_subset(acc: "QRAccumulator", cols: list[int], t: int):
+    """Double-precision factor of the sub-model: (T, scaled beta, T^-1, scaled SSR).
+
+    Enough for test statistics (the double-double path is kept for reported coefficients)."""
+    m = len(cols)
+    sel = cols + [acc.n_features + t]
+    r = np.linalg.qr(acc.R_[:, sel] + acc.R_lo_[:, sel], mode="r")
+    if r.shape[0] < m + 1:
+        r = np.vstack([r, np.zeros((m + 1 - r.shape[0], m + 1))])
+    tri = np.triu(r[:m, :m])
+    r_inv = linalg.lapack.dtrtri(tri, lower=0)[0]
+    beta = r_inv @ r[:m, m]
+    return tri, beta, r_inv, float(r[m, m]) ** 2
+
+
+# --------------------------------------------------------------------------------------------
 # Results
 # --------------------------------------------------------------------------------------------
 
@@ -637,6 +891,14 @@ class OLSResults:
     ``X^T X``. The summary is the coefficient table of the paper's Table 1 (estimate, standard
     error) with t, p and confidence limits added. Normally obtained from
     :func:`ols`, :func:`ols_from_factor` or :meth:`from_dict`.
+
+    ``cov_type``: "nonrobust" is the textbook ``sigma^2 (X^T X)^-1``, right only for independent
+    errors. "HAC" (given ``robust_cov``, the Newey-West sandwich, statsmodels'
+    ``cov_type='HAC'`` without small-sample correction) is right for autocorrelated errors
+    (slow thermal drifts sampled every second): ``bse``, t, p, confidence and prediction
+    intervals and the overall test (then a Wald F on the non-constant terms) all use it;
+    ``cov_kwds`` holds its bandwidth, the residual's lag-1 autocorrelation and the effective
+    sample size.
 
     Attributes
     ----------
@@ -655,7 +917,8 @@ class OLSResults:
 
     def __init__(self, params, r_factor, feature_scale, *, ssr: float, nobs: int, k_constant: int,
                  centered_tss: float, uncentered_tss: float, feature_names: Sequence[str],
-                 target_name: str = "y"):
+                 target_name: str = "y", cov_type: str = "nonrobust", robust_cov=None,
+                 cov_kwds: dict | None = None, const_index: int | None = None):
         self.params = np.asarray(params, dtype=float).copy()
         self._r = np.triu(np.asarray(r_factor, dtype=float))
         self._scale = np.asarray(feature_scale, dtype=float).copy()
@@ -671,6 +934,15 @@ class OLSResults:
         self.uncentered_tss = float(uncentered_tss)
         self.df_resid = self.nobs - m
         self.df_model = m - self.k_constant
+        if cov_type not in COV_TYPES:
+            raise ValueError(f"cov_type must be one of {COV_TYPES}, not {cov_type!r}")
+        if (cov_type == "HAC") != (robust_cov is not None):
+            raise ValueError("cov_type 'HAC' goes with a robust_cov matrix, 'nonrobust' without")
+        self.cov_type = cov_type
+        self.cov_kwds = dict(cov_kwds or {})
+        self.const_index = None if const_index is None else int(const_index)
+        self._robust_cov = (None if robust_cov is None
+                            else np.asarray(robust_cov, dtype=float).reshape(m, m).copy())
 
         with np.errstate(divide="ignore", invalid="ignore"):
             self.mse_resid = self.ssr / self.df_resid if self.df_resid > 0 else math.nan
@@ -678,7 +950,9 @@ class OLSResults:
             # Rows of T^-1 give sqrt(diag((X_s^T X_s)^-1)) without forming the inverse product.
             # LAPACK trtri: the triangular inverse is computed to high relative accuracy.
             self._r_inv = linalg.lapack.dtrtri(self._r, lower=0)[0] if m else np.zeros((0, 0))
-            self.bse = self.resid_sd * np.linalg.norm(self._r_inv, axis=1) / self._scale
+            self.bse_nonrobust = self.resid_sd * np.linalg.norm(self._r_inv, axis=1) / self._scale
+            self.bse = (self.bse_nonrobust if self._robust_cov is None
+                        else np.sqrt(np.clip(np.diag(self._robust_cov), 0.0, None)))
             self.tvalues = self.params / self.bse
             self.pvalues = 2.0 * stats.t.sf(np.abs(self.tvalues), self.df_resid)
             tss = self.centered_tss if self.k_constant else self.uncentered_tss
@@ -689,14 +963,36 @@ class OLSResults:
             if self.df_model > 0 and self.df_resid > 0:
                 self.mse_model = self.ess / self.df_model
                 self.fvalue = float(self.mse_model / self.mse_resid)
+                if self._robust_cov is not None:
+                    self.fvalue = self._wald_f()
                 self.f_pvalue = float(stats.f.sf(self.fvalue, self.df_model, self.df_resid))
             else:
                 self.mse_model = self.fvalue = self.f_pvalue = math.nan
 
+    def _wald_f(self) -> float:
+        """Wald F of "every non-constant coefficient is 0" with the robust covariance."""
+        keep = [i for i in range(self.params.size) if i != self.const_index]
+        if self.k_constant and self.const_index is None:
+            return math.nan
+        b = self.params[keep]
+        v = self._robust_cov[np.ix_(keep, keep)]
+        try:
+            stat = float(b @ np.linalg.solve(v, b))
+        except np.linalg.LinAlgError:
+            return math.nan
+        return stat / len(keep)
+
     # -- inference -----------------------------------------------------------------------------
 
     def cov_params(self) -> np.ndarray:
-        """sigma^2 (X^T X)^-1 = sigma^2 T^-1 T^-T, unscaled."""
+        """Covariance of the coefficients: the Newey-West sandwich when ``cov_type`` is "HAC",
+        else sigma^2 (X^T X)^-1 = sigma^2 T^-1 T^-T, unscaled."""
+        if self._robust_cov is not None:
+            return self._robust_cov.copy()
+        return self.cov_params_nonrobust()
+
+    def cov_params_nonrobust(self) -> np.ndarray:
+        """The naive i.i.d. covariance sigma^2 (X^T X)^-1, whatever ``cov_type``."""
         g = self._r_inv @ self._r_inv.T
         return self.mse_resid * g / np.outer(self._scale, self._scale)
 
@@ -721,14 +1017,21 @@ class OLSResults:
     def prediction_interval(self, X, alpha: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
         """(lower, upper) bounds containing a *new* observation with probability 1 - alpha.
 
-        ``yhat +- t_{1-alpha/2, df_resid} * s * sqrt(1 + ||(x / scale) T^-1||^2)``: the leverage
-        is the squared norm of the row ``x T^-1`` (never ``x (X^T X)^-1 x^T``), stable on
-        ill-conditioned designs.
+        ``yhat +- t_{1-alpha/2, df_resid} * sqrt(s^2 + x Cov x^T)``. Naive: ``x Cov x^T =
+        s^2 ||(x / scale) T^-1||^2``, the squared norm of the row ``x T^-1`` (never
+        ``x (X^T X)^-1 x^T``), stable on ill-conditioned designs. HAC: the robust covariance,
+        applied to the scaled row.
         """
         X = self._design(X)
-        z = (X / self._scale) @ self._r_inv
-        half = (stats.t.ppf(1.0 - alpha / 2.0, self.df_resid) * self.resid_sd
-                * np.sqrt(1.0 + np.sum(z * z, axis=1)))
+        zs = X / self._scale
+        if self._robust_cov is None:
+            z = zs @ self._r_inv
+            var_fit = self.mse_resid * np.sum(z * z, axis=1)
+        else:
+            cov_s = self._robust_cov * np.outer(self._scale, self._scale)
+            var_fit = np.clip(np.einsum("ni,ij,nj->n", zs, cov_s, zs), 0.0, None)
+        half = (stats.t.ppf(1.0 - alpha / 2.0, self.df_resid)
+                * np.sqrt(self.mse_resid + var_fit))
         yhat = X @ self.params
         return yhat - half, yhat + half
 
@@ -768,9 +1071,22 @@ class OLSResults:
         kind = "" if self.k_constant else " (uncentred)"
         lines.append(f"R-squared{kind}: {self.rsquared:.6f}   Adj. R-squared: {self.rsquared_adj:.6f}"
                      f"   Residual SD: {self.resid_sd:.6g} on {self.df_resid} df")
-        lines.append(f"F-statistic: {self.fvalue:.6g} on {self.df_model} and {self.df_resid} df"
+        fname = "Wald F (HAC)" if self.cov_type == "HAC" else "F-statistic"
+        lines.append(f"{fname}: {self.fvalue:.6g} on {self.df_model} and {self.df_resid} df"
                      f"   Prob(F): {_fmt_p(self.f_pvalue)}   n: {self.nobs}")
+        lines.append("Covariance: " + self.cov_description())
         return "\n".join(lines)
+
+    def cov_description(self) -> str:
+        """One line saying which covariance the standard errors come from."""
+        if self.cov_type != "HAC":
+            return "nonrobust (i.i.d. errors assumed; wrong for autocorrelated residuals)"
+        k = self.cov_kwds
+        how = ("Andrews AR(1) bandwidth" if k.get("bandwidth") == "andrews-ar1"
+               else "fixed bandwidth")
+        return (f"HAC (Newey-West, Bartlett kernel, {k.get('maxlags')} lags, {how}); residual "
+                f"lag-1 autocorrelation {k.get('rho1', math.nan):.4f}, effective sample size "
+                f"{k.get('n_eff', math.nan):.4g} of {self.nobs}")
 
     def __repr__(self) -> str:
         return (f"<OLSResults {self.target_name} ~ {' + '.join(self.feature_names)}: "
@@ -795,6 +1111,10 @@ class OLSResults:
             "uncentered_tss": self.uncentered_tss,
             "r_factor": self._r.tolist(),
             "feature_scale": self._scale.tolist(),
+            "cov_type": self.cov_type,
+            "robust_cov": None if self._robust_cov is None else self._robust_cov.tolist(),
+            "cov_kwds": self.cov_kwds,
+            "const_index": self.const_index,
         }
 
     @classmethod
@@ -807,7 +1127,11 @@ class OLSResults:
                        nobs=int(state["nobs"]), k_constant=int(state["k_constant"]),
                        centered_tss=float(state["centered_tss"]),
                        uncentered_tss=float(state["uncentered_tss"]),
-                       feature_names=names, target_name=state.get("target_name", "y"))
+                       feature_names=names, target_name=state.get("target_name", "y"),
+                       cov_type=state.get("cov_type", "nonrobust"),
+                       robust_cov=(None if state.get("robust_cov") is None
+                                   else _field_array(state, "robust_cov", (m, m))),
+                       cov_kwds=state.get("cov_kwds"), const_index=state.get("const_index"))
         except KeyError as exc:
             raise InputError(f"missing field {exc.args[0]!r} in regression model",
                              column=f"field {exc.args[0]}") from None
@@ -827,7 +1151,8 @@ def _fmt_p(p: float) -> str:
 # Fitting
 # --------------------------------------------------------------------------------------------
 
-def ols_from_factor(acc: QRAccumulator, columns=None, target=0) -> OLSResults:
+def ols_from_factor(acc: QRAccumulator, columns=None, target=0, *, cov_type=None,
+                    maxlags=None) -> OLSResults:
     """OLS of one target on a subset of the design columns, from the accumulated factor only.
 
     Parameters
@@ -837,6 +1162,13 @@ def ols_from_factor(acc: QRAccumulator, columns=None, target=0) -> OLSResults:
         Model columns, in the order wanted for the results (None: all, in design order).
     target : int or str
         Target index or name.
+    cov_type : {None, "HAC", "nonrobust"}
+        Covariance behind standard errors, tests and intervals. None: "HAC" (Newey-West) when
+        the accumulator keeps autocorrelation statistics (``hac_lags``), else "nonrobust".
+    maxlags : None, "auto" or int
+        HAC bandwidth: None/"auto" chooses it by Andrews' AR(1) rule from the residual's lag-1
+        autocorrelation (the smallest accumulated bandwidth at or above it); an int must be one
+        of ``acc.hac_lags_``.
 
     Raises
     ------
@@ -869,18 +1201,31 @@ def ols_from_factor(acc: QRAccumulator, columns=None, target=0) -> OLSResults:
     beta = (bh * sy / sx) + (bl * sy / sx)
     const = set(acc.constant_columns)
     centred, uncentred = acc._tss(t)
+    cov_type = _resolve_cov_type(acc, cov_type)
+    robust, info = None, None
+    if cov_type == "HAC":
+        r_inv = linalg.lapack.dtrtri(th, lower=0)[0]
+        cov_s, info = _hac_cov_scaled(acc, cols, t, bh + bl, r_inv, rho * rho, maxlags)
+        robust = cov_s * sy * sy / np.outer(sx, sx)
+    const_pos = [i for i, c in enumerate(cols) if c in const]
     return OLSResults(beta, th, sx, ssr=(rho * sy) ** 2, nobs=acc.n_obs,
-                      k_constant=int(any(c in const for c in cols)), centered_tss=centred,
+                      k_constant=int(bool(const_pos)), centered_tss=centred,
                       uncentered_tss=uncentred, feature_names=names,
-                      target_name=acc.target_names[t])
+                      target_name=acc.target_names[t], cov_type=cov_type, robust_cov=robust,
+                      cov_kwds=info, const_index=const_pos[0] if const_pos else None)
 
 
-def ols(X, y, *, feature_names=None, target_name: str = "y") -> OLSResults:
+def ols(X, y, *, feature_names=None, target_name: str = "y", cov_type: str = "HAC",
+        maxlags=None) -> OLSResults:
     """Ordinary least squares of ``y`` (n,) on the design ``X`` (n, p) exactly as given.
 
     Add a column of ones yourself for an intercept. Column names default to those of a
     DataFrame ``X``, else ``x0..x{p-1}``. Computed by Householder QR (one-chunk
     :class:`QRAccumulator`), never through the normal equations.
+
+    Rows are one time series in order. ``cov_type="HAC"`` (default): Newey-West standard errors
+    (``maxlags`` an int, as statsmodels' ``cov_kwds={"maxlags": L}``, or None for Andrews'
+    AR(1) choice); ``"nonrobust"``: the textbook i.i.d. ones.
     """
     if feature_names is None and hasattr(X, "columns"):
         feature_names = [str(c) for c in X.columns]
@@ -894,8 +1239,14 @@ def ols(X, y, *, feature_names=None, target_name: str = "y") -> OLSResults:
         raise ValueError(f"y must be one target (n,) or (n, 1), got shape {y.shape}")
     if X.ndim != 2 or X.shape[0] != y.shape[0]:
         raise ValueError(f"X must be (n, p) with n = len(y) = {y.shape[0]}, got {X.shape}")
-    acc = QRAccumulator(X.shape[1], 1, feature_names, [target_name]).update(X, y)
-    return ols_from_factor(acc)
+    if cov_type not in COV_TYPES:
+        raise ValueError(f"cov_type must be one of {COV_TYPES}, not {cov_type!r}")
+    lags = None
+    if cov_type == "HAC":
+        lags = (max(1, min(HAC_MAX_LAG, X.shape[0] - 1)) if maxlags in (None, "auto")
+                else [int(maxlags)])
+    acc = QRAccumulator(X.shape[1], 1, feature_names, [target_name], hac_lags=lags).update(X, y)
+    return ols_from_factor(acc, cov_type=cov_type, maxlags=maxlags)
 
 
 # --------------------------------------------------------------------------------------------
@@ -912,9 +1263,11 @@ class StepwiseResult:
         Terms of the final model (forced ``include`` terms too), in model order, which is
         design-column order; equals ``result.feature_names``.
     history : list of dict
-        One dict per step: step, action ('enter' / 'remove'), term, F, p (partial F test with
-        1 and df_resid(bigger model) degrees of freedom), n_terms, ssr, rsquared_adj (of the
-        model after the step).
+        One dict per step: step, action ('enter' / 'remove'), term, F, p (partial F test, or
+        with ``cov_type="HAC"`` the Newey-West Wald test of the term, on 1 and df_resid(bigger
+        model) degrees of freedom), n_terms, ssr, rsquared_adj (of the model after the step);
+        HAC steps also hold the bandwidth ``maxlags`` and effective sample size ``n_eff`` of
+        the bigger model.
     result : OLSResults or None
         Fit of the final model (None if it is empty).
     """
@@ -923,9 +1276,12 @@ class StepwiseResult:
     history: list[dict] = field(default_factory=list)
     result: OLSResults | None = None
     target_name: str = "y"
+    cov_type: str = "nonrobust"
 
     def summary(self) -> str:
-        lines = [f"Stepwise regression of {self.target_name} (partial F tests)",
+        how = ("Newey-West (HAC) Wald tests" if self.cov_type == "HAC"
+               else "partial F tests, i.i.d. errors")
+        lines = [f"Stepwise regression of {self.target_name} ({how})",
                  f"{'step':>4}  {'action':<6} {'term':<16} {'F':>12} {'p':>10} {'terms':>5} "
                  f"{'SSR':>13} {'adj. R2':>9}"]
         for h in self.history:
@@ -1024,14 +1380,22 @@ class _StepState:
 
 def stepwise(acc: QRAccumulator, candidates=None, *, target=0, direction: str = "both",
              p_enter: float = 0.05, p_remove: float = 0.10, max_terms: int | None = None,
-             include: Iterable = (), start=None) -> StepwiseResult:
-    """Stepwise selection by partial F tests, from the accumulated factor only.
+             include: Iterable = (), start=None, cov_type=None, maxlags=None) -> StepwiseResult:
+    """Stepwise selection by partial F (or HAC Wald) tests, from the accumulated factor only.
 
     The paper tunes its regression "with a stepwise regression ... counting or removing a
     factor using ANOVA" (section 3; final model in Table 1). Each step compares two nested
     models differing by one term: ``F = (SSR_small - SSR_big) / (SSR_big / df_resid_big)`` on
     (1, df_resid_big) degrees of freedom. Every step costs one small double-double QR of the
     factor (see :class:`_StepState`), never a pass over the data.
+
+    That F test assumes independent errors. Residuals of slow thermal drifts sampled every
+    second are autocorrelated over hours, and it then gives p ~ 0 to nearly every term.
+    ``cov_type="HAC"`` (the default when the accumulator keeps autocorrelation statistics)
+    tests the term instead by its Newey-West Wald statistic ``b^2 / Var_HAC(b)`` in the bigger
+    model (same F(1, df_resid) reference; bandwidth ``maxlags``, by default Andrews' AR(1)
+    rule per model; see :func:`ols_from_factor`), still from the accumulated statistics only.
+    ``cov_type="nonrobust"`` is the paper's partial F test.
 
     Parameters
     ----------
@@ -1056,6 +1420,8 @@ def stepwise(acc: QRAccumulator, candidates=None, *, target=0, direction: str = 
                          "a term could enter and leave forever")
     if acc.n_obs == 0:
         raise ValueError("no data accumulated yet")
+    cov_type = _resolve_cov_type(acc, cov_type)
+    robust = cov_type == "HAC"
     t = acc.target_index(target)
     forced = acc.column_indices(list(include))
     if candidates is None:
@@ -1085,12 +1451,24 @@ def stepwise(acc: QRAccumulator, candidates=None, *, target=0, direction: str = 
     history: list[dict] = []
     visited = {frozenset(model)}
 
-    def record(action, term, f, pval, ssr):
+    def wald(cols):
+        """HAC Wald F of every term of the model ``cols`` (dict by column), and its HAC info."""
+        _, beta, r_inv, ssr_s = _double_subset(acc, cols, t)
+        cov, info = _hac_cov_scaled(acc, cols, t, beta, r_inv, ssr_s, maxlags)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            f = beta * beta / np.diag(cov)
+        return {c: float(f[i]) for i, c in enumerate(cols)}, info
+
+    def record(action, term, f, pval, ssr, info=None):
         cols = ordered(model)
-        history.append({"step": len(history) + 1, "action": action,
-                        "term": acc.feature_names[term], "F": float(f), "p": float(pval),
-                        "n_terms": len(cols), "ssr": float(ssr),
-                        "rsquared_adj": _adj_r2(acc, cols, t, ssr)})
+        entry = {"step": len(history) + 1, "action": action,
+                 "term": acc.feature_names[term], "F": float(f), "p": float(pval),
+                 "n_terms": len(cols), "ssr": float(ssr),
+                 "rsquared_adj": _adj_r2(acc, cols, t, ssr)}
+        if info is not None:
+            entry["maxlags"] = info["maxlags"]
+            entry["n_eff"] = info["n_eff"]
+        history.append(entry)
 
     def try_enter() -> bool:
         nonlocal current
@@ -1101,15 +1479,21 @@ def stepwise(acc: QRAccumulator, candidates=None, *, target=0, direction: str = 
         for c, drop, after, ok in current.entries():
             if not ok or frozenset(model + [c]) in visited:
                 continue   # collinear with the model (no new information), or a loop
-            f, pval = _partial_f(drop, after, df_big)
+            info = None
+            if robust:
+                fs, info = wald(ordered(model + [c]))
+                f = fs[c]
+                pval = float(stats.f.sf(f, 1, df_big)) if df_big > 0 and not math.isnan(f) else math.nan
+            else:
+                f, pval = _partial_f(drop, after, df_big)
             if not math.isnan(f) and (best is None or f > best[1]):
-                best = (c, f, pval, after)
+                best = (c, f, pval, after, info)
         if best is None or not best[2] < p_enter:
             return False
         model.append(best[0])
         visited.add(frozenset(model))
         current = state()
-        record("enter", best[0], best[1], best[2], current.ssr)
+        record("enter", best[0], best[1], best[2], current.ssr, best[4])
         return True
 
     def try_remove() -> bool:
@@ -1118,13 +1502,18 @@ def stepwise(acc: QRAccumulator, candidates=None, *, target=0, direction: str = 
             return False
         df_big = acc.n_obs - len(current.model)
         worst = None
+        fs, info = wald(current.model) if robust else (None, None)
         for c, rise, after in current.removals():
             if c in forced:
                 continue
             rest = frozenset(d for d in model if d != c)
             if direction == "both" and rest in visited:
                 continue
-            f, pval = _partial_f(rise, current.ssr, df_big)
+            if robust:
+                f = fs[c]
+                pval = float(stats.f.sf(f, 1, df_big)) if df_big > 0 and not math.isnan(f) else math.nan
+            else:
+                f, pval = _partial_f(rise, current.ssr, df_big)
             if not math.isnan(f) and (worst is None or f < worst[1]):
                 worst = (c, f, pval, after)
         if worst is None or not worst[2] > p_remove:
@@ -1132,7 +1521,7 @@ def stepwise(acc: QRAccumulator, candidates=None, *, target=0, direction: str = 
         model.remove(worst[0])
         visited.add(frozenset(model))
         current = state()
-        record("remove", worst[0], worst[1], worst[2], current.ssr)
+        record("remove", worst[0], worst[1], worst[2], current.ssr, info)
         return True
 
     if direction == "backward":
@@ -1145,6 +1534,6 @@ def stepwise(acc: QRAccumulator, candidates=None, *, target=0, direction: str = 
                     pass
 
     final = ordered(model)
-    result = ols_from_factor(acc, final, t) if final else None
+    result = ols_from_factor(acc, final, t, cov_type=cov_type, maxlags=maxlags) if final else None
     return StepwiseResult(selected=[acc.feature_names[c] for c in final], history=history,
-                          result=result, target_name=acc.target_names[t])
+                          result=result, target_name=acc.target_names[t], cov_type=cov_type)
