@@ -229,3 +229,91 @@ def test_balanced_pooling_keeps_a_short_informative_campaign_from_being_diluted(
         gains[mode] = dict(zip(m.axes_["dy"].terms, m.axes_["dy"].params))["dL_S3"]
     assert gains["samples"] < 0.9 * 30.0            # attenuated by the pooled noise (~14 %)
     assert gains["balanced"] == pytest.approx(30.0, rel=0.03)   # 29.6: balanced weights keep it
+
+
+# --------------------------------------------------------------------------------------------
+# Autocorrelation-robust inference (issue 12)
+# --------------------------------------------------------------------------------------------
+
+def test_mra_inference_is_newey_west_by_default_and_the_naive_one_stays_available(truth_campaign, tmp_path):
+    campaign, _ = truth_campaign
+    hac = MRAModel(features="eq13", fallbacks="none").fit(campaign)
+    naive = MRAModel(features="eq13", fallbacks="none", cov_type="nonrobust").fit(campaign)
+    for a in AXES:
+        h, n = hac.axes_[a], naive.axes_[a]
+        assert h.cov_type == "HAC" and n.cov_type == "nonrobust"
+        assert h.hac["maxlags"] >= 1 and 0 < h.hac["n_eff"]
+        np.testing.assert_allclose(h.params, n.params, rtol=1e-12)      # same estimates
+        np.testing.assert_allclose(np.sqrt(np.diag(h.cov)), h.bse, rtol=1e-12)
+        assert not np.allclose(h.bse, n.bse)
+    assert "HAC inference" in hac.summary() and "Newey-West" in hac.summary()
+    assert "nonrobust" in naive.summary()
+    # the file keeps the inference; files written before it were naive and load as such
+    path = hac.save(tmp_path / "hac.json")
+    d = json.loads(path.read_text())
+    assert d["inference"]["cov_type"] == "HAC" and d["axes"]["dz"]["cov_type"] == "HAC"
+    loaded = load_model(path)
+    assert loaded.cov_type == "HAC" and loaded.axes_["dz"].hac == hac.axes_["dz"].hac
+    np.testing.assert_array_equal(loaded.predict_interval(campaign)[1], hac.predict_interval(campaign)[1])
+    old = tmp_path / "old.json"
+    d = json.loads(naive.save(tmp_path / "naive.json").read_text())
+    del d["inference"]
+    for a in AXES:
+        del d["axes"][a]["cov_type"], d["axes"][a]["hac"]
+    old.write_text(json.dumps(d))
+    again = load_model(old)
+    assert again.cov_type == "nonrobust" and again.axes_["dx"].cov_type == "nonrobust"
+    np.testing.assert_array_equal(again.axes_["dx"].bse, naive.axes_["dx"].bse)
+    with pytest.raises(ValueError, match="cov_type"):
+        MRAModel(cov_type="HC0").fit(campaign)
+
+
+def test_campaigns_are_separate_series_in_fit_and_in_the_distributed_reduction(truth_campaign, tmp_path):
+    """fit() ends a series after each campaign, so its HAC statistics equal those of campaigns
+    accumulated apart and merged (fbgcomp.distributed), with balanced weights."""
+    from fbgcomp.distributed import accumulate_paths
+
+    campaign, _ = truth_campaign
+    other, _ = linear_truth_campaign("other", seed=9, duration_s=1800, noise_um=0.05)
+    other_path = write_campaign(other, tmp_path / "other")
+    fitted = MRAModel(features="eq13", fallbacks="none", hac_maxlags=64).fit([campaign, read_campaign(other_path)])
+    reducer = MRAModel(features="eq13", fallbacks="none", hac_maxlags=64)
+    acc, training = accumulate_paths(reducer, [campaign.path, other_path])
+    reduced = reducer.fit_factor(acc, training)
+    for a in AXES:
+        assert fitted.axes_[a].hac["maxlags"] == 64
+        np.testing.assert_allclose(reduced.axes_[a].params, fitted.axes_[a].params, rtol=1e-9)
+        # The meat is a quadratic form of raw products in the residual: on this near-exact fit
+        # (noise 0.05 um on deviations of tens of um) it keeps ~eps (|y| / |e|)^2, about 1e-8.
+        np.testing.assert_allclose(reduced.axes_[a].bse, fitted.axes_[a].bse, rtol=1e-6)
+
+
+def test_stepwise_on_autocorrelated_drift_keeps_fewer_spurious_terms_than_naive_f_tests():
+    """Arrays API: dz is a slow linear function of dT_flange and dL_S1 plus an AR(1) drift
+    residual (phi 0.995 at 1 s: minutes of memory, as an unmodelled thermal lag leaves); the
+    other eq13 regressors are independent slow random walks. Naive partial F tests pick up
+    several of them; the default HAC tests select the two true terms."""
+    rng = np.random.default_rng(4)
+    n = 20000
+    t = np.arange(n)
+    base = {f"dL_S{i}": np.cumsum(rng.normal(scale=0.01, size=n)) for i in range(2, 6)}
+    base["dL_S1"] = np.sin(2 * np.pi * t / 7000.0) + 0.01 * rng.normal(size=n)
+    base["dT_bulk"] = np.cumsum(rng.normal(scale=0.02, size=n))
+    base["dT_surf"] = np.cumsum(rng.normal(scale=0.02, size=n))
+    base["dT_flange"] = 5 * (1 - np.cos(2 * np.pi * t / 11000.0)) + 0.05 * rng.normal(size=n)
+    X = pd.DataFrame({k: base[k] for k in ["dL_S1", "dL_S2", "dL_S3", "dL_S4", "dL_S5",
+                                          "dT_bulk", "dT_surf", "dT_flange"]})
+    drift = np.zeros(n)
+    shocks = rng.normal(scale=0.05, size=n)
+    for i in range(1, n):
+        drift[i] = 0.995 * drift[i - 1] + shocks[i]
+    dz = 3.0 * base["dL_S1"] - 2.5 * base["dT_flange"] + drift
+    y = np.column_stack([drift, drift, dz])
+    chosen = {}
+    for cov_type in ("nonrobust", "HAC"):
+        m = MRAModel(features="eq13", stepwise=True, fallbacks="none", cov_type=cov_type).fit(X, y)
+        chosen[cov_type] = set(m.axes_["dz"].terms) - {"const"}
+    assert {"dL_S1", "dT_flange"} <= chosen["HAC"]
+    spurious = {k: len(v - {"dL_S1", "dT_flange"}) for k, v in chosen.items()}
+    assert spurious["HAC"] < spurious["nonrobust"], chosen
+    assert spurious["HAC"] <= 1, chosen

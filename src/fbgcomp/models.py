@@ -93,6 +93,8 @@ class AxisFit:
     fvalue: float
     f_pvalue: float
     history: list = field(default_factory=list)   # stepwise steps
+    cov_type: str = "nonrobust"                   # "HAC": Newey-West bse, cov, tests
+    hac: dict = field(default_factory=dict)       # HAC bandwidth, lag-1 rho, n_eff
 
     @classmethod
     def from_result(cls, result, history=()):
@@ -103,7 +105,9 @@ class AxisFit:
                    df_resid=float(result.df_resid), nobs=int(result.nobs),
                    rsquared=float(result.rsquared), rsquared_adj=float(result.rsquared_adj),
                    fvalue=float(result.fvalue), f_pvalue=float(result.f_pvalue),
-                   history=[_plain(h) for h in history])
+                   history=[_plain(h) for h in history],
+                   cov_type=getattr(result, "cov_type", "nonrobust"),
+                   hac=_plain(dict(getattr(result, "cov_kwds", {}) or {})))
 
     def to_dict(self) -> dict:
         return {"terms": self.terms, "params": self.params.tolist(), "bse": self.bse.tolist(),
@@ -111,7 +115,7 @@ class AxisFit:
                 "cov_params": self.cov.tolist(), "resid_sd_um": self.resid_sd,
                 "df_resid": self.df_resid, "nobs": self.nobs, "rsquared": self.rsquared,
                 "rsquared_adj": self.rsquared_adj, "fvalue": self.fvalue, "f_pvalue": self.f_pvalue,
-                "stepwise_history": self.history}
+                "stepwise_history": self.history, "cov_type": self.cov_type, "hac": self.hac}
 
     @classmethod
     def from_dict(cls, d: dict) -> "AxisFit":
@@ -122,7 +126,8 @@ class AxisFit:
                    resid_sd=float(d["resid_sd_um"]), df_resid=float(d["df_resid"]),
                    nobs=int(d["nobs"]), rsquared=float(d["rsquared"]),
                    rsquared_adj=float(d["rsquared_adj"]), fvalue=_float_or_nan(d["fvalue"]),
-                   f_pvalue=_float_or_nan(d["f_pvalue"]), history=list(d.get("stepwise_history", [])))
+                   f_pvalue=_float_or_nan(d["f_pvalue"]), history=list(d.get("stepwise_history", [])),
+                   cov_type=d.get("cov_type", "nonrobust"), hac=dict(d.get("hac") or {}))
 
     def table(self) -> str:
         """Paper Table 1 style coefficient table."""
@@ -130,7 +135,16 @@ class AxisFit:
         for name, p, se, t, pv in zip(self.terms, self.params, self.bse, self.tvalues, self.pvalues):
             lines.append(f"{name:<22}{p:>13.5g}{se:>12.4g}{t:>9.2f}{pv:>9.3g}")
         lines.append(f"n = {self.nobs}, R² = {self.rsquared:.5f}, adj. R² = {self.rsquared_adj:.5f}, "
-                     f"residual SD = {self.resid_sd:.4g} µm, F = {self.fvalue:.4g} (p = {self.f_pvalue:.3g})")
+                     f"residual SD = {self.resid_sd:.4g} µm, "
+                     f"{'Wald F (HAC)' if self.cov_type == 'HAC' else 'F'} = {self.fvalue:.4g} "
+                     f"(p = {self.f_pvalue:.3g})")
+        if self.cov_type == "HAC":
+            h = self.hac
+            lines.append(f"std errors: HAC (Newey-West, Bartlett, {h.get('maxlags')} lags); "
+                         f"residual lag-1 autocorrelation {h.get('rho1', float('nan')):.4f}, "
+                         f"effective sample size {h.get('n_eff', float('nan')):.4g} of {self.nobs}")
+        else:
+            lines.append("std errors: nonrobust (i.i.d. errors assumed)")
         return "\n".join(lines)
 
 
@@ -315,13 +329,21 @@ class MRAModel(EstimatorParams, ModelFile):
     campaign_weights : {"balanced", "samples"}
         How campaigns of different lengths are pooled (see :func:`campaign_weights_for`): equal
         total weight per campaign (weighted least squares), or one weight per sample (OLS).
+    cov_type : {"HAC", "nonrobust"}
+        Inference behind the stepwise tests, the coefficient tables and the prediction
+        intervals. "HAC" (default): Newey-West, robust to the residuals' autocorrelation (each
+        campaign a separate series; samples of slow drifts are far from independent).
+        "nonrobust": the paper's i.i.d. partial F tests (its Table 1).
+    hac_maxlags : "auto" or int
+        Newey-West bandwidth: "auto" chooses it per model by Andrews' AR(1) rule among
+        1, 2, 4, ..., 4096 lags; an int fixes it.
     """
 
     model_type = "mra"
 
     def __init__(self, features="eq13", stepwise=False, direction="both", p_enter=0.05,
                  p_remove=0.10, max_terms=None, roles=None, zero_window_s=10.0, fallbacks="loo",
-                 campaign_weights="balanced"):
+                 campaign_weights="balanced", cov_type="HAC", hac_maxlags="auto"):
         self.features = features
         self.stepwise = stepwise
         self.direction = direction
@@ -332,6 +354,8 @@ class MRAModel(EstimatorParams, ModelFile):
         self.zero_window_s = zero_window_s
         self.fallbacks = fallbacks
         self.campaign_weights = campaign_weights
+        self.cov_type = cov_type
+        self.hac_maxlags = hac_maxlags
 
     # -- fitting -------------------------------------------------------------------------
     def _roles(self) -> TemperatureRoles:
@@ -351,6 +375,25 @@ class MRAModel(EstimatorParams, ModelFile):
         if getattr(self, "campaign_weights", "samples") not in CAMPAIGN_WEIGHTS:
             raise ValueError(f"campaign_weights must be one of {', '.join(CAMPAIGN_WEIGHTS)}, "
                              f"not {self.campaign_weights!r}")
+        if getattr(self, "cov_type", "nonrobust") not in ("HAC", "nonrobust"):
+            raise ValueError(f"cov_type must be HAC or nonrobust, not {self.cov_type!r}")
+        lags = getattr(self, "hac_maxlags", "auto")
+        if lags != "auto" and not (isinstance(lags, (int, np.integer)) and not isinstance(lags, bool)
+                                   and lags >= 1):
+            raise ValueError(f"hac_maxlags must be 'auto' or a positive int, not {lags!r}")
+
+    def _hac_lags(self):
+        """Bandwidths the accumulator must keep (None for naive inference)."""
+        if getattr(self, "cov_type", "nonrobust") != "HAC":
+            return None
+        lags = getattr(self, "hac_maxlags", "auto")
+        return "auto" if lags == "auto" else [int(lags)]
+
+    def _new_qr(self, names):
+        from .regression import QRAccumulator
+
+        return QRAccumulator(len(names), len(AXES), feature_names=names, target_names=list(AXES),
+                             hac_lags=self._hac_lags())
 
     def fit(self, X, y=None, *, progress=None):
         """Fit on campaigns (``X`` a campaign, a path or a list of them, ``y`` None) or on arrays.
@@ -359,8 +402,6 @@ class MRAModel(EstimatorParams, ModelFile):
         for eq12/eq13, ``dT_bulk``, ``dT_surf``, ``dT_flange``) and ``y`` an (n, 3) array of
         TTP deviations in µm (dx, dy, dz).
         """
-        from .regression import QRAccumulator
-
         self._check_params()
         if y is not None:
             return self._fit_arrays(X, y)
@@ -373,7 +414,7 @@ class MRAModel(EstimatorParams, ModelFile):
         self.probe_names_ = FeatureMap.required_probes(sensors, uses_t, self._roles())
         self.candidates_ = candidate_terms(self.features, [s.name for s in sensors])
         names = [CONSTANT] + self.candidates_
-        acc = QRAccumulator(len(names), len(AXES), feature_names=names, target_names=list(AXES))
+        acc = self._new_qr(names)
         training = []
         for c in campaigns:
             check_compatible(self, c)
@@ -386,6 +427,7 @@ class MRAModel(EstimatorParams, ModelFile):
             for start in range(0, len(design), _CHUNK_ROWS):
                 stop = start + _CHUNK_ROWS
                 acc.update(design[start:stop], aligned.reference_um[start:stop], weights=weight)
+            acc.end_series()   # no autocorrelation lag spans two campaigns
             training.append({"name": c.meta.name, "kind": c.meta.kind,
                              "path": None if c.path is None else str(c.path),
                              "n_samples": int(len(design)), "row_weight": float(weight),
@@ -404,8 +446,6 @@ class MRAModel(EstimatorParams, ModelFile):
         InputError. Partitions accumulated on other processes with an estimator configured the
         same way merge into it (:meth:`fbgcomp.regression.QRAccumulator.merge`).
         """
-        from .regression import QRAccumulator
-
         self._check_params()
         self.sensors_ = list(sensors)
         self.probe_names_ = FeatureMap.required_probes(self.sensors_, self.features != "eq11",
@@ -418,7 +458,7 @@ class MRAModel(EstimatorParams, ModelFile):
                                  column="field temperature_probes")
         self.candidates_ = candidate_terms(self.features, [s.name for s in self.sensors_])
         names = [CONSTANT] + self.candidates_
-        return QRAccumulator(len(names), len(AXES), feature_names=names, target_names=list(AXES))
+        return self._new_qr(names)
 
     def design_from_arrays(self, wavelength_nm, temperature_C, wavelength_zero_nm,
                            temperature_zero_C):
@@ -445,8 +485,6 @@ class MRAModel(EstimatorParams, ModelFile):
         return self._fit_factor(acc)
 
     def _fit_arrays(self, X, y):
-        from .regression import QRAccumulator
-
         base_names = list(X.columns)
         sensor_names = [c[3:] for c in base_names if c.startswith("dL_")]
         self.sensors_ = None
@@ -455,7 +493,7 @@ class MRAModel(EstimatorParams, ModelFile):
         self._array_base_names = base_names
         names = [CONSTANT] + self.candidates_
         design = design_matrix(X.to_numpy(dtype=float), base_names, self.candidates_)
-        acc = QRAccumulator(len(names), len(AXES), feature_names=names, target_names=list(AXES))
+        acc = self._new_qr(names)
         acc.update(design, np.asarray(y, dtype=float).reshape(len(design), len(AXES)))
         self.training_ = {"campaigns": [], "n_samples": int(len(design))}
         return self._fit_factor(acc)
@@ -479,16 +517,24 @@ class MRAModel(EstimatorParams, ModelFile):
         from .regression import ols_from_factor, stepwise
 
         candidates = [t for t in self.candidates_ if not any(f"dL_{s}" == t for s in exclude)]
+        # HAC needs the accumulator's lagged score sums; subclasses that build their own plain
+        # accumulator (dynamic, hybrid) keep the naive inference, and say so in each AxisFit.
+        cov_type = getattr(self, "cov_type", "nonrobust")
+        if getattr(acc, "hac_lags_", None) is None:
+            cov_type = "nonrobust"
+        maxlags = getattr(self, "hac_maxlags", "auto") if cov_type == "HAC" else None
         axes = {}
         for j, a in enumerate(AXES):
             if self.stepwise:
                 sw = stepwise(acc, candidates, target=j, direction=self.direction,
                               p_enter=self.p_enter, p_remove=self.p_remove,
-                              max_terms=self.max_terms, include=[CONSTANT])
+                              max_terms=self.max_terms, include=[CONSTANT],
+                              cov_type=cov_type, maxlags=maxlags)
                 history = sw.history.to_dict("records") if hasattr(sw.history, "to_dict") else list(sw.history)
                 axes[a] = AxisFit.from_result(sw.result, history)
             else:
-                axes[a] = AxisFit.from_result(ols_from_factor(acc, [CONSTANT] + candidates, target=j))
+                axes[a] = AxisFit.from_result(ols_from_factor(acc, [CONSTANT] + candidates, target=j,
+                                                              cov_type=cov_type, maxlags=maxlags))
         return axes
 
     def _campaign_design(self, campaign, aligned):
@@ -531,7 +577,8 @@ class MRAModel(EstimatorParams, ModelFile):
     # -- reporting and persistence ------------------------------------------------------
     def summary(self) -> str:
         """Table 1 style coefficient table per axis, with the stepwise history."""
-        out = [f"MRA model ({self.features}{', stepwise' if self.stepwise else ''}), "
+        out = [f"MRA model ({self.features}{', stepwise' if self.stepwise else ''}, "
+               f"{self.axes_['dx'].cov_type} inference), "
                f"{self.training_['n_samples']} samples from "
                f"{', '.join(c['name'] for c in self.training_['campaigns']) or 'arrays'}"]
         for a in AXES:
@@ -567,7 +614,11 @@ class MRAModel(EstimatorParams, ModelFile):
             "fallback_policy": self.fallbacks,
             "campaign_weights": getattr(self, "campaign_weights", "samples"),
             "training": self.training_,
-            "uncertainty": {"level": 0.95, "method": "regression: covariance + residual variance"},
+            "inference": {"cov_type": getattr(self, "cov_type", "nonrobust"),
+                          "hac_maxlags": getattr(self, "hac_maxlags", "auto")},
+            "uncertainty": {"level": 0.95, "method": ("regression: HAC (Newey-West) covariance + residual variance"
+                                                      if self.axes_["dx"].cov_type == "HAC" else
+                                                      "regression: covariance + residual variance")},
             "z_axis_mm": None,
         }
         return d
@@ -582,7 +633,10 @@ class MRAModel(EstimatorParams, ModelFile):
                 **({k: sw[k] for k in ("direction", "p_enter", "p_remove", "max_terms")} if sw else {}),
                 roles=f.get("roles"), zero_window_s=d["zero_state"]["window_s"],
                 fallbacks=d.get("fallback_policy", "none"),
-                campaign_weights=d.get("campaign_weights", "samples"))
+                campaign_weights=d.get("campaign_weights", "samples"),
+                # files written before issue 12 were fitted with naive inference
+                cov_type=d.get("inference", {}).get("cov_type", "nonrobust"),
+                hac_maxlags=d.get("inference", {}).get("hac_maxlags", "auto"))
         m.candidates_ = list(f["candidates"])
         m.sensors_ = [SensorSpec(**s) for s in d["sensors"]]
         m.probe_names_ = list(d["probes"])
