@@ -364,7 +364,11 @@ def format_campaign_markdown(result: dict) -> str:
     out = []
     for camp, models in _by_campaign(result).items():
         info = result["campaigns"][camp]
-        out.append(f"**{camp}** ({info['n_samples']} samples): max \\|error\\| µm (RMS µm)\n")
+        legend = "max \\|error\\| µm (RMS µm); **worse** = above uncompensated + 0.5 µm"
+        if info["has_loads"]:
+            legend += (f"; plateau = largest error of the load-plateau means, µm (% of the largest plateau "
+                       f"deflection on axes deflected ≥ {PLATEAU_MIN_DEFLECTION_UM:g} µm)")
+        out.append(f"**{camp}** ({info['n_samples']} samples): {legend}\n")
         head = "| model | dx | dy | dz | PI95 dx/dy/dz |"
         if info["has_loads"]:
             head += " plateau dx | plateau dy | plateau dz |"
