@@ -39,7 +39,11 @@ than 2(p+k) rows so far (``precision="auto"``). Otherwise the data pass is LAPAC
 Inference follows the textbook (and statsmodels) formulas: ``sigma^2 = SSR / (n - |S|)``,
 ``Cov(b) = sigma^2 (X^T X)^-1 = sigma^2 T^-1 T^-T`` (through the triangular inverse, then
 unscaled), Student-t tests and intervals, and the overall F test with R^2 centred when the model
-holds a constant column and uncentred otherwise.
+holds a constant column and uncentred otherwise. Those assume independent errors; for
+autocorrelated ones (slow drifts sampled every second) an accumulator created with
+``hac_lags`` also keeps lagged score sums, and results and stepwise tests then use the
+Newey-West (HAC) sandwich, statsmodels' ``cov_type="HAC"`` (see :class:`QRAccumulator`);
+``cov_type="nonrobust"`` selects the naive formulas.
 """
 
 from __future__ import annotations
@@ -1099,7 +1103,7 @@ class OLSResults:
 
     def to_dict(self) -> dict:
         """Plain JSON-able model (lists and floats). ``bse`` is informative; :meth:`from_dict`
-        recomputes it from the stored factor."""
+        recomputes it from the stored factor (or, for HAC, the stored robust covariance)."""
         return {
             "kind": "fbgcomp.regression.OLSResults",
             "version": 1,
