@@ -14,9 +14,18 @@ noise.
   ``sm.OLS(y, X[:, cols]).fit()`` and compared with ``compare_f_test``.
 
 Both must select the same terms and the same coefficients (1e-8 relative); the script prints
-both times and the ratio (target >= 50x), then one JSON line.
+both times and the ratio (target >= 50x), then one JSON line. Both use the naive i.i.d. partial
+F test (fbgcomp: ``cov_type="nonrobust"``, an accumulator without lag statistics), which is
+what statsmodels' ``compare_f_test`` computes: the comparison stays apples to apples although
+fbgcomp's MRA model now defaults to Newey-West (HAC) tests.
 
     python benchmarks/bench_stepwise.py [--rows 1000000] [--p-enter 0.05] [--p-remove 0.10]
+
+``--ram2 DIR`` instead prints the before/after table of docs/models.md (issue 12): the paper's
+MRA model (eq13, stepwise) fitted on DIR/thermal_a + DIR/static_xyz with naive and with HAC
+inference, judged on thermal_b, thermal_c and static_x (terms, max |error|, PI95 coverage).
+
+    python benchmarks/bench_stepwise.py --ram2 ../shared/reference/ram2/data
 """
 
 from __future__ import annotations
@@ -67,7 +76,8 @@ def fbgcomp_stepwise(X, y, names, p_enter, p_remove):
     acc = QRAccumulator(X.shape[1], 1, feature_names=names, target_names=["dx"])
     for lo in range(0, len(X), 100_000):
         acc.update(X[lo:lo + 100_000], y[lo:lo + 100_000])
-    sw = stepwise(acc, include=["const"], direction="both", p_enter=p_enter, p_remove=p_remove)
+    sw = stepwise(acc, include=["const"], direction="both", p_enter=p_enter, p_remove=p_remove,
+                  cov_type="nonrobust")
     return sw.selected, sw.result.params, len(sw.history), acc.extended_
 
 
@@ -121,13 +131,47 @@ def statsmodels_stepwise(X, y, names, p_enter, p_remove):
     return [names[c] for c in cols], np.asarray(current.params), steps, fits["n"]
 
 
+def ram2_before_after(root: str) -> int:
+    """Naive vs HAC stepwise of the paper's MRA model on ram2: one table per inference."""
+    from pathlib import Path
+
+    from fbgcomp.campaign import read_campaign
+    from fbgcomp.metrics import validation_metrics
+    from fbgcomp.models import AXES, MRAModel
+
+    root = Path(root)
+    train = [read_campaign(root / "thermal_a"), read_campaign(root / "static_xyz")]
+    tests = {name: read_campaign(root / name) for name in ("thermal_b", "thermal_c", "static_x")}
+    print("MRA eq13 stepwise, fit on thermal_a + static_xyz (balanced), held out: "
+          + ", ".join(tests))
+    for cov_type in ("nonrobust", "HAC"):
+        model = MRAModel(features="eq13", stepwise=True, cov_type=cov_type).fit(train)
+        print(f"\n== cov_type={cov_type}")
+        for a in AXES:
+            fit = model.axes_[a]
+            extra = (f"  [{fit.hac['maxlags']} lags, lag-1 rho {fit.hac['rho1']:.3f}, "
+                     f"n_eff {fit.hac['n_eff']:.0f} of {fit.nobs}]" if fit.cov_type == "HAC" else "")
+            print(f"  {a}: {len(fit.terms) - 1} terms: {' '.join(fit.terms[1:])}{extra}")
+        print(f"  {'campaign':<10}" + "".join(f"{a + ' max|err|':>14}{a + ' PI95':>9}" for a in AXES))
+        for name, camp in tests.items():
+            aligned = camp.aligned(zero_window_s=model.zero_window_s)
+            pred, half = model.predict_interval(camp)
+            m = validation_metrics(aligned.reference_um, pred, half)["axes"]
+            print(f"  {name:<10}" + "".join(f"{m[a]['max_abs_error_um']:>14.2f}"
+                                            f"{m[a]['pi95_coverage']:>9.3f}" for a in AXES))
+    return 0
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--ram2", metavar="DIR", help="print the naive vs HAC table on ram2 instead")
     ap.add_argument("--rows", type=int, default=1_000_000)
     ap.add_argument("--p-enter", type=float, default=0.05)
     ap.add_argument("--p-remove", type=float, default=0.10)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
+    if args.ram2:
+        return ram2_before_after(args.ram2)
 
     X, y, names = make_data(args.rows, args.seed)
     print(f"{args.rows} rows, {X.shape[1] - 1} candidate terms + const; stepwise 'both', "
