@@ -27,6 +27,14 @@ def model(ram2):
     return PhysicalModel().fit([ram2["thermal_a"], ram2["static_xyz"]])
 
 
+@pytest.fixture(scope="module")
+def twin_model(ram2):
+    """The default fit as the README gives it: with the machine description (twin-learned
+    thermal map)."""
+    machine = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram2.yaml"
+    return PhysicalModel(machine=machine).fit([ram2["thermal_a"], ram2["static_xyz"]])
+
+
 def _metrics(model, campaign, exclude=frozenset()):
     pred, half = model.predict_interval(campaign, exclude=exclude)
     ref = campaign.aligned(zero_window_s=model.zero_window_s).reference_um
@@ -76,7 +84,37 @@ def test_unseen_radiant_load_does_no_harm_on_dx_and_dz(model, ram2):
     for axis in ("dx", "dz"):
         assert not m["axes"][axis]["harm"], (axis, m["axes"][axis])
     assert m["axes"]["dz"]["max_abs_error_um"] < 0.15 * m["axes"]["dz"]["peak_um"]
-    assert (model.last_flags_ & P.LOAD_REFUSED).any()
+    # the slow thermal drift of the gratings is never read as a load
+    assert not (model.last_flags_ & P.LOAD_REFUSED).any()
+
+
+def test_twin_learned_thermal_map_meets_the_lateral_targets(twin_model, ram2):
+    """thermal_a never heats one face more than the opposite one; the face-gradient physics
+    comes from the twin of ram2.yaml. Issue 12 targets: max <= 50 %, RMS <= 30 % of the peak."""
+    m = _metrics(twin_model, ram2["thermal_b"])
+    for axis in ("dx", "dy"):
+        a = m["axes"][axis]
+        assert a["max_abs_error_um"] <= 0.5 * a["peak_um"], (axis, a)
+        assert a["rms_error_um"] <= 0.3 * a["peak_um"], (axis, a)
+    for name in ("thermal_b", "static_x"):
+        m = _metrics(twin_model, ram2[name])
+        for axis, a in m["axes"].items():
+            assert not a["harm"], (name, axis, a)
+
+
+def test_a_grating_that_jumps_alone_is_not_read_as_a_load(twin_model, ram2):
+    """A step on one grating (a fibre slipping in its bond) matches no load: refused, flagged,
+    and the unloaded axes keep their tiny error."""
+    c = ram2["static_x"]
+    al = c.aligned(zero_window_s=twin_model.zero_window_s)
+    w, t, w0, t0 = twin_model.instrument_arrays(al)
+    w = w.copy()
+    j = twin_model.sensor_names.index("S3")
+    w[len(w) // 2:, j] += 0.006            # +6 pm on S3 alone: ~3 µm of false elongation
+    p = twin_model.predictor()
+    pred, _ = p.predict(w, t, w0, t0, time_s=al.time_s)
+    assert (p.last_flags[:, 1] & P.LOAD_REFUSED).any()
+    assert np.abs(pred[:, 1] - al.reference_um[:, 1]).max() < 1.0
 
 
 def test_a_lost_grating_keeps_the_load_part(model, ram2):

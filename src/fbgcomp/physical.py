@@ -102,6 +102,104 @@ def thermal_regressors(delta_T_K, housing_idx, ambient_idx, lead_tau_s, time_s=N
     return np.hstack(cols), new_state
 
 
+#: Time constants of the housing lead terms of the twin-learned thermal map, s.
+MAP_LEADS_S = (300.0, 1800.0)
+
+
+def map_features(e_um, delta_T_K, housing_idx, time_s=None, state=None, nominal_dt_s=1.0):
+    """Features of the twin-learned thermal map (n, S + P + 2) and the filter state:
+    [uncompensated grating elongations e (µm), every probe's ΔT low-passed over
+    ``PROBE_SMOOTHING_S`` (K), the mean housing ΔT's lead ``T - lowpass(T, tau)`` for each tau
+    of ``MAP_LEADS_S`` (K)]. On CFRP the gratings are thermometers of their gauges (~5 µm of
+    uncompensated elongation per K over 600 mm), which is why they carry the face gradients."""
+    e = np.atleast_2d(np.asarray(e_um, float))
+    dT = np.atleast_2d(np.asarray(delta_T_K, float))
+    state = state or {}
+    smooth, s_in = first_order_filter(dT, time_s, PROBE_SMOOTHING_S, state.get("in"), nominal_dt_s)
+    new = {"in": s_in}
+    cols = [e, smooth]
+    housing = (smooth[:, list(housing_idx)].mean(axis=1, keepdims=True) if len(housing_idx)
+               else np.zeros((e.shape[0], 1)))
+    for tau in MAP_LEADS_S:
+        slow, new[f"lead{tau:g}"] = first_order_filter(housing, time_s, tau, state.get(f"lead{tau:g}"),
+                                                       nominal_dt_s)
+        cols.append(housing - slow)
+    return np.hstack(cols), new
+
+
+def ridge_from_moments(gram, xty, scale, keep, lam):
+    """Ridge coefficients (k, 3) from second moments ``gram = X'X/n`` and ``xty = X'Y/n`` on the
+    feature columns ``keep`` (others get 0), features standardised by ``scale``, penalty ``lam``."""
+    keep = np.asarray(keep, int)
+    sc = np.asarray(scale, float)[keep]
+    g = np.asarray(gram, float)[np.ix_(keep, keep)] / np.outer(sc, sc)
+    b = np.asarray(xty, float)[keep] / sc[:, None]
+    coef = np.zeros((len(scale), np.asarray(xty).shape[1]))
+    coef[keep] = np.linalg.solve(g + lam * np.eye(len(keep)), b) / sc[:, None]
+    return coef
+
+
+def twin_thermal_population(machine, sensors, probe_names, housing_probes, n_scenarios=40, seed=0,
+                            grating_noise_um=0.1, probe_noise_K=0.1):
+    """Second moments of (map features, TTP) over the twin's generic thermal scenarios
+    (:mod:`fbgcomp.structure.scenarios`), or None when the machine description lacks one of
+    the campaign's gratings or probes. Measurement noise is added as the instruments have it
+    (seeded), so the map does not lean on differences finer than the sensors resolve."""
+    names = [s.name for s in machine.sensors]
+    mprobes = [p.name for p in machine.probes]
+    if any(s.name not in names for s in sensors) or any(p not in mprobes for p in probe_names):
+        return None
+    from .optics import wavelength_nm
+    from .structure import Twin
+    from .structure.scenarios import generic_heat_machine, thermal_scenarios
+
+    twin = Twin(generic_heat_machine(machine))
+    idx = [twin.sensor_names.index(s.name) for s in sensors]
+    pidx = [twin.probe_names.index(p) for p in probe_names]
+    h_idx = [list(probe_names).index(p) for p in housing_probes]
+    fmap = _grating_map(sensors, probe_names)
+    rng = np.random.default_rng(seed)
+    lam0 = np.array([s.lambda0_nm for s in sensors])
+    k = len(sensors) + len(probe_names) + len(MAP_LEADS_S)
+    gram, xty, noise, n = np.zeros((k, k)), np.zeros((k, 3)), np.zeros((k, k)), 0
+    lo, hi = np.full(k, np.inf), np.full(k, -np.inf)
+    ylo, yhi = np.full(3, np.inf), np.full(3, -np.inf)
+    for inputs, r in thermal_scenarios(twin, n_scenarios, seed):
+        r = r.change_from_start()
+        t = r.time_s
+        el0 = r.sensor_elongation_um[:, idx]
+        el = el0 + rng.normal(0, grating_noise_um, (t.size, len(idx)))
+
+        def features(el, dT):
+            wl = np.column_stack([
+                wavelength_nm(el[:, j], s.lambda0_nm, s.gauge_length_mm, r.sensor_temperature_C[:, i],
+                              photoelastic=s.photoelastic, thermo_optic_per_K=s.thermo_optic_per_K,
+                              fibre_cte_per_K=s.fibre_cte_per_K)
+                for j, (i, s) in enumerate(zip(idx, sensors))])
+            return map_features(fmap.base(wl, dT, lam0, np.zeros(len(pidx))), dT, h_idx, t)[0]
+
+        # probe noise, and the error of a zero state read from a single slow probe sample
+        dT0 = r.probe_C[:, pidx]
+        dT = dT0 + rng.normal(0, probe_noise_K, (t.size, len(pidx))) + rng.normal(0, probe_noise_K, len(pidx))
+        X = features(el, dT)
+        N = X - features(el0, dT0)
+        noise += N.T @ N
+        Y = r.ttp_um
+        gram += X.T @ X
+        xty += X.T @ Y
+        n += t.size
+        lo, hi = np.minimum(lo, X.min(axis=0)), np.maximum(hi, X.max(axis=0))
+        ylo, yhi = np.minimum(ylo, Y.min(axis=0)), np.maximum(yhi, Y.max(axis=0))
+    gram, xty, noise = gram / n, xty / n, noise / n
+    return {"gram": gram.tolist(), "xty": xty.tolist(), "scale": np.sqrt(np.diag(gram)).tolist(),
+            "noise_gram": noise.tolist(),
+            "n_samples": n, "n_scenarios": n_scenarios, "seed": seed,
+            "envelope_low": lo.tolist(), "envelope_high": hi.tolist(),
+            "ttp_low_um": ylo.tolist(), "ttp_high_um": yhi.tolist(),
+            "features": [f"e_{s.name}" for s in sensors] + [f"dT_{p}" for p in probe_names]
+            + [f"lead{tau:g}s_housing" for tau in MAP_LEADS_S]}
+
+
 def _grating_map(sensors, probe_names):
     """Feature map of the gratings' *uncompensated* elongations (paper eq. 2-4 with dT = 0).
 
@@ -157,6 +255,7 @@ class PhysicalPredictor:
         self.t_low, self.t_high = np.asarray(m.thermal_range_um_[0]), np.asarray(m.thermal_range_um_[1])
         self.margin = float(m.envelope_margin)
         self.thermal_resid_var = np.asarray(m.thermal_resid_sd_um_) ** 2
+        self.thermal_noise_sd_um = np.asarray(getattr(m, "thermal_noise_sd_um_", np.zeros(3)), float)
         keep = [i for i, s in enumerate(self.sensor_names) if s not in self.exclude]
         self._keep = keep
         self.has_load = m.load_ is not None and len(keep) >= 1
@@ -165,21 +264,29 @@ class PhysicalPredictor:
             G = np.asarray(L["G_um_per_N"])[keep]
             self.C = np.asarray(L["C_um_per_N"])                          # (3 axes, 3 forces)
             self.B = np.asarray(L["grating_thermal_coef"])[:, keep]       # (1 + nh, S)
-            noise = np.diag(np.asarray(L["noise_var_um2"], float)[keep])
+            self.noise_var = np.asarray(L["noise_var_um2"], float)[keep]
+            noise = np.diag(self.noise_var)
             unit = np.asarray(L["thermal_sigma_unit_um2"], float)[np.ix_(keep, keep)]
             self.active = np.asarray(L["active_forces"], bool)
             self.thermal_scale = np.asarray(L["thermal_scale"], float)
             Ga = G[:, self.active]
+            # forces the gratings cannot tell from a warming (not separable) stay unknown
+            # nuisances: their signature is absorbed, never read as a load or a contradiction
+            nuis = (~self.active) & (np.abs(G).sum(axis=0) > 0)
+            Gn = G[:, nuis]
+            max_f = np.asarray(L.get("max_force_N", [5000.0] * 3), float)[nuis]
+            nuisance_cov = Gn @ np.diag((1.5 * max_f) ** 2) @ Gn.T if nuis.any() else 0.0
             # GLS operators on a grid of thermal excursions s² (0 = isothermal): the gratings'
             # thermal reading is only uncertain in proportion to how far the machine is from its
             # zero state, so a static load at rest is read with the sensors' noise alone.
+            self.step_cov = noise + nuisance_cov
             self.s2_grid = np.concatenate([[0.0], np.logspace(-4, 4, 49)])
             nS = len(keep)
             self.ops = np.zeros((self.s2_grid.size, 3, nS))
             self.Ws = np.zeros((self.s2_grid.size, nS, nS))
             self.F_sds = np.zeros((self.s2_grid.size, 3))
             for i, s2 in enumerate(self.s2_grid):
-                op, cov, W = gls_operator(Ga, noise + s2 * unit)
+                op, cov, W = gls_operator(Ga, noise + s2 * unit + nuisance_cov)
                 self.ops[i][self.active] = op
                 self.Ws[i] = W
                 self.F_sds[i][self.active] = np.sqrt(np.clip(np.diag(cov), 0, None))
@@ -193,6 +300,24 @@ class PhysicalPredictor:
             self.relative_error = float(m.load_relative_error)
             # no load beyond 1.5x the largest the signature was calibrated with is believed
             self.max_force_N = 1.5 * np.asarray(L.get("max_force_N", [np.inf] * 3), float)
+            self.offset_tau_s = float(m.offset_tau_s)
+            self.settle_s = 3.0 * float(m.offset_tau_s)
+            self.drift_N_per_s = np.asarray(L.get("drift_N_per_s", [0.0] * 3), float)
+        self.map = None
+        if getattr(m, "twin_map_", None) is not None:
+            tm = m.twin_map_
+            S = len(self.sensor_names)
+            k = len(tm["scale"])
+            cols = [i for i in range(k) if i >= S or i in keep]
+            coef = (np.asarray(tm["coef"], float) if len(cols) == k else
+                    ridge_from_moments(tm["gram"], tm["xty"], tm["scale"], cols, float(m.map_ridge)))
+            lo, hi = np.asarray(tm["envelope_low"], float), np.asarray(tm["envelope_high"], float)
+            nz = np.asarray(tm.get("noise_gram", np.zeros((k, k))), float)
+            self.map_noise_sd_um = np.sqrt(np.clip(np.einsum("ka,kl,la->a", coef, nz, coef), 0, None))
+            self.map = {"coef": coef, "low": lo, "high": hi,
+                        "G": (np.asarray(m.load_["G_um_per_N"], float) if m.load_ is not None
+                              else np.zeros((S, 3)))}
+            self._map_h_idx = self._h_idx
         var = self.thermal_resid_var.copy()
         if self.has_load:
             var = var + (self.C ** 2 @ self.F_sds[self.s2_grid.searchsorted(1.0)] ** 2)
@@ -208,8 +333,10 @@ class PhysicalPredictor:
     def thermal_regressors(self, temperature_C, temperature_zero_C, time_s=None):
         """[1, ΔT_housing..., ΔT_ambient..., lead of mean ΔT_housing] (n, 1 + nh)."""
         dT = np.atleast_2d(np.asarray(temperature_C, float)) - np.asarray(temperature_zero_C, float)
-        H, self.state = thermal_regressors(dT, self._h_idx, self._a_idx, self.lead_tau_s, time_s,
-                                           self.state, self.nominal_dt_s)
+        state = self.state or {}
+        H, h_state = thermal_regressors(dT, self._h_idx, self._a_idx, self.lead_tau_s, time_s,
+                                        state.get("h"), self.nominal_dt_s)
+        self.state = {**state, "h": h_state}
         return H
 
     def thermal_excursion(self, delta_T_K):
@@ -231,51 +358,128 @@ class PhysicalPredictor:
             chi2[rows] = np.einsum("ns,st,nt->n", r, self.Ws[i], r)
         return force, chi2, self.F_sds[k]
 
+    def _track_load(self, e, time_s, state, new_state, raw=False):
+        """Applied force per frame (n, 3) N and the frames where a force was clamped (n,).
+
+        On CFRP the gratings are thermometers first: their thermal reading drifts by thousands
+        of N of load-equivalent over a day, and no probe predicts it (a radiant load on one face
+        is invisible to a probe on another). What tells a load from heat is time: a load arrives
+        in seconds, a thermal change takes minutes to hours. So the applied force changes only
+        by steps: each frame, the force the gratings ask for beyond the applied one is accepted
+        when it stands ``load_k_sigma`` clear of the gratings' noise, of the drift heat can
+        cause within the tracking time (``drift_N_per_s`` x max(``offset_tau_s``, frame
+        interval)) and of the other components' cross-talk; everything the applied force does
+        not explain is tracked as the gratings' thermal offset (first-order, ``offset_tau_s``),
+        whether or not a load is held. A slow thermal drift is thus absorbed by the offset and
+        never becomes a load; a held load stays applied however long it is held."""
+        n, S = e.shape
+        state = state or {}
+        offset = np.array(state.get("offset", np.zeros(S)), float)
+        applied = np.array(state.get("force", np.zeros(3)), float)
+        t_last = state.get("t")
+        t = (np.arange(1, n + 1) * self.nominal_dt_s + (t_last or 0.0) if time_s is None
+             else np.asarray(time_s, float).ravel())
+        dt = np.diff(np.concatenate([[t[0] if t_last is None else t_last], t]))
+        dt = np.clip(dt, 0.0, None)
+        alpha = 1.0 - np.exp(-dt / self.offset_tau_s)
+        lag = self.drift_N_per_s[None, :] * np.maximum(dt, self.offset_tau_s)[:, None]
+        sd = np.sqrt(self.F_sd[None, :] ** 2 + lag ** 2)
+        op = self.ops[0]
+        Ga = self.G
+        force = np.zeros((n, 3))
+        clamped = np.zeros(n, bool)
+        settle = np.array(state.get("settle", np.zeros(3)), float)   # s left of a load transition
+        refused = np.zeros(n, bool)
+        act = self.active
+        chi2_limit = stats.chi2.ppf(1 - self.p_contra, max(self.dof, 1))
+        for i in range(n):
+            x = e[i] - offset - Ga @ applied
+            step = op @ x
+            if raw:
+                force[i] = applied + step
+                continue
+            total = applied + step
+            other = np.sqrt(np.maximum((total ** 2).sum() - total ** 2, 0.0))
+            floor = np.maximum(sd[i], self.relative_error * other / self.k_sigma)
+            # within a load transition (a ramp, a step split over frames) a component follows
+            # the gratings beyond their noise alone, and the offset is not tracked
+            moving = settle > 0
+            floor = np.where(moving, np.maximum(self.F_sd, self.relative_error * other / self.k_sigma), floor)
+            take = np.abs(step) > self.k_sigma * floor
+            if take.any() and self.dof >= 1:
+                # a step no load explains (one grating jumps: a fibre slips, a connector is
+                # re-seated) is refused, and the offset absorbs it
+                r = x - Ga[:, act] @ step[act]
+                g = self.relative_error * (Ga[:, act] @ step[act])
+                if r @ np.linalg.solve(self.step_cov + np.outer(g, g), r) > chi2_limit:
+                    refused[i] = True
+                    take[:] = False
+            if take.any():
+                applied = np.where(take, applied + step, applied)
+                settle = np.where(take, self.settle_s, settle)
+                big = np.abs(applied) > self.max_force_N
+                if big.any():
+                    clamped[i] = True
+                    applied = np.clip(applied, -self.max_force_N, self.max_force_N)
+            if not (settle > 0).any():
+                offset += alpha[i] * (e[i] - Ga @ applied - offset)
+            settle = np.maximum(settle - dt[i], 0.0)
+            force[i] = applied
+        new_state["load"] = {"offset": offset, "force": applied, "settle": settle,
+                             "t": float(t[-1]) if n else t_last}
+        return force, clamped, refused
+
     def predict(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C, *,
-                time_s=None, z_axis_mm=None, raw=False):
+                time_s=None, z_axis_mm=None, raw=False, thermal_policy=True):
         """Applied TTP deviation (n, 3) µm and 95 % half-width (n, 3) µm; ``raw=True`` skips
         the policy (envelope clipping, axis clamp, load gating) for diagnosis."""
         wl = np.atleast_2d(np.asarray(wavelength_nm, dtype=float))
         n = wl.shape[0]
         flags = np.zeros((n, 3), np.uint8)
-        H = self.thermal_regressors(temperature_C, temperature_zero_C, time_s)
-        if raw:
+        state = self.state or {}
+        H, h_state = thermal_regressors(
+            np.atleast_2d(np.asarray(temperature_C, float)) - np.asarray(temperature_zero_C, float),
+            self._h_idx, self._a_idx, self.lead_tau_s, time_s, state.get("h"), self.nominal_dt_s)
+        new_state = {"h": h_state}
+        dT = np.atleast_2d(np.asarray(temperature_C, float)) - np.asarray(temperature_zero_C, float)
+        w = wl.copy()
+        w0 = np.asarray(wavelength_zero_nm, float)
+        lost = [i for i, s in enumerate(self.sensor_names) if s in self.exclude]
+        w[:, lost] = w0[lost]
+        e_all = self._fmap.base(w, temperature_C, w0, temperature_zero_C)
+        load = np.zeros((n, 3))
+        force = np.zeros((n, 3))
+        if self.has_load:
+            force, clamped, refused = self._track_load(e_all[:, self._keep], time_s, state.get("load"),
+                                                       new_state, raw)
+            flags[clamped] |= P.CLAMPED
+            flags[refused] |= P.LOAD_REFUSED
+            load = force @ self.C.T
+        if self.map is not None:
+            # the gratings minus the load read from them are thermometers of their gauges
+            e_th = e_all - force @ self.map["G"].T
+            e_th[:, lost] = 0.0
+            X, new_state["map"] = map_features(e_th, dT, self._map_h_idx, time_s, state.get("map"),
+                                               self.nominal_dt_s)
+            if raw or not thermal_policy:
+                thermal = X @ self.map["coef"]
+            else:
+                Xc, outside = P.clip_to_envelope(X, self.map["low"], self.map["high"], self.margin)
+                # what the sensors' noise alone would make of the map is not applied
+                thermal = P.firm(Xc @ self.map["coef"], self.map_noise_sd_um, self.k_sigma, 2 * self.k_sigma)
+                thermal, clamped = P.clamp_axes(thermal, self.t_low, self.t_high)
+                flags[outside] |= P.SHRUNK
+                flags[clamped] |= P.CLAMPED
+        elif raw or not thermal_policy:
             thermal = H @ self.A
         else:
             Hc, outside = P.clip_to_envelope(H[:, 1:], self.h_low, self.h_high, self.margin)
             Hc = np.hstack([H[:, :1], Hc])
-            thermal, clamped = P.clamp_axes(Hc @ self.A, self.t_low, self.t_high)
+            thermal = P.firm(Hc @ self.A, self.thermal_noise_sd_um, self.k_sigma, 2 * self.k_sigma)
+            thermal, clamped = P.clamp_axes(thermal, self.t_low, self.t_high)
             flags[outside] |= P.SHRUNK
             flags[clamped] |= P.CLAMPED
-        load = np.zeros((n, 3))
-        force = np.zeros((n, 3))
-        if self.has_load:
-            w = wl.copy()
-            w0 = np.asarray(wavelength_zero_nm, float)
-            cols = [i for i, s in enumerate(self.sensor_names) if s in self.exclude]
-            w[:, cols] = w0[cols]
-            e = self._fmap.base(w, temperature_C, w0, temperature_zero_C)[:, self._keep]
-            e_mech = e - H @ self.B
-            dT = np.atleast_2d(np.asarray(temperature_C, float)) - np.asarray(temperature_zero_C, float)
-            force, chi2, F_sd = self.estimate_force(e_mech, dT)
-            if not raw:
-                # The gratings' thermal reading is only modelled inside the thermal states the
-                # training saw: beyond them, or when the gratings contradict every load the
-                # structure can carry, no load is read from them.
-                s2 = self.thermal_excursion(dT)
-                refused = (s2 > self.s2_limit) | P.contradiction(chi2, self.dof, self.p_contra,
-                                                                 self.chi2_inflation)
-                # A component is read only beyond its noise and beyond the cross-talk the other
-                # components' signature error can leak into it (relative_error of their size).
-                other = np.sqrt(np.maximum((force ** 2).sum(axis=1, keepdims=True) - force ** 2, 0.0))
-                floor = np.maximum(F_sd, self.relative_error * other / self.k_sigma)
-                force = P.firm(force, floor, self.k_sigma, 2 * self.k_sigma)
-                force[refused] = 0.0
-                flags[refused] |= P.LOAD_REFUSED
-                big = np.abs(force) > self.max_force_N
-                force = np.clip(force, -self.max_force_N, self.max_force_N)
-                flags[big.any(axis=1)] |= P.CLAMPED
-            load = force @ self.C.T
+        self.state = new_state
         self.last_flags = flags
         self.last_force_N = force
         deviation = thermal + load
@@ -312,13 +516,25 @@ class PhysicalModel(EstimatorParams, ModelFile):
     thermal_error_inflation : float
         Factor on the variance of the gratings' thermal-reading error seen in training (what a
         held-out campaign adds to the in-sample residual).
+    twin_scenarios : int
+        Generic thermal scenarios of the machine's FE twin the thermal map learns from (0: fit
+        the thermal part on the measured load-free campaigns instead, as without a machine).
+    map_ridge : float
+        Ridge penalty of the twin-learned thermal map (standardised features).
+    offset_tau_s : float
+        Time constant with which the gratings' unexplained thermal reading is tracked while no
+        load is applied, s.
+    separability_cos : float
+        A force whose grating signature has |cos| above this with the gratings' warming pattern
+        is not read from the gratings.
     """
 
     model_type = "physical"
 
     def __init__(self, machine=None, zero_window_s=10.0, lead_tau_s=300.0, envelope_margin=0.1,
                  load_k_sigma=3.0, contradiction_p=1e-3, thermal_error_inflation=4.0,
-                 load_relative_error=0.03):
+                 load_relative_error=0.03, twin_scenarios=40, map_ridge=1e-3, separability_cos=0.95,
+                 offset_tau_s=20.0):
         self.machine = machine
         self.zero_window_s = zero_window_s
         self.lead_tau_s = lead_tau_s
@@ -327,6 +543,10 @@ class PhysicalModel(EstimatorParams, ModelFile):
         self.contradiction_p = contradiction_p
         self.thermal_error_inflation = thermal_error_inflation
         self.load_relative_error = load_relative_error
+        self.twin_scenarios = twin_scenarios
+        self.map_ridge = map_ridge
+        self.separability_cos = separability_cos
+        self.offset_tau_s = offset_tau_s
 
     # -- fitting -----------------------------------------------------------------------------
     def _machine(self):
@@ -443,6 +663,16 @@ class PhysicalModel(EstimatorParams, ModelFile):
                     G[:, ~active], C[:, ~active] = Gt[:, ~active], Ct[:, ~active]
                     source += " (unexcited components from the FE twin)"
                 active = np.ones(3, bool)
+        separable = np.ones(3, bool)
+        if G is not None and thermal_rows:
+            # A force whose signature is (nearly) the gratings' own warming pattern cannot be
+            # told from a temperature change (on CFRP rams: Fz, a uniform compression, against
+            # a uniform warming); it is not read from the gratings at all.
+            u = np.linalg.svd(np.vstack([r["e"] for r in thermal_rows]), full_matrices=False)[2][0]
+            norm = np.linalg.norm(G, axis=0)
+            cos = np.abs(u @ G) / np.where(norm > 0, norm, 1.0)
+            separable = cos < self.separability_cos
+            active = active & separable
         if G is not None and active.any():
             if np.isnan(noise_var).any():
                 noise_var = np.full(S, 0.05 ** 2)
@@ -451,12 +681,14 @@ class PhysicalModel(EstimatorParams, ModelFile):
                           "thermal_sigma_unit_um2": (self.thermal_error_inflation * cov_unit).tolist(),
                           "thermal_scale": scale.tolist(), "noise_var_um2": noise_var.tolist(),
                           "max_force_N": np.where(max_force > 0, max_force, 5000.0).tolist(),
-                          "source": source, "chi2_inflation": 1.0}
+                          "source": source, "chi2_inflation": 1.0,
+                          "not_separable": [f for f, ok in zip(_FORCE_AXES, separable) if not ok]}
         # Thermal part of the TTP: y minus the (policy-applied) load part, on load-free campaigns.
         self.thermal_coef_ = np.zeros((nh, 3))
         self.thermal_envelope_ = (np.zeros(nh - 1), np.zeros(nh - 1))
         self.thermal_range_um_ = (np.zeros(3), np.zeros(3))
         self.thermal_resid_sd_um_ = np.full(3, 0.1)
+        self.thermal_noise_sd_um_ = np.zeros(3)
         if thermal_rows:
             Hs = np.vstack([r["H"] for r in thermal_rows])
             Ys = np.vstack([r["y"] for r in thermal_rows])
@@ -469,6 +701,25 @@ class PhysicalModel(EstimatorParams, ModelFile):
             self.thermal_range_um_ = (np.minimum(fitted.min(axis=0), Ys.min(axis=0)) - 0.1 * span,
                                       np.maximum(fitted.max(axis=0), Ys.max(axis=0)) + 0.1 * span)
             self.thermal_resid_sd_um_ = np.sqrt(np.diag(cov_y))
+            # the part's response to probe noise (the zero state itself is one noisy reading of
+            # a slow probe): each regressor's probe noise (robust, from successive differences)
+            # through its coefficient
+            d = np.vstack([np.diff(r["dT"], axis=0) for r in rows if len(r["dT"]) > 1])
+            sd_p = 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0) / np.sqrt(2)
+            used = [self.probe_names_.index(q) for q in self.housing_probes_ + self.ambient_probes_]
+            sd_h = np.concatenate([sd_p[used], sd_p[used[:1]] if self.housing_probes_ else []])
+            self.thermal_noise_sd_um_ = np.sqrt(((A[1:] * np.asarray(sd_h)[:, None]) ** 2).sum(axis=0))
+        # Thermal part learned from the twin's thermal physics, when the machine describes
+        # every grating and probe of the campaigns (the face-gradient coefficients no measured
+        # campaign without a gradient can teach).
+        self.twin_map_ = None
+        if machine is not None and self.twin_scenarios > 0:
+            pop = twin_thermal_population(machine, self.sensors_, self.probe_names_, self.housing_probes_,
+                                          n_scenarios=self.twin_scenarios, seed=0)
+            if pop is not None:
+                pop["coef"] = ridge_from_moments(pop["gram"], pop["xty"], pop["scale"],
+                                                 range(len(pop["scale"])), self.map_ridge).tolist()
+                self.twin_map_ = pop
         # Load-part uncertainty calibrated on loaded campaigns: the load part's residual.
         self.training_ = {"campaigns": [{"name": r["name"], "loaded": bool(r["loaded"]),
                                          "n_samples": int(len(r["y"]))} for r in rows],
@@ -476,24 +727,41 @@ class PhysicalModel(EstimatorParams, ModelFile):
         self._predictors = {}
         if self.load_ is not None:
             self._calibrate_applicability(rows)
+        if self.twin_map_ is not None and thermal_rows:
+            # the map's error on the measured load-free campaigns (nothing of it is fitted there)
+            # sets its interval and widens the validated range to what the twin covers
+            res, fits = [], []
+            for r, c in zip(rows, campaigns):
+                if r["loaded"]:
+                    continue
+                pred, _ = self.predict_interval(c, policy=False)
+                res.append(pred - r["y"])
+                fits.append(pred)
+            res = np.vstack(res)
+            self.thermal_resid_sd_um_ = np.sqrt(np.mean(res ** 2, axis=0))
+            lo, hi = np.asarray(self.twin_map_["ttp_low_um"]), np.asarray(self.twin_map_["ttp_high_um"])
+            span = hi - lo
+            self.thermal_range_um_ = (np.minimum(self.thermal_range_um_[0], lo - 0.1 * span),
+                                      np.maximum(self.thermal_range_um_[1], hi + 0.1 * span))
+            self._predictors = {}
         return self
 
     def _calibrate_applicability(self, rows):
-        """Thresholds of the load part's applicability, from the training campaigns: the largest
-        thermal excursion s² they reached (x 1.2), and a chi-square inflation such that their
-        frames (conditions the model was validated on) are not refused (0.99 quantile x 1.5)."""
+        """The drift heat causes in the force read from the gratings, N/s per component: twice
+        the 99th percentile of its frame-to-frame rate on the load-free training campaigns
+        (floor: 0.1 N/s). A step must stand clear of what this drift builds up within the
+        offset's tracking time."""
         p = self.predictor()
-        s2_max, worst = 0.0, 0.0
+        rates = [np.zeros((0, 3))]
         for r in rows:
-            s2_max = max(s2_max, float(np.max(p.thermal_excursion(r["dT"]))) if len(r["dT"]) else 0.0)
-            e_mech = r["e"][:, p._keep] - r["H"] @ p.B
-            _, chi2, _ = p.estimate_force(e_mech, r["dT"])
-            if p.dof >= 1 and chi2.size:
-                worst = max(worst, float(np.quantile(chi2, 0.99)))
-        self.load_["s2_limit"] = max(s2_max, 1.0)
-        if p.dof >= 1:
-            base = stats.chi2.ppf(1 - self.contradiction_p, p.dof)
-            self.load_["chi2_inflation"] = max(1.0, 1.5 * worst / base)
+            if r["loaded"] or len(r["t"]) < 3:
+                continue
+            F = r["e"][:, p._keep] @ p.ops[0].T
+            dt = np.diff(r["t"])
+            rates.append(np.abs(np.diff(F, axis=0)) / np.where(dt > 0, dt, np.inf)[:, None])
+        rates = np.vstack(rates)
+        q = 2.0 * np.quantile(rates, 0.99, axis=0) if len(rates) else np.full(3, 1.0)
+        self.load_["drift_N_per_s"] = np.maximum(q, 0.1).tolist()
         self._predictors = {}
 
     def _twin_signature(self, machine):
@@ -525,13 +793,13 @@ class PhysicalModel(EstimatorParams, ModelFile):
             self._predictors[exclude] = PhysicalPredictor(self, exclude)
         return self._predictors[exclude]
 
-    def predict_interval(self, X, exclude=frozenset(), raw=False):
+    def predict_interval(self, X, exclude=frozenset(), raw=False, policy=True):
         (campaign,) = _as_campaign_list(X)
         check_compatible(self, campaign)
         aligned = campaign.aligned(zero_window_s=self.zero_window_s)
         p = PhysicalPredictor(self, exclude)       # fresh filter state per campaign
         w, t, w0, t0 = self.instrument_arrays(aligned)
-        out = p.predict(w, t, w0, t0, time_s=aligned.time_s, raw=raw)
+        out = p.predict(w, t, w0, t0, time_s=aligned.time_s, raw=raw, thermal_policy=policy)
         self.last_flags_ = p.last_flags
         return out
 
@@ -585,7 +853,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
                         "envelope_high": np.asarray(self.thermal_envelope_[1]).tolist(),
                         "range_low_um": np.asarray(self.thermal_range_um_[0]).tolist(),
                         "range_high_um": np.asarray(self.thermal_range_um_[1]).tolist(),
-                        "resid_sd_um": np.asarray(self.thermal_resid_sd_um_).tolist()},
+                        "resid_sd_um": np.asarray(self.thermal_resid_sd_um_).tolist(),
+                        "noise_sd_um": np.asarray(self.thermal_noise_sd_um_).tolist()},
+            "twin_map": self.twin_map_,
             "load": self.load_,
             "training": self.training_,
             "uncertainty": {"level": 0.95, "method": "thermal residual + load GLS covariance"},
@@ -608,6 +878,8 @@ class PhysicalModel(EstimatorParams, ModelFile):
         m.thermal_envelope_ = (np.asarray(th["envelope_low"], float), np.asarray(th["envelope_high"], float))
         m.thermal_range_um_ = (np.asarray(th["range_low_um"], float), np.asarray(th["range_high_um"], float))
         m.thermal_resid_sd_um_ = np.asarray(th["resid_sd_um"], float)
+        m.thermal_noise_sd_um_ = np.asarray(th.get("noise_sd_um", [0.0] * 3), float)
+        m.twin_map_ = d.get("twin_map")
         m.load_ = d.get("load")
         m.training_ = d.get("training", {"campaigns": [], "n_samples": 0})
         m._predictors = {}
