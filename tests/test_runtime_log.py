@@ -109,6 +109,7 @@ def test_configuration_example_in_the_docs_is_valid():
         cfg = RuntimeConfig.from_toml(f)
     assert cfg.pipeline.health.stuck_s == 2.0 and cfg.opcua.rate_hz == 100.0
     assert cfg.source.url.startswith("hyperion://") and cfg.log.flush_s == 0.5
+    assert cfg.pipeline.output_filter.short_s == 0.6 and cfg.pipeline.max_slew_um_per_s == (1000.0,) * 3
 
 
 def test_in_process_simulated_source_keeps_temperatures_on_the_instrument_clock(paths, tmp_path):

@@ -160,13 +160,58 @@ def test_adaptive_filter_is_still_at_rest_and_follows_a_step():
     rms = np.sqrt((dev[rest] ** 2).mean(axis=0))
     raw = np.sqrt(((x[rest] - x[rest].mean(axis=0)) ** 2).mean(axis=0))
     assert (rms[:2] < 0.2).all() and raw[0] > 15 and raw[1] > 4.5
-    # follows the 300 µm step to 90 % within 1 s on every axis, and does not overshoot it
+    # follows the 300 µm step to 90 % within 1 s on every axis, and does not overshoot it:
+    # right after the step the level is a median of a second or so of 20 µm noise, later an
+    # average of ever more of it
     for j, sign in enumerate((1, -1, 1)):
         after = t >= 400.0
         reach = t[after][np.argmax(sign * y[after, j] >= 0.9 * 300.0)] - 400.0
         assert reach < 1.0, (j, reach)
-        assert np.abs(y[(t > 402) & (t < 410), j] - sign * (300 + 0.002 * 405)).max() < 15
+        err = np.abs(y[:, j] - sign * (300 + 0.002 * t))
+        assert err[(t > 401) & (t < 410)].max() < 30 * abs(x[0, j] - truth[0] * sign) / 20 + 1
+        assert err[(t > 450) & (t < 600)].max() < 10
     assert (f.restarts >= 1).all()
+
+
+def _pops(rate_hz=100.0, duration_s=600.0, step_at_s=450.0, step_um=200.0, seed=5):
+    """The default model served on the twin at rest: exactly still, but its load part pops
+    out of the firm shrinkage ~16 times a minute for 0.3-2.3 s, by up to ~100 µm."""
+    rng = np.random.default_rng(seed)
+    n = int(duration_s * rate_hz)
+    t = np.arange(n) / rate_hz
+    x = np.full(n, 0.015)
+    start = 0.0
+    while True:
+        start += rng.exponential(60.0 / 16)
+        dur = rng.uniform(0.3, 2.3)
+        if start + dur > duration_s:
+            break
+        sel = (t >= start) & (t < start + dur)
+        x[sel] = rng.choice([-1, 1]) * rng.uniform(10.0, 100.0) * np.sin(
+            np.pi * (t[sel] - start) / dur) ** 0.3
+    truth = np.where(t >= step_at_s, step_um, 0.0)
+    return t, np.column_stack([x + truth, x, np.zeros(n)]), truth
+
+
+def test_adaptive_filter_ignores_model_pops_and_still_follows_a_step():
+    import pandas as pd
+    t, x, truth = _pops()
+    f = AdaptiveLevelFilter(OutputFilterConfig(), 0.01, noise_um=np.array([20.0, 20.0, 1.0]))
+    y = f.process(x)
+    df = pd.DataFrame(y, index=pd.to_timedelta(t, "s"))
+    dev = (df - df.rolling("60s", center=True).mean()).to_numpy()
+    rest = (t > 300) & (t < 420)          # after 5 min of learning what the pops look like
+    rms = np.sqrt((dev[rest] ** 2).mean(axis=0))
+    raw = x[rest].std(axis=0)
+    assert (rms < 0.2).all() and (raw[:2] > 10).all(), (rms, raw)
+    assert (f.undone[:2] >= 1).all()       # pops it did follow at first were taken back
+    after = t >= 450.0
+    reach = t[after][np.argmax(y[after, 0] >= 0.9 * 200.0)] - 450.0
+    assert reach < 1.0, reach
+    # the young level after the step averages little yet: a pop moves it a little, never
+    # the pop's 10-100 µm; settled, the pops are gone again
+    assert np.abs(y[(t > 455) & (t < 500), 0] - 200.0).max() < 20
+    assert np.abs(y[t > 500, 0] - 200.0).max() < 5
 
 
 def test_adaptive_filter_is_exact_whatever_the_batching():

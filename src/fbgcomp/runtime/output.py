@@ -1,31 +1,43 @@
 """Adaptive output filter: the published correction holds still at rest and follows real steps.
 
-A model's prediction carries the noise of its inputs (on the twin served live, ±60 µm second to
-second on dy for a true drift below 1 µm); a CNC must not be moved by it. A linear low-pass
-filter cannot do both jobs - hours of averaging at rest, a load step followed within a second -
-so this filter switches, per axis, between two regimes:
+A model's prediction carries the noise of its inputs and of its own policy: served live on the
+twin, the default model's dy pops by 10-100 µm for 0.3-2.3 s some 16 times a minute (its load
+part crossing the firm-shrinkage threshold) while nothing moves; on ram2 the 0.1 °C steps of the
+probes move the thermal part by ~1 µm for tens of seconds. A CNC must not be moved by that, yet
+a load step must reach it within a second. No linear filter does both, so this one decides, per
+axis, on robust statistics of the raw correction:
 
-* **rest**: the level is the running mean of the raw correction since the last restart
-  (expanding window), which becomes an exponential mean of time constant ``rest_tau_s`` once
-  that many seconds have been averaged. Its wander is the input noise / sqrt(samples averaged);
-* **snap**: a *fast* copy of the input (exponential mean, ``fast_tau_s``) is compared with the
-  level. When it stays more than ``threshold_sd`` noise SDs away for ``confirm_s`` (a change the
-  noise cannot explain), the level jumps to the fast value and the averaging restarts from
-  there. A ramp re-triggers it as often as needed, so the level follows within
-  ~``confirm_s`` + threshold / ramp rate.
+* frames are reduced to the median of **blocks** of ``block_s`` (the decision rate, 20 Hz by
+  default): a model output that flickers for a frame or two moves no block;
+* **rest**: the level is a straight line fitted, with exponential weights of time constant
+  ``rest_tau_s``, to the *median* of the block medians over the last ``rest_median_s`` (at most
+  since the last restart) and read at the newest block. The median drops pops shorter than half
+  its window, the long fit averages what is left, and the line follows a steady thermal drift
+  without lag or staircase. Its slope counts only as far as the data show it: it is shrunk by
+  t² / (t² + ``trend_t2``), t its ratio to its standard error (one independent point per median
+  window), and is zero with fewer than three windows since the last restart;
+* **step**: the *short* median ``m`` (block medians over ``short_s``) is compared with the level.
+  A change is real when ``m`` stays on one side beyond a large threshold for ``fast_confirm_s``,
+  or when the median over the last ``slow_confirm_s`` is beyond a small one. Each threshold is
+  the larger of ``threshold_sd`` robust noise SDs (median absolute deviation of ``m`` from the
+  level, per ``noise_block_s``, blended over ``noise_tau_s``), ``margin`` times the largest
+  excursion the noise itself produced that way at rest (an envelope that decays over
+  ``envelope_tau_s``) and ``min_threshold_um``. The level then follows the short median of the
+  blocks since the change began for ``hold_s`` and the rest fit restarts from the newest blocks;
+  a ramp re-triggers as often as it needs;
+* **spikes**: at the end of ``hold_s`` (counted from the last restart), if ``m`` is back within
+  the slow threshold of the level before the episode, or was for a quarter of it, the episode
+  was noise: the rest state from before it is restored and its excursions are learnt into the
+  envelopes, so pops of that size are not followed again. Excursions seen at rest are learnt
+  ``hold_s`` late, and only if no step followed, so a real step being confirmed never raises its
+  own threshold. The price: a real step smaller than the largest pop the model has produced
+  waits for the slow path (~``slow_confirm_s`` / 2).
 
-The noise SD is that of the fast value within blocks of ``block_s`` (its variance about the
-block's own mean: a slow thermal drift does not count as noise, so a drift the level lags behind
-by more than the threshold restarts it, and the lag stays below ~threshold), winsorised (a step
-cannot blow the estimate up) and blended with time constant ``noise_tau_s``, starting from the
-predictor's ``expected_rms_error_um``. Because it is the spread actually seen over seconds, it
-holds for correlated noise too (probe temperatures held for seconds, an interrogator stream
-interpolated from slower samples).
-
-Per-sample gains come from the nominal frame interval (fixed once, at the zero state), so every
-stage is either a cumulative sum or a constant-coefficient ``lfilter`` with its state carried:
-the output is the same, to the bit, whether frames come one by one or in batches. Work is
-vectorised over a batch; Python only loops over restarts and noise blocks (≥ 1 s of data each).
+Everything depends on the frame count only (blocks of ``block_n`` frames of the nominal frame
+interval, fixed at the zero state): the output is the same, to the bit, whether frames come one
+by one or in batches. A frame's output is the level after the last completed block, so the
+decision delay is at most one block. Work per frame is a vectorised block median; Python runs once
+per block (≤ 20 times a second at the defaults) and axis.
 """
 
 from __future__ import annotations
@@ -39,131 +51,237 @@ import numpy as np
 @dataclass
 class OutputFilterConfig:
     enabled: bool = True
-    rest_tau_s: float = 600.0    # averaging time at rest: ±18 µm of 1 Hz noise -> < 0.1 µm wander
-    fast_tau_s: float = 0.05     # fast copy used to detect and follow a change
-    threshold_sd: float = 6.0    # a change beyond this many noise SDs of the fast copy ...
-    confirm_s: float = 0.1       # ... held this long (at least 2 samples) is real
-    noise_tau_s: float = 60.0    # memory of the online noise estimate
-    block_s: float = 10.0        # noise = spread of the fast copy within blocks this long
-    min_noise_um: float = 0.001  # floor of the noise SD (a noise-free replay)
+    block_s: float = 0.05          # frames averaged per decision block
+    short_s: float = 0.6           # fast robust statistic: median of the block medians over this
+    rest_median_s: float = 8.0     # slow robust statistic feeding the rest fit
+    rest_tau_s: float = 600.0      # rest fit: exponential weights of this time constant
+    trend_t2: float = 25.0         # a trend of t = 5 standard errors counts half
+    fast_confirm_s: float = 0.15   # beyond the large threshold this long: a step
+    slow_confirm_s: float = 1.6    # the median over this long beyond the small threshold: a step
+    threshold_sd: float = 6.0      # thresholds: at least this many robust noise SDs ...
+    margin: float = 1.5            # ... and this times the noise's own excursion envelope ...
+    min_threshold_um: float = 0.02  # ... and at least this
+    envelope_tau_s: float = 1800.0  # memory of the excursion envelopes
+    noise_block_s: float = 10.0    # robust noise SD measured per block this long ...
+    noise_tau_s: float = 60.0      # ... and blended with this time constant
+    hold_s: float = 2.5            # after a restart: back to the old level within this = noise
 
 
 class AdaptiveLevelFilter:
-    """Per-axis rest / snap filter of the correction (3 axes), state carried between batches."""
+    """Per-axis rest / step filter of the correction (3 axes), state carried between batches."""
 
     def __init__(self, config: OutputFilterConfig, frame_interval_s: float, noise_um):
         cfg = self.config = config
         dt = float(min(max(frame_interval_s, 1e-5), 10.0))
         self.frame_interval_s = dt
-        self.fast_gain = 1.0 - math.exp(-dt / cfg.fast_tau_s) if cfg.fast_tau_s > 0 else 1.0
-        self.rest_n = max(1.0, cfg.rest_tau_s / dt)          # samples averaged at most
-        self.snap_weight = max(1.0, cfg.fast_tau_s / dt)    # samples the fast copy stands for
-        self.confirm_n = max(2, math.ceil(cfg.confirm_s / dt - 1e-9))
-        self.block_n = max(10, int(round(cfg.block_s / dt)))
-        self.noise_gain = min(1.0, cfg.block_s / cfg.noise_tau_s) if cfg.noise_tau_s > 0 else 1.0
+        self.block_n = max(1, int(round(cfg.block_s / dt)))
+        blk = self.block_n * dt                                  # block duration, s
+        self.block_duration_s = blk
+        self.short_n = max(1, int(round(cfg.short_s / blk)))
+        self.rest_n = max(self.short_n, int(round(cfg.rest_median_s / blk)))
+        self.fast_n = max(2, math.ceil(cfg.fast_confirm_s / blk - 1e-9))
+        self.slow_n = max(self.fast_n + 1, math.ceil(cfg.slow_confirm_s / blk - 1e-9))
+        self.hold_n = max(1, math.ceil(cfg.hold_s / blk - 1e-9))
+        self.lam = math.exp(-blk / cfg.rest_tau_s) if cfg.rest_tau_s > 0 else 0.0
+        self.env_decay = math.exp(-blk / cfg.envelope_tau_s) if cfg.envelope_tau_s > 0 else 0.0
+        self.noise_n = max(1, int(round(cfg.noise_block_s / blk)))
+        self.noise_gain = min(1.0, cfg.noise_block_s / cfg.noise_tau_s) \
+            if cfg.noise_tau_s > 0 else 1.0
         noise = np.nan_to_num(np.asarray(noise_um, float) * np.ones(3), nan=1.0)
-        self.var = np.maximum(noise, cfg.min_noise_um) ** 2
-        self.fast: np.ndarray | None = None
-        self.sum = np.zeros(3)       # expanding regime: sum of the inputs averaged (incl. snap)
-        self.count = np.zeros(3)     # samples averaged since the last restart (capped: rest_n)
-        self.level = np.zeros(3)
-        self.run = np.zeros(3, np.int64)     # consecutive significant samples so far
-        self.block_sum = np.zeros(3)      # of (fast - block_ref) and its square
-        self.block_sum2 = np.zeros(3)
-        self.block_ref: np.ndarray | None = None
-        self.block_count = 0
+        self.sd = np.maximum(np.abs(noise), cfg.min_threshold_um)
+        self.noise_blocks = np.zeros(3, np.int64)
+        self.ring_n = max(self.rest_n, self.slow_n, self.short_n) + 1
+        self.b = np.zeros((self.ring_n, 3))      # block means (ring)
+        self.e = np.zeros((self.ring_n, 3))      # m - level (ring)
+        self.eb = np.zeros((self.ring_n, 3))     # m - level before the episode (ring)
+        self.k = 0                               # completed blocks
+        self.partial = np.empty((0, 3))          # frames of the block not yet complete
+        self.level = None                        # (3,) after the first block
+        self.since = np.zeros(3, np.int64)       # blocks the rest median may use
+        self.fresh = np.zeros(3, np.int64)       # blocks compared with the level since a restart
+        self.fit = np.zeros((3, 6))              # weighted sums: w, w u, w u², w y, w u y, w y²
+        self.fit_origin = np.zeros(3)            # block index u is counted from
+        self.env = np.zeros((3, 2))              # excursion envelopes (fast, slow), µm
+        self.pending = np.zeros((self.hold_n, 3, 2))   # excursions waiting to be learnt
+        self.abs_dev: list[list[float]] = [[], [], []]
+        self.episode_end = np.full(3, -1, np.int64)    # block index; -1: not in an episode
+        self.saved: list[dict | None] = [None, None, None]
+        self.ep_max = np.zeros((3, 2))
         self.restarts = np.zeros(3, np.int64)
+        self.undone = np.zeros(3, np.int64)
 
     @property
     def noise_sd_um(self) -> np.ndarray:
-        return np.sqrt(self.var)
+        return self.sd.copy()
 
+    def thresholds(self) -> np.ndarray:
+        """(3, 2): the fast (large) and slow (small) step thresholds per axis, µm."""
+        cfg = self.config
+        base = np.maximum(cfg.threshold_sd * self.sd, cfg.min_threshold_um)
+        return np.maximum(cfg.margin * self.env, base[:, None])
+
+    # -- per frame -----------------------------------------------------------------------
     def process(self, x: np.ndarray) -> np.ndarray:
         """Filtered correction (m, 3) for raw corrections ``x`` (m, 3), all finite."""
-        from scipy.signal import lfilter
         m = x.shape[0]
-        if m == 0:
-            return x.copy()
-        g = self.fast_gain
-        if self.fast is None:
-            self.fast = x[0].copy()
-        fast, zf = lfilter([g], [1.0, -(1.0 - g)], x, axis=0,
-                           zi=((1.0 - g) * self.fast)[None, :])
-        self.fast = fast[-1].copy()
         out = np.empty_like(x)
-        i = 0
-        while i < m:
-            end = min(m, i + self.block_n - self.block_count)
-            # the expanding mean turns into the exponential one: a segment boundary
-            crossing = self.rest_n - self.count
-            expanding = crossing > 0
-            if expanding.any():
-                end = min(end, i + max(1, int(math.ceil(crossing[expanding].min()))))
-            level, cs = self._levels(x[i:end], expanding)
-            thr = self.config.threshold_sd * np.sqrt(self.var)
-            if self.block_ref is None:
-                self.block_ref = fast[i].copy()
-            e = fast[i:end] - level
-            exceed = np.abs(e) > thr
-            idx = np.arange(end - i)[:, None]
-            last_quiet = np.maximum.accumulate(np.where(exceed, -1, idx), axis=0)
-            run = np.where(exceed, np.where(last_quiet < 0, idx + 1 + self.run, idx - last_quiet),
-                           0)
-            hit = run >= self.confirm_n
-            if hit.any():
-                k = int(np.flatnonzero(hit.any(axis=1))[0])     # first restart of any axis
-                snap = hit[k]
-                self._commit(level, cs, fast[i:i + k + 1], run, k + 1, expanding)
-                out[i:i + k + 1] = level[:k + 1]
-                f = fast[i + k]
-                out[i + k, snap] = f[snap]
-                self.level[snap] = f[snap]
-                self.sum[snap] = self.snap_weight * f[snap]
-                self.count[snap] = self.snap_weight
-                self.run[snap] = 0
-                self.restarts[snap] += 1
-                i += k + 1
+        if m == 0:
+            return out
+        held = self.partial.shape[0]
+        allx = np.vstack([self.partial, x]) if held else x
+        nb = allx.shape[0] // self.block_n
+        # block medians, not means: a model that flickers for a few frames (ram2's load
+        # refusals: 4-12 frames, 370 µm each) moves no block
+        med = np.median(allx[:nb * self.block_n].reshape(nb, self.block_n, 3), axis=1) \
+            if nb else np.empty((0, 3))
+        for q in range(nb + 1):
+            lo, hi = q * self.block_n - held, min((q + 1) * self.block_n - held, m)
+            lo = max(lo, 0)
+            if hi <= lo:
+                continue
+            if self.level is None:
+                # before the first block closes: the running mean of the frames so far
+                start = q * self.block_n
+                cs = np.cumsum(allx[start:hi + held], axis=0)[lo + held - start:]
+                out[lo:hi] = cs / (np.arange(lo + held - start, hi + held - start) + 1)[:, None]
             else:
-                self._commit(level, cs, fast[i:end], run, end - i, expanding)
-                out[i:end] = level
-                i = end
-            if self.block_count >= self.block_n:
-                # winsorised: a step adds at most threshold² to one block's variance
-                mean = self.block_sum / self.block_count
-                ms = np.maximum(self.block_sum2 / self.block_count - mean * mean, 0.0)
-                ms = np.minimum(ms, self.config.threshold_sd ** 2 * self.var)
-                self.var = np.maximum(self.var + self.noise_gain * (ms - self.var),
-                                      self.config.min_noise_um ** 2)
-                self.block_sum = np.zeros(3)
-                self.block_sum2 = np.zeros(3)
-                self.block_ref = None
-                self.block_count = 0
+                out[lo:hi] = self.level
+            if q < nb:
+                self._block(med[q])
+                out[hi - 1] = self.level          # the frame that closes a block sees it
+        self.partial = allx[nb * self.block_n:].copy()
         return out
 
-    def _levels(self, x: np.ndarray, expanding: np.ndarray):
-        """Level per sample of a segment without restart, and the running sums."""
-        from scipy.signal import lfilter
-        n = x.shape[0]
-        level = np.empty_like(x)
-        cs = np.cumsum(np.vstack([self.sum[None, :], x]), axis=0)[1:]
-        if expanding.any():
-            counts = self.count[None, :] + np.arange(1, n + 1)[:, None]
-            level[:, expanding] = (cs / counts)[:, expanding]
-        rest = ~expanding
-        if rest.any():
-            a = 1.0 - 1.0 / self.rest_n
-            y, _ = lfilter([1.0 / self.rest_n], [1.0, -a], x[:, rest], axis=0,
-                           zi=(a * self.level[rest])[None, :])
-            level[:, rest] = y
-        return level, cs
+    # -- per block -----------------------------------------------------------------------
+    def _window(self, ring: np.ndarray, j: int, n: int) -> np.ndarray:
+        """The newest ``n`` values of one axis of a ring (the current block last)."""
+        idx = (self.k - np.arange(n)[::-1]) % self.ring_n
+        return ring[idx, j]
 
-    def _commit(self, level, cs, fast, run, k: int, expanding) -> None:
-        """Take the state after the first ``k`` samples of the segment."""
-        self.level = level[k - 1].copy()
-        self.sum = np.where(expanding, cs[k - 1], self.sum)
-        self.count = np.where(expanding, np.minimum(self.count + k, self.rest_n), self.count)
-        self.run = run[k - 1].astype(np.int64)
-        d = fast[:k] - self.block_ref
-        self.block_sum = np.cumsum(np.vstack([self.block_sum[None, :], d]), axis=0)[-1]
-        self.block_sum2 = np.cumsum(np.vstack([self.block_sum2[None, :], d * d]), axis=0)[-1]
-        self.block_count += k
+    def _fit_point(self, j: int, y: float, u: float) -> None:
+        f = self.fit[j]
+        f *= self.lam
+        f += (1.0, u, u * u, y, u * y, y * y)
+
+    def _fit_level(self, j: int) -> float:
+        """The rest fit read at the newest block: weighted mean plus the fitted trend, the
+        trend shrunk by its significance (t² / (t² + trend_t2)) so noise does not tilt it."""
+        w, su, suu, sy, suy, syy = self.fit[j]
+        ubar, ybar = su / w, sy / w
+        var_u = suu / w - ubar * ubar
+        if var_u <= 1e-9:
+            return ybar
+        cov = suy / w - ubar * ybar
+        slope = cov / var_u
+        resid = max(syy / w - ybar * ybar - slope * cov, 0.0)
+        # the fitted points are medians over rest_n blocks: about one independent per window
+        n_eff = w / self.rest_n
+        if n_eff < 3.0:              # too few independent points to tell a trend
+            return ybar
+        var_slope = resid / ((n_eff - 2.0) * var_u)
+        t2 = slope * slope / var_slope if var_slope > 0 else math.inf
+        if math.isfinite(t2):
+            slope *= t2 / (t2 + self.config.trend_t2)
+        return ybar + slope * ((self.k - self.fit_origin[j]) - ubar)
+
+    def _restart(self, j: int, n: int) -> None:
+        """The rest fit starts again from the median of the newest ``n`` blocks only."""
+        self.since[j] = n
+        self.fresh[j] = 0
+        self.fit[j] = 0.0
+        self.fit_origin[j] = self.k
+        r = float(np.median(self._window(self.b, j, n)))
+        self._fit_point(j, r, -(n - 1) / 2.0)
+
+    def _excursions(self, j: int, e_ring: np.ndarray, ref: float, n_avail: int) -> np.ndarray:
+        """(fast, slow): how far ``m`` stayed on one side of the level through the last
+        ``fast_n`` blocks, and how far the median of the block means over the last ``slow_n``
+        blocks is from ``ref`` (0 where fewer blocks are available)."""
+        p = np.zeros(2)
+        if n_avail >= self.fast_n:
+            w = self._window(e_ring, j, self.fast_n)
+            p[0] = max(w.min(), -w.max(), 0.0)
+        if n_avail >= self.slow_n:
+            p[1] = abs(float(np.median(self._window(self.b, j, self.slow_n))) - ref)
+        return p
+
+    def _block(self, bm: np.ndarray) -> None:
+        cfg = self.config
+        slot = self.k % self.ring_n
+        self.b[slot] = bm
+        first = self.level is None
+        if first:
+            self.level = bm.copy()
+        thr = self.thresholds()
+        for j in range(3):
+            self.since[j] += 1
+            self.fresh[j] += 1
+            mj = float(np.median(self._window(self.b, j, min(self.short_n, self.k + 1))))
+            if self.episode_end[j] >= 0:
+                self.level[j] = self._track(j, mj)
+                continue
+            n_rest = int(min(self.rest_n, self.since[j]))
+            r = float(np.median(self._window(self.b, j, n_rest)))
+            self._fit_point(j, r, (self.k - self.fit_origin[j]) - (n_rest - 1) / 2.0)
+            level = self._fit_level(j)
+            self.e[slot, j] = mj - level
+            p = self._excursions(j, self.e, level, self.fresh[j])
+            trigger = 0 if first else (self.fast_n if p[0] > thr[j, 0] else
+                                       self.slow_n if p[1] > thr[j, 1] else 0)
+            if trigger:
+                # a change the noise does not explain: follow it (track) for hold_s, keeping
+                # the rest state in case it was noise after all
+                self.saved[j] = {"level": level, "fit": self.fit[j].copy(),
+                                 "origin": float(self.fit_origin[j]), "since": int(self.since[j]),
+                                 "start": self.k, "first": self.k - trigger + 1,
+                                 "thr": float(thr[j, 1]), "within": 0}
+                self.ep_max[j] = p
+                self.eb[:, j] = self.e[:, j]
+                self.pending[:, j] = 0.0          # a step follows: nothing recent was noise
+                self.episode_end[j] = self.k + self.hold_n
+                self.restarts[j] += 1
+                level = float(np.median(self._window(self.b, j, trigger)))
+            elif not first:
+                # learn from rest: the excursion of hold_n blocks ago (no step since), and the
+                # robust spread of m about the level
+                ps = self.k % self.hold_n
+                self.env[j] = np.maximum(self.env[j] * self.env_decay, self.pending[ps, j])
+                self.pending[ps, j] = p
+                dev = self.abs_dev[j]
+                dev.append(abs(mj - level))
+                if len(dev) >= self.noise_n:
+                    sd = 1.4826 * float(np.median(dev))
+                    self.noise_blocks[j] += 1
+                    g = max(self.noise_gain, 1.0 / self.noise_blocks[j])
+                    self.sd[j] = max(self.sd[j] + g * (sd - self.sd[j]), cfg.min_threshold_um)
+                    dev.clear()
+            self.level[j] = level
+        self.k += 1
+
+    def _track(self, j: int, mj: float) -> float:
+        """One block of an episode: the level follows the short median of the blocks since the
+        change began; at its end either the old rest state returns (noise) or the rest fit
+        restarts from the newest blocks."""
+        s = self.saved[j]
+        n = min(self.short_n, self.k - s["first"] + 1)
+        level = float(np.median(self._window(self.b, j, n)))
+        slot = self.k % self.ring_n
+        self.eb[slot, j] = mj - s["level"]
+        self.ep_max[j] = np.maximum(self.ep_max[j], self._excursions(
+            j, self.eb, s["level"], self.k - s["start"] + s["since"]))
+        if abs(mj - s["level"]) <= s["thr"]:
+            s["within"] += 1
+        if self.k < self.episode_end[j]:
+            return level
+        self.episode_end[j] = -1
+        self.saved[j] = None
+        if abs(mj - s["level"]) <= s["thr"] or s["within"] >= 0.25 * (self.k - s["start"]):
+            # back where it was (or kept coming back): noise. Restore the rest state, learn it
+            self.fit[j], self.fit_origin[j] = s["fit"], s["origin"]
+            self.since[j] = s["since"] + (self.k - s["start"])
+            self.fresh[j] = 0          # the episode's comparisons were with other levels
+            self.env[j] = np.maximum(self.env[j], self.ep_max[j])
+            self.undone[j] += 1
+            return self._fit_level(j)
+        self._restart(j, min(2 * self.short_n, self.k - s["first"] + 1))
+        return self._fit_level(j)
