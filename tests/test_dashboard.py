@@ -228,6 +228,13 @@ def test_control_needs_login_and_switches_the_opcua_enabled_state(service):
                                    "'text/plain'}}).then(r => r.status)")
             assert status == 400
 
+            # every state the badge shows from now on: a frame built before the switch but
+            # delivered after its answer must not turn it back (a clean-clone run saw exactly
+            # that: DISABLED, then ENABLED again with no error)
+            page.evaluate("""() => { const b = document.getElementById('enabled-badge');
+                window.badgeLog = [];
+                new MutationObserver(() => window.badgeLog.push(b.dataset.state))
+                    .observe(b, {attributes: true, attributeFilter: ['data-state']}); }""")
             page.click("#toggle")
             _wait_for_badge(page, "DISABLED")
             assert _enabled_on_opcua(service) is False
@@ -239,6 +246,8 @@ def test_control_needs_login_and_switches_the_opcua_enabled_state(service):
             assert last["correction_um"] == [0.0, 0.0, 0.0]
             assert any(abs(v) > 0 for v in last["deviation_um"])
             assert page.inner_text("#corr-dx") in ("0.000", "-0.000")
+            shown = page.evaluate("window.badgeLog")
+            assert "ENABLED" not in shown[shown.index("DISABLED"):], shown
             page.screenshot(path=str(ARTIFACTS / "control-disabled.png"), full_page=True)
 
             page.click("#toggle")

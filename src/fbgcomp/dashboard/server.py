@@ -116,6 +116,10 @@ class Dashboard:
         self._message = b""
         self._stopping = threading.Event()
         self._feature_maps: dict = {}
+        # (value, version) of Enabled as last seen here: the version grows on every change, so
+        # the page can tell a frame built before a switch from one built after it
+        self._enabled_seen: tuple[bool | None, int] = (None, 0)
+        self._enabled_lock = threading.Lock()
         self._httpd: ThreadingHTTPServer | None = None
         self._threads: list[threading.Thread] = []
 
@@ -205,6 +209,7 @@ class Dashboard:
 
     def _message_for(self, snap, temperature_C, model, w0, t0, published_s) -> bytes:
         elong = self._elongations(model, snap.sensor_wavelength_nm, temperature_C, w0, t0)
+        enabled, enabled_version = self.enabled_state()
         frame = {
             "t": snap.sample_time_s,
             "elongation_um": _clean(elong, 3),
@@ -221,7 +226,9 @@ class Dashboard:
             "limited": any(int(v) for v in getattr(snap, "output_flags", (0, 0, 0))),
             "sensor_status": list(snap.sensor_status), "source_status": snap.source_status,
             "frames": int(snap.frames), "model_id": snap.model_id or self.model_id,
-            "enabled": bool(self.enabled()),
+            # a frame may reach the page after the answer to a switch it predates: the page
+            # keeps the state of the newest version it has seen
+            "enabled": enabled, "enabled_version": enabled_version,
             # sample time stamp -> correction computed (interrogator clock vs. this host)
             "latency_ms": round((published_s - snap.sample_time_s) * 1e3, 2),
             # batch received -> correction computed (this host only)
@@ -229,6 +236,17 @@ class Dashboard:
             if snap.received_s else None,
         }
         return json.dumps(frame, separators=(",", ":"), allow_nan=False).encode()
+
+    def enabled_state(self) -> tuple[bool, int]:
+        """Enabled now and its version (+1 on every change seen), read under one lock so that
+        versions and values stay in step across the broadcaster and the request threads."""
+        with self._enabled_lock:
+            value = bool(self.enabled())
+            last, version = self._enabled_seen
+            if value != last:
+                version += 1
+                self._enabled_seen = (value, version)
+            return value, version
 
     def wait_message(self, after_seq: int, timeout_s: float) -> tuple[int, bytes]:
         with self._cond:
@@ -267,7 +285,8 @@ class Dashboard:
         return {"sensors": self.sensor_names, "probes": self.probe_names, "axes": list(AXES),
                 "model_id": self.model_id, "max_rate_hz": self.config.max_rate_hz,
                 "user": user, "login_possible": bool(self.users),
-                "control_available": self.control is not None, "enabled": bool(self.enabled())}
+                "control_available": self.control is not None,
+                **dict(zip(("enabled", "enabled_version"), self.enabled_state()))}
 
 
 class _Server(ThreadingHTTPServer):
@@ -439,7 +458,8 @@ def _make_handler(dash: Dashboard):
                     return self._json(500, {"error": f"could not change the state: {exc}"})
                 log.warning("compensation %s by %s from the dashboard (%s)",
                             "enabled" if state else "disabled", user, self.client_address[0])
-                return self._json(200, {"enabled": bool(state)})
+                state, version = dash.enabled_state()
+                return self._json(200, {"enabled": state, "enabled_version": version})
             self._json(404, {"error": "not found"})
 
     return Handler

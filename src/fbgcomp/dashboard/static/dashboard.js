@@ -106,7 +106,8 @@ function fmt(v, digits) {
 }
 
 // -------------------------------------------------------------------------- page state
-const state = { meta: null, charts: {}, updates: 0, last: null, times: [], user: null };
+const state = { meta: null, charts: {}, updates: 0, last: null, times: [], user: null,
+                enabledVersion: -1 };
 window.fbgcomp = state;              // for the browser tests and curious engineers
 
 const $ = id => document.getElementById(id);
@@ -150,7 +151,12 @@ function showUser(user) {
     : "No dashboard users are configured: control is off.";
 }
 
-function showEnabled(enabled) {
+function showEnabled(enabled, version) {
+  // frames and the answer to a switch arrive in any order: keep the newest state
+  if (version !== undefined) {
+    if (version < state.enabledVersion) return;
+    state.enabledVersion = version;
+  }
   const text = enabled ? "ENABLED" : "DISABLED";
   $("enabled-badge").textContent = `output ${text.toLowerCase()}`;
   $("enabled-badge").dataset.state = text;
@@ -184,7 +190,7 @@ function onFrame(f) {
   $("frames").textContent = f.frames;
   $("rate").textContent = (state.times.length > 1
     ? (state.times.length - 1) / ((state.times[state.times.length - 1] - state.times[0]) / 1000) : 0).toFixed(1);
-  showEnabled(f.enabled);
+  showEnabled(f.enabled, f.enabled_version);
   const rows = $("sensors").tBodies[0].rows;
   for (let i = 0; i < rows.length; i++) {
     const st = f.sensor_status[i] || "—";
@@ -221,7 +227,7 @@ async function init() {
   state.charts.deviation = new StripChart($("chart-deviation"), meta.axes, "deviation (µm)");
   state.charts.correction = new StripChart($("chart-correction"), meta.axes, "correction (µm)");
   showUser(meta.user);
-  showEnabled(meta.enabled);
+  showEnabled(meta.enabled, meta.enabled_version);
   $("login-form").addEventListener("submit", async ev => {
     ev.preventDefault();
     $("control-error").textContent = "";
@@ -235,7 +241,7 @@ async function init() {
     $("control-error").textContent = "";
     const want = $("toggle").dataset.enabled !== "true";
     const r = await api("/api/enabled", { enabled: want });
-    if (r.ok) showEnabled(r.data.enabled);
+    if (r.ok) showEnabled(r.data.enabled, r.data.enabled_version);
     else {
       $("control-error").textContent = (r.data && r.data.error) || `refused (${r.status})`;
       if (r.status === 401) showUser(null);
