@@ -31,7 +31,8 @@ axis, on robust statistics of the raw correction:
   envelopes, so pops of that size are not followed again. Excursions seen at rest are learnt
   ``hold_s`` late, and only if no step followed, so a real step being confirmed never raises its
   own threshold. The price: a real step smaller than the largest pop the model has produced
-  waits for the slow path (~``slow_confirm_s`` / 2).
+  waits for the slow path (~``slow_confirm_s`` / 2); a change below ``min_threshold_um`` waits
+  for the rest fit, and a fast drift is followed in stairs of that size until its trend shows.
 
 Everything depends on the frame count only (blocks of ``block_n`` frames of the nominal frame
 interval, fixed at the zero state): the output is the same, to the bit, whether frames come one
@@ -47,6 +48,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+SD_FLOOR_UM = 1e-3        # the robust noise SD never drops below this (a noise-free replay)
+
 
 @dataclass
 class OutputFilterConfig:
@@ -60,7 +63,7 @@ class OutputFilterConfig:
     slow_confirm_s: float = 1.6    # the median over this long beyond the small threshold: a step
     threshold_sd: float = 6.0      # thresholds: at least this many robust noise SDs ...
     margin: float = 1.5            # ... and this times the noise's own excursion envelope ...
-    min_threshold_um: float = 0.02  # ... and at least this
+    min_threshold_um: float = 1.0   # ... and at least this: smaller changes wait for the rest fit
     envelope_tau_s: float = 1800.0  # memory of the excursion envelopes
     noise_block_s: float = 10.0    # robust noise SD measured per block this long ...
     noise_tau_s: float = 60.0      # ... and blended with this time constant
@@ -88,7 +91,7 @@ class AdaptiveLevelFilter:
         self.noise_gain = min(1.0, cfg.noise_block_s / cfg.noise_tau_s) \
             if cfg.noise_tau_s > 0 else 1.0
         noise = np.nan_to_num(np.asarray(noise_um, float) * np.ones(3), nan=1.0)
-        self.sd = np.maximum(np.abs(noise), cfg.min_threshold_um)
+        self.sd = np.maximum(np.abs(noise), SD_FLOOR_UM)
         self.noise_blocks = np.zeros(3, np.int64)
         self.ring_n = max(self.rest_n, self.slow_n, self.short_n) + 1
         self.b = np.zeros((self.ring_n, 3))      # block means (ring)
@@ -253,7 +256,7 @@ class AdaptiveLevelFilter:
                     sd = 1.4826 * float(np.median(dev))
                     self.noise_blocks[j] += 1
                     g = max(self.noise_gain, 1.0 / self.noise_blocks[j])
-                    self.sd[j] = max(self.sd[j] + g * (sd - self.sd[j]), cfg.min_threshold_um)
+                    self.sd[j] = max(self.sd[j] + g * (sd - self.sd[j]), SD_FLOOR_UM)
                     dev.clear()
             self.level[j] = level
         self.k += 1
