@@ -8,7 +8,13 @@ real ``fbgcomp serve --log`` for a bounded time, all runs side by side:
 * (a) the built-in twin: ``fbgcomp simulate --scenario static-y`` (load steps 0-4000 N along Y)
   and ``thermal-36h``; the model is fitted on both;
 * (b) the independent ram2 data set (/work/shared/reference/ram2/data): fitted on thermal_a +
-  static_xyz, served static_x (load steps along X) and thermal_b.
+  static_xyz with its machine description (examples/machines/ram2.yaml, as the demo and
+  bench_accuracy fit it), served static_x (load steps along X) and thermal_b.
+
+``--model mra`` fits the paper's regression (``--features eq13``) instead of the default model:
+a model whose output follows the loads frame by frame, to see the output filter's step
+behaviour whatever the default model does with the loads. The first line names the code
+measured (a commit, uncommitted changes, or a PYTHONPATH archive).
 
 Figures, per axis: at rest (thermal runs, after ``--settle`` s), the RMS deviation of the
 applied correction ``corr_*`` from its own centred 60 s moving mean, beside the same figure of
@@ -18,7 +24,7 @@ filter); on the load steps, the time from the step's start to the applied correc
 Targets: ≤ 0.2 µm RMS at rest on every axis; every step followed within 1 s of the model.
 
     .venv/bin/python benchmarks/bench_correction_noise.py [--rest-s 540 --settle-s 300
-        --step-s 330 --rate 100 --work DIR]
+        --step-s 330 --rate 100 --model default|mra --work DIR]
 
 Prints a report and, last, one JSON line.
 """
@@ -39,6 +45,8 @@ import numpy as np
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 RAM2 = Path("/work/shared/reference/ram2/data")
+REPO = Path(__file__).resolve().parents[1]
+RAM2_MACHINE = REPO / "examples" / "machines" / "ram2.yaml"
 AXES = ("dx", "dy", "dz")
 
 
@@ -145,8 +153,21 @@ def main() -> None:
     ap.add_argument("--settle-s", type=float, default=300.0)
     ap.add_argument("--step-s", type=float, default=330.0)
     ap.add_argument("--rate", type=float, default=100.0, help="instrument frames per second")
+    ap.add_argument("--model", choices=("default", "mra"), default="default",
+                    help="default: fbgcomp fit as is; mra: the paper's regression (eq13)")
     ap.add_argument("--work", type=Path, default=None)
     args = ap.parse_args()
+    import fbgcomp
+    code = Path(fbgcomp.__file__).resolve().parents[1]
+    if code == REPO / "src":
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                                text=True, cwd=REPO).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "src"], capture_output=True,
+                               text=True, cwd=REPO).stdout.strip()
+        version = f"commit {commit}" + (" + uncommitted changes in src/" if dirty else "")
+    else:                   # e.g. PYTHONPATH=<git archive of a commit>/src
+        version = f"fbgcomp from {code}"
+    extra = ["--features", "eq13"] if args.model == "mra" else []
     from fbgcomp.runtime.log import read_log
 
     work = args.work or Path(tempfile.mkdtemp(prefix="bench-corr-"))
@@ -157,11 +178,12 @@ def main() -> None:
             if not (d / "fbg.csv").is_file()]
     for p in sims:
         check(p, "simulate", 900)
-    fits = [fbgcomp("fit", *twin.values(), "-o", work / "twin-model.json")]
+    fits = [fbgcomp("fit", *twin.values(), *extra, "-o", work / "twin-model.json")]
     have_ram2 = (RAM2 / "static_x").is_dir()
     if have_ram2:
-        fits.append(fbgcomp("fit", RAM2 / "thermal_a", RAM2 / "static_xyz", "-o",
-                            work / "ram2-model.json"))
+        machine = [] if extra else ["--machine", RAM2_MACHINE]
+        fits.append(fbgcomp("fit", RAM2 / "thermal_a", RAM2 / "static_xyz", *extra, *machine,
+                            "-o", work / "ram2-model.json"))
     for p in fits:
         check(p, "fit", 900)
     runs = {"twin rest (thermal-36h)": ("twin-model.json", twin["thermal-36h"], args.rest_s),
@@ -181,10 +203,11 @@ def main() -> None:
         _, df = read_log(log)
         results[name] = rest_figures(df, args.settle_s) if "rest" in name else step_figures(df)
 
-    print(f"correction at rest and on load steps, served live at {args.rate:g} frames/s "
+    print(f"correction at rest and on load steps, served live at {args.rate:g} frames/s; "
+          f"{args.model} model; {version}; {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} "
           f"(work folder {work}, {time.time() - t_start:.0f} s, load average "
           f"{os.getloadavg()[0]:.1f})")
-    summary = {"rate_hz": args.rate, "runs": results}
+    summary = {"rate_hz": args.rate, "model": args.model, "code": version, "runs": results}
     for name, r in results.items():
         if "rest" in name:
             print(f"\n{name}: RMS deviation from the 60 s moving mean over {r['seconds']:.0f} s "
@@ -195,6 +218,8 @@ def main() -> None:
                       f"{r['unfiltered'][j]:.4f} µm  (x{ratio:.0f} quieter)")
         else:
             print(f"\n{name}: load steps (90 % of the new level)")
+            if not r["steps"]:
+                print("  none: the model output shows no step of 50 µm or more")
             for s in r["steps"]:
                 if s["followed"]:
                     print(f"  {s['axis']} {s['from_um']:8.1f} -> {s['to_um']:8.1f} µm: "
@@ -207,8 +232,9 @@ def main() -> None:
             for s in r["steps"]]
     summary["max_rest_rms_um"] = rest_max
     summary["max_step_lag_s"] = max(lags) if lags else None
+    lag = summary["max_step_lag_s"]
     print(f"\nworst axis at rest {rest_max:.4f} µm RMS (target <= 0.2); worst step lag "
-          f"{summary['max_step_lag_s']:.2f} s (target <= 1)")
+          + (f"{lag:.2f} s (target <= 1)" if lag is not None else "not measured (no step)"))
     print(json.dumps(summary, default=float))
 
 
