@@ -157,8 +157,8 @@ def main() -> None:
                     help="default: fbgcomp fit as is; mra: the paper's regression (eq13)")
     ap.add_argument("--work", type=Path, default=None)
     args = ap.parse_args()
-    import fbgcomp
-    code = Path(fbgcomp.__file__).resolve().parents[1]
+    import fbgcomp as package
+    code = Path(package.__file__).resolve().parents[1]
     if code == REPO / "src":
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
                                 text=True, cwd=REPO).stdout.strip()
