@@ -159,9 +159,9 @@ def main() -> None:
     args = ap.parse_args()
     import fbgcomp as package
     code = Path(package.__file__).resolve().parents[1]
-    if code == REPO / "src":
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                                text=True, cwd=REPO).stdout.strip()
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
+                            text=True, cwd=REPO).stdout.strip() if (REPO / ".git").exists() else ""
+    if code == REPO / "src" and commit:
         dirty = subprocess.run(["git", "status", "--porcelain", "--", "src"], capture_output=True,
                                text=True, cwd=REPO).stdout.strip()
         version = f"commit {commit}" + (" + uncommitted changes in src/" if dirty else "")
