@@ -1,9 +1,10 @@
 """Adaptive output filter: the published correction holds still at rest and follows real steps.
 
 A model's prediction carries the noise of its inputs and of its own policy: served live on the
-twin, the default model's dy pops by 10-100 µm for 0.3-2.3 s some 16 times a minute (its load
-part crossing the firm-shrinkage threshold) while nothing moves; on ram2 the 0.1 °C steps of the
-probes move the thermal part by ~1 µm for tens of seconds. A CNC must not be moved by that, yet
+twin, the physical model as it was before 02c50bc popped on dy by 10-100 µm for 0.3-2.3 s some 16
+times a minute (its load part crossing the firm-shrinkage threshold) while nothing moved; on ram2
+the 0.1 °C steps of the probes moved its thermal part by ~1 µm for tens of seconds, and its load
+refusals dropped the correction by ~370 µm for a few frames. A CNC must not be moved by that, yet
 a load step must reach it within a second. No linear filter does both, so this one decides, per
 axis, on robust statistics of the raw correction:
 
