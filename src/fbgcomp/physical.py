@@ -1,4 +1,4 @@
-"""The default model: load from the gratings' load signature, heat from the housing, do no harm.
+"""The default model: loads read as steps of the gratings' load signature, heat from the twin, do no harm.
 
 Why not the paper's regression (eq. 11-13) as the default: on a CFRP ram with near-zero axial
 CTE a bonded grating is mostly a thermometer of its own gauge (~10.5 pm/K against ~2 pm per µm
@@ -12,28 +12,25 @@ two physically separate parts and guards each one:
 elongations respond to a TTP force F as ``e = G F`` (G: µm per N, S x 3) and the TTP moves by
 ``C F`` (C: the compliance, µm per N). G and C are measured on the training campaigns that carry
 a loads.csv (static tests), or taken from the FE twin of the machine description when none does.
-At run time each frame's force is the generalised least-squares estimate
+The gratings' thermal reading drifts by thousands of N of load-equivalent over a day and no
+probe predicts it, but a load arrives in seconds and heat in minutes to hours: the applied force
+changes only by steps that the generalised least-squares estimate ``(G' W G)^-1 G' W x`` of the
+unexplained reading ``x`` shows clear of the gratings' noise, of heat's drift within the
+tracking time and of the other components' cross-talk; everything else is tracked as the
+gratings' thermal offset, loaded or not (:meth:`PhysicalPredictor._track_load`). A step that no
+load explains (one grating jumps alone) is refused (``LOAD_REFUSED``); a force whose signature
+is the gratings' warming pattern is a nuisance, never a load.
 
-    F = (G' W G)^-1 G' W (e - e_thermal),    W = (Sigma_thermal + Sigma_noise)^-1
-
-where ``e_thermal`` is the gratings' thermal reading predicted from the probes (fitted on the
-load-free campaigns) and ``Sigma_thermal`` the covariance of that prediction's error: a reading
-pattern the probes explain badly (common-mode warming) carries little weight, a differential
-pattern (bending) a lot. Frames whose residual contradicts every load the structure can carry
-(chi-square test) drop the load part (``LOAD_REFUSED``); each force component is shrunk to zero
-unless it stands clear of its uncertainty and of the other components' cross-talk (firm
-shrinkage), so sensor noise and thermal
-mismatch are never published as a correction on an axis that does not move.
-
-**Thermal part**: per axis a least-squares fit, on the load-free training campaigns, of the
-TTP deviation on the temperature changes of the housing probe(s) and the ambient, and on the
-housing probe's thermal lead ``T - lowpass(T, tau)`` (~ tau dT/dt): the spindle housing is
-steel (11.5e-6 /K against 0.4e-6 /K for the CFRP), so the TTP's axial drift follows the housing's
-mean temperature, which a probe on the housing's far face sees late; the lead term recovers it
-(on ram2, fit on thermal_a: held-out dz RMS 2.9 -> 1.0 µm). The regressors are clipped to the
-training envelope (``SHRUNK``) and each axis to the range of thermal deviations it was validated
-on (``CLAMPED``): a heat source absent from training can move the correction no further than
-what was seen.
+**Thermal part**. With a machine description: a ridge map from [the gratings' uncompensated
+elongations (thermometers of their gauges), the probes' smoothed ΔT, the housing's leads
+``T - lowpass(T, tau)``] to the TTP, learned on generic thermal scenarios of the machine's FE
+twin (:func:`twin_thermal_population`), so the face-gradient coefficients that no measured
+campaign without a gradient can teach come from physics. Without one: per axis a least-squares
+fit, on the load-free training campaigns, of the TTP on the housing and ambient probes and the
+housing's lead (the steel housing's mean temperature, which a probe on its far face sees late).
+Either way the inputs are clipped to the envelope they were learned on (``SHRUNK``), what the
+sensors' noise alone makes of the part is not applied (firm shrinkage) and each axis is clamped
+to the range it was validated on (``CLAMPED``).
 
 Every prediction therefore carries its applicability flags (``last_flags`` after each call,
 bits of :mod:`fbgcomp.policy`), which the runtime publishes with the correction.
@@ -263,12 +260,10 @@ class PhysicalPredictor:
             L = m.load_
             G = np.asarray(L["G_um_per_N"])[keep]
             self.C = np.asarray(L["C_um_per_N"])                          # (3 axes, 3 forces)
-            self.B = np.asarray(L["grating_thermal_coef"])[:, keep]       # (1 + nh, S)
             self.noise_var = np.asarray(L["noise_var_um2"], float)[keep]
             noise = np.diag(self.noise_var)
             unit = np.asarray(L["thermal_sigma_unit_um2"], float)[np.ix_(keep, keep)]
             self.active = np.asarray(L["active_forces"], bool)
-            self.thermal_scale = np.asarray(L["thermal_scale"], float)
             Ga = G[:, self.active]
             # forces the gratings cannot tell from a warming (not separable) stay unknown
             # nuisances: their signature is absorbed, never read as a load or a contradiction
@@ -276,27 +271,21 @@ class PhysicalPredictor:
             Gn = G[:, nuis]
             max_f = np.asarray(L.get("max_force_N", [5000.0] * 3), float)[nuis]
             nuisance_cov = Gn @ np.diag((1.5 * max_f) ** 2) @ Gn.T if nuis.any() else 0.0
-            # GLS operators on a grid of thermal excursions s² (0 = isothermal): the gratings'
-            # thermal reading is only uncertain in proportion to how far the machine is from its
-            # zero state, so a static load at rest is read with the sensors' noise alone.
+            # GLS operators at rest (steps are read against the sensors' noise) and at the
+            # training's thermal extreme, s² = 1 (the load part's share of the interval): the
+            # gratings' thermal-reading error grows in proportion to the thermal excursion.
             self.step_cov = noise + nuisance_cov
-            self.s2_grid = np.concatenate([[0.0], np.logspace(-4, 4, 49)])
-            nS = len(keep)
-            self.ops = np.zeros((self.s2_grid.size, 3, nS))
-            self.Ws = np.zeros((self.s2_grid.size, nS, nS))
-            self.F_sds = np.zeros((self.s2_grid.size, 3))
-            for i, s2 in enumerate(self.s2_grid):
-                op, cov, W = gls_operator(Ga, noise + s2 * unit + nuisance_cov)
+            self.ops = np.zeros((2, 3, len(keep)))
+            self.F_sds = np.zeros((2, 3))
+            for i, s2 in enumerate((0.0, 1.0)):
+                op, cov, _ = gls_operator(Ga, self.step_cov + s2 * unit)
                 self.ops[i][self.active] = op
-                self.Ws[i] = W
                 self.F_sds[i][self.active] = np.sqrt(np.clip(np.diag(cov), 0, None))
             self.F_sd = self.F_sds[0]
             self.G = G
             self.dof = len(keep) - int(self.active.sum())
             self.k_sigma = float(m.load_k_sigma)
             self.p_contra = float(m.contradiction_p)
-            self.chi2_inflation = float(L.get("chi2_inflation", 1.0))
-            self.s2_limit = float(L.get("s2_limit", np.inf))
             self.relative_error = float(m.load_relative_error)
             # no load beyond 1.5x the largest the signature was calibrated with is believed
             self.max_force_N = 1.5 * np.asarray(L.get("max_force_N", [np.inf] * 3), float)
@@ -317,10 +306,9 @@ class PhysicalPredictor:
             self.map = {"coef": coef, "low": lo, "high": hi,
                         "G": (np.asarray(m.load_["G_um_per_N"], float) if m.load_ is not None
                               else np.zeros((S, 3)))}
-            self._map_h_idx = self._h_idx
         var = self.thermal_resid_var.copy()
         if self.has_load:
-            var = var + (self.C ** 2 @ self.F_sds[self.s2_grid.searchsorted(1.0)] ** 2)
+            var = var + (self.C ** 2 @ self.F_sds[1] ** 2)
         self.expected_rms_error_um = np.sqrt(var)
         self._t = stats.norm.ppf(0.975)
         self.state = None
@@ -330,36 +318,9 @@ class PhysicalPredictor:
     def reset(self):
         self.state = None
 
-    def thermal_regressors(self, temperature_C, temperature_zero_C, time_s=None):
-        """[1, ΔT_housing..., ΔT_ambient..., lead of mean ΔT_housing] (n, 1 + nh)."""
-        dT = np.atleast_2d(np.asarray(temperature_C, float)) - np.asarray(temperature_zero_C, float)
-        state = self.state or {}
-        H, h_state = thermal_regressors(dT, self._h_idx, self._a_idx, self.lead_tau_s, time_s,
-                                        state.get("h"), self.nominal_dt_s)
-        self.state = {**state, "h": h_state}
-        return H
-
-    def thermal_excursion(self, delta_T_K):
-        """s² per frame (n,): every probe's temperature change in units of its largest change in
-        training, squared and summed (0 at the zero state; ~1 at the training's extremes)."""
-        return np.sum((np.atleast_2d(delta_T_K) / self.thermal_scale) ** 2, axis=1)
-
-    def estimate_force(self, e_mech, delta_T_K):
-        """GLS force (n, 3) N, chi-square of the residual (n,) and force SD (n, 3) N."""
-        s2 = self.thermal_excursion(delta_T_K)
-        k = np.minimum(self.s2_grid.searchsorted(s2), self.s2_grid.size - 1)
-        force = np.empty((len(k), 3))
-        chi2 = np.empty(len(k))
-        for i in np.unique(k):
-            rows = k == i
-            f = e_mech[rows] @ self.ops[i].T
-            r = e_mech[rows] - f[:, self.active] @ self.G[:, self.active].T
-            force[rows] = f
-            chi2[rows] = np.einsum("ns,st,nt->n", r, self.Ws[i], r)
-        return force, chi2, self.F_sds[k]
-
     def _track_load(self, e, time_s, state, new_state, raw=False):
-        """Applied force per frame (n, 3) N and the frames where a force was clamped (n,).
+        """Applied force per frame (n, 3) N, and the frames where a force was clamped (n,) and
+        where a step was refused (n,).
 
         On CFRP the gratings are thermometers first: their thermal reading drifts by thousands
         of N of load-equivalent over a day, and no probe predicts it (a radiant load on one face
@@ -437,10 +398,7 @@ class PhysicalPredictor:
         n = wl.shape[0]
         flags = np.zeros((n, 3), np.uint8)
         state = self.state or {}
-        H, h_state = thermal_regressors(
-            np.atleast_2d(np.asarray(temperature_C, float)) - np.asarray(temperature_zero_C, float),
-            self._h_idx, self._a_idx, self.lead_tau_s, time_s, state.get("h"), self.nominal_dt_s)
-        new_state = {"h": h_state}
+        new_state = {}
         dT = np.atleast_2d(np.asarray(temperature_C, float)) - np.asarray(temperature_zero_C, float)
         w = wl.copy()
         w0 = np.asarray(wavelength_zero_nm, float)
@@ -459,7 +417,7 @@ class PhysicalPredictor:
             # the gratings minus the load read from them are thermometers of their gauges
             e_th = e_all - force @ self.map["G"].T
             e_th[:, lost] = 0.0
-            X, new_state["map"] = map_features(e_th, dT, self._map_h_idx, time_s, state.get("map"),
+            X, new_state["map"] = map_features(e_th, dT, self._h_idx, time_s, state.get("map"),
                                                self.nominal_dt_s)
             if raw or not thermal_policy:
                 thermal = X @ self.map["coef"]
@@ -470,15 +428,19 @@ class PhysicalPredictor:
                 thermal, clamped = P.clamp_axes(thermal, self.t_low, self.t_high)
                 flags[outside] |= P.SHRUNK
                 flags[clamped] |= P.CLAMPED
-        elif raw or not thermal_policy:
-            thermal = H @ self.A
         else:
-            Hc, outside = P.clip_to_envelope(H[:, 1:], self.h_low, self.h_high, self.margin)
-            Hc = np.hstack([H[:, :1], Hc])
-            thermal = P.firm(Hc @ self.A, self.thermal_noise_sd_um, self.k_sigma, 2 * self.k_sigma)
-            thermal, clamped = P.clamp_axes(thermal, self.t_low, self.t_high)
-            flags[outside] |= P.SHRUNK
-            flags[clamped] |= P.CLAMPED
+            # no twin: the housing fit on the measured load-free campaigns
+            H, new_state["h"] = thermal_regressors(dT, self._h_idx, self._a_idx, self.lead_tau_s, time_s,
+                                                   state.get("h"), self.nominal_dt_s)
+            if raw or not thermal_policy:
+                thermal = H @ self.A
+            else:
+                Hc, outside = P.clip_to_envelope(H[:, 1:], self.h_low, self.h_high, self.margin)
+                Hc = np.hstack([H[:, :1], Hc])
+                thermal = P.firm(Hc @ self.A, self.thermal_noise_sd_um, self.k_sigma, 2 * self.k_sigma)
+                thermal, clamped = P.clamp_axes(thermal, self.t_low, self.t_high)
+                flags[outside] |= P.SHRUNK
+                flags[clamped] |= P.CLAMPED
         self.state = new_state
         self.last_flags = flags
         self.last_force_N = force
@@ -681,7 +643,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
                           "thermal_sigma_unit_um2": (self.thermal_error_inflation * cov_unit).tolist(),
                           "thermal_scale": scale.tolist(), "noise_var_um2": noise_var.tolist(),
                           "max_force_N": np.where(max_force > 0, max_force, 5000.0).tolist(),
-                          "source": source, "chi2_inflation": 1.0,
+                          "source": source,
                           "not_separable": [f for f, ok in zip(_FORCE_AXES, separable) if not ok]}
         # Thermal part of the TTP: y minus the (policy-applied) load part, on load-free campaigns.
         self.thermal_coef_ = np.zeros((nh, 3))
@@ -726,17 +688,16 @@ class PhysicalModel(EstimatorParams, ModelFile):
                           "n_samples": int(sum(len(r["y"]) for r in rows))}
         self._predictors = {}
         if self.load_ is not None:
-            self._calibrate_applicability(rows)
+            self._calibrate_drift(rows)
         if self.twin_map_ is not None and thermal_rows:
             # the map's error on the measured load-free campaigns (nothing of it is fitted there)
             # sets its interval and widens the validated range to what the twin covers
-            res, fits = [], []
+            res = []
             for r, c in zip(rows, campaigns):
                 if r["loaded"]:
                     continue
                 pred, _ = self.predict_interval(c, policy=False)
                 res.append(pred - r["y"])
-                fits.append(pred)
             res = np.vstack(res)
             self.thermal_resid_sd_um_ = np.sqrt(np.mean(res ** 2, axis=0))
             lo, hi = np.asarray(self.twin_map_["ttp_low_um"]), np.asarray(self.twin_map_["ttp_high_um"])
@@ -746,7 +707,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
             self._predictors = {}
         return self
 
-    def _calibrate_applicability(self, rows):
+    def _calibrate_drift(self, rows):
         """The drift heat causes in the force read from the gratings, N/s per component: twice
         the 99th percentile of its frame-to-frame rate on the load-free training campaigns
         (floor: 0.1 N/s). A step must stand clear of what this drift builds up within the
@@ -832,7 +793,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
             for a, row in zip(AXES, np.asarray(L["C_um_per_N"])):
                 out.append(f"{a:<8}" + "".join(f"{1e3 * v:>13.4g}" for v in row))
             p = self.predictor()
-            at_rest, warm = p.F_sds[0], p.F_sds[p.s2_grid.searchsorted(1.0)]
+            at_rest, warm = p.F_sds
             out.append("force 1-sigma N at rest / at the training's thermal extreme: "
                        + ", ".join(f"{f} {a:.3g}/{b:.3g}" for f, a, b in zip(_FORCE_AXES, at_rest, warm))
                        + f"; applied from {self.load_k_sigma:g} sigma, in full beyond {2 * self.load_k_sigma:g}")
