@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib
 import os
 import shutil
+from pathlib import Path
 
 import pytest
 
@@ -32,3 +33,18 @@ def require_program(name: str) -> str:
             pytest.fail(f"program {name!r} is required in CI but not on PATH")
         pytest.skip(f"{name} not on PATH")
     return path
+
+
+#: The independent reference ram (../shared/reference/ram2 beside the repository; CI has it).
+RAM2_DIR = Path(__file__).resolve().parents[2] / "shared" / "reference" / "ram2"
+
+
+def read_ram2(*names: str) -> dict:
+    """ram2's campaigns by name, read from ``RAM2_DIR/data``; fails (never skips) when the data
+    set is missing, because the project's accuracy is judged on it."""
+    from fbgcomp.campaign import read_campaign
+
+    data = RAM2_DIR / "data"
+    if not data.is_dir():
+        pytest.fail(f"the independent reference data set is missing: {data}")
+    return {n: read_campaign(data / n) for n in names}

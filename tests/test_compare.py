@@ -10,14 +10,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fbgcomp_testing import RAM2_DIR, read_ram2
 
-from fbgcomp.campaign import read_campaign
 from fbgcomp.compare import format_campaign_tables
 from fbgcomp.metrics import HARM_TOLERANCE_UM
 from fbgcomp.models import MRAModel
 
 REPO = Path(__file__).resolve().parents[1]
-RAM2 = Path(__file__).resolve().parents[2] / "shared" / "reference" / "ram2" / "data"
+RAM2 = RAM2_DIR / "data"
 MACHINE = REPO / "examples" / "machines" / "ram2.yaml"
 FBGCOMP = [sys.executable, "-m", "fbgcomp"]
 TYPES = {"physical", "mra", "ridge", "pls", "dynamic", "kinematic", "hybrid", "calibrated"}
@@ -30,9 +30,7 @@ def run(*args, env=None):
 
 @pytest.fixture(scope="module")
 def ram2():
-    if not RAM2.is_dir():
-        pytest.fail(f"the independent reference data set is missing: {RAM2}")
-    return {n: read_campaign(RAM2 / n) for n in ("thermal_a", "static_xyz", "static_x", "thermal_c")}
+    return read_ram2("thermal_a", "static_xyz", "static_x", "thermal_c")
 
 
 @pytest.fixture(scope="module")

@@ -4,22 +4,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fbgcomp_testing import read_ram2
 
 from fbgcomp import policy as P
-from fbgcomp.campaign import read_campaign
 from fbgcomp.metrics import validation_metrics
 from fbgcomp.models import load_model
 from fbgcomp.model_types import first_order_filter as lowpass
 from fbgcomp.physical import PhysicalModel
 
-RAM2 = Path(__file__).resolve().parents[2] / "shared" / "reference" / "ram2" / "data"
-
 
 @pytest.fixture(scope="module")
 def ram2():
-    if not RAM2.is_dir():
-        pytest.fail(f"the independent reference data set is missing: {RAM2}")
-    return {n: read_campaign(RAM2 / n) for n in ("thermal_a", "static_xyz", "thermal_b", "static_x")}
+    return read_ram2("thermal_a", "static_xyz", "thermal_b", "static_x")
 
 
 @pytest.fixture(scope="module")
