@@ -168,16 +168,24 @@ def test_partition_stream_accumulates_the_same_factor_as_the_campaign_fit(campai
     acc = model.new_accumulator(part.sensors(), part.probe_names)
     for f in part.file_paths:
         accumulate_partition_file(model, part, f, acc)
+    with pytest.raises(ValueError, match="cover 0 of the 1500 rows"):
+        model.fit_factor(acc.copy())           # Newey-West needs the second pass
+    acc.begin_hac()
+    for f in part.file_paths:
+        accumulate_partition_file(model, part, f, acc, second_pass=True)
     model.fit_factor(acc)
     ref = MRAModel(features="eq12", fallbacks="none").fit(read_campaign(pa_))
     # Same rows cut into other chunks: equal up to the QR's rounding, kappa * u normwise (eq12's
     # raw quadratic temperature terms make kappa ~1e5, so a small coefficient alone may differ
-    # by more than 1e-10 of itself).
+    # by more than 1e-10 of itself). The Newey-West standard errors come from a sum of squares
+    # (the meat) whose weakest direction holds eps kappa^2 ~ 1.6e-5 of it: equal to that.
     for axis in ("dx", "dy", "dz"):
         got, want = model.axes_[axis], ref.axes_[axis]
         assert got.terms == want.terms
         assert np.max(np.abs(got.params - want.params)) <= 1e-10 * np.max(np.abs(want.params))
-        np.testing.assert_allclose(got.bse, want.bse, rtol=1e-10)
+        assert got.cov_type == want.cov_type == "HAC"
+        assert np.all(want.bse > 0)
+        np.testing.assert_allclose(got.bse, want.bse, rtol=2e-5)
 
 
 def test_zero_window_must_match_the_ingested_one(campaigns, tmp_path):

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 import fbgcomp_testing
 from fbgcomp.errors import InputError
 from fbgcomp.regression import (OLSResults, QRAccumulator, RankDeficientError, StepwiseResult,
-                                ols, ols_from_factor, stepwise)
+                                accumulate_series, ols, ols_from_factor, stepwise)
 
 NIST = json.loads((Path(__file__).parent / "data" / "nist_strd_linear.json").read_text("utf-8"))
 DATASETS = list(NIST["datasets"])
@@ -560,8 +560,12 @@ def test_hac_standard_errors_equal_statsmodels(maxlags):
     assert res.fvalue == pytest.approx(float(ref.fvalue), rel=1e-8)
     # streamed in uneven chunks through the lag carry, with other bandwidths kept beside it
     acc = QRAccumulator(4, 1, hac_lags=[maxlags, 3, 200])
-    for lo, hi in [(0, 5), (5, 93), (93, 94), (94, 600), (600, 700)]:
+    cuts = [(0, 5), (5, 93), (93, 94), (94, 600), (600, 700)]
+    for lo, hi in cuts:
         acc.update(X[lo:hi], y[lo:hi])
+    acc.begin_hac()
+    for lo, hi in cuts:
+        acc.update_hac(X[lo:hi], y[lo:hi])
     np.testing.assert_allclose(ols_from_factor(acc, maxlags=maxlags).bse, ref.bse, rtol=1e-8)
     # a wide bandwidth goes through the cumulative-sum path; a long series through several blocks
     wide = ols(X, y, maxlags=200)
@@ -595,14 +599,61 @@ def test_hac_of_separate_series_and_weights_equals_statsmodels_per_series_sum():
     acc = QRAccumulator(4, 1, hac_lags=[L])
     for Xp, yp, wp in parts:
         acc.update(Xp[:50], yp[:50], weights=wp).update(Xp[50:], yp[50:], weights=wp)
+    acc.begin_hac()
+    for Xp, yp, wp in parts:
+        acc.update_hac(Xp[:50], yp[:50], weights=wp).update_hac(Xp[50:], yp[50:], weights=wp)
         acc.end_series()
     np.testing.assert_allclose(ols_from_factor(acc).bse, expected, rtol=1e-8)
+    # each series two-passed on its own (its own pilot), then merged with its weight
     merged = QRAccumulator(4, 1, hac_lags=[L])
     for Xp, yp, wp in parts:
-        merged.merge(QRAccumulator(4, 1, hac_lags=[L]).update(Xp, yp), weight=wp)
+        one = accumulate_series(QRAccumulator(4, 1, hac_lags=[L]), [(Xp, yp, None)])
+        merged.merge(one, weight=wp)
     np.testing.assert_allclose(ols_from_factor(merged).bse, expected, rtol=1e-8)
     again = QRAccumulator.from_dict(json.loads(json.dumps(merged.to_dict())))
     np.testing.assert_allclose(ols_from_factor(again).bse, expected, rtol=1e-8)
+
+
+def test_hac_of_an_ill_conditioned_design_in_small_chunks_matches_statsmodels():
+    """Raw quadratic temperature terms (kappa ~1e5 after column scaling) and a zero window
+    first: the meat's weakest direction holds eps kappa^2 of it, so a quadratic form about
+    a pilot far from the solution (the first chunk's, or zero) loses every digit there
+    (negative variances). The two passes (factor, then statistics about the full model's
+    coefficients) agree with statsmodels to what any meat allows, whatever the chunking."""
+    sm = fbgcomp_testing.require("statsmodels.api")
+    rng = np.random.default_rng(8)
+    n = 1500
+    t = np.concatenate([np.zeros(60), np.cumsum(rng.normal(0.05, 0.02, size=n - 60))])
+    u = np.concatenate([np.zeros(60), 0.7 * t[60:] + np.cumsum(rng.normal(0, 0.01, n - 60))])
+    X = np.column_stack([np.ones(n), t, u, t * t, t * u, u * u])
+    y = X @ [0.1, 3.0, -2.0, 0.5, -0.4, 0.2] + _ar1(rng, n, 0.8, scale=0.02)
+    ref = sm.OLS(y, X).fit(cov_type="HAC", cov_kwds={"maxlags": 16})
+    whole = ols(X, y, maxlags=16)
+    # kappa 7.8e5 on unit-RMS columns: eps kappa^2 = 1.4e-4 is what any meat can promise
+    tol = 1.4e-4
+    np.testing.assert_allclose(whole.bse, ref.bse, rtol=tol)
+    acc = QRAccumulator(6, 1, hac_lags="auto")
+    cuts = [0, 60, 61, 300, 301, 900, n]
+    for lo, hi in zip(cuts[:-1], cuts[1:]):
+        acc.update(X[lo:hi], y[lo:hi])
+    with pytest.raises(ValueError, match="cover 0 of the 1500 rows"):
+        ols_from_factor(acc, maxlags=16)
+    with pytest.raises(ValueError, match="begin_hac"):
+        acc.copy().update_hac(X, y)
+    # statistics about a pilot far from the solution (zero): every digit lost
+    bad = acc.copy()
+    bad.hac_frozen_ = True
+    for lo, hi in zip(cuts[:-1], cuts[1:]):
+        bad.update_hac(X[lo:hi], y[lo:hi])
+    assert not np.allclose(ols_from_factor(bad, maxlags=16).bse, ref.bse, rtol=0.1)
+    acc.begin_hac()
+    for lo, hi in zip(cuts[:-1], cuts[1:]):
+        acc.update_hac(X[lo:hi], y[lo:hi])
+    np.testing.assert_allclose(ols_from_factor(acc, maxlags=16).bse, ref.bse, rtol=tol)
+    # the same through the helper, in other chunks
+    a = QRAccumulator(6, 1, hac_lags="auto")
+    accumulate_series(a, [(X, y, None)], chunk_rows=97)
+    np.testing.assert_allclose(ols_from_factor(a, maxlags=16).bse, ref.bse, rtol=tol)
 
 
 def test_naive_standard_errors_are_too_small_under_ar1_errors_and_hac_ones_are_not():
@@ -641,7 +692,8 @@ def test_stepwise_hac_rejects_spurious_random_walks_that_naive_f_tests_admit():
         X = np.column_stack([np.ones(n), x1, x2, walks])
         y = 2.0 * x1 - 1.0 * x2 + _ar1(rng, n, 0.98, scale=0.2)
         names = ["const", "x1", "x2"] + [f"rw{i}" for i in range(6)]
-        acc = QRAccumulator(9, 1, feature_names=names, hac_lags="auto").update(X, y)
+        acc = accumulate_series(QRAccumulator(9, 1, feature_names=names, hac_lags="auto"),
+                                [(X, y, None)])
         for cov_type in spurious:
             sw = stepwise(acc, include=["const"], cov_type=cov_type)
             spurious[cov_type] += sum(s.startswith("rw") for s in sw.selected)
@@ -655,7 +707,7 @@ def test_stepwise_hac_rejects_spurious_random_walks_that_naive_f_tests_admit():
 def test_stepwise_hac_history_is_the_wald_test_of_the_bigger_model():
     X, y = _drift_problem(n=500)
     acc = QRAccumulator(4, 1, feature_names=["const", "rw", "noise", "sine"], hac_lags=16)
-    acc.update(X, y)
+    accumulate_series(acc, [(X, y, None)])
     sw = stepwise(acc, include=["const"], maxlags=16)
     assert "Newey-West (HAC) Wald tests" in sw.summary()
     model = []

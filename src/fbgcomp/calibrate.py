@@ -115,6 +115,7 @@ def fe_calibrate(machine, twin=None, *, features="eq11", n_samples=2000, wavelen
         case responses.
     """
     from .models import MRAModel
+    from .regression import accumulate_series
     from .structure import Twin
 
     twin = twin or Twin(machine)
@@ -125,7 +126,8 @@ def fe_calibrate(machine, twin=None, *, features="eq11", n_samples=2000, wavelen
     acc = model.new_accumulator(sensors, [p.name for p in machine.probes])
     fmap = model._feature_map()
     keep = [c for c in X.columns if c in fmap.base_names]
-    acc.update(design_matrix(X[keep].to_numpy(), keep, model.candidates_), y)
+    accumulate_series(acc, [(design_matrix(X[keep].to_numpy(), keep, model.candidates_),
+                             np.asarray(y, dtype=float), None)])
     model.fit_factor(acc, training={"campaigns": [], "n_samples": int(n_samples),
                                     "fe_design": _design_record(seed, n_samples, wavelength_noise_nm)})
     return model, cases

@@ -54,7 +54,7 @@ from .errors import InputError
 
 __all__ = ["DATASET_FORMAT", "INDEX_FILE", "METADATA_KEY", "Partition", "Dataset", "is_dataset",
            "is_run_log", "open_dataset", "ingest", "ingest_campaign", "partition_arrays",
-           "accumulate_partition_file", "REFERENCE_COLUMNS", "LOAD_COLUMNS"]
+           "accumulate_partition_file", "partition_design", "REFERENCE_COLUMNS", "LOAD_COLUMNS"]
 
 DATASET_FORMAT = "fbgcomp-dataset"
 DATASET_VERSION = 1
@@ -471,16 +471,34 @@ def check_partition(model, partition: Partition) -> None:
                          column="option --zero-window")
 
 
-def accumulate_partition_file(model, partition: Partition, file, acc=None):
+def accumulate_partition_file(model, partition: Partition, file, acc=None, *,
+                              second_pass: bool = False, weight=None):
     """Stream one file of a partition into ``acc`` (default: a fresh accumulator of ``model``,
-    which must have had :meth:`~fbgcomp.models.MRAModel.new_accumulator` called); returns it."""
+    which must have had :meth:`~fbgcomp.models.MRAModel.new_accumulator` called); returns it.
+
+    First pass (default): rows enter the factor. ``second_pass=True``: after
+    ``acc.begin_hac()`` on the factor of *every* row, the same rows enter the
+    autocorrelation statistics (:meth:`~fbgcomp.regression.QRAccumulator.update_hac`), with
+    the row ``weight`` the first pass gave them (for pooled campaigns).
+    """
     if acc is None:
         acc = model.new_accumulator(model.sensors_)
+    for design, ref in partition_design(model, partition, file):
+        if second_pass:
+            acc.update_hac(design, ref, weights=weight)
+        else:
+            acc.update(design, ref, weights=weight)
+    return acc
+
+
+def partition_design(model, partition: Partition, file):
+    """Yield ``(design (m, 1 + terms), reference_um (m, 3))`` batches of one partition file for
+    ``model`` (after :meth:`~fbgcomp.models.MRAModel.new_accumulator`), both zeroed as the
+    campaign was at ingest."""
     s_idx = [partition.sensor_names.index(s) for s in model.sensor_names]
     p_idx = [partition.probe_names.index(p) for p in model.probe_names_]
     w0 = partition.wavelength_zero_nm[s_idx]
     t0 = partition.temperature_zero_C[p_idx]
     r0 = partition.reference_zero_um
     for w, t, ref in partition_arrays(file, model.sensor_names, model.probe_names_):
-        acc.update(model.design_from_arrays(w, t, w0, t0), ref - r0)
-    return acc
+        yield model.design_from_arrays(w, t, w0, t0), ref - r0

@@ -9,6 +9,12 @@ does not grow with the data. Stepwise selection, the ANOVA and the fallback mode
 the final factor in the client without reading the data again
 (:meth:`fbgcomp.models.MRAModel.fit_factor`).
 
+Autocorrelation-robust (Newey-West) inference, the default, needs one more read: a second
+map, one task per campaign (its files in order, one series), adds the lagged score sums about
+the pooled full model's coefficients (:meth:`~fbgcomp.regression.QRAccumulator.begin_hac`);
+these add up in the client. Every path (campaign folders in-process, datasets, a cluster)
+then gives the same inference as :meth:`~fbgcomp.models.MRAModel.fit`.
+
 ``dask`` arguments everywhere accept ``None`` (in-process, no Dask import), a scheduler address
 ``tcp://HOST:8786``, ``local:N`` (a LocalCluster of N single-threaded worker processes, started
 and stopped around the call) or an existing ``distributed.Client``.
@@ -169,31 +175,52 @@ def _worker_model(spec):
 
 
 def _accumulate_source(source: dict, spec: dict) -> dict:
-    """One task: a dataset file or a campaign folder -> {"acc": state, "training": [...]}."""
-    from .models import _plain, check_compatible
-
+    """First-pass task: a dataset file or a campaign folder -> {"acc": state, "training": [...]}
+    (the factor only; the autocorrelation statistics come in :func:`_second_pass`)."""
     model = _worker_model(spec)
+    acc = model.new_accumulator(model.sensors_)
+    entry = {"key": source["key"]}
+    for design, ref in _source_rows(model, source, entry):
+        acc.update(design, ref)
+    entry["n_samples"] = int(acc.n_obs)
+    return {"acc": acc.to_dict(), "training": [entry]}
+
+
+def _source_rows(model, source: dict, info: dict | None = None):
+    """Yield ``(design, reference_um)`` batches of one source (dataset file or campaign
+    folder, checked against the model); ``info`` gets the campaign's dropped samples."""
     if source["kind"] == "file":
-        from .dataset import Partition, accumulate_partition_file
+        from .dataset import Partition, partition_design
 
         partition = Partition.from_entry(Path(source["root"]), source["entry"])
-        acc = accumulate_partition_file(model, partition, source["file"])
-        training = [{"key": source["key"], "n_samples": int(acc.n_obs)}]
+        yield from partition_design(model, partition, source["file"])
     else:
         from .campaign import read_campaign
+        from .models import _plain, check_compatible
 
         campaign = read_campaign(source["path"])
         check_compatible(model, campaign)
         aligned = campaign.aligned(zero_window_s=model.zero_window_s)
-        acc = model.new_accumulator(model.sensors_)
+        if info is not None:
+            info["dropped"] = _plain(aligned.dropped)
         w, t, w0, t0 = model.instrument_arrays(aligned)
         chunk = 100_000
         for lo in range(0, len(aligned), chunk):
-            acc.update(model.design_from_arrays(w[lo:lo + chunk], t[lo:lo + chunk], w0, t0),
-                       aligned.reference_um[lo:lo + chunk])
-        training = [{"key": source["key"], "n_samples": int(len(aligned)),
-                     "dropped": _plain(aligned.dropped)}]
-    return {"acc": acc.to_dict(), "training": training}
+            yield (model.design_from_arrays(w[lo:lo + chunk], t[lo:lo + chunk], w0, t0),
+                   aligned.reference_um[lo:lo + chunk])
+
+
+def _hac_campaign(sources: list, spec: dict, acc, weight: float) -> tuple:
+    """Second-pass task: one campaign's autocorrelation statistics (its files in order, one
+    series, as :meth:`MRAModel.fit` sees it) about the pooled factor's full-model
+    coefficients (``acc`` after ``begin_hac``), rows weighted as in the fit. Returns
+    ``(g0, k, ka, rows)``, which add across campaigns (same pilot, same scales)."""
+    model = _worker_model(spec)
+    acc = acc.copy()
+    for source in sources:
+        for design, ref in _source_rows(model, source):
+            acc.update_hac(design, ref, weights=weight)
+    return acc.hac_g0_, acc.hac_k_, acc.hac_ka_, acc.hac_n_obs_
 
 
 def _merge_states(a: dict, b: dict) -> dict:
@@ -265,6 +292,28 @@ def _pool(states: list, weights: list):
     return acc
 
 
+def _second_pass(acc, spec: dict, sources: list, weights: dict, client) -> None:
+    """Fill ``acc``'s autocorrelation statistics from every campaign again, about the pooled
+    full model (:meth:`~fbgcomp.regression.QRAccumulator.begin_hac`). A campaign's files
+    are one series (its lags cross the file cuts), so one task per campaign."""
+    acc.begin_hac()
+    groups: dict = {}
+    for src in sources:
+        groups.setdefault(src["key"], []).append(src)
+    if client is None:
+        parts = [_hac_campaign(g, spec, acc, weights[k]) for k, g in groups.items()]
+    else:
+        shared = client.scatter(acc, broadcast=True)
+        futures = [client.submit(_hac_campaign, g, spec, shared, weights[k], pure=False)
+                   for k, g in groups.items()]
+        parts = client.gather(futures)
+    for g0, k, ka, rows in parts:
+        acc.hac_g0_ += g0
+        acc.hac_k_ += k
+        acc.hac_ka_ += ka
+        acc.hac_n_obs_ += rows
+
+
 def accumulate_paths(model, paths, dask=None):
     """Reduce campaign folders and datasets to one factor: ``(accumulator, training)``.
 
@@ -291,9 +340,11 @@ def accumulate_paths(model, paths, dask=None):
             reduced = [_pairwise(lambda a, b: client.submit(_merge_states, a, b, pure=False),
                                  groups[k]) for k in keys]
             per_campaign = client.gather(reduced)
-    counts = [int(st["acc"]["n_obs"]) for st in per_campaign]
-    weights = _campaign_weights(model, counts)
-    acc = _pool(per_campaign, weights)
+        counts = [int(st["acc"]["n_obs"]) for st in per_campaign]
+        weights = _campaign_weights(model, counts)
+        acc = _pool(per_campaign, weights)
+        if acc.hac_lags_ is not None:
+            _second_pass(acc, spec, sources, dict(zip(keys, weights)), client)
     dropped = {t["key"]: t["dropped"] for st in per_campaign for t in st["training"]
                if "dropped" in t}
     campaigns = []

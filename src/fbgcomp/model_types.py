@@ -558,9 +558,10 @@ def _fit_regression(model, X, progress=None, targets=None):
     if not campaigns:
         raise ValueError("fit needs at least one campaign")
     from .models import campaign_weights_for
+    from .regression import accumulate_series
 
     acc = model.new_accumulator(list(campaigns[0].meta.sensors), None)
-    training, dts = [], []
+    training, dts, series = [], [], []
     for c in campaigns:
         check_compatible(model, c)
     # Campaigns pooled as MRAModel.fit pools them (balanced by default: errors in variables).
@@ -573,8 +574,7 @@ def _fit_regression(model, X, progress=None, targets=None):
         else:
             design = model._campaign_design(c, aligned)
         y = aligned.reference_um if targets is None or i not in targets else targets[i]
-        for start in range(0, len(design), 100_000):
-            acc.update(design[start:start + 100_000], y[start:start + 100_000], weights=weight)
+        series.append((design, y, weight))
         if len(aligned.time_s) > 1:
             dts.append(float(np.median(np.diff(aligned.time_s))))
         training.append({"name": c.meta.name, "kind": c.meta.kind,
@@ -583,6 +583,8 @@ def _fit_regression(model, X, progress=None, targets=None):
                          "dropped": _plain(aligned.dropped)})
         if progress is not None:
             progress(c.meta.name)
+    # Factor, then autocorrelation statistics about the full model; no lag spans campaigns.
+    accumulate_series(acc, series)
     info = {"campaigns": training, "n_samples": int(sum(t["n_samples"] for t in training))}
     if dts:
         info["dt_s"] = float(np.median(dts))

@@ -30,6 +30,7 @@ from .atomic import write_json
 from .errors import InputError
 from .features import (CONSTANT, FEATURE_SETS, FeatureMap, TemperatureRoles, candidate_terms,
                        design_matrix)
+from .regression import accumulate_series
 
 AXES = ("dx", "dy", "dz")
 REFERENCE_COLUMNS = ("dx_um", "dy_um", "dz_um")
@@ -422,18 +423,19 @@ class MRAModel(EstimatorParams, ModelFile):
         aligned_all = [c.aligned(zero_window_s=self.zero_window_s) for c in campaigns]
         weights = campaign_weights_for([len(a.time_s) for a in aligned_all],
                                        getattr(self, "campaign_weights", "samples"))
+        series = []
         for c, aligned, weight in zip(campaigns, aligned_all, weights):
             design = self._campaign_design(c, aligned)
-            for start in range(0, len(design), _CHUNK_ROWS):
-                stop = start + _CHUNK_ROWS
-                acc.update(design[start:stop], aligned.reference_um[start:stop], weights=weight)
-            acc.end_series()   # no autocorrelation lag spans two campaigns
+            series.append((design, aligned.reference_um, weight))
             training.append({"name": c.meta.name, "kind": c.meta.kind,
                              "path": None if c.path is None else str(c.path),
                              "n_samples": int(len(design)), "row_weight": float(weight),
                              "dropped": _plain(aligned.dropped)})
             if progress is not None:
                 progress(c.meta.name)
+        # Two passes (factor, then autocorrelation statistics about the full model's
+        # coefficients); no autocorrelation lag spans two campaigns.
+        accumulate_series(acc, series, chunk_rows=_CHUNK_ROWS)
         self.training_ = {"campaigns": training, "n_samples": int(sum(t["n_samples"] for t in training))}
         return self._fit_factor(acc)
 
@@ -494,7 +496,8 @@ class MRAModel(EstimatorParams, ModelFile):
         names = [CONSTANT] + self.candidates_
         design = design_matrix(X.to_numpy(dtype=float), base_names, self.candidates_)
         acc = self._new_qr(names)
-        acc.update(design, np.asarray(y, dtype=float).reshape(len(design), len(AXES)))
+        y = np.asarray(y, dtype=float).reshape(len(design), len(AXES))
+        accumulate_series(acc, [(design, y, None)], chunk_rows=_CHUNK_ROWS)
         self.training_ = {"campaigns": [], "n_samples": int(len(design))}
         return self._fit_factor(acc)
 

@@ -425,9 +425,15 @@ class QRAccumulator:
     residual's autocorrelation), carrying the last max(L) rows between chunks: the Newey-West
     sandwich of *every* sub-model, hence of every stepwise step, comes without re-reading the
     data. Memory: (1 + len(grid)) (p (p+k))^2 floats, so keep it for narrow designs. Being a
-    quadratic form of raw products evaluated at the residual, the robust covariance carries a
-    relative error of about ``eps (|y| / |e|)^2`` (1e-10 for residuals 1/1000 of the signal):
-    ample for inference, not NIST-grade like the coefficients.
+    quadratic form of raw products evaluated at the residual, the robust covariance would carry
+    a relative error of about ``eps (|y| / |e|)^2``, which an ill-conditioned design (large,
+    cancelling coefficients) turns into negative variances. So the statistics come in a
+    second pass (:meth:`begin_hac`, :meth:`update_hac`, or :func:`accumulate_series` for data
+    in memory), with the targets relative to a pilot, the full model's coefficients ``P``
+    (``hac_pilot_``, scaled): ``a_i = [x_i | y_i - x_i P]``, and a sub-model's ``c`` gains
+    ``P``. The full model's residual is then exact, and what remains is the rounding of any
+    meat matrix, ``eps kappa^2`` relative in the design's weakest direction (statsmodels
+    forms the same sum). Accumulators with different pilots still merge (an exact linear map).
     """
 
     def __init__(self, n_features: int, n_targets: int = 1, feature_names=None, target_names=None,
@@ -460,22 +466,25 @@ class QRAccumulator:
     def _hac_reset(self) -> None:
         p, q = self.n_features, self.n_features + self.n_targets
         if self.hac_lags_ is None:
-            self.hac_g0_ = self.hac_k_ = self.hac_ka_ = None
+            self.hac_g0_ = self.hac_k_ = self.hac_ka_ = self.hac_pilot_ = None
             self._hac_tail = None
+            self.hac_frozen_ = False
+            self.hac_n_obs_ = 0
             return
         nl = len(self.hac_lags_)
         self.hac_g0_ = np.zeros((p * q, p * q))          # sum u_i u_i^T
         self.hac_k_ = np.zeros((nl, p * q, p * q))       # sum u_i (Bartlett past of u)_i^T
         self.hac_ka_ = np.zeros((nl, q, q))              # sum a_i (Bartlett past of a)_i^T
         self._hac_tail = np.zeros((0, q))                # last max(L) scaled rows of the series
+        self.hac_pilot_ = np.zeros((p, self.n_targets))  # scaled coefficients the targets are
+                                                         # kept relative to (see Notes)
+        self.hac_frozen_ = False                         # second pass: pilot fixed (begin_hac)
+        self.hac_n_obs_ = 0                              # rows in the statistics
 
     # -- accumulation --------------------------------------------------------------------------
 
-    def update(self, X_chunk, Y_chunk, weights=None) -> "QRAccumulator":
-        """Add rows: ``X_chunk`` (m, p) and ``Y_chunk`` (m, k) (1-D allowed when p or k is 1).
-
-        ``weights``: optional non-negative row weights, a scalar or (m,) (weighted least squares).
-        """
+    def _rows(self, X_chunk, Y_chunk, weights):
+        """Validated (X, Y, w or None) of a chunk."""
         p, k = self.n_features, self.n_targets
         X = _as_2d(X_chunk, p, "X_chunk")
         Y = _as_2d(Y_chunk, k, "Y_chunk")
@@ -483,7 +492,7 @@ class QRAccumulator:
         if Y.shape[0] != m:
             raise ValueError(f"X_chunk has {m} rows but Y_chunk has {Y.shape[0]}")
         if m == 0:
-            return self
+            return X, Y, None
         _check_finite(X, self.feature_names, self.n_obs + 1, "feature")
         _check_finite(Y, self.target_names, self.n_obs + 1, "target")
         w = None
@@ -491,6 +500,20 @@ class QRAccumulator:
             w = np.broadcast_to(np.asarray(weights, dtype=float), (m,))
             if not np.all(np.isfinite(w)) or np.any(w < 0):
                 raise ValueError("weights must be finite and non-negative")
+        return X, Y, w
+
+    def update(self, X_chunk, Y_chunk, weights=None) -> "QRAccumulator":
+        """Add rows to the factor: ``X_chunk`` (m, p) and ``Y_chunk`` (m, k) (1-D allowed when
+        p or k is 1).
+
+        ``weights``: optional non-negative row weights, a scalar or (m,) (weighted least squares).
+        Autocorrelation statistics come in a second pass (:meth:`begin_hac`).
+        """
+        p, k = self.n_features, self.n_targets
+        X, Y, w = self._rows(X_chunk, Y_chunk, weights)
+        m = X.shape[0]
+        if m == 0:
+            return self
         X_raw, Y_raw = X, Y
         if w is not None:
             root = np.sqrt(w)[:, None]
@@ -501,8 +524,6 @@ class QRAccumulator:
         for start in range(0, m, _BLOCK_ROWS):
             stop = min(m, start + _BLOCK_ROWS)
             self._factor_block(X[start:stop], Y[start:stop], self.n_obs + stop)
-        if self.hac_lags_ is not None:
-            self._hac_update(np.hstack([X, Y]) / self.scale_)
         # The intercept is found on the unweighted design: a weighted column of ones is not constant.
         self.column_min_ = np.minimum(self.column_min_, X_raw.min(axis=0))
         self.column_max_ = np.maximum(self.column_max_, X_raw.max(axis=0))
@@ -518,9 +539,63 @@ class QRAccumulator:
         self.n_obs += m
         return self
 
+    def begin_hac(self) -> "QRAccumulator":
+        """Start the second pass of the two-pass recipe; returns self.
+
+        The pilot becomes the full model's coefficients from the factor (double-double, 0 on
+        deficient columns) and stays there; the statistics restart empty. Then feed every row
+        again, in the same series, with :meth:`update_hac`. For the full model the residual
+        is then exactly the pilot's, and the robust covariance carries only the rounding of a
+        sum of squares (relative ``eps kappa^2`` in the design's weakest direction, as any
+        meat matrix), instead of the drift of a pilot that moves chunk by chunk.
+        """
+        if self.hac_lags_ is None:
+            raise ValueError("this accumulator keeps no autocorrelation statistics (hac_lags)")
+        if self.n_obs == 0:
+            raise ValueError("begin_hac needs the factor of every row first (update)")
+        pilot = self._exact_pilot()
+        self._hac_reset()
+        self.hac_pilot_ = pilot
+        self.hac_frozen_ = True
+        return self
+
+    def update_hac(self, X_chunk, Y_chunk, weights=None) -> "QRAccumulator":
+        """Second pass (after :meth:`begin_hac`): add rows to the autocorrelation statistics
+        only, with the same weights as in the first pass. Returns self."""
+        if not self.hac_frozen_:
+            raise ValueError("call begin_hac after the first pass before update_hac")
+        X, Y, w = self._rows(X_chunk, Y_chunk, weights)
+        if X.shape[0] == 0:
+            return self
+        if w is not None:
+            root = np.sqrt(w)[:, None]
+            X, Y = X * root, Y * root
+        self._hac_update(np.hstack([X, Y]) / self.scale_)
+        return self
+
+    def _exact_pilot(self) -> np.ndarray:
+        """Scaled full-model coefficients (p, k), double-double solve, 0 on deficient columns."""
+        p = self.n_features
+        pilot = np.zeros((p, self.n_targets))
+        diag = np.abs(np.diag((self.R_ + self.R_lo_)[:p, :p]))
+        keep = [c for c in range(p) if c not in set(_deficient_columns(diag, self.n_obs))]
+        for t in range(self.n_targets):
+            th, tl, zh, zl, _ = self._subset_factor(keep, t)
+            bad = _deficient_columns(np.abs(np.diag(th)), self.n_obs)
+            cols = [c for i, c in enumerate(keep) if i not in set(bad)]
+            if bad:
+                th, tl, zh, zl, _ = self._subset_factor(cols, t)
+            if cols:
+                bh, bl = _dd_solve_upper(th, tl, zh, zl)
+                pilot[cols, t] = bh + bl
+        return pilot
+
     def _hac_update(self, a: np.ndarray) -> None:
-        """Add the lagged products of the scaled rows ``a`` (m, q) to the HAC statistics."""
+        """Add the lagged products of the scaled rows ``a`` (m, q), targets taken relative to
+        the pilot, to the HAC statistics."""
         p, q = self.n_features, self.n_features + self.n_targets
+        a = a.copy()
+        a[:, p:] -= a[:, :p] @ self.hac_pilot_
         top = max(self.hac_lags_)
         for start in range(0, a.shape[0], _HAC_BLOCK_ROWS):
             block = a[start:start + _HAC_BLOCK_ROWS]
@@ -534,6 +609,29 @@ class QRAccumulator:
                 self.hac_k_[i] += u_new.T @ past[:, :p * q]
                 self.hac_ka_[i] += block.T @ past[:, p * q:]
             self._hac_tail = ext[-top:].copy()
+        self.hac_n_obs_ += a.shape[0]
+
+    def _hac_move_pilot(self, pilot: np.ndarray) -> None:
+        """Re-express the statistics with targets relative to ``pilot`` instead of the current
+        one: ``a -> a A`` with ``A = [[I, P_old - P_new], [0, I]]``, so ``u -> u (I (x) A)``."""
+        p, q = self.n_features, self.n_features + self.n_targets
+        delta = self.hac_pilot_ - pilot
+        self.hac_pilot_ = np.array(pilot, dtype=float)
+        if not np.any(delta):
+            return
+        A = np.eye(q)
+        A[:p, p:] = delta
+        nl = len(self.hac_lags_)
+
+        def both_sides(m: np.ndarray, count: int) -> np.ndarray:   # (I(x)A)^T m (I(x)A)
+            m = m.reshape(count, p, q, p, q) @ A                  # right factor, last axis
+            m = np.einsum("cimjn,ma->ciajn", m, A, optimize=True)
+            return m.reshape(count, p * q, p * q)
+
+        self.hac_g0_ = both_sides(self.hac_g0_, 1)[0]
+        self.hac_k_ = both_sides(self.hac_k_, nl)
+        self.hac_ka_ = A.T @ self.hac_ka_ @ A
+        self._hac_tail = self._hac_tail @ A
 
     def end_series(self) -> "QRAccumulator":
         """Rows added from now on start a new time series (e.g. the next campaign): no lag of
@@ -629,6 +727,9 @@ class QRAccumulator:
                 self.hac_g0_ = other.hac_g0_ * weight ** 2
                 self.hac_k_ = other.hac_k_ * weight ** 2
                 self.hac_ka_ = other.hac_ka_ * weight
+                self.hac_pilot_ = other.hac_pilot_.copy()
+                self.hac_frozen_ = other.hac_frozen_
+                self.hac_n_obs_ = other.hac_n_obs_
             return self
         self._merge_hac(other, weight)
         ratio = root * other.scale_ / self.scale_
@@ -657,9 +758,16 @@ class QRAccumulator:
         ratio = other.scale_ / self.scale_
         r_u = (ratio[:p, None] * ratio[None, :]).reshape(-1)       # u = x (x) a
         f_u = weight ** 2 * np.outer(r_u, r_u)                    # u scales by the weight
+        # Bring other's statistics to its pilot expressed in this accumulator's scales, then
+        # both to this one's pilot (exact algebra; small rounding when the pilots are close).
+        other_pilot = other.hac_pilot_ * ratio[p:][None, :] / ratio[:p, None]
+        mine = self.hac_pilot_
+        self._hac_move_pilot(other_pilot)
         self.hac_g0_ += other.hac_g0_ * f_u
         self.hac_k_ += other.hac_k_ * f_u[None]
         self.hac_ka_ += other.hac_ka_ * (weight * np.outer(ratio, ratio))[None]
+        self._hac_move_pilot(mine)
+        self.hac_n_obs_ += other.hac_n_obs_
         self.end_series()
 
     def copy(self) -> "QRAccumulator":
@@ -757,7 +865,8 @@ class QRAccumulator:
             "hac": None if self.hac_lags_ is None else {
                 "lags": list(self.hac_lags_), "g0": self.hac_g0_.tolist(),
                 "k": self.hac_k_.tolist(), "ka": self.hac_ka_.tolist(),
-                "tail": self._hac_tail.tolist()},
+                "tail": self._hac_tail.tolist(), "pilot": self.hac_pilot_.tolist(),
+                "frozen": bool(self.hac_frozen_), "n_obs": int(self.hac_n_obs_)},
         }
 
     @classmethod
@@ -788,6 +897,10 @@ class QRAccumulator:
                 acc.hac_ka_ = _field_array(hac, "ka", (nl, q, q))
                 tail = np.asarray(hac.get("tail") or np.zeros((0, q)), dtype=float)
                 acc._hac_tail = tail.reshape(-1, q)
+                if hac.get("pilot") is not None:
+                    acc.hac_pilot_ = _field_array(hac, "pilot", (acc.n_features, acc.n_targets))
+                acc.hac_frozen_ = bool(hac.get("frozen", False))
+                acc.hac_n_obs_ = int(hac.get("n_obs", acc.n_obs))
         except KeyError as exc:
             raise InputError(f"missing field {exc.args[0]!r} in accumulator state",
                              column=f"field {exc.args[0]}") from None
@@ -813,14 +926,48 @@ def _field_array(state: dict, key: str, shape: tuple[int, ...]) -> np.ndarray:
 # Autocorrelation-robust (Newey-West) covariance from the accumulated statistics
 # --------------------------------------------------------------------------------------------
 
+def accumulate_series(acc: QRAccumulator, series, chunk_rows: int = 100_000) -> QRAccumulator:
+    """Fill ``acc`` from in-memory time series, in the two passes its statistics need.
+
+    ``series``: a sequence of ``(X (n, p), Y (n, k), weight)`` (weight a scalar, (n,) or None),
+    one per independent recording (e.g. campaign). Pass one adds every row to the factor; when
+    the accumulator keeps autocorrelation statistics, pass two adds them relative to the full
+    model's coefficients (:meth:`QRAccumulator.begin_hac`), no lag spanning two series.
+    """
+    series = list(series)
+
+    def chunks():
+        for X, Y, w in series:
+            for lo in range(0, len(X), chunk_rows):
+                part = w if w is None or np.ndim(w) == 0 else w[lo:lo + chunk_rows]
+                yield X[lo:lo + chunk_rows], Y[lo:lo + chunk_rows], part
+            yield None
+
+    for chunk in chunks():
+        if chunk is not None:
+            acc.update(*chunk[:2], weights=chunk[2])
+    if acc.hac_lags_ is not None and acc.n_obs:
+        acc.begin_hac()
+        for chunk in chunks():
+            if chunk is None:
+                acc.end_series()
+            else:
+                acc.update_hac(*chunk[:2], weights=chunk[2])
+    return acc
+
+
 def _resolve_cov_type(acc: "QRAccumulator", cov_type) -> str:
     if cov_type is None:
-        return "HAC" if acc.hac_lags_ is not None else "nonrobust"
+        cov_type = "HAC" if acc.hac_lags_ is not None else "nonrobust"
     if cov_type not in COV_TYPES:
         raise ValueError(f"cov_type must be one of {COV_TYPES}, not {cov_type!r}")
     if cov_type == "HAC" and acc.hac_lags_ is None:
         raise ValueError("cov_type='HAC' needs an accumulator created with hac_lags (it keeps the "
                          "lagged score sums); pass cov_type='nonrobust' for naive i.i.d. inference")
+    if cov_type == "HAC" and acc.hac_n_obs_ != acc.n_obs:
+        raise ValueError(f"the autocorrelation statistics cover {acc.hac_n_obs_} of the "
+                         f"{acc.n_obs} rows in the factor: feed every row to update_hac after "
+                         f"begin_hac (or use accumulate_series)")
     return cov_type
 
 
@@ -848,8 +995,10 @@ def _hac_cov_scaled(acc: "QRAccumulator", cols: list[int], t: int, beta_s: np.nd
     sample size ``n_eff`` = n / (residual long-run variance / variance) at that bandwidth.
     """
     p, q = acc.n_features, acc.n_features + acc.n_targets
+    # Targets are kept relative to the pilot P (a_y = y - x P): e = a_y + x (P - b)
     c = np.zeros(q)
-    c[cols] = -np.asarray(beta_s, dtype=float)
+    c[:p] = acc.hac_pilot_[:, t]
+    c[cols] -= np.asarray(beta_s, dtype=float)
     c[p + t] = 1.0
     i1 = acc.hac_lags_.index(1)
     # hac_ka_ at L = 1 holds (1/2) sum a_i a_{i-1}^T
@@ -1252,7 +1401,8 @@ def ols(X, y, *, feature_names=None, target_name: str = "y", cov_type: str = "HA
     if cov_type == "HAC":
         lags = (max(1, min(HAC_MAX_LAG, X.shape[0] - 1)) if maxlags in (None, "auto")
                 else [int(maxlags)])
-    acc = QRAccumulator(X.shape[1], 1, feature_names, [target_name], hac_lags=lags).update(X, y)
+    acc = accumulate_series(QRAccumulator(X.shape[1], 1, feature_names, [target_name],
+                                          hac_lags=lags), [(X, y, None)], chunk_rows=len(X) or 1)
     return ols_from_factor(acc, cov_type=cov_type, maxlags=maxlags)
 
 
