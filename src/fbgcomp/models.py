@@ -202,7 +202,8 @@ class Predictor:
         base = self.feature_map.base(wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C)
         return design_matrix(base, self.feature_map.base_names, self.terms)
 
-    def predict(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C):
+    def predict(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C, *,
+                time_s=None):
         """TTP deviation (n, 3) µm and the half-width (n, 3) µm of its 95 % prediction interval.
 
         Parameters
@@ -214,6 +215,9 @@ class Predictor:
             Probe temperatures in the model's probe order, °C.
         wavelength_zero_nm, temperature_zero_C : ndarray
             Zero state (S,) and (P,).
+        time_s : ndarray, shape (n,), optional
+            Frame times, s. A static regression has no memory, so they are not used; the
+            keyword is every predictor's, so the runtime passes the clock to all alike.
         """
         wavelength_nm = np.atleast_2d(np.asarray(wavelength_nm, dtype=float))
         if self.exclude:

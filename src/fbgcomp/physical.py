@@ -52,6 +52,11 @@ from .model_types import first_order_filter
 _FORCE_AXES = ("fx", "fy", "fz")
 #: Low-pass of the probe temperatures before the thermal regressors, s.
 PROBE_SMOOTHING_S = 60.0
+# Low-pass of the gratings' load reading, s: a step is judged on it (so frame rate and batching
+# do not matter) and a load transition follows it.
+LOAD_FAST_S = 0.5
+# Slower low-pass, s: a transition ends when the fast reading agrees with it, at its value.
+LOAD_HOLD_S = 3.0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -290,8 +295,11 @@ class PhysicalPredictor:
             # no load beyond 1.5x the largest the signature was calibrated with is believed
             self.max_force_N = 1.5 * np.asarray(L.get("max_force_N", [np.inf] * 3), float)
             self.offset_tau_s = float(m.offset_tau_s)
-            self.settle_s = 3.0 * float(m.offset_tau_s)
+            # a transition ends this long after the load stops, at the mean reading since then
+            self.settle_s = float(m.offset_tau_s)
             self.drift_N_per_s = np.asarray(L.get("drift_N_per_s", [0.0] * 3), float)
+            self.noise_cov = noise
+            self.nuisance_cov = nuisance_cov + np.zeros_like(noise)
         self.map = None
         if getattr(m, "twin_map_", None) is not None:
             tm = m.twin_map_
@@ -326,25 +334,43 @@ class PhysicalPredictor:
         of N of load-equivalent over a day, and no probe predicts it (a radiant load on one face
         is invisible to a probe on another). What tells a load from heat is time: a load arrives
         in seconds, a thermal change takes minutes to hours. So the applied force changes only
-        by steps: each frame, the force the gratings ask for beyond the applied one is accepted
-        when it stands ``load_k_sigma`` clear of the gratings' noise, of the drift heat can
-        cause within the tracking time (``drift_N_per_s`` x max(``offset_tau_s``, frame
-        interval)) and of the other components' cross-talk; everything the applied force does
-        not explain is tracked as the gratings' thermal offset (first-order, ``offset_tau_s``),
-        whether or not a load is held. A slow thermal drift is thus absorbed by the offset and
-        never becomes a load; a held load stays applied however long it is held."""
+        by steps. The gratings beyond their tracked thermal offset are low-passed
+        (``LOAD_FAST_S``); a component whose force estimate stands ``load_k_sigma`` clear of the
+        applied one, of the drift heat can cause within the offset's tracking time
+        (``drift_N_per_s`` x max(``offset_tau_s``, frame interval)) and of the other components'
+        cross-talk starts a load transition. Through the transition the component follows the
+        low-passed estimate, the offset is frozen, and it ends ``3 offset_tau_s`` after the load
+        stopped moving (fast and slow, ``LOAD_HOLD_S``, estimates agree) at the slow estimate.
+        Everything the applied force does not explain is tracked as the gratings' thermal offset
+        (first order, ``offset_tau_s``). All decisions are on time constants in seconds and on
+        the noise the low-pass leaves at the actual frame interval (the training noise taken
+        as a density, variance x interval), so the same signal gives the same correction at any
+        frame rate and in batches of any size."""
         n, S = e.shape
         state = state or {}
         offset = np.array(state.get("offset", np.zeros(S)), float)
         applied = np.array(state.get("force", np.zeros(3)), float)
+        xs = state.get("fast")                           # low-passed e - offset (S,)
+        f_hold = state.get("hold")                       # slow estimate of the force (3,)
+        mean_sum = np.array(state.get("mean_sum", np.zeros(3)), float)   # since the load stopped
+        mean_w = np.array(state.get("mean_w", np.zeros(3)), float)
         t_last = state.get("t")
         t = (np.arange(1, n + 1) * self.nominal_dt_s + (t_last or 0.0) if time_s is None
              else np.asarray(time_s, float).ravel())
         dt = np.diff(np.concatenate([[t[0] if t_last is None else t_last], t]))
         dt = np.clip(dt, 0.0, None)
+        first = xs is None
+        xs = np.zeros(S) if first else np.array(xs, float)
+        f_hold = np.zeros(3) if f_hold is None else np.array(f_hold, float)
         alpha = 1.0 - np.exp(-dt / self.offset_tau_s)
+        b_fast = 1.0 - np.exp(-dt / LOAD_FAST_S)
+        b_hold = 1.0 - np.exp(-dt / LOAD_HOLD_S)
+        # variance left by a first-order low-pass of white noise, per unit of the training
+        # frame's variance: (nominal / dt) b / (2 - b); 1 for a frame without history
+        rate = self.nominal_dt_s / np.where(dt > 0, dt, self.nominal_dt_s)
+        k_fast = rate * b_fast / (2.0 - b_fast)
+        k_hold = rate * b_hold / (2.0 - b_hold)
         lag = self.drift_N_per_s[None, :] * np.maximum(dt, self.offset_tau_s)[:, None]
-        sd = np.sqrt(self.F_sd[None, :] ** 2 + lag ** 2)
         op = self.ops[0]
         Ga = self.G
         force = np.zeros((n, 3))
@@ -353,40 +379,66 @@ class PhysicalPredictor:
         refused = np.zeros(n, bool)
         act = self.active
         chi2_limit = stats.chi2.ppf(1 - self.p_contra, max(self.dof, 1))
+        k = self.k_sigma
         for i in range(n):
-            x = e[i] - offset - Ga @ applied
-            step = op @ x
+            x_now = e[i] - offset
             if raw:
-                force[i] = applied + step
+                force[i] = op @ x_now
                 continue
-            total = applied + step
-            other = np.sqrt(np.maximum((total ** 2).sum() - total ** 2, 0.0))
-            floor = np.maximum(sd[i], self.relative_error * other / self.k_sigma)
-            # within a load transition (a ramp, a step split over frames) a component follows
-            # the gratings beyond their noise alone, and the offset is not tracked
+            if first and i == 0:
+                xs = x_now.copy()
+                f_hold = op @ xs
+            else:
+                xs += b_fast[i] * (x_now - xs)
+            f_fast = op @ xs
+            f_hold += b_hold[i] * (f_fast - f_hold)
+            sd_fast = self.F_sd * np.sqrt(k_fast[i])
+            other = np.sqrt(np.maximum((f_fast ** 2).sum() - f_fast ** 2, 0.0))
+            cross = self.relative_error * other / k
             moving = settle > 0
-            floor = np.where(moving, np.maximum(self.F_sd, self.relative_error * other / self.k_sigma), floor)
-            take = np.abs(step) > self.k_sigma * floor
+            step = f_fast - applied
+            floor = np.maximum(np.sqrt(sd_fast ** 2 + lag[i] ** 2), cross)
+            take = (~moving) & (np.abs(step) > k * floor)
             if take.any() and self.dof >= 1:
                 # a step no load explains (one grating jumps: a fibre slips, a connector is
                 # re-seated) is refused, and the offset absorbs it
-                r = x - Ga[:, act] @ step[act]
-                g = self.relative_error * (Ga[:, act] @ step[act])
-                if r @ np.linalg.solve(self.step_cov + np.outer(g, g), r) > chi2_limit:
+                new = np.where(take | moving, f_fast, applied)   # moving ones follow too
+                r = xs - Ga @ new
+                g = self.relative_error * (Ga[:, act] @ (new - applied)[act])
+                cov = self.noise_cov * k_fast[i] + self.nuisance_cov + np.outer(g, g)
+                if r @ np.linalg.solve(cov, r) > chi2_limit:
                     refused[i] = True
                     take[:] = False
             if take.any():
-                applied = np.where(take, applied + step, applied)
                 settle = np.where(take, self.settle_s, settle)
-                big = np.abs(applied) > self.max_force_N
-                if big.any():
-                    clamped[i] = True
-                    applied = np.clip(applied, -self.max_force_N, self.max_force_N)
+                f_hold = np.where(take, f_fast, f_hold)
+            moving = settle > 0
+            if moving.any():
+                # in a transition: follow the low-passed force; still moving while the fast and
+                # slow estimates disagree beyond their noise
+                sd_hold = self.F_sd * np.sqrt(k_hold[i])
+                still = moving & (np.abs(f_fast - f_hold)
+                                  > k * np.maximum(np.hypot(sd_fast, sd_hold), cross))
+                settle = np.where(still, self.settle_s, settle)
+                mean_sum = np.where(still, 0.0, mean_sum + dt[i] * f_fast)
+                mean_w = np.where(still, 0.0, mean_w + dt[i])
+                applied = np.where(moving, f_fast, applied)
+                settle = np.maximum(settle - dt[i], 0.0)
+                ended = moving & (settle <= 0) & (mean_w > 0)
+                applied = np.where(ended, mean_sum / np.where(mean_w > 0, mean_w, 1.0), applied)
+                mean_sum = np.where(moving & ~(settle > 0), 0.0, mean_sum)
+                mean_w = np.where(moving & ~(settle > 0), 0.0, mean_w)
+            big = np.abs(applied) > self.max_force_N
+            if big.any():
+                clamped[i] = True
+                applied = np.clip(applied, -self.max_force_N, self.max_force_N)
             if not (settle > 0).any():
-                offset += alpha[i] * (e[i] - Ga @ applied - offset)
-            settle = np.maximum(settle - dt[i], 0.0)
+                shift = alpha[i] * (e[i] - Ga @ applied - offset)
+                offset += shift
+                xs -= shift                        # xs is relative to the offset
             force[i] = applied
-        new_state["load"] = {"offset": offset, "force": applied, "settle": settle,
+        new_state["load"] = {"offset": offset, "force": applied, "settle": settle, "fast": xs,
+                             "hold": f_hold, "mean_sum": mean_sum, "mean_w": mean_w,
                              "t": float(t[-1]) if n else t_last}
         return force, clamped, refused
 

@@ -24,6 +24,7 @@ model's own policy (its predictor's ``last_flags``) or by the limits.
 
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -33,6 +34,22 @@ from fbgcomp.runtime.output import AdaptiveLevelFilter, OutputFilterConfig
 
 HEALTH_OK, HEALTH_DEGRADED, HEALTH_ALARM, HEALTH_ZEROING = range(4)
 HEALTH_NAMES = ("OK", "DEGRADED", "ALARM", "ZEROING")
+
+_TAKES_TIME: dict = {}
+
+
+def _takes_time(predictor) -> bool:
+    """Whether ``predictor.predict`` accepts the frame clock ``time_s`` (every built-in model
+    does; a predictor of one's own may not need it)."""
+    kind = type(predictor)
+    if kind not in _TAKES_TIME:
+        try:
+            params = inspect.signature(predictor.predict).parameters
+        except (TypeError, ValueError):
+            params = {}
+        _TAKES_TIME[kind] = "time_s" in params or any(
+            p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+    return _TAKES_TIME[kind]
 
 
 @dataclass
@@ -207,8 +224,11 @@ class Pipeline:
                     continue
                 sel = np.flatnonzero(choice == k) + start
                 p = self.predictor(int(k))
+                # the frame clock: models with memory (load tracking, low-passes, leads) run
+                # on it, not on the training campaign's interval
+                clock = {"time_s": time_s[sel]} if _takes_time(p) else {}
                 d, h = p.predict(wavelength_nm[sel], temperature_C[sel],
-                                 self.wavelength_zero_nm, self.temperature_zero_C)
+                                 self.wavelength_zero_nm, self.temperature_zero_C, **clock)
                 dev[sel], half[sel] = d, h
                 rms[sel] = np.asarray(p.expected_rms_error_um, float)
                 own = getattr(p, "last_flags", None)    # the model's own output policy
