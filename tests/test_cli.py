@@ -49,6 +49,26 @@ def test_fit_then_validate_through_the_console(campaigns, tmp_path):
     assert "campaign test" in r.stdout and "comp. ratio" in r.stdout
 
 
+def test_fit_chooses_the_regression_inference(campaigns, tmp_path):
+    """--cov-type nonrobust gives the paper's i.i.d. tables; the default is Newey-West with the
+    bandwidth --hac-maxlags fixes; a bad value is a one-line error naming the option."""
+    train, _ = campaigns
+    naive, hac = tmp_path / "naive.json", tmp_path / "hac.json"
+    r = run("fit", train, "--features", "eq13", "--cov-type", "nonrobust", "-o", naive)
+    assert r.returncode == 0, r.stderr
+    r = run("fit", train, "--features", "eq13", "--hac-maxlags", "32", "-o", hac)
+    assert r.returncode == 0, r.stderr
+    a, b = json.loads(naive.read_text()), json.loads(hac.read_text())
+    assert a["inference"]["cov_type"] == "nonrobust"
+    assert b["inference"] == {"cov_type": "HAC", "hac_maxlags": 32}
+    assert r.stdout.count("HAC (Newey-West, Bartlett, 32 lags)") == 3
+    for bad, option in ((["--cov-type", "robust"], "--cov-type"), (["--hac-maxlags", "-3"], "--hac-maxlags")):
+        r = run("fit", train, "--features", "eq13", *bad, "-o", tmp_path / "x.json")
+        assert r.returncode != 0 and "Traceback" not in r.stderr
+        assert option in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+        assert not (tmp_path / "x.json").exists()
+
+
 def test_inspect(campaigns):
     r = run("inspect", campaigns[0])
     assert r.returncode == 0, r.stderr

@@ -72,6 +72,8 @@ def fit(campaigns: List[Path] = typer.Argument(..., help="Training campaign fold
         p_enter: float = typer.Option(0.05, help="Stepwise p-value to enter."),
         p_remove: float = typer.Option(0.10, help="Stepwise p-value to remove."),
         max_terms: Optional[int] = typer.Option(None, help="Upper bound on selected terms."),
+        cov_type: str = typer.Option("HAC", "--cov-type", help="Inference of the paper's regression (mra): HAC (Newey-West, autocorrelation-robust; the default) or nonrobust (the paper's i.i.d. F tests and Table 1)."),
+        hac_maxlags: str = typer.Option("auto", "--hac-maxlags", help="Newey-West bandwidth in lags: auto (Andrews' AR(1) rule) or a positive integer."),
         roles: Optional[str] = typer.Option(None, help="Probe roles, e.g. bulk=T_bulk,surf=T_surf,flange=T_flange."),
         zero_window: float = typer.Option(10.0, "--zero-window", help="Zero state: mean of the first N seconds."),
         fallbacks: str = typer.Option("loo", help="Fallback models for sensor faults: loo, lto or none."),
@@ -115,13 +117,26 @@ def fit(campaigns: List[Path] = typer.Argument(..., help="Training campaign fold
         raise InputError(f"unknown direction {direction!r}", file="<command line>", column="option --direction")
     if fallbacks not in ("loo", "lto", "none"):
         raise InputError(f"unknown fallbacks {fallbacks!r}", file="<command line>", column="option --fallbacks")
+    if cov_type not in ("HAC", "nonrobust"):
+        raise InputError(f"unknown --cov-type {cov_type!r}; expected HAC or nonrobust",
+                         file="<command line>", column="option --cov-type")
+    if hac_maxlags != "auto":
+        try:
+            lags = int(hac_maxlags)
+        except ValueError:
+            lags = 0
+        if lags < 1:
+            raise InputError(f"--hac-maxlags must be auto or a positive integer, not {hac_maxlags!r}",
+                             file="<command line>", column="option --hac-maxlags")
+        hac_maxlags = lags
     from .scale_cli import any_dataset
 
     scaled = dask is not None or any_dataset(campaigns)
     data = None if scaled else _read_campaigns(campaigns)
     model = MRAModel(features=features, stepwise=stepwise, direction=direction, p_enter=p_enter,
                      p_remove=p_remove, max_terms=max_terms, roles=_parse_roles(roles),
-                     zero_window_s=zero_window, fallbacks=fallbacks)
+                     zero_window_s=zero_window, fallbacks=fallbacks, cov_type=cov_type,
+                     hac_maxlags=hac_maxlags)
     if scaled:
         from .distributed import fit_paths
 
