@@ -8,7 +8,7 @@ from fbgcomp.campaign import read_campaign
 from fbgcomp.runtime import health as H
 from fbgcomp.runtime.output import AdaptiveLevelFilter, OutputFilterConfig
 from fbgcomp.runtime.pipeline import HEALTH_DEGRADED, Pipeline, PipelineConfig
-from test_runtime_support import model_and_campaign
+from test_runtime_support import model_and_campaign, run_in_batches
 
 
 @pytest.fixture(scope="module")
@@ -19,18 +19,6 @@ def setup(tmp_path_factory):
     aligned = campaign.aligned(zero_window_s=model.zero_window_s)
     w, t, _, _ = model.instrument_arrays(aligned)
     return model_path, aligned, w, t
-
-
-def _run(pipe, time_s, wl, temp, sizes, counts=None):
-    out, i, k = [], 0, 0
-    counts = np.ones(wl.shape, np.int8) if counts is None else counts
-    while i < time_s.size:
-        j = min(time_s.size, i + sizes[k % len(sizes)])
-        out.append(pipe.process(time_s[i:j], wl[i:j], counts[i:j],
-                                np.zeros_like(counts[i:j]), temp[i:j]))
-        i, k = j, k + 1
-    return {n: np.concatenate([getattr(r, n) for r in out])
-            for n in ("deviation_um", "correction_um", "health", "output_flags")}
 
 
 class EnvelopePredictor(Predictor):
@@ -77,7 +65,7 @@ def test_model_flags_and_limiter_flags_reach_the_batch_result(setup):
     model_path, aligned, w, t = setup
     model = _envelope_model(model_path, max_correction_um=(5.0, 0.15, 5.0))
     raw = dict(output_filter=OutputFilterConfig(enabled=False))
-    runs = [_run(Pipeline(model, PipelineConfig(max_slew_um_per_s=(0, 0.02, 0), **raw)),
+    runs = [run_in_batches(Pipeline(model, PipelineConfig(max_slew_um_per_s=(0, 0.02, 0), **raw)),
                  aligned.time_s, w, t, sizes) for sizes in ([1], [13, 200], [10_000])]
     for r in runs[1:]:
         np.testing.assert_array_equal(r["output_flags"], runs[0]["output_flags"])
@@ -114,7 +102,7 @@ def test_lost_grating_fallback_still_obeys_the_limits(setup):
     lost = time_s >= 100.0
     wl[lost, s3] = np.nan
     counts[lost, s3] = 0
-    free = _run(Pipeline(model, PipelineConfig(output_filter=OutputFilterConfig(enabled=False),
+    free = run_in_batches(Pipeline(model, PipelineConfig(output_filter=OutputFilterConfig(enabled=False),
                                                max_slew_um_per_s=0, max_correction_um=0)),
                 time_s, wl, t, [64], counts)
     i = int(np.argmax(lost))
@@ -122,7 +110,7 @@ def test_lost_grating_fallback_still_obeys_the_limits(setup):
     cap = 0.5 * np.abs(free["correction_um"][lost]).max(axis=0)     # binds after the switch
     rate = 0.5 * step.max() / 0.1
     cfg = PipelineConfig(max_correction_um=tuple(cap), max_slew_um_per_s=rate)
-    runs = [_run(Pipeline(model, cfg), time_s, wl, t, sizes, counts)
+    runs = [run_in_batches(Pipeline(model, cfg), time_s, wl, t, sizes, counts)
             for sizes in ([1], [9, 64], [10_000])]
     for r in runs[1:]:
         np.testing.assert_allclose(r["correction_um"], runs[0]["correction_um"], atol=1e-9)
@@ -230,7 +218,7 @@ def test_adaptive_filter_is_exact_whatever_the_batching():
 def test_pipeline_with_default_policy_is_batch_invariant(setup):
     model_path, aligned, w, t = setup
     model = load_model(model_path)
-    runs = [_run(Pipeline(model), aligned.time_s, w, t, sizes) for sizes in ([1], [7, 50],
+    runs = [run_in_batches(Pipeline(model), aligned.time_s, w, t, sizes) for sizes in ([1], [7, 50],
                                                                             [10_000])]
     for r in runs[1:]:
         np.testing.assert_allclose(r["correction_um"], runs[0]["correction_um"], atol=1e-9)

@@ -9,7 +9,7 @@ from fbgcomp.runtime import health as H
 from fbgcomp.runtime.pipeline import (HEALTH_ALARM, HEALTH_DEGRADED, HEALTH_OK, HEALTH_ZEROING,
                                       Pipeline, PipelineConfig)
 from fbgcomp.runtime.output import OutputFilterConfig
-from test_runtime_support import model_and_campaign
+from test_runtime_support import model_and_campaign, run_in_batches
 
 # Output policy off: the published correction is exactly - prediction (the model path itself).
 RAW = dict(output_filter=OutputFilterConfig(enabled=False), max_slew_um_per_s=0,
@@ -26,24 +26,11 @@ def setup(tmp_path_factory):
     return model, campaign, aligned, w, t
 
 
-def _run(pipe, time_s, wl, temp, sizes, counts=None):
-    out, i, k = [], 0, 0
-    counts = np.ones(wl.shape, np.int8) if counts is None else counts
-    while i < time_s.size:
-        j = min(time_s.size, i + sizes[k % len(sizes)])
-        out.append(pipe.process(time_s[i:j], wl[i:j], counts[i:j],
-                                np.zeros_like(counts[i:j]), temp[i:j]))
-        i, k = j, k + 1
-    cat = lambda name: np.concatenate([getattr(r, name) for r in out])  # noqa: E731
-    return {n: cat(n) for n in ("deviation_um", "half_width_um", "correction_um", "health",
-                                "sensor_status", "model_set", "expected_rms_um")}
-
-
 def test_same_prediction_as_the_offline_model_whatever_the_batching(setup):
     model, campaign, aligned, w, t = setup
     offline_dev, offline_half = model.predict_interval(campaign)
     for sizes in ([1], [7, 1, 50], [10_000]):
-        r = _run(Pipeline(model, PipelineConfig(**RAW)), aligned.time_s, w, t, sizes)
+        r = run_in_batches(Pipeline(model, PipelineConfig(**RAW)), aligned.time_s, w, t, sizes)
         zeroing = r["health"] == HEALTH_ZEROING
         # zero state from the first zero_window_s seconds, as offline
         assert zeroing.sum() == np.searchsorted(aligned.time_s, aligned.time_s[0] + 0.5, "right")
@@ -65,7 +52,7 @@ def test_fault_switches_to_fallback_on_the_same_sample_and_readmits_after_stable
     wl[lost, s3] = np.nan
     counts[lost, s3] = 0
     cfg = PipelineConfig(health=H.HealthConfig(recover_s=5.0), **RAW)
-    r = _run(Pipeline(model, cfg), time_s, wl, t, [33], counts)
+    r = run_in_batches(Pipeline(model, cfg), time_s, wl, t, [33], counts)
     first_bad = np.argmax(lost)
     assert r["health"][first_bad - 1] == HEALTH_OK
     assert r["health"][first_bad] == HEALTH_DEGRADED             # within one sample
@@ -98,7 +85,7 @@ def test_no_usable_model_holds_then_ramps_to_zero(setup):
         j = model.sensor_names.index(name)
         wl[lost, j] = np.nan
         counts[lost, j] = 0
-    r = _run(Pipeline(model, PipelineConfig(ramp_s=2.0, **RAW)), time_s, wl, t, [16], counts)
+    r = run_in_batches(Pipeline(model, PipelineConfig(ramp_s=2.0, **RAW)), time_s, wl, t, [16], counts)
     i = np.argmax(lost)
     held = r["correction_um"][i - 1]
     assert np.abs(held).max() > 0
@@ -117,7 +104,7 @@ def test_jump_stuck_and_doubled_are_faults(setup):
     wl[200:, 1] = wl[200, 1]                         # S2 frozen from t = 20 s
     counts[300, 4] = 2                               # S5 doubled once
     wl[300, 4] = np.nan
-    r = _run(Pipeline(model), time_s, wl, temp, [25], counts)
+    r = run_in_batches(Pipeline(model), time_s, wl, temp, [25], counts)
     st = r["sensor_status"]
     assert st[100, 0] == H.JUMP and st[101, 0] == H.JUMP     # jump there and back
     assert st[99, 0] == H.OK
@@ -131,8 +118,8 @@ def test_jump_stuck_and_doubled_are_faults(setup):
 
 def test_smoothing_is_an_exponential_filter(setup):
     model, campaign, aligned, w, t = setup
-    raw = _run(Pipeline(model, PipelineConfig(**RAW)), aligned.time_s, w, t, [64])
-    sm = _run(Pipeline(model, PipelineConfig(smoothing_tau_s=1.0, **RAW)), aligned.time_s, w, t,
+    raw = run_in_batches(Pipeline(model, PipelineConfig(**RAW)), aligned.time_s, w, t, [64])
+    sm = run_in_batches(Pipeline(model, PipelineConfig(smoothing_tau_s=1.0, **RAW)), aligned.time_s, w, t,
               [64])
     a = np.exp(-0.1 / 1.0)
     x, y = raw["correction_um"], sm["correction_um"]
@@ -148,7 +135,7 @@ def test_slew_limit_turns_a_fallback_switch_into_a_ramp(setup):
     lost = time_s >= 100.0
     wl[lost, s3] = np.nan
     counts[lost, s3] = 0
-    free = _run(Pipeline(model, PipelineConfig(**RAW)), time_s, wl, t, [64],
+    free = run_in_batches(Pipeline(model, PipelineConfig(**RAW)), time_s, wl, t, [64],
                 counts)["correction_um"]
     i = int(np.argmax(lost))
     jump = np.abs(free[i] - free[i - 1]).max()                  # the switch is a step
@@ -156,7 +143,7 @@ def test_slew_limit_turns_a_fallback_switch_into_a_ramp(setup):
     assert jump > 20 * normal * 0.1
     rate = 2 * normal                                           # µm/s
     cfg = dict(RAW, max_slew_um_per_s=rate)
-    outs = [_run(Pipeline(model, PipelineConfig(**cfg)), time_s, wl, t, sizes,
+    outs = [run_in_batches(Pipeline(model, PipelineConfig(**cfg)), time_s, wl, t, sizes,
                  counts)["correction_um"] for sizes in ([1], [7, 50], [10_000])]
     for lim in outs[1:]:
         np.testing.assert_allclose(lim, outs[0], atol=1e-12)   # whatever the batching
@@ -173,7 +160,7 @@ def test_link_loss_ticks_hold_then_ramp_and_data_resumes(setup):
     model, campaign, aligned, w, t = setup
     n = 400
     pipe = Pipeline(model, PipelineConfig(ramp_s=1.0, **RAW))
-    r = _run(pipe, aligned.time_s[:n], w[:n], t[:n], [50])
+    r = run_in_batches(pipe, aligned.time_s[:n], w[:n], t[:n], [50])
     held = r["correction_um"][-1]
     t_last = aligned.time_s[n - 1]
     ticks = [pipe.no_data(t_last + dt) for dt in (0.1, 0.35, 0.6, 1.2, 1.5)]
