@@ -10,6 +10,7 @@ from fbgcomp.errors import InputError
 from fbgcomp.runtime import hyperion
 from fbgcomp.runtime.simulator import SignalTable, SimConfig, SimulatedHyperion, parse_fault
 from fbgcomp.runtime.sources import PeakMapper
+from test_runtime_support import free_port
 
 
 def _table():
@@ -185,3 +186,320 @@ def test_injected_faults_reach_the_sensor_checks():
     assert (status[late, 3] == H.OUT_OF_WINDOW).all() and (status[t < 0.29, 3] == H.OK).all()
     assert (status[t > 0.25, 0] == H.STUCK).all() and (status[t < 0.09, 0] == H.OK).all()
     assert (status[:, 2] == H.OK).all()
+
+
+# --------------------------------------------------------------------------- hostile streams
+# Issue 13, finding 3: random bytes or a header announcing a 4 GiB frame made the decoder wait
+# for the rest forever (no error, no reconnect, the buffer growing with every read).
+
+class _FakeStream:
+    """A stream port on loopback whose n-th connection is served by ``scripts[n]`` (the last
+    one repeats); each script is ``async def script(writer)``."""
+
+    def __init__(self, *scripts):
+        self.scripts = scripts
+        self.connections = 0
+        self.server = None
+
+    async def start(self) -> int:
+        async def serve(reader, writer):
+            script = self.scripts[min(self.connections, len(self.scripts) - 1)]
+            self.connections += 1
+            try:
+                await script(writer)
+            except (ConnectionError, OSError):
+                pass
+            finally:
+                writer.close()
+
+        self.server = await asyncio.start_server(serve, "127.0.0.1", 0)
+        return self.server.sockets[0].getsockname()[1]
+
+    async def stop(self) -> None:
+        self.server.close()
+
+
+def _endless(chunk: bytes, first: bytes = b"", cap_bytes: int = 32 << 20):
+    """Send ``first`` then ``chunk`` again and again as fast as the reader takes it (up to
+    ``cap_bytes``, so a decoder that buffers everything is caught without exhausting the
+    machine), then hold the connection open."""
+    async def script(writer):
+        writer.write(first)
+        sent = len(first)
+        while sent < cap_bytes:
+            writer.write(chunk)
+            sent += len(chunk)
+            await writer.drain()
+        await asyncio.sleep(30)
+    return script
+
+
+def _valid_frames(writer_t0=1700000000.0, n=2000, rate_hz=2000.0):
+    lam = np.array([1530.0, 1535.0, 1540.0, 1545.0])
+
+    async def script(writer):
+        for i in range(0, n, 20):
+            t = writer_t0 + np.arange(i, i + 20) / rate_hz
+            writer.write(hyperion.encode_peak_frames(7, t, np.array([2, 2]),
+                                                     np.tile(lam, (t.size, 1))))
+            await writer.drain()
+            await asyncio.sleep(0.01)
+        await asyncio.sleep(30)
+    return script
+
+
+def _garbage(seed=13, size=1 << 16) -> bytes:
+    return np.random.default_rng(seed).integers(0, 256, size, dtype=np.uint8).tobytes()
+
+
+def _huge_header() -> bytes:
+    """Outer header of a peak frame announcing 4 GiB of content, and a plausible peak header."""
+    return (hyperion.HEADER.pack(0, 0, 0, 0xFFFFFFFF)
+            + hyperion.PEAK_HEADER.pack(24 + 2 * 2, 1, 0, 1, 1700000000, 0))
+
+
+def test_a_4_gib_frame_header_is_rejected_at_once():
+    async def main():
+        fake = _FakeStream(_endless(b"", first=_huge_header(), cap_bytes=0))
+        port = await fake.start()
+        client = hyperion.HyperionClient("127.0.0.1", stream_port=port)
+        try:
+            await client.open_stream()
+            t0 = asyncio.get_running_loop().time()
+            with pytest.raises(hyperion.HyperionError, match="corrupt"):
+                await client.read_blocks(5.0)
+            return asyncio.get_running_loop().time() - t0
+        finally:
+            await client.close()
+            await fake.stop()
+
+    # before: the 4 GiB were awaited until the stall timeout, and the link was kept
+    assert asyncio.run(main()) < 1.0
+
+
+def test_random_bytes_drop_the_link_and_the_source_reconnects(caplog):
+    from fbgcomp.runtime.sources import HyperionSource
+
+    async def main():
+        fake = _FakeStream(_endless(_garbage()), _valid_frames())
+        port = await fake.start()
+        mapper = PeakMapper(np.array([1530.0, 1535.0, 1540.0, 1545.0]), 2.0)
+        # the command port refuses: the source streams without it
+        src = HyperionSource("127.0.0.1", port, free_port(), mapper, backoff_initial_s=0.05,
+                             stall_timeout_s=5.0)
+        loop = asyncio.get_running_loop()
+        t0 = loop.time()
+        try:
+            agen = src.batches()
+            batch = await asyncio.wait_for(agen.__anext__(), 10.0)
+            elapsed = loop.time() - t0
+            await agen.aclose()
+            return batch, elapsed, src.reconnects, fake.connections
+        finally:
+            await src.close()
+            await fake.stop()
+
+    with caplog.at_level("WARNING", logger="fbgcomp.runtime"):
+        batch, elapsed, reconnects, connections = asyncio.run(main())
+    # the garbage is refused as corrupt on the first read, not after the 5 s stall timeout
+    assert elapsed < 2.0
+    assert reconnects == 1 and connections == 2
+    assert any("corrupt" in r.getMessage() for r in caplog.records)
+    assert (batch.peak_count == 1).all() and len(batch) > 0
+
+
+@pytest.mark.parametrize("first, chunk", [(b"", _garbage(seed=3)),
+                                          (_huge_header(), bytes(1 << 16))],
+                         ids=["random-bytes", "4GiB-header-then-zeros"])
+def test_memory_stays_bounded_while_a_stream_sends_garbage(first, chunk):
+    """Read a hostile stream for 0.5 s, reconnecting after every error, as the source does:
+    the Python heap (the receive buffer above all) must not grow with the bytes received."""
+    import tracemalloc
+
+    async def main():
+        fake = _FakeStream(_endless(chunk, first=first))
+        port = await fake.start()
+        client = hyperion.HyperionClient("127.0.0.1", stream_port=port)
+        loop = asyncio.get_running_loop()
+        errors = 0
+        end = loop.time() + 0.5
+        try:
+            while loop.time() < end:
+                await client.open_stream()
+                try:
+                    await asyncio.wait_for(client.read_blocks(5.0), end - loop.time())
+                except hyperion.HyperionError:
+                    errors += 1
+                except asyncio.TimeoutError:
+                    break
+                finally:
+                    await client.close()
+            return errors
+        finally:
+            await fake.stop()
+
+    tracemalloc.start()
+    try:
+        errors = asyncio.run(main())
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 8 << 20, f"{peak / 2**20:.0f} MiB"   # before: all the stream sent was kept
+    assert errors >= 1
+
+
+# --------------------------------------------------------------------------- decoder properties
+from hypothesis import HealthCheck, event, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+SMALL = hyperion.FrameLimits(channels=4, peaks_per_channel=8)      # frames of at most 296 bytes
+
+
+@st.composite
+def _frame(draw, limits=SMALL):
+    """(bytes, serial, t, counts, peaks) of one valid frame within ``limits``."""
+    n_ch = draw(st.integers(0, limits.channels))
+    counts = np.array(draw(st.lists(st.integers(0, limits.peaks_per_channel), min_size=n_ch,
+                                    max_size=n_ch)), dtype=np.int16)
+    peaks = np.array(draw(st.lists(st.floats(1400.0, 1700.0), min_size=int(counts.sum()),
+                                   max_size=int(counts.sum()))), dtype=np.float64)
+    serial = draw(st.integers(0, 2**64 - 1))
+    t = draw(st.integers(0, 2**32 - 2)) + draw(st.integers(0, 999_999)) * 1e-6
+    return hyperion.encode_peak_frame(serial, t, counts, peaks), serial, t, counts, peaks
+
+
+def _error_frame(draw):
+    return hyperion.encode_response(draw(st.binary(max_size=40)), draw(st.binary(max_size=40)),
+                                    status=draw(st.integers(1, 255)))
+
+
+@st.composite
+def _hostile_stream(draw):
+    """Valid frames, instrument error frames, random bytes and valid frames with bytes
+    overwritten, in any order."""
+    parts = []
+    for kind in draw(st.lists(st.sampled_from(["frame", "error", "random", "mutated"]),
+                              max_size=8)):
+        if kind == "frame":
+            parts.append(draw(_frame())[0])
+        elif kind == "error":
+            parts.append(_error_frame(draw))
+        elif kind == "random":
+            parts.append(draw(st.binary(min_size=1, max_size=300)))
+        else:
+            frame = bytearray(draw(_frame())[0])
+            for _ in range(draw(st.integers(1, 4))):
+                frame[draw(st.integers(0, len(frame) - 1))] = draw(st.integers(0, 255))
+            parts.append(bytes(frame))
+    return b"".join(parts)
+
+
+def _chunks(data: bytes, cuts: list[int]) -> list[bytes]:
+    edges = sorted({0, len(data), *(c % (len(data) + 1) for c in cuts)})
+    return [data[a:b] for a, b in zip(edges[:-1], edges[1:])]
+
+
+def _check_block(block: hyperion.PeakBlock, limits: hyperion.FrameLimits) -> None:
+    n = block.timestamp_s.size
+    assert block.serial_number.shape == (n,) and n >= 1
+    assert block.peak_counts.size <= limits.channels
+    assert ((block.peak_counts >= 0) & (block.peak_counts <= limits.peaks_per_channel)).all()
+    assert block.wavelengths_nm.shape == (n, int(block.peak_counts.sum()))
+    assert block.peak_channel.size == block.wavelengths_nm.shape[1]
+
+
+@settings(max_examples=400, deadline=2000, suppress_health_check=[HealthCheck.too_slow])
+@given(data=st.one_of(st.binary(max_size=2000), _hostile_stream()),
+       cuts=st.lists(st.integers(0, 4000), max_size=6))
+def test_any_bytes_decode_to_valid_frames_or_a_corrupt_error(data, cuts):
+    """Whatever arrives, in whatever pieces: each piece yields valid frames or raises the
+    decoder's corrupt-stream error (after which the link is dropped), never anything else;
+    and between pieces less than one maximum frame is kept."""
+    decoder = hyperion.PeakStreamDecoder(SMALL)
+    for piece in _chunks(data, cuts):
+        try:
+            blocks = decoder.feed(piece)
+        except hyperion.HyperionError as exc:
+            event("refused as corrupt")
+            assert "corrupt" in str(exc)
+            assert decoder.buffered == 0
+            return
+        for b in blocks:
+            event("valid frames decoded")
+            _check_block(b, SMALL)
+        assert decoder.buffered < SMALL.max_frame_bytes
+
+
+@settings(max_examples=200, deadline=2000, suppress_health_check=[HealthCheck.too_slow])
+@given(frames=st.lists(_frame(), min_size=1, max_size=12),
+       errors=st.lists(st.booleans(), max_size=12),
+       cuts=st.lists(st.integers(0, 5000), max_size=8), data=st.data())
+def test_valid_frames_decode_exactly_in_any_pieces(frames, errors, cuts, data):
+    """Valid frames (and the instrument's error frames between them, which are skipped) come
+    out exactly as sent, however the stream is cut into reads."""
+    stream = b""
+    for i, f in enumerate(frames):
+        if i < len(errors) and errors[i]:
+            stream += _error_frame(data.draw)
+        stream += f[0]
+    decoder = hyperion.PeakStreamDecoder(SMALL)
+    got = []
+    for piece in _chunks(stream, cuts):
+        for b in decoder.feed(piece):
+            _check_block(b, SMALL)
+            for k in range(b.timestamp_s.size):
+                got.append((int(b.serial_number[k]), b.timestamp_s[k], b.peak_counts.tolist(),
+                            b.wavelengths_nm[k].tolist()))
+        assert decoder.buffered < SMALL.max_frame_bytes
+    assert decoder.buffered == 0
+    assert [(s, c.tolist(), p.tolist()) for _, s, _, c, p in frames] == \
+        [(s, c, p) for s, _, c, p in got]
+    np.testing.assert_allclose([t for _, _, t, _, _ in frames], [t for _, t, _, _ in got],
+                               rtol=0, atol=2e-6)
+
+
+@given(content_len=st.integers(SMALL.max_frame_bytes - hyperion.HEADER_SIZE + 1, 2**32 - 1),
+       status=st.integers(0, 255))
+def test_an_oversized_header_is_refused_from_its_first_8_bytes(content_len, status):
+    """The frame length is checked before any of the frame is awaited (peak or error frame)."""
+    with pytest.raises(hyperion.HyperionError, match="corrupt"):
+        hyperion.decode_peak_frames(hyperion.HEADER.pack(status, 0, 0, content_len), SMALL)
+
+
+def test_the_largest_frame_the_limits_allow_is_decoded():
+    limits = hyperion.FrameLimits(channels=3, peaks_per_channel=5)
+    counts = np.array([5, 5, 5])
+    frame = hyperion.encode_peak_frame(1, 2.5, counts, 1500.0 + np.arange(15.0))
+    assert len(frame) == limits.max_frame_bytes == 8 + 24 + 2 * 3 + 8 * 3 * 5
+    blocks, used = hyperion.decode_peak_frames(frame, limits)
+    assert used == len(frame) and blocks[0].wavelengths_nm.shape == (1, 15)
+    with pytest.raises(hyperion.HyperionError):        # one more peak on a channel: refused
+        hyperion.decode_peak_frames(hyperion.encode_peak_frame(
+            1, 2.5, np.array([6, 4, 5]), 1500.0 + np.arange(15.0)), limits)
+    with pytest.raises(hyperion.HyperionError):        # a fourth channel: refused
+        hyperion.decode_peak_frames(hyperion.encode_peak_frame(
+            1, 2.5, np.array([1, 1, 1, 1]), 1500.0 + np.arange(4.0)), limits)
+
+
+def test_a_command_answer_announcing_4_gib_is_refused_before_it_is_read():
+    async def main():
+        async def answer(reader, writer):
+            await hyperion.read_request(reader)
+            writer.write(hyperion.HEADER.pack(0, 0, 0, 0xFFFFFFFF) + bytes(1000))
+            await writer.drain()
+            await asyncio.sleep(30)
+
+        server = await asyncio.start_server(answer, "127.0.0.1", 0)
+        client = hyperion.HyperionClient("127.0.0.1", server.sockets[0].getsockname()[1],
+                                         timeout_s=5.0)
+        loop = asyncio.get_running_loop()
+        t0 = loop.time()
+        try:
+            with pytest.raises(hyperion.HyperionError, match="corrupt"):
+                await client.serial_number()
+            return loop.time() - t0
+        finally:
+            await client.close()
+            server.close()
+
+    assert asyncio.run(main()) < 1.0        # before: waited the 5 s timeout for the 4 GiB

@@ -14,6 +14,19 @@ Two TCP ports are used by an instrument:
 Everything is little-endian (the instrument's native order). Frames are decoded in vectorised
 batches: consecutive frames with the same layout (same peak counts) are viewed as one numpy
 record array, so decoding cost per frame is a few hundred nanoseconds.
+
+A stream is only trusted as far as its layout allows (:class:`FrameLimits`). With ``C`` channels
+and at most ``P`` peaks per channel the largest frame the protocol can carry is
+
+    8 (response header) + 24 (peak header) + 2 C (int16 counts) + 8 C P (float64 peaks) bytes,
+
+65 600 bytes for the defaults (16 channels, 512 peaks per channel; the channel count is taken
+from the instrument's ``#GetDutChannelCount`` when its command port answers). Every header is
+checked as soon as its bytes arrive: a frame announced longer than that, a peak header whose
+``length`` does not fit the channels, counts outside ``0..P`` or that disagree with the
+content length raise :class:`HyperionError` ("corrupt peak stream") at once, so garbage on the
+port drops the link within one frame and the receive buffer never holds more than one
+maximum frame plus one read.
 """
 
 from __future__ import annotations
@@ -34,9 +47,34 @@ HEADER_SIZE = HEADER.size
 PEAK_HEADER_SIZE = PEAK_HEADER.size
 PEAK_HEADER_VERSION = 1
 
+DEFAULT_CHANNELS = 16            # when the instrument does not say (no command port)
+MAX_CHANNELS = 128               # the most a reported channel count is believed
+# An interrogator sweeps at most ~160 nm and cannot separate peaks closer than ~0.3 nm: a
+# channel never carries 512 peaks. Our bound, not a vendor figure.
+MAX_PEAKS_PER_CHANNEL = 512
+READ_SIZE = 1 << 16              # bytes asked of the socket per read
+MAX_RESPONSE_BYTES = 1 << 20     # command-port answer content (serial number, counts: bytes)
+
 
 class HyperionError(Exception):
     """The instrument answered a command with a non-zero status, or the stream is corrupt."""
+
+
+@dataclass(frozen=True)
+class FrameLimits:
+    """The largest peak frame a stream may announce: ``channels`` × ``peaks_per_channel``."""
+
+    channels: int = DEFAULT_CHANNELS
+    peaks_per_channel: int = MAX_PEAKS_PER_CHANNEL
+
+    @property
+    def max_frame_bytes(self) -> int:
+        """8 + 24 + 2 C + 8 C P bytes: headers, int16 counts and float64 peaks."""
+        c, p = self.channels, self.peaks_per_channel
+        return HEADER_SIZE + PEAK_HEADER_SIZE + 2 * c + 8 * c * p
+
+
+DEFAULT_LIMITS = FrameLimits()
 
 
 # --------------------------------------------------------------------------- command port
@@ -62,9 +100,17 @@ async def read_request(reader: asyncio.StreamReader) -> tuple[int, str, bytes]:
     return options, cmd, arg
 
 
-async def read_response(reader: asyncio.StreamReader) -> tuple[int, int, bytes, bytes]:
-    """Read one response: (status, response_type, message, content)."""
+async def read_response(reader: asyncio.StreamReader,
+                        max_content_bytes: int = MAX_RESPONSE_BYTES) -> tuple[int, int, bytes, bytes]:
+    """Read one response: (status, response_type, message, content).
+
+    A content longer than ``max_content_bytes`` raises HyperionError before it is read: the
+    answers this client asks for are a few bytes, and a bogus length must not be buffered.
+    """
     status, rtype, msg_len, content_len = HEADER.unpack(await reader.readexactly(HEADER_SIZE))
+    if content_len > max_content_bytes:
+        raise HyperionError(f"corrupt response: {content_len} bytes of content announced, "
+                            f"more than {max_content_bytes}")
     message = await reader.readexactly(msg_len) if msg_len else b""
     content = await reader.readexactly(content_len) if content_len else b""
     return status, rtype, message, content
@@ -153,33 +199,57 @@ class PeakBlock:
         return np.repeat(np.arange(self.peak_counts.size), np.maximum(self.peak_counts, 0))
 
 
-def decode_peak_frames(buffer: bytes | bytearray | memoryview) -> tuple[list[PeakBlock], int]:
+def decode_peak_frames(buffer: bytes | bytearray | memoryview,
+                       limits: FrameLimits = DEFAULT_LIMITS) -> tuple[list[PeakBlock], int]:
     """Decode every complete frame in ``buffer``.
 
     Returns the decoded blocks (runs of frames with identical layout) and the number of bytes
-    consumed; the caller keeps the remaining bytes for the next read.
+    consumed; the caller keeps the remaining bytes for the next read. Those are always less
+    than ``limits.max_frame_bytes``: a header that does not fit ``limits`` raises
+    :class:`HyperionError` as soon as its bytes are in ``buffer``, without waiting for the
+    frame it announces.
     """
     buf = memoryview(buffer).cast("B")
     total = len(buf)
+    max_frame = limits.max_frame_bytes
+    max_length = PEAK_HEADER_SIZE + 2 * limits.channels
     pos = 0
     blocks: list[PeakBlock] = []
-    while total - pos >= HEADER_SIZE + PEAK_HEADER_SIZE:
+    while total - pos >= HEADER_SIZE:
         status, _, msg_len, content_len = HEADER.unpack_from(buf, pos)
         frame_len = HEADER_SIZE + msg_len + content_len
+        if frame_len > max_frame:
+            raise HyperionError(
+                f"corrupt peak stream: a frame of {frame_len} bytes announced, more than the "
+                f"{max_frame} bytes of {limits.channels} channels x "
+                f"{limits.peaks_per_channel} peaks")
         if status != 0 or msg_len != 0:
             # Not a peak frame (an error message from the instrument): skip it whole.
             if total - pos < frame_len:
                 break
             pos += frame_len
             continue
-        if total - pos < frame_len:
+        if content_len < PEAK_HEADER_SIZE:
+            raise HyperionError(f"corrupt peak stream: content of {content_len} bytes, shorter "
+                                f"than the {PEAK_HEADER_SIZE}-byte peak header")
+        if total - pos < HEADER_SIZE + PEAK_HEADER_SIZE:
             break
         length = PEAK_HEADER.unpack_from(buf, pos + HEADER_SIZE)[0]
-        if length < PEAK_HEADER_SIZE or length > content_len or (length - PEAK_HEADER_SIZE) % 2 \
-                or (content_len - length) % 8:
-            raise HyperionError(f"corrupt peak frame: length={length}, content={content_len}")
+        if length < PEAK_HEADER_SIZE or length > min(content_len, max_length) \
+                or (length - PEAK_HEADER_SIZE) % 2 or (content_len - length) % 8:
+            raise HyperionError(f"corrupt peak stream: peak header length={length}, content={content_len}")
         n_ch = (length - PEAK_HEADER_SIZE) // 2
         n_pk = (content_len - length) // 8
+        if total - pos < HEADER_SIZE + length:
+            break
+        counts = np.frombuffer(buf, dtype="<i2", count=n_ch, offset=pos + HEADER_SIZE
+                               + PEAK_HEADER_SIZE).astype(np.int16)
+        if (counts < 0).any() or (counts > limits.peaks_per_channel).any() \
+                or int(counts.sum()) != n_pk:
+            raise HyperionError(f"corrupt peak stream: counts sum {int(counts.sum())} != {n_pk} "
+                                f"peaks, or a count outside 0..{limits.peaks_per_channel}")
+        if total - pos < frame_len:
+            break
         n_max = (total - pos) // frame_len
         raw = np.frombuffer(buf, dtype=np.uint8, count=n_max * frame_len, offset=pos)
         raw = raw.reshape(n_max, frame_len)
@@ -189,9 +259,6 @@ def decode_peak_frames(buffer: bytes | bytearray | memoryview) -> tuple[list[Pea
         same = np.all(layout == layout[0], axis=1)
         n = n_max if same.all() else int(np.argmin(same))
         rec = raw[:n].copy().view(_frame_dtype(n_ch, n_pk)).reshape(n)
-        counts = rec["counts"][0].astype(np.int16) if n_ch else np.zeros(0, np.int16)
-        if int(np.maximum(counts, 0).sum()) != n_pk:
-            raise HyperionError(f"corrupt peak frame: counts sum {counts.sum()} != {n_pk} peaks")
         peaks = rec["peaks"].astype(np.float64) if n_pk else np.zeros((n, 0))
         ts = rec["t_int"].astype(np.float64) + rec["t_frac"].astype(np.float64) * 1e-9
         blocks.append(PeakBlock(ts, rec["serial"].astype(np.uint64), counts, peaks))
@@ -199,19 +266,58 @@ def decode_peak_frames(buffer: bytes | bytearray | memoryview) -> tuple[list[Pea
     return blocks, pos
 
 
+class PeakStreamDecoder:
+    """Bytes of the peak stream in, decoded blocks out, with a bounded buffer.
+
+    ``feed`` appends what the socket gave and returns every complete frame; between calls at
+    most ``limits.max_frame_bytes - 1`` bytes (the start of the next frame) are kept. A
+    corrupt header raises :class:`HyperionError`; the stream is then lost (the caller drops the
+    link), as no frame boundary can be trusted after it.
+    """
+
+    def __init__(self, limits: FrameLimits = DEFAULT_LIMITS):
+        self.limits = limits
+        self._buffer = bytearray()
+
+    @property
+    def buffered(self) -> int:
+        """Bytes kept for the next frame."""
+        return len(self._buffer)
+
+    def feed(self, data: bytes) -> list[PeakBlock]:
+        self._buffer += data
+        try:
+            blocks, used = decode_peak_frames(self._buffer, self.limits)
+        except HyperionError:
+            # a new buffer, not clear(): the traceback still holds a view of the old one
+            self._buffer = bytearray()
+            raise
+        if used:
+            del self._buffer[:used]
+        return blocks
+
+
 # --------------------------------------------------------------------------- client
 class HyperionClient:
-    """Asyncio client of one Hyperion instrument (command and peak-stream connections)."""
+    """Asyncio client of one Hyperion instrument (command and peak-stream connections).
+
+    ``limits`` bounds the frames the peak stream may announce (:class:`FrameLimits`); unless
+    given, its channel count is the instrument's own (``#GetDutChannelCount``, asked when the
+    command port answers before the stream is opened), else :data:`DEFAULT_CHANNELS`.
+    """
 
     def __init__(self, host: str, command_port: int = COMMAND_PORT,
-                 stream_port: int = STREAM_PORT, timeout_s: float = 2.0):
+                 stream_port: int = STREAM_PORT, timeout_s: float = 2.0,
+                 limits: FrameLimits | None = None):
         self.host = host
         self.command_port = command_port
         self.stream_port = stream_port
         self.timeout_s = timeout_s
+        self.limits = limits or DEFAULT_LIMITS
+        self._limits_given = limits is not None
         self._cmd: tuple[asyncio.StreamReader, asyncio.StreamWriter] | None = None
         self._stream: tuple[asyncio.StreamReader, asyncio.StreamWriter] | None = None
-        self._buffer = bytearray()
+        self._decoder = PeakStreamDecoder(self.limits)
 
     async def command(self, command: str, argument: str | bytes = b"") -> tuple[bytes, bytes]:
         """Send one command, return (message, content); raise HyperionError on a bad status."""
@@ -219,9 +325,16 @@ class HyperionClient:
             self._cmd = await asyncio.wait_for(
                 asyncio.open_connection(self.host, self.command_port), self.timeout_s)
         reader, writer = self._cmd
-        writer.write(encode_request(command, argument))
-        await writer.drain()
-        status, _, message, content = await asyncio.wait_for(read_response(reader), self.timeout_s)
+        try:
+            writer.write(encode_request(command, argument))
+            await writer.drain()
+            status, _, message, content = await asyncio.wait_for(read_response(reader),
+                                                                 self.timeout_s)
+        except (HyperionError, OSError, asyncio.TimeoutError, asyncio.IncompleteReadError):
+            # no answer boundary can be trusted any more: the next command reconnects
+            self._cmd = None
+            writer.close()
+            raise
         if status != 0:
             raise HyperionError(f"{command}: {message.decode('ascii', 'replace')}")
         return message, content
@@ -230,33 +343,51 @@ class HyperionClient:
         return (await self.command("#GetSerialNumber"))[1].decode("ascii", "replace")
 
     async def channel_count(self) -> int:
-        return int(struct.unpack("<I", (await self.command("#GetDutChannelCount"))[1][:4])[0])
+        """The instrument's channel count; it also bounds the stream's frames from now on."""
+        count = int(struct.unpack("<I", (await self.command("#GetDutChannelCount"))[1][:4])[0])
+        if not self._limits_given and 1 <= count <= MAX_CHANNELS:
+            self.limits = FrameLimits(count, self.limits.peaks_per_channel)
+        return count
 
     async def is_ready(self) -> bool:
         return bool((await self.command("#isready"))[1][:1] == b"\x01")
 
+    @property
+    def buffered_bytes(self) -> int:
+        """Bytes of the peak stream received but not yet decoded (less than one frame)."""
+        return self._decoder.buffered
+
     async def open_stream(self) -> None:
+        if self._cmd is not None and not self._limits_given:
+            try:
+                await self.channel_count()
+            except (OSError, asyncio.TimeoutError, HyperionError, asyncio.IncompleteReadError,
+                    struct.error):
+                pass            # keep the default channel count
         self._stream = await asyncio.wait_for(
             asyncio.open_connection(self.host, self.stream_port), self.timeout_s)
-        self._buffer.clear()
+        self._decoder = PeakStreamDecoder(self.limits)
 
     async def read_blocks(self, timeout_s: float | None = None) -> list[PeakBlock]:
         """Wait for data on the peak stream and return every complete frame received so far.
 
-        Raises ConnectionError when the instrument closes the stream, TimeoutError when
-        nothing arrives within ``timeout_s``.
+        Raises ConnectionError when the instrument closes the stream, TimeoutError when no
+        complete frame arrives within ``timeout_s`` (bytes that never make a frame do not keep
+        the link alive), HyperionError as soon as a corrupt header arrives.
         """
         if self._stream is None:
             raise ConnectionError("peak stream is not open")
         reader = self._stream[0]
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + (timeout_s or self.timeout_s)
         while True:
-            chunk = await asyncio.wait_for(reader.read(1 << 20), timeout_s or self.timeout_s)
+            remaining = deadline - loop.time()
+            if remaining <= 0:
+                raise asyncio.TimeoutError()
+            chunk = await asyncio.wait_for(reader.read(READ_SIZE), remaining)
             if not chunk:
                 raise ConnectionError("instrument closed the peak stream")
-            self._buffer += chunk
-            blocks, used = decode_peak_frames(self._buffer)
-            if used:
-                del self._buffer[:used]
+            blocks = self._decoder.feed(chunk)
             if blocks:
                 return blocks
 
