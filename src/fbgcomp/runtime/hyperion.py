@@ -100,8 +100,8 @@ async def read_request(reader: asyncio.StreamReader) -> tuple[int, str, bytes]:
     return options, cmd, arg
 
 
-async def read_response(reader: asyncio.StreamReader,
-                        max_content_bytes: int = MAX_RESPONSE_BYTES) -> tuple[int, int, bytes, bytes]:
+async def read_response(reader: asyncio.StreamReader, max_content_bytes: int = MAX_RESPONSE_BYTES
+                        ) -> tuple[int, int, bytes, bytes]:
     """Read one response: (status, response_type, message, content).
 
     A content longer than ``max_content_bytes`` raises HyperionError before it is read: the
@@ -237,7 +237,8 @@ def decode_peak_frames(buffer: bytes | bytearray | memoryview,
         length = PEAK_HEADER.unpack_from(buf, pos + HEADER_SIZE)[0]
         if length < PEAK_HEADER_SIZE or length > min(content_len, max_length) \
                 or (length - PEAK_HEADER_SIZE) % 2 or (content_len - length) % 8:
-            raise HyperionError(f"corrupt peak stream: peak header length={length}, content={content_len}")
+            raise HyperionError(f"corrupt peak stream: peak header length={length}, "
+                                f"content={content_len}")
         n_ch = (length - PEAK_HEADER_SIZE) // 2
         n_pk = (content_len - length) // 8
         if total - pos < HEADER_SIZE + length:
