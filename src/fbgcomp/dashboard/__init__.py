@@ -1,8 +1,8 @@
-"""Live dashboard of the running compensator (``fbgcomp serve --dashboard HOST:PORT``).
+"""Live dashboard of the running compensator (``fbgcomp serve --dashboard [HOST:]PORT``).
 
-See :mod:`fbgcomp.dashboard.server` and docs/dashboard.md.
+See :mod:`fbgcomp.dashboard.server`, docs/dashboard.md and docs/security.md.
 """
 
-from fbgcomp.dashboard.server import Dashboard, DashboardConfig, parse_listen
+from fbgcomp.dashboard.server import Dashboard, DashboardConfig, is_loopback, parse_listen
 
-__all__ = ["Dashboard", "DashboardConfig", "parse_listen"]
+__all__ = ["Dashboard", "DashboardConfig", "is_loopback", "parse_listen"]

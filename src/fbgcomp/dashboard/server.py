@@ -1,24 +1,37 @@
-"""Live dashboard: an HTTP server with Server-Sent Events for a browser on the shop-floor network.
+"""Live dashboard: an aiohttp server with Server-Sent Events for a browser on the shop-floor network.
 
-Threads, never the compensation loop:
+Its own thread and event loop, never the compensation loop:
 
 * :meth:`Dashboard.publish` is called by the service for every processed batch. It only stores
   references to the newest values under a lock (no copy of history, no JSON, no I/O), so the
   compensation loop is never slowed by the dashboard, however many browsers watch it.
-* A broadcaster thread wakes at most ``max_rate_hz`` times a second (default 10), turns the
+* The server runs an asyncio loop in one thread of its own (``fbgcomp-dashboard``). A
+  broadcaster task there wakes at most ``max_rate_hz`` times a second (default 10), turns the
   newest values into one small JSON message (sensor elongations, temperatures, predicted
   deviation, correction, health, fallback, latency; ~0.6 kB) and bumps a sequence number.
-* Each browser has its own handler thread (``ThreadingHTTPServer``) that sends the newest
-  message whenever the sequence number moves: a slow client simply skips messages (latest
-  wins) and a client that stops reading times out on its own socket; nobody else waits for it.
+* Each browser's stream is a coroutine that sends the newest message whenever the sequence
+  number moves: a slow client simply skips messages (latest wins), one that stops reading is
+  dropped; nobody else waits for it.
 
-Access: everything is readable without login. The enable/disable control needs a user name and
-password (``users_file`` with lines ``name:pbkdf2_sha256$...`` as made by
-``fbgcomp.runtime.opcua.hash_password``, or ``FBGCOMP_DASHBOARD_USER`` /
-``FBGCOMP_DASHBOARD_PASSWORD`` in the environment; nothing is built in). A login sets a random
-session cookie (HttpOnly, SameSite=Strict); state-changing requests must also be JSON, which a
-cross-site form cannot send. The control calls back into the service, which toggles the very
-``Enabled`` state the OPC UA server exposes.
+Connections: HTTP parsing, keep-alive, TLS and cookies are aiohttp's and asyncio's. Every wait
+for a client is bounded by ``request_timeout_s`` (default 5 s): a connection that has not sent a
+complete request head by then - idle, or half a request - is closed (aiohttp's keep-alive timer,
+which also runs from the moment a connection opens; hence aiohttp >= 3.14.4), a request body not
+complete in time gets 408 and the connection is closed, and so is a TLS handshake. A stream whose
+write does not complete within ``send_timeout_s``, or with more than 64 kB unsent, is dropped. At
+most ``max_connections`` connections are open at a time (the one thing aiohttp has no setting
+for: :class:`_ConnectionCap`); one more is answered 503 and closed at once.
+
+Access (docs/security.md, "Dashboard"): the server binds 127.0.0.1 unless told otherwise
+(``--dashboard [HOST:]PORT``). Bound beyond loopback, or with ``read_login = "always"``, every
+read needs a login too, and the service refuses to start without a dashboard user. The
+enable/disable control always needs a login. Users come from ``users_file`` (lines
+``name:pbkdf2_sha256$...`` as made by ``fbgcomp.runtime.opcua.hash_password``) or
+``FBGCOMP_DASHBOARD_USER`` / ``FBGCOMP_DASHBOARD_PASSWORD``; nothing is built in. A login sets a
+random session cookie (HttpOnly, SameSite=Strict, Secure under TLS) naming a session held in
+this process; state-changing requests must also be JSON, which a cross-site form cannot send.
+``tls_cert`` / ``tls_key`` serve HTTPS directly. The control calls back into the service, which
+toggles the very ``Enabled`` state the OPC UA server exposes.
 
 Static assets (HTML, JS, CSS) are files of this package, hand-written, no CDN: the page works
 on a network without internet access.
@@ -26,61 +39,118 @@ on a network without internet access.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import ipaddress
 import json
 import logging
 import math
 import os
 import secrets
+import ssl
 import threading
 import time
 from dataclasses import dataclass
-from http import HTTPStatus
-from http.cookies import SimpleCookie
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
+from aiohttp import web
 
 from fbgcomp.errors import InputError
+from fbgcomp.features import FeatureMap
 from fbgcomp.runtime.health import flag_names
+from fbgcomp.runtime.opcua import load_users as _load_users
+from fbgcomp.runtime.opcua import verify_password
 
 log = logging.getLogger("fbgcomp.dashboard")
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
-_STATIC = {"index.html": "text/html; charset=utf-8",
-           "dashboard.js": "text/javascript; charset=utf-8",
-           "dashboard.css": "text/css; charset=utf-8"}
+_STATIC = {"index.html": "text/html", "dashboard.js": "text/javascript",
+           "dashboard.css": "text/css"}
 COOKIE = "fbgcomp_session"
 AXES = ("dx", "dy", "dz")
+DEFAULT_HOST = "127.0.0.1"
+MAX_BODY_BYTES = 4096          # the largest request body (a login or a switch is < 200 bytes)
+MAX_UNSENT_BYTES = 64 * 1024   # a stream with more queued for the browser is dropped
+MAX_SESSIONS = 256             # the oldest login is forgotten beyond this
+FAILED_LOGIN_S = 0.5           # every failed login costs this, one at a time
+KEEPALIVE_COMMENT_S = 15.0     # an SSE comment when nothing new: proxies and dead peers
+_HEADERS = {
+    "Cache-Control": "no-store",
+    "X-Content-Type-Options": "nosniff",
+    "X-Frame-Options": "DENY",
+    "Referrer-Policy": "no-referrer",
+    "Content-Security-Policy": "default-src 'self'; img-src 'self' data:; object-src 'none'; "
+                               "frame-ancestors 'none'; base-uri 'none'; form-action 'self'",
+    "Server": "fbgcomp-dashboard",
+}
 
 
 @dataclass
 class DashboardConfig:
-    listen: str = ""                 # HOST:PORT; empty = no dashboard
+    listen: str = ""                 # [HOST:]PORT, HOST 127.0.0.1 if omitted; empty = no dashboard
     users_file: str | None = None    # lines name:pbkdf2_sha256$... (see module docstring)
+    read_login: str = "auto"         # auto: reads need a login when bound beyond loopback; always
+    tls_cert: str | None = None      # PEM certificate (chain): serve HTTPS, with tls_key
+    tls_key: str | None = None       # PEM private key of tls_cert
     max_rate_hz: float = 10.0        # updates per second per client, at most
     max_clients: int = 32            # concurrent live streams; more get 503
+    max_connections: int = 64        # concurrent connections of any kind; more get 503, closed
+    request_timeout_s: float = 5.0   # to send a request (head, body) or finish a TLS handshake
     session_s: float = 8 * 3600.0    # a login lasts one shift
     send_timeout_s: float = 5.0      # a client not reading for this long is dropped
 
 
 def parse_listen(listen: str) -> tuple[str, int]:
-    """``HOST:PORT`` (``[::1]:8080`` for IPv6) -> (host, port); InputError otherwise."""
-    host, sep, port = listen.rpartition(":")
-    host = host.strip("[]")
-    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
-        raise InputError(f"expected HOST:PORT, e.g. 0.0.0.0:8080, got {listen!r}",
+    """``[HOST:]PORT`` (``[::1]:8080`` for IPv6) -> (host, port), host 127.0.0.1 if omitted."""
+    text = listen.strip()
+    host, sep, port = text.rpartition(":")
+    if not sep:
+        host, port = "", text
+    host = host.strip("[]") or DEFAULT_HOST
+    if not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise InputError(f"expected [HOST:]PORT, e.g. 8080 or 127.0.0.1:8080, got {listen!r}",
                          column="--dashboard")
     return host, int(port)
 
 
+def is_loopback(host: str) -> bool:
+    """True for ``localhost`` and loopback addresses; a host name may resolve beyond: False."""
+    if host.lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
 def load_users(users_file: str | Path | None, environ=os.environ) -> dict[str, str]:
     """User -> password hash, from ``users_file`` and ``FBGCOMP_DASHBOARD_USER/PASSWORD``."""
-    from fbgcomp.runtime.opcua import load_users as load
+    return _load_users(users_file, environ, service="dashboard", env_prefix="FBGCOMP_DASHBOARD",
+                       doc="docs/dashboard.md", iterations=20_000)
 
-    return load(users_file, environ, service="dashboard", env_prefix="FBGCOMP_DASHBOARD",
-                doc="docs/dashboard.md", iterations=20_000)
+
+def tls_context(cert: str | None, key: str | None) -> ssl.SSLContext | None:
+    """Server TLS context from PEM files (TLS 1.2 at least), None without either."""
+    if not cert and not key:
+        return None
+    if not (cert and key):
+        raise InputError("TLS needs both a certificate and its private key",
+                         column="--dashboard-cert/--dashboard-key")
+    ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    ctx.minimum_version = ssl.TLSVersion.TLSv1_2
+    for path in (cert, key):
+        if not Path(path).is_file():
+            raise InputError("TLS certificate or key file not found", file=path)
+    try:
+        ctx.load_cert_chain(cert, key)
+    except (ssl.SSLError, ValueError) as exc:
+        # the reason only (e.g. KEY_VALUES_MISMATCH), never the file's content
+        reason = getattr(exc, "reason", None) or type(exc).__name__
+        raise InputError(f"cannot use this TLS certificate and key ({reason})", file=cert) \
+            from None
+    return ctx
 
 
 def _clean(values, digits: int) -> list:
@@ -89,6 +159,101 @@ def _clean(values, digits: int) -> list:
     for v in np.asarray(values, dtype=float).ravel():
         out.append(round(float(v), digits) if math.isfinite(v) else None)
     return out
+
+
+def _json(data, status: int = 200, headers=None) -> web.Response:
+    return web.Response(body=json.dumps(data).encode(), status=status,
+                        content_type="application/json", headers=headers)
+
+
+class _Refused(Exception):
+    """A request answered with ``{"error": message}``; ``close``: the connection too."""
+
+    def __init__(self, status: int, message: str, close: bool = False):
+        super().__init__(message)
+        self.status, self.message, self.close = status, message, close
+
+
+@web.middleware
+async def _errors_as_json(request: web.Request, handler):
+    try:
+        return await handler(request)
+    except _Refused as exc:
+        resp = _json({"error": exc.message}, exc.status)
+        if exc.close:
+            resp.force_close()
+        return resp
+    except web.HTTPException as exc:   # aiohttp's own 404, 405, 413...
+        if exc.status < 400:
+            raise
+        allow = {"Allow": exc.headers["Allow"]} if "Allow" in exc.headers else None
+        return _json({"error": (exc.reason or "error").lower()}, exc.status, headers=allow)
+
+
+async def _security_headers(request: web.Request, response: web.StreamResponse) -> None:
+    for name, value in _HEADERS.items():
+        response.headers[name] = value
+
+
+_BUSY_BODY = b'{"error": "too many connections"}'
+_BUSY = (b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n"
+         b"Content-Length: %d\r\nRetry-After: 5\r\nConnection: close\r\n\r\n%s"
+         % (len(_BUSY_BODY), _BUSY_BODY))
+
+
+class _ConnectionCap:
+    """Protocol factory for ``loop.create_server``: aiohttp's server (its documented protocol
+    factory), with at most ``limit`` connections open; one more is answered 503 and closed.
+
+    Counted when a connection is made, not when the factory is called: a burst of accepts calls
+    the factory many times before any connection is made."""
+
+    def __init__(self, factory: Callable[[], asyncio.Protocol], limit: int):
+        self.factory, self.limit, self.open, self.refused = factory, max(1, int(limit)), 0, 0
+
+    def __call__(self) -> asyncio.Protocol:
+        return _CappedProtocol(self)
+
+
+class _CappedProtocol(asyncio.Protocol):
+    """Hands every transport event to an aiohttp request handler, if the cap lets it in."""
+
+    __slots__ = ("cap", "inner")
+
+    def __init__(self, cap: _ConnectionCap):
+        self.cap, self.inner = cap, None
+
+    def connection_made(self, transport) -> None:
+        cap = self.cap
+        if cap.open >= cap.limit:
+            cap.refused += 1
+            transport.write(_BUSY)
+            transport.close()
+            return
+        cap.open += 1
+        self.inner = cap.factory()
+        self.inner.connection_made(transport)
+
+    def connection_lost(self, exc) -> None:
+        inner, self.inner = self.inner, None
+        if inner is not None:
+            self.cap.open -= 1
+            inner.connection_lost(exc)
+
+    def data_received(self, data: bytes) -> None:
+        if self.inner is not None:
+            self.inner.data_received(data)
+
+    def eof_received(self):
+        return self.inner.eof_received() if self.inner is not None else None
+
+    def pause_writing(self) -> None:
+        if self.inner is not None:
+            self.inner.pause_writing()
+
+    def resume_writing(self) -> None:
+        if self.inner is not None:
+            self.inner.resume_writing()
 
 
 class Dashboard:
@@ -105,23 +270,48 @@ class Dashboard:
         self.control = control
         self.enabled = enabled or (lambda: True)
         self.users = load_users(config.users_file)
+        if config.read_login not in ("auto", "always"):
+            raise InputError(f"expected auto or always, got {config.read_login!r}",
+                             column="field dashboard.read_login")
+        self.read_login = config.read_login == "always" or not is_loopback(self.host)
+        if self.read_login and not self.users:
+            raise InputError(
+                f"the dashboard on {self.host} would show the machine's state to anyone on the "
+                "network: configure a dashboard user (--dashboard-users FILE or "
+                "FBGCOMP_DASHBOARD_USER/PASSWORD), who must then log in to read, or bind to "
+                "127.0.0.1 (docs/security.md)", column="--dashboard")
+        self.ssl_context = tls_context(config.tls_cert, config.tls_key)
+        self._assets = {name: (STATIC_DIR / name).read_bytes() for name in _STATIC}
         self.sessions: dict[str, tuple[str, float]] = {}   # token -> (user, expiry monotonic)
         self.clients = 0
         self.messages = 0
-        self._latest = None
+        # service thread -> broadcaster: the newest sample, and whether the broadcaster sleeps
         self._lock = threading.Lock()
-        self._new = threading.Event()
-        self._cond = threading.Condition()
-        self._seq = 0
-        self._message = b""
-        self._stopping = threading.Event()
+        self._latest = None
+        self._idle = False
         self._feature_maps: dict = {}
         # (value, version) of Enabled as last seen here: the version grows on every change, so
         # the page can tell a frame built before a switch from one built after it
         self._enabled_seen: tuple[bool | None, int] = (None, 0)
         self._enabled_lock = threading.Lock()
-        self._httpd: ThreadingHTTPServer | None = None
-        self._threads: list[threading.Thread] = []
+        # owned by the dashboard's loop (created in it)
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._seq = 0
+        self._message = b""
+        self._stopping = False
+        self._wake: asyncio.Event | None = None
+        self._next: asyncio.Future | None = None        # resolved when a new message is out
+        self._failed_login: asyncio.Lock | None = None
+        self._runner: web.AppRunner | None = None
+        self._server: asyncio.AbstractServer | None = None
+        self._cap: _ConnectionCap | None = None
+        self._broadcaster: asyncio.Task | None = None
+
+    @property
+    def url(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"{'https' if self.ssl_context else 'http'}://{host}:{self.port}/"
 
     # -- service side -------------------------------------------------------------------
     def publish(self, snapshot, temperature_C, pipeline) -> None:
@@ -130,62 +320,123 @@ class Dashboard:
                 pipeline.temperature_zero_C, time.time())
         with self._lock:
             self._latest = item
-        self._new.set()
+            wake, self._idle = self._idle, False
+        loop = self._loop
+        if wake and loop is not None:   # only when the broadcaster waits: once per idle spell
+            with contextlib.suppress(RuntimeError):   # the loop closed meanwhile (stopping)
+                loop.call_soon_threadsafe(self._wake.set)
 
     def start(self) -> None:
-        handler = _make_handler(self)
+        """Listen and serve from a thread of its own; InputError if the address is unusable."""
+        loop = asyncio.new_event_loop()
+        self._loop = loop
+        self._thread = threading.Thread(target=loop.run_forever, name="fbgcomp-dashboard",
+                                        daemon=True)
+        self._thread.start()
         try:
-            self._httpd = _Server((self.host, self.port), handler)
-        except OSError as exc:
-            raise InputError(f"cannot listen on {self.host}:{self.port}: {exc.strerror}",
-                             column="--dashboard") from None
-        self.port = self._httpd.server_address[1]
-        for target, name in ((self._httpd.serve_forever, "fbgcomp-dashboard-http"),
-                             (self._broadcast_loop, "fbgcomp-dashboard-push")):
-            t = threading.Thread(target=target, name=name, daemon=True)
-            t.start()
-            self._threads.append(t)
-        log.info("dashboard on http://%s:%d/ (%d user(s) may control)", self.host, self.port,
-                 len(self.users))
+            asyncio.run_coroutine_threadsafe(self._serve(), loop).result(30)
+        except BaseException:
+            self._end_loop()
+            raise
+        log.info("dashboard on %s (%d user(s); reads %s)", self.url, len(self.users),
+                 "need a login" if self.read_login else "open")
+        if not is_loopback(self.host) and self.ssl_context is None:
+            log.warning("dashboard on %s without TLS: passwords and values cross the network in "
+                        "clear text (docs/security.md)", self.url)
 
     def stop(self) -> None:
-        self._stopping.set()
-        self._new.set()
-        with self._cond:
-            self._cond.notify_all()
-        if self._httpd is not None:
-            self._httpd.shutdown()
-            self._httpd.server_close()
-        for t in self._threads:
-            t.join(2.0)
+        loop = self._loop
+        if loop is None:
+            return
+        try:
+            asyncio.run_coroutine_threadsafe(self._shutdown(), loop).result(15)
+        except Exception:   # stopping anyway: the loop ends below
+            log.exception("dashboard: unclean shutdown")
+        self._end_loop()
 
-    # -- broadcaster -----------------------------------------------------------------------
-    def _broadcast_loop(self) -> None:
+    def _end_loop(self) -> None:
+        loop, self._loop = self._loop, None
+        loop.call_soon_threadsafe(loop.stop)
+        self._thread.join(5.0)
+        if not self._thread.is_alive():
+            loop.close()
+
+    # -- server (the dashboard's loop) --------------------------------------------------------
+    async def _serve(self) -> None:
+        loop = asyncio.get_running_loop()
+        self._wake = asyncio.Event()
+        self._next = loop.create_future()
+        self._failed_login = asyncio.Lock()
+        app = web.Application(client_max_size=MAX_BODY_BYTES, middlewares=[_errors_as_json])
+        app.on_response_prepare.append(_security_headers)
+        app.router.add_get("/", self._index)
+        app.router.add_get("/index.html", self._index)
+        app.router.add_get("/static/{name}", self._static)
+        app.router.add_get("/api/meta", self._meta)
+        app.router.add_get("/api/state", self._state)
+        app.router.add_get("/api/stream", self._stream)
+        app.router.add_post("/api/login", self._login)
+        app.router.add_post("/api/logout", self._logout)
+        app.router.add_post("/api/enabled", self._set_enabled)
+        timeout = self.config.request_timeout_s
+        # keepalive_timeout: no complete request head within it (idle or half-sent) = closed;
+        # lingering_time: how long an unread body is drained after the answer (<= 1 s)
+        self._runner = web.AppRunner(app, access_log=None, keepalive_timeout=timeout,
+                                     lingering_time=min(1.0, timeout), shutdown_timeout=2.0)
+        await self._runner.setup()
+        self._cap = _ConnectionCap(self._runner.server, self.config.max_connections)
+        tls = {} if self.ssl_context is None else {"ssl": self.ssl_context,
+                                                   "ssl_handshake_timeout": timeout}
+        try:
+            self._server = await loop.create_server(self._cap, self.host, self.port,
+                                                    backlog=128, reuse_address=True, **tls)
+        except OSError as exc:
+            await self._runner.cleanup()
+            raise InputError(f"cannot listen on {self.host}:{self.port}: "
+                             f"{exc.strerror or exc}", column="--dashboard") from None
+        self.port = self._server.sockets[0].getsockname()[1]
+        self._broadcaster = asyncio.create_task(self._broadcast_loop())
+
+    async def _shutdown(self) -> None:
+        self._stopping = True
+        if self._server is not None:
+            self._server.close()
+        if self._next is not None and not self._next.done():
+            self._next.set_result(None)   # every stream wakes up and ends
+        if self._broadcaster is not None:
+            self._broadcaster.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._broadcaster
+        if self._runner is not None:
+            await self._runner.cleanup()
+
+    async def _broadcast_loop(self) -> None:
+        loop = asyncio.get_running_loop()
         period = 1.0 / self.config.max_rate_hz if self.config.max_rate_hz > 0 else 0.0
-        last = 0.0
-        while not self._stopping.is_set():
-            self._new.wait(1.0)
-            if self._stopping.is_set():
-                return
-            wait = last + period - time.monotonic()
+        last = -math.inf
+        while not self._stopping:
+            wait = last + period - loop.time()
             if wait > 0:
-                time.sleep(wait)   # decimation: whatever arrives meanwhile, the newest wins
-            self._new.clear()
+                await asyncio.sleep(wait)   # decimation: whatever arrives meanwhile, newest wins
             with self._lock:
                 item, self._latest = self._latest, None
+                if item is None:
+                    self._wake.clear()   # before _idle: a publish after this lock wakes us
+                    self._idle = True
             if item is None:
+                await self._wake.wait()
                 continue
-            last = time.monotonic()
+            last = loop.time()
             try:
-                message = self._message_for(*item)
+                message = self._message_for(*item, seq=self._seq + 1)
             except Exception:  # never let one odd sample stop the live view
                 log.exception("dashboard: cannot encode a sample")
                 continue
-            with self._cond:
-                self._message = message
-                self._seq += 1
-                self.messages += 1
-                self._cond.notify_all()
+            self._message = message
+            self._seq += 1
+            self.messages += 1
+            done, self._next = self._next, loop.create_future()
+            done.set_result(None)
 
     def _elongations(self, model, wavelength_nm, temperature_C, w0, t0):
         if w0 is None:
@@ -194,7 +445,6 @@ class Dashboard:
         fmap = self._feature_maps.get(key)
         if fmap is None:
             # ΔS as the runtime sees it: every model type exposes its sensors and probes
-            from fbgcomp.features import FeatureMap
             try:
                 fmap = FeatureMap(list(model.sensors), list(model.probe_names), False)
             except (AttributeError, KeyError, TypeError):
@@ -207,11 +457,14 @@ class Dashboard:
                              np.asarray(temperature_C, float)[None, :], w0, t0)
         return base[0, :len(self.sensor_names)]
 
-    def _message_for(self, snap, temperature_C, model, w0, t0, published_s) -> bytes:
+    def _message_for(self, snap, temperature_C, model, w0, t0, published_s, seq=0) -> bytes:
         elong = self._elongations(model, snap.sensor_wavelength_nm, temperature_C, w0, t0)
         enabled, enabled_version = self.enabled_state()
         frame = {
             "t": snap.sample_time_s,
+            # this server's own count and clock (time.time(), s) of the messages it sends: at
+            # most max_rate_hz of them per second of this clock, whatever the client sees
+            "seq": seq, "server_s": round(time.time(), 4),
             "elongation_um": _clean(elong, 3),
             "wavelength_nm": _clean(snap.sensor_wavelength_nm, 5),
             "temperature_C": _clean(temperature_C, 3),
@@ -239,7 +492,7 @@ class Dashboard:
 
     def enabled_state(self) -> tuple[bool, int]:
         """Enabled now and its version (+1 on every change seen), read under one lock so that
-        versions and values stay in step across the broadcaster and the request threads."""
+        versions and values stay in step across the broadcaster and the requests."""
         with self._enabled_lock:
             value = bool(self.enabled())
             last, version = self._enabled_seen
@@ -248,23 +501,18 @@ class Dashboard:
                 self._enabled_seen = (value, version)
             return value, version
 
-    def wait_message(self, after_seq: int, timeout_s: float) -> tuple[int, bytes]:
-        with self._cond:
-            self._cond.wait_for(lambda: self._seq != after_seq or self._stopping.is_set(),
-                                timeout_s)
-            return self._seq, self._message
-
     # -- sessions -------------------------------------------------------------------------
     def login(self, user: str, password: str) -> str | None:
-        from fbgcomp.runtime.opcua import verify_password
-
+        """A new session token if the password is right (slow on purpose: PBKDF2)."""
         stored = self.users.get(user)
         if stored is None or not verify_password(password, stored):
             return None
         token = secrets.token_urlsafe(32)
         now = time.monotonic()
         with self._lock:
-            self.sessions = {k: v for k, v in self.sessions.items() if v[1] > now}
+            live = sorted(((k, v) for k, v in self.sessions.items() if v[1] > now),
+                          key=lambda kv: kv[1][1])
+            self.sessions = dict(live[-(MAX_SESSIONS - 1):])
             self.sessions[token] = (user, now + self.config.session_s)
         return token
 
@@ -282,184 +530,146 @@ class Dashboard:
             self.sessions.pop(token or "", None)
 
     def meta(self, user: str | None) -> dict:
+        access = {"user": user, "login_possible": bool(self.users), "read_login": self.read_login}
+        if self.read_login and user is None:
+            return access   # nothing about the machine before a login
         return {"sensors": self.sensor_names, "probes": self.probe_names, "axes": list(AXES),
                 "model_id": self.model_id, "max_rate_hz": self.config.max_rate_hz,
-                "user": user, "login_possible": bool(self.users),
-                "control_available": self.control is not None,
+                "control_available": self.control is not None, **access,
                 **dict(zip(("enabled", "enabled_version"), self.enabled_state()))}
 
+    # -- request handlers ---------------------------------------------------------------------
+    def _user(self, request: web.Request) -> str | None:
+        return self.session_user(request.cookies.get(COOKIE))
 
-class _Server(ThreadingHTTPServer):
-    daemon_threads = True
-    allow_reuse_address = True
-    request_queue_size = 64
+    def _check_read(self, request: web.Request) -> None:
+        if self.read_login and self._user(request) is None:
+            raise _Refused(401, "log in to see the live values")
 
+    async def _read_json(self, request: web.Request) -> dict | None:
+        """The JSON object of a small ``application/json`` body, None if it is something else."""
+        length = request.content_length
+        if length is None and request.body_exists or (length or 0) > MAX_BODY_BYTES:
+            raise _Refused(400, f"expected a JSON body of at most {MAX_BODY_BYTES} bytes",
+                           close=True)
+        try:
+            async with asyncio.timeout(self.config.request_timeout_s):
+                body = await request.read()
+        except TimeoutError:
+            raise _Refused(408, "request body not received in time", close=True) from None
+        if request.content_type != "application/json" or not body:
+            return None
+        try:
+            data = json.loads(body)
+        except (ValueError, UnicodeDecodeError):
+            return None
+        return data if isinstance(data, dict) else None
 
-def _make_handler(dash: Dashboard):
-    class Handler(BaseHTTPRequestHandler):
-        server_version = "fbgcomp-dashboard"
-        sys_version = ""
-        protocol_version = "HTTP/1.1"
+    async def _index(self, request: web.Request) -> web.Response:
+        return self._asset("index.html")
 
-        def log_message(self, fmt, *args):  # quiet: the service log is for the machine
-            log.debug("%s " + fmt, self.client_address[0], *args)
+    async def _static(self, request: web.Request) -> web.Response:
+        return self._asset(request.match_info["name"])
 
-        # -- helpers
-        def _token(self) -> str | None:
-            cookie = SimpleCookie()
-            try:
-                cookie.load(self.headers.get("Cookie", ""))
-            except Exception:
-                return None
-            morsel = cookie.get(COOKIE)
-            return morsel.value if morsel else None
+    def _asset(self, name: str) -> web.Response:
+        ctype = _STATIC.get(name)
+        if ctype is None:
+            raise _Refused(404, "not found")
+        return web.Response(body=self._assets[name], content_type=ctype, charset="utf-8")
 
-        def _send(self, status, body: bytes, ctype="application/json", headers=()):
-            self.send_response(status)
-            self.send_header("Content-Type", ctype)
-            self.send_header("Content-Length", str(len(body)))
-            self.send_header("Cache-Control", "no-store")
-            self.send_header("X-Content-Type-Options", "nosniff")
-            self.send_header("X-Frame-Options", "DENY")
-            self.send_header("Referrer-Policy", "no-referrer")
-            self.send_header("Content-Security-Policy",
-                             "default-src 'self'; img-src 'self' data:; object-src 'none'; "
-                             "frame-ancestors 'none'; base-uri 'none'; form-action 'self'")
-            for k, v in headers:
-                self.send_header(k, v)
-            self.end_headers()
-            if self.command != "HEAD":
-                self.wfile.write(body)
+    async def _meta(self, request: web.Request) -> web.Response:
+        return _json(self.meta(self._user(request)))
 
-        def _json(self, status, data, headers=()):
-            self._send(status, json.dumps(data).encode(), headers=headers)
+    async def _state(self, request: web.Request) -> web.Response:
+        self._check_read(request)
+        return web.Response(body=self._message or b"null", content_type="application/json")
 
-        def _read_json(self):
-            try:
-                length = int(self.headers.get("Content-Length", "0"))
-            except ValueError:
-                length = -1
-            if not 0 <= length <= 4096:
-                self.close_connection = True   # cannot skip an unknown body: start afresh
-                return None
-            # read the body whatever it is: left unread it would be parsed as the next request
-            body = self.rfile.read(length) if length else b""
-            if self.headers.get_content_type() != "application/json" or not body:
-                return None
-            try:
-                data = json.loads(body)
-            except (ValueError, UnicodeDecodeError):
-                return None
-            return data if isinstance(data, dict) else None
-
-        # -- GET
-        def do_GET(self):  # noqa: N802 - http.server naming
-            path = self.path.split("?", 1)[0]
-            if path in ("/", "/index.html"):
-                return self._static("index.html")
-            if path.startswith("/static/"):
-                return self._static(path[len("/static/"):])
-            if path == "/api/meta":
-                return self._json(200, dash.meta(dash.session_user(self._token())))
-            if path == "/api/state":
-                with dash._cond:
-                    message = dash._message
-                return self._send(200, message or b"null")
-            if path == "/api/stream":
-                return self._stream()
-            self._json(404, {"error": "not found"})
-
-        do_HEAD = do_GET
-
-        def _static(self, name):
-            ctype = _STATIC.get(name)
-            if ctype is None:
-                return self._json(404, {"error": "not found"})
-            self._send(200, (STATIC_DIR / name).read_bytes(), ctype)
-
-        def _stream(self):
-            with dash._lock:
-                if dash.clients >= dash.config.max_clients:
-                    full = True
+    async def _stream(self, request: web.Request) -> web.StreamResponse:
+        self._check_read(request)
+        if self.clients >= self.config.max_clients:
+            return _json({"error": "too many live clients"}, 503, headers={"Retry-After": "5"})
+        self.clients += 1
+        loop = asyncio.get_running_loop()
+        period = 1.0 / self.config.max_rate_hz if self.config.max_rate_hz > 0 else 0.0
+        resp = web.StreamResponse(headers={"Content-Type": "text/event-stream"})
+        resp.force_close()   # one stream per connection
+        try:
+            await resp.prepare(request)
+            await self._send(request, resp, b"retry: 2000\n\n")
+            seq, last = -1, -math.inf
+            while not self._stopping:
+                wait = last + period - loop.time()
+                if wait > 0:
+                    await asyncio.sleep(wait)
+                if self._seq == seq:
+                    with contextlib.suppress(TimeoutError):
+                        await asyncio.wait_for(asyncio.shield(self._next), KEEPALIVE_COMMENT_S)
+                if self._stopping:
+                    break
+                if self._seq == seq or not self._message:
+                    chunk = b": keep-alive\n\n"
                 else:
-                    full = False
-                    dash.clients += 1
-            if full:
-                return self._json(503, {"error": "too many live clients"},
-                                  headers=[("Retry-After", "5")])
-            try:
-                self.connection.settimeout(dash.config.send_timeout_s)
-                self.send_response(200)
-                self.send_header("Content-Type", "text/event-stream")
-                self.send_header("Cache-Control", "no-store")
-                self.send_header("X-Content-Type-Options", "nosniff")
-                self.send_header("Connection", "close")
-                self.end_headers()
-                self.close_connection = True
-                self.wfile.write(b"retry: 2000\n\n")
-                self.wfile.flush()
-                seq = -1
-                period = 1.0 / dash.config.max_rate_hz if dash.config.max_rate_hz > 0 else 0.0
-                last = 0.0
-                while not dash._stopping.is_set():
-                    wait = last + period - time.monotonic()
-                    if wait > 0:
-                        time.sleep(wait)
-                    new_seq, message = dash.wait_message(seq, 15.0)
-                    if dash._stopping.is_set():
-                        break
-                    if new_seq == seq or not message:
-                        self.wfile.write(b": keep-alive\n\n")   # proxies and dead peers
-                    else:
-                        seq = new_seq
-                        last = time.monotonic()
-                        self.wfile.write(b"data: " + message + b"\n\n")
-                    self.wfile.flush()
-            except (OSError, ValueError):
-                pass   # the browser went away or stopped reading: drop it
-            finally:
-                with dash._lock:
-                    dash.clients -= 1
+                    seq, last = self._seq, loop.time()
+                    chunk = b"data: " + self._message + b"\n\n"
+                await self._send(request, resp, chunk)
+        except (ConnectionError, TimeoutError):
+            # the browser went away or stopped reading: drop it, unsent data and all
+            if request.transport is not None:
+                request.transport.abort()
+        finally:
+            self.clients -= 1
+        return resp
 
-        # -- POST
-        def do_POST(self):  # noqa: N802
-            path = self.path.split("?", 1)[0]
-            if path == "/api/login":
-                data = self._read_json()
-                if data is None:
-                    return self._json(400, {"error": "expected a JSON body"})
-                user, password = data.get("username"), data.get("password")
-                token = None
-                if isinstance(user, str) and isinstance(password, str):
-                    token = dash.login(user, password)
-                if token is None:
-                    time.sleep(0.5)   # this thread only: slows password guessing
-                    return self._json(401, {"error": "wrong user name or password"})
-                cookie = (f"{COOKIE}={token}; Path=/; HttpOnly; SameSite=Strict; "
-                          f"Max-Age={int(dash.config.session_s)}")
-                return self._json(200, {"user": user}, headers=[("Set-Cookie", cookie)])
-            if path == "/api/logout":
-                dash.logout(self._token())
-                return self._json(200, {"user": None}, headers=[
-                    ("Set-Cookie", f"{COOKIE}=; Path=/; HttpOnly; SameSite=Strict; Max-Age=0")])
-            if path == "/api/enabled":
-                user = dash.session_user(self._token())
-                if user is None:
-                    return self._json(401, {"error": "log in to change the compensation"})
-                data = self._read_json()
-                if data is None or not isinstance(data.get("enabled"), bool):
-                    return self._json(400, {"error": 'expected {"enabled": true|false}'})
-                if dash.control is None:
-                    return self._json(409, {"error": "no control in this service"})
-                try:
-                    state = dash.control(data["enabled"])
-                except Exception as exc:
-                    log.warning("dashboard: enable/disable by %s failed: %s", user, exc)
-                    return self._json(500, {"error": f"could not change the state: {exc}"})
-                log.warning("compensation %s by %s from the dashboard (%s)",
-                            "enabled" if state else "disabled", user, self.client_address[0])
-                state, version = dash.enabled_state()
-                return self._json(200, {"enabled": state, "enabled_version": version})
-            self._json(404, {"error": "not found"})
+    async def _send(self, request: web.Request, resp: web.StreamResponse, chunk: bytes) -> None:
+        transport = request.transport
+        if transport is None or transport.get_write_buffer_size() > MAX_UNSENT_BYTES:
+            raise ConnectionResetError("the client does not read")
+        async with asyncio.timeout(self.config.send_timeout_s):
+            await resp.write(chunk)
 
-    return Handler
+    async def _login(self, request: web.Request) -> web.Response:
+        data = await self._read_json(request)
+        if data is None:
+            raise _Refused(400, "expected a JSON body")
+        user, password = data.get("username"), data.get("password")
+        token = None
+        if isinstance(user, str) and isinstance(password, str):
+            # PBKDF2 takes a while: in a worker thread, so other requests go on meanwhile
+            token = await asyncio.get_running_loop().run_in_executor(None, self.login, user,
+                                                                     password)
+        if token is None:
+            async with self._failed_login:   # failures one at a time: slows password guessing
+                await asyncio.sleep(FAILED_LOGIN_S)
+            raise _Refused(401, "wrong user name or password")
+        resp = _json({"user": user})
+        resp.set_cookie(COOKIE, token, path="/", httponly=True, samesite="Strict",
+                        secure=self.ssl_context is not None, max_age=int(self.config.session_s))
+        return resp
+
+    async def _logout(self, request: web.Request) -> web.Response:
+        self.logout(request.cookies.get(COOKIE))
+        resp = _json({"user": None})
+        resp.del_cookie(COOKIE, path="/", httponly=True, samesite="Strict",
+                        secure=self.ssl_context is not None)
+        return resp
+
+    async def _set_enabled(self, request: web.Request) -> web.Response:
+        user = self._user(request)
+        if user is None:
+            raise _Refused(401, "log in to change the compensation")
+        data = await self._read_json(request)
+        if data is None or not isinstance(data.get("enabled"), bool):
+            raise _Refused(400, 'expected {"enabled": true|false}')
+        if self.control is None:
+            raise _Refused(409, "no control in this service")
+        try:
+            # the service may wait on the OPC UA process: not in this loop
+            state = await asyncio.get_running_loop().run_in_executor(None, self.control,
+                                                                     data["enabled"])
+        except Exception as exc:
+            log.warning("dashboard: enable/disable by %s failed: %s", user, exc)
+            raise _Refused(500, f"could not change the state: {exc}") from None
+        log.warning("compensation %s by %s from the dashboard (%s)",
+                    "enabled" if state else "disabled", user, request.remote)
+        state, version = self.enabled_state()
+        return _json({"enabled": state, "enabled_version": version})

@@ -107,7 +107,7 @@ function fmt(v, digits) {
 
 // -------------------------------------------------------------------------- page state
 const state = { meta: null, charts: {}, updates: 0, last: null, times: [], user: null,
-                enabledVersion: -1 };
+                enabledVersion: -1, started: false };
 window.fbgcomp = state;              // for the browser tests and curious engineers
 
 const $ = id => document.getElementById(id);
@@ -139,16 +139,21 @@ function buildSensorTable(names) {
 
 function showUser(user) {
   state.user = user;
-  $("login-form").hidden = !!user || !(state.meta && state.meta.login_possible);
+  const meta = state.meta || {};
+  const mustReadLogin = !!meta.read_login && !user;
+  $("login-form").hidden = !!user || !meta.login_possible;
   $("user-line").hidden = !user;
   $("user").textContent = user || "";
-  const canControl = !!user && state.meta && state.meta.control_available;
+  const canControl = !!user && meta.control_available;
   $("toggle").disabled = !canControl;
-  $("control-note").textContent = !state.meta || !state.meta.control_available
-    ? "This service has no control output."
+  $("control-note").textContent = mustReadLogin
+    ? "This dashboard is reachable from the network: log in to see the live values."
+    : !meta.control_available ? "This service has no control output."
     : user ? "You may enable or disable the compensation."
-    : state.meta.login_possible ? "Log in to enable or disable the compensation."
+    : meta.login_possible ? "Log in to enable or disable the compensation."
     : "No dashboard users are configured: control is off.";
+  $("access-note").textContent = meta.read_login ? "Login needed to read" : "Read-only without login";
+  if (mustReadLogin) { $("link").textContent = "log in"; $("link").dataset.state = "LOGIN"; }
 }
 
 function showEnabled(enabled, version) {
@@ -205,11 +210,26 @@ function onFrame(f) {
   state.charts.correction.push(f.t, f.correction_um);
 }
 
+let source = null;
 function connect() {
   const es = new EventSource("/api/stream");
+  source = es;
   es.onopen = () => { $("link").textContent = "live"; $("link").dataset.state = "LIVE"; };
   es.onmessage = ev => onFrame(JSON.parse(ev.data));
-  es.onerror = () => { $("link").textContent = "reconnecting"; $("link").dataset.state = "LOST"; };
+  es.onerror = () => {
+    $("link").textContent = "reconnecting"; $("link").dataset.state = "LOST";
+    // the browser retries by itself after a lost connection, not after an HTTP error
+    // (401 once a session has expired, 503 when full): ask the server what to do
+    if (es.readyState === EventSource.CLOSED) setTimeout(recheck, 3000);
+  };
+}
+
+async function recheck() {
+  const meta = (await api("/api/meta")).data;
+  if (!meta) { setTimeout(recheck, 3000); return; }
+  state.meta = Object.assign(state.meta || {}, meta);
+  showUser(meta.user);
+  if (!(meta.read_login && !meta.user)) connect();
 }
 
 function frameLoop() {
@@ -217,26 +237,41 @@ function frameLoop() {
   requestAnimationFrame(frameLoop);
 }
 
-async function init() {
-  const meta = (await api("/api/meta")).data;
-  state.meta = meta;
+// the page proper: charts, table, stream (once the server lets this browser read)
+function start(meta) {
+  state.started = true;
   $("max-rate").textContent = meta.max_rate_hz;
   buildSensorTable(meta.sensors);
   state.charts.elongation = new StripChart($("chart-elongation"), meta.sensors, "ΔS (µm)");
   state.charts.temperature = new StripChart($("chart-temperature"), meta.probes, "T (°C)");
   state.charts.deviation = new StripChart($("chart-deviation"), meta.axes, "deviation (µm)");
   state.charts.correction = new StripChart($("chart-correction"), meta.axes, "correction (µm)");
-  showUser(meta.user);
   showEnabled(meta.enabled, meta.enabled_version);
+  connect();
+}
+
+async function loadMeta() {
+  const meta = (await api("/api/meta")).data || {};
+  state.meta = meta;
+  showUser(meta.user);
+  if (!state.started && !(meta.read_login && !meta.user)) start(meta);
+}
+
+async function init() {
   $("login-form").addEventListener("submit", async ev => {
     ev.preventDefault();
     $("control-error").textContent = "";
     const r = await api("/api/login", { username: $("username").value, password: $("password").value });
     $("password").value = "";
-    if (r.ok) showUser(r.data.user);
-    else $("control-error").textContent = (r.data && r.data.error) || `login failed (${r.status})`;
+    if (!r.ok) $("control-error").textContent = (r.data && r.data.error) || `login failed (${r.status})`;
+    else if (!state.started) await loadMeta();   // reads needed this login: the page starts now
+    else showUser(r.data.user);
   });
-  $("logout").addEventListener("click", async () => { await api("/api/logout", {}); showUser(null); });
+  $("logout").addEventListener("click", async () => {
+    await api("/api/logout", {});
+    if (state.meta && state.meta.read_login) { location.reload(); return; }   // nothing stays shown
+    showUser(null);
+  });
   $("toggle").addEventListener("click", async () => {
     $("control-error").textContent = "";
     const want = $("toggle").dataset.enabled !== "true";
@@ -247,7 +282,7 @@ async function init() {
       if (r.status === 401) showUser(null);
     }
   });
-  connect();
+  await loadMeta();
   requestAnimationFrame(frameLoop);
 }
 
