@@ -10,7 +10,10 @@ import json
 import os
 import re
 import shutil
+import subprocess
+import sys
 import tempfile
+import time
 from datetime import timedelta, timezone
 from pathlib import Path
 
@@ -21,6 +24,9 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
+from unittest import mock
+
+import fbgcomp.campaign as campaign_module
 
 from fbgcomp.campaign import (AlignedCampaign, Campaign, CampaignMeta, SensorSpec, read_campaign,
                               write_campaign)
@@ -709,6 +715,10 @@ _yaml_values = st.recursive(
     | st.dictionaries(st.text(max_size=6), inner, max_size=3),
     max_leaves=6)
 _finite = st.floats(allow_nan=False, allow_infinity=False)
+# Inside the reader's physical bounds (campaign.VALUE_BOUNDS): anything else is a bad cell.
+_temperature = st.floats(-273.15, 1000.0)
+_displacement = st.floats(-1e6, 1e6, exclude_min=True, exclude_max=True)
+_force = st.floats(-1e7, 1e7, exclude_min=True, exclude_max=True)
 
 
 def _times(n):
@@ -753,16 +763,16 @@ def campaigns(draw) -> Campaign:
     undeclared = draw(st.lists(_names.filter(lambda p: p not in probes), max_size=2, unique=True))
     temperatures = {"time_s": draw(_times(n_temp))}
     for p in probes + undeclared:
-        temperatures[f"{p}_C"] = draw(hnp.arrays(np.float64, n_temp, elements=_finite))
+        temperatures[f"{p}_C"] = draw(hnp.arrays(np.float64, n_temp, elements=_temperature))
     reference = {"time_s": draw(_times(n_ref))}
     for column in ("dx_um", "dy_um", "dz_um"):
-        reference[column] = draw(hnp.arrays(np.float64, n_ref, elements=_finite))
+        reference[column] = draw(hnp.arrays(np.float64, n_ref, elements=_displacement))
     loads = None
     if draw(st.booleans()):
         n_loads = draw(st.integers(1, 6))
         loads = {"time_s": draw(_times(n_loads))}
         for column in ("fx_N", "fy_N", "fz_N"):
-            loads[column] = draw(hnp.arrays(np.float64, n_loads, elements=_finite))
+            loads[column] = draw(hnp.arrays(np.float64, n_loads, elements=_force))
     return Campaign.from_arrays(meta, fbg=fbg, temperatures=temperatures, reference=reference,
                                 loads=loads)
 
@@ -852,3 +862,208 @@ def test_fast_instrument_is_averaged_onto_the_reference_clock_exactly_for_linear
     averaged = np.std(a.wavelength_nm[:, 0] - exact)
     pointwise = np.std(c2.aligned(average=False).wavelength_nm[:, 0] - exact)
     assert 2.3 < pointwise / averaged < 4.5
+
+
+# --------------------------------------------------------------------------------------------
+# A bounded reader (issue 13): wide headers, streamed bodies, physical bounds, nothing echoed
+# --------------------------------------------------------------------------------------------
+
+def _fbgcomp(*args, timeout=30):
+    return subprocess.run([sys.executable, "-m", "fbgcomp", *map(str, args)], capture_output=True,
+                          text=True, timeout=timeout, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+
+
+def test_a_million_column_header_is_refused_in_seconds_by_inspect_and_fit(folder):
+    # Finding 4: an 8.5 MB header of 10^6 columns hung inspect and fit for over 90 s (a
+    # quadratic duplicate check over a file read whole). subprocess's timeout is the guard.
+    header = "time_s," + ",".join(f"c{i}" for i in range(10**6))
+    (folder / "fbg.csv").write_text(header + "\n" + ",".join(["0"] * (10**6 + 1)) + "\n")
+    model = folder.parent / "model.json"
+    for command in (("inspect", folder), ("fit", folder, "-o", model)):
+        start = time.monotonic()
+        r = _fbgcomp(*command)
+        elapsed = time.monotonic() - start
+        assert r.returncode == 2, r.stderr
+        assert "fbg.csv" in r.stderr and "at most 4096 columns" in r.stderr, r.stderr
+        assert "Traceback" not in r.stderr and len(r.stderr.splitlines()) == 1
+        assert elapsed < 5, f"{command[0]} took {elapsed:.1f} s"
+    assert not model.exists()
+
+
+def test_the_column_cap_is_documented_and_exact(folder):
+    tables = default_tables()
+    extra = campaign_module.MAX_COLUMNS - len(tables["fbg.csv"])
+    for i in range(extra):
+        tables["fbg.csv"][f"c{i}"] = np.zeros(61)
+    wide = make_folder(folder.parent / "wide", tables=tables)
+    assert len(read_campaign(wide).fbg.attrs["ignored_columns"]) == extra
+    tables["fbg.csv"]["one_more"] = np.zeros(61)
+    too_wide = make_folder(folder.parent / "too_wide", tables=tables)
+    expect_error(too_wide, "fbg.csv", match=f"the header has {campaign_module.MAX_COLUMNS + 1} "
+                 f"columns; a campaign CSV holds at most {campaign_module.MAX_COLUMNS}")
+    assert "4096" in campaign_module.__doc__ and "4096" in Path("README.md").read_text()
+
+
+def test_a_duplicate_at_the_end_of_a_wide_header_names_both_positions(folder):
+    names = ["time_s", "S1_nm", "S2_nm", "S3_nm"] + [f"c{i}" for i in range(4000)] + ["c17"]
+    (folder / "fbg.csv").write_text(",".join(names) + "\n" + ",".join(["1"] * len(names)) + "\n")
+    expect_error(folder, "fbg.csv", column="c17", match=r"appears twice .*columns 22 and 4005")
+
+
+def test_a_row_without_a_line_end_is_refused_without_being_buffered_whole(folder):
+    with open(folder / "reference.csv", "ab") as handle:
+        handle.write(b"1" * (8 << 20))
+    expect_error(folder, "reference.csv", row=32, match="row is longer than 65536 bytes")
+
+
+def test_oversized_campaign_yaml_is_refused(folder):
+    (folder / "campaign.yaml").write_text(META_YAML + "# padding\n" * 200_000)
+    expect_error(folder, "campaign.yaml", match="larger than 1048576 bytes")
+
+
+def _rewrite(path: Path, line_end: bytes, trailing: bytes = b"") -> None:
+    lines = path.read_bytes().rstrip(b"\n").split(b"\n")
+    path.write_bytes(line_end.join(lines) + line_end + trailing)
+
+
+@settings(max_examples=60, deadline=None)
+@given(chunk=st.integers(1, 300), line_end=st.sampled_from([b"\n", b"\r\n", b"\r"]),
+       trailing=st.sampled_from([b"", b"\n", b"\n\n  \n", b"\r\n\t"]),
+       bad=st.none() | st.tuples(st.integers(1, 30), st.sampled_from(["dx_um", "dz_um"]),
+                                 st.sampled_from(["x", "", "nan", "1e999", "3e6"])))
+def test_streamed_blocks_read_exactly_what_a_whole_read_does(chunk, line_end, trailing, bad):
+    # The body is parsed in blocks of whole rows: any block size, line end or trailing blank
+    # lines give the same numbers, and a bad cell the same row, column and message.
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp) / "c"
+        shutil.copytree(_template_folder(), folder)
+        if bad is not None:
+            set_cell(folder, "reference.csv", *bad)
+        for name in ("fbg.csv", "temperatures.csv", "reference.csv"):
+            _rewrite(folder / name, line_end, trailing)
+
+        def outcome():
+            try:
+                c = read_campaign(folder)
+            except InputError as err:
+                return str(err)
+            return [frame.to_numpy().tolist() for frame in (c.fbg, c.temperatures, c.reference)]
+
+        whole = outcome()
+        with mock.patch.object(campaign_module, "_CHUNK_BYTES", chunk):
+            assert outcome() == whole
+        if bad is None:
+            assert isinstance(whole, list)
+            np.testing.assert_array_equal(whole[2], read_campaign(_template_folder()).reference)
+        else:
+            assert f"row {bad[0]} (line {bad[0] + 1}), column {bad[1]}" in whole
+
+
+def test_a_blank_line_between_blocks_is_an_empty_row(folder):
+    path = folder / "reference.csv"
+    lines = path.read_text().split("\n")
+    lines.insert(11, "")  # after data row 10
+    path.write_text("\n".join(lines))
+    for chunk in (7, 64, 1 << 20):
+        with mock.patch.object(campaign_module, "_CHUNK_BYTES", chunk):
+            expect_error(folder, "reference.csv", row=11, match="empty row")
+
+
+@pytest.mark.parametrize("file, row, column, text, match", [
+    # finding 8: a 1e308 in temperatures.csv was reported against the derived column dL_S1
+    ("temperatures.csv", 3, "T_bulk_C", "1e308", r"temperature 1e\+308 degC is outside the "
+     r"physical range \[-273.15, 1000\] degC"),
+    ("temperatures.csv", 5, "T_surf_C", "-300", "temperature -300.0 degC"),
+    ("reference.csv", 4, "dy_um", "1e308", r"displacement 1e\+308 um .* \(-1e6, 1e6\) um"),
+    ("reference.csv", 9, "dx_um", "-2000000", "displacement -2000000.0 um"),
+    ("fbg.csv", 2, "S1_nm", "-1530", r"wavelength -1530.0 nm .* \(0, 10000\) nm"),
+    ("fbg.csv", 61, "time_s", "1e11", r"time 100000000000.0 s .* \(-1e10, 1e10\) s"),
+])
+def test_absurd_magnitudes_are_bad_cells_of_their_file(folder, file, row, column, text, match):
+    set_cell(folder, file, row, column, text)
+    expect_error(folder, file, row=row, column=column, match=match)
+
+
+def test_absurd_forces_are_bad_cells_of_loads_csv(tmp_path):
+    t = np.arange(0.0, 61.0, 5)
+    folder = make_folder(tmp_path, loads={"time_s": t, "fx_N": np.zeros_like(t),
+                                          "fy_N": np.zeros_like(t), "fz_N": np.zeros_like(t)})
+    set_cell(folder, "loads.csv", 6, "fz_N", "-1e8")
+    expect_error(folder, "loads.csv", row=6, column="fz_N", match=r"force -100000000.0 N")
+
+
+def test_from_arrays_applies_the_same_bounds():
+    meta = yaml.safe_load(META_YAML.replace("start: 2026-01-12T08:00:00Z", "start: '2026-01-12T08:00:00Z'"))
+    tables = default_tables()
+    tables["temperatures.csv"]["T_bulk_C"] = tables["temperatures.csv"]["T_bulk_C"] * 1e306
+    with pytest.raises(InputError, match="temperatures.csv, row 1 .*T_bulk_C: temperature 2e\\+307"):
+        Campaign.from_arrays(meta, fbg=tables["fbg.csv"], temperatures=tables["temperatures.csv"],
+                             reference=tables["reference.csv"])
+
+
+SECRET = "root:x:0:0:root:/root:/bin/bash"
+
+
+@pytest.mark.parametrize("content", [
+    f"{SECRET}\ndaemon:x:1:1:daemon:/usr/sbin:/usr/sbin/nologin\n",
+    "api_key=hunter2,password=swordfish,time\n1,2,3\n",
+    "\x00\x01\x02 secret \x7f,\x1b[2J\n",
+])
+def test_a_link_to_another_file_never_has_its_content_echoed(folder, tmp_path, content):
+    # Finding 8: a fbg.csv linked to a system file printed that file's first line.
+    other = tmp_path / "elsewhere" / "passwd"
+    other.parent.mkdir()
+    other.write_text(content)
+    (folder / "fbg.csv").unlink()
+    (folder / "fbg.csv").symlink_to(other)
+    err = expect_error(folder, "fbg.csv", column="time_s", match="missing column 'time_s'")
+    for secret in ("root", "bash", "hunter2", "swordfish", "api_key", "secret", "\x1b", "x1b"):
+        assert secret not in err.message
+    r = _fbgcomp("inspect", folder)
+    assert r.returncode == 2 and "missing column 'time_s'" in r.stderr
+    shown = r.stderr.replace(str(folder), "<folder>")
+    assert "root" not in shown and "hunter2" not in shown and "secret" not in shown
+
+
+def test_a_near_miss_column_name_is_suggested(folder):
+    path = folder / "reference.csv"
+    path.write_text(path.read_text().replace("time_s", "time_sec", 1))
+    expect_error(folder, "reference.csv", column="time_s", match="did you mean 'time_sec'")
+
+
+def test_unprintable_header_names_are_named_by_position(folder):
+    path = folder / "fbg.csv"
+    lines = path.read_text().split("\n")
+    lines[0] += ",\x01\x02,\x01\x02"
+    lines[1:] = [line + ",0,0" if line else line for line in lines[1:]]
+    path.write_text("\n".join(lines))
+    err = expect_error(folder, "fbg.csv", column="#6", match=r"appears twice .*columns 5 and 6")
+    assert "\x01" not in str(err) and "x01" not in str(err)
+
+
+def test_a_cell_is_quoted_cut_short(folder):
+    set_cell(folder, "reference.csv", 3, "dx_um", "z" * 500)
+    err = expect_error(folder, "reference.csv", row=3, column="dx_um", match="not a number")
+    assert "z" * 25 in err.message and "z" * 33 not in err.message
+
+
+@settings(max_examples=150, deadline=None)
+@given(chunk=st.sampled_from([3, 17, 256, 1 << 22]),
+       head=st.sampled_from([b"", b"time_s,S1_nm,S2_nm,S3_nm\n", b"time_s,S1_nm,S2_nm,S3_nm\r",
+                             b"\xef\xbb\xbftime_s,S1_nm,S2_nm,S3_nm\r\n"]),
+       content=st.binary(max_size=400)
+       | st.lists(st.sampled_from(["1530", "1540.5", "1550", "0", "1", ",", "\n", "\r", " ",
+                                   "nan", "1e308", "-", "\x00", "é", "\xff"]),
+                  max_size=120).map(lambda parts: "".join(parts).encode("utf-8", "surrogatepass")))
+def test_arbitrary_bytes_in_fbg_csv_give_a_campaign_or_an_input_error(chunk, head, content):
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp) / "c"
+        shutil.copytree(_template_folder(), folder)
+        (folder / "fbg.csv").write_bytes(head + content)
+        with mock.patch.object(campaign_module, "_CHUNK_BYTES", chunk):
+            try:
+                c = read_campaign(folder)
+            except InputError as err:
+                assert "\n" not in str(err) and len(str(err)) < 600
+            else:
+                assert np.isfinite(c.fbg.to_numpy()).all() and len(c.fbg) >= 1
