@@ -50,9 +50,13 @@ def register(app: typer.Typer) -> None:
         allow_anonymous: bool = typer.Option(False, "--allow-anonymous", help="Allow anonymous read-only OPC UA sessions."),
         users_file: Optional[Path] = typer.Option(None, "--users", help="OPC UA users file (name:pbkdf2_sha256$...)."),
         dashboard: Optional[str] = typer.Option(
-            None, "--dashboard", help="Serve the live dashboard on HOST:PORT (docs/dashboard.md)."),
+            None, "--dashboard", help="Serve the live dashboard on [HOST:]PORT, host 127.0.0.1 if omitted; beyond loopback reads need a login (docs/dashboard.md, docs/security.md)."),
         dashboard_users: Optional[Path] = typer.Option(
             None, "--dashboard-users", help="Dashboard users file (name:pbkdf2_sha256$...)."),
+        dashboard_cert: Optional[Path] = typer.Option(
+            None, "--dashboard-cert", help="Serve the dashboard over HTTPS with this PEM certificate (chain)."),
+        dashboard_key: Optional[Path] = typer.Option(
+            None, "--dashboard-key", help="PEM private key of --dashboard-cert."),
         cnc: Optional[str] = typer.Option(
             None, "--cnc", help="CNC output: linuxcnc (HAL component fbgcomp, docs/linuxcnc.md) or off."),
         cnc_address: Optional[str] = typer.Option(
@@ -105,6 +109,10 @@ def register(app: typer.Typer) -> None:
             cfg.dashboard.listen = dashboard
         if dashboard_users is not None:
             cfg.dashboard.users_file = str(dashboard_users)
+        if dashboard_cert is not None:
+            cfg.dashboard.tls_cert = str(dashboard_cert)
+        if dashboard_key is not None:
+            cfg.dashboard.tls_key = str(dashboard_key)
         if cnc is not None:
             cfg.cnc.kind = cnc
         if cnc_address is not None:
