@@ -1,12 +1,23 @@
 """OPC UA server with a real asyncua client over TCP, Basic256Sha256 Sign & Encrypt."""
 
 import asyncio
+import logging
+import os
+import subprocess
+import sys
 import time
 
 import pytest
 
 from test_runtime_support import free_port, secure_client
 
+
+async def trusted_client(url, state, trust_dir, user=None, password=None):
+    """A secure client whose certificate was first put in the server's trust list."""
+    from fbgcomp.runtime.trust import add_certificate
+    client = await secure_client(url, state, user, password)
+    add_certificate(state / "client_cert.der", trust_dir)
+    return client
 
 
 @pytest.fixture()
@@ -17,12 +28,13 @@ def server_factory(tmp_path, monkeypatch):
 
     started = []
 
-    def make(allow_anonymous=False, on_reload=None, main_loop=None):
+    def make(allow_anonymous=False, on_reload=None, main_loop=None, models_dir=None):
         monkeypatch.setenv("FBGCOMP_OPCUA_USER", "operator")
         monkeypatch.setenv("FBGCOMP_OPCUA_PASSWORD", "s3cret-for-test")
         port = free_port()
         cfg = OpcUaConfig(endpoint=f"opc.tcp://127.0.0.1:{port}/fbgcomp/", rate_hz=0,
-                          allow_anonymous=allow_anonymous, state_dir=str(tmp_path / "state"))
+                          allow_anonymous=allow_anonymous, state_dir=str(tmp_path / "state"),
+                          models_dir=None if models_dir is None else str(models_dir))
         srv = OpcUaServer(cfg, ["S1", "S2"], "model-abc", on_reload=on_reload,
                           main_loop=main_loop)
         srv.start()
@@ -32,6 +44,11 @@ def server_factory(tmp_path, monkeypatch):
     yield make
     for s in started:
         s.stop()
+
+
+def TRUSTED(tmp_path):
+    """The trust list of the fixture's server (the default under its state folder)."""
+    return tmp_path / "state" / "opcua" / "trusted"
 
 
 def _snapshot(i, t):
@@ -53,7 +70,8 @@ def test_subscribed_client_receives_published_values(server_factory, tmp_path):
     assert (tmp_path / "state" / "opcua" / "server_cert.der").is_file()
 
     async def main():
-        client = await secure_client(url, tmp_path / "client", "operator", "s3cret-for-test")
+        client = await trusted_client(url, tmp_path / "client", TRUSTED(tmp_path), "operator",
+                                      "s3cret-for-test")
         received = []
 
         class Handler:
@@ -89,15 +107,17 @@ def test_subscribed_client_receives_published_values(server_factory, tmp_path):
 
 
 def test_anonymous_refused_unless_configured_and_wrong_password_refused(server_factory, tmp_path):
+    from asyncua import ua
     srv, url = server_factory(allow_anonymous=False)
 
     async def main():
-        anon = await secure_client(url, tmp_path / "c1")
-        with pytest.raises(Exception):
+        # trusted machines: what refuses them here is the user, not the certificate
+        anon = await trusted_client(url, tmp_path / "c1", TRUSTED(tmp_path))
+        with pytest.raises(ua.UaError, match="BadIdentityToken|BadUserAccessDenied"):
             async with anon:
                 pass
-        bad = await secure_client(url, tmp_path / "c2", "operator", "wrong")
-        with pytest.raises(Exception):
+        bad = await trusted_client(url, tmp_path / "c2", TRUSTED(tmp_path), "operator", "wrong")
+        with pytest.raises(ua.UaError, match="BadIdentityToken|BadUserAccessDenied"):
             async with bad:
                 pass
 
@@ -123,16 +143,20 @@ def test_no_unencrypted_endpoint(server_factory, tmp_path):
 def test_unauthenticated_writes_and_calls_are_refused(server_factory, tmp_path):
     from asyncua import ua
     reloads = []
+    models = tmp_path / "models"
+    models.mkdir()
+    (models / "new.json").write_text("{}")
 
     async def main():
         loop = asyncio.get_running_loop()
 
         async def on_reload(path):
             reloads.append(path)
-            return f"loaded {path}"
+            return f"loaded {os.path.basename(path)}"
 
-        srv, url = server_factory(allow_anonymous=True, on_reload=on_reload, main_loop=loop)
-        anon = await secure_client(url, tmp_path / "anon")
+        srv, url = server_factory(allow_anonymous=True, on_reload=on_reload, main_loop=loop,
+                                  models_dir=models)
+        anon = await trusted_client(url, tmp_path / "anon", TRUSTED(tmp_path))
         async with anon:
             assert await _node(anon, "Enabled").read_value() is True       # reading is fine
             with pytest.raises(ua.UaStatusCodeError) as e:
@@ -143,7 +167,8 @@ def test_unauthenticated_writes_and_calls_are_refused(server_factory, tmp_path):
                 await root.call_method(ua.NodeId("FbgComp.ReloadModel", 2), "x.json")
         assert srv.enabled is True and reloads == []
 
-        op = await secure_client(url, tmp_path / "op", "operator", "s3cret-for-test")
+        op = await trusted_client(url, tmp_path / "op", TRUSTED(tmp_path), "operator",
+                                  "s3cret-for-test")
         async with op:
             with pytest.raises(ua.UaStatusCodeError):   # read-only value, even for a user
                 await _node(op, "CorrectionX_um").write_value(1.0)
@@ -155,7 +180,7 @@ def test_unauthenticated_writes_and_calls_are_refused(server_factory, tmp_path):
             end = time.monotonic() + 3
             while srv.enabled and time.monotonic() < end:
                 await asyncio.sleep(0.05)
-        assert srv.enabled is False and reloads == ["new.json"]
+        assert srv.enabled is False and reloads == [str((models / "new.json").resolve())]
 
     asyncio.run(main())
 
@@ -200,3 +225,179 @@ def test_control_messages_are_not_dropped_when_snapshots_are():
     finally:
         parent.close()
         child.close()
+
+
+# --------------------------------------------------------------------------- issue 13, finding 6
+def _fbgcomp(*args):
+    """The real command line, in a process of its own: (exit code, stdout, stderr)."""
+    p = subprocess.run([sys.executable, "-m", "fbgcomp", *map(str, args)], capture_output=True,
+                       text=True, timeout=120)
+    return p.returncode, p.stdout, p.stderr
+
+
+def test_unknown_client_certificate_is_refused_until_trust_add(server_factory, tmp_path):
+    """Before: with no trusted_clients_dir every certificate was accepted, so a right password
+    from any machine was enough. Now the machine must be in the trust list too."""
+    from asyncua import ua
+    srv, url = server_factory()
+    state = tmp_path / "state"
+
+    async def connect(folder):
+        client = await secure_client(url, folder, "operator", "s3cret-for-test")
+        async with client:
+            return await _node(client, "ModelId").read_value()
+
+    async def refused(folder):
+        with pytest.raises(ua.UaError, match="BadCertificateUntrusted"):
+            await connect(folder)
+
+    asyncio.run(refused(tmp_path / "stranger"))
+    # the refused certificate is kept for the administrator, who trusts it with the CLI
+    kept = sorted((state / "opcua" / "rejected").glob("*.der"))
+    assert len(kept) == 1
+    assert kept[0].read_bytes() == (tmp_path / "stranger" / "client_cert.der").read_bytes()
+    code, out, err = _fbgcomp("trust", "list", "--state-dir", state)
+    assert code == 0 and "(0 certificate(s))" in out
+    code, out, err = _fbgcomp("trust", "add", kept[0], "--state-dir", state)
+    assert code == 0, err
+    assert out.startswith("trusted: ") and "urn:fbgcomp:test:client" in out
+    # the running server reads the changed trust list at the next connection: no restart
+    assert asyncio.run(connect(tmp_path / "stranger")) == "model-abc"
+    code, out, _ = _fbgcomp("trust", "list", "--state-dir", state)
+    assert "(1 certificate(s))" in out and "urn:fbgcomp:test:client" in out
+    # another machine with the same user name and password is still refused
+    asyncio.run(refused(tmp_path / "other"))
+    audit_log = (state / "opcua" / "audit.log").read_text()
+    assert audit_log.count("OPC UA client refused (BadCertificateUntrusted)") == 2
+    assert audit_log.count("OPC UA client accepted") == 1
+
+
+def test_an_unreadable_trust_list_trusts_nobody(server_factory, tmp_path):
+    from asyncua import ua
+    srv, url = server_factory()
+
+    async def main():
+        client = await trusted_client(url, tmp_path / "c", TRUSTED(tmp_path), "operator",
+                                      "s3cret-for-test")
+        (TRUSTED(tmp_path) / "broken.der").write_bytes(b"not a certificate")
+        with pytest.raises(ua.UaError, match="BadCertificateUntrusted"):
+            async with client:
+                pass
+
+    asyncio.run(main())
+    code, out, err = _fbgcomp("trust", "list", "--dir", TRUSTED(tmp_path))
+    assert code == 2 and "broken.der: not a readable certificate" in out
+    assert err.startswith("error: ") and len(err.strip().splitlines()) == 1
+
+
+def test_reload_model_loads_only_from_the_models_folder(server_factory, tmp_path):
+    """Before: ReloadModel handed any path to the service, e.g. /etc/passwd or ../x.json."""
+    from asyncua import ua
+    models = tmp_path / "models"
+    (models / "sub").mkdir(parents=True)
+    (models / "good.json").write_text("{}")
+    (models / "sub" / "other.json").write_text("{}")
+    (tmp_path / "x.json").write_text("{}")
+    (models / "escape.json").symlink_to(tmp_path / "x.json")
+    reloads = []
+
+    async def main():
+        loop = asyncio.get_running_loop()
+
+        async def on_reload(path):
+            reloads.append(path)
+            return f"loaded {os.path.basename(path)}"
+
+        srv, url = server_factory(on_reload=on_reload, main_loop=loop, models_dir=models)
+        client = await trusted_client(url, tmp_path / "op", TRUSTED(tmp_path), "operator",
+                                      "s3cret-for-test")
+        answers = {}
+        async with client:
+            root = client.get_node(ua.NodeId("FbgComp", 2))
+            for name in ("../x.json", "/etc/passwd", "sub/../../x.json", "escape.json",
+                         "missing.json", "good.json", "sub/other.json"):
+                try:
+                    answers[name] = await root.call_method(
+                        ua.NodeId("FbgComp.ReloadModel", 2), name)
+                except ua.UaStatusCodeError as exc:
+                    answers[name] = type(exc).__name__
+        return answers
+
+    answers = asyncio.run(main())
+    assert answers == {"../x.json": "BadInvalidArgument", "/etc/passwd": "BadInvalidArgument",
+                       "sub/../../x.json": "BadInvalidArgument",
+                       "escape.json": "BadInvalidArgument", "missing.json": "BadNotFound",
+                       "good.json": "loaded good.json", "sub/other.json": "loaded other.json"}
+    assert reloads == [str((models / "good.json").resolve()),
+                       str((models / "sub" / "other.json").resolve())]
+
+
+def test_reload_model_by_name_needs_a_models_folder(server_factory, tmp_path):
+    from asyncua import ua
+    reloads = []
+
+    async def main():
+        loop = asyncio.get_running_loop()
+
+        async def on_reload(path):
+            reloads.append(path)
+            return "reloaded"
+
+        srv, url = server_factory(on_reload=on_reload, main_loop=loop)
+        client = await trusted_client(url, tmp_path / "op", TRUSTED(tmp_path), "operator",
+                                      "s3cret-for-test")
+        async with client:
+            root = client.get_node(ua.NodeId("FbgComp", 2))
+            with pytest.raises(ua.UaStatusCodeError, match="BadNotSupported"):
+                await root.call_method(ua.NodeId("FbgComp.ReloadModel", 2), "model.json")
+            # an empty name reloads the model serve was started with
+            return await root.call_method(ua.NodeId("FbgComp.ReloadModel", 2), "")
+
+    assert asyncio.run(main()) == "reloaded" and reloads == [""]
+
+
+def test_writes_and_calls_are_logged_with_their_user(server_factory, tmp_path, capfd):
+    from asyncua import ua
+    models = tmp_path / "models"
+    models.mkdir()
+    (models / "m.json").write_text("{}")
+    # serve -v: the server process logs at INFO on stderr, as the service does
+    fbg = logging.getLogger("fbgcomp")
+    level = fbg.level
+    fbg.setLevel(logging.INFO)
+
+    async def main():
+        loop = asyncio.get_running_loop()
+
+        async def on_reload(path):
+            return "loaded"
+
+        try:
+            srv, url = server_factory(allow_anonymous=True, on_reload=on_reload, main_loop=loop,
+                                      models_dir=models)
+        finally:
+            fbg.setLevel(level)
+        op = await trusted_client(url, tmp_path / "op", TRUSTED(tmp_path), "operator",
+                                  "s3cret-for-test")
+        async with op:
+            await _node(op, "Enabled").write_value(False)
+            root = op.get_node(ua.NodeId("FbgComp", 2))
+            await root.call_method(ua.NodeId("FbgComp.ReloadModel", 2), "m.json")
+            with pytest.raises(ua.UaStatusCodeError):
+                await root.call_method(ua.NodeId("FbgComp.ReloadModel", 2), "/etc/passwd")
+        anon = await trusted_client(url, tmp_path / "anon", TRUSTED(tmp_path))
+        async with anon:
+            with pytest.raises(ua.UaStatusCodeError):
+                await _node(anon, "Enabled").write_value(True)
+        srv.stop()
+
+    asyncio.run(main())
+    expected = ["OPC UA write ns=2;s=FbgComp.Enabled = False by operator: Good",
+                "OPC UA call ReloadModel('m.json') by operator: loaded",
+                "OPC UA call ReloadModel('/etc/passwd') by operator refused",
+                "OPC UA write by anonymous refused: access denied"]
+    audit_log = (tmp_path / "state" / "opcua" / "audit.log").read_text()
+    stderr = capfd.readouterr().err
+    for line in expected:
+        assert line in audit_log
+        assert line in stderr          # python logging of the server process

@@ -1,4 +1,5 @@
-"""Runtime commands: ``serve``, ``sim-interrogator`` and ``log export`` (mounted by fbgcomp.cli)."""
+"""Runtime commands: ``serve``, ``sim-interrogator``, ``log export`` and ``trust add|list``
+(mounted by fbgcomp.cli)."""
 
 from __future__ import annotations
 
@@ -49,6 +50,12 @@ def register(app: typer.Typer) -> None:
         output_filter: Optional[str] = typer.Option(None, "--output-filter", help="Adaptive output filter: on (default) or off."),
         allow_anonymous: bool = typer.Option(False, "--allow-anonymous", help="Allow anonymous read-only OPC UA sessions."),
         users_file: Optional[Path] = typer.Option(None, "--users", help="OPC UA users file (name:pbkdf2_sha256$...)."),
+        trusted_clients: Optional[Path] = typer.Option(
+            None, "--trusted-clients", help="Folder of the client certificates OPC UA trusts "
+            "(default <state-dir>/opcua/trusted; fill it with fbgcomp trust add)."),
+        models_dir: Optional[Path] = typer.Option(
+            None, "--models-dir", help="Folder OPC UA ReloadModel may load models from (default: none, "
+            "ReloadModel only reloads the current model)."),
         dashboard: Optional[str] = typer.Option(
             None, "--dashboard", help="Serve the live dashboard on [HOST:]PORT, host 127.0.0.1 if omitted; beyond loopback reads need a login (docs/dashboard.md, docs/security.md)."),
         dashboard_users: Optional[Path] = typer.Option(
@@ -105,6 +112,13 @@ def register(app: typer.Typer) -> None:
             cfg.opcua.allow_anonymous = True
         if users_file is not None:
             cfg.opcua.users_file = str(users_file)
+        if trusted_clients is not None:
+            cfg.opcua.trusted_clients_dir = str(trusted_clients)
+        if models_dir is not None:
+            cfg.opcua.models_dir = str(models_dir)
+        if cfg.opcua.models_dir and not Path(cfg.opcua.models_dir).is_dir():
+            raise InputError("models folder not found", file=cfg.opcua.models_dir,
+                             column="opcua.models_dir")
         if dashboard is not None:
             cfg.dashboard.listen = dashboard
         if dashboard_users is not None:
@@ -181,3 +195,50 @@ def register(app: typer.Typer) -> None:
         typer.echo(f"campaign written to {output} ({len(c.fbg)} samples)")
 
     app.add_typer(log_app, name="log")
+
+    trust_app = typer.Typer(help="Client certificates the OPC UA server trusts (docs/security.md).",
+                            no_args_is_help=True)
+    dir_help = ("Trust-list folder (default <state-dir>/opcua/trusted, as serve uses without "
+                "--trusted-clients).")
+
+    def _trust_dir(directory: Optional[Path], state_dir: Optional[Path]) -> Path:
+        from fbgcomp.runtime.trust import trusted_dir
+        return trusted_dir(state_dir, directory)
+
+    @trust_app.command("add")
+    def trust_add(
+        cert: Path = typer.Argument(..., help="Client certificate, DER or PEM."),
+        directory: Optional[Path] = typer.Option(None, "--dir", help=dir_help),
+        state_dir: Optional[Path] = typer.Option(None, "--state-dir", help="serve's --state-dir."),
+    ):
+        """Trust a client certificate: check it and copy it into the trust list (atomically)."""
+        from fbgcomp.runtime.trust import add_certificate
+
+        folder = _trust_dir(directory, state_dir)
+        try:
+            info, new = add_certificate(cert, folder)
+        except OSError as exc:
+            raise InputError(f"cannot write the trust list: {exc.strerror}", file=folder)
+        typer.echo(f"{'trusted' if new else 'already trusted'}: {info.describe()}")
+        typer.echo(f"trust list: {folder}")
+
+    @trust_app.command("list")
+    def trust_list(
+        directory: Optional[Path] = typer.Option(None, "--dir", help=dir_help),
+        state_dir: Optional[Path] = typer.Option(None, "--state-dir", help="serve's --state-dir."),
+    ):
+        """Show the certificates in the trust list (unreadable files are flagged)."""
+        from fbgcomp.runtime.trust import list_certificates
+
+        folder = _trust_dir(directory, state_dir)
+        if folder.exists() and not folder.is_dir():
+            raise InputError("trust list is not a folder", file=folder)
+        certs = list_certificates(folder)
+        typer.echo(f"trust list: {folder} ({len(certs)} certificate(s))")
+        for info in certs:
+            typer.echo(f"  {info.describe()}")
+        if any(c.error for c in certs):
+            raise InputError("unreadable file(s) in the trust list: the server trusts nobody "
+                             "until they are removed", file=folder)
+
+    app.add_typer(trust_app, name="trust")

@@ -7,10 +7,15 @@ RSA work of their secure-channel handshakes, and the encryption of every notific
 stall the loop, nor compete with it for the interpreter lock.
 
 Security: only ``Basic256Sha256`` Sign & Encrypt endpoints, with a self-signed application
-certificate generated on first start under ``<state_dir>/opcua/``. Anonymous sessions are
-refused unless ``allow_anonymous``; even then they may only browse, read and subscribe.
-Writing ``Enabled`` and calling ``ReloadModel`` need a user name and password (users from the
-configured users file or the ``FBGCOMP_OPCUA_USER`` / ``FBGCOMP_OPCUA_PASSWORD`` environment).
+certificate generated on first start under ``<state_dir>/opcua/``. Only clients whose
+certificate is in the trust list (``<state_dir>/opcua/trusted/`` or ``trusted_clients_dir``,
+filled with ``fbgcomp trust add``; see :mod:`fbgcomp.runtime.trust`) may open a session.
+Anonymous sessions are refused unless ``allow_anonymous``; even then they may only browse, read
+and subscribe. Writing ``Enabled`` and calling ``ReloadModel`` need a user name and password
+(users from the configured users file or the ``FBGCOMP_OPCUA_USER`` / ``FBGCOMP_OPCUA_PASSWORD``
+environment). ``ReloadModel`` loads only files inside ``models_dir``. Every write and method
+call, refused or not, and every client certificate accepted or refused is logged with its user
+on the ``fbgcomp.audit`` logger and in ``<state_dir>/opcua/audit.log``.
 
 Address space (namespace ``urn:fbgcomp:runtime``, string node ids ``FbgComp.<name>``) is
 documented in docs/runtime.md.
@@ -20,6 +25,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import contextvars
 import datetime as dt
 import hashlib
 import hmac
@@ -34,8 +40,11 @@ from pathlib import Path
 from typing import Awaitable, Callable
 
 from fbgcomp.errors import InputError
+from fbgcomp.runtime import trust
 
 log = logging.getLogger("fbgcomp.runtime")
+audit = logging.getLogger("fbgcomp.audit")
+AUDIT_LOG_BYTES = 1 << 20          # audit.log rotates at 1 MiB, 5 old files kept
 NAMESPACE = "urn:fbgcomp:runtime"
 APPLICATION_URI = "urn:fbgcomp:runtime:server"
 AXES = ("X", "Y", "Z")
@@ -180,22 +189,82 @@ def make_user_manager(users: dict[str, str], allow_anonymous: bool):
     return FbgUserManager()
 
 
+# The user of the request being served. asyncua hands the user to the permission ruleset but
+# not to method callbacks; a connection's requests are served one at a time in one task, so
+# the ruleset records it here and ReloadModel reads it back for the audit log.
+_request_user: contextvars.ContextVar[str] = contextvars.ContextVar("opcua_user",
+                                                                     default="unknown")
+
+
+def user_label(user) -> str:
+    """How a session's user appears in the audit log: the user name, or ``anonymous``."""
+    name = getattr(user, "name", None)
+    return name if name else "anonymous"
+
+
 def make_ruleset():
     from asyncua import ua
     from asyncua.crypto.permission_rules import SimpleRoleRuleset, UserRole
+
+    write = ua.NodeId(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary)
+    call = ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)
 
     class ReadOnlyAnonymousRuleset(SimpleRoleRuleset):
         """Anonymous sessions may browse, read and subscribe, never write or call."""
 
         def __init__(self):
             super().__init__()
-            denied = {ua.NodeId(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary),
-                      ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary),
+            denied = {write, call,
                       ua.NodeId(ua.ObjectIds.HistoryReadRequest_Encoding_DefaultBinary)}
             self._permission_dict[UserRole.Anonymous] = (
                 self._permission_dict[UserRole.User] - denied)
 
+        def check_validity(self, user, action_type_id, body):
+            _request_user.set(user_label(user))
+            allowed = super().check_validity(user, action_type_id, body)
+            if not allowed and action_type_id in (write, call):
+                audit.warning("OPC UA %s by %s refused: access denied",
+                              "write" if action_type_id == write else "method call",
+                              user_label(user))
+            return allowed
+
     return ReadOnlyAnonymousRuleset()
+
+
+class ModelPathRefused(ValueError):
+    """A ReloadModel argument that names no file of the models folder; ``status`` is the
+    OPC UA status code name the call answers."""
+
+    def __init__(self, message: str, status: str = "BadInvalidArgument"):
+        super().__init__(message)
+        self.status = status
+
+
+def model_in_folder(name: str, models_dir: str | Path | None) -> str:
+    """The model file ``ReloadModel(name)`` may load: ``name`` relative to ``models_dir``.
+
+    ``""`` reloads the model ``serve`` was started with. Absolute paths, ``..`` and symbolic
+    links that lead out of the folder are refused (``BadInvalidArgument``), as is any name when
+    no folder is configured (``BadNotSupported``); a missing file is ``BadNotFound``.
+    """
+    if not name:
+        return ""
+    if not models_dir:
+        raise ModelPathRefused("no models folder is configured (opcua.models_dir, --models-dir)",
+                               "BadNotSupported")
+    if "\x00" in name or len(name) > 4096:
+        raise ModelPathRefused("not a file name")
+    rel = Path(name)
+    if rel.is_absolute() or ".." in rel.parts:
+        raise ModelPathRefused(f"{name!r} is not a file name inside the models folder "
+                               "(absolute paths and '..' are refused)")
+    folder = Path(models_dir).resolve()
+    target = (folder / rel).resolve()
+    if not target.is_relative_to(folder):
+        raise ModelPathRefused(f"{name!r} leads out of the models folder")
+    if not target.is_file():
+        raise ModelPathRefused(f"no model {name!r} in the models folder", "BadNotFound")
+    return str(target)
 
 
 # --------------------------------------------------------------------------- server
@@ -206,9 +275,10 @@ class OpcUaConfig:
     allow_anonymous: bool = False
     users_file: str | None = None
     # certificates: $XDG_STATE_HOME/fbgcomp (~/.local/state/fbgcomp), never the working folder
-    state_dir: str = field(default_factory=lambda: str(
-        Path(os.environ.get("XDG_STATE_HOME") or Path.home() / ".local" / "state") / "fbgcomp"))
-    trusted_clients_dir: str | None = None   # when set, only these client certificates
+    state_dir: str = field(default_factory=lambda: str(trust.default_state_dir()))
+    # the client certificates trusted; unset or "": <state_dir>/opcua/trusted (fbgcomp trust add)
+    trusted_clients_dir: str | None = None
+    models_dir: str | None = None     # ReloadModel loads only files in this folder
 
 
 @dataclass
@@ -311,7 +381,8 @@ class OpcUaServer:
         init = {"config": self.config.__dict__, "sensor_names": self.sensor_names,
                 "model_id": self._model_id, "users": self.users,
                 "cert": str(self.cert_path), "key": str(self.key_path),
-                "enabled": self.enabled}
+                "enabled": self.enabled,
+                "log_level": logging.getLogger("fbgcomp").getEffectiveLevel()}
         parent.sendall(pickle.dumps(("init", init)))
         parent.settimeout(timeout_s)
         try:
@@ -468,14 +539,12 @@ class _ServerCore:
         if cfg.allow_anonymous:
             tokens.append(ua.AnonymousIdentityToken)
         server.set_identity_tokens(tokens)
-        if cfg.trusted_clients_dir:
-            from asyncua.crypto.truststore import TrustStore
-            from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
-            store = TrustStore([Path(cfg.trusted_clients_dir)], [])
-            await store.load()
-            server.set_certificate_validator(CertificateValidator(
-                CertificateValidatorOptions.TRUSTED_VALIDATION
-                | CertificateValidatorOptions.PEER_CLIENT, store))
+        # unknown client certificates are refused, always (an empty trust list trusts nobody)
+        server.set_certificate_validator(trust.TrustListValidator(
+            trust.trusted_dir(cfg.state_dir, cfg.trusted_clients_dir),
+            trust.rejected_dir(cfg.state_dir)))
+        from asyncua.common.callback import CallbackType
+        server.subscribe_server_callback(CallbackType.PostWrite, self._audit_write)
         idx = await server.register_namespace(NAMESPACE)
         self._nodes = await self._build(server, idx)
         self._server = server
@@ -540,10 +609,27 @@ class _ServerCore:
         self._last_text: dict[str, object] = {}
         return nodes
 
+    def _audit_write(self, event, _dispatcher) -> None:
+        """PostWrite: every client write, with its user, value and result."""
+        if not event.is_external:
+            return
+        results = event.response_params or []
+        for i, item in enumerate(event.request_params.NodesToWrite):
+            status = results[i].name if i < len(results) else "?"
+            value = item.Value.Value.Value if item.Value and item.Value.Value else None
+            audit.info("OPC UA write %s = %r by %s: %s", item.NodeId.to_string(), value,
+                       user_label(event.user), status)
+
     async def _reload(self, parent, path_variant):
-        """ReloadModel: ask the service to load another model file, answer its result."""
+        """ReloadModel: ask the service to load a model file of the models folder."""
         from asyncua import ua
-        path = path_variant.Value if hasattr(path_variant, "Value") else str(path_variant)
+        name = path_variant.Value if hasattr(path_variant, "Value") else str(path_variant)
+        user = _request_user.get()
+        try:
+            path = model_in_folder(str(name), self.config.models_dir)
+        except ModelPathRefused as exc:
+            audit.warning("OPC UA call ReloadModel(%r) by %s refused: %s", name, user, exc)
+            return ua.StatusCode(getattr(ua.StatusCodes, exc.status))
         self._next_reload += 1
         fut = asyncio.get_running_loop().create_future()
         self._reloads[self._next_reload] = fut
@@ -551,7 +637,11 @@ class _ServerCore:
         try:
             ok, message = await asyncio.wait_for(fut, 30.0)
         except asyncio.TimeoutError:
+            audit.warning("OPC UA call ReloadModel(%r) by %s: no answer", name, user)
             return ua.StatusCode(ua.StatusCodes.BadTimeout)
+        audit.log(logging.INFO if ok else logging.WARNING,
+                  "OPC UA call ReloadModel(%r) by %s: %s", name, user,
+                  message if ok else f"failed: {message}")
         if not ok:
             return ua.StatusCode(ua.StatusCodes.BadInvalidArgument)
         return [ua.Variant(message, ua.VariantType.String)]
@@ -655,6 +745,32 @@ class _ServerCore:
         self.published += 1
 
 
+def _setup_logging(init: dict) -> None:
+    """The server process logs to stderr at serve's level, and its audit records (always) to
+    ``<state_dir>/opcua/audit.log``, rotated at :data:`AUDIT_LOG_BYTES`."""
+    from logging.handlers import RotatingFileHandler
+
+    fmt = logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s")
+    stderr = logging.StreamHandler()
+    stderr.setFormatter(fmt)
+    stderr.setLevel(int(init.get("log_level", logging.WARNING)))
+    root = logging.getLogger()
+    root.handlers[:] = [stderr]
+    root.setLevel(stderr.level)
+    audit.setLevel(logging.INFO)
+    folder = Path(init["config"]["state_dir"]) / "opcua"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        handler = RotatingFileHandler(folder / "audit.log", maxBytes=AUDIT_LOG_BYTES,
+                                      backupCount=5, encoding="utf-8")
+    except OSError as exc:
+        log.error("no OPC UA audit file in %s (%s): audit records go to stderr only", folder,
+                  exc.strerror)
+        return
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+    audit.addHandler(handler)
+
+
 def _worker(fd: int) -> None:
     """Entry point of the server process: ``python -m fbgcomp.runtime.opcua --worker-fd N``."""
     import pickle
@@ -662,6 +778,7 @@ def _worker(fd: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)   # the service decides when to stop
     sock = socket.socket(fileno=fd)
     kind, init = pickle.loads(sock.recv(1 << 16))
+    _setup_logging(init)
     # start-up failures (busy port...) reach the user as serve's one-line error, not as
     # asyncua tracebacks
     logging.getLogger("asyncua").setLevel(logging.CRITICAL)
