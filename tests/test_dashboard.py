@@ -437,7 +437,9 @@ def _closed_by_server(socks, deadline_s):
             s = key.fileobj
             try:
                 data = s.recv(65536)
-            except (ConnectionResetError, BlockingIOError):
+            except BlockingIOError:    # nothing after all: wait again
+                continue
+            except ConnectionResetError:
                 data = b""
             if data:
                 got[s] += data
