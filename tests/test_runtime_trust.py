@@ -1,5 +1,5 @@
-"""`fbgcomp trust add|list` (the OPC UA trust list) and the ReloadModel folder rule, without a server
-(tests/test_runtime_opcua.py has them against the real server and a real client)."""
+"""`fbgcomp trust add|list` (the OPC UA trust list) and the ReloadModel folder rule, without a
+server (tests/test_runtime_opcua.py has them against the real server and a real client)."""
 
 import datetime as dt
 import os
