@@ -1,4 +1,4 @@
-"""Live dashboard: an aiohttp server with Server-Sent Events for a browser on the shop-floor network.
+"""Live dashboard: an aiohttp server with Server-Sent Events for browsers on the shop-floor network.
 
 Its own thread and event loop, never the compensation loop:
 
