@@ -275,11 +275,14 @@ class Dashboard:
                              column="field dashboard.read_login")
         self.read_login = config.read_login == "always" or not is_loopback(self.host)
         if self.read_login and not self.users:
+            why = (f"the dashboard on {self.host} would show the machine's state to anyone on "
+                   "the network" if not is_loopback(self.host) else
+                   'read_login = "always" needs a login to read')
             raise InputError(
-                f"the dashboard on {self.host} would show the machine's state to anyone on the "
-                "network: configure a dashboard user (--dashboard-users FILE or "
-                "FBGCOMP_DASHBOARD_USER/PASSWORD), who must then log in to read, or bind to "
-                "127.0.0.1 (docs/security.md)", column="--dashboard")
+                f"{why}: configure a dashboard user (--dashboard-users FILE or "
+                "FBGCOMP_DASHBOARD_USER/PASSWORD), who must then log in to read"
+                + (", or bind to 127.0.0.1" if not is_loopback(self.host) else "")
+                + " (docs/security.md)", column="--dashboard")
         self.ssl_context = tls_context(config.tls_cert, config.tls_key)
         self._assets = {name: (STATIC_DIR / name).read_bytes() for name in _STATIC}
         self.sessions: dict[str, tuple[str, float]] = {}   # token -> (user, expiry monotonic)
