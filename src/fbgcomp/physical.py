@@ -57,6 +57,11 @@ PROBE_SMOOTHING_S = 60.0
 LOAD_FAST_S = 0.5
 # Slower low-pass, s: a transition ends when the fast reading agrees with it, at its value.
 LOAD_HOLD_S = 3.0
+#: Expected false load starts per hour of load-free running: a step test is one look per frame
+#: (at most one per 2 LOAD_FAST_S, the low-pass's memory), so its threshold in sigma grows with
+#: the number of looks an hour holds (5.1 sigma at 1 look/s) instead of a fixed 3 sigma that
+#: noise alone crosses a few times a day at 1 Hz.
+LOAD_FALSE_STARTS_PER_H = 1e-3
 
 
 # ---------------------------------------------------------------------------------------------
@@ -149,7 +154,10 @@ def twin_thermal_population(machine, sensors, probe_names, housing_probes, n_sce
     (seeded), so the map does not lean on differences finer than the sensors resolve."""
     names = [s.name for s in machine.sensors]
     mprobes = [p.name for p in machine.probes]
-    if any(s.name not in names for s in sensors) or any(p not in mprobes for p in probe_names):
+    # a strain-free reference grating (<sensor>_ref) reads the temperature of its sensor's gauge
+    ref_of = {f"{n}_ref": n for n in names}
+    if any(s.name not in names for s in sensors) or \
+            any(p not in mprobes and p not in ref_of for p in probe_names):
         return None
     from .optics import wavelength_nm
     from .structure import Twin
@@ -157,7 +165,13 @@ def twin_thermal_population(machine, sensors, probe_names, housing_probes, n_sce
 
     twin = Twin(generic_heat_machine(machine))
     idx = [twin.sensor_names.index(s.name) for s in sensors]
-    pidx = [twin.probe_names.index(p) for p in probe_names]
+    pidx = [twin.probe_names.index(p) if p in mprobes else -1 - twin.sensor_names.index(ref_of[p])
+            for p in probe_names]
+
+    def thermometers(r):
+        return np.column_stack([r.probe_C[:, i] if i >= 0 else r.sensor_temperature_C[:, -1 - i]
+                                for i in pidx]) if pidx else np.zeros((r.time_s.size, 0))
+
     h_idx = [list(probe_names).index(p) for p in housing_probes]
     fmap = _grating_map(sensors, probe_names)
     rng = np.random.default_rng(seed)
@@ -181,7 +195,7 @@ def twin_thermal_population(machine, sensors, probe_names, housing_probes, n_sce
             return map_features(fmap.base(wl, dT, lam0, np.zeros(len(pidx))), dT, h_idx, t)[0]
 
         # probe noise, and the error of a zero state read from a single slow probe sample
-        dT0 = r.probe_C[:, pidx]
+        dT0 = thermometers(r)
         dT = dT0 + rng.normal(0, probe_noise_K, (t.size, len(pidx))) + rng.normal(0, probe_noise_K, len(pidx))
         X = features(el, dT)
         N = X - features(el0, dT0)
@@ -235,6 +249,13 @@ def _ambient_probe_names(probe_names, machine=None):
 # ---------------------------------------------------------------------------------------------
 # Predictor (one sensor set; runtime and offline share it)
 # ---------------------------------------------------------------------------------------------
+def excursion2(dT, scale_K):
+    """Squared thermal excursion of each frame: sum over probes of (dT / scale)^2, where
+    ``scale_K`` is each probe's largest |dT| in training (so 1 ~ the training's extreme)."""
+    dT = np.atleast_2d(np.asarray(dT, float))
+    return np.sum((dT / np.asarray(scale_K, float)) ** 2, axis=1)
+
+
 class PhysicalPredictor:
     """Vectorised, stateful predictor of one sensor set (full, or without excluded gratings).
 
@@ -257,6 +278,13 @@ class PhysicalPredictor:
         self.t_low, self.t_high = np.asarray(m.thermal_range_um_[0]), np.asarray(m.thermal_range_um_[1])
         self.margin = float(m.envelope_margin)
         self.thermal_resid_var = np.asarray(m.thermal_resid_sd_um_) ** 2
+        # interval of the thermal part: variance = v0 + v1 (excursion)^2, fitted on the load-free
+        # training campaigns (``PhysicalModel._fit_interval``); a constant without it
+        iv = getattr(m, "interval_", None)
+        self.interval = None if iv is None else {
+            "v0": np.asarray(iv["v0_um2"], float), "v1": np.asarray(iv["v1_um2"], float),
+            "scale": np.asarray(iv["dT_scale_K"], float), "v2": np.asarray(iv["v2_um2"], float),
+            "activity_scale": float(iv["activity_scale_K"])}
         self.thermal_noise_sd_um = np.asarray(getattr(m, "thermal_noise_sd_um_", np.zeros(3)), float)
         keep = [i for i, s in enumerate(self.sensor_names) if s not in self.exclude]
         self._keep = keep
@@ -377,6 +405,9 @@ class PhysicalPredictor:
         f_hold = state.get("hold")                       # slow estimate of the force (3,)
         mean_sum = np.array(state.get("mean_sum", np.zeros(3)), float)   # since the load stopped
         mean_w = np.array(state.get("mean_w", np.zeros(3)), float)
+        # what the offset took in over the last ~LOAD_HOLD_S: a load's first moments, before its
+        # step is taken, are given back when it is (else each step leaves ~1 % in the offset)
+        recent = np.array(state.get("recent", np.zeros(S)), float)
         t_last = state.get("t")
         t = (np.arange(1, n + 1) * self.nominal_dt_s + (t_last or 0.0) if time_s is None
              else np.asarray(time_s, float).ravel())
@@ -386,6 +417,7 @@ class PhysicalPredictor:
         xs = np.zeros(S) if first else np.array(xs, float)
         f_hold = np.zeros(3) if f_hold is None else np.array(f_hold, float)
         alpha = 1.0 - np.exp(-dt / self.offset_tau_s)
+        forget = np.exp(-dt / LOAD_HOLD_S)
         b_fast = 1.0 - np.exp(-dt / LOAD_FAST_S)
         b_hold = 1.0 - np.exp(-dt / LOAD_HOLD_S)
         # variance left by a first-order low-pass of white noise, per unit of the training
@@ -403,6 +435,8 @@ class PhysicalPredictor:
         act = self.active
         chi2_limit = stats.chi2.ppf(1 - self.p_contra, max(self.dof, 1))
         k = self.k_sigma
+        look_s = np.maximum(dt, 2.0 * LOAD_FAST_S)
+        k_start = np.maximum(k, stats.norm.isf(0.5 * LOAD_FALSE_STARTS_PER_H * look_s / 3600.0))
         for i in range(n):
             x_now = e[i] - offset
             if raw:
@@ -426,8 +460,8 @@ class PhysicalPredictor:
             cross = self.relative_error * other / k
             moving = settle > 0
             step = f_fast - applied
-            floor = np.maximum(np.sqrt(sd_fast ** 2 + lag[i] ** 2), cross)
-            take = (~moving) & (np.abs(step) > k * floor)
+            limit = np.maximum(k_start[i] * np.sqrt(sd_fast ** 2 + lag[i] ** 2), k * cross)
+            take = (~moving) & (np.abs(step) > limit)
             if take.any() and self.dof >= 1:
                 # a step no load explains (one grating jumps: a fibre slips, a connector is
                 # re-seated) is refused, and the offset absorbs it
@@ -439,6 +473,11 @@ class PhysicalPredictor:
                     refused[i] = True
                     take[:] = False
             if take.any():
+                if not (settle > 0).any():
+                    offset -= recent
+                    xs += recent
+                    f_fast = op @ xs
+                    recent[:] = 0.0
                 settle = np.where(take, self.settle_s, settle)
                 f_hold = np.where(take, f_fast, f_hold)
             moving = settle > 0
@@ -465,9 +504,10 @@ class PhysicalPredictor:
                 shift = alpha[i] * (e[i] - Ga @ applied - offset)
                 offset += shift
                 xs -= shift                        # xs is relative to the offset
+                recent = recent * forget[i] + shift
             force[i] = applied
         new_state["load"] = {"offset": offset, "force": applied, "settle": settle, "fast": xs,
-                             "hold": f_hold, "mean_sum": mean_sum, "mean_w": mean_w,
+                             "hold": f_hold, "mean_sum": mean_sum, "mean_w": mean_w, "recent": recent,
                              "t": float(t[-1]) if n else t_last}
         return force, clamped, refused
 
@@ -500,6 +540,7 @@ class PhysicalPredictor:
             e_th[:, lost] = 0.0
             X, new_state["map"] = map_features(e_th, dT, self._h_idx, time_s, state.get("map"),
                                                self.nominal_dt_s)
+            activity = X[:, -len(MAP_LEADS_S)]          # the housing's fastest lead, K
             if raw or not thermal_policy:
                 thermal = X @ self.map["coef"]
             else:
@@ -513,6 +554,7 @@ class PhysicalPredictor:
             # no twin: the housing fit on the measured load-free campaigns
             H, new_state["h"] = thermal_regressors(dT, self._h_idx, self._a_idx, self.lead_tau_s, time_s,
                                                    state.get("h"), self.nominal_dt_s)
+            activity = H[:, -1] if self._h_idx else np.zeros(n)
             if raw or not thermal_policy:
                 thermal = H @ self.A
             else:
@@ -526,8 +568,24 @@ class PhysicalPredictor:
         self.last_flags = flags
         self.last_force_N = force
         deviation = thermal + load
-        var = self.expected_rms_error_um[None, :] ** 2 + np.zeros((n, 3))
-        return deviation, self._t * np.sqrt(var)
+        self.last_activity = activity
+        return deviation, self._t * np.sqrt(self._variance(dT, activity, force))
+
+    def _variance(self, dT, activity, force):
+        """Predictive variance (n, 3) µm²: the thermal part's error at the current thermal
+        excursion, plus, while a load is applied, the force estimate's noise and the signature's
+        relative error through the compliance."""
+        n = dT.shape[0]
+        if self.interval is None:
+            return self.expected_rms_error_um[None, :] ** 2 + np.zeros((n, 3))
+        iv = self.interval
+        s2 = excursion2(dT, iv["scale"])
+        a2 = (np.asarray(activity, float) / iv["activity_scale"]) ** 2
+        var = iv["v0"][None, :] + iv["v1"][None, :] * s2[:, None] + iv["v2"][None, :] * a2[:, None]
+        if self.has_load:
+            on = (force != 0.0).astype(float)                       # components applied
+            var = var + (on * self.F_sds[1] ** 2) @ (self.C ** 2).T + (self.relative_error * force @ self.C.T) ** 2
+        return var
 
 
 # ---------------------------------------------------------------------------------------------
@@ -623,6 +681,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
 
         # Per campaign: instrument arrays in model order, elongations, thermal regressors.
         self.load_ = None
+        self.interval_ = None
         self.thermal_coef_ = np.zeros((1, 3))
         self.thermal_envelope_ = (np.zeros(0), np.zeros(0))
         self.thermal_range_um_ = (np.zeros(3), np.zeros(3))
@@ -786,7 +845,37 @@ class PhysicalModel(EstimatorParams, ModelFile):
             self.thermal_range_um_ = (np.minimum(self.thermal_range_um_[0], lo - 0.1 * span),
                                       np.maximum(self.thermal_range_um_[1], hi + 0.1 * span))
             self._predictors = {}
+        self.interval_ = self._fit_interval(rows, campaigns) if thermal_rows else None
+        self._predictors = {}
         return self
+
+    def _fit_interval(self, rows, campaigns):
+        """Thermal part's error variance as v0 + v1 s², s² the squared probe excursion
+        (:func:`excursion2`), per axis, by non-negative least squares of the squared error of
+        the applied prediction on each load-free training campaign (campaigns weighted
+        equally). v0 holds the interferometer's and the sensors' noise, v1 what grows with the
+        thermal state, so a machine at rest gets a narrow interval and a hot one a wide one."""
+        from scipy.optimize import nnls
+
+        dTs = [r["dT"] for r in rows if not r["loaded"]]
+        scale = np.maximum(np.abs(np.vstack(dTs)).max(axis=0), 0.5)
+        got = []
+        for r, c in zip(rows, campaigns):
+            if r["loaded"]:
+                continue
+            self._predictors = {}
+            pred, _ = self.predict_interval(c)
+            got.append(((pred - r["y"]) ** 2, excursion2(r["dT"], scale), self.last_activity_))
+        a_scale = max(max(float(np.abs(a).max()) for _, _, a in got), 1e-3)
+        A_rows, b_rows = [], []
+        for e2, s2, act in got:
+            w = np.sqrt(1.0 / len(s2))
+            A_rows.append(np.column_stack([np.ones_like(s2), s2, (act / a_scale) ** 2]) * w)
+            b_rows.append(e2 * w)
+        A, b = np.vstack(A_rows), np.vstack(b_rows)
+        v = np.array([nnls(A, b[:, j])[0] for j in range(3)])      # (3 axes, [v0, v1, v2])
+        return {"v0_um2": v[:, 0].tolist(), "v1_um2": v[:, 1].tolist(), "v2_um2": v[:, 2].tolist(),
+                "dT_scale_K": scale.tolist(), "activity_scale_K": a_scale}
 
     def _calibrate_drift(self, rows):
         """How far heat (and noise) move the force reading the step test sees, on the load-free
@@ -842,10 +931,39 @@ class PhysicalModel(EstimatorParams, ModelFile):
         check_compatible(self, campaign)
         aligned = campaign.aligned(zero_window_s=self.zero_window_s)
         p = PhysicalPredictor(self, exclude)       # fresh filter state per campaign
-        w, t, w0, t0 = self.instrument_arrays(aligned)
-        out = p.predict(w, t, w0, t0, time_s=aligned.time_s, raw=raw, thermal_policy=policy)
-        self.last_flags_ = p.last_flags
-        return out
+        _, _, w0, t0 = self.instrument_arrays(aligned)
+        frame_t, w, t = self.frame_arrays(campaign, aligned)
+        mean, half = p.predict(w, t, w0, t0, time_s=frame_t, raw=raw, thermal_policy=policy)
+        # what the runtime publishes at each reference time: the last frame's output, carried
+        # forward (the reference clock is offset from the interrogator's, e.g. +0.3 s)
+        at = np.clip(np.searchsorted(frame_t, aligned.time_s, side="right") - 1, 0, frame_t.size - 1)
+        self.last_flags_ = p.last_flags[at]
+        self.last_activity_ = p.last_activity[at]
+        return mean[at], half[at]
+
+    def frame_arrays(self, campaign, aligned):
+        """The campaign as the runtime sees it: every interrogator frame inside the aligned
+        overlap, with each probe's last reading at that frame (held, as a live feed is).
+
+        Returns frame times (s), wavelengths (n, sensors) nm and temperatures (n, probes) degC
+        in the model's order. The load tracker runs on this clock (its filters are set in
+        seconds), so validation sees the correction the runtime would publish, not one computed
+        from gratings averaged over each reference interval.
+        """
+        ft = campaign.fbg["time_s"].to_numpy(dtype=float)
+        t_lo, t_hi = aligned.dropped["overlap_s"]
+        keep = (ft >= t_lo - 1e-9) & (ft <= t_hi + 1e-9)
+        if not keep.any():
+            keep[:] = True
+        ft = ft[keep]
+        w = campaign.fbg[[f"{s}_nm" for s in self.sensor_names]].to_numpy(dtype=float)[keep]
+        temps = np.empty((ft.size, len(self.probe_names_)))
+        for names, (tt, tv) in campaign.thermometers().items():
+            held = np.clip(np.searchsorted(tt, ft, side="right") - 1, 0, tt.size - 1)
+            for j, p in enumerate(names):
+                if p in self.probe_names_:
+                    temps[:, self.probe_names_.index(p)] = tv[held, j]
+        return ft, w, temps
 
     # -- reporting and persistence -----------------------------------------------------------
     def summary(self) -> str:
@@ -900,9 +1018,10 @@ class PhysicalModel(EstimatorParams, ModelFile):
                         "resid_sd_um": np.asarray(self.thermal_resid_sd_um_).tolist(),
                         "noise_sd_um": np.asarray(self.thermal_noise_sd_um_).tolist()},
             "twin_map": self.twin_map_,
+            "interval": getattr(self, "interval_", None),
             "load": self.load_,
             "training": self.training_,
-            "uncertainty": {"level": 0.95, "method": "thermal residual + load GLS covariance"},
+            "uncertainty": {"level": 0.95, "method": "thermal error v0 + v1 excursion^2 + applied load's GLS and relative error"},
             "z_axis_mm": None,
         })
         return d
@@ -924,6 +1043,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         m.thermal_resid_sd_um_ = np.asarray(th["resid_sd_um"], float)
         m.thermal_noise_sd_um_ = np.asarray(th.get("noise_sd_um", [0.0] * 3), float)
         m.twin_map_ = d.get("twin_map")
+        m.interval_ = d.get("interval")
         m.load_ = d.get("load")
         m.training_ = d.get("training", {"campaigns": [], "n_samples": 0})
         m._predictors = {}
@@ -932,6 +1052,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
             arrays += [np.asarray(m.load_[k], float) for k in
                        ("G_um_per_N", "C_um_per_N", "grating_thermal_coef", "thermal_sigma_unit_um2",
                         "noise_var_um2", "thermal_scale")]
+        if m.interval_ is not None:
+            arrays += [np.asarray(m.interval_[k], float) for k in
+                       ("v0_um2", "v1_um2", "v2_um2", "dT_scale_K", "activity_scale_K")]
         if not all(np.all(np.isfinite(a)) for a in arrays):
             raise InputError("model holds a non-finite coefficient", file=source, column="field thermal/load")
         return m
