@@ -333,6 +333,14 @@ def measure(machine, scenario: Scenario, truth: dict, seed: int = 0, start=None)
     lam += rng.choice([-1.0, 1.0], S) * f.drift_nm_per_h * (t_fbg[:, None] / 3600.0)
     fbg = pd.DataFrame(lam, columns=[f"{s.name}_nm" for s in sensors])
     fbg.insert(0, "time_s", t_fbg)
+    # Strain-free reference gratings: the same gauge temperature, no strain (eq. 3).
+    for j, s in enumerate(sensors):
+        if getattr(s, "reference_lambda0_nm", None) is not None:
+            lam_ref = optics.free_grating_wavelength_nm(
+                d_temp[:, j], s.reference_lambda0_nm + rng.uniform(-1, 1) * f.install_offset_nm,
+                thermo_optic_per_K=s.thermo_optic_per_K, fibre_cte_per_K=s.fibre_cte_per_K)
+            lam_ref = lam_ref + f.noise_nm * rng.standard_normal(lam_ref.shape)
+            fbg[f"{s.name}_ref_nm"] = lam_ref
 
     # Probes: FE temperature + fixed offset + noise, quantised.
     p = inst.probes
@@ -381,7 +389,10 @@ def campaign_meta(machine, scenario: Scenario, seed: int, start=None) -> dict:
                      "photoelastic": s.photoelastic, "thermo_optic_per_K": s.thermo_optic_per_K,
                      "fibre_cte_per_K": s.fibre_cte_per_K, "face": s.face,
                      "z_start_mm": s.z_start_mm, "z_end_mm": s.z_end_mm,
-                     "temperature_probe": s.temperature_probe} for s in machine.sensors],
+                     "temperature_probe": s.temperature_probe,
+                     **({"reference_lambda0_nm": s.reference_lambda0_nm}
+                        if getattr(s, "reference_lambda0_nm", None) is not None else {})}
+                    for s in machine.sensors],
         "temperature_probes": [{"name": pr.name, "location": where(pr)} for pr in machine.probes],
         "reference": {"instrument": "laser interferometer (simulated)", "point": "TTP", "units": "um"},
         "scenario": scenario.name, "seed": seed, "source": "fbgcomp virtual test bench",

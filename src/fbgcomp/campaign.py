@@ -67,6 +67,7 @@ from pydantic import (AwareDatetime, BaseModel, ConfigDict, Field, StrictStr, Va
                       field_validator, model_validator)
 from pydantic_core import PydanticCustomError
 
+from fbgcomp import optics
 from fbgcomp.atomic import replace_dir
 from fbgcomp.errors import InputError
 
@@ -134,11 +135,31 @@ class SensorSpec(BaseModel):
     z_end_mm: _FiniteFloat | None = None
     temperature_probe: _Name | None = Field(
         None, description="probe used for temperature compensation; none: uncompensated")
+    reference_lambda0_nm: _PositiveFloat | None = Field(
+        None, description="nominal wavelength of a strain-free reference grating beside the "
+                          "sensor (fbg.csv column <name>_ref_nm); it compensates the sensor "
+                          "unless temperature_probe names another probe")
+
+    @model_validator(mode="after")
+    def _reference_compensates(self):
+        if self.reference_lambda0_nm is not None and self.temperature_probe is None:
+            self.temperature_probe = self.reference_probe
+        return self
 
     @property
     def column(self) -> str:
         """Its column in fbg.csv."""
         return f"{self.name}_nm"
+
+    @property
+    def reference_column(self) -> str | None:
+        """The fbg.csv column of its strain-free reference grating, None without one."""
+        return None if self.reference_lambda0_nm is None else f"{self.name}_ref_nm"
+
+    @property
+    def reference_probe(self) -> str | None:
+        """The temperature the reference grating reads, as a probe name (``<name>_ref``)."""
+        return None if self.reference_lambda0_nm is None else f"{self.name}_ref"
 
 
 class ProbeSpec(BaseModel):
@@ -197,6 +218,14 @@ class CampaignMeta(BaseModel):
                         {"kind": kind, "name": item.name, "key": key, "first": first[item.name],
                          "field": f"{key}[{i}].name"})
                 first[item.name] = i
+        refs = set(self.reference_probe_names)
+        for i, probe in enumerate(self.temperature_probes):
+            if probe.name in refs:
+                raise PydanticCustomError(
+                    "duplicate_name",
+                    "probe name '{name}' is taken by the reference grating of sensor '{sensor}'",
+                    {"name": probe.name, "sensor": probe.name[:-4],
+                     "field": f"temperature_probes[{i}].name"})
         probes = self.probe_names
         for i, sensor in enumerate(self.sensors):
             if sensor.temperature_probe is not None and sensor.temperature_probe not in probes:
@@ -215,8 +244,14 @@ class CampaignMeta(BaseModel):
 
     @property
     def probe_names(self) -> list[str]:
-        """Declared probes only; see :attr:`Campaign.probe_names` for undeclared CSV columns."""
-        return [p.name for p in self.temperature_probes]
+        """Declared probes, then the strain-free reference gratings read as thermometers
+        (``<sensor>_ref``); see :attr:`Campaign.probe_names` for undeclared CSV columns."""
+        return [p.name for p in self.temperature_probes] + self.reference_probe_names
+
+    @property
+    def reference_probe_names(self) -> list[str]:
+        """``<sensor>_ref`` for every sensor with a strain-free reference grating."""
+        return [s.reference_probe for s in self.sensors if s.reference_probe is not None]
 
     def sensor(self, name: str) -> SensorSpec:
         for s in self.sensors:
@@ -420,7 +455,9 @@ VALUE_BOUNDS = {
 def _role_columns(role: str, meta: CampaignMeta) -> tuple[list[str], str]:
     """Required columns of a file and a description of what it holds (for messages)."""
     if role == FBG_FILE:
-        return [TIME_COLUMN] + [s.column for s in meta.sensors], "time_s and <sensor>_nm columns"
+        refs = [s.reference_column for s in meta.sensors if s.reference_column is not None]
+        return ([TIME_COLUMN] + [s.column for s in meta.sensors] + refs,
+                "time_s, <sensor>_nm and, for sensors with reference_lambda0_nm, <sensor>_ref_nm columns")
     if role == TEMPERATURES_FILE:
         return ([TIME_COLUMN] + [p.column for p in meta.temperature_probes],
                 "time_s and <probe>_C columns")
@@ -453,6 +490,11 @@ def _check_columns(role: str, names: list[str], meta: CampaignMeta, file) -> lis
     wanted = set(required)
     extra = [(position, n) for position, n in enumerate(names, start=1) if n not in wanted]
     for position, column in extra:
+        if role == FBG_FILE and column.endswith("_ref_nm") and column[:-7] in meta.sensor_names:
+            raise InputError(
+                f"column {column} holds a reference grating for sensor {column[:-7]}, which "
+                f"declares none: give it reference_lambda0_nm in campaign.yaml",
+                file=file, column=column)
         if role == FBG_FILE and column.endswith("_nm"):
             label = _column_label(column, position)
             sensor = f"{column[:-3]!r}" if label == column else "of that name"
@@ -763,9 +805,11 @@ def _check_values(role: str, names: list[str], values: np.ndarray, meta: Campaig
                        "strictly")
         raise InputError(message, file=file, row=index + 1, column=TIME_COLUMN)
     if role == FBG_FILE:
-        sensors = meta.sensors
-        cols = [names.index(s.column) for s in sensors]
-        lambda0_nm = np.array([s.lambda0_nm for s in sensors])
+        gratings = [(s.name, s.column, s.lambda0_nm) for s in meta.sensors] + \
+            [(f"{s.name} (reference grating, reference_lambda0_nm)", s.reference_column,
+              s.reference_lambda0_nm) for s in meta.sensors if s.reference_column is not None]
+        cols = [names.index(column) for _, column, _ in gratings]
+        lambda0_nm = np.array([lam for _, _, lam in gratings])
         outside = np.abs(values[:, cols] - lambda0_nm) > WAVELENGTH_BAND_NM
         if outside.any():
             index = int(np.argmax(outside.any(axis=1)))
@@ -774,8 +818,8 @@ def _check_values(role: str, names: list[str], values: np.ndarray, meta: Campaig
             raise InputError(
                 f"wavelength {value!r} nm is outside the grating's plausible band "
                 f"{lambda0_nm[j]:g} ± {WAVELENGTH_BAND_NM:g} nm (lambda0_nm of sensor "
-                f"{sensors[j].name}): a lost peak or a wrong channel mapping?",
-                file=file, row=index + 1, column=sensors[j].column)
+                f"{gratings[j][0]}): a lost peak or a wrong channel mapping?",
+                file=file, row=index + 1, column=gratings[j][1])
 
 
 def _read_table(folder: Path, role: str, meta: CampaignMeta) -> pd.DataFrame:
@@ -1077,9 +1121,14 @@ class Campaign:
 
         fbg_t = self.fbg[TIME_COLUMN].to_numpy()
         fbg_v = self.fbg[[s.column for s in self.meta.sensors]].to_numpy(dtype=np.float64)
-        probe_columns = [f"{p}_C" for p in self.probe_names]
-        temp_t = self.temperatures[TIME_COLUMN].to_numpy()
-        temp_v = self.temperatures[probe_columns].to_numpy(dtype=np.float64)
+        # each thermometer on its own clock: probes on temperatures.csv's, reference gratings
+        # on the interrogator's
+        temperature_C = np.empty((time_s.size, len(self.probe_names)))
+        temperature_zero_C = np.empty(len(self.probe_names))
+        for names, (src_t, src_v) in self.thermometers().items():
+            idx = [self.probe_names.index(p) for p in names]
+            temperature_C[:, idx] = _onto_reference(time_s, src_t, src_v, ref_dt, average)
+            temperature_zero_C[idx] = _zero_state(src_t, src_v, window)
         ref_v = self.reference[list(REFERENCE_COLUMNS)].to_numpy(dtype=np.float64)
         reference_zero_um = _zero_state(ref_t, ref_v, window)
 
@@ -1097,8 +1146,8 @@ class Campaign:
             time_s=time_s,
             wavelength_nm=_onto_reference(time_s, fbg_t, fbg_v, ref_dt, average),
             wavelength_zero_nm=_zero_state(fbg_t, fbg_v, window),
-            temperature_C=_onto_reference(time_s, temp_t, temp_v, ref_dt, average),
-            temperature_zero_C=_zero_state(temp_t, temp_v, window),
+            temperature_C=temperature_C,
+            temperature_zero_C=temperature_zero_C,
             reference_um=ref_v[first:stop] - reference_zero_um,
             reference_zero_um=reference_zero_um,
             loads_N=loads_N,
@@ -1108,6 +1157,24 @@ class Campaign:
             probe_names=list(self.probe_names),
             zero_window_s=window,
         )
+
+    def thermometers(self) -> dict[tuple, tuple[np.ndarray, np.ndarray]]:
+        """Every temperature reading on its own clock: ``{probe names: (time_s (n,), values
+        (n, k) degC)}``. Probes come from temperatures.csv; a strain-free reference grating
+        (``<sensor>_ref``) is read from fbg.csv as the temperature change of the sensor's gauge
+        since the first sample (eq. 3 inverted, :func:`fbgcomp.optics.grating_temperature_change_K`)."""
+        refs = set(self.meta.reference_probe_names)
+        probes = tuple(p for p in self.probe_names if p not in refs)
+        out = {probes: (self.temperatures[TIME_COLUMN].to_numpy(),
+                        self.temperatures[[f"{p}_C" for p in probes]].to_numpy(dtype=np.float64))}
+        with_ref = [s for s in self.meta.sensors if s.reference_column is not None]
+        if with_ref:
+            lam = self.fbg[[s.reference_column for s in with_ref]].to_numpy(dtype=np.float64)
+            dT = optics.grating_temperature_change_K(
+                lam, lam[0], thermo_optic_per_K=np.array([s.thermo_optic_per_K for s in with_ref]),
+                fibre_cte_per_K=np.array([s.fibre_cte_per_K for s in with_ref]))
+            out[tuple(s.reference_probe for s in with_ref)] = (self.fbg[TIME_COLUMN].to_numpy(), dT)
+        return out
 
     # -- inspection --------------------------------------------------------------------------
     def _tables(self) -> dict[str, pd.DataFrame]:

@@ -156,6 +156,33 @@ def wavelength_nm(elongation_um, wavelength0_nm, gauge_length_mm, delta_t_C=0.0,
     return np.asarray(wavelength0_nm, dtype=float) * (1.0 + shift)
 
 
+def grating_temperature_change_K(wavelength_nm, wavelength0_nm, *,
+                                 thermo_optic_per_K=THERMO_OPTIC_PER_K,
+                                 fibre_cte_per_K=FIBRE_CTE_PER_K):
+    """Temperature change of a strain-free (loose, unbonded) reference grating, K (paper eq. 3
+    inverted): ``dT = (d_lambda / lambda_0) / (alpha_f + xi)``.
+
+    Placed beside a bonded sensor it reads the temperature of the sensor's own gauge, which a
+    probe on another face does not; its ``dT`` then goes into :func:`host_strain`.
+
+    Parameters
+    ----------
+    wavelength_nm, wavelength0_nm : array_like
+        Measured and zero-state Bragg wavelengths of the reference grating, nm.
+    thermo_optic_per_K, fibre_cte_per_K : float
+        Fibre constants, 1/K (see :func:`host_strain`).
+    """
+    return relative_shift(wavelength_nm, wavelength0_nm) / (fibre_cte_per_K + thermo_optic_per_K)
+
+
+def free_grating_wavelength_nm(delta_t_C, wavelength0_nm, *, thermo_optic_per_K=THERMO_OPTIC_PER_K,
+                               fibre_cte_per_K=FIBRE_CTE_PER_K):
+    """Bragg wavelength of a strain-free grating warmed by ``delta_t_C`` K (eq. 3), nm: the
+    forward model of :func:`grating_temperature_change_K`."""
+    return np.asarray(wavelength0_nm, dtype=float) * (
+        1.0 + (fibre_cte_per_K + thermo_optic_per_K) * np.asarray(delta_t_C, dtype=float))
+
+
 def temperature_sensitivity_nm_per_K(wavelength0_nm, *, thermo_optic_per_K=THERMO_OPTIC_PER_K,
                                      fibre_cte_per_K=FIBRE_CTE_PER_K):
     """Wavelength shift of a free (unbonded) grating per kelvin (paper eq. 3), nm/K."""

@@ -231,6 +231,9 @@ class Sensor(_Strict):
     fibre_cte_per_K: float
     temperature_probe: str | None = None
     gauge_length_mm: float | None = Field(default=None, gt=0)
+    #: nominal wavelength of a strain-free reference grating beside the sensor (same gauge
+    #: temperature, no strain), as real installations carry for temperature compensation
+    reference_lambda0_nm: float | None = Field(default=None, gt=0)
 
     @model_validator(mode="after")
     def _ordered(self):
