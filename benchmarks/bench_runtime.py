@@ -142,6 +142,9 @@ async def _latency(url, state: Path, seconds: float, warmup_s: float):
     cert, key = await client.setup_self_signed_certificate(state / "k.pem", state / "c.der")
     await client.set_security(SecurityPolicyBasic256Sha256, str(cert), str(key),
                               mode=ua.MessageSecurityMode.SignAndEncrypt)
+    # serve trusts only known client certificates (its <state-dir>/opcua/trusted)
+    from fbgcomp.runtime.trust import add_certificate
+    add_certificate(cert, state / "state" / "opcua" / "trusted")
     client.set_user("bench")
     client.set_password("bench-password")
     async with client:

@@ -36,6 +36,9 @@ async def _watch(url, state, timeout_s, stop_when):
 
     client = await secure_client(url, state, ENV["FBGCOMP_OPCUA_USER"],
                                  ENV["FBGCOMP_OPCUA_PASSWORD"])
+    # serve trusts only known client certificates: put this one in its trust list
+    from fbgcomp.runtime.trust import add_certificate
+    add_certificate(state / "client_cert.der", state.parent / "state" / "opcua" / "trusted")
     async with client:
         sub = await client.create_subscription(0, Handler())
         await sub.subscribe_data_change([client.get_node(ua.NodeId(f"FbgComp.{n}", 2))
