@@ -460,7 +460,9 @@ class PhysicalPredictor:
             cross = self.relative_error * other / k
             moving = settle > 0
             step = f_fast - applied
-            limit = np.maximum(k_start[i] * np.sqrt(sd_fast ** 2 + lag[i] ** 2), k * cross)
+            # noise is judged at the false-start rate; the drift allowance (already a 99th
+            # percentile of what heat did in training) and cross-talk at k sigma
+            limit = np.maximum(np.hypot(k_start[i] * sd_fast, k * lag[i]), k * cross)
             take = (~moving) & (np.abs(step) > limit)
             if take.any() and self.dof >= 1:
                 # a step no load explains (one grating jumps: a fibre slips, a connector is
