@@ -5,6 +5,12 @@ jumps by more than a physical bound from the previous sample, or has been exactl
 for too long (a stuck interrogator channel). A sensor is *faulted* from its first bad sample
 until it has been good for ``recover_s`` (re-admission after a stable period). The state
 carried between batches is a handful of per-sensor vectors, so checks cost O(n·S) numpy work.
+
+A jump between two consecutive samples (an interrogator mode hop: the peak moves by a
+fraction of a nm or more in one frame and stays there) is not re-admitted against the old zero:
+the step itself is taken as the sensor's new offset (``offset_nm``; per frame in
+``row_offset_nm``), so that once re-admitted the sensor reads what it read just before the
+jump plus what it has changed since. The pipeline subtracts that offset from the wavelength.
 """
 
 from __future__ import annotations
@@ -35,6 +41,8 @@ class SensorChecks:
         self.last_change_s = np.full(n_sensors, -np.inf)   # time the value last changed
         self.last_bad_s = np.full(n_sensors, -np.inf)      # time of the last bad sample
         self.never_zeroed = np.zeros(n_sensors, bool)
+        self.offset_nm = np.zeros(n_sensors)               # summed mode-hop steps, nm
+        self.row_offset_nm = np.zeros((0, n_sensors))      # offset_nm per frame, last batch
 
     def check(self, time_s: np.ndarray, wavelength_nm: np.ndarray, peak_count: np.ndarray,
               near_count: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -69,6 +77,14 @@ class SensorChecks:
         stuck = finite & ((t - t_change) >= cfg.stuck_s) if cfg.stuck_s > 0 else \
             np.zeros((n, S), bool)
 
+        # Re-zero rule: a jump between consecutive finite samples (no gap) is a step of the
+        # reading, not of the machine; from that frame on it is subtracted (offset_nm). A jump
+        # after missing samples is only flagged: the machine may have moved in the gap.
+        with np.errstate(invalid="ignore"):
+            hop = jump & np.isfinite(prev_raw)
+        step = np.where(hop, wavelength_nm - prev_val, 0.0)
+        self.row_offset_nm = self.offset_nm + np.cumsum(step, axis=0)
+
         status[stuck] = STUCK
         status[jump] = JUMP
         status[(peak_count == 1) & ~finite] = NAN
@@ -88,6 +104,7 @@ class SensorChecks:
 
         # carry state
         if n:
+            self.offset_nm = self.row_offset_nm[-1].copy()
             self.last_raw = wavelength_nm[-1].copy()
             self.last_change_s = t_change[-1].copy()
             self.last_bad_s = last_bad[-1].copy()

@@ -192,6 +192,9 @@ class Pipeline:
                 enabled: bool = True) -> BatchResult:
         n, S = wavelength_nm.shape
         status, faulted = self.checks.check(time_s, wavelength_nm, peak_count, near_count)
+        # a grating that jumped (mode hop) reads from its offset after the step
+        if self.checks.row_offset_nm.any():
+            wavelength_nm = wavelength_nm - self.checks.row_offset_nm
         dev = np.full((n, 3), np.nan)
         half = np.full((n, 3), np.nan)
         rms = np.full((n, 3), np.nan)

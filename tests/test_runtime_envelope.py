@@ -1,0 +1,41 @@
+"""The published correction is never absurd (issue 13, findings 1 and 7): a mode hop on one
+grating, an absurd model and a reconnect, each fed as real frames to a real pipeline."""
+
+import numpy as np
+import pytest
+
+from fbgcomp.campaign import read_campaign
+from fbgcomp.models import load_model
+from fbgcomp.runtime import health as H
+from fbgcomp.runtime.pipeline import HEALTH_ALARM, HEALTH_OK, Pipeline, PipelineConfig
+from test_runtime_support import model_and_campaign, run_in_batches
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    model_path, campaign_path = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+    model = load_model(model_path)
+    aligned = read_campaign(campaign_path).aligned(zero_window_s=model.zero_window_s)
+    w, t, _, _ = model.instrument_arrays(aligned)
+    return model, aligned.time_s, w, t
+
+
+@pytest.mark.parametrize("sizes", [[1], [10], [10_000]])
+def test_mode_hop_inside_the_window_is_re_zeroed_not_readmitted_as_truth(setup, sizes):
+    """sim-interrogator --fault shift:S3@8:+2 published 48,800 µm with Health OK."""
+    model, time_s, w, t = setup
+    s3 = model.sensor_names.index("S3")
+    hopped = w.copy()
+    hopped[time_s >= 100.0, s3] += 2.0          # 2 nm: inside the window, 20x max_jump_nm
+    clean = run_in_batches(Pipeline(model), time_s, w, t, sizes)
+    pipe = Pipeline(model)
+    r = run_in_batches(pipe, time_s, hopped, t, sizes)
+    at = int(np.searchsorted(time_s, 100.0))
+    assert r["sensor_status"][at, s3] == H.JUMP
+    ok = r["health"] == HEALTH_OK
+    assert not (ok[:, None] & (np.abs(r["correction_um"]) > pipe.max_correction_um)).any()
+    after = time_s > 100.0 + pipe.config.health.recover_s + 1.0
+    assert (r["health"][after] == HEALTH_OK).all()          # re-admitted ...
+    # ... against its new zero: the correction is the fault-free one (a few µm is the
+    # fallback model's own difference while S3 was out, and the filter)
+    assert np.abs(r["correction_um"][after] - clean["correction_um"][after]).max() < 2.0
