@@ -39,3 +39,41 @@ def test_mode_hop_inside_the_window_is_re_zeroed_not_readmitted_as_truth(setup, 
     # ... against its new zero: the correction is the fault-free one (a few µm is the
     # fallback model's own difference while S3 was out, and the filter)
     assert np.abs(r["correction_um"][after] - clean["correction_um"][after]).max() < 2.0
+
+
+class _Absurd:
+    """A real model whose predictions are multiplied by 1e6 (a coefficient gone wrong)."""
+
+    def __init__(self, model):
+        self._model = model
+
+    def __getattr__(self, name):
+        return getattr(self._model, name)
+
+    def predictor(self, exclude=frozenset()):
+        return _AbsurdPredictor(self._model.predictor(exclude=exclude))
+
+
+class _AbsurdPredictor:
+    def __init__(self, p):
+        self._p = p
+        self.expected_rms_error_um = p.expected_rms_error_um
+
+    def predict(self, *args, **kw):
+        d, h = self._p.predict(*args, **kw)
+        return d * 1e6, h * 1e6
+
+
+def test_absurd_model_is_never_published_with_health_ok(setup):
+    model, time_s, w, t = setup
+    pipe = Pipeline(_Absurd(model))
+    r = run_in_batches(pipe, time_s, w, t, [7, 100])
+    bound = pipe.max_correction_um
+    assert np.all(np.isfinite(bound)) and np.all(np.abs(r["correction_um"]) <= bound)
+    predicted = np.isfinite(r["deviation_um"]).all(axis=1)
+    beyond = predicted & (np.abs(r["deviation_um"]) > bound).any(axis=1)
+    assert beyond.sum() > 0.9 * predicted.sum()
+    assert (r["health"][beyond] == HEALTH_ALARM).all()
+    assert (r["output_flags"][beyond] & H.FLAG_MAX_LIMITED).any(axis=1).all()
+    # nothing of the absurd value is published: it holds the last trusted value (0 here)
+    assert np.abs(r["correction_um"][beyond]).max() < 1.0

@@ -16,6 +16,12 @@ what a running machine needs, vectorised over every frame of a batch:
   per-axis rate limit (``max_slew_um_per_s``), so that a model switch, a re-admitted sensor or
   switching the output off never steps the axes and no absurd value reaches the CNC.
 
+The per-axis maximum is also the envelope the correction is trusted in: a frame whose
+prediction is beyond it on any axis (or not finite) is not published, not even clamped - it is
+handled as a frame without a usable model (ALARM, hold the last correction and ramp it to
+zero, flag ``MAX_LIMITED``). A grating that jumped is
+re-zeroed by the step (:mod:`fbgcomp.runtime.health`) before it is re-admitted.
+
 Health codes per frame: OK, DEGRADED (fallback in use), ALARM (hold / ramp), ZEROING. Beside
 them, a flag word per frame and axis (``BatchResult.output_flags``, bits in
 :mod:`fbgcomp.runtime.health`) says when the published correction was held back - by the
@@ -239,11 +245,28 @@ class Pipeline:
                     flags[sel] |= np.asarray(own, np.uint8).reshape(sel.size, 3) & H.MODEL_FLAGS
             health[rows] = np.where(choice == 0, HEALTH_OK,
                                     np.where(choice > 0, HEALTH_DEGRADED, HEALTH_ALARM))
-        correction = self._filter(time_s, -dev, rms)
+        target = self._envelope(-dev, health, flags)
+        correction = self._filter(time_s, target, rms)
         correction = self._hold_and_ramp(time_s, correction, health)
         correction = self._shape(time_s, correction, enabled, flags)
         return BatchResult(time_s, dev, half, correction, rms, health, status, model_set,
                            temperature_C, flags)
+
+    def _envelope(self, corr: np.ndarray, health: np.ndarray, flags: np.ndarray) -> np.ndarray:
+        """Rows whose prediction is beyond the per-axis maximum on any axis, or not finite,
+        are not trusted: NaN (so held and ramped like a frame without a model), ALARM,
+        ``FLAG_MAX_LIMITED`` on the offending axes."""
+        predicted = (health == HEALTH_OK) | (health == HEALTH_DEGRADED)
+        with np.errstate(invalid="ignore"):
+            bad_axis = predicted[:, None] & ~(np.abs(corr) <= self.max_correction_um)
+        bad = bad_axis.any(axis=1)
+        if not bad.any():
+            return corr
+        flags[bad_axis] |= H.FLAG_MAX_LIMITED
+        health[bad] = HEALTH_ALARM
+        out = corr.copy()
+        out[bad] = np.nan
+        return out
 
     def _filter(self, t: np.ndarray, corr: np.ndarray, rms: np.ndarray) -> np.ndarray:
         """Adaptive output filter over the rows with a prediction (the others stay NaN)."""
