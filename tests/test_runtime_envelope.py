@@ -77,3 +77,24 @@ def test_absurd_model_is_never_published_with_health_ok(setup):
     assert (r["output_flags"][beyond] & H.FLAG_MAX_LIMITED).any(axis=1).all()
     # nothing of the absurd value is published: it holds the last trusted value (0 here)
     assert np.abs(r["correction_um"][beyond]).max() < 1.0
+
+
+def test_reconnect_cannot_step_the_correction(setup):
+    """After a reconnect the correction stepped 0 -> 201 µm in one sample."""
+    model, time_s, w, t = setup
+    rate = 5.0                                        # µm/s: 0.5 µm per 0.1 s frame
+    pipe = Pipeline(model, PipelineConfig(max_slew_um_per_s=rate, ramp_s=0.5))
+    before = time_s < 150.0
+    back = time_s >= 200.0
+    r1 = run_in_batches(pipe, time_s[before], w[before], t[before], [10])
+    # the link is lost: the service ticks no_data (50 Hz) for a while, ramping to zero ...
+    ticks = [pipe.no_data(ts) for ts in np.arange(150.0, 152.0, 0.02)]
+    # ... then the ticks stop (the service was busy reconnecting) and frames resume at 200 s
+    last = ticks[-1].correction_um[-1]
+    assert np.abs(last).max() < 1e-9
+    r2 = run_in_batches(pipe, time_s[back], w[back], t[back], [1])
+    out = np.vstack([last[None, :], r2["correction_um"]])
+    dt = np.median(np.diff(time_s))
+    assert np.abs(np.diff(out, axis=0)).max() <= 2 * rate * dt + 1e-6
+    # the correction before the link loss was well beyond that step
+    assert np.abs(r1["correction_um"][-1]).max() > 4 * rate * dt

@@ -19,7 +19,8 @@ what a running machine needs, vectorised over every frame of a batch:
 The per-axis maximum is also the envelope the correction is trusted in: a frame whose
 prediction is beyond it on any axis (or not finite) is not published, not even clamped - it is
 handled as a frame without a usable model (ALARM, hold the last correction and ramp it to
-zero, flag ``MAX_LIMITED``). A grating that jumped is
+zero, flag ``MAX_LIMITED``). The rate limit counts at most ``2 x`` the nominal frame interval
+per frame, so a gap in the frames (a reconnect) does not bank a step. A grating that jumped is
 re-zeroed by the step (:mod:`fbgcomp.runtime.health`) before it is re-admitted.
 
 Health codes per frame: OK, DEGRADED (fallback in use), ALARM (hold / ramp), ZEROING. Beside
@@ -141,6 +142,8 @@ class Pipeline:
         self.max_correction_um = cap
         self.output_filter: AdaptiveLevelFilter | None = None
         self._zero_frames = 0
+        self._t_zero_last: float | None = None
+        self.frame_dt_s: float | None = None   # nominal frame interval (the rate limit's cap)
 
     # -- model selection
     def predictor(self, k: int):
@@ -176,6 +179,8 @@ class Pipeline:
         if first_call:
             m = max(m, 1)
         self._zero_frames += m
+        if m:
+            self._t_zero_last = float(t[m - 1])
         good = (status[:m] == H.OK) & np.isfinite(wl[:m])
         self._zero_sum += np.where(good, wl[:m], 0.0).sum(axis=0)
         self._zero_n += good.sum(axis=0)
@@ -190,6 +195,8 @@ class Pipeline:
                 self.temperature_zero_C = np.where(self._tzero_n > 0,
                                                    self._tzero_sum / self._tzero_n, np.nan)
             self.checks.never_zeroed = ~np.isfinite(self.wavelength_zero_nm)
+            if self._zero_frames > 1 and self._t_zero_last > self._t_first:
+                self.frame_dt_s = (self._t_zero_last - self._t_first) / (self._zero_frames - 1)
         return m
 
     # -- main entry
@@ -248,7 +255,7 @@ class Pipeline:
         target = self._envelope(-dev, health, flags)
         correction = self._filter(time_s, target, rms)
         correction = self._hold_and_ramp(time_s, correction, health)
-        correction = self._shape(time_s, correction, enabled, flags)
+        correction = self._shape(time_s, correction, enabled, flags, self._gap_cap(time_s))
         return BatchResult(time_s, dev, half, correction, rms, health, status, model_set,
                            temperature_C, flags)
 
@@ -268,6 +275,16 @@ class Pipeline:
         out[bad] = np.nan
         return out
 
+    def _gap_cap(self, t: np.ndarray) -> float:
+        """Longest interval the rate limit credits to one frame: twice the nominal frame
+        interval (from the zero window, else this batch), so a gap cannot bank a step."""
+        if self.frame_dt_s is None and t.size > 1:
+            d = np.diff(t)
+            d = d[d > 0]
+            if d.size:
+                self.frame_dt_s = float(np.median(d))
+        return np.inf if self.frame_dt_s is None else 2.0 * self.frame_dt_s
+
     def _filter(self, t: np.ndarray, corr: np.ndarray, rms: np.ndarray) -> np.ndarray:
         """Adaptive output filter over the rows with a prediction (the others stay NaN)."""
         if not self.config.output_filter.enabled:
@@ -285,7 +302,7 @@ class Pipeline:
         out[good] = self.output_filter.process(corr[good])
         return out
 
-    def _shape(self, t, corr, enabled, flags) -> np.ndarray:
+    def _shape(self, t, corr, enabled, flags, dt_cap=np.inf) -> np.ndarray:
         """Smoothing, the output switch, the per-axis maximum and rate limit (flags set)."""
         corr = self._smooth(t, corr)
         if not enabled:
@@ -294,7 +311,7 @@ class Pipeline:
         if over.any():
             corr = np.clip(corr, -self.max_correction_um, self.max_correction_um)
             flags[over] |= H.FLAG_MAX_LIMITED
-        limited = self._slew_limit(t, corr)
+        limited = self._slew_limit(t, corr, dt_cap)
         flags[np.abs(limited - corr) > 1e-9] |= H.FLAG_RATE_LIMITED
         return limited
 
@@ -359,13 +376,14 @@ class Pipeline:
         self._last_t = float(t[-1])
         return y
 
-    def _slew_limit(self, t: np.ndarray, corr: np.ndarray) -> np.ndarray:
+    def _slew_limit(self, t: np.ndarray, corr: np.ndarray, dt_cap: float = np.inf) -> np.ndarray:
         """Limit |d correction / dt| to ``max_slew_um_per_s`` (per axis).
 
         Where the correction already respects the limit (nearly always) it passes unchanged,
         checked for the whole batch at once; only while the limiter is engaged - a transient
         of a few hundred samples at most - is it followed sample by sample, since each limited
-        sample depends on the previous output.
+        sample depends on the previous output. Each frame is credited at most ``dt_cap`` s
+        (frames: twice the nominal interval; the no-data ticks of a lost link: their own).
         """
         rate = self.max_slew_um_per_s
         n = t.size
@@ -373,7 +391,7 @@ class Pipeline:
             return corr
         prev = self._slew_y if self._slew_y is not None else corr[0]
         t_prev = self._slew_t if self._slew_t is not None else float(t[0])
-        dt = np.maximum(np.diff(np.concatenate([[t_prev], t])), 0.0)[:, None]
+        dt = np.clip(np.diff(np.concatenate([[t_prev], t])), 0.0, dt_cap)[:, None]
         step = np.where(np.isinf(rate)[None, :], np.inf,
                         np.where(np.isinf(rate), 0.0, rate)[None, :] * dt) + 1e-12
         out = corr.copy()

@@ -208,6 +208,7 @@ class Service:
         pipe._smoothed, pipe._last_t = old._smoothed, old._last_t
         pipe._slew_y, pipe._slew_t = old._slew_y, old._slew_t
         pipe._zero_frames, pipe.output_filter = old._zero_frames, old.output_filter
+        pipe._t_zero_last, pipe.frame_dt_s = old._t_zero_last, old.frame_dt_s
         self.model, self.pipeline, self.model_id = new, pipe, new.model_id
         if self.opc is not None:
             self.opc.model_id = self.model_id
