@@ -142,12 +142,18 @@ def test_fit_on_arrays_matches_fit_on_campaign(truth_campaign):
 def test_model_with_sensors_the_campaign_lacks_is_a_clear_error(truth_campaign, tmp_path):
     campaign, _ = truth_campaign
     path = MRAModel(features="eq11").fit(campaign).save(tmp_path / "m.json")
-    d = json.loads(path.read_text())
-    d["sensors"][0]["name"] = "S9"
+    # S1 renamed S9 throughout (its terms and fallbacks too): a consistent model of other sensors
+    d = json.loads(path.read_text().replace('"S1"', '"S9"').replace("dL_S1", "dL_S9"))
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps(d))
     with pytest.raises(InputError, match="sensor S9"):
         load_model(bad).predict(campaign)
+    # renamed in the sensor list only, the file disagrees with itself and is refused on loading
+    d = json.loads(path.read_text())
+    d["sensors"][0]["name"] = "S9"
+    bad.write_text(json.dumps(d))
+    with pytest.raises(InputError, match=r"field fallbacks\[0\].exclude"):
+        load_model(bad)
 
 
 @pytest.mark.parametrize("content, match", [

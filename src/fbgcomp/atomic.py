@@ -32,8 +32,13 @@ def json_safe(obj):
     return obj
 
 
-def write_bytes(path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically (temporary file, fsync, rename)."""
+def write_bytes(path, data: bytes, check=None) -> Path:
+    """Write ``data`` to ``path`` atomically (temporary file, fsync, rename).
+
+    ``check``, if given, is called with the temporary file's path once it is complete on disk;
+    if it raises, the temporary file is removed, ``path`` is left as it was and the exception
+    propagates (write, validate by reading back, then replace).
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -42,6 +47,8 @@ def write_bytes(path, data: bytes) -> Path:
             fh.write(data)
             fh.flush()
             os.fsync(fh.fileno())
+        if check is not None:
+            check(Path(tmp))
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -49,10 +56,11 @@ def write_bytes(path, data: bytes) -> Path:
     return path
 
 
-def write_json(path, data) -> Path:
-    """Write JSON atomically; non-finite numbers are written as null (JSON has no NaN)."""
+def write_json(path, data, check=None) -> Path:
+    """Write JSON atomically; non-finite numbers are written as null (JSON has no NaN).
+    ``check``: as for :func:`write_bytes`."""
     text = json.dumps(json_safe(data), indent=1, allow_nan=False) + "\n"
-    return write_bytes(path, text.encode("utf-8"))
+    return write_bytes(path, text.encode("utf-8"), check=check)
 
 
 def replace_dir(staging, target, retired) -> None:

@@ -36,7 +36,7 @@ from .features import (CONSTANT, TEMPERATURE_FEATURES, FeatureMap, TemperatureRo
                        candidate_terms, design_matrix)
 from .kinematics import CLOSURE_FACTORS, KinematicChain
 from .models import (AXES, MRAModel, ModelFile, Predictor, _as_campaign_list, _plain,
-                     check_compatible, register_model_type)
+                     check_compatible, check_predictors, register_model_type)
 
 MODEL_TYPES = ("mra", "kinematic", "hybrid", "calibrated", "dynamic")
 _Z95 = float(stats.norm.ppf(0.975))
@@ -325,15 +325,27 @@ class KinematicModel(_ModelFile):
         from .structure.machine import parse_machine
 
         u = d.get("uncertainty", {})
+        closure = d.get("kinematic", {}).get("closure_factors")
+        if closure is not None and not (isinstance(closure, dict) and set(closure) <= set(CLOSURE_FACTORS)):
+            raise InputError(f"closure_factors must map {', '.join(CLOSURE_FACTORS)} to numbers",
+                             file=source, column="field kinematic.closure_factors")
         m = cls(machine=parse_machine(d["machine"], file=str(source)),
                 zero_window_s=d["zero_state"]["window_s"], fallbacks=d.get("fallback_policy", "loo"),
-                closure_factors=d.get("kinematic", {}).get("closure_factors"))
+                closure_factors=closure)
+        if m.fallbacks not in ("loo", "lto", "none"):
+            raise InputError("fallback_policy must be loo, lto or none", file=source,
+                             column="field fallback_policy")
         m._setup()
         if "relative" in u:
             m.pi_relative_ = np.asarray(u["relative"], float)
             m.pi_floor_um_ = np.asarray(u["floor_um"], float)
             m.pi_source_ = u.get("source", "file")
+            for key, value in (("relative", m.pi_relative_), ("floor_um", m.pi_floor_um_)):
+                if value.shape != (3,) or not (value >= 0).all():
+                    raise InputError("expected three numbers >= 0 (dx, dy, dz)", file=source,
+                                     column=f"field uncertainty.{key}")
         m.training_ = d.get("training", m.training_)
+        check_predictors(m, source)
         return m
 
 
@@ -538,8 +550,8 @@ class DynamicModel(MRAModel):
         return d
 
     @classmethod
-    def from_dict(cls, d: dict, source="<dict>") -> "DynamicModel":
-        base = MRAModel.from_dict(d, source)
+    def from_dict(cls, d: dict, source="<dict>", check=True) -> "DynamicModel":
+        base = MRAModel.from_dict(d, source, check=False)
         m = cls(taus_s=d["dynamic"]["taus_s"], stepwise=base.stepwise, direction=base.direction,
                 p_enter=base.p_enter, p_remove=base.p_remove, max_terms=base.max_terms,
                 roles=base.roles, zero_window_s=base.zero_window_s, fallbacks=base.fallbacks,
@@ -549,6 +561,8 @@ class DynamicModel(MRAModel):
                   "results_", "coef_"):
             setattr(m, k, getattr(base, k))
         m._predictors = {}
+        if check:
+            check_predictors(m, source)
         return m
 
 
@@ -810,7 +824,7 @@ class HybridModel(_ModelFile):
         return d
 
     @classmethod
-    def from_dict(cls, d: dict, source="<dict>") -> "HybridModel":
+    def from_dict(cls, d: dict, source="<dict>", check=True) -> "HybridModel":
         h = d["hybrid"]
         kin = KinematicModel.from_dict(h["kinematic"], source)
         res = DynamicModel.from_dict(h["residual"], source)
@@ -819,10 +833,16 @@ class HybridModel(_ModelFile):
                 elongation_axes=res.elongation_axes, campaign_weights=res.campaign_weights)
         m.kinematic_, m.residual_ = kin, res
         m.correction_ = np.asarray(h["thermal_correction_um"], dtype=float)
+        if m.correction_.ndim != 2 or m.correction_.shape[1] != len(kin.sensors_):
+            raise InputError(f"shape {m.correction_.shape} disagrees with the model's "
+                             f"{len(kin.sensors_)} sensors", file=source,
+                             column="field hybrid.thermal_correction_um")
         m.sensors_ = kin.sensors_
         m.probe_names_ = list(d["probes"])
         m.training_ = d.get("training", res.training_)
         m._predictors = {}
+        if check:
+            check_predictors(m, source)
         return m
 
 
@@ -1051,9 +1071,10 @@ class CalibratedModel(HybridModel):
 
     @classmethod
     def from_dict(cls, d: dict, source="<dict>") -> "CalibratedModel":
-        m = super().from_dict(d, source)
+        m = super().from_dict(d, source, check=False)
         m.calibration_ = dict(d["calibrated"])
         m.prior_sd = m.calibration_.get("prior_sd", CLOSURE_PRIOR_SD)
+        check_predictors(m, source)
         return m
 
 

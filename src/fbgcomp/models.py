@@ -11,12 +11,22 @@ when a fibre fails) are all derived without re-reading the data.
 The model file is JSON (never pickle): feature definitions, coefficients with standard errors
 and covariance per axis, the zero-state convention, the sensors it expects, the training
 campaigns and fit statistics, and a schema version.
+
+Every model file goes through :func:`load_model` (the CLI, ``serve`` and the OPC UA reload), which
+checks it at this boundary: at most :data:`MAX_MODEL_BYTES` and :data:`MAX_MODEL_DEPTH` levels of
+nesting; no NaN or infinity anywhere; outside the descriptive statistics (:data:`STATISTICS`) no
+null inside an array and no number beyond :data:`MAX_MODEL_VALUE`; arrays whose shapes agree with
+their terms; and, for the regression and kinematic types, every predictor the runtime may switch
+to (full set and fallbacks) predicting finite numbers. :meth:`ModelFile.save` writes a model only
+once the written file passes the same checks, so a failed fit never replaces a good file.
 """
 
 from __future__ import annotations
 
 import hashlib
+import inspect
 import json
+import math
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from itertools import combinations
@@ -33,6 +43,18 @@ from .features import (CONSTANT, FEATURE_SETS, FeatureMap, TemperatureRoles, can
 from .regression import accumulate_series
 
 AXES = ("dx", "dy", "dz")
+#: Largest model file read, bytes (one with every fallback of a dozen gratings is ~1 MB).
+MAX_MODEL_BYTES = 64 << 20
+#: Deepest nesting of JSON objects and arrays in a model file (the deepest real one is ~10).
+MAX_MODEL_DEPTH = 64
+#: Largest magnitude of a number a model predicts with (coefficients in µm per µm or per K,
+#: covariances, bounds, machine dimensions): a larger one is a corrupted or hostile file.
+MAX_MODEL_VALUE = 1e12
+#: Fields holding descriptive statistics, reported and never used to predict: inside them a
+#: null (an undefined F, an infinite t of an exact fit) or a large number (a sum of squares) is
+#: allowed. NaN and infinity are refused everywhere.
+STATISTICS = frozenset({"fvalue", "f_pvalue", "tvalues", "pvalues", "bse", "rsquared",
+                        "rsquared_adj", "stepwise_history", "hac", "training"})
 REFERENCE_COLUMNS = ("dx_um", "dy_um", "dz_um")
 MODEL_FORMAT = "fbgcomp-model"
 SCHEMA_VERSION = 2
@@ -119,12 +141,37 @@ class AxisFit:
                 "stepwise_history": self.history, "cov_type": self.cov_type, "hac": self.hac}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "AxisFit":
-        arr = lambda k: np.asarray(d[k], dtype=float)  # noqa: E731
-        return cls(terms=list(d["terms"]), params=arr("params"), bse=arr("bse"),
-                   tvalues=arr("tvalues"), pvalues=arr("pvalues"),
-                   cov=np.asarray(d["cov_params"], dtype=float).reshape(len(d["terms"]), -1),
-                   resid_sd=float(d["resid_sd_um"]), df_resid=float(d["df_resid"]),
+    def from_dict(cls, d: dict, where: str = "axes", source="<dict>") -> "AxisFit":
+        """An axis of a model file; InputError naming ``where`` (its field path) when its
+        arrays disagree with its terms or its residual statistics cannot predict."""
+        terms = d["terms"]
+        if not isinstance(terms, list) or not all(isinstance(t, str) for t in terms) or not terms:
+            raise InputError("terms must be a non-empty list of names", file=source,
+                             column=f"field {where}.terms")
+        k = len(terms)
+
+        def arr(key, shape):
+            try:
+                value = np.asarray(d[key], dtype=float)
+            except (TypeError, ValueError):
+                raise InputError("expected an array of numbers", file=source,
+                                 column=f"field {where}.{key}") from None
+            if value.shape != shape:
+                raise InputError(f"shape {value.shape} disagrees with the {k} terms (expected "
+                                 f"{shape})", file=source, column=f"field {where}.{key}")
+            return value
+
+        cov = arr("cov_params", (k, k))
+        resid_sd, df_resid = float(d["resid_sd_um"]), float(d["df_resid"])
+        if not (math.isfinite(resid_sd) and resid_sd >= 0):
+            raise InputError(f"residual SD must be a finite number >= 0, not {resid_sd!r}",
+                             file=source, column=f"field {where}.resid_sd_um")
+        if not (math.isfinite(df_resid) and df_resid > 0):
+            raise InputError(f"residual degrees of freedom must be > 0, not {df_resid!r}",
+                             file=source, column=f"field {where}.df_resid")
+        return cls(terms=list(terms), params=arr("params", (k,)), bse=arr("bse", (k,)),
+                   tvalues=arr("tvalues", (k,)), pvalues=arr("pvalues", (k,)),
+                   cov=cov, resid_sd=resid_sd, df_resid=df_resid,
                    nobs=int(d["nobs"]), rsquared=float(d["rsquared"]),
                    rsquared_adj=float(d["rsquared_adj"]), fvalue=_float_or_nan(d["fvalue"]),
                    f_pvalue=_float_or_nan(d["f_pvalue"]), history=list(d.get("stepwise_history", [])),
@@ -292,11 +339,26 @@ class ModelFile:
                 "model_type": self.model_type, "fbgcomp_version": __version__}
 
     def save(self, path) -> Path:
-        """Write the model file atomically, with its id and creation time."""
+        """Write the model file atomically, with its id and creation time.
+
+        The file is written under a temporary name and loaded back with :func:`load_model`; only
+        a model that passes every check replaces ``path``. Otherwise InputError, and an existing
+        file at ``path`` is left as it was (a fit on bad data never overwrites a good model).
+        """
+        path = Path(path)
         d = self.to_dict()
         d["model_id"] = model_id(d)
         d["created_utc"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
-        return write_json(path, d)
+
+        def loads_back(written: Path) -> None:
+            try:
+                load_model(written)
+            except InputError as err:
+                raise InputError(f"the model is not valid, so {path.name} was not written "
+                                 f"(an existing one is unchanged): {err.message}", file=path,
+                                 column=err.column) from None
+
+        return write_json(path, d, check=loads_back)
 
     def predict(self, X):
         """Predicted TTP deviation (n, 3) in µm."""
@@ -430,6 +492,7 @@ class MRAModel(EstimatorParams, ModelFile):
         series = []
         for c, aligned, weight in zip(campaigns, aligned_all, weights):
             design = self._campaign_design(c, aligned)
+            check_finite_fit_data(c, aligned, design, names)
             series.append((design, aligned.reference_um, weight))
             training.append({"name": c.meta.name, "kind": c.meta.kind,
                              "path": None if c.path is None else str(c.path),
@@ -631,9 +694,9 @@ class MRAModel(EstimatorParams, ModelFile):
         return d
 
     @classmethod
-    def from_dict(cls, d: dict, source="<dict>") -> "MRAModel":
-        from .campaign import SensorSpec
-
+    def from_dict(cls, d: dict, source="<dict>", check=True) -> "MRAModel":
+        """The model of a model file's dict; ``check=False`` skips :func:`check_predictors`
+        (for a subclass that builds on this one and checks its own predictors)."""
         f = d["features"]
         sw = f.get("stepwise")
         m = cls(features=f["set"], stepwise=sw is not None,
@@ -644,17 +707,115 @@ class MRAModel(EstimatorParams, ModelFile):
                 # files written before issue 12 were fitted with naive inference
                 cov_type=d.get("inference", {}).get("cov_type", "nonrobust"),
                 hac_maxlags=d.get("inference", {}).get("hac_maxlags", "auto"))
+        m._check_params()
         m.candidates_ = list(f["candidates"])
-        m.sensors_ = [SensorSpec(**s) for s in d["sensors"]]
+        m.sensors_ = _sensor_specs(d["sensors"], source)
         m.probe_names_ = list(d["probes"])
-        m.axes_ = {a: AxisFit.from_dict(d["axes"][a]) for a in AXES}
-        m.fallbacks_ = {frozenset(fb["exclude"]): {a: AxisFit.from_dict(fb["axes"][a]) for a in AXES}
-                        for fb in d.get("fallbacks", [])}
+        m.axes_ = {a: AxisFit.from_dict(d["axes"][a], f"axes.{a}", source) for a in AXES}
+        m.fallbacks_ = {}
+        for i, fb in enumerate(d.get("fallbacks", [])):
+            exclude = frozenset(fb["exclude"])
+            if not exclude <= set(m.sensor_names):
+                raise InputError("a fallback excludes sensors the model does not have",
+                                 file=source, column=f"field fallbacks[{i}].exclude")
+            m.fallbacks_[exclude] = {a: AxisFit.from_dict(fb["axes"][a], f"fallbacks[{i}].axes.{a}",
+                                                          source) for a in AXES}
+        known = {CONSTANT, *m.candidates_}
+        for where, axes in [("axes", m.axes_)] + [(f"fallbacks[{i}].axes", v) for i, v in
+                                                  enumerate(m.fallbacks_.values())]:
+            for a, fit in axes.items():
+                unknown = [t for t in fit.terms if t not in known]
+                if unknown:
+                    raise InputError(f"term {_short_text(unknown[0])} is not among the model's "
+                                     "candidates", file=source, column=f"field {where}.{a}.terms")
         m.training_ = d.get("training", {"campaigns": [], "n_samples": 0})
         m.results_ = dict(m.axes_)
         m.coef_ = {a: dict(zip(fit.terms, fit.params)) for a, fit in m.axes_.items()}
         m._predictors = {}
+        if check:
+            check_predictors(m, source)
         return m
+
+
+def _sensor_specs(items, source) -> list:
+    """The model file's sensor list as SensorSpec; InputError naming the entry otherwise."""
+    from pydantic import ValidationError
+
+    from .campaign import SensorSpec
+
+    if not isinstance(items, list) or not items:
+        raise InputError("expected a non-empty list of sensors", file=source, column="field sensors")
+    specs = []
+    for i, item in enumerate(items):
+        try:
+            specs.append(SensorSpec.model_validate(item))
+        except ValidationError as exc:
+            err = exc.errors()[0]
+            where = ".".join(str(p) for p in err["loc"])
+            raise InputError(_short_text(err["msg"]), file=source,
+                             column=f"field sensors[{i}]" + (f".{where}" if where else "")) from None
+    return specs
+
+
+def check_finite_fit_data(campaign, aligned, design, names) -> None:
+    """InputError naming the campaign unless its design and TTP deviations are finite.
+
+    The campaign reader bounds every input, so this fires only when a feature of bounded
+    inputs still overflows; the regression would otherwise fit NaN and write a model of nulls.
+    """
+    where = campaign.path if campaign.path is not None else campaign.meta.name
+    for what, values, columns in (("design", design, names),
+                                  ("reference deviation", aligned.reference_um, REFERENCE_COLUMNS)):
+        bad = ~np.isfinite(values)
+        if bad.any():
+            row, col = np.argwhere(bad)[0]
+            raise InputError(f"the {what} built from this campaign is not finite at t = "
+                             f"{aligned.time_s[row]:g} s (term {columns[col]}): an input is out of "
+                             "range; nothing was fitted", file=where)
+
+
+def _zero_state_frames(model):
+    """Two frames for :func:`check_predictors`: at rest, and 0.05 nm / 1 K off it."""
+    w0 = np.array([s.lambda0_nm for s in model.sensors], dtype=float)
+    t0 = np.full(len(model.probe_names), 20.0)
+    return np.vstack([w0, w0 + 0.05]), np.vstack([t0, t0 + 1.0]), w0, t0
+
+
+def check_predictors(model, source="<dict>") -> None:
+    """Compile every predictor the runtime may switch to (the full sensor set and each stored
+    fallback) and run it on two frames: InputError naming the file unless each gives finite
+    (2, 3) deviations and half-widths. Catches terms, coefficients and sensors that disagree,
+    which would otherwise surface only when the runtime first needs that fallback."""
+    sets = [frozenset()] + [frozenset(s) for s in getattr(model, "fallback_sets", ())]
+    w, t, w0, t0 = _zero_state_frames(model)
+    for exclude in sets:
+        label = ("the full sensor set" if not exclude
+                 else f"the fallback without {', '.join(sorted(exclude))}")
+        field = "field axes" if not exclude else "field fallbacks"
+        try:
+            p = model.predictor(exclude)
+            takes_time = "time_s" in inspect.signature(p.predict).parameters
+            if hasattr(p, "reset"):
+                p.reset()
+            out = p.predict(w, t, w0, t0, **({"time_s": np.array([0.0, 1.0])} if takes_time else {}))
+            dev, half = (np.asarray(v, dtype=float) for v in out)
+        except InputError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - any failure: the file's parts disagree
+            raise InputError(f"{label} cannot predict: its terms, coefficients and sensors "
+                             f"disagree ({type(exc).__name__}: {_short_text(str(exc))})",
+                             file=source, column=field) from None
+        if dev.shape != (2, 3) or half.shape != (2, 3) or not (np.isfinite(dev).all()
+                                                                and np.isfinite(half).all()):
+            raise InputError(f"{label} predicts non-finite or misshapen numbers", file=source,
+                             column=field)
+    if hasattr(model, "_predictors"):
+        model._predictors = {}   # the runtime starts from fresh predictors, not the check's
+
+
+def _short_text(text, limit: int = 80) -> str:
+    text = " ".join(str(text).split())
+    return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
 class _IdentityMap:
@@ -713,26 +874,110 @@ def register_model_type(name: str, cls) -> None:
     _MODEL_TYPES[name] = cls
 
 
-def load_model(path):
-    """Read a model file, migrating older schema versions; InputError on anything wrong."""
-    path = Path(path)
+class _NonFinite:
+    """A NaN, infinity or overflowing literal met while parsing (reported with its field)."""
+
+    __slots__ = ("text",)
+
+    def __init__(self, text):
+        self.text = text
+
+
+def _parse_float(text):
+    value = float(text)
+    return value if math.isfinite(value) else _NonFinite(text)
+
+
+def _read_model_json(path: Path):
+    if not path.exists():
+        raise InputError("model file not found", file=path)
+    if not path.is_file():
+        raise InputError("not a regular file", file=path)
     try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError("model file not found", file=path) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"cannot read model file: {exc}", file=path) from None
+        with open(path, "rb") as handle:
+            raw = handle.read(MAX_MODEL_BYTES + 1)
+    except OSError as exc:
+        raise InputError(f"cannot read model file: {exc.strerror or type(exc).__name__}",
+                         file=path) from None
+    if len(raw) > MAX_MODEL_BYTES:
+        raise InputError(f"larger than {MAX_MODEL_BYTES} bytes: not a model file", file=path)
     try:
-        d = json.loads(text)
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"not UTF-8 text: byte 0x{raw[exc.start]:02x} at offset {exc.start}",
+                         file=path) from None
+    try:
+        return json.loads(text, parse_float=_parse_float, parse_constant=_NonFinite)
     except json.JSONDecodeError as exc:
         raise InputError(f"not a JSON model file: {exc.msg} at line {exc.lineno}, column {exc.colno}",
                          file=path) from None
+    except RecursionError:
+        raise InputError(f"JSON nested deeper than {MAX_MODEL_DEPTH} levels: not a model file",
+                         file=path) from None
+    except ValueError as exc:  # e.g. an integer literal of thousands of digits
+        raise InputError(f"not a JSON model file: {_short_text(exc)}", file=path) from None
+
+
+def _field_text(parts) -> str:
+    out = ""
+    for part in parts:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        else:
+            name = part if part.isprintable() and len(part) <= 40 else "<key>"
+            out += f".{name}" if out else name
+    return out or "<top level>"
+
+
+def check_model_numbers(d, source="<dict>") -> None:
+    """The checks :func:`load_model` applies to every model type before building it: nesting at
+    most :data:`MAX_MODEL_DEPTH`, no NaN or infinity anywhere, and outside :data:`STATISTICS` no
+    null inside an array and no number beyond :data:`MAX_MODEL_VALUE`. InputError names the
+    first offending field (in file order)."""
+    stack = [(d, (), False)]
+    while stack:
+        node, parts, statistic = stack.pop()
+        if len(parts) > MAX_MODEL_DEPTH:
+            raise InputError(f"nested deeper than {MAX_MODEL_DEPTH} levels: not a model file",
+                             file=source, column=f"field {_field_text(parts[:8])}...")
+        if isinstance(node, dict):
+            stack.extend((v, parts + (k,), statistic or k in STATISTICS)
+                         for k, v in reversed(list(node.items())))
+        elif isinstance(node, list):
+            if not statistic and any(v is None for v in node):
+                i = next(i for i, v in enumerate(node) if v is None)
+                raise InputError("null where a number is expected (a NaN written out?)",
+                                 file=source, column=f"field {_field_text(parts + (i,))}")
+            stack.extend((v, parts + (i,), statistic) for i, v in reversed(list(enumerate(node))))
+        elif isinstance(node, _NonFinite):
+            raise InputError(f"non-finite number {_short_text(node.text, 24)}; a model holds finite "
+                             "numbers only", file=source, column=f"field {_field_text(parts)}")
+        elif (isinstance(node, (int, float)) and not isinstance(node, bool) and not statistic
+              and abs(node) > MAX_MODEL_VALUE):
+            shown = f"{node:.3g}" if isinstance(node, float) or abs(node) < 10 ** 300 else "an integer of over 300 digits"
+            raise InputError(f"{shown} is beyond the {MAX_MODEL_VALUE:g} a model may hold "
+                             "(a corrupted or hostile file?)", file=source,
+                             column=f"field {_field_text(parts)}")
+
+
+def load_model(path):
+    """Read a model file, migrating older schema versions; InputError on anything wrong.
+
+    The one loader of the CLI, ``serve`` and the OPC UA reload. Refuses, with one line naming
+    the file and field: files over :data:`MAX_MODEL_BYTES`, JSON nested deeper than
+    :data:`MAX_MODEL_DEPTH`, non-finite or absurd numbers (:func:`check_model_numbers`), arrays
+    whose shapes disagree, and models whose predictors cannot predict finite numbers.
+    """
+    path = Path(path)
+    d = _read_model_json(path)
     if not isinstance(d, dict) or d.get("format") != MODEL_FORMAT:
         raise InputError(f"not an fbgcomp model file (field 'format' must be {MODEL_FORMAT!r})",
                          file=path, column="field format")
+    check_model_numbers(d, path)
     version = d.get("schema_version")
-    if not isinstance(version, int):
-        raise InputError("schema_version must be an integer", file=path, column="field schema_version")
+    if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+        raise InputError("schema_version must be an integer >= 1", file=path,
+                         column="field schema_version")
     if version > SCHEMA_VERSION:
         raise InputError(f"model schema version {version} is newer than this fbgcomp supports "
                          f"({SCHEMA_VERSION}); upgrade fbgcomp", file=path, column="field schema_version")
@@ -740,16 +985,19 @@ def load_model(path):
         d = MIGRATIONS[version](d)
         version = d["schema_version"]
     kind = d.get("model_type")
+    if not isinstance(kind, str):
+        raise InputError("model_type must be a name", file=path, column="field model_type")
     if kind not in _MODEL_TYPES:
         from . import model_types, physical  # noqa: F401  (register kinematic, hybrid, dynamic, physical)
     if kind not in _MODEL_TYPES:
-        raise InputError(f"unknown model_type {kind!r}; known: {', '.join(_MODEL_TYPES)}",
-                         file=path, column="field model_type")
+        raise InputError(f"unknown model_type {_short_text(repr(kind), 40)}; known: "
+                         f"{', '.join(_MODEL_TYPES)}", file=path, column="field model_type")
     try:
         return _MODEL_TYPES[kind].from_dict(d, source=path)
     except InputError:
         raise
     except KeyError as exc:
-        raise InputError(f"missing field {exc.args[0]!r}", file=path) from None
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"malformed model file: {exc}", file=path) from None
+        raise InputError(f"missing field {_short_text(repr(exc.args[0]), 40)}", file=path) from None
+    except Exception as exc:  # noqa: BLE001 - whatever a malformed file makes fail is its fault
+        raise InputError(f"malformed model file: {type(exc).__name__}: {_short_text(exc)}",
+                         file=path) from None
