@@ -142,3 +142,105 @@ def test_existing_model_file_survives_a_failed_fit(campaigns, tmp_path, capsys):
     assert main(["fit", str(broken), "-o", str(model)]) == 2
     assert model.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".model")] == []
+
+
+# --------------------------------------------------------------------------------------------
+# Issue 13: models and fits checked at the boundary (finding 2), the reader's bounds (8)
+# --------------------------------------------------------------------------------------------
+
+def _one_line_error(r, *fragments):
+    assert r.returncode == 2, (r.returncode, r.stdout[-500:], r.stderr)
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "Traceback" not in r.stderr, r.stderr
+    for fragment in fragments:
+        assert fragment in lines[0], (fragment, lines[0])
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def mra_model(campaigns, tmp_path_factory):
+    from fbgcomp.models import MRAModel
+
+    path = tmp_path_factory.mktemp("model") / "mra.json"
+    MRAModel(features="eq13", fallbacks="loo").fit(campaigns[0]).save(path)
+    return path
+
+
+@pytest.mark.parametrize("value, field", [("1e308", "axes.dx.params[1]"), ("NaN", "axes.dx.params[1]"),
+                                          ("null", "axes.dx.params[1]"), ("-Infinity", "axes.dx.params[1]")])
+def test_validate_exits_2_on_a_model_with_an_absurd_or_non_finite_coefficient(campaigns, mra_model, tmp_path,
+                                                                              value, field):
+    # validate exited 0 on these; serve published 1.5e308 um (1e308) or exactly 0 (NaN)
+    d = json.loads(mra_model.read_text())
+    d["axes"]["dx"]["params"][1] = "@@"
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(d).replace('"@@"', value))
+    _one_line_error(run("validate", bad, campaigns[1]), str(bad), f"field {field}")
+
+
+def test_validate_exits_2_on_oversized_and_deeply_nested_model_files(campaigns, tmp_path):
+    deep = tmp_path / "deep.json"
+    deep.write_text('{"format": "fbgcomp-model", "schema_version": 2, "x": ' + "[" * 100_000
+                    + "]" * 100_000 + "}")
+    _one_line_error(run("validate", deep, campaigns[1]), "deep.json", "nested deeper")
+    big = tmp_path / "big.json"
+    with open(big, "w") as handle:
+        handle.write('{"format": "fbgcomp-model", "pad": "')
+        handle.write("x" * (65 << 20))
+        handle.write('"}')
+    _one_line_error(run("validate", big, campaigns[1]), "big.json", "larger than")
+
+
+def _with_cell(src, dst, file, row, column, value):
+    shutil.copytree(src, dst)
+    path = dst / file
+    lines = path.read_text().split("\n")
+    col = lines[0].split(",").index(column)
+    cells = lines[row].split(",")
+    cells[col] = value
+    lines[row] = ",".join(cells)
+    path.write_text("\n".join(lines))
+    return dst
+
+
+def test_stepwise_fit_on_a_1e308_reference_keeps_the_existing_model(campaigns, mra_model, tmp_path):
+    # It exited 0 and overwrote -o with an all-null model that nothing could load.
+    broken = _with_cell(campaigns[0], tmp_path / "broken", "reference.csv", 40, "dy_um", "1e308")
+    out = tmp_path / "model.json"
+    shutil.copy(mra_model, out)
+    before = out.read_bytes()
+    _one_line_error(run("fit", broken, "--features", "eq13", "--stepwise", "-o", out),
+                    "reference.csv", "row 40 (line 41)", "dy_um", "displacement")
+    assert out.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken", "model.json"]
+
+
+def test_a_1e308_temperature_is_reported_against_temperatures_csv(campaigns, tmp_path):
+    # It was reported against the derived column dL_S1 with no file.
+    broken = _with_cell(campaigns[0], tmp_path / "broken", "temperatures.csv", 3, "T_bulk_C", "1e308")
+    line = _one_line_error(run("fit", broken, "--features", "eq13", "-o", tmp_path / "m.json"),
+                           "temperatures.csv", "row 3 (line 4)", "T_bulk_C")
+    assert "dL_" not in line and not (tmp_path / "m.json").exists()
+
+
+def test_default_fit_on_ram2_with_a_1e308_reference_is_one_line(tmp_path):
+    # The default (physical) fit on ram2's static_x died with an OverflowError traceback.
+    from fbgcomp_testing import RAM2_DIR
+
+    static_x = RAM2_DIR / "data" / "static_x"
+    if not static_x.is_dir():
+        pytest.fail(f"the independent reference data set is missing: {static_x}")
+    broken = _with_cell(static_x, tmp_path / "static_x", "reference.csv", 12, "dx_um", "1e308")
+    _one_line_error(run("fit", broken, "-o", tmp_path / "m.json"), "reference.csv", "dx_um")
+    assert not (tmp_path / "m.json").exists()
+
+
+def test_serve_refuses_a_model_with_an_absurd_coefficient(campaigns, mra_model, tmp_path):
+    # serve loaded it and published CorrectionX = 1.5e308 um with Health OK
+    d = json.loads(mra_model.read_text())
+    d["fallbacks"][0]["axes"]["dy"]["params"][0] = 1e308
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(d))
+    r = run("serve", "--model", bad, "--source", f"replay://{campaigns[1]}", "--opcua", "off",
+            "--log", tmp_path / "log")
+    _one_line_error(r, "bad.json", "field fallbacks[0].axes.dy.params[0]")

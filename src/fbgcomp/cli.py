@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 from typing import List, Optional
 
@@ -63,6 +64,20 @@ def _parse_roles(roles: Optional[str]):
     return out
 
 
+@contextmanager
+def _numeric_failures(campaigns):
+    """A fit that fails on its numbers (an overflow, a singular system) ends in one line naming
+    the campaigns instead of a traceback; the model file is then not written."""
+    import numpy as np
+
+    try:
+        yield
+    except (OverflowError, FloatingPointError, ZeroDivisionError, np.linalg.LinAlgError) as exc:
+        raise InputError(f"the fit failed on its numbers ({type(exc).__name__}: {exc}); check "
+                         "the campaigns' values (fbgcomp inspect); no model was written",
+                         file=", ".join(str(c) for c in campaigns)) from None
+
+
 @app.command()
 def fit(campaigns: List[Path] = typer.Argument(..., help="Training campaign folders or Parquet datasets (fbgcomp ingest)."),
         output: Path = typer.Option(..., "-o", "--output", help="Model file to write (JSON)."),
@@ -93,18 +108,22 @@ def fit(campaigns: List[Path] = typer.Argument(..., help="Training campaign fold
     if model_type == "physical":
         from .physical import PhysicalModel
 
-        model = PhysicalModel(machine=machine, zero_window_s=zero_window).fit(_read_campaigns(campaigns))
-        model.save(output)
+        data = _read_campaigns(campaigns)
+        with _numeric_failures(campaigns):
+            model = PhysicalModel(machine=machine, zero_window_s=zero_window).fit(data)
+        model.save(output)   # only a model that loads back replaces an existing file
         typer.echo(model.summary())
         typer.echo(f"\nmodel {model.model_id} (physical) written to {output}")
         return
     if model_type != "mra":
         from .model_types import fit_from_cli
 
-        model = fit_from_cli(model_type, _read_campaigns(campaigns), machine=machine, features=features,
-                             stepwise=stepwise, direction=direction, p_enter=p_enter, p_remove=p_remove,
-                             max_terms=max_terms, roles=_parse_roles(roles), zero_window_s=zero_window,
-                             fallbacks=fallbacks)
+        data = _read_campaigns(campaigns)
+        with _numeric_failures(campaigns):
+            model = fit_from_cli(model_type, data, machine=machine, features=features,
+                                 stepwise=stepwise, direction=direction, p_enter=p_enter,
+                                 p_remove=p_remove, max_terms=max_terms, roles=_parse_roles(roles),
+                                 zero_window_s=zero_window, fallbacks=fallbacks)
         model.save(output)
         typer.echo(model.summary())
         typer.echo(f"\nmodel {model.model_id} ({model_type}) written to {output}")
@@ -137,12 +156,13 @@ def fit(campaigns: List[Path] = typer.Argument(..., help="Training campaign fold
                      p_remove=p_remove, max_terms=max_terms, roles=_parse_roles(roles),
                      zero_window_s=zero_window, fallbacks=fallbacks, cov_type=cov_type,
                      hac_maxlags=hac_maxlags)
-    if scaled:
-        from .distributed import fit_paths
+    with _numeric_failures(campaigns):
+        if scaled:
+            from .distributed import fit_paths
 
-        fit_paths(model, campaigns, dask=dask)
-    else:
-        model.fit(data)
+            fit_paths(model, campaigns, dask=dask)
+        else:
+            model.fit(data)
     model.save(output)
     typer.echo(model.summary())
     typer.echo(f"\nmodel {model.model_id} written to {output}")
@@ -152,7 +172,10 @@ def fit(campaigns: List[Path] = typer.Argument(..., help="Training campaign fold
 def validate(model_file: Path = typer.Argument(..., help="Model file (JSON)."),
              campaigns: List[Path] = typer.Argument(..., help="Campaign folders to judge the model on."),
              json_out: Optional[Path] = typer.Option(None, "--json", help="Write the metrics as JSON.")):
-    """Judge a model on campaigns: per axis peak, max |error|, RMS, % of peak, compensation ratio."""
+    """Judge a model on campaigns: per axis peak, max |error|, RMS, % of peak, compensation ratio.
+
+    The model is loaded through the checks every consumer uses (fbgcomp.models.load_model): a
+    model with non-finite or absurd numbers, or parts that disagree, exits 2 with one line."""
     import numpy as np
 
     from .metrics import (format_metrics, format_static_metrics, static_level_metrics,
