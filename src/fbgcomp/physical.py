@@ -277,6 +277,7 @@ class PhysicalPredictor:
         self.h_low, self.h_high = np.asarray(m.thermal_envelope_[0]), np.asarray(m.thermal_envelope_[1])
         self.t_low, self.t_high = np.asarray(m.thermal_range_um_[0]), np.asarray(m.thermal_range_um_[1])
         self.margin = float(m.envelope_margin)
+        self.k_sigma = float(m.load_k_sigma)       # also the thermal part's noise shrinkage
         self.thermal_resid_var = np.asarray(m.thermal_resid_sd_um_) ** 2
         # interval of the thermal part: variance = v0 + v1 (excursion)^2, fitted on the load-free
         # training campaigns (``PhysicalModel._fit_interval``); a constant without it
