@@ -79,6 +79,19 @@ def test_absurd_model_is_never_published_with_health_ok(setup):
     assert np.abs(r["correction_um"][beyond]).max() < 1.0
 
 
+def test_prediction_beyond_the_bound_is_clamped_and_not_ok(setup):
+    model, time_s, w, t = setup
+    clean = run_in_batches(Pipeline(model), time_s, w, t, [10])
+    cap = 0.7 * np.abs(clean["correction_um"]).max(axis=0)   # within ABSURD_FACTOR x cap
+    r = run_in_batches(Pipeline(model, PipelineConfig(max_correction_um=tuple(cap))),
+                       time_s, w, t, [10])
+    over = (np.abs(r["deviation_um"]) > cap).any(axis=1)
+    assert over.sum() > 10
+    assert (np.abs(r["correction_um"]) <= cap + 1e-9).all()
+    assert not (r["health"][over] == HEALTH_OK).any()
+    assert (r["output_flags"][over] & H.FLAG_MAX_LIMITED).any(axis=1).all()
+
+
 def test_reconnect_cannot_step_the_correction(setup):
     """After a reconnect the correction stepped 0 -> 201 µm in one sample."""
     model, time_s, w, t = setup

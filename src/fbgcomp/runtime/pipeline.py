@@ -16,10 +16,11 @@ what a running machine needs, vectorised over every frame of a batch:
   per-axis rate limit (``max_slew_um_per_s``), so that a model switch, a re-admitted sensor or
   switching the output off never steps the axes and no absurd value reaches the CNC.
 
-The per-axis maximum is also the envelope the correction is trusted in: a frame whose
-prediction is beyond it on any axis (or not finite) is not published, not even clamped - it is
-handled as a frame without a usable model (ALARM, hold the last correction and ramp it to
-zero, flag ``MAX_LIMITED``). The rate limit counts at most ``2 x`` the nominal frame interval
+The per-axis maximum is also the envelope the correction is trusted in. A prediction beyond it
+is clamped to it and never published with health OK (OK becomes DEGRADED, flag
+``MAX_LIMITED``); beyond ``ABSURD_FACTOR`` times it on any axis (or not finite) it is not
+published at all - the frame is handled as one without a usable model (ALARM, hold the last
+correction and ramp it to zero). The rate limit counts at most ``2 x`` the nominal frame interval
 per frame, so a gap in the frames (a reconnect) does not bank a step. A grating that jumped is
 re-zeroed by the step (:mod:`fbgcomp.runtime.health`) before it is re-admitted.
 
@@ -43,6 +44,9 @@ HEALTH_OK, HEALTH_DEGRADED, HEALTH_ALARM, HEALTH_ZEROING = range(4)
 HEALTH_NAMES = ("OK", "DEGRADED", "ALARM", "ZEROING")
 
 _TAKES_TIME: dict = {}
+# A prediction beyond this many times the per-axis maximum is no machine state (the maximum
+# already holds the largest validated load with margin) but a broken model or sensor.
+ABSURD_FACTOR = 3.0
 
 
 def _takes_time(predictor) -> bool:
@@ -260,16 +264,21 @@ class Pipeline:
                            temperature_C, flags)
 
     def _envelope(self, corr: np.ndarray, health: np.ndarray, flags: np.ndarray) -> np.ndarray:
-        """Rows whose prediction is beyond the per-axis maximum on any axis, or not finite,
-        are not trusted: NaN (so held and ramped like a frame without a model), ALARM,
-        ``FLAG_MAX_LIMITED`` on the offending axes."""
+        """Rows whose prediction is beyond the per-axis maximum are not OK (DEGRADED; the
+        clamp in ``_shape`` bounds them); beyond ``ABSURD_FACTOR`` times it on any axis, or not
+        finite, they are not trusted at all: NaN (so held and ramped like a frame without a
+        model), ALARM. ``FLAG_MAX_LIMITED`` on the offending axes."""
         predicted = (health == HEALTH_OK) | (health == HEALTH_DEGRADED)
         with np.errstate(invalid="ignore"):
-            bad_axis = predicted[:, None] & ~(np.abs(corr) <= self.max_correction_um)
+            over_axis = predicted[:, None] & ~(np.abs(corr) <= self.max_correction_um)
+            bad_axis = over_axis & ~(np.abs(corr) <= ABSURD_FACTOR * self.max_correction_um)
+        if not over_axis.any():
+            return corr
+        flags[over_axis] |= H.FLAG_MAX_LIMITED
+        health[over_axis.any(axis=1) & (health == HEALTH_OK)] = HEALTH_DEGRADED
         bad = bad_axis.any(axis=1)
         if not bad.any():
             return corr
-        flags[bad_axis] |= H.FLAG_MAX_LIMITED
         health[bad] = HEALTH_ALARM
         out = corr.copy()
         out[bad] = np.nan
