@@ -93,3 +93,29 @@ def run_in_batches(pipe, time_s, wl, temp, sizes, counts=None) -> dict:
     return {n: np.concatenate([getattr(r, n) for r in out])
             for n in ("deviation_um", "half_width_um", "correction_um", "health",
                       "sensor_status", "model_set", "expected_rms_um", "output_flags")}
+
+
+def fallback_peak_um(model_path, campaign_path, lost: str):
+    """Largest |correction| per axis (3,) µm the runtime pipeline publishes from the campaign
+    with grating ``lost`` missing throughout (no output filter, rate or size limit): what a
+    test's size bound must be measured against when the runtime serves that fallback."""
+    import numpy as np
+
+    from fbgcomp.campaign import read_campaign
+    from fbgcomp.models import load_model
+    from fbgcomp.runtime.output import OutputFilterConfig
+    from fbgcomp.runtime.pipeline import Pipeline, PipelineConfig
+
+    model = load_model(model_path)
+    aligned = read_campaign(campaign_path).aligned(zero_window_s=model.zero_window_s)
+    w, t, _, _ = model.instrument_arrays(aligned)
+    counts = np.ones(w.shape, np.int8)
+    j = model.sensor_names.index(lost)
+    after = aligned.time_s > aligned.time_s[0] + model.zero_window_s
+    w, counts[after, j] = w.copy(), 0
+    w[after, j] = np.nan
+    free = PipelineConfig(output_filter=OutputFilterConfig(enabled=False), max_slew_um_per_s=0,
+                          max_correction_um=0)
+    r = run_in_batches(Pipeline(model, free), aligned.time_s, w, t, [1000], counts)
+    return np.abs(r["correction_um"][after]).max(axis=0)
+
