@@ -335,7 +335,7 @@ def measure(machine, scenario: Scenario, truth: dict, seed: int = 0, start=None)
     fbg.insert(0, "time_s", t_fbg)
     # Strain-free reference gratings: the same gauge temperature, no strain (eq. 3).
     for j, s in enumerate(sensors):
-        if getattr(s, "reference_lambda0_nm", None) is not None:
+        if s.reference_lambda0_nm is not None:
             lam_ref = optics.free_grating_wavelength_nm(
                 d_temp[:, j], s.reference_lambda0_nm + rng.uniform(-1, 1) * f.install_offset_nm,
                 thermo_optic_per_K=s.thermo_optic_per_K, fibre_cte_per_K=s.fibre_cte_per_K)
@@ -391,7 +391,7 @@ def campaign_meta(machine, scenario: Scenario, seed: int, start=None) -> dict:
                      "z_start_mm": s.z_start_mm, "z_end_mm": s.z_end_mm,
                      "temperature_probe": s.temperature_probe,
                      **({"reference_lambda0_nm": s.reference_lambda0_nm}
-                        if getattr(s, "reference_lambda0_nm", None) is not None else {})}
+                        if s.reference_lambda0_nm is not None else {})}
                     for s in machine.sensors],
         "temperature_probes": [{"name": pr.name, "location": where(pr)} for pr in machine.probes],
         "reference": {"instrument": "laser interferometer (simulated)", "point": "TTP", "units": "um"},

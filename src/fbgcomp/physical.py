@@ -165,12 +165,13 @@ def twin_thermal_population(machine, sensors, probe_names, housing_probes, n_sce
 
     twin = Twin(generic_heat_machine(machine))
     idx = [twin.sensor_names.index(s.name) for s in sensors]
-    pidx = [twin.probe_names.index(p) if p in mprobes else -1 - twin.sensor_names.index(ref_of[p])
-            for p in probe_names]
+    # each thermometer's column in the twin's response: a probe's, or its gauge's temperature
+    sources = [("probe_C", twin.probe_names.index(p)) if p in mprobes
+               else ("sensor_temperature_C", twin.sensor_names.index(ref_of[p])) for p in probe_names]
 
     def thermometers(r):
-        return np.column_stack([r.probe_C[:, i] if i >= 0 else r.sensor_temperature_C[:, -1 - i]
-                                for i in pidx]) if pidx else np.zeros((r.time_s.size, 0))
+        return np.column_stack([getattr(r, field)[:, i] for field, i in sources]) if sources \
+            else np.zeros((r.time_s.size, 0))
 
     h_idx = [list(probe_names).index(p) for p in housing_probes]
     fmap = _grating_map(sensors, probe_names)
@@ -192,11 +193,12 @@ def twin_thermal_population(machine, sensors, probe_names, housing_probes, n_sce
                               photoelastic=s.photoelastic, thermo_optic_per_K=s.thermo_optic_per_K,
                               fibre_cte_per_K=s.fibre_cte_per_K)
                 for j, (i, s) in enumerate(zip(idx, sensors))])
-            return map_features(fmap.base(wl, dT, lam0, np.zeros(len(pidx))), dT, h_idx, t)[0]
+            return map_features(fmap.base(wl, dT, lam0, np.zeros(len(sources))), dT, h_idx, t)[0]
 
         # probe noise, and the error of a zero state read from a single slow probe sample
         dT0 = thermometers(r)
-        dT = dT0 + rng.normal(0, probe_noise_K, (t.size, len(pidx))) + rng.normal(0, probe_noise_K, len(pidx))
+        dT = (dT0 + rng.normal(0, probe_noise_K, (t.size, len(sources)))
+              + rng.normal(0, probe_noise_K, len(sources)))
         X = features(el, dT)
         N = X - features(el0, dT0)
         noise += N.T @ N
@@ -847,17 +849,18 @@ class PhysicalModel(EstimatorParams, ModelFile):
             span = hi - lo
             self.thermal_range_um_ = (np.minimum(self.thermal_range_um_[0], lo - 0.1 * span),
                                       np.maximum(self.thermal_range_um_[1], hi + 0.1 * span))
-            self._predictors = {}
         self.interval_ = self._fit_interval(rows, campaigns) if thermal_rows else None
         self._predictors = {}
         return self
 
     def _fit_interval(self, rows, campaigns):
-        """Thermal part's error variance as v0 + v1 s², s² the squared probe excursion
-        (:func:`excursion2`), per axis, by non-negative least squares of the squared error of
-        the applied prediction on each load-free training campaign (campaigns weighted
-        equally). v0 holds the interferometer's and the sensors' noise, v1 what grows with the
-        thermal state, so a machine at rest gets a narrow interval and a hot one a wide one."""
+        """Thermal part's error variance as v0 + v1 s² + v2 a², s² the squared probe excursion
+        (:func:`excursion2`) and a the housing's fastest lead (a transient) over its training
+        maximum, per axis, by non-negative least squares of the squared error of the applied
+        prediction on each load-free training campaign (campaigns weighted equally). v0 holds
+        the interferometer's and the sensors' noise, v1 and v2 what grows with the thermal state
+        and its transients, so a machine at rest can get a narrow interval and a hot one a wide
+        one."""
         from scipy.optimize import nnls
 
         dTs = [r["dT"] for r in rows if not r["loaded"]]
@@ -866,9 +869,8 @@ class PhysicalModel(EstimatorParams, ModelFile):
         for r, c in zip(rows, campaigns):
             if r["loaded"]:
                 continue
-            self._predictors = {}
-            pred, _ = self.predict_interval(c)
-            got.append(((pred - r["y"]) ** 2, excursion2(r["dT"], scale), self.last_activity_))
+            pred, _, p, at = self._served(c)
+            got.append(((pred - r["y"]) ** 2, excursion2(r["dT"], scale), p.last_activity[at]))
         a_scale = max(max(float(np.abs(a).max()) for _, _, a in got), 1e-3)
         A_rows, b_rows = [], []
         for e2, s2, act in got:
@@ -932,17 +934,22 @@ class PhysicalModel(EstimatorParams, ModelFile):
     def predict_interval(self, X, exclude=frozenset(), raw=False, policy=True):
         (campaign,) = _as_campaign_list(X)
         check_compatible(self, campaign)
+        mean, half, p, at = self._served(campaign, exclude, raw, policy)
+        self.last_flags_ = p.last_flags[at]
+        return mean, half
+
+    def _served(self, campaign, exclude=frozenset(), raw=False, policy=True):
+        """Deviation and half-width at each reference time as the runtime publishes them (the
+        last frame's output, carried forward: the reference clock is offset from the
+        interrogator's, e.g. +0.3 s), the predictor that ran, and the frame index of each
+        reference time."""
         aligned = campaign.aligned(zero_window_s=self.zero_window_s)
         p = PhysicalPredictor(self, exclude)       # fresh filter state per campaign
         _, _, w0, t0 = self.instrument_arrays(aligned)
         frame_t, w, t = self.frame_arrays(campaign, aligned)
         mean, half = p.predict(w, t, w0, t0, time_s=frame_t, raw=raw, thermal_policy=policy)
-        # what the runtime publishes at each reference time: the last frame's output, carried
-        # forward (the reference clock is offset from the interrogator's, e.g. +0.3 s)
         at = np.clip(np.searchsorted(frame_t, aligned.time_s, side="right") - 1, 0, frame_t.size - 1)
-        self.last_flags_ = p.last_flags[at]
-        self.last_activity_ = p.last_activity[at]
-        return mean[at], half[at]
+        return mean[at], half[at], p, at
 
     def frame_arrays(self, campaign, aligned):
         """The campaign as the runtime sees it: every interrogator frame inside the aligned
