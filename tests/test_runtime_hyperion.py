@@ -348,6 +348,62 @@ def test_memory_stays_bounded_while_a_stream_sends_garbage(first, chunk):
     assert errors >= 1
 
 
+@pytest.mark.parametrize("first, chunk", [(b"", _garbage(seed=3)),
+                                          (_huge_header(), bytes(1 << 16))],
+                         ids=["random-bytes", "4GiB-header-then-zeros"])
+def test_a_closed_connection_is_freed_without_the_cyclic_collector(first, chunk):
+    """With the cyclic garbage collector off, every connection refused as corrupt and closed
+    is freed by reference counting alone: its StreamReader (and the receive buffer it holds)
+    is gone right after close(), and the heap does not grow by a buffer per connection.
+    Before: the reader's frame sat in the error's traceback, which asyncio keeps in a reference
+    cycle, so each connection kept ~350-500 KiB until gc ran (what made the test above flaky)."""
+    import gc
+    import tracemalloc
+    import weakref
+
+    async def main():
+        fake = _FakeStream(_endless(chunk, first=first))
+        port = await fake.start()
+        client = hyperion.HyperionClient("127.0.0.1", stream_port=port)
+        loop = asyncio.get_running_loop()
+        alive, buffered, grown = [], [], []
+        try:
+            await client.open_stream()          # warm-up: first-use allocations of asyncio
+            await client.close()
+            base = tracemalloc.get_traced_memory()[0]
+            for _ in range(5):
+                await client.open_stream()
+                reader = weakref.ref(client._stream[0])
+                # let the sender fill the reader's buffer before the first read
+                end = loop.time() + 2.0
+                while len(reader()._buffer) < 2 * hyperion.READ_SIZE and loop.time() < end:
+                    await asyncio.sleep(0.01)
+                buffered.append(len(reader()._buffer))
+                with pytest.raises(hyperion.HyperionError, match="corrupt"):
+                    await asyncio.wait_for(client.read_blocks(5.0), 5.0)
+                await client.close()
+                alive.append(reader() is not None)
+                grown.append(tracemalloc.get_traced_memory()[0] - base)
+            return alive, buffered, grown
+        finally:
+            await client.close()
+            await fake.stop()
+
+    gc.collect()
+    gc.disable()
+    tracemalloc.start()
+    try:
+        alive, buffered, grown = asyncio.run(main())
+    finally:
+        tracemalloc.stop()
+        gc.enable()
+    assert min(buffered) >= 2 * hyperion.READ_SIZE      # there was a buffer worth freeing
+    assert alive == [False] * 5, "a closed connection's reader still referenced"
+    # measured: ~10 KiB a connection left to the collector (the exception and its frames),
+    # ~350-500 KiB before the fix
+    assert grown[-1] < 5 * 48 << 10, [g >> 10 for g in grown]
+
+
 # --------------------------------------------------------------------------- decoder properties
 from hypothesis import HealthCheck, event, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402

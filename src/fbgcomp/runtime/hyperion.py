@@ -34,6 +34,7 @@ from __future__ import annotations
 import asyncio
 import functools
 import struct
+import traceback
 from dataclasses import dataclass
 
 import numpy as np
@@ -289,9 +290,13 @@ class PeakStreamDecoder:
         self._buffer += data
         try:
             blocks, used = decode_peak_frames(self._buffer, self.limits)
-        except HyperionError:
-            # a new buffer, not clear(): the traceback still holds a view of the old one
+        except HyperionError as exc:
+            # a new buffer, not clear(): the traceback still holds a view of the old one. The
+            # decoder's finished frame in that traceback is emptied too, so the old buffer (up
+            # to a frame plus a read) goes now rather than whenever the exception is collected.
             self._buffer = bytearray()
+            traceback.clear_frames(exc.__traceback__)
+            data = None   # noqa: F841 - this frame stays in the traceback too, with the read
             raise
         if used:
             del self._buffer[:used]
@@ -378,19 +383,28 @@ class HyperionClient:
         """
         if self._stream is None:
             raise ConnectionError("peak stream is not open")
-        reader = self._stream[0]
+        reader: asyncio.StreamReader | None = self._stream[0]
+        chunk = b""
         loop = asyncio.get_running_loop()
         deadline = loop.time() + (timeout_s or self.timeout_s)
-        while True:
-            remaining = deadline - loop.time()
-            if remaining <= 0:
-                raise asyncio.TimeoutError()
-            chunk = await asyncio.wait_for(reader.read(READ_SIZE), remaining)
-            if not chunk:
-                raise ConnectionError("instrument closed the peak stream")
-            blocks = self._decoder.feed(chunk)
-            if blocks:
-                return blocks
+        try:
+            while True:
+                remaining = deadline - loop.time()
+                if remaining <= 0:
+                    raise asyncio.TimeoutError()
+                chunk = await asyncio.wait_for(reader.read(READ_SIZE), remaining)
+                if not chunk:
+                    raise ConnectionError("instrument closed the peak stream")
+                blocks = self._decoder.feed(chunk)
+                if blocks:
+                    return blocks
+        finally:
+            # An exception raised here keeps this frame alive in its traceback, and asyncio
+            # puts that traceback in a reference cycle (the awaiting future holds the exception,
+            # the exception its traceback, the traceback wait_for's frame and that future):
+            # the reader and its receive buffer (hundreds of KiB) would then live until the
+            # cyclic collector runs. Dropping them from the frame lets close() free them at once.
+            reader = chunk = None   # noqa: F841
 
     async def close(self) -> None:
         for conn in (self._cmd, self._stream):
