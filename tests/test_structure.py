@@ -415,3 +415,22 @@ def test_incompatible_modes_remove_the_bending_lock_of_the_coarse_cantilever(mac
     theory_um = _timoshenko_box_um(machine, L, F)
     assert tips[True] == pytest.approx(theory_um, rel=0.02)
     assert abs(tips[False] / theory_um - 1) > 2 * abs(tips[True] / theory_um - 1)
+
+
+def test_closed_form_box_assembly_matches_the_skfem_forms(machine, fe):
+    """The vectorised hex8 assembly (closed-form box elements) equals scikit-fem's weak forms to
+    round-off, on the housing + ram mesh (both materials), numbered the same."""
+    from fbgcomp.structure.mesh import machine_mesh
+    rm = machine_mesh(machine, 0.4)
+    mats = machine.materials
+    vb1, _, K1, T1 = fe.elastic.assemble_elasticity_forms(rm, mats.cfrp, mats.steel)
+    vb2, _, K2, T2 = fe.elastic.assemble_elasticity(rm, mats.cfrp, mats.steel)
+    assert fe.elastic._box_geometry(rm.mesh.p, rm.mesh.t)[0] is not None   # the fast path ran
+    assert np.array_equal(vb1.nodal_dofs, vb2.nodal_dofs)
+    assert K1.shape == K2.shape and T1.shape == T2.shape
+    assert abs(K1 - K2).max() <= 1e-13 * abs(K1).max()
+    assert abs(T1 - T2).max() <= 1e-13 * abs(T1).max()
+    # A mesh that is not made of boxes takes the forms: shear one node of the grid.
+    p = rm.mesh.p.copy()
+    p[0, 0] += 0.1
+    assert fe.elastic._box_geometry(p, rm.mesh.t)[0] is None
