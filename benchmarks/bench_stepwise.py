@@ -1,25 +1,29 @@
-"""Stepwise selection from the streamed QR factor vs. refitting statsmodels OLS per candidate.
+"""Stepwise selection: fbgcomp vs. the Gram/Cholesky recipe and vs. statsmodels, side by side.
 
-Design: N rows (default 10^6) of 5 FBG elongations (µm) and 3 temperature features (K), and
-every square and pairwise product of those 8: 8 + 36 = 44 candidate terms plus the constant
-(always in the model). The TTP deviation (µm) is a known combination of 10 of the terms plus
-noise.
+Design: N rows (default 10^6, then 10^5) of 5 FBG elongations (µm) and 3 temperature features
+(K), and every square and pairwise product of those 8: 8 + 36 = 44 candidate terms plus the
+constant (always in the model). The TTP deviation (µm) is a known combination of 10 of the terms
+plus noise.
 
 * fbgcomp: accumulate the factor once (:class:`fbgcomp.regression.QRAccumulator`, 100 000-row
-  chunks), then :func:`fbgcomp.regression.stepwise` (direction "both", partial F tests), which
-  never touches the rows again. The timing includes the accumulation.
-* the usual recipe: the same algorithm (forward entry of the candidate with the largest partial
-  F while p < p_enter, then removal of the term with the smallest partial F while p > p_remove,
-  never revisiting a model), every candidate model refitted with
-  ``sm.OLS(y, X[:, cols]).fit()`` and compared with ``compare_f_test``.
+  chunks, as a stream would arrive), then :func:`fbgcomp.regression.stepwise` (direction
+  "both", naive partial F tests), which never touches the rows again. The timing includes the
+  accumulation.
+* the Gram/Cholesky recipe (the fair baseline, issue 16): form X'X, X'y and y'y once, then take
+  a Cholesky of the sub-Gram of every candidate model and apply the same rules (enter the
+  largest partial F while p < p_enter, after each entry remove the smallest while
+  p > p_remove, never revisit a model).
+* statsmodels, the recipe most users start from: the same search, every candidate model
+  refitted with ``sm.OLS(y, X[:, cols]).fit()``.
 
-Both must select the same terms and the same coefficients (1e-8 relative); the script prints
-both times and the ratio (target >= 50x), then one JSON line. Both use the naive i.i.d. partial
-F test (fbgcomp: ``cov_type="nonrobust"``, an accumulator without lag statistics), which is
-what statsmodels' ``compare_f_test`` computes: the comparison stays apples to apples although
-fbgcomp's MRA model now defaults to Newey-West (HAC) tests.
+fbgcomp and the Gram recipe run interleaved (the order alternating), ``--runs`` times per size;
+statsmodels ``--sm-runs`` times (it takes minutes at 10^6 rows). Medians, the load average and
+the ratios (baseline time / fbgcomp time; targets >= 1.0x Gram, >= 50x statsmodels) are printed;
+all three must select the same terms with coefficients equal to 1e-8 relative. Last line: one
+JSON object. Both sides use the naive i.i.d. partial F test (fbgcomp: ``cov_type="nonrobust"``),
+although fbgcomp's MRA model defaults to Newey-West (HAC) tests.
 
-    python benchmarks/bench_stepwise.py [--rows 1000000] [--p-enter 0.05] [--p-remove 0.10]
+    python benchmarks/bench_stepwise.py [--rows 1000000 100000] [--runs 5] [--sm-runs 1]
 
 ``--ram2 DIR`` instead prints the before/after table of docs/models.md (issue 12): the paper's
 MRA model (eq13, stepwise) fitted on DIR/thermal_a + DIR/static_xyz with naive and with HAC
@@ -78,31 +82,36 @@ def fbgcomp_stepwise(X, y, names, p_enter, p_remove):
         acc.update(X[lo:lo + 100_000], y[lo:lo + 100_000])
     sw = stepwise(acc, include=["const"], direction="both", p_enter=p_enter, p_remove=p_remove,
                   cov_type="nonrobust")
-    return sw.selected, sw.result.params, len(sw.history), acc.extended_
+    path = ("double-double" if acc.extended_ else
+            "gram" if getattr(acc, "gram_rows_", 0) else "qr")
+    return sw.selected, np.asarray(sw.result.params), len(sw.history), path
 
 
-def statsmodels_stepwise(X, y, names, p_enter, p_remove):
-    import statsmodels.api as sm
+def _search(n_cand, p_enter, p_remove, df_of, fit):
+    """The stepwise rules of fbgcomp.regression.stepwise (direction "both", constant forced):
+    enter the candidate of largest partial F while p < p_enter, after each entry remove the term
+    of smallest partial F while p > p_remove, never revisit a model. ``fit(cols)`` returns
+    (ssr, params) or None when the sub-model is (numerically) singular."""
+    from scipy import stats
 
-    fits = {"n": 0}
+    def partial_f(ssr_small, ssr_big, df_big):
+        f = max(ssr_small - ssr_big, 0.0) / (ssr_big / df_big)
+        return f, float(stats.f.sf(f, 1, df_big))
 
-    def fit(cols):
-        fits["n"] += 1
-        return sm.OLS(y, X[:, sorted(cols)]).fit()
-
-    const = 0
-    cand = list(range(1, X.shape[1]))
     model: list[int] = []
     visited = {frozenset(model)}
+    current = fit([0])
     steps = 0
-    current = fit([const])
     while True:
         best = None
-        for c in cand:
+        df_big = df_of(len(model) + 2)
+        for c in range(1, n_cand + 1):
             if c in model or frozenset(model + [c]) in visited:
                 continue
-            big = fit([const] + model + [c])
-            f, p, _ = big.compare_f_test(current)
+            big = fit([0] + model + [c])
+            if big is None:
+                continue
+            f, p = partial_f(current[0], big[0], df_big)
             if best is None or f > best[1]:
                 best = (c, f, p, big)
         if best is None or not best[2] < p_enter:
@@ -113,12 +122,13 @@ def statsmodels_stepwise(X, y, names, p_enter, p_remove):
         steps += 1
         while model:
             worst = None
+            df_big = df_of(len(model) + 1)
             for c in model:
                 rest = [d for d in model if d != c]
                 if frozenset(rest) in visited:
                     continue
-                small = fit([const] + rest)
-                f, p, _ = current.compare_f_test(small)
+                small = fit([0] + rest)
+                f, p = partial_f(small[0], current[0], df_big)
                 if worst is None or f < worst[1]:
                     worst = (c, f, p, small)
             if worst is None or not worst[2] > p_remove:
@@ -127,8 +137,137 @@ def statsmodels_stepwise(X, y, names, p_enter, p_remove):
             visited.add(frozenset(model))
             current = worst[3]
             steps += 1
-    cols = sorted([const] + model)
-    return [names[c] for c in cols], np.asarray(current.params), steps, fits["n"]
+    return sorted([0] + model), current, steps
+
+
+def gram_stepwise(X, y, names, p_enter, p_remove):
+    """The standard recipe: X'X, X'y and y'y formed once, then a Cholesky of the sub-Gram of
+    every candidate model (scipy cho_factor / cho_solve), SSR = y'y - b'X'y."""
+    from scipy import linalg
+
+    n = X.shape[0]
+    G = X.T @ X
+    g = X.T @ y
+    yy = float(y @ y)
+    fits = {"n": 0}
+
+    def fit(cols):
+        fits["n"] += 1
+        idx = sorted(cols)
+        try:
+            factor = linalg.cho_factor(G[np.ix_(idx, idx)], check_finite=False)
+        except linalg.LinAlgError:
+            return None
+        beta = linalg.cho_solve(factor, g[idx], check_finite=False)
+        return yy - float(g[idx] @ beta), beta
+
+    cols, (_, params), steps = _search(X.shape[1] - 1, p_enter, p_remove, lambda m: n - m, fit)
+    return [names[c] for c in cols], np.asarray(params), steps, fits["n"]
+
+
+def statsmodels_stepwise(X, y, names, p_enter, p_remove):
+    """What most users start from: refit ``sm.OLS(y, X[:, cols])`` for every candidate model."""
+    import statsmodels.api as sm
+
+    n = X.shape[0]
+    fits = {"n": 0}
+
+    def fit(cols):
+        fits["n"] += 1
+        res = sm.OLS(y, X[:, sorted(cols)]).fit()
+        return float(res.ssr), np.asarray(res.params)
+
+    cols, (_, params), steps = _search(X.shape[1] - 1, p_enter, p_remove, lambda m: n - m, fit)
+    return [names[c] for c in cols], np.asarray(params), steps, fits["n"]
+
+
+def _timed(fn, *args):
+    t0, c0 = time.perf_counter(), time.process_time()
+    out = fn(*args)
+    return out, time.perf_counter() - t0, time.process_time() - c0
+
+
+def _rel_diff(a, b) -> float:
+    return float(np.max(np.abs(np.asarray(a) - np.asarray(b)) / np.abs(np.asarray(b))))
+
+
+def bench_size(n_rows, args) -> dict:
+    X, y, names = make_data(n_rows, args.seed)
+    rules = (names, args.p_enter, args.p_remove)
+    print(f"\n== {n_rows} rows, {X.shape[1] - 1} candidate terms + const; load average "
+          f"{_load()}")
+    runs = {"fbgcomp": [], "gram": [], "statsmodels": []}
+    out = {}
+    for r in range(args.runs):
+        # Interleaved A/B, the order alternating run by run so neither side always goes first.
+        order = ["fbgcomp", "gram"] if r % 2 == 0 else ["gram", "fbgcomp"]
+        if r < args.sm_runs:
+            order.append("statsmodels")
+        for who in order:
+            fn = {"fbgcomp": fbgcomp_stepwise, "gram": gram_stepwise,
+                  "statsmodels": statsmodels_stepwise}[who]
+            out[who], wall, cpu = _timed(fn, X, y, *rules)
+            runs[who].append((wall, cpu))
+        print(f"  run {r + 1}: " + ", ".join(f"{w} {runs[w][-1][0]:.3f} s" for w in order)
+              + f"  (load {_load()})")
+        sys.stdout.flush()
+    med = {w: (float(np.median([t[0] for t in v])), float(np.median([t[1] for t in v])))
+           for w, v in runs.items() if v}
+    sel_f, par_f, steps_f, path = out["fbgcomp"]
+    sel_g, par_g, steps_g, fits_g = out["gram"]
+    print(f"  fbgcomp (one pass, {path} data path, then stepwise on the factor): "
+          f"median {med['fbgcomp'][0]:.3f} s wall / {med['fbgcomp'][1]:.3f} s CPU of "
+          f"{len(runs['fbgcomp'])}; {steps_f} steps, {len(sel_f)} terms")
+    print(f"  Gram/Cholesky recipe (X'X once, {fits_g} sub-Gram Choleskys): median "
+          f"{med['gram'][0]:.3f} s wall / {med['gram'][1]:.3f} s CPU of {len(runs['gram'])}")
+    res = {"rows": n_rows, "candidates": X.shape[1] - 1, "runs": args.runs,
+           "fbgcomp_path": path, "fbgcomp_s": round(med["fbgcomp"][0], 4),
+           "gram_s": round(med["gram"][0], 4), "fbgcomp_cpu_s": round(med["fbgcomp"][1], 4),
+           "gram_cpu_s": round(med["gram"][1], 4), "steps": steps_f,
+           "terms": len(sel_f), "same_terms_gram": sel_f == sel_g,
+           "max_rel_coef_diff_gram": _rel_diff(par_f, par_g) if sel_f == sel_g else None,
+           "ratio_gram": round(med["gram"][0] / med["fbgcomp"][0], 2),
+           "cpu_ratio_gram": round(med["gram"][1] / med["fbgcomp"][1], 2)}
+    if runs["statsmodels"]:
+        sel_s, par_s, _, fits_s = out["statsmodels"]
+        print(f"  statsmodels (sm.OLS refit per candidate, {fits_s} fits): median "
+              f"{med['statsmodels'][0]:.3f} s wall / {med['statsmodels'][1]:.3f} s CPU of "
+              f"{len(runs['statsmodels'])}")
+        res.update({"statsmodels_s": round(med["statsmodels"][0], 3),
+                    "statsmodels_cpu_s": round(med["statsmodels"][1], 3),
+                    "same_terms_statsmodels": sel_f == sel_s,
+                    "max_rel_coef_diff_statsmodels": (_rel_diff(par_f, par_s) if sel_f == sel_s
+                                                      else None),
+                    "ratio_statsmodels": round(med["statsmodels"][0] / med["fbgcomp"][0], 1),
+                    "cpu_ratio_statsmodels": round(med["statsmodels"][1] / med["fbgcomp"][1], 1)})
+    print(f"  selected terms identical to the Gram recipe: {res['same_terms_gram']}"
+          + (f", to statsmodels: {res['same_terms_statsmodels']}" if runs["statsmodels"] else "")
+          + f" ({', '.join(sel_f)})")
+    print(f"  max relative coefficient difference: vs Gram recipe "
+          f"{res['max_rel_coef_diff_gram']!s}"
+          + (f", vs statsmodels {res['max_rel_coef_diff_statsmodels']!s}"
+             if runs["statsmodels"] else "") + " (must be <= 1e-8)")
+    print(f"  ratio (baseline time / fbgcomp time): Gram recipe {res['ratio_gram']:.2f}x wall, "
+          f"{res['cpu_ratio_gram']:.2f}x CPU (target >= 1.0x)"
+          + (f"; statsmodels {res['ratio_statsmodels']:.1f}x wall, "
+             f"{res['cpu_ratio_statsmodels']:.1f}x CPU (target >= 50x)" if runs["statsmodels"]
+             else ""))
+    ok = (res["same_terms_gram"] and res["max_rel_coef_diff_gram"] is not None
+          and res["max_rel_coef_diff_gram"] <= 1e-8)
+    if runs["statsmodels"]:
+        ok = (ok and res["same_terms_statsmodels"]
+              and res["max_rel_coef_diff_statsmodels"] is not None
+              and res["max_rel_coef_diff_statsmodels"] <= 1e-8)
+    res["ok"] = bool(ok)
+    res["load_average_after"] = _load()
+    return res
+
+
+def _load() -> str:
+    try:
+        return " ".join(f"{v:.2f}" for v in os.getloadavg())
+    except OSError:
+        return "n/a"
 
 
 def ram2_before_after(root: str) -> int:
@@ -165,49 +304,27 @@ def ram2_before_after(root: str) -> int:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ram2", metavar="DIR", help="print the naive vs HAC table on ram2 instead")
-    ap.add_argument("--rows", type=int, default=1_000_000)
+    ap.add_argument("--rows", type=int, nargs="+", default=[1_000_000, 100_000])
+    ap.add_argument("--runs", type=int, default=5, help="interleaved runs of fbgcomp and the "
+                    "Gram recipe per size (median reported)")
+    ap.add_argument("--sm-runs", type=int, default=1, help="statsmodels runs per size (it takes "
+                    "minutes at 10^6 rows; 0 skips it)")
     ap.add_argument("--p-enter", type=float, default=0.05)
     ap.add_argument("--p-remove", type=float, default=0.10)
     ap.add_argument("--seed", type=int, default=0)
     args = ap.parse_args(argv)
     if args.ram2:
         return ram2_before_after(args.ram2)
+    import scipy
+    import statsmodels
 
-    X, y, names = make_data(args.rows, args.seed)
-    print(f"{args.rows} rows, {X.shape[1] - 1} candidate terms + const; stepwise 'both', "
-          f"p_enter {args.p_enter}, p_remove {args.p_remove}; Python {platform.python_version()}, "
-          f"{os.cpu_count()} cores")
-
-    t0, c0 = time.perf_counter(), time.process_time()
-    sel_f, params_f, steps_f, extended = fbgcomp_stepwise(X, y, names, args.p_enter, args.p_remove)
-    t_fbg, c_fbg = time.perf_counter() - t0, time.process_time() - c0
-    print(f"fbgcomp (QR factor, accumulate + stepwise): {t_fbg:8.2f} s wall, {c_fbg:8.2f} s CPU, "
-          f"{steps_f} steps, "
-          f"{len(sel_f)} terms{' (double-double data pass)' if extended else ''}")
-    sys.stdout.flush()
-
-    t0, c0 = time.perf_counter(), time.process_time()
-    sel_s, params_s, steps_s, n_fits = statsmodels_stepwise(X, y, names, args.p_enter, args.p_remove)
-    t_sm, c_sm = time.perf_counter() - t0, time.process_time() - c0
-    print(f"statsmodels (sm.OLS refit per candidate): {t_sm:8.2f} s wall, {c_sm:8.2f} s CPU, "
-          f"{steps_s} steps, "
-          f"{n_fits} OLS fits")
-
-    same_terms = sel_f == sel_s
-    rel = float(np.max(np.abs(params_f - params_s) / np.abs(params_s))) if same_terms else None
-    print(f"selected terms identical: {same_terms} ({', '.join(sel_f)})")
-    if rel is not None:
-        print(f"largest relative coefficient difference: {rel:.2e} (must be <= 1e-8)")
-    ratio = t_sm / t_fbg
-    cpu_ratio = c_sm / c_fbg
-    # On a shared machine wall time depends on the neighbours' load; CPU time much less so.
-    print(f"speed-up: {ratio:.1f}x wall, {cpu_ratio:.1f}x CPU (target >= 50x)")
-    ok = same_terms and rel is not None and rel <= 1e-8
-    print(json.dumps({"bench": "stepwise", "rows": args.rows, "candidates": X.shape[1] - 1,
-                      "fbgcomp_s": round(t_fbg, 3), "statsmodels_s": round(t_sm, 3),
-                      "fbgcomp_cpu_s": round(c_fbg, 3), "statsmodels_cpu_s": round(c_sm, 3),
-                      "ratio": round(ratio, 1), "cpu_ratio": round(cpu_ratio, 1), "statsmodels_fits": n_fits, "steps": steps_f,
-                      "same_terms": same_terms, "max_rel_coef_diff": rel, "ok": ok}))
+    print(f"stepwise 'both', p_enter {args.p_enter}, p_remove {args.p_remove}; Python "
+          f"{platform.python_version()}, numpy {np.__version__}, scipy {scipy.__version__}, "
+          f"statsmodels {statsmodels.__version__}, {os.cpu_count()} cores, "
+          f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}")
+    results = [bench_size(n, args) for n in args.rows]
+    ok = all(r["ok"] for r in results)
+    print(json.dumps({"bench": "stepwise", "sizes": results, "ok": ok}))
     return 0 if ok else 1
 
 
