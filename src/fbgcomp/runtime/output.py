@@ -114,6 +114,19 @@ class AdaptiveLevelFilter:
         self.restarts = np.zeros(3, np.int64)
         self.undone = np.zeros(3, np.int64)
 
+    def reseated(self) -> "AdaptiveLevelFilter":
+        """A filter that starts afresh from the next frame (its level the running mean of
+        the new frames until its first block closes), keeping what this one learnt of the
+        noise: its robust SD and excursion envelopes. For a switch of model (a fallback taken
+        or left): the two models' corrections differ by their own fits, not by any motion of
+        the machine, so the new model's level is not a step to confirm - confirming it would
+        keep the old model's level published for up to ``slow_confirm_s``, and the episode
+        would then be learnt as a pop, raising the thresholds for ``envelope_tau_s``."""
+        new = AdaptiveLevelFilter(self.config, self.frame_interval_s, self.sd)
+        new.noise_blocks = self.noise_blocks.copy()
+        new.env = self.env.copy()
+        return new
+
     @property
     def noise_sd_um(self) -> np.ndarray:
         return self.sd.copy()

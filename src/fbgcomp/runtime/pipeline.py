@@ -145,6 +145,7 @@ class Pipeline:
             cap = np.minimum(cap, per_axis(own, "model max_correction_um"))
         self.max_correction_um = cap
         self.output_filter: AdaptiveLevelFilter | None = None
+        self._filter_set: int | None = None      # model set of the last filtered frame
         self._zero_frames = 0
         self._t_zero_last: float | None = None
         self.frame_dt_s: float | None = None   # nominal frame interval (the rate limit's cap)
@@ -257,7 +258,7 @@ class Pipeline:
             health[rows] = np.where(choice == 0, HEALTH_OK,
                                     np.where(choice > 0, HEALTH_DEGRADED, HEALTH_ALARM))
         target = self._envelope(-dev, health, flags)
-        correction = self._filter(time_s, target, rms)
+        correction = self._filter(time_s, target, rms, model_set)
         correction = self._hold_and_ramp(time_s, correction, health)
         correction = self._shape(time_s, correction, enabled, flags, self._gap_cap(time_s))
         return BatchResult(time_s, dev, half, correction, rms, health, status, model_set,
@@ -294,8 +295,16 @@ class Pipeline:
                 self.frame_dt_s = float(np.median(d))
         return np.inf if self.frame_dt_s is None else 2.0 * self.frame_dt_s
 
-    def _filter(self, t: np.ndarray, corr: np.ndarray, rms: np.ndarray) -> np.ndarray:
-        """Adaptive output filter over the rows with a prediction (the others stay NaN)."""
+    def _filter(self, t: np.ndarray, corr: np.ndarray, rms: np.ndarray,
+                model_set: np.ndarray | None = None) -> np.ndarray:
+        """Adaptive output filter over the rows with a prediction (the others stay NaN).
+
+        It is re-seated (:meth:`AdaptiveLevelFilter.reseated`) on the first frame of another
+        model set than the last filtered one: a fallback taken on a fault, or the full model
+        again on re-admission, is published at its own level at once (the rate limit still
+        bounds the change), not after the filter confirmed the models' difference as a step -
+        which kept the fallback's level published with Health OK for ~0.3 s after a mode hop's
+        re-admission (tests/test_runtime_modehop.py)."""
         if not self.config.output_filter.enabled:
             return corr
         good = np.isfinite(corr).all(axis=1)
@@ -308,7 +317,17 @@ class Pipeline:
             dt = (float(t[first]) - self._t_first) / max(self._zero_frames, 1)
             self.output_filter = AdaptiveLevelFilter(self.config.output_filter, dt, rms[first])
         out = corr.copy()
-        out[good] = self.output_filter.process(corr[good])
+        rows = np.flatnonzero(good)
+        sets = np.zeros(rows.size, np.int64) if model_set is None else \
+            model_set[rows].astype(np.int64)
+        prev = self._filter_set if self._filter_set is not None else int(sets[0])
+        switch = set(np.flatnonzero(np.concatenate([[prev], sets[:-1]]) != sets).tolist())
+        edges = sorted({0, rows.size, *switch})
+        for a, b in zip(edges[:-1], edges[1:]):
+            if a in switch:
+                self.output_filter = self.output_filter.reseated()
+            out[rows[a:b]] = self.output_filter.process(corr[rows[a:b]])
+        self._filter_set = int(sets[-1])
         return out
 
     def _shape(self, t, corr, enabled, flags, dt_cap=np.inf) -> np.ndarray:

@@ -1,0 +1,204 @@
+"""Issue 13, finding 1, end to end: ``sim-interrogator --fault shift:S3@8:+2`` -> ``serve`` ->
+OPC UA and the run log, all real processes on loopback.
+
+A 2 nm jump of S3 at t = 8 s stays inside the grating's window, as an interrogator's mode hop
+does. ``serve`` used to show JUMP and DEGRADED for a second, re-admit S3 against its original
+zero and then publish CorrectionY = 48,800 µm with Health OK. ``serve`` runs here with its
+default output policy (output filter, rate limit, per-axis maximum); a real asyncua client
+(Basic256Sha256 Sign & Encrypt, user + password) watches the outputs throughout.
+
+The fault-free correction is computed from the very frames ``serve`` logged, with the 2 nm
+taken back off S3 from the hop on, through the same pipeline and configuration: so the
+comparison is frame by frame, with the same noise, and measures only what the hop did.
+"""
+
+import asyncio
+import time
+
+import numpy as np
+import pytest
+
+import fbgcomp_testing
+from test_runtime_support import (fbgcomp_process, free_port, model_and_campaign,
+                                  secure_client, wait_port)
+
+ENV = {"FBGCOMP_OPCUA_USER": "operator", "FBGCOMP_OPCUA_PASSWORD": "modehop-pass-123"}
+AXES = ("X", "Y", "Z")
+NAMES = ["CorrectionX_um", "CorrectionY_um", "CorrectionZ_um", "Health", "Alarm",
+         "FallbackInUse", "Sensors.S3.Status"]
+HOP_AT_S, HOP_NM = 8.0, 2.0
+
+
+async def _watch(url, state, trust_dir, timeout_s, stop_when):
+    """Subscribe to the outputs; return [(name, value, source time s, receive time s)]."""
+    from asyncua import ua
+    from fbgcomp.runtime.trust import add_certificate
+    seen = []
+
+    class Handler:
+        def datachange_notification(self, node, val, data):
+            ts = data.monitored_item.Value.SourceTimestamp
+            seen.append((node.nodeid.Identifier[len("FbgComp."):], val,
+                         ts.timestamp() if ts else float("nan"), time.time()))
+
+    client = await secure_client(url, state, ENV["FBGCOMP_OPCUA_USER"],
+                                 ENV["FBGCOMP_OPCUA_PASSWORD"])
+    add_certificate(state / "client_cert.der", trust_dir)     # serve trusts known clients only
+    async with client:
+        sub = await client.create_subscription(0, Handler())
+        await sub.subscribe_data_change([client.get_node(ua.NodeId(f"FbgComp.{n}", 2))
+                                         for n in NAMES])
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end and not stop_when(seen):
+            await asyncio.sleep(0.05)
+    return seen
+
+
+@pytest.fixture(scope="module")
+def hop(tmp_path_factory):
+    fbgcomp_testing.require("asyncua")
+    fbgcomp_testing.require("pyarrow")
+    from fbgcomp.runtime.log import read_log
+
+    model_path, campaign = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+    tmp = tmp_path_factory.mktemp("modehop")
+    config = tmp / "serve.toml"
+    # only the reconnect back-off is set: the output policy is serve's default
+    config.write_text("[source]\nbackoff_initial_s = 0.05\nbackoff_max_s = 0.4\n")
+    sp, cp, op = free_port(), free_port(), free_port()
+    url = f"opc.tcp://127.0.0.1:{op}/fbgcomp/"
+    serve = fbgcomp_process("serve", "--config", config, "--model", model_path, "--source",
+                            f"hyperion://127.0.0.1:{sp}?command_port={cp}",
+                            "--temperatures", campaign, "--opcua", url,
+                            "--state-dir", tmp / "state", "--log", tmp / "log", "--rate", 0,
+                            env=ENV)
+    sim = None
+    try:
+        try:
+            wait_port(op, 40)
+        except TimeoutError:
+            serve.kill()
+            raise AssertionError(serve.communicate(timeout=5)[1].decode()[-3000:])
+        sim = fbgcomp_process("sim-interrogator", campaign, "--port", sp, "--command-port", cp,
+                              "--rate", 1000, "--noise-pm", 0.3,
+                              "--fault", f"shift:S3@{HOP_AT_S:g}:+{HOP_NM:g}")
+
+        def done(seen):
+            # S3 was out (jumped, recovering) and has been back (OK) for 3 s
+            s3 = [(v, r) for n, v, _, r in seen if n == "Sensors.S3.Status"]
+            out = [i for i, (v, _) in enumerate(s3) if v in ("JUMP", "RECOVERING")]
+            back = [r for v, r in s3[out[0]:] if v == "OK"] if out else []
+            return bool(back) and time.time() - back[0] > 3.0
+
+        seen = asyncio.run(_watch(url, tmp / "client", tmp / "state" / "opcua" / "trusted",
+                                  60.0, done))
+        alive = serve.poll() is None
+    finally:
+        for p in (sim, serve):
+            if p is not None and p.poll() is None:
+                p.terminate()
+                try:
+                    p.wait(10)
+                except Exception:
+                    p.kill()
+            if p is not None:
+                p.communicate(timeout=10)
+    meta, log = read_log(tmp / "log")
+    return dict(seen=seen, alive=alive, meta=meta, log=log, model_path=model_path)
+
+
+def _fault_free(model_path, log):
+    """(pipeline, result) of serve's own pipeline and configuration over the logged frames,
+    S3's 2 nm taken back off from the hop (its first JUMP frame) on."""
+    from fbgcomp.models import load_model
+    from fbgcomp.runtime import health as H
+    from fbgcomp.runtime.pipeline import Pipeline
+    from test_runtime_support import run_in_batches
+
+    model = load_model(model_path)
+    t = log["time_s"].to_numpy()
+    wl = log[[f"{s}_nm" for s in model.sensor_names]].to_numpy().copy()
+    temp = log[[f"{p}_C" for p in model.probe_names]].to_numpy()
+    at = int(np.argmax(log["S3_status"].to_numpy() == H.JUMP))
+    wl[at:, model.sensor_names.index("S3")] -= HOP_NM
+    pipe = Pipeline(model)
+    return pipe, at, run_in_batches(pipe, t, wl, temp, [97])
+
+
+def test_the_hop_is_seen_and_s3_is_re_admitted(hop):
+    from fbgcomp.runtime import health as H
+
+    assert hop["alive"]
+    log, seen = hop["log"], hop["seen"]
+    t = log["time_s"].to_numpy()
+    s3 = log["S3_status"].to_numpy()
+    jumps = np.flatnonzero(s3 == H.JUMP)
+    assert jumps.size == 1, jumps                        # one hop, in one frame
+    at = int(jumps[0])
+    # the frame the simulator shifted (serve may miss its first frames while it connects)
+    assert HOP_AT_S - 1.0 < t[at] - t[0] <= HOP_AT_S + 0.05
+    assert log["S3_nm"][at] - log["S3_nm"][at - 1] == pytest.approx(HOP_NM, abs=0.01)
+    health = log["health"].to_numpy()
+    assert health[at - 1] == 0 and health[at] == 1       # DEGRADED on the hop frame itself
+    recovering = (t > t[at]) & (t < t[at] + 0.9)
+    assert (s3[recovering] == H.RECOVERING).all() and (health[recovering] == 1).all()
+    back = t > t[at] + 1.1
+    assert back.sum() > 1000 and (s3[back] == H.OK).all()
+    # OPC UA showed it: S3 out then back, health DEGRADED with S3's fallback in use, then OK
+    s3_seen = [v for n, v, *_ in seen if n == "Sensors.S3.Status"]
+    assert {"JUMP", "RECOVERING"} & set(s3_seen) and s3_seen[-1] == "OK"
+    states = [v for n, v, *_ in seen if n == "Health"]
+    assert "DEGRADED" in states and states[-1] == "OK"
+    assert "S3" in [v for n, v, *_ in seen if n == "FallbackInUse"]
+
+
+def test_the_correction_stays_within_the_bound(hop):
+    from fbgcomp.runtime.pipeline import Pipeline
+    from fbgcomp.models import load_model
+
+    bound = Pipeline(load_model(hop["model_path"])).max_correction_um
+    log, seen = hop["log"], hop["seen"]
+    corr = log[[f"corr_d{a.lower()}_um" for a in AXES]].to_numpy()
+    dev = log[[f"dev_d{a.lower()}_um" for a in AXES]].to_numpy()
+    assert np.isfinite(bound).all()
+    assert (np.abs(corr) <= bound).all()
+    ok = log["health"].to_numpy() == 0
+    # with Health OK, even the model's raw prediction is within the bound
+    assert (np.abs(dev[ok]) <= bound).all()
+    for j, a in enumerate(AXES):
+        published = [v for n, v, *_ in seen if n == f"Correction{a}_um"]
+        assert len(published) > 100 and max(map(abs, published)) <= bound[j]
+    assert not any(v for n, v, *_ in seen if n == "Alarm")
+
+
+def test_re_admission_publishes_the_fault_free_correction(hop):
+    log = hop["log"]
+    pipe, at, ref = _fault_free(hop["model_path"], log)
+    t = log["time_s"].to_numpy()
+    corr = log[[f"corr_d{a.lower()}_um" for a in AXES]].to_numpy()
+    health = log["health"].to_numpy()
+    # before the hop, the offline pipeline is serve's: the same numbers frame by frame
+    before = (t < t[at]) & (health != 3)
+    assert before.sum() > 5000
+    np.testing.assert_allclose(corr[before], ref["correction_um"][before], rtol=0, atol=1e-6)
+    # after: what serve published with Health OK is the fault-free correction. Only the
+    # frames the rate limit still holds back (flagged RATE_LIMITED) are in transit from the
+    # fallback's level to the full model's: a few frames (the two models differ by ~7 µm on
+    # dy here, walked at 1000 µm/s). The others: the step is taken as S3's new offset with one
+    # frame's noise on either side of it (0.4 pm, hundredths of a µm through the model), and
+    # the output filter re-seated on the switch back sits on a fresher rest level than the
+    # fault-free one; measured 0.16-0.3 µm, within the filter's own resolution
+    # (min_threshold_um = 1 µm: level differences below it are not followed either way).
+    # Before the filter re-seated on a model switch: 6.8 µm (the fallback's level kept for
+    # ~0.3 s with Health OK); before the re-zero rule: 48,800 µm.
+    flags = log[[f"flags_d{a.lower()}" for a in AXES]].to_numpy()
+    ok_after = (t > t[at]) & (health == 0)
+    transit = ok_after & ((flags & 8) != 0).any(axis=1)
+    settled = ok_after & ~transit
+    assert settled.sum() > 1000 and transit.sum() <= 20, transit.sum()
+    diff = np.abs(corr[settled] - ref["correction_um"][settled]).max(axis=0)
+    assert (diff < pipe.config.output_filter.min_threshold_um).all(), diff
+    # and the published correction never stepped across the hop: the rate limit's credit
+    # per frame (1000 µm/s, at most twice the frame interval) bounds each frame's change
+    step = np.abs(np.diff(corr[at - 1:], axis=0)).max(axis=0)
+    assert (step <= pipe.max_slew_um_per_s * pipe.frame_dt_s * 2 + 1e-9).all(), step
