@@ -98,6 +98,42 @@ def test_twin_learned_thermal_map_meets_the_lateral_targets(twin_model, ram2):
             assert not a["harm"], (name, axis, a)
 
 
+def test_default_beats_the_simplest_physical_model_on_dz(twin_model, ram2):
+    """Issue 12's baseline: dz = a + b dT_flange + c dT_amb by least squares on thermal_a,
+    judged on thermal_b. The twin map's housing transient is calibrated on thermal_a (how late
+    the flange probe sees the bearings' heat), so the default must do better on dz."""
+    def design(c):
+        al = c.aligned(zero_window_s=10.0)
+        names = list(al.probe_names)
+        dT = al.temperature_C - al.temperature_zero_C
+        X = np.column_stack([np.ones(len(dT)), dT[:, names.index("T_flange")], dT[:, names.index("T_amb")]])
+        return X, al.reference_um[:, 2]
+
+    X, y = design(ram2["thermal_a"])
+    coef = np.linalg.lstsq(X, y, rcond=None)[0]
+    Xb, yb = design(ram2["thermal_b"])
+    baseline = np.abs(Xb @ coef - yb).max()
+    cal = twin_model.twin_map_["calibration"]
+    assert np.asarray(cal["coef"]).shape == (1 + len(cal["leads_s"]), 3)
+    got = _metrics(twin_model, ram2["thermal_b"])["axes"]["dz"]["max_abs_error_um"]
+    assert got < 0.95 * baseline, (got, baseline)
+
+
+def test_calibrated_map_streams_and_round_trips(twin_model, ram2, tmp_path):
+    loaded = load_model(twin_model.save(tmp_path / "m.json"))
+    c = ram2["thermal_b"]
+    a, _ = twin_model.predict_interval(c)
+    np.testing.assert_allclose(loaded.predict_interval(c)[0], a, rtol=1e-10, atol=1e-9)
+    al = c.aligned(zero_window_s=loaded.zero_window_s)
+    _, _, w0, t0 = loaded.instrument_arrays(al)
+    ft, w, t = loaded.frame_arrays(c, al)
+    p = loaded.predictor()
+    parts = [p.predict(w[i:i + 4000], t[i:i + 4000], w0, t0, time_s=ft[i:i + 4000])[0]
+             for i in range(0, len(w), 4000)]
+    at = np.clip(np.searchsorted(ft, al.time_s, side="right") - 1, 0, None)
+    np.testing.assert_allclose(np.vstack(parts)[at], a, rtol=1e-9, atol=1e-8)
+
+
 def test_a_grating_that_jumps_alone_is_not_read_as_a_load(twin_model, ram2):
     """A step on one grating (a fibre slipping in its bond) matches no load: refused, flagged,
     and the unloaded axes keep their tiny error."""

@@ -25,7 +25,9 @@ is the gratings' warming pattern is a nuisance, never a load.
 elongations (thermometers of their gauges), the probes' smoothed ΔT, the housing's leads
 ``T - lowpass(T, tau)``] to the TTP, learned on generic thermal scenarios of the machine's FE
 twin (:func:`twin_thermal_population`), so the face-gradient coefficients that no measured
-campaign without a gradient can teach come from physics. Without one: per axis a least-squares
+campaign without a gradient can teach come from physics; only the housing's transient (how
+late its probe sees the bearings' heat, which every spindle duty cycle excites) is calibrated
+on the measured load-free campaigns (:meth:`PhysicalModel._calibrate_housing`). Without one: per axis a least-squares
 fit, on the load-free training campaigns, of the TTP on the housing and ambient probes and the
 housing's lead (the steel housing's mean temperature, which a probe on its far face sees late).
 Either way the inputs are clipped to the envelope they were learned on (``SHRUNK``), what the
@@ -124,14 +126,28 @@ def map_features(e_um, delta_T_K, housing_idx, time_s=None, state=None, nominal_
     state = state or {}
     smooth, s_in = first_order_filter(dT, time_s, PROBE_SMOOTHING_S, state.get("in"), nominal_dt_s)
     new = {"in": s_in}
-    cols = [e, smooth]
+    leads = housing_leads(smooth, housing_idx, MAP_LEADS_S, time_s, state, new, nominal_dt_s)
+    return np.hstack([e, smooth, leads]), new
+
+
+#: Time constants of the housing leads on which the twin map's housing transient is calibrated
+#: against the measured load-free campaigns, s.
+CAL_LEADS_S = (300.0, 900.0)
+
+
+def housing_leads(smooth_K, housing_idx, taus_s, time_s, state, new_state, nominal_dt_s=1.0):
+    """The mean housing ΔT's leads ``T - lowpass(T, tau)`` (n, len(taus_s)) K from probe ΔTs
+    already low-passed over ``PROBE_SMOOTHING_S`` (zeros without a housing probe); each
+    filter's state is read from ``state`` and written to ``new_state`` under ``lead<tau>``."""
+    smooth = np.atleast_2d(smooth_K)
     housing = (smooth[:, list(housing_idx)].mean(axis=1, keepdims=True) if len(housing_idx)
-               else np.zeros((e.shape[0], 1)))
-    for tau in MAP_LEADS_S:
-        slow, new[f"lead{tau:g}"] = first_order_filter(housing, time_s, tau, state.get(f"lead{tau:g}"),
-                                                       nominal_dt_s)
+               else np.zeros((smooth.shape[0], 1)))
+    cols = []
+    for tau in taus_s:
+        key = f"lead{tau:g}"
+        slow, new_state[key] = first_order_filter(housing, time_s, tau, state.get(key), nominal_dt_s)
         cols.append(housing - slow)
-    return np.hstack(cols), new
+    return np.hstack(cols)
 
 
 def ridge_from_moments(gram, xty, scale, keep, lam):
@@ -332,6 +348,8 @@ class PhysicalPredictor:
             self.noise_cov = noise
             self.nuisance_cov = nuisance_cov + np.zeros_like(noise)
         self.map = None
+        self.cal = None
+        self.last_cal_features = None
         if getattr(m, "twin_map_", None) is not None:
             tm = m.twin_map_
             S = len(self.sensor_names)
@@ -345,6 +363,10 @@ class PhysicalPredictor:
             self.map = {"coef": coef, "low": lo, "high": hi,
                         "G": (np.asarray(m.load_["G_um_per_N"], float) if m.load_ is not None
                               else np.zeros((S, 3)))}
+            cal = tm.get("calibration")
+            self.cal = None if cal is None else {
+                "leads_s": tuple(float(x) for x in cal["leads_s"]), "coef": np.asarray(cal["coef"], float),
+                "low": np.asarray(cal["envelope_low"], float), "high": np.asarray(cal["envelope_high"], float)}
         var = self.thermal_resid_var.copy()
         if self.has_load:
             var = var + (self.C ** 2 @ self.F_sds[1] ** 2)
@@ -546,12 +568,28 @@ class PhysicalPredictor:
             X, new_state["map"] = map_features(e_th, dT, self._h_idx, time_s, state.get("map"),
                                                self.nominal_dt_s)
             activity = X[:, -len(MAP_LEADS_S)]          # the housing's fastest lead, K
+            L = None
+            if self.cal is not None:
+                S = len(self.sensor_names)
+                smooth = X[:, S:S + len(self.probe_names)]
+                new_state["cal"] = {}
+                L = np.hstack([smooth[:, self._h_idx].mean(axis=1, keepdims=True),
+                               housing_leads(smooth, self._h_idx, self.cal["leads_s"], time_s,
+                                             state.get("cal", {}), new_state["cal"], self.nominal_dt_s)])
+            self.last_cal_features = L
             if raw or not thermal_policy:
                 thermal = X @ self.map["coef"]
+                if L is not None:
+                    thermal = thermal + L @ self.cal["coef"]
             else:
                 Xc, outside = P.clip_to_envelope(X, self.map["low"], self.map["high"], self.margin)
+                thermal = Xc @ self.map["coef"]
+                if L is not None:
+                    Lc, out_l = P.clip_to_envelope(L, self.cal["low"], self.cal["high"], self.margin)
+                    thermal = thermal + Lc @ self.cal["coef"]
+                    outside = outside | out_l
                 # what the sensors' noise alone would make of the map is not applied
-                thermal = P.firm(Xc @ self.map["coef"], self.map_noise_sd_um, self.k_sigma, 2 * self.k_sigma)
+                thermal = P.firm(thermal, self.map_noise_sd_um, self.k_sigma, 2 * self.k_sigma)
                 thermal, clamped = P.clamp_axes(thermal, self.t_low, self.t_high)
                 flags[outside] |= P.SHRUNK
                 flags[clamped] |= P.CLAMPED
@@ -630,6 +668,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
     offset_tau_s : float
         Time constant with which the gratings' unexplained thermal reading is tracked while no
         load is applied, s.
+    calibrate_housing : bool
+        Calibrate the twin map's housing transient (its leads at ``CAL_LEADS_S``) on the
+        measured load-free campaigns (:meth:`_calibrate_housing`).
     separability_cos : float
         A force whose grating signature has |cos| above this with the gratings' warming pattern
         is not read from the gratings.
@@ -640,7 +681,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
     def __init__(self, machine=None, zero_window_s=10.0, lead_tau_s=300.0, envelope_margin=0.1,
                  load_k_sigma=3.0, contradiction_p=1e-3, thermal_error_inflation=4.0,
                  load_relative_error=0.03, twin_scenarios=40, map_ridge=1e-3, separability_cos=0.95,
-                 offset_tau_s=20.0):
+                 offset_tau_s=20.0, calibrate_housing=True):
         self.machine = machine
         self.zero_window_s = zero_window_s
         self.lead_tau_s = lead_tau_s
@@ -653,6 +694,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         self.map_ridge = map_ridge
         self.separability_cos = separability_cos
         self.offset_tau_s = offset_tau_s
+        self.calibrate_housing = calibrate_housing
 
     # -- fitting -----------------------------------------------------------------------------
     def _machine(self):
@@ -834,8 +876,12 @@ class PhysicalModel(EstimatorParams, ModelFile):
         self._predictors = {}
         if self.load_ is not None:
             self._calibrate_drift(rows)
+        if self.twin_map_ is not None and thermal_rows and self.housing_probes_ and self.calibrate_housing:
+            self.twin_map_["calibration"] = self._calibrate_housing(rows, campaigns)
+            self._predictors = {}
         if self.twin_map_ is not None and thermal_rows:
-            # the map's error on the measured load-free campaigns (nothing of it is fitted there)
+            # the map's error on the measured load-free campaigns (only the housing transient is
+            # fitted there)
             # sets its interval and widens the validated range to what the twin covers
             res = []
             for r, c in zip(rows, campaigns):
@@ -852,6 +898,36 @@ class PhysicalModel(EstimatorParams, ModelFile):
         self.interval_ = self._fit_interval(rows, campaigns) if thermal_rows else None
         self._predictors = {}
         return self
+
+    def _calibrate_housing(self, rows, campaigns):
+        """Least squares (no intercept, campaigns weighted equally) of the twin map's error on
+        the measured load-free campaigns against the housing's mean ΔT (K) and its leads at
+        ``CAL_LEADS_S`` (K).
+
+        How late the housing probe sees the bearings' heat depends on where the bearings and
+        the probe sit in the steel, which a data sheet rarely gives to the millimetre; every
+        spindle duty cycle excites it, so the measured campaigns can teach it. The face-gradient
+        coefficients stay the twin's (no campaign without a gradient can teach them)."""
+        k = 1 + len(CAL_LEADS_S)
+        # the map as it stands, with the leads computed alongside (zero coefficients)
+        self.twin_map_["calibration"] = {"leads_s": list(CAL_LEADS_S), "coef": np.zeros((k, 3)).tolist(),
+                                         "envelope_low": [-1e9] * k, "envelope_high": [1e9] * k}
+        self._predictors = {}
+        A_rows, b_rows, feats = [], [], []
+        for r, c in zip(rows, campaigns):
+            if r["loaded"]:
+                continue
+            pred, _, p, at = self._served(c, policy=False)
+            L = p.last_cal_features[at]
+            w = np.sqrt(1.0 / len(L))
+            A_rows.append(L * w)
+            b_rows.append((r["y"] - pred) * w)
+            feats.append(L)
+        A, b = np.vstack(A_rows), np.vstack(b_rows)
+        coef = np.linalg.lstsq(A, b, rcond=None)[0]
+        L = np.vstack(feats)
+        return {"leads_s": list(CAL_LEADS_S), "coef": coef.tolist(), "source": "measured load-free campaigns",
+                "envelope_low": L.min(axis=0).tolist(), "envelope_high": L.max(axis=0).tolist()}
 
     def _fit_interval(self, rows, campaigns):
         """Thermal part's error variance as v0 + v1 s² + v2 a², s² the squared probe excursion
@@ -985,13 +1061,26 @@ class PhysicalModel(EstimatorParams, ModelFile):
                f"{', '.join(c['name'] for c in self.training_['campaigns'])}",
                f"housing probes: {', '.join(self.housing_probes_) or 'none'}; ambient: "
                f"{', '.join(self.ambient_probes_) or 'none'}",
-               "", "thermal part (µm per K; lead in µm per K of T - lowpass(T))",
-               f"{'term':<22}" + "".join(f"{a:>11}" for a in AXES)]
-        for name, row in zip(names, np.asarray(self.thermal_coef_)):
-            out.append(f"{name:<22}" + "".join(f"{v:>11.4g}" for v in row))
+               ""]
+        tm = self.twin_map_
+        if tm is None:
+            out += ["thermal part (µm per K; lead in µm per K of T - lowpass(T))",
+                    f"{'term':<22}" + "".join(f"{a:>11}" for a in AXES)]
+            for name, row in zip(names, np.asarray(self.thermal_coef_)):
+                out.append(f"{name:<22}" + "".join(f"{v:>11.4g}" for v in row))
+        else:
+            out.append(f"thermal part: ridge map learned on {tm['n_scenarios']} thermal scenarios of the "
+                       f"machine's FE twin ({len(tm['features'])} features: {', '.join(tm['features'])})")
+            cal = tm.get("calibration")
+            if cal is not None:
+                out += [f"housing transient calibrated on the {cal.get('source', 'measured campaigns')} "
+                        "(µm per K)", f"{'term':<22}" + "".join(f"{a:>11}" for a in AXES)]
+                for name, row in zip(["dT_housing"] + [f"lead{t:g}s_housing" for t in cal["leads_s"]],
+                                     np.asarray(cal["coef"])):
+                    out.append(f"{name:<22}" + "".join(f"{v:>11.4g}" for v in row))
         out.append(f"{'residual SD µm':<22}" + "".join(f"{v:>11.3g}" for v in self.thermal_resid_sd_um_))
         lo, hi = self.thermal_range_um_
-        out.append(f"{'validated range µm':<22}" + "".join(f"{f'{a:.3g}..{b:.3g}':>11}" for a, b in zip(lo, hi)))
+        out.append(f"{'validated range µm':<22}" + ", ".join(f"{ax} {a:.3g}..{b:.3g}" for ax, a, b in zip(AXES, lo, hi)))
         if self.load_ is None:
             out.append("\nload part: none (no training campaign with loads and no machine description)")
         else:
