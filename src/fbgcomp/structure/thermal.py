@@ -181,8 +181,12 @@ class ReducedThermal:
     factor : Factorised K (reused for the s = 0 moments and the static gain)
     """
 
+    # Arrays that define a built reduction (what the twin cache stores; see from_arrays).
+    ARRAYS = ("lam_per_s", "Phi", "PhiB", "OPhi", "PhiTC", "D", "steady_gain")
+
     def __init__(self, K, C, B, O, n_shifts: int = 12, factor: Factorised | None = None):
-        self.factor = factor or Factorised(K)
+        self._K = K
+        self._factor = factor or Factorised(K)
         shifts = np.logspace(-5, 0, int(n_shifts)) if n_shifts > 0 else []
         V = rational_krylov_basis(K, C, B, shifts, self.factor)
         Kr = V.T @ (K @ V)
@@ -200,6 +204,28 @@ class ReducedThermal:
         static = O @ self.factor.solve(B)                      # (p, m) exact steady gain
         self.D = static - self.OPhi @ (self.PhiB / self.lam_per_s[:, None])
         self.steady_gain = static
+
+    @classmethod
+    def from_arrays(cls, K, B, arrays: dict, factor: Factorised | None = None) -> "ReducedThermal":
+        """A reduction rebuilt from :meth:`arrays` (and K, B) without recomputing it; K is
+        factorised only if :meth:`projected_outputs` needs it."""
+        self = cls.__new__(cls)
+        self._K, self._factor, self._B = K, factor, B
+        for name in cls.ARRAYS:
+            setattr(self, name, arrays[name])
+        self.n_modes = len(self.lam_per_s)
+        return self
+
+    def arrays(self) -> dict:
+        """The arrays :meth:`from_arrays` takes back."""
+        return {name: getattr(self, name) for name in self.ARRAYS}
+
+    @property
+    def factor(self) -> Factorised:
+        """K factorised (built on first use when the reduction came from the cache)."""
+        if self._factor is None:
+            self._factor = Factorised(self._K)
+        return self._factor
 
     @property
     def slowest_time_constant_s(self) -> float:

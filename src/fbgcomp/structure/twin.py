@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
+from fbgcomp.structure import cache as twin_cache
 from fbgcomp.structure import elastic, thermal
 from fbgcomp.structure.fe import Factorised, layer_order
 from fbgcomp.structure.machine import Machine, parse_machine
@@ -120,6 +121,10 @@ class BuildTimes:
     elastic_factor_s: float = 0.0
     thermal_reduction_s: float = 0.0
     extra: dict = field(default_factory=dict)
+    from_cache: bool = False            # loaded from the twin cache (nothing assembled)
+    cache_load_s: float = 0.0           # reading (and checking) the cache entry, hit or miss
+    cache_store_s: float = 0.0          # writing a new entry after a build
+    cache_path: str | None = None
 
 
 # A rigid support is a penalty this many times the stiffest diagonal entry of K: the supported
@@ -231,20 +236,79 @@ class Twin:
         Z-axis position; moves the carriage stations along the ram (default: the YAML's).
     n_shifts : int, optional
         Expansion points of the reduced thermal model (default: ``machine.mesh.thermal_shifts``).
+    cache : bool, default True
+        Reuse a twin of the same machine, resolution, shifts and code built before, from the
+        on-disk cache (:mod:`fbgcomp.structure.cache`: the user's cache folder, moved by the
+        environment variable ``FBGCOMP_CACHE_DIR``, off with ``FBGCOMP_CACHE_DIR=off``), and
+        store a new build there. A reloaded twin gives bit-identical responses; its elastic
+        factor is recomputed only when something needs it (``path_influence``). ``False``:
+        always build, read and write nothing.
     """
 
+    # Arrays a built twin is made of (everything else is rebuilt in milliseconds from them and
+    # the machine description): what the cache stores.
+    _ARRAYS = ("K", "Th", "R", "support_rows_mm", "support_stiffness_N_per_mm", "Kt", "Ct", "Bt",
+               "force", "W", "Tsens", "Tprobe", "build_times_s",
+               *(f"reduced_{n}" for n in thermal.ReducedThermal.ARRAYS))
+
     def __init__(self, machine: Machine, resolution: float | None = None,
-                 z_axis_mm: float | None = None, n_shifts: int | None = None):
+                 z_axis_mm: float | None = None, n_shifts: int | None = None, cache: bool = True):
         if z_axis_mm is not None:
             # Re-validate: the carriage stations must stay on the ram at this axis position.
             machine = parse_machine(machine.with_z_axis(z_axis_mm).model_dump())
         self.machine = machine
         self.z_axis_mm = machine.supports.z_axis_mm
         self.times = BuildTimes()
+        resolution = machine.mesh.resolution if resolution is None else float(resolution)
+        n_shifts = machine.mesh.thermal_shifts if n_shifts is None else int(n_shifts)
+        self.sensor_names = tuple(s.name for s in machine.sensors)
+        self.probe_names = tuple(p.name for p in machine.probes)
+        self._point_probes = [i for i, p in enumerate(machine.probes) if p.kind == "point"]
+        self._ambient_probes = [i for i, p in enumerate(machine.probes) if p.kind == "ambient"]
+        self._vbasis_built = None
+        self._elastic_built = None
+
         t0 = time.perf_counter()
-        self.mesh = rm = machine_mesh(machine, resolution, self.z_axis_mm)
+        self.mesh = machine_mesh(machine, resolution, self.z_axis_mm)
         self.times.mesh_s = time.perf_counter() - t0
 
+        folder = twin_cache.cache_dir() if cache else None
+        key = twin_cache.twin_key(machine, resolution, n_shifts) if folder is not None else None
+        arrays = None
+        if folder is not None:
+            t0 = time.perf_counter()
+            arrays = twin_cache.load(key, self._ARRAYS, folder)
+            if arrays is not None and not self._fits(arrays):
+                arrays = None
+            self.times.cache_load_s = time.perf_counter() - t0
+        if arrays is not None:
+            self.times.from_cache = True
+            self.times.cache_path = str(folder / f"{key}{twin_cache.SUFFIX}")
+            self.times.extra["cold_build_s"] = dict(zip(
+                ("mesh_s", "assemble_s", "elastic_factor_s", "thermal_reduction_s"),
+                (float(v) for v in arrays["build_times_s"])))
+            self._adopt(arrays)
+            return
+        arrays, thermal_factor = self._build(n_shifts)
+        self._adopt(arrays, thermal_factor)
+        if folder is not None:
+            t0 = time.perf_counter()
+            path = twin_cache.store(key, arrays, folder)
+            self.times.cache_store_s = time.perf_counter() - t0
+            self.times.cache_path = None if path is None else str(path)
+
+    def _fits(self, arrays) -> bool:
+        """Sanity check of a cache entry against this twin's mesh and outputs (the key already
+        covers machine and code; this only guards against an entry of the wrong shape)."""
+        n, S = self.mesh.n_nodes, len(self.sensor_names)
+        return (arrays["Kt"].shape == (n, n) and arrays["K"].shape == (3 * n, 3 * n)
+                and arrays["W"].shape == (S + 3, n) and arrays["Th"].shape == (3 * n, n)
+                and arrays["Tprobe"].shape == (len(self._point_probes), n))
+
+    def _build(self, n_shifts: int):
+        """Assemble, factorise and reduce: the expensive part, returned as plain arrays (and the
+        thermal factor, kept in memory for the reduction)."""
+        machine, rm = self.machine, self.mesh
         t0 = time.perf_counter()
         mats = machine.materials
         if machine.mesh.element == "hex8i":
@@ -253,16 +317,10 @@ class Twin:
             vb, sb, K, Th = elastic.assemble_elasticity(rm, mats.cfrp, mats.steel)
         rigid = RIGID_PENALTY * float(K.diagonal().max())
         rows, k = support_rows(rm, vb, machine, self.z_axis_mm, rigid)
-        self.support_rows_mm, self.support_stiffness_N_per_mm = rows, k
         K = (K + elastic.spring_matrix(rows, k)).tocsr()
         Kt, Ct, Bt = thermal.assemble_thermal(rm, machine)
-        self._vbasis = vb
+        self._vbasis_built = vb
         self.times.assemble_s = time.perf_counter() - t0
-
-        self.sensor_names = tuple(s.name for s in machine.sensors)
-        self.probe_names = tuple(p.name for p in machine.probes)
-        self._point_probes = [i for i, p in enumerate(machine.probes) if p.kind == "point"]
-        self._ambient_probes = [i for i, p in enumerate(machine.probes) if p.kind == "ambient"]
 
         # Elastic output rows (µm per mm of nodal displacement): path elongations, then TTP.
         uz = vb.nodal_dofs[2]
@@ -279,10 +337,9 @@ class Twin:
         R = UM_PER_MM * np.vstack(el_rows + [ttp_rows])               # (S + 3, n_u)
 
         t0 = time.perf_counter()
-        self._elastic = Factorised(K, order=layer_order(rm.mesh.p, vb.nodal_dofs))
-        X = self._elastic.solve(R.T)                                  # adjoint: K^-1 g_i
+        self._elastic_built = Factorised(K, order=layer_order(rm.mesh.p, vb.nodal_dofs))
+        X = self._elastic_built.solve(R.T)                            # adjoint: K^-1 g_i
         self.times.elastic_factor_s = time.perf_counter() - t0
-        S = len(self.sensor_names)
         force = X.T @ ttp_rows.T                                      # (S + 3, 3) µm/N
         W = np.asarray((Th.T @ X).T)                                  # (S + 3, n_nodes) µm/K
 
@@ -290,29 +347,66 @@ class Twin:
                            for s in machine.sensors]).tocsr()
         pts = [[machine.probes[i].x_mm, machine.probes[i].y_mm, machine.probes[i].z_mm]
                for i in self._point_probes]
-        Tprobe = rm.point_rows(pts) if pts else sp.csr_matrix((0, rm.n_nodes))
+        Tprobe = (rm.point_rows(pts) if pts else sp.csr_matrix((0, rm.n_nodes))).tocsr()
         O = np.vstack([W, Tsens.toarray(), Tprobe.toarray()])
-        self._O = O
 
         t0 = time.perf_counter()
-        self._thermal_K, self._thermal_C, self._thermal_B = Kt, Ct, Bt
-        self._thermal_factor = Factorised(Kt)   # the mesh's node order is already layer-wise
-        self.reduced = thermal.ReducedThermal(
-            Kt, Ct, Bt, O, machine.mesh.thermal_shifts if n_shifts is None else n_shifts,
-            factor=self._thermal_factor)
+        thermal_factor = Factorised(Kt)   # the mesh's node order is already layer-wise
+        reduced = thermal.ReducedThermal(Kt, Ct, Bt, O, n_shifts, factor=thermal_factor)
         self.times.thermal_reduction_s = time.perf_counter() - t0
+        b = self.times
+        arrays = {"K": K, "Th": Th, "R": R, "support_rows_mm": rows,
+                  "support_stiffness_N_per_mm": k, "Kt": Kt, "Ct": Ct, "Bt": Bt,
+                  "force": force, "W": W, "Tsens": Tsens, "Tprobe": Tprobe,
+                  "build_times_s": np.array([b.mesh_s, b.assemble_s, b.elastic_factor_s,
+                                             b.thermal_reduction_s])}
+        arrays.update({f"reduced_{n}": a for n, a in reduced.arrays().items()})
+        return arrays, thermal_factor
 
+    def _adopt(self, arrays, thermal_factor: Factorised | None = None) -> None:
+        """Set the twin's operators from its arrays (a fresh build or a cache entry alike)."""
+        S = len(self.sensor_names)
+        W, Tsens, Tprobe, force = arrays["W"], arrays["Tsens"], arrays["Tprobe"], arrays["force"]
+        self.support_rows_mm = arrays["support_rows_mm"]
+        self.support_stiffness_N_per_mm = arrays["support_stiffness_N_per_mm"]
+        self._K_elastic, self._Th, self._R = arrays["K"], arrays["Th"], arrays["R"]
+        Kt, Ct, Bt = arrays["Kt"], arrays["Ct"], arrays["Bt"]
+        self._thermal_K, self._thermal_C, self._thermal_B = Kt, Ct, Bt
+        self._O = np.vstack([W, Tsens.toarray(), Tprobe.toarray()])
+        self.reduced = thermal.ReducedThermal.from_arrays(
+            Kt, Bt, {n: arrays[f"reduced_{n}"] for n in thermal.ReducedThermal.ARRAYS},
+            factor=thermal_factor)
         names = ([f"{n}_elongation_um" for n in self.sensor_names] + ["dx_um", "dy_um", "dz_um"]
                  + [f"{n}_temperature_C" for n in self.sensor_names]
                  + [self.probe_names[i] for i in self._point_probes])
         self.influence = Influence(
             sensor_per_force_um_per_N=force[:S], ttp_per_force_um_per_N=force[S:],
             elastic_per_temperature=W, sensor_temperature_rows=Tsens,
-            probe_temperature_rows=Tprobe.tocsr(), steady_per_input=self.reduced.steady_gain,
-            output_names=tuple(names), input_names=thermal.input_names(machine))
-        self._Th = Th
-        self._K_elastic = K
-        self._R = R
+            probe_temperature_rows=Tprobe, steady_per_input=self.reduced.steady_gain,
+            output_names=tuple(names), input_names=thermal.input_names(self.machine))
+
+    # ------------------------------------------------------------- built on first use
+    @property
+    def _vbasis(self):
+        """The vector (displacement) basis of the mesh."""
+        if self._vbasis_built is None:
+            from skfem import Basis
+            self._vbasis_built = Basis(self.mesh.mesh, elastic.vector_element(),
+                                       intorder=elastic.INTORDER)
+        return self._vbasis_built
+
+    @property
+    def _elastic(self) -> Factorised:
+        """The elastic stiffness (with its supports) factorised: kept from the build, computed
+        on first use when the twin came from the cache."""
+        if self._elastic_built is None:
+            order = layer_order(self.mesh.mesh.p, self._vbasis.nodal_dofs)
+            self._elastic_built = Factorised(self._K_elastic, order=order)
+        return self._elastic_built
+
+    @property
+    def _thermal_factor(self) -> Factorised:
+        return self.reduced.factor
 
     # ----------------------------------------------------------------------- other paths
     def path_influence(self, sensors=None) -> PathInfluence:

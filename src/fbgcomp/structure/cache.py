@@ -1,0 +1,245 @@
+"""On-disk cache of built twins: the mesh-independent arrays of :class:`~fbgcomp.structure.Twin`.
+
+Building the default twin (58 660 DOF) takes seconds (assembly, a banded Cholesky of the elastic
+matrix, the rational-Krylov thermal reduction); every ``demo``, ``simulate``, ``fe-calibrate``
+and ``compare --machine`` run needs the same twins again. A built twin's arrays are stored once
+and reloaded in a fraction of the time.
+
+Where
+    ``platformdirs.user_cache_dir("fbgcomp")/twin`` (``~/.cache/fbgcomp/twin`` on Linux).
+    The environment variable ``FBGCOMP_CACHE_DIR`` moves it (twins go to ``$FBGCOMP_CACHE_DIR/twin``);
+    ``FBGCOMP_CACHE_DIR=off`` (or ``0``, ``no``, ``false``, ``none``, ``disabled``) turns the cache
+    off: nothing is read or written. ``Twin(..., cache=False)`` does the same for one twin.
+
+Key
+    SHA-256 of the machine description's canonical content (its validated model dumped as JSON
+    with sorted keys: the same machine read from another path, or from a YAML written
+    differently, hits the same entry), the resolution, the number of thermal shifts, a format
+    version and the code version: fbgcomp's version, a hash of every source file of the
+    ``fbgcomp.structure`` package (an edit there invalidates every entry) and the versions of
+    numpy, scipy and scikit-fem.
+
+Format and safety
+    One file per twin, ``<key>.twin``: a magic line, the SHA-256 of the payload, then the payload,
+    an uncompressed numpy ``.npz`` of plain numeric arrays (sparse matrices as their CSR/CSC
+    parts). It is read with ``allow_pickle=False``: no pickle is used, so loading an entry cannot
+    run code. An entry whose magic, digest, format version, key or array set do not match (a
+    truncated or corrupt file, an entry of an older format) is ignored and rebuilt; a cache that
+    cannot be read or written never stops a build (the twin is built as without a cache).
+    Entries are written to a temporary file in the same folder, flushed to disk and renamed over
+    the target (:func:`fbgcomp.atomic.write_bytes`), so concurrent builders of the same twin each
+    write a complete file and the last rename wins; a reader sees a whole entry or none. The
+    folder keeps the :data:`MAX_ENTRIES` most recently used entries.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import io
+import json
+import logging
+import os
+import time
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+
+log = logging.getLogger(__name__)
+
+ENV = "FBGCOMP_CACHE_DIR"
+OFF_VALUES = frozenset({"off", "0", "no", "false", "none", "disabled"})
+FORMAT_VERSION = 1
+MAGIC = b"FBGCOMP-TWIN-CACHE\n"
+SUFFIX = ".twin"
+MAX_ENTRIES = 16
+# A temporary file this old was left by a writer that died; it is removed when pruning.
+_STALE_TMP_S = 3600.0
+
+
+def cache_dir() -> Path | None:
+    """Folder of the twin cache, or None when the cache is off (``FBGCOMP_CACHE_DIR=off``)."""
+    value = os.environ.get(ENV)
+    if value is not None and value.strip().lower() in OFF_VALUES:
+        return None
+    if value and value.strip():
+        root = Path(value.strip()).expanduser()
+    else:
+        import platformdirs
+        root = Path(platformdirs.user_cache_dir("fbgcomp"))
+    return root / "twin"
+
+
+@functools.lru_cache(maxsize=1)
+def code_version() -> str:
+    """fbgcomp's version, a hash of the structure package's sources, and the numeric libraries'
+    versions: anything that could change a twin's numbers for the same machine."""
+    import fbgcomp
+    h = hashlib.sha256()
+    here = Path(__file__).resolve().parent
+    for path in sorted(here.glob("*.py")):
+        h.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
+    libs = []
+    for dist in ("numpy", "scipy", "scikit-fem"):
+        try:
+            libs.append(f"{dist}={metadata.version(dist)}")
+        except metadata.PackageNotFoundError:
+            libs.append(f"{dist}=?")
+    return f"fbgcomp={fbgcomp.__version__};structure={h.hexdigest()};" + ";".join(libs)
+
+
+def machine_content(machine) -> str:
+    """Canonical JSON of a validated machine description (independent of its file and layout)."""
+    return json.dumps(machine.model_dump(mode="json"), sort_keys=True, separators=(",", ":"),
+                      allow_nan=False)
+
+
+def twin_key(machine, resolution: float, n_shifts: int) -> str:
+    """Cache key (64 hex digits) of the twin of ``machine`` at this resolution and shift count."""
+    ident = {"format": FORMAT_VERSION, "code": code_version(), "machine": machine_content(machine),
+             "resolution": repr(float(resolution)), "n_shifts": int(n_shifts)}
+    return hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()
+
+
+# ------------------------------------------------------------------------------ encoding
+def _encode(arrays: dict) -> dict[str, np.ndarray]:
+    """Flatten {name: ndarray | sparse matrix} into plain arrays (sparse: format, parts, shape)."""
+    out = {}
+    for name, value in arrays.items():
+        if "." in name:
+            raise ValueError(f"array name {name!r} may not contain '.'")
+        if sp.issparse(value):
+            fmt = "csc" if value.format == "csc" else "csr"
+            m = value.asformat(fmt)
+            out[f"{name}.{fmt}.data"] = m.data
+            out[f"{name}.{fmt}.indices"] = m.indices
+            out[f"{name}.{fmt}.indptr"] = m.indptr
+            out[f"{name}.{fmt}.shape"] = np.asarray(m.shape, dtype=np.int64)
+        else:
+            a = np.asarray(value)
+            if a.dtype == object:
+                raise TypeError(f"{name}: object arrays are not cached")
+            out[name] = a
+    return out
+
+
+def _decode(files: dict[str, np.ndarray]) -> dict:
+    out, parts = {}, {}
+    for key, a in files.items():
+        name, _, rest = key.partition(".")
+        if not rest:
+            out[name] = a
+            continue
+        fmt, _, part = rest.partition(".")
+        if fmt not in ("csr", "csc") or part not in ("data", "indices", "indptr", "shape"):
+            raise ValueError(f"unknown entry {key!r}")
+        parts.setdefault((name, fmt), {})[part] = a
+    for (name, fmt), p in parts.items():
+        cls = sp.csc_matrix if fmt == "csc" else sp.csr_matrix
+        shape = tuple(int(v) for v in p["shape"])
+        out[name] = cls((p["data"], p["indices"], p["indptr"]), shape=shape)
+    return out
+
+
+def _entry_path(folder: Path, key: str) -> Path:
+    return folder / f"{key}{SUFFIX}"
+
+
+def dumps(key: str, arrays: dict) -> bytes:
+    """The file content of an entry: magic, payload digest, payload (npz, no pickle)."""
+    buf = io.BytesIO()
+    files = _encode(arrays)
+    files["__key__"] = np.frombuffer(key.encode("ascii"), dtype=np.uint8)
+    files["__format__"] = np.asarray(FORMAT_VERSION, dtype=np.int64)
+    np.savez(buf, **files)
+    payload = buf.getvalue()
+    return MAGIC + hashlib.sha256(payload).digest() + payload
+
+
+def loads(key: str, data: bytes, required=()) -> dict:
+    """Arrays of an entry's content; ValueError if it is not a complete entry of this key."""
+    head = len(MAGIC) + 32
+    if len(data) < head or data[:len(MAGIC)] != MAGIC:
+        raise ValueError("not a twin cache entry")
+    payload = memoryview(data)[head:]
+    if hashlib.sha256(payload).digest() != data[len(MAGIC):head]:
+        raise ValueError("digest mismatch (truncated or corrupt)")
+    with np.load(io.BytesIO(payload), allow_pickle=False) as npz:
+        files = {name: npz[name] for name in npz.files}
+    if int(files.pop("__format__", -1)) != FORMAT_VERSION:
+        raise ValueError("older cache format")
+    if bytes(files.pop("__key__", np.zeros(0, np.uint8))).decode("ascii", "replace") != key:
+        raise ValueError("entry of another key")
+    arrays = _decode(files)
+    missing = [name for name in required if name not in arrays]
+    if missing:
+        raise ValueError(f"entry lacks {missing}")
+    return arrays
+
+
+# ------------------------------------------------------------------------------ load / store
+def load(key: str, required=(), folder: Path | None = None) -> dict | None:
+    """The cached arrays of ``key``, or None (cache off, no entry, or a bad entry: logged)."""
+    folder = cache_dir() if folder is None else folder
+    if folder is None:
+        return None
+    path = _entry_path(folder, key)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        return None
+    except OSError as err:
+        log.warning("twin cache: cannot read %s (%s); building", path, err)
+        return None
+    try:
+        arrays = loads(key, data, required)
+    except Exception as err:    # anything wrong with the file means: rebuild it
+        log.warning("twin cache: ignoring %s (%s); rebuilding", path, err)
+        return None
+    try:
+        os.utime(path)          # most recently used: the last to be pruned
+    except OSError:
+        pass
+    return arrays
+
+
+def store(key: str, arrays: dict, folder: Path | None = None) -> Path | None:
+    """Write the entry of ``key`` atomically; returns its path, or None (cache off or the write
+    failed: logged, the caller goes on without the cache)."""
+    from fbgcomp.atomic import write_bytes
+    folder = cache_dir() if folder is None else folder
+    if folder is None:
+        return None
+    path = _entry_path(folder, key)
+    try:
+        write_bytes(path, dumps(key, arrays))
+    except OSError as err:
+        log.warning("twin cache: cannot write %s (%s); continuing without it", path, err)
+        return None
+    prune(folder)
+    return path
+
+
+def prune(folder: Path, keep: int | None = None) -> None:
+    """Keep the ``keep`` (default :data:`MAX_ENTRIES`) most recently used entries; remove
+    temporary files of dead writers."""
+    keep = MAX_ENTRIES if keep is None else keep
+    try:
+        entries = []
+        now = time.time()
+        for p in folder.iterdir():
+            try:
+                st = p.stat()
+            except OSError:
+                continue
+            if p.name.endswith(SUFFIX) and not p.name.startswith("."):
+                entries.append((st.st_mtime, p))
+            elif p.name.startswith(".") and p.name.endswith(".tmp") and now - st.st_mtime > _STALE_TMP_S:
+                p.unlink(missing_ok=True)
+        entries.sort(reverse=True)
+        for _, p in entries[keep:]:
+            p.unlink(missing_ok=True)
+    except OSError as err:
+        log.debug("twin cache: pruning %s failed (%s)", folder, err)

@@ -1,0 +1,233 @@
+"""The on-disk twin cache (fbgcomp.structure.cache), with real files in a temporary cache folder:
+keyed by the machine's content and the code, atomic, a bad entry rebuilt, off means off."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+import fbgcomp_testing
+from fbgcomp.structure import cache as twin_cache
+from fbgcomp.structure import load_machine
+
+RES = 0.3
+DEFAULT_YAML = Path(__file__).resolve().parents[1] / "src" / "fbgcomp" / "data" / "ram.yaml"
+
+
+@pytest.fixture()
+def Twin():
+    fbgcomp_testing.require("skfem")
+    from fbgcomp.structure import Twin
+    return Twin
+
+
+@pytest.fixture()
+def cache_dir(tmp_path, monkeypatch):
+    monkeypatch.setenv("FBGCOMP_CACHE_DIR", str(tmp_path / "cache"))
+    return tmp_path / "cache" / "twin"
+
+
+@pytest.fixture(scope="module")
+def machine():
+    return load_machine()
+
+
+def _entries(folder: Path):
+    return sorted(folder.glob("*.twin")) if folder.exists() else []
+
+
+def _responses(twin):
+    """Every kind of output a twin gives, as arrays."""
+    t = np.arange(0.0, 4 * 3600.0, 60.0)
+    ambient = 20.0 + 2.0 * np.sin(t / 5000.0)
+    spindle = 300.0 * (t > 3600.0)
+    th = twin.thermal(t, ambient, spindle, initial_C=20.0)
+    paths = twin.path_influence(twin.machine.sensors[:2])
+    elong, temp = twin.thermal_paths(paths, t, ambient, spindle)
+    inf = twin.influence
+    return [twin.static([[100.0, -50.0, 20.0], [0.0, 1.0, 0.0]]).ttp_um,
+            twin.static(np.eye(3)).sensor_elongation_um,
+            th.sensor_elongation_um, th.ttp_um, th.probe_C, th.sensor_temperature_C,
+            *twin.static_temperature_response("gradient_x", 2.0),
+            paths.per_force_um_per_N, paths.per_temperature_um_per_K, elong, temp,
+            inf.elastic_per_temperature, inf.steady_per_input, inf.sensor_per_force_um_per_N,
+            twin._elastic.solve(twin._R[-1])]
+
+
+def _assert_identical(a, b):
+    assert len(a) == len(b)
+    for x, y in zip(a, b):
+        assert np.asarray(x).shape == np.asarray(y).shape
+        assert np.array_equal(x, y)          # bit for bit, not approximately
+
+
+def test_cold_build_writes_one_entry_and_the_warm_load_is_bit_identical(Twin, machine, cache_dir):
+    cold = Twin(machine, resolution=RES)
+    assert not cold.times.from_cache
+    entries = _entries(cache_dir)
+    assert len(entries) == 1 and entries[0].name.endswith(".twin")
+    assert cold.times.cache_path == str(entries[0])
+    assert not list(cache_dir.glob(".*"))                      # no temporary file left over
+    warm = Twin(machine, resolution=RES)
+    assert warm.times.from_cache and warm.times.assemble_s == 0.0
+    assert set(warm.times.extra["cold_build_s"]) >= {"assemble_s", "elastic_factor_s"}
+    _assert_identical(_responses(cold), _responses(warm))
+    # ... and both equal a twin built without any cache.
+    _assert_identical(_responses(Twin(machine, resolution=RES, cache=False)), _responses(warm))
+    assert len(_entries(cache_dir)) == 1
+
+
+def test_key_follows_the_machine_content_not_its_file(tmp_path, machine):
+    data = yaml.safe_load(DEFAULT_YAML.read_text())
+    same = tmp_path / "elsewhere" / "same.yaml"
+    same.parent.mkdir()
+    same.write_text(yaml.safe_dump(data, sort_keys=True, indent=4))   # other path and layout
+    key = twin_cache.twin_key(machine, RES, 12)
+    assert twin_cache.twin_key(load_machine(same), RES, 12) == key
+    data["materials"]["cfrp"]["E_L_GPa"] = 121.0
+    changed = tmp_path / "changed.yaml"
+    changed.write_text(yaml.safe_dump(data))
+    assert twin_cache.twin_key(load_machine(changed), RES, 12) != key
+    assert twin_cache.twin_key(machine, 0.31, 12) != key
+    assert twin_cache.twin_key(machine, RES, 11) != key
+    assert twin_cache.twin_key(machine.with_z_axis(100.0), RES, 12) != key
+
+
+def test_code_version_covers_the_structure_sources_and_invalidates_the_key(machine, monkeypatch):
+    version = twin_cache.code_version()
+    assert version.startswith("fbgcomp=") and "structure=" in version and "scikit-fem=" in version
+    key = twin_cache.twin_key(machine, RES, 12)
+    monkeypatch.setattr(twin_cache, "code_version", lambda: version + "-edited")
+    assert twin_cache.twin_key(machine, RES, 12) != key
+
+
+@pytest.fixture(scope="module")
+def good_entry(machine, tmp_path_factory):
+    """(file name, bytes) of a complete entry of the RES twin, and that twin's responses."""
+    fbgcomp_testing.require("skfem")
+    from fbgcomp.structure import Twin
+    folder = tmp_path_factory.mktemp("good-entry")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("FBGCOMP_CACHE_DIR", str(folder))
+        twin = Twin(machine, resolution=RES)
+    (entry,) = _entries(folder / "twin")
+    return entry.name, entry.read_bytes(), _responses(twin)
+
+
+@pytest.mark.parametrize("damage", ["truncate", "flip", "garbage", "empty", "other_key"])
+def test_a_bad_entry_is_rebuilt_never_used(Twin, machine, cache_dir, good_entry, damage):
+    name, data, reference = good_entry
+    cache_dir.mkdir(parents=True)
+    entry = cache_dir / name
+    if damage == "truncate":
+        entry.write_bytes(data[:len(data) // 2])
+    elif damage == "flip":
+        i = len(data) * 2 // 3
+        entry.write_bytes(data[:i] + bytes([data[i] ^ 0x01]) + data[i + 1:])
+    elif damage == "garbage":
+        entry.write_bytes(b"PK\x03\x04" + bytes(1000))
+    elif damage == "empty":
+        entry.write_bytes(b"")
+    else:      # a complete, valid entry of another twin under this twin's name
+        entry.write_bytes(twin_cache.dumps("0" * 64, {"K": np.eye(2)}))
+    again = Twin(machine, resolution=RES)
+    assert not again.times.from_cache
+    _assert_identical(reference, _responses(again))
+    assert len(entry.read_bytes()) == len(data)                # rewritten, complete (times differ)
+    assert twin_cache.load(name[:-len(".twin")], Twin._ARRAYS) is not None
+
+
+def test_the_good_entry_itself_loads(Twin, machine, cache_dir, good_entry):
+    name, data, reference = good_entry
+    cache_dir.mkdir(parents=True)
+    (cache_dir / name).write_bytes(data)
+    warm = Twin(machine, resolution=RES)
+    assert warm.times.from_cache
+    _assert_identical(reference, _responses(warm))
+
+
+def test_an_entry_lacking_an_array_is_rebuilt(machine, cache_dir):
+    key = twin_cache.twin_key(machine, RES, 12)
+    twin_cache.store(key, {"K": np.eye(3)})
+    assert twin_cache.load(key, required=("K",)) is not None
+    assert twin_cache.load(key, required=("K", "Th")) is None
+
+
+def test_disabled_cache_reads_and_writes_nothing(Twin, machine, tmp_path, monkeypatch):
+    user = tmp_path / "user-cache"
+    monkeypatch.setattr("platformdirs.user_cache_dir", lambda *a, **k: str(user))
+    for off in ("OFF", "0", "disabled", " off "):
+        monkeypatch.setenv("FBGCOMP_CACHE_DIR", off)
+        assert twin_cache.cache_dir() is None
+    monkeypatch.setenv("FBGCOMP_CACHE_DIR", "off")
+    twin = Twin(machine, resolution=RES)
+    assert not twin.times.from_cache and twin.times.cache_path is None
+    assert not user.exists() and not (Path.cwd() / "off").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_cache_false_reads_and_writes_nothing(Twin, machine, cache_dir):
+    Twin(machine, resolution=RES, cache=False)
+    assert not cache_dir.exists()
+
+
+def test_default_folder_is_the_users_cache_dir(tmp_path, monkeypatch):
+    monkeypatch.delenv("FBGCOMP_CACHE_DIR", raising=False)
+    monkeypatch.setattr("platformdirs.user_cache_dir",
+                        lambda name, *a, **k: str(tmp_path / "user" / name))
+    assert twin_cache.cache_dir() == tmp_path / "user" / "fbgcomp" / "twin"
+
+
+def test_unwritable_cache_folder_still_builds(Twin, machine, tmp_path, monkeypatch):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a folder")
+    monkeypatch.setenv("FBGCOMP_CACHE_DIR", str(blocker))
+    twin = Twin(machine, resolution=RES)
+    assert not twin.times.from_cache and twin.times.cache_path is None
+    assert twin.static(np.eye(3)).ttp_um.shape == (3, 3)
+
+
+def test_concurrent_writers_and_readers_see_whole_entries_only(cache_dir):
+    rng = np.random.default_rng(0)
+    arrays = {"a": rng.standard_normal((400, 1000)), "b": np.arange(10)}
+    key = "f" * 64
+    errors, seen = [], []
+
+    def write():
+        try:
+            for _ in range(5):
+                twin_cache.store(key, arrays)
+        except Exception as err:      # pragma: no cover - the assertion below reports it
+            errors.append(err)
+
+    def read():
+        for _ in range(40):
+            got = twin_cache.load(key, required=("a", "b"))
+            if got is not None:
+                seen.append(np.array_equal(got["a"], arrays["a"]) and np.array_equal(got["b"], arrays["b"]))
+
+    threads = [threading.Thread(target=write) for _ in range(3)] + [threading.Thread(target=read)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors and all(seen)
+    assert [p.name for p in cache_dir.iterdir()] == [f"{key}.twin"]   # no temporary file left
+    assert twin_cache.load(key, required=("a",)) is not None
+
+
+def test_old_entries_are_pruned_to_the_most_recently_used(cache_dir, monkeypatch):
+    monkeypatch.setattr(twin_cache, "MAX_ENTRIES", 3)
+    keys = [f"{i:064x}" for i in range(5)]
+    for k in keys:
+        twin_cache.store(k, {"x": np.zeros(3)}, folder=cache_dir)
+    assert len(_entries(cache_dir)) == 3
+
+
+def test_entries_hold_no_pickle(cache_dir):
+    with pytest.raises(TypeError):
+        twin_cache.dumps("0" * 64, {"x": np.array([object()], dtype=object)})
