@@ -79,6 +79,52 @@ def test_fault_specifications():
     assert parse_fault("cut@4:1.5").value == 1.5
     with pytest.raises(InputError):
         parse_fault("melt:S1@3")
+    f = parse_fault("shift:S2@3:+2/10")          # a mode hop there and back
+    assert (f.value, f.at_s, f.until_s) == (2.0, 3.0, 13.0) and not f.active(13.0)
+    assert parse_fault("drop:S3@5").until_s == float("inf")
+    assert (parse_fault("garbage@6").kind, parse_fault("garbage@6:100").value) == \
+        ("garbage", 100.0)
+    for bad in ("drop:S3@5/0", "drop:S3@5/-1", "garbage@1:1e9", "cut@-1:2", "shift:S1@2:nan"):
+        with pytest.raises(InputError):
+            parse_fault(bad)
+
+
+def test_temporary_faults_end_and_garbage_makes_the_source_reconnect():
+    """A drop with a duration brings the grating back; a garbage burst is refused by the
+    client's decoder and the source reconnects to the same instrument."""
+    from fbgcomp.runtime.sources import HyperionSource
+
+    async def main():
+        sim = SimulatedHyperion(_table(), SimConfig(rate_hz=2000, faults=[
+            parse_fault("drop:S3@0.2/0.2"), parse_fault("garbage@0.6:2000")]))
+        await sim.start()
+        mapper = PeakMapper(_table().wavelengths_nm[0], 2.5)
+        src = HyperionSource("127.0.0.1", sim.stream_port, sim.command_port, mapper,
+                             backoff_initial_s=0.05, stall_timeout_s=5.0)
+        batches = []
+        try:
+            agen = src.batches()
+            loop = asyncio.get_running_loop()
+            end = loop.time() + 10.0
+            while loop.time() < end:
+                b = await asyncio.wait_for(agen.__anext__(), 5.0)
+                if b is not None and len(b):
+                    batches.append(b)
+                    if src.reconnects and b.time_s[-1] - sim._t0 > 1.0:
+                        break
+            await agen.aclose()
+            return sim, batches, src.reconnects
+        finally:
+            await src.close()
+            await sim.stop()
+
+    sim, batches, reconnects = asyncio.run(main())
+    t = np.concatenate([b.time_s for b in batches]) - sim._t0
+    counts = np.concatenate([b.peak_count for b in batches])
+    assert (counts[(t > 0.21) & (t < 0.39), 2] == 0).all()
+    assert (counts[(t < 0.19) | ((t > 0.41) & (t < 0.59)), 2] == 1).all()
+    assert sim.garbage_sent == 1 and reconnects >= 1
+    assert (t > 1.0).any() and (counts[t > 0.61] == 1).all()
 
 
 def test_client_talks_to_the_simulated_instrument():

@@ -9,6 +9,11 @@ at given times (seconds since the simulator started streaming)::
     shift:S4@2:+6      S4 moves by +6 nm (out of its window) from t = 2 s
     cut@4:1.5          every connection is closed at t = 4 s and refused for 1.5 s
     stuck:S1@2         S1 repeats its last value from t = 2 s
+    garbage@6:4096     4096 random bytes on every stream connection at t = 6 s (the client's
+                       decoder must refuse them and reconnect)
+
+A grating fault lasts to the end unless ``/duration`` follows it: ``drop:S3@5/2`` brings S3
+back at t = 7 s, ``shift:S2@3:+2/10`` moves S2 by 2 nm for 10 s (a mode hop there and back).
 
 Frames are produced in vectorised blocks (all frames due since the last tick) and written to
 every connected stream client; a client that does not keep up (more than ``max_buffer_bytes``
@@ -29,33 +34,54 @@ import numpy as np
 from fbgcomp.errors import InputError
 from fbgcomp.runtime import hyperion
 
-_FAULT_RE = re.compile(r"^(drop|double|shift|stuck):([^@]+)@([0-9.eE+-]+)(?::([0-9.eE+-]+))?$")
-_CUT_RE = re.compile(r"^cut@([0-9.eE+-]+)(?::([0-9.eE+-]+))?$")
+_FAULT_RE = re.compile(r"^(drop|double|shift|stuck):([^@]+)@([0-9.eE+-]+)(?::([0-9.eE+-]+))?"
+                       r"(?:/([0-9.eE+-]+))?$")
+_CUT_RE = re.compile(r"^(cut|garbage)@([0-9.eE+-]+)(?::([0-9.eE+-]+))?$")
+GARBAGE_BYTES = 4096
+MAX_GARBAGE_BYTES = 1 << 20
 
 
 @dataclass
 class Fault:
-    """One injected fault: ``kind`` on ``sensor`` from ``at_s`` (``value``: shift nm / cut s)."""
+    """One injected fault: ``kind`` on ``sensor`` from ``at_s`` to ``until_s`` (``value``:
+    shift nm / cut s / garbage bytes)."""
 
     kind: str
     sensor: str | None
     at_s: float
     value: float = 0.0
+    until_s: float = float("inf")
+
+    def active(self, t_rel_s: float) -> bool:
+        return self.at_s <= t_rel_s < self.until_s
 
 
 def parse_fault(text: str) -> Fault:
     """Parse one fault specification (see the module docstring)."""
     text = text.strip()
     m = _FAULT_RE.match(text)
-    if m:
-        kind, sensor, at, value = m.groups()
-        default = 6.0 if kind == "shift" else 0.0
-        return Fault(kind, sensor, float(at), float(value) if value else default)
-    m = _CUT_RE.match(text)
-    if m:
-        return Fault("cut", None, float(m.group(1)), float(m.group(2) or 1.0))
+    try:
+        if m:
+            kind, sensor, at, value, duration = m.groups()
+            default = 6.0 if kind == "shift" else 0.0
+            f = Fault(kind, sensor, float(at), float(value) if value else default)
+            if duration is not None:
+                f.until_s = f.at_s + float(duration)
+            if f.at_s >= 0 and f.until_s > f.at_s and np.isfinite(f.value):
+                return f
+        m = _CUT_RE.match(text)
+        if m:
+            kind, at, value = m.groups()
+            default = 1.0 if kind == "cut" else GARBAGE_BYTES
+            f = Fault(kind, None, float(at), float(value) if value else default)
+            if f.at_s >= 0 and np.isfinite(f.value) and f.value >= 0 and \
+                    (kind == "cut" or f.value <= MAX_GARBAGE_BYTES):
+                return f
+    except ValueError:
+        pass
     raise InputError(f"bad fault {text!r}: expected drop:S@t, double:S@t, shift:S@t:nm, "
-                     "stuck:S@t or cut@t:duration", column="--fault")
+                     "stuck:S@t (each optionally /duration), cut@t:duration or "
+                     f"garbage@t:bytes (at most {MAX_GARBAGE_BYTES})", column="--fault")
 
 
 @dataclass
@@ -137,6 +163,7 @@ class SimulatedHyperion:
         self._stuck_value: dict[int, float] = {}
         self.send_log: list[tuple[float, int, float]] | None = None
         self._fired_cuts: set[int] = set()
+        self.garbage_sent = 0                  # bursts of random bytes sent (garbage faults)
 
     @property
     def command_port(self) -> int:
@@ -243,6 +270,13 @@ class SimulatedHyperion:
                     self._fired_cuts.add(i)
                     self._cut_until = f.at_s + f.value
                     self._close_clients()
+                elif f.kind == "garbage" and i not in self._fired_cuts and elapsed >= f.at_s:
+                    self._fired_cuts.add(i)
+                    if self._stream_writers and not self._link_cut():
+                        junk = self._rng.integers(0, 256, int(f.value), dtype=np.uint8)
+                        for w in list(self._stream_writers):
+                            w.write(junk.tobytes())
+                        self.garbage_sent += 1
             due = int(elapsed * cfg.rate_hz) + 1
             if due > self._sent:
                 k = np.arange(self._sent, due)
@@ -282,7 +316,8 @@ class SimulatedHyperion:
         if cfg.noise_pm:
             wl += self._rng.normal(0.0, cfg.noise_pm * 1e-3, wl.shape)
         # Fault boundaries split the block into runs with one peak layout each.
-        edges = sorted({f.at_s for f in cfg.faults if f.sensor is not None})
+        edges = sorted({e for f in cfg.faults if f.sensor is not None
+                        for e in (f.at_s, f.until_s) if np.isfinite(e)})
         seg = np.searchsorted(np.asarray(edges), t_rel_s, side="right") if edges else \
             np.zeros(t_rel_s.size, int)
         out = []
@@ -296,8 +331,10 @@ class SimulatedHyperion:
         cfg = self.config
         names = self.table.sensor_names
         dropped, doubled = set(), set()
-        for f in cfg.faults:
-            if f.sensor is None or t_rel < f.at_s:
+        for i, f in enumerate(cfg.faults):
+            if f.sensor is None or not f.active(t_rel):
+                if f.kind == "stuck" and t_rel >= f.until_s:
+                    self._stuck_value.pop(i, None)
                 continue
             j = names.index(f.sensor)
             if f.kind == "drop":
@@ -307,8 +344,8 @@ class SimulatedHyperion:
             elif f.kind == "shift":
                 wl[:, j] += f.value
             elif f.kind == "stuck":
-                self._stuck_value.setdefault(j, float(wl[0, j]))
-                wl[:, j] = self._stuck_value[j]
+                self._stuck_value.setdefault(i, float(wl[0, j]))
+                wl[:, j] = self._stuck_value[i]
         cols, counts = [], np.zeros(cfg.channels, np.int16)
         for ch in range(cfg.channels):
             members = [j for j in np.flatnonzero(self._sensor_channel == ch) if j not in dropped]
