@@ -69,15 +69,44 @@ __all__ = [
 ]
 
 _EPS = np.finfo(float).eps
-# Rows per LAPACK pass inside one update: bounds the extra memory of an update (one scaled copy
-# of the block) whatever the caller's chunk size.
+# Rows per BLAS Gram product inside one update (the Gram fast path).
 _BLOCK_ROWS = 65536
+# Rows per LAPACK QR pass: [R; block] stays in cache (4096 x 46 doubles = 1.5 MB), which makes
+# the Householder data pass ~1.7x faster than 65536-row blocks; it also bounds the extra memory
+# of an update (one scaled copy of the block) whatever the caller's chunk size.
+_QR_BLOCK_ROWS = 4096
 # Rows per double-double Householder pass: its ~20 temporaries of this many rows stay small.
 _DD_BLOCK_ROWS = 2048
 # Above this condition number of the scaled design, double-precision QR would lose more than
 # ~10 of the 16 digits: the "auto" precision switches the data pass to double-double.
 _KAPPA_EXTENDED = 1e6
 _PRECISIONS = ("auto", "double", "double-double")
+# Gram fast path of the "auto" data pass (issue 16). Forming X^T X squares the condition
+# number: with the columns equilibrated, the Cholesky solution of the accumulated Gram carries a
+# normwise relative error of about kappa_eq(X)^2 * eps_G, eps_G the rounding of the Gram
+# (about sqrt(65536) u = 2.8e-14 for a 65536-row BLAS block, probabilistically; Higham & Mary
+# 2019). Small coefficients lose more, relatively. Forced through the Gram, NIST Wampler3/4
+# (kappa_eq(X) 2.2e3) keep only 6.0 correct digits in their worst coefficient, Longley (4.3e4)
+# 6.6, and polynomial designs of degree 2-4 on shifted abscissae 12.7 (kappa_eq 18) to 5.2
+# (2.1e4): the worst coefficient's relative error stays <= 2.1e-13 kappa_eq^2 in all of them.
+# kappa_eq(X) <= 500 bounds that at 5e-8, >= 7.3 digits (the NIST target is 7; the measured
+# design nearest the threshold, kappa_eq 547, keeps 7.8). The error is governed by the final
+# factor's conditioning (a chunk's rounding relative to the whole Gram), which only improves as
+# a drift is seen longer: bench_stepwise's first 100 000 rows have kappa_eq 402, all 10^6 rows 9.
+_KAPPA_GRAM = 500.0
+# The residual sum of squares from a Gram is y'y - b'X'y: it loses (|y| / |e|)^2 eps_G of its
+# relative accuracy to cancellation (|e| the residual norm of y on all of X). At most 300 keeps
+# SSR to 2.1e-13 * 9e4 = 1.9e-8 (residual SD, R^2 and standard errors to >= 7.5 digits); a
+# near-exact fit (NIST Pontius, Wampler1/2, or tiny noise on large deviations) stays on QR.
+_RESID_RATIO_GRAM = 300.0
+# Rows that go through Householder QR before the Gram fast path may start (the first 2(p+k) of
+# them in double-double): their factor tells whether the design is well conditioned.
+_GRAM_MIN_ROWS = 1024
+# A refused Gram (the factor would leave the bounds above) costs its pass on top of the QR of the
+# same rows; after this many refusals in a row the fast path is off for good. A refusal alone
+# is not final: the first chunks of a slow drift often see too little of it to be well
+# conditioned (bench_stepwise's first 100 000 rows: 3.6 h of a 36 h campaign).
+_GRAM_MAX_REFUSALS = 3
 # Largest Newey-West bandwidth (lags) of the default grid of an autocorrelation-robust fit.
 HAC_MAX_LAG = 4096
 # Rows per pass of the lagged-score accumulation: bounds its temporaries (rows + carried lags).
@@ -270,6 +299,18 @@ def _deficient_columns(diag_abs: np.ndarray, nobs: int) -> list[int]:
     return [int(i) for i in np.flatnonzero(~(diag_abs > tol))]
 
 
+def _equilibrated_cond(r: np.ndarray) -> float:
+    """2-norm condition number of the triangle ``r`` with its columns scaled to unit norm: the
+    conditioning that governs a Cholesky/normal-equations solution (van der Sluis), whatever the
+    columns' units. inf when a column is zero."""
+    norms = np.linalg.norm(r, axis=0)
+    if r.size == 0:
+        return 1.0
+    if not (norms > 0).all():
+        return math.inf
+    return float(np.linalg.cond(r / norms))
+
+
 def _as_2d(values: Any, ncols: int, what: str) -> np.ndarray:
     arr = np.asarray(values, dtype=float)
     if arr.ndim == 1 and ncols == 1:
@@ -455,6 +496,9 @@ class QRAccumulator:
         self.R_lo_ = np.zeros((q, q))
         self.scale_: np.ndarray | None = None
         self.extended_ = precision == "double-double"
+        self.gram_rows_ = 0
+        self._gram_ok = True
+        self._gram_refusals = 0
         self.column_min_ = np.full(self.n_features, np.inf)
         self.column_max_ = np.full(self.n_features, -np.inf)
         self.target_mean_ = np.zeros(self.n_targets)
@@ -483,8 +527,8 @@ class QRAccumulator:
 
     # -- accumulation --------------------------------------------------------------------------
 
-    def _rows(self, X_chunk, Y_chunk, weights):
-        """Validated (X, Y, w or None) of a chunk."""
+    def _rows(self, X_chunk, Y_chunk, weights, check: bool = True):
+        """Validated (X, Y, w or None) of a chunk (``check=False``: finiteness not checked)."""
         p, k = self.n_features, self.n_targets
         X = _as_2d(X_chunk, p, "X_chunk")
         Y = _as_2d(Y_chunk, k, "Y_chunk")
@@ -493,14 +537,23 @@ class QRAccumulator:
             raise ValueError(f"X_chunk has {m} rows but Y_chunk has {Y.shape[0]}")
         if m == 0:
             return X, Y, None
-        _check_finite(X, self.feature_names, self.n_obs + 1, "feature")
-        _check_finite(Y, self.target_names, self.n_obs + 1, "target")
+        if check:
+            self._check_rows(X, Y)
         w = None
         if weights is not None:
             w = np.broadcast_to(np.asarray(weights, dtype=float), (m,))
             if not np.all(np.isfinite(w)) or np.any(w < 0):
                 raise ValueError("weights must be finite and non-negative")
         return X, Y, w
+
+    def _check_rows(self, X: np.ndarray, Y: np.ndarray, offset: int = 0) -> None:
+        """InputError naming row and column of the first non-finite value (rows ``offset..``
+        of the chunk being added)."""
+        _check_finite(X, self.feature_names, self.n_obs + offset + 1, "feature")
+        _check_finite(Y, self.target_names, self.n_obs + offset + 1, "target")
+
+    def _gram_eligible(self) -> bool:
+        return self.precision == "auto" and not self.extended_ and self._gram_ok
 
     def update(self, X_chunk, Y_chunk, weights=None) -> "QRAccumulator":
         """Add rows to the factor: ``X_chunk`` (m, p) and ``Y_chunk`` (m, k) (1-D allowed when
@@ -510,7 +563,9 @@ class QRAccumulator:
         Autocorrelation statistics come in a second pass (:meth:`begin_hac`).
         """
         p, k = self.n_features, self.n_targets
-        X, Y, w = self._rows(X_chunk, Y_chunk, weights)
+        # The Gram fast path checks finiteness on the Gram's diagonal (a NaN or inf anywhere
+        # makes it non-finite) instead of a pass of its own over the chunk.
+        X, Y, w = self._rows(X_chunk, Y_chunk, weights, check=not self._gram_eligible())
         m = X.shape[0]
         if m == 0:
             return self
@@ -519,14 +574,22 @@ class QRAccumulator:
             root = np.sqrt(w)[:, None]
             X, Y = X * root, Y * root
         if self.scale_ is None:
-            rms = np.concatenate([np.sqrt(np.mean(X * X, axis=0)), np.sqrt(np.mean(Y * Y, axis=0))])
+            rms = np.sqrt(np.concatenate([np.einsum("ij,ij->j", X, X),
+                                          np.einsum("ij,ij->j", Y, Y)]) / m)
             self.scale_ = _power_of_two_scale(rms)
-        for start in range(0, m, _BLOCK_ROWS):
-            stop = min(m, start + _BLOCK_ROWS)
-            self._factor_block(X[start:stop], Y[start:stop], self.n_obs + stop)
-        # The intercept is found on the unweighted design: a weighted column of ones is not constant.
-        self.column_min_ = np.minimum(self.column_min_, X_raw.min(axis=0))
-        self.column_max_ = np.maximum(self.column_max_, X_raw.max(axis=0))
+        start = 0
+        if self._gram_eligible():
+            # Householder QR until the factor can judge the conditioning, then the Gram.
+            start = min(m, max(0, max(_GRAM_MIN_ROWS, 4 * (p + k)) - self.n_obs))
+            self._check_rows(X_raw[:start], Y_raw[:start])
+            self._factor_rows(X[:start], Y[:start])
+            if start < m and self._gram_eligible():
+                if self._gram_rows(X[start:], Y[start:], X_raw[start:], Y_raw[start:], start):
+                    start = m
+            elif start < m:
+                self._check_rows(X_raw[start:], Y_raw[start:], start)
+        self._factor_rows(X[start:], Y[start:], self.n_obs + start)
+        self._update_range(X_raw)
         if w is None:
             w_b = float(m)
             mean_b = Y_raw.mean(axis=0)
@@ -538,6 +601,67 @@ class QRAccumulator:
         self._merge_moments(w_b, mean_b, css_b)
         self.n_obs += m
         return self
+
+    def _factor_rows(self, X: np.ndarray, Y: np.ndarray, n_before: int | None = None) -> None:
+        """Householder QR of the (weighted) rows, block by block."""
+        n_before = self.n_obs if n_before is None else n_before
+        for start in range(0, X.shape[0], _QR_BLOCK_ROWS):
+            stop = min(X.shape[0], start + _QR_BLOCK_ROWS)
+            self._factor_block(X[start:stop], Y[start:stop], n_before + stop)
+
+    def _update_range(self, X_raw: np.ndarray) -> None:
+        """Column ranges for :attr:`constant_columns`. Only columns that have not varied yet
+        are read: a column seen to vary can never become constant again, so its range is left
+        as it was (one strided read of the few constant columns instead of two full passes)."""
+        if not np.isfinite(self.column_min_).all():          # first rows
+            self.column_min_ = np.minimum(self.column_min_, X_raw.min(axis=0))
+            self.column_max_ = np.maximum(self.column_max_, X_raw.max(axis=0))
+            return
+        flat = np.flatnonzero(self.column_min_ == self.column_max_)
+        if flat.size:
+            part = X_raw[:, flat]
+            self.column_min_[flat] = np.minimum(self.column_min_[flat], part.min(axis=0))
+            self.column_max_[flat] = np.maximum(self.column_max_[flat], part.max(axis=0))
+
+    def _gram_rows(self, X: np.ndarray, Y: np.ndarray, X_raw: np.ndarray,
+                   Y_raw: np.ndarray, offset: int) -> bool:
+        """Gram fast path: add the (weighted) rows through their Gram ``[X Y]^T [X Y]``
+        (BLAS syrk/gemm, one pass at memory-bandwidth speed, 65536-row blocks) and a Cholesky
+        of ``R^T R + G`` (scaled exactly by the power-of-two scales). Committed only if the
+        equilibrated condition number of the new factor's design part stays <= _KAPPA_GRAM
+        and every target's norm within _RESID_RATIO_GRAM times its residual's (module notes);
+        otherwise nothing changes and False is returned (the caller factors the same rows by
+        QR); after _GRAM_MAX_REFUSALS refusals in a row the fast path is off for good."""
+        p, q = self.n_features, self.n_features + self.n_targets
+        g = np.zeros((q, q))
+        for start in range(0, X.shape[0], _BLOCK_ROWS):
+            xb, yb = X[start:start + _BLOCK_ROWS], Y[start:start + _BLOCK_ROWS]
+            g[:p, :p] += xb.T @ xb
+            xy = xb.T @ yb
+            g[:p, p:] += xy
+            g[p:, :p] += xy.T
+            g[p:, p:] += yb.T @ yb
+        if not np.isfinite(np.diag(g)).all():
+            self._check_rows(X_raw, Y_raw, offset)   # names the bad cell; else squares overflowed
+            self._gram_ok = False
+            return False
+        g /= np.outer(self.scale_, self.scale_)  # exact: powers of two
+        gram = self.R_.T @ self.R_ + g
+        try:
+            r = linalg.cholesky(gram, lower=False, check_finite=False)
+            ok = (_equilibrated_cond(r[:p, :p]) <= _KAPPA_GRAM
+                  and bool(np.all(np.linalg.norm(r[:, p:], axis=0)
+                                  <= _RESID_RATIO_GRAM * np.linalg.norm(r[p:, p:], axis=0))))
+        except linalg.LinAlgError:
+            ok = False
+        if not ok:
+            self._gram_refusals += 1
+            self._gram_ok = self._gram_refusals < _GRAM_MAX_REFUSALS
+            return False
+        self._gram_refusals = 0
+        self.R_, self.R_lo_ = r, np.zeros((q, q))
+        self.gram_rows_ += X.shape[0]
+        return True
 
     def begin_hac(self) -> "QRAccumulator":
         """Start the second pass of the two-pass recipe; returns self.
@@ -717,6 +841,7 @@ class QRAccumulator:
                          "target_css_"):
                 setattr(self, name, getattr(other, name).copy())
             self.n_obs = other.n_obs
+            self.gram_rows_ = other.gram_rows_
             self.weight_sum_ = other.weight_sum_ * weight
             self.target_css_ = self.target_css_ * weight
             self.R_, self.R_lo_ = self.R_ * root, self.R_lo_ * root
@@ -739,6 +864,7 @@ class QRAccumulator:
         self.column_max_ = np.maximum(self.column_max_, other.column_max_)
         self._merge_moments(other.weight_sum_ * weight, other.target_mean_, other.target_css_ * weight)
         self.n_obs += other.n_obs
+        self.gram_rows_ += other.gram_rows_
         return self
 
     def _merge_hac(self, other: "QRAccumulator", weight: float) -> None:
@@ -831,6 +957,14 @@ class QRAccumulator:
         rh, rl = _dd_qr_r(self.R_[:, sel], self.R_lo_[:, sel])
         return rh[:m, :m], rl[:m, :m], rh[:m, m], rl[:m, m], float(abs(rh[m, m]))
 
+    def _well_conditioned(self, limit: float = _KAPPA_EXTENDED) -> bool:
+        """Whether the factor is well conditioned enough for double-precision sub-model
+        statistics (Householder QR of the factor's columns: relative error ~ kappa u, 1e-10 at
+        the limit, far below anything a partial F test resolves): equilibrated kappa of R
+        (design and targets) <= ``limit`` and the data pass never needed double-double."""
+        return (not self.extended_ and self.n_obs > 0
+                and _equilibrated_cond(self.R_ + self.R_lo_) <= limit)
+
     def _tss(self, t: int) -> tuple[float, float]:
         """(centred, uncentred) total sum of squares of target t."""
         css = float(self.target_css_[t])
@@ -853,6 +987,7 @@ class QRAccumulator:
             "target_names": list(self.target_names),
             "precision": self.precision,
             "extended": bool(self.extended_),
+            "gram_rows": int(self.gram_rows_),
             "n_obs": int(self.n_obs),
             "scale": None if self.scale_ is None else self.scale_.tolist(),
             "R": self.R_.tolist(),
@@ -880,6 +1015,7 @@ class QRAccumulator:
             q = acc.n_features + acc.n_targets
             acc.n_obs = int(state["n_obs"])
             acc.extended_ = bool(state.get("extended", acc.extended_))
+            acc.gram_rows_ = int(state.get("gram_rows", 0))
             acc.R_ = _field_array(state, "R", (q, q))
             acc.R_lo_ = (_field_array(state, "R_lo", (q, q)) if state.get("R_lo") is not None
                          else np.zeros((q, q)))
@@ -1058,8 +1194,18 @@ class OLSResults:
 
     Attributes
     ----------
-    params, bse, tvalues, pvalues : ndarray
-        Estimates, standard errors, t statistics and two-sided p-values.
+    params, bse, tvalues, pvalues : ndarray or pandas Series
+        Estimates, standard errors, t statistics and two-sided p-values: a pandas Series
+        indexed by the term names when the fit was given names (:func:`ols` with a DataFrame
+        or ``feature_names``), as statsmodels does for pandas input; plain arrays otherwise.
+    resid, fittedvalues : ndarray or pandas Series
+        Residuals and fitted values of the rows fitted; only when the rows were given in
+        memory (:func:`ols`): a fit from the accumulated factor holds no rows.
+    llf, aic, bic : float
+        Gaussian log-likelihood ``-n/2 (log(2 pi SSR/n) + 1)`` and the information criteria
+        ``-2 llf + 2 k``, ``-2 llf + log(n) k`` with ``k = df_model + k_constant`` (the number
+        of coefficients), statsmodels OLS's definitions. For a weighted accumulator they are
+        those of the sqrt(w)-scaled rows (statsmodels' WLS adds ``sum log(w) / 2`` to llf).
     ssr, ess, centered_tss, uncentered_tss : float
         Residual, explained and total sums of squares (ESS is relative to the centred total
         when the model has a constant column, to the uncentred one otherwise, as statsmodels).
@@ -1074,11 +1220,15 @@ class OLSResults:
     def __init__(self, params, r_factor, feature_scale, *, ssr: float, nobs: int, k_constant: int,
                  centered_tss: float, uncentered_tss: float, feature_names: Sequence[str],
                  target_name: str = "y", cov_type: str = "nonrobust", robust_cov=None,
-                 cov_kwds: dict | None = None, const_index: int | None = None):
-        self.params = np.asarray(params, dtype=float).copy()
+                 cov_kwds: dict | None = None, const_index: int | None = None,
+                 named: bool = False, data=None):
+        self._params = np.asarray(params, dtype=float).copy()
+        # named: params & co. as pandas Series; data: (X, y, row index or None) of ols()
+        self.named = bool(named)
+        self._data = data
         self._r = np.triu(np.asarray(r_factor, dtype=float))
         self._scale = np.asarray(feature_scale, dtype=float).copy()
-        m = self.params.size
+        m = self._params.size
         if self._r.shape != (m, m) or self._scale.shape != (m,):
             raise ValueError("params, r_factor and feature_scale sizes disagree")
         self.feature_names = list(feature_names)
@@ -1107,10 +1257,10 @@ class OLSResults:
             # LAPACK trtri: the triangular inverse is computed to high relative accuracy.
             self._r_inv = linalg.lapack.dtrtri(self._r, lower=0)[0] if m else np.zeros((0, 0))
             self.bse_nonrobust = self.resid_sd * np.linalg.norm(self._r_inv, axis=1) / self._scale
-            self.bse = (self.bse_nonrobust if self._robust_cov is None
+            self._bse = (self.bse_nonrobust if self._robust_cov is None
                         else np.sqrt(np.clip(np.diag(self._robust_cov), 0.0, None)))
-            self.tvalues = self.params / self.bse
-            self.pvalues = 2.0 * stats.t.sf(np.abs(self.tvalues), self.df_resid)
+            self._tvalues = self._params / self._bse
+            self._pvalues = 2.0 * stats.t.sf(np.abs(self._tvalues), self.df_resid)
             tss = self.centered_tss if self.k_constant else self.uncentered_tss
             self.ess = tss - self.ssr
             self.rsquared = 1.0 - self.ssr / tss if tss > 0 else math.nan
@@ -1125,12 +1275,82 @@ class OLSResults:
             else:
                 self.mse_model = self.fvalue = self.f_pvalue = math.nan
 
+    # -- statsmodels-style views -------------------------------------------------------------
+
+    def _series(self, values: np.ndarray):
+        if not self.named:
+            return values
+        import pandas as pd
+
+        return pd.Series(values, index=list(self.feature_names), dtype=float)
+
+    @property
+    def params(self):
+        return self._series(self._params)
+
+    @property
+    def bse(self):
+        return self._series(self._bse)
+
+    @property
+    def tvalues(self):
+        return self._series(self._tvalues)
+
+    @property
+    def pvalues(self):
+        return self._series(self._pvalues)
+
+    def _rows(self, values: np.ndarray):
+        if not self.named:
+            return values
+        import pandas as pd
+
+        index = self._data[2]
+        return pd.Series(values, index=index, name=self.target_name, dtype=float)
+
+    def _need_data(self, what: str):
+        if self._data is None:
+            raise AttributeError(f"{what} needs the fitted rows: this fit comes from an "
+                                 f"accumulated factor (or a saved model), which keeps none; fit "
+                                 f"with ols(X, y) or compute y - res.predict(X)")
+        return self._data
+
+    @property
+    def fittedvalues(self):
+        """Fitted values of the rows fitted (``X @ params``)."""
+        X, _, _ = self._need_data("fittedvalues")
+        return self._rows(X @ self._params)
+
+    @property
+    def resid(self):
+        """Residuals ``y - X @ params`` of the rows fitted."""
+        X, y, _ = self._need_data("resid")
+        return self._rows(y - X @ self._params)
+
+    @property
+    def llf(self) -> float:
+        """Gaussian log-likelihood at the estimates (statsmodels OLS ``llf``)."""
+        n = self.nobs
+        if n <= 0 or self.ssr <= 0:
+            return math.inf if n > 0 else math.nan
+        return -0.5 * n * (math.log(2.0 * math.pi * self.ssr / n) + 1.0)
+
+    @property
+    def aic(self) -> float:
+        """Akaike information criterion ``-2 llf + 2 k``, k the number of coefficients."""
+        return -2.0 * self.llf + 2.0 * (self.df_model + self.k_constant)
+
+    @property
+    def bic(self) -> float:
+        """Bayesian information criterion ``-2 llf + log(n) k``."""
+        return -2.0 * self.llf + math.log(self.nobs) * (self.df_model + self.k_constant)
+
     def _wald_f(self) -> float:
         """Wald F of "every non-constant coefficient is 0" with the robust covariance."""
-        keep = [i for i in range(self.params.size) if i != self.const_index]
+        keep = [i for i in range(self._params.size) if i != self.const_index]
         if self.k_constant and self.const_index is None:
             return math.nan
-        b = self.params[keep]
+        b = self._params[keep]
         v = self._robust_cov[np.ix_(keep, keep)]
         try:
             stat = float(b @ np.linalg.solve(v, b))
@@ -1152,14 +1372,21 @@ class OLSResults:
         g = self._r_inv @ self._r_inv.T
         return self.mse_resid * g / np.outer(self._scale, self._scale)
 
-    def conf_int(self, alpha: float = 0.05) -> np.ndarray:
-        """(m, 2) array of two-sided 1 - alpha Student-t intervals for the coefficients."""
+    def conf_int(self, alpha: float = 0.05):
+        """(m, 2) two-sided 1 - alpha Student-t intervals for the coefficients: an array, or a
+        DataFrame indexed by the term names with columns 0 and 1 when the fit is named (as
+        statsmodels)."""
         q = stats.t.ppf(1.0 - alpha / 2.0, self.df_resid)
-        return np.column_stack([self.params - q * self.bse, self.params + q * self.bse])
+        ci = np.column_stack([self._params - q * self._bse, self._params + q * self._bse])
+        if not self.named:
+            return ci
+        import pandas as pd
+
+        return pd.DataFrame(ci, index=list(self.feature_names), columns=[0, 1])
 
     def _design(self, X) -> np.ndarray:
         X = np.asarray(X, dtype=float)
-        m = self.params.size
+        m = self._params.size
         if X.ndim == 1:
             X = X[:, None] if m == 1 else X[None, :]
         if X.ndim != 2 or X.shape[1] != m:
@@ -1168,7 +1395,7 @@ class OLSResults:
 
     def predict(self, X) -> np.ndarray:
         """Fitted values ``X @ params`` for design rows X (n, m); 1-D X is one row (or column if m = 1)."""
-        return self._design(X) @ self.params
+        return self._design(X) @ self._params
 
     def prediction_interval(self, X, alpha: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
         """(lower, upper) bounds containing a *new* observation with probability 1 - alpha.
@@ -1188,7 +1415,7 @@ class OLSResults:
             var_fit = np.clip(np.einsum("ni,ij,nj->n", zs, cov_s, zs), 0.0, None)
         half = (stats.t.ppf(1.0 - alpha / 2.0, self.df_resid)
                 * np.sqrt(self.mse_resid + var_fit))
-        yhat = X @ self.params
+        yhat = X @ self._params
         return yhat - half, yhat + half
 
     def anova(self):
@@ -1212,16 +1439,16 @@ class OLSResults:
 
     def summary(self) -> str:
         """Coefficient table in the style of the paper's Table 1, plus the overall fit figures."""
-        ci = self.conf_int()
+        ci = np.asarray(self.conf_int())
         width = max([len("term")] + [len(n) for n in self.feature_names])
         head = (f"{'term':<{width}}  {'estimate':>13} {'std error':>12} {'t':>9} {'P>|t|':>9}"
                 f" {'[0.025':>13} {'0.975]':>13}")
         rule = "=" * len(head)
-        lines = [f"OLS regression of {self.target_name} on {self.params.size} terms".center(len(head)),
+        lines = [f"OLS regression of {self.target_name} on {self._params.size} terms".center(len(head)),
                  rule, head, "-" * len(head)]
         for i, name in enumerate(self.feature_names):
-            lines.append(f"{name:<{width}}  {self.params[i]:>13.6g} {self.bse[i]:>12.4g} "
-                         f"{_fmt_t(self.tvalues[i]):>9} {_fmt_p(self.pvalues[i]):>9} "
+            lines.append(f"{name:<{width}}  {self._params[i]:>13.6g} {self._bse[i]:>12.4g} "
+                         f"{_fmt_t(self._tvalues[i]):>9} {_fmt_p(self._pvalues[i]):>9} "
                          f"{ci[i, 0]:>13.6g} {ci[i, 1]:>13.6g}")
         lines.append(rule)
         kind = "" if self.k_constant else " (uncentred)"
@@ -1258,8 +1485,8 @@ class OLSResults:
             "version": 1,
             "target_name": self.target_name,
             "feature_names": list(self.feature_names),
-            "params": self.params.tolist(),
-            "bse": self.bse.tolist(),
+            "params": self._params.tolist(),
+            "bse": self._bse.tolist(),
             "nobs": self.nobs,
             "k_constant": self.k_constant,
             "ssr": self.ssr,
@@ -1271,6 +1498,7 @@ class OLSResults:
             "robust_cov": None if self._robust_cov is None else self._robust_cov.tolist(),
             "cov_kwds": self.cov_kwds,
             "const_index": self.const_index,
+            "named": self.named,
         }
 
     @classmethod
@@ -1287,7 +1515,8 @@ class OLSResults:
                        cov_type=state.get("cov_type", "nonrobust"),
                        robust_cov=(None if state.get("robust_cov") is None
                                    else _field_array(state, "robust_cov", (m, m))),
-                       cov_kwds=state.get("cov_kwds"), const_index=state.get("const_index"))
+                       cov_kwds=state.get("cov_kwds"), const_index=state.get("const_index"),
+                       named=bool(state.get("named", False)))
         except KeyError as exc:
             raise InputError(f"missing field {exc.args[0]!r} in regression model",
                              column=f"field {exc.args[0]}") from None
@@ -1371,7 +1600,7 @@ def ols_from_factor(acc: QRAccumulator, columns=None, target=0, *, cov_type=None
                       cov_kwds=info, const_index=const_pos[0] if const_pos else None)
 
 
-def ols(X, y, *, feature_names=None, target_name: str = "y", cov_type: str = "HAC",
+def ols(X, y, *, feature_names=None, target_name: str | None = None, cov_type: str = "HAC",
         maxlags=None) -> OLSResults:
     """Ordinary least squares of ``y`` (n,) on the design ``X`` (n, p) exactly as given.
 
@@ -1382,9 +1611,20 @@ def ols(X, y, *, feature_names=None, target_name: str = "y", cov_type: str = "HA
     Rows are one time series in order. ``cov_type="HAC"`` (default): Newey-West standard errors
     (``maxlags`` an int, as statsmodels' ``cov_kwds={"maxlags": L}``, or None for Andrews'
     AR(1) choice); ``"nonrobust"``: the textbook i.i.d. ones.
+
+    Given names (a DataFrame ``X`` or ``feature_names``), ``params``, ``bse``, ``tvalues``,
+    ``pvalues``, ``resid`` and ``fittedvalues`` are pandas Series (indexed by the names, or by
+    the rows' index) and ``conf_int()`` a DataFrame, as statsmodels gives for pandas input;
+    otherwise plain arrays. ``target_name`` defaults to the name of a Series ``y``, else "y".
     """
+    named = feature_names is not None or hasattr(X, "columns")
     if feature_names is None and hasattr(X, "columns"):
         feature_names = [str(c) for c in X.columns]
+    index = getattr(X, "index", None)
+    if index is None:
+        index = getattr(y, "index", None)
+    if target_name is None:
+        target_name = str(y.name) if getattr(y, "name", None) is not None else "y"
     X = np.asarray(X, dtype=float)
     if X.ndim == 1:
         X = X[:, None]
@@ -1403,7 +1643,10 @@ def ols(X, y, *, feature_names=None, target_name: str = "y", cov_type: str = "HA
                 else [int(maxlags)])
     acc = accumulate_series(QRAccumulator(X.shape[1], 1, feature_names, [target_name],
                                           hac_lags=lags), [(X, y, None)], chunk_rows=len(X) or 1)
-    return ols_from_factor(acc, cov_type=cov_type, maxlags=maxlags)
+    res = ols_from_factor(acc, cov_type=cov_type, maxlags=maxlags)
+    res.named = named
+    res._data = (X, y, index)
+    return res
 
 
 # --------------------------------------------------------------------------------------------
@@ -1484,12 +1727,17 @@ class _StepState:
     solution, ``SSR(S - s) - SSR(S) = b_s^2 / [(X^T X)^-1]_ss`` and ``(X^T X)^-1 = T^-1 T^-T``.
     """
 
-    def __init__(self, acc: QRAccumulator, model: list[int], others: list[int], t: int):
+    def __init__(self, acc: QRAccumulator, model: list[int], others: list[int], t: int,
+                 exact: bool = True):
         p = acc.n_features
         m = len(model)
         sel = model + others + [p + t]
-        mh, ml = _dd_householder(acc.R_[:, sel], acc.R_lo_[:, sel], m)
+        self.exact = exact
         sy2 = float(acc.scale_[p + t]) ** 2
+        if not exact:
+            self._init_double(acc, model, others, sel, sy2)
+            return
+        mh, ml = _dd_householder(acc.R_[:, sel], acc.R_lo_[:, sel], m)
         self.nobs = acc.n_obs
         self.model, self.others, self.sy2 = model, others, sy2
         th, tl = mh[:m, :m], ml[:m, :m]
@@ -1502,10 +1750,80 @@ class _StepState:
         self._trail = (mh[m:, m:-1], ml[m:, m:-1], yh, yl)
         self._tri = (th, tl, mh[:m, -1], ml[:m, -1])
 
+    def _init_double(self, acc, model, others, sel, sy2) -> None:
+        """The same quantities in double precision (LAPACK Householder QR of the model columns
+        of R, its reflections applied to the rest): for a well-conditioned factor
+        (kappa_eq <= _KAPPA_EXTENDED) they carry a relative error of about kappa u, far below any
+        difference a partial F test can resolve."""
+        m = len(model)
+        a = acc.R_[:, sel] + acc.R_lo_[:, sel]
+        self.nobs = acc.n_obs
+        self.model, self.others, self.sy2 = model, others, sy2
+        if m:
+            qr_a, tau = linalg.lapack.dgeqrf(np.asfortranarray(a[:, :m]))[:2]
+            rest, _, info = linalg.lapack.dormqr("L", "T", qr_a, tau,
+                                                 np.asfortranarray(a[:, m:]), a.shape[1])
+            if info != 0:
+                raise np.linalg.LinAlgError(f"dormqr failed ({info})")
+            tri = np.triu(qr_a[:m, :m])
+            head, trail = rest[:m], rest[m:]
+        else:
+            tri, head, trail = np.zeros((0, 0)), a[:0], a
+        self.diag = np.abs(np.diag(tri))
+        self.full_rank = not _deficient_columns(self.diag, acc.n_obs)
+        y = trail[:, -1]
+        ssr_s = float(y @ y)
+        self.ssr = ssr_s * sy2
+        self._d_trail = (trail[:, :-1], y, ssr_s)
+        self._d_tri = (tri, head[:, -1])
+
+    def entries_arrays(self):
+        """Vectorised :meth:`entries`: (columns, SSR drop, SSR after entry, full rank) arrays."""
+        cols = np.asarray(self.others, dtype=int)
+        if not self.others:
+            return cols, np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool)
+        if self.exact:
+            out = self.entries()
+            return (cols, np.array([o[1] for o in out]), np.array([o[2] for o in out]),
+                    np.array([o[3] for o in out], dtype=bool))
+        w, y, ssr_s = self._d_trail
+        norm2 = np.einsum("ij,ij->j", w, w)
+        dot = w.T @ y
+        with np.errstate(divide="ignore", invalid="ignore"):
+            drop = dot * dot / norm2
+        after = np.maximum(ssr_s - drop, 0.0) * self.sy2
+        # rank: the new column's diagonal sqrt(norm2) against the model's (as _deficient_columns)
+        new_diag = np.sqrt(np.maximum(norm2, 0.0))
+        top = np.maximum(self.diag.max() if self.diag.size else 0.0, new_diag)
+        ok = self.full_rank & (new_diag > max(self.nobs, self.diag.size + 1) * _EPS * top)
+        if self.diag.size:
+            ok &= self.diag.min() > max(self.nobs, self.diag.size + 1) * _EPS * top
+        drop = np.where(ok, drop * self.sy2, np.nan)
+        return cols, drop, after, ok
+
+    def removals_arrays(self):
+        """Vectorised :meth:`removals`: (columns, SSR rise, SSR after removal) arrays."""
+        cols = np.asarray(self.model, dtype=int)
+        if not self.model:
+            return cols, np.zeros(0), np.zeros(0)
+        if self.exact:
+            out = self.removals()
+            return cols, np.array([o[1] for o in out]), np.array([o[2] for o in out])
+        tri, z = self._d_tri
+        t_inv = linalg.lapack.dtrtri(tri, lower=0)[0]
+        b = t_inv @ z
+        g = np.einsum("ij,ij->i", t_inv, t_inv)             # diag of T^-1 T^-T
+        rise = b * b / g * self.sy2
+        return cols, rise, self.ssr + rise
+
     def entries(self) -> list[tuple[int, float, float, bool]]:
         """(column, SSR drop, SSR after entry, full rank) for every other column."""
         if not self.others:
             return []
+        if not self.exact:
+            cols, drop, after, ok = self.entries_arrays()
+            return [(int(c), float(d), float(a), bool(o))
+                    for c, d, a, o in zip(cols, drop, after, ok)]
         wh, wl, yh, yl = self._trail
         nh, nl = _dd_sum_rows(*_dd_mul(wh, wl, wh, wl))
         dh, dl = _dd_sum_rows(*_dd_mul(wh, wl, yh[:, None], yl[:, None]))
@@ -1523,6 +1841,9 @@ class _StepState:
 
     def removals(self) -> list[tuple[int, float, float]]:
         """(column, SSR rise, SSR after removal) for every model column."""
+        if not self.exact:
+            cols, rise, after = self.removals_arrays()
+            return [(int(c), float(r), float(a)) for c, r, a in zip(cols, rise, after)]
         th, tl, zh, zl = self._tri
         m = len(self.model)
         if m == 0:
@@ -1597,9 +1918,34 @@ def stepwise(acc: QRAccumulator, candidates=None, *, target=0, direction: str = 
     def ordered(terms):
         return sorted(set(forced) | set(terms))
 
+    # Double-precision steps when the factor is well conditioned (kappa_eq <= 1e6, where the
+    # data pass also stays in double); double-double otherwise. Reported coefficients always come from the
+    # double-double solve of ols_from_factor.
+    exact = not acc._well_conditioned()
+
     def state():
         cols = ordered(model)
-        return _StepState(acc, cols, [c for c in cand if c not in model], t)
+        return _StepState(acc, cols, [c for c in cand if c not in model], t, exact)
+
+    def f_sf(f: float, df: int) -> float:
+        return float(stats.f.sf(f, 1, df)) if df > 0 and not math.isnan(f) else math.nan
+
+    def partial_f(diff: np.ndarray, ssr_big, df_big: int) -> np.ndarray:
+        """Vectorised _partial_f (F only; p is monotone in F at a fixed df)."""
+        diff = np.maximum(np.asarray(diff, dtype=float), 0.0)
+        ssr_big = np.broadcast_to(np.asarray(ssr_big, dtype=float), diff.shape)
+        if df_big <= 0:
+            return np.full(diff.shape, math.nan)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            f = diff / (ssr_big / df_big)
+        return np.where(ssr_big <= 0.0, np.where(diff > 0, math.inf, math.nan), f)
+
+    def pick(f: np.ndarray, largest: bool) -> int | None:
+        """Position of the first largest (smallest) non-NaN F, as the scalar loop chose it."""
+        idx = np.flatnonzero(~np.isnan(f))
+        if not idx.size:
+            return None
+        return int(idx[np.argmax(f[idx]) if largest else np.argmin(f[idx])])
 
     current = state()
     if not current.full_rank:
@@ -1632,25 +1978,29 @@ def stepwise(acc: QRAccumulator, candidates=None, *, target=0, direction: str = 
         if len(model) >= limit:
             return False
         df_big = acc.n_obs - len(current.model) - 1
-        best = None
-        for c, drop, after, ok in current.entries():
-            if not ok or frozenset(model + [c]) in visited:
-                continue   # collinear with the model (no new information), or a loop
-            info = None
-            if robust:
-                fs, info = wald(ordered(model + [c]))
-                f = fs[c]
-                pval = float(stats.f.sf(f, 1, df_big)) if df_big > 0 and not math.isnan(f) else math.nan
-            else:
-                f, pval = _partial_f(drop, after, df_big)
-            if not math.isnan(f) and (best is None or f > best[1]):
-                best = (c, f, pval, after, info)
-        if best is None or not best[2] < p_enter:
+        cols, drop, after, ok = current.entries_arrays()
+        keep = np.array([bool(o) and frozenset(model + [int(c)]) not in visited
+                         for c, o in zip(cols, ok)], dtype=bool)
+        # collinear with the model (no new information), or a loop
+        cols, drop, after = cols[keep], drop[keep], after[keep]
+        infos = [None] * len(cols)
+        if robust:
+            f = np.empty(len(cols))
+            for i, c in enumerate(cols):
+                fs, infos[i] = wald(ordered(model + [int(c)]))
+                f[i] = fs[int(c)]
+        else:
+            f = partial_f(drop, after, df_big)
+        i = pick(f, largest=True)
+        if i is None:
             return False
-        model.append(best[0])
+        pval = f_sf(float(f[i]), df_big)
+        if not pval < p_enter:
+            return False
+        model.append(int(cols[i]))
         visited.add(frozenset(model))
         current = state()
-        record("enter", best[0], best[1], best[2], current.ssr, best[4])
+        record("enter", int(cols[i]), float(f[i]), pval, current.ssr, infos[i])
         return True
 
     def try_remove() -> bool:
@@ -1658,27 +2008,26 @@ def stepwise(acc: QRAccumulator, candidates=None, *, target=0, direction: str = 
         if not model:
             return False
         df_big = acc.n_obs - len(current.model)
-        worst = None
         fs, info = wald(current.model) if robust else (None, None)
-        for c, rise, after in current.removals():
-            if c in forced:
-                continue
-            rest = frozenset(d for d in model if d != c)
-            if direction == "both" and rest in visited:
-                continue
-            if robust:
-                f = fs[c]
-                pval = float(stats.f.sf(f, 1, df_big)) if df_big > 0 and not math.isnan(f) else math.nan
-            else:
-                f, pval = _partial_f(rise, current.ssr, df_big)
-            if not math.isnan(f) and (worst is None or f < worst[1]):
-                worst = (c, f, pval, after)
-        if worst is None or not worst[2] > p_remove:
+        cols, rise, after = current.removals_arrays()
+        keep = np.array([int(c) not in forced and not (
+            direction == "both" and frozenset(d for d in model if d != int(c)) in visited)
+            for c in cols], dtype=bool)
+        cols, rise = cols[keep], rise[keep]
+        if robust:
+            f = np.array([fs[int(c)] for c in cols], dtype=float)
+        else:
+            f = partial_f(rise, current.ssr, df_big)
+        i = pick(f, largest=False)
+        if i is None:
             return False
-        model.remove(worst[0])
+        pval = f_sf(float(f[i]), df_big)
+        if not pval > p_remove:
+            return False
+        model.remove(int(cols[i]))
         visited.add(frozenset(model))
         current = state()
-        record("remove", worst[0], worst[1], worst[2], current.ssr, info)
+        record("remove", int(cols[i]), float(f[i]), pval, current.ssr, info)
         return True
 
     if direction == "backward":
