@@ -589,7 +589,9 @@ class QRAccumulator:
             elif start < m:
                 self._check_rows(X_raw[start:], Y_raw[start:], start)
         self._factor_rows(X[start:], Y[start:], self.n_obs + start)
-        self._update_range(X_raw)
+        # Warm-up rows first: most columns vary there, and only the others are read after.
+        self._update_range(X_raw[:_GRAM_MIN_ROWS])
+        self._update_range(X_raw[_GRAM_MIN_ROWS:])
         if w is None:
             w_b = float(m)
             mean_b = Y_raw.mean(axis=0)
@@ -613,6 +615,8 @@ class QRAccumulator:
         """Column ranges for :attr:`constant_columns`. Only columns that have not varied yet
         are read: a column seen to vary can never become constant again, so its range is left
         as it was (one strided read of the few constant columns instead of two full passes)."""
+        if not X_raw.shape[0]:
+            return
         if not np.isfinite(self.column_min_).all():          # first rows
             self.column_min_ = np.minimum(self.column_min_, X_raw.min(axis=0))
             self.column_max_ = np.maximum(self.column_max_, X_raw.max(axis=0))
