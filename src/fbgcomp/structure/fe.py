@@ -52,19 +52,24 @@ class Factorised:
         n = A.shape[0]
         self.backend = None
         perm = np.arange(n) if order is None else np.asarray(order)
-        Ap = A[perm][:, perm].tocoo()
-        upper = Ap.col >= Ap.row
-        bw = int(np.max(Ap.col[upper] - Ap.row[upper])) if Ap.nnz else 0
+        # A[perm][:, perm] by renumbering the entries (no sparse fancy indexing): entry (i, j)
+        # of A goes to (inv[i], inv[j]).
+        inv = np.empty_like(perm)
+        inv[perm] = np.arange(n)
+        Ac = A.tocoo()
+        row, col = inv[Ac.row], inv[Ac.col]
+        upper = col >= row
+        row, col, data = row[upper], col[upper], Ac.data[upper]
+        bw = int(np.max(col - row)) if len(row) else 0
         self.bandwidth = bw
         if (bw + 1) * n <= _MAX_BAND_ENTRIES:
             ab = np.zeros((bw + 1, n))
-            ab[bw + Ap.row[upper] - Ap.col[upper], Ap.col[upper]] = Ap.data[upper]
+            ab[bw + row - col, col] = data
             with _one_blas_thread():
                 self._band = sla.cholesky_banded(ab, lower=False, overwrite_ab=True,
                                                  check_finite=False)
             self._perm = perm
-            self._inv = np.empty_like(perm)
-            self._inv[perm] = np.arange(n)
+            self._inv = inv
             self.backend = f"banded-cholesky(bw={bw})"
             return
         try:
