@@ -34,7 +34,16 @@ unevaluated sum ``hi + lo`` of two doubles, ~32 significant digits): merges of t
 sub-model factors and triangular solves are always done in it (they are tiny), and the data pass
 itself is done in it too when the scaled design is ill-conditioned (kappa > 1e6) or has fewer
 than 2(p+k) rows so far (``precision="auto"``). Otherwise the data pass is LAPACK Householder QR
-(``geqrf``) on the stacked ``[R; chunk]``, as fast as plain numpy.
+(``geqrf``) on the stacked ``[R; chunk]``, in cache-sized blocks.
+
+Gram fast path: when the design is well conditioned, forming ``X^T X`` costs far less than QR
+(one BLAS ``syrk`` pass, at the speed of the Gram/Cholesky recipe) and loses nothing that
+matters. So after the first 1024 rows (QR), ``precision="auto"`` adds each chunk through its Gram
+and a Cholesky of ``R^T R + G``, and keeps the result only if the equilibrated condition number of
+the new factor's design part is <= 500 and each target's norm is <= 300 times its residual's
+(``_KAPPA_GRAM``, ``_RESID_RATIO_GRAM``: calibrated to keep >= 7.3 correct digits in the worst
+coefficient, see their notes); otherwise the same rows go through QR as above
+(``gram_rows_`` counts the rows that took the Gram). Every NIST StRD design stays on QR.
 
 Inference follows the textbook (and statsmodels) formulas: ``sigma^2 = SSR / (n - |S|)``,
 ``Cov(b) = sigma^2 (X^T X)^-1 = sigma^2 T^-1 T^-T`` (through the triangular inverse, then
@@ -420,8 +429,10 @@ class QRAccumulator:
         Column names, used to select columns and to label results. Default ``x0..x{p-1}`` and
         ``y`` (k = 1) or ``y0..y{k-1}``.
     precision : {"auto", "double", "double-double"}
-        Arithmetic of the data pass (see the module notes). "auto" uses LAPACK double precision
-        while the scaled design is well conditioned (kappa <= 1e6) and double-double otherwise.
+        Arithmetic of the data pass (see the module notes). "auto" uses the Gram fast path
+        while the equilibrated design is very well conditioned (kappa_eq <= 500), LAPACK
+        Householder QR in double precision while the scaled design is well conditioned
+        (kappa <= 1e6) and double-double otherwise; "double" is always LAPACK QR.
     hac_lags : None, True, "auto", int or sequence of int
         Also keep what autocorrelation-robust (Newey-West, HAC) inference needs, for these
         bandwidths (see :func:`hac_lag_grid`; default None: naive inference only). Rows are a
@@ -440,8 +451,11 @@ class QRAccumulator:
     extended_ : bool
         Whether the data pass has switched to double-double for good because the scaled design
         is ill-conditioned (the first 2(p+k) rows always go through double-double).
+    gram_rows_ : int
+        Rows that went through the Gram fast path (0: the factor is Householder QR's alone).
     column_min_, column_max_ : ndarray, (p,)
-        Range of every design column (a column with min == max != 0 is a constant: intercept).
+        Range of every design column until it is seen to vary (a column with min == max != 0
+        is a constant: intercept); once min < max the range is no longer updated.
     target_mean_, target_css_ : ndarray, (k,)
         Weighted mean and weighted centred sum of squares of every target (Chan/Welford merge),
         for the total sum of squares without re-reading the data.
@@ -1923,8 +1937,8 @@ def stepwise(acc: QRAccumulator, candidates=None, *, target=0, direction: str = 
         return sorted(set(forced) | set(terms))
 
     # Double-precision steps when the factor is well conditioned (kappa_eq <= 1e6, where the
-    # data pass also stays in double); double-double otherwise. Reported coefficients always come from the
-    # double-double solve of ols_from_factor.
+    # data pass also stays in double); double-double otherwise. Reported coefficients always
+    # come from the double-double solve of ols_from_factor.
     exact = not acc._well_conditioned()
 
     def state():
