@@ -134,6 +134,19 @@ def test_calibrated_map_streams_and_round_trips(twin_model, ram2, tmp_path):
     np.testing.assert_allclose(np.vstack(parts)[at], a, rtol=1e-9, atol=1e-8)
 
 
+def test_interval_is_the_interferometers_at_rest_and_grows_with_the_thermal_state(twin_model, ram2):
+    """At rest and zeroed the thermal part has no error, so the 95 % interval of an axis that
+    does not move is the reference instrument's (ram2: 0.05 um); on the held-out thermal_b
+    (radiant load, ambient drop) it covers 90-99 % of the samples on every axis."""
+    iv = twin_model.interval_
+    np.testing.assert_allclose(np.sqrt(iv["v0_um2"]), 0.05, rtol=0.4)
+    _, half = twin_model.predict_interval(ram2["static_x"])
+    assert np.median(half[:, 1:], axis=0).max() < 0.5, np.median(half, axis=0)
+    for name in ("thermal_b", "static_x"):
+        for axis, a in _metrics(twin_model, ram2[name])["axes"].items():
+            assert 0.90 <= a["pi95_coverage"] <= 0.99, (name, axis, a["pi95_coverage"])
+
+
 def test_a_grating_that_jumps_alone_is_not_read_as_a_load(twin_model, ram2):
     """A step on one grating (a fibre slipping in its bond) matches no load: refused, flagged,
     and the unloaded axes keep their tiny error."""

@@ -267,10 +267,12 @@ def _ambient_probe_names(probe_names, machine=None):
 # ---------------------------------------------------------------------------------------------
 # Predictor (one sensor set; runtime and offline share it)
 # ---------------------------------------------------------------------------------------------
-def excursion2(dT, scale_K):
+def excursion2(dT, scale_K, deadband_K=0.0):
     """Squared thermal excursion of each frame: sum over probes of (dT / scale)^2, where
-    ``scale_K`` is each probe's largest |dT| in training (so 1 ~ the training's extreme)."""
+    ``scale_K`` is each probe's largest |dT| in training (so 1 ~ the training's extreme) and
+    a change within a probe's ``deadband_K`` (its noise) counts as none."""
     dT = np.atleast_2d(np.asarray(dT, float))
+    dT = np.sign(dT) * np.maximum(np.abs(dT) - np.asarray(deadband_K, float), 0.0)
     return np.sum((dT / np.asarray(scale_K, float)) ** 2, axis=1)
 
 
@@ -297,13 +299,16 @@ class PhysicalPredictor:
         self.margin = float(m.envelope_margin)
         self.k_sigma = float(m.load_k_sigma)       # also the thermal part's noise shrinkage
         self.thermal_resid_var = np.asarray(m.thermal_resid_sd_um_) ** 2
-        # interval of the thermal part: variance = v0 + v1 (excursion)^2, fitted on the load-free
-        # training campaigns (``PhysicalModel._fit_interval``); a constant without it
+        # interval of the thermal part: variance = v0 + vs s + v1 s^2 + v2 a^2 (s the thermal
+        # excursion, a the housing's lead), fitted on the load-free training campaigns
+        # (``PhysicalModel._fit_interval``); a constant without it
         iv = getattr(m, "interval_", None)
         self.interval = None if iv is None else {
             "v0": np.asarray(iv["v0_um2"], float), "v1": np.asarray(iv["v1_um2"], float),
             "scale": np.asarray(iv["dT_scale_K"], float), "v2": np.asarray(iv["v2_um2"], float),
-            "activity_scale": float(iv["activity_scale_K"])}
+            "activity_scale": float(iv["activity_scale_K"]),
+            "vs": np.asarray(iv.get("vs_um2", np.zeros(3)), float),
+            "deadband": np.asarray(iv.get("deadband_K", 0.0), float)}
         self.thermal_noise_sd_um = np.asarray(getattr(m, "thermal_noise_sd_um_", np.zeros(3)), float)
         keep = [i for i, s in enumerate(self.sensor_names) if s not in self.exclude]
         self._keep = keep
@@ -622,9 +627,10 @@ class PhysicalPredictor:
         if self.interval is None:
             return self.expected_rms_error_um[None, :] ** 2 + np.zeros((n, 3))
         iv = self.interval
-        s2 = excursion2(dT, iv["scale"])
+        s2 = excursion2(dT, iv["scale"], iv["deadband"])
         a2 = (np.asarray(activity, float) / iv["activity_scale"]) ** 2
-        var = iv["v0"][None, :] + iv["v1"][None, :] * s2[:, None] + iv["v2"][None, :] * a2[:, None]
+        var = (iv["v0"][None, :] + iv["vs"][None, :] * np.sqrt(s2)[:, None] + iv["v1"][None, :] * s2[:, None]
+               + iv["v2"][None, :] * a2[:, None])
         if self.has_load:
             on = (force != 0.0).astype(float)                       # components applied
             var = var + (on * self.F_sds[1] ** 2) @ (self.C ** 2).T + (self.relative_error * force @ self.C.T) ** 2
@@ -930,33 +936,67 @@ class PhysicalModel(EstimatorParams, ModelFile):
                 "envelope_low": L.min(axis=0).tolist(), "envelope_high": L.max(axis=0).tolist()}
 
     def _fit_interval(self, rows, campaigns):
-        """Thermal part's error variance as v0 + v1 s² + v2 a², s² the squared probe excursion
-        (:func:`excursion2`) and a the housing's fastest lead (a transient) over its training
-        maximum, per axis, by non-negative least squares of the squared error of the applied
-        prediction on each load-free training campaign (campaigns weighted equally). v0 holds
-        the interferometer's and the sensors' noise, v1 and v2 what grows with the thermal state
-        and its transients, so a machine at rest can get a narrow interval and a hot one a wide
-        one."""
+        """Thermal part's error variance as v0 + vs s + v1 s² + v2 a², s² the squared probe
+        excursion (:func:`excursion2`) and a the housing's fastest lead (a transient) over its
+        training maximum, per axis.
+
+        v0 is the reference instrument's own noise, measured on the training campaigns (robust
+        SD of successive differences, the quietest campaign): a machine at rest and zeroed has
+        no thermal error, so its interval is the interferometer's. vs, v1 and v2 come from
+        non-negative least squares of the applied prediction's squared error beyond v0 on each
+        load-free training campaign (campaigns weighted equally): what grows with the thermal
+        state and its transients."""
         from scipy.optimize import nnls
 
         dTs = [r["dT"] for r in rows if not r["loaded"]]
         scale = np.maximum(np.abs(np.vstack(dTs)).max(axis=0), 0.5)
+        sd_ref = []
+        for r in rows:
+            d = np.diff(r["y"], axis=0)
+            if len(d) > 10:
+                sd_ref.append(1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0) / np.sqrt(2))
+        v0 = np.min(sd_ref, axis=0) ** 2 if sd_ref else np.zeros(3)
+        # dT is a reading minus the zero reading: a change within twice the SD of such a
+        # difference (the SD of successive readings' differences; quantised probes make a
+        # robust MAD of them read low) is none
+        d = np.vstack([np.diff(r["dT"], axis=0) for r in rows if len(r["dT"]) > 1])
+        deadband = 2.0 * d.std(axis=0)
         got = []
         for r, c in zip(rows, campaigns):
             if r["loaded"]:
                 continue
             pred, _, p, at = self._served(c)
-            got.append(((pred - r["y"]) ** 2, excursion2(r["dT"], scale), p.last_activity[at]))
+            got.append(((pred - r["y"]) ** 2 - v0, excursion2(r["dT"], scale, deadband), p.last_activity[at]))
         a_scale = max(max(float(np.abs(a).max()) for _, _, a in got), 1e-3)
         A_rows, b_rows = [], []
         for e2, s2, act in got:
             w = np.sqrt(1.0 / len(s2))
-            A_rows.append(np.column_stack([np.ones_like(s2), s2, (act / a_scale) ** 2]) * w)
+            A_rows.append(np.column_stack([np.sqrt(s2), s2, (act / a_scale) ** 2]) * w)
             b_rows.append(e2 * w)
         A, b = np.vstack(A_rows), np.vstack(b_rows)
-        v = np.array([nnls(A, b[:, j])[0] for j in range(3)])      # (3 axes, [v0, v1, v2])
-        return {"v0_um2": v[:, 0].tolist(), "v1_um2": v[:, 1].tolist(), "v2_um2": v[:, 2].tolist(),
-                "dT_scale_K": scale.tolist(), "activity_scale_K": a_scale}
+        v = np.array([nnls(A, b[:, j])[0] for j in range(3)])      # (3 axes, [vs, v1, v2])
+        # The errors are not Gaussian (heavy tails from the transients): scale the state terms
+        # so that the 95 % interval covers 95 % of the training samples (campaigns weighted
+        # equally), v0 staying the instrument's.
+        z = stats.norm.ppf(0.975)
+        w_all = np.concatenate([np.full(len(s2), 1.0 / len(s2)) for _, s2, _ in got])
+        e2_all = np.vstack([e2 for e2, _, _ in got]) + v0
+        shape = np.vstack(A_rows) / np.sqrt(w_all)[:, None] @ v.T          # (n, 3) state variance
+        for j in range(3):
+            if not np.any(shape[:, j] > 0):
+                continue
+
+            def coverage(k2):
+                return np.sum(w_all * (e2_all[:, j] <= z * z * (v0[j] + k2 * shape[:, j]))) / w_all.sum()
+
+            lo, hi = 1e-3, 1e3
+            for _ in range(60):
+                mid = np.sqrt(lo * hi)
+                lo, hi = (mid, hi) if coverage(mid) < 0.95 else (lo, mid)
+            v[j] *= hi
+        return {"v0_um2": v0.tolist(), "vs_um2": v[:, 0].tolist(), "v1_um2": v[:, 1].tolist(),
+                "v2_um2": v[:, 2].tolist(), "dT_scale_K": scale.tolist(), "deadband_K": deadband.tolist(),
+                "activity_scale_K": a_scale}
 
     def _calibrate_drift(self, rows):
         """How far heat (and noise) move the force reading the step test sees, on the load-free
@@ -1120,7 +1160,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
             "interval": getattr(self, "interval_", None),
             "load": self.load_,
             "training": self.training_,
-            "uncertainty": {"level": 0.95, "method": "thermal error v0 + v1 excursion^2 + applied load's GLS and relative error"},
+            "uncertainty": {"level": 0.95, "method": "thermal error v0 (reference noise) + vs excursion + v1 excursion^2 + v2 lead^2, calibrated to 95 % training coverage, + applied load's GLS and relative error"},
             "z_axis_mm": None,
         })
         return d
