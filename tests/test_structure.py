@@ -434,3 +434,24 @@ def test_closed_form_box_assembly_matches_the_skfem_forms(machine, fe):
     p = rm.mesh.p.copy()
     p[0, 0] += 0.1
     assert fe.elastic._box_geometry(p, rm.mesh.t)[0] is None
+
+
+def test_block_tridiagonal_factor_solves_like_the_banded_one(twin, fe):
+    """The elastic matrix, layer-ordered, is block tridiagonal: its block factor (the twin's)
+    and the banded factor give the same solutions to round-off, for one or many vectors."""
+    K = twin._K_elastic
+    order = fe.layer_order(twin.mesh.mesh.p, twin._vbasis.nodal_dofs)
+    blocked = fe.Factorised(K, order=order, blocked=True)
+    banded = fe.Factorised(K, order=order)
+    assert blocked.backend.startswith("block") and banded.backend.startswith("banded")
+    assert twin._elastic.backend.startswith("block")
+    b = np.random.default_rng(3).standard_normal((K.shape[0], 4))
+    for rhs in (b, b[:, 0], twin._R.T):
+        x, xb = blocked.solve(rhs), banded.solve(rhs)
+        assert x.shape == xb.shape
+        assert np.abs(x - xb).max() <= 1e-8 * np.abs(xb).max()
+        assert np.abs(K @ x - rhs).max() <= 1e-9 * np.abs(rhs).max()
+    # a matrix without block structure beyond its band keeps the banded factor
+    import scipy.sparse as sp
+    T = sp.diags([-np.ones(99), 4 * np.ones(100), -np.ones(99)], [-1, 0, 1]).tocsr()
+    assert fe.Factorised(T, blocked=True).backend.startswith("banded")

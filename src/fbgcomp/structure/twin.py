@@ -337,7 +337,8 @@ class Twin:
         R = UM_PER_MM * np.vstack(el_rows + [ttp_rows])               # (S + 3, n_u)
 
         t0 = time.perf_counter()
-        self._elastic_built = Factorised(K, order=layer_order(rm.mesh.p, vb.nodal_dofs))
+        self._elastic_built = Factorised(K, order=layer_order(rm.mesh.p, vb.nodal_dofs),
+                                         blocked=True)
         X = self._elastic_built.solve(R.T)                            # adjoint: K^-1 g_i
         self.times.elastic_factor_s = time.perf_counter() - t0
         force = X.T @ ttp_rows.T                                      # (S + 3, 3) µm/N
@@ -401,7 +402,7 @@ class Twin:
         on first use when the twin came from the cache."""
         if self._elastic_built is None:
             order = layer_order(self.mesh.mesh.p, self._vbasis.nodal_dofs)
-            self._elastic_built = Factorised(self._K_elastic, order=order)
+            self._elastic_built = Factorised(self._K_elastic, order=order, blocked=True)
         return self._elastic_built
 
     @property
