@@ -11,6 +11,12 @@ fraction of a nm or more in one frame and stays there) is not re-admitted agains
 the step itself is taken as the sensor's new offset (``offset_nm``; per frame in
 ``row_offset_nm``), so that once re-admitted the sensor reads what it read just before the
 jump plus what it has changed since. The pipeline subtracts that offset from the wavelength.
+
+Re-admission is also checked against the other gratings (:class:`fbgcomp.runtime.pipeline.
+Pipeline`): on the frame a grating would come back, the model with it and the fallback without
+it must agree within ``readmit_k_sigma`` times their combined expected error on every axis;
+otherwise it stays out (INCONSISTENT) for another ``recover_s`` and is checked again. This
+catches what the re-zero rule cannot see: a grating that comes back shifted after a gap.
 """
 
 from __future__ import annotations
@@ -19,9 +25,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-OK, MISSING, DOUBLED, OUT_OF_WINDOW, JUMP, STUCK, NAN, RECOVERING, NO_ZERO = range(9)
+OK, MISSING, DOUBLED, OUT_OF_WINDOW, JUMP, STUCK, NAN, RECOVERING, NO_ZERO, INCONSISTENT = \
+    range(10)
 STATUS_NAMES = ("OK", "MISSING", "DOUBLED", "OUT_OF_WINDOW", "JUMP", "STUCK", "NAN",
-                "RECOVERING", "NO_ZERO")
+                "RECOVERING", "NO_ZERO", "INCONSISTENT")
 
 
 @dataclass
@@ -29,6 +36,9 @@ class HealthConfig:
     max_jump_nm: float = 0.1      # ~80 µε or ~10 K in one sample: not physical for the ram
     stuck_s: float = 2.0          # exactly constant wavelength this long = stuck channel (0: off)
     recover_s: float = 1.0        # a recovered sensor must stay good this long
+    # re-admission: the models with and without the grating agree within this many combined
+    # expected errors (sqrt(rms_with^2 + rms_without^2)) per axis; 0 = no check
+    readmit_k_sigma: float = 4.0
 
 
 class SensorChecks:

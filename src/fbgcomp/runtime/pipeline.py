@@ -22,7 +22,10 @@ is clamped to it and never published with health OK (OK becomes DEGRADED, flag
 published at all - the frame is handled as one without a usable model (ALARM, hold the last
 correction and ramp it to zero). The rate limit counts at most ``2 x`` the nominal frame interval
 per frame, so a gap in the frames (a reconnect) does not bank a step. A grating that jumped is
-re-zeroed by the step (:mod:`fbgcomp.runtime.health`) before it is re-admitted.
+re-zeroed by the step (:mod:`fbgcomp.runtime.health`) before it is re-admitted, and no grating is
+re-admitted unless the model with it agrees with the fallback without it on that frame, within
+``readmit_k_sigma`` combined expected errors per axis (else it stays out, INCONSISTENT, for
+another ``recover_s``): a grating back from a gap with a shifted reading is not taken as truth.
 
 Health codes per frame: OK, DEGRADED (fallback in use), ALARM (hold / ramp), ZEROING. Beside
 them, a flag word per frame and axis (``BatchResult.output_flags``, bits in
@@ -149,6 +152,10 @@ class Pipeline:
         self._zero_frames = 0
         self._t_zero_last: float | None = None
         self.frame_dt_s: float | None = None   # nominal frame interval (the rate limit's cap)
+        self._prev_mask = np.zeros(S, bool)      # faulted sensors on the last predicted frame
+        self._prev_choice = 0                    # model set of the last predicted frame
+        self._inconsistent_until = np.full(S, -np.inf)   # kept out by the re-admission check
+        self.readmissions_refused = 0
 
     # -- model selection
     def predictor(self, k: int):
@@ -210,6 +217,9 @@ class Pipeline:
                 enabled: bool = True) -> BatchResult:
         n, S = wavelength_nm.shape
         status, faulted = self.checks.check(time_s, wavelength_nm, peak_count, near_count)
+        if n and (self._inconsistent_until > time_s[0]).any():
+            held = (status == H.RECOVERING) & (time_s[:, None] < self._inconsistent_until)
+            status[held] = H.INCONSISTENT
         # a grating that jumped (mode hop) reads from its offset after the step
         if self.checks.row_offset_nm.any():
             wavelength_nm = wavelength_nm - self.checks.row_offset_nm
@@ -233,12 +243,12 @@ class Pipeline:
             f = faulted[rows]
             temp_ok = np.all(np.isfinite(temperature_C[rows]), axis=1) if temperature_C.shape[1] \
                 else np.ones(n - start, bool)
-            if f.any():
-                patterns, inverse = np.unique(f, axis=0, return_inverse=True)
-                choice = np.array([self._choose(p) for p in patterns])[inverse.reshape(-1)]
-            else:
-                choice = np.zeros(n - start, int)
-            choice = np.where(temp_ok, choice, -1)
+            choice = self._choices(f, temp_ok)
+            if self.config.health.readmit_k_sigma > 0:
+                choice = self._check_readmissions(time_s, wavelength_nm, temperature_C, start,
+                                                  status, faulted, temp_ok, choice)
+            self._prev_mask = faulted[-1].copy()
+            self._prev_choice = int(choice[-1])
             model_set[rows] = choice
             for k in np.unique(choice):
                 if k < 0:
@@ -263,6 +273,72 @@ class Pipeline:
         correction = self._shape(time_s, correction, enabled, flags, self._gap_cap(time_s))
         return BatchResult(time_s, dev, half, correction, rms, health, status, model_set,
                            temperature_C, flags)
+
+    def _choices(self, f: np.ndarray, temp_ok: np.ndarray) -> np.ndarray:
+        """Model set per row for the faulted mask ``f`` (-1: none usable)."""
+        if f.any():
+            patterns, inverse = np.unique(f, axis=0, return_inverse=True)
+            choice = np.array([self._choose(p) for p in patterns])[inverse.reshape(-1)]
+        else:
+            choice = np.zeros(f.shape[0], int)
+        return np.where(temp_ok, choice, -1)
+
+    def _predict_one(self, k: int, time_s, wavelength_nm, temperature_C, row: int):
+        p = self.predictor(int(k))
+        sel = slice(row, row + 1)
+        clock = {"time_s": time_s[sel]} if _takes_time(p) else {}
+        d, _ = p.predict(wavelength_nm[sel], temperature_C[sel], self.wavelength_zero_nm,
+                         self.temperature_zero_C, **clock)
+        return np.asarray(d, float).reshape(3), np.asarray(p.expected_rms_error_um, float)
+
+    def _check_readmissions(self, time_s, wavelength_nm, temperature_C, start, status, faulted,
+                            temp_ok, choice) -> np.ndarray:
+        """Keep out a grating whose re-admission the other gratings contradict.
+
+        On a frame where gratings come back (the faulted set shrinks from one predicted frame
+        to the next), the model set they come back to and the one in use until then predict
+        that same frame; if they differ by more than ``readmit_k_sigma`` x sqrt(rms_new^2 +
+        rms_old^2) on any axis, the returning gratings stay faulted (INCONSISTENT) for another
+        ``recover_s`` and the rows are re-chosen. Rare (a re-admission a second at most per
+        grating): two one-frame predictions per re-admission."""
+        cfg = self.config.health
+        f = faulted[start:]
+        t = time_s[start:]
+        i = 0
+        while i < f.shape[0]:
+            prev_mask = np.vstack([self._prev_mask[None, :], f[:-1]])
+            prev_k = np.concatenate([[self._prev_choice], choice[:-1]])
+            back = (prev_mask & ~f).any(axis=1) & (prev_k >= 0) & (choice >= 0) \
+                & (prev_k != choice)
+            back[:i] = False
+            if not back.any():
+                break
+            r = int(np.argmax(back))
+            row = start + r
+            d_new, rms_new = self._predict_one(choice[r], time_s, wavelength_nm,
+                                               temperature_C, row)
+            d_old, rms_old = self._predict_one(prev_k[r], time_s, wavelength_nm,
+                                               temperature_C, row)
+            tol = cfg.readmit_k_sigma * np.hypot(rms_new, rms_old)
+            with np.errstate(invalid="ignore"):
+                agree = np.abs(d_new - d_old) <= tol
+            # a model without an error estimate cannot be checked (NaN tolerance): admitted
+            if (agree | ~np.isfinite(tol)).all() and np.isfinite(d_new).all():
+                i = r + 1
+                continue
+            js = prev_mask[r] & ~f[r]
+            until = float(t[r]) + cfg.recover_s
+            span = t[r:] < until
+            f[r:, js] |= span[:, None]
+            st = status[row:, :]
+            st[:, js] = np.where(span[:, None] & (st[:, js] == H.OK), H.INCONSISTENT,
+                                 st[:, js])
+            self.checks.last_bad_s[js] = np.maximum(self.checks.last_bad_s[js], float(t[r]))
+            self._inconsistent_until[js] = until
+            self.readmissions_refused += 1
+            choice[r:] = self._choices(f[r:], temp_ok[r:])
+            i = r + 1
+        return choice
 
     def _envelope(self, corr: np.ndarray, health: np.ndarray, flags: np.ndarray) -> np.ndarray:
         """Rows whose prediction is beyond the per-axis maximum are not OK (DEGRADED; the
