@@ -52,14 +52,17 @@ def _model_and_campaign(tmp: Path):
 
 
 def fault_schedule(seconds: float, rng: np.random.Generator, mean_gap_s: float = 6.0):
-    """Random faults from WARMUP_S to ``seconds`` - 5: (spec, kind) pairs."""
+    """Random faults from WARMUP_S to ``seconds`` - 5: (spec, kind) pairs; the first seven
+    are one of each kind in random order, the rest drawn at random."""
+    kinds = ["drop", "double", "hop", "out", "stuck", "cut", "garbage"]
+    first = list(rng.permutation(kinds))
     out, t = [], WARMUP_S
     while True:
         t += rng.exponential(mean_gap_s)
         if t > seconds - 5.0:
             return out
-        kind = rng.choice(["drop", "double", "hop", "out", "stuck", "cut", "garbage"],
-                          p=[0.18, 0.12, 0.22, 0.1, 0.1, 0.14, 0.14])
+        kind = first.pop(0) if first else \
+            rng.choice(kinds, p=[0.18, 0.12, 0.22, 0.1, 0.1, 0.14, 0.14])
         s = rng.choice(SENSORS)
         if kind == "drop":
             spec = f"drop:{s}@{t:.2f}/{rng.uniform(0.5, 5):.2f}"
