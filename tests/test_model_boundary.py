@@ -194,6 +194,42 @@ def test_a_physical_model_with_an_absurd_coefficient_is_refused(tmp_path):
     _refused(_write(tmp_path / "bad.json", d), "thermal.coef[0][0]", "null where a number")
 
 
+def _physical_dict() -> dict:
+    """The default model as the README fits it on ram2 (twin map, housing calibration, load
+    part, interval), as a dict."""
+    if "physical" not in _CACHE:
+        from fbgcomp_testing import RAM2_DIR, read_ram2
+
+        from fbgcomp.physical import PhysicalModel
+
+        r = read_ram2("thermal_a", "static_xyz")
+        machine = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram2.yaml"
+        model = PhysicalModel(machine=machine, twin_scenarios=8).fit([r["thermal_a"], r["static_xyz"]])
+        assert RAM2_DIR.is_dir()
+        with tempfile.TemporaryDirectory() as tmp:
+            _CACHE["physical"] = json.loads(model.save(Path(tmp) / "p.json").read_text())
+    return copy.deepcopy(_CACHE["physical"])
+
+
+@pytest.mark.parametrize("mutate, field", [
+    (lambda d: d["twin_map"]["coef"].pop(), "twin_map.coef"),
+    (lambda d: d["twin_map"]["calibration"]["coef"].pop(), "twin_map.calibration.coef"),
+    (lambda d: d["twin_map"]["calibration"].__setitem__("leads_s", [300.0, -1.0]), "twin_map.calibration.leads_s"),
+    (lambda d: d["load"]["G_um_per_N"][0].append(0.0), "load.G_um_per_N"),
+    (lambda d: d["interval"]["v0_um2"].__setitem__(1, -0.1), "interval.v0_um2"),
+    (lambda d: d["interval"]["dT_scale_K"].pop(), "interval.dT_scale_K"),
+    (lambda d: d["thermal"]["coef"].append([0.0, 0.0, 0.0]), "thermal.coef"),
+    (lambda d: d["housing_probes"].append("T_nowhere"), "housing_probes"),
+    (lambda d: d["probes"].append(d["probes"][0]), "probes"),
+])
+def test_a_physical_model_whose_shapes_disagree_is_refused_on_loading(tmp_path, mutate, field):
+    # Before, such a file loaded and failed (or broadcast silently) at the first prediction.
+    d = _physical_dict()
+    assert load_model(_write(tmp_path / "ok.json", d)).model_type == "physical"
+    mutate(d)
+    _refused(_write(tmp_path / "m.json", d), field)
+
+
 # --------------------------------------------------------------------------------------------
 # Property tests: any mutation of a valid model loads or is an InputError, never another error
 # --------------------------------------------------------------------------------------------
@@ -269,4 +305,10 @@ def test_any_mutation_of_a_regression_model_loads_or_is_an_input_error(d):
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(d=mutations(_kinematic_dict))
 def test_any_mutation_of_a_kinematic_model_loads_or_is_an_input_error(d):
+    _loads_or_input_error(d)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(d=mutations(_physical_dict))
+def test_any_mutation_of_a_physical_model_loads_or_is_an_input_error(d):
     _loads_or_input_error(d)

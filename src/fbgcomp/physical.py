@@ -401,7 +401,7 @@ class PhysicalPredictor:
             keep = np.arange(S) != j
             op, _, _ = gls_operator(Ga[keep], cov[np.ix_(keep, keep)])
             r = y[keep] - Ga[keep] @ (op @ y[keep])
-            if r @ np.linalg.solve(cov[np.ix_(keep, keep)], r) <= limit:
+            if r @ np.linalg.lstsq(cov[np.ix_(keep, keep)], r, rcond=None)[0] <= limit:
                 return True
         return False
 
@@ -453,8 +453,8 @@ class PhysicalPredictor:
         # variance left by a first-order low-pass of white noise, per unit of the training
         # frame's variance: (nominal / dt) b / (2 - b); 1 for a frame without history
         rate = self.nominal_dt_s / np.where(dt > 0, dt, self.nominal_dt_s)
-        k_fast = rate * b_fast / (2.0 - b_fast)
-        k_hold = rate * b_hold / (2.0 - b_hold)
+        k_fast = np.where(dt > 0, rate * b_fast / (2.0 - b_fast), 1.0)
+        k_hold = np.where(dt > 0, rate * b_hold / (2.0 - b_hold), 1.0)
         lag = self.drift_N_per_s[None, :] * np.maximum(dt, self.offset_tau_s)[:, None]
         op = self.ops[0]
         Ga = self.G
@@ -501,7 +501,7 @@ class PhysicalPredictor:
                 r = xs - Ga @ new
                 g = self.relative_error * (Ga[:, act] @ (new - applied)[act])
                 cov = self.noise_cov * k_fast[i] + self.nuisance_cov + np.outer(g, g)
-                if r @ np.linalg.solve(cov, r) > chi2_limit and self._one_grating(xs, cov):
+                if r @ np.linalg.lstsq(cov, r, rcond=None)[0] > chi2_limit and self._one_grating(xs, cov):
                     refused[i] = True
                     take[:] = False
             if take.any():
@@ -635,6 +635,93 @@ class PhysicalPredictor:
             on = (force != 0.0).astype(float)                       # components applied
             var = var + (on * self.F_sds[1] ** 2) @ (self.C ** 2).T + (self.relative_error * force @ self.C.T) ** 2
         return var
+
+
+# ---------------------------------------------------------------------------------------------
+# Model file shapes
+# ---------------------------------------------------------------------------------------------
+def _check_shapes(d: dict, source) -> None:
+    """Every array of a physical model file has the shape its sensors and probes imply, and the
+    sensor and probe names are distinct strings; InputError naming the first field that does not."""
+    def need(cond, field, what):
+        if not cond:
+            raise InputError(what, file=source, column=f"field {field}")
+
+    def array(node, field, shape):
+        try:
+            a = np.asarray(node, dtype=float)
+        except (TypeError, ValueError):
+            raise InputError("not an array of numbers", file=source, column=f"field {field}") from None
+        need(a.shape == tuple(shape), field, f"shape {a.shape} where {tuple(shape)} is expected")
+        return a
+
+    def names(node, field):
+        need(isinstance(node, list) and all(isinstance(x, str) for x in node), field, "must be a list of names")
+        need(len(set(node)) == len(node), field, "names must be distinct")
+        return node
+
+    need(isinstance(d.get("sensors"), list) and d["sensors"]
+         and all(isinstance(x, dict) for x in d["sensors"]), "sensors", "must be a non-empty list of sensors")
+    sensor_names = names([x.get("name") for x in d["sensors"]], "sensors")
+    probes = names(d.get("probes"), "probes")
+    for key in ("housing_probes", "ambient_probes"):
+        got = names(d.get(key), key)
+        need(all(p in probes for p in got), key, "names a probe the model does not read")
+    S, P = len(sensor_names), len(probes)
+    nh = 1 + len(d["housing_probes"]) + len(d["ambient_probes"]) + (1 if d["housing_probes"] else 0)
+    need(isinstance(d.get("nominal_dt_s"), (int, float)) and not isinstance(d["nominal_dt_s"], bool)
+         and d["nominal_dt_s"] > 0, "nominal_dt_s", "must be a positive number")
+    th = d.get("thermal")
+    need(isinstance(th, dict), "thermal", "must be a mapping")
+    array(th.get("coef"), "thermal.coef", (nh, 3))
+    for key in ("envelope_low", "envelope_high"):
+        array(th.get(key), f"thermal.{key}", (nh - 1,))
+    for key in ("range_low_um", "range_high_um", "resid_sd_um"):
+        array(th.get(key), f"thermal.{key}", (3,))
+    need(np.all(np.asarray(th["resid_sd_um"], float) >= 0), "thermal.resid_sd_um", "must be >= 0")
+    if "noise_sd_um" in th:
+        array(th["noise_sd_um"], "thermal.noise_sd_um", (3,))
+    L = d.get("load")
+    if L is not None:
+        need(isinstance(L, dict), "load", "must be a mapping or null")
+        for key, shape in (("G_um_per_N", (S, 3)), ("C_um_per_N", (3, 3)), ("grating_thermal_coef", (nh, S)),
+                           ("thermal_sigma_unit_um2", (S, S)), ("thermal_scale", (P,)),
+                           ("noise_var_um2", (S,)), ("active_forces", (3,))):
+            array(L.get(key), f"load.{key}", shape)
+        for key in ("max_force_N", "drift_N_per_s"):
+            if key in L:
+                array(L[key], f"load.{key}", (3,))
+        need(np.all(np.asarray(L["noise_var_um2"], float) >= 0), "load.noise_var_um2", "must be >= 0")
+    iv = d.get("interval")
+    if iv is not None:
+        need(isinstance(iv, dict), "interval", "must be a mapping or null")
+        for key in ("v0_um2", "vs_um2", "v1_um2", "v2_um2"):
+            if key in iv or key != "vs_um2":
+                need(np.all(array(iv.get(key), f"interval.{key}", (3,)) >= 0), f"interval.{key}", "must be >= 0")
+        need(np.all(array(iv.get("dT_scale_K"), "interval.dT_scale_K", (P,)) > 0), "interval.dT_scale_K",
+             "must be > 0")
+        if "deadband_K" in iv:
+            array(iv["deadband_K"], "interval.deadband_K", (P,))
+        a = iv.get("activity_scale_K")
+        need(isinstance(a, (int, float)) and not isinstance(a, bool) and a > 0, "interval.activity_scale_K",
+             "must be a positive number")
+    tm = d.get("twin_map")
+    if tm is not None:
+        need(isinstance(tm, dict), "twin_map", "must be a mapping or null")
+        k = S + P + len(MAP_LEADS_S)
+        for key, shape in (("coef", (k, 3)), ("gram", (k, k)), ("xty", (k, 3)), ("scale", (k,)),
+                           ("noise_gram", (k, k)), ("envelope_low", (k,)), ("envelope_high", (k,))):
+            array(tm.get(key), f"twin_map.{key}", shape)
+        need(np.all(np.asarray(tm["scale"], float) > 0), "twin_map.scale", "must be > 0")
+        cal = tm.get("calibration")
+        if cal is not None:
+            need(isinstance(cal, dict), "twin_map.calibration", "must be a mapping or null")
+            leads = array(cal.get("leads_s"), "twin_map.calibration.leads_s", (len(cal.get("leads_s") or []),))
+            need(leads.size > 0 and np.all(leads > 0), "twin_map.calibration.leads_s",
+                 "must be positive time constants")
+            array(cal.get("coef"), "twin_map.calibration.coef", (1 + leads.size, 3))
+            for key in ("envelope_low", "envelope_high"):
+                array(cal.get(key), f"twin_map.calibration.{key}", (1 + leads.size,))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1169,6 +1256,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
     def from_dict(cls, d: dict, source="<dict>") -> "PhysicalModel":
         from .campaign import SensorSpec
 
+        _check_shapes(d, source)
         m = cls(**d.get("params", {}))
         m.sensors_ = [SensorSpec(**s) for s in d["sensors"]]
         m.probe_names_ = list(d["probes"])
@@ -1186,16 +1274,16 @@ class PhysicalModel(EstimatorParams, ModelFile):
         m.load_ = d.get("load")
         m.training_ = d.get("training", {"campaigns": [], "n_samples": 0})
         m._predictors = {}
-        arrays = [m.thermal_coef_, *m.thermal_envelope_, *m.thermal_range_um_, m.thermal_resid_sd_um_]
-        if m.load_ is not None:
-            arrays += [np.asarray(m.load_[k], float) for k in
-                       ("G_um_per_N", "C_um_per_N", "grating_thermal_coef", "thermal_sigma_unit_um2",
-                        "noise_var_um2", "thermal_scale")]
-        if m.interval_ is not None:
-            arrays += [np.asarray(m.interval_[k], float) for k in
-                       ("v0_um2", "v1_um2", "v2_um2", "dT_scale_K", "activity_scale_K")]
-        if not all(np.all(np.isfinite(a)) for a in arrays):
-            raise InputError("model holds a non-finite coefficient", file=source, column="field thermal/load")
+        # what loaded must predict finite numbers with every sensor set the runtime may use
+        w0 = np.array([s.lambda0_nm for s in m.sensors_])
+        t0 = np.full(len(m.probe_names_), 20.0)
+        for exclude in [frozenset()] + m.fallback_sets:
+            dev, half = PhysicalPredictor(m, exclude).predict(w0[None, :] + 0.01, t0[None, :] + 0.5, w0, t0)
+            if not (np.isfinite(dev).all() and np.isfinite(half).all()):
+                raise InputError("model cannot predict finite numbers"
+                                 + (f" without {', '.join(sorted(exclude))}" if exclude else ""),
+                                 file=source, column="field thermal/load/twin_map")
+        m._predictors = {}
         return m
 
     @property
