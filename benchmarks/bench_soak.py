@@ -10,6 +10,8 @@ policy and a run log. Printed:
 * the largest |published correction| per axis against the model's bound (the per-axis maximum
   |correction|, the envelope the correction is trusted in), and the frames published with
   Health OK whose correction or raw prediction lies beyond it (must be 0);
+* how far the corrections published with Health OK are from the fault-free one (the full model
+  on the campaign's noise-free wavelengths at the same instants): what a bound alone misses;
 * serve's resident memory (RSS) after the warm-up and at the end, MiB and %;
 * reconnects (serve's "link lost" warnings, one per failed attempt) and gaps in the logged
   frames, against the cuts and garbage bursts injected;
@@ -184,6 +186,23 @@ def soak(seconds: float, seed: int, rate_hz: float, tmp: Path) -> dict:
         ok_beyond = int((ok & ((np.abs(corr) > bound).any(axis=1)
                                | (np.abs(dev) > bound).any(axis=1))).sum())
         beyond = int((np.abs(corr) > bound).any(axis=1).sum())
+    # the fault-free correction: the full model on the campaign's noise-free wavelengths at
+    # the logged frames' instrument times (the simulator's clock starts at its first stamp),
+    # zero state as serve takes it (the logged frames of the first zero window)
+    from fbgcomp.runtime.simulator import SignalTable
+    model = load_model(model_path)
+    table = SignalTable.from_campaign(campaign)
+    span = table.time_s[-1] - table.time_s[0]
+    cols = [table.sensor_names.index(n) for n in model.sensor_names]
+    wl_clean = table.at(table.time_s[0] + np.mod(t_log - sent[0, 0], span))[:, cols]
+    temp = log[[f"{p}_C" for p in model.probe_names]].to_numpy()
+    zero = t_log <= t_log[0] + model.zero_window_s
+    wl_log = log[[f"{n}_nm" for n in model.sensor_names]].to_numpy()
+    clean_dev, _ = model.predictor().predict(wl_clean, temp, np.nanmean(wl_log[zero], axis=0),
+                                             np.nanmean(temp[zero], axis=0))
+    flags = log[["flags_dx", "flags_dy", "flags_dz"]].to_numpy()
+    settled = ok & ((flags & 8) == 0).all(axis=1)          # not held back by the rate limit
+    off_ok = np.abs(corr + clean_dev)
     err = (tmp / "serve.err").read_text()
     reconnects = err.count("hyperion link")
     kinds = [k for _, k in faults]
@@ -197,6 +216,12 @@ def soak(seconds: float, seed: int, rate_hz: float, tmp: Path) -> dict:
         "max_abs_prediction_ok_um": (np.nanmax(np.abs(dev[ok]), axis=0).tolist()
                                      if ok.any() else None),
         "frames_beyond_bound": beyond, "frames_ok_beyond_bound": ok_beyond,
+        "max_ok_off_fault_free_um": (off_ok[ok].max(axis=0).tolist() if ok.any() else None),
+        "max_ok_settled_off_fault_free_um": (off_ok[settled].max(axis=0).tolist()
+                                             if settled.any() else None),
+        "p999_ok_off_fault_free_um": (np.percentile(off_ok[ok], 99.9, axis=0).tolist()
+                                      if ok.any() else None),
+        "frames_ok_rate_limited": int((ok & ~settled).sum()),
         "health_share": {n: float((health == i).mean())
                          for i, n in enumerate(("OK", "DEGRADED", "ALARM", "ZEROING"))},
         "rss_start_mib": rss_start, "rss_end_mib": rss_end,
@@ -235,6 +260,14 @@ def main() -> None:
             f"{a} {m:.2f} um" for a, m in zip(ax, r["max_abs_prediction_ok_um"])))
     print(f"frames beyond the bound: {r['frames_beyond_bound']} published, "
           f"{r['frames_ok_beyond_bound']} with Health OK (correction or prediction)")
+    if r["max_ok_off_fault_free_um"] is not None:
+        print("Health OK frames vs the fault-free model: max " + ", ".join(
+            f"{a} {m:.2f}" for a, m in zip(ax, r["max_ok_off_fault_free_um"]))
+            + " um; without the rate limit's transit frames "
+            f"({r['frames_ok_rate_limited']}): " + ", ".join(
+                f"{a} {m:.2f}" for a, m in zip(ax, r["max_ok_settled_off_fault_free_um"]))
+            + " um; 99.9th percentile " + ", ".join(
+                f"{a} {m:.2f}" for a, m in zip(ax, r["p999_ok_off_fault_free_um"])) + " um")
     print("health: " + ", ".join(f"{k} {100 * v:.1f} %" for k, v in r["health_share"].items()))
     print(f"serve RSS: {r['rss_start_mib']:.1f} MiB after {WARMUP_S:.0f} s -> "
           f"{r['rss_end_mib']:.1f} MiB at the end ({r['rss_growth_mib']:+.1f} MiB, "
