@@ -249,3 +249,16 @@ def test_non_finite_coefficient_is_refused(model, tmp_path):
     path.write_text(json.dumps(d))
     with pytest.raises(InputError, match="non-finite"):
         load_model(path)
+
+
+def test_generic_scenarios_work_on_a_machine_that_declares_no_heat_sources():
+    # The built-in machine relies on the default sources (spindle heat in the housing and a
+    # radiant face); `fbgcomp fit --machine` crashed on it with a TypeError.
+    from fbgcomp.structure import load_machine
+    from fbgcomp.structure.scenarios import FACES, generic_heat_machine
+
+    machine = load_machine()
+    assert machine.thermal.heat_sources is None
+    names = [h.name for h in generic_heat_machine(machine).thermal.sources]
+    assert names[:2] == [h.name for h in machine.thermal.sources]
+    assert len(names) == 2 + len(FACES)

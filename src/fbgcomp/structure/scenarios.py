@@ -29,7 +29,8 @@ def generic_heat_machine(machine: Machine, flux_W_per_m2: float = 60.0) -> Machi
     """``machine`` with one whole-face radiant source per outer face added to its declared
     heat sources (names ``generic_radiant_pX`` ...)."""
     d = machine.model_dump()
-    sources = list(d["thermal"]["heat_sources"])
+    # the effective sources: a description without heat_sources has the default two
+    sources = [h.model_dump() for h in machine.thermal.sources]
     for face in FACES:
         tag = ("p" if face[0] == "+" else "m") + face[1]
         sources.append({"name": f"generic_radiant_{tag}", "kind": "radiant", "face": face,
