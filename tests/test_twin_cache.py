@@ -220,12 +220,21 @@ def test_concurrent_writers_and_readers_see_whole_entries_only(cache_dir):
     assert twin_cache.load(key, required=("a",)) is not None
 
 
-def test_old_entries_are_pruned_to_the_most_recently_used(cache_dir, monkeypatch):
-    monkeypatch.setattr(twin_cache, "MAX_ENTRIES", 3)
+def test_old_entries_are_pruned_to_the_most_recently_used(cache_dir):
+    import os
     keys = [f"{i:064x}" for i in range(5)]
-    for k in keys:
-        twin_cache.store(k, {"x": np.zeros(3)}, folder=cache_dir)
-    assert len(_entries(cache_dir)) == 3
+    for i, k in enumerate(keys):
+        path = twin_cache.store(k, {"x": np.zeros(3)}, folder=cache_dir)
+        os.utime(path, (1e9 + i, 1e9 + i))      # distinct use times, oldest first
+    stale = cache_dir / ".dead-writer.twin.abc.tmp"
+    stale.write_bytes(b"half")
+    os.utime(stale, (1e9, 1e9))
+    twin_cache.prune(cache_dir, keep=3)
+    assert [p.name[:-5] for p in _entries(cache_dir)] == sorted(keys[2:])
+    assert not stale.exists()
+    # the size cap: only the newest entry fits in 1 byte, and it always stays
+    twin_cache.prune(cache_dir, max_bytes=1)
+    assert [p.name[:-5] for p in _entries(cache_dir)] == [keys[-1]]
 
 
 def test_entries_hold_no_pickle(cache_dir):

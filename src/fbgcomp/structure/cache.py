@@ -29,7 +29,8 @@ Format and safety
     Entries are written to a temporary file in the same folder, flushed to disk and renamed over
     the target (:func:`fbgcomp.atomic.write_bytes`), so concurrent builders of the same twin each
     write a complete file and the last rename wins; a reader sees a whole entry or none. The
-    folder keeps the :data:`MAX_ENTRIES` most recently used entries.
+    folder keeps the most recently used entries, at most :data:`MAX_ENTRIES` (8) of them and
+    :data:`MAX_BYTES` (1 GiB) in all; delete the folder at any time to empty the cache.
 """
 
 from __future__ import annotations
@@ -54,7 +55,10 @@ OFF_VALUES = frozenset({"off", "0", "no", "false", "none", "disabled"})
 FORMAT_VERSION = 1
 MAGIC = b"FBGCOMP-TWIN-CACHE\n"
 SUFFIX = ".twin"
-MAX_ENTRIES = 16
+# The folder keeps the most recently used entries, at most this many and this many bytes (the
+# newest entry always stays): the default twin's entry is 64 MiB, a finer mesh's more.
+MAX_ENTRIES = 8
+MAX_BYTES = 1 << 30
 # A temporary file this old was left by a writer that died; it is removed when pruning.
 _STALE_TMP_S = 3600.0
 
@@ -222,10 +226,12 @@ def store(key: str, arrays: dict, folder: Path | None = None) -> Path | None:
     return path
 
 
-def prune(folder: Path, keep: int | None = None) -> None:
-    """Keep the ``keep`` (default :data:`MAX_ENTRIES`) most recently used entries; remove
-    temporary files of dead writers."""
+def prune(folder: Path, keep: int | None = None, max_bytes: int | None = None) -> None:
+    """Keep the most recently used entries, at most ``keep`` (default :data:`MAX_ENTRIES`) and
+    ``max_bytes`` (default :data:`MAX_BYTES`; the newest entry always stays); remove temporary
+    files of dead writers."""
     keep = MAX_ENTRIES if keep is None else keep
+    max_bytes = MAX_BYTES if max_bytes is None else max_bytes
     try:
         entries = []
         now = time.time()
@@ -235,11 +241,14 @@ def prune(folder: Path, keep: int | None = None) -> None:
             except OSError:
                 continue
             if p.name.endswith(SUFFIX) and not p.name.startswith("."):
-                entries.append((st.st_mtime, p))
+                entries.append((st.st_mtime, st.st_size, p))
             elif p.name.startswith(".") and p.name.endswith(".tmp") and now - st.st_mtime > _STALE_TMP_S:
                 p.unlink(missing_ok=True)
-        entries.sort(reverse=True)
-        for _, p in entries[keep:]:
-            p.unlink(missing_ok=True)
+        entries.sort(key=lambda e: e[0], reverse=True)
+        total = 0
+        for i, (_, size, p) in enumerate(entries):
+            total += size
+            if i >= keep or (i > 0 and total > max_bytes):
+                p.unlink(missing_ok=True)
     except OSError as err:
         log.debug("twin cache: pruning %s failed (%s)", folder, err)
