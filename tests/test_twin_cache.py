@@ -240,3 +240,34 @@ def test_old_entries_are_pruned_to_the_most_recently_used(cache_dir):
 def test_entries_hold_no_pickle(cache_dir):
     with pytest.raises(TypeError):
         twin_cache.dumps("0" * 64, {"x": np.array([object()], dtype=object)})
+
+
+def test_concurrent_builder_processes_leave_one_whole_entry(Twin, machine, cache_dir, good_entry):
+    """Two processes build the same twin at once into one cache folder: both finish, one complete
+    entry remains, and it loads into the twin the reference build gives."""
+    import os
+    import subprocess
+    import sys
+    code = ("from fbgcomp.structure import Twin, load_machine; "
+            f"t = Twin(load_machine(), resolution={RES}); print(t.times.from_cache)")
+    env = dict(os.environ)          # FBGCOMP_CACHE_DIR: this test's folder (monkeypatched)
+    procs = [subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    outs = [p.communicate(timeout=300) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], [o[1][-2000:] for o in outs]
+    assert [p.name for p in cache_dir.iterdir()] == [good_entry[0]]     # no temporary file
+    warm = Twin(machine, resolution=RES)
+    assert warm.times.from_cache
+    _assert_identical(good_entry[2], _responses(warm))
+
+
+def test_the_test_session_never_uses_the_users_cache():
+    """tests/conftest.py points FBGCOMP_CACHE_DIR at a temporary folder of the session."""
+    import os
+    import tempfile
+
+    import platformdirs
+    folder = os.environ.get("FBGCOMP_CACHE_DIR", "")
+    assert folder and Path(folder).resolve().is_relative_to(Path(tempfile.gettempdir()).resolve())
+    assert not Path(folder).resolve().is_relative_to(
+        Path(platformdirs.user_cache_dir("fbgcomp")).resolve())
