@@ -271,3 +271,15 @@ def test_the_test_session_never_uses_the_users_cache():
     assert folder and Path(folder).resolve().is_relative_to(Path(tempfile.gettempdir()).resolve())
     assert not Path(folder).resolve().is_relative_to(
         Path(platformdirs.user_cache_dir("fbgcomp")).resolve())
+
+
+def test_a_machine_with_an_infinite_value_has_a_key_of_its_own(machine):
+    """The schema accepts carriage_stiffness_N_per_um: .inf; its key must neither crash (JSON
+    has no Infinity by default) nor collide with another machine's."""
+    from fbgcomp.structure import parse_machine
+    data = machine.model_dump(mode="json")
+    data["supports"]["carriage_stiffness_N_per_um"] = float("inf")
+    inf_key = twin_cache.twin_key(parse_machine(data), RES, 12)
+    data["supports"]["carriage_stiffness_N_per_um"] = 1e300
+    assert inf_key != twin_cache.twin_key(parse_machine(data), RES, 12)
+    assert inf_key != twin_cache.twin_key(machine, RES, 12)

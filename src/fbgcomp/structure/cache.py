@@ -96,8 +96,10 @@ def code_version() -> str:
 
 def machine_content(machine) -> str:
     """Canonical JSON of a validated machine description (independent of its file and layout)."""
+    # allow_nan: an infinite value (if a field allows one) is written Infinity, not refused,
+    # and stays distinct from null.
     return json.dumps(machine.model_dump(mode="json"), sort_keys=True, separators=(",", ":"),
-                      allow_nan=False)
+                      allow_nan=True)
 
 
 def twin_key(machine, resolution: float, n_shifts: int) -> str:
