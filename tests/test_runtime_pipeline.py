@@ -172,3 +172,49 @@ def test_link_loss_ticks_hold_then_ramp_and_data_resumes(setup):
     back = pipe.process(aligned.time_s[n:n + 5], w[n:n + 5], np.ones((5, 5), np.int8),
                         np.zeros((5, 5), np.int8), t[n:n + 5])
     assert (back.health == HEALTH_OK).all()
+
+
+def test_model_reload_keeps_the_re_admission_check(setup, tmp_path_factory):
+    """A model reload (``Service.reload``, as OPC UA ReloadModel calls it) in the middle of a
+    refused re-admission changes nothing: the grating back shifted from a gap stays
+    INCONSISTENT (not RECOVERING), and a reload just before the frame it would come back on
+    does not let it in unchecked - the run with a reload before every frame around the gap is
+    frame for frame the run without any, with the default output policy."""
+    import asyncio
+
+    from fbgcomp.runtime.service import RuntimeConfig, Service
+    from test_runtime_support import model_and_campaign
+
+    model, campaign, aligned, w, t = setup
+    model_path, _ = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+    time_s = aligned.time_s
+    s3 = model.sensor_names.index("S3")
+    wl, counts = w.copy(), np.ones(w.shape, np.int8)
+    gap = (time_s >= 100.0) & (time_s < 102.0)               # S3 lost for 2 s ...
+    wl[gap, s3], counts[gap, s3] = np.nan, 0
+    wl[time_s >= 102.0, s3] += 0.5                          # ... and back 0.5 nm off
+    stop = int(np.searchsorted(time_s, 110.0))
+    time_s, wl, counts, t = time_s[:stop], wl[:stop], counts[:stop], t[:stop]
+    plain = Pipeline(model)
+    ref = run_in_batches(plain, time_s, wl, t, [1], counts)
+    assert plain.readmissions_refused >= 3                  # refused, re-checked, refused ...
+    assert (ref["sensor_status"][time_s >= 104.0, s3] == H.INCONSISTENT).all()
+
+    svc = Service(RuntimeConfig(model=str(model_path), opcua_enabled=False))
+    first = int(np.searchsorted(time_s, 101.0))
+    out = [run_in_batches(svc.pipeline, time_s[:first], wl[:first], t[:first], [first],
+                          counts[:first])]
+    reloads = 0
+    for i in range(first, time_s.size):
+        if time_s[i] < 107.0:                               # every frame around the gap
+            asyncio.run(svc.reload(str(model_path)))
+            reloads += 1
+        out.append(run_in_batches(svc.pipeline, time_s[i:i + 1], wl[i:i + 1], t[i:i + 1],
+                                  [1], counts[i:i + 1]))
+    got = {k: np.concatenate([o[k] for o in out]) for k in ref}
+    assert reloads >= 50
+    np.testing.assert_array_equal(got["sensor_status"], ref["sensor_status"])
+    np.testing.assert_array_equal(got["health"], ref["health"])
+    np.testing.assert_array_equal(got["model_set"], ref["model_set"])
+    np.testing.assert_allclose(got["correction_um"], ref["correction_um"], rtol=0, atol=1e-9)
+    assert svc.pipeline.readmissions_refused == plain.readmissions_refused

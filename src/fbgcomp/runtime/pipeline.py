@@ -157,6 +157,39 @@ class Pipeline:
         self._inconsistent_until = np.full(S, -np.inf)   # kept out by the re-admission check
         self.readmissions_refused = 0
 
+    def continue_from(self, old: "Pipeline") -> None:
+        """Take over the running state of ``old`` (a model reload: the machine has not been
+        re-zeroed, the gratings have not been re-checked). Zero state, sensor checks, hold,
+        smoothing, rate limit and output filter carry over, and so does the re-admission check:
+        gratings held out as INCONSISTENT stay so until their time is up, and a grating coming
+        back on the first frame after the reload is checked against the faulted set before it.
+        Model-set indices are translated by the sets they name (the new model's stored
+        fallbacks may differ)."""
+        self.checks = old.checks
+        self._t_first = old._t_first
+        self._zero_sum, self._zero_n = old._zero_sum, old._zero_n
+        self._tzero_sum, self._tzero_n = old._tzero_sum, old._tzero_n
+        self.wavelength_zero_nm = old.wavelength_zero_nm
+        self.temperature_zero_C = old.temperature_zero_C
+        self._last_correction, self._hold_start_s = old._last_correction, old._hold_start_s
+        self._hold_from = old._hold_from
+        self._smoothed, self._last_t = old._smoothed, old._last_t
+        self._slew_y, self._slew_t = old._slew_y, old._slew_t
+        self._zero_frames, self.output_filter = old._zero_frames, old.output_filter
+        self._t_zero_last, self.frame_dt_s = old._t_zero_last, old.frame_dt_s
+        self._prev_mask = old._prev_mask.copy()
+        self._inconsistent_until = old._inconsistent_until.copy()
+        self.readmissions_refused = old.readmissions_refused
+        # the set in use on the last predicted frame, as this model would have chosen it for
+        # the same faulted gratings (-1 stays -1: nothing was predicted, nothing to compare)
+        self._prev_choice = self._choose(self._prev_mask) if old._prev_choice >= 0 else -1
+        if old._filter_set is None:
+            self._filter_set = None
+        elif old._filter_set >= 0 and old.model_sets[old._filter_set] in self.model_sets:
+            self._filter_set = self.model_sets.index(old.model_sets[old._filter_set])
+        else:   # a set this model does not have: its first frame is a switch (filter re-seated)
+            self._filter_set = -2
+
     # -- model selection
     def predictor(self, k: int):
         if k not in self._predictors:

@@ -196,19 +196,9 @@ class Service:
                 list(new.probe_names) != self.pipeline.probe_names:
             raise InputError("reloaded model expects other sensors or probes", file=path)
         pipe = Pipeline(new, self.config.pipeline)
-        # keep the running zero state and sensor history: the machine has not been re-zeroed
-        old = self.pipeline
-        pipe.checks = old.checks
-        pipe._t_first = old._t_first
-        pipe._zero_sum, pipe._zero_n = old._zero_sum, old._zero_n
-        pipe._tzero_sum, pipe._tzero_n = old._tzero_sum, old._tzero_n
-        pipe.wavelength_zero_nm, pipe.temperature_zero_C = old.wavelength_zero_nm, \
-            old.temperature_zero_C
-        pipe._last_correction, pipe._hold_start_s = old._last_correction, old._hold_start_s
-        pipe._smoothed, pipe._last_t = old._smoothed, old._last_t
-        pipe._slew_y, pipe._slew_t = old._slew_y, old._slew_t
-        pipe._zero_frames, pipe.output_filter = old._zero_frames, old.output_filter
-        pipe._t_zero_last, pipe.frame_dt_s = old._t_zero_last, old.frame_dt_s
+        # keep the running zero state, sensor history and re-admission state: the machine
+        # has not been re-zeroed
+        pipe.continue_from(self.pipeline)
         self.model, self.pipeline, self.model_id = new, pipe, new.model_id
         if self.opc is not None:
             self.opc.model_id = self.model_id
