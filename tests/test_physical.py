@@ -262,3 +262,17 @@ def test_generic_scenarios_work_on_a_machine_that_declares_no_heat_sources():
     names = [h.name for h in generic_heat_machine(machine).thermal.sources]
     assert names[:2] == [h.name for h in machine.thermal.sources]
     assert len(names) == 2 + len(FACES)
+
+
+def test_a_force_the_training_never_applied_is_read_over_the_trained_range(ram2):
+    # Trained with loads along X only (static_x): the Y signature comes from the twin of the
+    # machine description, and a Y load must not be clamped to 1.5x the load cell's noise in
+    # static_x's fy column (it was: 2.3 N on our twin, so every Y load was lost).
+    xyz = read_ram2("static_xyz")["static_xyz"]
+    machine = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram2.yaml"
+    m = PhysicalModel(machine=machine, twin_scenarios=8).fit([ram2["thermal_a"], ram2["static_x"]])
+    assert "from the FE twin" in m.load_["source"]
+    fmax = np.asarray(m.load_["max_force_N"])
+    assert fmax[1] == pytest.approx(fmax[0]) and fmax[0] > 3900.0
+    a = _metrics(m, xyz)["axes"]["dy"]
+    assert a["max_abs_error_um"] < 0.2 * a["peak_um"], a
