@@ -7,7 +7,8 @@ command. It is judged only on campaigns it never saw.
   thermal_a static_xyz --machine examples/machines/ram2.yaml``; judged on thermal_b, thermal_c
   (heat + a force along X) and static_x.
 * the twin (twin-only figures: our own simulator), the built-in default machine's campaigns as
-  ``fbgcomp demo`` makes them (seed 0, full length): ``fbgcomp fit thermal-36h static-y``; judged
+  ``fbgcomp demo`` makes them (seed 0, full length): ``fbgcomp fit thermal-36h static-y
+  --machine src/fbgcomp/data/ram.yaml`` (the built-in machine's description); judged
   on thermal-36h-b (in thermal_b's role), combined (heat + a held force along Y, thermal_c's
   role) and static-xyz (static_x's role).
 
@@ -205,11 +206,14 @@ def main(argv=None) -> int:
     if not args.no_twin:
         t0 = time.perf_counter()
         paths = twin_campaigns(work, args.seed)
-        fbgcomp_fit([paths[n] for n in TWIN_TRAIN], work / "twin.json")
+        from fbgcomp.structure.machine import _default_path
+
+        fbgcomp_fit([paths[n] for n in TWIN_TRAIN], work / "twin.json", "--machine", _default_path())
         fig = figures(work / "twin.json", {r: paths[n] for r, n in TWIN_ROLES.items()})
         rows = targets(fig)
         print_table(f"twin (TWIN-ONLY: our own simulator; built-in default ram, seed {args.seed}): fbgcomp fit "
-                    f"thermal-36h static-y ({fig['model_type']}, {time.perf_counter() - t0:.0f} s incl. the twin)",
+                    f"thermal-36h static-y --machine <built-in> ({fig['model_type']}, "
+                    f"{time.perf_counter() - t0:.0f} s incl. the twin)",
                     rows)
         result["twin"] = {"trained_on": list(TWIN_TRAIN), "roles": TWIN_ROLES, "seed": args.seed, **fig,
                           "targets": rows, "met": sum(r["met"] for r in rows), "of": len(rows)}
