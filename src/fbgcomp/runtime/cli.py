@@ -147,7 +147,7 @@ def register(app: typer.Typer) -> None:
         speed: float = typer.Option(1.0, "--speed", help="Campaign seconds per real second."),
         loop: bool = typer.Option(False, "--loop", help="Restart the campaign at its end."),
         noise_pm: float = typer.Option(0.0, "--noise-pm", help="Gaussian wavelength noise, pm."),
-        fault: List[str] = typer.Option([], "--fault", help="drop:S@t, double:S@t, shift:S@t:nm, stuck:S@t, each optionally /duration (drop:S3@5/2 brings S3 back at 7 s, shift:S2@3:+2/10 moves S2 by 2 nm for 10 s; default: to the end), cut@t:s, garbage@t:bytes (random bytes on the stream, at most 1 MiB); t = s since start. Repeatable."),
+        fault: List[str] = typer.Option([], "--fault", help="drop:S@t, double:S@t, shift:S@t:nm, stuck:S@t, each optionally /duration (drop:S3@5/2 brings S3 back at 7 s, shift:S2@3:+2/10 moves S2 by 2 nm for 10 s; default: to the end), cut@t:s, garbage@t:bytes (random bytes on the stream, at most 1 MiB); t = s since start; S may name a reference grating, S3_ref. Repeatable."),
         duration: Optional[float] = typer.Option(None, "--duration", help="Stop after this many seconds."),
         send_log: Optional[Path] = typer.Option(None, "--send-log", help="Save the wall-clock send time of every block of frames (.npy: first stamp s, frames, send time s) at exit, for latency measurements."),
     ):

@@ -24,8 +24,9 @@ from fbgcomp.runtime import health as H
 from fbgcomp.runtime.linuxcnc import CncConfig
 from fbgcomp.runtime.opcua import OpcUaConfig, OpcUaServer, Snapshot
 from fbgcomp.runtime.pipeline import HEALTH_ALARM, HEALTH_NAMES, Pipeline, PipelineConfig
-from fbgcomp.runtime.sources import (HyperionSource, PeakMapper, ReplaySource, SensorBatch,
-                                     TableTemperatures, open_temperatures, parse_source_url)
+from fbgcomp.runtime.sources import (HyperionSource, PeakMapper, ReferenceThermometers,
+                                     ReplaySource, SensorBatch, TableTemperatures,
+                                     open_temperatures, parse_source_url)
 
 log = logging.getLogger("fbgcomp.runtime")
 
@@ -127,6 +128,10 @@ class Service:
         self.pipeline = Pipeline(self.model, config.pipeline)
         self.model_id = self.model.model_id
         self.mapper = PeakMapper.for_sensors(self.model.sensors, config.source.window_nm)
+        # the model's <sensor>_ref probes come from the reference gratings' peaks, the others
+        # from the temperature source
+        self.thermometers = ReferenceThermometers(self.pipeline.probe_names, self.model.sensors,
+                                                  self.mapper.reference_probes)
         self.frames = 0
         self.batches = 0
         self.busy_s = 0.0
@@ -152,7 +157,7 @@ class Service:
     async def _open_source(self):
         cfg = self.config.source
         scheme, opts = parse_source_url(cfg.url)
-        probes = self.pipeline.probe_names
+        probes = self.thermometers.real_probes
         temps = None
         probe_specs = None
         if scheme == "hyperion":
@@ -162,7 +167,8 @@ class Service:
         elif scheme == "replay":
             src = ReplaySource(opts["path"], self.pipeline.sensor_names, probes,
                                float(opts.get("speed", cfg.speed)),
-                               loop=opts.get("loop", str(cfg.loop)).lower() in ("1", "true"))
+                               loop=opts.get("loop", str(cfg.loop)).lower() in ("1", "true"),
+                               reference_probes=self.mapper.reference_probes)
             temps = src.temperatures
             probe_specs = _probe_specs(opts["path"])
         else:  # sim://DIR: an in-process simulated instrument replaying the campaign
@@ -319,7 +325,8 @@ class Service:
             return
         t0 = time.perf_counter()
         enabled = self.enabled
-        temps = self.temps.latest(batch.time_s)
+        temps = self.thermometers.temperature_C(self.temps.latest(batch.time_s),
+                                                batch.reference_nm)
         res = self.pipeline.process(batch.time_s, batch.wavelength_nm, batch.peak_count,
                                     batch.near_count, temps, enabled)
         self._offset_s = batch.received_s - float(batch.time_s[-1])

@@ -12,6 +12,9 @@ at given times (seconds since the simulator started streaming)::
     garbage@6:4096     4096 random bytes on every stream connection at t = 6 s (the client's
                        decoder must refuse them and reconnect)
 
+Strain-free reference gratings of the campaign (``<sensor>_ref_nm``) are served as peaks too
+and named ``<sensor>_ref`` in faults (``drop:S3_ref@5``).
+
 A grating fault lasts to the end unless ``/duration`` follows it: ``drop:S3@5/2`` brings S3
 back at t = 7 s, ``shift:S2@3:+2/10`` moves S2 by 2 nm for 10 s (a mode hop there and back).
 
@@ -95,11 +98,16 @@ class SignalTable:
 
     @classmethod
     def from_campaign(cls, folder: str | Path) -> "SignalTable":
+        """The campaign's gratings: its sensors, then the strain-free reference gratings of
+        those that carry one (signal ``<sensor>_ref`` from column ``<sensor>_ref_nm``, on the
+        sensor's channel; faults name them so: ``drop:S3_ref@5``)."""
         from fbgcomp.campaign import read_campaign
         c = read_campaign(folder)
-        names = [s.name for s in c.meta.sensors]
-        wl = c.fbg[[f"{n}_nm" for n in names]].to_numpy(dtype=np.float64)
-        channel = [int(getattr(s, "channel", None) or 0) for s in c.meta.sensors]
+        refs = [s for s in c.meta.sensors if s.reference_column is not None]
+        names = [s.name for s in c.meta.sensors] + [s.reference_probe for s in refs]
+        columns = [s.column for s in c.meta.sensors] + [s.reference_column for s in refs]
+        wl = c.fbg[columns].to_numpy(dtype=np.float64)
+        channel = [int(getattr(s, "channel", None) or 0) for s in c.meta.sensors + refs]
         return cls(c.fbg["time_s"].to_numpy(dtype=np.float64), wl, names,
                    channel if all(channel) else None)
 

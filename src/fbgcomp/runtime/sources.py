@@ -7,6 +7,11 @@ with capped exponential back-off. A temperature source answers the latest value 
 Peaks are mapped to sensors by wavelength windows ``lambda0_nm ± window_nm``: exactly one peak
 in the window gives the sensor's wavelength; none (grating lost or moved out of its window) or
 more than one (doubled peak) gives NaN and a peak count the health checks turn into a fault.
+
+Strain-free reference gratings (``reference_lambda0_nm`` of a sensor) own a window of their own
+(``reference_lambda0_nm ± window_nm``) and travel beside the sensors in
+``SensorBatch.reference_nm``; :class:`ReferenceThermometers` turns them into the model's
+``<sensor>_ref`` temperatures, so the temperature source only answers the real probes.
 """
 
 from __future__ import annotations
@@ -36,6 +41,8 @@ class SensorBatch:
     peak_count : (n, S) int8 peaks in the window (0 missing, 1 good, >1 doubled)
     near_count : (n, S) int8 peaks in the guard band just outside the window
     received_s : wall-clock time the batch was received (for latency figures)
+    reference_nm : (n, R) the strain-free reference gratings (``PeakMapper.reference_probes``
+        order), NaN unless exactly one peak in the window; None when there are none
     """
 
     time_s: np.ndarray
@@ -43,6 +50,7 @@ class SensorBatch:
     peak_count: np.ndarray
     near_count: np.ndarray
     received_s: float
+    reference_nm: np.ndarray | None = None
 
     def __len__(self) -> int:
         return self.time_s.size
@@ -55,15 +63,24 @@ class SensorBatch:
                            np.concatenate([b.wavelength_nm for b in batches]),
                            np.concatenate([b.peak_count for b in batches]),
                            np.concatenate([b.near_count for b in batches]),
-                           max(b.received_s for b in batches))
+                           max(b.received_s for b in batches),
+                           None if batches[0].reference_nm is None else
+                           np.concatenate([b.reference_nm for b in batches]))
 
 
 class PeakMapper:
     """Assign peaks to sensors by wavelength windows (vectorised over frames and peaks)."""
 
     def __init__(self, lambda0_nm: np.ndarray, window_nm: float = 2.5,
-                 guard_nm: float | None = None, channel: np.ndarray | None = None):
+                 guard_nm: float | None = None, channel: np.ndarray | None = None,
+                 n_sensors: int | None = None, reference_probes: list[str] | None = None):
         self.lambda0_nm = np.asarray(lambda0_nm, dtype=np.float64)
+        # windows beyond the first n_sensors are strain-free reference gratings, named by the
+        # probe they read (<sensor>_ref); they go to SensorBatch.reference_nm
+        self.n_sensors = self.lambda0_nm.size if n_sensors is None else int(n_sensors)
+        self.reference_probes = list(reference_probes or [])
+        if len(self.reference_probes) != self.lambda0_nm.size - self.n_sensors:
+            raise ValueError("one name per reference grating window")
         # instrument channel (1-based, as the Hyperion numbers them) of each sensor, 0 = any:
         # several fibres may carry gratings of the same nominal wavelength
         self.channel = (np.zeros(self.lambda0_nm.size, int) if channel is None
@@ -76,9 +93,14 @@ class PeakMapper:
 
     @classmethod
     def for_sensors(cls, sensors, window_nm: float = 2.5) -> "PeakMapper":
-        """Windows from sensor specs (``lambda0_nm`` and optional extra key ``channel``)."""
+        """Windows from sensor specs (``lambda0_nm`` and optional extra key ``channel``), then
+        one per strain-free reference grating (``reference_lambda0_nm``, the sensor's channel)."""
         channel = [int(getattr(s, "channel", None) or 0) for s in sensors]
-        return cls([s.lambda0_nm for s in sensors], window_nm, channel=channel)
+        refs = [(s, c) for s, c in zip(sensors, channel)
+                if getattr(s, "reference_lambda0_nm", None) is not None]
+        return cls([s.lambda0_nm for s in sensors] + [s.reference_lambda0_nm for s, _ in refs],
+                   window_nm, channel=channel + [c for _, c in refs], n_sensors=len(sensors),
+                   reference_probes=[f"{s.name}_ref" for s, _ in refs])
 
     def map(self, peaks_nm: np.ndarray, received_s: float, time_s: np.ndarray,
             peak_channel: np.ndarray | None = None) -> SensorBatch:
@@ -100,8 +122,13 @@ class PeakMapper:
                 self._map_group(peaks_nm[:, cols], sens, count, value, near)
         count = count.reshape(n, S)
         wl = np.where(count == 1, value.reshape(n, S), np.nan)
-        return SensorBatch(time_s, wl, np.minimum(count, 127).astype(np.int8),
-                           np.minimum(near.reshape(n, S), 127).astype(np.int8), received_s)
+        count = np.minimum(count, 127).astype(np.int8)
+        near = np.minimum(near.reshape(n, S), 127).astype(np.int8)
+        k = self.n_sensors
+        if k == S:
+            return SensorBatch(time_s, wl, count, near, received_s)
+        return SensorBatch(time_s, wl[:, :k], count[:, :k], near[:, :k], received_s,
+                           reference_nm=wl[:, k:])
 
     def _map_group(self, peaks, sens, count, value, near) -> None:
         """Windows of the sensors ``sens`` (one fibre) against its (n, k) peaks, O(n k log s).
@@ -183,6 +210,47 @@ class TemperatureSource(Protocol):
 
 
 # --------------------------------------------------------------------------- temperatures
+class ReferenceThermometers:
+    """The model's temperatures from the temperature source (real probes) and the strain-free
+    reference gratings (``<sensor>_ref``: the temperature change of the sensor's gauge, eq. 3
+    inverted, :func:`fbgcomp.optics.grating_temperature_change_K`).
+
+    A reference grating reads relative to its nominal ``reference_lambda0_nm``; the constant
+    offset from its actual zero-state wavelength cancels in the model's zero state (up to the
+    ratio of the two wavelengths, ~1e-4 of the temperature change). A grating without exactly
+    one peak in its window gives NaN: a missing temperature, as for a probe.
+    """
+
+    def __init__(self, probe_names: list[str], sensors, mapped_references: list[str]):
+        self.probe_names = list(probe_names)
+        by_probe = {f"{s.name}_ref": s for s in sensors
+                    if getattr(s, "reference_lambda0_nm", None) is not None}
+        self.reference_probes = [p for p in self.probe_names if p in by_probe]
+        self.real_probes = [p for p in self.probe_names if p not in by_probe]
+        self._real = [self.probe_names.index(p) for p in self.real_probes]
+        self._ref = [self.probe_names.index(p) for p in self.reference_probes]
+        self._col = [mapped_references.index(p) for p in self.reference_probes]
+        specs = [by_probe[p] for p in self.reference_probes]
+        self._lambda0 = np.array([s.reference_lambda0_nm for s in specs], float)
+        self._xi = np.array([s.thermo_optic_per_K for s in specs], float)
+        self._af = np.array([s.fibre_cte_per_K for s in specs], float)
+
+    def temperature_C(self, probes_C: np.ndarray, reference_nm: np.ndarray | None) -> np.ndarray:
+        """(n, P) in the model's probe order from the real probes (n, len(real_probes)) and
+        the batch's reference gratings (n, R) (None: none arrived, NaN)."""
+        if not self._ref:
+            return probes_C
+        from fbgcomp import optics
+        n = probes_C.shape[0]
+        out = np.empty((n, len(self.probe_names)))
+        out[:, self._real] = probes_C
+        lam = np.full((n, len(self._ref)), np.nan) if reference_nm is None else \
+            reference_nm[:, self._col]
+        out[:, self._ref] = optics.grating_temperature_change_K(
+            lam, self._lambda0, thermo_optic_per_K=self._xi, fibre_cte_per_K=self._af)
+        return out
+
+
 class NoTemperatures:
     """For models that need no probe (eq. 11 style)."""
 
@@ -356,7 +424,8 @@ class ReplaySource:
     """
 
     def __init__(self, folder: str | Path, sensor_names: list[str], probe_names: list[str],
-                 speed: float = 1.0, chunk_s: float = 0.002, loop: bool = False):
+                 speed: float = 1.0, chunk_s: float = 0.002, loop: bool = False,
+                 reference_probes: list[str] | None = None):
         from fbgcomp.campaign import read_campaign
         c = read_campaign(folder)
         missing = [s for s in sensor_names if f"{s}_nm" not in c.fbg.columns]
@@ -365,6 +434,13 @@ class ReplaySource:
                              file=folder)
         self.time_s = c.fbg["time_s"].to_numpy(float)
         self.wavelength_nm = c.fbg[[f"{s}_nm" for s in sensor_names]].to_numpy(float)
+        # strain-free reference gratings (<sensor>_ref -> column <sensor>_ref_nm); a campaign
+        # without one replays it as lost (NaN), as an instrument without its peak would
+        self.reference_nm = None
+        if reference_probes:
+            self.reference_nm = np.column_stack([
+                c.fbg[f"{p}_nm"].to_numpy(float) if f"{p}_nm" in c.fbg.columns
+                else np.full(self.time_s.size, np.nan) for p in reference_probes])
         self.speed = float(speed)
         self.chunk_s = chunk_s
         self.loop = loop
@@ -390,7 +466,8 @@ class ReplaySource:
                 ok = np.isfinite(wl)
                 stamp = self.origin_s + (self.time_s[i:j] + lap * span) / self.speed
                 yield SensorBatch(stamp, wl, ok.astype(np.int8), np.zeros(wl.shape, np.int8),
-                                  time.time())
+                                  time.time(), None if self.reference_nm is None
+                                  else self.reference_nm[i:j])
                 i = j
             if i >= n:
                 if not self.loop:
