@@ -111,3 +111,27 @@ def test_reconnect_cannot_step_the_correction(setup):
     assert np.abs(np.diff(out, axis=0)).max() <= 2 * rate * dt + 1e-6
     # the correction before the link loss was well beyond that step
     assert np.abs(r1["correction_um"][-1]).max() > 4 * rate * dt
+
+
+def test_the_model_file_records_its_training_deviations_and_bounds_the_correction(setup, tmp_path):
+    """Deliver 1: the model file records the deviations it was validated on, per axis; the
+    runtime never publishes beyond ENVELOPE_MARGIN x their peak with Health OK."""
+    model, time_s, w, t = setup
+    runs = model.training_["campaigns"]
+    peak = np.max([np.maximum(np.abs(r["deviation_low_um"]), np.abs(r["deviation_high_um"])) for r in runs],
+                  axis=0)
+    np.testing.assert_allclose(model.max_correction_um, model.ENVELOPE_MARGIN * peak)
+    pipe = Pipeline(model)
+    np.testing.assert_allclose(pipe.max_correction_um, np.minimum(1000.0, model.ENVELOPE_MARGIN * peak))
+    # the same model with a training that saw a third of it: its own bound clamps and degrades
+    d = model.to_dict()
+    for r in d["training"]["campaigns"]:
+        r["deviation_low_um"] = (np.asarray(r["deviation_low_um"]) / 6.0).tolist()
+        r["deviation_high_um"] = (np.asarray(r["deviation_high_um"]) / 6.0).tolist()
+    narrow = type(model).from_dict(d)
+    pipe = Pipeline(narrow)
+    r = run_in_batches(pipe, time_s, w, t, [10])
+    over = (np.abs(r["deviation_um"]) > pipe.max_correction_um).any(axis=1)
+    assert over.sum() > 10
+    assert (np.abs(r["correction_um"]) <= pipe.max_correction_um + 1e-9).all()
+    assert not (r["health"][over] == HEALTH_OK).any()

@@ -494,10 +494,13 @@ class MRAModel(EstimatorParams, ModelFile):
             design = self._campaign_design(c, aligned)
             check_finite_fit_data(c, aligned, design, names)
             series.append((design, aligned.reference_um, weight))
+            ref = aligned.reference_um
             training.append({"name": c.meta.name, "kind": c.meta.kind,
                              "path": None if c.path is None else str(c.path),
                              "n_samples": int(len(design)), "row_weight": float(weight),
-                             "dropped": _plain(aligned.dropped)})
+                             "dropped": _plain(aligned.dropped),
+                             "deviation_low_um": np.min(ref, axis=0).tolist(),
+                             "deviation_high_um": np.max(ref, axis=0).tolist()})
             if progress is not None:
                 progress(c.meta.name)
         # Two passes (factor, then autocorrelation statistics about the full model's
@@ -663,6 +666,26 @@ class MRAModel(EstimatorParams, ModelFile):
                                f"{h.get('F', float('nan')):>10.4g}{h.get('p', float('nan')):>10.3g}"
                                f"{h.get('n_terms', ''):>6}")
         return "\n".join(out)
+
+    #: Margin on the training deviations within which a correction counts as validated: the
+    #: runtime clamps beyond ``ENVELOPE_MARGIN`` x the largest |deviation| of an axis in training
+    #: (DEGRADED) and holds beyond 3x that (ALARM).
+    ENVELOPE_MARGIN = 1.5
+
+    @property
+    def max_correction_um(self):
+        """Largest |correction| per axis this model was validated for: ``ENVELOPE_MARGIN`` x the
+        largest |TTP deviation| each axis showed in the training campaigns (µm), or None when the
+        model file does not record them (fitted from arrays or statistics, or an older file)."""
+        runs = (getattr(self, "training_", None) or {}).get("campaigns", [])
+        if not runs or any("deviation_low_um" not in r or "deviation_high_um" not in r for r in runs):
+            return None
+        lo = np.min([np.asarray(r["deviation_low_um"], float) for r in runs], axis=0)
+        hi = np.max([np.asarray(r["deviation_high_um"], float) for r in runs], axis=0)
+        peak = np.maximum(np.abs(lo), np.abs(hi))
+        if peak.shape != (3,) or not np.all(np.isfinite(peak)):
+            return None
+        return [float(v) for v in self.ENVELOPE_MARGIN * peak]
 
     def to_dict(self) -> dict:
         d = {
