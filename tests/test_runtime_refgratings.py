@@ -289,3 +289,29 @@ def test_a_lost_reference_grating_is_a_missing_temperature(served, campaigns):
     assert "OK" in states and states[-1] == "ALARM"
     assert [v for n, v, *_ in seen if n == "Alarm"][-1] is True
     assert [v for n, v, *_ in seen if n == "CorrectionY_um"][-1] == 0.0
+
+
+def test_replay_reads_the_reference_gratings_from_fbg_csv(campaigns, tmp_path):
+    """replay:// (in process): the reference temperatures come from fbg.csv's <S>_ref_nm, the
+    probes from temperatures.csv, and the model runs with health OK on them."""
+    fbgcomp_testing.require("pyarrow")
+    from fbgcomp import optics
+    from fbgcomp.campaign import read_campaign
+    from fbgcomp.runtime.log import read_log
+    from fbgcomp.runtime.service import RuntimeConfig, Service
+
+    cfg = RuntimeConfig(model=str(campaigns["model"]), opcua_enabled=False)
+    cfg.source.url = f"replay://{campaigns['serve']}?speed=20"
+    cfg.log.dir = str(tmp_path / "log")
+    svc = Service(cfg)
+    asyncio.run(svc.run(2.0))
+    _, log = read_log(tmp_path / "log")
+    camp = read_campaign(campaigns["serve"])
+    assert len(log) > 100 and (log["health"].iloc[-50:] == 0).all()
+    # replayed rows are fbg.csv's rows: each frame's S3_ref_C is its row's S3_ref_nm read
+    rows = [int(np.flatnonzero(camp.fbg["S2_nm"].to_numpy() == v)[0]) for v in log["S2_nm"]]
+    s3 = camp.meta.sensor("S3")
+    expect = optics.grating_temperature_change_K(
+        camp.fbg["S3_ref_nm"].to_numpy()[rows], s3.reference_lambda0_nm,
+        thermo_optic_per_K=s3.thermo_optic_per_K, fibre_cte_per_K=s3.fibre_cte_per_K)
+    np.testing.assert_allclose(log["S3_ref_C"].to_numpy(), expect, rtol=0, atol=1e-12)
