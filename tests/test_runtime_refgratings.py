@@ -315,3 +315,14 @@ def test_replay_reads_the_reference_gratings_from_fbg_csv(campaigns, tmp_path):
         camp.fbg["S3_ref_nm"].to_numpy()[rows], s3.reference_lambda0_nm,
         thermo_optic_per_K=s3.thermo_optic_per_K, fibre_cte_per_K=s3.fibre_cte_per_K)
     np.testing.assert_allclose(log["S3_ref_C"].to_numpy(), expect, rtol=0, atol=1e-12)
+    # `fbgcomp log export` gives the reference gratings back as the wavelengths they read
+    # (it refused before: 'S1_ref' was written as a probe, a name the reference grating holds)
+    from fbgcomp.runtime.log import export_campaign
+
+    out = export_campaign(tmp_path / "log", tmp_path / "exported")
+    again = read_campaign(tmp_path / "exported")
+    assert not any(c.endswith("_ref_C") for c in again.temperatures.columns)
+    np.testing.assert_allclose(again.fbg["S3_ref_nm"].to_numpy(), camp.fbg["S3_ref_nm"].to_numpy()[rows][
+        np.isin(log["time_s"].to_numpy() - log["time_s"].iloc[0], again.fbg["time_s"].to_numpy())],
+        rtol=0, atol=1e-9)
+    assert out.meta.sensor("S3").reference_lambda0_nm == s3.reference_lambda0_nm

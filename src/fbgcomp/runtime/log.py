@@ -209,14 +209,27 @@ def export_campaign(log_folder: str | Path, out: str | Path, name: str | None = 
     t0 = float(df["time_s"].iloc[0])
     t = df["time_s"].to_numpy() - t0
     sensors, probes = meta["sensor_names"], meta["probe_names"]
+    # a strain-free reference grating was logged as its sensor's gauge temperature <S>_ref_C
+    # (relative to reference_lambda0_nm); it goes back to fbg.csv as the wavelength it read
+    from fbgcomp.optics import free_grating_wavelength_nm
+
+    refs = {f"{d['name']}_ref": d for d in meta.get("sensors") or []
+            if d.get("reference_lambda0_nm") is not None and f"{d['name']}_ref" in probes}
+    probes = [p for p in probes if p not in refs]
     ok = np.ones(len(df), bool)
     for s in sensors:
         ok &= (df[f"{s}_status"].to_numpy() == 0) & np.isfinite(df[f"{s}_nm"].to_numpy())
+    for p in refs:
+        ok &= np.isfinite(df[f"{p}_C"].to_numpy())
     if not ok.any():
         raise InputError("no frame in the log has every sensor healthy", file=log_folder)
     fbg = pd.DataFrame({"time_s": t[ok]})
     for s in sensors:
         fbg[f"{s}_nm"] = df[f"{s}_nm"].to_numpy()[ok]
+    for p, d in refs.items():
+        kw = {k: d[k] for k in ("thermo_optic_per_K", "fibre_cte_per_K") if d.get(k) is not None}
+        fbg[f"{d['name']}_ref_nm"] = free_grating_wavelength_nm(df[f"{p}_C"].to_numpy()[ok],
+                                                                d["reference_lambda0_nm"], **kw)
     tok = np.ones(len(df), bool)
     for p in probes:
         tok &= np.isfinite(df[f"{p}_C"].to_numpy())
