@@ -119,19 +119,25 @@ def test_default_beats_the_simplest_physical_model_on_dz(twin_model, ram2):
     assert got < 0.95 * baseline, (got, baseline)
 
 
-def test_calibrated_map_streams_and_round_trips(twin_model, ram2, tmp_path):
-    loaded = load_model(twin_model.save(tmp_path / "m.json"))
-    c = ram2["thermal_b"]
-    a, _ = twin_model.predict_interval(c)
+def _streamed_like_offline(model, loaded, c, batch):
+    """The loaded file predicts as the fitted model, and the interrogator's frames streamed in
+    batches through one predictor, read at the reference times, equal the offline call.
+    Returns the predictor and the last batch's length."""
+    a, _ = model.predict_interval(c)
     np.testing.assert_allclose(loaded.predict_interval(c)[0], a, rtol=1e-10, atol=1e-9)
     al = c.aligned(zero_window_s=loaded.zero_window_s)
     _, _, w0, t0 = loaded.instrument_arrays(al)
     ft, w, t = loaded.frame_arrays(c, al)
     p = loaded.predictor()
-    parts = [p.predict(w[i:i + 4000], t[i:i + 4000], w0, t0, time_s=ft[i:i + 4000])[0]
-             for i in range(0, len(w), 4000)]
+    parts = [p.predict(w[i:i + batch], t[i:i + batch], w0, t0, time_s=ft[i:i + batch])[0]
+             for i in range(0, len(w), batch)]
     at = np.clip(np.searchsorted(ft, al.time_s, side="right") - 1, 0, None)
     np.testing.assert_allclose(np.vstack(parts)[at], a, rtol=1e-9, atol=1e-8)
+    return p, len(w) - batch * ((len(w) - 1) // batch)
+
+
+def test_calibrated_map_streams_and_round_trips(twin_model, ram2, tmp_path):
+    _streamed_like_offline(twin_model, load_model(twin_model.save(tmp_path / "m.json")), ram2["thermal_b"], 4000)
 
 
 def test_interval_is_the_interferometers_at_rest_and_grows_with_the_thermal_state(twin_model, ram2):
@@ -219,22 +225,7 @@ def test_a_lost_grating_keeps_the_load_part(model, ram2):
 
 def test_model_file_round_trip_and_runtime_predictor(model, ram2, tmp_path):
     path = model.save(tmp_path / "m.json")
-    loaded = load_model(path)
-    c = ram2["thermal_b"]
-    a, _ = model.predict_interval(c)
-    b, _ = loaded.predict_interval(c)
-    np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-9)
-    # the interrogator's frames streamed in batches through one predictor, read at the
-    # reference times, equal the offline call
-    al = c.aligned(zero_window_s=loaded.zero_window_s)
-    _, _, w0, t0 = loaded.instrument_arrays(al)
-    ft, w, t = loaded.frame_arrays(c, al)
-    p = loaded.predictor()
-    parts = [p.predict(w[i:i + 500], t[i:i + 500], w0, t0, time_s=ft[i:i + 500])[0]
-             for i in range(0, len(w), 500)]
-    at = np.clip(np.searchsorted(ft, al.time_s, side="right") - 1, 0, None)
-    np.testing.assert_allclose(np.vstack(parts)[at], a, rtol=1e-9, atol=1e-8)
-    last = len(w) - 500 * ((len(w) - 1) // 500)
+    p, last = _streamed_like_offline(model, load_model(path), ram2["thermal_b"], 500)
     assert p.last_flags.dtype == np.uint8 and p.last_flags.shape == (last, 3)
 
 
