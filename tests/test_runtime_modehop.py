@@ -13,6 +13,7 @@ comparison is frame by frame, with the same noise, and measures only what the ho
 """
 
 import asyncio
+import copy
 import time
 
 import numpy as np
@@ -270,8 +271,21 @@ def test_a_grating_back_shifted_from_a_gap_stays_out(sizes, tmp_path_factory):
     assert (diff <= tol).all(), diff
     off = PipelineConfig()
     off.health.readmit_k_sigma = 0.0
-    unchecked = run_in_batches(Pipeline(model, off), t, wl, temp, sizes, counts)
+    # the control runs a model file without the training deviations (as before 80ffb74), so only
+    # the re-admission check stands between the shifted grating and a correction with Health OK
+    d = copy.deepcopy(model.to_dict())            # to_dict shares the model's training record
+    for run in d["training"]["campaigns"]:
+        run.pop("deviation_low_um", None)
+        run.pop("deviation_high_um", None)
+    bare = type(model).from_dict(d)
+    assert bare.max_correction_um is None
+    unchecked = run_in_batches(Pipeline(bare, off), t, wl, temp, sizes, counts)
     assert (unchecked["health"][after] == HEALTH_OK).all()
+    # with the recorded envelope the same fault is at least not published as OK where it
+    # leaves what the model was validated on
+    enveloped = run_in_batches(Pipeline(model, off), t, wl, temp, sizes, counts)
+    beyond = (np.abs(enveloped["deviation_um"][after]) > np.asarray(model.max_correction_um)).any(axis=1)
+    assert not (enveloped["health"][after][beyond] == HEALTH_OK).any()
     bad = np.abs(unchecked["correction_um"][after] - clean["correction_um"][after]).max(axis=0)
     assert bad[1] > 5.0 * diff[1], (bad, diff)
     # a grating back unshifted after the same gap is re-admitted

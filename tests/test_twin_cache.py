@@ -258,7 +258,12 @@ def test_concurrent_builder_processes_leave_one_whole_entry(Twin, machine, cache
     assert [p.name for p in cache_dir.iterdir()] == [good_entry[0]]     # no temporary file
     warm = Twin(machine, resolution=RES)
     assert warm.times.from_cache
-    _assert_identical(good_entry[2], _responses(warm))
+    # the entry is another process's build: a threaded BLAS may round its sums differently
+    # there (it did, in the last bits, on a loaded machine), so equal to round-off, not bit for bit
+    got = _responses(warm)
+    assert len(got) == len(good_entry[2])
+    for x, y in zip(good_entry[2], got):
+        np.testing.assert_allclose(y, x, rtol=1e-9, atol=1e-12 * max(1.0, float(np.abs(x).max())))
 
 
 def test_the_test_session_never_uses_the_users_cache():
