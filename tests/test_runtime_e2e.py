@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 import fbgcomp_testing
-from test_runtime_support import (fbgcomp_process, free_port, model_and_campaign,
-                                  secure_client, wait_port)
+from test_runtime_support import (fbgcomp_process, free_port, model_and_campaign, wait_port,
+                                  watch_outputs)
 
 ENV = {"FBGCOMP_OPCUA_USER": "operator", "FBGCOMP_OPCUA_PASSWORD": "e2e-pass-123"}
 NAMES = ["Heartbeat", "CorrectionX_um", "CorrectionY_um", "CorrectionZ_um", "Health",
@@ -24,29 +24,8 @@ NAMES = ["Heartbeat", "CorrectionX_um", "CorrectionY_um", "CorrectionZ_um", "Hea
 
 
 async def _watch(url, state, timeout_s, stop_when):
-    """Subscribe to the outputs; return [(name, value, source time s, receive time s)]."""
-    from asyncua import ua
-    seen = []
-
-    class Handler:
-        def datachange_notification(self, node, val, data):
-            ts = data.monitored_item.Value.SourceTimestamp
-            seen.append((node.nodeid.Identifier[len("FbgComp."):], val,
-                         ts.timestamp() if ts else float("nan"), time.time()))
-
-    client = await secure_client(url, state, ENV["FBGCOMP_OPCUA_USER"],
-                                 ENV["FBGCOMP_OPCUA_PASSWORD"])
-    # serve trusts only known client certificates: put this one in its trust list
-    from fbgcomp.runtime.trust import add_certificate
-    add_certificate(state / "client_cert.der", state.parent / "state" / "opcua" / "trusted")
-    async with client:
-        sub = await client.create_subscription(0, Handler())
-        await sub.subscribe_data_change([client.get_node(ua.NodeId(f"FbgComp.{n}", 2))
-                                         for n in NAMES])
-        end = time.monotonic() + timeout_s
-        while time.monotonic() < end and not stop_when(seen):
-            await asyncio.sleep(0.05)
-    return seen
+    return await watch_outputs(url, state, state.parent / "state" / "opcua" / "trusted", ENV, NAMES,
+                               timeout_s, stop_when)
 
 
 def _health_sequence(seen):

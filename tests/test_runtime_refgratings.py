@@ -28,7 +28,7 @@ import numpy as np
 import pytest
 
 import fbgcomp_testing
-from test_runtime_support import fbgcomp_process, free_port, secure_client, wait_port
+from test_runtime_support import fbgcomp_process, free_port, wait_port, watch_outputs
 
 ENV = {"FBGCOMP_OPCUA_USER": "operator", "FBGCOMP_OPCUA_PASSWORD": "refgrating-pass-123"}
 NAMES = ["CorrectionX_um", "CorrectionY_um", "CorrectionZ_um", "Health", "Alarm"]
@@ -93,27 +93,7 @@ def campaigns(tmp_path_factory):
 
 
 async def _watch(url, state, trust_dir, timeout_s, stop_when):
-    from asyncua import ua
-    from fbgcomp.runtime.trust import add_certificate
-    seen = []
-
-    class Handler:
-        def datachange_notification(self, node, val, data):
-            ts = data.monitored_item.Value.SourceTimestamp
-            seen.append((node.nodeid.Identifier[len("FbgComp."):], val,
-                         ts.timestamp() if ts else float("nan"), time.time()))
-
-    client = await secure_client(url, state, ENV["FBGCOMP_OPCUA_USER"],
-                                 ENV["FBGCOMP_OPCUA_PASSWORD"])
-    add_certificate(state / "client_cert.der", trust_dir)     # serve trusts known clients only
-    async with client:
-        sub = await client.create_subscription(0, Handler())
-        await sub.subscribe_data_change([client.get_node(ua.NodeId(f"FbgComp.{n}", 2))
-                                         for n in NAMES])
-        end = time.monotonic() + timeout_s
-        while time.monotonic() < end and not stop_when(seen):
-            await asyncio.sleep(0.05)
-    return seen
+    return await watch_outputs(url, state, trust_dir, ENV, NAMES, timeout_s, stop_when)
 
 
 @pytest.fixture(scope="module")

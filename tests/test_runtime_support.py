@@ -119,3 +119,33 @@ def fallback_peak_um(model_path, campaign_path, lost: str):
     r = run_in_batches(Pipeline(model, free), aligned.time_s, w, t, [1000], counts)
     return np.abs(r["correction_um"][after]).max(axis=0)
 
+
+async def watch_outputs(url: str, state: Path, trust_dir: Path, env: dict, names, timeout_s: float,
+                        stop_when):
+    """A real asyncua client (signed and encrypted, user from ``env``) whose certificate is put
+    in serve's trust list ``trust_dir``, subscribed to ``FbgComp.<name>`` for each of ``names``
+    until ``stop_when(seen)`` or ``timeout_s``; returns ``seen`` = [(name, value, source time s,
+    receive time s)]."""
+    import asyncio
+
+    from asyncua import ua
+
+    from fbgcomp.runtime.trust import add_certificate
+
+    seen = []
+
+    class Handler:
+        def datachange_notification(self, node, val, data):
+            ts = data.monitored_item.Value.SourceTimestamp
+            seen.append((node.nodeid.Identifier[len("FbgComp."):], val,
+                         ts.timestamp() if ts else float("nan"), time.time()))
+
+    client = await secure_client(url, state, env["FBGCOMP_OPCUA_USER"], env["FBGCOMP_OPCUA_PASSWORD"])
+    add_certificate(state / "client_cert.der", trust_dir)     # serve trusts known clients only
+    async with client:
+        sub = await client.create_subscription(0, Handler())
+        await sub.subscribe_data_change([client.get_node(ua.NodeId(f"FbgComp.{n}", 2)) for n in names])
+        end = time.monotonic() + timeout_s
+        while time.monotonic() < end and not stop_when(seen):
+            await asyncio.sleep(0.05)
+    return seen
