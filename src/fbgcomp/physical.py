@@ -126,7 +126,7 @@ def map_features(e_um, delta_T_K, housing_idx, time_s=None, state=None, nominal_
     state = state or {}
     smooth, s_in = first_order_filter(dT, time_s, PROBE_SMOOTHING_S, state.get("in"), nominal_dt_s)
     new = {"in": s_in}
-    leads = housing_leads(smooth, housing_idx, MAP_LEADS_S, time_s, state, new, nominal_dt_s)
+    leads = housing_leads(housing_mean(smooth, housing_idx), MAP_LEADS_S, time_s, state, new, nominal_dt_s)
     return np.hstack([e, smooth, leads]), new
 
 
@@ -135,18 +135,23 @@ def map_features(e_um, delta_T_K, housing_idx, time_s=None, state=None, nominal_
 CAL_LEADS_S = (300.0, 900.0)
 
 
-def housing_leads(smooth_K, housing_idx, taus_s, time_s, state, new_state, nominal_dt_s=1.0):
-    """The mean housing ΔT's leads ``T - lowpass(T, tau)`` (n, len(taus_s)) K from probe ΔTs
-    already low-passed over ``PROBE_SMOOTHING_S`` (zeros without a housing probe); each
-    filter's state is read from ``state`` and written to ``new_state`` under ``lead<tau>``."""
+def housing_mean(smooth_K, housing_idx):
+    """Mean ΔT (n, 1) K of the housing probes among probe ΔTs already low-passed over
+    ``PROBE_SMOOTHING_S`` (zeros without a housing probe)."""
     smooth = np.atleast_2d(smooth_K)
-    housing = (smooth[:, list(housing_idx)].mean(axis=1, keepdims=True) if len(housing_idx)
-               else np.zeros((smooth.shape[0], 1)))
+    return (smooth[:, list(housing_idx)].mean(axis=1, keepdims=True) if len(housing_idx)
+            else np.zeros((smooth.shape[0], 1)))
+
+
+def housing_leads(housing_K, taus_s, time_s, state, new_state, nominal_dt_s=1.0):
+    """The housing ΔT's leads ``T - lowpass(T, tau)`` (n, len(taus_s)) K, from its mean ΔT
+    (:func:`housing_mean`); each filter's state is read from ``state`` and written to
+    ``new_state`` under ``lead<tau>``."""
     cols = []
     for tau in taus_s:
         key = f"lead{tau:g}"
-        slow, new_state[key] = first_order_filter(housing, time_s, tau, state.get(key), nominal_dt_s)
-        cols.append(housing - slow)
+        slow, new_state[key] = first_order_filter(housing_K, time_s, tau, state.get(key), nominal_dt_s)
+        cols.append(housing_K - slow)
     return np.hstack(cols)
 
 
@@ -578,9 +583,9 @@ class PhysicalPredictor:
                 S = len(self.sensor_names)
                 smooth = X[:, S:S + len(self.probe_names)]
                 new_state["cal"] = {}
-                L = np.hstack([smooth[:, self._h_idx].mean(axis=1, keepdims=True),
-                               housing_leads(smooth, self._h_idx, self.cal["leads_s"], time_s,
-                                             state.get("cal", {}), new_state["cal"], self.nominal_dt_s)])
+                housing = housing_mean(smooth, self._h_idx)
+                L = np.hstack([housing, housing_leads(housing, self.cal["leads_s"], time_s, state.get("cal", {}),
+                                                      new_state["cal"], self.nominal_dt_s)])
             self.last_cal_features = L
             if raw or not thermal_policy:
                 thermal = X @ self.map["coef"]
@@ -695,9 +700,9 @@ def _check_shapes(d: dict, source) -> None:
     iv = d.get("interval")
     if iv is not None:
         need(isinstance(iv, dict), "interval", "must be a mapping or null")
-        for key in ("v0_um2", "vs_um2", "v1_um2", "v2_um2"):
-            if key in iv or key != "vs_um2":
-                need(np.all(array(iv.get(key), f"interval.{key}", (3,)) >= 0), f"interval.{key}", "must be >= 0")
+        # vs_um2 is absent from files written before the interval's linear term
+        for key in ("v0_um2", "v1_um2", "v2_um2") + (("vs_um2",) if "vs_um2" in iv else ()):
+            need(np.all(array(iv.get(key), f"interval.{key}", (3,)) >= 0), f"interval.{key}", "must be >= 0")
         need(np.all(array(iv.get("dT_scale_K"), "interval.dT_scale_K", (P,)) > 0), "interval.dT_scale_K",
              "must be > 0")
         if "deadband_K" in iv:
@@ -1051,39 +1056,37 @@ class PhysicalModel(EstimatorParams, ModelFile):
         # robust MAD of them read low) is none
         d = np.vstack([np.diff(r["dT"], axis=0) for r in rows if len(r["dT"]) > 1])
         deadband = 2.0 * d.std(axis=0)
-        got = []
+        e2, S, act, w = [], [], [], []
         for r, c in zip(rows, campaigns):
             if r["loaded"]:
                 continue
             pred, _, p, at = self._served(c)
-            got.append(((pred - r["y"]) ** 2 - v0, excursion2(r["dT"], scale, deadband), p.last_activity[at]))
-        a_scale = max(max(float(np.abs(a).max()) for _, _, a in got), 1e-3)
-        A_rows, b_rows = [], []
-        for e2, s2, act in got:
-            w = np.sqrt(1.0 / len(s2))
-            A_rows.append(np.column_stack([np.sqrt(s2), s2, (act / a_scale) ** 2]) * w)
-            b_rows.append(e2 * w)
-        A, b = np.vstack(A_rows), np.vstack(b_rows)
-        v = np.array([nnls(A, b[:, j])[0] for j in range(3)])      # (3 axes, [vs, v1, v2])
+            e2.append((pred - r["y"]) ** 2)
+            S.append(excursion2(r["dT"], scale, deadband))
+            act.append(p.last_activity[at])
+            w.append(np.full(len(pred), 1.0 / len(pred)))          # campaigns weighted equally
+        e2, s2, act, w = np.vstack(e2), np.concatenate(S), np.concatenate(act), np.concatenate(w)
+        a_scale = max(float(np.abs(act).max()), 1e-3)
+        A = np.column_stack([np.sqrt(s2), s2, (act / a_scale) ** 2])
+        sw = np.sqrt(w)[:, None]
+        v = np.array([nnls(A * sw, (e2[:, j] - v0[j]) * sw[:, 0])[0] for j in range(3)])   # (axes, [vs, v1, v2])
         # The errors are not Gaussian (heavy tails from the transients): scale the state terms
         # so that the 95 % interval covers 95 % of the training samples (campaigns weighted
-        # equally), v0 staying the instrument's.
-        z = stats.norm.ppf(0.975)
-        w_all = np.concatenate([np.full(len(s2), 1.0 / len(s2)) for _, s2, _ in got])
-        e2_all = np.vstack([e2 for e2, _, _ in got]) + v0
-        shape = np.vstack(A_rows) / np.sqrt(w_all)[:, None] @ v.T          # (n, 3) state variance
+        # equally), v0 staying the instrument's. A sample is covered for every scale from
+        # (e² / z² - v0) / (its state variance) up: the scale is the weighted 95th percentile of
+        # that, within [1e-3, 1e3].
+        z2 = stats.norm.ppf(0.975) ** 2
+        shape = A @ v.T                                                  # (n, 3) state variance
         for j in range(3):
             if not np.any(shape[:, j] > 0):
                 continue
-
-            def coverage(k2):
-                return np.sum(w_all * (e2_all[:, j] <= z * z * (v0[j] + k2 * shape[:, j]))) / w_all.sum()
-
-            lo, hi = 1e-3, 1e3
-            for _ in range(60):
-                mid = np.sqrt(lo * hi)
-                lo, hi = (mid, hi) if coverage(mid) < 0.95 else (lo, mid)
-            v[j] *= hi
+            with np.errstate(divide="ignore", invalid="ignore"):
+                need = np.where(e2[:, j] / z2 <= v0[j], 0.0, (e2[:, j] / z2 - v0[j]) / shape[:, j])
+            order = np.argsort(need)
+            # (a share of exactly 0.95 counts as reached: the cumulative sum's rounding must not
+            # push the level to the next sample)
+            at = np.searchsorted(np.cumsum(w[order]) / w.sum(), 0.95 - 1e-12)
+            v[j] *= np.clip(need[order][min(at, len(order) - 1)], 1e-3, 1e3)
         return {"v0_um2": v0.tolist(), "vs_um2": v[:, 0].tolist(), "v1_um2": v[:, 1].tolist(),
                 "v2_um2": v[:, 2].tolist(), "dT_scale_K": scale.tolist(), "deadband_K": deadband.tolist(),
                 "activity_scale_K": a_scale}
