@@ -20,7 +20,6 @@ import asyncio
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -30,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+
+from _loopback import free_port, wait_port
 
 
 def _five_sensor_model(tmp: Path):
@@ -107,23 +108,6 @@ def core_throughput(model_path, table, n_frames: int, batch: int) -> float:
 
 
 # --------------------------------------------------------------------------- end to end
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _wait_port(port, timeout_s=60.0):
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        try:
-            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
-                return
-        except OSError:
-            time.sleep(0.05)
-    raise TimeoutError(port)
-
-
 async def _latency(url, state: Path, seconds: float, warmup_s: float):
     from asyncua import Client, ua
     from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
@@ -165,7 +149,7 @@ def end_to_end(model_path, campaign, seconds: float, rate_hz=1000.0, opcua_rate_
     env = dict(os.environ, FBGCOMP_OPCUA_USER="bench", FBGCOMP_OPCUA_PASSWORD="bench-password")
     with tempfile.TemporaryDirectory() as d:
         d = Path(d)
-        sp, cp, op = _free_port(), _free_port(), _free_port()
+        sp, cp, op = free_port(), free_port(), free_port()
         url = f"opc.tcp://127.0.0.1:{op}/fbgcomp/"
         cmd = [sys.executable, "-m", "fbgcomp"]
         serve = subprocess.Popen(cmd + ["serve", "--model", str(model_path), "--source",
@@ -176,7 +160,7 @@ def end_to_end(model_path, campaign, seconds: float, rate_hz=1000.0, opcua_rate_
                                  env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         sim = None
         try:
-            _wait_port(op)
+            wait_port(op)
             sim = subprocess.Popen(cmd + ["sim-interrogator", str(campaign), "--port", str(sp),
                                           "--command-port", str(cp), "--rate", str(rate_hz),
                                           "--noise-pm", "0.3", "--send-log",

@@ -28,7 +28,6 @@ import argparse
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -36,6 +35,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from _loopback import free_port, wait_port
 
 SENSORS = ["S1", "S2", "S3", "S4", "S5"]
 WARMUP_S = 15.0          # zero state and first faults-free seconds; RSS is taken after it
@@ -84,23 +85,6 @@ def fault_schedule(seconds: float, rng: np.random.Generator, mean_gap_s: float =
         out.append((spec, str(kind)))
 
 
-def _free_port() -> int:
-    with socket.socket() as sk:
-        sk.bind(("127.0.0.1", 0))
-        return sk.getsockname()[1]
-
-
-def _wait_port(port: int, timeout_s: float) -> None:
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        try:
-            with socket.create_connection(("127.0.0.1", port), timeout=0.2):
-                return
-        except OSError:
-            time.sleep(0.05)
-    raise TimeoutError(f"nothing listening on 127.0.0.1:{port}")
-
-
 def _rss_mib(pid: int) -> float:
     with open(f"/proc/{pid}/status") as f:
         for line in f:
@@ -119,7 +103,7 @@ def soak(seconds: float, seed: int, rate_hz: float, tmp: Path) -> dict:
     model_path, campaign = _model_and_campaign(tmp)
     bound = Pipeline(load_model(model_path)).max_correction_um
     faults = fault_schedule(seconds, np.random.default_rng(seed))
-    sp, cp, op = _free_port(), _free_port(), _free_port()
+    sp, cp, op = free_port(), free_port(), free_port()
     env = dict(os.environ, FBGCOMP_OPCUA_USER="soak", FBGCOMP_OPCUA_PASSWORD="soak-password",
                OPENBLAS_NUM_THREADS="1")
     py = [sys.executable, "-m", "fbgcomp"]
@@ -135,7 +119,7 @@ def soak(seconds: float, seed: int, rate_hz: float, tmp: Path) -> dict:
     sim = None
     rss = []
     try:
-        _wait_port(op, 60)
+        wait_port(op, 60)
         sim_cmd = py + ["sim-interrogator", str(campaign), "--port", str(sp), "--command-port",
                         str(cp), "--rate", str(rate_hz), "--noise-pm", "0.3", "--loop",
                         "--send-log", str(tmp / "sent.npy")]

@@ -6,7 +6,6 @@ at t = 4.5 s for 1.2 s and restored, then the service is killed with SIGKILL. A 
 (Basic256Sha256 Sign & Encrypt, user + password) watches the outputs throughout.
 """
 
-import asyncio
 import os
 import signal
 import time
@@ -15,17 +14,11 @@ import numpy as np
 import pytest
 
 import fbgcomp_testing
-from test_runtime_support import (fbgcomp_process, free_port, model_and_campaign, wait_port,
-                                  watch_outputs)
+from test_runtime_support import model_and_campaign, serve_with_simulator
 
 ENV = {"FBGCOMP_OPCUA_USER": "operator", "FBGCOMP_OPCUA_PASSWORD": "e2e-pass-123"}
 NAMES = ["Heartbeat", "CorrectionX_um", "CorrectionY_um", "CorrectionZ_um", "Health",
          "FallbackInUse", "SourceStatus", "Sensors.S3.Status", "ExpectedErrorY_um"]
-
-
-async def _watch(url, state, timeout_s, stop_when):
-    return await watch_outputs(url, state, state.parent / "state" / "opcua" / "trusted", ENV, NAMES,
-                               timeout_s, stop_when)
 
 
 def _health_sequence(seen):
@@ -44,31 +37,14 @@ def scenario(tmp_path_factory):
 
     model_path, campaign = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
     tmp = tmp_path_factory.mktemp("e2e")
-    config = tmp / "serve.toml"
-    config.write_text("[source]\nbackoff_initial_s = 0.05\nbackoff_max_s = 0.4\n"
-                      "no_data_s = 0.2\n\n[pipeline]\nramp_s = 0.5\n"
-                      # output policy off: the published correction is the model's own
-                      "max_slew_um_per_s = 0\nmax_correction_um = [0, 0, 0]\n"
-                      "[pipeline.output_filter]\nenabled = false\n")
-    sp, cp, op = free_port(), free_port(), free_port()
-    url = f"opc.tcp://127.0.0.1:{op}/fbgcomp/"
-    serve = fbgcomp_process("serve", "--config", config, "--model", model_path, "--source",
-                            f"hyperion://127.0.0.1:{sp}?command_port={cp}",
-                            "--temperatures", campaign, "--opcua", url,
-                            "--state-dir", tmp / "state", "--log", tmp / "log", "--rate", 0,
-                            env=ENV)
-    sim = None
-    try:
-        try:
-            wait_port(op, 40)
-        except TimeoutError:
-            serve.kill()
-            raise AssertionError(serve.communicate(timeout=5)[1].decode()[-3000:])
-        # the instrument comes up after the service: the source's back-off finds it
-        sim = fbgcomp_process("sim-interrogator", campaign, "--port", sp, "--command-port", cp,
-                              "--rate", 1000, "--noise-pm", 0.3,
-                              "--fault", "drop:S3@2.5", "--fault", "cut@4.5:1.2")
-
+    config = ("[source]\nbackoff_initial_s = 0.05\nbackoff_max_s = 0.4\n"
+              "no_data_s = 0.2\n\n[pipeline]\nramp_s = 0.5\n"
+              # output policy off: the published correction is the model's own
+              "max_slew_um_per_s = 0\nmax_correction_um = [0, 0, 0]\n"
+              "[pipeline.output_filter]\nenabled = false\n")
+    with serve_with_simulator(tmp, config, model_path, campaign, ENV,
+                              ("--rate", 1000, "--noise-pm", 0.3,
+                               "--fault", "drop:S3@2.5", "--fault", "cut@4.5:1.2")) as run:
         def done(seen):
             # 1.5 s after health came back from ALARM (values are notified on change only)
             states = [(v, r) for n, v, _, r in seen if n == "Health"]
@@ -76,17 +52,11 @@ def scenario(tmp_path_factory):
                     if a == "ALARM" and b == "DEGRADED"]
             return bool(back) and time.time() - back[-1] > 1.5
 
-        seen = asyncio.run(_watch(url, tmp / "client", 40.0, done))
-        alive = serve.poll() is None
-        os.kill(serve.pid, signal.SIGKILL)
+        seen = run.watch(NAMES, 40.0, done)
+        alive = run.serve.poll() is None
+        os.kill(run.serve.pid, signal.SIGKILL)
         t_kill = time.time()
-        serve.wait(10)
-    finally:
-        for p in (sim, serve):
-            if p is not None and p.poll() is None:
-                p.kill()
-            if p is not None:
-                p.communicate(timeout=10)
+        run.serve.wait(10)
     meta, log = read_log(tmp / "log")
     return dict(seen=seen, alive=alive, t_kill=t_kill, meta=meta, log=log, tmp=tmp,
                 model_path=model_path)

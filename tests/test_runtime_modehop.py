@@ -12,7 +12,6 @@ taken back off S3 from the hop on, through the same pipeline and configuration: 
 comparison is frame by frame, with the same noise, and measures only what the hop did.
 """
 
-import asyncio
 import copy
 import time
 
@@ -20,18 +19,13 @@ import numpy as np
 import pytest
 
 import fbgcomp_testing
-from test_runtime_support import (fbgcomp_process, free_port, model_and_campaign, wait_port,
-                                  watch_outputs)
+from test_runtime_support import model_and_campaign, serve_with_simulator
 
 ENV = {"FBGCOMP_OPCUA_USER": "operator", "FBGCOMP_OPCUA_PASSWORD": "modehop-pass-123"}
 AXES = ("X", "Y", "Z")
 NAMES = ["CorrectionX_um", "CorrectionY_um", "CorrectionZ_um", "Health", "Alarm",
          "FallbackInUse", "Sensors.S3.Status"]
 HOP_AT_S, HOP_NM = 8.0, 2.0
-
-
-async def _watch(url, state, trust_dir, timeout_s, stop_when):
-    return await watch_outputs(url, state, trust_dir, ENV, NAMES, timeout_s, stop_when)
 
 
 def _serve(tmp_path_factory, name, faults, done):
@@ -43,42 +37,15 @@ def _serve(tmp_path_factory, name, faults, done):
 
     model_path, campaign = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
     tmp = tmp_path_factory.mktemp(name)
-    config = tmp / "serve.toml"
     # only the reconnect back-off and the no-data time are set, the output policy is serve's
     # default. no_data_s: a machine too loaded to deliver frames for 0.5 s would add no-data
     # ALARM ticks (hold, ramp) that the frame-by-frame comparisons below cannot replay
-    config.write_text("[source]\nbackoff_initial_s = 0.05\nbackoff_max_s = 0.4\n"
-                      "no_data_s = 5.0\n")
-    sp, cp, op = free_port(), free_port(), free_port()
-    url = f"opc.tcp://127.0.0.1:{op}/fbgcomp/"
-    serve = fbgcomp_process("serve", "--config", config, "--model", model_path, "--source",
-                            f"hyperion://127.0.0.1:{sp}?command_port={cp}",
-                            "--temperatures", campaign, "--opcua", url,
-                            "--state-dir", tmp / "state", "--log", tmp / "log", "--rate", 0,
-                            env=ENV)
-    sim = None
-    try:
-        try:
-            wait_port(op, 40)
-        except TimeoutError:
-            serve.kill()
-            raise AssertionError(serve.communicate(timeout=5)[1].decode()[-3000:])
-        args = [a for f in faults for a in ("--fault", f)]
-        sim = fbgcomp_process("sim-interrogator", campaign, "--port", sp, "--command-port", cp,
-                              "--rate", 1000, "--noise-pm", 0.3, *args)
-        seen = asyncio.run(_watch(url, tmp / "client", tmp / "state" / "opcua" / "trusted",
-                                  60.0, done))
-        alive = serve.poll() is None
-    finally:
-        for p in (sim, serve):
-            if p is not None and p.poll() is None:
-                p.terminate()
-                try:
-                    p.wait(10)
-                except Exception:
-                    p.kill()
-            if p is not None:
-                p.communicate(timeout=10)
+    config = "[source]\nbackoff_initial_s = 0.05\nbackoff_max_s = 0.4\nno_data_s = 5.0\n"
+    args = [a for f in faults for a in ("--fault", f)]
+    with serve_with_simulator(tmp, config, model_path, campaign, ENV,
+                              ("--rate", 1000, "--noise-pm", 0.3, *args)) as run:
+        seen = run.watch(NAMES, 60.0, done)
+        alive = run.serve.poll() is None
     meta, log = read_log(tmp / "log")
     return dict(seen=seen, alive=alive, meta=meta, log=log, model_path=model_path)
 

@@ -28,7 +28,7 @@ import numpy as np
 import pytest
 
 import fbgcomp_testing
-from test_runtime_support import fbgcomp_process, free_port, wait_port, watch_outputs
+from test_runtime_support import fbgcomp_process, serve_with_simulator
 
 ENV = {"FBGCOMP_OPCUA_USER": "operator", "FBGCOMP_OPCUA_PASSWORD": "refgrating-pass-123"}
 NAMES = ["CorrectionX_um", "CorrectionY_um", "CorrectionZ_um", "Health", "Alarm"]
@@ -92,10 +92,6 @@ def campaigns(tmp_path_factory):
     return dict(base=base, train=train_dir, serve=serve_dir, model=model)
 
 
-async def _watch(url, state, trust_dir, timeout_s, stop_when):
-    return await watch_outputs(url, state, trust_dir, ENV, NAMES, timeout_s, stop_when)
-
-
 @pytest.fixture(scope="module")
 def served(campaigns, tmp_path_factory):
     fbgcomp_testing.require("asyncua")
@@ -103,50 +99,23 @@ def served(campaigns, tmp_path_factory):
     from fbgcomp.runtime.log import read_log
 
     tmp = tmp_path_factory.mktemp("refgratings_serve")
-    config = tmp / "serve.toml"
     # output policy off: the published correction is the model's own, frame by frame.
     # no_data_s: a loaded machine pausing the stream must not add no-data ALARM ticks
     # speed: temperatures.csv replayed at the simulator's pace
-    config.write_text(f"[source]\nbackoff_initial_s = 0.05\nbackoff_max_s = 0.4\nspeed = {SPEED}\n"
-                      "no_data_s = 5.0\n\n[pipeline]\nramp_s = 0.5\n"
-                      "max_slew_um_per_s = 0\nmax_correction_um = [0, 0, 0]\n"
-                      "[pipeline.output_filter]\nenabled = false\n")
-    sp, cp, op = free_port(), free_port(), free_port()
-    url = f"opc.tcp://127.0.0.1:{op}/fbgcomp/"
-    serve = fbgcomp_process("serve", "--config", config, "--model", campaigns["model"],
-                            "--source", f"hyperion://127.0.0.1:{sp}?command_port={cp}",
-                            "--temperatures", campaigns["serve"], "--opcua", url,
-                            "--state-dir", tmp / "state", "--log", tmp / "log", "--rate", 0,
-                            env=ENV)
-    sim = None
-    try:
-        try:
-            wait_port(op, 40)
-        except TimeoutError:
-            serve.kill()
-            raise AssertionError(serve.communicate(timeout=5)[1].decode()[-3000:])
-        sim = fbgcomp_process("sim-interrogator", campaigns["serve"], "--port", sp,
-                              "--command-port", cp, "--rate", RATE_HZ, "--speed", SPEED,
-                              "--fault", f"drop:S1_ref@{DROP_AT_S:g}")
-
+    config = (f"[source]\nbackoff_initial_s = 0.05\nbackoff_max_s = 0.4\nspeed = {SPEED}\n"
+              "no_data_s = 5.0\n\n[pipeline]\nramp_s = 0.5\n"
+              "max_slew_um_per_s = 0\nmax_correction_um = [0, 0, 0]\n"
+              "[pipeline.output_filter]\nenabled = false\n")
+    with serve_with_simulator(tmp, config, campaigns["model"], campaigns["serve"], ENV,
+                              ("--rate", RATE_HZ, "--speed", SPEED,
+                               "--fault", f"drop:S1_ref@{DROP_AT_S:g}")) as run:
         def done(seen):
             ok = [r for n, v, _, r in seen if n == "Health" and v == "OK"]
             alarm = [r for n, v, _, r in seen if n == "Health" and v == "ALARM"]
             return bool(ok) and bool(alarm) and time.time() - alarm[0] > 1.5
 
-        seen = asyncio.run(_watch(url, tmp / "client", tmp / "state" / "opcua" / "trusted",
-                                  60.0, done))
-        alive = serve.poll() is None
-    finally:
-        for p in (sim, serve):
-            if p is not None and p.poll() is None:
-                p.terminate()
-                try:
-                    p.wait(10)
-                except Exception:
-                    p.kill()
-            if p is not None:
-                p.communicate(timeout=10)
+        seen = run.watch(NAMES, 60.0, done)
+        alive = run.serve.poll() is None
     meta, log = read_log(tmp / "log")
     return dict(seen=seen, alive=alive, meta=meta, log=log)
 

@@ -8,7 +8,9 @@ import socket
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from pathlib import Path
+from types import SimpleNamespace
 
 _CACHE: dict = {}
 
@@ -149,3 +151,50 @@ async def watch_outputs(url: str, state: Path, trust_dir: Path, env: dict, names
         while time.monotonic() < end and not stop_when(seen):
             await asyncio.sleep(0.05)
     return seen
+
+
+@contextmanager
+def serve_with_simulator(tmp: Path, config_toml: str, model_path, campaign, env: dict, sim_args=()):
+    """``fbgcomp serve`` (config ``config_toml``, OPC UA on a free loopback port, state in
+    ``tmp/state``, run log in ``tmp/log``, temperatures from ``campaign``) and then
+    ``fbgcomp sim-interrogator`` replaying ``campaign`` to it with ``sim_args``, both real
+    processes. Yields ``url``, the ``serve`` and ``sim`` processes and ``watch(names, timeout_s,
+    stop_when)`` (:func:`watch_outputs` with a client state in ``tmp/client``, trusted by serve).
+    On exit whatever still runs is terminated (killed after 10 s) and its pipes drained."""
+    import asyncio
+
+    config = tmp / "serve.toml"
+    config.write_text(config_toml)
+    sp, cp, op = free_port(), free_port(), free_port()
+    url = f"opc.tcp://127.0.0.1:{op}/fbgcomp/"
+    serve = fbgcomp_process("serve", "--config", config, "--model", model_path, "--source",
+                            f"hyperion://127.0.0.1:{sp}?command_port={cp}",
+                            "--temperatures", campaign, "--opcua", url,
+                            "--state-dir", tmp / "state", "--log", tmp / "log", "--rate", 0,
+                            env=env)
+    sim = None
+    try:
+        try:
+            wait_port(op, 40)
+        except TimeoutError:
+            serve.kill()
+            raise AssertionError(serve.communicate(timeout=5)[1].decode()[-3000:])
+        # the instrument comes up after the service: the source's back-off finds it
+        sim = fbgcomp_process("sim-interrogator", campaign, "--port", sp, "--command-port", cp,
+                              *sim_args)
+
+        def watch(names, timeout_s, stop_when):
+            return asyncio.run(watch_outputs(url, tmp / "client", tmp / "state" / "opcua" / "trusted",
+                                             env, names, timeout_s, stop_when))
+
+        yield SimpleNamespace(url=url, serve=serve, sim=sim, watch=watch)
+    finally:
+        for p in (sim, serve):
+            if p is not None and p.poll() is None:
+                p.terminate()
+                try:
+                    p.wait(10)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+            if p is not None:
+                p.communicate(timeout=10)
