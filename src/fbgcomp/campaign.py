@@ -69,7 +69,7 @@ from pydantic_core import PydanticCustomError
 
 from fbgcomp import optics
 from fbgcomp.atomic import replace_dir
-from fbgcomp.errors import InputError
+from fbgcomp.errors import InputError, read_bounded
 
 __all__ = [
     "SensorSpec", "ProbeSpec", "ReferenceSpec", "CampaignMeta", "Campaign", "AlignedCampaign",
@@ -355,14 +355,7 @@ def _read_meta(folder: Path) -> CampaignMeta:
     if not file.is_file():
         raise InputError("missing file: a campaign folder needs campaign.yaml "
                          "(name, kind, start, sensors, temperature_probes, reference)", file=file)
-    try:
-        with open(file, "rb") as handle:
-            raw = handle.read(MAX_META_BYTES + 1)
-    except OSError as exc:
-        raise InputError(f"cannot read the file: {exc.strerror or type(exc).__name__}",
-                         file=file) from None
-    if len(raw) > MAX_META_BYTES:
-        raise InputError(f"larger than {MAX_META_BYTES} bytes: not campaign metadata", file=file)
+    raw = read_bounded(file, MAX_META_BYTES, what="campaign metadata")
     if not raw.strip():
         raise InputError("empty file: expected the campaign metadata "
                          "(name, kind, start, sensors, ...)", file=file)

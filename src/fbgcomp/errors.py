@@ -46,3 +46,19 @@ class InputError(Exception):
         prefix = ", ".join(where)
         text = f"{prefix}: {self.message}" if prefix else self.message
         return " ".join(text.split())  # exactly one line
+
+
+def read_bounded(path: str | Path, max_bytes: int, *, what: str,
+                 unreadable: str = "cannot read the file") -> bytes:
+    """The bytes of ``path``, read without ever holding more than ``max_bytes + 1`` of them.
+
+    InputError naming the file: ``"<unreadable>: <reason>"`` when it cannot be opened or read,
+    ``"larger than <max_bytes> bytes: not <what>"`` when it is bigger than ``max_bytes``."""
+    try:
+        with open(path, "rb") as handle:
+            raw = handle.read(max_bytes + 1)
+    except OSError as exc:
+        raise InputError(f"{unreadable}: {exc.strerror or type(exc).__name__}", file=path) from None
+    if len(raw) > max_bytes:
+        raise InputError(f"larger than {max_bytes} bytes: not {what}", file=path)
+    return raw

@@ -37,7 +37,7 @@ from scipy import stats
 
 from . import __version__
 from .atomic import write_json
-from .errors import InputError
+from .errors import InputError, read_bounded
 from .features import (CONSTANT, FEATURE_SETS, FeatureMap, TemperatureRoles, candidate_terms,
                        design_matrix)
 from .regression import accumulate_series
@@ -916,14 +916,7 @@ def _read_model_json(path: Path):
         raise InputError("model file not found", file=path)
     if not path.is_file():
         raise InputError("not a regular file", file=path)
-    try:
-        with open(path, "rb") as handle:
-            raw = handle.read(MAX_MODEL_BYTES + 1)
-    except OSError as exc:
-        raise InputError(f"cannot read model file: {exc.strerror or type(exc).__name__}",
-                         file=path) from None
-    if len(raw) > MAX_MODEL_BYTES:
-        raise InputError(f"larger than {MAX_MODEL_BYTES} bytes: not a model file", file=path)
+    raw = read_bounded(path, MAX_MODEL_BYTES, what="a model file", unreadable="cannot read model file")
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
