@@ -103,6 +103,15 @@ def test_model_file_round_trip_and_runtime_contract(campaigns, tmp_path, make):
     dev, half = pred.predict(w_nan, t, w0, t0, time_s=a.time_s)
     assert dev.shape == (len(w), 3) and np.isfinite(dev).all() and np.isfinite(half).all()
     assert np.asarray(pred.expected_rms_error_um).shape == (3,)
+    # Issue 13 deliver 1: every type records the deviations it was fitted on, per axis and
+    # campaign, and bounds the runtime's correction by them.
+    refs = [campaigns[n].aligned(zero_window_s=back.zero_window_s).reference_um
+            for n in ("thermal-a", "static-y")]
+    for run, ref in zip(d["training"]["campaigns"], refs):
+        np.testing.assert_allclose(run["deviation_low_um"], ref.min(axis=0))
+        np.testing.assert_allclose(run["deviation_high_um"], ref.max(axis=0))
+    peak = np.abs(np.vstack(refs)).max(axis=0)
+    np.testing.assert_allclose(back.max_correction_um, back.ENVELOPE_MARGIN * peak)
 
 
 def test_dynamic_predictor_streams_exactly_like_the_offline_path(campaigns):

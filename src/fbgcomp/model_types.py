@@ -35,7 +35,7 @@ from .errors import InputError
 from .features import (CONSTANT, TEMPERATURE_FEATURES, FeatureMap, TemperatureRoles,
                        candidate_terms, design_matrix)
 from .kinematics import CLOSURE_FACTORS, KinematicChain
-from .models import (AXES, MRAModel, ModelFile, Predictor, _as_campaign_list, _plain,
+from .models import (AXES, MRAModel, ModelFile, Predictor, _as_campaign_list, _plain, deviation_range,
                      check_compatible, check_predictors, register_model_type)
 
 MODEL_TYPES = ("mra", "kinematic", "hybrid", "calibrated", "dynamic")
@@ -255,7 +255,8 @@ class KinematicModel(_ModelFile):
             p, _ = self.predict_interval(c)
             preds.append(p)
             refs.append(c.aligned(zero_window_s=self.zero_window_s).reference_um)
-            training.append({"name": c.meta.name, "kind": c.meta.kind, "n_samples": int(len(p))})
+            training.append({"name": c.meta.name, "kind": c.meta.kind, "n_samples": int(len(p)),
+                             **deviation_range(refs[-1])})
         pred, ref = np.vstack(preds), np.vstack(refs)
         if self.pi_relative is None and self.pi_floor_um is None:
             self.pi_floor_um_, self.pi_relative_ = _error_model(ref - pred, pred)
@@ -594,7 +595,7 @@ def _fit_regression(model, X, progress=None, targets=None):
         training.append({"name": c.meta.name, "kind": c.meta.kind,
                          "path": None if c.path is None else str(c.path),
                          "n_samples": int(len(design)), "row_weight": float(weight),
-                         "dropped": _plain(aligned.dropped)})
+                         "dropped": _plain(aligned.dropped), **deviation_range(aligned.reference_um)})
         if progress is not None:
             progress(c.meta.name)
     # Factor, then autocorrelation statistics about the full model; no lag spans campaigns.

@@ -311,6 +311,13 @@ class EstimatorParams:
         return f"{type(self).__name__}({args})"
 
 
+def deviation_range(reference_um) -> dict:
+    """The range of TTP deviations (n, 3) µm a training campaign showed, as its entry in a model
+    file's ``training.campaigns`` records it (the envelope of :attr:`ModelFile.max_correction_um`)."""
+    ref = np.asarray(reference_um, float)
+    return {"deviation_low_um": np.min(ref, axis=0).tolist(), "deviation_high_um": np.max(ref, axis=0).tolist()}
+
+
 class ModelFile:
     """What every model type shares: the sensors and probes it expects, its id and its file.
 
@@ -359,6 +366,26 @@ class ModelFile:
                                  column=err.column) from None
 
         return write_json(path, d, check=loads_back)
+
+    #: Margin on the training deviations within which a correction counts as validated: the
+    #: runtime clamps beyond ``ENVELOPE_MARGIN`` x the largest |deviation| of an axis in training
+    #: (DEGRADED) and holds beyond 3x that (ALARM).
+    ENVELOPE_MARGIN = 1.5
+
+    @property
+    def max_correction_um(self):
+        """Largest |correction| per axis this model was validated for: ``ENVELOPE_MARGIN`` x the
+        largest |TTP deviation| each axis showed in the training campaigns (µm), or None when the
+        model file does not record them (fitted from arrays or statistics, or an older file)."""
+        runs = (getattr(self, "training_", None) or {}).get("campaigns", [])
+        if not runs or any("deviation_low_um" not in r or "deviation_high_um" not in r for r in runs):
+            return None
+        lo = np.min([np.asarray(r["deviation_low_um"], float) for r in runs], axis=0)
+        hi = np.max([np.asarray(r["deviation_high_um"], float) for r in runs], axis=0)
+        peak = np.maximum(np.abs(lo), np.abs(hi))
+        if peak.shape != (3,) or not np.all(np.isfinite(peak)):
+            return None
+        return [float(v) for v in self.ENVELOPE_MARGIN * peak]
 
     def predict(self, X):
         """Predicted TTP deviation (n, 3) in µm."""
@@ -499,8 +526,7 @@ class MRAModel(EstimatorParams, ModelFile):
                              "path": None if c.path is None else str(c.path),
                              "n_samples": int(len(design)), "row_weight": float(weight),
                              "dropped": _plain(aligned.dropped),
-                             "deviation_low_um": np.min(ref, axis=0).tolist(),
-                             "deviation_high_um": np.max(ref, axis=0).tolist()})
+                             **deviation_range(ref)})
             if progress is not None:
                 progress(c.meta.name)
         # Two passes (factor, then autocorrelation statistics about the full model's
@@ -666,26 +692,6 @@ class MRAModel(EstimatorParams, ModelFile):
                                f"{h.get('F', float('nan')):>10.4g}{h.get('p', float('nan')):>10.3g}"
                                f"{h.get('n_terms', ''):>6}")
         return "\n".join(out)
-
-    #: Margin on the training deviations within which a correction counts as validated: the
-    #: runtime clamps beyond ``ENVELOPE_MARGIN`` x the largest |deviation| of an axis in training
-    #: (DEGRADED) and holds beyond 3x that (ALARM).
-    ENVELOPE_MARGIN = 1.5
-
-    @property
-    def max_correction_um(self):
-        """Largest |correction| per axis this model was validated for: ``ENVELOPE_MARGIN`` x the
-        largest |TTP deviation| each axis showed in the training campaigns (µm), or None when the
-        model file does not record them (fitted from arrays or statistics, or an older file)."""
-        runs = (getattr(self, "training_", None) or {}).get("campaigns", [])
-        if not runs or any("deviation_low_um" not in r or "deviation_high_um" not in r for r in runs):
-            return None
-        lo = np.min([np.asarray(r["deviation_low_um"], float) for r in runs], axis=0)
-        hi = np.max([np.asarray(r["deviation_high_um"], float) for r in runs], axis=0)
-        peak = np.maximum(np.abs(lo), np.abs(hi))
-        if peak.shape != (3,) or not np.all(np.isfinite(peak)):
-            return None
-        return [float(v) for v in self.ENVELOPE_MARGIN * peak]
 
     def to_dict(self) -> dict:
         d = {
