@@ -97,7 +97,7 @@ def soak(seconds: float, seed: int, rate_hz: float, tmp: Path) -> dict:
     import pyarrow.parquet as pq
 
     from fbgcomp.models import load_model
-    from fbgcomp.runtime.log import read_log
+    from fbgcomp.runtime.log import log_parts, read_log
     from fbgcomp.runtime.pipeline import HEALTH_OK, Pipeline
 
     model_path, campaign = _model_and_campaign(tmp)
@@ -147,7 +147,7 @@ def soak(seconds: float, seed: int, rate_hz: float, tmp: Path) -> dict:
         serve_err.close()
 
     # run log after kill -9: every file must read
-    parts = sorted((tmp / "log").glob("part-*.parquet"))
+    parts = log_parts(tmp / "log")
     unreadable = 0
     for p in parts:
         try:

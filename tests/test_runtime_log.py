@@ -30,12 +30,16 @@ def replayed(paths, tmp_path_factory):
 
 def test_replayed_run_is_logged_in_closed_parquet_parts(replayed):
     import pyarrow.parquet as pq
-    from fbgcomp.runtime.log import read_log
+    from fbgcomp.runtime.log import log_parts, read_log
 
     log_dir, campaign, _ = replayed
-    parts = sorted(log_dir.glob("part-*.parquet"))
+    parts = log_parts(log_dir)
     assert len(parts) >= 4                              # one file per <= 0.5 s
-    assert not list(log_dir.glob(".*.tmp"))             # nothing half-written left
+    # data files in their own folder, by day; nothing half-written left, meta.json outside
+    assert all(p.parent.parent == log_dir / "data" and p.parent.name.startswith("date=")
+               for p in parts)
+    assert not list(log_dir.rglob(".*.tmp"))
+    assert sorted(f.name for f in log_dir.iterdir()) == ["data", "meta.json"]
     meta, df = read_log(log_dir)
     assert sum(pq.read_table(p).num_rows for p in parts) == len(df)
     assert json.loads((log_dir / "meta.json").read_text())["sensor_names"] == meta["sensor_names"]
@@ -49,6 +53,50 @@ def test_replayed_run_is_logged_in_closed_parquet_parts(replayed):
         np.testing.assert_array_equal(df[f"{p}_C"].to_numpy(),
                                       src.temperatures[f"{p}_C"].to_numpy()[:n])
     assert set(df["health"].unique()) == {0, 3}         # zeroing, then OK
+    _, named = read_log(log_dir, labels=True)
+    assert set(named["health"].unique()) == {"OK", "ZEROING"}
+    assert list(named["health"].cat.categories) == ["OK", "DEGRADED", "ALARM", "ZEROING"]
+
+
+def test_the_log_opens_in_pandas_and_duckdb_with_health_as_dictionary_strings(replayed):
+    """The log a real ``fbgcomp serve`` wrote, read by the usual tools as they come."""
+    duckdb = fbgcomp_testing.require("duckdb")
+    import pandas as pd
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    from fbgcomp.runtime.log import log_parts, read_log
+
+    log_dir, campaign, _ = replayed
+    meta, ours = read_log(log_dir, labels=True)
+    df = pd.read_parquet(log_dir / "data").sort_values("time_s", kind="stable")
+    assert len(df) == len(ours) > 500
+    np.testing.assert_array_equal(df["time_s"].to_numpy(), ours["time_s"].to_numpy())
+    np.testing.assert_array_equal(df["S1_nm"].to_numpy(), ours["S1_nm"].to_numpy())
+    # health and every sensor status are strings, stored dictionary-encoded
+    assert isinstance(df["health"].dtype, pd.CategoricalDtype)
+    assert list(df["health"].astype(str)) == list(ours["health"].astype(str))
+    assert set(df["health"].astype(str)) == {"ZEROING", "OK"}
+    schema = pq.read_schema(log_parts(log_dir)[-1])
+    for name in ["health"] + [f"{s}_status" for s in meta["sensor_names"]]:
+        assert pa.types.is_dictionary(schema.field(name).type), name
+        assert pa.types.is_string(schema.field(name).type.value_type), name
+    assert set(df["S1_status"].astype(str)) == {"OK"}
+    # the hive partition: the UTC day each part was written
+    assert df["date"].astype(str).str.match(r"^\d{4}-\d\d-\d\d$").all()
+
+    glob = str(log_dir / "**" / "*.parquet")
+    con = duckdb.connect()
+    n, n_ok, first, last = con.execute(
+        "SELECT count(*), count(*) FILTER (WHERE health = 'OK'), min(time_s), max(time_s) "
+        "FROM read_parquet(?)", [glob]).fetchone()
+    assert n == len(ours) and n_ok == int((ours["health"] == "OK").sum()) > 0
+    assert (first, last) == (ours["time_s"].min(), ours["time_s"].max())
+    statuses = con.execute("SELECT DISTINCT S3_status FROM read_parquet(?)", [glob]).fetchall()
+    assert statuses == [("OK",)]
+    # duckdb.read_parquet, the relational API named in the issue, reads the same rows
+    rel = duckdb.read_parquet(glob, connection=con)
+    assert rel.aggregate("count(*)").fetchall() == [(len(ours),)]
+    con.close()
 
 
 def test_log_export_round_trips_to_a_campaign(replayed, tmp_path):
@@ -226,7 +274,7 @@ def test_sigterm_stops_gracefully_and_flushes_every_processed_frame(paths, tmp_p
                             "--log", tmp_path / "log")
     try:
         end = time.monotonic() + 30
-        while time.monotonic() < end and len(list((tmp_path / "log").glob("part-*"))) < 3:
+        while time.monotonic() < end and len(list((tmp_path / "log").rglob("part-*"))) < 3:
             time.sleep(0.1)
         serve.send_signal(signal.SIGTERM)
         _, err = serve.communicate(timeout=20)
@@ -249,3 +297,69 @@ def test_a_log_folder_of_another_sensor_set_is_refused(tmp_path):
     RunLog(tmp_path, {"sensor_names": ["S1"], "probe_names": []}).close()   # same run: appends
     with pytest.raises(InputError):
         RunLog(tmp_path, {"sensor_names": ["S1", "S2"], "probe_names": []})
+
+
+def _batch(t, wavelength_nm, status, health):
+    from fbgcomp.runtime.pipeline import BatchResult
+    from fbgcomp.runtime.sources import SensorBatch
+
+    n, S = wavelength_nm.shape
+    b = SensorBatch(t, wavelength_nm, np.ones((n, S), np.int8), np.zeros((n, S), np.int8),
+                    float(t[-1]))
+    dev = np.stack([np.sin(t), np.cos(t), t * 0.0], axis=1)
+    r = BatchResult(t, dev, np.full((n, 3), 0.5), dev * 0.5, np.ones((n, 3)), health, status,
+                    np.zeros(n, np.int16), np.full((n, 1), 20.0), output_flags=np.zeros((n, 3), np.uint8))
+    return b, r
+
+
+def test_health_and_status_are_named_and_old_integer_logs_still_read(tmp_path):
+    """A real RunLog writes names; a log in the earlier layout (parts beside meta.json, integer
+    codes) reads to the same codes and names, and both export to the same campaign."""
+    fbgcomp_testing.require("pyarrow")
+    import pandas as pd
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+    from fbgcomp.runtime import health as H
+    from fbgcomp.runtime.log import RunLog, export_campaign, log_parts, read_log
+    from fbgcomp.runtime.pipeline import HEALTH_NAMES
+
+    meta = {"format": "fbgcomp-runlog", "sensor_names": ["S1", "S2"], "probe_names": ["T_amb"],
+            "sensors": [{"name": "S1", "lambda0_nm": 1530.0, "gauge_length_mm": 100.0},
+                        {"name": "S2", "lambda0_nm": 1540.0, "gauge_length_mm": 100.0}],
+            "health_names": list(HEALTH_NAMES), "status_names": list(H.STATUS_NAMES)}
+    t = 1.7e9 + np.arange(40) * 0.1
+    health = np.repeat(np.arange(4, dtype=np.uint8), 10)           # OK, DEGRADED, ALARM, ZEROING
+    status = np.zeros((40, 2), np.uint8)
+    status[10:20, 1] = H.MISSING
+    status[20:30, 0] = H.INCONSISTENT
+    wl = np.column_stack([1530.0 + 1e-4 * np.arange(40), 1540.0 + 1e-4 * np.arange(40)])
+    log = RunLog(tmp_path / "new", meta, flush_s=0.1)
+    log.submit(*_batch(t, wl, status, health), True)
+    log.close()
+    (part,) = log_parts(tmp_path / "new")
+    raw = pq.read_table(part)
+    assert pa.types.is_dictionary(raw.schema.field("health").type)
+    assert raw.column("health").to_pylist() == [HEALTH_NAMES[h] for h in health]
+    assert raw.column("S2_status").to_pylist()[10:20] == ["MISSING"] * 10
+    assert raw.column("S1_status").to_pylist()[20:30] == ["INCONSISTENT"] * 10
+
+    # the same frames as the earlier RunLog wrote them: integer codes, parts beside meta.json
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "meta.json").write_text(json.dumps(meta))
+    table = raw.to_pandas()
+    table["health"], table["S1_status"], table["S2_status"] = health, status[:, 0], status[:, 1]
+    pq.write_table(pa.Table.from_pandas(table, preserve_index=False),
+                   old / "part-0000000000001-000000.parquet")
+    for folder in (tmp_path / "new", old):
+        _, codes = read_log(folder)
+        np.testing.assert_array_equal(codes["health"], health)
+        np.testing.assert_array_equal(codes[["S1_status", "S2_status"]].to_numpy(), status)
+        _, names = read_log(folder, labels=True)
+        assert list(names["health"]) == [HEALTH_NAMES[h] for h in health]
+        assert list(names["S2_status"][10:20]) == ["MISSING"] * 10
+    new_c = export_campaign(tmp_path / "new", tmp_path / "c_new")
+    old_c = export_campaign(old, tmp_path / "c_old")
+    # healthy frames only: S2 MISSING and S1 INCONSISTENT frames are left out in both
+    assert len(new_c.fbg) == len(old_c.fbg) == 20
+    pd.testing.assert_frame_equal(new_c.fbg, old_c.fbg)

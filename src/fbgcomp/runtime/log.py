@@ -2,23 +2,33 @@
 
 Layout of a log folder::
 
-    LOG/meta.json                      sensors, probes, model id, model sets (written atomically)
-    LOG/part-<epoch_ms>-<seq>.parquet  one file per flush, at most ``flush_s`` (≤ 1 s) of frames
+    LOG/meta.json                       sensors, probes, model id, model sets (written atomically)
+    LOG/data/date=<YYYY-MM-DD>/part-<epoch_ms>-<seq>.parquet
+                                        one file per flush, at most ``flush_s`` (≤ 1 s) of frames
 
-Each part is written to a temporary name in the same folder, fsynced and renamed, so a reader
-(or a ``kill -9``) never sees a half-written file; at most the frames of the last ``flush_s``
-are lost. Writing happens in a background thread behind a bounded queue: when the disk is
-slower than the stream the oldest unwritten batches are dropped and counted (``dropped_rows``)
-rather than ever blocking the compensation loop.
+Only Parquet files live under ``LOG/data``, so the usual tools read it as one table:
+``pd.read_parquet("LOG/data")``, ``duckdb.read_parquet("LOG/**/*.parquet")`` (both add the
+hive partition column ``date``: the UTC day the part was written, by this host's clock, which
+lets a reader of a long log open only the days it needs and lets old days be deleted whole).
+Logs written before this layout (parts next to meta.json) are still read by :func:`read_log`
+and :func:`log_parts`.
+
+Each part is written to a temporary name (``.part-….tmp``, which Parquet readers skip) in its
+own folder, fsynced and renamed, so a reader (or a ``kill -9``) never sees a half-written file;
+at most the frames of the last ``flush_s`` are lost. Writing happens in a background thread
+behind a bounded queue: when the disk is slower than the stream the oldest unwritten batches are
+dropped and counted (``dropped_rows``) rather than ever blocking the compensation loop.
 
 Columns: ``time_s`` (instrument epoch s), ``received_s``, ``<S>_nm`` (wavelength in the sensor
-window, NaN if none), ``<S>_peaks`` (peaks in the window), ``<S>_status`` (health code),
+window, NaN if none), ``<S>_peaks`` (peaks in the window), ``<S>_status`` (sensor status, a
+dictionary-encoded string: ``OK``, ``MISSING``, … as :data:`fbgcomp.runtime.health.STATUS_NAMES`),
 ``<P>_C`` (probe temperatures paired with the frame), ``dev_dx_um``… (predicted deviation),
 ``half_dx_um``… (95 % interval half-width), ``corr_dx_um``… (published correction),
 ``flags_dx``… (output flag word per axis, bits in meta.json ``flag_names``:
 model policy 1 SHRUNK, 2 CLAMPED, 4 LOAD_REFUSED; limits 8 RATE_LIMITED, 16 MAX_LIMITED),
-``health`` (0 OK, 1 DEGRADED, 2 ALARM, 3 ZEROING), ``model_set`` (index in meta.json
-``model_sets``, -1 none), ``enabled``.
+``health`` (dictionary-encoded string ``OK``, ``DEGRADED``, ``ALARM``, ``ZEROING``),
+``model_set`` (index in meta.json ``model_sets``, -1 none), ``enabled``. Logs written before
+stored health and status as their integer codes (the index in those name lists).
 """
 
 from __future__ import annotations
@@ -36,9 +46,36 @@ import numpy as np
 
 from fbgcomp.atomic import write_bytes
 from fbgcomp.errors import InputError
+from fbgcomp.runtime.health import STATUS_NAMES
+from fbgcomp.runtime.pipeline import HEALTH_NAMES
 
 log = logging.getLogger("fbgcomp.runtime")
 AXES = ("dx", "dy", "dz")
+DATA_DIR = "data"          # LOG/data/date=YYYY-MM-DD/part-*.parquet
+
+
+def _labels(codes: np.ndarray, names) -> "pyarrow.DictionaryArray":
+    """Integer codes as a dictionary-encoded string column (names[code]); a code beyond the
+    names is kept as ``CODE<n>`` rather than lost."""
+    import pyarrow as pa
+    names = list(names)
+    codes = np.asarray(codes)
+    top = int(codes.max()) if codes.size else -1
+    names += [f"CODE{k}" for k in range(len(names), top + 1)]
+    return pa.DictionaryArray.from_arrays(pa.array(codes.astype(np.int16)), pa.array(names))
+
+
+def _codes(column, names) -> np.ndarray:
+    """A logged health/status column as integer codes: names (this layout) are looked up in
+    ``names``, integer codes (older logs) are kept; an unknown name is -1."""
+    import pandas as pd
+    lookup = {n: k for k, n in enumerate(names)}
+    if isinstance(column.dtype, pd.CategoricalDtype):
+        table = np.array([lookup.get(c, -1) for c in column.cat.categories] + [-1], np.int16)
+        return table[column.cat.codes.to_numpy()]          # code -1 (no value) -> the last: -1
+    if pd.api.types.is_numeric_dtype(column.dtype):
+        return column.to_numpy()
+    return column.map(lookup).fillna(-1).to_numpy(np.int16)
 
 
 class RunLog:
@@ -52,7 +89,11 @@ class RunLog:
                              column="log.flush_s")
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
+        self.data_dir = self.folder / DATA_DIR
+        self.data_dir.mkdir(exist_ok=True)
         self.meta = meta
+        self.health_names = list(meta.get("health_names") or HEALTH_NAMES)
+        self.status_names = list(meta.get("status_names") or STATUS_NAMES)
         self.sensor_names = list(meta["sensor_names"])
         self.probe_names = list(meta["probe_names"])
         self.flush_s = flush_s
@@ -100,7 +141,7 @@ class RunLog:
         for j, s in enumerate(self.sensor_names):
             cols[f"{s}_nm"] = wl[:, j]
             cols[f"{s}_peaks"] = pk[:, j]
-            cols[f"{s}_status"] = st[:, j]
+            cols[f"{s}_status"] = _labels(st[:, j], self.status_names)
         temp = cat([x.temperature_C for x in r])
         for j, p in enumerate(self.probe_names):
             cols[f"{p}_C"] = temp[:, j]
@@ -112,7 +153,7 @@ class RunLog:
         flags = cat([x.output_flags for x in r])
         for j, a in enumerate(AXES):
             cols[f"flags_{a}"] = flags[:, j]
-        cols["health"] = cat([x.health for x in r])
+        cols["health"] = _labels(cat([x.health for x in r]), self.health_names)
         cols["model_set"] = cat([x.model_set for x in r])
         cols["enabled"] = cat([np.full(len(x), e, bool) for x, _, e in items])
         return cols
@@ -121,16 +162,22 @@ class RunLog:
         import pyarrow as pa
         import pyarrow.parquet as pq
         table = pa.table(self._columns(items))
-        name = f"part-{int(time.time() * 1000):013d}-{self._seq:06d}.parquet"
+        now = time.time()
+        name = f"part-{int(now * 1000):013d}-{self._seq:06d}.parquet"
         self._seq += 1
-        fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=self.folder)
+        day = self.data_dir / time.strftime("date=%Y-%m-%d", time.gmtime(now))
+        if not day.is_dir():
+            day.mkdir(exist_ok=True)
+            if self.fsync:
+                _fsync_dir(self.data_dir)
+        fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=day)
         os.close(fd)
         try:
             pq.write_table(table, tmp, compression="zstd")
             if self.fsync:
                 with open(tmp, "rb+") as f:
                     os.fsync(f.fileno())
-            os.replace(tmp, self.folder / name)
+            os.replace(tmp, day / name)
         except BaseException:
             try:
                 os.unlink(tmp)
@@ -166,25 +213,77 @@ class RunLog:
         self._thread.join(timeout_s)
 
 
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 # --------------------------------------------------------------------------- reading / export
-def read_log(folder: str | Path):
-    """(meta dict, DataFrame of every readable part in time order)."""
-    import pandas as pd
-    import pyarrow.parquet as pq
+def part_write_s(path: str | Path) -> float:
+    """The time (epoch s, this host's clock) a part was written, from its name."""
+    return int(Path(path).name.split("-")[1]) / 1000.0
+
+
+def log_parts(folder: str | Path, since_s: float | None = None) -> list[Path]:
+    """The closed Parquet parts of a run log in the order written: ``LOG/data/date=*/part-*``
+    and, for logs written before that layout, ``LOG/part-*``. With ``since_s`` (epoch s), only
+    parts written at or after it: whole days before it are not even listed."""
     folder = Path(folder)
-    meta_path = folder / "meta.json"
+    days = sorted((folder / DATA_DIR).glob("date=*"))
+    if since_s is not None:
+        first = time.strftime("date=%Y-%m-%d", time.gmtime(since_s))
+        days = [d for d in days if d.name >= first]
+    parts = [p for d in days for p in d.glob("part-*.parquet")]
+    parts += folder.glob("part-*.parquet")
+    if since_s is not None:
+        parts = [p for p in parts if part_write_s(p) >= since_s]
+    return sorted(parts, key=lambda p: p.name)
+
+
+def read_meta(folder: str | Path) -> dict:
+    """A run log's meta.json; a one-line InputError when the folder is not a run log."""
+    meta_path = Path(folder) / "meta.json"
     if not meta_path.is_file():
         raise InputError("not a run log (no meta.json)", file=folder)
     try:
-        meta = json.loads(meta_path.read_text())
+        return json.loads(meta_path.read_text())
     except json.JSONDecodeError as exc:
         raise InputError(f"meta.json is not valid JSON: {exc}", file=meta_path)
-    parts = sorted(folder.glob("part-*.parquet"))
+
+
+def read_log(folder: str | Path, labels: bool = False):
+    """(meta dict, DataFrame of every readable part in time order).
+
+    ``health`` and ``<S>_status`` come as the runtime's integer codes (``HEALTH_OK``…,
+    :mod:`fbgcomp.runtime.health` status codes) whichever way the log stored them, or with
+    ``labels=True`` as their names (a pandas categorical, every name a category, in code order).
+    """
+    import pandas as pd
+    import pyarrow.parquet as pq
+    folder = Path(folder)
+    meta = read_meta(folder)
+    parts = log_parts(folder)
     if not parts:
         raise InputError("run log has no data files", file=folder)
     frames = [pq.read_table(p).to_pandas() for p in parts]
     df = pd.concat(frames, ignore_index=True).sort_values("time_s", kind="stable")
-    return meta, df.reset_index(drop=True)
+    df = df.reset_index(drop=True)
+    health_names = list(meta.get("health_names") or HEALTH_NAMES)
+    status_names = list(meta.get("status_names") or STATUS_NAMES)
+    for col, names in [("health", health_names)] + [
+            (f"{s}_status", status_names) for s in meta.get("sensor_names", [])]:
+        if col not in df:
+            continue
+        codes = _codes(df[col], names)
+        if labels:
+            known = (codes >= 0) & (codes < len(names))
+            df[col] = pd.Categorical.from_codes(np.where(known, codes, -1), categories=names)
+        else:
+            df[col] = codes
+    return meta, df
 
 
 def export_campaign(log_folder: str | Path, out: str | Path, name: str | None = None,
