@@ -649,7 +649,7 @@ def _localize(raw: RawExport, column: int, parsed: pd.Series, zone: dt.tzinfo, z
         try:
             pd.Timestamp(stamp).tz_localize(zone, ambiguous="raise", nonexistent="raise")
         except Exception as exc:  # noqa: BLE001
-            if "nonexistent" in type(exc).__name__.lower() or "does not exist" in str(exc):
+            if "nonexistent" in f"{type(exc).__name__} {exc}".lower():
                 problem = "does not exist (the clocks skipped it: daylight-saving change)"
             else:
                 problem = ("is ambiguous (the clocks went back: it occurs twice) and the order of "
