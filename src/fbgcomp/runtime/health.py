@@ -53,6 +53,59 @@ class SensorChecks:
         self.never_zeroed = np.zeros(n_sensors, bool)
         self.offset_nm = np.zeros(n_sensors)               # summed mode-hop steps, nm
         self.row_offset_nm = np.zeros((0, n_sensors))      # offset_nm per frame, last batch
+        self._zeros_cache: dict[int, np.ndarray] = {}
+
+    def all_good(self, time_s: np.ndarray, wavelength_nm: np.ndarray,
+                 peak_count: np.ndarray) -> bool:
+        """The usual batch in a handful of numpy calls: True when :meth:`check` would find every
+        sample OK and no sensor faulted (one peak each, finite, every value changed from the
+        previous one by at most ``max_jump_nm``, no sensor recovering or without a zero), and
+        then carries the state exactly as :meth:`check` would. False (state untouched)
+        otherwise: the caller runs :meth:`check`.
+
+        A sample equal to the previous one is left to :meth:`check` (it may start a stuck
+        run), so noise-free replays with ``stuck_s = 0`` take the full check."""
+        n = time_s.size
+        if n == 0 or self._any_never_zeroed:
+            return False
+        cfg = self.config
+        t_first = float(time_s[0]) if n == 1 else float(time_s.min())
+        # every sensor good for recover_s before the first frame: nothing is recovering
+        if t_first - float(self.last_bad_s.max()) < cfg.recover_s:
+            return False
+        if n == 1:
+            step = np.abs(wavelength_nm[0] - self.last_value)
+        else:
+            step = np.abs(np.diff(wavelength_nm, axis=0, prepend=self.last_value[None, :]))
+        # NaN (missing value or no previous one) fails both comparisons
+        if not ((step <= cfg.max_jump_nm) & (step > 0.0)).all() or \
+                not (peak_count == 1).all():
+            return False
+        if not self.offset_nm.any():
+            self.row_offset_nm = self._zero_offsets(n)
+        else:
+            self.row_offset_nm = np.broadcast_to(self.offset_nm, wavelength_nm.shape)
+        last = wavelength_nm[-1].copy()
+        self.last_raw = last
+        self.last_value = last
+        # every sample changed: check's running maximum of the change times
+        self.last_change_s = np.maximum(self.last_change_s,
+                                        float(time_s[0]) if n == 1 else float(time_s.max()))
+        return True
+
+    def _zero_offsets(self, n: int) -> np.ndarray:
+        """A read-only (n, S) zero offset, shared between batches of one size."""
+        z = self._zeros_cache.get(n)
+        if z is None:
+            z = np.zeros((n, self.offset_nm.size))
+            z.flags.writeable = False
+            if len(self._zeros_cache) < 64:
+                self._zeros_cache[n] = z
+        return z
+
+    @property
+    def _any_never_zeroed(self) -> bool:
+        return bool(self.never_zeroed.any())
 
     def check(self, time_s: np.ndarray, wavelength_nm: np.ndarray, peak_count: np.ndarray,
               near_count: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -99,7 +99,8 @@ class AdaptiveLevelFilter:
         self.e = np.zeros((self.ring_n, 3))      # m - level (ring)
         self.eb = np.zeros((self.ring_n, 3))     # m - level before the episode (ring)
         self.k = 0                               # completed blocks
-        self.partial = np.empty((0, 3))          # frames of the block not yet complete
+        self._part = np.empty((self.block_n, 3))  # frames of the block not yet complete ...
+        self._held = 0                            # ... this many of them
         self.level = None                        # (3,) after the first block
         self.since = np.zeros(3, np.int64)       # blocks the rest median may use
         self.fresh = np.zeros(3, np.int64)       # blocks compared with the level since a restart
@@ -128,6 +129,11 @@ class AdaptiveLevelFilter:
         return new
 
     @property
+    def partial(self) -> np.ndarray:
+        """The frames (k, 3) of the block not yet complete (k < ``block_n``)."""
+        return self._part[:self._held]
+
+    @property
     def noise_sd_um(self) -> np.ndarray:
         return self.sd.copy()
 
@@ -144,7 +150,13 @@ class AdaptiveLevelFilter:
         out = np.empty_like(x)
         if m == 0:
             return out
-        held = self.partial.shape[0]
+        held = self._held
+        if self.level is not None and held + m < self.block_n:
+            # no block closes (the usual small batch): every frame sees the current level
+            out[:] = self.level
+            self._part[held:held + m] = x
+            self._held = held + m
+            return out
         allx = np.vstack([self.partial, x]) if held else x
         nb = allx.shape[0] // self.block_n
         # block medians, not means: a model that flickers for a few frames (ram2's load
@@ -166,7 +178,9 @@ class AdaptiveLevelFilter:
             if q < nb:
                 self._block(med[q])
                 out[hi - 1] = self.level          # the frame that closes a block sees it
-        self.partial = allx[nb * self.block_n:].copy()
+        rest = allx[nb * self.block_n:]
+        self._part[:rest.shape[0]] = rest
+        self._held = rest.shape[0]
         return out
 
     # -- per block -----------------------------------------------------------------------

@@ -156,6 +156,11 @@ class Pipeline:
         self._prev_choice = 0                    # model set of the last predicted frame
         self._inconsistent_until = np.full(S, -np.inf)   # kept out by the re-admission check
         self.readmissions_refused = 0
+        self._no_fault = np.zeros(S, bool)               # read only: _prev_mask, no fault
+        self._no_fault.flags.writeable = False
+        rate = self.max_slew_um_per_s
+        self._slew_axes = ~np.isinf(rate)                # axes with a rate limit
+        self._slew_rate = np.where(self._slew_axes, rate, 0.0)
 
     def continue_from(self, old: "Pipeline") -> None:
         """Take over the running state of ``old`` (a model reload: the machine has not been
@@ -248,6 +253,73 @@ class Pipeline:
     def process(self, time_s: np.ndarray, wavelength_nm: np.ndarray, peak_count: np.ndarray,
                 near_count: np.ndarray, temperature_C: np.ndarray,
                 enabled: bool = True) -> BatchResult:
+        if self.wavelength_zero_nm is not None and time_s.size:
+            res = self._process_steady(time_s, wavelength_nm, peak_count, temperature_C, enabled)
+            if res is not None:
+                return res
+        return self._process(time_s, wavelength_nm, peak_count, near_count, temperature_C,
+                             enabled)
+
+    def _process_steady(self, time_s, wavelength_nm, peak_count, temperature_C,
+                        enabled) -> BatchResult | None:
+        """The usual batch of a running machine, in few numpy calls (its fixed cost is what
+        limits the frame rate at small batches): zeroed, every grating good and none
+        recovering, every probe finite, the full model in use and no re-admission pending.
+        The same steps as :meth:`_process` - only the branches such a batch cannot take are
+        left out - so the results are the same to the bit (tests/test_runtime_fastpath.py).
+        None (nothing changed) for any other batch."""
+        if self._prev_choice != 0 and self._prev_mask.any() \
+                and self.config.health.readmit_k_sigma > 0:
+            return None            # the previous frame was on a fallback: a re-admission
+        if temperature_C.shape[1] and not np.isfinite(temperature_C).all():
+            return None
+        if not self.checks.all_good(time_s, wavelength_nm, peak_count):
+            return None
+        n, S = wavelength_nm.shape
+        offset = self.checks.offset_nm
+        if offset.any():     # a grating that jumped reads from its offset after the step
+            wavelength_nm = wavelength_nm - offset
+        self._prev_mask = self._no_fault
+        self._prev_choice = 0
+        p = self._predictors.get(0)
+        if p is None:
+            p = self.predictor(0)
+        clock = {"time_s": time_s} if _takes_time(p) else {}
+        d, h = p.predict(wavelength_nm, temperature_C, self.wavelength_zero_nm,
+                         self.temperature_zero_C, **clock)
+        dev = np.empty((n, 3))
+        dev[:] = d
+        half = np.empty((n, 3))
+        half[:] = h
+        rms = np.empty((n, 3))
+        rms[:] = p.expected_rms_error_um
+        health = np.zeros(n, np.uint8)                  # HEALTH_OK
+        model_set = np.zeros(n, np.int16)
+        flags = np.zeros((n, 3), np.uint8)
+        own = getattr(p, "last_flags", None)            # the model's own output policy
+        if own is not None:
+            flags |= np.asarray(own, np.uint8).reshape(n, 3) & H.MODEL_FLAGS
+        target = -dev
+        if not (np.abs(target) <= self.max_correction_um).all():
+            target = self._envelope(target, health, flags)
+        if self.config.output_filter.enabled and self.output_filter is not None \
+                and self._filter_set == 0 and np.isfinite(target).all():
+            correction = self.output_filter.process(target)   # no switch: one segment
+        else:
+            correction = self._filter(time_s, target, rms, model_set)
+        if np.isfinite(correction).all():                # nothing to hold
+            self._hold_start_s = None
+            self._last_correction = correction[-1].copy()
+        else:
+            correction = self._hold_and_ramp(time_s, correction, health)
+        correction = self._shape(time_s, correction, enabled, flags, self._gap_cap(time_s))
+        status = np.zeros((n, S), np.uint8)             # health.OK
+        return BatchResult(time_s, dev, half, correction, rms, health, status, model_set,
+                           temperature_C, flags)
+
+    def _process(self, time_s: np.ndarray, wavelength_nm: np.ndarray, peak_count: np.ndarray,
+                 near_count: np.ndarray, temperature_C: np.ndarray,
+                 enabled: bool = True) -> BatchResult:
         n, S = wavelength_nm.shape
         status, faulted = self.checks.check(time_s, wavelength_nm, peak_count, near_count)
         if n and (self._inconsistent_until > time_s[0]).any():
@@ -449,7 +521,8 @@ class Pipeline:
             corr = np.clip(corr, -self.max_correction_um, self.max_correction_um)
             flags[over] |= H.FLAG_MAX_LIMITED
         limited = self._slew_limit(t, corr, dt_cap)
-        flags[np.abs(limited - corr) > 1e-9] |= H.FLAG_RATE_LIMITED
+        if limited is not corr:
+            flags[np.abs(limited - corr) > 1e-9] |= H.FLAG_RATE_LIMITED
         return limited
 
     def no_data(self, t_s: float, enabled: bool = True) -> BatchResult:
@@ -528,6 +601,13 @@ class Pipeline:
             return corr
         prev = self._slew_y if self._slew_y is not None else corr[0]
         t_prev = self._slew_t if self._slew_t is not None else float(t[0])
+        if n == 1:     # one frame (the usual batch at a high rate): the same test on scalars
+            dt1 = min(max(float(t[0]) - t_prev, 0.0), dt_cap)
+            if not ((np.abs(corr[0] - prev) > self._slew_rate * dt1 + 1e-12)
+                    & self._slew_axes).any():
+                self._slew_y = corr[0].copy()
+                self._slew_t = float(t[0])
+                return corr
         dt = np.clip(np.diff(np.concatenate([[t_prev], t])), 0.0, dt_cap)[:, None]
         step = np.where(np.isinf(rate)[None, :], np.inf,
                         np.where(np.isinf(rate), 0.0, rate)[None, :] * dt) + 1e-12
