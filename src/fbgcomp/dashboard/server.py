@@ -33,6 +33,11 @@ this process; state-changing requests must also be JSON, which a cross-site form
 ``tls_cert`` / ``tls_key`` serve HTTPS directly. The control calls back into the service, which
 toggles the very ``Enabled`` state the OPC UA server exposes.
 
+Drift (``GET /api/history?window_s=…&points=…``): windows of 1 min to 36 h of the run log,
+downsampled server-side (:mod:`fbgcomp.dashboard.history`) in a worker thread, one computation
+at a time, an answer reused for a second by every browser asking for the same window. It needs
+the run log's folder: ``log_dir`` (given by the service, or ``[dashboard] log_dir``).
+
 Static assets (HTML, JS, CSS) are files of this package, hand-written, no CDN: the page works
 on a network without internet access.
 """
@@ -59,6 +64,8 @@ from aiohttp import web
 
 from fbgcomp.errors import InputError
 from fbgcomp.features import FeatureMap
+from fbgcomp.dashboard.history import MAX_POINTS, MAX_WINDOW_S, MIN_WINDOW_S, WINDOWS_S, \
+    LogHistory
 from fbgcomp.runtime.health import flag_names
 from fbgcomp.runtime.opcua import load_users as _load_users
 from fbgcomp.runtime.opcua import verify_password
@@ -100,6 +107,7 @@ class DashboardConfig:
     request_timeout_s: float = 5.0   # to send a request (head, body) or finish a TLS handshake
     session_s: float = 8 * 3600.0    # a login lasts one shift
     send_timeout_s: float = 5.0      # a client not reading for this long is dropped
+    log_dir: str | None = None       # run log folder for the drift windows (default: serve's --log)
 
 
 def parse_listen(listen: str) -> tuple[str, int]:
@@ -261,8 +269,13 @@ class Dashboard:
 
     def __init__(self, config: DashboardConfig, sensor_names, probe_names, model_id: str = "",
                  control: Callable[[bool], bool] | None = None,
-                 enabled: Callable[[], bool] | None = None):
+                 enabled: Callable[[], bool] | None = None, log_dir: str | Path | None = None):
         self.config = config
+        log_dir = log_dir or config.log_dir
+        # the drift windows read the run log (it may not exist yet: serve creates it later)
+        self.history = LogHistory(log_dir) if log_dir else None
+        self._history_answers: dict = {}   # (window_s, points) -> (monotonic, bytes)
+        self._history_lock: asyncio.Lock | None = None
         self.host, self.port = parse_listen(config.listen)
         self.sensor_names = list(sensor_names)
         self.probe_names = list(probe_names)
@@ -370,6 +383,7 @@ class Dashboard:
         self._wake = asyncio.Event()
         self._next = loop.create_future()
         self._failed_login = asyncio.Lock()
+        self._history_lock = asyncio.Lock()
         app = web.Application(client_max_size=MAX_BODY_BYTES, middlewares=[_errors_as_json])
         app.on_response_prepare.append(_security_headers)
         app.router.add_get("/", self._index)
@@ -378,6 +392,7 @@ class Dashboard:
         app.router.add_get("/api/meta", self._meta)
         app.router.add_get("/api/state", self._state)
         app.router.add_get("/api/stream", self._stream)
+        app.router.add_get("/api/history", self._history)
         app.router.add_post("/api/login", self._login)
         app.router.add_post("/api/logout", self._logout)
         app.router.add_post("/api/enabled", self._set_enabled)
@@ -539,6 +554,8 @@ class Dashboard:
         return {"sensors": self.sensor_names, "probes": self.probe_names, "axes": list(AXES),
                 "model_id": self.model_id, "max_rate_hz": self.config.max_rate_hz,
                 "control_available": self.control is not None, **access,
+                "history": self.history is not None,
+                "windows_s": list(WINDOWS_S) if self.history is not None else [60],
                 **dict(zip(("enabled", "enabled_version"), self.enabled_state()))}
 
     # -- request handlers ---------------------------------------------------------------------
@@ -586,6 +603,35 @@ class Dashboard:
     async def _state(self, request: web.Request) -> web.Response:
         self._check_read(request)
         return web.Response(body=self._message or b"null", content_type="application/json")
+
+    async def _history(self, request: web.Request) -> web.Response:
+        self._check_read(request)
+        if self.history is None:
+            raise _Refused(404, "no run log: start serve with --log DIR to see the drift "
+                                "beyond the live minute")
+        try:
+            window_s = float(request.query.get("window_s", "3600"))
+            points = int(request.query.get("points", "600"))
+        except ValueError:
+            raise _Refused(400, "expected window_s (s) and points as numbers") from None
+        if not (MIN_WINDOW_S <= window_s <= MAX_WINDOW_S) or not 10 <= points <= MAX_POINTS:
+            raise _Refused(400, f"window_s must be in [{MIN_WINDOW_S:g}, {MAX_WINDOW_S:g}] s "
+                                f"and points in [10, {MAX_POINTS}]")
+        key = (window_s, points)
+        async with self._history_lock:   # one computation at a time, however many browsers
+            now = time.monotonic()
+            done = self._history_answers.get(key)
+            if done is None or now - done[0] > 1.0:
+                try:
+                    answer = await asyncio.get_running_loop().run_in_executor(
+                        None, self.history.window, window_s, points)
+                except InputError as exc:   # no meta.json yet: serve has not started logging
+                    raise _Refused(404, str(exc)) from None
+                body = json.dumps(answer, separators=(",", ":"), allow_nan=False).encode()
+                self._history_answers = {k: v for k, v in self._history_answers.items()
+                                         if now - v[0] <= 1.0}
+                done = self._history_answers[key] = (time.monotonic(), body)
+        return web.Response(body=done[1], content_type="application/json")
 
     async def _stream(self, request: web.Request) -> web.StreamResponse:
         self._check_read(request)

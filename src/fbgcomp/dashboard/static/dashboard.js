@@ -105,10 +105,224 @@ function fmt(v, digits) {
   return v === null || v === undefined || !Number.isFinite(v) ? "—" : v.toFixed(digits);
 }
 
+// -------------------------------------------------------------------------- drift charts
+// Windows of 1 min to 36 h from the run log, downsampled by the service (/api/history): each
+// bucket carries min, max and mean of every value and how many of its frames were flagged.
+function spanText(s) {
+  return s >= 3600 ? `${+(s / 3600).toFixed(1)} h` : s >= 60 ? `${+(s / 60).toFixed(1)} min` : `${s} s`;
+}
+const TICK_STEPS = [10, 30, 60, 120, 300, 600, 900, 1800, 3600, 7200, 10800, 21600, 43200];
+
+function drawFrame(g, w, h, box, windowS, lo, hi, unit) {
+  const { left, top, pw, ph } = box;
+  const X = t => left + (t + windowS) / windowS * pw;   // t: seconds before the end (<= 0)
+  g.font = "12px DejaVu Sans, Helvetica, Arial, sans-serif";
+  g.strokeStyle = "#e3e6ea"; g.fillStyle = "#333"; g.lineWidth = 1;
+  if (unit) {
+    const Y = v => top + (hi - v) / (hi - lo) * ph;
+    const step = niceStep((hi - lo) / 5);
+    g.textAlign = "right"; g.textBaseline = "middle";
+    for (let v = Math.ceil(lo / step) * step; v <= hi; v += step) {
+      const y = Math.round(Y(v)) + 0.5;
+      g.beginPath(); g.moveTo(left, y); g.lineTo(left + pw, y); g.stroke();
+      g.fillText(formatTick(v, step), left - 6, y);
+    }
+    g.save(); g.translate(13, top + ph / 2); g.rotate(-Math.PI / 2);
+    g.textAlign = "center"; g.textBaseline = "middle"; g.fillText(unit, 0, 0); g.restore();
+  }
+  const step = TICK_STEPS.find(st => windowS / st <= 7) || 43200;
+  g.textAlign = "center"; g.textBaseline = "top"; g.fillStyle = "#333";
+  for (let s = 0; s <= windowS + 1e-9; s += step) {
+    const x = Math.round(X(-s)) + 0.5;
+    g.beginPath(); g.moveTo(x, top); g.lineTo(x, top + ph); g.stroke();
+    g.fillText(s === 0 ? "now" : `−${spanText(s)}`, x, top + ph + 5);
+  }
+  g.strokeStyle = "#888"; g.strokeRect(left + 0.5, top + 0.5, pw, ph);
+  return X;
+}
+
+function prepare(canvas) {
+  const ratio = window.devicePixelRatio || 1;
+  const w = canvas.clientWidth || canvas.width, h = canvas.clientHeight || canvas.height;
+  if (canvas.width !== Math.round(w * ratio) || canvas.height !== Math.round(h * ratio)) {
+    canvas.width = Math.round(w * ratio); canvas.height = Math.round(h * ratio);
+  }
+  const g = canvas.getContext("2d");
+  g.setTransform(ratio, 0, 0, ratio, 0, 0);
+  g.clearRect(0, 0, w, h);
+  return { g, w, h };
+}
+
+// series: [{name, colour, mean, min, max, dash}] on bucket start times t (s, instrument clock)
+function drawDrift(canvas, d, series, unit) {
+  const { g, w, h } = prepare(canvas);
+  const box = { left: 58, top: 24, pw: w - 58 - 26, ph: h - 24 - 26 };
+  let lo = Infinity, hi = -Infinity;
+  for (const s of series) for (const arr of [s.min, s.max, s.mean]) for (const v of arr)
+    if (v !== null && Number.isFinite(v)) { if (v < lo) lo = v; if (v > hi) hi = v; }
+  if (!Number.isFinite(lo)) { lo = -1; hi = 1; }
+  if (hi - lo < 1e-6) { lo -= 0.5; hi += 0.5; }
+  const pad = 0.08 * (hi - lo); lo -= pad; hi += pad;
+  const X0 = drawFrame(g, w, h, box, d.window_s, lo, hi, unit);
+  const end = d.t_end, half = d.bucket_s / 2;
+  const X = t => X0(t + half - end), Y = v => box.top + (hi - v) / (hi - lo) * box.ph;
+  const gap = k => k > 0 && d.t[k] - d.t[k - 1] > 1.5 * d.bucket_s;
+  g.save(); g.beginPath(); g.rect(box.left, box.top, box.pw, box.ph); g.clip();
+  series.forEach(s => {             // min..max band: every excursion inside a bucket stays visible
+    g.fillStyle = s.colour; g.globalAlpha = 0.18;
+    let k = 0;
+    while (k < d.t.length) {
+      while (k < d.t.length && (s.min[k] === null || s.max[k] === null)) k++;
+      let j = k;
+      while (j < d.t.length && s.min[j] !== null && s.max[j] !== null && !(j > k && gap(j))) j++;
+      if (j > k) {
+        g.beginPath(); g.moveTo(X(d.t[k]), Y(s.max[k]));
+        for (let q = k + 1; q < j; q++) g.lineTo(X(d.t[q]), Y(s.max[q]));
+        for (let q = j - 1; q >= k; q--) g.lineTo(X(d.t[q]), Y(s.min[q]));
+        g.closePath(); g.fill();
+      }
+      k = Math.max(j, k + 1);
+    }
+    g.globalAlpha = 1;
+  });
+  series.forEach(s => {
+    g.strokeStyle = s.colour; g.lineWidth = 2; g.setLineDash(s.dash ? [6, 4] : []); g.beginPath();
+    let pen = false;
+    for (let k = 0; k < d.t.length; k++) {
+      const v = s.mean[k];
+      if (v === null || gap(k)) pen = false;
+      if (v === null) continue;
+      if (pen) g.lineTo(X(d.t[k]), Y(v)); else { g.moveTo(X(d.t[k]), Y(v)); pen = true; }
+    }
+    g.stroke(); g.setLineDash([]);
+  });
+  g.restore();
+  g.textAlign = "left"; g.textBaseline = "middle"; g.font = "12px DejaVu Sans, Helvetica, Arial, sans-serif";
+  let x = box.left;
+  series.forEach(s => {
+    g.fillStyle = s.colour; g.fillRect(x, 8, 16, 4);
+    g.fillStyle = "#111"; g.fillText(s.name, x + 20, 10);
+    x += 28 + g.measureText(s.name).width;
+  });
+}
+
+// lanes: [{label, colour, share}]: one row each, a bucket shaded by the share of its frames
+function drawHeld(canvas, d, lanes) {
+  const { g, w, h } = prepare(canvas);
+  const box = { left: 130, top: 6, pw: w - 130 - 26, ph: h - 6 - 26 };
+  const X0 = drawFrame(g, w, h, box, d.window_s, 0, 1, null);
+  const rowH = box.ph / Math.max(lanes.length, 1);
+  const bw = Math.max(box.pw * d.bucket_s / d.window_s, 1);
+  g.font = "12px DejaVu Sans, Helvetica, Arial, sans-serif";
+  lanes.forEach((lane, i) => {
+    const y = box.top + i * rowH;
+    g.fillStyle = "#111"; g.textAlign = "right"; g.textBaseline = "middle";
+    g.fillText(lane.label, box.left - 6, y + rowH / 2);
+    g.fillStyle = lane.colour;
+    for (let k = 0; k < d.t.length; k++) {
+      const share = lane.share[k];
+      if (!share) continue;
+      g.globalAlpha = 0.3 + 0.7 * share;
+      g.fillRect(X0(d.t[k] - d.t_end), y + 2, bw, rowH - 4);
+    }
+    g.globalAlpha = 1;
+    g.strokeStyle = "#e3e6ea"; g.beginPath(); g.moveTo(box.left, y + rowH); g.lineTo(box.left + box.pw, y + rowH); g.stroke();
+  });
+}
+
+const HELD_COLOURS = { ALARM: "#c00", DEGRADED: "#b35900", ZEROING: "#6b7280", "output disabled": "#555",
+  RATE_LIMITED: "#0072B2", MAX_LIMITED: "#D55E00", CLAMPED: "#CC79A7", SHRUNK: "#009E73", LOAD_REFUSED: "#E69F00" };
+
+function showDrift(d) {
+  const bucketsWith = share => share.filter(v => v > 0).length;
+  const n = d.n;
+  const sh = counts => (counts || []).map((c, k) => n[k] ? c / n[k] : 0);
+  const lanes = [];
+  for (const name of ["ALARM", "DEGRADED", "ZEROING"])
+    if (d.counts[`health:${name}`]) lanes.push({ label: name, share: sh(d.counts[`health:${name}`]) });
+  lanes.push({ label: "output disabled", share: sh(d.counts.disabled) });
+  for (const name of d.flag_names || []) lanes.push({ label: name, share: sh(d.counts[`flag:${name}`]) });
+  for (const s of d.sensors || []) {
+    const share = sh(d.counts[`sensor:${s}`]);
+    if (bucketsWith(share)) lanes.push({ label: `${s} not OK`, share });
+  }
+  lanes.forEach(l => { l.colour = HELD_COLOURS[l.label] || "#c00"; });
+  const first = d.t.length ? d.t[0] : null;
+  state.drift = {
+    window_s: d.window_s, bucket_s: d.bucket_s, points: d.t.length, frames: d.frames,
+    complete: d.complete, t_end: d.t_end,
+    span_s: d.t.length ? d.t[d.t.length - 1] + d.bucket_s - first : 0,
+    lanes: Object.fromEntries(lanes.map(l => [l.label, bucketsWith(l.share)])),
+    temperatures: [], drawn: 0,
+  };
+  if (!d.t.length) {
+    $("drift-note").textContent = "no logged frames in this window yet";
+    return;
+  }
+  AXES.forEach((a, j) => {
+    const c = d.series[`corr_${a}_um`], p = d.series[`dev_${a}_um`];
+    const neg = arr => arr.map(v => v === null ? null : -v);
+    drawDrift($(`drift-${a}`), d, [
+      { name: "applied correction", colour: COLOURS[j], mean: c.mean, min: c.min, max: c.max },
+      { name: "model's correction (−predicted)", colour: "#000000", mean: neg(p.mean),
+        min: neg(p.max), max: neg(p.min), dash: true }], "µm");
+  });
+  const probes = d.ambient && d.ambient.length ? d.ambient : d.probes;
+  state.drift.temperatures = probes;
+  $("drift-temperature-caption").textContent = d.ambient && d.ambient.length
+    ? `Ambient temperature ${d.ambient.join(", ")} (°C)` : "Temperatures, every probe (no ambient probe named) (°C)";
+  drawDrift($("drift-temperature"), d, probes.map((name, i) => {
+    const s = d.series[`${name}_C`];
+    return { name, colour: COLOURS[(i + 4) % COLOURS.length], mean: s.mean, min: s.min, max: s.max };
+  }), "T (°C)");
+  drawHeld($("drift-held"), d, lanes);
+  state.drift.drawn += 1;
+  $("drift-note").textContent = `${spanText(d.window_s)} window · ${d.t.length} buckets of ${spanText(+d.bucket_s.toFixed(3))}`
+    + ` · ${d.frames.toLocaleString("en")} frames` + (d.complete ? "" : " · still reading the log…");
+}
+
+let driftTimer = null, driftWindow = 3600, driftAsked = 0;
+async function loadDrift() {
+  clearTimeout(driftTimer);
+  const asked = ++driftAsked, windowS = driftWindow;
+  const r = await api(`/api/history?window_s=${windowS}&points=600`);
+  if (asked !== driftAsked) return;              // another window was chosen meanwhile
+  let next = 5000;
+  if (r.ok && r.data) {
+    showDrift(r.data);
+    next = r.data.complete ? 1000 * Math.min(Math.max(r.data.bucket_s, 2), 30) : 300;
+  } else {
+    $("drift-note").textContent = (r.data && r.data.error) || `history unavailable (${r.status})`;
+  }
+  driftTimer = setTimeout(loadDrift, next);
+}
+
+function setWindow(seconds) {
+  driftWindow = seconds;
+  for (const b of $("windows").children) b.setAttribute("aria-pressed", String(+b.dataset.windowS === seconds));
+  return loadDrift();
+}
+
+function startDrift(meta) {
+  if (!meta.history) return;
+  $("drift").hidden = false;
+  const box = $("windows");
+  box.textContent = "";
+  for (const s of meta.windows_s) {
+    const b = document.createElement("button");
+    b.type = "button"; b.dataset.windowS = s; b.textContent = spanText(s);
+    b.addEventListener("click", () => setWindow(s));
+    box.appendChild(b);
+  }
+  const wanted = +new URLSearchParams(location.search).get("window_s");
+  setWindow(meta.windows_s.includes(wanted) ? wanted : 3600);
+}
+
 // -------------------------------------------------------------------------- page state
 const state = { meta: null, charts: {}, updates: 0, last: null, times: [], user: null,
                 enabledVersion: -1, started: false };
 window.fbgcomp = state;              // for the browser tests and curious engineers
+state.setWindow = seconds => setWindow(seconds);
 
 const $ = id => document.getElementById(id);
 
@@ -248,6 +462,7 @@ function start(meta) {
   state.charts.correction = new StripChart($("chart-correction"), meta.axes, "correction (µm)");
   showEnabled(meta.enabled, meta.enabled_version);
   connect();
+  startDrift(meta);
 }
 
 async function loadMeta() {
