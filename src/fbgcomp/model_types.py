@@ -453,7 +453,7 @@ class DynamicPredictor(Predictor):
             wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C, time_s,
             self.state, self.nominal_dt_s)
         self.last_base = base
-        return design_matrix(base, self.feature_map.base_names, self.terms)
+        return self._design_from_base(base)
 
     def predict(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C, *,
                 z_axis_mm=None, time_s=None):
@@ -464,9 +464,7 @@ class DynamicPredictor(Predictor):
             wavelength_nm[:, cols] = np.asarray(wavelength_zero_nm, dtype=float)[cols]
         d = self.design(wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C, time_s)
         deviation = d @ self.coef
-        spread = np.einsum("nk,akm->anm", d, self._cov_sqrt)
-        var = self._resid_var[None, :] + np.einsum("anm,anm->na", spread, spread)
-        return deviation, self._t[None, :] * np.sqrt(var)
+        return deviation, self._t[None, :] * np.sqrt(self._interval_var(d))
 
 
 class DynamicModel(MRAModel):
@@ -662,8 +660,7 @@ class HybridPredictor:
         tr, tr0 = t[:, self._r_probe], t0[self._r_probe]
         design = self.residual.design(w, tr, w0, tr0, time_s)          # const + temperature terms
         dr = design @ self.residual.coef
-        spread = np.einsum("nk,akm->anm", design, self.residual._cov_sqrt)
-        var = self.residual._resid_var[None, :] + np.einsum("anm,anm->na", spread, spread)
+        var = self.residual._interval_var(design)
         # Elongations minus their temperature-explained part: what the structure's loads did.
         base = self.residual.last_base
         temps = base[:, len(self.residual.feature_map.sensor_names):]
@@ -938,11 +935,15 @@ class CalibratedPredictor(HybridPredictor):
         key = None if not np.isfinite(z_axis_mm) else round(float(z_axis_mm), 3)
         if key not in self._sens:
             ch = k.chain(key)
-            self._sens[key] = closure_sensitivity(k.machine, ch.sensor_names, key, self._groups,
-                                                  k.closure_factors)[0]
-        g = np.einsum("pas,ns->nap", self._sens[key], elongation_um)   # (n, 2, P)
-        var = np.zeros((len(elongation_um), 3))
-        var[:, :2] = np.einsum("nap,pq,naq->na", g, self._cov, g)
+            sens = closure_sensitivity(k.machine, ch.sensor_names, key, self._groups,
+                                       k.closure_factors)[0]                  # (P, 2, S)
+            # (S, 2P): one matrix product gives g (n, 2, P) for every frame
+            self._sens[key] = np.ascontiguousarray(
+                sens.transpose(2, 1, 0).reshape(sens.shape[2], -1))
+        n = len(elongation_um)
+        g = (np.asarray(elongation_um, float) @ self._sens[key]).reshape(n * 2, -1)
+        var = np.zeros((n, 3))
+        var[:, :2] = ((g @ self._cov) * g).sum(axis=1).reshape(n, 2)
         return var
 
 

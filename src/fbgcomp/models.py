@@ -244,10 +244,68 @@ class Predictor:
             self._resid_var[j] = fit.resid_sd ** 2
             self._t[j] = stats.t.ppf(1 - alpha / 2, fit.df_resid)
         self.expected_rms_error_um = np.sqrt(self._resid_var)
+        self._compile()
+
+    def _compile(self):
+        """Index form of the terms and the stacked covariance roots, so that a batch costs a
+        few array operations whatever the number of terms (per-frame work at run time).
+
+        ``_factors`` (terms, k): the base columns each term multiplies, padded with the index
+        of a column of ones (a product with 1.0 is exact: the same numbers as
+        :func:`design_matrix`); ``_cov_stack`` (K, 3K): the three axes' roots side by side,
+        one matrix product for the whole interval."""
+        from .features import parse_term
+
+        names = list(self.feature_map.base_names)
+        index = {name: i for i, name in enumerate(names)}
+        factors = []
+        for term in self.terms:
+            fs = parse_term(term)
+            missing = [f for f in fs if f not in index]
+            if missing:
+                factors = None     # design_matrix names the missing feature at predict time
+                break
+            factors.append([index[f] for f in fs])
+        if factors:
+            k = max(len(f) for f in factors)
+            self._factors = np.array([f + [len(names)] * (k - len(f)) for f in factors])
+        else:
+            self._factors = None if factors is None else np.zeros((0, 1), int)
+        self._cov_stack = np.concatenate(list(self._cov_sqrt), axis=1)
+
+    def _design_from_base(self, base) -> np.ndarray:
+        base = np.atleast_2d(np.asarray(base, dtype=float))
+        fac = getattr(self, "_factors", None)
+        if fac is None:
+            return design_matrix(base, self.feature_map.base_names, self.terms)
+        n, width = base.shape
+        out = np.empty((n, 1 + fac.shape[0]))
+        out[:, 0] = 1.0
+        if fac.shape[0]:
+            ext = np.empty((n, width + 1))
+            ext[:, :width] = base
+            ext[:, width] = 1.0
+            cols = ext[:, fac]                                   # (n, terms, k)
+            out[:, 1:] = cols[:, :, 0]
+            for c in range(1, fac.shape[1]):
+                out[:, 1:] *= cols[:, :, c]
+        return out
+
+    def _interval_var(self, d) -> np.ndarray:
+        """Residual variance plus the parameter part x' C x per frame and axis (n, 3): one
+        matrix product with the stacked roots (the same sum as the per-axis einsum)."""
+        stack = getattr(self, "_cov_stack", None)
+        if stack is None:
+            self._compile()
+            stack = self._cov_stack
+        spread = d @ stack
+        spread *= spread
+        K = self._cov_sqrt.shape[1]
+        return self._resid_var[None, :] + spread.reshape(d.shape[0], len(AXES), K).sum(axis=2)
 
     def design(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C):
         base = self.feature_map.base(wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C)
-        return design_matrix(base, self.feature_map.base_names, self.terms)
+        return self._design_from_base(base)
 
     def predict(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C, *,
                 time_s=None):
@@ -274,9 +332,7 @@ class Predictor:
             wavelength_nm[:, cols] = np.asarray(wavelength_zero_nm, dtype=float)[cols]
         d = self.design(wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C)
         deviation = d @ self.coef
-        spread = np.einsum("nk,akm->anm", d, self._cov_sqrt)
-        var = self._resid_var[None, :] + np.einsum("anm,anm->na", spread, spread)
-        return deviation, self._t[None, :] * np.sqrt(var)
+        return deviation, self._t[None, :] * np.sqrt(self._interval_var(d))
 
 
 class EstimatorParams:
