@@ -69,6 +69,8 @@ def register(app: typer.Typer) -> None:
         cnc_address: Optional[str] = typer.Option(
             None, "--cnc-address", help="Local channel of the CNC output: udp://127.0.0.1:47300 or unix:///path."),
         duration: Optional[float] = typer.Option(None, "--duration", help="Stop after this many seconds."),
+        cpu: Optional[int] = typer.Option(None, "--cpu", help="Pin serve (and its OPC UA process) to this CPU; -1 = any (default)."),
+        realtime_priority: Optional[int] = typer.Option(None, "--realtime-priority", help="Run under SCHED_FIFO at this priority (1-99) where permitted; where not, one warning and normal priority. 0 = normal scheduling (default)."),
         verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress to stderr."),
     ):
         """Run the real-time compensator: wavelengths -> model -> correction on OPC UA, logged to Parquet."""
@@ -131,6 +133,13 @@ def register(app: typer.Typer) -> None:
             cfg.cnc.kind = cnc
         if cnc_address is not None:
             cfg.cnc.address = cnc_address
+        if cpu is not None:
+            cfg.realtime.cpu = cpu
+        if realtime_priority is not None:
+            if not 0 <= realtime_priority <= 99:
+                raise InputError(f"expected 0..99, got {realtime_priority}",
+                                 column="--realtime-priority")
+            cfg.realtime.fifo_priority = realtime_priority
         svc = run_service(cfg, duration)
         typer.echo(f"processed {svc.frames} frames in {svc.batches} batches", err=True)
 

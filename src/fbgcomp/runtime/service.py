@@ -24,6 +24,7 @@ from fbgcomp.runtime import health as H
 from fbgcomp.runtime.linuxcnc import CncConfig
 from fbgcomp.runtime.opcua import OpcUaConfig, OpcUaServer, Snapshot
 from fbgcomp.runtime.pipeline import HEALTH_ALARM, HEALTH_NAMES, Pipeline, PipelineConfig
+from fbgcomp.runtime.realtime import RealtimeConfig
 from fbgcomp.runtime.sources import (HyperionSource, PeakMapper, ReferenceThermometers,
                                      ReplaySource, SensorBatch, TableTemperatures,
                                      open_temperatures, parse_source_url)
@@ -61,6 +62,7 @@ class RuntimeConfig:
     opcua_enabled: bool = True
     dashboard: DashboardConfig = field(default_factory=DashboardConfig)
     cnc: CncConfig = field(default_factory=CncConfig)   # --cnc linuxcnc (docs/linuxcnc.md)
+    realtime: RealtimeConfig = field(default_factory=RealtimeConfig)   # --cpu, --realtime-priority
 
     @classmethod
     def from_toml(cls, path: str | Path) -> "RuntimeConfig":
@@ -395,6 +397,11 @@ def run_service(config: RuntimeConfig, duration_s: float | None = None) -> Servi
     # The log writer (and other outputs) run in threads: when one of them holds the GIL, hand
     # it back within 1 ms (default 5 ms) so a frame waiting to be processed is not held up.
     sys.setswitchinterval(0.001)
+    # pinned core, SCHED_FIFO where permitted (else one warning and normal priority), gc
+    # threshold: before the OPC UA process starts, so it inherits them
+    from fbgcomp.runtime import realtime
+    for line in realtime.apply(config.realtime):
+        log.info("real time: %s", line)
     service = Service(config)
 
     async def main():
