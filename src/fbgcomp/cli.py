@@ -291,11 +291,18 @@ def compare(train: List[Path] = typer.Option(..., "--train", help="Training camp
                + (f" (Markdown: {markdown})" if markdown else ""))
 
 
+#: Grid searched by ``place`` when neither --grid nor the machine names candidate paths: one
+#: centred path of 500 mm every 250 mm on each face.
+DEFAULT_PLACEMENT_GRID = "faces=+X,-X,+Y,-Y;offsets=0;length=500;step=250"
+
+
 @app.command()
 def place(k: int = typer.Option(..., "--k", help="Number of sensor paths to choose."),
           machine: Optional[Path] = typer.Option(None, "--machine", help="Machine description YAML (default: the built-in ram)."),
           grid: Optional[str] = typer.Option(None, "--grid", help="Candidate grid on the faces, e.g. "
-                                             "'faces=+X,-X,+Y,-Y;offsets=-80,0,80;length=400;step=200'."),
+                                             "'faces=+X,-X,+Y,-Y;offsets=-80,0,80;length=400;step=200' "
+                                             "(default: the machine's candidate paths, else "
+                                             f"'{DEFAULT_PLACEMENT_GRID}')."),
           resolution: Optional[float] = typer.Option(None, "--resolution", help="FE mesh resolution (default: the machine's)."),
           z_axis: Optional[float] = typer.Option(None, "--z-axis", help="Z-axis position, mm."),
           noise_pm: float = typer.Option(1.0, "--noise-pm", help="Interrogator wavelength noise, pm."),
@@ -309,6 +316,11 @@ def place(k: int = typer.Option(..., "--k", help="Number of sensor paths to choo
     m = load_machine(machine)
     if k < 1:
         raise InputError("--k must be at least 1", file="<command line>", column="option --k")
+    if grid is None and not m.candidate_sensors:
+        # Choosing K of the machine's own K paths would only re-order them: search a grid.
+        grid = DEFAULT_PLACEMENT_GRID
+        typer.echo(f"no --grid and no candidate paths in the machine description: searching the "
+                   f"default grid '{grid}' beside the machine's own paths")
     result = run(m, k, grid=parse_grid(grid) if grid else None, resolution=resolution,
                  z_axis_mm=z_axis, dask=dask, wavelength_noise_nm=noise_pm * 1e-3)
     typer.echo(result.format())
