@@ -88,8 +88,9 @@ def _get(url):
 def _wait_for(predicate, timeout_s):
     end = time.monotonic() + timeout_s
     while time.monotonic() < end:
-        if predicate():
-            return
+        value = predicate()
+        if value:
+            return value
         time.sleep(0.1)
     raise AssertionError("condition not met in time")
 
@@ -368,6 +369,7 @@ def test_a_lost_grating_shows_as_degraded_with_the_fallback_in_use(tmp_path):
     serve = fbgcomp_process("serve", "--model", model, "--source",
                             f"hyperion://127.0.0.1:{sp}?command_port={cp}", "--temperatures",
                             campaign, "--opcua", "off", "--dashboard", f"127.0.0.1:{dp}",
+                            "--log", tmp_path / "runlog",
                             "--max-correction-um", ",".join(f"{b:g}" for b in bound))
     base = f"http://127.0.0.1:{dp}"
     try:
@@ -410,6 +412,13 @@ def test_a_lost_grating_shows_as_degraded_with_the_fallback_in_use(tmp_path):
                 page.screenshot(path=str(ARTIFACTS / "degraded-fallback.png"), full_page=True)
             finally:
                 browser.close()
+        # serve hands its --log folder to the dashboard: the drift window counts the lost
+        # grating's frames and the held-back ones from what the run log holds
+        def history_shows_the_fault():
+            d = _get(base + "/api/history?window_s=60&points=60")
+            return d if sum(d["counts"].get("sensor:S3", [0])) > 0 else None
+        d = _wait_for(history_shows_the_fault, 20)
+        assert d["frames"] > 0 and sum(d["counts"]["health:DEGRADED"]) > 0
     finally:
         _stop(serve, sim)
 

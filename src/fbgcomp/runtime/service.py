@@ -255,7 +255,8 @@ class Service:
             from fbgcomp.dashboard import Dashboard
             self.dashboard = Dashboard(self.config.dashboard, self.pipeline.sensor_names,
                                        self.pipeline.probe_names, self.model_id,
-                                       control=self.set_enabled, enabled=lambda: self.enabled)
+                                       control=self.set_enabled, enabled=lambda: self.enabled,
+                                       log_dir=self.config.log.dir)
             self.dashboard.start()
         from fbgcomp.runtime.linuxcnc import open_cnc_output
         self.cnc = open_cnc_output(self.config.cnc)
