@@ -22,6 +22,7 @@ from fbgcomp.dashboard.server import DashboardConfig
 from fbgcomp.errors import InputError
 from fbgcomp.runtime import health as H
 from fbgcomp.runtime.linuxcnc import CncConfig
+from fbgcomp.runtime.modbus import ModbusConfig
 from fbgcomp.runtime.opcua import OpcUaConfig, OpcUaServer, Snapshot
 from fbgcomp.runtime.pipeline import HEALTH_ALARM, HEALTH_NAMES, Pipeline, PipelineConfig
 from fbgcomp.runtime.realtime import RealtimeConfig
@@ -62,6 +63,7 @@ class RuntimeConfig:
     opcua_enabled: bool = True
     dashboard: DashboardConfig = field(default_factory=DashboardConfig)
     cnc: CncConfig = field(default_factory=CncConfig)   # --cnc linuxcnc (docs/linuxcnc.md)
+    modbus: ModbusConfig = field(default_factory=ModbusConfig)   # docs/cnc-integration.md
     realtime: RealtimeConfig = field(default_factory=RealtimeConfig)   # --cpu, --realtime-priority
 
     @classmethod
@@ -141,6 +143,7 @@ class Service:
         self.opc: OpcUaServer | None = None
         self.dashboard = None             # fbgcomp.dashboard.Dashboard when configured
         self.cnc = None                   # fbgcomp.runtime.linuxcnc.LinuxCncOutput (--cnc)
+        self.modbus = None                # fbgcomp.runtime.modbus.ModbusOutput ([modbus])
         self._enabled = True              # used only without OPC UA
         self.runlog = None
         self.sim = None
@@ -234,6 +237,10 @@ class Service:
     # -- main loop
     async def run(self, duration_s: float | None = None) -> None:
         main_loop = asyncio.get_running_loop()
+        from fbgcomp.runtime.modbus import open_modbus_output
+        self.modbus = open_modbus_output(self.config.modbus)
+        if self.modbus is not None:
+            self.modbus.start()      # a busy port fails before anything else runs
         if self.config.opcua_enabled:
             # first: the slowest to start, and a busy port must fail before anything runs
             self.opc = OpcUaServer(self.config.opcua, self.pipeline.sensor_names, self.model_id,
@@ -244,6 +251,8 @@ class Service:
         except BaseException:
             if self.opc is not None:
                 await main_loop.run_in_executor(None, self.opc.stop)
+            if self.modbus is not None:
+                self.modbus.stop()
             raise
         self.source, self.temps = source, temps
         if self.config.log.dir:
@@ -308,6 +317,8 @@ class Service:
         finally:
             if self.cnc is not None:
                 self.cnc.stop()   # the CNC ramps its offsets to zero without waiting for a timeout
+            if self.modbus is not None:
+                await main_loop.run_in_executor(None, self.modbus.stop)
             await source.close()
             pump_task.cancel()
             try:
@@ -352,11 +363,16 @@ class Service:
 
     def _publish(self, res, wavelength_nm, received_s) -> None:
         """Newest sample to the outputs; each only stores it (never blocks this loop)."""
-        if self.opc is None and self.dashboard is None and self.cnc is None:
+        if self.opc is None and self.dashboard is None and self.cnc is None \
+                and self.modbus is None:
             return
         snap = self._snapshot(res, wavelength_nm, received_s)
         if self.cnc is not None:
             self.cnc.publish(snap, self.enabled)
+        if self.modbus is not None:   # offset + Z slope, the form a CNC's PLC takes
+            from fbgcomp.runtime.cnc_form import newest_slope
+            slope, z_ref = newest_slope(self.pipeline, res, wavelength_nm)
+            self.modbus.publish(snap, self.enabled, slope, z_ref)
         if self.opc is not None:
             self.opc.publish(snap)
         if self.dashboard is not None:
