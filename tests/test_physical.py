@@ -267,3 +267,51 @@ def test_a_force_the_training_never_applied_is_read_over_the_trained_range(ram2)
     assert fmax[1] == pytest.approx(fmax[0]) and fmax[0] > 3900.0
     a = _metrics(m, xyz)["axes"]["dy"]
     assert a["max_abs_error_um"] < 0.2 * a["peak_um"], a
+
+
+def _served(model, t, w, T, w0, t0, batch, fast):
+    p = PhysicalPredictor(model)
+    p.steady_fast_path = fast
+    parts = [p.predict(w[lo:lo + batch], T[lo:lo + batch], w0, t0, time_s=t[lo:lo + batch])
+             for lo in range(0, len(t), batch)]
+    return np.vstack([d for d, _ in parts]), np.vstack([h for _, h in parts]), \
+        np.vstack([p.last_flags]) if batch >= len(t) else None
+
+
+@pytest.mark.parametrize("batch", [1, 100, 10 ** 9])
+def test_the_vectorised_steady_stretches_equal_the_per_frame_recursion(twin_model, ram2, batch):
+    """PhysicalPredictor._steady_run runs the stretches without a load transition vectorised:
+    the same corrections and intervals as the per-frame recursion (to rounding), through load
+    steps at 10 Hz (static_x), a grating that jumps alone (refused: the fast stretch stops at
+    once and backs off) and 100 Hz frames with fresh noise."""
+    for rate_hz, jump in ((10.0, False), (10.0, True), (100.0, False)):
+        t, w, T, w0, t0 = _raw_frames(twin_model, ram2["static_x"], rate_hz)
+        if jump:
+            w = w.copy()
+            w[len(w) // 3:, twin_model.sensor_names.index("S3")] += 0.006
+        if batch == 1 and rate_hz == 100.0:
+            t, w, T = t[:20000], w[:20000], T[:20000]
+        slow = _served(twin_model, t, w, T, w0, t0, batch, False)
+        fast = _served(twin_model, t, w, T, w0, t0, batch, True)
+        np.testing.assert_allclose(fast[0], slow[0], rtol=0, atol=1e-8)
+        np.testing.assert_allclose(fast[1], slow[1], rtol=0, atol=1e-8)
+        if fast[2] is not None:
+            np.testing.assert_array_equal(fast[2], slow[2])     # the same frames refused
+            assert not jump or (fast[2][:, 1] & P.LOAD_REFUSED).any()
+
+
+def test_first_order_closed_form_equals_the_recursion_across_stretches_and_gaps():
+    from fbgcomp.physical import _first_order
+
+    rng = np.random.default_rng(3)
+    x = rng.uniform(0.0, 3.0, 2000)          # summed decay ~3000: five closed-form stretches
+    x[[10, 500]] = [0.0, 5000.0]              # no time passes; a gap far beyond any memory
+    u = rng.normal(size=(2000, 3)) * 10.0
+    for gain in (True, False):
+        y, ref = np.array([1.0, -2.0, 3.0]), []
+        for xi, ui in zip(x, u):
+            c = np.exp(-xi)
+            y = c * y + ((1 - c) * ui if gain else ui)
+            ref.append(y)
+        np.testing.assert_allclose(_first_order(x, u, [1.0, -2.0, 3.0], gain=gain), np.array(ref),
+                                   rtol=0, atol=1e-11 * np.abs(u).max())   # rounding of the input scale

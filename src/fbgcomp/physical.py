@@ -64,6 +64,10 @@ LOAD_HOLD_S = 3.0
 #: the number of looks an hour holds (5.1 sigma at 1 look/s) instead of a fixed 3 sigma that
 #: noise alone crosses a few times a day at 1 Hz.
 LOAD_FALSE_STARTS_PER_H = 1e-3
+# Frames of a stretch without load transition run vectorised at a time, and frames the per-frame
+# recursion takes after a stretch stopped at once (PhysicalPredictor._steady_run).
+STEADY_WINDOW = 4096
+STEADY_BACKOFF = 64
 
 
 # ---------------------------------------------------------------------------------------------
@@ -281,6 +285,32 @@ def excursion2(dT, scale_K, deadband_K=0.0):
     return np.sum((dT / np.asarray(scale_K, float)) ** 2, axis=1)
 
 
+def _first_order(x, u, y0, gain=True):
+    """First-order recursion over rows with a per-row decay ``c = exp(-x)`` (x >= 0, e.g. the
+    frame interval over a time constant): ``y_i = c_i y_{i-1} + (1 - c_i) u_i`` (``gain=False``:
+    ``+ u_i``), from ``y0``; (n, k) from (n, k) ``u``. Closed form per stretch whose summed
+    decay stays below e^-600 (so that no weight overflows); every weight is positive, so no
+    cancellation beyond the recursion's own."""
+    x = np.minimum(np.asarray(x, float), 600.0)       # exp(-600): no memory left either way
+    u = np.asarray(u, float)
+    w = -np.expm1(-x)[:, None] * u if gain else u
+    out = np.empty_like(w)
+    y_prev = np.asarray(y0, float)
+    L = np.cumsum(x)
+    start = 0
+    n = len(x)
+    while start < n:
+        base = L[start - 1] if start else 0.0
+        stop = int(np.searchsorted(L, base + 600.0, side="right"))
+        stop = min(max(stop, start + 1), n)
+        Ls = L[start:stop] - base                                 # >= 0, <= 600 (or one row)
+        acc = np.cumsum(np.exp(Ls)[:, None] * w[start:stop], axis=0)
+        out[start:stop] = np.exp(-Ls)[:, None] * (y_prev[None, :] + acc)
+        y_prev = out[stop - 1]
+        start = stop
+    return out
+
+
 class PhysicalPredictor:
     """Vectorised, stateful predictor of one sensor set (full, or without excluded gratings).
 
@@ -410,6 +440,39 @@ class PhysicalPredictor:
                 return True
         return False
 
+    #: Run stretches without a load transition vectorised (:meth:`_steady_run`); False runs
+    #: every frame through the per-frame recursion (the reference the fast path is tested on).
+    steady_fast_path = True
+
+    def _steady_run(self, e, dt, applied, offset, xs, f_hold, recent, k_fast, k_start, lag):
+        """Frames of :meth:`_track_load` while no load transition is under way, vectorised.
+
+        With the applied force fixed the recursion is linear: the low-passed gratings
+        ``y = xs + offset`` follow ``e`` (``LOAD_FAST_S``), the thermal offset follows
+        ``e - G applied`` (``offset_tau_s``), the slow force estimate follows the fast one
+        (``LOAD_HOLD_S``) and ``recent`` sums the offset's shifts with a ``LOAD_HOLD_S``
+        memory. They are formed for every frame, the step test is evaluated on all of them,
+        and the frames before the first one whose test fires are accepted. Returns the number
+        of frames accepted and the state after them (offset, xs, f_hold, recent)."""
+        e = np.asarray(e, float)
+        y = _first_order(dt / LOAD_FAST_S, e, xs + offset)
+        off = _first_order(dt / self.offset_tau_s, e - self.G @ applied, offset)
+        off_prev = np.vstack([offset[None, :], off[:-1]])
+        f_fast = (y - off_prev) @ self.ops[0].T
+        k = self.k_sigma
+        sd_fast = self.F_sd[None, :] * np.sqrt(k_fast)[:, None]
+        sq = f_fast ** 2
+        cross = self.relative_error * np.sqrt(np.maximum(sq.sum(axis=1, keepdims=True) - sq, 0.0)) / k
+        limit = np.maximum(np.hypot(k_start[:, None] * sd_fast, k * lag), k * cross)
+        fires = (np.abs(f_fast - applied[None, :]) > limit).any(axis=1)
+        m = int(np.argmax(fires)) if fires.any() else len(e)
+        if m == 0:
+            return 0, offset, xs, f_hold, recent
+        hold = _first_order(dt[:m] / LOAD_HOLD_S, f_fast[:m], f_hold)
+        shift = off[:m] - off_prev[:m]
+        rec = _first_order(dt[:m] / LOAD_HOLD_S, shift, recent, gain=False)
+        return m, off[m - 1].copy(), y[m - 1] - off[m - 1], hold[m - 1].copy(), rec[m - 1].copy()
+
     def _track_load(self, e, time_s, state, new_state, raw=False, listen=False):
         """Applied force per frame (n, 3) N, and the frames where a force was clamped (n,) and
         where a step was refused (n,). ``listen=True`` returns instead the low-passed force
@@ -472,7 +535,28 @@ class PhysicalPredictor:
         k = self.k_sigma
         look_s = np.maximum(dt, 2.0 * LOAD_FAST_S)
         k_start = np.maximum(k, stats.norm.isf(0.5 * LOAD_FALSE_STARTS_PER_H * look_s / 3600.0))
-        for i in range(n):
+        i, slow_until = -1, 0
+        while i + 1 < n:
+            i += 1
+            if (self.steady_fast_path and i >= slow_until and not (raw or listen or (first and i == 0))
+                    and not (settle > 0).any()):
+                # No transition under way: the recursion is linear until the first frame whose
+                # step test fires, so run it vectorised up to that frame, at most STEADY_WINDOW
+                # frames at a time (equal to the per-frame recursion to rounding, not bit for
+                # bit: tests/test_physical.py). Where a test fires at once (a refused step
+                # repeating), the next STEADY_BACKOFF frames go through the recursion.
+                w = slice(i, min(i + STEADY_WINDOW, n))
+                m, offset, xs, f_hold, recent = self._steady_run(
+                    e[w], dt[w], applied, offset, xs, f_hold, recent, k_fast[w], k_start[w], lag[w])
+                force[i:i + m] = applied
+                if m == 0:
+                    slow_until = i + STEADY_BACKOFF
+                i += m
+                if i >= n:
+                    break
+                if m == w.stop - w.start:       # the window ran out before any test fired
+                    i -= 1
+                    continue
             x_now = e[i] - offset
             if raw:
                 force[i] = op @ x_now
