@@ -28,7 +28,8 @@ def server_factory(tmp_path, monkeypatch):
 
     started = []
 
-    def make(allow_anonymous=False, on_reload=None, main_loop=None, models_dir=None):
+    def make(allow_anonymous=False, on_reload=None, main_loop=None, models_dir=None,
+             eu_ranges=None):
         monkeypatch.setenv("FBGCOMP_OPCUA_USER", "operator")
         monkeypatch.setenv("FBGCOMP_OPCUA_PASSWORD", "s3cret-for-test")
         port = free_port()
@@ -36,7 +37,7 @@ def server_factory(tmp_path, monkeypatch):
                           allow_anonymous=allow_anonymous, state_dir=str(tmp_path / "state"),
                           models_dir=None if models_dir is None else str(models_dir))
         srv = OpcUaServer(cfg, ["S1", "S2"], "model-abc", on_reload=on_reload,
-                          main_loop=main_loop)
+                          main_loop=main_loop, eu_ranges=eu_ranges)
         srv.start()
         started.append(srv)
         return srv, cfg.endpoint
@@ -401,3 +402,174 @@ def test_writes_and_calls_are_logged_with_their_user(server_factory, tmp_path, c
     for line in expected:
         assert line in audit_log
         assert line in stderr          # python logging of the server process
+
+
+# --------------------------------------------------------------------------- issue 15, item 6
+# UnitIds as published in the OPC Foundation's UNECE_to_OPCUA.csv (UNECE Rec. 20 common code ->
+# OPC 10000-8 5.6.3 UnitId); HUR is the hour, not the hertz (HTZ)
+PUBLISHED_UNIT_IDS = {"4H": 13384, "C45": 4404277, "C26": 4403766, "CEL": 4408652,
+                      "HTZ": 4740186, "HUR": 4740434, "SEC": 5457219, "MMT": 5066068}
+ANALOG = {**{f"{p}{a}_um": "um" for p in ("Correction", "PredictedDeviation",
+                                          "IntervalHalfWidth", "ExpectedError")
+             for a in "XYZ"},
+          "Latency_ms": "ms", "Sensors.S1.Wavelength_nm": "nm", "Sensors.S2.Wavelength_nm": "nm"}
+
+
+def test_unece_unit_ids_follow_part_8():
+    from fbgcomp.runtime.opcua import unece_unit_id
+    assert {code: unece_unit_id(code) for code in PUBLISHED_UNIT_IDS} == PUBLISHED_UNIT_IDS
+    for bad in ("", "ABCD", "µm"):
+        with pytest.raises(ValueError):
+            unece_unit_id(bad)
+
+
+def test_analog_items_units_ranges_descriptions_and_method_arguments(server_factory, tmp_path):
+    """What an integrator's client (UaExpert, a PLC's OPC UA client) browses: every length,
+    wavelength and duration an AnalogItemType with its UNECE unit and EURange, every node
+    described, every method argument named, typed and described."""
+    from asyncua import ua
+    srv, url = server_factory(eu_ranges={"Correction": (-200.0, 200.0),
+                                         "Wavelength_nm.S2": (1545.0, 1555.0)})
+
+    async def main():
+        client = await trusted_client(url, tmp_path / "c", TRUSTED(tmp_path), "operator",
+                                      "s3cret-for-test")
+        async with client:
+            root = client.get_node(ua.NodeId("FbgComp", 2))
+            ctype = await root.read_type_definition()
+            ctype_node = client.get_node(ctype)
+            found = {"type": (await ctype_node.read_browse_name()).Name,
+                     "type_description": (await ctype_node.read_description()).Text,
+                     "description": (await root.read_description()).Text,
+                     "name": await (await root.get_child(["2:Name"])).read_value()}
+            variables, methods = {}, []
+            sensors = await root.get_child(["2:Sensors"])
+            children = await root.get_children()
+            for sensor in await sensors.get_children():
+                children += await sensor.get_children()
+            for node in children:
+                klass = await node.read_node_class()
+                if klass == ua.NodeClass.Method:
+                    methods.append(node)
+                elif klass == ua.NodeClass.Variable:
+                    variables[node.nodeid.Identifier[len("FbgComp."):]] = node
+            analog, descriptions = {}, {}
+            for name, node in variables.items():
+                descriptions[name] = (await node.read_description()).Text
+                if await node.read_type_definition() != ua.NodeId(ua.ObjectIds.AnalogItemType):
+                    continue
+                eu = await (await node.get_child(["0:EngineeringUnits"])).read_value()
+                rng = await (await node.get_child(["0:EURange"])).read_value()
+                analog[name] = (eu, rng, await node.read_data_type_as_variant_type())
+            arguments = {}
+            for m in methods:
+                name = (await m.read_browse_name()).Name
+                descriptions[name] = (await m.read_description()).Text
+                arguments[name] = [await (await m.get_child([f"0:{k}"])).read_value()
+                                   for k in ("InputArguments", "OutputArguments")]
+            return found, variables, analog, descriptions, arguments
+
+    found, variables, analog, descriptions, arguments = asyncio.run(main())
+    assert found["type"] == "ThermalCompensationType"
+    assert "OPC 40501-1" in found["type_description"]
+    assert "ElementMonitoringType" in found["type_description"]
+    assert "ElementMonitoringType" in found["description"]
+    assert found["name"] == "fbgcomp thermal compensation"
+
+    assert set(analog) == set(ANALOG)
+    assert {"Health", "Heartbeat", "Enabled", "SampleTime"} <= set(variables) - set(analog)
+    units = {"um": ("4H", "µm"), "nm": ("C45", "nm"), "ms": ("C26", "ms")}
+    for name, (eu, rng, vtype) in analog.items():
+        code, display = units[ANALOG[name]]
+        assert isinstance(eu, ua.EUInformation) and isinstance(rng, ua.Range), name
+        assert eu.NamespaceUri == "http://www.opcfoundation.org/UA/units/un/cefact"
+        assert (eu.UnitId, eu.DisplayName.Text) == (PUBLISHED_UNIT_IDS[code], display), name
+        assert vtype == ua.VariantType.Double
+        assert rng.Low < rng.High
+    assert {(r.Low, r.High) for n, (_, r, _) in analog.items() if n.startswith("Correction")} \
+        == {(-200.0, 200.0)}                                   # configured
+    assert (analog["PredictedDeviationY_um"][1].Low,
+            analog["PredictedDeviationY_um"][1].High) == (-1000.0, 1000.0)     # default
+    assert (analog["Sensors.S2.Wavelength_nm"][1].Low,
+            analog["Sensors.S2.Wavelength_nm"][1].High) == (1545.0, 1555.0)
+    assert (analog["Sensors.S1.Wavelength_nm"][1].Low,
+            analog["Sensors.S1.Wavelength_nm"][1].High) == (1460.0, 1640.0)
+
+    # every node says what it is (asyncua's default description is the browse name)
+    for name, text in descriptions.items():
+        assert text and text != name.rsplit(".", 1)[-1] and len(text) > 20, (name, text)
+    assert "axis Z" in descriptions["CorrectionZ_um"]
+    assert "8 RATE_LIMITED" in descriptions["OutputFlagsY"]
+
+    assert set(arguments) == {"ReloadModel"}     # every method the server exposes
+    for name, (inputs, outputs) in arguments.items():
+        for arg in inputs + outputs:
+            assert arg.Name and arg.Description.Text and len(arg.Description.Text) > 20
+            assert arg.DataType == ua.NodeId(ua.ObjectIds.String)
+            assert arg.ValueRank == ua.ValueRank.Scalar
+    (model_file,), (result,) = arguments["ReloadModel"]
+    assert model_file.Name == "ModelFile" and "models folder" in model_file.Description.Text
+    assert result.Name == "Result"
+
+
+def test_values_still_update_on_analog_items(server_factory, tmp_path):
+    """The AnalogItemType variables keep their node ids and take the published values."""
+    srv, url = server_factory()
+
+    async def main():
+        client = await trusted_client(url, tmp_path / "c", TRUSTED(tmp_path), "operator",
+                                      "s3cret-for-test")
+        async with client:
+            srv.publish(_snapshot(3, time.time()))
+            end = time.monotonic() + 5
+            while time.monotonic() < end:
+                if await _node(client, "CorrectionX_um").read_value() == -3.0:
+                    break
+                await asyncio.sleep(0.05)
+            return [await _node(client, n).read_value()
+                    for n in ("CorrectionX_um", "PredictedDeviationY_um",
+                              "Sensors.S1.Wavelength_nm")]
+
+    assert asyncio.run(main()) == [-3.0, -6.0, 1530.0]
+
+
+def test_writer_warning_wording():
+    from fbgcomp.runtime.opcua import writer_warning
+    assert writer_warning({"operator": "pbkdf2_sha256$1$x$y"}, False) is None
+    closed, read_only = writer_warning({}, False), writer_warning({}, True)
+    for text in (closed, read_only):
+        assert "no client can switch the compensation (Enabled)" in text
+        assert "--users FILE" in text and "FBGCOMP_OPCUA_USER" in text
+        assert "\n" not in text
+    assert "BadIdentityTokenRejected" in closed and "may only read" in read_only
+
+
+@pytest.mark.parametrize("writer", [False, True])
+def test_serve_warns_loudly_when_no_user_may_write(tmp_path, writer):
+    """The README's serve has no users: before, every client was refused and nothing said so.
+    Now a real ``fbgcomp serve`` says it on stdout and in its log (stderr) - and only then."""
+    import fbgcomp_testing
+    fbgcomp_testing.require("asyncua")
+    from test_runtime_support import fbgcomp_process, model_and_campaign
+    model, campaign = model_and_campaign(tmp_path.parent / "runtime")
+    env = ({"FBGCOMP_OPCUA_USER": "operator", "FBGCOMP_OPCUA_PASSWORD": "pw-for-test-1"}
+           if writer else {"FBGCOMP_OPCUA_USER": "", "FBGCOMP_OPCUA_PASSWORD": ""})
+    proc = fbgcomp_process("serve", "--model", model, "--source", f"sim://{campaign}?rate=50",
+                           "--opcua", f"opc.tcp://127.0.0.1:{free_port()}/fbgcomp/",
+                           "--state-dir", tmp_path / "state", "--duration", 2, env=env)
+    try:
+        out, err = proc.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise
+    out, err = out.decode(), err.decode()
+    assert proc.returncode == 0, err[-3000:]
+    assert "processed" in err                      # it did run
+    warned = [line for line in out.splitlines() if "no OPC UA user may write" in line]
+    logged = [line for line in err.splitlines() if "no OPC UA user may write" in line]
+    if writer:
+        assert warned == [] and logged == [], (out, err)
+    else:
+        assert len(warned) == 1 and warned[0].startswith("WARNING: "), out
+        assert "BadIdentityTokenRejected" in warned[0] and "--users FILE" in warned[0]
+        assert len(logged) == 1 and " WARNING fbgcomp.runtime: " in logged[0], err

@@ -18,7 +18,10 @@ call, refused or not, and every client certificate accepted or refused is logged
 on the ``fbgcomp.audit`` logger and in ``<state_dir>/opcua/audit.log``.
 
 Address space (namespace ``urn:fbgcomp:runtime``, string node ids ``FbgComp.<name>``) is
-documented in docs/runtime.md.
+documented in docs/runtime.md; how it maps onto OPC 40501-1 (Machine Tools) in docs/opcua-cnc.md.
+Every length, wavelength and duration is an ``AnalogItemType`` variable with its
+``EngineeringUnits`` (UNECE Rec. 20 code, OPC 10000-8 section 5.6.3) and ``EURange``; every
+node carries a Description, and ``ReloadModel``'s arguments are named and described.
 """
 
 from __future__ import annotations
@@ -49,6 +52,129 @@ NAMESPACE = "urn:fbgcomp:runtime"
 APPLICATION_URI = "urn:fbgcomp:runtime:server"
 AXES = ("X", "Y", "Z")
 PBKDF2_ITERATIONS = 100_000
+
+
+# --------------------------------------------------------------------------- units
+UNECE_NAMESPACE_URI = "http://www.opcfoundation.org/UA/units/un/cefact"
+# unit in our names (``_um``...) -> UNECE Rec. 20 common code, display name, description
+UNITS = {
+    "um": ("4H", "\u00b5m", "micrometre (micron)"),
+    "nm": ("C45", "nm", "nanometre"),
+    "ms": ("C26", "ms", "millisecond"),
+}
+
+
+def unece_unit_id(common_code: str) -> int:
+    """OPC UA ``EUInformation.UnitId`` of a UNECE Rec. 20 common code (OPC 10000-8, 5.6.3).
+
+    The code's (at most three) ASCII characters, most significant first:
+    ``"4H"`` (micrometre) -> ``0x3448`` = 13384, ``"C45"`` (nanometre) -> ``0x433435``.
+    """
+    if not 1 <= len(common_code) <= 3 or not common_code.isascii():
+        raise ValueError(f"not a UNECE common code: {common_code!r}")
+    unit_id = 0
+    for c in common_code:
+        unit_id = (unit_id << 8) | ord(c)
+    return unit_id
+
+
+def eu_information(unit: str):
+    """``ua.EUInformation`` of one of :data:`UNITS` (``"um"``, ``"nm"``, ``"ms"``)."""
+    from asyncua import ua
+    code, display, description = UNITS[unit]
+    return ua.EUInformation(NamespaceUri=UNECE_NAMESPACE_URI, UnitId=unece_unit_id(code),
+                            DisplayName=ua.LocalizedText(display),
+                            Description=ua.LocalizedText(description))
+
+
+# EURange (OPC 10000-8: the range "likely to be obtained in normal operation", e.g. to scale a
+# bar graph) of the analog variables; OpcUaServer(eu_ranges=...) overrides any of them
+DEFAULT_EU_RANGES = {
+    "Correction": (-1000.0, 1000.0),          # µm: serve's default --max-correction-um
+    "PredictedDeviation": (-1000.0, 1000.0),  # µm
+    "IntervalHalfWidth": (0.0, 1000.0),       # µm
+    "ExpectedError": (0.0, 1000.0),           # µm
+    "Latency_ms": (0.0, 1000.0),              # ms
+    "Wavelength_nm": (1460.0, 1640.0),        # nm: S, C and L bands of FBG interrogators
+}
+
+# Description attribute of every node (what a PLC programmer or an integrator browsing the
+# server reads); the per-axis ones take the axis letter
+DESCRIPTIONS = {
+    "FbgComp": "Thermal compensation of the machine tool from fibre-Bragg-grating strain sensors "
+               "(fbgcomp). OPC 40501-1: a <MonitoredElement> of MachineTool/Monitoring "
+               "(ElementMonitoringType concept); vendor-specific, see docs/opcua-cnc.md.",
+    "ThermalCompensationType": "fbgcomp's thermal compensation of a machine tool. Corresponds to "
+                               "OPC 40501-1 ElementMonitoringType (a <MonitoredElement> of the "
+                               "machine tool's Monitoring); not derived from it, since the server "
+                               "does not load the Machine Tools nodeset.",
+    "Name": "Name of the monitored element (as ElementMonitoringType.Name in OPC 40501-1).",
+    "Correction": "Correction to apply on axis {a}: minus the predicted tool-tip deviation, "
+                  "after the do-no-harm limits; 0 while ZEROING or not Enabled, held and ramped "
+                  "to 0 in ALARM.",
+    "PredictedDeviation": "Model prediction of the tool-tip (TTP) thermal deviation on axis {a} "
+                          "(NaN without a model).",
+    "IntervalHalfWidth": "Half-width of the 95 % prediction interval of the deviation on axis {a}.",
+    "ExpectedError": "Residual standard deviation of the model in use (full or fallback) on "
+                     "axis {a}.",
+    "OutputFlags": "Why the published correction on axis {a} is held back, one bit each: "
+                   "{flags}; 0 = not held back.",
+    "SampleTime": "Instrument time stamp of the published sample; written last, so a client "
+                  "watching it sees a complete sample.",
+    "Latency_ms": "Frame time stamp to publication (updated at most 10 times a second).",
+    "ModelId": "model_id of the model file in use.",
+    "Health": "ZEROING, OK, DEGRADED or ALARM; apply the correction only in OK or DEGRADED.",
+    "Alarm": "True: compensator fault (health ALARM); ramp the applied correction to zero.",
+    "FallbackInUse": "Sensors excluded by the fallback model in use, e.g. S3; empty for the "
+                     "full model.",
+    "Limited": "True: the published correction is held back on some axis (a flag is set).",
+    "OutputFlagsText": "The output flags as text, e.g. Y:RATE_LIMITED Z:SHRUNK; empty when "
+                       "nothing is held back.",
+    "SourceStatus": "Wavelength source: connected, reconnecting (...), replaying or finished.",
+    "FramesProcessed": "Frames processed since start (updated at most 10 times a second).",
+    "Heartbeat": "Incremented at least every 0.2 s, data or not: the CNC's watchdog.",
+    "Enabled": "Switch of the correction output (false: the published correction is 0). "
+               "Writable by an authenticated user.",
+    "Sensors": "The fibre-Bragg-grating strain sensors (vendor-specific).",
+    "Sensor": "Strain sensor {s}: a grating bonded to the machine structure.",
+    "Sensors.Status": "Sensor status, one of {statuses} (docs/runtime.md).",
+    "Sensors.Wavelength_nm": "Last Bragg wavelength of the sensor in its window (updated at "
+                             "most 10 times a second).",
+    "ReloadModel": "Load a model file of the models folder (opcua.models_dir), or reload the "
+                   "current one. Needs an authenticated user; the new model must expect the "
+                   "same sensors and probes.",
+    "ReloadModel.ModelFile": "Model file name relative to the models folder (no absolute path, "
+                             "no '..'); empty: reload the model serve was started with.",
+    "ReloadModel.Result": "What was loaded: 'loaded <model_id>'.",
+}
+
+
+def reload_model_arguments():
+    """``ReloadModel``'s input and output arguments (``ua.Argument``), named and described."""
+    from asyncua import ua
+
+    def arg(name):
+        return ua.Argument(Name=name, DataType=ua.NodeId(ua.ObjectIds.String),
+                           ValueRank=ua.ValueRank.Scalar, ArrayDimensions=[],
+                           Description=ua.LocalizedText(DESCRIPTIONS[f"ReloadModel.{name}"]))
+    return [arg("ModelFile")], [arg("Result")]
+
+
+def writer_warning(users: dict, allow_anonymous: bool) -> str | None:
+    """The start-up warning when no OPC UA user may write, else None.
+
+    Only password users may write ``Enabled`` and call ``ReloadModel``; without any, no client
+    can switch the compensation or reload its model (and without ``allow_anonymous`` no client
+    can even open a session).
+    """
+    if users:
+        return None
+    who = ("anonymous sessions may only read" if allow_anonymous else
+           "and without --allow-anonymous every session is refused (BadIdentityTokenRejected)")
+    return ("no OPC UA user may write: no client can switch the compensation (Enabled) or "
+            f"reload the model (ReloadModel), {who}. Add a user: --users FILE (lines "
+            "name:pbkdf2_sha256$..., docs/security.md) or FBGCOMP_OPCUA_USER and "
+            "FBGCOMP_OPCUA_PASSWORD in serve's environment")
 
 
 # --------------------------------------------------------------------------- certificate
@@ -346,8 +472,11 @@ class OpcUaServer:
 
     def __init__(self, config: OpcUaConfig, sensor_names: list[str], model_id: str,
                  on_reload: Callable[[str], Awaitable[str]] | None = None,
-                 main_loop: asyncio.AbstractEventLoop | None = None):
+                 main_loop: asyncio.AbstractEventLoop | None = None,
+                 eu_ranges: dict[str, tuple[float, float]] | None = None):
         self.config = config
+        # EURange overrides, by kind (keys of DEFAULT_EU_RANGES) or Wavelength_nm.<sensor>
+        self.eu_ranges = dict(eu_ranges or {})
         self.sensor_names = list(sensor_names)
         self._model_id = model_id
         self.on_reload = on_reload
@@ -381,7 +510,7 @@ class OpcUaServer:
         init = {"config": self.config.__dict__, "sensor_names": self.sensor_names,
                 "model_id": self._model_id, "users": self.users,
                 "cert": str(self.cert_path), "key": str(self.key_path),
-                "enabled": self.enabled,
+                "enabled": self.enabled, "eu_ranges": self.eu_ranges,
                 "log_level": logging.getLogger("fbgcomp").getEffectiveLevel()}
         parent.sendall(pickle.dumps(("init", init)))
         parent.settimeout(timeout_s)
@@ -400,6 +529,12 @@ class OpcUaServer:
         self._reader = threading.Thread(target=self._read_messages, name="fbgcomp-opcua-rx",
                                         daemon=True)
         self._reader.start()
+        warning = writer_warning(self.users, self.config.allow_anonymous)
+        if warning:
+            # loud: the README's serve command has no users, and nothing else would say why
+            # the PLC's or the operator's switch is refused
+            log.warning(warning)
+            print(f"WARNING: {warning}", flush=True)
 
     def _send(self, message) -> bool:
         import pickle
@@ -483,6 +618,7 @@ class _ServerCore:
         self.users = init["users"]
         self.cert_path, self.key_path = init["cert"], init["key"]
         self.enabled = bool(init["enabled"])
+        self.eu_ranges = init.get("eu_ranges", {})
         self.published = 0
         self._latest: Snapshot | None = None
         self._reloads: dict[int, asyncio.Future] = {}
@@ -565,16 +701,35 @@ class _ServerCore:
     async def _build(self, server, idx) -> dict:
         from asyncua import ua
 
+        from fbgcomp.runtime.health import FLAG_NAMES, STATUS_NAMES
+
         def nid(name):
             return ua.NodeId(f"FbgComp.{name}", idx)
 
+        def text(key, **fields):
+            return ua.LocalizedText(DESCRIPTIONS[key].format(**fields))
+
+        # our own ObjectType, so a client can recognise the compensator; it stands for
+        # OPC 40501-1's ElementMonitoringType (docs/opcua-cnc.md)
+        ctype = await server.nodes.base_object_type.add_object_type(
+            ua.NodeId("ThermalCompensationType", idx),
+            ua.QualifiedName("ThermalCompensationType", idx))
+        await ctype.write_attribute(ua.AttributeIds.Description,
+                                    ua.DataValue(ua.Variant(text("ThermalCompensationType"))))
         root = await server.nodes.objects.add_object(ua.NodeId("FbgComp", idx),
-                                                     ua.QualifiedName("FbgComp", idx))
+                                                     ua.QualifiedName("FbgComp", idx),
+                                                     objecttype=ctype.nodeid)
+        await root.write_attribute(ua.AttributeIds.Description,
+                                   ua.DataValue(ua.Variant(text("FbgComp"))))
+        await self._add_variable(root, nid("Name"), ua.QualifiedName("Name", idx),
+                                 ua.Variant("fbgcomp thermal compensation", ua.VariantType.String),
+                                 text("Name"), prop=True)
         nodes = {}
 
-        async def var(parent, path, name, value, vtype):
-            node = await parent.add_variable(nid(path), ua.QualifiedName(name, idx),
-                                             ua.Variant(value, vtype))
+        async def var(parent, path, name, value, vtype, description, unit=None, eu_range=None):
+            node = await self._add_variable(parent, nid(path), ua.QualifiedName(name, idx),
+                                            ua.Variant(value, vtype), description, unit=unit,
+                                            eu_range=eu_range)
             nodes[path] = node
             return node
 
@@ -583,31 +738,105 @@ class _ServerCore:
         for prefix in ("Correction", "PredictedDeviation", "IntervalHalfWidth",
                        "ExpectedError"):
             for a in AXES:
-                await var(root, f"{prefix}{a}_um", f"{prefix}{a}_um", 0.0, D)
-        await var(root, "SampleTime", "SampleTime", dt.datetime.now(dt.timezone.utc), T)
-        await var(root, "Latency_ms", "Latency_ms", 0.0, D)
-        await var(root, "ModelId", "ModelId", self.model_id, S)
-        await var(root, "Health", "Health", "STARTING", S)
-        await var(root, "Alarm", "Alarm", False, B)
-        await var(root, "FallbackInUse", "FallbackInUse", "", S)
+                await var(root, f"{prefix}{a}_um", f"{prefix}{a}_um", 0.0, D,
+                          text(prefix, a=a), "um", self._eu_range(prefix))
+        await var(root, "SampleTime", "SampleTime", dt.datetime.now(dt.timezone.utc), T,
+                  text("SampleTime"))
+        await var(root, "Latency_ms", "Latency_ms", 0.0, D, text("Latency_ms"), "ms",
+                  self._eu_range("Latency_ms"))
+        await var(root, "ModelId", "ModelId", self.model_id, S, text("ModelId"))
+        await var(root, "Health", "Health", "STARTING", S, text("Health"))
+        await var(root, "Alarm", "Alarm", False, B, text("Alarm"))
+        await var(root, "FallbackInUse", "FallbackInUse", "", S, text("FallbackInUse"))
+        flags = ", ".join(f"{bit} {name}" for bit, name in FLAG_NAMES.items())
         for a in AXES:
-            await var(root, f"OutputFlags{a}", f"OutputFlags{a}", 0, ua.VariantType.Byte)
-        await var(root, "Limited", "Limited", False, B)
-        await var(root, "OutputFlags", "OutputFlags", "", S)
-        await var(root, "SourceStatus", "SourceStatus", "", S)
-        await var(root, "FramesProcessed", "FramesProcessed", 0, ua.VariantType.UInt64)
-        await var(root, "Heartbeat", "Heartbeat", 0, ua.VariantType.UInt32)
-        enabled = await var(root, "Enabled", "Enabled", bool(self.enabled), B)
+            await var(root, f"OutputFlags{a}", f"OutputFlags{a}", 0, ua.VariantType.Byte,
+                      text("OutputFlags", a=a, flags=flags))
+        await var(root, "Limited", "Limited", False, B, text("Limited"))
+        await var(root, "OutputFlags", "OutputFlags", "", S, text("OutputFlagsText"))
+        await var(root, "SourceStatus", "SourceStatus", "", S, text("SourceStatus"))
+        await var(root, "FramesProcessed", "FramesProcessed", 0, ua.VariantType.UInt64,
+                  text("FramesProcessed"))
+        await var(root, "Heartbeat", "Heartbeat", 0, ua.VariantType.UInt32, text("Heartbeat"))
+        enabled = await var(root, "Enabled", "Enabled", bool(self.enabled), B, text("Enabled"))
         await enabled.set_writable(True)
         sensors = await root.add_folder(nid("Sensors"), ua.QualifiedName("Sensors", idx))
+        await sensors.write_attribute(ua.AttributeIds.Description,
+                                      ua.DataValue(ua.Variant(text("Sensors"))))
+        statuses = ", ".join(STATUS_NAMES)
         for s in self.sensor_names:
             obj = await sensors.add_object(nid(f"Sensors.{s}"), ua.QualifiedName(s, idx))
-            await var(obj, f"Sensors.{s}.Status", "Status", "UNKNOWN", S)
-            await var(obj, f"Sensors.{s}.Wavelength_nm", "Wavelength_nm", float("nan"), D)
-        await root.add_method(nid("ReloadModel"), ua.QualifiedName("ReloadModel", idx),
-                              self._reload, [ua.VariantType.String], [ua.VariantType.String])
+            await obj.write_attribute(ua.AttributeIds.Description,
+                                      ua.DataValue(ua.Variant(text("Sensor", s=s))))
+            await var(obj, f"Sensors.{s}.Status", "Status", "UNKNOWN", S,
+                      text("Sensors.Status", statuses=statuses))
+            await var(obj, f"Sensors.{s}.Wavelength_nm", "Wavelength_nm", float("nan"), D,
+                      text("Sensors.Wavelength_nm"), "nm", self._eu_range("Wavelength_nm", s))
+        inputs, outputs = reload_model_arguments()
+        method = await root.add_method(nid("ReloadModel"), ua.QualifiedName("ReloadModel", idx),
+                                       self._reload, inputs, outputs)
+        await method.write_attribute(ua.AttributeIds.Description,
+                                     ua.DataValue(ua.Variant(text("ReloadModel"))))
         self._last_text: dict[str, object] = {}
         return nodes
+
+    def _eu_range(self, kind: str, sensor: str | None = None) -> tuple[float, float]:
+        """EURange of a kind of analog variable: ``eu_ranges`` given to the server (by kind,
+        or ``Wavelength_nm.<sensor>`` for one sensor), else :data:`DEFAULT_EU_RANGES`."""
+        ranges = self.eu_ranges
+        if sensor is not None and f"{kind}.{sensor}" in ranges:
+            return tuple(ranges[f"{kind}.{sensor}"])
+        return tuple(ranges.get(kind, DEFAULT_EU_RANGES[kind]))
+
+    @staticmethod
+    async def _add_variable(parent, nodeid, qname, variant, description, unit=None,
+                            eu_range=None, prop=False):
+        """A read-only scalar variable with its Description; with ``unit`` (a key of
+        :data:`UNITS`) an ``AnalogItemType`` with ``EngineeringUnits`` and ``EURange``.
+
+        asyncua's ``add_variable`` always types a variable ``BaseDataVariableType``, so the
+        node is added with the same AddNodes service call it makes, naming the type.
+        """
+        from asyncua import ua
+        from asyncua.common.node_factory import make_node
+
+        item = ua.AddNodesItem()
+        item.RequestedNewNodeId = nodeid
+        item.BrowseName = qname
+        item.NodeClass = ua.NodeClass.Variable
+        item.ParentNodeId = parent.nodeid
+        if prop:
+            item.ReferenceTypeId = ua.NodeId(ua.ObjectIds.HasProperty)
+            item.TypeDefinition = ua.NodeId(ua.ObjectIds.PropertyType)
+        else:
+            item.ReferenceTypeId = ua.NodeId(ua.ObjectIds.HasComponent)
+            item.TypeDefinition = ua.NodeId(ua.ObjectIds.AnalogItemType if unit
+                                            else ua.ObjectIds.BaseDataVariableType)
+        attrs = ua.VariableAttributes()
+        attrs.DisplayName = ua.LocalizedText(qname.Name)
+        attrs.Description = description
+        attrs.DataType = ua.NodeId(getattr(ua.ObjectIds, variant.VariantType.name))
+        attrs.Value = variant
+        attrs.ValueRank = ua.ValueRank.Scalar
+        attrs.ArrayDimensions = None
+        attrs.WriteMask = attrs.UserWriteMask = 0
+        attrs.Historizing = False
+        attrs.AccessLevel = attrs.UserAccessLevel = ua.AccessLevel.CurrentRead.mask
+        item.NodeAttributes = attrs
+        result = (await parent.session.add_nodes([item]))[0]
+        result.StatusCode.check()
+        node = make_node(parent.session, result.AddedNodeId)
+        if unit:
+            base = nodeid.Identifier
+            await node.add_property(ua.NodeId(f"{base}.EngineeringUnits", nodeid.NamespaceIndex),
+                                    ua.QualifiedName("EngineeringUnits", 0), eu_information(unit),
+                                    datatype=ua.ObjectIds.EUInformation)
+            low, high = eu_range
+            await node.add_property(ua.NodeId(f"{base}.EURange", nodeid.NamespaceIndex),
+                                    ua.QualifiedName("EURange", 0),
+                                    ua.Range(Low=float(low), High=float(high)),
+                                    datatype=ua.ObjectIds.Range)
+        return node
 
     def _audit_write(self, event, _dispatcher) -> None:
         """PostWrite: every client write, with its user, value and result."""
