@@ -329,6 +329,41 @@ def place(k: int = typer.Option(..., "--k", help="Number of sensor paths to choo
         typer.echo(f"result written to {json_out}")
 
 
+@app.command()
+def plan(target_um: float = typer.Option(..., "--target-um", help="Target TTP accuracy per axis, µm (worst case)."),
+         machine: Optional[Path] = typer.Option(None, "--machine", help="Machine description YAML (default: the built-in ram)."),
+         noise_pm: float = typer.Option(1.0, "--noise-pm", help="Interrogator wavelength noise, pm (SD)."),
+         axes: str = typer.Option("dx,dy,dz", "--axes", help="Axes to judge, e.g. dx,dz."),
+         extra: int = typer.Option(2, "--extra-sensors", help="Also place layouts of up to this many more "
+                                   "paths (machine candidates, else the place default grid); 0: none."),
+         as_json: bool = typer.Option(False, "--json", help="Print JSON.")):
+    """Before buying hardware: the predicted TTP accuracy of the machine's layout with this noise
+    against a target, per axis, and what would close a gap (docs/campaign-guide.md)."""
+    import math
+
+    from .placement import parse_grid
+    from .plan import parse_axes, plan as run
+    from .structure import load_machine
+
+    if not math.isfinite(target_um) or target_um <= 0:
+        raise InputError(f"--target-um must be a positive number of µm, not {target_um:g}",
+                         file="<command line>", column="option --target-um")
+    if not math.isfinite(noise_pm) or noise_pm <= 0:
+        raise InputError(f"--noise-pm must be a positive number of pm, not {noise_pm:g}",
+                         file="<command line>", column="option --noise-pm")
+    if extra < 0:
+        raise InputError(f"--extra-sensors must be 0 or more, not {extra}", file="<command line>",
+                         column="option --extra-sensors")
+    chosen_axes = parse_axes(axes)
+    m = load_machine(machine)
+    grid = None if m.candidate_sensors else parse_grid(DEFAULT_PLACEMENT_GRID)
+    typer.echo(f"plan: FE twin and load design of {machine or 'the built-in ram'} (cached after the "
+               "first run) ...", err=True)
+    result = run(m, target_um, axes=chosen_axes, wavelength_noise_nm=noise_pm * 1e-3, grid=grid,
+                 extra_sensors=extra, machine_name=str(machine) if machine else "the built-in ram")
+    typer.echo(json.dumps(result.to_dict(), indent=1) if as_json else result.format())
+
+
 @app.command("import")
 def import_cmd(mapping: Path = typer.Argument(..., help="Mapping file (YAML): campaign metadata, exports, columns, units, times (docs/import.md)."),
                output: Path = typer.Option(..., "-o", "--output", help="Campaign folder to write (an existing one is replaced atomically).")):
