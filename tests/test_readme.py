@@ -105,6 +105,7 @@ def test_the_readme_tour_runs_as_written(toured):
     assert len(exported) > 5000 and {"S1_nm", "S5_nm"} <= set(exported.columns)
     trusted = list((work.parent / "home").rglob("trusted/*"))
     assert len(trusted) == 1                                   # trust add put the certificate in
+    assert "WARNING: no OPC UA user may write" in out          # the tour's serve has no users: said loudly
     assert "ramped back to zero" in out                        # cnc-demo ran LinuxCNC and stopped it
     assert list((work / "fleet").rglob("*.parquet"))
 
