@@ -99,6 +99,7 @@ def test_the_readme_tour_runs_as_written(toured):
     assert list((work / "report").glob("*.html"))
     assert "uncompensated" in out                              # compare's rows beside no compensation
     assert "searching the default grid" in out                 # place without --grid says what it does
+    assert re.search(r"(meets|MISSES)", out)                   # plan's verdict against the target
     m = re.search(r"processed (\d+) frames", out)
     assert m and int(m.group(1)) > 5000                        # serve ran on the simulated stream
     exported = pd.read_csv(work / "production_run" / "fbg.csv")
