@@ -79,17 +79,23 @@ class PlacementDesign:
     sensors: list = field(default_factory=list)
 
 
-def placement_design(machine, candidates=(), *, twin=None, resolution=None, z_axis_mm=None,
-                     wavelength_noise_nm=0.001) -> PlacementDesign:
-    """One FE twin with every path (machine sensors + candidates) as a sensor; load-case responses."""
-    from .structure import Twin
-
+def sensor_pool(machine, candidates=()):
+    """Every path once (the machine's sensors first, in order, then its candidate paths and
+    ``candidates``) and the machine description with all of them as its sensors."""
     pool, seen = [], set()
     for s in list(machine.sensors) + list(machine.candidate_sensors) + list(candidates):
         if s.name not in seen:
             pool.append(s)
             seen.add(s.name)
-    m = machine.model_copy(update={"sensors": tuple(pool), "candidate_sensors": ()})
+    return pool, machine.model_copy(update={"sensors": tuple(pool), "candidate_sensors": ()})
+
+
+def placement_design(machine, candidates=(), *, twin=None, resolution=None, z_axis_mm=None,
+                     wavelength_noise_nm=0.001) -> PlacementDesign:
+    """One FE twin with every path (machine sensors + candidates) as a sensor; load-case responses."""
+    from .structure import Twin
+
+    pool, m = sensor_pool(machine, candidates)
     if twin is None:
         twin = Twin(m, resolution=resolution, z_axis_mm=z_axis_mm)
     cases = load_case_responses(twin)

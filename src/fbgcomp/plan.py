@@ -42,7 +42,7 @@ import numpy as np
 
 from . import optics
 from .calibrate import LOAD_CASES, elongation_noise_um, load_case_responses
-from .placement import PlacementDesign, candidate_grid, choose, predicted_error_um
+from .placement import PlacementDesign, candidate_grid, choose, predicted_error_um, sensor_pool
 
 AXES = ("dx", "dy", "dz")
 
@@ -116,12 +116,7 @@ def plan_design(machine, candidates=(), *, twin=None, resolution=None, z_axis_mm
     """One FE twin with the machine's sensors (first, in order) and the candidate paths."""
     from .structure import Twin
 
-    pool, seen = [], set()
-    for s in list(machine.sensors) + list(machine.candidate_sensors) + list(candidates):
-        if s.name not in seen:
-            pool.append(s)
-            seen.add(s.name)
-    m = machine.model_copy(update={"sensors": tuple(pool), "candidate_sensors": ()})
+    pool, m = sensor_pool(machine, candidates)
     twin = twin or Twin(m, resolution=resolution, z_axis_mm=z_axis_mm)
     cases = load_case_responses(twin)
     design = PlacementDesign([s.name for s in pool], cases["names"],
