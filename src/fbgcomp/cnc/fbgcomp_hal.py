@@ -16,7 +16,15 @@ sample_time_s f64 (instrument time, s), correction_x_um, correction_y_um, correc
 Flags: :data:`FLAG_ENABLED` (the compensator's Enabled switch), :data:`FLAG_ALARM` (health ALARM),
 :data:`FLAG_ZEROING`, :data:`FLAG_STALE` (the compensator's loop has not published for a while).
 The sender repeats the newest datagram every few tens of milliseconds with a new ``seq``: that is
-the heartbeat. Transport: ``udp://127.0.0.1:PORT`` (default 47300) or ``unix:///path`` (a Unix
+the heartbeat.
+
+Back over the same channel, every cycle while the link is alive, the component answers the
+newest datagram's sender with the axis position: :data:`POSITION` (little endian, 28 bytes) =
+``magic b"FBGZ", version u16 (1), flags u16, seq u32, sent_s f64, z_mm f64``, ``z_mm`` the input
+pin ``z-pos-mm`` (net it to ``joint.2.pos-fb`` or ``axis.z.pos-cmd``), flags
+:data:`POS_HOMED` (``homed``) and :data:`POS_MACHINE_ON` (``machine-on``): ``fbgcomp serve``'s
+``[position] source = "linuxcnc"`` passes it to the model (a Z of an unhomed machine is no
+position: missing). Transport: ``udp://127.0.0.1:PORT`` (default 47300) or ``unix:///path`` (a Unix
 datagram socket; its file permissions decide who may send).
 
 Each cycle (``--period``, default 5 ms) the component takes the newest datagram and drives, per
@@ -53,6 +61,10 @@ FLAG_ALARM = 2
 FLAG_ZEROING = 4
 FLAG_STALE = 8
 DEFAULT_ADDRESS = "udp://127.0.0.1:47300"
+POSITION = struct.Struct("<4sHHIdd")
+POSITION_MAGIC = b"FBGZ"
+POS_HOMED = 1
+POS_MACHINE_ON = 2
 AXES = ("x", "y", "z")
 
 
@@ -78,6 +90,23 @@ def decode_packet(data: bytes):
         flags |= FLAG_ALARM
         corr = (0.0, 0.0, 0.0)
     return seq, flags, sent_s, sample_s, corr
+
+
+def encode_position(seq: int, z_mm: float, flags: int, sent_s: float | None = None) -> bytes:
+    """One position datagram, component -> compensator (see the module docstring)."""
+    return POSITION.pack(POSITION_MAGIC, VERSION, int(flags) & 0xFFFF, int(seq) & 0xFFFFFFFF,
+                         time.time() if sent_s is None else float(sent_s), float(z_mm))
+
+
+def decode_position(data: bytes):
+    """``(seq, flags, sent_s, z_mm)`` or None for anything malformed (a non-finite Z: None)."""
+    if len(data) != POSITION.size:
+        return None
+    magic, version, flags, seq, sent_s, z_mm = POSITION.unpack(data)
+    if magic != POSITION_MAGIC or version != VERSION or not (z_mm == z_mm) or \
+            abs(z_mm) == float("inf"):
+        return None
+    return seq, flags, sent_s, z_mm
 
 
 def parse_address(address: str):
@@ -132,6 +161,7 @@ class Receiver:
         self.path = addr if family == socket.AF_UNIX else None
         self.last = None            # (seq, flags, sent_s, sample_s, corr)
         self.last_rx = None         # monotonic time of the newest datagram
+        self.peer = None            # its sender's address: where the position goes back to
         self.latency_ms = -1.0      # sender's send -> received, newest datagram
         self.rejected = 0
 
@@ -139,7 +169,7 @@ class Receiver:
         n = 0
         for _ in range(max_datagrams):  # bounded: a flood cannot hold the cycle
             try:
-                data = self.sock.recv(256)
+                data, peer = self.sock.recvfrom(256)
             except (BlockingIOError, InterruptedError):
                 break
             p = decode_packet(data)
@@ -147,9 +177,20 @@ class Receiver:
                 self.rejected += 1
                 continue
             self.last, self.last_rx = p, time.monotonic()
+            self.peer = peer or None    # an unbound Unix sender cannot be answered
             self.latency_ms = (time.time() - p[2]) * 1000.0
             n += 1
         return n
+
+    def send_position(self, seq: int, z_mm: float, flags: int) -> bool:
+        """The axis position back to the newest datagram's sender (never blocks)."""
+        if self.peer is None:
+            return False
+        try:
+            self.sock.sendto(encode_position(seq, z_mm, flags), self.peer)
+            return True
+        except OSError:     # the compensator went away: the next datagram names the new one
+            return False
 
     def close(self):
         self.sock.close()
@@ -201,6 +242,7 @@ def main(argv=None) -> int:
     new("max-rate-um-s", hal.HAL_FLOAT, hal.HAL_IN, a.max_rate_um_s)
     new("max-correction-um", hal.HAL_FLOAT, hal.HAL_IN, a.max_correction_um)
     new("timeout-s", hal.HAL_FLOAT, hal.HAL_IN, a.timeout_s)
+    new("z-pos-mm", hal.HAL_FLOAT, hal.HAL_IN)               # <- joint.2.pos-fb (to serve)
     new("active", hal.HAL_BIT, hal.HAL_OUT)                  # received correction is the target
     new("fault", hal.HAL_BIT, hal.HAL_OUT)                   # compensator ALARM/stale or link lost
     new("link-ok", hal.HAL_BIT, hal.HAL_OUT)                 # a datagram within timeout-s
@@ -216,6 +258,7 @@ def main(argv=None) -> int:
 
     current = (0.0, 0.0, 0.0)
     beat = False
+    pos_seq = 0
     last_t = time.monotonic()
     try:
         while not stop:
@@ -250,6 +293,11 @@ def main(argv=None) -> int:
             c["latency-ms"] = rx.latency_ms if link_ok else -1.0
             beat = not beat
             c["heartbeat"] = beat
+            if link_ok:
+                pos_seq += 1
+                rx.send_position(pos_seq, c["z-pos-mm"],
+                                 (POS_HOMED if c["homed"] else 0)
+                                 | (POS_MACHINE_ON if machine_on else 0))
     finally:
         rx.close()
         c.exit()

@@ -159,12 +159,13 @@ def register(app: typer.Typer) -> None:
         fault: List[str] = typer.Option([], "--fault", help="drop:S@t, double:S@t, shift:S@t:nm, stuck:S@t, each optionally /duration (drop:S3@5/2 brings S3 back at 7 s, shift:S2@3:+2/10 moves S2 by 2 nm for 10 s; default: to the end), cut@t:s, garbage@t:bytes (random bytes on the stream, at most 1 MiB); t = s since start; S may name a reference grating, S3_ref. Repeatable."),
         duration: Optional[float] = typer.Option(None, "--duration", help="Stop after this many seconds."),
         send_log: Optional[Path] = typer.Option(None, "--send-log", help="Save the wall-clock send time of every block of frames (.npy: first stamp s, frames, send time s) at exit, for latency measurements."),
+        temperatures_opcua: Optional[str] = typer.Option(None, "--temperatures-opcua", help="Also serve the campaign's probe temperatures on this OPC UA endpoint (opc.tcp://HOST:PORT; nodes ns=2;s=Probes.<probe>, °C), on the simulator's clock and speed."),
     ):
         """Serve a campaign's wavelengths over the Hyperion TCP protocol (a simulated instrument)."""
         import asyncio
         import sys
-        from fbgcomp.runtime.simulator import (SignalTable, SimConfig, parse_fault,
-                                               run_simulator)
+        from fbgcomp.runtime.simulator import (OpcUaTemperatureServer, SignalTable, SimConfig,
+                                               parse_fault, run_simulator)
 
         if not campaign.is_dir():
             raise InputError("campaign folder not found", file=campaign)
@@ -174,14 +175,19 @@ def register(app: typer.Typer) -> None:
                         speed=speed, loop=loop, noise_pm=noise_pm,
                         faults=[parse_fault(f) for f in fault])
 
+        temps = None
+        if temperatures_opcua:
+            temps = OpcUaTemperatureServer.from_campaign(temperatures_opcua, campaign, cfg, table)
+
         def ready(sim):
             print(f"serving {len(table.sensor_names)} sensors at {rate:g} Hz on {host}: "
-                  f"command {sim.command_port}, stream {sim.stream_port}", file=sys.stderr,
-                  flush=True)
+                  f"command {sim.command_port}, stream {sim.stream_port}"
+                  + (f"; temperatures {', '.join(temps.probe_names)} on {temps.endpoint}"
+                     if temps is not None else ""), file=sys.stderr, flush=True)
 
         try:
             asyncio.run(run_simulator(table, cfg, host, command_port, port, ready, duration,
-                                      send_log))
+                                      send_log, temperatures=temps))
         except OSError as exc:
             raise InputError(f"cannot listen on {host}:{port}/{command_port}: {exc.strerror}",
                              column="--port")

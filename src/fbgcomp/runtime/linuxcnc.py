@@ -11,19 +11,26 @@ is nothing to apply anyway), the repeated datagram carries ``FLAG_STALE`` and th
 ramps to zero. Sending never blocks the compensation loop: a full or absent receiver only
 drops datagrams (counted in ``send_errors``).
 
+The same socket receives what the component sends back: the Z-axis position (its
+``z-pos-mm`` pin, with the homed flag), kept by :meth:`LinuxCncOutput.position` for
+``[position] source = "linuxcnc"`` (:mod:`fbgcomp.runtime.live_inputs`). A Unix-socket sender is
+bound to an abstract address of its own so the component can answer it.
+
 Sign: the datagram carries the published correction = − predicted TTP deviation, µm, which the
 component applies as an external offset of correction_um / 1000 mm. See docs/linuxcnc.md.
 """
 
 from __future__ import annotations
 
+import select
 import socket
 import threading
 import time
 from dataclasses import dataclass
 
 from fbgcomp.cnc.fbgcomp_hal import (DEFAULT_ADDRESS, FLAG_ALARM, FLAG_ENABLED, FLAG_STALE,
-                                     FLAG_ZEROING, encode_packet, parse_address)
+                                     FLAG_ZEROING, POS_HOMED, decode_position, encode_packet,
+                                     parse_address)
 from fbgcomp.errors import InputError
 
 CNC_KINDS = ("off", "linuxcnc")
@@ -58,9 +65,13 @@ class LinuxCncOutput:
         self._published_at: float | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._position = None      # (z_mm, monotonic receive time, homed) from the component
+        self.positions = 0
 
     def start(self) -> None:
         self.sock = socket.socket(self.family, socket.SOCK_DGRAM)
+        if self.family == socket.AF_UNIX:
+            self.sock.bind("")     # Linux autobind: an abstract address the component answers
         self.sock.setblocking(False)
         self._thread = threading.Thread(target=self._heartbeat, name="fbgcomp-linuxcnc",
                                         daemon=True)
@@ -99,11 +110,40 @@ class LinuxCncOutput:
         except OSError:   # receiver not there yet, buffer full: the next datagram will do
             self.send_errors += 1
 
+    def position(self):
+        """``(z_mm, received monotonic s, homed)`` of the newest position datagram, or None."""
+        return self._position
+
+    def _receive(self) -> None:
+        for _ in range(1000):          # bounded: a flood cannot hold the heartbeat
+            try:
+                data = self.sock.recv(64)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:            # e.g. ICMP refused from an absent receiver
+                return
+            p = decode_position(data)
+            if p is not None:
+                self._position = (p[3], time.monotonic(), bool(p[1] & POS_HOMED))
+                self.positions += 1
+
     def _heartbeat(self) -> None:
-        while not self._stop.wait(self.config.heartbeat_s):
-            with self._lock:
-                if self.sock is not None:
-                    self._send_locked()
+        period = self.config.heartbeat_s
+        next_beat = time.monotonic() + period
+        while not self._stop.is_set():
+            wait = max(0.0, next_beat - time.monotonic())
+            try:
+                ready, _, _ = select.select([self.sock], [], [], wait)
+            except (OSError, ValueError):
+                return
+            if ready:
+                self._receive()
+            now = time.monotonic()
+            if now >= next_beat:
+                with self._lock:
+                    if self.sock is not None:
+                        self._send_locked()
+                next_beat = max(next_beat + period, now)
 
     def stop(self) -> None:
         """Tell the component the compensator is going away (it ramps to zero), then close."""

@@ -41,6 +41,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fbgcomp.runtime import health as H
+from fbgcomp.runtime.cnc_form import reference_z_mm, takes_z
 from fbgcomp.runtime.output import AdaptiveLevelFilter, OutputFilterConfig
 
 HEALTH_OK, HEALTH_DEGRADED, HEALTH_ALARM, HEALTH_ZEROING = range(4)
@@ -161,6 +162,8 @@ class Pipeline:
         rate = self.max_slew_um_per_s
         self._slew_axes = ~np.isinf(rate)                # axes with a rate limit
         self._slew_rate = np.where(self._slew_axes, rate, 0.0)
+        self._z: np.ndarray | None = None        # this batch's Z position per frame, mm
+        self._uses_z: bool | None = None
 
     def continue_from(self, old: "Pipeline") -> None:
         """Take over the running state of ``old`` (a model reload: the machine has not been
@@ -252,7 +255,16 @@ class Pipeline:
     # -- main entry
     def process(self, time_s: np.ndarray, wavelength_nm: np.ndarray, peak_count: np.ndarray,
                 near_count: np.ndarray, temperature_C: np.ndarray,
-                enabled: bool = True) -> BatchResult:
+                enabled: bool = True, z_axis_mm=None) -> BatchResult:
+        """One batch of frames -> :class:`BatchResult`.
+
+        ``z_axis_mm`` is the Z-axis position, mm (scalar or (n,)), passed to the model's
+        ``predict`` on every frame; None (no position source) leaves the model at the Z it
+        assumes. For a model whose prediction depends on Z (a kinematic chain), a non-finite Z
+        is a missing input, as a missing temperature is: no model usable, ALARM, hold / ramp.
+        A model without Z dependence ignores it."""
+        self._z = None if z_axis_mm is None else \
+            np.broadcast_to(np.asarray(z_axis_mm, dtype=np.float64), time_s.shape)
         if self.wavelength_zero_nm is not None and time_s.size:
             res = self._process_steady(time_s, wavelength_nm, peak_count, temperature_C, enabled)
             if res is not None:
@@ -273,6 +285,8 @@ class Pipeline:
             return None            # the previous frame was on a fallback: a re-admission
         if temperature_C.shape[1] and not np.isfinite(temperature_C).all():
             return None
+        if self._z is not None and self.uses_z and not np.isfinite(self._z).all():
+            return None
         if not self.checks.all_good(time_s, wavelength_nm, peak_count):
             return None
         n, S = wavelength_nm.shape
@@ -284,9 +298,8 @@ class Pipeline:
         p = self._predictors.get(0)
         if p is None:
             p = self.predictor(0)
-        clock = {"time_s": time_s} if _takes_time(p) else {}
         d, h = p.predict(wavelength_nm, temperature_C, self.wavelength_zero_nm,
-                         self.temperature_zero_C, **clock)
+                         self.temperature_zero_C, **self._inputs(p, time_s, slice(None)))
         dev = np.empty((n, 3))
         dev[:] = d
         half = np.empty((n, 3))
@@ -348,6 +361,8 @@ class Pipeline:
             f = faulted[rows]
             temp_ok = np.all(np.isfinite(temperature_C[rows]), axis=1) if temperature_C.shape[1] \
                 else np.ones(n - start, bool)
+            if self._z is not None and self.uses_z:     # a Z-dependent model without its Z
+                temp_ok &= np.isfinite(self._z[rows])
             choice = self._choices(f, temp_ok)
             if self.config.health.readmit_k_sigma > 0:
                 choice = self._check_readmissions(time_s, wavelength_nm, temperature_C, start,
@@ -360,11 +375,9 @@ class Pipeline:
                     continue
                 sel = np.flatnonzero(choice == k) + start
                 p = self.predictor(int(k))
-                # the frame clock: models with memory (load tracking, low-passes, leads) run
-                # on it, not on the training campaign's interval
-                clock = {"time_s": time_s[sel]} if _takes_time(p) else {}
                 d, h = p.predict(wavelength_nm[sel], temperature_C[sel],
-                                 self.wavelength_zero_nm, self.temperature_zero_C, **clock)
+                                 self.wavelength_zero_nm, self.temperature_zero_C,
+                                 **self._inputs(p, time_s, sel))
                 dev[sel], half[sel] = d, h
                 rms[sel] = np.asarray(p.expected_rms_error_um, float)
                 own = getattr(p, "last_flags", None)    # the model's own output policy
@@ -379,6 +392,23 @@ class Pipeline:
         return BatchResult(time_s, dev, half, correction, rms, health, status, model_set,
                            temperature_C, flags)
 
+    def _inputs(self, p, time_s, sel) -> dict:
+        """Keywords of ``p.predict`` for the rows ``sel``: the frame clock (models with memory
+        - load tracking, low-passes, leads - run on it, not on the training campaign's
+        interval) and the batch's Z position when one is given and the model takes it."""
+        kw = {"time_s": time_s[sel]} if _takes_time(p) else {}
+        if self._z is not None and takes_z(p):
+            kw["z_axis_mm"] = self._z[sel]
+        return kw
+
+    @property
+    def uses_z(self) -> bool:
+        """Whether the model's prediction depends on the Z position (it has a kinematic chain:
+        kinematic, hybrid, calibrated); the regression and the default model do not."""
+        if self._uses_z is None:
+            self._uses_z = reference_z_mm(self.predictor(0)) is not None
+        return self._uses_z
+
     def _choices(self, f: np.ndarray, temp_ok: np.ndarray) -> np.ndarray:
         """Model set per row for the faulted mask ``f`` (-1: none usable)."""
         if f.any():
@@ -391,9 +421,8 @@ class Pipeline:
     def _predict_one(self, k: int, time_s, wavelength_nm, temperature_C, row: int):
         p = self.predictor(int(k))
         sel = slice(row, row + 1)
-        clock = {"time_s": time_s[sel]} if _takes_time(p) else {}
         d, _ = p.predict(wavelength_nm[sel], temperature_C[sel], self.wavelength_zero_nm,
-                         self.temperature_zero_C, **clock)
+                         self.temperature_zero_C, **self._inputs(p, time_s, sel))
         return np.asarray(d, float).reshape(3), np.asarray(p.expected_rms_error_um, float)
 
     def _check_readmissions(self, time_s, wavelength_nm, temperature_C, start, status, faulted,

@@ -22,6 +22,8 @@ from fbgcomp.dashboard.server import DashboardConfig
 from fbgcomp.errors import InputError
 from fbgcomp.runtime import health as H
 from fbgcomp.runtime.linuxcnc import CncConfig
+from fbgcomp.runtime.live_inputs import (LiveInputs, LiveTemperatures, PositionConfig,
+                                         TemperaturesConfig)
 from fbgcomp.runtime.modbus import ModbusConfig
 from fbgcomp.runtime.opcua import OpcUaConfig, OpcUaServer, Snapshot
 from fbgcomp.runtime.pipeline import HEALTH_ALARM, HEALTH_NAMES, Pipeline, PipelineConfig
@@ -65,6 +67,10 @@ class RuntimeConfig:
     cnc: CncConfig = field(default_factory=CncConfig)   # --cnc linuxcnc (docs/linuxcnc.md)
     modbus: ModbusConfig = field(default_factory=ModbusConfig)   # docs/cnc-integration.md
     realtime: RealtimeConfig = field(default_factory=RealtimeConfig)   # --cpu, --realtime-priority
+    # live probe temperatures (OPC UA, Modbus TCP) and the Z position (LinuxCNC, OPC UA):
+    # fbgcomp.runtime.live_inputs, docs/runtime.md "Live inputs"
+    temperatures: TemperaturesConfig = field(default_factory=TemperaturesConfig)
+    position: PositionConfig = field(default_factory=PositionConfig)
 
     @classmethod
     def from_toml(cls, path: str | Path) -> "RuntimeConfig":
@@ -144,6 +150,10 @@ class Service:
         self.dashboard = None             # fbgcomp.dashboard.Dashboard when configured
         self.cnc = None                   # fbgcomp.runtime.linuxcnc.LinuxCncOutput (--cnc)
         self.modbus = None                # fbgcomp.runtime.modbus.ModbusOutput ([modbus])
+        self.live: LiveInputs | None = None   # [temperatures.*], [position]
+        self.z_mm: float | None = None    # the Z position given to the model on the last batch
+        self.input_status = ""            # live inputs: "inputs OK" or which are stale
+        self.frames_waiting = 0           # frames dropped before zeroing, live inputs not up
         self._enabled = True              # used only without OPC UA
         self.runlog = None
         self.sim = None
@@ -163,6 +173,13 @@ class Service:
         cfg = self.config.source
         scheme, opts = parse_source_url(cfg.url)
         probes = self.thermometers.real_probes
+        live = LiveInputs(self.config.temperatures, self.config.position, probes, self.cnc)
+        self.live = live if live else None
+        if self.live is not None and self.live.has_position and not self.pipeline.uses_z:
+            log.warning("[position]: this model's prediction does not depend on Z; the position "
+                        "is read but changes nothing")
+        # the probes no live input supplies come from --temperatures (or the replayed campaign)
+        probes = [p for p in probes if p not in live.probe_reader]
         temps = None
         probe_specs = None
         if scheme == "hyperion":
@@ -193,9 +210,15 @@ class Service:
                 temps.origin = sim._t0 - table.time_s[0] / speed
             probe_specs = _probe_specs(opts["path"])
         if cfg.temperatures is not None or temps is None:
+            if probes and cfg.temperatures is None and live.probes:
+                raise InputError(f"probe {probes[0]} has no source: name it in "
+                                 "[temperatures.opcua] nodes or [temperatures.modbus] registers, "
+                                 "or give --temperatures", column="--temperatures")
             temps = open_temperatures(cfg.temperatures, probes, cfg.speed, cfg.loop)
             if cfg.temperatures and Path(cfg.temperatures).is_dir():
                 probe_specs = _probe_specs(cfg.temperatures)
+        if live.probes:
+            temps = LiveTemperatures(self.thermometers.real_probes, live, temps)
         return src, temps, probe_specs
 
     # -- model reload (OPC UA ReloadModel, run on this loop through run_coroutine_threadsafe)
@@ -247,6 +270,8 @@ class Service:
                                    on_reload=self.reload, main_loop=main_loop)
             await main_loop.run_in_executor(None, self.opc.start)
         try:
+            from fbgcomp.runtime.linuxcnc import open_cnc_output
+            self.cnc = open_cnc_output(self.config.cnc)    # started below; read by [position]
             source, temps, probe_specs = await self._open_source()
         except BaseException:
             if self.opc is not None:
@@ -267,10 +292,10 @@ class Service:
                                        control=self.set_enabled, enabled=lambda: self.enabled,
                                        log_dir=self.config.log.dir)
             self.dashboard.start()
-        from fbgcomp.runtime.linuxcnc import open_cnc_output
-        self.cnc = open_cnc_output(self.config.cnc)
         if self.cnc is not None:
             self.cnc.start()
+        if self.live is not None:
+            self.live.start()
         queue: asyncio.Queue[SensorBatch | None] = asyncio.Queue()
 
         async def pump():
@@ -317,6 +342,8 @@ class Service:
         finally:
             if self.cnc is not None:
                 self.cnc.stop()   # the CNC ramps its offsets to zero without waiting for a timeout
+            if self.live is not None:
+                await self.live.close()
             if self.modbus is not None:
                 await main_loop.run_in_executor(None, self.modbus.stop)
             await source.close()
@@ -341,8 +368,21 @@ class Service:
         enabled = self.enabled
         temps = self.thermometers.temperature_C(self.temps.latest(batch.time_s),
                                                 batch.reference_nm)
+        z = None
+        if self.live is not None:
+            # the newest Z for the whole batch (a batch lasts milliseconds); NaN when stale
+            z = self.live.z_mm()
+            self.input_status = self.live.check(getattr(self.temps, "last_live", {}), z)
+        self.z_mm = z
+        if self.live is not None and not self.pipeline.zeroed and \
+                self.pipeline._t_first is None and not self._inputs_ready(temps, z):
+            # the zero state is the mean of the first seconds: it must not start before every
+            # live input has a value (an OPC UA or Modbus link takes a moment to come up), or
+            # a probe without a zero would leave the model unusable for the whole run
+            self.frames_waiting += len(batch)
+            return
         res = self.pipeline.process(batch.time_s, batch.wavelength_nm, batch.peak_count,
-                                    batch.near_count, temps, enabled)
+                                    batch.near_count, temps, enabled, z_axis_mm=z)
         self._offset_s = batch.received_s - float(batch.time_s[-1])
         self.frames += len(batch)
         self.batches += 1
@@ -351,6 +391,12 @@ class Service:
             self.runlog.submit(batch, res, enabled)
         self._publish(res, batch.wavelength_nm[-1], batch.received_s)
         self.busy_s += time.perf_counter() - t0
+
+    def _inputs_ready(self, temps: np.ndarray, z) -> bool:
+        """Every live probe and (for a model that depends on it) the Z position has a value."""
+        if not np.isfinite(list(getattr(self.temps, "last_live", {}).values())).all():
+            return False
+        return z is None or not self.pipeline.uses_z or bool(np.isfinite(z))
 
     def _no_data(self) -> None:
         """No frame for no_data_s: hold / ramp the last correction (alarm), sensors missing."""
@@ -369,12 +415,14 @@ class Service:
         snap = self._snapshot(res, wavelength_nm, received_s)
         if self.cnc is not None:
             self.cnc.publish(snap, self.enabled)
-        if self.modbus is not None:   # offset + Z slope, the form a CNC's PLC takes
-            from fbgcomp.runtime.cnc_form import newest_slope
-            slope, z_ref = newest_slope(self.pipeline, res, wavelength_nm)
+        if self.modbus is not None or self.opc is not None:   # offset + Z slope, the form
+            from fbgcomp.runtime.cnc_form import newest_slope    # a CNC's PLC takes
+            z = self.z_mm if self.z_mm is not None and np.isfinite(self.z_mm) else None
+            slope, z_ref = newest_slope(self.pipeline, res, wavelength_nm, z)
+        if self.modbus is not None:
             self.modbus.publish(snap, self.enabled, slope, z_ref)
-        if self.opc is not None:
-            self.opc.publish(snap)
+        if self.opc is not None:      # the Modbus output's limited values, else its limits
+            self.opc.publish(snap, self.enabled, slope, z_ref, self.modbus or self.config.modbus)
         if self.dashboard is not None:
             self.dashboard.publish(snap, res.temperature_C[-1], self.pipeline)
 
@@ -394,7 +442,8 @@ class Service:
             output_flags=tuple(int(v) for v in res.output_flags[-1].tolist()),
             sensor_status=[H.STATUS_NAMES[c] for c in res.sensor_status[-1].tolist()],
             sensor_wavelength_nm=np.asarray(wavelength_nm, float).tolist(),
-            source_status=str(getattr(self.source, "status", "")), frames=int(self.frames),
+            source_status=str(getattr(self.source, "status", ""))
+            + (f"; {self.input_status}" if self.input_status else ""), frames=int(self.frames),
             model_id=self.model_id, received_s=float(received_s))
 
 

@@ -18,6 +18,13 @@ and named ``<sensor>_ref`` in faults (``drop:S3_ref@5``).
 A grating fault lasts to the end unless ``/duration`` follows it: ``drop:S3@5/2`` brings S3
 back at t = 7 s, ``shift:S2@3:+2/10`` moves S2 by 2 nm for 10 s (a mode hop there and back).
 
+With ``temperatures_opcua`` (``sim-interrogator --temperatures-opcua opc.tcp://HOST:PORT``) the
+campaign's probe temperatures are served too, on a small OPC UA server of the simulator's own
+(:class:`OpcUaTemperatureServer`: security None, anonymous, read-only variables
+``ns=2;s=Probes.<probe>``, °C), on the same clock and at the same speed as the gratings: what a
+PLC or a temperature logger would publish beside the interrogator, for ``serve``'s
+``[temperatures.opcua]`` live input.
+
 Frames are produced in vectorised blocks (all frames due since the last tick) and written to
 every connected stream client; a client that does not keep up (more than ``max_buffer_bytes``
 queued) is disconnected rather than slowing the instrument down.
@@ -30,6 +37,7 @@ import re
 import struct
 import time
 from dataclasses import dataclass, field
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
@@ -388,14 +396,133 @@ def save_send_log(sim: "SimulatedHyperion", path: str | Path) -> None:
     os.replace(tmp, path)
 
 
+class OpcUaTemperatureServer:
+    """A campaign's probe temperatures on OPC UA, on a simulator's clock (see the module
+    docstring): every ``period_s`` each ``Probes.<probe>`` variable takes the campaign's newest
+    sample at or before campaign time ``t0 + elapsed x speed`` (looping with the gratings when
+    they loop), written with a fresh source timestamp.
+
+    Parameters
+    ----------
+    endpoint : str
+        ``opc.tcp://HOST:PORT[/path]`` to listen on.
+    time_s : ndarray (m,)
+        Campaign times of the temperature samples, s.
+    temperature_C : ndarray (m, P)
+        The samples, °C.
+    probe_names : list of str
+    speed : float
+        Campaign seconds per real second (the simulator's ``--speed``).
+    loop : bool
+        Restart at the end of the span ``span_s`` (the gratings' span when looping together).
+    """
+
+    NAMESPACE = "urn:fbgcomp:sim-interrogator"
+
+    def __init__(self, endpoint: str, time_s, temperature_C, probe_names, speed: float = 1.0,
+                 loop: bool = False, span_s: float | None = None, t_start_s: float | None = None,
+                 period_s: float = 0.1):
+        if not endpoint.startswith("opc.tcp://"):
+            raise InputError(f"expected opc.tcp://HOST:PORT, got {endpoint!r}",
+                             column="--temperatures-opcua")
+        self.endpoint = endpoint
+        self.time_s = np.asarray(time_s, float)
+        self.values = np.asarray(temperature_C, float).reshape(self.time_s.size, -1)
+        self.probe_names = list(probe_names)
+        self.speed = float(speed)
+        self.loop = loop
+        self.t_start_s = float(self.time_s[0] if t_start_s is None else t_start_s)
+        self.span_s = float(span_s if span_s is not None else self.time_s[-1] - self.time_s[0])
+        self.period_s = period_s
+        self.server = None
+        self._vars = []
+        self._task: asyncio.Task | None = None
+        self._t0: float | None = None
+        self.updates = 0
+
+    @classmethod
+    def from_campaign(cls, endpoint: str, folder, config: SimConfig,
+                      table: SignalTable) -> "OpcUaTemperatureServer":
+        from fbgcomp.campaign import read_campaign
+        c = read_campaign(folder)
+        probes = [p.name for p in c.meta.temperature_probes
+                  if f"{p.name}_C" in c.temperatures.columns]
+        if not probes:
+            raise InputError("the campaign has no probe temperatures to serve", file=folder)
+        return cls(endpoint, c.temperatures["time_s"].to_numpy(float),
+                   c.temperatures[[f"{p}_C" for p in probes]].to_numpy(float), probes,
+                   config.speed, config.loop, table.time_s[-1] - table.time_s[0],
+                   table.time_s[0])
+
+    def at(self, elapsed_s: float) -> np.ndarray:
+        """(P,) the newest sample at or before the campaign time reached after ``elapsed_s``."""
+        camp = elapsed_s * self.speed
+        if self.loop and self.span_s > 0:
+            camp = np.mod(camp, self.span_s)
+        i = int(np.searchsorted(self.time_s, self.t_start_s + camp + 1e-9, side="right")) - 1
+        return self.values[max(i, 0)]
+
+    async def start(self, t0: float | None = None) -> None:
+        from asyncua import Server, ua
+
+        server = Server()
+        await server.init()
+        server.set_endpoint(self.endpoint)
+        server.set_server_name("fbgcomp sim-interrogator temperatures")
+        server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+        idx = await server.register_namespace(self.NAMESPACE)
+        probes = await server.nodes.objects.add_object(ua.NodeId("Probes", idx), "Probes")
+        first = self.at(0.0)
+        for name, v in zip(self.probe_names, first):
+            var = await probes.add_variable(ua.NodeId(f"Probes.{name}", idx), name, float(v),
+                                            varianttype=ua.VariantType.Double)
+            self._vars.append(var)
+        await server.start()
+        self.server = server
+        self._t0 = time.time() if t0 is None else t0
+        self._task = asyncio.create_task(self._update_loop())
+
+    async def _update_loop(self) -> None:
+        from asyncua import ua
+
+        while True:
+            row = self.at(time.time() - self._t0)
+            now = datetime.now(timezone.utc)    # a fresh timestamp: the value is live
+            for var, v in zip(self._vars, row):
+                dv = ua.DataValue(ua.Variant(float(v), ua.VariantType.Double),
+                                  SourceTimestamp=now, ServerTimestamp=now)
+                await var.write_value(dv)
+            self.updates += 1
+            await asyncio.sleep(self.period_s)
+
+    async def stop(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            try:
+                await self._task
+            except (asyncio.CancelledError, Exception):
+                pass
+        if self.server is not None:
+            await self.server.stop()
+            self.server = None
+
+
 async def run_simulator(table: SignalTable, config: SimConfig, host: str, command_port: int,
                         stream_port: int, ready=None, duration_s: float | None = None,
-                        send_log: str | Path | None = None) -> None:
-    """Serve until the signals end (unless looping), ``duration_s`` passes, or cancellation."""
+                        send_log: str | Path | None = None,
+                        temperatures: "OpcUaTemperatureServer | None" = None) -> None:
+    """Serve until the signals end (unless looping), ``duration_s`` passes, or cancellation;
+    with ``temperatures``, the campaign's probe temperatures over OPC UA on the same clock."""
     sim = SimulatedHyperion(table, config, host, command_port, stream_port)
     if send_log is not None:
         sim.send_log = []
     await sim.start()
+    if temperatures is not None:
+        try:
+            await temperatures.start(sim._t0)
+        except BaseException:
+            await sim.stop()
+            raise
     import gc
     gc.collect()
     gc.freeze()     # the campaign tables stay: no full collector passes over them mid-stream
@@ -416,5 +543,7 @@ async def run_simulator(table: SignalTable, config: SimConfig, host: str, comman
             w.cancel()
     finally:
         await sim.stop()
+        if temperatures is not None:
+            await temperatures.stop()
         if send_log is not None:
             save_send_log(sim, send_log)
