@@ -129,7 +129,9 @@ def limit_toward(current, target, dt_s: float, rate_per_s, maximum):
     maximum = np.asarray(maximum, float)
     clamped = np.clip(target, -maximum, maximum)
     max_limited = clamped != target
-    step = np.asarray(rate_per_s, float) * max(float(dt_s), 0.0)
+    rate, dt_s = np.asarray(rate_per_s, float), max(float(dt_s), 0.0)
+    # inf (no rate limit) x 0 s would be NaN, and a NaN value never recovers
+    step = rate * dt_s if dt_s > 0 else np.where(np.isinf(rate), np.inf, 0.0)
     value = current + np.clip(clamped - current, -step, step)
     rate_limited = value != clamped
     return value, rate_limited, max_limited
