@@ -409,10 +409,15 @@ def test_writes_and_calls_are_logged_with_their_user(server_factory, tmp_path, c
 # OPC 10000-8 5.6.3 UnitId); HUR is the hour, not the hertz (HTZ)
 PUBLISHED_UNIT_IDS = {"4H": 13384, "C45": 4404277, "C26": 4403766, "CEL": 4408652,
                       "HTZ": 4740186, "HUR": 4740434, "SEC": 5457219, "MMT": 5066068}
+# "59" (part per million, our µm/m) by part 8's rule alone: "5" = 0x35, "9" = 0x39
+RULE_UNIT_IDS = {**PUBLISHED_UNIT_IDS, "59": 0x3539}
 ANALOG = {**{f"{p}{a}_um": "um" for p in ("Correction", "PredictedDeviation",
                                           "IntervalHalfWidth", "ExpectedError")
              for a in "XYZ"},
-          "Latency_ms": "ms", "Sensors.S1.Wavelength_nm": "nm", "Sensors.S2.Wavelength_nm": "nm"}
+          "Latency_ms": "ms", "Sensors.S1.Wavelength_nm": "nm", "Sensors.S2.Wavelength_nm": "nm",
+          # the offset + Z slope form a CNC takes (issue 15, item 5; docs/cnc-integration.md)
+          **{f"Offset{a}_um": "um" for a in "XYZ"},
+          **{f"Slope{a}_um_per_m": "um_per_m" for a in "XYZ"}, "ZRef_mm": "mm"}
 
 
 def test_unece_unit_ids_follow_part_8():
@@ -478,12 +483,13 @@ def test_analog_items_units_ranges_descriptions_and_method_arguments(server_fact
 
     assert set(analog) == set(ANALOG)
     assert {"Health", "Heartbeat", "Enabled", "SampleTime"} <= set(variables) - set(analog)
-    units = {"um": ("4H", "µm"), "nm": ("C45", "nm"), "ms": ("C26", "ms")}
+    units = {"um": ("4H", "µm"), "nm": ("C45", "nm"), "ms": ("C26", "ms"), "mm": ("MMT", "mm"),
+             "um_per_m": ("59", "µm/m")}
     for name, (eu, rng, vtype) in analog.items():
         code, display = units[ANALOG[name]]
         assert isinstance(eu, ua.EUInformation) and isinstance(rng, ua.Range), name
         assert eu.NamespaceUri == "http://www.opcfoundation.org/UA/units/un/cefact"
-        assert (eu.UnitId, eu.DisplayName.Text) == (PUBLISHED_UNIT_IDS[code], display), name
+        assert (eu.UnitId, eu.DisplayName.Text) == (RULE_UNIT_IDS[code], display), name
         assert vtype == ua.VariantType.Double
         assert rng.Low < rng.High
     assert {(r.Low, r.High) for n, (_, r, _) in analog.items() if n.startswith("Correction")} \
@@ -499,6 +505,7 @@ def test_analog_items_units_ranges_descriptions_and_method_arguments(server_fact
     for name, text in descriptions.items():
         assert text and text != name.rsplit(".", 1)[-1] and len(text) > 20, (name, text)
     assert "axis Z" in descriptions["CorrectionZ_um"]
+    assert "axis Y" in descriptions["SlopeY_um_per_m"] and "ZRef_mm" in descriptions["OffsetX_um"]
     assert "8 RATE_LIMITED" in descriptions["OutputFlagsY"]
 
     assert set(arguments) == {"ReloadModel"}     # every method the server exposes

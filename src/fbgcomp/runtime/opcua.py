@@ -29,6 +29,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import contextvars
+import dataclasses
 import datetime as dt
 import hashlib
 import hmac
@@ -61,6 +62,10 @@ UNITS = {
     "um": ("4H", "\u00b5m", "micrometre (micron)"),
     "nm": ("C45", "nm", "nanometre"),
     "ms": ("C26", "ms", "millisecond"),
+    "mm": ("MMT", "mm", "millimetre"),
+    # Rec. 20 has no micrometre per metre; "59" (part per million, 10^-6) is the same ratio
+    # (1 µm of correction per m of travel), shown as µm/m (docs/opcua-cnc.md)
+    "um_per_m": ("59", "\u00b5m/m", "micrometre per metre (part per million, 1e-6)"),
 }
 
 
@@ -96,6 +101,9 @@ DEFAULT_EU_RANGES = {
     "ExpectedError": (0.0, 1000.0),           # µm
     "Latency_ms": (0.0, 1000.0),              # ms
     "Wavelength_nm": (1460.0, 1640.0),        # nm: S, C and L bands of FBG interrogators
+    "Offset": (-1000.0, 1000.0),              # µm: the offset + Z slope form (cnc_form)
+    "Slope": (-1000.0, 1000.0),               # µm/m
+    "ZRef_mm": (-10000.0, 10000.0),           # mm
 }
 
 # Description attribute of every node (what a PLC programmer or an integrator browsing the
@@ -140,6 +148,16 @@ DESCRIPTIONS = {
     "Sensors.Status": "Sensor status, one of {statuses} (docs/runtime.md).",
     "Sensors.Wavelength_nm": "Last Bragg wavelength of the sensor in its window (updated at "
                              "most 10 times a second).",
+    "Offset": "Offset of the correction on axis {a} at the reference position ZRef_mm, the "
+              "form a CNC's thermal compensation takes from the PLC (offset + slope x (Z - "
+              "ZRef_mm), docs/cnc-integration.md): the correction rate- and magnitude-limited "
+              "as the Modbus output's offset; ramps to 0 when the output is off or in ALARM.",
+    "Slope": "Slope of the correction on axis {a} with the Z position at ZRef_mm, micrometres "
+             "of correction per metre of Z travel (rate- and magnitude-limited as the Modbus "
+             "output's); 0 for a model without a Z term or when not applied.",
+    "ZRef_mm": "Reference Z position of OffsetX/Y/Z_um and SlopeX/Y/Z_um_per_m: the live Z "
+               "the model was evaluated at, else the model's own; 0 for a model without a Z "
+               "term (its slope is 0).",
     "ReloadModel": "Load a model file of the models folder (opcua.models_dir), or reload the "
                    "current one. Needs an authenticated user; the new model must expect the "
                    "same sensors and probes.",
@@ -426,6 +444,11 @@ class Snapshot:
     model_id: str = ""
     received_s: float = 0.0
     output_flags: tuple = (0, 0, 0)   # health.FLAG_* per axis: model policy | limits
+    # the offset + Z slope form (runtime.cnc_form), rate- and magnitude-limited; None: not
+    # computed for this sample (the OPC UA variables keep their value)
+    cnc_offset_um: tuple | None = None
+    cnc_slope_um_per_m: tuple | None = None
+    cnc_z_ref_mm: float | None = None
 
 
 def send_control(sock, message, timeout_s: float = 2.0) -> bool:
@@ -550,8 +573,46 @@ class OpcUaServer:
             pass
         return False
 
-    def publish(self, snapshot: Snapshot) -> None:
+    def publish(self, snapshot: Snapshot, enabled: bool | None = None, slope_um_per_m=None,
+                z_ref_mm: float | None = None, cnc_limits=None) -> None:
+        """Send the newest sample; with ``slope_um_per_m`` (runtime.cnc_form.newest_slope) also
+        its offset + Z slope form, limited by ``cnc_limits``: a ModbusOutput that has just
+        published this sample (its limited values are taken as they are, so a PLC reads the
+        same numbers over OPC UA and Modbus) or a ModbusConfig (its limits, applied here)."""
+        if slope_um_per_m is not None:
+            offset, slope = self._cnc_form(snapshot, bool(enabled), slope_um_per_m, cnc_limits)
+            snapshot = dataclasses.replace(
+                snapshot, cnc_offset_um=tuple(float(v) for v in offset),
+                cnc_slope_um_per_m=tuple(float(v) for v in slope),
+                cnc_z_ref_mm=0.0 if z_ref_mm is None else float(z_ref_mm))
         self._send(("snap", snapshot))
+
+    def _cnc_form(self, snapshot: Snapshot, enabled: bool, slope_um_per_m, limits):
+        """Limited (offset µm, slope µm/m) per axis: the Modbus output's when it published this
+        sample, else the same limiter (cnc_form.limit_toward, the Modbus output's apply rule)
+        with ``limits``' rates and maxima (none: no limit)."""
+        import numpy as np
+
+        from fbgcomp.runtime.cnc_form import limit_toward
+        from fbgcomp.runtime.pipeline import per_axis
+
+        if hasattr(limits, "offset_um") and hasattr(limits, "slope_um_per_m"):
+            return np.asarray(limits.offset_um, float), np.asarray(limits.slope_um_per_m, float)
+        now = time.monotonic()
+        state = getattr(self, "_cnc_state", None)
+        dt = 0.0 if state is None else now - state[0]
+        offset, slope = (np.zeros(3), np.zeros(3)) if state is None else state[1:]
+
+        def lim(name):
+            return per_axis(getattr(limits, name, float("inf")))
+        apply = enabled and snapshot.health in ("OK", "DEGRADED")
+        target = np.asarray(slope_um_per_m, float) if apply else np.zeros(3)
+        offset = limit_toward(offset, np.asarray(snapshot.correction_um, float), dt,
+                              lim("offset_rate_um_per_s"), lim("max_offset_um"))[0]
+        slope = limit_toward(slope, target, dt, lim("slope_rate_um_per_m_per_s"),
+                             lim("max_slope_um_per_m"))[0]
+        self._cnc_state = (now, offset, slope)
+        return offset, slope
 
     def set_enabled(self, value: bool) -> None:
         """Write ``Enabled`` from the service side (e.g. the dashboard): one shared state."""
@@ -740,6 +801,14 @@ class _ServerCore:
             for a in AXES:
                 await var(root, f"{prefix}{a}_um", f"{prefix}{a}_um", 0.0, D,
                           text(prefix, a=a), "um", self._eu_range(prefix))
+        # the offset + Z slope form a CNC's thermal compensation takes (docs/cnc-integration.md)
+        for a in AXES:
+            await var(root, f"Offset{a}_um", f"Offset{a}_um", 0.0, D, text("Offset", a=a), "um",
+                      self._eu_range("Offset"))
+            await var(root, f"Slope{a}_um_per_m", f"Slope{a}_um_per_m", 0.0, D,
+                      text("Slope", a=a), "um_per_m", self._eu_range("Slope"))
+        await var(root, "ZRef_mm", "ZRef_mm", 0.0, D, text("ZRef_mm"), "mm",
+                  self._eu_range("ZRef_mm"))
         await var(root, "SampleTime", "SampleTime", dt.datetime.now(dt.timezone.utc), T,
                   text("SampleTime"))
         await var(root, "Latency_ms", "Latency_ms", 0.0, D, text("Latency_ms"), "ms",
@@ -947,6 +1016,11 @@ class _ServerCore:
                                ("ExpectedError", s.expected_rms_um)):
             for a, v in zip(AXES, values):
                 await put(f"{prefix}{a}_um", float(v), D, always=prefix == "Correction")
+        if s.cnc_offset_um is not None:
+            for a, o, k in zip(AXES, s.cnc_offset_um, s.cnc_slope_um_per_m):
+                await put(f"Offset{a}_um", float(o), D)
+                await put(f"Slope{a}_um_per_m", float(k), D)
+            await put("ZRef_mm", float(s.cnc_z_ref_mm), D, False)
         S = ua.VariantType.String
         await put("Health", s.health, S, False)
         await put("Alarm", bool(s.alarm), ua.VariantType.Boolean, False)
