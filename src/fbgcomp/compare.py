@@ -309,16 +309,20 @@ def compare(train, test, *, machine=None, entries=ENTRIES, progress=None) -> dic
 
 
 def _cell(r):
-    text = f"{r['max_abs_error_um']:.2f} ({r['rms_error_um']:.2f})"
+    from .tables import format_number as num
+
+    text = f"{num(r['max_abs_error_um'], 2)} ({num(r['rms_error_um'], 2)})"
     return text + (" WORSE" if r["harm"] else "")
 
 
 def _plateau_cell(r):
+    from .tables import format_number as num
+
     if r["plateau_max_error_um"] is None or r["plateau_deflection_um"] is None:
         return "-"
     if r["plateau_deflection_um"] >= PLATEAU_MIN_DEFLECTION_UM:
-        return f"{r['plateau_max_error_um']:.2f} ({r['plateau_error_pct_of_deflection']:.2f} %)"
-    return f"{r['plateau_max_error_um']:.2f}"
+        return f"{num(r['plateau_max_error_um'], 2)} ({num(r['plateau_error_pct_of_deflection'], 2)} %)"
+    return num(r["plateau_max_error_um"], 2)
 
 
 #: Below this largest plateau deflection an axis is not loaded: its plateau error is given in µm
@@ -337,22 +341,27 @@ def format_campaign_tables(result: dict) -> str:
     """Per held-out campaign: every entry's max |error| (RMS) per axis beside the uncompensated
     row, WORSE where an axis ends worse than uncompensated (+ the harm tolerance)."""
     from .metrics import HARM_TOLERANCE_UM
+    from .tables import Column, format_table, text
 
     out = [f"per held-out campaign: max |error| µm (RMS µm) per axis; uncompensated = the deviation "
            f"itself; WORSE = max |error| above uncompensated + {HARM_TOLERANCE_UM:g} µm"]
     for camp, models in _by_campaign(result).items():
         info = result["campaigns"][camp]
         out.append(f"\n== {camp} (held out, {info['n_samples']} samples) ==")
-        out.append(f"  {'model':<20}" + "".join(f"{a:>24}" for a in AXES) + f"{'PI95 cover dx/dy/dz':>22}")
+        cols = ([text("model")] + [Column(a, "µm") for a in AXES]
+                + [Column("PI95 cover dx/dy/dz")])
+        rows = []
         for name, axes in models.items():
             cov = [axes[a]["pi95_coverage"] for a in AXES]
             cov = "-" if any(c is None for c in cov) else "/".join(f"{c:.2f}" for c in cov)
-            out.append(f"  {name:<20}" + "".join(f"{_cell(axes[a]):>24}" for a in AXES) + f"{cov:>22}")
+            rows.append([name] + [_cell(axes[a]) for a in AXES] + [cov])
+        out.append(format_table(cols, rows, indent="  "))
         if info["has_loads"]:
             out.append(f"  load-plateau means: max error µm (% of the largest plateau deflection, "
                        f"on axes deflected ≥ {PLATEAU_MIN_DEFLECTION_UM:g} µm)")
-            for name, axes in models.items():
-                out.append(f"  {name:<20}" + "".join(f"{_plateau_cell(axes[a]):>24}" for a in AXES))
+            out.append(format_table([text("model")] + [Column(a, "µm") for a in AXES],
+                                    [[name] + [_plateau_cell(axes[a]) for a in AXES]
+                                     for name, axes in models.items()], indent="  "))
         harmed = info["harmed_by"]
         out.append("  worse than uncompensated: " + ("; ".join(f"{n} ({', '.join(ax)})" for n, ax in harmed.items())
                                                       if harmed else "none"))
@@ -386,6 +395,8 @@ def format_campaign_markdown(result: dict) -> str:
 
 
 def format_comparison(result: dict) -> str:
+    from .tables import Column, format_number, format_table, text
+
     out = [f"trained on {', '.join(result['train'])}; judged on {', '.join(result['test'])}", ""]
     if result.get("campaign_rows"):
         out += [format_campaign_tables(result), "", "pooled over all held-out campaigns, ranked per axis:"]
@@ -393,12 +404,13 @@ def format_comparison(result: dict) -> str:
         rows = sorted((r for r in result["rows"] if r["axis"] == a), key=lambda r: r["max_abs_error_um"])
         if not rows:
             continue
-        out.append(f"\n== {a} (peak {rows[0]['peak_um']:.3f} µm) ==")
-        out.append(f"{'rank':>4}  {'model':<20}{'max|err| µm':>12}{'RMS µm':>10}{'% of peak':>11}{'PI95 cover':>11}")
-        for i, r in enumerate(rows, 1):
-            cov = "-" if r["pi95_coverage"] is None else f"{r['pi95_coverage']:.3f}"
-            out.append(f"{i:>4}  {r['name']:<20}{r['max_abs_error_um']:>12.3f}{r['rms_error_um']:>10.3f}"
-                       f"{r['error_pct_of_peak']:>11.2f}{cov:>11}" + ("  WORSE" if r.get("harm") else ""))
+        out.append(f"\n== {a} (peak {format_number(rows[0]['peak_um'])} µm) ==")
+        cols = [Column("rank"), text("model"), Column("max|err|", "µm"), Column("RMS", "µm"),
+                Column("max err", "% of peak", 2), Column("PI95 cover", "", 3)]
+        out.append(format_table(cols, [
+            [i, r["name"], r["max_abs_error_um"], r["rms_error_um"], r["error_pct_of_peak"],
+             "-" if r["pi95_coverage"] is None else r["pi95_coverage"]]
+            + (["WORSE"] if r.get("harm") else []) for i, r in enumerate(rows, 1)]))
     for name, why in result.get("failures", {}).items():
         out.append(f"failed: {name}: {why}")
     return "\n".join(out)

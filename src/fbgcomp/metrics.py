@@ -66,22 +66,25 @@ def dominant_axis(metrics: dict) -> str:
 
 
 def format_metrics(metrics: dict, title: str = "") -> str:
-    """A readable table of :func:`validation_metrics` output."""
+    """A readable table of :func:`validation_metrics` output (:mod:`fbgcomp.tables`)."""
+    from .tables import Column, format_table, text
+
     has_cov = any("pi95_coverage" in m for m in metrics["axes"].values())
-    head = (f"{'axis':<5}{'uncomp. max µm':>15}{'max|err| µm':>13}{'uncomp. RMS':>13}{'RMS err µm':>12}"
-            f"{'% of peak':>11}{'comp. ratio':>12}")
+    cols = [text("axis"), Column("uncomp. max", "µm"), Column("max|err|", "µm"),
+            Column("uncomp. RMS", "µm"), Column("RMS err", "µm"), Column("max err", "% of peak", 2),
+            Column("comp. ratio", "", 4)]
     if has_cov:
-        head += f"{'PI95 cover':>11}"
-    lines = ([title] if title else []) + [f"n = {metrics['n_samples']}", head]
+        cols.append(Column("PI95 cover", "", 3))
+    rows = []
     for a, m in metrics["axes"].items():
-        line = (f"{a:<5}{m['peak_um']:>15.3f}{m['max_abs_error_um']:>13.3f}"
-                f"{m.get('uncompensated_rms_um', float('nan')):>13.3f}{m['rms_error_um']:>12.3f}"
-                f"{m['error_pct_of_peak']:>11.2f}{m['compensation_ratio']:>12.4f}")
+        row = [a, m["peak_um"], m["max_abs_error_um"], m.get("uncompensated_rms_um", float("nan")),
+               m["rms_error_um"], m["error_pct_of_peak"], m["compensation_ratio"]]
         if has_cov:
-            line += f"{m.get('pi95_coverage', float('nan')):>11.3f}"
+            row.append(m.get("pi95_coverage", float("nan")))
         if m.get("harm"):
-            line += "  WORSE than uncompensated"
-        lines.append(line)
+            row.append("WORSE than uncompensated")
+        rows.append(row)
+    lines = ([title] if title else []) + [f"n = {metrics['n_samples']}", format_table(cols, rows)]
     return "\n".join(lines)
 
 
@@ -132,9 +135,12 @@ def static_level_metrics(loads_N, reference_um, predicted_um, **plateau_options)
 
 
 def format_static_metrics(m: dict) -> str:
-    lines = [f"static load plateaus: {m['n_levels']} (means over each hold)",
-             f"{'axis':<5}{'max deflection µm':>19}{'max error µm':>14}{'% of deflection':>17}"]
-    for a, v in m["axes"].items():
-        lines.append(f"{a:<5}{v['max_plateau_deflection_um']:>19.3f}{v['max_plateau_error_um']:>14.3f}"
-                     f"{v['error_pct_of_deflection']:>17.2f}")
-    return "\n".join(lines)
+    """A readable table of :func:`static_level_metrics` output (:mod:`fbgcomp.tables`)."""
+    from .tables import Column, format_table, text
+
+    cols = [text("axis"), Column("max deflection", "µm"), Column("max error", "µm"),
+            Column("max error", "% of deflection", 2)]
+    rows = [[a, v["max_plateau_deflection_um"], v["max_plateau_error_um"],
+             v["error_pct_of_deflection"]] for a, v in m["axes"].items()]
+    return "\n".join([f"static load plateaus: {m['n_levels']} (means over each hold)",
+                      format_table(cols, rows)])
