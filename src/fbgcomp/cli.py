@@ -13,23 +13,23 @@ from pathlib import Path
 from typing import List, Optional
 
 import typer
-from tqdm import tqdm
-
+from . import progress
 from .errors import InputError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="fbgcomp: compensate machine-tool deformations from FBG sensors.")
 
 
-def _progress(iterable, desc):
-    # disable=None: bars only on a terminal, so logs and pipes stay clean.
-    return tqdm(iterable, desc=desc, unit="campaign", disable=None, leave=False, file=sys.stderr)
+@app.callback()
+def _options(quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress on stderr (also FBGCOMP_PROGRESS=0; FBGCOMP_PROGRESS=1 shows it even when stderr is not a terminal).")):
+    """fbgcomp: compensate machine-tool deformations from FBG sensors."""
+    progress.QUIET = quiet
 
 
-def _read_campaigns(paths):
+def _read_campaigns(paths, desc="reading campaigns"):
     from .campaign import read_campaign
 
-    return [read_campaign(p) for p in _progress(paths, "reading campaigns")]
+    return [read_campaign(p) for p in progress.track(paths, desc, unit="campaign")]
 
 
 @app.command()
@@ -99,18 +99,29 @@ def fit(campaigns: List[Path] = typer.Argument(..., help="Training campaign fold
 
     Without --model, --features or --stepwise: the physical model with the do-no-harm policy
     (docs/accuracy.md). --features/--stepwise give the paper's regression (Table 1)."""
-    from .models import MRAModel
-
     if model_type is None:
         model_type = "mra" if (features is not None or stepwise or dask is not None
                                or _any_dataset(campaigns)) else "physical"
     features = features or "eq13"
+    with progress.stages("fit", 3) as stage:
+        _fit(stage, campaigns, output, model_type, features, stepwise, direction, p_enter,
+             p_remove, max_terms, cov_type, hac_maxlags, roles, zero_window, fallbacks, dask,
+             machine)
+
+
+def _fit(stage, campaigns, output, model_type, features, stepwise, direction, p_enter, p_remove,
+         max_terms, cov_type, hac_maxlags, roles, zero_window, fallbacks, dask, machine):
+    from .models import MRAModel
+
     if model_type == "physical":
         from .physical import PhysicalModel
 
+        stage("reading campaigns")
         data = _read_campaigns(campaigns)
+        stage("fitting the physical model (twin scenarios, housing thermal, policy)")
         with _numeric_failures(campaigns):
             model = PhysicalModel(machine=machine, zero_window_s=zero_window).fit(data)
+        stage(f"writing {output}")
         model.save(output)   # only a model that loads back replaces an existing file
         typer.echo(model.summary())
         typer.echo(f"\nmodel {model.model_id} (physical) written to {output}")
@@ -118,12 +129,15 @@ def fit(campaigns: List[Path] = typer.Argument(..., help="Training campaign fold
     if model_type != "mra":
         from .model_types import fit_from_cli
 
+        stage("reading campaigns")
         data = _read_campaigns(campaigns)
+        stage(f"fitting the {model_type} model")
         with _numeric_failures(campaigns):
             model = fit_from_cli(model_type, data, machine=machine, features=features,
                                  stepwise=stepwise, direction=direction, p_enter=p_enter,
                                  p_remove=p_remove, max_terms=max_terms, roles=_parse_roles(roles),
                                  zero_window_s=zero_window, fallbacks=fallbacks)
+        stage(f"writing {output}")
         model.save(output)
         typer.echo(model.summary())
         typer.echo(f"\nmodel {model.model_id} ({model_type}) written to {output}")
@@ -151,11 +165,13 @@ def fit(campaigns: List[Path] = typer.Argument(..., help="Training campaign fold
     from .scale_cli import any_dataset
 
     scaled = dask is not None or any_dataset(campaigns)
+    stage("reading campaigns" if not scaled else "opening the datasets")
     data = None if scaled else _read_campaigns(campaigns)
     model = MRAModel(features=features, stepwise=stepwise, direction=direction, p_enter=p_enter,
                      p_remove=p_remove, max_terms=max_terms, roles=_parse_roles(roles),
                      zero_window_s=zero_window, fallbacks=fallbacks, cov_type=cov_type,
                      hac_maxlags=hac_maxlags)
+    stage(f"fitting the regression ({features}{', stepwise' if stepwise else ''}, per axis)")
     with _numeric_failures(campaigns):
         if scaled:
             from .distributed import fit_paths
@@ -163,6 +179,7 @@ def fit(campaigns: List[Path] = typer.Argument(..., help="Training campaign fold
             fit_paths(model, campaigns, dask=dask)
         else:
             model.fit(data)
+    stage(f"writing {output}")
     model.save(output)
     typer.echo(model.summary())
     typer.echo(f"\nmodel {model.model_id} written to {output}")
@@ -185,7 +202,7 @@ def validate(model_file: Path = typer.Argument(..., help="Model file (JSON)."),
 
     model = load_model(model_file)
     refs, preds, halves, per_campaign = [], [], [], {}
-    for c in _read_campaigns(campaigns):
+    for c in progress.track(_read_campaigns(campaigns), "validating", unit="campaign"):
         pred, half = model.predict_interval(c)
         ref = c.aligned(zero_window_s=model.zero_window_s).reference_um
         m = validation_metrics(ref, pred, half)
@@ -218,10 +235,14 @@ def simulate(machine: Optional[Path] = typer.Option(None, help="Machine descript
     from .campaign import write_campaign
     from .structure import load_machine
 
-    sc = load_scenario(scenario)
-    m = load_machine(machine)
-    campaign, _ = run(m, sc, seed=seed)
-    write_campaign(campaign, output)
+    with progress.stages("simulate", 3) as stage:
+        stage("reading the machine and scenario")
+        sc = load_scenario(scenario)
+        m = load_machine(machine)
+        stage("running the scenario on the FE twin (built or loaded from its cache)")
+        campaign, _ = run(m, sc, seed=seed)
+        stage(f"writing {output}")
+        write_campaign(campaign, output)
     typer.echo(f"campaign {sc.name} ({sc.duration_s() / 3600:.2f} h) written to {output}")
 
 
@@ -237,8 +258,12 @@ def fe_calibrate_cmd(machine: Optional[Path] = typer.Option(None, help="Machine 
 
     if features not in ("eq11", "eq12", "eq13"):
         raise InputError(f"unknown feature set {features!r}", file="<command line>", column="option --features")
-    model, _ = fe_calibrate(load_machine(machine), features=features, n_samples=samples, seed=seed)
-    model.save(output)
+    with progress.stages("fe-calibrate", 2) as stage:
+        stage("FE twin, load cases and fit")
+        model, _ = fe_calibrate(load_machine(machine), features=features, n_samples=samples,
+                                seed=seed)
+        stage(f"writing {output}")
+        model.save(output)
     typer.echo(model.summary())
     typer.echo(f"\nmodel {model.model_id} written to {output}")
 
@@ -251,7 +276,9 @@ def resolution(machine: Optional[Path] = typer.Option(None, help="Machine descri
     from .calibrate import format_resolution, resolution_report
     from .structure import load_machine
 
-    rep = resolution_report(load_machine(machine), wavelength_noise_nm=noise_pm * 1e-3)
+    with progress.stages("resolution", 1) as stage:
+        stage("FE twin and the sensor-to-TTP map")
+        rep = resolution_report(load_machine(machine), wavelength_noise_nm=noise_pm * 1e-3)
     typer.echo(json.dumps(rep, indent=1) if as_json else format_resolution(rep))
 
 
@@ -281,12 +308,19 @@ def compare(train: List[Path] = typer.Option(..., "--train", help="Training camp
             markdown: Optional[Path] = typer.Option(None, "--markdown", help="Also write the per-campaign tables as Markdown.")):
     """Every model type fitted on --train and judged on each --test campaign beside no compensation
     (rows marked WORSE where an axis ends worse than uncompensated), then pooled and ranked per axis."""
-    from .compare import compare as run, default_campaign_csv, format_comparison, write_comparison
+    from .compare import (ENTRIES, compare as run, default_campaign_csv, format_comparison,
+                          write_comparison)
 
-    result = run(_read_campaigns(train), _read_campaigns(test), machine=machine)
+    with progress.stages("compare", 2 + len(ENTRIES)) as stage:
+        stage("reading campaigns")
+        train_c = _read_campaigns(train, "reading training campaigns")
+        test_c = _read_campaigns(test, "reading held-out campaigns")
+        result = run(train_c, test_c, machine=machine,
+                     progress=lambda name: stage(f"fitting and judging {name}"))
+        stage("writing the tables")
+        campaign_csv = campaign_csv or default_campaign_csv(csv_out)
+        write_comparison(result, csv_out, json_out, campaign_csv, markdown)
     typer.echo(format_comparison(result))
-    campaign_csv = campaign_csv or default_campaign_csv(csv_out)
-    write_comparison(result, csv_out, json_out, campaign_csv, markdown)
     typer.echo(f"\ntables written to {csv_out}, {campaign_csv} and {json_out}"
                + (f" (Markdown: {markdown})" if markdown else ""))
 
@@ -321,8 +355,10 @@ def place(k: int = typer.Option(..., "--k", help="Number of sensor paths to choo
         grid = DEFAULT_PLACEMENT_GRID
         typer.echo(f"no --grid and no candidate paths in the machine description: searching the "
                    f"default grid '{grid}' beside the machine's own paths")
-    result = run(m, k, grid=parse_grid(grid) if grid else None, resolution=resolution,
-                 z_axis_mm=z_axis, dask=dask, wavelength_noise_nm=noise_pm * 1e-3)
+    with progress.stages("place", 1) as stage:
+        stage("FE twin, candidate paths and the search")
+        result = run(m, k, grid=parse_grid(grid) if grid else None, resolution=resolution,
+                     z_axis_mm=z_axis, dask=dask, wavelength_noise_nm=noise_pm * 1e-3)
     typer.echo(result.format())
     if json_out is not None:
         write_json(json_out, result.to_dict())
@@ -359,8 +395,11 @@ def plan(target_um: float = typer.Option(..., "--target-um", help="Target TTP ac
     grid = None if m.candidate_sensors else parse_grid(DEFAULT_PLACEMENT_GRID)
     typer.echo(f"plan: FE twin and load design of {machine or 'the built-in ram'} (cached after the "
                "first run) ...", err=True)
-    result = run(m, target_um, axes=chosen_axes, wavelength_noise_nm=noise_pm * 1e-3, grid=grid,
-                 extra_sensors=extra, machine_name=str(machine) if machine else "the built-in ram")
+    with progress.stages("plan", 1) as stage:
+        stage("FE twin, load design and the layouts")
+        result = run(m, target_um, axes=chosen_axes, wavelength_noise_nm=noise_pm * 1e-3,
+                     grid=grid, extra_sensors=extra,
+                     machine_name=str(machine) if machine else "the built-in ram")
     typer.echo(json.dumps(result.to_dict(), indent=1) if as_json else result.format())
 
 
