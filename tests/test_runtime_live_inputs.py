@@ -438,3 +438,27 @@ def test_linuxcnc_hal_pin_z_reaches_the_model(machine, tmp_path_factory):
     assert moved.sum() > 100
     np.testing.assert_allclose(dev[moved], at_z[moved], atol=1e-9)
     assert np.abs(at_z[moved] - at_home[moved]).max() > 0.05
+
+
+@pytest.mark.parametrize("toml,message", [
+    ('[temperatures.opcua]\nendpoint = "opc.tcp://127.0.0.1:9"\nnodes = { T_bulk = "ns=2;s=T" }\n',
+     "probe T_surf has no source"),
+    ('[temperatures.opcua]\nendpoint = "opc.tcp://127.0.0.1:9"\nnodes = { T_bulk = "ns=2;s=T" }\n'
+     '[temperatures.modbus]\nhost = "127.0.0.1"\nregisters = { T_bulk = { address = 1 } }\n',
+     "probe T_bulk has two live sources"),
+    ('[temperatures.modbus]\nhost = "127.0.0.1"\nregisters = { T_nope = { address = 1 } }\n',
+     "T_nope is not a probe"),
+    ('[temperatures.modbus]\nhost = "127.0.0.1"\n'
+     'registers = { T_bulk = { address = 1, type = "int8" } }\n', "type: expected one of"),
+    ('[position]\nsource = "linuxcnc"\n', "needs the LinuxCNC output"),
+])
+def test_bad_live_input_configuration_is_one_line(tmp_path_factory, toml, message):
+    fbgcomp_testing.require("asyncua")
+    model_path, campaign = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+    tmp = tmp_path_factory.mktemp("badcfg")
+    (tmp / "serve.toml").write_text(toml)
+    p = fbgcomp_process("serve", "--config", tmp / "serve.toml", "--model", model_path,
+                        "--source", "hyperion://127.0.0.1:9", "--opcua", "off", "--duration", "1")
+    _, err = p.communicate(timeout=60)
+    lines = err.decode().strip().splitlines()
+    assert p.returncode == 2 and lines[-1].startswith("error:") and message in lines[-1], lines
