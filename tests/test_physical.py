@@ -301,7 +301,7 @@ def test_the_vectorised_steady_stretches_equal_the_per_frame_recursion(twin_mode
 
 
 def test_first_order_closed_form_equals_the_recursion_across_stretches_and_gaps():
-    from fbgcomp.physical import _first_order
+    from fbgcomp.model_types import first_order_recursion as _first_order
 
     rng = np.random.default_rng(3)
     x = rng.uniform(0.0, 3.0, 2000)          # summed decay ~3000: five closed-form stretches
@@ -315,3 +315,20 @@ def test_first_order_closed_form_equals_the_recursion_across_stretches_and_gaps(
             ref.append(y)
         np.testing.assert_allclose(_first_order(x, u, [1.0, -2.0, 3.0], gain=gain), np.array(ref),
                                    rtol=0, atol=1e-11 * np.abs(u).max())   # rounding of the input scale
+
+
+def test_lowpass_on_a_jittered_clock_is_the_per_sample_recursion():
+    """first_order_filter on an epoch clock (float rounding jitters its 1 ms steps) takes the
+    closed form, not a per-sample loop: the same values as that loop."""
+    rng = np.random.default_rng(5)
+    t = 1.7e9 + np.arange(3000) * 1e-3
+    assert not np.allclose(np.diff(t)[1:], np.diff(t)[1])          # the jitter is real
+    x = rng.normal(size=(3000, 4))
+    y, state = lowpass(x, t, 0.5, state=(np.ones(4), t[0] - 1e-3))
+    ref, yp, tp = [], np.ones(4), t[0] - 1e-3
+    for ti, xi in zip(t, x):
+        e = np.exp(-max(ti - tp, 0.0) / 0.5)
+        yp, tp = e * yp + (1 - e) * xi, ti
+        ref.append(yp)
+    np.testing.assert_allclose(y, np.array(ref), rtol=0, atol=1e-11)
+    assert state[1] == t[-1]

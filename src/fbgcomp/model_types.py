@@ -367,6 +367,32 @@ def lowpass_name(tau_s: float, base: str) -> str:
     return f"lp{int(round(tau_s))}s_{base}"
 
 
+def first_order_recursion(x, u, y0, gain=True):
+    """First-order recursion over rows with a per-row decay ``c = exp(-x)`` (x >= 0, e.g. the
+    frame interval over a time constant): ``y_i = c_i y_{i-1} + (1 - c_i) u_i`` (``gain=False``:
+    ``+ u_i``), from ``y0``; (n, k) from (n, k) ``u``. Closed form per stretch whose summed
+    decay stays below e^-600 (so that no weight overflows); every weight is positive, so no
+    cancellation beyond the recursion's own."""
+    x = np.minimum(np.asarray(x, float), 600.0)       # exp(-600): no memory left either way
+    u = np.asarray(u, float)
+    w = -np.expm1(-x)[:, None] * u if gain else u
+    out = np.empty_like(w)
+    y_prev = np.asarray(y0, float)
+    L = np.cumsum(x)
+    start = 0
+    n = len(x)
+    while start < n:
+        base = L[start - 1] if start else 0.0
+        stop = int(np.searchsorted(L, base + 600.0, side="right"))
+        stop = min(max(stop, start + 1), n)
+        Ls = L[start:stop] - base                                 # >= 0, <= 600 (or one row)
+        acc = np.cumsum(np.exp(Ls)[:, None] * w[start:stop], axis=0)
+        out[start:stop] = np.exp(-Ls)[:, None] * (y_prev[None, :] + acc)
+        y_prev = out[stop - 1]
+        start = stop
+    return out
+
+
 def first_order_filter(x, time_s, tau_s, state=None, nominal_dt_s=1.0):
     """First-order low-pass ``tau dy/dt = x - y`` of the columns of x (n, m), exact when each
     input sample holds over the interval that ends at it; returns (y (n, m), state). ``state`` is ``(y_last (m,), t_last)`` or
@@ -399,11 +425,9 @@ def first_order_filter(x, time_s, tau_s, state=None, nominal_dt_s=1.0):
         else:
             y = y0[None, :]
     else:
-        y = np.empty_like(x)
-        for i in range(n):
-            e = np.exp(-max(dt[i], 0.0) / tau_s)
-            y_prev = e * y_prev + (1 - e) * x[i]
-            y[i] = y_prev
+        # uneven intervals (a clock's jitter, an epoch's float rounding): the same recursion
+        # with a decay per sample, in closed form
+        y = first_order_recursion(np.maximum(dt, 0.0) / tau_s, x, y_prev)
     return y, (y[-1].copy(), t_end)
 
 

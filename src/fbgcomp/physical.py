@@ -49,7 +49,7 @@ from .errors import InputError
 from .features import FeatureMap
 from .models import AXES, EstimatorParams, ModelFile, _as_campaign_list, check_compatible, register_model_type
 from . import policy as P
-from .model_types import first_order_filter
+from .model_types import first_order_filter, first_order_recursion as _first_order
 
 _FORCE_AXES = ("fx", "fy", "fz")
 #: Low-pass of the probe temperatures before the thermal regressors, s.
@@ -283,32 +283,6 @@ def excursion2(dT, scale_K, deadband_K=0.0):
     dT = np.atleast_2d(np.asarray(dT, float))
     dT = np.sign(dT) * np.maximum(np.abs(dT) - np.asarray(deadband_K, float), 0.0)
     return np.sum((dT / np.asarray(scale_K, float)) ** 2, axis=1)
-
-
-def _first_order(x, u, y0, gain=True):
-    """First-order recursion over rows with a per-row decay ``c = exp(-x)`` (x >= 0, e.g. the
-    frame interval over a time constant): ``y_i = c_i y_{i-1} + (1 - c_i) u_i`` (``gain=False``:
-    ``+ u_i``), from ``y0``; (n, k) from (n, k) ``u``. Closed form per stretch whose summed
-    decay stays below e^-600 (so that no weight overflows); every weight is positive, so no
-    cancellation beyond the recursion's own."""
-    x = np.minimum(np.asarray(x, float), 600.0)       # exp(-600): no memory left either way
-    u = np.asarray(u, float)
-    w = -np.expm1(-x)[:, None] * u if gain else u
-    out = np.empty_like(w)
-    y_prev = np.asarray(y0, float)
-    L = np.cumsum(x)
-    start = 0
-    n = len(x)
-    while start < n:
-        base = L[start - 1] if start else 0.0
-        stop = int(np.searchsorted(L, base + 600.0, side="right"))
-        stop = min(max(stop, start + 1), n)
-        Ls = L[start:stop] - base                                 # >= 0, <= 600 (or one row)
-        acc = np.cumsum(np.exp(Ls)[:, None] * w[start:stop], axis=0)
-        out[start:stop] = np.exp(-Ls)[:, None] * (y_prev[None, :] + acc)
-        y_prev = out[stop - 1]
-        start = stop
-    return out
 
 
 class PhysicalPredictor:
