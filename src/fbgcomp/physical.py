@@ -414,6 +414,15 @@ class PhysicalPredictor:
                 return True
         return False
 
+    def _quantile(self, kind, q, dof=None):
+        """scipy.stats quantiles the load tracker asks for on every batch, each computed once
+        (``chi2``: the ``q`` quantile with ``dof``; ``isf``: the normal's upper ``q``)."""
+        cache = self.__dict__.setdefault("_quantiles", {})
+        key = (kind, float(q), dof)
+        if key not in cache:
+            cache[key] = float(stats.chi2.ppf(q, dof) if kind == "chi2" else stats.norm.isf(q))
+        return cache[key]
+
     #: Run stretches without a load transition vectorised (:meth:`_steady_run`); False runs
     #: every frame through the per-frame recursion (the reference the fast path is tested on).
     steady_fast_path = True
@@ -505,10 +514,11 @@ class PhysicalPredictor:
         settle = np.array(state.get("settle", np.zeros(3)), float)   # s left of a load transition
         refused = np.zeros(n, bool)
         act = self.active
-        chi2_limit = stats.chi2.ppf(1 - self.p_contra, max(self.dof, 1))
+        chi2_limit = self._quantile("chi2", 1 - self.p_contra, max(self.dof, 1))
         k = self.k_sigma
-        look_s = np.maximum(dt, 2.0 * LOAD_FAST_S)
-        k_start = np.maximum(k, stats.norm.isf(0.5 * LOAD_FALSE_STARTS_PER_H * look_s / 3600.0))
+        look_s, at = np.unique(np.maximum(dt, 2.0 * LOAD_FAST_S), return_inverse=True)
+        k_start = np.maximum(k, np.array([self._quantile("isf", 0.5 * LOAD_FALSE_STARTS_PER_H * s / 3600.0)
+                                          for s in look_s])[at.ravel()] if n else np.zeros(0))
         i, slow_until = -1, 0
         while i + 1 < n:
             i += 1
