@@ -179,9 +179,10 @@ class AxisFit:
 
     def table(self) -> str:
         """Paper Table 1 style coefficient table."""
-        lines = [f"{'term':<22}{'estimate':>13}{'std err':>12}{'t':>9}{'P>|t|':>9}"]
+        # one space at least between columns, whatever the width a number takes
+        lines = [f"{'term':<22} {'estimate':>12} {'std err':>11} {'t':>8} {'P>|t|':>9}"]
         for name, p, se, t, pv in zip(self.terms, self.params, self.bse, self.tvalues, self.pvalues):
-            lines.append(f"{name:<22}{p:>13.5g}{se:>12.4g}{t:>9.2f}{pv:>9.3g}")
+            lines.append(f"{name:<22} {p:>12.5g} {se:>11.4g} {t:>8.2f} {pv:>9.3g}")
         lines.append(f"n = {self.nobs}, R² = {self.rsquared:.5f}, adj. R² = {self.rsquared_adj:.5f}, "
                      f"residual SD = {self.resid_sd:.4g} µm, "
                      f"{'Wald F (HAC)' if self.cov_type == 'HAC' else 'F'} = {self.fvalue:.4g} "
