@@ -202,12 +202,7 @@ class SimulatedHyperion:
         self._task = asyncio.create_task(self._stream_loop())
 
     async def stop(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
-            try:
-                await self._task
-            except (asyncio.CancelledError, Exception):
-                pass
+        await _cancel(self._task)
         self._close_clients()
         for s in self._servers:
             s.close()
@@ -496,15 +491,21 @@ class OpcUaTemperatureServer:
             await asyncio.sleep(self.period_s)
 
     async def stop(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
-            try:
-                await self._task
-            except (asyncio.CancelledError, Exception):
-                pass
+        await _cancel(self._task)
         if self.server is not None:
             await self.server.stop()
             self.server = None
+
+
+async def _cancel(task) -> None:
+    """Cancel a background task (None: nothing) and wait until it has ended, whatever it raises."""
+    if task is None:
+        return
+    task.cancel()
+    try:
+        await task
+    except (asyncio.CancelledError, Exception):
+        pass
 
 
 async def run_simulator(table: SignalTable, config: SimConfig, host: str, command_port: int,
