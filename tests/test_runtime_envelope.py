@@ -4,20 +4,14 @@ grating, an absurd model and a reconnect, each fed as real frames to a real pipe
 import numpy as np
 import pytest
 
-from fbgcomp.campaign import read_campaign
-from fbgcomp.models import load_model
 from fbgcomp.runtime import health as H
 from fbgcomp.runtime.pipeline import HEALTH_ALARM, HEALTH_OK, Pipeline, PipelineConfig
-from test_runtime_support import model_and_campaign, run_in_batches
+from test_runtime_support import model_and_arrays, run_in_batches
 
 
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
-    model_path, campaign_path = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
-    model = load_model(model_path)
-    aligned = read_campaign(campaign_path).aligned(zero_window_s=model.zero_window_s)
-    w, t, _, _ = model.instrument_arrays(aligned)
-    return model, aligned.time_s, w, t
+    return model_and_arrays(tmp_path_factory.getbasetemp() / "runtime")
 
 
 @pytest.mark.parametrize("sizes", [[1], [10], [10_000]])

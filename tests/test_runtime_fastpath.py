@@ -6,11 +6,9 @@ channel, missing probes, the envelope and the rate limit - and the same whatever
 import numpy as np
 import pytest
 
-from fbgcomp.campaign import read_campaign
-from fbgcomp.models import load_model
 from fbgcomp.runtime import health as H
 from fbgcomp.runtime.pipeline import Pipeline, PipelineConfig
-from test_runtime_support import model_and_campaign, run_in_batches
+from test_runtime_support import model_and_arrays, run_in_batches
 
 FIELDS = ("deviation_um", "half_width_um", "correction_um", "health", "sensor_status",
           "model_set", "expected_rms_um", "output_flags")
@@ -25,14 +23,11 @@ class GeneralOnly(Pipeline):
 
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
-    model_path, campaign_path = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
-    model = load_model(model_path)
-    aligned = read_campaign(campaign_path).aligned(zero_window_s=model.zero_window_s)
-    w, t, _, _ = model.instrument_arrays(aligned)
+    model, time_s, w, t = model_and_arrays(tmp_path_factory.getbasetemp() / "runtime")
     rng = np.random.default_rng(4)
     # noise of a live grating (a noise-free replay repeats values: the stuck check's case)
     w = w + 3e-4 * rng.standard_normal(w.shape)
-    return model, aligned.time_s, w, t
+    return model, time_s, w, t
 
 
 def _faulted(model, time_s, w, t):

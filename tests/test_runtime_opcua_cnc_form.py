@@ -14,7 +14,7 @@ import pytest
 import fbgcomp_testing
 from test_runtime_modbus import ENV, _decoded, _regs
 from test_runtime_opcua import TRUSTED, server_factory, trusted_client  # noqa: F401 (fixture)
-from test_runtime_support import free_port, model_and_campaign, serve_with_simulator
+from test_runtime_support import free_port, model_and_campaign, modbus_serve_config, serve_with_simulator
 
 NAMES = [f"Offset{a}_um" for a in "XYZ"] + [f"Slope{a}_um_per_m" for a in "XYZ"] + ["ZRef_mm"]
 
@@ -157,11 +157,7 @@ def served_both(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("opcua_modbus")
     port = free_port()
     rate = 2.0
-    config = ("[source]\nbackoff_initial_s = 0.05\nbackoff_max_s = 0.4\nno_data_s = 0.2\n\n"
-              "[pipeline]\nramp_s = 0.5\nmax_slew_um_per_s = 0\nmax_correction_um = [0, 0, 0]\n"
-              "[pipeline.output_filter]\nenabled = false\n\n"
-              f'[modbus]\nlisten = "127.0.0.1:{port}"\nunit_id = 1\n'
-              f"offset_rate_um_per_s = {rate}\nmax_offset_um = 1000\n")
+    config = modbus_serve_config(port, rate)
     polls = []
     with serve_with_simulator(tmp, config, model_path, campaign, ENV,
                               ("--rate", 1000, "--speed", 30)) as run:

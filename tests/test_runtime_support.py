@@ -36,6 +36,19 @@ def model_and_campaign(base: Path) -> tuple[Path, Path]:
     return _CACHE["paths"]
 
 
+def model_and_arrays(base: Path):
+    """The shared test model (loaded from its file) and its campaign's aligned time (s),
+    wavelengths (nm) and temperatures (°C) in the model's order."""
+    from fbgcomp.campaign import read_campaign
+    from fbgcomp.models import load_model
+
+    model_path, campaign_path = model_and_campaign(base)
+    model = load_model(model_path)
+    aligned = read_campaign(campaign_path).aligned(zero_window_s=model.zero_window_s)
+    w, t, _, _ = model.instrument_arrays(aligned)
+    return model, aligned.time_s, w, t
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -151,6 +164,17 @@ async def watch_outputs(url: str, state: Path, trust_dir: Path, env: dict, names
         while time.monotonic() < end and not stop_when(seen):
             await asyncio.sleep(0.05)
     return seen
+
+
+def modbus_serve_config(port: int, offset_rate_um_per_s: float) -> str:
+    """serve TOML for the Modbus output tests: fast reconnects, the pipeline's own policy off
+    (the model's correction as is), the [modbus] output on 127.0.0.1:``port`` with its offset
+    rate limit."""
+    return ("[source]\nbackoff_initial_s = 0.05\nbackoff_max_s = 0.4\nno_data_s = 0.2\n\n"
+            "[pipeline]\nramp_s = 0.5\nmax_slew_um_per_s = 0\nmax_correction_um = [0, 0, 0]\n"
+            "[pipeline.output_filter]\nenabled = false\n\n"
+            f'[modbus]\nlisten = "127.0.0.1:{port}"\nunit_id = 1\n'
+            f"offset_rate_um_per_s = {offset_rate_um_per_s}\nmax_offset_um = 1000\n")
 
 
 @contextmanager
