@@ -61,9 +61,9 @@ def fbgcomp_fit(campaigns, out: Path, *extra) -> None:
 
 def figures(model_path: Path, held: dict) -> dict:
     """Per held-out campaign: per axis peak, max |error|, RMS, coverage, harm; plateau errors."""
-    from fbgcomp.campaign import read_campaign
-    from fbgcomp.demo import judge
-    from fbgcomp.models import load_model
+    from fbgcomp.io.campaign import read_campaign
+    from fbgcomp.cli.demo import judge
+    from fbgcomp.models.base import load_model
 
     model = load_model(model_path)
     out = {}
@@ -147,8 +147,8 @@ def print_table(title: str, rows: list) -> None:
 
 def twin_campaigns(work: Path, seed: int) -> dict:
     """The built-in machine's campaigns as fbgcomp demo makes them (one twin, seed 0, full length)."""
-    from fbgcomp.bench import load_scenario, simulate
-    from fbgcomp.campaign import write_campaign
+    from fbgcomp.bench.virtual import load_scenario, simulate
+    from fbgcomp.io.campaign import write_campaign
     from fbgcomp.structure import Twin, load_machine
 
     machine = load_machine()
@@ -168,7 +168,7 @@ def main(argv=None) -> int:
     ap.add_argument("--no-twin", action="store_true", help="ram2 only")
     args = ap.parse_args(argv)
 
-    from fbgcomp.demo import RAM2_MACHINE, find_ram2
+    from fbgcomp.cli.demo import RAM2_MACHINE, find_ram2
 
     tmp = None if args.work else tempfile.TemporaryDirectory(prefix="bench-accuracy-")
     work = Path(args.work or tmp.name)

@@ -3,7 +3,7 @@
 A 36 h campaign (default 10^7 samples) of 5 FBG elongations (µm) and 3 temperature changes (°C)
 is generated chunk by chunk, expanded into the paper's eq. 12 quadratic design (intercept, 5
 elongations, 3 temperatures, 3 squares, 3 pairwise products: 15 columns) and accumulated with
-the TTP deviations dx, dy, dz (µm) in one :class:`fbgcomp.regression.QRAccumulator`; then all
+the TTP deviations dx, dy, dz (µm) in one :class:`fbgcomp.models.regression.QRAccumulator`; then all
 three axes are fitted from the factor. The whole campaign is never in memory, so peak RSS must
 not grow with ``--rows``.
 
@@ -30,7 +30,7 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from fbgcomp.regression import QRAccumulator, ols_from_factor  # noqa: E402
+from fbgcomp.models.regression import QRAccumulator, ols_from_factor  # noqa: E402
 
 SENSORS = ["S1", "S2", "S3", "S4", "S5"]
 PROBES = ["T_bulk", "T_surf", "T_flange"]

@@ -32,10 +32,10 @@ from _loopback import busy_processes, git_commit, realtime_settings
 
 
 def _models():
-    from fbgcomp.bench import load_scenario, simulate
-    from fbgcomp.model_types import CalibratedModel, DynamicModel, HybridModel, KinematicModel
-    from fbgcomp.models import MRAModel
-    from fbgcomp.physical import PhysicalModel
+    from fbgcomp.bench.virtual import load_scenario, simulate
+    from fbgcomp.models.model_types import CalibratedModel, DynamicModel, HybridModel, KinematicModel
+    from fbgcomp.models.base import MRAModel
+    from fbgcomp.models.physical import PhysicalModel
     from fbgcomp.structure import Twin, load_machine
 
     machine = load_machine()

@@ -20,10 +20,11 @@ import time
 
 import numpy as np
 
-from fbgcomp import bench, optics
-from fbgcomp.bench import load_scenario
-from fbgcomp.campaign import Campaign
-from fbgcomp.models import MRAModel
+from fbgcomp import optics
+from fbgcomp.bench import virtual as bench
+from fbgcomp.bench.virtual import load_scenario
+from fbgcomp.io.campaign import Campaign
+from fbgcomp.models.base import MRAModel
 from fbgcomp.structure import Twin, load_machine
 
 

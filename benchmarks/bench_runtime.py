@@ -43,9 +43,9 @@ from _loopback import busy_processes, free_port, git_commit, wait_port
 
 
 def _five_sensor_model(tmp: Path):
-    from fbgcomp.campaign import write_campaign
-    from fbgcomp.models import MRAModel
-    from fbgcomp.synthetic import linear_truth_campaign
+    from fbgcomp.io.campaign import write_campaign
+    from fbgcomp.models.base import MRAModel
+    from fbgcomp.bench.synthetic import linear_truth_campaign
 
     train, _ = linear_truth_campaign("train", seed=1, duration_s=2 * 3600)
     model = MRAModel(features="eq13", zero_window_s=0.5, fallbacks="loo").fit(train)
@@ -57,8 +57,8 @@ def _five_sensor_model(tmp: Path):
 def _many_sensor_model(tmp: Path, n_sensors=64, channels=4):
     """A 64-grating ram (16 per fibre on 4 channels), eq. 11 model (elongations only)."""
     from fbgcomp import optics
-    from fbgcomp.campaign import Campaign
-    from fbgcomp.models import MRAModel
+    from fbgcomp.io.campaign import Campaign
+    from fbgcomp.models.base import MRAModel
 
     rng = np.random.default_rng(3)
     per = n_sensors // channels
@@ -91,7 +91,7 @@ class CoreRun:
     frame reaches the model."""
 
     def __init__(self, model_path, table, n_frames: int, batch: int, rate_hz=5000.0):
-        from fbgcomp.models import load_model
+        from fbgcomp.models.base import load_model
         from fbgcomp.runtime.pipeline import Pipeline
         from fbgcomp.runtime.simulator import SimConfig, SimulatedHyperion
         from fbgcomp.runtime.sources import NoTemperatures, PeakMapper, TableTemperatures
@@ -139,7 +139,7 @@ class CoreRun:
         but arrays between batches: structured-dtype decode, window search, the finite / one
         peak / jump checks, the model's base features, design, deviation and interval, and the
         correction's bound and rate-limit test. The fair baseline of the core."""
-        from fbgcomp.features import parse_term
+        from fbgcomp.models.features import parse_term
         from fbgcomp.runtime.hyperion import HEADER_SIZE, _frame_dtype
 
         pipe = self.Pipeline(self.model)

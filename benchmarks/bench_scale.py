@@ -5,8 +5,8 @@ For each row count (default 10^7 and 10^8) the rows are cut into partitions of
 consumes it*, chunk by chunk (``--chunk-rows``): raw interrogator wavelengths (nm, from known
 elongations through the bonded-FBG forward model, paper eq. 2-4), probe temperatures (°C) and a
 TTP deviation (µm) that is a known eq. 13 combination plus noise. The task runs the production
-feature chain (:meth:`fbgcomp.models.MRAModel.design_from_arrays`) into a QR factor; factors are
-merged as a binary tree by :func:`fbgcomp.distributed.tree_reduce` (on the workers with Dask),
+feature chain (:meth:`fbgcomp.models.base.MRAModel.design_from_arrays`) into a QR factor; factors are
+merged as a binary tree by :func:`fbgcomp.io.distributed.tree_reduce` (on the workers with Dask),
 and the eq. 13 stepwise model is selected from the final factor. No process ever holds more
 than one chunk of rows, so the memory of a worker must stay flat as rows grow.
 
@@ -44,14 +44,14 @@ NOISE_UM = 0.3
 
 
 def _sensors():
-    from fbgcomp.campaign import CampaignMeta
-    from fbgcomp.synthetic import default_meta
+    from fbgcomp.io.campaign import CampaignMeta
+    from fbgcomp.bench.synthetic import default_meta
 
     return list(CampaignMeta(**default_meta()).sensors)
 
 
 def _model():
-    from fbgcomp.models import MRAModel
+    from fbgcomp.models.base import MRAModel
 
     model = MRAModel(features="eq13", stepwise=True, fallbacks="loo")
     model.new_accumulator(_sensors())
@@ -61,7 +61,7 @@ def _model():
 def synthetic_partition(task: dict) -> dict:
     """One task: generate partition ``task['index']`` chunk by chunk and accumulate it."""
     from fbgcomp import optics
-    from fbgcomp.synthetic import default_coefficients
+    from fbgcomp.bench.synthetic import default_coefficients
 
     model = _model()
     acc = model.new_accumulator(model.sensors_)
@@ -94,7 +94,7 @@ def synthetic_partition(task: dict) -> dict:
 
 
 def merge_states(a: dict, b: dict) -> dict:
-    from fbgcomp.regression import QRAccumulator
+    from fbgcomp.models.regression import QRAccumulator
 
     return QRAccumulator.from_dict(a).merge(QRAccumulator.from_dict(b)).to_dict()
 
@@ -123,7 +123,7 @@ def current_rss_mb() -> float:
 
 
 def fit_from_state(state: dict):
-    from fbgcomp.regression import QRAccumulator
+    from fbgcomp.models.regression import QRAccumulator
 
     model = _model()
     t0 = time.perf_counter()
@@ -133,7 +133,7 @@ def fit_from_state(state: dict):
 
 def in_process_run(rows: int, partition_rows: int, chunk_rows: int) -> dict:
     """Runs in a fresh child process so that its peak RSS is this run's alone."""
-    from fbgcomp.distributed import tree_reduce
+    from fbgcomp.io.distributed import tree_reduce
 
     idle = current_rss_mb()
     t0, c0 = time.perf_counter(), cpu_s()
@@ -147,7 +147,7 @@ def in_process_run(rows: int, partition_rows: int, chunk_rows: int) -> dict:
 def dask_run(rows: int, partition_rows: int, chunk_rows: int, workers: int) -> dict:
     from distributed import Client
 
-    from fbgcomp.distributed import local_cluster, tree_reduce
+    from fbgcomp.io.distributed import local_cluster, tree_reduce
 
     with local_cluster(workers, memory_limit=0) as lc, Client(lc) as client:
         idle = client.run(current_rss_mb)

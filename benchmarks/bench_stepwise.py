@@ -5,8 +5,8 @@ Design: N rows (default 10^6, then 10^5) of 5 FBG elongations (µm) and 3 temper
 constant (always in the model). The TTP deviation (µm) is a known combination of 10 of the terms
 plus noise.
 
-* fbgcomp: accumulate the factor once (:class:`fbgcomp.regression.QRAccumulator`, 100 000-row
-  chunks, as a stream would arrive), then :func:`fbgcomp.regression.stepwise` (direction
+* fbgcomp: accumulate the factor once (:class:`fbgcomp.models.regression.QRAccumulator`, 100 000-row
+  chunks, as a stream would arrive), then :func:`fbgcomp.models.regression.stepwise` (direction
   "both", naive partial F tests), which never touches the rows again. The timing includes the
   accumulation.
 * the Gram/Cholesky recipe (the fair baseline, issue 16): form X'X, X'y and y'y once, then take
@@ -49,8 +49,8 @@ from itertools import combinations_with_replacement  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from fbgcomp.features import design_matrix, term_name  # noqa: E402
-from fbgcomp.regression import QRAccumulator, stepwise  # noqa: E402
+from fbgcomp.models.features import design_matrix, term_name  # noqa: E402
+from fbgcomp.models.regression import QRAccumulator, stepwise  # noqa: E402
 
 BASE = [f"dL_S{i}" for i in range(1, 6)] + ["dT_bulk", "dT_surf", "dT_flange"]
 TRUTH = {"const": 0.3, "dL_S1": 0.40, "dL_S2": -0.35, "dL_S4": 0.25, "dT_bulk": 1.5,
@@ -88,7 +88,7 @@ def fbgcomp_stepwise(X, y, names, p_enter, p_remove):
 
 
 def _search(n_cand, p_enter, p_remove, df_of, fit):
-    """The stepwise rules of fbgcomp.regression.stepwise (direction "both", constant forced):
+    """The stepwise rules of fbgcomp.models.regression.stepwise (direction "both", constant forced):
     enter the candidate of largest partial F while p < p_enter, after each entry remove the term
     of smallest partial F while p > p_remove, never revisit a model. ``fit(cols)`` returns
     (ssr, params) or None when the sub-model is (numerically) singular."""
@@ -274,9 +274,9 @@ def ram2_before_after(root: str) -> int:
     """Naive vs HAC stepwise of the paper's MRA model on ram2: one table per inference."""
     from pathlib import Path
 
-    from fbgcomp.campaign import read_campaign
-    from fbgcomp.metrics import validation_metrics
-    from fbgcomp.models import AXES, MRAModel
+    from fbgcomp.io.campaign import read_campaign
+    from fbgcomp.models.metrics import validation_metrics
+    from fbgcomp.models.base import AXES, MRAModel
 
     root = Path(root)
     train = [read_campaign(root / "thermal_a"), read_campaign(root / "static_xyz")]

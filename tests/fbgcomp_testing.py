@@ -42,7 +42,7 @@ RAM2_DIR = Path(__file__).resolve().parents[2] / "shared" / "reference" / "ram2"
 def read_ram2(*names: str) -> dict:
     """ram2's campaigns by name, read from ``RAM2_DIR/data``; fails (never skips) when the data
     set is missing, because the project's accuracy is judged on it."""
-    from fbgcomp.campaign import read_campaign
+    from fbgcomp.io.campaign import read_campaign
 
     data = RAM2_DIR / "data"
     if not data.is_dir():

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 
 from fbgcomp import optics
-from fbgcomp.bench import load_scenario, simulate, true_response
-from fbgcomp.calibrate import fe_calibrate, resolution_report
-from fbgcomp.campaign import read_campaign, write_campaign
+from fbgcomp.bench.virtual import load_scenario, simulate, true_response
+from fbgcomp.models.fe_calibrated import fe_calibrate, resolution_report
+from fbgcomp.io.campaign import read_campaign, write_campaign
 from fbgcomp.errors import InputError
-from fbgcomp.metrics import validation_metrics
+from fbgcomp.models.metrics import validation_metrics
 from fbgcomp.structure import Twin, load_machine
 
 COARSE = 0.4
@@ -161,7 +161,7 @@ def test_the_scenario_example_in_the_docs_runs(machine, twin):
 
     import yaml
 
-    from fbgcomp.bench import Scenario
+    from fbgcomp.bench.virtual import Scenario
 
     text = (Path(__file__).parent.parent / "docs" / "bench.md").read_text(encoding="utf-8")
     example = yaml.safe_load(re.search(r"```yaml\n(.*?)```", text, re.S).group(1))

@@ -26,9 +26,9 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 from unittest import mock
 
-import fbgcomp.campaign as campaign_module
+import fbgcomp.io.campaign as campaign_module
 
-from fbgcomp.campaign import (AlignedCampaign, Campaign, CampaignMeta, SensorSpec, read_campaign,
+from fbgcomp.io.campaign import (AlignedCampaign, Campaign, CampaignMeta, SensorSpec, read_campaign,
                               write_campaign)
 from fbgcomp.errors import InputError
 
@@ -843,7 +843,7 @@ def test_sensor_spec_defaults():
 
 
 def test_fast_instrument_is_averaged_onto_the_reference_clock_exactly_for_linear_signals():
-    from fbgcomp.synthetic import linear_truth_campaign
+    from fbgcomp.bench.synthetic import linear_truth_campaign
 
     # 10 Hz interrogator, 1 Hz interferometer: linear-in-time wavelengths come through exactly,
     # white noise drops by ~sqrt(10) compared with point interpolation.

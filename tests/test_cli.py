@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from fbgcomp.campaign import write_campaign
-from fbgcomp.cli import main
-from fbgcomp.synthetic import linear_truth_campaign
+from fbgcomp.io.campaign import write_campaign
+from fbgcomp.cli.app import main
+from fbgcomp.bench.synthetic import linear_truth_campaign
 
 FBGCOMP = [sys.executable, "-m", "fbgcomp"]
 
@@ -159,7 +159,7 @@ def _one_line_error(r, *fragments):
 
 @pytest.fixture(scope="module")
 def mra_model(campaigns, tmp_path_factory):
-    from fbgcomp.models import MRAModel
+    from fbgcomp.models.base import MRAModel
 
     path = tmp_path_factory.mktemp("model") / "mra.json"
     MRAModel(features="eq13", fallbacks="loo").fit(campaigns[0]).save(path)

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from fbgcomp_testing import RAM2_DIR, read_ram2
 
-from fbgcomp.compare import format_campaign_tables
-from fbgcomp.metrics import HARM_TOLERANCE_UM
-from fbgcomp.models import MRAModel
+from fbgcomp.models.compare import format_campaign_tables
+from fbgcomp.models.metrics import HARM_TOLERANCE_UM
+from fbgcomp.models.base import MRAModel
 
 REPO = Path(__file__).resolve().parents[1]
 RAM2 = RAM2_DIR / "data"
@@ -110,8 +110,9 @@ def test_compare_bad_machine_is_one_line(tmp_path):
 def test_demo_fits_what_fbgcomp_fit_fits(monkeypatch, tmp_path, ram2):
     """The demo's ram2 model is `fbgcomp fit CAMPAIGNS --machine M` with no other flag: the same
     estimator with the same parameters on the same campaigns (checked without fitting twice)."""
-    from fbgcomp import cli, demo
-    from fbgcomp.physical import PhysicalModel
+    from fbgcomp.cli import app as cli
+    from fbgcomp.cli import demo
+    from fbgcomp.models.physical import PhysicalModel
 
     seen = []
 
@@ -133,7 +134,7 @@ def test_demo_fits_what_fbgcomp_fit_fits(monkeypatch, tmp_path, ram2):
 
 
 def test_demo_ram2_section(tmp_path):
-    from fbgcomp.demo import RAM2_HELD_OUT, _summary_text, run_ram2
+    from fbgcomp.cli.demo import RAM2_HELD_OUT, _summary_text, run_ram2
 
     got = run_ram2(RAM2.parent, tmp_path)
     assert "skipped" not in got and set(got["validation"]) == set(RAM2_HELD_OUT)

@@ -107,7 +107,7 @@ def _get(url):
 def drift(tmp_path_factory):
     fbgcomp_testing.require("pyarrow")
     from fbgcomp.dashboard import Dashboard, DashboardConfig
-    from fbgcomp.runtime.opcua import Snapshot
+    from fbgcomp.runtime.outputs.opcua import Snapshot
 
     folder = tmp_path_factory.mktemp("drift") / "log"
     end_s = time.time()

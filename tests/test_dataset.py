@@ -9,16 +9,16 @@ import pandas as pd
 import pytest
 import yaml
 
-from fbgcomp.campaign import read_campaign, write_campaign
-from fbgcomp.dataset import (INDEX_FILE, METADATA_KEY, accumulate_partition_file, ingest,
+from fbgcomp.io.campaign import read_campaign, write_campaign
+from fbgcomp.io.dataset import (INDEX_FILE, METADATA_KEY, accumulate_partition_file, ingest,
                              is_dataset, open_dataset)
 from fbgcomp.errors import InputError
-from fbgcomp.models import MRAModel
-from fbgcomp.synthetic import linear_truth_campaign
+from fbgcomp.models.base import MRAModel
+from fbgcomp.bench.synthetic import linear_truth_campaign
 
 from fbgcomp_testing import require
 
-SCALE_CLI = [sys.executable, "-m", "fbgcomp.scale_cli"]
+SCALE_CLI = [sys.executable, "-m", "fbgcomp.cli.scale"]
 
 
 def run(*args):
@@ -189,7 +189,7 @@ def test_partition_stream_accumulates_the_same_factor_as_the_campaign_fit(campai
 
 
 def test_zero_window_must_match_the_ingested_one(campaigns, tmp_path):
-    from fbgcomp.distributed import fit_paths
+    from fbgcomp.io.distributed import fit_paths
 
     pa_, _ = campaigns
     ds = tmp_path / "ds"

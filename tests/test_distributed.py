@@ -7,12 +7,12 @@ import sys
 import numpy as np
 import pytest
 
-from fbgcomp.campaign import read_campaign, write_campaign
-from fbgcomp.dataset import ingest
-from fbgcomp.distributed import accumulate_paths, fit_paths, map_over_cluster
+from fbgcomp.io.campaign import read_campaign, write_campaign
+from fbgcomp.io.dataset import ingest
+from fbgcomp.io.distributed import accumulate_paths, fit_paths, map_over_cluster
 from fbgcomp.errors import InputError
-from fbgcomp.models import AXES, MRAModel
-from fbgcomp.synthetic import linear_truth_campaign
+from fbgcomp.models.base import AXES, MRAModel
+from fbgcomp.bench.synthetic import linear_truth_campaign
 from fbgcomp_testing import require
 
 FBGCOMP = [sys.executable, "-m", "fbgcomp"]
@@ -23,7 +23,7 @@ def client():
     """A real LocalCluster: two single-threaded worker processes."""
     distributed = require("distributed")
     require("pyarrow")
-    from fbgcomp.distributed import local_cluster
+    from fbgcomp.io.distributed import local_cluster
 
     with local_cluster(2) as lc, distributed.Client(lc) as c:
         yield c

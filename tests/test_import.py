@@ -18,8 +18,8 @@ import openpyxl
 import pytest
 import yaml
 
-from fbgcomp.campaign import read_campaign
-from fbgcomp.vendor_import import PRESETS
+from fbgcomp.io.campaign import read_campaign
+from fbgcomp.io.vendor_import import PRESETS
 
 DATA = Path(__file__).parent / "data" / "import"
 FBGCOMP = [sys.executable, "-m", "fbgcomp"]

@@ -1,7 +1,7 @@
 """fbgcomp -> LinuxCNC external axis offsets, with a real (simulated, headless) LinuxCNC.
 
 The machine is examples/linuxcnc (3-axis mill, trivkins, POSIX non-realtime) started by
-``fbgcomp.cnc_demo.LinuxCncMachine`` as an unprivileged user; the fbgcomp side is the real
+``fbgcomp.cli.cnc_demo.LinuxCncMachine`` as an unprivileged user; the fbgcomp side is the real
 ``LinuxCncOutput`` or a real ``fbgcomp serve --cnc linuxcnc`` process. Positions are LinuxCNC's
 own (``linuxcnc.stat().actual_position``), read by the machine's headless display.
 """
@@ -16,7 +16,7 @@ import pytest
 import fbgcomp_testing
 from fbgcomp.cnc.fbgcomp_hal import (FLAG_ALARM, FLAG_ENABLED, FLAG_STALE, PACKET, Receiver,
                                      decode_packet, encode_packet, limit_step, target_for)
-from fbgcomp.runtime.linuxcnc import CncConfig, LinuxCncOutput
+from fbgcomp.runtime.outputs.linuxcnc import CncConfig, LinuxCncOutput
 
 COUNT_MM = 0.0001          # one eoffset count of the example machine (0.1 µm)
 
@@ -129,7 +129,7 @@ def test_serve_rejects_unknown_cnc_output(tmp_path):
 @pytest.fixture
 def machine(request):
     fbgcomp_testing.require_program("linuxcnc")
-    from fbgcomp.cnc_demo import LinuxCncMachine
+    from fbgcomp.cli.cnc_demo import LinuxCncMachine
     settings = getattr(request, "param", {}) or {}
     m = LinuxCncMachine(fbgcomp=settings)
     m.start()
@@ -325,7 +325,7 @@ def test_cnc_demo_compensates_a_program_and_stops_everything(tmp_path):
     fbgcomp_testing.require_program("linuxcnc")
     fbgcomp_testing.require("asyncua")
     from test_runtime_support import model_and_campaign
-    from fbgcomp.cnc_demo import CNC_USER, run_demo
+    from fbgcomp.cli.cnc_demo import CNC_USER, run_demo
     model, campaign = model_and_campaign(tmp_path.parent / "cnc-shared")
     prog = tmp_path / "short.ngc"
     # a dwell first: the output filter averages the first seconds while it learns the noise

@@ -18,8 +18,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from fbgcomp.errors import InputError
-from fbgcomp.models import MAX_MODEL_BYTES, MRAModel, load_model
-from fbgcomp.synthetic import linear_truth_campaign
+from fbgcomp.models.base import MAX_MODEL_BYTES, MRAModel, load_model
+from fbgcomp.bench.synthetic import linear_truth_campaign
 
 _CACHE: dict = {}
 
@@ -36,7 +36,7 @@ def _mra_dict() -> dict:
 
 def _kinematic_dict() -> dict:
     if "kinematic" not in _CACHE:
-        from fbgcomp.model_types import KinematicModel
+        from fbgcomp.models.model_types import KinematicModel
 
         with tempfile.TemporaryDirectory() as tmp:
             path = KinematicModel().fit().save(Path(tmp) / "k.json")
@@ -180,7 +180,7 @@ def test_a_physical_model_with_an_absurd_coefficient_is_refused(tmp_path):
     # The default model type: its thermal coefficients go through the same numeric checks.
     from fbgcomp_testing import RAM2_DIR
 
-    from fbgcomp.physical import PhysicalModel
+    from fbgcomp.models.physical import PhysicalModel
 
     static_x = RAM2_DIR / "data" / "static_x"
     if not static_x.is_dir():
@@ -200,7 +200,7 @@ def _physical_dict() -> dict:
     if "physical" not in _CACHE:
         from fbgcomp_testing import RAM2_DIR, read_ram2
 
-        from fbgcomp.physical import PhysicalModel
+        from fbgcomp.models.physical import PhysicalModel
 
         r = read_ram2("thermal_a", "static_xyz")
         machine = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram2.yaml"

@@ -9,12 +9,12 @@ import sys
 import numpy as np
 import pytest
 
-from fbgcomp.bench import Scenario, load_scenario, simulate
-from fbgcomp.campaign import read_campaign, write_campaign
-from fbgcomp.metrics import static_level_metrics, validation_metrics
-from fbgcomp.model_types import (CalibratedModel, DynamicModel, HybridModel, KinematicModel,
+from fbgcomp.bench.virtual import Scenario, load_scenario, simulate
+from fbgcomp.io.campaign import read_campaign, write_campaign
+from fbgcomp.models.metrics import static_level_metrics, validation_metrics
+from fbgcomp.models.model_types import (CalibratedModel, DynamicModel, HybridModel, KinematicModel,
                                  first_order_filter)
-from fbgcomp.models import MRAModel, load_model
+from fbgcomp.models.base import MRAModel, load_model
 from fbgcomp.structure import Twin, load_machine
 
 FBGCOMP = [sys.executable, "-m", "fbgcomp"]
@@ -321,7 +321,7 @@ def test_calibrated_without_loads_keeps_the_nominal_closure(closure_campaigns):
 
 
 def test_closure_factors_are_per_axis_unless_the_sections_are_square():
-    from fbgcomp.model_types import closure_parameter_groups
+    from fbgcomp.models.model_types import closure_parameter_groups
     from fbgcomp.structure.machine import Machine
 
     assert list(closure_parameter_groups(load_machine())) == ["bending", "shear"]
@@ -336,7 +336,7 @@ def test_closure_factors_are_per_axis_unless_the_sections_are_square():
 
 
 def test_closure_factor_fit_leaves_unexcited_factors_at_their_prior():
-    from fbgcomp.model_types import fit_closure_factors
+    from fbgcomp.models.model_types import fit_closure_factors
 
     rng = np.random.default_rng(0)
     load = np.repeat(np.arange(5.0), 2)                          # Y plateaus only, two campaigns

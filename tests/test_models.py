@@ -5,12 +5,12 @@ import pandas as pd
 import pytest
 from scipy import stats
 
-from fbgcomp.campaign import read_campaign, write_campaign
+from fbgcomp.io.campaign import read_campaign, write_campaign
 from fbgcomp.errors import InputError
-from fbgcomp.features import candidate_terms
-from fbgcomp.metrics import validation_metrics
-from fbgcomp.models import AXES, SCHEMA_VERSION, MRAModel, load_model
-from fbgcomp.synthetic import linear_truth_campaign
+from fbgcomp.models.features import candidate_terms
+from fbgcomp.models.metrics import validation_metrics
+from fbgcomp.models.base import AXES, SCHEMA_VERSION, MRAModel, load_model
+from fbgcomp.bench.synthetic import linear_truth_campaign
 
 
 @pytest.fixture(scope="module")
@@ -181,7 +181,7 @@ def test_candidate_terms_of_each_feature_set():
 
 
 def test_static_plateau_metrics_average_out_noise_and_skip_ramps():
-    from fbgcomp.metrics import load_plateaus, static_level_metrics
+    from fbgcomp.models.metrics import load_plateaus, static_level_metrics
 
     t = np.arange(0, 300.0)
     fy = np.interp(t, [0, 60, 62, 120, 122, 180, 182, 240, 242, 300], [0, 0, 1000, 1000, 2000, 2000, 1000, 1000, 0, 0])
@@ -276,8 +276,8 @@ def test_mra_inference_is_newey_west_by_default_and_the_naive_one_stays_availabl
 
 def test_campaigns_are_separate_series_in_fit_and_in_the_distributed_reduction(truth_campaign, tmp_path):
     """fit() ends a series after each campaign, so its HAC statistics equal those of campaigns
-    accumulated apart and merged (fbgcomp.distributed), with balanced weights."""
-    from fbgcomp.distributed import accumulate_paths
+    accumulated apart and merged (fbgcomp.io.distributed), with balanced weights."""
+    from fbgcomp.io.distributed import accumulate_paths
 
     campaign, _ = truth_campaign
     other, _ = linear_truth_campaign("other", seed=9, duration_s=1800, noise_um=0.05)

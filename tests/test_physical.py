@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from fbgcomp_testing import read_ram2
 
-from fbgcomp import policy as P
-from fbgcomp.metrics import validation_metrics
-from fbgcomp.models import load_model
-from fbgcomp.model_types import first_order_filter as lowpass
-from fbgcomp.physical import PhysicalModel, PhysicalPredictor
+from fbgcomp.models import policy as P
+from fbgcomp.models.metrics import validation_metrics
+from fbgcomp.models.base import load_model
+from fbgcomp.models.model_types import first_order_filter as lowpass
+from fbgcomp.models.physical import PhysicalModel, PhysicalPredictor
 
 
 @pytest.fixture(scope="module")
@@ -61,7 +61,7 @@ def test_lowpass_streams_like_one_call():
 
 
 def test_static_load_is_read_through_the_load_signature(model, ram2):
-    from fbgcomp.metrics import static_level_metrics
+    from fbgcomp.models.metrics import static_level_metrics
 
     c = ram2["static_x"]
     pred, _ = model.predict_interval(c)
@@ -301,7 +301,7 @@ def test_the_vectorised_steady_stretches_equal_the_per_frame_recursion(twin_mode
 
 
 def test_first_order_closed_form_equals_the_recursion_across_stretches_and_gaps():
-    from fbgcomp.model_types import first_order_recursion as _first_order
+    from fbgcomp.models.model_types import first_order_recursion as _first_order
 
     rng = np.random.default_rng(3)
     x = rng.uniform(0.0, 3.0, 2000)          # summed decay ~3000: five closed-form stretches

@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from fbgcomp.placement import (candidate_grid, choose, objective_um, parse_grid, placement_design,
+from fbgcomp.structure.placement import (candidate_grid, choose, objective_um, parse_grid, placement_design,
                                predicted_error_um)
 from fbgcomp.structure import load_machine
 

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import yaml
 
-from fbgcomp.placement import placement_design, predicted_error_um
-from fbgcomp.plan import noise_scan, plan_design
+from fbgcomp.structure.placement import placement_design, predicted_error_um
+from fbgcomp.structure.plan import noise_scan, plan_design
 from fbgcomp.structure import load_machine
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -36,7 +36,7 @@ def plan_json(*args):
 
 
 def placement_figure(machine_path):
-    """Placement's own worst-case TTP error of the machine's layout (fbgcomp.placement)."""
+    """Placement's own worst-case TTP error of the machine's layout (fbgcomp.structure.placement)."""
     machine = load_machine(machine_path)
     d = placement_design(machine)
     idx = [d.names.index(s.name) for s in machine.sensors]

@@ -4,10 +4,10 @@ it replaced to round-off, for the runtime's test model and a dynamic model."""
 
 import numpy as np
 
-from fbgcomp.campaign import read_campaign
-from fbgcomp.features import design_matrix
-from fbgcomp.model_types import DynamicModel
-from fbgcomp.models import load_model
+from fbgcomp.io.campaign import read_campaign
+from fbgcomp.models.features import design_matrix
+from fbgcomp.models.model_types import DynamicModel
+from fbgcomp.models.base import load_model
 from test_runtime_support import model_and_campaign
 
 

@@ -7,10 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from fbgcomp import bench, optics
-from fbgcomp.campaign import read_campaign, write_campaign
+from fbgcomp import optics
+from fbgcomp.bench import virtual as bench
+from fbgcomp.io.campaign import read_campaign, write_campaign
 from fbgcomp.errors import InputError
-from fbgcomp.features import FeatureMap
+from fbgcomp.models.features import FeatureMap
 from fbgcomp.structure import load_machine
 
 from test_campaign import META_YAML, default_tables, make_folder

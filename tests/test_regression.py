@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 
 import fbgcomp_testing
 from fbgcomp.errors import InputError
-from fbgcomp.regression import (OLSResults, QRAccumulator, RankDeficientError, StepwiseResult,
+from fbgcomp.models.regression import (OLSResults, QRAccumulator, RankDeficientError, StepwiseResult,
                                 accumulate_series, ols, ols_from_factor, stepwise)
 
 NIST = json.loads((Path(__file__).parent / "data" / "nist_strd_linear.json").read_text("utf-8"))
@@ -119,7 +119,7 @@ def test_filip_is_chunking_and_merge_order_invariant_in_double_double():
 # --------------------------------------------------------------------------------------------
 
 def test_double_double_qr_factor_matches_exact_rational_gram():
-    from fbgcomp.regression import _dd_qr_r
+    from fbgcomp.models.regression import _dd_qr_r
 
     rng = np.random.default_rng(3)
     M = rng.normal(size=(9, 4)) * np.array([1.0, 1e3, 1e-3, 7.0])
@@ -799,7 +799,7 @@ def test_gram_fast_path_and_accurate_path_give_the_same_fit_and_selection():
 
 
 def test_double_precision_step_state_equals_the_double_double_one():
-    from fbgcomp.regression import _StepState
+    from fbgcomp.models.regression import _StepState
 
     X, y, names = _eq12_design(5_000, seed=3)
     acc = _accumulate_named(X, y, names, 5_000, precision="double-double")
@@ -831,7 +831,7 @@ def test_gram_threshold_keeps_seven_digits_or_refuses(degree, shift):
     # Polynomial designs from kappa_eq 18 to 2e4 (the threshold's calibration, module notes):
     # whichever path the auto pass takes, the worst coefficient keeps >= 7 digits against the
     # double-double fit; those below the threshold do take the Gram.
-    from fbgcomp.regression import _KAPPA_GRAM, _equilibrated_cond
+    from fbgcomp.models.regression import _KAPPA_GRAM, _equilibrated_cond
 
     rng = np.random.default_rng(degree)
     x = np.tile(np.arange(1.0, 22.0), 150) + shift

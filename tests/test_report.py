@@ -16,12 +16,13 @@ import typer
 from typer.testing import CliRunner
 
 import fbgcomp_testing
-from fbgcomp import optics, synthetic
-from fbgcomp.campaign import Campaign, CampaignMeta, read_campaign, write_campaign
+from fbgcomp import optics
+from fbgcomp.bench import synthetic
+from fbgcomp.io.campaign import Campaign, CampaignMeta, read_campaign, write_campaign
 from fbgcomp.errors import InputError
-from fbgcomp.features import TEMPERATURE_FEATURES, design_matrix
-from fbgcomp.metrics import validation_metrics
-from fbgcomp.models import MRAModel, load_model
+from fbgcomp.models.features import TEMPERATURE_FEATURES, design_matrix
+from fbgcomp.models.metrics import validation_metrics
+from fbgcomp.models.base import MRAModel, load_model
 
 ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts" / "report"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
@@ -75,10 +76,10 @@ def setup(tmp_path_factory):
 
 
 def _cli(*args):
-    """``fbgcomp report ...`` through the console entry point once fbgcomp.cli mounts the
-    command; until then through ``register`` on a Typer app, exactly as fbgcomp.cli will."""
-    from fbgcomp import cli
-    from fbgcomp.report import register
+    """``fbgcomp report ...`` through the console entry point once fbgcomp.cli.app mounts the
+    command; until then through ``register`` on a Typer app, exactly as fbgcomp.cli.app will."""
+    from fbgcomp.cli import app as cli
+    from fbgcomp.report.html import register
 
     if any(c.name == "report" for c in cli.app.registered_commands):
         proc = subprocess.run([sys.executable, "-m", "fbgcomp", *map(str, args)],
@@ -88,7 +89,7 @@ def _cli(*args):
     register(app)
 
     @app.command("noop", hidden=True)
-    def _noop():  # a second command keeps Typer in multi-command mode, as in fbgcomp.cli
+    def _noop():  # a second command keeps Typer in multi-command mode, as in fbgcomp.cli.app
         pass
 
     return CliRunner().invoke(app, [str(a) for a in args], catch_exceptions=False)
@@ -137,7 +138,7 @@ def test_report_cli_writes_one_self_contained_file_with_the_figures_that_apply(s
 
 
 def test_rewrite_replaces_a_report_but_never_another_folder(setup, tmp_path):
-    from fbgcomp.report import write_report
+    from fbgcomp.report.html import write_report
 
     model = load_model(setup["model"])
     static = read_campaign(setup["static"])
@@ -157,7 +158,7 @@ def test_rewrite_replaces_a_report_but_never_another_folder(setup, tmp_path):
 
 
 def test_sensor_health_flags_the_faulty_channel_and_only_it():
-    from fbgcomp.report import probe_health, sensor_health
+    from fbgcomp.report.html import probe_health, sensor_health
 
     rng = np.random.default_rng(0)
     t = np.arange(0.0, 700.0, 0.1)

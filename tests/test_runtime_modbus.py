@@ -24,8 +24,8 @@ def _regs(client, unit=1):
 
 
 def _decoded(regs):
-    """The documented table (fbgcomp.runtime.modbus docstring), decoded the PLC's way."""
-    from fbgcomp.runtime.modbus import decode_int32
+    """The documented table (fbgcomp.runtime.outputs.modbus docstring), decoded the PLC's way."""
+    from fbgcomp.runtime.outputs.modbus import decode_int32
 
     i32 = lambda a: decode_int32(regs[a], regs[a + 1])          # noqa: E731
     return dict(layout=regs[0], health=regs[1], enabled=regs[2], apply=regs[3],
@@ -38,8 +38,8 @@ def _decoded(regs):
 
 # ---------------------------------------------------------------- offset / slope, pure maths
 def test_slope_of_a_z_dependent_model_is_its_finite_difference_and_predicts_other_z():
-    from fbgcomp.model_types import KinematicModel
-    from fbgcomp.runtime.cnc_form import reference_z_mm, takes_z, z_slope_um_per_m
+    from fbgcomp.models.model_types import KinematicModel
+    from fbgcomp.runtime.outputs.cnc_form import reference_z_mm, takes_z, z_slope_um_per_m
 
     model = KinematicModel().fit()
     p = model.predictor()
@@ -71,8 +71,8 @@ def test_slope_of_a_z_dependent_model_is_its_finite_difference_and_predicts_othe
 
 
 def test_slope_is_zero_for_a_model_without_z(tmp_path_factory):
-    from fbgcomp.models import load_model
-    from fbgcomp.runtime.cnc_form import takes_z, z_slope_um_per_m
+    from fbgcomp.models.base import load_model
+    from fbgcomp.runtime.outputs.cnc_form import takes_z, z_slope_um_per_m
 
     model_path, _ = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
     model = load_model(model_path)
@@ -86,7 +86,7 @@ def test_slope_is_zero_for_a_model_without_z(tmp_path_factory):
 def test_slope_leaves_a_predictor_with_memory_as_it_was():
     """A predictor with state (its filters) gives the same next prediction whether or not the
     slope was taken in between."""
-    from fbgcomp.runtime.cnc_form import z_slope_um_per_m
+    from fbgcomp.runtime.outputs.cnc_form import z_slope_um_per_m
 
     class Stateful:
         def __init__(self):
@@ -109,7 +109,7 @@ def test_slope_leaves_a_predictor_with_memory_as_it_was():
 
 
 def test_limit_toward_rate_and_maximum():
-    from fbgcomp.runtime.cnc_form import limit_toward
+    from fbgcomp.runtime.outputs.cnc_form import limit_toward
 
     v, rate, cap = limit_toward([0.0, 0.0, 5.0], [100.0, -3.0, np.nan], 0.5, [20.0] * 3,
                                 [50.0, 50.0, 50.0])
@@ -128,7 +128,7 @@ def test_registers_read_by_a_real_client_limits_and_refused_writes():
     fbgcomp_testing.require("pymodbus")
     from pymodbus.client import ModbusTcpClient
 
-    from fbgcomp.runtime.modbus import ModbusConfig, ModbusOutput
+    from fbgcomp.runtime.outputs.modbus import ModbusConfig, ModbusOutput
 
     now = [0.0]
     port = free_port()
@@ -183,7 +183,7 @@ def test_busy_port_is_a_one_line_error():
     import socket
 
     from fbgcomp.errors import InputError
-    from fbgcomp.runtime.modbus import ModbusConfig, ModbusOutput
+    from fbgcomp.runtime.outputs.modbus import ModbusConfig, ModbusOutput
 
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -24,7 +24,7 @@ async def trusted_client(url, state, trust_dir, user=None, password=None):
 def server_factory(tmp_path, monkeypatch):
     import fbgcomp_testing
     fbgcomp_testing.require("asyncua")
-    from fbgcomp.runtime.opcua import OpcUaConfig, OpcUaServer
+    from fbgcomp.runtime.outputs.opcua import OpcUaConfig, OpcUaServer
 
     started = []
 
@@ -53,7 +53,7 @@ def TRUSTED(tmp_path):
 
 
 def _snapshot(i, t):
-    from fbgcomp.runtime.opcua import Snapshot
+    from fbgcomp.runtime.outputs.opcua import Snapshot
     return Snapshot(sample_time_s=t, correction_um=(-1.0 * i, 2.0 * i, 0.5), deviation_um=(i, -2.0 * i, -0.5),
                     half_width_um=(0.1, 0.2, 0.3), expected_rms_um=(0.05, 0.05, 0.05),
                     health="OK", fallback="", alarm=False, sensor_status=["OK", "MISSING"],
@@ -193,7 +193,7 @@ def test_control_messages_are_not_dropped_when_snapshots_are():
     import threading
     import time
 
-    from fbgcomp.runtime.opcua import send_control
+    from fbgcomp.runtime.outputs.opcua import send_control
 
     parent, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
     try:
@@ -421,7 +421,7 @@ ANALOG = {**{f"{p}{a}_um": "um" for p in ("Correction", "PredictedDeviation",
 
 
 def test_unece_unit_ids_follow_part_8():
-    from fbgcomp.runtime.opcua import unece_unit_id
+    from fbgcomp.runtime.outputs.opcua import unece_unit_id
     assert {code: unece_unit_id(code) for code in PUBLISHED_UNIT_IDS} == PUBLISHED_UNIT_IDS
     for bad in ("", "ABCD", "µm"):
         with pytest.raises(ValueError):
@@ -541,7 +541,7 @@ def test_values_still_update_on_analog_items(server_factory, tmp_path):
 
 
 def test_writer_warning_wording():
-    from fbgcomp.runtime.opcua import writer_warning
+    from fbgcomp.runtime.outputs.opcua import writer_warning
     assert writer_warning({"operator": "pbkdf2_sha256$1$x$y"}, False) is None
     closed, read_only = writer_warning({}, False), writer_warning({}, True)
     for text in (closed, read_only):

@@ -20,7 +20,7 @@ NAMES = [f"Offset{a}_um" for a in "XYZ"] + [f"Slope{a}_um_per_m" for a in "XYZ"]
 
 
 def _snapshot(correction_um, health="OK", flags=(0, 0, 0)):
-    from fbgcomp.runtime.opcua import Snapshot
+    from fbgcomp.runtime.outputs.opcua import Snapshot
     return Snapshot(sample_time_s=time.time(), correction_um=tuple(correction_um),
                     deviation_um=tuple(-c for c in correction_um), half_width_um=(1.0,) * 3,
                     expected_rms_um=(0.5,) * 3, health=health, fallback="",
@@ -43,8 +43,8 @@ async def _read_when(client, expect_z_ref, timeout_s=5.0):
 def _kinematic_slope():
     """Slope (3,) µm/m and reference Z (mm) of a Z-dependent model (the kinematic type on the
     built-in ram) for a stretched frame: what cnc_form computes in serve."""
-    from fbgcomp.model_types import KinematicModel
-    from fbgcomp.runtime.cnc_form import reference_z_mm, z_slope_um_per_m
+    from fbgcomp.models.model_types import KinematicModel
+    from fbgcomp.runtime.outputs.cnc_form import reference_z_mm, z_slope_um_per_m
 
     model = KinematicModel().fit()
     p = model.predictor()
@@ -58,7 +58,7 @@ def _kinematic_slope():
 def test_a_limit_that_is_off_passes_the_first_sample():
     """rate 0 (off) is an infinite rate: the first sample (0 s since none) goes through, and
     is not NaN (which no later sample would repair)."""
-    from fbgcomp.runtime.cnc_form import limit_toward
+    from fbgcomp.runtime.outputs.cnc_form import limit_toward
     from fbgcomp.runtime.pipeline import per_axis
 
     v, rate, cap = limit_toward(np.zeros(3), [1.0, -2.0, 300.0], 0.0, per_axis(0), [1e3, 1e3, 100])
@@ -72,7 +72,7 @@ def test_opcua_carries_the_modbus_outputs_limited_offset_and_slope(server_factor
     fbgcomp_testing.require("pymodbus")
     from pymodbus.client import ModbusTcpClient
 
-    from fbgcomp.runtime.modbus import ModbusConfig, ModbusOutput
+    from fbgcomp.runtime.outputs.modbus import ModbusConfig, ModbusOutput
 
     slope, z_ref = _kinematic_slope()
     assert np.abs(slope).max() > 100.0                 # a real Z dependence
@@ -122,7 +122,7 @@ def test_opcua_carries_the_modbus_outputs_limited_offset_and_slope(server_factor
 def test_without_modbus_the_same_limits_apply(server_factory, tmp_path):
     """No [modbus] listener: the OPC UA output applies the [modbus] table's maxima itself
     (rates off here, so the result is exact), and publishes no slope when the output is off."""
-    from fbgcomp.runtime.modbus import ModbusConfig
+    from fbgcomp.runtime.outputs.modbus import ModbusConfig
 
     srv, url = server_factory()
     limits = ModbusConfig(offset_rate_um_per_s=0, max_offset_um=[30, 30, 500],

@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from fbgcomp.models import Predictor, load_model
-from fbgcomp.campaign import read_campaign
+from fbgcomp.models.base import Predictor, load_model
+from fbgcomp.io.campaign import read_campaign
 from fbgcomp.runtime import health as H
-from fbgcomp.runtime.output import AdaptiveLevelFilter, OutputFilterConfig
+from fbgcomp.runtime.output_filter import AdaptiveLevelFilter, OutputFilterConfig
 from fbgcomp.runtime.pipeline import HEALTH_DEGRADED, Pipeline, PipelineConfig
 from test_runtime_support import model_and_campaign, run_in_batches
 

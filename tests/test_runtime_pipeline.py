@@ -3,12 +3,12 @@
 import numpy as np
 import pytest
 
-from fbgcomp.campaign import read_campaign
-from fbgcomp.models import load_model
+from fbgcomp.io.campaign import read_campaign
+from fbgcomp.models.base import load_model
 from fbgcomp.runtime import health as H
 from fbgcomp.runtime.pipeline import (HEALTH_ALARM, HEALTH_DEGRADED, HEALTH_OK, HEALTH_ZEROING,
                                       Pipeline, PipelineConfig)
-from fbgcomp.runtime.output import OutputFilterConfig
+from fbgcomp.runtime.output_filter import OutputFilterConfig
 from test_runtime_support import model_and_campaign, run_in_batches
 
 # Output policy off: the published correction is exactly - prediction (the model path itself).

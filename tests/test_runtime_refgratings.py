@@ -44,7 +44,7 @@ def with_reference_gratings(campaign, seed):
     gratings beside S1 and S3. Their gauges run warmer than T_surf by a slow extra signal, so the
     reference temperatures carry what no probe has; the bonded gratings see that temperature."""
     from fbgcomp import optics
-    from fbgcomp.campaign import Campaign, CampaignMeta
+    from fbgcomp.io.campaign import Campaign, CampaignMeta
 
     rng = np.random.default_rng(seed)
     meta = campaign.meta.model_dump()
@@ -75,8 +75,8 @@ def with_reference_gratings(campaign, seed):
 
 @pytest.fixture(scope="module")
 def campaigns(tmp_path_factory):
-    from fbgcomp.campaign import write_campaign
-    from fbgcomp.synthetic import linear_truth_campaign
+    from fbgcomp.io.campaign import write_campaign
+    from fbgcomp.bench.synthetic import linear_truth_campaign
 
     base = tmp_path_factory.mktemp("refgratings")
     train, _ = linear_truth_campaign("train", seed=1, duration_s=2 * 3600, noise_um=0.05)
@@ -139,8 +139,8 @@ def _campaign_times(log, fbg):
 
 
 def test_the_correction_is_the_offline_models_on_the_same_frames(served, campaigns):
-    from fbgcomp.campaign import read_campaign
-    from fbgcomp.models import load_model
+    from fbgcomp.io.campaign import read_campaign
+    from fbgcomp.models.base import load_model
 
     assert served["alive"]
     model = load_model(campaigns["model"])
@@ -210,7 +210,7 @@ def test_the_correction_is_the_offline_models_on_the_same_frames(served, campaig
 
 
 def test_a_lost_reference_grating_is_a_missing_temperature(served, campaigns):
-    from fbgcomp.models import load_model
+    from fbgcomp.models.base import load_model
 
     model = load_model(campaigns["model"])
     log, seen = served["log"], served["seen"]
@@ -245,7 +245,7 @@ def test_replay_reads_the_reference_gratings_from_fbg_csv(campaigns, tmp_path):
     probes from temperatures.csv, and the model runs with health OK on them."""
     fbgcomp_testing.require("pyarrow")
     from fbgcomp import optics
-    from fbgcomp.campaign import read_campaign
+    from fbgcomp.io.campaign import read_campaign
     from fbgcomp.runtime.log import read_log
     from fbgcomp.runtime.service import RuntimeConfig, Service
 

@@ -1,5 +1,5 @@
 """Shared set-up for the runtime tests (no tests here): a real model file fitted by
-fbgcomp.models on a synthetic campaign, and a short campaign to serve."""
+fbgcomp.models.base on a synthetic campaign, and a short campaign to serve."""
 
 from __future__ import annotations
 
@@ -19,9 +19,9 @@ def model_and_campaign(base: Path) -> tuple[Path, Path]:
     """(model.json, campaign folder) built once per test session under ``base``."""
     if "paths" in _CACHE:
         return _CACHE["paths"]
-    from fbgcomp.campaign import write_campaign
-    from fbgcomp.models import MRAModel
-    from fbgcomp.synthetic import linear_truth_campaign
+    from fbgcomp.io.campaign import write_campaign
+    from fbgcomp.models.base import MRAModel
+    from fbgcomp.bench.synthetic import linear_truth_campaign
 
     base.mkdir(parents=True, exist_ok=True)
     train, _ = linear_truth_campaign("train", seed=1, duration_s=2 * 3600, noise_um=0.05)
@@ -39,8 +39,8 @@ def model_and_campaign(base: Path) -> tuple[Path, Path]:
 def model_and_arrays(base: Path):
     """The shared test model (loaded from its file) and its campaign's aligned time (s),
     wavelengths (nm) and temperatures (°C) in the model's order."""
-    from fbgcomp.campaign import read_campaign
-    from fbgcomp.models import load_model
+    from fbgcomp.io.campaign import read_campaign
+    from fbgcomp.models.base import load_model
 
     model_path, campaign_path = model_and_campaign(base)
     model = load_model(model_path)
@@ -116,9 +116,9 @@ def fallback_peak_um(model_path, campaign_path, lost: str):
     test's size bound must be measured against when the runtime serves that fallback."""
     import numpy as np
 
-    from fbgcomp.campaign import read_campaign
-    from fbgcomp.models import load_model
-    from fbgcomp.runtime.output import OutputFilterConfig
+    from fbgcomp.io.campaign import read_campaign
+    from fbgcomp.models.base import load_model
+    from fbgcomp.runtime.output_filter import OutputFilterConfig
     from fbgcomp.runtime.pipeline import Pipeline, PipelineConfig
 
     model = load_model(model_path)

@@ -128,7 +128,7 @@ _piece = st.sampled_from(["a.json", "sub", "b.json", "..", ".", "out.json", "up"
 def test_reload_model_names_never_leave_the_models_folder(models, parts, lead):
     """Whatever name a client sends, ReloadModel either refuses it or loads an existing file
     inside the folder (symbolic links resolved)."""
-    from fbgcomp.runtime.opcua import ModelPathRefused, model_in_folder
+    from fbgcomp.runtime.outputs.opcua import ModelPathRefused, model_in_folder
 
     name = lead + "/".join(parts)
     try:

@@ -13,7 +13,7 @@ import typer
 from typer.testing import CliRunner
 
 import fbgcomp_testing
-from fbgcomp import twin_check
+from fbgcomp.structure import twin_check
 from fbgcomp.errors import InputError
 
 ROOT = Path(__file__).resolve().parents[1]

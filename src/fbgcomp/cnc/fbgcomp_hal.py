@@ -7,7 +7,7 @@ the machine's HAL file::
     loadusr -Wn fbgcomp /usr/bin/python3 fbgcomp_hal.py --listen udp://127.0.0.1:47300
 
 Only the standard library is used at import time (``hal`` is imported in :func:`main`), so the
-venv side (:mod:`fbgcomp.runtime.linuxcnc`) imports the packet format and the limiter from this
+venv side (:mod:`fbgcomp.runtime.outputs.linuxcnc`) imports the packet format and the limiter from this
 very file.
 
 Local channel: one datagram per correction, :data:`PACKET` (little endian, 52 bytes) =

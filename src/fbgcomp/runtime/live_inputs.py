@@ -37,7 +37,7 @@ that rewrites a steady temperature with a new timestamp keeps it fresh; a server
 writing lets it go stale). The client reconnects by itself (asyncua's supervisor, with its
 subscriptions re-created). Modbus registers are holding registers (function 3), one read per
 probe per ``poll_s``, decoded big-endian (high word first for 32-bit types, as
-:mod:`fbgcomp.runtime.modbus` writes its own): ``value = raw * scale + offset``, °C. Types:
+:mod:`fbgcomp.runtime.outputs.modbus` writes its own): ``value = raw * scale + offset``, °C. Types:
 ``int16``, ``uint16``, ``int32``, ``uint32``, ``float32``. The LinuxCNC position is the HAL
 component's ``fbgcomp.z-pos-mm`` pin, sent back over the local channel
 (:mod:`fbgcomp.cnc.fbgcomp_hal`); it counts as missing until the machine is homed.

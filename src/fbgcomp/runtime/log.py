@@ -288,7 +288,7 @@ def read_log(folder: str | Path, labels: bool = False):
 
 def export_campaign(log_folder: str | Path, out: str | Path, name: str | None = None,
                     reference_csv: str | Path | None = None):
-    """Turn a run log into a campaign folder (``fbgcomp.campaign.write_campaign``).
+    """Turn a run log into a campaign folder (``fbgcomp.io.campaign.write_campaign``).
 
     The campaign clock starts at the first logged frame. Only frames where every sensor was
     healthy (status OK, one peak in its window) go to ``fbg.csv`` and only frames with every
@@ -301,7 +301,7 @@ def export_campaign(log_folder: str | Path, out: str | Path, name: str | None = 
     """
     import pandas as pd
     from datetime import datetime, timezone
-    from fbgcomp.campaign import Campaign, write_campaign
+    from fbgcomp.io.campaign import Campaign, write_campaign
 
     meta, df = read_log(log_folder)
     df = df.drop_duplicates("time_s", keep="first")

@@ -9,7 +9,7 @@ what a running machine needs, vectorised over every frame of a batch:
   them) - the switch happens on the very sample the fault appears;
 * when no usable model remains: hold the last correction and ramp it linearly to zero over
   ``ramp_s`` (alarm);
-* the output policy, in this order: the adaptive output filter (:mod:`fbgcomp.runtime.output`,
+* the output policy, in this order: the adaptive output filter (:mod:`fbgcomp.runtime.output_filter`,
   on by default: still at rest, fast on a real change), the hold / ramp above, optional
   exponential smoothing (``smoothing_tau_s``), the output switch, a per-axis maximum
   |correction| (``max_correction_um``, at most the model's own ``max_correction_um``) and a
@@ -41,8 +41,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fbgcomp.runtime import health as H
-from fbgcomp.runtime.cnc_form import reference_z_mm, takes_z
-from fbgcomp.runtime.output import AdaptiveLevelFilter, OutputFilterConfig
+from fbgcomp.runtime.outputs.cnc_form import reference_z_mm, takes_z
+from fbgcomp.runtime.output_filter import AdaptiveLevelFilter, OutputFilterConfig
 
 HEALTH_OK, HEALTH_DEGRADED, HEALTH_ALARM, HEALTH_ZEROING = range(4)
 HEALTH_NAMES = ("OK", "DEGRADED", "ALARM", "ZEROING")
@@ -113,7 +113,7 @@ class BatchResult:
 
 
 class Pipeline:
-    """Stateful batch processor around a loaded model (see ``fbgcomp.models.load_model``)."""
+    """Stateful batch processor around a loaded model (see ``fbgcomp.models.base.load_model``)."""
 
     def __init__(self, model, config: PipelineConfig | None = None):
         self.model = model

@@ -21,11 +21,11 @@ import numpy as np
 from fbgcomp.dashboard.server import DashboardConfig
 from fbgcomp.errors import InputError
 from fbgcomp.runtime import health as H
-from fbgcomp.runtime.linuxcnc import CncConfig
+from fbgcomp.runtime.outputs.linuxcnc import CncConfig
 from fbgcomp.runtime.live_inputs import (LiveInputs, LiveTemperatures, PositionConfig,
                                          TemperaturesConfig)
-from fbgcomp.runtime.modbus import ModbusConfig
-from fbgcomp.runtime.opcua import OpcUaConfig, OpcUaServer, Snapshot
+from fbgcomp.runtime.outputs.modbus import ModbusConfig
+from fbgcomp.runtime.outputs.opcua import OpcUaConfig, OpcUaServer, Snapshot
 from fbgcomp.runtime.pipeline import HEALTH_ALARM, HEALTH_NAMES, Pipeline, PipelineConfig
 from fbgcomp.runtime.realtime import RealtimeConfig
 from fbgcomp.runtime.sources import (HyperionSource, PeakMapper, ReferenceThermometers,
@@ -148,8 +148,8 @@ class Service:
         self.last_result = None
         self.opc: OpcUaServer | None = None
         self.dashboard = None             # fbgcomp.dashboard.Dashboard when configured
-        self.cnc = None                   # fbgcomp.runtime.linuxcnc.LinuxCncOutput (--cnc)
-        self.modbus = None                # fbgcomp.runtime.modbus.ModbusOutput ([modbus])
+        self.cnc = None                   # fbgcomp.runtime.outputs.linuxcnc.LinuxCncOutput (--cnc)
+        self.modbus = None                # fbgcomp.runtime.outputs.modbus.ModbusOutput ([modbus])
         self.live: LiveInputs | None = None   # [temperatures.*], [position]
         self.z_mm: float | None = None    # the Z position given to the model on the last batch
         self.input_status = ""            # live inputs: "inputs OK" or which are stale
@@ -163,7 +163,7 @@ class Service:
 
     @staticmethod
     def _load_model(path):
-        from fbgcomp.models import load_model
+        from fbgcomp.models.base import load_model
         if not path:
             raise InputError("no model given", column="--model")
         return load_model(path)
@@ -260,7 +260,7 @@ class Service:
     # -- main loop
     async def run(self, duration_s: float | None = None) -> None:
         main_loop = asyncio.get_running_loop()
-        from fbgcomp.runtime.modbus import open_modbus_output
+        from fbgcomp.runtime.outputs.modbus import open_modbus_output
         self.modbus = open_modbus_output(self.config.modbus)
         if self.modbus is not None:
             self.modbus.start()      # a busy port fails before anything else runs
@@ -270,7 +270,7 @@ class Service:
                                    on_reload=self.reload, main_loop=main_loop)
             await main_loop.run_in_executor(None, self.opc.start)
         try:
-            from fbgcomp.runtime.linuxcnc import open_cnc_output
+            from fbgcomp.runtime.outputs.linuxcnc import open_cnc_output
             self.cnc = open_cnc_output(self.config.cnc)    # started below; read by [position]
             source, temps, probe_specs = await self._open_source()
         except BaseException:
@@ -416,7 +416,7 @@ class Service:
         if self.cnc is not None:
             self.cnc.publish(snap, self.enabled)
         if self.modbus is not None or self.opc is not None:   # offset + Z slope, the form
-            from fbgcomp.runtime.cnc_form import newest_slope    # a CNC's PLC takes
+            from fbgcomp.runtime.outputs.cnc_form import newest_slope    # a CNC's PLC takes
             z = self.z_mm if self.z_mm is not None and np.isfinite(self.z_mm) else None
             slope, z_ref = newest_slope(self.pipeline, res, wavelength_nm, z)
         if self.modbus is not None:
@@ -449,7 +449,7 @@ class Service:
 
 def _probe_specs(folder):
     try:
-        from fbgcomp.campaign import read_campaign
+        from fbgcomp.io.campaign import read_campaign
         c = read_campaign(folder)
         return [p.model_dump(mode="json") if hasattr(p, "model_dump") else dict(vars(p))
                 for p in c.meta.temperature_probes]

@@ -109,7 +109,7 @@ class SignalTable:
         """The campaign's gratings: its sensors, then the strain-free reference gratings of
         those that carry one (signal ``<sensor>_ref`` from column ``<sensor>_ref_nm``, on the
         sensor's channel; faults name them so: ``drop:S3_ref@5``)."""
-        from fbgcomp.campaign import read_campaign
+        from fbgcomp.io.campaign import read_campaign
         c = read_campaign(folder)
         refs = [s for s in c.meta.sensors if s.reference_column is not None]
         names = [s.name for s in c.meta.sensors] + [s.reference_probe for s in refs]
@@ -438,7 +438,7 @@ class OpcUaTemperatureServer:
     @classmethod
     def from_campaign(cls, endpoint: str, folder, config: SimConfig,
                       table: SignalTable) -> "OpcUaTemperatureServer":
-        from fbgcomp.campaign import read_campaign
+        from fbgcomp.io.campaign import read_campaign
         c = read_campaign(folder)
         probes = [p.name for p in c.meta.temperature_probes
                   if f"{p.name}_C" in c.temperatures.columns]

@@ -297,7 +297,7 @@ class TableTemperatures:
     @classmethod
     def from_campaign(cls, folder: str | Path, probe_names: list[str], speed: float = 1.0,
                       loop: bool = False) -> "TableTemperatures":
-        from fbgcomp.campaign import read_campaign
+        from fbgcomp.io.campaign import read_campaign
         c = read_campaign(folder)
         return cls.from_frame(c.temperatures, probe_names, speed, str(folder), loop=loop)
 
@@ -426,7 +426,7 @@ class ReplaySource:
     def __init__(self, folder: str | Path, sensor_names: list[str], probe_names: list[str],
                  speed: float = 1.0, chunk_s: float = 0.002, loop: bool = False,
                  reference_probes: list[str] | None = None):
-        from fbgcomp.campaign import read_campaign
+        from fbgcomp.io.campaign import read_campaign
         c = read_campaign(folder)
         missing = [s for s in sensor_names if f"{s}_nm" not in c.fbg.columns]
         if missing:

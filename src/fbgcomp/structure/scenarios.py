@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .machine import Machine, parse_machine
+from fbgcomp.structure.machine import Machine, parse_machine
 
 FACES = ("+X", "-X", "+Y", "-Y")
 

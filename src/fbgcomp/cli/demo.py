@@ -28,8 +28,8 @@ import time
 from pathlib import Path
 
 
-from .errors import InputError
-from .metrics import (HARM_TOLERANCE_UM, format_metrics, format_static_metrics,
+from fbgcomp.errors import InputError
+from fbgcomp.models.metrics import (HARM_TOLERANCE_UM, format_metrics, format_static_metrics,
                       static_level_metrics, validation_metrics)
 
 TRAIN = ("thermal-36h", "static-y")
@@ -40,8 +40,8 @@ HELD_OUT = ("thermal-36h-b", "static-xyz")
 RAM2_ENV = "FBGCOMP_RAM2"
 RAM2_TRAIN = ("thermal_a", "static_xyz")
 RAM2_HELD_OUT = ("thermal_b", "thermal_c", "static_x")
-#: Repository root (src/fbgcomp/demo.py → ../..), for the default ram2 place and its machine file.
-REPO = Path(__file__).resolve().parents[2]
+#: Repository root (src/fbgcomp/cli/demo.py → ../..), for the default ram2 place and its machine file.
+REPO = Path(__file__).resolve().parents[3]
 RAM2_MACHINE = REPO / "examples" / "machines" / "ram2.yaml"
 #: Below this largest plateau deflection an axis is not loaded; its plateau error is shown in µm.
 LOADED_UM = 5.0
@@ -61,8 +61,8 @@ def find_ram2(path=None):
 
 def fit_default(campaigns, machine=None, zero_window_s=10.0):
     """What ``fbgcomp fit CAMPAIGNS [--machine M] -o FILE`` fits with no other flag: the physical
-    model (src/fbgcomp/physical.py)."""
-    from .physical import PhysicalModel
+    model (src/fbgcomp/models/physical.py)."""
+    from fbgcomp.models.physical import PhysicalModel
 
     return PhysicalModel(machine=machine, zero_window_s=zero_window_s).fit(list(campaigns))
 
@@ -86,7 +86,7 @@ def run_ram2(ram2=None, out=None) -> dict:
     missing or unreadable, else the data set's place, the model id and per held-out campaign
     the metrics of :func:`judge`. The model is saved to ``out/ram2_model.json`` when ``out``.
     """
-    from .campaign import read_campaign
+    from fbgcomp.io.campaign import read_campaign
 
     data, looked = find_ram2(ram2)
     if data is None:
@@ -126,13 +126,13 @@ def run_demo(out_dir="demo-out", *, machine_path=None, seed=0, quick=False, feat
              stepwise=True, quiet=False, report=True, resolution=None, ram2=None,
              independent=True) -> dict:
     """Run the demo and return its summary (also written to ``out_dir/metrics.json``)."""
-    from .bench import load_scenario, simulate
-    from .calibrate import fe_calibrate, format_resolution, resolution_report
-    from .campaign import read_campaign, write_campaign
-    from .atomic import write_json
-    from .model_types import CalibratedModel
-    from .models import MRAModel
-    from .structure import Twin, load_machine
+    from fbgcomp.bench.virtual import load_scenario, simulate
+    from fbgcomp.models.fe_calibrated import fe_calibrate, format_resolution, resolution_report
+    from fbgcomp.io.campaign import read_campaign, write_campaign
+    from fbgcomp.atomic import write_json
+    from fbgcomp.models.model_types import CalibratedModel
+    from fbgcomp.models.base import MRAModel
+    from fbgcomp.structure import Twin, load_machine
 
     out = Path(out_dir)
     (out / "campaigns").mkdir(parents=True, exist_ok=True)
@@ -197,7 +197,7 @@ def run_demo(out_dir="demo-out", *, machine_path=None, seed=0, quick=False, feat
 
     if report:
         try:
-            from .report import write_report
+            from fbgcomp.report.html import write_report
         except ImportError:     # the report module is optional in a minimal install
             write_report = None
         if write_report is not None:

@@ -8,7 +8,7 @@ Layout (Hive partitioning, so pandas, DuckDB, pyarrow and Dask all read it as on
     DATASET/machine=<m>/campaign=<c>/part-00001.parquet ...
 
 Rows are the campaign's *aligned raw* samples, one per kept reference sample (the reference
-instrument's clock, see :meth:`fbgcomp.campaign.Campaign.aligned`)::
+instrument's clock, see :meth:`fbgcomp.io.campaign.Campaign.aligned`)::
 
     time_s      reference clock, s
     <S>_nm      Bragg wavelength of sensor S, nm          (same names as fbg.csv and the run log)
@@ -20,7 +20,7 @@ Nothing is derived at ingest time except the alignment, so any feature set can b
 The zero state of each signal (mean over its first ``zero_window_s`` seconds on its *own* clock,
 which cannot be recomputed from the aligned rows) is stored per campaign in the metadata, with
 the whole ``campaign.yaml`` content: in every Parquet file's key-value metadata (key
-``fbgcomp.campaign``, so each partition describes itself) and in the ``_campaigns.json`` sidecar
+``fbgcomp.io.campaign``, so each partition describes itself) and in the ``_campaigns.json`` sidecar
 (an index for quick listing, rebuilt from the files when stale). Files and folders starting
 with ``_`` or ``.`` are ignored by pyarrow/pandas/Dask discovery; with DuckDB read
 ``DATASET/machine=*/campaign=*/*.parquet`` with ``hive_partitioning = true``.
@@ -49,8 +49,8 @@ from urllib.parse import quote
 
 import numpy as np
 
-from .atomic import json_safe, replace_dir, write_json
-from .errors import InputError
+from fbgcomp.atomic import json_safe, replace_dir, write_json
+from fbgcomp.errors import InputError
 
 __all__ = ["DATASET_FORMAT", "INDEX_FILE", "METADATA_KEY", "Partition", "Dataset", "is_dataset",
            "is_run_log", "open_dataset", "ingest", "ingest_campaign", "partition_arrays",
@@ -140,7 +140,7 @@ class Partition:
 
     def sensors(self):
         """``SensorSpec`` objects from the stored campaign.yaml."""
-        from .campaign import CampaignMeta
+        from fbgcomp.io.campaign import CampaignMeta
 
         return list(CampaignMeta.model_validate(self.meta).sensors)
 
@@ -306,7 +306,7 @@ def _update_index(root: Path, partition: Partition) -> None:
 def ingest_campaign(campaign, dataset, *, machine: str | None = None, zero_window_s: float = 10.0,
                     rows_per_file: int = ROWS_PER_FILE, row_group_rows: int = ROW_GROUP_ROWS,
                     source: str | None = None) -> Partition:
-    """Write one campaign (a :class:`~fbgcomp.campaign.Campaign`) as a partition, atomically.
+    """Write one campaign (a :class:`~fbgcomp.io.campaign.Campaign`) as a partition, atomically.
 
     The machine is ``campaign.yaml``'s ``machine`` key when present, else ``machine``, else
     ``"default"``. An existing partition of the same machine and campaign is replaced whole.
@@ -391,13 +391,13 @@ def ingest(sources, dataset, *, machine: str | None = None, zero_window_s: float
     ``reference_csv`` or, labelled as such, the logged prediction). Its machine is the log's
     ``meta.json`` ``machine`` key, else ``machine``.
     """
-    from .campaign import read_campaign
+    from fbgcomp.io.campaign import read_campaign
 
     out = []
     for src in sources:
         src = Path(src)
         if is_run_log(src):
-            from .runtime.log import export_campaign
+            from fbgcomp.runtime.log import export_campaign
 
             log_meta = json.loads((src / "meta.json").read_text(encoding="utf-8"))
             with tempfile.TemporaryDirectory(prefix=".fbgcomp-log-") as tmp:
@@ -474,11 +474,11 @@ def check_partition(model, partition: Partition) -> None:
 def accumulate_partition_file(model, partition: Partition, file, acc=None, *,
                               second_pass: bool = False, weight=None):
     """Stream one file of a partition into ``acc`` (default: a fresh accumulator of ``model``,
-    which must have had :meth:`~fbgcomp.models.MRAModel.new_accumulator` called); returns it.
+    which must have had :meth:`~fbgcomp.models.base.MRAModel.new_accumulator` called); returns it.
 
     First pass (default): rows enter the factor. ``second_pass=True``: after
     ``acc.begin_hac()`` on the factor of *every* row, the same rows enter the
-    autocorrelation statistics (:meth:`~fbgcomp.regression.QRAccumulator.update_hac`), with
+    autocorrelation statistics (:meth:`~fbgcomp.models.regression.QRAccumulator.update_hac`), with
     the row ``weight`` the first pass gave them (for pooled campaigns).
     """
     if acc is None:
@@ -493,7 +493,7 @@ def accumulate_partition_file(model, partition: Partition, file, acc=None, *,
 
 def partition_design(model, partition: Partition, file):
     """Yield ``(design (m, 1 + terms), reference_um (m, 3))`` batches of one partition file for
-    ``model`` (after :meth:`~fbgcomp.models.MRAModel.new_accumulator`), both zeroed as the
+    ``model`` (after :meth:`~fbgcomp.models.base.MRAModel.new_accumulator`), both zeroed as the
     campaign was at ingest."""
     s_idx = [partition.sensor_names.index(s) for s in model.sensor_names]
     p_idx = [partition.probe_names.index(p) for p in model.probe_names_]

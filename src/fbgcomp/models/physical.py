@@ -35,7 +35,7 @@ sensors' noise alone makes of the part is not applied (firm shrinkage) and each 
 to the range it was validated on (``CLAMPED``).
 
 Every prediction therefore carries its applicability flags (``last_flags`` after each call,
-bits of :mod:`fbgcomp.policy`), which the runtime publishes with the correction.
+bits of :mod:`fbgcomp.models.policy`), which the runtime publishes with the correction.
 """
 
 from __future__ import annotations
@@ -45,11 +45,11 @@ from itertools import combinations
 import numpy as np
 from scipy import stats
 
-from .errors import InputError
-from .features import FeatureMap
-from .models import AXES, EstimatorParams, ModelFile, _as_campaign_list, check_compatible, register_model_type
-from . import policy as P
-from .model_types import first_order_filter, first_order_recursion as _first_order
+from fbgcomp.errors import InputError
+from fbgcomp.models.features import FeatureMap
+from fbgcomp.models.base import AXES, EstimatorParams, ModelFile, _as_campaign_list, check_compatible, register_model_type
+from fbgcomp.models import policy as P
+from fbgcomp.models.model_types import first_order_filter, first_order_recursion as _first_order
 
 _FORCE_AXES = ("fx", "fy", "fz")
 #: Low-pass of the probe temperatures before the thermal regressors, s.
@@ -184,9 +184,9 @@ def twin_thermal_population(machine, sensors, probe_names, housing_probes, n_sce
     if any(s.name not in names for s in sensors) or \
             any(p not in mprobes and p not in ref_of for p in probe_names):
         return None
-    from .optics import wavelength_nm
-    from .structure import Twin
-    from .structure.scenarios import generic_heat_machine, thermal_scenarios
+    from fbgcomp.optics import wavelength_nm
+    from fbgcomp.structure import Twin
+    from fbgcomp.structure.scenarios import generic_heat_machine, thermal_scenarios
 
     twin = Twin(generic_heat_machine(machine))
     idx = [twin.sensor_names.index(s.name) for s in sensors]
@@ -866,7 +866,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
     def _machine(self):
         if self.machine is None:
             return None
-        from .structure import Machine, load_machine
+        from fbgcomp.structure import Machine, load_machine
 
         return self.machine if isinstance(self.machine, Machine) else load_machine(self.machine)
 
@@ -1186,7 +1186,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         names = [s.name for s in machine.sensors]
         if any(s not in names for s in self.sensor_names):
             return None
-        from .structure import Twin
+        from fbgcomp.structure import Twin
 
         twin = Twin(machine)
         inf = twin.influence
@@ -1328,7 +1328,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
 
     @classmethod
     def from_dict(cls, d: dict, source="<dict>") -> "PhysicalModel":
-        from .campaign import SensorSpec
+        from fbgcomp.io.campaign import SensorSpec
 
         _check_shapes(d, source)
         m = cls(**d.get("params", {}))

@@ -14,8 +14,8 @@ from datetime import datetime, timezone
 import numpy as np
 import pandas as pd
 
-from . import optics
-from .features import TEMPERATURE_FEATURES, design_matrix
+from fbgcomp import optics
+from fbgcomp.models.features import TEMPERATURE_FEATURES, design_matrix
 
 SENSORS = ("S1", "S2", "S3", "S4", "S5")
 PROBES = ("T_bulk", "T_surf", "T_flange", "T_amb")
@@ -85,7 +85,7 @@ def linear_truth_campaign(name="synthetic", *, seed=0, duration_s=3600.0, fbg_dt
         The campaign, and the truth: ``coefficients`` and the noise-free deviation on the
         reference clock.
     """
-    from .campaign import Campaign, CampaignMeta
+    from fbgcomp.io.campaign import Campaign, CampaignMeta
 
     rng = np.random.default_rng(seed)
     coefficients = coefficients or default_coefficients()

@@ -1,7 +1,7 @@
 """TTP-deviation models: the multiple-regression estimator and its JSON model file.
 
 :class:`MRAModel` is the paper's multiple regression analysis (sec. 3, eq. 11-13, Table 1): one
-linear model per TTP axis (dx, dy, dz) on the regressors of :mod:`fbgcomp.features`, optionally
+linear model per TTP axis (dx, dy, dz) on the regressors of :mod:`fbgcomp.models.features`, optionally
 with stepwise selection (ANOVA partial F-tests). It follows the scikit-learn contract
 (hyper-parameters in ``__init__``, learned state with a trailing underscore, ``fit`` returns
 ``self``) and fits from campaigns streamed in chunks through one QR factor, from which the
@@ -35,12 +35,12 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from . import __version__
-from .atomic import write_json
-from .errors import InputError, read_bounded
-from .features import (CONSTANT, FEATURE_SETS, FeatureMap, TemperatureRoles, candidate_terms,
+from fbgcomp import __version__
+from fbgcomp.atomic import write_json
+from fbgcomp.errors import InputError, read_bounded
+from fbgcomp.models.features import (CONSTANT, FEATURE_SETS, FeatureMap, TemperatureRoles, candidate_terms,
                        design_matrix)
-from .regression import accumulate_series
+from fbgcomp.models.regression import accumulate_series
 
 AXES = ("dx", "dy", "dz")
 #: Largest model file read, bytes (one with every fallback of a dozen gratings is ~1 MB).
@@ -255,7 +255,7 @@ class Predictor:
         of a column of ones (a product with 1.0 is exact: the same numbers as
         :func:`design_matrix`); ``_cov_stack`` (K, 3K): the three axes' roots side by side,
         one matrix product for the whole interval."""
-        from .features import parse_term
+        from fbgcomp.models.features import parse_term
 
         names = list(self.feature_map.base_names)
         index = {name: i for i, name in enumerate(names)}
@@ -462,7 +462,7 @@ class MRAModel(EstimatorParams, ModelFile):
     Parameters
     ----------
     features : {"eq11", "eq13", "eq12"}
-        Candidate regressors (see :mod:`fbgcomp.features`).
+        Candidate regressors (see :mod:`fbgcomp.models.features`).
     stepwise : bool
         Select terms per axis by stepwise regression with partial F-tests.
     direction : {"both", "forward", "backward"}
@@ -541,7 +541,7 @@ class MRAModel(EstimatorParams, ModelFile):
         return "auto" if lags == "auto" else [int(lags)]
 
     def _new_qr(self, names):
-        from .regression import QRAccumulator
+        from fbgcomp.models.regression import QRAccumulator
 
         return QRAccumulator(len(names), len(AXES), feature_names=names, target_names=list(AXES),
                              hac_lags=self._hac_lags())
@@ -592,14 +592,14 @@ class MRAModel(EstimatorParams, ModelFile):
         self.training_ = {"campaigns": training, "n_samples": int(sum(t["n_samples"] for t in training))}
         return self._fit_factor(acc)
 
-    # -- fitting from statistics reduced elsewhere (fbgcomp.dataset, fbgcomp.distributed) ------
+    # -- fitting from statistics reduced elsewhere (fbgcomp.io.dataset, fbgcomp.io.distributed) ------
     def new_accumulator(self, sensors, probe_names=None):
         """Fix the sensor set (``SensorSpec`` list) and return an empty QR accumulator whose
         columns are this model's terms (``const`` first) and whose targets are dx, dy, dz.
 
         ``probe_names`` lists the probes the data offers; a missing required probe is an
         InputError. Partitions accumulated on other processes with an estimator configured the
-        same way merge into it (:meth:`fbgcomp.regression.QRAccumulator.merge`).
+        same way merge into it (:meth:`fbgcomp.models.regression.QRAccumulator.merge`).
         """
         self._check_params()
         self.sensors_ = list(sensors)
@@ -670,7 +670,7 @@ class MRAModel(EstimatorParams, ModelFile):
         return self
 
     def _select(self, acc, exclude) -> dict:
-        from .regression import ols_from_factor, stepwise
+        from fbgcomp.models.regression import ols_from_factor, stepwise
 
         candidates = [t for t in self.candidates_ if not any(f"dL_{s}" == t for s in exclude)]
         # HAC needs the accumulator's lagged score sums; subclasses that build their own plain
@@ -827,7 +827,7 @@ def _sensor_specs(items, source) -> list:
     """The model file's sensor list as SensorSpec; InputError naming the entry otherwise."""
     from pydantic import ValidationError
 
-    from .campaign import SensorSpec
+    from fbgcomp.io.campaign import SensorSpec
 
     if not isinstance(items, list) or not items:
         raise InputError("expected a non-empty list of sensors", file=source, column="field sensors")
@@ -917,7 +917,7 @@ class _IdentityMap:
 
 
 def _as_campaign_list(X) -> list:
-    from .campaign import Campaign, read_campaign
+    from fbgcomp.io.campaign import Campaign, read_campaign
 
     items = X if isinstance(X, (list, tuple)) else [X]
     return [c if isinstance(c, Campaign) else read_campaign(c) for c in items]
@@ -1067,7 +1067,8 @@ def load_model(path):
     if not isinstance(kind, str):
         raise InputError("model_type must be a name", file=path, column="field model_type")
     if kind not in _MODEL_TYPES:
-        from . import model_types, physical  # noqa: F401  (register kinematic, hybrid, dynamic, physical)
+        from fbgcomp.models import model_types
+        from fbgcomp.models import physical  # noqa: F401  (register kinematic, hybrid, dynamic, physical)
     if kind not in _MODEL_TYPES:
         raise InputError(f"unknown model_type {_short_text(repr(kind), 40)}; known: "
                          f"{', '.join(_MODEL_TYPES)}", file=path, column="field model_type")

@@ -2,7 +2,7 @@
 
 A Modbus TCP server (pymodbus, its own thread and asyncio loop: a slow or stuck client never
 holds up the compensation loop) publishes per axis the offset + Z slope form of
-:mod:`fbgcomp.runtime.cnc_form` - the form Sinumerik, Heidenhain and Fanuc thermal compensation
+:mod:`fbgcomp.runtime.outputs.cnc_form` - the form Sinumerik, Heidenhain and Fanuc thermal compensation
 take from the PLC (docs/cnc-integration.md) - beside the plain dx/dy/dz, with its own rate limit
 and maximum, the health code, the output switch, a sequence counter (a PLC that sees it stop
 knows the value is stale) and per axis the flags saying why the value was held back.
@@ -47,10 +47,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from fbgcomp.errors import InputError
-from fbgcomp.runtime.cnc_form import limit_toward
+from fbgcomp.runtime.outputs.cnc_form import limit_toward
 from fbgcomp.runtime.pipeline import HEALTH_NAMES, per_axis
 
-log = logging.getLogger("fbgcomp.runtime.modbus")
+log = logging.getLogger("fbgcomp.runtime.outputs.modbus")
 
 LAYOUT_VERSION = 1
 REG_LAYOUT, REG_HEALTH, REG_ENABLED, REG_APPLY, REG_SEQUENCE, REG_Z_REF = 0, 1, 2, 3, 4, 6

@@ -40,7 +40,7 @@ class CncError(RuntimeError):
 
 def example_dir() -> Path:
     """examples/linuxcnc of the source tree this package was installed from."""
-    return Path(__file__).resolve().parents[2] / "examples" / "linuxcnc"
+    return Path(__file__).resolve().parents[3] / "examples" / "linuxcnc"
 
 
 def ensure_user(name: str = CNC_USER) -> pwd.struct_passwd | None:
@@ -126,7 +126,7 @@ class LinuxCncMachine:
         run = Path(tempfile.mkdtemp(prefix="fbgcomp-cnc-"))
         for f in CONFIG_FILES:
             shutil.copyfile(self.config_dir / f, run / f)
-        pkg = Path(__file__).resolve().parent / "cnc"
+        pkg = Path(__file__).resolve().parents[1] / "cnc"
         for f in SCRIPTS:
             shutil.copyfile(pkg / f, run / f)
             os.chmod(run / f, 0o755)
@@ -291,9 +291,9 @@ class LinuxCncMachine:
 
 def _demo_inputs(work: Path, model_path: Path | None, campaign_dir: Path | None,
                  echo) -> tuple[Path, Path]:
-    from fbgcomp.campaign import write_campaign
-    from fbgcomp.models import MRAModel
-    from fbgcomp.synthetic import linear_truth_campaign
+    from fbgcomp.io.campaign import write_campaign
+    from fbgcomp.models.base import MRAModel
+    from fbgcomp.bench.synthetic import linear_truth_campaign
 
     if model_path is None:
         echo("fitting a model on a synthetic 2 h thermal campaign ...")

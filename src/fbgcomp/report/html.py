@@ -32,8 +32,8 @@ from typing import List
 import numpy as np
 import typer
 
-from .atomic import replace_dir
-from .errors import InputError
+from fbgcomp.atomic import replace_dir
+from fbgcomp.errors import InputError
 
 __all__ = ["CampaignSection", "analyse_campaign", "sensor_health", "probe_health",
            "write_report", "render_html", "register", "REPORT_FILE"]
@@ -179,16 +179,16 @@ def _slug(text: str) -> str:
 
 def analyse_campaign(campaign, model, *, slug: str | None = None) -> CampaignSection:
     """Predict, measure and draw one campaign with one model (no file is written)."""
-    from . import figures
-    from .metrics import validation_metrics
-    from .models import check_compatible
+    from fbgcomp.report import figures
+    from fbgcomp.models.metrics import validation_metrics
+    from fbgcomp.models.base import check_compatible
 
     check_compatible(model, campaign)
     aligned = campaign.aligned(zero_window_s=model.zero_window_s)
     pred, half = model.predict_interval(campaign)
     # ΔS from the campaign's own sensor metadata and the model's zero window: the same
     # elongations a regression model uses, and defined for every model type
-    from .features import FeatureMap
+    from fbgcomp.models.features import FeatureMap
 
     sensors = list(aligned.sensor_names)
     elongation = FeatureMap(list(campaign.meta.sensors), list(aligned.probe_names), False).base(
@@ -200,7 +200,7 @@ def analyse_campaign(campaign, model, *, slug: str | None = None) -> CampaignSec
     fbg_t = campaign.fbg["time_s"].to_numpy()
     fbg_v = campaign.fbg[[s.column for s in campaign.meta.sensors]].to_numpy(dtype=float)
     lam0 = [s.lambda0_nm for s in campaign.meta.sensors]
-    from .campaign import WAVELENGTH_BAND_NM
+    from fbgcomp.io.campaign import WAVELENGTH_BAND_NM
 
     temp_cols = [f"{p}_C" for p in campaign.probe_names]
     section = CampaignSection(
@@ -310,7 +310,7 @@ def _p_relation(value) -> str:
 
 def term_description(term: str) -> tuple[str, str]:
     """(description, coefficient unit) of a model term, in the words of paper Table 1."""
-    from .features import parse_term
+    from fbgcomp.models.features import parse_term
 
     if term == "const":
         return "intercept", "µm"
@@ -472,7 +472,7 @@ _FIGURE_ALT = {
 
 def render_html(sections, model, model_path, *, generated_utc=None) -> str:
     """The report as one HTML document with every figure embedded as a data: URI."""
-    from . import __version__
+    from fbgcomp import __version__
 
     generated_utc = generated_utc or datetime.now(timezone.utc).isoformat(timespec="seconds")
     toc = "".join(f'<li><a href="#c-{_e(_slug(s.name))}">{_e(s.name)}</a> ({_e(s.kind)})</li>'
@@ -560,8 +560,8 @@ def write_report(campaigns, model, output_dir, *, model_path="", progress=None) 
 
     Returns the path of report.html.
     """
-    from .campaign import Campaign, read_campaign
-    from .models import load_model
+    from fbgcomp.io.campaign import Campaign, read_campaign
+    from fbgcomp.models.base import load_model
 
     if isinstance(model, (str, os.PathLike)):
         model_path = model_path or str(model)
@@ -622,8 +622,8 @@ def register(app) -> None:
         axis with the stepwise history, validation metrics and sensor health."""
         import matplotlib  # noqa: F401 - a clear ImportError before any work
 
-        from .campaign import read_campaign
-        from .models import load_model
+        from fbgcomp.io.campaign import read_campaign
+        from fbgcomp.models.base import load_model
 
         fitted = load_model(model)
         data = [read_campaign(p) for p in campaigns]

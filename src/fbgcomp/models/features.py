@@ -27,7 +27,7 @@ from itertools import combinations_with_replacement
 
 import numpy as np
 
-from . import optics
+from fbgcomp import optics
 
 CONSTANT = "const"
 TEMPERATURE_FEATURES = ("dT_bulk", "dT_surf", "dT_flange")

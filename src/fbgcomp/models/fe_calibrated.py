@@ -5,7 +5,7 @@ forces and thermal loads (i) to check that the FBG resolution sees the distortio
 get the first regression coefficients of eq. 11. Here the twin's influence operators give each
 sensor path's elongation and the TTP displacement for a design of elementary load cases; random
 combinations of them, with the interrogator's noise on the elongations, are fitted by the same
-:class:`~fbgcomp.models.MRAModel` the campaigns use, so the result is an ordinary model file.
+:class:`~fbgcomp.models.base.MRAModel` the campaigns use, so the result is an ordinary model file.
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from . import optics
-from .features import TemperatureRoles, design_matrix
+from fbgcomp import optics
+from fbgcomp.models.features import TemperatureRoles, design_matrix
 
 AXES = ("dx", "dy", "dz")
 
@@ -66,7 +66,7 @@ def fe_design(machine, twin, *, n_samples=2000, wavelength_noise_nm=0.001, seed=
         Base features (``dL_<sensor>`` µm and the eq. 13 temperature features ``dT_bulk``,
         ``dT_surf``, ``dT_flange`` K), TTP deviations (n, 3) µm, and the case responses.
     """
-    from .features import TEMPERATURE_FEATURES
+    from fbgcomp.models.features import TEMPERATURE_FEATURES
 
     cases = load_case_responses(twin)
     rng = np.random.default_rng(seed)
@@ -114,9 +114,9 @@ def fe_calibrate(machine, twin=None, *, features="eq11", n_samples=2000, wavelen
         The fitted model (sensors from the machine, ready for campaigns and the runtime) and the
         case responses.
     """
-    from .models import MRAModel
-    from .regression import accumulate_series
-    from .structure import Twin
+    from fbgcomp.models.base import MRAModel
+    from fbgcomp.models.regression import accumulate_series
+    from fbgcomp.structure import Twin
 
     twin = twin or Twin(machine)
     X, y, cases = fe_design(machine, twin, n_samples=n_samples,
@@ -146,7 +146,7 @@ def _gauge(s):
 
 
 def campaign_sensor_specs(machine):
-    from .campaign import SensorSpec
+    from fbgcomp.io.campaign import SensorSpec
 
     return [SensorSpec(name=s.name, lambda0_nm=s.lambda0_nm, gauge_length_mm=s.gauge_length,
                        photoelastic=s.photoelastic, thermo_optic_per_K=s.thermo_optic_per_K,
@@ -166,7 +166,7 @@ def resolution_report(machine, twin=None, wavelength_noise_nm=0.001):
     case and the part the sensors cannot explain; and the map's singular values, numerical rank,
     condition number over the observable part and the unobservable sensor combinations.
     """
-    from .structure import Twin
+    from fbgcomp.structure import Twin
 
     twin = twin or Twin(machine)
     cases = load_case_responses(twin)

@@ -1,5 +1,5 @@
 """Runtime commands: ``serve``, ``sim-interrogator``, ``log export`` and ``trust add|list``
-(mounted by fbgcomp.cli)."""
+(mounted by fbgcomp.cli.app)."""
 
 from __future__ import annotations
 

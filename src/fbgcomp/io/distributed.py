@@ -1,19 +1,19 @@
 """Scale-out on an existing engine (Dask distributed); in-process by default.
 
 The regression's sufficient statistics are a QR factor of ``[X | Y]`` that is small
-((p+k) x (p+k)), streamable and mergeable (:class:`fbgcomp.regression.QRAccumulator`): a fit
+((p+k) x (p+k)), streamable and mergeable (:class:`fbgcomp.models.regression.QRAccumulator`): a fit
 over any number of rows is a *map* (one task per data file: stream it in row groups into a
 factor) followed by a *tree reduction* (merge factors pairwise on the workers). Only factors
 travel over the network, never rows; each worker holds one row group at a time, so its memory
 does not grow with the data. Stepwise selection, the ANOVA and the fallback models then run on
 the final factor in the client without reading the data again
-(:meth:`fbgcomp.models.MRAModel.fit_factor`).
+(:meth:`fbgcomp.models.base.MRAModel.fit_factor`).
 
 Autocorrelation-robust (Newey-West) inference, the default, needs one more read: a second
 map, one task per campaign (its files in order, one series), adds the lagged score sums about
-the pooled full model's coefficients (:meth:`~fbgcomp.regression.QRAccumulator.begin_hac`);
+the pooled full model's coefficients (:meth:`~fbgcomp.models.regression.QRAccumulator.begin_hac`);
 these add up in the client. Every path (campaign folders in-process, datasets, a cluster)
-then gives the same inference as :meth:`~fbgcomp.models.MRAModel.fit`.
+then gives the same inference as :meth:`~fbgcomp.models.base.MRAModel.fit`.
 
 ``dask`` arguments everywhere accept ``None`` (in-process, no Dask import), a scheduler address
 ``tcp://HOST:8786``, ``local:N`` (a LocalCluster of N single-threaded worker processes, started
@@ -30,7 +30,7 @@ import os
 import re
 from pathlib import Path
 
-from .errors import InputError
+from fbgcomp.errors import InputError
 
 __all__ = ["cluster", "local_cluster", "map_over_cluster", "tree_reduce", "fit_paths",
            "accumulate_paths", "parse_dask"]
@@ -166,8 +166,8 @@ def _model_params(model) -> dict:
 
 
 def _worker_model(spec):
-    from .campaign import SensorSpec
-    from .models import MRAModel
+    from fbgcomp.io.campaign import SensorSpec
+    from fbgcomp.models.base import MRAModel
 
     model = MRAModel(**spec["params"])
     model.new_accumulator([SensorSpec(**s) for s in spec["sensors"]])
@@ -190,13 +190,13 @@ def _source_rows(model, source: dict, info: dict | None = None):
     """Yield ``(design, reference_um)`` batches of one source (dataset file or campaign
     folder, checked against the model); ``info`` gets the campaign's dropped samples."""
     if source["kind"] == "file":
-        from .dataset import Partition, partition_design
+        from fbgcomp.io.dataset import Partition, partition_design
 
         partition = Partition.from_entry(Path(source["root"]), source["entry"])
         yield from partition_design(model, partition, source["file"])
     else:
-        from .campaign import read_campaign
-        from .models import _plain, check_compatible
+        from fbgcomp.io.campaign import read_campaign
+        from fbgcomp.models.base import _plain, check_compatible
 
         campaign = read_campaign(source["path"])
         check_compatible(model, campaign)
@@ -224,7 +224,7 @@ def _hac_campaign(sources: list, spec: dict, acc, weight: float) -> tuple:
 
 
 def _merge_states(a: dict, b: dict) -> dict:
-    from .regression import QRAccumulator
+    from fbgcomp.models.regression import QRAccumulator
 
     acc = QRAccumulator.from_dict(a["acc"]).merge(QRAccumulator.from_dict(b["acc"]))
     return {"acc": acc.to_dict(), "training": a["training"] + b["training"]}
@@ -232,8 +232,8 @@ def _merge_states(a: dict, b: dict) -> dict:
 
 def _plan(model, paths) -> tuple[list, list, dict]:
     """Sources (one per task), the training description skeleton, and the worker spec."""
-    from .campaign import _read_meta
-    from .dataset import check_partition, is_dataset, open_dataset
+    from fbgcomp.io.campaign import _read_meta
+    from fbgcomp.io.dataset import check_partition, is_dataset, open_dataset
 
     sources, described, first_sensors = [], [], None
     partitions_seen = []
@@ -275,14 +275,14 @@ def _plan(model, paths) -> tuple[list, list, dict]:
 
 def _campaign_weights(model, counts: list) -> list:
     """Row weight of each campaign exactly as :meth:`MRAModel.fit` pools them."""
-    from .models import campaign_weights_for
+    from fbgcomp.models.base import campaign_weights_for
 
     return [float(v) for v in campaign_weights_for(counts, model.campaign_weights)]
 
 
 def _pool(states: list, weights: list):
     """Merge per-campaign factors with their campaign weights (``QRAccumulator.merge``)."""
-    from .regression import QRAccumulator
+    from fbgcomp.models.regression import QRAccumulator
 
     first = QRAccumulator.from_dict(states[0]["acc"])
     acc = QRAccumulator(first.n_features, first.n_targets, first.feature_names,
@@ -294,7 +294,7 @@ def _pool(states: list, weights: list):
 
 def _second_pass(acc, spec: dict, sources: list, weights: dict, client) -> None:
     """Fill ``acc``'s autocorrelation statistics from every campaign again, about the pooled
-    full model (:meth:`~fbgcomp.regression.QRAccumulator.begin_hac`). A campaign's files
+    full model (:meth:`~fbgcomp.models.regression.QRAccumulator.begin_hac`). A campaign's files
     are one series (its lags cross the file cuts), so one task per campaign."""
     acc.begin_hac()
     groups: dict = {}

@@ -15,7 +15,7 @@ measurement layer then does what real instruments do, each on its own clock:
 * interferometer: the TTP displacement since the start plus 0.05 µm noise;
 * load cell: the applied force plus noise.
 
-The output is a campaign folder in exactly the format :mod:`fbgcomp.campaign` reads.
+The output is a campaign folder in exactly the format :mod:`fbgcomp.io.campaign` reads.
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ import pandas as pd
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from . import optics
-from .errors import InputError
+from fbgcomp import optics
+from fbgcomp.errors import InputError
 
 AXES = ("dx", "dy", "dz")
 
@@ -310,8 +310,8 @@ def _at(t_new, t, values):
 
 
 def measure(machine, scenario: Scenario, truth: dict, seed: int = 0, start=None):
-    """Turn the twin's true history into a :class:`~fbgcomp.campaign.Campaign` (measurement layer)."""
-    from .campaign import Campaign, CampaignMeta
+    """Turn the twin's true history into a :class:`~fbgcomp.io.campaign.Campaign` (measurement layer)."""
+    from fbgcomp.io.campaign import Campaign, CampaignMeta
 
     rng = np.random.default_rng([seed, 2])
     inst = scenario.instruments
@@ -403,7 +403,7 @@ def campaign_meta(machine, scenario: Scenario, seed: int, start=None) -> dict:
 def simulate(machine, scenario: Scenario, seed: int = 0, twin=None):
     """Run a scenario on the twin and measure it: returns (Campaign, truth dict)."""
     if twin is None:
-        from .structure import Twin
+        from fbgcomp.structure import Twin
         twin = Twin(machine, z_axis_mm=scenario.z_axis_mm)
     truth = true_response(twin, scenario, seed)
     return measure(machine, scenario, truth, seed), truth

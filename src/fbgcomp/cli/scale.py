@@ -1,7 +1,7 @@
 """Command-line commands for the Parquet dataset: ``fbgcomp ingest``.
 
-Mounted on the main application by ``from fbgcomp.scale_cli import register; register(app)``.
-``python -m fbgcomp.scale_cli ...`` runs the main application with these commands mounted
+Mounted on the main application by ``from fbgcomp.cli.scale import register; register(app)``.
+``python -m fbgcomp.cli.scale ...`` runs the main application with these commands mounted
 (useful until, or without, that mount).
 """
 
@@ -16,7 +16,7 @@ import typer
 
 def any_dataset(paths) -> bool:
     """Whether any of the ``fbgcomp fit`` arguments is a dataset rather than a campaign folder."""
-    from .dataset import is_dataset
+    from fbgcomp.io.dataset import is_dataset
 
     return any(is_dataset(p) for p in paths)
 
@@ -42,8 +42,8 @@ def register(app: typer.Typer) -> None:
             "log's clock from its first frame, dx_um, dy_um, dz_um)."),
     ):
         """Convert campaign folders (and run logs) into one partitioned Parquet dataset."""
-        from .dataset import ingest
-        from .errors import InputError
+        from fbgcomp.io.dataset import ingest
+        from fbgcomp.errors import InputError
 
         if rows_per_file < 1:
             raise InputError("--rows-per-file must be at least 1", file="<command line>",
@@ -59,7 +59,7 @@ def register(app: typer.Typer) -> None:
 
 
 def main(argv=None) -> int:
-    from .cli import app, main as cli_main
+    from fbgcomp.cli.app import app, main as cli_main
 
     register(app)
     return cli_main(argv)

@@ -5,7 +5,7 @@ Each entry is fitted on the training campaigns and judged on the test campaigns 
 peak, the 95 % interval coverage where the entry gives intervals, and load-plateau errors where
 a campaign has loads. Every campaign's table begins with the ``uncompensated`` row (the error of
 a machine without compensation is its deviation itself) and marks every axis where an entry ends
-worse than that (do-no-harm, :data:`fbgcomp.metrics.HARM_TOLERANCE_UM`). The pooled table is
+worse than that (do-no-harm, :data:`fbgcomp.models.metrics.HARM_TOLERANCE_UM`). The pooled table is
 ranked per axis by max |error|. Written as CSV (pooled; per campaign), JSON and Markdown,
 each atomically.
 
@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .metrics import validation_metrics
-from .atomic import write_json
-from .models import AXES, MRAModel
+from fbgcomp.models.metrics import validation_metrics
+from fbgcomp.atomic import write_json
+from fbgcomp.models.base import AXES, MRAModel
 
 #: (name, model type, feature set, options)
 ENTRIES = (
@@ -151,7 +151,7 @@ class _DesignModel:
     def fit(self, campaigns):
         self._mra = MRAModel(features=self.features, zero_window_s=self.zero_window_s, fallbacks="none")
         self._mra.new_accumulator(list(campaigns[0].meta.sensors), None)
-        from .models import campaign_weights_for
+        from fbgcomp.models.base import campaign_weights_for
 
         X, Y = [], []
         aligned = [c.aligned(zero_window_s=self.zero_window_s) for c in campaigns]
@@ -181,10 +181,10 @@ UNCOMPENSATED = "uncompensated"
 
 
 def _make(kind, features, options, machine, machine_given):
-    from .model_types import CalibratedModel, DynamicModel, HybridModel, KinematicModel
+    from fbgcomp.models.model_types import CalibratedModel, DynamicModel, HybridModel, KinematicModel
 
     if kind == "physical":
-        from .physical import PhysicalModel
+        from fbgcomp.models.physical import PhysicalModel
 
         # as `fbgcomp fit` with no flags: the machine description only when one was given
         return PhysicalModel(machine=machine if machine_given else None, **options)
@@ -240,12 +240,12 @@ def compare(train, test, *, machine=None, entries=ENTRIES, progress=None) -> dic
     * ``campaign_rows``: one per test campaign, entry and axis, beginning with the
       ``uncompensated`` row (error = the reference deviation itself); ``harm`` is True where
       the entry's max |error| exceeds the uncompensated one by more than
-      :data:`fbgcomp.metrics.HARM_TOLERANCE_UM`; load-plateau errors where the campaign has loads;
+      :data:`fbgcomp.models.metrics.HARM_TOLERANCE_UM`; load-plateau errors where the campaign has loads;
     * ``campaigns``: per test campaign, its sample count, whether it has loads, and the names of
       the entries worse than uncompensated on some axis.
     """
-    from .metrics import static_level_metrics
-    from .model_types import _machine
+    from fbgcomp.models.metrics import static_level_metrics
+    from fbgcomp.models.model_types import _machine
 
     machine_given = machine is not None
     machine = _machine(machine)          # a bad description fails here, before any fit
@@ -309,14 +309,14 @@ def compare(train, test, *, machine=None, entries=ENTRIES, progress=None) -> dic
 
 
 def _cell(r):
-    from .tables import format_number as num
+    from fbgcomp.tables import format_number as num
 
     text = f"{num(r['max_abs_error_um'], 2)} ({num(r['rms_error_um'], 2)})"
     return text + (" WORSE" if r["harm"] else "")
 
 
 def _plateau_cell(r):
-    from .tables import format_number as num
+    from fbgcomp.tables import format_number as num
 
     if r["plateau_max_error_um"] is None or r["plateau_deflection_um"] is None:
         return "-"
@@ -340,8 +340,8 @@ def _by_campaign(result):
 def format_campaign_tables(result: dict) -> str:
     """Per held-out campaign: every entry's max |error| (RMS) per axis beside the uncompensated
     row, WORSE where an axis ends worse than uncompensated (+ the harm tolerance)."""
-    from .metrics import HARM_TOLERANCE_UM
-    from .tables import Column, format_table, text
+    from fbgcomp.models.metrics import HARM_TOLERANCE_UM
+    from fbgcomp.tables import Column, format_table, text
 
     out = [f"per held-out campaign: max |error| µm (RMS µm) per axis; uncompensated = the deviation "
            f"itself; WORSE = max |error| above uncompensated + {HARM_TOLERANCE_UM:g} µm"]
@@ -395,7 +395,7 @@ def format_campaign_markdown(result: dict) -> str:
 
 
 def format_comparison(result: dict) -> str:
-    from .tables import Column, format_number, format_table, text
+    from fbgcomp.tables import Column, format_number, format_table, text
 
     out = [f"trained on {', '.join(result['train'])}; judged on {', '.join(result['test'])}", ""]
     if result.get("campaign_rows"):
@@ -425,7 +425,7 @@ CAMPAIGN_COLUMNS = ["campaign", "axis", "rank", "name", "model_type", "features"
 
 
 def _csv_text(rows, cols) -> str:
-    from .atomic import json_safe
+    from fbgcomp.atomic import json_safe
 
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore")
@@ -469,7 +469,7 @@ def write_comparison(result: dict, csv_path=None, json_path=None, campaign_csv_p
     Every file is written atomically; the CSVs hold the same rows (and ranks) as the JSON's
     ``rows`` and ``campaign_rows``, undefined numbers as empty cells (null in the JSON).
     """
-    from .atomic import write_bytes
+    from fbgcomp.atomic import write_bytes
 
     texts = []
     if csv_path is not None:

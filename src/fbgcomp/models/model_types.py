@@ -1,6 +1,6 @@
 """Model types beside the core regression: kinematic (fit-free), hybrid and dynamic.
 
-All share the model-file format of :mod:`fbgcomp.models` (JSON, ``schema_version``,
+All share the model-file format of :mod:`fbgcomp.models.base` (JSON, ``schema_version``,
 ``model_type``) and the runtime contract: ``predictor(exclude)`` returns a pure-numpy object
 whose ``predict(wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C)`` gives
 the TTP deviation (n, 3) µm and the half-width (n, 3) µm of its 95 % prediction interval, plus
@@ -31,11 +31,11 @@ from itertools import combinations
 import numpy as np
 from scipy import signal, stats
 
-from .errors import InputError
-from .features import (CONSTANT, TEMPERATURE_FEATURES, FeatureMap, TemperatureRoles,
+from fbgcomp.errors import InputError
+from fbgcomp.models.features import (CONSTANT, TEMPERATURE_FEATURES, FeatureMap, TemperatureRoles,
                        candidate_terms, design_matrix)
-from .kinematics import CLOSURE_FACTORS, KinematicChain
-from .models import (AXES, MRAModel, ModelFile, Predictor, _as_campaign_list, _plain, deviation_range,
+from fbgcomp.kinematics import CLOSURE_FACTORS, KinematicChain
+from fbgcomp.models.base import (AXES, MRAModel, ModelFile, Predictor, _as_campaign_list, _plain, deviation_range,
                      check_compatible, check_predictors, register_model_type)
 
 MODEL_TYPES = ("mra", "kinematic", "hybrid", "calibrated", "dynamic")
@@ -57,8 +57,8 @@ def campaign_z_axis_mm(campaign):
 
 
 def _machine(machine):
-    from .structure import load_machine
-    from .structure.machine import Machine
+    from fbgcomp.structure import load_machine
+    from fbgcomp.structure.machine import Machine
 
     if machine is None or isinstance(machine, (str, bytes)) or hasattr(machine, "__fspath__"):
         return load_machine(machine)
@@ -68,7 +68,7 @@ def _machine(machine):
 
 
 def _sensor_specs(machine):
-    from .calibrate import campaign_sensor_specs
+    from fbgcomp.models.fe_calibrated import campaign_sensor_specs
 
     return campaign_sensor_specs(machine)
 
@@ -99,7 +99,7 @@ class KinematicPredictor:
 
     def __init__(self, machine, sensors, probe_names, exclude, pi_relative, pi_floor_um,
                  wavelength_noise_nm=0.001, probe_noise_C=0.1, closure_factors=None):
-        from .calibrate import elongation_noise_um
+        from fbgcomp.models.fe_calibrated import elongation_noise_um
 
         self.machine = machine
         self.closure_factors = None if closure_factors is None else dict(closure_factors)
@@ -323,7 +323,7 @@ class KinematicModel(_ModelFile):
 
     @classmethod
     def from_dict(cls, d: dict, source="<dict>") -> "KinematicModel":
-        from .structure.machine import parse_machine
+        from fbgcomp.structure.machine import parse_machine
 
         u = d.get("uncertainty", {})
         closure = d.get("kinematic", {}).get("closure_factors")
@@ -494,7 +494,7 @@ class DynamicPredictor(Predictor):
 class DynamicModel(MRAModel):
     """Regression with first-order filtered temperature features (thermal lag).
 
-    Parameters as :class:`~fbgcomp.models.MRAModel` (features fixed to eq13 + filters) plus
+    Parameters as :class:`~fbgcomp.models.base.MRAModel` (features fixed to eq13 + filters) plus
     ``taus_s``: the filters' time constants in s.
     """
 
@@ -532,7 +532,7 @@ class DynamicModel(MRAModel):
         return {a: (with_dl[a] if a in self.elongation_axes else without[a]) for a in AXES}
 
     def new_accumulator(self, sensors, probe_names=None):
-        from .regression import QRAccumulator
+        from fbgcomp.models.regression import QRAccumulator
 
         super().new_accumulator(sensors, probe_names)
         self.candidates_ = self._candidates([s.name for s in self.sensors_])
@@ -594,8 +594,8 @@ def _fit_regression(model, X, progress=None, targets=None):
     campaigns = _as_campaign_list(X)
     if not campaigns:
         raise ValueError("fit needs at least one campaign")
-    from .models import campaign_weights_for
-    from .regression import accumulate_series
+    from fbgcomp.models.base import campaign_weights_for
+    from fbgcomp.models.regression import accumulate_series
 
     acc = model.new_accumulator(list(campaigns[0].meta.sensors), None)
     training, dts, series = [], [], []
@@ -1003,7 +1003,7 @@ class CalibratedModel(HybridModel):
         self.prior_sd = prior_sd
 
     def _calibrate_closure(self, kin, cache):
-        from .metrics import load_plateaus
+        from fbgcomp.models.metrics import load_plateaus
 
         machine = self.kinematic_.machine_
         groups = closure_parameter_groups(machine)

@@ -67,7 +67,7 @@ def dominant_axis(metrics: dict) -> str:
 
 def format_metrics(metrics: dict, title: str = "") -> str:
     """A readable table of :func:`validation_metrics` output (:mod:`fbgcomp.tables`)."""
-    from .tables import Column, format_table, text
+    from fbgcomp.tables import Column, format_table, text
 
     has_cov = any("pi95_coverage" in m for m in metrics["axes"].values())
     cols = [text("axis"), Column("uncomp. max", "µm"), Column("max|err|", "µm"),
@@ -136,7 +136,7 @@ def static_level_metrics(loads_N, reference_um, predicted_um, **plateau_options)
 
 def format_static_metrics(m: dict) -> str:
     """A readable table of :func:`static_level_metrics` output (:mod:`fbgcomp.tables`)."""
-    from .tables import Column, format_table, text
+    from fbgcomp.tables import Column, format_table, text
 
     cols = [text("axis"), Column("max deflection", "µm"), Column("max error", "µm"),
             Column("max error", "% of deflection", 2)]

@@ -527,7 +527,7 @@ class OpcUaServer:
         import sys
         parent, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         self._proc = subprocess.Popen(
-            [sys.executable, "-m", "fbgcomp.runtime.opcua", "--worker-fd", str(child.fileno())],
+            [sys.executable, "-m", "fbgcomp.runtime.outputs.opcua", "--worker-fd", str(child.fileno())],
             pass_fds=[child.fileno()])
         child.close()
         init = {"config": self.config.__dict__, "sensor_names": self.sensor_names,
@@ -593,7 +593,7 @@ class OpcUaServer:
         with ``limits``' rates and maxima (none: no limit)."""
         import numpy as np
 
-        from fbgcomp.runtime.cnc_form import limit_toward
+        from fbgcomp.runtime.outputs.cnc_form import limit_toward
         from fbgcomp.runtime.pipeline import per_axis
 
         if hasattr(limits, "offset_um") and hasattr(limits, "slope_um_per_m"):
@@ -1075,7 +1075,7 @@ def _setup_logging(init: dict) -> None:
 
 
 def _worker(fd: int) -> None:
-    """Entry point of the server process: ``python -m fbgcomp.runtime.opcua --worker-fd N``."""
+    """Entry point of the server process: ``python -m fbgcomp.runtime.outputs.opcua --worker-fd N``."""
     import pickle
     import signal
     signal.signal(signal.SIGINT, signal.SIG_IGN)   # the service decides when to stop
@@ -1099,4 +1099,4 @@ if __name__ == "__main__":
     if len(sys.argv) == 3 and sys.argv[1] == "--worker-fd":
         _worker(int(sys.argv[2]))
     else:
-        raise SystemExit("usage: python -m fbgcomp.runtime.opcua --worker-fd FD (started by serve)")
+        raise SystemExit("usage: python -m fbgcomp.runtime.outputs.opcua --worker-fd FD (started by serve)")

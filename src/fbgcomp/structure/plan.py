@@ -1,8 +1,8 @@
 """Before buying hardware: what TTP accuracy can this layout and this interrogator give?
 
 ``fbgcomp plan`` answers it from the machine description alone, on the figure sensor placement
-already optimises (:mod:`fbgcomp.placement`): the FE twin's elementary load design
-(:data:`fbgcomp.calibrate.LOAD_CASES`: 4000 N at the TTP along X, Y, Z; a 5 K uniform rise, 1 K
+already optimises (:mod:`fbgcomp.structure.placement`): the FE twin's elementary load design
+(:data:`fbgcomp.models.fe_calibrated.LOAD_CASES`: 4000 N at the TTP along X, Y, Z; a 5 K uniform rise, 1 K
 gradients across X, Y and along Z, a 5 K housing rise), the eq. 11 estimator a campaign would
 give on random combinations of them with the interrogator's noise, and per axis its
 **predicted worst-case TTP error**
@@ -10,7 +10,7 @@ give on random combinations of them with the interrogator's noise, and per axis 
     loads_noise = max_c |T - E B|_c + 2 sqrt(sum_s B_s^2 sigma_s^2)           (µm)
 
 (what the gratings cannot explain plus twice the noise the estimator passes on), exactly
-:func:`fbgcomp.placement.predicted_error_um`. To it the plan adds the **thermal compensation
+:func:`fbgcomp.structure.placement.predicted_error_um`. To it the plan adds the **thermal compensation
 error** of the same design's temperature fields, which placement leaves out because it works on
 the host's true elongations:
 
@@ -25,7 +25,7 @@ the host's true elongations:
 The sum is a bound (the worst cases are added, not combined), compared with the user's target
 per axis. What would close a gap is computed, not guessed: the interrogator noise the axis
 would need, the figure with a reference grating beside every sensor, and the best layouts of
-more paths chosen by :func:`fbgcomp.placement.choose` on the machine's candidate paths or a
+more paths chosen by :func:`fbgcomp.structure.placement.choose` on the machine's candidate paths or a
 grid.
 
 What the figure does not cover: transients (a probe that sees the spindle's heat late: on ram2
@@ -40,9 +40,9 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from . import optics
-from .calibrate import LOAD_CASES, elongation_noise_um, load_case_responses
-from .placement import PlacementDesign, candidate_grid, choose, predicted_error_um, sensor_pool
+from fbgcomp import optics
+from fbgcomp.models.fe_calibrated import LOAD_CASES, elongation_noise_um, load_case_responses
+from fbgcomp.structure.placement import PlacementDesign, candidate_grid, choose, predicted_error_um, sensor_pool
 
 AXES = ("dx", "dy", "dz")
 
@@ -93,7 +93,7 @@ def probe_mismatch_K(sensor_temperature_C, probe_C, sensors, probe_names, *, ref
 
 
 def estimator(elongation_um, ttp_um, noise_um) -> np.ndarray:
-    """The eq. 11 map (S, 3) of :func:`fbgcomp.placement.predicted_error_um`:
+    """The eq. 11 map (S, 3) of :func:`fbgcomp.structure.placement.predicted_error_um`:
     ``B = (E'E + N)^-1 E'T`` with N the elongation noise variances."""
     E = np.asarray(elongation_um, dtype=float)
     noise = np.asarray(noise_um, dtype=float)
@@ -114,7 +114,7 @@ class PlanDesign:
 def plan_design(machine, candidates=(), *, twin=None, resolution=None, z_axis_mm=None,
                 wavelength_noise_nm=0.001) -> PlanDesign:
     """One FE twin with the machine's sensors (first, in order) and the candidate paths."""
-    from .structure import Twin
+    from fbgcomp.structure import Twin
 
     pool, m = sensor_pool(machine, candidates)
     twin = twin or Twin(m, resolution=resolution, z_axis_mm=z_axis_mm)
@@ -284,9 +284,9 @@ def plan(machine, target_um: float, *, axes=AXES, wavelength_noise_nm=0.001, gri
     """Predicted TTP accuracy of the machine description's layout against ``target_um`` (µm).
 
     The layout's figures come from a twin of the machine as described (as ``fbgcomp resolution``
-    builds it). ``grid``: :func:`fbgcomp.placement.candidate_grid` arguments for the larger
+    builds it). ``grid``: :func:`fbgcomp.structure.placement.candidate_grid` arguments for the larger
     layouts (default none: only the machine's ``candidate_sensors``); ``extra_sensors``: layouts
-    of K = n .. n + extra_sensors paths are chosen by :func:`fbgcomp.placement.choose` (0: none)
+    of K = n .. n + extra_sensors paths are chosen by :func:`fbgcomp.structure.placement.choose` (0: none)
     on a twin meshed with the candidates too, as ``fbgcomp place`` does.
     """
     pdes = plan_design(machine, twin=twin, resolution=resolution, z_axis_mm=z_axis_mm,
@@ -340,7 +340,7 @@ def plan(machine, target_um: float, *, axes=AXES, wavelength_noise_nm=0.001, gri
 
 def parse_axes(spec: str) -> tuple:
     """``dx,dz`` -> ("dx", "dz"); an unknown or repeated axis is a one-line command-line error."""
-    from .errors import InputError
+    from fbgcomp.errors import InputError
 
     axes = tuple(a.strip() for a in spec.split(",") if a.strip())
     bad = [a for a in axes if a not in AXES]

@@ -13,8 +13,8 @@ from pathlib import Path
 from typing import List, Optional
 
 import typer
-from . import progress
-from .errors import InputError
+from fbgcomp import progress
+from fbgcomp.errors import InputError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="fbgcomp: compensate machine-tool deformations from FBG sensors.")
@@ -27,7 +27,7 @@ def _options(quiet: bool = typer.Option(False, "--quiet", "-q", help="No progres
 
 
 def _read_campaigns(paths, desc="reading campaigns"):
-    from .campaign import read_campaign
+    from fbgcomp.io.campaign import read_campaign
 
     return [read_campaign(p) for p in progress.track(paths, desc, unit="campaign")]
 
@@ -36,7 +36,7 @@ def _read_campaigns(paths, desc="reading campaigns"):
 def inspect(campaign: Path = typer.Argument(..., help="Campaign folder."),
             as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON.")):
     """Summarise a campaign: duration, rates, ranges, alignment overlap, problems found."""
-    from .campaign import read_campaign
+    from fbgcomp.io.campaign import read_campaign
 
     c = read_campaign(campaign)
     if as_json:
@@ -46,7 +46,7 @@ def inspect(campaign: Path = typer.Argument(..., help="Campaign folder."),
 
 
 def _any_dataset(paths) -> bool:
-    from .scale_cli import any_dataset
+    from fbgcomp.cli.scale import any_dataset
 
     return any_dataset(paths)
 
@@ -111,10 +111,10 @@ def fit(campaigns: List[Path] = typer.Argument(..., help="Training campaign fold
 
 def _fit(stage, campaigns, output, model_type, features, stepwise, direction, p_enter, p_remove,
          max_terms, cov_type, hac_maxlags, roles, zero_window, fallbacks, dask, machine):
-    from .models import MRAModel
+    from fbgcomp.models.base import MRAModel
 
     if model_type == "physical":
-        from .physical import PhysicalModel
+        from fbgcomp.models.physical import PhysicalModel
 
         stage("reading campaigns")
         data = _read_campaigns(campaigns)
@@ -127,7 +127,7 @@ def _fit(stage, campaigns, output, model_type, features, stepwise, direction, p_
         typer.echo(f"\nmodel {model.model_id} (physical) written to {output}")
         return
     if model_type != "mra":
-        from .model_types import fit_from_cli
+        from fbgcomp.models.model_types import fit_from_cli
 
         stage("reading campaigns")
         data = _read_campaigns(campaigns)
@@ -162,7 +162,7 @@ def _fit(stage, campaigns, output, model_type, features, stepwise, direction, p_
             raise InputError(f"--hac-maxlags must be auto or a positive integer, not {hac_maxlags!r}",
                              file="<command line>", column="option --hac-maxlags")
         hac_maxlags = lags
-    from .scale_cli import any_dataset
+    from fbgcomp.cli.scale import any_dataset
 
     scaled = dask is not None or any_dataset(campaigns)
     stage("reading campaigns" if not scaled else "opening the datasets")
@@ -174,7 +174,7 @@ def _fit(stage, campaigns, output, model_type, features, stepwise, direction, p_
     stage(f"fitting the regression ({features}{', stepwise' if stepwise else ''}, per axis)")
     with _numeric_failures(campaigns):
         if scaled:
-            from .distributed import fit_paths
+            from fbgcomp.io.distributed import fit_paths
 
             fit_paths(model, campaigns, dask=dask)
         else:
@@ -191,14 +191,14 @@ def validate(model_file: Path = typer.Argument(..., help="Model file (JSON)."),
              json_out: Optional[Path] = typer.Option(None, "--json", help="Write the metrics as JSON.")):
     """Judge a model on campaigns: per axis peak, max |error|, RMS, % of peak, compensation ratio.
 
-    The model is loaded through the checks every consumer uses (fbgcomp.models.load_model): a
+    The model is loaded through the checks every consumer uses (fbgcomp.models.base.load_model): a
     model with non-finite or absurd numbers, or parts that disagree, exits 2 with one line."""
     import numpy as np
 
-    from .metrics import (format_metrics, format_static_metrics, static_level_metrics,
+    from fbgcomp.models.metrics import (format_metrics, format_static_metrics, static_level_metrics,
                           validation_metrics)
-    from .atomic import write_json
-    from .models import load_model
+    from fbgcomp.atomic import write_json
+    from fbgcomp.models.base import load_model
 
     model = load_model(model_file)
     refs, preds, halves, per_campaign = [], [], [], {}
@@ -231,9 +231,9 @@ def simulate(machine: Optional[Path] = typer.Option(None, help="Machine descript
              seed: int = typer.Option(0, help="Random seed of the measurement noise and random inputs."),
              output: Path = typer.Option(..., "-o", "--output", help="Campaign folder to write.")):
     """Run a scenario on the FE twin and write the measured campaign (virtual test bench)."""
-    from .bench import load_scenario, simulate as run
-    from .campaign import write_campaign
-    from .structure import load_machine
+    from fbgcomp.bench.virtual import load_scenario, simulate as run
+    from fbgcomp.io.campaign import write_campaign
+    from fbgcomp.structure import load_machine
 
     with progress.stages("simulate", 3) as stage:
         stage("reading the machine and scenario")
@@ -253,8 +253,8 @@ def fe_calibrate_cmd(machine: Optional[Path] = typer.Option(None, help="Machine 
                      samples: int = typer.Option(2000, help="Random combinations of the FE load cases."),
                      seed: int = typer.Option(0, help="Random seed.")):
     """Fit the eq. 11 model on a design of FE load cases (paper sec. 2.3) and write a model file."""
-    from .calibrate import fe_calibrate
-    from .structure import load_machine
+    from fbgcomp.models.fe_calibrated import fe_calibrate
+    from fbgcomp.structure import load_machine
 
     if features not in ("eq11", "eq12", "eq13"):
         raise InputError(f"unknown feature set {features!r}", file="<command line>", column="option --features")
@@ -273,8 +273,8 @@ def resolution(machine: Optional[Path] = typer.Option(None, help="Machine descri
                noise_pm: float = typer.Option(1.0, help="Interrogator wavelength noise, pm."),
                as_json: bool = typer.Option(False, "--json", help="Print JSON.")):
     """Smallest TTP deviation the sensor set resolves, and the condition of the sensor-to-TTP map."""
-    from .calibrate import format_resolution, resolution_report
-    from .structure import load_machine
+    from fbgcomp.models.fe_calibrated import format_resolution, resolution_report
+    from fbgcomp.structure import load_machine
 
     with progress.stages("resolution", 1) as stage:
         stage("FE twin and the sensor-to-TTP map")
@@ -293,7 +293,7 @@ def demo(output: Path = typer.Option(Path("demo-out"), "-o", "--output", help="F
                                              "$FBGCOMP_RAM2, else ../shared/reference/ram2 beside the repository).")):
     """The main job: simulate, FE-calibrate, fit and validate on the built-in default machine, then
     the default model on the independent ram2 data set beside it (skipped in one line without it)."""
-    from .demo import run_demo
+    from fbgcomp.cli.demo import run_demo
 
     run_demo(output, machine_path=machine, seed=seed, quick=quick, resolution=mesh_resolution, ram2=ram2)
 
@@ -308,7 +308,7 @@ def compare(train: List[Path] = typer.Option(..., "--train", help="Training camp
             markdown: Optional[Path] = typer.Option(None, "--markdown", help="Also write the per-campaign tables as Markdown.")):
     """Every model type fitted on --train and judged on each --test campaign beside no compensation
     (rows marked WORSE where an axis ends worse than uncompensated), then pooled and ranked per axis."""
-    from .compare import (ENTRIES, compare as run, default_campaign_csv, format_comparison,
+    from fbgcomp.models.compare import (ENTRIES, compare as run, default_campaign_csv, format_comparison,
                           write_comparison)
 
     with progress.stages("compare", 2 + len(ENTRIES)) as stage:
@@ -343,9 +343,9 @@ def place(k: int = typer.Option(..., "--k", help="Number of sensor paths to choo
           dask: Optional[str] = typer.Option(None, "--dask", help="Evaluate candidates on a Dask cluster: tcp://HOST:8786 or local:N."),
           json_out: Optional[Path] = typer.Option(None, "--json", help="Write the result as JSON.")):
     """Choose K sensor paths minimising the predicted worst-case TTP error (FE load design + noise)."""
-    from .atomic import write_json
-    from .placement import parse_grid, place as run
-    from .structure import load_machine
+    from fbgcomp.atomic import write_json
+    from fbgcomp.structure.placement import parse_grid, place as run
+    from fbgcomp.structure import load_machine
 
     m = load_machine(machine)
     if k < 1:
@@ -377,9 +377,9 @@ def plan(target_um: float = typer.Option(..., "--target-um", help="Target TTP ac
     against a target, per axis, and what would close a gap (docs/campaign-guide.md)."""
     import math
 
-    from .placement import parse_grid
-    from .plan import parse_axes, plan as run
-    from .structure import load_machine
+    from fbgcomp.structure.placement import parse_grid
+    from fbgcomp.structure.plan import parse_axes, plan as run
+    from fbgcomp.structure import load_machine
 
     if not math.isfinite(target_um) or target_um <= 0:
         raise InputError(f"--target-um must be a positive number of µm, not {target_um:g}",
@@ -407,23 +407,23 @@ def plan(target_um: float = typer.Option(..., "--target-um", help="Target TTP ac
 def import_cmd(mapping: Path = typer.Argument(..., help="Mapping file (YAML): campaign metadata, exports, columns, units, times (docs/import.md)."),
                output: Path = typer.Option(..., "-o", "--output", help="Campaign folder to write (an existing one is replaced atomically).")):
     """Turn vendor and logger exports (CSV, TSV, Excel) into a campaign folder."""
-    from .vendor_import import describe, import_campaign
+    from fbgcomp.io.vendor_import import describe, import_campaign
 
     typer.echo(describe(import_campaign(mapping, output), mapping, output))
 
 
 def _mount_optional_commands() -> None:
     """Commands of packages that may be absent in a minimal install (runtime needs asyncua)."""
-    from .cnc_demo import register as register_cnc_demo
-    from .report import register as register_report
-    from .scale_cli import register as register_scale
+    from fbgcomp.cli.cnc_demo import register as register_cnc_demo
+    from fbgcomp.report.html import register as register_report
+    from fbgcomp.cli.scale import register as register_scale
 
     register_report(app)
     register_cnc_demo(app)
     register_scale(app)
-    __import__("fbgcomp.twin_check", fromlist=["register"]).register(app)
+    __import__("fbgcomp.structure.twin_check", fromlist=["register"]).register(app)
     try:
-        from .runtime.cli import register
+        from fbgcomp.cli.runtime import register
     except ImportError:
         return
     register(app)

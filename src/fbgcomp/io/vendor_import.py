@@ -5,8 +5,8 @@ interferometer in a third; each with its own clock, time zone, units, delimiter 
 A *mapping file* (YAML) says, for each export, which column is which sensor, probe or axis, in
 which unit, and how its time is written; :func:`import_campaign` reads the exports, converts them
 to the campaign's units (nm, degC, um, N) and to seconds from one common start, and writes a
-campaign folder that :func:`fbgcomp.campaign.read_campaign` accepts (atomically, through
-:func:`fbgcomp.campaign.write_campaign`: nothing half-written on error).
+campaign folder that :func:`fbgcomp.io.campaign.read_campaign` accepts (atomically, through
+:func:`fbgcomp.io.campaign.write_campaign`: nothing half-written on error).
 
 Mapping file (see ``docs/import.md`` for every key)::
 
@@ -47,7 +47,7 @@ import pandas as pd
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
-from fbgcomp.campaign import (FBG_FILE, LOADS_FILE, META_FILE, REFERENCE_FILE, TEMPERATURES_FILE,
+from fbgcomp.io.campaign import (FBG_FILE, LOADS_FILE, META_FILE, REFERENCE_FILE, TEMPERATURES_FILE,
                               TIME_COLUMN, Campaign, _meta_error, _MetaLoader, write_campaign)
 from fbgcomp.errors import InputError, read_bounded
 

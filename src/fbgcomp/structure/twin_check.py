@@ -25,7 +25,7 @@ from typing import Optional
 import numpy as np
 import typer
 
-from .errors import InputError
+from fbgcomp.errors import InputError
 
 UNIT_LOAD_TARGET = 0.03        # relative, unit-load TTP compliances and sensor responses
 UNIFORM_DZ_TARGET = 0.02       # relative, uniform +10 K dz
@@ -164,7 +164,7 @@ def format_table(rows: list[Row]) -> str:
 
 def run(machine_path: str | Path, against: str | Path, resolution: float | None = None) -> dict:
     """Build the twin of ``machine_path`` and compare it with ``against``; returns the figures."""
-    from .structure import Twin, load_machine
+    from fbgcomp.structure import Twin, load_machine
 
     ref = load_reference(against)
     machine = load_machine(machine_path)
@@ -202,6 +202,6 @@ def register(app: typer.Typer) -> None:
                    f"{out['n_nodes']} nodes) against {against}")
         typer.echo(format_table([Row(**r) for r in out["rows"]]))
         if json_out is not None:
-            from .atomic import write_json
+            from fbgcomp.atomic import write_json
             write_json(json_out, out)
             typer.echo(f"figures written to {json_out}")

@@ -2,7 +2,7 @@
 
 The paper closes by asking for better sensor configurations. Here every candidate path (the
 machine's sensors, its ``candidate_sensors`` and/or a grid declared with :func:`candidate_grid`)
-is put through the FE twin's elementary load design (:data:`fbgcomp.calibrate.LOAD_CASES`: TTP
+is put through the FE twin's elementary load design (:data:`fbgcomp.models.fe_calibrated.LOAD_CASES`: TTP
 forces along X, Y, Z and the thermal fields, each at its typical magnitude). For a set S of K
 paths with responses E_S (cases x K, µm) and TTP displacements T (cases x 3, µm), the eq. 11
 estimator a campaign would give on random combinations of the cases with interrogator noise
@@ -24,7 +24,7 @@ E'E), but the quantity that matters is the TTP error; a path that is very inform
 load case with no effect on the TTP (or a second path repeating the first) scores well in D-
 optimality and is useless here. The objective is cheap (K x K solves), so optimising it directly
 costs nothing; candidate evaluations of each greedy step run through
-:func:`fbgcomp.distributed.map_over_cluster` when a Dask cluster is given.
+:func:`fbgcomp.io.distributed.map_over_cluster` when a Dask cluster is given.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from functools import partial
 
 import numpy as np
 
-from .calibrate import LOAD_CASES, elongation_noise_um, load_case_responses
+from fbgcomp.models.fe_calibrated import LOAD_CASES, elongation_noise_um, load_case_responses
 
 AXES = ("dx", "dy", "dz")
 FACES = ("+X", "-X", "+Y", "-Y")
@@ -46,7 +46,7 @@ def candidate_grid(machine, faces=FACES, offsets_mm=(0.0,), length_mm=500.0, ste
     starting every ``step_mm`` between ``z_min_mm`` (default 0) and ``z_max_mm`` (default: the
     ram's length). Fibre constants come from ``template`` (default: the machine's first sensor).
     """
-    from .structure.machine import Sensor
+    from fbgcomp.structure.machine import Sensor
 
     template = template or machine.sensors[0]
     z0 = 0.0 if z_min_mm is None else float(z_min_mm)
@@ -93,7 +93,7 @@ def sensor_pool(machine, candidates=()):
 def placement_design(machine, candidates=(), *, twin=None, resolution=None, z_axis_mm=None,
                      wavelength_noise_nm=0.001) -> PlacementDesign:
     """One FE twin with every path (machine sensors + candidates) as a sensor; load-case responses."""
-    from .structure import Twin
+    from fbgcomp.structure import Twin
 
     pool, m = sensor_pool(machine, candidates)
     if twin is None:
@@ -157,7 +157,7 @@ class PlacementResult:
 
 def choose(design: PlacementDesign, k: int, *, default=None, dask=None, max_passes=20) -> PlacementResult:
     """Greedy forward selection + exchange of ``k`` paths (indices into ``design.names``)."""
-    from .distributed import map_over_cluster
+    from fbgcomp.io.distributed import map_over_cluster
 
     n = len(design.names)
     if not 1 <= k <= n:
@@ -210,7 +210,7 @@ def choose(design: PlacementDesign, k: int, *, default=None, dask=None, max_pass
 
 def parse_grid(spec: str) -> dict:
     """``faces=+X,-X;offsets=-80,0,80;length=400;step=200;zmin=0;zmax=1200`` -> grid arguments."""
-    from .errors import InputError
+    from fbgcomp.errors import InputError
 
     keys = {"faces": "faces", "offsets": "offsets_mm", "length": "length_mm", "step": "step_mm",
             "zmin": "z_min_mm", "zmax": "z_max_mm"}
@@ -248,7 +248,7 @@ def place(machine, k: int, *, grid=None, twin=None, resolution=None, z_axis_mm=N
     design = placement_design(machine, cands, twin=twin, resolution=resolution, z_axis_mm=z_axis_mm,
                               wavelength_noise_nm=wavelength_noise_nm)
     if k > len(design.names):
-        from .errors import InputError
+        from fbgcomp.errors import InputError
 
         raise InputError(f"--k {k} exceeds the {len(design.names)} candidate paths", file="<command line>",
                          column="option --k")

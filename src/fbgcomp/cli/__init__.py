@@ -1,0 +1,1 @@
+"""Command-line interface: all Typer wiring lives here and nowhere else."""

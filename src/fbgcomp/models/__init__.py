@@ -1,0 +1,1 @@
+"""TTP-deviation models (paper eq. 11-13): features, regression, model types, policy and metrics."""

@@ -1,0 +1,1 @@
+"""``fbgcomp report``: figures and the self-contained HTML report."""
