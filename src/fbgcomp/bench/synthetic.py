@@ -16,10 +16,10 @@ import pandas as pd
 
 from fbgcomp import optics
 from fbgcomp.models.features import TEMPERATURE_FEATURES, design_matrix
+from fbgcomp.units import AXES
 
 SENSORS = ("S1", "S2", "S3", "S4", "S5")
 PROBES = ("T_bulk", "T_surf", "T_flange", "T_amb")
-AXES = ("dx", "dy", "dz")
 
 
 def default_meta(name="synthetic", kind="thermal", sensors=SENSORS, probes=PROBES,

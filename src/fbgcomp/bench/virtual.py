@@ -32,8 +32,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from fbgcomp import optics
 from fbgcomp.errors import InputError
+from fbgcomp.units import AXES
 
-AXES = ("dx", "dy", "dz")
 
 
 class _Strict(BaseModel):

@@ -36,8 +36,8 @@ import numpy as np
 from fbgcomp.runtime.health import FLAG_NAMES, STATUS_NAMES
 from fbgcomp.runtime.log import log_parts, part_write_s, read_meta
 from fbgcomp.runtime.pipeline import HEALTH_NAMES
+from fbgcomp.units import AXES
 
-AXES = ("dx", "dy", "dz")
 MIN_WINDOW_S = 60.0
 MAX_WINDOW_S = 36 * 3600.0
 WINDOWS_S = (60, 600, 3600, 6 * 3600, 12 * 3600, 36 * 3600)   # the page's choices

@@ -69,6 +69,7 @@ from fbgcomp.dashboard.history import MAX_POINTS, MAX_WINDOW_S, MIN_WINDOW_S, WI
 from fbgcomp.runtime.health import flag_names
 from fbgcomp.runtime.outputs.opcua import load_users as _load_users
 from fbgcomp.runtime.outputs.opcua import verify_password
+from fbgcomp.units import AXES
 
 log = logging.getLogger("fbgcomp.dashboard")
 
@@ -76,7 +77,6 @@ STATIC_DIR = Path(__file__).resolve().parent / "static"
 _STATIC = {"index.html": "text/html", "dashboard.js": "text/javascript",
            "dashboard.css": "text/css"}
 COOKIE = "fbgcomp_session"
-AXES = ("dx", "dy", "dz")
 DEFAULT_HOST = "127.0.0.1"
 MAX_BODY_BYTES = 4096          # the largest request body (a login or a switch is < 200 bytes)
 MAX_UNSENT_BYTES = 64 * 1024   # a stream with more queued for the browser is dropped

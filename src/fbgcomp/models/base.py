@@ -41,8 +41,8 @@ from fbgcomp.errors import InputError, read_bounded
 from fbgcomp.models.features import (CONSTANT, FEATURE_SETS, FeatureMap, TemperatureRoles, candidate_terms,
                        design_matrix)
 from fbgcomp.models.regression import accumulate_series
+from fbgcomp.units import AXES, REFERENCE_COLUMNS
 
-AXES = ("dx", "dy", "dz")
 #: Largest model file read, bytes (one with every fallback of a dozen gratings is ~1 MB).
 MAX_MODEL_BYTES = 64 << 20
 #: Deepest nesting of JSON objects and arrays in a model file (the deepest real one is ~10).
@@ -55,7 +55,7 @@ MAX_MODEL_VALUE = 1e12
 #: allowed. NaN and infinity are refused everywhere.
 STATISTICS = frozenset({"fvalue", "f_pvalue", "tvalues", "pvalues", "bse", "rsquared",
                         "rsquared_adj", "stepwise_history", "hac", "training"})
-REFERENCE_COLUMNS = ("dx_um", "dy_um", "dz_um")
+
 MODEL_FORMAT = "fbgcomp-model"
 SCHEMA_VERSION = 2
 #: Upgrades of older model files, ``{from_version: function(dict) -> dict of from_version + 1}``.

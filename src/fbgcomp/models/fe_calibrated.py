@@ -15,8 +15,8 @@ import pandas as pd
 
 from fbgcomp import optics
 from fbgcomp.models.features import TemperatureRoles, design_matrix
+from fbgcomp.units import AXES
 
-AXES = ("dx", "dy", "dz")
 
 #: Typical magnitudes of each elementary load case in a working machine (the design's scale).
 LOAD_CASES = (

@@ -9,8 +9,8 @@ of the 95 % interval (the fraction of reference samples inside it, ~0.95 when ho
 from __future__ import annotations
 
 import numpy as np
+from fbgcomp.units import AXES
 
-AXES = ("dx", "dy", "dz")
 #: The do-no-harm rule: a compensated axis may not end with a larger max |error| than without
 #: compensation; 0.5 µm is allowed for the interferometer's own noise on an axis that hardly moves.
 HARM_TOLERANCE_UM = 0.5

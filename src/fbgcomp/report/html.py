@@ -34,12 +34,12 @@ import typer
 
 from fbgcomp.atomic import replace_dir
 from fbgcomp.errors import InputError
+from fbgcomp.units import AXES
 
 __all__ = ["CampaignSection", "analyse_campaign", "sensor_health", "probe_health",
            "write_report", "render_html", "register", "REPORT_FILE"]
 
 REPORT_FILE = "report.html"
-AXES = ("dx", "dy", "dz")
 LOAD_COLUMNS = ("fx_N", "fy_N", "fz_N")
 LOAD_LABELS = ("F_x", "F_y", "F_z")
 

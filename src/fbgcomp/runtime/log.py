@@ -48,9 +48,9 @@ from fbgcomp.atomic import write_bytes
 from fbgcomp.errors import InputError
 from fbgcomp.runtime.health import STATUS_NAMES
 from fbgcomp.runtime.pipeline import HEALTH_NAMES
+from fbgcomp.units import AXES
 
 log = logging.getLogger("fbgcomp.runtime")
-AXES = ("dx", "dy", "dz")
 DATA_DIR = "data"          # LOG/data/date=YYYY-MM-DD/part-*.parquet
 
 

@@ -35,8 +35,8 @@ from functools import partial
 import numpy as np
 
 from fbgcomp.models.fe_calibrated import LOAD_CASES, elongation_noise_um, load_case_responses
+from fbgcomp.units import AXES
 
-AXES = ("dx", "dy", "dz")
 FACES = ("+X", "-X", "+Y", "-Y")
 
 

@@ -43,8 +43,8 @@ import numpy as np
 from fbgcomp import optics
 from fbgcomp.models.fe_calibrated import LOAD_CASES, elongation_noise_um, load_case_responses
 from fbgcomp.structure.placement import PlacementDesign, candidate_grid, choose, predicted_error_um, sensor_pool
+from fbgcomp.units import AXES
 
-AXES = ("dx", "dy", "dz")
 
 
 def false_elongation_per_K_um(sensors) -> np.ndarray:
