@@ -27,6 +27,7 @@ from hypothesis.extra import numpy as hnp
 from unittest import mock
 
 import fbgcomp.io.campaign as campaign_module
+import fbgcomp.io.campaign.tables as campaign_tables  # the reader's block size is patched there
 
 from fbgcomp.io.campaign import (AlignedCampaign, Campaign, CampaignMeta, SensorSpec, read_campaign,
                               write_campaign)
@@ -950,7 +951,7 @@ def test_streamed_blocks_read_exactly_what_a_whole_read_does(chunk, line_end, tr
             return [frame.to_numpy().tolist() for frame in (c.fbg, c.temperatures, c.reference)]
 
         whole = outcome()
-        with mock.patch.object(campaign_module, "_CHUNK_BYTES", chunk):
+        with mock.patch.object(campaign_tables, "_CHUNK_BYTES", chunk):
             assert outcome() == whole
         if bad is None:
             assert isinstance(whole, list)
@@ -965,7 +966,7 @@ def test_a_blank_line_between_blocks_is_an_empty_row(folder):
     lines.insert(11, "")  # after data row 10
     path.write_text("\n".join(lines))
     for chunk in (7, 64, 1 << 20):
-        with mock.patch.object(campaign_module, "_CHUNK_BYTES", chunk):
+        with mock.patch.object(campaign_tables, "_CHUNK_BYTES", chunk):
             expect_error(folder, "reference.csv", row=11, match="empty row")
 
 
@@ -1060,7 +1061,7 @@ def test_arbitrary_bytes_in_fbg_csv_give_a_campaign_or_an_input_error(chunk, hea
         folder = Path(tmp) / "c"
         shutil.copytree(_template_folder(), folder)
         (folder / "fbg.csv").write_bytes(head + content)
-        with mock.patch.object(campaign_module, "_CHUNK_BYTES", chunk):
+        with mock.patch.object(campaign_tables, "_CHUNK_BYTES", chunk):
             try:
                 c = read_campaign(folder)
             except InputError as err:

@@ -232,7 +232,7 @@ def _merge_states(a: dict, b: dict) -> dict:
 
 def _plan(model, paths) -> tuple[list, list, dict]:
     """Sources (one per task), the training description skeleton, and the worker spec."""
-    from fbgcomp.io.campaign import _read_meta
+    from fbgcomp.io.campaign import read_meta
     from fbgcomp.io.dataset import check_partition, is_dataset, open_dataset
 
     sources, described, first_sensors = [], [], None
@@ -256,7 +256,7 @@ def _plan(model, paths) -> tuple[list, list, dict]:
         else:
             if not path.is_dir():
                 raise InputError("campaign folder or dataset not found", file=raw)
-            meta = _read_meta(path)
+            meta = read_meta(path)
             if first_sensors is None:
                 first_sensors = list(meta.sensors)
             key = str(path)

@@ -48,7 +48,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from fbgcomp.io.campaign import (FBG_FILE, LOADS_FILE, META_FILE, REFERENCE_FILE, TEMPERATURES_FILE,
-                              TIME_COLUMN, Campaign, _meta_error, _MetaLoader, write_campaign)
+                                 TIME_COLUMN, Campaign, MetaLoader, meta_error, write_campaign)
 from fbgcomp.errors import InputError, read_bounded
 
 __all__ = ["ImportMapping", "SourceSpec", "FormatSpec", "TimeSpec", "ColumnSpec", "PRESETS",
@@ -367,7 +367,7 @@ def read_mapping(path: str | Path) -> ImportMapping:
         raise InputError("mapping file not found", file=file)
     raw = read_bounded(file, MAX_MAPPING_BYTES, what="a mapping file")
     try:
-        data = yaml.load(raw.decode("utf-8-sig"), Loader=_MetaLoader)  # noqa: S506 - SafeLoader
+        data = yaml.load(raw.decode("utf-8-sig"), Loader=MetaLoader)  # noqa: S506 - SafeLoader
     except UnicodeDecodeError as exc:
         raise InputError(f"not UTF-8 text: byte 0x{raw[exc.start]:02x}", file=file) from None
     except yaml.MarkedYAMLError as exc:
@@ -385,7 +385,7 @@ def read_mapping(path: str | Path) -> ImportMapping:
     try:
         return ImportMapping.model_validate(data)
     except ValidationError as exc:
-        raise _meta_error(exc, file) from None
+        raise meta_error(exc, file) from None
 
 
 # --------------------------------------------------------------------------------------------
@@ -854,7 +854,7 @@ def _campaign_meta(mapping: ImportMapping, mapping_file: Path) -> tuple[dict, Pa
             raise InputError("campaign metadata file not found", file=path)
         raw = read_bounded(path, MAX_MAPPING_BYTES, what="campaign metadata")
         try:
-            data = yaml.load(raw.decode("utf-8-sig"), Loader=_MetaLoader)  # noqa: S506
+            data = yaml.load(raw.decode("utf-8-sig"), Loader=MetaLoader)  # noqa: S506
         except (UnicodeDecodeError, yaml.YAMLError) as exc:
             raise InputError(f"not a readable YAML file: {type(exc).__name__}", file=path) from None
         if not isinstance(data, Mapping):

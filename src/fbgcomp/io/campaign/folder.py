@@ -1,0 +1,379 @@
+"""A campaign folder as a whole: the :class:`Campaign` object (construction, alignment,
+inspection), :func:`read_campaign` and the atomic :func:`write_campaign`.
+"""
+
+from __future__ import annotations
+
+import shutil
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping
+
+import numpy as np
+import pandas as pd
+
+from fbgcomp import optics
+from fbgcomp.atomic import replace_dir, write_bytes
+from fbgcomp.errors import InputError
+from fbgcomp.io.campaign.align import (AlignedCampaign, check_window, interp_columns, onto_reference,
+                                       zero_state)
+from fbgcomp.io.campaign.layout import (FBG_FILE, LOAD_COLUMNS, LOADS_FILE, META_FILE,
+                                        REFERENCE_COLUMNS, REFERENCE_FILE, TEMPERATURES_FILE,
+                                        TIME_COLUMN)
+from fbgcomp.io.campaign.meta import CampaignMeta, meta_yaml, read_meta, validate_meta
+from fbgcomp.io.campaign.tables import read_table, table_from_input, write_csv
+
+__all__ = ["Campaign", "read_campaign", "write_campaign", "GAP_FACTOR"]
+
+#: Sampling gaps longer than this many median intervals are reported by ``summary()``.
+GAP_FACTOR = 5.0
+
+
+@dataclass(eq=False)
+class Campaign:
+    """A campaign folder in memory: metadata and one DataFrame per instrument, each on its own
+    clock, validated and with canonical column order (see the module docstring)."""
+
+    path: Path | None
+    meta: CampaignMeta
+    fbg: pd.DataFrame
+    temperatures: pd.DataFrame
+    reference: pd.DataFrame
+    loads: pd.DataFrame | None = None
+
+    # -- names -------------------------------------------------------------------------------
+    @property
+    def name(self) -> str:
+        """The campaign's name (campaign.yaml ``name``)."""
+        return self.meta.name
+
+    @property
+    def sensor_names(self) -> list[str]:
+        """Sensor names in campaign.yaml order."""
+        return self.meta.sensor_names
+
+    @property
+    def probe_names(self) -> list[str]:
+        """Declared probes, then temperature columns found in the data but not declared."""
+        return self.meta.probe_names + self.undeclared_probes
+
+    @property
+    def undeclared_probes(self) -> list[str]:
+        """Probes of temperatures.csv columns that campaign.yaml does not declare, in file order."""
+        declared = {p.column for p in self.meta.temperature_probes}
+        return [c[:-2] for c in self.temperatures.columns
+                if c != TIME_COLUMN and c not in declared]
+
+    def __repr__(self) -> str:
+        loads = "none" if self.loads is None else f"{len(self.loads)} rows"
+        return (f"Campaign(name={self.name!r}, kind={self.meta.kind!r}, path={self.path}, "
+                f"fbg={len(self.fbg)} rows x {len(self.sensor_names)} sensors, "
+                f"temperatures={len(self.temperatures)} rows x {len(self.probe_names)} probes, "
+                f"reference={len(self.reference)} rows, loads={loads})")
+
+    # -- construction ------------------------------------------------------------------------
+    @classmethod
+    def from_arrays(cls, meta: CampaignMeta | Mapping, *, fbg, temperatures, reference,
+                    loads=None, path: str | Path | None = None) -> "Campaign":
+        """Build a validated campaign from DataFrames or mappings ``{column: 1-D array}``.
+
+        The same checks as :func:`read_campaign` apply (columns, finite numbers, strictly
+        increasing ``time_s``, wavelengths within the grating band); errors name the file the
+        table would be written to.
+        """
+        meta = validate_meta(meta, META_FILE)
+        return cls(
+            path=None if path is None else Path(path),
+            meta=meta,
+            fbg=table_from_input(FBG_FILE, fbg, meta, FBG_FILE),
+            temperatures=table_from_input(TEMPERATURES_FILE, temperatures, meta,
+                                          TEMPERATURES_FILE),
+            reference=table_from_input(REFERENCE_FILE, reference, meta, REFERENCE_FILE),
+            loads=None if loads is None else table_from_input(LOADS_FILE, loads, meta, LOADS_FILE),
+        )
+
+    def validate(self) -> "Campaign":
+        """Re-run every check on the in-memory tables (after editing them); returns a campaign
+        with canonical column order."""
+        return Campaign.from_arrays(self.meta, fbg=self.fbg, temperatures=self.temperatures,
+                                    reference=self.reference, loads=self.loads, path=self.path)
+
+    # -- alignment ---------------------------------------------------------------------------
+    def _spans(self) -> dict[str, tuple[float, float]]:
+        spans = {}
+        for role, frame in ((FBG_FILE, self.fbg), (TEMPERATURES_FILE, self.temperatures),
+                            (REFERENCE_FILE, self.reference)):
+            t = frame[TIME_COLUMN].to_numpy()
+            spans[role] = (float(t[0]), float(t[-1]))
+        return spans
+
+    def _where(self):
+        return self.path if self.path is not None else self.name
+
+    def aligned(self, zero_window_s: float = 10.0, average: bool = True) -> AlignedCampaign:
+        """All instruments on the reference clock inside their common time range.
+
+        The overlap is [latest first sample, earliest last sample] over fbg, temperatures and
+        reference; reference samples outside it are dropped (and counted), the other signals are
+        interpolated linearly, never extrapolated. With ``average`` (default), an instrument
+        that samples at least three times per reference interval (e.g. a 10 Hz interrogator
+        against a 1 Hz interferometer) is first averaged over that interval — a local
+        least-squares line centred on each reference time, exact for linear signals — so its
+        noise drops by the square root of the samples averaged instead of aliasing. Loads do not restrict the overlap: they are
+        interpolated inside their own time range and NaN outside it. Zero states are the mean of
+        the first ``zero_window_s`` seconds of each signal on its own clock.
+        """
+        window = check_window(zero_window_s)
+        spans = self._spans()
+        t0 = max(span[0] for span in spans.values())
+        t1 = min(span[1] for span in spans.values())
+        if t0 > t1:
+            ranges = "; ".join(f"{role} {a:g} to {b:g} s" for role, (a, b) in spans.items())
+            raise InputError(f"the instruments' records do not overlap in time: {ranges}",
+                             file=self._where())
+        ref_t = self.reference[TIME_COLUMN].to_numpy()
+        first = int(np.searchsorted(ref_t, t0, side="left"))
+        stop = int(np.searchsorted(ref_t, t1, side="right"))
+        if stop <= first:
+            raise InputError(f"no reference sample falls inside the overlap {t0:g} to {t1:g} s "
+                             "of fbg.csv, temperatures.csv and reference.csv",
+                             file=self._where())
+        time_s = ref_t[first:stop].copy()
+        ref_dt = float(np.median(np.diff(ref_t))) if ref_t.size > 1 else 0.0
+
+        fbg_t = self.fbg[TIME_COLUMN].to_numpy()
+        fbg_v = self.fbg[[s.column for s in self.meta.sensors]].to_numpy(dtype=np.float64)
+        # each thermometer on its own clock: probes on temperatures.csv's, reference gratings
+        # on the interrogator's
+        temperature_C = np.empty((time_s.size, len(self.probe_names)))
+        temperature_zero_C = np.empty(len(self.probe_names))
+        for names, (src_t, src_v) in self.thermometers().items():
+            idx = [self.probe_names.index(p) for p in names]
+            temperature_C[:, idx] = onto_reference(time_s, src_t, src_v, ref_dt, average)
+            temperature_zero_C[idx] = zero_state(src_t, src_v, window)
+        ref_v = self.reference[list(REFERENCE_COLUMNS)].to_numpy(dtype=np.float64)
+        reference_zero_um = zero_state(ref_t, ref_v, window)
+
+        loads_N = None
+        loads_outside = None
+        if self.loads is not None:
+            loads_t = self.loads[TIME_COLUMN].to_numpy()
+            loads_v = self.loads[list(LOAD_COLUMNS)].to_numpy(dtype=np.float64)
+            loads_N = interp_columns(time_s, loads_t, loads_v, outside=np.nan)
+            loads_outside = int(np.isnan(loads_N[:, 0]).sum())
+
+        return AlignedCampaign(
+            name=self.name,
+            meta=self.meta,
+            time_s=time_s,
+            wavelength_nm=onto_reference(time_s, fbg_t, fbg_v, ref_dt, average),
+            wavelength_zero_nm=zero_state(fbg_t, fbg_v, window),
+            temperature_C=temperature_C,
+            temperature_zero_C=temperature_zero_C,
+            reference_um=ref_v[first:stop] - reference_zero_um,
+            reference_zero_um=reference_zero_um,
+            loads_N=loads_N,
+            dropped={"before": first, "after": int(ref_t.size - stop), "overlap_s": (t0, t1),
+                     "loads_outside": loads_outside},
+            sensor_names=list(self.sensor_names),
+            probe_names=list(self.probe_names),
+            zero_window_s=window,
+        )
+
+    def thermometers(self) -> dict[tuple, tuple[np.ndarray, np.ndarray]]:
+        """Every temperature reading on its own clock: ``{probe names: (time_s (n,), values
+        (n, k) degC)}``. Probes come from temperatures.csv; a strain-free reference grating
+        (``<sensor>_ref``) is read from fbg.csv as the temperature change of the sensor's gauge
+        since the first sample (eq. 3 inverted, :func:`fbgcomp.optics.grating_temperature_change_K`)."""
+        refs = set(self.meta.reference_probe_names)
+        probes = tuple(p for p in self.probe_names if p not in refs)
+        out = {probes: (self.temperatures[TIME_COLUMN].to_numpy(),
+                        self.temperatures[[f"{p}_C" for p in probes]].to_numpy(dtype=np.float64))}
+        with_ref = [s for s in self.meta.sensors if s.reference_column is not None]
+        if with_ref:
+            lam = self.fbg[[s.reference_column for s in with_ref]].to_numpy(dtype=np.float64)
+            dT = optics.grating_temperature_change_K(
+                lam, lam[0], thermo_optic_per_K=np.array([s.thermo_optic_per_K for s in with_ref]),
+                fibre_cte_per_K=np.array([s.fibre_cte_per_K for s in with_ref]))
+            out[tuple(s.reference_probe for s in with_ref)] = (self.fbg[TIME_COLUMN].to_numpy(), dT)
+        return out
+
+    # -- inspection --------------------------------------------------------------------------
+    def _tables(self) -> dict[str, pd.DataFrame]:
+        tables = {FBG_FILE: self.fbg, TEMPERATURES_FILE: self.temperatures,
+                  REFERENCE_FILE: self.reference}
+        if self.loads is not None:
+            tables[LOADS_FILE] = self.loads
+        return tables
+
+    def summary(self) -> dict:
+        """What ``fbgcomp inspect`` shows: per-file statistics, the alignment overlap and
+        non-fatal problems. Only builtins (JSON-serialisable)."""
+        problems: list[str] = []
+        files = {}
+        for role, frame in self._tables().items():
+            t = frame[TIME_COLUMN].to_numpy()
+            step = np.diff(t)
+            median = float(np.median(step)) if step.size else None
+            info = {
+                "rows": int(t.size),
+                "start_s": float(t[0]),
+                "end_s": float(t[-1]),
+                "duration_s": float(t[-1] - t[0]),
+                "median_interval_s": median,
+                "rate_hz": (1.0 / median) if median else None,
+                "columns": {c: {"min": float(frame[c].min()), "max": float(frame[c].max())}
+                            for c in frame.columns if c != TIME_COLUMN},
+            }
+            if median:
+                gaps = np.flatnonzero(step > GAP_FACTOR * median)
+                info["gaps"] = int(gaps.size)
+                if gaps.size:
+                    longest = int(gaps[np.argmax(step[gaps])])
+                    problems.append(
+                        f"{role}: {gaps.size} gap(s) longer than {GAP_FACTOR:g} x the median "
+                        f"interval ({median:g} s); longest {step[longest]:g} s before row "
+                        f"{longest + 2} (t = {t[longest + 1]:g} s)")
+            else:
+                info["gaps"] = 0
+            files[role] = info
+
+        spans = self._spans()
+        t0 = max(span[0] for span in spans.values())
+        t1 = min(span[1] for span in spans.values())
+        ref_t = self.reference[TIME_COLUMN].to_numpy()
+        if t0 <= t1:
+            overlap = [t0, t1]
+            before = int(np.searchsorted(ref_t, t0, side="left"))
+            after = int(ref_t.size - np.searchsorted(ref_t, t1, side="right"))
+            if before + after:
+                problems.append(f"{before + after} reference sample(s) outside the overlap "
+                                f"{t0:g} to {t1:g} s will be dropped ({before} before, "
+                                f"{after} after)")
+            if self.loads is not None:
+                lt = self.loads[TIME_COLUMN].to_numpy()
+                inside = ref_t[(ref_t >= t0) & (ref_t <= t1)]
+                uncovered = int(((inside < lt[0]) | (inside > lt[-1])).sum())
+                if uncovered:
+                    problems.append(f"{LOADS_FILE} covers {lt[0]:g} to {lt[-1]:g} s only: "
+                                    f"{uncovered} aligned sample(s) will have NaN loads")
+        else:
+            overlap, before, after = None, int(ref_t.size), 0
+            problems.append("fbg.csv, temperatures.csv and reference.csv do not overlap in time")
+
+        for probe in self.undeclared_probes:
+            problems.append(f"{TEMPERATURES_FILE}: column {probe}_C is not declared in "
+                            f"campaign.yaml temperature_probes (used as probe {probe!r})")
+        for role, frame in self._tables().items():
+            for column in frame.attrs.get("ignored_columns", []):
+                problems.append(f"{role}: column {column!r} is not part of the format and was ignored")
+        for i, sensor in enumerate(self.meta.sensors):
+            for key in sensor.model_extra or {}:
+                problems.append(f"{META_FILE}: sensors[{i}] has unrecognised key {key!r} "
+                                "(kept; a typo?)")
+
+        return {
+            "name": self.name,
+            "kind": self.meta.kind,
+            "description": self.meta.description,
+            "start": self.meta.start.isoformat(),
+            "path": None if self.path is None else str(self.path),
+            "files": files,
+            "overlap_s": overlap,
+            "reference_outside_overlap": {"before": before, "after": after},
+            "sensors": [{"name": s.name, "lambda0_nm": s.lambda0_nm,
+                         "temperature_probe": s.temperature_probe} for s in self.meta.sensors],
+            "probes": self.probe_names,
+            "undeclared_probes": self.undeclared_probes,
+            "problems": problems,
+        }
+
+    def summary_text(self) -> str:
+        """:meth:`summary` as a human-readable report."""
+        s = self.summary()
+        lines = [f"campaign {s['name']!r} ({s['kind']}), start {s['start']}"]
+        if s["path"]:
+            lines.append(f"  folder: {s['path']}")
+        if s["description"]:
+            lines.append(f"  {s['description']}")
+        for role, info in s["files"].items():
+            rate = (f"every {info['median_interval_s']:g} s ({info['rate_hz']:.4g} Hz)"
+                    if info["median_interval_s"] else "single sample")
+            lines.append(f"{role}: {info['rows']} rows, {info['start_s']:g} to {info['end_s']:g} s "
+                         f"({info['duration_s']:g} s), {rate}")
+            for column, mm in info["columns"].items():
+                lines.append(f"    {column:<16} min {mm['min']:.12g}  max {mm['max']:.12g}")
+        if s["overlap_s"] is None:
+            lines.append("overlap: none")
+        else:
+            out = s["reference_outside_overlap"]
+            lines.append(f"overlap: {s['overlap_s'][0]:g} to {s['overlap_s'][1]:g} s; reference "
+                         f"samples outside: {out['before']} before, {out['after']} after")
+        probes = {sensor["name"]: sensor["temperature_probe"] for sensor in s["sensors"]}
+        lines.append("sensors: " + ", ".join(
+            f"{name} (probe {probe})" if probe else f"{name} (uncompensated)"
+            for name, probe in probes.items()))
+        lines.append("probes: " + (", ".join(s["probes"]) or "none"))
+        if s["problems"]:
+            lines.append("problems:")
+            lines.extend(f"  - {p}" for p in s["problems"])
+        else:
+            lines.append("problems: none")
+        return "\n".join(lines)
+
+
+def read_campaign(path: str | Path) -> Campaign:
+    """Read and validate a campaign folder.
+
+    Raises
+    ------
+    InputError
+        For anything wrong with the folder, naming the file and, where it applies, the 1-based
+        data row and the column (or the YAML field path).
+    """
+    folder = Path(path)
+    if not folder.exists():
+        raise InputError("campaign folder not found", file=folder)
+    if not folder.is_dir():
+        raise InputError("expected a campaign folder, found a file", file=folder)
+    meta = read_meta(folder)
+    fbg = read_table(folder, FBG_FILE, meta)
+    temperatures = read_table(folder, TEMPERATURES_FILE, meta)
+    reference = read_table(folder, REFERENCE_FILE, meta)
+    loads = read_table(folder, LOADS_FILE, meta) if (folder / LOADS_FILE).exists() else None
+    return Campaign(path=folder, meta=meta, fbg=fbg, temperatures=temperatures,
+                    reference=reference, loads=loads)
+
+
+def write_campaign(campaign: Campaign, path: str | Path) -> Path:
+    """Write a campaign folder atomically and return its path.
+
+    Everything is written into a temporary sibling folder first; an existing campaign folder at
+    ``path`` is replaced only once the new one is complete, and nothing temporary is left behind
+    on failure. A folder that is not a campaign folder (no campaign.yaml) is never replaced.
+    """
+    target = Path(path)
+    if target.exists() and not target.is_dir():
+        raise InputError("cannot write a campaign folder: a file of that name exists", file=target)
+    if target.is_dir() and any(target.iterdir()) and not (target / META_FILE).is_file():
+        raise InputError("refusing to replace a folder that is not a campaign folder "
+                         "(it has no campaign.yaml)", file=target)
+    checked = campaign.validate()
+    target.parent.mkdir(parents=True, exist_ok=True)
+    token = uuid.uuid4().hex[:12]
+    staging = target.parent / f".{target.name}.tmp-{token}"
+    staging.mkdir()
+    try:
+        write_csv(checked.fbg, staging / FBG_FILE)
+        write_csv(checked.temperatures, staging / TEMPERATURES_FILE)
+        write_csv(checked.reference, staging / REFERENCE_FILE)
+        if checked.loads is not None:
+            write_csv(checked.loads, staging / LOADS_FILE)
+        # Metadata last: a folder with campaign.yaml is a complete one.
+        write_bytes(staging / META_FILE, meta_yaml(checked.meta, target / META_FILE).encode("utf-8"))
+        replace_dir(staging, target, target.parent / f".{target.name}.old-{token}")
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    return target
