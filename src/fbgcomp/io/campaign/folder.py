@@ -4,6 +4,7 @@ inspection), :func:`read_campaign` and the atomic :func:`write_campaign`.
 
 from __future__ import annotations
 
+import os
 import shutil
 import uuid
 from dataclasses import dataclass
@@ -14,7 +15,7 @@ import numpy as np
 import pandas as pd
 
 from fbgcomp import optics
-from fbgcomp.atomic import replace_dir, write_bytes
+from fbgcomp.atomic import replace_dir
 from fbgcomp.errors import InputError
 from fbgcomp.io.campaign.align import (AlignedCampaign, check_window, interp_columns, onto_reference,
                                        zero_state)
@@ -371,7 +372,13 @@ def write_campaign(campaign: Campaign, path: str | Path) -> Path:
         if checked.loads is not None:
             write_csv(checked.loads, staging / LOADS_FILE)
         # Metadata last: a folder with campaign.yaml is a complete one.
-        write_bytes(staging / META_FILE, meta_yaml(checked.meta, target / META_FILE).encode("utf-8"))
+        # Written like the tables (into the staging folder, so not atomic itself) so that every
+        # file of the folder gets the same permissions.
+        text = meta_yaml(checked.meta, target / META_FILE)
+        with open(staging / META_FILE, "w", encoding="utf-8", newline="\n") as handle:
+            handle.write(text)
+            handle.flush()
+            os.fsync(handle.fileno())
         replace_dir(staging, target, target.parent / f".{target.name}.old-{token}")
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
