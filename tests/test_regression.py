@@ -119,11 +119,11 @@ def test_filip_is_chunking_and_merge_order_invariant_in_double_double():
 # --------------------------------------------------------------------------------------------
 
 def test_double_double_qr_factor_matches_exact_rational_gram():
-    from fbgcomp.models.regression import _dd_qr_r
+    from fbgcomp.models.regression.doubledouble import dd_qr_r
 
     rng = np.random.default_rng(3)
     M = rng.normal(size=(9, 4)) * np.array([1.0, 1e3, 1e-3, 7.0])
-    rh, rl = _dd_qr_r(M, np.zeros_like(M))
+    rh, rl = dd_qr_r(M, np.zeros_like(M))
     R = [[Fraction(rh[i, j]) + Fraction(rl[i, j]) for j in range(4)] for i in range(4)]
     A = [[Fraction(v) for v in row] for row in M]
     for i in range(4):
@@ -799,12 +799,12 @@ def test_gram_fast_path_and_accurate_path_give_the_same_fit_and_selection():
 
 
 def test_double_precision_step_state_equals_the_double_double_one():
-    from fbgcomp.models.regression import _StepState
+    from fbgcomp.models.regression.stepwise import StepState
 
     X, y, names = _eq12_design(5_000, seed=3)
     acc = _accumulate_named(X, y, names, 5_000, precision="double-double")
     model, others = [0, 1, 2, 7], [c for c in range(1, X.shape[1]) if c not in (1, 2, 7)]
-    exact, fast = _StepState(acc, model, others, 0, True), _StepState(acc, model, others, 0, False)
+    exact, fast = StepState(acc, model, others, 0, True), StepState(acc, model, others, 0, False)
     np.testing.assert_allclose(fast.ssr, exact.ssr, rtol=1e-12)
     for got, want in ((fast.entries(), exact.entries()), (fast.removals(), exact.removals())):
         assert [g[0] for g in got] == [w[0] for w in want]
@@ -831,7 +831,8 @@ def test_gram_threshold_keeps_seven_digits_or_refuses(degree, shift):
     # Polynomial designs from kappa_eq 18 to 2e4 (the threshold's calibration, module notes):
     # whichever path the auto pass takes, the worst coefficient keeps >= 7 digits against the
     # double-double fit; those below the threshold do take the Gram.
-    from fbgcomp.models.regression import _KAPPA_GRAM, _equilibrated_cond
+    from fbgcomp.models.regression.factor import equilibrated_cond
+    from fbgcomp.models.regression.gram import KAPPA_GRAM
 
     rng = np.random.default_rng(degree)
     x = np.tile(np.arange(1.0, 22.0), 150) + shift
@@ -839,8 +840,8 @@ def test_gram_threshold_keeps_seven_digits_or_refuses(degree, shift):
     y = X @ np.ones(degree + 1) + 50.0 * rng.normal(size=len(x))
     ref = ols_from_factor(accumulate(X, y, 1500, precision="double-double")).params
     acc = accumulate(X, y, 1500)
-    kappa = _equilibrated_cond(np.linalg.qr(X / np.linalg.norm(X, axis=0), mode="r"))
-    assert (acc.gram_rows_ > 0) == (kappa <= _KAPPA_GRAM)
+    kappa = equilibrated_cond(np.linalg.qr(X / np.linalg.norm(X, axis=0), mode="r"))
+    assert (acc.gram_rows_ > 0) == (kappa <= KAPPA_GRAM)
     assert lre(ols_from_factor(acc).params, ref).min() >= 7.0
 
 
