@@ -944,6 +944,28 @@ def test_unnamed_ols_results_stay_arrays_and_factor_fits_have_no_rows():
     np.testing.assert_allclose(factor_fit.llf, ref.llf, rtol=1e-10)
 
 
+
+def test_saved_kind_tags_are_the_original_format_identifiers_and_load():
+    # The "kind" tags are written into saved models and states: the package split must not
+    # change them, and states written with them (through JSON) load back to the same fit.
+    X, y = _well_conditioned(3)
+    acc = accumulate(X, y, 100)
+    state = json.loads(json.dumps(acc.to_dict()))
+    assert state["kind"] == "fbgcomp.regression.QRAccumulator"
+    res = ols_from_factor(QRAccumulator.from_dict(state))
+    saved = json.loads(json.dumps(res.to_dict()))
+    assert saved["kind"] == "fbgcomp.regression.OLSResults"
+    np.testing.assert_array_equal(OLSResults.from_dict(saved).params, ols_from_factor(acc).params)
+
+
+def test_term_series_are_read_only():
+    res = ols(*_well_conditioned(4), cov_type="nonrobust")
+    for attr in ("params", "bse", "tvalues", "pvalues"):
+        before = getattr(res, attr).copy()
+        with pytest.raises(AttributeError):
+            setattr(res, attr, before * 2)
+        np.testing.assert_array_equal(getattr(res, attr), before)
+
 def test_readme_api_snippet_runs():
     # The ols lines of README.md's Python API section, as written there.
     import numpy as np  # noqa: F811

@@ -25,6 +25,7 @@ __all__ = ["ACCUMULATOR_KIND", "QRAccumulator", "accumulate_series", "ols"]
 # The "kind" tag of a saved accumulator state (to_dict): a data-format identifier written into
 # files, kept as it was when the module was fbgcomp/regression.py.
 ACCUMULATOR_KIND = "fbgcomp.regression.QRAccumulator"
+
 # Rows per LAPACK QR pass: [R; block] stays in cache (4096 x 46 doubles = 1.5 MB), which makes
 # the Householder data pass ~1.7x faster than 65536-row blocks; it also bounds the extra memory
 # of an update (one scaled copy of the block) whatever the caller's chunk size.
@@ -53,7 +54,9 @@ def _lapack_triangle(a: np.ndarray, ncols: int) -> np.ndarray:
         r = np.vstack([r, np.zeros((ncols - r.shape[0], ncols))])
     return np.triu(r[:ncols])
 
+
 def _as_2d(values: Any, ncols: int, what: str) -> np.ndarray:
+    """``values`` as a float (n, ncols) array (1-D allowed when ncols is 1)."""
     arr = np.asarray(values, dtype=float)
     if arr.ndim == 1 and ncols == 1:
         arr = arr[:, None]
@@ -63,6 +66,7 @@ def _as_2d(values: Any, ncols: int, what: str) -> np.ndarray:
 
 
 def _check_finite(arr: np.ndarray, names: Sequence[str], first_row: int, what: str) -> None:
+    """InputError naming the (1-based) row and the column of the first non-finite value."""
     if not np.isfinite(arr).all():
         bad_row, bad_col = np.argwhere(~np.isfinite(arr))[0]
         raise InputError(f"non-finite {what} value {arr[bad_row, bad_col]!r} in regression data",
@@ -70,6 +74,7 @@ def _check_finite(arr: np.ndarray, names: Sequence[str], first_row: int, what: s
 
 
 def _names(names: Sequence[str] | None, count: int, default: list[str], what: str) -> list[str]:
+    """``count`` unique column names as strings, ``default`` when None."""
     if names is None:
         return default
     names = [str(n) for n in names]
@@ -78,7 +83,6 @@ def _names(names: Sequence[str] | None, count: int, default: list[str], what: st
     if len(set(names)) != len(names):
         raise ValueError(f"{what} are not unique: {names}")
     return names
-
 
 
 class QRAccumulator(AccumulatedFactor):
@@ -100,7 +104,7 @@ class QRAccumulator(AccumulatedFactor):
         (kappa <= 1e6) and double-double otherwise; "double" is always LAPACK QR.
     hac_lags : None, True, "auto", int or sequence of int
         Also keep what autocorrelation-robust (Newey-West, HAC) inference needs, for these
-        bandwidths (see :func:`hac_lag_grid`; default None: naive inference only). Rows are a
+        bandwidths (see :func:`~fbgcomp.models.regression.hac.hac_lag_grid`; default None: naive inference only). Rows are a
         time series in the order given; :meth:`end_series` starts a new one (another
         campaign), so no lag spans two series.
 
