@@ -41,9 +41,10 @@ Gram fast path: when the design is well conditioned, forming ``X^T X`` costs far
 matters. So after the first 1024 rows (QR), ``precision="auto"`` adds each chunk through its Gram
 and a Cholesky of ``R^T R + G``, and keeps the result only if the equilibrated condition number of
 the new factor's design part is <= 500 and each target's norm is <= 300 times its residual's
-(``KAPPA_GRAM``, ``RESID_RATIO_GRAM`` in :mod:`~fbgcomp.models.regression.gram`: calibrated to
-keep >= 7.3 correct digits in the worst coefficient, see their notes); otherwise the same rows go through QR as above
-(``gram_rows_`` counts the rows that took the Gram). Every NIST StRD design stays on QR.
+(``KAPPA_GRAM``, ``RESID_RATIO_GRAM`` in :mod:`~fbgcomp.models.regression.gram`: calibrated
+to keep >= 7.3 correct digits in the worst coefficient, see their notes); otherwise the same
+rows go through QR as above (``gram_rows_`` counts the rows that took the Gram). Every NIST
+StRD design stays on QR.
 
 Inference follows the textbook (and statsmodels) formulas: ``sigma^2 = SSR / (n - |S|)``,
 ``Cov(b) = sigma^2 (X^T X)^-1 = sigma^2 T^-1 T^-T`` (through the triangular inverse, then

@@ -104,9 +104,9 @@ class QRAccumulator(AccumulatedFactor):
         (kappa <= 1e6) and double-double otherwise; "double" is always LAPACK QR.
     hac_lags : None, True, "auto", int or sequence of int
         Also keep what autocorrelation-robust (Newey-West, HAC) inference needs, for these
-        bandwidths (see :func:`~fbgcomp.models.regression.hac.hac_lag_grid`; default None: naive inference only). Rows are a
-        time series in the order given; :meth:`end_series` starts a new one (another
-        campaign), so no lag spans two series.
+        bandwidths (see :func:`~fbgcomp.models.regression.hac.hac_lag_grid`; default None:
+        naive inference only). Rows are a time series in the order given; :meth:`end_series`
+        starts a new one (another campaign), so no lag spans two series.
 
     Attributes
     ----------

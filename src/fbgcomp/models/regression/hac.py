@@ -129,9 +129,10 @@ class HACStatistics:
     :meth:`~fbgcomp.models.regression.QRAccumulator.update_hac`, or
     :func:`~fbgcomp.models.regression.accumulate_series` for data in memory), with the targets
     relative to a pilot, the full model's coefficients ``P`` (``hac_pilot_``, scaled):
-    ``a_i = [x_i | y_i - x_i P]``, and a sub-model's ``c`` gains ``P``. The full model's residual is then exact, and what remains is the rounding of any
-    meat matrix, ``eps kappa^2`` relative in the design's weakest direction (statsmodels
-    forms the same sum). Accumulators with different pilots still merge (an exact linear map).
+    ``a_i = [x_i | y_i - x_i P]``, and a sub-model's ``c`` gains ``P``. The full model's
+    residual is then exact, and what remains is the rounding of any meat matrix,
+    ``eps kappa^2`` relative in the design's weakest direction (statsmodels forms the same sum).
+    Accumulators with different pilots still merge (an exact linear map).
     """
 
     n_features: int
