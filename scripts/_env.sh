@@ -1,7 +1,8 @@
 # Sourced by scripts/demo and scripts/test: make a working environment on a fresh machine.
 # - Debian packages listed in scripts/debian-packages.txt (only when running as root with apt-get);
-# - a virtual environment in .venv with fbgcomp and every optional extra, reinstalled when
-#   pyproject.toml changes.
+# - a virtual environment in .venv with fbgcomp and every optional extra (the test extra brings the
+#   linters), reinstalled when pyproject.toml or the version in src/fbgcomp/__init__.py changes.
+# .ci/run sources it alone to make the environment before the linters run.
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
@@ -25,7 +26,8 @@ if [ ! -x .venv/bin/python ]; then
     "$PY" -m venv .venv
 fi
 stamp=".venv/.fbgcomp-installed"
-want="$(sha256sum pyproject.toml | cut -d' ' -f1)"
+# the version is read from src/fbgcomp/__init__.py at install time (pyproject: dynamic version)
+want="$( (cat pyproject.toml; grep '^__version__' src/fbgcomp/__init__.py) | sha256sum | cut -d' ' -f1)"
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
     echo "installing fbgcomp and its dependencies into .venv" >&2
     .venv/bin/python -m pip install -q --upgrade pip >/dev/null

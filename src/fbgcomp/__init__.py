@@ -4,4 +4,6 @@ Data flow: optics -> structure -> kinematics -> models -> runtime, with io (camp
 cli and report at the edges. See docs/architecture.md.
 """
 
+# The one place the version is written: pyproject.toml reads it (dynamic version), model files and
+# the twin cache record it.
 __version__ = "0.1.0"
