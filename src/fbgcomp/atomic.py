@@ -1,24 +1,26 @@
 """Atomic writes: a reader sees the old file or folder, or the complete new one, never a half.
 
-Files are written to a temporary name in the same folder, flushed to disk, then renamed over the
-target. Folders are built in a staging folder beside the target and swapped in with
-:func:`replace_dir`, which puts the old folder back if the swap fails.
+Files are written to a temporary name in the same folder (:func:`atomic_path`), flushed to
+disk, then renamed over the target. Folders are built in a staging folder beside the target and
+swapped in with :func:`replace_dir`, which puts the old folder back if the swap fails.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
+import secrets
 import shutil
-import tempfile
 from pathlib import Path
+from typing import Iterator
+
+import numpy as np
 
 
 def json_safe(obj):
     """Undefined numbers (NaN, ±inf: e.g. "% of peak" of an axis that never moved) become null."""
-    import numpy as np
-
     if isinstance(obj, float):
         return obj if math.isfinite(obj) else None
     if isinstance(obj, dict):
@@ -32,27 +34,60 @@ def json_safe(obj):
     return obj
 
 
-def write_bytes(path, data: bytes, check=None) -> Path:
-    """Write ``data`` to ``path`` atomically (temporary file, fsync, rename).
+@contextlib.contextmanager
+def atomic_path(target, *, mode: int = 0o600, prefix: str | None = None, suffix: str = ".tmp",
+                fsync: bool = True) -> Iterator[Path]:
+    """Yield a new, empty temporary file beside ``target`` to write by name; on success it
+    replaces ``target``.
 
-    ``check``, if given, is called with the temporary file's path once it is complete on disk;
-    if it raises, the temporary file is removed, ``path`` is left as it was and the exception
-    propagates (write, validate by reading back, then replace).
+    The temporary file is created exclusively with permissions ``mode`` (less the umask) in
+    ``target``'s folder (which must exist), named ``<prefix><hex><suffix>``; ``prefix`` defaults
+    to ``.<target name>.``, so the name starts with a dot and ends with ``.tmp``: tools that read
+    a folder (Parquet readers, asyncua's trust store with ``prefix=".incoming-"``: hex digits
+    never spell "der" or "pem") skip it. When the ``with`` block ends normally the file is
+    fsynced (unless ``fsync`` is False) and renamed over ``target`` with :func:`os.replace`; when
+    it raises, the file is removed, ``target`` is left as it was and the exception propagates.
+    """
+    target = Path(target)
+    if prefix is None:
+        prefix = f".{target.name}."
+    while True:
+        tmp = target.with_name(f"{prefix}{secrets.token_hex(4)}{suffix}")
+        try:
+            os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode))
+            break
+        except FileExistsError:
+            continue
+    try:
+        yield tmp
+        if fsync:
+            fd = os.open(tmp, os.O_RDWR)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        os.replace(tmp, target)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def write_bytes(path, data: bytes, check=None, *, mode: int = 0o600,
+                prefix: str | None = None) -> Path:
+    """Write ``data`` to ``path`` atomically (temporary file, fsync, rename), creating its folder.
+
+    ``check``, if given, is called with the temporary file's path once it is completely
+    written; if it raises, the temporary file is removed, ``path`` is left as it was and the
+    exception propagates (write, validate by reading back, then replace). ``mode`` and
+    ``prefix``: as for :func:`atomic_path`.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
+    with atomic_path(path, mode=mode, prefix=prefix) as tmp:
+        with open(tmp, "wb") as fh:
             fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
         if check is not None:
-            check(Path(tmp))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+            check(tmp)
     return path
 
 
