@@ -37,14 +37,13 @@ import json
 import logging
 import os
 import collections
-import tempfile
 import threading
 import time
 from pathlib import Path
 
 import numpy as np
 
-from fbgcomp.atomic import write_bytes
+from fbgcomp.atomic import atomic_path, write_bytes
 from fbgcomp.errors import InputError
 from fbgcomp.runtime.health import STATUS_NAMES
 from fbgcomp.runtime.pipeline import HEALTH_NAMES
@@ -170,20 +169,9 @@ class RunLog:
             day.mkdir(exist_ok=True)
             if self.fsync:
                 _fsync_dir(self.data_dir)
-        fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=day)
-        os.close(fd)
-        try:
+        # ".part-….tmp", which Parquet readers skip, until complete, fsynced and renamed
+        with atomic_path(day / name, fsync=self.fsync) as tmp:
             pq.write_table(table, tmp, compression="zstd")
-            if self.fsync:
-                with open(tmp, "rb+") as f:
-                    os.fsync(f.fileno())
-            os.replace(tmp, day / name)
-        except BaseException:
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
-            raise
         self.written_rows += table.num_rows
         self.files += 1
 

@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fbgcomp.atomic import atomic_path
 from fbgcomp.errors import InputError
 from fbgcomp.runtime import hyperion
 
@@ -382,13 +383,9 @@ class SimulatedHyperion:
 
 def save_send_log(sim: "SimulatedHyperion", path: str | Path) -> None:
     """Atomically save (first frame stamp s, frames, send wall time s) rows as ``.npy``."""
-    import os
-    import tempfile
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".npy", dir=path.parent or ".")
-    os.close(fd)
-    np.save(tmp, np.array(sim.send_log or [], dtype=np.float64).reshape(-1, 3))
-    os.replace(tmp, path)
+    # the temporary name ends in .npy, else np.save would append it
+    with atomic_path(path, suffix=".npy") as tmp:
+        np.save(tmp, np.array(sim.send_log or [], dtype=np.float64).reshape(-1, 3))
 
 
 class OpcUaTemperatureServer:

@@ -25,6 +25,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+from fbgcomp.atomic import write_bytes
 from fbgcomp.errors import InputError
 
 log = logging.getLogger("fbgcomp.runtime")
@@ -47,6 +48,7 @@ def trusted_dir(state_dir: str | Path | None = None, configured: str | Path | No
 
 
 def rejected_dir(state_dir: str | Path | None = None) -> Path:
+    """Where refused client certificates are kept: ``<state_dir>/opcua/rejected``."""
     return Path(state_dir or default_state_dir()) / "opcua" / "rejected"
 
 
@@ -63,6 +65,7 @@ class CertificateInfo:
     error: str = ""          # set when the file is not a readable certificate
 
     def describe(self) -> str:
+        """One line: file name, subject, application URI, expiry and SHA-256 (or the error)."""
         if self.error:
             return f"{self.path.name}: {self.error}"
         return (f"{self.path.name}: {self.subject or '(no subject)'}, "
@@ -71,7 +74,7 @@ class CertificateInfo:
 
 
 def _info(cert, path: Path) -> CertificateInfo:
-    from cryptography import x509
+    from cryptography import x509  # the runtime extra: imported only when used
     from cryptography.hazmat.primitives import serialization
 
     der = cert.public_bytes(serialization.Encoding.DER)
@@ -87,7 +90,7 @@ def _info(cert, path: Path) -> CertificateInfo:
 
 def parse_certificate(data: bytes):
     """One X.509 certificate from DER or PEM bytes; ValueError with the reason otherwise."""
-    from cryptography import x509
+    from cryptography import x509  # the runtime extra: imported only when used
 
     if b"-----BEGIN" in data:
         blocks = re.findall(rb"-----BEGIN CERTIFICATE-----.+?-----END CERTIFICATE-----", data,
@@ -122,7 +125,7 @@ def add_certificate(path: str | Path, directory: str | Path) -> tuple[Certificat
 
     Returns its description and whether it was new (False: already trusted, nothing written).
     """
-    from cryptography.hazmat.primitives import serialization
+    from cryptography.hazmat.primitives import serialization  # the runtime extra: imported only when used
 
     cert = read_certificate(path)
     directory = Path(directory)
@@ -136,26 +139,13 @@ def add_certificate(path: str | Path, directory: str | Path) -> tuple[Certificat
     name = re.sub(r"[^A-Za-z0-9_.-]+", "_", cn)[:40].strip("._") or "client"
     target = directory / f"{name}-{info.sha256[:16]}.der"
     directory.mkdir(parents=True, exist_ok=True)
-    _write_atomic(target, cert.public_bytes(serialization.Encoding.DER))
+    # world-readable like any certificate; the temporary name ".incoming-<hex>.tmp" holds
+    # neither "der" nor "pem", so a server reloading the folder meanwhile never reads a half
+    write_bytes(target, cert.public_bytes(serialization.Encoding.DER), mode=0o644,
+                prefix=".incoming-")
     info.path = target
     audit.info("trust list %s: added %s", directory, info.describe())
     return info, True
-
-
-def _write_atomic(target: Path, data: bytes) -> None:
-    """Temporary file, fsync, rename. The temporary name holds neither "der" nor "pem", so a
-    server reloading the folder meanwhile never reads a half-written certificate."""
-    tmp = target.with_name(f".incoming-{os.getpid()}.tmp")
-    try:
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, target)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def list_certificates(directory: str | Path) -> list[CertificateInfo]:
@@ -204,7 +194,7 @@ class TrustListValidator:
             return None
 
     async def _current_store(self):
-        from asyncua.crypto.truststore import TrustStore
+        from asyncua.crypto.truststore import TrustStore  # the runtime extra: imported only when used
 
         signature = self._folder_signature()
         if signature != self._signature:
@@ -225,7 +215,8 @@ class TrustListValidator:
         return self._store
 
     async def __call__(self, cert, app_description) -> None:
-        from asyncua import ua
+        """Accept (return) or refuse (asyncua ``ServiceError``) a session's client certificate."""
+        from asyncua import ua  # the runtime extra: imported only when used
         from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
         from asyncua.common.utils import ServiceError
 
@@ -248,8 +239,7 @@ class TrustListValidator:
                    app_description.ApplicationUri, info.sha256)
 
     def _keep_rejected(self, cert, info: CertificateInfo) -> Path | None:
-        from cryptography.hazmat.primitives import serialization
-        from fbgcomp.atomic import write_bytes
+        from cryptography.hazmat.primitives import serialization  # the runtime extra: imported only when used
 
         if self.rejected is None:
             return None
