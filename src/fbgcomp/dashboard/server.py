@@ -26,7 +26,7 @@ Access (docs/security.md, "Dashboard"): the server binds 127.0.0.1 unless told o
 (``--dashboard [HOST:]PORT``). Bound beyond loopback, or with ``read_login = "always"``, every
 read needs a login too, and the service refuses to start without a dashboard user. The
 enable/disable control always needs a login. Users come from ``users_file`` (lines
-``name:pbkdf2_sha256$...`` as made by ``fbgcomp.runtime.outputs.opcua.hash_password``) or
+``name:pbkdf2_sha256$...`` as made by ``fbgcomp.runtime.auth.hash_password``) or
 ``FBGCOMP_DASHBOARD_USER`` / ``FBGCOMP_DASHBOARD_PASSWORD``; nothing is built in. A login sets a
 random session cookie (HttpOnly, SameSite=Strict, Secure under TLS) naming a session held in
 this process; state-changing requests must also be JSON, which a cross-site form cannot send.
@@ -67,8 +67,8 @@ from fbgcomp.models.features import FeatureMap
 from fbgcomp.dashboard.history import MAX_POINTS, MAX_WINDOW_S, MIN_WINDOW_S, WINDOWS_S, \
     LogHistory
 from fbgcomp.runtime.health import flag_names
-from fbgcomp.runtime.outputs.opcua import load_users as _load_users
-from fbgcomp.runtime.outputs.opcua import verify_password
+from fbgcomp.runtime.auth import load_users as _load_users
+from fbgcomp.runtime.auth import verify_password
 from fbgcomp.units import AXES
 
 log = logging.getLogger("fbgcomp.dashboard")
