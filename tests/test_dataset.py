@@ -13,12 +13,12 @@ from fbgcomp.io.campaign import read_campaign, write_campaign
 from fbgcomp.io.dataset import (INDEX_FILE, METADATA_KEY, accumulate_partition_file, ingest,
                              is_dataset, open_dataset)
 from fbgcomp.errors import InputError
-from fbgcomp.models.base import MRAModel
+from fbgcomp.models.mra import MRAModel
 from fbgcomp.bench.synthetic import linear_truth_campaign
 
 from fbgcomp_testing import require
 
-SCALE_CLI = [sys.executable, "-m", "fbgcomp.cli.scale"]
+SCALE_CLI = [sys.executable, "-m", "fbgcomp"]
 
 
 def run(*args):

@@ -11,7 +11,8 @@ from fbgcomp.io.campaign import read_campaign, write_campaign
 from fbgcomp.io.dataset import ingest
 from fbgcomp.io.distributed import accumulate_paths, fit_paths, map_over_cluster
 from fbgcomp.errors import InputError
-from fbgcomp.models.base import AXES, MRAModel
+from fbgcomp.models.mra import MRAModel
+from fbgcomp.units import AXES
 from fbgcomp.bench.synthetic import linear_truth_campaign
 from fbgcomp_testing import require
 

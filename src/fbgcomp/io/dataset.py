@@ -27,11 +27,12 @@ with ``_`` or ``.`` are ignored by pyarrow/pandas/Dask discovery; with DuckDB re
 
 Writes are atomic: a campaign's files are written into ``DATASET/.ingest-<token>/``, fsynced,
 and the folder is renamed to ``machine=<m>/campaign=<c>`` (an existing one is swapped out by
-rename and removed); the sidecar is replaced with ``os.replace``. A crash leaves at worst an
-ignored ``.ingest-*`` folder, never a half-written partition.
+rename and removed, :func:`fbgcomp.atomic.replace_dir`); the sidecar is written with
+:func:`fbgcomp.atomic.write_json`. A crash leaves at worst an ignored ``.ingest-*`` folder, never
+a half-written partition.
 
-pyarrow is imported only where Parquet is read or written, so detecting a dataset path costs
-nothing in a minimal install.
+pyarrow (the ``scale`` extra) is imported only where Parquet is read or written, so detecting a
+dataset path works in a minimal install.
 """
 
 from __future__ import annotations
@@ -48,9 +49,17 @@ from pathlib import Path
 from urllib.parse import quote
 
 import numpy as np
+import pandas as pd
 
 from fbgcomp.atomic import json_safe, replace_dir, write_json
 from fbgcomp.errors import InputError
+from fbgcomp.io.campaign import LOAD_COLUMNS, REFERENCE_COLUMNS, CampaignMeta, read_campaign
+from fbgcomp.runtime.log import export_campaign
+
+try:
+    import fcntl
+except ImportError:  # not POSIX: the files stay the source of truth (open_dataset)
+    fcntl = None
 
 __all__ = ["DATASET_FORMAT", "INDEX_FILE", "METADATA_KEY", "Partition", "Dataset", "is_dataset",
            "is_run_log", "open_dataset", "ingest", "ingest_campaign", "partition_arrays",
@@ -60,8 +69,6 @@ DATASET_FORMAT = "fbgcomp-dataset"
 DATASET_VERSION = 1
 INDEX_FILE = "_campaigns.json"
 METADATA_KEY = b"fbgcomp.campaign"
-REFERENCE_COLUMNS = ("dx_um", "dy_um", "dz_um")
-LOAD_COLUMNS = ("fx_N", "fy_N", "fz_N")
 DEFAULT_MACHINE = "default"
 #: Rows per Parquet file: one file is one task of a distributed fit, so it bounds a worker's
 #: work unit; reading goes by row group, so it does not bound memory.
@@ -132,19 +139,20 @@ class Partition:
 
     @property
     def kind(self) -> str:
+        """The campaign's kind (thermal, static, combined) from its campaign.yaml."""
         return self.meta.get("kind", "")
 
     @property
     def file_paths(self) -> list[Path]:
+        """The partition's Parquet files, in row order."""
         return [self.path / f for f in self.files]
 
     def sensors(self):
         """``SensorSpec`` objects from the stored campaign.yaml."""
-        from fbgcomp.io.campaign import CampaignMeta
-
         return list(CampaignMeta.model_validate(self.meta).sensors)
 
     def to_entry(self) -> dict:
+        """The partition as its JSON-safe index entry (also stored in each Parquet file)."""
         return {"machine": self.machine, "campaign": self.campaign,
                 "path": f"{_segment('machine', self.machine)}/{_segment('campaign', self.campaign)}",
                 "files": list(self.files), "n_rows": int(self.n_rows),
@@ -158,6 +166,8 @@ class Partition:
 
     @classmethod
     def from_entry(cls, root: Path, e: dict, where=None) -> "Partition":
+        """The partition an index entry describes, in dataset ``root``; InputError naming
+        ``where`` (default ``root``) when the entry is malformed."""
         try:
             return cls(machine=str(e["machine"]), campaign=str(e["campaign"]),
                        path=_partition_dir(root, e["machine"], e["campaign"]),
@@ -181,6 +191,7 @@ class Dataset:
     partitions: list
 
     def partition(self, machine: str, campaign: str) -> Partition:
+        """The partition of ``machine`` and ``campaign`` (KeyError if there is none)."""
         for p in self.partitions:
             if p.machine == machine and p.campaign == campaign:
                 return p
@@ -188,13 +199,12 @@ class Dataset:
 
     @property
     def n_rows(self) -> int:
+        """Rows over all partitions."""
         return sum(p.n_rows for p in self.partitions)
 
     def to_pandas(self, machine=None, campaign=None, columns=None):
         """Rows of the whole dataset (or one machine / campaign) as a DataFrame with ``machine``
         and ``campaign`` columns. Materialises the rows: for big data, stream instead."""
-        import pandas as pd
-
         frames = []
         for p in self.partitions:
             if (machine is not None and p.machine != machine) or \
@@ -211,7 +221,7 @@ class Dataset:
 
 
 def _read_table(path, columns=None):
-    import pyarrow.parquet as pq
+    import pyarrow.parquet as pq  # noqa: PLC0415 - pyarrow is the optional scale extra
 
     try:
         return pq.read_table(path, columns=columns)
@@ -220,7 +230,7 @@ def _read_table(path, columns=None):
 
 
 def _file_entry(path: Path) -> dict:
-    import pyarrow.parquet as pq
+    import pyarrow.parquet as pq  # noqa: PLC0415 - pyarrow is the optional scale extra
 
     try:
         metadata = pq.read_schema(path).metadata or {}
@@ -283,10 +293,6 @@ def _update_index(root: Path, partition: Partition) -> None:
     # Read-modify-write under an exclusive lock so that concurrent ingests into one dataset
     # do not lose each other's entries (the hidden lock file is ignored by every reader).
     with open(root / ".index.lock", "a") as lock:
-        try:
-            import fcntl
-        except ImportError:  # not POSIX: the files stay the source of truth (open_dataset)
-            fcntl = None
         if fcntl is not None:
             fcntl.flock(lock.fileno(), fcntl.LOCK_EX)
         index = _read_index(root) or {"format": DATASET_FORMAT, "version": DATASET_VERSION,
@@ -311,8 +317,8 @@ def ingest_campaign(campaign, dataset, *, machine: str | None = None, zero_windo
     The machine is ``campaign.yaml``'s ``machine`` key when present, else ``machine``, else
     ``"default"``. An existing partition of the same machine and campaign is replaced whole.
     """
-    import pyarrow as pa
-    import pyarrow.parquet as pq
+    import pyarrow as pa  # noqa: PLC0415 - pyarrow is the optional scale extra
+    import pyarrow.parquet as pq  # noqa: PLC0415 - as above
 
     if rows_per_file < 1 or row_group_rows < 1:
         raise ValueError("rows_per_file and row_group_rows must be at least 1")
@@ -391,14 +397,10 @@ def ingest(sources, dataset, *, machine: str | None = None, zero_window_s: float
     ``reference_csv`` or, labelled as such, the logged prediction). Its machine is the log's
     ``meta.json`` ``machine`` key, else ``machine``.
     """
-    from fbgcomp.io.campaign import read_campaign
-
     out = []
     for src in sources:
         src = Path(src)
         if is_run_log(src):
-            from fbgcomp.runtime.log import export_campaign
-
             log_meta = json.loads((src / "meta.json").read_text(encoding="utf-8"))
             with tempfile.TemporaryDirectory(prefix=".fbgcomp-log-") as tmp:
                 campaign = export_campaign(src, Path(tmp) / src.name, name=src.name,
@@ -423,7 +425,7 @@ def ingest(sources, dataset, *, machine: str | None = None, zero_window_s: float
 def partition_arrays(file, sensor_names, probe_names, batch_rows: int = ROW_GROUP_ROWS):
     """Yield ``(wavelength_nm (m, S), temperature_C (m, P), reference_um (m, 3))`` batches of
     one Parquet file, columns in the given sensor and probe order; reference as stored (raw)."""
-    import pyarrow.parquet as pq
+    import pyarrow.parquet as pq  # noqa: PLC0415 - pyarrow is the optional scale extra
 
     wl_cols = [f"{s}_nm" for s in sensor_names]
     t_cols = [f"{p}_C" for p in probe_names]

@@ -26,11 +26,18 @@ system or the same machine).
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import re
 from pathlib import Path
 
+from fbgcomp.atomic import json_safe
 from fbgcomp.errors import InputError
+from fbgcomp.io.campaign import SensorSpec, read_campaign, read_meta
+from fbgcomp.io.dataset import Partition, check_partition, is_dataset, open_dataset, partition_design
+from fbgcomp.models.base import campaign_weights_for, check_compatible
+from fbgcomp.models.mra import MRAModel
+from fbgcomp.models.regression import QRAccumulator
 
 __all__ = ["cluster", "local_cluster", "map_over_cluster", "tree_reduce", "fit_paths",
            "accumulate_paths", "parse_dask"]
@@ -67,8 +74,8 @@ def local_cluster(n_workers: int, **kwargs):
     rows, measured). fbgcomp's tasks hold one chunk at a time, so their workers keep glibc's
     defaults. Extra keyword arguments go to ``LocalCluster``.
     """
-    import dask
-    from distributed import LocalCluster
+    import dask  # noqa: PLC0415 - the scale extra (Dask) is optional: imported when a cluster is used
+    from distributed import LocalCluster  # noqa: PLC0415 - as above
 
     options = {"threads_per_worker": 1, "processes": True, "dashboard_address": None,
                "silence_logs": 40}
@@ -92,7 +99,7 @@ def cluster(spec):
         yield value
         return
     try:
-        from distributed import Client
+        from distributed import Client  # noqa: PLC0415 - the scale extra is optional
     except ImportError:
         raise InputError("--dask needs the scale extra: pip install 'fbgcomp[scale]'",
                          file="<command line>", column="option --dask") from None
@@ -166,9 +173,6 @@ def _model_params(model) -> dict:
 
 
 def _worker_model(spec):
-    from fbgcomp.io.campaign import SensorSpec
-    from fbgcomp.models.base import MRAModel
-
     model = MRAModel(**spec["params"])
     model.new_accumulator([SensorSpec(**s) for s in spec["sensors"]])
     return model
@@ -190,19 +194,14 @@ def _source_rows(model, source: dict, info: dict | None = None):
     """Yield ``(design, reference_um)`` batches of one source (dataset file or campaign
     folder, checked against the model); ``info`` gets the campaign's dropped samples."""
     if source["kind"] == "file":
-        from fbgcomp.io.dataset import Partition, partition_design
-
         partition = Partition.from_entry(Path(source["root"]), source["entry"])
         yield from partition_design(model, partition, source["file"])
     else:
-        from fbgcomp.io.campaign import read_campaign
-        from fbgcomp.models.base import _plain, check_compatible
-
         campaign = read_campaign(source["path"])
         check_compatible(model, campaign)
         aligned = campaign.aligned(zero_window_s=model.zero_window_s)
         if info is not None:
-            info["dropped"] = _plain(aligned.dropped)
+            info["dropped"] = json_safe(aligned.dropped)
         w, t, w0, t0 = model.instrument_arrays(aligned)
         chunk = 100_000
         for lo in range(0, len(aligned), chunk):
@@ -224,17 +223,12 @@ def _hac_campaign(sources: list, spec: dict, acc, weight: float) -> tuple:
 
 
 def _merge_states(a: dict, b: dict) -> dict:
-    from fbgcomp.models.regression import QRAccumulator
-
     acc = QRAccumulator.from_dict(a["acc"]).merge(QRAccumulator.from_dict(b["acc"]))
     return {"acc": acc.to_dict(), "training": a["training"] + b["training"]}
 
 
 def _plan(model, paths) -> tuple[list, list, dict]:
     """Sources (one per task), the training description skeleton, and the worker spec."""
-    from fbgcomp.io.campaign import read_meta
-    from fbgcomp.io.dataset import check_partition, is_dataset, open_dataset
-
     sources, described, first_sensors = [], [], None
     partitions_seen = []
     for raw in paths:
@@ -275,15 +269,11 @@ def _plan(model, paths) -> tuple[list, list, dict]:
 
 def _campaign_weights(model, counts: list) -> list:
     """Row weight of each campaign exactly as :meth:`MRAModel.fit` pools them."""
-    from fbgcomp.models.base import campaign_weights_for
-
     return [float(v) for v in campaign_weights_for(counts, model.campaign_weights)]
 
 
 def _pool(states: list, weights: list):
     """Merge per-campaign factors with their campaign weights (``QRAccumulator.merge``)."""
-    from fbgcomp.models.regression import QRAccumulator
-
     first = QRAccumulator.from_dict(states[0]["acc"])
     acc = QRAccumulator(first.n_features, first.n_targets, first.feature_names,
                         first.target_names, precision=first.precision)
@@ -321,8 +311,6 @@ def accumulate_paths(model, paths, dask=None):
     are reduced per campaign (on the cluster when given); the campaign factors, a few KB each,
     are then weighted as :meth:`MRAModel.fit` weights campaigns and merged in the client.
     """
-    import functools
-
     sources, described, spec = _plan(model, paths)
     task = functools.partial(_accumulate_source, spec=spec)
     keys = [d["key"] for d in described]
