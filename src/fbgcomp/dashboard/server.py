@@ -20,7 +20,9 @@ which also runs from the moment a connection opens; hence aiohttp >= 3.14.4), a 
 complete in time gets 408 and the connection is closed, and so is a TLS handshake. A stream whose
 write does not complete within ``send_timeout_s``, or with more than 64 kB unsent, is dropped. At
 most ``max_connections`` connections are open at a time (the one thing aiohttp has no setting
-for: :class:`_ConnectionCap`); one more is answered 503 and closed at once.
+for: :class:`~fbgcomp.dashboard.transport.ConnectionCap`); one more is answered 503 and closed
+at once. That plumbing (listen address, TLS, connection cap, JSON errors, security headers) is
+:mod:`fbgcomp.dashboard.transport`'s; this module holds what is served.
 
 Access (docs/security.md, "Dashboard"): the server binds 127.0.0.1 unless told otherwise
 (``--dashboard [HOST:]PORT``). Bound beyond loopback, or with ``read_login = "always"``, every
@@ -46,13 +48,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import ipaddress
 import json
 import logging
 import math
 import os
 import secrets
-import ssl
 import threading
 import time
 from dataclasses import dataclass
@@ -62,13 +62,16 @@ from typing import Callable
 import numpy as np
 from aiohttp import web
 
-from fbgcomp.errors import InputError
-from fbgcomp.models.features import FeatureMap
 from fbgcomp.dashboard.history import MAX_POINTS, MAX_WINDOW_S, MIN_WINDOW_S, WINDOWS_S, \
     LogHistory
-from fbgcomp.runtime.health import flag_names
+from fbgcomp.dashboard.transport import (ConnectionCap, Refused, errors_as_json, is_loopback,
+                                         json_response, parse_listen, security_headers,
+                                         tls_context)
+from fbgcomp.errors import InputError
+from fbgcomp.models.features import FeatureMap
 from fbgcomp.runtime.auth import load_users as _load_users
 from fbgcomp.runtime.auth import verify_password
+from fbgcomp.runtime.health import flag_names
 from fbgcomp.units import AXES
 
 log = logging.getLogger("fbgcomp.dashboard")
@@ -77,25 +80,18 @@ STATIC_DIR = Path(__file__).resolve().parent / "static"
 _STATIC = {"index.html": "text/html", "dashboard.js": "text/javascript",
            "dashboard.css": "text/css"}
 COOKIE = "fbgcomp_session"
-DEFAULT_HOST = "127.0.0.1"
 MAX_BODY_BYTES = 4096          # the largest request body (a login or a switch is < 200 bytes)
 MAX_UNSENT_BYTES = 64 * 1024   # a stream with more queued for the browser is dropped
 MAX_SESSIONS = 256             # the oldest login is forgotten beyond this
 FAILED_LOGIN_S = 0.5           # every failed login costs this, one at a time
 KEEPALIVE_COMMENT_S = 15.0     # an SSE comment when nothing new: proxies and dead peers
-_HEADERS = {
-    "Cache-Control": "no-store",
-    "X-Content-Type-Options": "nosniff",
-    "X-Frame-Options": "DENY",
-    "Referrer-Policy": "no-referrer",
-    "Content-Security-Policy": "default-src 'self'; img-src 'self' data:; object-src 'none'; "
-                               "frame-ancestors 'none'; base-uri 'none'; form-action 'self'",
-    "Server": "fbgcomp-dashboard",
-}
+
 
 
 @dataclass
 class DashboardConfig:
+    """The ``[dashboard]`` section of serve's configuration (docs/dashboard.md)."""
+
     listen: str = ""                 # [HOST:]PORT, HOST 127.0.0.1 if omitted; empty = no dashboard
     users_file: str | None = None    # lines name:pbkdf2_sha256$... (see module docstring)
     read_login: str = "auto"         # auto: reads need a login when bound beyond loopback; always
@@ -110,55 +106,10 @@ class DashboardConfig:
     log_dir: str | None = None       # run log folder for the drift windows (default: serve's --log)
 
 
-def parse_listen(listen: str) -> tuple[str, int]:
-    """``[HOST:]PORT`` (``[::1]:8080`` for IPv6) -> (host, port), host 127.0.0.1 if omitted."""
-    text = listen.strip()
-    host, sep, port = text.rpartition(":")
-    if not sep:
-        host, port = "", text
-    host = host.strip("[]") or DEFAULT_HOST
-    if not port.isdigit() or not 0 <= int(port) <= 65535:
-        raise InputError(f"expected [HOST:]PORT, e.g. 8080 or 127.0.0.1:8080, got {listen!r}",
-                         column="--dashboard")
-    return host, int(port)
-
-
-def is_loopback(host: str) -> bool:
-    """True for ``localhost`` and loopback addresses; a host name may resolve beyond: False."""
-    if host.lower() == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
 def load_users(users_file: str | Path | None, environ=os.environ) -> dict[str, str]:
     """User -> password hash, from ``users_file`` and ``FBGCOMP_DASHBOARD_USER/PASSWORD``."""
     return _load_users(users_file, environ, service="dashboard", env_prefix="FBGCOMP_DASHBOARD",
                        doc="docs/dashboard.md", iterations=20_000)
-
-
-def tls_context(cert: str | None, key: str | None) -> ssl.SSLContext | None:
-    """Server TLS context from PEM files (TLS 1.2 at least), None without either."""
-    if not cert and not key:
-        return None
-    if not (cert and key):
-        raise InputError("TLS needs both a certificate and its private key",
-                         column="--dashboard-cert/--dashboard-key")
-    ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
-    ctx.minimum_version = ssl.TLSVersion.TLSv1_2
-    for path in (cert, key):
-        if not Path(path).is_file():
-            raise InputError("TLS certificate or key file not found", file=path)
-    try:
-        ctx.load_cert_chain(cert, key)
-    except (ssl.SSLError, ValueError) as exc:
-        # the reason only (e.g. KEY_VALUES_MISMATCH), never the file's content
-        reason = getattr(exc, "reason", None) or type(exc).__name__
-        raise InputError(f"cannot use this TLS certificate and key ({reason})", file=cert) \
-            from None
-    return ctx
 
 
 def _clean(values, digits: int) -> list:
@@ -167,101 +118,6 @@ def _clean(values, digits: int) -> list:
     for v in np.asarray(values, dtype=float).ravel():
         out.append(round(float(v), digits) if math.isfinite(v) else None)
     return out
-
-
-def _json(data, status: int = 200, headers=None) -> web.Response:
-    return web.Response(body=json.dumps(data).encode(), status=status,
-                        content_type="application/json", headers=headers)
-
-
-class _Refused(Exception):
-    """A request answered with ``{"error": message}``; ``close``: the connection too."""
-
-    def __init__(self, status: int, message: str, close: bool = False):
-        super().__init__(message)
-        self.status, self.message, self.close = status, message, close
-
-
-@web.middleware
-async def _errors_as_json(request: web.Request, handler):
-    try:
-        return await handler(request)
-    except _Refused as exc:
-        resp = _json({"error": exc.message}, exc.status)
-        if exc.close:
-            resp.force_close()
-        return resp
-    except web.HTTPException as exc:   # aiohttp's own 404, 405, 413...
-        if exc.status < 400:
-            raise
-        allow = {"Allow": exc.headers["Allow"]} if "Allow" in exc.headers else None
-        return _json({"error": (exc.reason or "error").lower()}, exc.status, headers=allow)
-
-
-async def _security_headers(request: web.Request, response: web.StreamResponse) -> None:
-    for name, value in _HEADERS.items():
-        response.headers[name] = value
-
-
-_BUSY_BODY = b'{"error": "too many connections"}'
-_BUSY = (b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n"
-         b"Content-Length: %d\r\nRetry-After: 5\r\nConnection: close\r\n\r\n%s"
-         % (len(_BUSY_BODY), _BUSY_BODY))
-
-
-class _ConnectionCap:
-    """Protocol factory for ``loop.create_server``: aiohttp's server (its documented protocol
-    factory), with at most ``limit`` connections open; one more is answered 503 and closed.
-
-    Counted when a connection is made, not when the factory is called: a burst of accepts calls
-    the factory many times before any connection is made."""
-
-    def __init__(self, factory: Callable[[], asyncio.Protocol], limit: int):
-        self.factory, self.limit, self.open, self.refused = factory, max(1, int(limit)), 0, 0
-
-    def __call__(self) -> asyncio.Protocol:
-        return _CappedProtocol(self)
-
-
-class _CappedProtocol(asyncio.Protocol):
-    """Hands every transport event to an aiohttp request handler, if the cap lets it in."""
-
-    __slots__ = ("cap", "inner")
-
-    def __init__(self, cap: _ConnectionCap):
-        self.cap, self.inner = cap, None
-
-    def connection_made(self, transport) -> None:
-        cap = self.cap
-        if cap.open >= cap.limit:
-            cap.refused += 1
-            transport.write(_BUSY)
-            transport.close()
-            return
-        cap.open += 1
-        self.inner = cap.factory()
-        self.inner.connection_made(transport)
-
-    def connection_lost(self, exc) -> None:
-        inner, self.inner = self.inner, None
-        if inner is not None:
-            self.cap.open -= 1
-            inner.connection_lost(exc)
-
-    def data_received(self, data: bytes) -> None:
-        if self.inner is not None:
-            self.inner.data_received(data)
-
-    def eof_received(self):
-        return self.inner.eof_received() if self.inner is not None else None
-
-    def pause_writing(self) -> None:
-        if self.inner is not None:
-            self.inner.pause_writing()
-
-    def resume_writing(self) -> None:
-        if self.inner is not None:
-            self.inner.resume_writing()
 
 
 class Dashboard:
@@ -321,11 +177,12 @@ class Dashboard:
         self._failed_login: asyncio.Lock | None = None
         self._runner: web.AppRunner | None = None
         self._server: asyncio.AbstractServer | None = None
-        self._cap: _ConnectionCap | None = None
+        self._cap: ConnectionCap | None = None
         self._broadcaster: asyncio.Task | None = None
 
     @property
     def url(self) -> str:
+        """The address browsers open, ``http(s)://HOST:PORT/`` (the bound port once started)."""
         host = f"[{self.host}]" if ":" in self.host else self.host
         return f"{'https' if self.ssl_context else 'http'}://{host}:{self.port}/"
 
@@ -361,6 +218,7 @@ class Dashboard:
                         "clear text (docs/security.md)", self.url)
 
     def stop(self) -> None:
+        """Close every stream and connection and end the dashboard's thread (any thread)."""
         loop = self._loop
         if loop is None:
             return
@@ -384,8 +242,8 @@ class Dashboard:
         self._next = loop.create_future()
         self._failed_login = asyncio.Lock()
         self._history_lock = asyncio.Lock()
-        app = web.Application(client_max_size=MAX_BODY_BYTES, middlewares=[_errors_as_json])
-        app.on_response_prepare.append(_security_headers)
+        app = web.Application(client_max_size=MAX_BODY_BYTES, middlewares=[errors_as_json])
+        app.on_response_prepare.append(security_headers)
         app.router.add_get("/", self._index)
         app.router.add_get("/index.html", self._index)
         app.router.add_get("/static/{name}", self._static)
@@ -402,7 +260,7 @@ class Dashboard:
         self._runner = web.AppRunner(app, access_log=None, keepalive_timeout=timeout,
                                      lingering_time=min(1.0, timeout), shutdown_timeout=2.0)
         await self._runner.setup()
-        self._cap = _ConnectionCap(self._runner.server, self.config.max_connections)
+        self._cap = ConnectionCap(self._runner.server, self.config.max_connections)
         tls = {} if self.ssl_context is None else {"ssl": self.ssl_context,
                                                    "ssl_handshake_timeout": timeout}
         try:
@@ -535,6 +393,7 @@ class Dashboard:
         return token
 
     def session_user(self, token: str | None) -> str | None:
+        """The user of a live session token, None for none, an unknown or an expired one."""
         if not token:
             return None
         with self._lock:
@@ -544,10 +403,13 @@ class Dashboard:
         return entry[0]
 
     def logout(self, token: str | None) -> None:
+        """Forget the session ``token`` (nothing if unknown)."""
         with self._lock:
             self.sessions.pop(token or "", None)
 
     def meta(self, user: str | None) -> dict:
+        """``GET /api/meta``: who is logged in and what may be done; with read access, the
+        sensors, probes, model, drift windows and the Enabled state too."""
         access = {"user": user, "login_possible": bool(self.users), "read_login": self.read_login}
         if self.read_login and user is None:
             return access   # nothing about the machine before a login
@@ -564,19 +426,19 @@ class Dashboard:
 
     def _check_read(self, request: web.Request) -> None:
         if self.read_login and self._user(request) is None:
-            raise _Refused(401, "log in to see the live values")
+            raise Refused(401, "log in to see the live values")
 
     async def _read_json(self, request: web.Request) -> dict | None:
         """The JSON object of a small ``application/json`` body, None if it is something else."""
         length = request.content_length
         if length is None and request.body_exists or (length or 0) > MAX_BODY_BYTES:
-            raise _Refused(400, f"expected a JSON body of at most {MAX_BODY_BYTES} bytes",
+            raise Refused(400, f"expected a JSON body of at most {MAX_BODY_BYTES} bytes",
                            close=True)
         try:
             async with asyncio.timeout(self.config.request_timeout_s):
                 body = await request.read()
         except TimeoutError:
-            raise _Refused(408, "request body not received in time", close=True) from None
+            raise Refused(408, "request body not received in time", close=True) from None
         if request.content_type != "application/json" or not body:
             return None
         try:
@@ -594,11 +456,11 @@ class Dashboard:
     def _asset(self, name: str) -> web.Response:
         ctype = _STATIC.get(name)
         if ctype is None:
-            raise _Refused(404, "not found")
+            raise Refused(404, "not found")
         return web.Response(body=self._assets[name], content_type=ctype, charset="utf-8")
 
     async def _meta(self, request: web.Request) -> web.Response:
-        return _json(self.meta(self._user(request)))
+        return json_response(self.meta(self._user(request)))
 
     async def _state(self, request: web.Request) -> web.Response:
         self._check_read(request)
@@ -607,15 +469,15 @@ class Dashboard:
     async def _history(self, request: web.Request) -> web.Response:
         self._check_read(request)
         if self.history is None:
-            raise _Refused(404, "no run log: start serve with --log DIR to see the drift "
+            raise Refused(404, "no run log: start serve with --log DIR to see the drift "
                                 "beyond the live minute")
         try:
             window_s = float(request.query.get("window_s", "3600"))
             points = int(request.query.get("points", "600"))
         except ValueError:
-            raise _Refused(400, "expected window_s (s) and points as numbers") from None
+            raise Refused(400, "expected window_s (s) and points as numbers") from None
         if not (MIN_WINDOW_S <= window_s <= MAX_WINDOW_S) or not 10 <= points <= MAX_POINTS:
-            raise _Refused(400, f"window_s must be in [{MIN_WINDOW_S:g}, {MAX_WINDOW_S:g}] s "
+            raise Refused(400, f"window_s must be in [{MIN_WINDOW_S:g}, {MAX_WINDOW_S:g}] s "
                                 f"and points in [10, {MAX_POINTS}]")
         key = (window_s, points)
         async with self._history_lock:   # one computation at a time, however many browsers
@@ -626,7 +488,7 @@ class Dashboard:
                     answer = await asyncio.get_running_loop().run_in_executor(
                         None, self.history.window, window_s, points)
                 except InputError as exc:   # no meta.json yet: serve has not started logging
-                    raise _Refused(404, str(exc)) from None
+                    raise Refused(404, str(exc)) from None
                 body = json.dumps(answer, separators=(",", ":"), allow_nan=False).encode()
                 self._history_answers = {k: v for k, v in self._history_answers.items()
                                          if now - v[0] <= 1.0}
@@ -636,7 +498,8 @@ class Dashboard:
     async def _stream(self, request: web.Request) -> web.StreamResponse:
         self._check_read(request)
         if self.clients >= self.config.max_clients:
-            return _json({"error": "too many live clients"}, 503, headers={"Retry-After": "5"})
+            return json_response({"error": "too many live clients"}, 503,
+                                 headers={"Retry-After": "5"})
         self.clients += 1
         loop = asyncio.get_running_loop()
         period = 1.0 / self.config.max_rate_hz if self.config.max_rate_hz > 0 else 0.0
@@ -679,7 +542,7 @@ class Dashboard:
     async def _login(self, request: web.Request) -> web.Response:
         data = await self._read_json(request)
         if data is None:
-            raise _Refused(400, "expected a JSON body")
+            raise Refused(400, "expected a JSON body")
         user, password = data.get("username"), data.get("password")
         token = None
         if isinstance(user, str) and isinstance(password, str):
@@ -689,15 +552,15 @@ class Dashboard:
         if token is None:
             async with self._failed_login:   # failures one at a time: slows password guessing
                 await asyncio.sleep(FAILED_LOGIN_S)
-            raise _Refused(401, "wrong user name or password")
-        resp = _json({"user": user})
+            raise Refused(401, "wrong user name or password")
+        resp = json_response({"user": user})
         resp.set_cookie(COOKIE, token, path="/", httponly=True, samesite="Strict",
                         secure=self.ssl_context is not None, max_age=int(self.config.session_s))
         return resp
 
     async def _logout(self, request: web.Request) -> web.Response:
         self.logout(request.cookies.get(COOKIE))
-        resp = _json({"user": None})
+        resp = json_response({"user": None})
         resp.del_cookie(COOKIE, path="/", httponly=True, samesite="Strict",
                         secure=self.ssl_context is not None)
         return resp
@@ -705,20 +568,20 @@ class Dashboard:
     async def _set_enabled(self, request: web.Request) -> web.Response:
         user = self._user(request)
         if user is None:
-            raise _Refused(401, "log in to change the compensation")
+            raise Refused(401, "log in to change the compensation")
         data = await self._read_json(request)
         if data is None or not isinstance(data.get("enabled"), bool):
-            raise _Refused(400, 'expected {"enabled": true|false}')
+            raise Refused(400, 'expected {"enabled": true|false}')
         if self.control is None:
-            raise _Refused(409, "no control in this service")
+            raise Refused(409, "no control in this service")
         try:
             # the service may wait on the OPC UA process: not in this loop
             state = await asyncio.get_running_loop().run_in_executor(None, self.control,
                                                                      data["enabled"])
         except Exception as exc:
             log.warning("dashboard: enable/disable by %s failed: %s", user, exc)
-            raise _Refused(500, f"could not change the state: {exc}") from None
+            raise Refused(500, f"could not change the state: {exc}") from None
         log.warning("compensation %s by %s from the dashboard (%s)",
                     "enabled" if state else "disabled", user, request.remote)
         state, version = self.enabled_state()
-        return _json({"enabled": state, "enabled_version": version})
+        return json_response({"enabled": state, "enabled_version": version})
