@@ -33,6 +33,8 @@ STATUS_NAMES = ("OK", "MISSING", "DOUBLED", "OUT_OF_WINDOW", "JUMP", "STUCK", "N
 
 @dataclass
 class HealthConfig:
+    """Thresholds of the sensor checks (``[pipeline.health]``, docs/runtime.md)."""
+
     max_jump_nm: float = 0.1      # ~80 µε or ~10 K in one sample: not physical for the ram
     stuck_s: float = 2.0          # exactly constant wavelength this long = stuck channel (0: off)
     recover_s: float = 1.0        # a recovered sensor must stay good this long
@@ -109,6 +111,11 @@ class SensorChecks:
 
     def check(self, time_s: np.ndarray, wavelength_nm: np.ndarray, peak_count: np.ndarray,
               near_count: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Check a batch: (status (n, S) codes of :data:`STATUS_NAMES`, faulted (n, S) bool).
+
+        A sensor is faulted from its first bad sample until it has been good for ``recover_s``;
+        the last values are carried to the next batch.
+        """
         cfg = self.config
         n, S = wavelength_nm.shape
         t = time_s[:, None]

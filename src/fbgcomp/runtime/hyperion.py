@@ -287,6 +287,7 @@ class PeakStreamDecoder:
         return len(self._buffer)
 
     def feed(self, data: bytes) -> list[PeakBlock]:
+        """Add received bytes; return the peak blocks of every frame now complete."""
         self._buffer += data
         try:
             blocks, used = decode_peak_frames(self._buffer, self.limits)
@@ -346,6 +347,7 @@ class HyperionClient:
         return message, content
 
     async def serial_number(self) -> str:
+        """The instrument's serial number (``#GetSerialNumber``)."""
         return (await self.command("#GetSerialNumber"))[1].decode("ascii", "replace")
 
     async def channel_count(self) -> int:
@@ -356,6 +358,7 @@ class HyperionClient:
         return count
 
     async def is_ready(self) -> bool:
+        """Whether the instrument says it is ready (``#isready``)."""
         return bool((await self.command("#isready"))[1][:1] == b"\x01")
 
     @property
@@ -364,6 +367,9 @@ class HyperionClient:
         return self._decoder.buffered
 
     async def open_stream(self) -> None:
+        """Connect to the peak stream port (reading the channel count first, when it is
+        not given, so the frames are bounded by it).
+        """
         if self._cmd is not None and not self._limits_given:
             try:
                 await self.channel_count()
@@ -407,6 +413,7 @@ class HyperionClient:
             reader = chunk = None   # noqa: F841
 
     async def close(self) -> None:
+        """Close the command and stream connections (waiting at most 1 s for each)."""
         for conn in (self._cmd, self._stream):
             if conn is not None:
                 conn[1].close()

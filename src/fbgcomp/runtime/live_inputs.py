@@ -70,6 +70,8 @@ Z_NAME = "Z"
 
 @dataclass
 class OpcUaInputConfig:
+    """``[temperatures.opcua]``: an OPC UA server the probe temperatures are read from."""
+
     endpoint: str = ""                # opc.tcp://HOST:PORT[/path]; "" = off
     security: str = "None"            # "None" or "Basic256Sha256"
     mode: str = "SignAndEncrypt"      # "SignAndEncrypt" or "Sign" (with Basic256Sha256)
@@ -85,6 +87,8 @@ class OpcUaInputConfig:
 
 @dataclass
 class ModbusInputConfig:
+    """``[temperatures.modbus]``: a Modbus TCP device the probe temperatures are polled from."""
+
     host: str = ""                    # "" = off
     port: int = 502
     unit: int = 1
@@ -96,12 +100,16 @@ class ModbusInputConfig:
 
 @dataclass
 class TemperaturesConfig:
+    """``[temperatures]``: the live sources of probe temperatures (docs/runtime.md)."""
+
     opcua: OpcUaInputConfig = field(default_factory=OpcUaInputConfig)
     modbus: ModbusInputConfig = field(default_factory=ModbusInputConfig)
 
 
 @dataclass
 class PositionConfig:
+    """``[position]``: where the live Z position comes from (docs/runtime.md)."""
+
     source: str = ""                  # "" (none: the model's own Z), "linuxcnc" or "opcua"
     endpoint: str = ""                # opcua: default [temperatures.opcua] endpoint
     node: str = ""                    # opcua: node id of the Z position
@@ -122,6 +130,7 @@ class Latest:
         self.received_s: float | None = None
 
     def set(self, value: float, now: float | None = None) -> None:
+        """Store a new value (NaN when it is not a number), received at ``now`` (monotonic s)."""
         try:
             self.value = float(value)
         except (TypeError, ValueError):
@@ -151,7 +160,7 @@ class OpcUaReader:
         if self.config.security not in ("None", "Basic256Sha256"):
             raise InputError(f"expected None or Basic256Sha256, got {self.config.security!r}",
                              column=f"field {where}.security")
-        from asyncua import ua
+        from asyncua import ua  # the runtime extra (asyncua): imported only when used
         for name, nid in self.nodes.items():
             try:
                 ua.NodeId.from_string(str(nid))
@@ -160,12 +169,13 @@ class OpcUaReader:
                                  column=f"field {where}.nodes.{name}")
 
     def add(self, name: str, node: str, scale: float = 1.0) -> None:
+        """Read input ``name`` from node id ``node``, multiplied by ``scale``."""
         self.nodes[name] = node
         self.values[name] = Latest()
         self.scale[name] = float(scale)
 
     async def _connect(self):
-        from asyncua import Client, ua
+        from asyncua import Client, ua  # the runtime extra (asyncua): imported only when used
 
         cfg = self.config
         client = Client(self.endpoint, timeout=cfg.timeout_s, watchdog_intervall=1.0,
@@ -250,12 +260,15 @@ class OpcUaReader:
                 pass
 
     async def close(self) -> None:
+        """Unsubscribe and disconnect."""
         await self._disconnect()
 
 
 # ------------------------------------------------------------------------------ Modbus client
 @dataclass
 class RegisterSpec:
+    """Where one input is in the device's registers and how it becomes a value."""
+
     address: int
     type: str = "int16"
     scale: float = 1.0
@@ -263,10 +276,14 @@ class RegisterSpec:
 
     @property
     def words(self) -> int:
+        """How many 16-bit registers the value takes."""
         return MODBUS_TYPES[self.type][1]
 
 
 def register_spec(name: str, spec, where: str) -> RegisterSpec:
+    """The :class:`RegisterSpec` of input ``name`` from its configuration (an address, or a
+    table ``{address, type, scale, offset}``); InputError naming ``where`` otherwise.
+    """
     col = f"field {where}.registers.{name}"
     if isinstance(spec, int) and not isinstance(spec, bool):
         spec = {"address": spec}
@@ -314,6 +331,7 @@ class ModbusReader:
     @staticmethod
     def decode(registers, spec: RegisterSpec) -> float:
         """Raw registers (high word first) -> value * scale + offset."""
+        # the runtime extra (pymodbus): imported only when used
         from pymodbus.client import AsyncModbusTcpClient
 
         dt = getattr(AsyncModbusTcpClient.DATATYPE, MODBUS_TYPES[spec.type][0])
@@ -321,6 +339,8 @@ class ModbusReader:
         return float(raw) * spec.scale + spec.offset
 
     async def run(self) -> None:
+        """Poll the registers every ``poll_s`` until cancelled, reconnecting as needed."""
+        # the runtime extra (pymodbus): imported only when used
         from pymodbus.client import AsyncModbusTcpClient
 
         cfg = self.config
@@ -358,6 +378,7 @@ class ModbusReader:
             self.values[name].set(self.decode(rr.registers, spec))
 
     async def close(self) -> None:
+        """Close the connection."""
         if self._client is not None:
             self._client.close()
 
@@ -374,6 +395,7 @@ class LinuxCncPositionReader:
         self.status = "waiting"
 
     def refresh(self) -> None:
+        """Take the newest position from the output (NaN while the machine is not homed)."""
         got = self.output.position()
         if got is None:
             return
@@ -384,9 +406,11 @@ class LinuxCncPositionReader:
         self.status = "homed" if homed else "not homed"
 
     async def run(self) -> None:
+        """Nothing to run: the output's own thread receives the positions."""
         await asyncio.Event().wait()     # the output's thread receives; nothing to run here
 
     async def close(self) -> None:
+        """Nothing to close (the output owns the socket)."""
         pass
 
 
@@ -439,7 +463,7 @@ class LiveInputs:
                 by_endpoint[endpoint] = r
                 self.readers.append(r)
             try:
-                from asyncua import ua
+                from asyncua import ua  # the runtime extra (asyncua): imported only when used
                 ua.NodeId.from_string(position.node)
             except Exception:
                 raise InputError(f"not an OPC UA node id: {position.node!r}",
@@ -468,10 +492,12 @@ class LiveInputs:
 
     @property
     def probes(self) -> list[str]:
+        """The probes a live input supplies."""
         return list(self.probe_reader)
 
     @property
     def has_position(self) -> bool:
+        """Whether a live Z position is configured."""
         return self.z_reader is not None
 
     def __bool__(self) -> bool:
@@ -493,6 +519,7 @@ class LiveInputs:
             reader.status = "stopped (error)"
 
     async def close(self) -> None:
+        """Cancel the readers' tasks and close their connections."""
         for t in self._tasks:
             t.cancel()
         for t in self._tasks:
@@ -576,6 +603,9 @@ class LiveTemperatures:
         self.last_live: dict = {}
 
     def latest(self, time_s: np.ndarray) -> np.ndarray:
+        """The temperatures (n, P) for frames at ``time_s``: live probes their newest value
+        (kept in ``last_live``), the others from ``fallback``.
+        """
         n = np.asarray(time_s).size
         out = np.empty((n, len(self.probe_names)))
         if self._other_cols:

@@ -33,18 +33,22 @@ stored health and status as their integer codes (the index in those name lists).
 
 from __future__ import annotations
 
+import collections
 import json
 import logging
 import os
-import collections
 import threading
 import time
+from datetime import datetime, timezone
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
 from fbgcomp.atomic import atomic_path, write_bytes
 from fbgcomp.errors import InputError
+from fbgcomp.io.campaign import Campaign, write_campaign
+from fbgcomp.optics import free_grating_wavelength_nm
 from fbgcomp.runtime.health import STATUS_NAMES
 from fbgcomp.runtime.pipeline import HEALTH_NAMES
 from fbgcomp.units import AXES
@@ -56,7 +60,7 @@ DATA_DIR = "data"          # LOG/data/date=YYYY-MM-DD/part-*.parquet
 def _labels(codes: np.ndarray, names) -> "pyarrow.DictionaryArray":
     """Integer codes as a dictionary-encoded string column (names[code]); a code beyond the
     names is kept as ``CODE<n>`` rather than lost."""
-    import pyarrow as pa
+    import pyarrow as pa  # the runtime extra (pyarrow): imported only when used
     names = list(names)
     codes = np.asarray(codes)
     top = int(codes.max()) if codes.size else -1
@@ -67,7 +71,6 @@ def _labels(codes: np.ndarray, names) -> "pyarrow.DictionaryArray":
 def _codes(column, names) -> np.ndarray:
     """A logged health/status column as integer codes: names (this layout) are looked up in
     ``names``, integer codes (older logs) are kept; an unknown name is -1."""
-    import pandas as pd
     lookup = {n: k for k, n in enumerate(names)}
     if isinstance(column.dtype, pd.CategoricalDtype):
         table = np.array([lookup.get(c, -1) for c in column.cat.categories] + [-1], np.int16)
@@ -123,6 +126,9 @@ class RunLog:
         self._thread.start()
 
     def submit(self, batch, result, enabled: bool) -> None:
+        """Queue a processed batch for writing (never blocks: when the queue is full the batch
+        is dropped and counted in ``dropped_rows``).
+        """
         if len(self._q) >= self.max_queue:
             self.dropped_rows += len(batch)
             return
@@ -158,7 +164,7 @@ class RunLog:
         return cols
 
     def _write(self, items) -> None:
-        import pyarrow as pa
+        import pyarrow as pa  # the runtime extra (pyarrow): imported only when used
         import pyarrow.parquet as pq
         table = pa.table(self._columns(items))
         now = time.time()
@@ -197,6 +203,7 @@ class RunLog:
                 return
 
     def close(self, timeout_s: float = 5.0) -> None:
+        """Write what is queued and stop the writer thread (waiting at most ``timeout_s``)."""
         self._stop.set()
         self._thread.join(timeout_s)
 
@@ -249,8 +256,7 @@ def read_log(folder: str | Path, labels: bool = False):
     :mod:`fbgcomp.runtime.health` status codes) whichever way the log stored them, or with
     ``labels=True`` as their names (a pandas categorical, every name a category, in code order).
     """
-    import pandas as pd
-    import pyarrow.parquet as pq
+    import pyarrow.parquet as pq  # the runtime extra (pyarrow): imported only when used
     folder = Path(folder)
     meta = read_meta(folder)
     parts = log_parts(folder)
@@ -287,10 +293,6 @@ def export_campaign(log_folder: str | Path, out: str | Path, name: str | None = 
     (``reference.instrument = "fbgcomp prediction, model <id>"``) so it is never mistaken for
     a measurement.
     """
-    import pandas as pd
-    from datetime import datetime, timezone
-    from fbgcomp.io.campaign import Campaign, write_campaign
-
     meta, df = read_log(log_folder)
     df = df.drop_duplicates("time_s", keep="first")
     t0 = float(df["time_s"].iloc[0])
@@ -298,8 +300,6 @@ def export_campaign(log_folder: str | Path, out: str | Path, name: str | None = 
     sensors, probes = meta["sensor_names"], meta["probe_names"]
     # a strain-free reference grating was logged as its sensor's gauge temperature <S>_ref_C
     # (relative to reference_lambda0_nm); it goes back to fbg.csv as the wavelength it read
-    from fbgcomp.optics import free_grating_wavelength_nm
-
     refs = {f"{d['name']}_ref": d for d in meta.get("sensors") or []
             if d.get("reference_lambda0_nm") is not None and f"{d['name']}_ref" in probes}
     probes = [p for p in probes if p not in refs]

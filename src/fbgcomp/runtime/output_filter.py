@@ -54,6 +54,8 @@ SD_FLOOR_UM = 1e-3        # the robust noise SD never drops below this (a noise-
 
 @dataclass
 class OutputFilterConfig:
+    """Settings of the adaptive output filter (``[pipeline.output_filter]``, docs/runtime.md)."""
+
     enabled: bool = True
     block_s: float = 0.05          # frames averaged per decision block
     short_s: float = 0.6           # fast robust statistic: median of the block medians over this
@@ -135,6 +137,7 @@ class AdaptiveLevelFilter:
 
     @property
     def noise_sd_um(self) -> np.ndarray:
+        """The per-axis noise standard deviation the thresholds are built on, µm (a copy)."""
         return self.sd.copy()
 
     def thresholds(self) -> np.ndarray:

@@ -31,6 +31,14 @@ Health codes per frame: OK, DEGRADED (fallback in use), ALARM (hold / ramp), ZER
 them, a flag word per frame and axis (``BatchResult.output_flags``, bits in
 :mod:`fbgcomp.runtime.health`) says when the published correction was held back - by the
 model's own policy (its predictor's ``last_flags``) or by the limits.
+
+One module over 600 lines, on purpose: it is the hot path. Every stage above works on the same
+per-batch arrays and on state carried from batch to batch (zero state, sensor history, the last
+correction, filter and rate-limit state) that :meth:`Pipeline.continue_from` hands to a reloaded
+model in one piece; split into modules, that state would be shared across them, and the order
+of the stages - which is the safety argument - would no longer be read in one place. The
+stages that stand alone already live beside it (:mod:`.health`, :mod:`.output_filter`,
+:mod:`.outputs.cnc_form`).
 """
 
 from __future__ import annotations
@@ -69,6 +77,8 @@ def _takes_time(predictor) -> bool:
 
 @dataclass
 class PipelineConfig:
+    """Output policy and checks of the pipeline (``[pipeline]``, docs/runtime.md)."""
+
     ramp_s: float = 2.0              # hold-then-ramp-to-zero time when no model is usable
     smoothing_tau_s: float = 0.0     # exponential smoothing of the correction; 0 = off
     # Per axis (dx, dy, dz) or one value for all; 0 = off on that axis (docs/runtime.md: why
@@ -200,6 +210,7 @@ class Pipeline:
 
     # -- model selection
     def predictor(self, k: int):
+        """The predictor of model set ``k`` (``model_sets[k]`` excluded), made once and kept."""
         if k not in self._predictors:
             self._predictors[k] = self.model.predictor(exclude=self.model_sets[k])
         return self._predictors[k]
@@ -218,6 +229,7 @@ class Pipeline:
 
     @property
     def zeroed(self) -> bool:
+        """Whether the zero state (the wavelengths of the zero window) is known."""
         return self.wavelength_zero_nm is not None
 
     # -- zero state
@@ -604,6 +616,8 @@ class Pipeline:
         tau = self.config.smoothing_tau_s
         if tau <= 0 or t.size == 0:
             return corr
+        # scipy.signal takes seconds to import, and only this optional smoothing needs it: not
+        # at module top, which the OPC UA server process and the log readers also load
         from scipy.signal import lfilter
         prev_t = self._last_t if self._last_t is not None else t[0]
         dt = np.diff(np.concatenate([[prev_t], t]))

@@ -24,6 +24,8 @@ log = logging.getLogger("fbgcomp.runtime")
 
 @dataclass
 class RealtimeConfig:
+    """``--cpu``, ``--realtime-priority``: what :func:`apply` sets for the process."""
+
     cpu: int = -1               # pin the service to this CPU; -1 = no pinning
     fifo_priority: int = 0      # SCHED_FIFO priority 1..99; 0 = normal scheduling
     gc_threshold: int = 50_000  # young-generation threshold of the cyclic collector (0: keep)

@@ -9,8 +9,10 @@ to zero (alarm) while the source reconnects with capped exponential back-off.
 from __future__ import annotations
 
 import asyncio
+import gc
 import logging
 import signal
+import sys
 import time
 import tomllib
 from dataclasses import dataclass, field, fields, is_dataclass
@@ -18,16 +20,22 @@ from pathlib import Path
 
 import numpy as np
 
-from fbgcomp.dashboard.server import DashboardConfig
+from fbgcomp.dashboard import Dashboard, DashboardConfig
 from fbgcomp.errors import InputError
+from fbgcomp.io.campaign import read_campaign
+from fbgcomp.models.registry import load_model
 from fbgcomp.runtime import health as H
-from fbgcomp.runtime.outputs.linuxcnc import CncConfig
+from fbgcomp.runtime import realtime
 from fbgcomp.runtime.live_inputs import (LiveInputs, LiveTemperatures, PositionConfig,
                                          TemperaturesConfig)
-from fbgcomp.runtime.outputs.modbus import ModbusConfig
+from fbgcomp.runtime.log import RunLog
+from fbgcomp.runtime.outputs.cnc_form import newest_slope
+from fbgcomp.runtime.outputs.linuxcnc import CncConfig, open_cnc_output
+from fbgcomp.runtime.outputs.modbus import ModbusConfig, open_modbus_output
 from fbgcomp.runtime.outputs.opcua import OpcUaConfig, OpcUaServer, Snapshot
 from fbgcomp.runtime.pipeline import HEALTH_ALARM, HEALTH_NAMES, Pipeline, PipelineConfig
 from fbgcomp.runtime.realtime import RealtimeConfig
+from fbgcomp.runtime.simulator import SignalTable, SimConfig, SimulatedHyperion
 from fbgcomp.runtime.sources import (HyperionSource, PeakMapper, ReferenceThermometers,
                                      ReplaySource, SensorBatch, TableTemperatures,
                                      open_temperatures, parse_source_url)
@@ -37,6 +45,8 @@ log = logging.getLogger("fbgcomp.runtime")
 
 @dataclass
 class SourceConfig:
+    """``[source]``: where the wavelengths (and, for replays, the temperatures) come from."""
+
     url: str = ""
     window_nm: float = 2.5
     speed: float = 1.0               # replay:// and sim:// only
@@ -50,6 +60,8 @@ class SourceConfig:
 
 @dataclass
 class LogConfig:
+    """``[log]``: the run log folder (none: no log), its flush period and whether parts are fsynced."""
+
     dir: str | None = None
     flush_s: float = 0.5
     fsync: bool = True
@@ -57,6 +69,8 @@ class LogConfig:
 
 @dataclass
 class RuntimeConfig:
+    """serve's whole configuration: the TOML file's sections, overridden by the command line."""
+
     model: str = ""
     source: SourceConfig = field(default_factory=SourceConfig)
     pipeline: PipelineConfig = field(default_factory=PipelineConfig)
@@ -74,6 +88,7 @@ class RuntimeConfig:
 
     @classmethod
     def from_toml(cls, path: str | Path) -> "RuntimeConfig":
+        """The configuration in a TOML file; InputError naming the file and field otherwise."""
         path = Path(path)
         try:
             data = tomllib.loads(path.read_text())
@@ -115,6 +130,9 @@ def _update(obj, data: dict, file: str, prefix: str) -> None:
 
 
 def model_meta(model, pipeline: Pipeline, temperature_probes=None) -> dict:
+    """The run log's ``meta.json``: model, sensors, probes, model sets, names of the codes and
+    limits in force.
+    """
     def dump(s):
         return s.model_dump(mode="json") if hasattr(s, "model_dump") else dict(vars(s))
     return {"format": "fbgcomp-runlog", "version": 1, "model_id": model.model_id,
@@ -163,7 +181,6 @@ class Service:
 
     @staticmethod
     def _load_model(path):
-        from fbgcomp.models.base import load_model
         if not path:
             raise InputError("no model given", column="--model")
         return load_model(path)
@@ -194,7 +211,6 @@ class Service:
             temps = src.temperatures
             probe_specs = _probe_specs(opts["path"])
         else:  # sim://DIR: an in-process simulated instrument replaying the campaign
-            from fbgcomp.runtime.simulator import SignalTable, SimConfig, SimulatedHyperion
             table = SignalTable.from_campaign(opts["path"])
             speed = float(opts.get("speed", cfg.speed))
             loop = opts.get("loop", str(cfg.loop)).lower() in ("1", "true")
@@ -223,6 +239,9 @@ class Service:
 
     # -- model reload (OPC UA ReloadModel, run on this loop through run_coroutine_threadsafe)
     async def reload(self, path: str) -> str:
+        """Load model file ``path`` (empty: the one serve was started with) in place of the running
+        model, keeping the zero state; it must expect the same sensors and probes.
+        """
         path = path or self.config.model
         loop = asyncio.get_running_loop()
         new = await loop.run_in_executor(None, self._load_model, path)
@@ -240,10 +259,12 @@ class Service:
         return f"loaded {self.model_id}"
 
     def stop(self) -> None:
+        """Ask :meth:`run` to end (signal handlers call it)."""
         self._stop.set()
 
     @property
     def enabled(self) -> bool:
+        """Whether the correction output is on (the OPC UA server's ``Enabled`` when it runs)."""
         return self.opc.enabled if self.opc is not None else self._enabled
 
     def set_enabled(self, value: bool) -> bool:
@@ -259,8 +280,10 @@ class Service:
 
     # -- main loop
     async def run(self, duration_s: float | None = None) -> None:
+        """Start the outputs and the source, then process batches until stopped, the source ends or
+        ``duration_s`` has passed; everything started is stopped again on the way out.
+        """
         main_loop = asyncio.get_running_loop()
-        from fbgcomp.runtime.outputs.modbus import open_modbus_output
         self.modbus = open_modbus_output(self.config.modbus)
         if self.modbus is not None:
             self.modbus.start()      # a busy port fails before anything else runs
@@ -270,7 +293,6 @@ class Service:
                                    on_reload=self.reload, main_loop=main_loop)
             await main_loop.run_in_executor(None, self.opc.start)
         try:
-            from fbgcomp.runtime.outputs.linuxcnc import open_cnc_output
             self.cnc = open_cnc_output(self.config.cnc)    # started below; read by [position]
             source, temps, probe_specs = await self._open_source()
         except BaseException:
@@ -281,12 +303,10 @@ class Service:
             raise
         self.source, self.temps = source, temps
         if self.config.log.dir:
-            from fbgcomp.runtime.log import RunLog
             self.runlog = RunLog(self.config.log.dir,
                                  model_meta(self.model, self.pipeline, probe_specs),
                                  self.config.log.flush_s, fsync=self.config.log.fsync)
         if self.config.dashboard.listen:
-            from fbgcomp.dashboard import Dashboard
             self.dashboard = Dashboard(self.config.dashboard, self.pipeline.sensor_names,
                                        self.pipeline.probe_names, self.model_id,
                                        control=self.set_enabled, enabled=lambda: self.enabled,
@@ -308,7 +328,6 @@ class Service:
         pump_task = asyncio.create_task(pump())
         # everything set up so far lives as long as the service: out of the cyclic collector,
         # whose full passes over it would stall the loop
-        import gc
         gc.collect()
         gc.freeze()
         end = None if duration_s is None else time.monotonic() + duration_s
@@ -415,8 +434,8 @@ class Service:
         snap = self._snapshot(res, wavelength_nm, received_s)
         if self.cnc is not None:
             self.cnc.publish(snap, self.enabled)
-        if self.modbus is not None or self.opc is not None:   # offset + Z slope, the form
-            from fbgcomp.runtime.outputs.cnc_form import newest_slope    # a CNC's PLC takes
+        if self.modbus is not None or self.opc is not None:   # offset + Z slope, the form a
+            # CNC's PLC takes
             z = self.z_mm if self.z_mm is not None and np.isfinite(self.z_mm) else None
             slope, z_ref = newest_slope(self.pipeline, res, wavelength_nm, z)
         if self.modbus is not None:
@@ -449,7 +468,6 @@ class Service:
 
 def _probe_specs(folder):
     try:
-        from fbgcomp.io.campaign import read_campaign
         c = read_campaign(folder)
         return [p.model_dump(mode="json") if hasattr(p, "model_dump") else dict(vars(p))
                 for p in c.meta.temperature_probes]
@@ -459,13 +477,11 @@ def _probe_specs(folder):
 
 def run_service(config: RuntimeConfig, duration_s: float | None = None) -> Service:
     """Run until SIGINT / SIGTERM (graceful: the run log is flushed) or ``duration_s``."""
-    import sys
     # The log writer (and other outputs) run in threads: when one of them holds the GIL, hand
     # it back within 1 ms (default 5 ms) so a frame waiting to be processed is not held up.
     sys.setswitchinterval(0.001)
     # pinned core, SCHED_FIFO where permitted (else one warning and normal priority), gc
     # threshold: before the OPC UA process starts, so it inherits them
-    from fbgcomp.runtime import realtime
     for line in realtime.apply(config.realtime):
         log.info("real time: %s", line)
     service = Service(config)

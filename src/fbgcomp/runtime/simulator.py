@@ -33,7 +33,9 @@ queued) is disconnected rather than slowing the instrument down.
 from __future__ import annotations
 
 import asyncio
+import gc
 import re
+import signal
 import struct
 import time
 from dataclasses import dataclass, field
@@ -44,6 +46,7 @@ import numpy as np
 
 from fbgcomp.atomic import atomic_path
 from fbgcomp.errors import InputError
+from fbgcomp.io.campaign import read_campaign
 from fbgcomp.runtime import hyperion
 
 _FAULT_RE = re.compile(r"^(drop|double|shift|stuck):([^@]+)@([0-9.eE+-]+)(?::([0-9.eE+-]+))?"
@@ -65,6 +68,7 @@ class Fault:
     until_s: float = float("inf")
 
     def active(self, t_rel_s: float) -> bool:
+        """Whether the fault is on at ``t_rel_s`` seconds after the start."""
         return self.at_s <= t_rel_s < self.until_s
 
 
@@ -110,7 +114,6 @@ class SignalTable:
         """The campaign's gratings: its sensors, then the strain-free reference gratings of
         those that carry one (signal ``<sensor>_ref`` from column ``<sensor>_ref_nm``, on the
         sensor's channel; faults name them so: ``drop:S3_ref@5``)."""
-        from fbgcomp.io.campaign import read_campaign
         c = read_campaign(folder)
         refs = [s for s in c.meta.sensors if s.reference_column is not None]
         names = [s.name for s in c.meta.sensors] + [s.reference_probe for s in refs]
@@ -130,6 +133,8 @@ class SignalTable:
 
 @dataclass
 class SimConfig:
+    """Settings of the simulated instrument: frame rate, channels, padding peaks, speed, faults."""
+
     rate_hz: float = 1000.0
     channels: int = 1
     extra_peaks_per_channel: int = 0
@@ -184,17 +189,21 @@ class SimulatedHyperion:
 
     @property
     def command_port(self) -> int:
+        """The bound command port."""
         return self._servers[0].sockets[0].getsockname()[1]
 
     @property
     def stream_port(self) -> int:
+        """The bound peak-stream port."""
         return self._servers[1].sockets[0].getsockname()[1]
 
     @property
     def frames_sent(self) -> int:
+        """Frames sent so far."""
         return self._sent
 
     async def start(self) -> None:
+        """Listen on the command and stream ports and start streaming."""
         self._servers = [
             await asyncio.start_server(self._serve_commands, self.host, self._ports[0]),
             await asyncio.start_server(self._serve_stream, self.host, self._ports[1]),
@@ -203,6 +212,7 @@ class SimulatedHyperion:
         self._task = asyncio.create_task(self._stream_loop())
 
     async def stop(self) -> None:
+        """Stop streaming, disconnect the clients and close the ports."""
         await _cancel(self._task)
         self._close_clients()
         for s in self._servers:
@@ -435,7 +445,7 @@ class OpcUaTemperatureServer:
     @classmethod
     def from_campaign(cls, endpoint: str, folder, config: SimConfig,
                       table: SignalTable) -> "OpcUaTemperatureServer":
-        from fbgcomp.io.campaign import read_campaign
+        """A server of the campaign's probe temperatures (InputError if it has none)."""
         c = read_campaign(folder)
         probes = [p.name for p in c.meta.temperature_probes
                   if f"{p.name}_C" in c.temperatures.columns]
@@ -455,7 +465,8 @@ class OpcUaTemperatureServer:
         return self.values[max(i, 0)]
 
     async def start(self, t0: float | None = None) -> None:
-        from asyncua import Server, ua
+        """Start the OPC UA server and its update loop (campaign time 0 at ``t0``, default now)."""
+        from asyncua import Server, ua  # the runtime extra (asyncua): imported only when used
 
         server = Server()
         await server.init()
@@ -475,7 +486,7 @@ class OpcUaTemperatureServer:
         self._task = asyncio.create_task(self._update_loop())
 
     async def _update_loop(self) -> None:
-        from asyncua import ua
+        from asyncua import ua  # the runtime extra (asyncua): imported only when used
 
         while True:
             row = self.at(time.time() - self._t0)
@@ -488,6 +499,7 @@ class OpcUaTemperatureServer:
             await asyncio.sleep(self.period_s)
 
     async def stop(self) -> None:
+        """Stop the update loop and the server."""
         await _cancel(self._task)
         if self.server is not None:
             await self.server.stop()
@@ -521,14 +533,12 @@ async def run_simulator(table: SignalTable, config: SimConfig, host: str, comman
         except BaseException:
             await sim.stop()
             raise
-    import gc
     gc.collect()
     gc.freeze()     # the campaign tables stay: no full collector passes over them mid-stream
     if ready is not None:
         ready(sim)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
-    import signal
     for sig in (signal.SIGINT, signal.SIGTERM):
         try:
             loop.add_signal_handler(sig, stop.set)

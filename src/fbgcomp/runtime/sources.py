@@ -25,8 +25,11 @@ from typing import AsyncIterator, Protocol
 from urllib.parse import parse_qs, urlparse
 
 import numpy as np
+import pandas as pd
 
+from fbgcomp import optics
 from fbgcomp.errors import InputError
+from fbgcomp.io.campaign import read_campaign
 from fbgcomp.runtime import hyperion
 
 log = logging.getLogger("fbgcomp.runtime")
@@ -57,6 +60,7 @@ class SensorBatch:
 
     @staticmethod
     def concat(batches: list["SensorBatch"]) -> "SensorBatch":
+        """One batch of several, in order."""
         if len(batches) == 1:
             return batches[0]
         return SensorBatch(np.concatenate([b.time_s for b in batches]),
@@ -185,6 +189,7 @@ class PeakMapper:
         near[idx] += stray.sum(axis=1).ravel()
 
     def map_blocks(self, blocks: list[hyperion.PeakBlock], received_s: float) -> SensorBatch:
+        """A batch of the decoded peak blocks of one read (received at ``received_s``)."""
         by_channel = bool(self.channel.all())
         return SensorBatch.concat([self.map(b.wavelengths_nm, received_s, b.timestamp_s,
                                             b.peak_channel + 1 if by_channel else None)
@@ -194,8 +199,14 @@ class PeakMapper:
 class WavelengthSource(Protocol):
     """What the service reads wavelengths from."""
 
-    def batches(self) -> AsyncIterator[SensorBatch]: ...
-    async def close(self) -> None: ...
+    def batches(self) -> AsyncIterator[SensorBatch]:
+        """Batches of frames as they arrive, until the source ends or is closed."""
+        ...
+
+    async def close(self) -> None:
+        """Stop the source and release its connections."""
+        ...
+
     status: str
 
 
@@ -240,7 +251,6 @@ class ReferenceThermometers:
         the batch's reference gratings (n, R) (None: none arrived, NaN)."""
         if not self._ref:
             return probes_C
-        from fbgcomp import optics
         n = probes_C.shape[0]
         out = np.empty((n, len(self.probe_names)))
         out[:, self._real] = probes_C
@@ -258,6 +268,7 @@ class NoTemperatures:
         self.probe_names = list(probe_names)
 
     def latest(self, time_s: np.ndarray) -> np.ndarray:
+        """NaN for every probe."""
         return np.full((time_s.size, len(self.probe_names)), np.nan)
 
 
@@ -273,6 +284,7 @@ class ConstantTemperatures:
         self._row = np.array([values_C[p] for p in probe_names], dtype=np.float64)
 
     def latest(self, time_s: np.ndarray) -> np.ndarray:
+        """The fixed temperatures, one row per frame."""
         return np.broadcast_to(self._row, (time_s.size, self._row.size)).copy()
 
 
@@ -297,18 +309,21 @@ class TableTemperatures:
     @classmethod
     def from_campaign(cls, folder: str | Path, probe_names: list[str], speed: float = 1.0,
                       loop: bool = False) -> "TableTemperatures":
-        from fbgcomp.io.campaign import read_campaign
+        """The temperatures of a campaign folder."""
         c = read_campaign(folder)
         return cls.from_frame(c.temperatures, probe_names, speed, str(folder), loop=loop)
 
     @classmethod
     def from_csv(cls, path: str | Path, probe_names: list[str], speed: float = 1.0,
                  loop: bool = False) -> "TableTemperatures":
-        import pandas as pd
+        """The temperatures of a CSV with ``time_s`` and ``<probe>_C`` columns."""
         return cls.from_frame(pd.read_csv(path), probe_names, speed, str(path), loop=loop)
 
     @classmethod
     def from_frame(cls, df, probe_names, speed, where, loop=False) -> "TableTemperatures":
+        """The temperatures of a table with ``time_s`` and ``<probe>_C`` columns; InputError
+        naming ``where`` when a column is missing.
+        """
         cols = [f"{p}_C" for p in probe_names]
         missing = [c for c in cols + ["time_s"] if c not in df.columns]
         if missing:
@@ -317,6 +332,7 @@ class TableTemperatures:
                    speed, loop=loop)
 
     def latest(self, time_s: np.ndarray) -> np.ndarray:
+        """The newest recorded temperatures at or before each frame's time on the campaign clock."""
         if self.origin is None:
             self.origin = float(time_s[0]) - self.time_s[0] / self.speed
         camp_t = (np.asarray(time_s) - self.origin) * self.speed
@@ -385,6 +401,7 @@ class HyperionSource:
         return client
 
     async def batches(self) -> AsyncIterator[SensorBatch]:
+        """Batches from the instrument, reconnecting with capped exponential back-off."""
         delay = self.backoff_initial_s
         while not self._closed:
             try:
@@ -411,6 +428,7 @@ class HyperionSource:
             delay = min(delay * 2.0, self.backoff_max_s)
 
     async def close(self) -> None:
+        """Stop reading and close the connection."""
         self._closed = True
         if self._client is not None:
             await self._client.close()
@@ -426,7 +444,6 @@ class ReplaySource:
     def __init__(self, folder: str | Path, sensor_names: list[str], probe_names: list[str],
                  speed: float = 1.0, chunk_s: float = 0.002, loop: bool = False,
                  reference_probes: list[str] | None = None):
-        from fbgcomp.io.campaign import read_campaign
         c = read_campaign(folder)
         missing = [s for s in sensor_names if f"{s}_nm" not in c.fbg.columns]
         if missing:
@@ -454,6 +471,7 @@ class ReplaySource:
         self._closed = False
 
     async def batches(self) -> AsyncIterator[SensorBatch]:
+        """The campaign's frames at ``speed`` times real time (looping if asked)."""
         i = 0
         n = self.time_s.size
         span = self.time_s[-1] - self.time_s[0]
@@ -477,6 +495,7 @@ class ReplaySource:
             await asyncio.sleep(self.chunk_s)
 
     async def close(self) -> None:
+        """Stop the replay."""
         self._closed = True
 
 

@@ -38,6 +38,8 @@ CNC_KINDS = ("off", "linuxcnc")
 
 @dataclass
 class CncConfig:
+    """``--cnc linuxcnc`` / ``[cnc]``: the HAL component the correction is sent to (docs/linuxcnc.md)."""
+
     kind: str = "off"                 # "off" or "linuxcnc"
     address: str = DEFAULT_ADDRESS    # udp://HOST:PORT or unix:///path of the HAL component
     heartbeat_s: float = 0.02         # the newest datagram is repeated at least this often
@@ -69,6 +71,7 @@ class LinuxCncOutput:
         self.positions = 0
 
     def start(self) -> None:
+        """Open the datagram socket and start the heartbeat thread that repeats the newest values."""
         self.sock = socket.socket(self.family, socket.SOCK_DGRAM)
         if self.family == socket.AF_UNIX:
             self.sock.bind("")     # Linux autobind: an abstract address the component answers
@@ -79,6 +82,7 @@ class LinuxCncOutput:
 
     @staticmethod
     def flags_for(snapshot, enabled: bool) -> int:
+        """The datagram's flag word for a snapshot: enabled, alarm, zeroing."""
         flags = FLAG_ENABLED if enabled else 0
         if snapshot.alarm:
             flags |= FLAG_ALARM
@@ -92,6 +96,7 @@ class LinuxCncOutput:
                             snapshot.sample_time_s)
 
     def publish_values(self, correction_um, flags: int, sample_time_s: float = 0.0) -> None:
+        """Send a correction (µm per axis) with its flags now, and repeat it until the next."""
         with self._lock:
             self._latest = (tuple(float(v) for v in correction_um), int(flags),
                             float(sample_time_s))

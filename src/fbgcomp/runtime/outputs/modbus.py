@@ -66,6 +66,8 @@ _INT32 = (-2 ** 31, 2 ** 31 - 1)
 
 @dataclass
 class ModbusConfig:
+    """``[modbus]``: the Modbus TCP server a PLC reads the offset + Z slope form from."""
+
     listen: str = ""                      # "HOST:PORT", e.g. "127.0.0.1:5020"; "" = off
     unit_id: int = 1                      # Modbus unit (device) id answered; 0 = any
     # Limits of the published offset and slope, per axis (dx, dy, dz) or one for all; 0 = off.
@@ -78,6 +80,7 @@ class ModbusConfig:
 
 
 def parse_listen(listen: str) -> tuple[str, int]:
+    """``HOST:PORT`` (``[::1]:5020`` for IPv6) -> (host, port); both are required."""
     host, sep, port = listen.rpartition(":")
     if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
         raise InputError(f"expected HOST:PORT, got {listen!r}", column="field modbus.listen")
@@ -129,6 +132,9 @@ class ModbusOutput:
 
     # -- the PLC's side: pymodbus server in its own thread
     def start(self, timeout_s: float = 10.0) -> None:
+        """Serve from a thread of its own; InputError if the address cannot be bound within
+        ``timeout_s``.
+        """
         started = threading.Event()
         failure: list[BaseException] = []
 
@@ -151,7 +157,7 @@ class ModbusOutput:
                  self.host, self.port, self.config.unit_id, N_REGISTERS)
 
     async def _serve(self, started: threading.Event, failure: list) -> None:
-        from pymodbus.server import ModbusTcpServer
+        from pymodbus.server import ModbusTcpServer  # the runtime extra (pymodbus): imported only when used
         from pymodbus.simulator import DataType, SimData, SimDevice
 
         device = SimDevice(id=int(self.config.unit_id), action=self._action,
@@ -171,7 +177,7 @@ class ModbusOutput:
     async def _action(self, function_code, start_address, address, count, registers,
                       set_values):
         """pymodbus calls this on every access: writes refused, reads get the newest sample."""
-        from pymodbus.constants import ExcCodes
+        from pymodbus.constants import ExcCodes  # the runtime extra (pymodbus): imported only when used
 
         if set_values is not None:
             self.writes_refused += 1
