@@ -13,6 +13,7 @@ import typer
 from typer.testing import CliRunner
 
 import fbgcomp_testing
+from fbgcomp.cli.twin import twin_check as twin_check_command
 from fbgcomp.structure import twin_check
 from fbgcomp.errors import InputError
 
@@ -75,8 +76,7 @@ def test_cross_components_are_judged_against_the_main_one():
 
 def _app():
     app = typer.Typer()
-    twin_check.register(app)
-    twin_check.register(app)               # idempotent
+    app.command("twin-check")(twin_check_command)
 
     @app.callback()
     def _main():

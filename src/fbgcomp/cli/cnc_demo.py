@@ -10,6 +10,9 @@ stops everything it started: first through LinuxCNC's own shutdown path (the dis
 :func:`run_demo` homes the machine, starts ``fbgcomp serve --cnc linuxcnc`` on a thermal
 campaign replayed through the simulated interrogator at an accelerated speed, runs a short
 G-code program and prints commanded and compensated positions.
+
+The models and the campaign writer are imported inside :func:`run_demo`'s helpers so that
+``fbgcomp --help``, which imports this module to mount ``cnc-demo``, starts fast.
 """
 
 from __future__ import annotations
@@ -28,6 +31,10 @@ import time
 from pathlib import Path
 from typing import Optional
 
+import typer
+
+from fbgcomp.errors import InputError
+
 CNC_USER = "fbgcomp-cnc"
 LOCK_PATH = "/tmp/fbgcomp-linuxcnc.lock"   # HAL shared memory is machine-wide: one instance
 CONFIG_FILES = ("fbgcomp-mill.ini", "fbgcomp-mill.hal", "tool.tbl", "demo.ngc")
@@ -35,7 +42,7 @@ SCRIPTS = ("fbgcomp_hal.py", "fbgcomp_display.py")
 
 
 class CncError(RuntimeError):
-    pass
+    """LinuxCNC did not start, answer or do what it was asked (the message says which)."""
 
 
 def example_dir() -> Path:
@@ -78,6 +85,7 @@ def _set_ini(text: str, section: str, values: dict) -> str:
 
 
 def free_udp_port() -> int:
+    """A UDP port on the loopback interface that is free now."""
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
@@ -139,6 +147,8 @@ class LinuxCncMachine:
         return run
 
     def start(self) -> "LinuxCncMachine":
+        """Start LinuxCNC headless on a private copy of the configuration and connect to its
+        display; on any failure everything started so far is stopped."""
         linuxcnc = shutil.which("linuxcnc")
         if linuxcnc is None:
             raise CncError("linuxcnc not found (apt-get install linuxcnc-uspace)")
@@ -181,6 +191,7 @@ class LinuxCncMachine:
                        f"{self.log_tail()}")
 
     def log_tail(self, n: int = 30) -> str:
+        """The last ``n`` lines of LinuxCNC's log ("" when there is none)."""
         try:
             lines = (self.run_dir / "linuxcnc.log").read_text(errors="replace").splitlines()
         except (OSError, TypeError):
@@ -264,6 +275,7 @@ class LinuxCncMachine:
 
     # -- the display's protocol
     def call(self, cmd: str, timeout_s: float = 30.0, **kw) -> dict:
+        """Send one command to the headless display and return its answer (CncError if not ok)."""
         if self._file is None:
             raise CncError("machine not started")
         self._sock.settimeout(timeout_s + 5.0)
@@ -278,12 +290,15 @@ class LinuxCncMachine:
         return ans
 
     def status(self, pins=None) -> dict:
+        """The machine's status, with the values of ``pins`` when given."""
         return self.call("status", pins=pins)
 
     def getp(self, *pins) -> dict:
+        """Values of HAL pins by name."""
         return self.call("getp", pins=list(pins))["values"]
 
     def setp(self, pin: str, value) -> None:
+        """Set a HAL pin."""
         self.call("setp", pin=pin, value=value)
 
 
@@ -292,7 +307,7 @@ class LinuxCncMachine:
 def _demo_inputs(work: Path, model_path: Path | None, campaign_dir: Path | None,
                  echo) -> tuple[Path, Path]:
     from fbgcomp.io.campaign import write_campaign
-    from fbgcomp.models.base import MRAModel
+    from fbgcomp.models.mra import MRAModel
     from fbgcomp.bench.synthetic import linear_truth_campaign
 
     if model_path is None:
@@ -388,21 +403,15 @@ def run_demo(model_path: Path | None = None, campaign_dir: Path | None = None,
         shutil.rmtree(work, ignore_errors=True)
 
 
-def register(app) -> None:
-    """Add ``cnc-demo`` to the main ``fbgcomp`` Typer application."""
-    import typer
-
-    @app.command("cnc-demo")
-    def cnc_demo(
-        model: Optional[Path] = typer.Option(None, "--model", help="Model file; default: fitted on a synthetic thermal campaign."),
-        campaign: Optional[Path] = typer.Option(None, "--campaign", help="Campaign folder to replay; default: a synthetic 2 h thermal campaign."),
-        speed: float = typer.Option(300.0, "--speed", help="Campaign seconds per real second."),
-        program: Optional[Path] = typer.Option(None, "--program", help="G-code file to run (default examples/linuxcnc/demo.ngc)."),
-        config_dir: Optional[Path] = typer.Option(None, "--config-dir", help="LinuxCNC configuration folder (default examples/linuxcnc)."),
-    ):
-        """Run the compensator against a simulated, headless LinuxCNC mill (docs/linuxcnc.md)."""
-        from fbgcomp.errors import InputError
-        try:
-            run_demo(model, campaign, speed, program, config_dir, echo=typer.echo)
-        except CncError as exc:
-            raise InputError(str(exc), column="cnc-demo")
+def cnc_demo(
+    model: Optional[Path] = typer.Option(None, "--model", help="Model file; default: fitted on a synthetic thermal campaign."),
+    campaign: Optional[Path] = typer.Option(None, "--campaign", help="Campaign folder to replay; default: a synthetic 2 h thermal campaign."),
+    speed: float = typer.Option(300.0, "--speed", help="Campaign seconds per real second."),
+    program: Optional[Path] = typer.Option(None, "--program", help="G-code file to run (default examples/linuxcnc/demo.ngc)."),
+    config_dir: Optional[Path] = typer.Option(None, "--config-dir", help="LinuxCNC configuration folder (default examples/linuxcnc)."),
+):
+    """Run the compensator against a simulated, headless LinuxCNC mill (docs/linuxcnc.md)."""
+    try:
+        run_demo(model, campaign, speed, program, config_dir, echo=typer.echo)
+    except CncError as exc:
+        raise InputError(str(exc), column="cnc-demo")

@@ -18,6 +18,10 @@ Both summaries use one table: per held-out campaign and axis, the max |error| (R
 model under the uncompensated drift (the error of a machine without compensation); static
 campaigns on load-plateau means in % of the plateau deflection; WORSE where a model leaves an
 axis worse than uncompensated (+ the 0.5 µm harm tolerance).
+
+The FE twin, the bench, the models and the campaign reader are imported inside the functions
+that use them so that ``fbgcomp --help``, which imports this module to mount ``demo``, starts
+fast.
 """
 
 from __future__ import annotations
@@ -26,11 +30,14 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
+import typer
 
+from fbgcomp.cli.twin import format_resolution
 from fbgcomp.errors import InputError
-from fbgcomp.models.metrics import (HARM_TOLERANCE_UM, format_metrics, format_static_metrics,
-                      static_level_metrics, validation_metrics)
+from fbgcomp.tables import Column, format_number, format_table, text
+from fbgcomp.units import AXES
 
 TRAIN = ("thermal-36h", "static-y")
 ZERO_WINDOW_S = 30.0
@@ -69,6 +76,8 @@ def fit_default(campaigns, machine=None, zero_window_s=10.0):
 
 def judge(model, campaign, zero_window_s=None) -> dict:
     """validation_metrics of ``model`` on ``campaign``, with load-plateau errors when it has loads."""
+    from fbgcomp.models.metrics import static_level_metrics, validation_metrics
+
     zero = model.zero_window_s if zero_window_s is None else zero_window_s
     aligned = campaign.aligned(zero_window_s=zero)
     pred, half = model.predict_interval(campaign)
@@ -126,12 +135,14 @@ def run_demo(out_dir="demo-out", *, machine_path=None, seed=0, quick=False, feat
              stepwise=True, quiet=False, report=True, resolution=None, ram2=None,
              independent=True) -> dict:
     """Run the demo and return its summary (also written to ``out_dir/metrics.json``)."""
+    from fbgcomp.models.metrics import (format_metrics, format_static_metrics, static_level_metrics,
+                                        validation_metrics)
     from fbgcomp.bench.virtual import load_scenario, simulate
-    from fbgcomp.models.fe_calibrated import fe_calibrate, format_resolution, resolution_report
+    from fbgcomp.models.fe_calibrated import fe_calibrate, resolution_report
     from fbgcomp.io.campaign import read_campaign, write_campaign
     from fbgcomp.atomic import write_json
-    from fbgcomp.models.model_types import CalibratedModel
-    from fbgcomp.models.base import MRAModel
+    from fbgcomp.models.calibrated import CalibratedModel
+    from fbgcomp.models.mra import MRAModel
     from fbgcomp.structure import Twin, load_machine
 
     out = Path(out_dir)
@@ -229,40 +240,50 @@ def _cell(m, axis, static):
     if static:
         v = m["static_levels"]["axes"][axis]
         if v["max_plateau_deflection_um"] >= LOADED_UM:
-            return f"{v['error_pct_of_deflection']:.2f} %"
-        return f"{v['max_plateau_error_um']:.2f} µm"
+            return f"{format_number(v['error_pct_of_deflection'], 2)} %"
+        return f"{format_number(v['max_plateau_error_um'], 2)} µm"
     a = m["axes"][axis]
-    return f"{a['max_abs_error_um']:.2f} ({a['rms_error_um']:.2f})" + (" WORSE" if a["harm"] else "")
+    return (f"{format_number(a['max_abs_error_um'], 2)} ({format_number(a['rms_error_um'], 2)})"
+            + (" WORSE" if a["harm"] else ""))
 
 
 def _uncompensated_cell(m, axis, static):
     if static:
         v = m["static_levels"]["axes"][axis]
         if v["max_plateau_deflection_um"] >= LOADED_UM:
-            return f"100 % of {v['max_plateau_deflection_um']:.1f}"
-        return f"{v['max_plateau_deflection_um']:.2f} µm"
+            return f"100 % of {format_number(v['max_plateau_deflection_um'], 1)}"
+        return f"{format_number(v['max_plateau_deflection_um'], 2)} µm"
     a = m["axes"][axis]
-    return f"{a['uncompensated_max_um']:.2f} ({a['uncompensated_rms_um']:.2f})"
+    return f"{format_number(a['uncompensated_max_um'], 2)} ({format_number(a['uncompensated_rms_um'], 2)})"
 
 
 def summary_table(validation: dict, labels: dict) -> list:
-    """The demo's summary table, one block per held-out campaign.
+    """The demo's summary table, one block per held-out campaign, with aligned columns.
 
     ``validation``: ``{campaign: {model key: metrics of judge()}}``; ``labels``: model key → name.
-    Rows: the uncompensated drift (max |deviation| and its RMS), then each model.
+    Rows: the uncompensated drift (max |deviation| and its RMS), then each model. A block's
+    header names the campaign and the unit (µm; a static campaign's cells carry their own: % of
+    the plateau deflection on a loaded axis, µm on one that hardly moves).
     """
+    from fbgcomp.models.metrics import HARM_TOLERANCE_UM
+
     lines = [f"  held-out max |error| µm (RMS) per axis under the uncompensated drift; static campaigns: "
              f"load-plateau means, % of the plateau deflection; WORSE = worse than uncompensated "
              f"+ {HARM_TOLERANCE_UM:g} µm"]
+    rows = []
     for camp, models in validation.items():
         first = next(iter(models.values()))
         static = first.get("kind") == "static" and "static_levels" in first
-        lines.append(f"  {'model':<28}{camp + ' dx':>24}{'dy':>24}{'dz':>24}")
-        lines.append(f"  {'uncompensated':<28}" + "".join(f"{_uncompensated_cell(first, a, static):>24}"
-                                                         for a in ("dx", "dy", "dz")))
+        unit = "" if static else " (µm)"
+        rows.append(["model", f"{camp} {AXES[0]}{unit}"] + [f"{a}{unit}" for a in AXES[1:]])
+        rows.append(["uncompensated"] + [_uncompensated_cell(first, a, static) for a in AXES])
         for key, m in models.items():
-            lines.append(f"  {labels.get(key, key):<28}" + "".join(f"{_cell(m, a, static):>24}"
-                                                                  for a in ("dx", "dy", "dz")))
+            rows.append([labels.get(key, key)] + [_cell(m, a, static) for a in AXES])
+    if rows:
+        # one table, the blocks' headers as rows, so that every block has the same columns
+        table = format_table([text(rows[0][0])] + [Column(h) for h in rows[0][1:]], rows[1:],
+                             indent="  ")
+        lines += table.splitlines()
     harmed = {}
     for camp, models in validation.items():
         for key, m in models.items():
@@ -304,3 +325,16 @@ def _summary_text(summary, res, out) -> str:
                  + ("ram2_model.json, " if ram2 is not None and "skipped" not in ram2 else "")
                  + "metrics.json, coefficients.txt, validation.txt, resolution.txt, report/)")
     return "\n".join(lines)
+
+
+def demo(output: Path = typer.Option(Path("demo-out"), "-o", "--output", help="Folder for the results."),
+         machine: Optional[Path] = typer.Option(None, help="Machine description YAML (default: the built-in ram)."),
+         seed: int = typer.Option(0, help="Random seed of the simulated campaigns."),
+         quick: bool = typer.Option(False, "--quick", help="6 h thermal campaigns instead of 36 h (for tests)."),
+         mesh_resolution: Optional[float] = typer.Option(None, "--mesh-resolution",
+                                                         help="FE mesh refinement (default: the machine's)."),
+         ram2: Optional[Path] = typer.Option(None, "--ram2", help="The independent ram2 data set (default: "
+                                             "$FBGCOMP_RAM2, else ../shared/reference/ram2 beside the repository).")):
+    """The main job: simulate, FE-calibrate, fit and validate on the built-in default machine, then
+    the default model on the independent ram2 data set beside it (skipped in one line without it)."""
+    run_demo(output, machine_path=machine, seed=seed, quick=quick, resolution=mesh_resolution, ram2=ram2)

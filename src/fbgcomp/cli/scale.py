@@ -1,17 +1,17 @@
-"""Command-line commands for the Parquet dataset: ``fbgcomp ingest``.
+"""The Parquet dataset command: ``fbgcomp ingest`` (mounted by :mod:`fbgcomp.cli.app`).
 
-Mounted on the main application by ``from fbgcomp.cli.scale import register; register(app)``.
-``python -m fbgcomp.cli.scale ...`` runs the main application with these commands mounted
-(useful until, or without, that mount).
+The dataset module (pyarrow) is imported inside the command so that ``fbgcomp --help`` starts
+fast.
 """
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import List, Optional
 
 import typer
+
+from fbgcomp.errors import InputError
 
 
 def any_dataset(paths) -> bool:
@@ -21,49 +21,31 @@ def any_dataset(paths) -> bool:
     return any(is_dataset(p) for p in paths)
 
 
-def register(app: typer.Typer) -> None:
-    """Add ``ingest`` to the main ``fbgcomp`` application (idempotent)."""
-    if any(getattr(c, "name", None) == "ingest" for c in app.registered_commands):
-        return
+def ingest(
+    sources: List[Path] = typer.Argument(..., help="Campaign folders or runtime run-log folders."),
+    to: Path = typer.Option(..., "--to", help="Dataset folder (created if missing)."),
+    machine: Optional[str] = typer.Option(
+        None, "--machine", help="Machine name when campaign.yaml has no 'machine' key "
+        "(default: 'default')."),
+    zero_window: float = typer.Option(10.0, "--zero-window",
+                                      help="Zero state stored with each campaign: mean of the first N seconds."),
+    rows_per_file: int = typer.Option(1_000_000, "--rows-per-file",
+                                      help="Rows per Parquet file (one file = one distributed task)."),
+    reference: Optional[Path] = typer.Option(
+        None, "--reference", help="For a run log: measured TTP deviation CSV (time_s on the "
+        "log's clock from its first frame, dx_um, dy_um, dz_um)."),
+):
+    """Convert campaign folders (and run logs) into one partitioned Parquet dataset."""
+    from fbgcomp.io.dataset import ingest as run
 
-    @app.command("ingest")
-    def ingest_command(
-        sources: List[Path] = typer.Argument(..., help="Campaign folders or runtime run-log folders."),
-        to: Path = typer.Option(..., "--to", help="Dataset folder (created if missing)."),
-        machine: Optional[str] = typer.Option(
-            None, "--machine", help="Machine name when campaign.yaml has no 'machine' key "
-            "(default: 'default')."),
-        zero_window: float = typer.Option(10.0, "--zero-window",
-                                          help="Zero state stored with each campaign: mean of the first N seconds."),
-        rows_per_file: int = typer.Option(1_000_000, "--rows-per-file",
-                                          help="Rows per Parquet file (one file = one distributed task)."),
-        reference: Optional[Path] = typer.Option(
-            None, "--reference", help="For a run log: measured TTP deviation CSV (time_s on the "
-            "log's clock from its first frame, dx_um, dy_um, dz_um)."),
-    ):
-        """Convert campaign folders (and run logs) into one partitioned Parquet dataset."""
-        from fbgcomp.io.dataset import ingest
-        from fbgcomp.errors import InputError
+    if rows_per_file < 1:
+        raise InputError("--rows-per-file must be at least 1", file="<command line>",
+                         column="option --rows-per-file")
 
-        if rows_per_file < 1:
-            raise InputError("--rows-per-file must be at least 1", file="<command line>",
-                             column="option --rows-per-file")
+    def report(part):
+        typer.echo(f"machine={part.machine} campaign={part.campaign}: {part.n_rows} rows "
+                   f"in {len(part.files)} file(s) -> {part.path}")
 
-        def report(part):
-            typer.echo(f"machine={part.machine} campaign={part.campaign}: {part.n_rows} rows "
-                       f"in {len(part.files)} file(s) -> {part.path}")
-
-        parts = ingest(sources, to, machine=machine, zero_window_s=zero_window,
-                       rows_per_file=rows_per_file, reference_csv=reference, progress=report)
-        typer.echo(f"{len(parts)} campaign(s), {sum(p.n_rows for p in parts)} rows ingested into {to}")
-
-
-def main(argv=None) -> int:
-    from fbgcomp.cli.app import app, main as cli_main
-
-    register(app)
-    return cli_main(argv)
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+    parts = run(sources, to, machine=machine, zero_window_s=zero_window,
+                rows_per_file=rows_per_file, reference_csv=reference, progress=report)
+    typer.echo(f"{len(parts)} campaign(s), {sum(p.n_rows for p in parts)} rows ingested into {to}")

@@ -17,14 +17,19 @@ Matplotlib is imported with the non-interactive Agg backend: nothing here opens 
 
 from __future__ import annotations
 
-import os
-import tempfile
+import io
 from pathlib import Path
 
+import matplotlib
 import numpy as np
+from matplotlib.figure import Figure
+
+from fbgcomp.atomic import write_bytes
+
+matplotlib.use("Agg", force=False)
 
 __all__ = ["elongation_vs_load", "static_validation", "time_history", "drift_validation",
-           "save_figure", "time_axis", "load_levels", "MAX_PLOT_POINTS"]
+           "save_figure", "png_bytes", "time_axis", "load_levels", "MAX_PLOT_POINTS"]
 
 #: Time histories are thinned to at most this many points per curve: a 36 h campaign at 10 Hz
 #: would otherwise make multi-megabyte PNGs without showing anything more at print resolution.
@@ -37,17 +42,7 @@ _STYLES = ("-", "--", "-.", ":", (0, (5, 1, 1, 1)), (0, (3, 1)))
 _MARKERS = ("o", "s", "^", "D", "v", "P", "X", "*")
 
 
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg", force=False)
-    from matplotlib.figure import Figure
-
-    return Figure
-
-
 def _new_figure(width_in: float, height_in: float, nrows=1, ncols=1, **kw):
-    Figure = _pyplot()
     fig = Figure(figsize=(width_in, height_in), dpi=DPI, layout="constrained")
     axes = fig.subplots(nrows, ncols, squeeze=False, **kw)
     for ax in axes.flat:
@@ -56,19 +51,16 @@ def _new_figure(width_in: float, height_in: float, nrows=1, ncols=1, **kw):
     return fig, axes
 
 
+def png_bytes(fig) -> bytes:
+    """A figure as PNG at :data:`DPI`, in memory."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI)
+    return buf.getvalue()
+
+
 def save_figure(fig, path: str | Path) -> Path:
-    """Write a figure as PNG atomically (temporary file in the same folder, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fig.savefig(fh, format="png", dpi=DPI)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    """Write a figure as PNG atomically (:func:`fbgcomp.atomic.write_bytes`)."""
+    return write_bytes(path, png_bytes(fig))
 
 
 def _finish(fig, path):

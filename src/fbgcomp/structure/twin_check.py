@@ -17,15 +17,14 @@ uniform +10 K dz 2 %; the uniform dx, dy and elongations are reported without a 
 from __future__ import annotations
 
 import json
-import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
-import typer
 
+from fbgcomp import tables
 from fbgcomp.errors import InputError
+from fbgcomp.structure import load_machine
 
 UNIT_LOAD_TARGET = 0.03        # relative, unit-load TTP compliances and sensor responses
 UNIFORM_DZ_TARGET = 0.02       # relative, uniform +10 K dz
@@ -46,6 +45,9 @@ class Reference:
 
 @dataclass(frozen=True)
 class Row:
+    """One compared quantity: both figures, their difference in % (None when the independent
+    figure is 0), the target as shown, how it was judged and whether it passed (None: reported)."""
+
     quantity: str
     independent: float
     twin: float
@@ -150,13 +152,14 @@ def compare(twin, ref: Reference, machine_file: str | None = None) -> list[Row]:
 
 
 def format_table(rows: list[Row]) -> str:
-    head = f"{'quantity':<20} {'independent':>12} {'twin':>12} {'diff %':>8} {'target':>9}  result"
-    lines = [head, "-" * len(head)]
-    for r in rows:
-        diff = "" if r.difference_pct is None else f"{r.difference_pct:+.2f}"
-        verdict = {True: "pass", False: "FAIL", None: "report"}[r.passed]
-        lines.append(f"{r.quantity:<20} {r.independent:>12.4f} {r.twin:>12.4f} {diff:>8} "
-                     f"{r.target:>9}  {verdict}")
+    """The rows as a console table, then how many of the judged quantities are within target."""
+    verdicts = {True: "pass", False: "FAIL", None: "report"}
+    lines = [tables.format_table(
+        [tables.text("quantity"), tables.Column("independent", decimals=4),
+         tables.Column("twin", decimals=4), tables.Column("diff", "%", 2), tables.Column("target"),
+         tables.text("result")],
+        [[r.quantity, r.independent, r.twin, r.difference_pct, r.target, verdicts[r.passed]]
+         for r in rows])]
     judged = [r for r in rows if r.passed is not None]
     lines.append(f"{sum(r.passed for r in judged)} of {len(judged)} judged quantities within target")
     return "\n".join(lines)
@@ -164,7 +167,7 @@ def format_table(rows: list[Row]) -> str:
 
 def run(machine_path: str | Path, against: str | Path, resolution: float | None = None) -> dict:
     """Build the twin of ``machine_path`` and compare it with ``against``; returns the figures."""
-    from fbgcomp.structure import Twin, load_machine
+    from fbgcomp.structure import Twin   # needs scikit-fem, the optional fe extra
 
     ref = load_reference(against)
     machine = load_machine(machine_path)
@@ -177,31 +180,3 @@ def run(machine_path: str | Path, against: str | Path, resolution: float | None 
         "rows": [asdict(r) for r in rows],
         "passed": all(r.passed for r in rows if r.passed is not None),
     }
-
-
-def register(app: typer.Typer) -> None:
-    """Add ``twin-check`` to the main ``fbgcomp`` application (idempotent)."""
-    if any(getattr(c, "name", None) == "twin-check" for c in app.registered_commands):
-        return
-
-    @app.command("twin-check")
-    def twin_check_command(
-        machine: Path = typer.Argument(..., help="Machine description (YAML)."),
-        against: Path = typer.Option(..., "--against",
-                                     help="Independent model's results.json (unit responses, checks)."),
-        json_out: Optional[Path] = typer.Option(None, "--json", help="Write the figures to this JSON file."),
-        resolution: Optional[float] = typer.Option(
-            None, "--resolution", help="Mesh refinement factor (default: the machine's mesh.resolution)."),
-    ):
-        """Compare the FE twin with an independent model: TTP compliance, sensor responses, +10 K."""
-        if resolution is not None and not (math.isfinite(resolution) and resolution > 0):
-            raise InputError("--resolution must be a positive number", file="<command line>",
-                             column="option --resolution")
-        out = run(machine, against, resolution)
-        typer.echo(f"twin of {machine} ({out['element']}, resolution {out['resolution']:g}, "
-                   f"{out['n_nodes']} nodes) against {against}")
-        typer.echo(format_table([Row(**r) for r in out["rows"]]))
-        if json_out is not None:
-            from fbgcomp.atomic import write_json
-            write_json(json_out, out)
-            typer.echo(f"figures written to {json_out}")
