@@ -34,7 +34,11 @@ from functools import partial
 
 import numpy as np
 
+from fbgcomp.errors import InputError
+from fbgcomp.io.distributed import map_over_cluster
 from fbgcomp.models.fe_calibrated import LOAD_CASES, elongation_noise_um, load_case_responses
+from fbgcomp.structure.machine import Sensor
+from fbgcomp.tables import Column, format_table, text
 from fbgcomp.units import AXES
 
 FACES = ("+X", "-X", "+Y", "-Y")
@@ -46,8 +50,6 @@ def candidate_grid(machine, faces=FACES, offsets_mm=(0.0,), length_mm=500.0, ste
     starting every ``step_mm`` between ``z_min_mm`` (default 0) and ``z_max_mm`` (default: the
     ram's length). Fibre constants come from ``template`` (default: the machine's first sensor).
     """
-    from fbgcomp.structure.machine import Sensor
-
     template = template or machine.sensors[0]
     z0 = 0.0 if z_min_mm is None else float(z_min_mm)
     z1 = machine.ram.length_mm if z_max_mm is None else float(z_max_mm)
@@ -93,7 +95,7 @@ def sensor_pool(machine, candidates=()):
 def placement_design(machine, candidates=(), *, twin=None, resolution=None, z_axis_mm=None,
                      wavelength_noise_nm=0.001) -> PlacementDesign:
     """One FE twin with every path (machine sensors + candidates) as a sensor; load-case responses."""
-    from fbgcomp.structure import Twin
+    from fbgcomp.structure import Twin   # needs scikit-fem, the optional fe extra
 
     pool, m = sensor_pool(machine, candidates)
     if twin is None:
@@ -116,6 +118,8 @@ def predicted_error_um(elongation_um, ttp_um, noise_um):
 
 
 def objective_um(design: PlacementDesign, subset) -> float:
+    """The search's objective: the largest per-axis predicted worst-case TTP error (µm) of the
+    paths ``subset`` (indices into ``design.names``)."""
     idx = list(subset)
     return float(np.max(predicted_error_um(design.elongation_um[:, idx], design.ttp_um,
                                            design.noise_um[idx])))
@@ -127,6 +131,10 @@ def _score(design, subset):
 
 @dataclass
 class PlacementResult:
+    """The chosen paths and their predicted worst-case TTP error (µm, max and per axis), the
+    machine's own layout's for comparison (None when it has not ``k`` paths), the search's
+    steps and the number of candidates."""
+
     chosen: list
     objective_um: float
     per_axis_um: list
@@ -137,28 +145,30 @@ class PlacementResult:
     n_candidates: int
 
     def to_dict(self) -> dict:
+        """The result as plain data (for JSON)."""
         return dict(vars(self))
 
     def format(self) -> str:
+        """The result for the console: the chosen paths, then a table of the predicted worst-case
+        TTP error of the chosen and the default layout, then the improvement."""
         lines = [f"{len(self.chosen)} paths chosen from {self.n_candidates} candidates "
                  "(greedy + exchange on the predicted worst-case TTP error over the FE load design "
                  "with interrogator noise):"]
         lines += [f"  {n}" for n in self.chosen]
-        lines.append("predicted worst-case TTP error: " + ", ".join(
-            f"{a} {v:.3f} µm" for a, v in zip(AXES, self.per_axis_um)) + f"; max {self.objective_um:.3f} µm")
+        lines.append("predicted worst-case TTP error:")
+        rows = [["chosen", *self.per_axis_um, self.objective_um]]
         if self.default_objective_um is not None:
-            lines.append(f"default layout ({', '.join(self.default)}): " + ", ".join(
-                f"{a} {v:.3f} µm" for a, v in zip(AXES, self.default_per_axis_um))
-                + f"; max {self.default_objective_um:.3f} µm")
-            if self.default_objective_um > 0:
-                lines.append(f"improvement: {100 * (1 - self.objective_um / self.default_objective_um):.1f} %")
+            rows.append([f"default layout ({', '.join(self.default)})", *self.default_per_axis_um,
+                         self.default_objective_um])
+        lines.append(format_table([text("layout")] + [Column(a, "µm") for a in AXES]
+                                  + [Column("max", "µm")], rows, indent="  "))
+        if self.default_objective_um is not None and self.default_objective_um > 0:
+            lines.append(f"improvement: {100 * (1 - self.objective_um / self.default_objective_um):.1f} %")
         return "\n".join(lines)
 
 
 def choose(design: PlacementDesign, k: int, *, default=None, dask=None, max_passes=20) -> PlacementResult:
     """Greedy forward selection + exchange of ``k`` paths (indices into ``design.names``)."""
-    from fbgcomp.io.distributed import map_over_cluster
-
     n = len(design.names)
     if not 1 <= k <= n:
         raise ValueError(f"k must be between 1 and the number of candidates ({n})")
@@ -210,8 +220,6 @@ def choose(design: PlacementDesign, k: int, *, default=None, dask=None, max_pass
 
 def parse_grid(spec: str) -> dict:
     """``faces=+X,-X;offsets=-80,0,80;length=400;step=200;zmin=0;zmax=1200`` -> grid arguments."""
-    from fbgcomp.errors import InputError
-
     keys = {"faces": "faces", "offsets": "offsets_mm", "length": "length_mm", "step": "step_mm",
             "zmin": "z_min_mm", "zmax": "z_max_mm"}
     out = {}
@@ -248,8 +256,6 @@ def place(machine, k: int, *, grid=None, twin=None, resolution=None, z_axis_mm=N
     design = placement_design(machine, cands, twin=twin, resolution=resolution, z_axis_mm=z_axis_mm,
                               wavelength_noise_nm=wavelength_noise_nm)
     if k > len(design.names):
-        from fbgcomp.errors import InputError
-
         raise InputError(f"--k {k} exceeds the {len(design.names)} candidate paths", file="<command line>",
                          column="option --k")
     return choose(design, k, default=[s.name for s in machine.sensors], dask=dask)

@@ -41,10 +41,11 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from fbgcomp import optics
+from fbgcomp.errors import InputError
 from fbgcomp.models.fe_calibrated import LOAD_CASES, elongation_noise_um, load_case_responses
 from fbgcomp.structure.placement import PlacementDesign, candidate_grid, choose, predicted_error_um, sensor_pool
+from fbgcomp.tables import Column, format_number, format_table, text
 from fbgcomp.units import AXES
-
 
 
 def false_elongation_per_K_um(sensors) -> np.ndarray:
@@ -114,7 +115,7 @@ class PlanDesign:
 def plan_design(machine, candidates=(), *, twin=None, resolution=None, z_axis_mm=None,
                 wavelength_noise_nm=0.001) -> PlanDesign:
     """One FE twin with the machine's sensors (first, in order) and the candidate paths."""
-    from fbgcomp.structure import Twin
+    from fbgcomp.structure import Twin   # needs scikit-fem, the optional fe extra
 
     pool, m = sensor_pool(machine, candidates)
     twin = twin or Twin(m, resolution=resolution, z_axis_mm=z_axis_mm)
@@ -182,6 +183,9 @@ def noise_needed_pm(pdes: PlanDesign, subset, axis: int, target_um: float, *, fl
 
 @dataclass
 class AxisPlan:
+    """One axis of the plan: the parts of its predicted worst-case TTP error (µm), whether it
+    meets the target, and what would close a gap."""
+
     axis: str
     target_um: float
     unexplained_um: float
@@ -202,6 +206,8 @@ class AxisPlan:
 
 @dataclass
 class Plan:
+    """The plan of a machine description's layout against a target (see the module docstring)."""
+
     machine: str
     sensors: list
     probes_compensating: dict
@@ -220,27 +226,33 @@ class Plan:
 
     @property
     def meets(self) -> bool:
+        """Every judged axis meets the target."""
         return all(a.meets for a in self.axes)
 
     def to_dict(self) -> dict:
+        """The plan as plain data (for JSON), with :attr:`meets`."""
         out = asdict(self)
         out["meets"] = self.meets
         return out
 
     def format(self) -> str:
+        """The plan for the console: per axis the parts of the predicted error against the
+        target, what the thermal part covers, the verdict and what would close a gap."""
         lines = [f"plan for {self.machine}: {len(self.sensors)} gratings ({', '.join(self.sensors)}), "
                  f"interrogator noise {self.wavelength_noise_pm:g} pm, target {self.target_um:g} µm",
                  "predicted worst-case TTP error over the FE load design (eq. 11 estimator, as "
-                 "fbgcomp place), µm:"]
-        head = (f"{'axis':<5}{'loads+noise':>12}{'unexplained':>12}{'noise 2σ':>10}{'thermal':>9}"
-                f"{'total':>9}{'target':>9}  verdict")
-        lines.append(head)
+                 "fbgcomp place):"]
+        rows = []
         for a in self.axes:
-            verdict = (f"meets ({a.margin_um:.2f} µm spare)" if a.meets
-                       else f"MISSES by {-a.margin_um:.2f} µm"
+            verdict = (f"meets ({format_number(a.margin_um, 2)} µm spare)" if a.meets
+                       else f"MISSES by {format_number(-a.margin_um, 2)} µm"
                        + (" (loads+noise alone would meet)" if a.meets_loads_noise else ""))
-            lines.append(f"{a.axis:<5}{a.loads_noise_um:>12.2f}{a.unexplained_um:>12.2f}{a.noise_um:>10.2f}"
-                         f"{a.thermal_um:>9.2f}{a.total_um:>9.2f}{a.target_um:>9.2f}  {verdict}")
+            rows.append([a.axis, a.loads_noise_um, a.unexplained_um, a.noise_um, a.thermal_um,
+                         a.total_um, a.target_um, verdict])
+        lines.append(format_table(
+            [text("axis")] + [Column(name, "µm", 2) for name in
+                              ("loads+noise", "unexplained", "noise 2σ", "thermal", "total", "target")]
+            + [text("verdict")], rows))
         comp = ", ".join(f"{s}: {how}" for s, how in self.probes_compensating.items())
         lines.append("thermal = what the same eq. 11 map makes of the gratings' compensation error in "
                      f"the design's temperature fields ({comp}; the paper's recipe: the default "
@@ -272,7 +284,7 @@ class Plan:
                          + ("the default grid" if self.larger_layouts[0]["grid"] else "the machine's candidate paths")
                          + "), total µm:")
             for lay in self.larger_layouts:
-                per = ", ".join(f"{a.axis} {lay['total_um'][AXES.index(a.axis)]:.2f}"
+                per = ", ".join(f"{a.axis} {format_number(lay['total_um'][AXES.index(a.axis)], 2)}"
                                 + (" meets" if lay["total_um"][AXES.index(a.axis)] <= a.target_um else "")
                                 for a in self.axes)
                 lines.append(f"    --k {lay['k']}: {per} [{', '.join(lay['paths'])}]")
@@ -340,8 +352,6 @@ def plan(machine, target_um: float, *, axes=AXES, wavelength_noise_nm=0.001, gri
 
 def parse_axes(spec: str) -> tuple:
     """``dx,dz`` -> ("dx", "dz"); an unknown or repeated axis is a one-line command-line error."""
-    from fbgcomp.errors import InputError
-
     axes = tuple(a.strip() for a in spec.split(",") if a.strip())
     bad = [a for a in axes if a not in AXES]
     if not axes or bad:
