@@ -56,9 +56,11 @@ class Column:
 
     @property
     def header(self) -> str:
+        """The header: ``name (unit)``, or the name alone without a unit."""
         return f"{self.name} ({self.unit})" if self.unit else self.name
 
     def cell(self, value) -> str:
+        """A cell: a string as it is, a number through :func:`format_number`."""
         if isinstance(value, str):
             return value
         return format_number(value, self.decimals)

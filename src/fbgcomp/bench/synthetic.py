@@ -15,6 +15,7 @@ import numpy as np
 import pandas as pd
 
 from fbgcomp import optics
+from fbgcomp.io.campaign import Campaign, CampaignMeta
 from fbgcomp.models.features import TEMPERATURE_FEATURES, design_matrix
 from fbgcomp.units import AXES
 
@@ -85,8 +86,6 @@ def linear_truth_campaign(name="synthetic", *, seed=0, duration_s=3600.0, fbg_dt
         The campaign, and the truth: ``coefficients`` and the noise-free deviation on the
         reference clock.
     """
-    from fbgcomp.io.campaign import Campaign, CampaignMeta
-
     rng = np.random.default_rng(seed)
     coefficients = coefficients or default_coefficients()
     meta = CampaignMeta(**default_meta(name=name, kind=kind))

@@ -32,8 +32,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from fbgcomp import optics
 from fbgcomp.errors import InputError
+from fbgcomp.io.campaign import Campaign, CampaignMeta
 from fbgcomp.units import AXES
-
 
 
 class _Strict(BaseModel):
@@ -72,6 +72,7 @@ class History(_Strict):
     random: RandomPart | None = None
 
     def sample(self, time_s: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """The history at ``time_s`` (s), its random part drawn from ``rng``."""
         t_h = time_s / 3600.0
         out = np.full_like(time_s, self.base, dtype=float)
         if self.knots_h:
@@ -91,11 +92,13 @@ class History(_Strict):
 
 
 class LoadStep(_Strict):
+    """A force (N, X Y Z) held at the TTP for ``hold_s``."""
     force_N: tuple[float, float, float]
     hold_s: float = Field(gt=0)
 
 
 class Fbg(_Strict):
+    """The simulated interrogator: sample step, clock offset, noise, drift, installation offset."""
     dt_s: float = Field(default=1.0, gt=0)
     clock_offset_s: float = 0.0
     noise_nm: float = Field(default=0.001, ge=0)         # ~1 pm, ≈ 0.8 µε at 1550 nm
@@ -104,6 +107,8 @@ class Fbg(_Strict):
 
 
 class Probes(_Strict):
+    """The simulated temperature probes: sample step, clock offset, calibration offset, noise,
+    quantisation."""
     dt_s: float = Field(default=10.0, gt=0)
     clock_offset_s: float = 0.0
     offset_C: float = Field(default=0.3, ge=0)           # fixed calibration offset, uniform ±
@@ -112,18 +117,21 @@ class Probes(_Strict):
 
 
 class Interferometer(_Strict):
+    """The simulated TTP reference: sample step, clock offset, noise."""
     dt_s: float = Field(default=1.0, gt=0)
     clock_offset_s: float = 0.0
     noise_um: float = Field(default=0.05, ge=0)
 
 
 class LoadCell(_Strict):
+    """The simulated load cell: sample step, clock offset, noise."""
     dt_s: float = Field(default=1.0, gt=0)
     clock_offset_s: float = 0.0
     noise_N: float = Field(default=1.0, ge=0)
 
 
 class Instruments(_Strict):
+    """How a scenario is measured: one entry per simulated instrument."""
     fbg: Fbg = Fbg()
     probes: Probes = Probes()
     interferometer: Interferometer = Interferometer()
@@ -176,6 +184,8 @@ class Scenario(_Strict):
         return type(self).model_validate(data)
 
     def duration_s(self) -> float:
+        """Length of the scenario, s: ``duration_h``, else the rest, the load start and the
+        load steps plus a minute."""
         if self.duration_h is not None:
             return self.duration_h * 3600.0
         return self.rest_s + self.load_start_h * 3600.0 + sum(s.hold_s for s in self.loads) + 60.0
@@ -311,8 +321,6 @@ def _at(t_new, t, values):
 
 def measure(machine, scenario: Scenario, truth: dict, seed: int = 0, start=None):
     """Turn the twin's true history into a :class:`~fbgcomp.io.campaign.Campaign` (measurement layer)."""
-    from fbgcomp.io.campaign import Campaign, CampaignMeta
-
     rng = np.random.default_rng([seed, 2])
     inst = scenario.instruments
     t, duration = truth["time_s"], truth["time_s"][-1]
@@ -403,7 +411,8 @@ def campaign_meta(machine, scenario: Scenario, seed: int, start=None) -> dict:
 def simulate(machine, scenario: Scenario, seed: int = 0, twin=None):
     """Run a scenario on the twin and measure it: returns (Campaign, truth dict)."""
     if twin is None:
-        from fbgcomp.structure import Twin
+        from fbgcomp.structure import Twin   # needs scikit-fem, the optional fe extra
+
         twin = Twin(machine, z_axis_mm=scenario.z_axis_mm)
     truth = true_response(twin, scenario, seed)
     return measure(machine, scenario, truth, seed), truth
