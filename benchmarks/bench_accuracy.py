@@ -63,7 +63,7 @@ def figures(model_path: Path, held: dict) -> dict:
     """Per held-out campaign: per axis peak, max |error|, RMS, coverage, harm; plateau errors."""
     from fbgcomp.io.campaign import read_campaign
     from fbgcomp.cli.demo import judge
-    from fbgcomp.models.base import load_model
+    from fbgcomp.models.registry import load_model
 
     model = load_model(model_path)
     out = {}

@@ -33,8 +33,8 @@ from _loopback import busy_processes, git_commit, realtime_settings
 
 def _models():
     from fbgcomp.bench.virtual import load_scenario, simulate
-    from fbgcomp.models.model_types import CalibratedModel, DynamicModel, HybridModel, KinematicModel
-    from fbgcomp.models.base import MRAModel
+    from fbgcomp.models import CalibratedModel, DynamicModel, HybridModel, KinematicModel
+    from fbgcomp.models.mra import MRAModel
     from fbgcomp.models.physical import PhysicalModel
     from fbgcomp.structure import Twin, load_machine
 

@@ -24,7 +24,7 @@ from fbgcomp import optics
 from fbgcomp.bench import virtual as bench
 from fbgcomp.bench.virtual import load_scenario
 from fbgcomp.io.campaign import Campaign
-from fbgcomp.models.base import MRAModel
+from fbgcomp.models.mra import MRAModel
 from fbgcomp.structure import Twin, load_machine
 
 

@@ -44,7 +44,7 @@ from _loopback import busy_processes, free_port, git_commit, wait_port
 
 def _five_sensor_model(tmp: Path):
     from fbgcomp.io.campaign import write_campaign
-    from fbgcomp.models.base import MRAModel
+    from fbgcomp.models.mra import MRAModel
     from fbgcomp.bench.synthetic import linear_truth_campaign
 
     train, _ = linear_truth_campaign("train", seed=1, duration_s=2 * 3600)
@@ -58,7 +58,7 @@ def _many_sensor_model(tmp: Path, n_sensors=64, channels=4):
     """A 64-grating ram (16 per fibre on 4 channels), eq. 11 model (elongations only)."""
     from fbgcomp import optics
     from fbgcomp.io.campaign import Campaign
-    from fbgcomp.models.base import MRAModel
+    from fbgcomp.models.mra import MRAModel
 
     rng = np.random.default_rng(3)
     per = n_sensors // channels
@@ -91,7 +91,7 @@ class CoreRun:
     frame reaches the model."""
 
     def __init__(self, model_path, table, n_frames: int, batch: int, rate_hz=5000.0):
-        from fbgcomp.models.base import load_model
+        from fbgcomp.models.registry import load_model
         from fbgcomp.runtime.pipeline import Pipeline
         from fbgcomp.runtime.simulator import SimConfig, SimulatedHyperion
         from fbgcomp.runtime.sources import NoTemperatures, PeakMapper, TableTemperatures

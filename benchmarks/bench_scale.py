@@ -5,7 +5,7 @@ For each row count (default 10^7 and 10^8) the rows are cut into partitions of
 consumes it*, chunk by chunk (``--chunk-rows``): raw interrogator wavelengths (nm, from known
 elongations through the bonded-FBG forward model, paper eq. 2-4), probe temperatures (°C) and a
 TTP deviation (µm) that is a known eq. 13 combination plus noise. The task runs the production
-feature chain (:meth:`fbgcomp.models.base.MRAModel.design_from_arrays`) into a QR factor; factors are
+feature chain (:meth:`fbgcomp.models.mra.MRAModel.design_from_arrays`) into a QR factor; factors are
 merged as a binary tree by :func:`fbgcomp.io.distributed.tree_reduce` (on the workers with Dask),
 and the eq. 13 stepwise model is selected from the final factor. No process ever holds more
 than one chunk of rows, so the memory of a worker must stay flat as rows grow.
@@ -51,7 +51,7 @@ def _sensors():
 
 
 def _model():
-    from fbgcomp.models.base import MRAModel
+    from fbgcomp.models.mra import MRAModel
 
     model = MRAModel(features="eq13", stepwise=True, fallbacks="loo")
     model.new_accumulator(_sensors())

@@ -44,7 +44,7 @@ WARMUP_S = 15.0          # zero state and first faults-free seconds; RSS is take
 
 def _model_and_campaign(tmp: Path):
     from fbgcomp.io.campaign import write_campaign
-    from fbgcomp.models.base import MRAModel
+    from fbgcomp.models.mra import MRAModel
     from fbgcomp.bench.synthetic import linear_truth_campaign
 
     train, _ = linear_truth_campaign("train", seed=1, duration_s=2 * 3600, noise_um=0.05)
@@ -96,7 +96,7 @@ def _rss_mib(pid: int) -> float:
 def soak(seconds: float, seed: int, rate_hz: float, tmp: Path) -> dict:
     import pyarrow.parquet as pq
 
-    from fbgcomp.models.base import load_model
+    from fbgcomp.models.registry import load_model
     from fbgcomp.runtime.log import log_parts, read_log
     from fbgcomp.runtime.pipeline import HEALTH_OK, Pipeline
 

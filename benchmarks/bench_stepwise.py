@@ -276,7 +276,8 @@ def ram2_before_after(root: str) -> int:
 
     from fbgcomp.io.campaign import read_campaign
     from fbgcomp.models.metrics import validation_metrics
-    from fbgcomp.models.base import AXES, MRAModel
+    from fbgcomp.units import AXES
+    from fbgcomp.models.mra import MRAModel
 
     root = Path(root)
     train = [read_campaign(root / "thermal_a"), read_campaign(root / "static_xyz")]

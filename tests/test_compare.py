@@ -14,7 +14,7 @@ from fbgcomp_testing import RAM2_DIR, read_ram2
 
 from fbgcomp.models.compare import format_campaign_tables
 from fbgcomp.models.metrics import HARM_TOLERANCE_UM
-from fbgcomp.models.base import MRAModel
+from fbgcomp.models.mra import MRAModel
 
 REPO = Path(__file__).resolve().parents[1]
 RAM2 = RAM2_DIR / "data"

@@ -18,7 +18,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from fbgcomp.errors import InputError
-from fbgcomp.models.base import MAX_MODEL_BYTES, MRAModel, load_model
+from fbgcomp.models.modelfile import MAX_MODEL_BYTES
+from fbgcomp.models.mra import MRAModel
+from fbgcomp.models.registry import load_model
 from fbgcomp.bench.synthetic import linear_truth_campaign
 
 _CACHE: dict = {}
@@ -36,7 +38,7 @@ def _mra_dict() -> dict:
 
 def _kinematic_dict() -> dict:
     if "kinematic" not in _CACHE:
-        from fbgcomp.models.model_types import KinematicModel
+        from fbgcomp.models.kinematic import KinematicModel
 
         with tempfile.TemporaryDirectory() as tmp:
             path = KinematicModel().fit().save(Path(tmp) / "k.json")

@@ -11,10 +11,9 @@ import pytest
 
 from fbgcomp.bench.virtual import Scenario, load_scenario, simulate
 from fbgcomp.io.campaign import read_campaign, write_campaign
+from fbgcomp.models import CalibratedModel, DynamicModel, HybridModel, KinematicModel, MRAModel, load_model
+from fbgcomp.models.filters import first_order_filter
 from fbgcomp.models.metrics import static_level_metrics, validation_metrics
-from fbgcomp.models.model_types import (CalibratedModel, DynamicModel, HybridModel, KinematicModel,
-                                 first_order_filter)
-from fbgcomp.models.base import MRAModel, load_model
 from fbgcomp.structure import Twin, load_machine
 
 FBGCOMP = [sys.executable, "-m", "fbgcomp"]
@@ -321,7 +320,7 @@ def test_calibrated_without_loads_keeps_the_nominal_closure(closure_campaigns):
 
 
 def test_closure_factors_are_per_axis_unless_the_sections_are_square():
-    from fbgcomp.models.model_types import closure_parameter_groups
+    from fbgcomp.models.calibrated import closure_parameter_groups
     from fbgcomp.structure.machine import Machine
 
     assert list(closure_parameter_groups(load_machine())) == ["bending", "shear"]
@@ -336,7 +335,7 @@ def test_closure_factors_are_per_axis_unless_the_sections_are_square():
 
 
 def test_closure_factor_fit_leaves_unexcited_factors_at_their_prior():
-    from fbgcomp.models.model_types import fit_closure_factors
+    from fbgcomp.models.calibrated import fit_closure_factors
 
     rng = np.random.default_rng(0)
     load = np.repeat(np.arange(5.0), 2)                          # Y plateaus only, two campaigns
@@ -349,3 +348,4 @@ def test_closure_factor_fit_leaves_unexcited_factors_at_their_prior():
     # The Y pair is only known as a weighted sum: 20 f_by + 170 f_sy ~= 20 + 178.5
     assert 20 * f[1] + 170 * f[3] == pytest.approx(198.5, abs=0.5)
     assert sd < 2.0
+

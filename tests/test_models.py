@@ -9,7 +9,10 @@ from fbgcomp.io.campaign import read_campaign, write_campaign
 from fbgcomp.errors import InputError
 from fbgcomp.models.features import candidate_terms
 from fbgcomp.models.metrics import validation_metrics
-from fbgcomp.models.base import AXES, SCHEMA_VERSION, MRAModel, load_model
+from fbgcomp.units import AXES
+from fbgcomp.models.modelfile import SCHEMA_VERSION
+from fbgcomp.models.mra import MRAModel
+from fbgcomp.models.registry import load_model
 from fbgcomp.bench.synthetic import linear_truth_campaign
 
 

@@ -8,8 +8,8 @@ from fbgcomp_testing import read_ram2
 
 from fbgcomp.models import policy as P
 from fbgcomp.models.metrics import validation_metrics
-from fbgcomp.models.base import load_model
-from fbgcomp.models.model_types import first_order_filter as lowpass
+from fbgcomp.models.registry import load_model
+from fbgcomp.models.filters import first_order_filter as lowpass
 from fbgcomp.models.physical import PhysicalModel, PhysicalPredictor
 
 
@@ -301,7 +301,7 @@ def test_the_vectorised_steady_stretches_equal_the_per_frame_recursion(twin_mode
 
 
 def test_first_order_closed_form_equals_the_recursion_across_stretches_and_gaps():
-    from fbgcomp.models.model_types import first_order_recursion as _first_order
+    from fbgcomp.models.filters import first_order_recursion as _first_order
 
     rng = np.random.default_rng(3)
     x = rng.uniform(0.0, 3.0, 2000)          # summed decay ~3000: five closed-form stretches

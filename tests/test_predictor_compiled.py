@@ -6,8 +6,8 @@ import numpy as np
 
 from fbgcomp.io.campaign import read_campaign
 from fbgcomp.models.features import design_matrix
-from fbgcomp.models.model_types import DynamicModel
-from fbgcomp.models.base import load_model
+from fbgcomp.models.dynamic import DynamicModel
+from fbgcomp.models.registry import load_model
 from test_runtime_support import model_and_campaign
 
 

@@ -63,7 +63,7 @@ def scenario(tmp_path_factory):
 
 
 def test_published_correction_equals_offline_model_on_the_same_samples(scenario):
-    from fbgcomp.models.base import load_model
+    from fbgcomp.models.registry import load_model
 
     model = load_model(scenario["model_path"])
     log, seen = scenario["log"], scenario["seen"]
@@ -91,7 +91,7 @@ def test_published_correction_equals_offline_model_on_the_same_samples(scenario)
 
 
 def test_lost_grating_switches_to_its_fallback(scenario):
-    from fbgcomp.models.base import load_model
+    from fbgcomp.models.registry import load_model
 
     model = load_model(scenario["model_path"])
     log, seen, meta = scenario["log"], scenario["seen"], scenario["meta"]

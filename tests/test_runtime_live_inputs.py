@@ -180,7 +180,7 @@ def test_serve_reads_opcua_and_modbus_temperatures_and_holds_when_one_goes_stale
         tmp_path_factory):
     fbgcomp_testing.require("asyncua")
     fbgcomp_testing.require("pymodbus")
-    from fbgcomp.models.base import load_model
+    from fbgcomp.models.registry import load_model
 
     model_path, campaign = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
     model = load_model(model_path)
@@ -262,7 +262,7 @@ stale_s = 1.5
 
 def test_simulator_serves_the_campaigns_temperatures_over_opcua(tmp_path_factory):
     fbgcomp_testing.require("asyncua")
-    from fbgcomp.models.base import load_model
+    from fbgcomp.models.registry import load_model
 
     model_path, campaign = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
     model = load_model(model_path)
@@ -301,7 +301,7 @@ stale_s = 2
 
 
 def _kinematic_model(base: Path) -> Path:
-    from fbgcomp.models.model_types import KinematicModel
+    from fbgcomp.models.kinematic import KinematicModel
     path = base / "kinematic.json"
     if not path.exists():
         KinematicModel(zero_window_s=1.0).fit().save(path)
@@ -324,7 +324,7 @@ def wait_log(folder: Path, health: str, timeout_s: float = 30.0) -> pd.DataFrame
 
 def test_z_over_opcua_moves_a_kinematic_models_correction_and_stale_z_holds(tmp_path_factory):
     fbgcomp_testing.require("asyncua")
-    from fbgcomp.models.base import load_model
+    from fbgcomp.models.registry import load_model
 
     base = tmp_path_factory.getbasetemp() / "runtime"
     _, campaign = model_and_campaign(base)
@@ -395,7 +395,7 @@ def machine():
 
 def test_linuxcnc_hal_pin_z_reaches_the_model(machine, tmp_path_factory):
     fbgcomp_testing.require("asyncua")
-    from fbgcomp.models.base import load_model
+    from fbgcomp.models.registry import load_model
 
     base = tmp_path_factory.getbasetemp() / "runtime"
     _, campaign = model_and_campaign(base)

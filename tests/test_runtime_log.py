@@ -117,7 +117,7 @@ def test_log_export_round_trips_to_a_campaign(replayed, tmp_path):
     np.testing.assert_allclose(np.diff(c.fbg["time_s"].to_numpy()), 0.1 / 20, atol=1e-6)
     assert c.meta.reference.instrument.startswith("fbgcomp prediction")
     # the exported campaign can be fitted again
-    from fbgcomp.models.base import MRAModel
+    from fbgcomp.models.mra import MRAModel
     refit = MRAModel(features="eq11", zero_window_s=0.5, fallbacks="none").fit(c)
     assert refit.sensor_names == c.meta.sensor_names
 
@@ -184,7 +184,7 @@ def test_in_process_simulated_source_keeps_temperatures_on_the_instrument_clock(
 def test_model_reload_keeps_the_zero_state_and_refuses_other_sensors(paths, tmp_path):
     import asyncio
     from fbgcomp.errors import InputError
-    from fbgcomp.models.base import MRAModel
+    from fbgcomp.models.mra import MRAModel
     from fbgcomp.runtime.service import RuntimeConfig, Service
 
     model, campaign = paths

@@ -38,7 +38,7 @@ def _decoded(regs):
 
 # ---------------------------------------------------------------- offset / slope, pure maths
 def test_slope_of_a_z_dependent_model_is_its_finite_difference_and_predicts_other_z():
-    from fbgcomp.models.model_types import KinematicModel
+    from fbgcomp.models.kinematic import KinematicModel
     from fbgcomp.runtime.outputs.cnc_form import reference_z_mm, takes_z, z_slope_um_per_m
 
     model = KinematicModel().fit()
@@ -71,7 +71,7 @@ def test_slope_of_a_z_dependent_model_is_its_finite_difference_and_predicts_othe
 
 
 def test_slope_is_zero_for_a_model_without_z(tmp_path_factory):
-    from fbgcomp.models.base import load_model
+    from fbgcomp.models.registry import load_model
     from fbgcomp.runtime.outputs.cnc_form import takes_z, z_slope_um_per_m
 
     model_path, _ = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")

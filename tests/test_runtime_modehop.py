@@ -70,7 +70,7 @@ def hop(tmp_path_factory):
 def _fault_free(model_path, log):
     """(pipeline, result) of serve's own pipeline and configuration over the logged frames,
     S3's 2 nm taken back off from the hop (its first JUMP frame) on."""
-    from fbgcomp.models.base import load_model
+    from fbgcomp.models.registry import load_model
     from fbgcomp.runtime import health as H
     from fbgcomp.runtime.pipeline import Pipeline
     from test_runtime_support import run_in_batches
@@ -114,7 +114,7 @@ def test_the_hop_is_seen_and_s3_is_re_admitted(hop):
 
 def test_the_correction_stays_within_the_bound(hop):
     from fbgcomp.runtime.pipeline import Pipeline
-    from fbgcomp.models.base import load_model
+    from fbgcomp.models.registry import load_model
 
     bound = Pipeline(load_model(hop["model_path"])).max_correction_um
     log, seen = hop["log"], hop["seen"]
@@ -186,7 +186,7 @@ def _gap_frames(model, aligned_time_s, w, shift_nm):
 def test_a_grating_back_shifted_from_a_gap_stays_out(sizes, tmp_path_factory):
     """The real pipeline and model on the served campaign's frames, in any batching."""
     from fbgcomp.io.campaign import read_campaign
-    from fbgcomp.models.base import load_model
+    from fbgcomp.models.registry import load_model
     from fbgcomp.runtime import health as H
     from fbgcomp.runtime.pipeline import HEALTH_DEGRADED, HEALTH_OK, Pipeline, PipelineConfig
     from test_runtime_support import run_in_batches
@@ -250,7 +250,7 @@ def test_served_grating_back_shifted_from_a_gap_stays_out(gap):
     """serve keeps S3 out (INCONSISTENT on OPC UA and in the log), publishes DEGRADED only,
     and what it publishes is exactly the fallback's correction: serve's pipeline on the logged
     frames with S3 lost from the drop on gives the same numbers frame by frame."""
-    from fbgcomp.models.base import load_model
+    from fbgcomp.models.registry import load_model
     from fbgcomp.runtime import health as H
     from fbgcomp.runtime.pipeline import Pipeline
     from test_runtime_support import run_in_batches

@@ -43,7 +43,7 @@ async def _read_when(client, expect_z_ref, timeout_s=5.0):
 def _kinematic_slope():
     """Slope (3,) µm/m and reference Z (mm) of a Z-dependent model (the kinematic type on the
     built-in ram) for a stretched frame: what cnc_form computes in serve."""
-    from fbgcomp.models.model_types import KinematicModel
+    from fbgcomp.models.kinematic import KinematicModel
     from fbgcomp.runtime.outputs.cnc_form import reference_z_mm, z_slope_um_per_m
 
     model = KinematicModel().fit()

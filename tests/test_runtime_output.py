@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from fbgcomp.models.base import Predictor, load_model
+from fbgcomp.models import Predictor, load_model
 from fbgcomp.io.campaign import read_campaign
 from fbgcomp.runtime import health as H
 from fbgcomp.runtime.output_filter import AdaptiveLevelFilter, OutputFilterConfig

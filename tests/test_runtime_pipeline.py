@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from fbgcomp.io.campaign import read_campaign
-from fbgcomp.models.base import load_model
+from fbgcomp.models.registry import load_model
 from fbgcomp.runtime import health as H
 from fbgcomp.runtime.pipeline import (HEALTH_ALARM, HEALTH_DEGRADED, HEALTH_OK, HEALTH_ZEROING,
                                       Pipeline, PipelineConfig)

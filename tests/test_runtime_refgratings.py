@@ -140,7 +140,7 @@ def _campaign_times(log, fbg):
 
 def test_the_correction_is_the_offline_models_on_the_same_frames(served, campaigns):
     from fbgcomp.io.campaign import read_campaign
-    from fbgcomp.models.base import load_model
+    from fbgcomp.models.registry import load_model
 
     assert served["alive"]
     model = load_model(campaigns["model"])
@@ -210,7 +210,7 @@ def test_the_correction_is_the_offline_models_on_the_same_frames(served, campaig
 
 
 def test_a_lost_reference_grating_is_a_missing_temperature(served, campaigns):
-    from fbgcomp.models.base import load_model
+    from fbgcomp.models.registry import load_model
 
     model = load_model(campaigns["model"])
     log, seen = served["log"], served["seen"]

@@ -20,7 +20,7 @@ def model_and_campaign(base: Path) -> tuple[Path, Path]:
     if "paths" in _CACHE:
         return _CACHE["paths"]
     from fbgcomp.io.campaign import write_campaign
-    from fbgcomp.models.base import MRAModel
+    from fbgcomp.models.mra import MRAModel
     from fbgcomp.bench.synthetic import linear_truth_campaign
 
     base.mkdir(parents=True, exist_ok=True)
@@ -40,7 +40,7 @@ def model_and_arrays(base: Path):
     """The shared test model (loaded from its file) and its campaign's aligned time (s),
     wavelengths (nm) and temperatures (°C) in the model's order."""
     from fbgcomp.io.campaign import read_campaign
-    from fbgcomp.models.base import load_model
+    from fbgcomp.models.registry import load_model
 
     model_path, campaign_path = model_and_campaign(base)
     model = load_model(model_path)
@@ -117,7 +117,7 @@ def fallback_peak_um(model_path, campaign_path, lost: str):
     import numpy as np
 
     from fbgcomp.io.campaign import read_campaign
-    from fbgcomp.models.base import load_model
+    from fbgcomp.models.registry import load_model
     from fbgcomp.runtime.output_filter import OutputFilterConfig
     from fbgcomp.runtime.pipeline import Pipeline, PipelineConfig
 

@@ -192,3 +192,17 @@ def temperature_sensitivity_nm_per_K(wavelength0_nm, *, thermo_optic_per_K=THERM
 def strain_sensitivity_nm(wavelength0_nm, *, photoelastic=PHOTOELASTIC):
     """Wavelength shift per unit strain (eq. 2 at constant temperature), nm per (m/m)."""
     return (1.0 - photoelastic) * np.asarray(wavelength0_nm, dtype=float)
+
+
+def elongation_noise_um(sensors, wavelength_noise_nm=0.001):
+    """Standard deviation of each sensor's elongation (S,) µm from the interrogator's wavelength
+    noise (SD, nm): the noise over the strain sensitivity (eq. 2) times the gauge length (eq. 4).
+
+    ``sensors``: objects with ``lambda0_nm``, ``photoelastic`` and the gauge length in mm as
+    ``gauge_length_mm`` (a campaign's sensor record) or ``gauge_length`` (a machine description's).
+    """
+    lam0 = np.array([s.lambda0_nm for s in sensors], dtype=float)
+    gauge = np.array([s.gauge_length if hasattr(s, "gauge_length") else s.gauge_length_mm
+                      for s in sensors], dtype=float)
+    pe = np.array([s.photoelastic for s in sensors], dtype=float)
+    return wavelength_noise_nm / strain_sensitivity_nm(lam0, photoelastic=pe) * gauge * _UM_PER_MM

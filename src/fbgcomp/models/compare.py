@@ -25,9 +25,14 @@ from pathlib import Path
 
 import numpy as np
 
-from fbgcomp.models.metrics import validation_metrics
-from fbgcomp.atomic import write_json
-from fbgcomp.models.base import AXES, MRAModel
+from fbgcomp.atomic import json_safe, write_bytes, write_json
+from fbgcomp.models.base import campaign_weights_for
+from fbgcomp.models.machines import resolve_machine
+from fbgcomp.models.metrics import HARM_TOLERANCE_UM, static_level_metrics, validation_metrics
+from fbgcomp.models.mra import MRAModel
+from fbgcomp.models.registry import make_estimator
+from fbgcomp.tables import Column, format_number, format_table, text
+from fbgcomp.units import AXES
 
 #: (name, model type, feature set, options)
 ENTRIES = (
@@ -149,17 +154,16 @@ class _DesignModel:
         self.kind, self.features, self.zero_window_s = kind, features, zero_window_s
 
     def fit(self, campaigns):
+        """Fit on a list of campaigns (penalty or components chosen by blocked CV)."""
         self._mra = MRAModel(features=self.features, zero_window_s=self.zero_window_s, fallbacks="none")
         self._mra.new_accumulator(list(campaigns[0].meta.sensors), None)
-        from fbgcomp.models.base import campaign_weights_for
-
         X, Y = [], []
         aligned = [c.aligned(zero_window_s=self.zero_window_s) for c in campaigns]
         # Campaigns pooled like MRAModel.fit (balanced row weights, weighted least squares).
         weights = campaign_weights_for([len(a.time_s) for a in aligned], "balanced")
         W = []
         for c, a, w in zip(campaigns, aligned, weights):
-            X.append(self._mra._campaign_design(c, a))
+            X.append(self._mra.campaign_design(c, a))
             Y.append(a.reference_um)
             W.append(np.full(len(a.time_s), w))
         X, Y, W = np.vstack(X), np.vstack(Y), np.concatenate(W)
@@ -170,8 +174,9 @@ class _DesignModel:
         return self
 
     def predict_interval(self, campaign):
+        """Prediction (n, 3) µm on a campaign, and None (no interval)."""
         a = campaign.aligned(zero_window_s=self.zero_window_s)
-        return self._mra._campaign_design(campaign, a) @ self.coef_, None
+        return self._mra.campaign_design(campaign, a) @ self.coef_, None
 
 
 # ---------------------------------------------------------------------------- comparison
@@ -181,26 +186,13 @@ UNCOMPENSATED = "uncompensated"
 
 
 def _make(kind, features, options, machine, machine_given):
-    from fbgcomp.models.model_types import CalibratedModel, DynamicModel, HybridModel, KinematicModel
-
-    if kind == "physical":
-        from fbgcomp.models.physical import PhysicalModel
-
-        # as `fbgcomp fit` with no flags: the machine description only when one was given
-        return PhysicalModel(machine=machine if machine_given else None, **options)
-    if kind == "mra":
-        return MRAModel(features=features, fallbacks="none", **options)
     if kind in ("ridge", "pls"):
         return _DesignModel(kind, features)
-    if kind == "dynamic":
-        return DynamicModel(fallbacks="none", **options)
-    if kind == "kinematic":
-        return KinematicModel(machine, fallbacks="none")
-    if kind == "hybrid":
-        return HybridModel(machine, features=features, fallbacks="none", **options)
-    if kind == "calibrated":
-        return CalibratedModel(machine, features=features, fallbacks="none", **options)
-    raise ValueError(kind)
+    # as `fbgcomp fit` with no flags, the physical model gets the machine description only when
+    # one was given; the dynamic entry's "eq13+lp" names its eq13 features plus the filters
+    return make_estimator(kind, machine=machine if kind != "physical" or machine_given else None,
+                          features="eq13" if kind == "dynamic" else features, where="<compare entry>",
+                          fallbacks="none", **options)
 
 
 def _campaign_names(campaigns):
@@ -244,11 +236,8 @@ def compare(train, test, *, machine=None, entries=ENTRIES, progress=None) -> dic
     * ``campaigns``: per test campaign, its sample count, whether it has loads, and the names of
       the entries worse than uncompensated on some axis.
     """
-    from fbgcomp.models.metrics import static_level_metrics
-    from fbgcomp.models.model_types import _machine
-
     machine_given = machine is not None
-    machine = _machine(machine)          # a bad description fails here, before any fit
+    machine = resolve_machine(machine)          # a bad description fails here, before any fit
     names = _campaign_names(test)
     refs = [c.aligned(zero_window_s=10.0) for c in test]
     campaign_rows, failures = [], {}
@@ -309,15 +298,13 @@ def compare(train, test, *, machine=None, entries=ENTRIES, progress=None) -> dic
 
 
 def _cell(r):
-    from fbgcomp.tables import format_number as num
-
-    text = f"{num(r['max_abs_error_um'], 2)} ({num(r['rms_error_um'], 2)})"
-    return text + (" WORSE" if r["harm"] else "")
+    num = format_number
+    cell = f"{num(r['max_abs_error_um'], 2)} ({num(r['rms_error_um'], 2)})"
+    return cell + (" WORSE" if r["harm"] else "")
 
 
 def _plateau_cell(r):
-    from fbgcomp.tables import format_number as num
-
+    num = format_number
     if r["plateau_max_error_um"] is None or r["plateau_deflection_um"] is None:
         return "-"
     if r["plateau_deflection_um"] >= PLATEAU_MIN_DEFLECTION_UM:
@@ -340,8 +327,6 @@ def _by_campaign(result):
 def format_campaign_tables(result: dict) -> str:
     """Per held-out campaign: every entry's max |error| (RMS) per axis beside the uncompensated
     row, WORSE where an axis ends worse than uncompensated (+ the harm tolerance)."""
-    from fbgcomp.models.metrics import HARM_TOLERANCE_UM
-    from fbgcomp.tables import Column, format_table, text
 
     out = [f"per held-out campaign: max |error| µm (RMS µm) per axis; uncompensated = the deviation "
            f"itself; WORSE = max |error| above uncompensated + {HARM_TOLERANCE_UM:g} µm"]
@@ -395,8 +380,7 @@ def format_campaign_markdown(result: dict) -> str:
 
 
 def format_comparison(result: dict) -> str:
-    from fbgcomp.tables import Column, format_number, format_table, text
-
+    """The pooled comparison as text: one table per axis, entries ranked by max |error|."""
     out = [f"trained on {', '.join(result['train'])}; judged on {', '.join(result['test'])}", ""]
     if result.get("campaign_rows"):
         out += [format_campaign_tables(result), "", "pooled over all held-out campaigns, ranked per axis:"]
@@ -425,8 +409,6 @@ CAMPAIGN_COLUMNS = ["campaign", "axis", "rank", "name", "model_type", "features"
 
 
 def _csv_text(rows, cols) -> str:
-    from fbgcomp.atomic import json_safe
-
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore")
     w.writeheader()
@@ -469,7 +451,6 @@ def write_comparison(result: dict, csv_path=None, json_path=None, campaign_csv_p
     Every file is written atomically; the CSVs hold the same rows (and ranks) as the JSON's
     ``rows`` and ``campaign_rows``, undefined numbers as empty cells (null in the JSON).
     """
-    from fbgcomp.atomic import write_bytes
 
     texts = []
     if csv_path is not None:

@@ -5,7 +5,7 @@ forces and thermal loads (i) to check that the FBG resolution sees the distortio
 get the first regression coefficients of eq. 11. Here the twin's influence operators give each
 sensor path's elongation and the TTP displacement for a design of elementary load cases; random
 combinations of them, with the interrogator's noise on the elongations, are fitted by the same
-:class:`~fbgcomp.models.base.MRAModel` the campaigns use, so the result is an ordinary model file.
+:class:`~fbgcomp.models.mra.MRAModel` the campaigns use, so the result is an ordinary model file.
 """
 
 from __future__ import annotations
@@ -14,8 +14,15 @@ import numpy as np
 import pandas as pd
 
 from fbgcomp import optics
-from fbgcomp.models.features import TemperatureRoles, design_matrix
+from fbgcomp.models.features import TEMPERATURE_FEATURES, TemperatureRoles, design_matrix
+from fbgcomp.models.machines import campaign_sensor_specs
+from fbgcomp.models.mra import MRAModel
+from fbgcomp.models.regression import accumulate_series
+from fbgcomp.optics import elongation_noise_um
 from fbgcomp.units import AXES
+
+__all__ = ["LOAD_CASES", "load_case_responses", "fe_design", "fe_calibrate", "elongation_noise_um",
+           "resolution_report", "format_resolution"]
 
 
 #: Typical magnitudes of each elementary load case in a working machine (the design's scale).
@@ -66,8 +73,6 @@ def fe_design(machine, twin, *, n_samples=2000, wavelength_noise_nm=0.001, seed=
         Base features (``dL_<sensor>`` µm and the eq. 13 temperature features ``dT_bulk``,
         ``dT_surf``, ``dT_flange`` K), TTP deviations (n, 3) µm, and the case responses.
     """
-    from fbgcomp.models.features import TEMPERATURE_FEATURES
-
     cases = load_case_responses(twin)
     rng = np.random.default_rng(seed)
     w = rng.standard_normal((n_samples, len(cases["names"])))
@@ -114,9 +119,7 @@ def fe_calibrate(machine, twin=None, *, features="eq11", n_samples=2000, wavelen
         The fitted model (sensors from the machine, ready for campaigns and the runtime) and the
         case responses.
     """
-    from fbgcomp.models.base import MRAModel
-    from fbgcomp.models.regression import accumulate_series
-    from fbgcomp.structure import Twin
+    from fbgcomp.structure import Twin  # the FE twin needs scikit-fem, the optional ``fe`` extra
 
     twin = twin or Twin(machine)
     X, y, cases = fe_design(machine, twin, n_samples=n_samples,
@@ -133,28 +136,6 @@ def fe_calibrate(machine, twin=None, *, features="eq11", n_samples=2000, wavelen
     return model, cases
 
 
-def elongation_noise_um(sensors, wavelength_noise_nm=0.001):
-    """Standard deviation of each sensor's elongation from the interrogator's wavelength noise, µm."""
-    lam0 = np.array([s.lambda0_nm for s in sensors])
-    gauge = np.array([_gauge(s) for s in sensors])
-    pe = np.array([s.photoelastic for s in sensors])
-    return wavelength_noise_nm / optics.strain_sensitivity_nm(lam0, photoelastic=pe) * gauge * 1e3
-
-
-def _gauge(s):
-    return s.gauge_length if hasattr(s, "gauge_length") else s.gauge_length_mm
-
-
-def campaign_sensor_specs(machine):
-    from fbgcomp.io.campaign import SensorSpec
-
-    return [SensorSpec(name=s.name, lambda0_nm=s.lambda0_nm, gauge_length_mm=s.gauge_length,
-                       photoelastic=s.photoelastic, thermo_optic_per_K=s.thermo_optic_per_K,
-                       fibre_cte_per_K=s.fibre_cte_per_K, face=s.face, z_start_mm=s.z_start_mm,
-                       z_end_mm=s.z_end_mm, temperature_probe=s.temperature_probe)
-            for s in machine.sensors]
-
-
 def resolution_report(machine, twin=None, wavelength_noise_nm=0.001):
     """Does the FBG resolution see the distortions? (paper sec. 2.3)
 
@@ -166,7 +147,7 @@ def resolution_report(machine, twin=None, wavelength_noise_nm=0.001):
     case and the part the sensors cannot explain; and the map's singular values, numerical rank,
     condition number over the observable part and the unobservable sensor combinations.
     """
-    from fbgcomp.structure import Twin
+    from fbgcomp.structure import Twin  # the FE twin needs scikit-fem, the optional ``fe`` extra
 
     twin = twin or Twin(machine)
     cases = load_case_responses(twin)
@@ -206,6 +187,7 @@ def resolution_report(machine, twin=None, wavelength_noise_nm=0.001):
 
 
 def format_resolution(rep: dict) -> str:
+    """The resolution report (:func:`resolution_report`) as text tables."""
     lines = ["FBG resolution check (2σ, interrogator noise on the elongations)",
              "sensor noise (µm): " + ", ".join(f"{s} {n:.3f}" for s, n in
                                                zip(rep["sensors"], rep["elongation_noise_um"]))]

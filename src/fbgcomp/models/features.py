@@ -43,6 +43,7 @@ class TemperatureRoles:
     flange: str = "T_flange"
 
     def as_dict(self) -> dict:
+        """The roles as ``{"bulk": probe, "surf": probe, "flange": probe}``."""
         return {"bulk": self.bulk, "surf": self.surf, "flange": self.flange}
 
 

@@ -9,6 +9,7 @@ of the 95 % interval (the fraction of reference samples inside it, ~0.95 when ho
 from __future__ import annotations
 
 import numpy as np
+from fbgcomp.tables import Column, format_table, text
 from fbgcomp.units import AXES
 
 #: The do-no-harm rule: a compensated axis may not end with a larger max |error| than without
@@ -60,14 +61,8 @@ def validation_metrics(reference_um, predicted_um, halfwidth_um=None) -> dict:
     return {"n_samples": int(reference_um.shape[0]), "axes": axes}
 
 
-def dominant_axis(metrics: dict) -> str:
-    """The axis with the largest peak reference deviation."""
-    return max(metrics["axes"], key=lambda a: metrics["axes"][a]["peak_um"])
-
-
 def format_metrics(metrics: dict, title: str = "") -> str:
     """A readable table of :func:`validation_metrics` output (:mod:`fbgcomp.tables`)."""
-    from fbgcomp.tables import Column, format_table, text
 
     has_cov = any("pi95_coverage" in m for m in metrics["axes"].values())
     cols = [text("axis"), Column("uncomp. max", "µm"), Column("max|err|", "µm"),
@@ -136,7 +131,6 @@ def static_level_metrics(loads_N, reference_um, predicted_um, **plateau_options)
 
 def format_static_metrics(m: dict) -> str:
     """A readable table of :func:`static_level_metrics` output (:mod:`fbgcomp.tables`)."""
-    from fbgcomp.tables import Column, format_table, text
 
     cols = [text("axis"), Column("max deflection", "µm"), Column("max error", "µm"),
             Column("max error", "% of deflection", 2)]

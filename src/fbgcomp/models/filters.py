@@ -1,0 +1,81 @@
+"""First-order low-pass filters of time series, exact for inputs held between samples.
+
+The thermal lag of the dynamic model's temperature features (:mod:`fbgcomp.models.dynamic`) and
+the physical model's probe smoothing, housing leads and load tracking
+(:mod:`fbgcomp.models.physical`) all run through these two functions, in streaming form (a state
+carried between batches) or over a whole campaign.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import signal
+
+
+def lowpass_name(tau_s: float, base: str) -> str:
+    """Name of the feature ``base`` low-passed with time constant ``tau_s`` s (``lp3600s_dT_bulk``)."""
+    return f"lp{int(round(tau_s))}s_{base}"
+
+
+def first_order_recursion(x, u, y0, gain=True):
+    """First-order recursion over rows with a per-row decay ``c = exp(-x)`` (x >= 0, e.g. the
+    frame interval over a time constant): ``y_i = c_i y_{i-1} + (1 - c_i) u_i`` (``gain=False``:
+    ``+ u_i``), from ``y0``; (n, k) from (n, k) ``u``. Closed form per stretch whose summed
+    decay stays below e^-600 (so that no weight overflows); every weight is positive, so no
+    cancellation beyond the recursion's own."""
+    x = np.minimum(np.asarray(x, float), 600.0)       # exp(-600): no memory left either way
+    u = np.asarray(u, float)
+    w = -np.expm1(-x)[:, None] * u if gain else u
+    out = np.empty_like(w)
+    y_prev = np.asarray(y0, float)
+    L = np.cumsum(x)
+    start = 0
+    n = len(x)
+    while start < n:
+        base = L[start - 1] if start else 0.0
+        stop = int(np.searchsorted(L, base + 600.0, side="right"))
+        stop = min(max(stop, start + 1), n)
+        Ls = L[start:stop] - base                                 # >= 0, <= 600 (or one row)
+        acc = np.cumsum(np.exp(Ls)[:, None] * w[start:stop], axis=0)
+        out[start:stop] = np.exp(-Ls)[:, None] * (y_prev[None, :] + acc)
+        y_prev = out[stop - 1]
+        start = stop
+    return out
+
+
+def first_order_filter(x, time_s, tau_s, state=None, nominal_dt_s=1.0):
+    """First-order low-pass ``tau dy/dt = x - y`` of the columns of x (n, m), exact when each
+    input sample holds over the interval that ends at it; returns (y (n, m), state). ``state`` is ``(y_last (m,), t_last)`` or
+    None (start at the first sample's value). Vectorised (``lfilter``) when samples are evenly
+    spaced; ``time_s`` None means evenly spaced at ``nominal_dt_s``.
+    """
+    x = np.atleast_2d(np.asarray(x, dtype=float))
+    n = x.shape[0]
+    if n == 0:
+        return x.copy(), state
+    if state is None:
+        y_prev, t_prev = x[0].copy(), None
+    else:
+        y_prev, t_prev = state
+    if time_s is None:
+        dt = np.full(n, nominal_dt_s)
+        t_end = (0.0 if t_prev is None else t_prev) + n * nominal_dt_s
+    else:
+        t = np.asarray(time_s, dtype=float).ravel()
+        first = (t[0] - t_prev) if t_prev is not None else 0.0
+        dt = np.concatenate([[first], np.diff(t)])
+        t_end = t[-1]
+    if n > 1 and np.allclose(dt[1:], dt[1]):
+        e = np.exp(-dt[1] / tau_s)
+        e0 = np.exp(-max(dt[0], 0.0) / tau_s)
+        y0 = e0 * y_prev + (1 - e0) * x[0]
+        if n > 1:
+            rest, _ = signal.lfilter([1 - e], [1, -e], x[1:], axis=0, zi=(e * y0)[None, :])
+            y = np.vstack([y0[None, :], rest])
+        else:
+            y = y0[None, :]
+    else:
+        # uneven intervals (a clock's jitter, an epoch's float rounding): the same recursion
+        # with a decay per sample, in closed form
+        y = first_order_recursion(np.maximum(dt, 0.0) / tau_s, x, y_prev)
+    return y, (y[-1].copy(), t_end)

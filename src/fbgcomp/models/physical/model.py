@@ -1,0 +1,600 @@
+"""The physical model type (``model_type`` "physical", the default of ``fbgcomp fit``): :class:`PhysicalModel`.
+
+Fitting (load signature and compliance, the thermal part, the twin map's housing calibration,
+the load tracker's drift allowance and the interval), the runtime contract and the model file.
+The design is described in :mod:`fbgcomp.models.physical`.
+"""
+
+from __future__ import annotations
+
+from itertools import combinations
+
+import numpy as np
+from scipy import stats
+from scipy.optimize import nnls
+
+from fbgcomp.errors import InputError
+from fbgcomp.io.campaign import SensorSpec
+from fbgcomp.models.base import EstimatorParams, ModelFile, as_campaign_list, check_compatible
+from fbgcomp.models.physical.predictor import FORCE_AXES, PhysicalPredictor, excursion2
+from fbgcomp.models.physical.shapes import check_shapes
+from fbgcomp.models.physical.thermal import (CAL_LEADS_S, ambient_probe_names, grating_map, housing_probe_names,
+                                             ridge_from_moments, thermal_regressors, twin_thermal_population,
+                                             weighted_lstsq)
+from fbgcomp.structure.machine import Machine, load_machine
+from fbgcomp.units import AXES
+
+
+class PhysicalModel(EstimatorParams, ModelFile):
+    """Load-signature + housing-thermal model with a do-no-harm policy (the default model).
+
+    Parameters
+    ----------
+    machine : Machine, path or None
+        Machine description; used to find the housing and ambient probes and, when no training
+        campaign carries loads, for the FE twin's load signature.
+    zero_window_s : float
+        Zero state = mean of each signal's first ``zero_window_s`` seconds.
+    lead_tau_s : float
+        Time constant of the housing probe's thermal lead term, s.
+    envelope_margin : float
+        Fraction of the training span by which thermal regressors may leave the training
+        envelope before they are clipped.
+    load_k_sigma : float
+        A force component is applied only when it stands ``load_k_sigma`` standard deviations
+        clear of zero (firm shrinkage: zero below, a linear ramp up to twice that, unbiased beyond).
+    contradiction_p : float
+        Per-frame false-alarm probability of the gratings' consistency test.
+    load_relative_error : float
+        Relative error of the load signature: a force component smaller than this share of the
+        others (x k_sigma) may be their cross-talk and is not applied.
+    thermal_error_inflation : float
+        Factor on the variance of the gratings' thermal-reading error seen in training (what a
+        held-out campaign adds to the in-sample residual).
+    twin_scenarios : int
+        Generic thermal scenarios of the machine's FE twin the thermal map learns from (0: fit
+        the thermal part on the measured load-free campaigns instead, as without a machine).
+    map_ridge : float
+        Ridge penalty of the twin-learned thermal map (standardised features).
+    offset_tau_s : float
+        Time constant with which the gratings' unexplained thermal reading is tracked while no
+        load is applied, s.
+    calibrate_housing : bool
+        Calibrate the twin map's housing transient (its leads at ``CAL_LEADS_S``) on the
+        measured load-free campaigns (:meth:`_calibrate_housing`).
+    separability_cos : float
+        A force whose grating signature has |cos| above this with the gratings' warming pattern
+        is not read from the gratings.
+    """
+
+    model_type = "physical"
+
+    def __init__(self, machine=None, zero_window_s=10.0, lead_tau_s=300.0, envelope_margin=0.1,
+                 load_k_sigma=3.0, contradiction_p=1e-3, thermal_error_inflation=4.0,
+                 load_relative_error=0.03, twin_scenarios=40, map_ridge=1e-3, separability_cos=0.95,
+                 offset_tau_s=20.0, calibrate_housing=True):
+        self.machine = machine
+        self.zero_window_s = zero_window_s
+        self.lead_tau_s = lead_tau_s
+        self.envelope_margin = envelope_margin
+        self.load_k_sigma = load_k_sigma
+        self.contradiction_p = contradiction_p
+        self.thermal_error_inflation = thermal_error_inflation
+        self.load_relative_error = load_relative_error
+        self.twin_scenarios = twin_scenarios
+        self.map_ridge = map_ridge
+        self.separability_cos = separability_cos
+        self.offset_tau_s = offset_tau_s
+        self.calibrate_housing = calibrate_housing
+
+    # -- fitting -----------------------------------------------------------------------------
+    def _machine(self):
+        if self.machine is None:
+            return None
+        return self.machine if isinstance(self.machine, Machine) else load_machine(self.machine)
+
+    def fit(self, X, y=None, *, progress=None):
+        """Fit on campaigns (``X`` a campaign, a path or a list of them; ``y`` must be None)."""
+        if y is not None:
+            raise ValueError("PhysicalModel fits on campaigns (y must be None)")
+        campaigns = as_campaign_list(X)
+        if not campaigns:
+            raise ValueError("fit needs at least one campaign")
+        machine = self._machine()
+        first = campaigns[0]
+        self.sensors_ = list(first.meta.sensors)
+        common = [p for p in first.meta.probe_names
+                  if all(p in c.meta.probe_names for c in campaigns[1:])]
+        self.housing_probes_ = housing_probe_names(common, machine)
+        self.ambient_probes_ = ambient_probe_names(common, machine)
+        sensor_probes = [s.temperature_probe for s in self.sensors_ if s.temperature_probe]
+        self.probe_names_ = list(dict.fromkeys(sensor_probes + self.housing_probes_ + self.ambient_probes_))
+        for c in campaigns:
+            check_compatible(self, c)
+        aligned = [c.aligned(zero_window_s=self.zero_window_s) for c in campaigns]
+        dts = [np.median(np.diff(a.time_s)) for a in aligned if len(a.time_s) > 1]
+        self.nominal_dt_s_ = float(np.median(dts)) if dts else 1.0
+        fmap = grating_map(self.sensors_, self.probe_names_)
+
+        # Per campaign: instrument arrays in model order, elongations, thermal regressors.
+        self.load_ = None
+        self.interval_ = None
+        self.thermal_coef_ = np.zeros((1, 3))
+        self.thermal_envelope_ = (np.zeros(0), np.zeros(0))
+        self.thermal_range_um_ = (np.zeros(3), np.zeros(3))
+        self.thermal_resid_sd_um_ = np.zeros(3)
+        rows = []
+        for c, a in zip(campaigns, aligned):
+            w, t, w0, t0 = self.instrument_arrays(a)
+            e = fmap.base(w, t, w0, t0)
+            H, _ = thermal_regressors(t - t0, [self.probe_names_.index(p) for p in self.housing_probes_],
+                                      [self.probe_names_.index(p) for p in self.ambient_probes_],
+                                      self.lead_tau_s, a.time_s)
+            F = a.loads_N
+            loaded = F is not None and np.nanmax(np.abs(np.nan_to_num(F))) > 50.0
+            rows.append({"name": c.meta.name, "e": e, "H": H, "dT": t - t0, "t": a.time_s, "y": a.reference_um,
+                         "F": None if F is None else np.nan_to_num(F), "loaded": loaded})
+        thermal_rows = [r for r in rows if not r["loaded"]]
+        loaded_rows = [r for r in rows if r["loaded"]]
+        nh = rows[0]["H"].shape[1]
+        S = len(self.sensor_names)
+
+        # Gratings' thermal reading vs the thermal regressors, on load-free campaigns.
+        if thermal_rows:
+            Hs = np.vstack([r["H"] for r in thermal_rows])
+            Es = np.vstack([r["e"] for r in thermal_rows])
+            ws = np.concatenate([np.full(len(r["H"]), 1.0 / len(r["H"])) for r in thermal_rows])
+            B, _ = weighted_lstsq(Hs, Es, ws)
+            dTs = np.vstack([r["dT"] for r in thermal_rows])
+            scale = np.maximum(np.abs(dTs).max(axis=0), 0.5)
+            s2 = np.sum((dTs / scale) ** 2, axis=1)
+            R = Es - Hs @ B
+            # error covariance per unit of s²: weighted regression through the origin of the
+            # residual products on s², so the uncertainty grows with the thermal excursion
+            wn = ws * s2 / np.sum(ws * s2 * s2)
+            cov_unit = (R * wn[:, None]).T @ R
+        else:
+            B, cov_unit = np.zeros((nh, S)), np.zeros((S, S))
+            scale = np.ones(len(self.probe_names_))
+
+        # Load signature G and compliance C from loaded campaigns (per-campaign intercepts).
+        G = C = None
+        max_force = np.full(3, 5000.0)
+        active = np.zeros(3, bool)
+        noise_var = np.full(S, np.nan)
+        if loaded_rows:
+            Xs, Es_, Ys, ws_ = [], [], [], []
+            k = len(loaded_rows)
+            for i, r in enumerate(loaded_rows):
+                n = len(r["e"])
+                onehot = np.zeros((n, k))
+                onehot[:, i] = 1.0
+                Xs.append(np.hstack([onehot, r["F"], r["H"][:, 1:]]))
+                Es_.append(r["e"])
+                Ys.append(r["y"])
+                ws_.append(np.full(n, 1.0 / n))
+            X = np.vstack(Xs)
+            w_all = np.concatenate(ws_)
+            Fall = X[:, k:k + 3]
+            active = np.sqrt(np.average(Fall ** 2, axis=0, weights=w_all)) > 100.0
+            cols = list(range(k)) + [k + j for j in range(3) if active[j]] + list(range(k + 3, X.shape[1]))
+            Bg, _ = weighted_lstsq(X[:, cols], np.vstack(Es_), w_all)
+            By, _ = weighted_lstsq(X[:, cols], np.vstack(Ys), w_all)
+            G = np.zeros((S, 3))
+            C = np.zeros((3, 3))
+            G[:, active] = Bg[k:k + active.sum()].T
+            C[:, active] = By[k:k + active.sum()].T
+            # white noise of each grating from successive differences (robust: MAD), so load
+            # steps and ramps do not count as noise
+            diffs = np.vstack([np.diff(r["e"], axis=0) for r in loaded_rows])
+            mad = np.median(np.abs(diffs - np.median(diffs, axis=0)), axis=0)
+            noise_var = (1.4826 * mad) ** 2 / 2.0
+            # a component the training never excited (its column is load-cell noise) is
+            # believed over the range of those it did: its signature comes from the twin
+            max_force = np.abs(Fall).max(axis=0)
+            max_force = np.where(active, max_force, max_force[active].max() if active.any() else 5000.0)
+            source = "training campaigns with loads"
+        if G is None or not active.all():
+            twin_GC = self._twin_signature(machine)
+            if twin_GC is not None:
+                Gt, Ct = twin_GC
+                if G is None:
+                    G, C = Gt, Ct
+                    source = "FE twin of the machine description"
+                else:
+                    G[:, ~active], C[:, ~active] = Gt[:, ~active], Ct[:, ~active]
+                    source += " (unexcited components from the FE twin)"
+                active = np.ones(3, bool)
+        separable = np.ones(3, bool)
+        if G is not None and thermal_rows:
+            # A force whose signature is (nearly) the gratings' own warming pattern cannot be
+            # told from a temperature change (on CFRP rams: Fz, a uniform compression, against
+            # a uniform warming); it is not read from the gratings at all.
+            u = np.linalg.svd(np.vstack([r["e"] for r in thermal_rows]), full_matrices=False)[2][0]
+            norm = np.linalg.norm(G, axis=0)
+            cos = np.abs(u @ G) / np.where(norm > 0, norm, 1.0)
+            separable = cos < self.separability_cos
+            active = active & separable
+        if G is not None and active.any():
+            if np.isnan(noise_var).any():
+                noise_var = np.full(S, 0.05 ** 2)
+            self.load_ = {"G_um_per_N": G.tolist(), "C_um_per_N": C.tolist(),
+                          "active_forces": active.tolist(), "grating_thermal_coef": B.tolist(),
+                          "thermal_sigma_unit_um2": (self.thermal_error_inflation * cov_unit).tolist(),
+                          "thermal_scale": scale.tolist(), "noise_var_um2": noise_var.tolist(),
+                          "max_force_N": np.where(max_force > 0, max_force, 5000.0).tolist(),
+                          "source": source,
+                          "not_separable": [f for f, ok in zip(FORCE_AXES, separable) if not ok]}
+        # Thermal part of the TTP: y minus the (policy-applied) load part, on load-free campaigns.
+        self.thermal_coef_ = np.zeros((nh, 3))
+        self.thermal_envelope_ = (np.zeros(nh - 1), np.zeros(nh - 1))
+        self.thermal_range_um_ = (np.zeros(3), np.zeros(3))
+        self.thermal_resid_sd_um_ = np.full(3, 0.1)
+        self.thermal_noise_sd_um_ = np.zeros(3)
+        if thermal_rows:
+            Hs = np.vstack([r["H"] for r in thermal_rows])
+            Ys = np.vstack([r["y"] for r in thermal_rows])
+            ws = np.concatenate([np.full(len(r["H"]), 1.0 / len(r["H"])) for r in thermal_rows])
+            A, cov_y = weighted_lstsq(Hs, Ys, ws)
+            self.thermal_coef_ = A
+            self.thermal_envelope_ = (Hs[:, 1:].min(axis=0), Hs[:, 1:].max(axis=0))
+            fitted = Hs @ A
+            span = np.abs(Ys).max(axis=0)
+            self.thermal_range_um_ = (np.minimum(fitted.min(axis=0), Ys.min(axis=0)) - 0.1 * span,
+                                      np.maximum(fitted.max(axis=0), Ys.max(axis=0)) + 0.1 * span)
+            self.thermal_resid_sd_um_ = np.sqrt(np.diag(cov_y))
+            # the part's response to probe noise (the zero state itself is one noisy reading of
+            # a slow probe): each regressor's probe noise (robust, from successive differences)
+            # through its coefficient
+            d = np.vstack([np.diff(r["dT"], axis=0) for r in rows if len(r["dT"]) > 1])
+            sd_p = 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0) / np.sqrt(2)
+            used = [self.probe_names_.index(q) for q in self.housing_probes_ + self.ambient_probes_]
+            sd_h = np.concatenate([sd_p[used], sd_p[used[:1]] if self.housing_probes_ else []])
+            self.thermal_noise_sd_um_ = np.sqrt(((A[1:] * np.asarray(sd_h)[:, None]) ** 2).sum(axis=0))
+        # Thermal part learned from the twin's thermal physics, when the machine describes
+        # every grating and probe of the campaigns (the face-gradient coefficients no measured
+        # campaign without a gradient can teach).
+        self.twin_map_ = None
+        if machine is not None and self.twin_scenarios > 0:
+            pop = twin_thermal_population(machine, self.sensors_, self.probe_names_, self.housing_probes_,
+                                          n_scenarios=self.twin_scenarios, seed=0)
+            if pop is not None:
+                pop["coef"] = ridge_from_moments(pop["gram"], pop["xty"], pop["scale"],
+                                                 range(len(pop["scale"])), self.map_ridge).tolist()
+                self.twin_map_ = pop
+        # Load-part uncertainty calibrated on loaded campaigns: the load part's residual.
+        self.training_ = {"campaigns": [{"name": r["name"], "loaded": bool(r["loaded"]),
+                                         "n_samples": int(len(r["y"]))} for r in rows],
+                          "n_samples": int(sum(len(r["y"]) for r in rows))}
+        self._predictors = {}
+        if self.load_ is not None:
+            self._calibrate_drift(rows)
+        if self.twin_map_ is not None and thermal_rows and self.housing_probes_ and self.calibrate_housing:
+            self.twin_map_["calibration"] = self._calibrate_housing(rows, campaigns)
+            self._predictors = {}
+        if self.twin_map_ is not None and thermal_rows:
+            # the map's error on the measured load-free campaigns (only the housing transient is
+            # fitted there)
+            # sets its interval and widens the validated range to what the twin covers
+            res = []
+            for r, c in zip(rows, campaigns):
+                if r["loaded"]:
+                    continue
+                pred, _ = self.predict_interval(c, policy=False)
+                res.append(pred - r["y"])
+            res = np.vstack(res)
+            self.thermal_resid_sd_um_ = np.sqrt(np.mean(res ** 2, axis=0))
+            lo, hi = np.asarray(self.twin_map_["ttp_low_um"]), np.asarray(self.twin_map_["ttp_high_um"])
+            span = hi - lo
+            self.thermal_range_um_ = (np.minimum(self.thermal_range_um_[0], lo - 0.1 * span),
+                                      np.maximum(self.thermal_range_um_[1], hi + 0.1 * span))
+        self.interval_ = self._fit_interval(rows, campaigns) if thermal_rows else None
+        self._predictors = {}
+        return self
+
+    def _calibrate_housing(self, rows, campaigns):
+        """Least squares (no intercept, campaigns weighted equally) of the twin map's error on
+        the measured load-free campaigns against the housing's mean ΔT (K) and its leads at
+        ``CAL_LEADS_S`` (K).
+
+        How late the housing probe sees the bearings' heat depends on where the bearings and
+        the probe sit in the steel, which a data sheet rarely gives to the millimetre; every
+        spindle duty cycle excites it, so the measured campaigns can teach it. The face-gradient
+        coefficients stay the twin's (no campaign without a gradient can teach them)."""
+        k = 1 + len(CAL_LEADS_S)
+        # the map as it stands, with the leads computed alongside (zero coefficients)
+        self.twin_map_["calibration"] = {"leads_s": list(CAL_LEADS_S), "coef": np.zeros((k, 3)).tolist(),
+                                         "envelope_low": [-1e9] * k, "envelope_high": [1e9] * k}
+        self._predictors = {}
+        A_rows, b_rows, feats = [], [], []
+        for r, c in zip(rows, campaigns):
+            if r["loaded"]:
+                continue
+            pred, _, p, at = self._served(c, policy=False)
+            L = p.last_cal_features[at]
+            w = np.sqrt(1.0 / len(L))
+            A_rows.append(L * w)
+            b_rows.append((r["y"] - pred) * w)
+            feats.append(L)
+        A, b = np.vstack(A_rows), np.vstack(b_rows)
+        coef = np.linalg.lstsq(A, b, rcond=None)[0]
+        L = np.vstack(feats)
+        return {"leads_s": list(CAL_LEADS_S), "coef": coef.tolist(), "source": "measured load-free campaigns",
+                "envelope_low": L.min(axis=0).tolist(), "envelope_high": L.max(axis=0).tolist()}
+
+    def _fit_interval(self, rows, campaigns):
+        """Thermal part's error variance as v0 + vs s + v1 s² + v2 a², s² the squared probe
+        excursion (:func:`excursion2`) and a the housing's fastest lead (a transient) over its
+        training maximum, per axis.
+
+        v0 is the reference instrument's own noise, measured on the training campaigns (robust
+        SD of successive differences, the quietest campaign): a machine at rest and zeroed has
+        no thermal error, so its interval is the interferometer's. vs, v1 and v2 come from
+        non-negative least squares of the applied prediction's squared error beyond v0 on each
+        load-free training campaign (campaigns weighted equally): what grows with the thermal
+        state and its transients."""
+        dTs = [r["dT"] for r in rows if not r["loaded"]]
+        scale = np.maximum(np.abs(np.vstack(dTs)).max(axis=0), 0.5)
+        sd_ref = []
+        for r in rows:
+            d = np.diff(r["y"], axis=0)
+            if len(d) > 10:
+                sd_ref.append(1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0) / np.sqrt(2))
+        v0 = np.min(sd_ref, axis=0) ** 2 if sd_ref else np.zeros(3)
+        # dT is a reading minus the zero reading: a change within twice the SD of such a
+        # difference (the SD of successive readings' differences; quantised probes make a
+        # robust MAD of them read low) is none
+        d = np.vstack([np.diff(r["dT"], axis=0) for r in rows if len(r["dT"]) > 1])
+        deadband = 2.0 * d.std(axis=0)
+        e2, S, act, w = [], [], [], []
+        for r, c in zip(rows, campaigns):
+            if r["loaded"]:
+                continue
+            pred, _, p, at = self._served(c)
+            e2.append((pred - r["y"]) ** 2)
+            S.append(excursion2(r["dT"], scale, deadband))
+            act.append(p.last_activity[at])
+            w.append(np.full(len(pred), 1.0 / len(pred)))          # campaigns weighted equally
+        e2, s2, act, w = np.vstack(e2), np.concatenate(S), np.concatenate(act), np.concatenate(w)
+        a_scale = max(float(np.abs(act).max()), 1e-3)
+        A = np.column_stack([np.sqrt(s2), s2, (act / a_scale) ** 2])
+        sw = np.sqrt(w)[:, None]
+        v = np.array([nnls(A * sw, (e2[:, j] - v0[j]) * sw[:, 0])[0] for j in range(3)])   # (axes, [vs, v1, v2])
+        # The errors are not Gaussian (heavy tails from the transients): scale the state terms
+        # so that the 95 % interval covers 95 % of the training samples (campaigns weighted
+        # equally), v0 staying the instrument's. A sample is covered for every scale from
+        # (e² / z² - v0) / (its state variance) up: the scale is the weighted 95th percentile of
+        # that, within [1e-3, 1e3].
+        z2 = stats.norm.ppf(0.975) ** 2
+        shape = A @ v.T                                                  # (n, 3) state variance
+        for j in range(3):
+            if not np.any(shape[:, j] > 0):
+                continue
+            with np.errstate(divide="ignore", invalid="ignore"):
+                need = np.where(e2[:, j] / z2 <= v0[j], 0.0, (e2[:, j] / z2 - v0[j]) / shape[:, j])
+            order = np.argsort(need)
+            # (a share of exactly 0.95 counts as reached: the cumulative sum's rounding must not
+            # push the level to the next sample)
+            at = np.searchsorted(np.cumsum(w[order]) / w.sum(), 0.95 - 1e-12)
+            v[j] *= np.clip(need[order][min(at, len(order) - 1)], 1e-3, 1e3)
+        return {"v0_um2": v0.tolist(), "vs_um2": v[:, 0].tolist(), "v1_um2": v[:, 1].tolist(),
+                "v2_um2": v[:, 2].tolist(), "dT_scale_K": scale.tolist(), "deadband_K": deadband.tolist(),
+                "activity_scale_K": a_scale}
+
+    def _calibrate_drift(self, rows):
+        """How far heat (and noise) move the force reading the step test sees, on the load-free
+        training campaigns: the 99th percentile of its magnitude with the tracker listening
+        (no step taken), per component, stored as a rate over the offset's tracking time
+        (``drift_N_per_s`` x max(``offset_tau_s``, frame interval) is the allowance; floor
+        0.1 N/s). A step must stand ``load_k_sigma`` times clear of it. (Frame-to-frame rates,
+        as before, measured the noise: 622 N/s on the twin, and no load was ever applied.)"""
+        p = self.predictor()
+        seen = [np.zeros((0, 3))]
+        for r in rows:
+            if r["loaded"] or len(r["t"]) < 3:
+                continue
+            F, _, _ = p._track_load(r["e"][:, p._keep], r["t"], None, {}, listen=True)
+            seen.append(np.abs(F))
+        seen = np.vstack(seen)
+        q = np.quantile(seen, 0.99, axis=0) if len(seen) else np.full(3, 20.0)
+        span = max(float(self.offset_tau_s), float(self.nominal_dt_s_))
+        self.load_["drift_N_per_s"] = np.maximum(q / span, 0.1).tolist()
+        self._predictors = {}
+
+    def _twin_signature(self, machine):
+        """(G, C) from the FE twin, or None without a machine description or a matching sensor set."""
+        if machine is None:
+            return None
+        names = [s.name for s in machine.sensors]
+        if any(s not in names for s in self.sensor_names):
+            return None
+        from fbgcomp.structure import Twin  # the FE twin needs scikit-fem, the optional ``fe`` extra
+
+        twin = Twin(machine)
+        inf = twin.influence
+        idx = [names.index(s) for s in self.sensor_names]
+        return np.asarray(inf.sensor_per_force_um_per_N)[idx], np.asarray(inf.ttp_per_force_um_per_N)
+
+    # -- prediction --------------------------------------------------------------------------
+    @property
+    def fallback_sets(self) -> list:
+        """Every sensor set without one or more gratings (the load part needs none of them)."""
+        names = self.sensor_names
+        out = []
+        for k in range(1, len(names) + 1):
+            out += [frozenset(c) for c in combinations(names, k)]
+        return out
+
+    def predictor(self, exclude=frozenset()) -> PhysicalPredictor:
+        """The predictor of the sensor set without ``exclude`` (one per set, kept)."""
+        exclude = frozenset(exclude)
+        if exclude not in self._predictors:
+            self._predictors[exclude] = PhysicalPredictor(self, exclude)
+        return self._predictors[exclude]
+
+    def predict_interval(self, X, exclude=frozenset(), raw=False, policy=True):
+        """Deviation (n, 3) µm and 95 % half-width on a campaign's reference clock, as the runtime
+        would publish them (``raw``: without the policy; ``policy=False``: thermal part unclipped);
+        the policy flags of each sample in ``last_flags_``."""
+        (campaign,) = as_campaign_list(X)
+        check_compatible(self, campaign)
+        mean, half, p, at = self._served(campaign, exclude, raw, policy)
+        self.last_flags_ = p.last_flags[at]
+        return mean, half
+
+    def _served(self, campaign, exclude=frozenset(), raw=False, policy=True):
+        """Deviation and half-width at each reference time as the runtime publishes them (the
+        last frame's output, carried forward: the reference clock is offset from the
+        interrogator's, e.g. +0.3 s), the predictor that ran, and the frame index of each
+        reference time."""
+        aligned = campaign.aligned(zero_window_s=self.zero_window_s)
+        p = PhysicalPredictor(self, exclude)       # fresh filter state per campaign
+        _, _, w0, t0 = self.instrument_arrays(aligned)
+        frame_t, w, t = self.frame_arrays(campaign, aligned)
+        mean, half = p.predict(w, t, w0, t0, time_s=frame_t, raw=raw, thermal_policy=policy)
+        at = np.clip(np.searchsorted(frame_t, aligned.time_s, side="right") - 1, 0, frame_t.size - 1)
+        return mean[at], half[at], p, at
+
+    def frame_arrays(self, campaign, aligned):
+        """The campaign as the runtime sees it: every interrogator frame inside the aligned
+        overlap, with each probe's last reading at that frame (held, as a live feed is).
+
+        Returns frame times (s), wavelengths (n, sensors) nm and temperatures (n, probes) degC
+        in the model's order. The load tracker runs on this clock (its filters are set in
+        seconds), so validation sees the correction the runtime would publish, not one computed
+        from gratings averaged over each reference interval.
+        """
+        ft = campaign.fbg["time_s"].to_numpy(dtype=float)
+        t_lo, t_hi = aligned.dropped["overlap_s"]
+        keep = (ft >= t_lo - 1e-9) & (ft <= t_hi + 1e-9)
+        if not keep.any():
+            keep[:] = True
+        ft = ft[keep]
+        w = campaign.fbg[[f"{s}_nm" for s in self.sensor_names]].to_numpy(dtype=float)[keep]
+        temps = np.empty((ft.size, len(self.probe_names_)))
+        for names, (tt, tv) in campaign.thermometers().items():
+            held = np.clip(np.searchsorted(tt, ft, side="right") - 1, 0, tt.size - 1)
+            for j, p in enumerate(names):
+                if p in self.probe_names_:
+                    temps[:, self.probe_names_.index(p)] = tv[held, j]
+        return ft, w, temps
+
+    # -- reporting and persistence -----------------------------------------------------------
+    def summary(self) -> str:
+        """The thermal part's coefficients or twin map, its validated range and the load signature."""
+        names = ["const"] + [f"dT_{p}" for p in self.housing_probes_] + \
+            [f"dT_{p}" for p in self.ambient_probes_] + \
+            ([f"lead{self.lead_tau_s:g}s_housing"] if self.housing_probes_ else [])
+        out = [f"physical model (default): load signature + housing thermal, do-no-harm policy; "
+               f"{self.training_['n_samples']} samples from "
+               f"{', '.join(c['name'] for c in self.training_['campaigns'])}",
+               f"housing probes: {', '.join(self.housing_probes_) or 'none'}; ambient: "
+               f"{', '.join(self.ambient_probes_) or 'none'}",
+               ""]
+        tm = self.twin_map_
+        if tm is None:
+            out += ["thermal part (µm per K; lead in µm per K of T - lowpass(T))",
+                    f"{'term':<22}" + "".join(f"{a:>11}" for a in AXES)]
+            for name, row in zip(names, np.asarray(self.thermal_coef_)):
+                out.append(f"{name:<22}" + "".join(f"{v:>11.4g}" for v in row))
+        else:
+            out.append(f"thermal part: ridge map learned on {tm['n_scenarios']} thermal scenarios of the "
+                       f"machine's FE twin ({len(tm['features'])} features: {', '.join(tm['features'])})")
+            cal = tm.get("calibration")
+            if cal is not None:
+                out += [f"housing transient calibrated on the {cal.get('source', 'measured campaigns')} "
+                        "(µm per K)", f"{'term':<22}" + "".join(f"{a:>11}" for a in AXES)]
+                for name, row in zip(["dT_housing"] + [f"lead{t:g}s_housing" for t in cal["leads_s"]],
+                                     np.asarray(cal["coef"])):
+                    out.append(f"{name:<22}" + "".join(f"{v:>11.4g}" for v in row))
+        out.append(f"{'residual SD µm':<22}" + "".join(f"{v:>11.3g}" for v in self.thermal_resid_sd_um_))
+        lo, hi = self.thermal_range_um_
+        out.append(f"{'validated range µm':<22}" + ", ".join(f"{ax} {a:.3g}..{b:.3g}" for ax, a, b in zip(AXES, lo, hi)))
+        if self.load_ is None:
+            out.append("\nload part: none (no training campaign with loads and no machine description)")
+        else:
+            L = self.load_
+            out.append(f"\nload part ({L['source']}); forces estimated: "
+                       + ", ".join(f for f, on in zip(FORCE_AXES, L["active_forces"]) if on))
+            out.append(f"{'':<8}" + "".join(f"{f + ' µm/kN':>13}" for f in FORCE_AXES))
+            for s, row in zip(self.sensor_names, np.asarray(L["G_um_per_N"])):
+                out.append(f"{s:<8}" + "".join(f"{1e3 * v:>13.4g}" for v in row))
+            for a, row in zip(AXES, np.asarray(L["C_um_per_N"])):
+                out.append(f"{a:<8}" + "".join(f"{1e3 * v:>13.4g}" for v in row))
+            p = self.predictor()
+            at_rest, warm = p.F_sds
+            out.append("force 1-sigma N at rest / at the training's thermal extreme: "
+                       + ", ".join(f"{f} {a:.3g}/{b:.3g}" for f, a, b in zip(FORCE_AXES, at_rest, warm))
+                       + f"; applied from {self.load_k_sigma:g} sigma, in full beyond {2 * self.load_k_sigma:g}")
+        return "\n".join(out)
+
+    def to_dict(self) -> dict:
+        """The model file's content (hyper-parameters but the machine, learned state)."""
+        d = self._header()
+        d.update({
+            "params": {k: v for k, v in self.get_params().items() if k != "machine"},
+            "zero_state": {"method": "mean_of_first_window", "window_s": self.zero_window_s},
+            "sensors": [s.model_dump(mode="json") for s in self.sensors_],
+            "probes": list(self.probe_names_),
+            "housing_probes": list(self.housing_probes_),
+            "ambient_probes": list(self.ambient_probes_),
+            "nominal_dt_s": self.nominal_dt_s_,
+            "thermal": {"coef": np.asarray(self.thermal_coef_).tolist(),
+                        "envelope_low": np.asarray(self.thermal_envelope_[0]).tolist(),
+                        "envelope_high": np.asarray(self.thermal_envelope_[1]).tolist(),
+                        "range_low_um": np.asarray(self.thermal_range_um_[0]).tolist(),
+                        "range_high_um": np.asarray(self.thermal_range_um_[1]).tolist(),
+                        "resid_sd_um": np.asarray(self.thermal_resid_sd_um_).tolist(),
+                        "noise_sd_um": np.asarray(self.thermal_noise_sd_um_).tolist()},
+            "twin_map": self.twin_map_,
+            "interval": getattr(self, "interval_", None),
+            "load": self.load_,
+            "training": self.training_,
+            "uncertainty": {"level": 0.95, "method": "thermal error v0 (reference noise) + vs excursion + v1 excursion^2 + v2 lead^2, calibrated to 95 % training coverage, + applied load's GLS and relative error"},
+            "z_axis_mm": None,
+        })
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict, source="<dict>") -> "PhysicalModel":
+        """The model of a model file's dict; InputError unless its shapes agree and every sensor
+        set predicts finite numbers."""
+        check_shapes(d, source)
+        m = cls(**d.get("params", {}))
+        m.sensors_ = [SensorSpec(**s) for s in d["sensors"]]
+        m.probe_names_ = list(d["probes"])
+        m.housing_probes_ = list(d["housing_probes"])
+        m.ambient_probes_ = list(d["ambient_probes"])
+        m.nominal_dt_s_ = float(d["nominal_dt_s"])
+        th = d["thermal"]
+        m.thermal_coef_ = np.asarray(th["coef"], float)
+        m.thermal_envelope_ = (np.asarray(th["envelope_low"], float), np.asarray(th["envelope_high"], float))
+        m.thermal_range_um_ = (np.asarray(th["range_low_um"], float), np.asarray(th["range_high_um"], float))
+        m.thermal_resid_sd_um_ = np.asarray(th["resid_sd_um"], float)
+        m.thermal_noise_sd_um_ = np.asarray(th.get("noise_sd_um", [0.0] * 3), float)
+        m.twin_map_ = d.get("twin_map")
+        m.interval_ = d.get("interval")
+        m.load_ = d.get("load")
+        m.training_ = d.get("training", {"campaigns": [], "n_samples": 0})
+        m._predictors = {}
+        # what loaded must predict finite numbers with every sensor set the runtime may use
+        w0 = np.array([s.lambda0_nm for s in m.sensors_])
+        t0 = np.full(len(m.probe_names_), 20.0)
+        for exclude in [frozenset()] + m.fallback_sets:
+            dev, half = PhysicalPredictor(m, exclude).predict(w0[None, :] + 0.01, t0[None, :] + 0.5, w0, t0)
+            if not (np.isfinite(dev).all() and np.isfinite(half).all()):
+                raise InputError("model cannot predict finite numbers"
+                                 + (f" without {', '.join(sorted(exclude))}" if exclude else ""),
+                                 file=source, column="field thermal/load/twin_map")
+        m._predictors = {}
+        return m
+
+    @property
+    def max_correction_um(self):
+        """Largest |correction| per axis this model was validated for (thermal range plus the
+        largest load the training carried, with a margin), µm."""
+        lo, hi = self.thermal_range_um_
+        bound = np.maximum(np.abs(lo), np.abs(hi))
+        if self.load_ is not None:
+            bound = bound + 1.5 * np.abs(np.asarray(self.load_["C_um_per_N"])).sum(axis=1) * 5000.0
+        return [float(b) for b in bound]

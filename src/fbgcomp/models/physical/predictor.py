@@ -1,0 +1,479 @@
+"""The physical model's predictor: load tracking by steps of the load signature, thermal part, policy.
+
+:class:`PhysicalPredictor` is the vectorised, stateful prediction of one sensor set (the runtime
+and the offline validation share it). Its load tracking (:meth:`PhysicalPredictor._track_load`
+with its vectorised steady stretches, :meth:`PhysicalPredictor._steady_run`) and its thermal part
+and interval are one state machine over the same frames, so they stay one class.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+
+from fbgcomp.models import policy as P
+from fbgcomp.models.filters import first_order_recursion
+from fbgcomp.models.physical.thermal import (MAP_LEADS_S, grating_map, housing_leads, housing_mean, map_features,
+                                             ridge_from_moments, thermal_regressors)
+
+#: Names of the TTP force components, in the order of every force array.
+FORCE_AXES = ("fx", "fy", "fz")
+# Low-pass of the gratings' load reading, s: a step is judged on it (so frame rate and batching
+# do not matter) and a load transition follows it.
+LOAD_FAST_S = 0.5
+# Slower low-pass, s: a transition ends when the fast reading agrees with it, at its value.
+LOAD_HOLD_S = 3.0
+#: Expected false load starts per hour of load-free running: a step test is one look per frame
+#: (at most one per 2 LOAD_FAST_S, the low-pass's memory), so its threshold in sigma grows with
+#: the number of looks an hour holds (5.1 sigma at 1 look/s) instead of a fixed 3 sigma that
+#: noise alone crosses a few times a day at 1 Hz.
+LOAD_FALSE_STARTS_PER_H = 1e-3
+# Frames of a stretch without load transition run vectorised at a time, and frames the per-frame
+# recursion takes after a stretch stopped at once (PhysicalPredictor._steady_run).
+STEADY_WINDOW = 4096
+STEADY_BACKOFF = 64
+
+
+def gls_operator(G, Sigma):
+    """GLS force estimator ``(G' W G)^-1 G' W`` (3 x S), its covariance (3 x 3) and W (S x S)
+    for elongation covariance ``Sigma`` (µm²); G in µm per N."""
+    W = np.linalg.pinv(Sigma)
+    info = G.T @ W @ G
+    cov = np.linalg.pinv(info)
+    return cov @ G.T @ W, cov, W
+
+
+
+def excursion2(dT, scale_K, deadband_K=0.0):
+    """Squared thermal excursion of each frame: sum over probes of (dT / scale)^2, where
+    ``scale_K`` is each probe's largest |dT| in training (so 1 ~ the training's extreme) and
+    a change within a probe's ``deadband_K`` (its noise) counts as none."""
+    dT = np.atleast_2d(np.asarray(dT, float))
+    dT = np.sign(dT) * np.maximum(np.abs(dT) - np.asarray(deadband_K, float), 0.0)
+    return np.sum((dT / np.asarray(scale_K, float)) ** 2, axis=1)
+
+
+class PhysicalPredictor:
+    """Vectorised, stateful predictor of one sensor set (full, or without excluded gratings).
+
+    ``predict`` returns the deviation it judges safe to apply (n, 3) µm and the half-width of its
+    95 % interval; ``last_flags`` (n, 3) uint8 holds the policy flags of the last call.
+    """
+
+    def __init__(self, model, exclude=frozenset()):
+        m = model
+        self.exclude = frozenset(exclude)
+        self.sensor_names = list(m.sensor_names)
+        self.probe_names = list(m.probe_names_)
+        self._fmap = grating_map(m.sensors_, m.probe_names_)
+        self._h_idx = [self.probe_names.index(p) for p in m.housing_probes_]
+        self._a_idx = [self.probe_names.index(p) for p in m.ambient_probes_]
+        self.lead_tau_s = float(m.lead_tau_s)
+        self.nominal_dt_s = float(m.nominal_dt_s_)
+        self.A = np.asarray(m.thermal_coef_)                  # (1 + nh, 3)
+        self.h_low, self.h_high = np.asarray(m.thermal_envelope_[0]), np.asarray(m.thermal_envelope_[1])
+        self.t_low, self.t_high = np.asarray(m.thermal_range_um_[0]), np.asarray(m.thermal_range_um_[1])
+        self.margin = float(m.envelope_margin)
+        self.k_sigma = float(m.load_k_sigma)       # also the thermal part's noise shrinkage
+        self.thermal_resid_var = np.asarray(m.thermal_resid_sd_um_) ** 2
+        # interval of the thermal part: variance = v0 + vs s + v1 s^2 + v2 a^2 (s the thermal
+        # excursion, a the housing's lead), fitted on the load-free training campaigns
+        # (``PhysicalModel._fit_interval``); a constant without it
+        iv = getattr(m, "interval_", None)
+        self.interval = None if iv is None else {
+            "v0": np.asarray(iv["v0_um2"], float), "v1": np.asarray(iv["v1_um2"], float),
+            "scale": np.asarray(iv["dT_scale_K"], float), "v2": np.asarray(iv["v2_um2"], float),
+            "activity_scale": float(iv["activity_scale_K"]),
+            "vs": np.asarray(iv.get("vs_um2", np.zeros(3)), float),
+            "deadband": np.asarray(iv.get("deadband_K", 0.0), float)}
+        self.thermal_noise_sd_um = np.asarray(getattr(m, "thermal_noise_sd_um_", np.zeros(3)), float)
+        keep = [i for i, s in enumerate(self.sensor_names) if s not in self.exclude]
+        self._keep = keep
+        self.has_load = m.load_ is not None and len(keep) >= 1
+        if self.has_load:
+            L = m.load_
+            G = np.asarray(L["G_um_per_N"])[keep]
+            self.C = np.asarray(L["C_um_per_N"])                          # (3 axes, 3 forces)
+            self.noise_var = np.asarray(L["noise_var_um2"], float)[keep]
+            noise = np.diag(self.noise_var)
+            unit = np.asarray(L["thermal_sigma_unit_um2"], float)[np.ix_(keep, keep)]
+            self.active = np.asarray(L["active_forces"], bool)
+            Ga = G[:, self.active]
+            # forces the gratings cannot tell from a warming (not separable) stay unknown
+            # nuisances: their signature is absorbed, never read as a load or a contradiction
+            nuis = (~self.active) & (np.abs(G).sum(axis=0) > 0)
+            Gn = G[:, nuis]
+            max_f = np.asarray(L.get("max_force_N", [5000.0] * 3), float)[nuis]
+            nuisance_cov = Gn @ np.diag((1.5 * max_f) ** 2) @ Gn.T if nuis.any() else 0.0
+            # GLS operators at rest (steps are read against the sensors' noise) and at the
+            # training's thermal extreme, s² = 1 (the load part's share of the interval): the
+            # gratings' thermal-reading error grows in proportion to the thermal excursion.
+            self.step_cov = noise + nuisance_cov
+            self.ops = np.zeros((2, 3, len(keep)))
+            self.F_sds = np.zeros((2, 3))
+            for i, s2 in enumerate((0.0, 1.0)):
+                op, cov, _ = gls_operator(Ga, self.step_cov + s2 * unit)
+                self.ops[i][self.active] = op
+                self.F_sds[i][self.active] = np.sqrt(np.clip(np.diag(cov), 0, None))
+            self.F_sd = self.F_sds[0]
+            self.G = G
+            self.dof = len(keep) - int(self.active.sum())
+            self.k_sigma = float(m.load_k_sigma)
+            self.p_contra = float(m.contradiction_p)
+            self.relative_error = float(m.load_relative_error)
+            # no load beyond 1.5x the largest the signature was calibrated with is believed
+            self.max_force_N = 1.5 * np.asarray(L.get("max_force_N", [np.inf] * 3), float)
+            self.offset_tau_s = float(m.offset_tau_s)
+            # a transition ends this long after the load stops, at the mean reading since then
+            self.settle_s = float(m.offset_tau_s)
+            self.drift_N_per_s = np.asarray(L.get("drift_N_per_s", [0.0] * 3), float)
+            self.noise_cov = noise
+            self.nuisance_cov = nuisance_cov + np.zeros_like(noise)
+        self.map = None
+        self.cal = None
+        self.last_cal_features = None
+        if getattr(m, "twin_map_", None) is not None:
+            tm = m.twin_map_
+            S = len(self.sensor_names)
+            k = len(tm["scale"])
+            cols = [i for i in range(k) if i >= S or i in keep]
+            coef = (np.asarray(tm["coef"], float) if len(cols) == k else
+                    ridge_from_moments(tm["gram"], tm["xty"], tm["scale"], cols, float(m.map_ridge)))
+            lo, hi = np.asarray(tm["envelope_low"], float), np.asarray(tm["envelope_high"], float)
+            nz = np.asarray(tm.get("noise_gram", np.zeros((k, k))), float)
+            self.map_noise_sd_um = np.sqrt(np.clip(np.einsum("ka,kl,la->a", coef, nz, coef), 0, None))
+            self.map = {"coef": coef, "low": lo, "high": hi,
+                        "G": (np.asarray(m.load_["G_um_per_N"], float) if m.load_ is not None
+                              else np.zeros((S, 3)))}
+            cal = tm.get("calibration")
+            self.cal = None if cal is None else {
+                "leads_s": tuple(float(x) for x in cal["leads_s"]), "coef": np.asarray(cal["coef"], float),
+                "low": np.asarray(cal["envelope_low"], float), "high": np.asarray(cal["envelope_high"], float)}
+        var = self.thermal_resid_var.copy()
+        if self.has_load:
+            var = var + (self.C ** 2 @ self.F_sds[1] ** 2)
+        self.expected_rms_error_um = np.sqrt(var)
+        self._t = stats.norm.ppf(0.975)
+        self.state = None
+        self.last_flags = np.zeros((0, 3), np.uint8)
+        self.last_force_N = np.zeros((0, 3))
+
+    def reset(self):
+        """Forget the filter and load-tracking state (a new zero state, a new campaign)."""
+        self.state = None
+
+    def _one_grating(self, y, cov) -> bool:
+        """Whether the misfit of the reading ``y`` (S,) is one grating's alone: with some single
+        grating left out, the loads re-estimated from the others explain them. That is a fault
+        (a fibre slips in its bond, a connector is re-seated) and the step is refused. A misfit
+        spread over several gratings is a load or heat the signature does not hold; refusing
+        it would leave a stale load applied (on the twin, +1475 N held while -2500 N was on),
+        so the step is taken."""
+        S = y.size
+        Ga = self.G[:, self.active]
+        dof = S - 1 - Ga.shape[1]
+        if dof < 1:
+            return True
+        limit = stats.chi2.ppf(1 - self.p_contra, dof)
+        for j in range(S):
+            keep = np.arange(S) != j
+            op, _, _ = gls_operator(Ga[keep], cov[np.ix_(keep, keep)])
+            r = y[keep] - Ga[keep] @ (op @ y[keep])
+            if r @ np.linalg.lstsq(cov[np.ix_(keep, keep)], r, rcond=None)[0] <= limit:
+                return True
+        return False
+
+    def _quantile(self, kind, q, dof=None):
+        """scipy.stats quantiles the load tracker asks for on every batch, each computed once
+        (``chi2``: the ``q`` quantile with ``dof``; ``isf``: the normal's upper ``q``)."""
+        cache = self.__dict__.setdefault("_quantiles", {})
+        key = (kind, float(q), dof)
+        if key not in cache:
+            cache[key] = float(stats.chi2.ppf(q, dof) if kind == "chi2" else stats.norm.isf(q))
+        return cache[key]
+
+    #: Run stretches without a load transition vectorised (:meth:`_steady_run`); False runs
+    #: every frame through the per-frame recursion (the reference the fast path is tested on).
+    steady_fast_path = True
+
+    def _steady_run(self, e, dt, applied, offset, xs, f_hold, recent, k_fast, k_start, lag):
+        """Frames of :meth:`_track_load` while no load transition is under way, vectorised.
+
+        With the applied force fixed the recursion is linear: the low-passed gratings
+        ``y = xs + offset`` follow ``e`` (``LOAD_FAST_S``), the thermal offset follows
+        ``e - G applied`` (``offset_tau_s``), the slow force estimate follows the fast one
+        (``LOAD_HOLD_S``) and ``recent`` sums the offset's shifts with a ``LOAD_HOLD_S``
+        memory. They are formed for every frame, the step test is evaluated on all of them,
+        and the frames before the first one whose test fires are accepted. Returns the number
+        of frames accepted and the state after them (offset, xs, f_hold, recent)."""
+        e = np.asarray(e, float)
+        y = first_order_recursion(dt / LOAD_FAST_S, e, xs + offset)
+        off = first_order_recursion(dt / self.offset_tau_s, e - self.G @ applied, offset)
+        off_prev = np.vstack([offset[None, :], off[:-1]])
+        f_fast = (y - off_prev) @ self.ops[0].T
+        k = self.k_sigma
+        sd_fast = self.F_sd[None, :] * np.sqrt(k_fast)[:, None]
+        sq = f_fast ** 2
+        cross = self.relative_error * np.sqrt(np.maximum(sq.sum(axis=1, keepdims=True) - sq, 0.0)) / k
+        limit = np.maximum(np.hypot(k_start[:, None] * sd_fast, k * lag), k * cross)
+        fires = (np.abs(f_fast - applied[None, :]) > limit).any(axis=1)
+        m = int(np.argmax(fires)) if fires.any() else len(e)
+        if m == 0:
+            return 0, offset, xs, f_hold, recent
+        hold = first_order_recursion(dt[:m] / LOAD_HOLD_S, f_fast[:m], f_hold)
+        shift = off[:m] - off_prev[:m]
+        rec = first_order_recursion(dt[:m] / LOAD_HOLD_S, shift, recent, gain=False)
+        return m, off[m - 1].copy(), y[m - 1] - off[m - 1], hold[m - 1].copy(), rec[m - 1].copy()
+
+    def _track_load(self, e, time_s, state, new_state, raw=False, listen=False):
+        """Applied force per frame (n, 3) N, and the frames where a force was clamped (n,) and
+        where a step was refused (n,). ``listen=True`` returns instead the low-passed force
+        reading beyond the tracked offset that the step test sees, and takes no step (how
+        far heat and noise move it on load-free data calibrates ``drift_N_per_s``).
+
+        On CFRP the gratings are thermometers first: their thermal reading drifts by thousands
+        of N of load-equivalent over a day, and no probe predicts it (a radiant load on one face
+        is invisible to a probe on another). What tells a load from heat is time: a load arrives
+        in seconds, a thermal change takes minutes to hours. So the applied force changes only
+        by steps. The gratings beyond their tracked thermal offset are low-passed
+        (``LOAD_FAST_S``); a component whose force estimate stands ``load_k_sigma`` clear of the
+        applied one, of the drift heat can cause within the offset's tracking time
+        (``drift_N_per_s`` x max(``offset_tau_s``, frame interval)) and of the other components'
+        cross-talk starts a load transition. Through the transition the component follows the
+        low-passed estimate, the offset is frozen, and it ends ``3 offset_tau_s`` after the load
+        stopped moving (fast and slow, ``LOAD_HOLD_S``, estimates agree) at the slow estimate.
+        Everything the applied force does not explain is tracked as the gratings' thermal offset
+        (first order, ``offset_tau_s``). All decisions are on time constants in seconds and on
+        the noise the low-pass leaves at the actual frame interval (the training noise taken
+        as a density, variance x interval), so the same signal gives the same correction at any
+        frame rate and in batches of any size."""
+        n, S = e.shape
+        state = state or {}
+        offset = np.array(state.get("offset", np.zeros(S)), float)
+        applied = np.array(state.get("force", np.zeros(3)), float)
+        xs = state.get("fast")                           # low-passed e - offset (S,)
+        f_hold = state.get("hold")                       # slow estimate of the force (3,)
+        mean_sum = np.array(state.get("mean_sum", np.zeros(3)), float)   # since the load stopped
+        mean_w = np.array(state.get("mean_w", np.zeros(3)), float)
+        # what the offset took in over the last ~LOAD_HOLD_S: a load's first moments, before its
+        # step is taken, are given back when it is (else each step leaves ~1 % in the offset)
+        recent = np.array(state.get("recent", np.zeros(S)), float)
+        t_last = state.get("t")
+        t = (np.arange(1, n + 1) * self.nominal_dt_s + (t_last or 0.0) if time_s is None
+             else np.asarray(time_s, float).ravel())
+        dt = np.diff(np.concatenate([[t[0] if t_last is None else t_last], t]))
+        dt = np.clip(dt, 0.0, None)
+        first = xs is None
+        xs = np.zeros(S) if first else np.array(xs, float)
+        f_hold = np.zeros(3) if f_hold is None else np.array(f_hold, float)
+        alpha = 1.0 - np.exp(-dt / self.offset_tau_s)
+        forget = np.exp(-dt / LOAD_HOLD_S)
+        b_fast = 1.0 - np.exp(-dt / LOAD_FAST_S)
+        b_hold = 1.0 - np.exp(-dt / LOAD_HOLD_S)
+        # variance left by a first-order low-pass of white noise, per unit of the training
+        # frame's variance: (nominal / dt) b / (2 - b); 1 for a frame without history
+        rate = self.nominal_dt_s / np.where(dt > 0, dt, self.nominal_dt_s)
+        k_fast = np.where(dt > 0, rate * b_fast / (2.0 - b_fast), 1.0)
+        k_hold = np.where(dt > 0, rate * b_hold / (2.0 - b_hold), 1.0)
+        lag = self.drift_N_per_s[None, :] * np.maximum(dt, self.offset_tau_s)[:, None]
+        op = self.ops[0]
+        Ga = self.G
+        force = np.zeros((n, 3))
+        clamped = np.zeros(n, bool)
+        settle = np.array(state.get("settle", np.zeros(3)), float)   # s left of a load transition
+        refused = np.zeros(n, bool)
+        act = self.active
+        chi2_limit = self._quantile("chi2", 1 - self.p_contra, max(self.dof, 1))
+        k = self.k_sigma
+        look_s, at = np.unique(np.maximum(dt, 2.0 * LOAD_FAST_S), return_inverse=True)
+        k_start = np.maximum(k, np.array([self._quantile("isf", 0.5 * LOAD_FALSE_STARTS_PER_H * s / 3600.0)
+                                          for s in look_s])[at.ravel()] if n else np.zeros(0))
+        i, slow_until = -1, 0
+        while i + 1 < n:
+            i += 1
+            if (self.steady_fast_path and i >= slow_until and not (raw or listen or (first and i == 0))
+                    and not (settle > 0).any()):
+                # No transition under way: the recursion is linear until the first frame whose
+                # step test fires, so run it vectorised up to that frame, at most STEADY_WINDOW
+                # frames at a time (equal to the per-frame recursion to rounding, not bit for
+                # bit: tests/test_physical.py). Where a test fires at once (a refused step
+                # repeating), the next STEADY_BACKOFF frames go through the recursion.
+                w = slice(i, min(i + STEADY_WINDOW, n))
+                m, offset, xs, f_hold, recent = self._steady_run(
+                    e[w], dt[w], applied, offset, xs, f_hold, recent, k_fast[w], k_start[w], lag[w])
+                force[i:i + m] = applied
+                if m == 0:
+                    slow_until = i + STEADY_BACKOFF
+                i += m
+                if i >= n:
+                    break
+                if m == w.stop - w.start:       # the window ran out before any test fired
+                    i -= 1
+                    continue
+            x_now = e[i] - offset
+            if raw:
+                force[i] = op @ x_now
+                continue
+            if first and i == 0:
+                xs = x_now.copy()
+                f_hold = op @ xs
+            else:
+                xs += b_fast[i] * (x_now - xs)
+            f_fast = op @ xs
+            f_hold += b_hold[i] * (f_fast - f_hold)
+            if listen:
+                force[i] = f_fast - applied
+                shift = alpha[i] * (e[i] - Ga @ applied - offset)
+                offset += shift
+                xs -= shift
+                continue
+            sd_fast = self.F_sd * np.sqrt(k_fast[i])
+            other = np.sqrt(np.maximum((f_fast ** 2).sum() - f_fast ** 2, 0.0))
+            cross = self.relative_error * other / k
+            moving = settle > 0
+            step = f_fast - applied
+            # noise is judged at the false-start rate; the drift allowance (already a 99th
+            # percentile of what heat did in training) and cross-talk at k sigma
+            limit = np.maximum(np.hypot(k_start[i] * sd_fast, k * lag[i]), k * cross)
+            take = (~moving) & (np.abs(step) > limit)
+            if take.any() and self.dof >= 1:
+                # a step no load explains (one grating jumps: a fibre slips, a connector is
+                # re-seated) is refused, and the offset absorbs it
+                new = np.where(take | moving, f_fast, applied)   # moving ones follow too
+                r = xs - Ga @ new
+                g = self.relative_error * (Ga[:, act] @ (new - applied)[act])
+                cov = self.noise_cov * k_fast[i] + self.nuisance_cov + np.outer(g, g)
+                if r @ np.linalg.lstsq(cov, r, rcond=None)[0] > chi2_limit and self._one_grating(xs, cov):
+                    refused[i] = True
+                    take[:] = False
+            if take.any():
+                if not (settle > 0).any():
+                    offset -= recent
+                    xs += recent
+                    f_fast = op @ xs
+                    recent[:] = 0.0
+                settle = np.where(take, self.settle_s, settle)
+                f_hold = np.where(take, f_fast, f_hold)
+            moving = settle > 0
+            if moving.any():
+                # in a transition: follow the low-passed force; still moving while the fast and
+                # slow estimates disagree beyond their noise
+                sd_hold = self.F_sd * np.sqrt(k_hold[i])
+                still = moving & (np.abs(f_fast - f_hold)
+                                  > k * np.maximum(np.hypot(sd_fast, sd_hold), cross))
+                settle = np.where(still, self.settle_s, settle)
+                mean_sum = np.where(still, 0.0, mean_sum + dt[i] * f_fast)
+                mean_w = np.where(still, 0.0, mean_w + dt[i])
+                applied = np.where(moving, f_fast, applied)
+                settle = np.maximum(settle - dt[i], 0.0)
+                ended = moving & (settle <= 0) & (mean_w > 0)
+                applied = np.where(ended, mean_sum / np.where(mean_w > 0, mean_w, 1.0), applied)
+                mean_sum = np.where(moving & ~(settle > 0), 0.0, mean_sum)
+                mean_w = np.where(moving & ~(settle > 0), 0.0, mean_w)
+            big = np.abs(applied) > self.max_force_N
+            if big.any():
+                clamped[i] = True
+                applied = np.clip(applied, -self.max_force_N, self.max_force_N)
+            if not (settle > 0).any():
+                shift = alpha[i] * (e[i] - Ga @ applied - offset)
+                offset += shift
+                xs -= shift                        # xs is relative to the offset
+                recent = recent * forget[i] + shift
+            force[i] = applied
+        new_state["load"] = {"offset": offset, "force": applied, "settle": settle, "fast": xs,
+                             "hold": f_hold, "mean_sum": mean_sum, "mean_w": mean_w, "recent": recent,
+                             "t": float(t[-1]) if n else t_last}
+        return force, clamped, refused
+
+    def predict(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C, *,
+                time_s=None, z_axis_mm=None, raw=False, thermal_policy=True):
+        """Applied TTP deviation (n, 3) µm and 95 % half-width (n, 3) µm; ``raw=True`` skips
+        the policy (envelope clipping, axis clamp, load gating) for diagnosis."""
+        wl = np.atleast_2d(np.asarray(wavelength_nm, dtype=float))
+        n = wl.shape[0]
+        flags = np.zeros((n, 3), np.uint8)
+        state = self.state or {}
+        new_state = {}
+        dT = np.atleast_2d(np.asarray(temperature_C, float)) - np.asarray(temperature_zero_C, float)
+        w = wl.copy()
+        w0 = np.asarray(wavelength_zero_nm, float)
+        lost = [i for i, s in enumerate(self.sensor_names) if s in self.exclude]
+        w[:, lost] = w0[lost]
+        e_all = self._fmap.base(w, temperature_C, w0, temperature_zero_C)
+        load = np.zeros((n, 3))
+        force = np.zeros((n, 3))
+        if self.has_load:
+            force, clamped, refused = self._track_load(e_all[:, self._keep], time_s, state.get("load"),
+                                                       new_state, raw)
+            flags[clamped] |= P.CLAMPED
+            flags[refused] |= P.LOAD_REFUSED
+            load = force @ self.C.T
+        if self.map is not None:
+            # the gratings minus the load read from them are thermometers of their gauges
+            e_th = e_all - force @ self.map["G"].T
+            e_th[:, lost] = 0.0
+            X, new_state["map"] = map_features(e_th, dT, self._h_idx, time_s, state.get("map"),
+                                               self.nominal_dt_s)
+            activity = X[:, -len(MAP_LEADS_S)]          # the housing's fastest lead, K
+            L = None
+            if self.cal is not None:
+                S = len(self.sensor_names)
+                smooth = X[:, S:S + len(self.probe_names)]
+                new_state["cal"] = {}
+                housing = housing_mean(smooth, self._h_idx)
+                L = np.hstack([housing, housing_leads(housing, self.cal["leads_s"], time_s, state.get("cal", {}),
+                                                      new_state["cal"], self.nominal_dt_s)])
+            self.last_cal_features = L
+            if raw or not thermal_policy:
+                thermal = X @ self.map["coef"]
+                if L is not None:
+                    thermal = thermal + L @ self.cal["coef"]
+            else:
+                Xc, outside = P.clip_to_envelope(X, self.map["low"], self.map["high"], self.margin)
+                thermal = Xc @ self.map["coef"]
+                if L is not None:
+                    Lc, out_l = P.clip_to_envelope(L, self.cal["low"], self.cal["high"], self.margin)
+                    thermal = thermal + Lc @ self.cal["coef"]
+                    outside = outside | out_l
+                # what the sensors' noise alone would make of the map is not applied
+                thermal = P.firm(thermal, self.map_noise_sd_um, self.k_sigma, 2 * self.k_sigma)
+                thermal, clamped = P.clamp_axes(thermal, self.t_low, self.t_high)
+                flags[outside] |= P.SHRUNK
+                flags[clamped] |= P.CLAMPED
+        else:
+            # no twin: the housing fit on the measured load-free campaigns
+            H, new_state["h"] = thermal_regressors(dT, self._h_idx, self._a_idx, self.lead_tau_s, time_s,
+                                                   state.get("h"), self.nominal_dt_s)
+            activity = H[:, -1] if self._h_idx else np.zeros(n)
+            if raw or not thermal_policy:
+                thermal = H @ self.A
+            else:
+                Hc, outside = P.clip_to_envelope(H[:, 1:], self.h_low, self.h_high, self.margin)
+                Hc = np.hstack([H[:, :1], Hc])
+                thermal = P.firm(Hc @ self.A, self.thermal_noise_sd_um, self.k_sigma, 2 * self.k_sigma)
+                thermal, clamped = P.clamp_axes(thermal, self.t_low, self.t_high)
+                flags[outside] |= P.SHRUNK
+                flags[clamped] |= P.CLAMPED
+        self.state = new_state
+        self.last_flags = flags
+        self.last_force_N = force
+        deviation = thermal + load
+        self.last_activity = activity
+        return deviation, self._t * np.sqrt(self._variance(dT, activity, force))
+
+    def _variance(self, dT, activity, force):
+        """Predictive variance (n, 3) µm²: the thermal part's error at the current thermal
+        excursion, plus, while a load is applied, the force estimate's noise and the signature's
+        relative error through the compliance."""
+        n = dT.shape[0]
+        if self.interval is None:
+            return self.expected_rms_error_um[None, :] ** 2 + np.zeros((n, 3))
+        iv = self.interval
+        s2 = excursion2(dT, iv["scale"], iv["deadband"])
+        a2 = (np.asarray(activity, float) / iv["activity_scale"]) ** 2
+        var = (iv["v0"][None, :] + iv["vs"][None, :] * np.sqrt(s2)[:, None] + iv["v1"][None, :] * s2[:, None]
+               + iv["v2"][None, :] * a2[:, None])
+        if self.has_load:
+            on = (force != 0.0).astype(float)                       # components applied
+            var = var + (on * self.F_sds[1] ** 2) @ (self.C ** 2).T + (self.relative_error * force @ self.C.T) ** 2
+        return var

@@ -1,0 +1,92 @@
+"""The physical model file's shape checks: every array as its sensors and probes imply."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fbgcomp.errors import InputError
+from fbgcomp.models.physical.thermal import MAP_LEADS_S
+
+
+def check_shapes(d: dict, source) -> None:
+    """Every array of a physical model file has the shape its sensors and probes imply, and the
+    sensor and probe names are distinct strings; InputError naming the first field that does not."""
+    def need(cond, field, what):
+        if not cond:
+            raise InputError(what, file=source, column=f"field {field}")
+
+    def array(node, field, shape):
+        try:
+            a = np.asarray(node, dtype=float)
+        except (TypeError, ValueError):
+            raise InputError("not an array of numbers", file=source, column=f"field {field}") from None
+        need(a.shape == tuple(shape), field, f"shape {a.shape} where {tuple(shape)} is expected")
+        return a
+
+    def names(node, field):
+        need(isinstance(node, list) and all(isinstance(x, str) for x in node), field, "must be a list of names")
+        need(len(set(node)) == len(node), field, "names must be distinct")
+        return node
+
+    need(isinstance(d.get("sensors"), list) and d["sensors"]
+         and all(isinstance(x, dict) for x in d["sensors"]), "sensors", "must be a non-empty list of sensors")
+    sensor_names = names([x.get("name") for x in d["sensors"]], "sensors")
+    probes = names(d.get("probes"), "probes")
+    for key in ("housing_probes", "ambient_probes"):
+        got = names(d.get(key), key)
+        need(all(p in probes for p in got), key, "names a probe the model does not read")
+    S, P = len(sensor_names), len(probes)
+    nh = 1 + len(d["housing_probes"]) + len(d["ambient_probes"]) + (1 if d["housing_probes"] else 0)
+    need(isinstance(d.get("nominal_dt_s"), (int, float)) and not isinstance(d["nominal_dt_s"], bool)
+         and d["nominal_dt_s"] > 0, "nominal_dt_s", "must be a positive number")
+    th = d.get("thermal")
+    need(isinstance(th, dict), "thermal", "must be a mapping")
+    array(th.get("coef"), "thermal.coef", (nh, 3))
+    for key in ("envelope_low", "envelope_high"):
+        array(th.get(key), f"thermal.{key}", (nh - 1,))
+    for key in ("range_low_um", "range_high_um", "resid_sd_um"):
+        array(th.get(key), f"thermal.{key}", (3,))
+    need(np.all(np.asarray(th["resid_sd_um"], float) >= 0), "thermal.resid_sd_um", "must be >= 0")
+    if "noise_sd_um" in th:
+        array(th["noise_sd_um"], "thermal.noise_sd_um", (3,))
+    L = d.get("load")
+    if L is not None:
+        need(isinstance(L, dict), "load", "must be a mapping or null")
+        for key, shape in (("G_um_per_N", (S, 3)), ("C_um_per_N", (3, 3)), ("grating_thermal_coef", (nh, S)),
+                           ("thermal_sigma_unit_um2", (S, S)), ("thermal_scale", (P,)),
+                           ("noise_var_um2", (S,)), ("active_forces", (3,))):
+            array(L.get(key), f"load.{key}", shape)
+        for key in ("max_force_N", "drift_N_per_s"):
+            if key in L:
+                array(L[key], f"load.{key}", (3,))
+        need(np.all(np.asarray(L["noise_var_um2"], float) >= 0), "load.noise_var_um2", "must be >= 0")
+    iv = d.get("interval")
+    if iv is not None:
+        need(isinstance(iv, dict), "interval", "must be a mapping or null")
+        # vs_um2 is absent from files written before the interval's linear term
+        for key in ("v0_um2", "v1_um2", "v2_um2") + (("vs_um2",) if "vs_um2" in iv else ()):
+            need(np.all(array(iv.get(key), f"interval.{key}", (3,)) >= 0), f"interval.{key}", "must be >= 0")
+        need(np.all(array(iv.get("dT_scale_K"), "interval.dT_scale_K", (P,)) > 0), "interval.dT_scale_K",
+             "must be > 0")
+        if "deadband_K" in iv:
+            array(iv["deadband_K"], "interval.deadband_K", (P,))
+        a = iv.get("activity_scale_K")
+        need(isinstance(a, (int, float)) and not isinstance(a, bool) and a > 0, "interval.activity_scale_K",
+             "must be a positive number")
+    tm = d.get("twin_map")
+    if tm is not None:
+        need(isinstance(tm, dict), "twin_map", "must be a mapping or null")
+        k = S + P + len(MAP_LEADS_S)
+        for key, shape in (("coef", (k, 3)), ("gram", (k, k)), ("xty", (k, 3)), ("scale", (k,)),
+                           ("noise_gram", (k, k)), ("envelope_low", (k,)), ("envelope_high", (k,))):
+            array(tm.get(key), f"twin_map.{key}", shape)
+        need(np.all(np.asarray(tm["scale"], float) > 0), "twin_map.scale", "must be > 0")
+        cal = tm.get("calibration")
+        if cal is not None:
+            need(isinstance(cal, dict), "twin_map.calibration", "must be a mapping or null")
+            leads = array(cal.get("leads_s"), "twin_map.calibration.leads_s", (len(cal.get("leads_s") or []),))
+            need(leads.size > 0 and np.all(leads > 0), "twin_map.calibration.leads_s",
+                 "must be positive time constants")
+            array(cal.get("coef"), "twin_map.calibration.coef", (1 + leads.size, 3))
+            for key in ("envelope_low", "envelope_high"):
+                array(cal.get(key), f"twin_map.calibration.{key}", (1 + leads.size,))

@@ -1,0 +1,213 @@
+"""The physical model's thermal part: regressors, the twin-learned thermal map and probe roles.
+
+Pure, vectorised pieces of :class:`~fbgcomp.models.physical.PhysicalModel`'s thermal part: the
+housing and ambient regressors fitted on measured load-free campaigns (:func:`thermal_regressors`),
+the features of the ridge map learned on the machine's FE twin (:func:`map_features`,
+:func:`twin_thermal_population`, :func:`ridge_from_moments`), the housing leads its transient is
+calibrated on, the gratings' uncompensated feature map and which probes sit on the housing or in
+the air.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fbgcomp.models.features import FeatureMap
+from fbgcomp.models.filters import first_order_filter
+from fbgcomp.optics import wavelength_nm
+from fbgcomp.structure.scenarios import generic_heat_machine, thermal_scenarios
+
+#: Low-pass of the probe temperatures before the thermal regressors, s.
+PROBE_SMOOTHING_S = 60.0
+
+
+def weighted_lstsq(X, Y, w):
+    """Weighted least squares ``min sum w (Y - X B)^2``; returns B and the weighted residuals'
+    covariance (columns of Y), with the weights normalised to the number of rows."""
+    sw = np.sqrt(w)[:, None]
+    B, *_ = np.linalg.lstsq(X * sw, Y * sw, rcond=None)
+    R = Y - X @ B
+    wn = w / w.sum()
+    cov = (R * wn[:, None]).T @ R
+    return B, cov
+
+
+def thermal_regressors(delta_T_K, housing_idx, ambient_idx, lead_tau_s, time_s=None, state=None,
+                       nominal_dt_s=1.0):
+    """Thermal regressors (n, 1 + nh): [1, ΔT of each housing probe, ΔT of each ambient probe,
+    lead of the mean housing ΔT (``T - lowpass(T, lead_tau_s)``, K)] and the filter state.
+
+    ``delta_T_K`` (n, P) are probe temperature changes from the zero state."""
+    dT = np.atleast_2d(np.asarray(delta_T_K, dtype=float))
+    n = dT.shape[0]
+    state = state or {}
+    # Probes are quantised (0.1 K is typical) and sampled slowly: a 60 s low-pass keeps their
+    # steps out of the correction (thermal drift is far slower), then the lead term is formed.
+    used = list(housing_idx) + list(ambient_idx)
+    smooth, state_in = first_order_filter(dT[:, used], time_s, PROBE_SMOOTHING_S, state.get("in"), nominal_dt_s)
+    cols = [np.ones((n, 1)), smooth]
+    new_state = {"in": state_in}
+    if len(housing_idx):
+        housing = smooth[:, :len(housing_idx)].mean(axis=1, keepdims=True)
+        slow, new_state["lead"] = first_order_filter(housing, time_s, lead_tau_s, state.get("lead"), nominal_dt_s)
+        cols.append(housing - slow)
+    return np.hstack(cols), new_state
+
+
+
+
+#: Time constants of the housing lead terms of the twin-learned thermal map, s.
+MAP_LEADS_S = (300.0, 1800.0)
+
+
+def map_features(e_um, delta_T_K, housing_idx, time_s=None, state=None, nominal_dt_s=1.0):
+    """Features of the twin-learned thermal map (n, S + P + 2) and the filter state:
+    [uncompensated grating elongations e (µm), every probe's ΔT low-passed over
+    ``PROBE_SMOOTHING_S`` (K), the mean housing ΔT's lead ``T - lowpass(T, tau)`` for each tau
+    of ``MAP_LEADS_S`` (K)]. On CFRP the gratings are thermometers of their gauges (~5 µm of
+    uncompensated elongation per K over 600 mm), which is why they carry the face gradients."""
+    e = np.atleast_2d(np.asarray(e_um, float))
+    dT = np.atleast_2d(np.asarray(delta_T_K, float))
+    state = state or {}
+    smooth, s_in = first_order_filter(dT, time_s, PROBE_SMOOTHING_S, state.get("in"), nominal_dt_s)
+    new = {"in": s_in}
+    leads = housing_leads(housing_mean(smooth, housing_idx), MAP_LEADS_S, time_s, state, new, nominal_dt_s)
+    return np.hstack([e, smooth, leads]), new
+
+
+#: Time constants of the housing leads on which the twin map's housing transient is calibrated
+#: against the measured load-free campaigns, s.
+CAL_LEADS_S = (300.0, 900.0)
+
+
+def housing_mean(smooth_K, housing_idx):
+    """Mean ΔT (n, 1) K of the housing probes among probe ΔTs already low-passed over
+    ``PROBE_SMOOTHING_S`` (zeros without a housing probe)."""
+    smooth = np.atleast_2d(smooth_K)
+    return (smooth[:, list(housing_idx)].mean(axis=1, keepdims=True) if len(housing_idx)
+            else np.zeros((smooth.shape[0], 1)))
+
+
+def housing_leads(housing_K, taus_s, time_s, state, new_state, nominal_dt_s=1.0):
+    """The housing ΔT's leads ``T - lowpass(T, tau)`` (n, len(taus_s)) K, from its mean ΔT
+    (:func:`housing_mean`); each filter's state is read from ``state`` and written to
+    ``new_state`` under ``lead<tau>``."""
+    cols = []
+    for tau in taus_s:
+        key = f"lead{tau:g}"
+        slow, new_state[key] = first_order_filter(housing_K, time_s, tau, state.get(key), nominal_dt_s)
+        cols.append(housing_K - slow)
+    return np.hstack(cols)
+
+
+def ridge_from_moments(gram, xty, scale, keep, lam):
+    """Ridge coefficients (k, 3) from second moments ``gram = X'X/n`` and ``xty = X'Y/n`` on the
+    feature columns ``keep`` (others get 0), features standardised by ``scale``, penalty ``lam``."""
+    keep = np.asarray(keep, int)
+    sc = np.asarray(scale, float)[keep]
+    g = np.asarray(gram, float)[np.ix_(keep, keep)] / np.outer(sc, sc)
+    b = np.asarray(xty, float)[keep] / sc[:, None]
+    coef = np.zeros((len(scale), np.asarray(xty).shape[1]))
+    coef[keep] = np.linalg.solve(g + lam * np.eye(len(keep)), b) / sc[:, None]
+    return coef
+
+
+def twin_thermal_population(machine, sensors, probe_names, housing_probes, n_scenarios=40, seed=0,
+                            grating_noise_um=0.1, probe_noise_K=0.1):
+    """Second moments of (map features, TTP) over the twin's generic thermal scenarios
+    (:mod:`fbgcomp.structure.scenarios`), or None when the machine description lacks one of
+    the campaign's gratings or probes. Measurement noise is added as the instruments have it
+    (seeded), so the map does not lean on differences finer than the sensors resolve."""
+    names = [s.name for s in machine.sensors]
+    mprobes = [p.name for p in machine.probes]
+    # a strain-free reference grating (<sensor>_ref) reads the temperature of its sensor's gauge
+    ref_of = {f"{n}_ref": n for n in names}
+    if any(s.name not in names for s in sensors) or \
+            any(p not in mprobes and p not in ref_of for p in probe_names):
+        return None
+    from fbgcomp.structure import Twin  # the FE twin needs scikit-fem, the optional ``fe`` extra
+
+    twin = Twin(generic_heat_machine(machine))
+    idx = [twin.sensor_names.index(s.name) for s in sensors]
+    # each thermometer's column in the twin's response: a probe's, or its gauge's temperature
+    sources = [("probe_C", twin.probe_names.index(p)) if p in mprobes
+               else ("sensor_temperature_C", twin.sensor_names.index(ref_of[p])) for p in probe_names]
+
+    def thermometers(r):
+        return np.column_stack([getattr(r, field)[:, i] for field, i in sources]) if sources \
+            else np.zeros((r.time_s.size, 0))
+
+    h_idx = [list(probe_names).index(p) for p in housing_probes]
+    fmap = grating_map(sensors, probe_names)
+    rng = np.random.default_rng(seed)
+    lam0 = np.array([s.lambda0_nm for s in sensors])
+    k = len(sensors) + len(probe_names) + len(MAP_LEADS_S)
+    gram, xty, noise, n = np.zeros((k, k)), np.zeros((k, 3)), np.zeros((k, k)), 0
+    lo, hi = np.full(k, np.inf), np.full(k, -np.inf)
+    ylo, yhi = np.full(3, np.inf), np.full(3, -np.inf)
+    for inputs, r in thermal_scenarios(twin, n_scenarios, seed):
+        r = r.change_from_start()
+        t = r.time_s
+        el0 = r.sensor_elongation_um[:, idx]
+        el = el0 + rng.normal(0, grating_noise_um, (t.size, len(idx)))
+
+        def features(el, dT):
+            wl = np.column_stack([
+                wavelength_nm(el[:, j], s.lambda0_nm, s.gauge_length_mm, r.sensor_temperature_C[:, i],
+                              photoelastic=s.photoelastic, thermo_optic_per_K=s.thermo_optic_per_K,
+                              fibre_cte_per_K=s.fibre_cte_per_K)
+                for j, (i, s) in enumerate(zip(idx, sensors))])
+            return map_features(fmap.base(wl, dT, lam0, np.zeros(len(sources))), dT, h_idx, t)[0]
+
+        # probe noise, and the error of a zero state read from a single slow probe sample
+        dT0 = thermometers(r)
+        dT = (dT0 + rng.normal(0, probe_noise_K, (t.size, len(sources)))
+              + rng.normal(0, probe_noise_K, len(sources)))
+        X = features(el, dT)
+        N = X - features(el0, dT0)
+        noise += N.T @ N
+        Y = r.ttp_um
+        gram += X.T @ X
+        xty += X.T @ Y
+        n += t.size
+        lo, hi = np.minimum(lo, X.min(axis=0)), np.maximum(hi, X.max(axis=0))
+        ylo, yhi = np.minimum(ylo, Y.min(axis=0)), np.maximum(yhi, Y.max(axis=0))
+    gram, xty, noise = gram / n, xty / n, noise / n
+    return {"gram": gram.tolist(), "xty": xty.tolist(), "scale": np.sqrt(np.diag(gram)).tolist(),
+            "noise_gram": noise.tolist(),
+            "n_samples": n, "n_scenarios": n_scenarios, "seed": seed,
+            "envelope_low": lo.tolist(), "envelope_high": hi.tolist(),
+            "ttp_low_um": ylo.tolist(), "ttp_high_um": yhi.tolist(),
+            "features": [f"e_{s.name}" for s in sensors] + [f"dT_{p}" for p in probe_names]
+            + [f"lead{tau:g}s_housing" for tau in MAP_LEADS_S]}
+
+
+def grating_map(sensors, probe_names):
+    """Feature map of the gratings' *uncompensated* elongations (paper eq. 2-4 with dT = 0).
+
+    The load part never compensates a grating with a probe on another face: a 0.1 K step of a
+    quantised remote probe is ~0.5 µm of false elongation on a 600 mm CFRP gauge, hundreds of N
+    of false load. The gratings' own thermal reading is modelled instead (``B``, ``Sigma``)."""
+    bare = [s.model_copy(update={"temperature_probe": None}) for s in sensors]
+    return FeatureMap(bare, probe_names, False)
+
+
+def housing_probe_names(probe_names, machine=None):
+    """Probes on the spindle housing (the machine description's point probes below z = 0, else
+    names containing 'flange', 'housing' or 'spindle')."""
+    if machine is not None:
+        found = [p.name for p in machine.probes
+                 if p.kind == "point" and p.z_mm is not None and p.z_mm < 0 and p.name in probe_names]
+        if found:
+            return found
+    keys = ("flange", "housing", "spindle")
+    return [p for p in probe_names if any(k in p.lower() for k in keys)]
+
+
+def ambient_probe_names(probe_names, machine=None):
+    """Probes in the air (the machine description's ambient probes, else names containing 'amb')."""
+    if machine is not None:
+        found = [p.name for p in machine.probes if p.kind == "ambient" and p.name in probe_names]
+        if found:
+            return found
+    return [p for p in probe_names if "amb" in p.lower()]
