@@ -1,3 +1,5 @@
+"""``python -m fbgcomp``: the ``fbgcomp`` command line (:func:`fbgcomp.cli.app.main`)."""
+
 import sys
 
 from fbgcomp.cli.app import main
