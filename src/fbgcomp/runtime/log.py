@@ -41,6 +41,7 @@ import threading
 import time
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pandas as pd
@@ -52,6 +53,9 @@ from fbgcomp.optics import free_grating_wavelength_nm
 from fbgcomp.runtime.health import STATUS_NAMES
 from fbgcomp.runtime.pipeline import HEALTH_NAMES
 from fbgcomp.units import AXES
+
+if TYPE_CHECKING:
+    import pyarrow
 
 log = logging.getLogger("fbgcomp.runtime")
 DATA_DIR = "data"          # LOG/data/date=YYYY-MM-DD/part-*.parquet

@@ -240,7 +240,6 @@ class AdaptiveLevelFilter:
         return p
 
     def _block(self, bm: np.ndarray) -> None:
-        cfg = self.config
         slot = self.k % self.ring_n
         self.b[slot] = bm
         first = self.level is None

@@ -447,7 +447,6 @@ class Service:
 
     def _snapshot(self, res, wavelength_nm, received_s) -> Snapshot:
         k = int(res.model_set[-1])
-        names = self.pipeline.sensor_names
         fallback = ",".join(sorted(self.pipeline.model_sets[k])) if k > 0 else ""
         h = int(res.health[-1])
         # plain Python numbers: the snapshot is pickled to the OPC UA process per update
