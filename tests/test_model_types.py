@@ -11,7 +11,12 @@ import pytest
 
 from fbgcomp.bench.virtual import Scenario, load_scenario, simulate
 from fbgcomp.io.campaign import read_campaign, write_campaign
-from fbgcomp.models import CalibratedModel, DynamicModel, HybridModel, KinematicModel, MRAModel, load_model
+from sklearn.base import clone
+from sklearn.utils.estimator_checks import (check_get_params_invariance, check_no_attributes_set_in_init,
+                                            check_set_params)
+
+from fbgcomp.models import (CalibratedModel, DynamicModel, HybridModel, KinematicModel, MRAModel, PhysicalModel,
+                            load_model)
 from fbgcomp.models.filters import first_order_filter
 from fbgcomp.models.metrics import static_level_metrics, validation_metrics
 from fbgcomp.structure import Twin, load_machine
@@ -349,3 +354,63 @@ def test_closure_factor_fit_leaves_unexcited_factors_at_their_prior():
     assert 20 * f[1] + 170 * f[3] == pytest.approx(198.5, abs=0.5)
     assert sd < 2.0
 
+
+# ------------------------------------------------------------------ scikit-learn estimator contract
+ESTIMATORS = {"mra": MRAModel, "kinematic": KinematicModel, "hybrid": HybridModel, "calibrated": CalibratedModel,
+              "dynamic": DynamicModel, "physical": PhysicalModel}
+
+
+@pytest.mark.parametrize("kind", list(ESTIMATORS))
+def test_every_model_type_is_a_scikit_learn_estimator(kind):
+    """Every model type follows scikit-learn's estimator contract: ``sklearn.base.clone`` works,
+    ``get_params`` / ``set_params`` round-trip, hyper-parameters are stored unchanged in
+    ``__init__`` and nothing else is set there.
+
+    Of ``sklearn.utils.estimator_checks`` this runs the checks that take the estimator alone:
+    ``check_get_params_invariance``, ``check_set_params`` and ``check_no_attributes_set_in_init``.
+    ``check_dont_overwrite_parameters`` and every other check fit on random numeric arrays
+    (``X`` (n, 3), integer ``y``); these estimators fit on campaigns (time series of wavelengths,
+    temperatures and reference deviations, aligned by their clocks), so those checks do not apply
+    as written: :func:`test_fit_sets_only_learned_state` applies the first one's rule to a fit on
+    campaigns instead.
+    """
+    cls = ESTIMATORS[kind]
+    est = cls()
+    assert est.model_type == kind
+    copy = clone(est)
+    assert type(copy) is cls and copy is not est and copy.get_params() == est.get_params()
+    params = est.get_params()
+    assert est.set_params(**params) is est and est.get_params() == params
+    est.set_params(zero_window_s=5.0)
+    assert est.zero_window_s == 5.0 and clone(est).get_params()["zero_window_s"] == 5.0
+    with pytest.raises(ValueError, match="invalid parameter"):
+        est.set_params(no_such_parameter=1)
+    for check in (check_get_params_invariance, check_set_params, check_no_attributes_set_in_init):
+        check(cls.__name__, cls())
+    # a tuple hyper-parameter is stored as given (clone checks identity), not converted
+    if "taus_s" in params:
+        taus = [600.0, 3600.0]
+        assert cls(taus_s=taus).taus_s is taus and clone(cls(taus_s=taus)).taus_s == taus
+
+
+@pytest.mark.parametrize("kind", list(ESTIMATORS))
+def test_fit_sets_only_learned_state(campaigns, kind):
+    """``check_dont_overwrite_parameters``' rule on a fit on campaigns: ``fit`` adds or changes
+    no public attribute other than learned state (trailing underscore), and returns the model."""
+    est = clone(ESTIMATORS[kind]())
+    before = dict(vars(est))
+    assert est.fit([campaigns["thermal-a"], campaigns["static-y"]]) is est
+    after = vars(est)
+    public = [k for k in after if not k.startswith("_") and not k.endswith("_")]
+    assert [k for k in public if k not in before] == []
+    assert [k for k in public if after[k] is not before[k]] == []
+    assert "sensors_" in after and "training_" in after
+
+
+def test_unfitted_kinematic_model_has_no_learned_state():
+    """The kinematic model's chain is built by ``fit`` (which needs no campaign), not lazily."""
+    model = KinematicModel()
+    assert not [k for k in vars(model) if k.endswith("_")]
+    with pytest.raises(AttributeError, match="not fitted"):
+        model.predictor()
+    assert model.fit().predictor().sensor_names == ["S1", "S2", "S3", "S4", "S5"]
