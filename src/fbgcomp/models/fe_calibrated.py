@@ -14,6 +14,7 @@ import numpy as np
 import pandas as pd
 
 from fbgcomp import optics
+from fbgcomp.models.base import CHUNK_ROWS
 from fbgcomp.models.features import TEMPERATURE_FEATURES, TemperatureRoles, design_matrix
 from fbgcomp.models.machines import campaign_sensor_specs
 from fbgcomp.models.mra import MRAModel
@@ -130,7 +131,7 @@ def fe_calibrate(machine, twin=None, *, features="eq11", n_samples=2000, wavelen
     fmap = model._feature_map()
     keep = [c for c in X.columns if c in fmap.base_names]
     accumulate_series(acc, [(design_matrix(X[keep].to_numpy(), keep, model.candidates_),
-                             np.asarray(y, dtype=float), None)])
+                             np.asarray(y, dtype=float), None)], chunk_rows=CHUNK_ROWS)
     model.fit_factor(acc, training={"campaigns": [], "n_samples": int(n_samples),
                                     "fe_design": _design_record(seed, n_samples, wavelength_noise_nm)})
     return model, cases

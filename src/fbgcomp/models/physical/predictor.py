@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
-from fbgcomp.models import policy as P
+import fbgcomp.models.policy as P
 from fbgcomp.models.filters import first_order_recursion
 from fbgcomp.models.physical.thermal import (MAP_LEADS_S, grating_map, housing_leads, housing_mean, map_features,
                                              ridge_from_moments, thermal_regressors)
