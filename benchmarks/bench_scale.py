@@ -6,7 +6,7 @@ consumes it*, chunk by chunk (``--chunk-rows``): raw interrogator wavelengths (n
 elongations through the bonded-FBG forward model, paper eq. 2-4), probe temperatures (°C) and a
 TTP deviation (µm) that is a known eq. 13 combination plus noise. The task runs the production
 feature chain (:meth:`fbgcomp.models.mra.MRAModel.design_from_arrays`) into a QR factor; factors are
-merged as a binary tree by :func:`fbgcomp.io.distributed.tree_reduce` (on the workers with Dask),
+merged as a binary tree by :func:`fbgcomp.cluster.tree_reduce` (on the workers with Dask),
 and the eq. 13 stepwise model is selected from the final factor. No process ever holds more
 than one chunk of rows, so the memory of a worker must stay flat as rows grow.
 
@@ -133,7 +133,7 @@ def fit_from_state(state: dict):
 
 def in_process_run(rows: int, partition_rows: int, chunk_rows: int) -> dict:
     """Runs in a fresh child process so that its peak RSS is this run's alone."""
-    from fbgcomp.io.distributed import tree_reduce
+    from fbgcomp.cluster import tree_reduce
 
     idle = current_rss_mb()
     t0, c0 = time.perf_counter(), cpu_s()
@@ -147,7 +147,7 @@ def in_process_run(rows: int, partition_rows: int, chunk_rows: int) -> dict:
 def dask_run(rows: int, partition_rows: int, chunk_rows: int, workers: int) -> dict:
     from distributed import Client
 
-    from fbgcomp.io.distributed import local_cluster, tree_reduce
+    from fbgcomp.cluster import local_cluster, tree_reduce
 
     with local_cluster(workers, memory_limit=0) as lc, Client(lc) as client:
         idle = client.run(current_rss_mb)

@@ -9,7 +9,8 @@ import pytest
 
 from fbgcomp.io.campaign import read_campaign, write_campaign
 from fbgcomp.io.dataset import ingest
-from fbgcomp.io.distributed import accumulate_paths, fit_paths, map_over_cluster
+from fbgcomp.cluster import map_over_cluster
+from fbgcomp.models.distributed import accumulate_paths, fit_paths
 from fbgcomp.errors import InputError
 from fbgcomp.models.mra import MRAModel
 from fbgcomp.units import AXES
@@ -24,7 +25,7 @@ def client():
     """A real LocalCluster: two single-threaded worker processes."""
     distributed = require("distributed")
     require("pyarrow")
-    from fbgcomp.io.distributed import local_cluster
+    from fbgcomp.cluster import local_cluster
 
     with local_cluster(2) as lc, distributed.Client(lc) as c:
         yield c

@@ -279,8 +279,8 @@ def test_mra_inference_is_newey_west_by_default_and_the_naive_one_stays_availabl
 
 def test_campaigns_are_separate_series_in_fit_and_in_the_distributed_reduction(truth_campaign, tmp_path):
     """fit() ends a series after each campaign, so its HAC statistics equal those of campaigns
-    accumulated apart and merged (fbgcomp.io.distributed), with balanced weights."""
-    from fbgcomp.io.distributed import accumulate_paths
+    accumulated apart and merged (fbgcomp.models.distributed), with balanced weights."""
+    from fbgcomp.models.distributed import accumulate_paths
 
     campaign, _ = truth_campaign
     other, _ = linear_truth_campaign("other", seed=9, duration_s=1800, noise_um=0.05)

@@ -159,7 +159,7 @@ def _fit(stage, campaigns, output, model_type, features, stepwise, direction, p_
     stage(f"fitting the regression ({features}{', stepwise' if stepwise else ''}, per axis)")
     with _numeric_failures(campaigns):
         if scaled:
-            from fbgcomp.io.distributed import fit_paths
+            from fbgcomp.models.distributed import fit_paths
 
             fit_paths(model, campaigns, dask=dask)
         else:

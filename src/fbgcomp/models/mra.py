@@ -298,7 +298,7 @@ class MRAModel(EstimatorParams, ModelFile):
             info["dt_s"] = float(np.median(dts))
         return self.fit_factor(acc, info)
 
-    # -- fitting from statistics reduced elsewhere (fbgcomp.io.dataset, fbgcomp.io.distributed) ------
+    # -- fitting from statistics reduced elsewhere (fbgcomp.io.dataset, fbgcomp.models.distributed) ------
     def new_accumulator(self, sensors, probe_names=None):
         """Fix the sensor set (``SensorSpec`` list) and return an empty QR accumulator whose
         columns are this model's terms (``const`` first) and whose targets are dx, dy, dz.

@@ -24,7 +24,7 @@ E'E), but the quantity that matters is the TTP error; a path that is very inform
 load case with no effect on the TTP (or a second path repeating the first) scores well in D-
 optimality and is useless here. The objective is cheap (K x K solves), so optimising it directly
 costs nothing; candidate evaluations of each greedy step run through
-:func:`fbgcomp.io.distributed.map_over_cluster` when a Dask cluster is given.
+:func:`fbgcomp.cluster.map_over_cluster` when a Dask cluster is given.
 """
 
 from __future__ import annotations
@@ -35,8 +35,9 @@ from functools import partial
 import numpy as np
 
 from fbgcomp.errors import InputError
-from fbgcomp.io.distributed import map_over_cluster
-from fbgcomp.models.fe_calibrated import LOAD_CASES, elongation_noise_um, load_case_responses
+from fbgcomp.cluster import map_over_cluster
+from fbgcomp.optics import elongation_noise_um
+from fbgcomp.structure.loadcases import LOAD_CASES, load_case_responses
 from fbgcomp.structure.machine import Sensor
 from fbgcomp.tables import Column, format_table, text
 from fbgcomp.units import AXES

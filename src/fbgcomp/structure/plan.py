@@ -42,7 +42,8 @@ import numpy as np
 
 from fbgcomp import optics
 from fbgcomp.errors import InputError
-from fbgcomp.models.fe_calibrated import LOAD_CASES, elongation_noise_um, load_case_responses
+from fbgcomp.optics import elongation_noise_um
+from fbgcomp.structure.loadcases import LOAD_CASES, load_case_responses
 from fbgcomp.structure.placement import PlacementDesign, candidate_grid, choose, predicted_error_um, sensor_pool
 from fbgcomp.tables import Column, format_number, format_table, text
 from fbgcomp.units import AXES
