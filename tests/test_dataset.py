@@ -189,7 +189,7 @@ def test_partition_stream_accumulates_the_same_factor_as_the_campaign_fit(campai
 
 
 def test_zero_window_must_match_the_ingested_one(campaigns, tmp_path):
-    from fbgcomp.io.distributed import fit_paths
+    from fbgcomp.models.distributed import fit_paths
 
     pa_, _ = campaigns
     ds = tmp_path / "ds"
