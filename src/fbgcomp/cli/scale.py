@@ -36,7 +36,9 @@ def ingest(
         "log's clock from its first frame, dx_um, dy_um, dz_um)."),
 ):
     """Convert campaign folders (and run logs) into one partitioned Parquet dataset."""
-    from fbgcomp.io.dataset import ingest as run
+    from fbgcomp.io.campaign import read_campaign
+    from fbgcomp.io.dataset import ingest_campaign, is_run_log
+    from fbgcomp.runtime.log import ingest_run_log
 
     if rows_per_file < 1:
         raise InputError("--rows-per-file must be at least 1", file="<command line>",
@@ -46,6 +48,14 @@ def ingest(
         typer.echo(f"machine={part.machine} campaign={part.campaign}: {part.n_rows} rows "
                    f"in {len(part.files)} file(s) -> {part.path}")
 
-    parts = run(sources, to, machine=machine, zero_window_s=zero_window,
-                rows_per_file=rows_per_file, reference_csv=reference, progress=report)
+    parts = []
+    for src in sources:
+        if is_run_log(src):
+            part = ingest_run_log(src, to, machine=machine, zero_window_s=zero_window,
+                                  rows_per_file=rows_per_file, reference_csv=reference)
+        else:
+            part = ingest_campaign(read_campaign(src), to, machine=machine, zero_window_s=zero_window,
+                                   rows_per_file=rows_per_file)
+        report(part)
+        parts.append(part)
     typer.echo(f"{len(parts)} campaign(s), {sum(p.n_rows for p in parts)} rows ingested into {to}")

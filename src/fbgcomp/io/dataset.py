@@ -41,7 +41,6 @@ import json
 import math
 import os
 import shutil
-import tempfile
 import uuid
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -54,7 +53,6 @@ import pandas as pd
 from fbgcomp.atomic import json_safe, replace_dir, write_json
 from fbgcomp.errors import InputError
 from fbgcomp.io.campaign import LOAD_COLUMNS, REFERENCE_COLUMNS, CampaignMeta, read_campaign
-from fbgcomp.runtime.log import export_campaign
 
 try:
     import fcntl
@@ -389,29 +387,21 @@ def ingest_campaign(campaign, dataset, *, machine: str | None = None, zero_windo
 
 
 def ingest(sources, dataset, *, machine: str | None = None, zero_window_s: float = 10.0,
-           rows_per_file: int = ROWS_PER_FILE, reference_csv=None, progress=None) -> list:
-    """Ingest campaign folders and runtime run-log folders into ``dataset``.
+           rows_per_file: int = ROWS_PER_FILE, progress=None) -> list:
+    """Ingest campaign folders into ``dataset``; returns their partitions.
 
-    A run log has no measurement of the true TTP deviation; it is first turned into a campaign
-    by :func:`fbgcomp.runtime.log.export_campaign` (healthy frames only; reference from
-    ``reference_csv`` or, labelled as such, the logged prediction). Its machine is the log's
-    ``meta.json`` ``machine`` key, else ``machine``.
+    A runtime run log is not a campaign (it has no measurement of the true TTP deviation): it
+    is refused here and ingested by :func:`fbgcomp.runtime.log.ingest_run_log`, which turns it
+    into one first (``fbgcomp ingest`` takes both).
     """
     out = []
     for src in sources:
         src = Path(src)
         if is_run_log(src):
-            log_meta = json.loads((src / "meta.json").read_text(encoding="utf-8"))
-            with tempfile.TemporaryDirectory(prefix=".fbgcomp-log-") as tmp:
-                campaign = export_campaign(src, Path(tmp) / src.name, name=src.name,
-                                           reference_csv=reference_csv)
-                campaign = read_campaign(Path(tmp) / src.name)
-                part = ingest_campaign(campaign, dataset, machine=log_meta.get("machine") or machine,
-                                       zero_window_s=zero_window_s, rows_per_file=rows_per_file,
-                                       source=str(src))
-        else:
-            part = ingest_campaign(read_campaign(src), dataset, machine=machine,
-                                   zero_window_s=zero_window_s, rows_per_file=rows_per_file)
+            raise InputError("a runtime run log, not a campaign folder: ingest it with "
+                             "fbgcomp ingest or fbgcomp.runtime.log.ingest_run_log", file=src)
+        part = ingest_campaign(read_campaign(src), dataset, machine=machine,
+                               zero_window_s=zero_window_s, rows_per_file=rows_per_file)
         out.append(part)
         if progress is not None:
             progress(part)

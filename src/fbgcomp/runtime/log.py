@@ -37,6 +37,7 @@ import collections
 import json
 import logging
 import os
+import tempfile
 import threading
 import time
 from datetime import datetime, timezone
@@ -48,7 +49,8 @@ import pandas as pd
 
 from fbgcomp.atomic import atomic_path, write_bytes
 from fbgcomp.errors import InputError
-from fbgcomp.io.campaign import Campaign, write_campaign
+from fbgcomp.io.campaign import Campaign, read_campaign, write_campaign
+from fbgcomp.io.dataset import ROWS_PER_FILE, ingest_campaign
 from fbgcomp.optics import free_grating_wavelength_nm
 from fbgcomp.runtime.health import STATUS_NAMES
 from fbgcomp.runtime.pipeline import HEALTH_NAMES
@@ -358,3 +360,23 @@ def export_campaign(log_folder: str | Path, out: str | Path, name: str | None = 
     campaign = Campaign.from_arrays(cmeta, fbg=fbg, temperatures=temps, reference=reference)
     write_campaign(campaign, out)
     return campaign
+
+
+def ingest_run_log(log_folder: str | Path, dataset: str | Path, *, machine: str | None = None,
+                   zero_window_s: float = 10.0, rows_per_file: int = ROWS_PER_FILE,
+                   reference_csv: str | Path | None = None):
+    """Ingest a run log into a Parquet dataset (:mod:`fbgcomp.io.dataset`) as one campaign.
+
+    The log is first turned into a campaign by :func:`export_campaign` (healthy frames only;
+    reference from ``reference_csv`` or, labelled as such, the logged prediction). Its machine
+    is the log's ``meta.json`` ``machine`` key, else ``machine``. Returns the partition.
+    """
+    log_folder = Path(log_folder)
+    log_meta = read_meta(log_folder)
+    with tempfile.TemporaryDirectory(prefix=".fbgcomp-log-") as tmp:
+        export_campaign(log_folder, Path(tmp) / log_folder.name, name=log_folder.name,
+                        reference_csv=reference_csv)
+        campaign = read_campaign(Path(tmp) / log_folder.name)
+        return ingest_campaign(campaign, dataset, machine=log_meta.get("machine") or machine,
+                               zero_window_s=zero_window_s, rows_per_file=rows_per_file,
+                               source=str(log_folder))
