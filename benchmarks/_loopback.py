@@ -35,9 +35,12 @@ def wait_port(port: int, timeout_s: float = 60.0) -> None:
 def busy_processes(count: int):
     """``count`` busy background processes (a pure-Python spin each, normal priority) for the
     duration of the block: the benchmark loads both cores itself, whatever else runs."""
-    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"],
-                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
-             for _ in range(count)]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", "while True: pass"], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL
+        )
+        for _ in range(count)
+    ]
     try:
         time.sleep(0.5 if count else 0.0)
         yield procs
@@ -55,11 +58,15 @@ def git_commit() -> str:
     """Short hash of the checked-out commit (``+dirty`` with uncommitted changes)."""
     root = Path(__file__).resolve().parent.parent
     try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, text=True,
-                              capture_output=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--",
-                                "src", "benchmarks"], cwd=root, text=True,
-                               capture_output=True).stdout.strip()
+        head = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=root, text=True, capture_output=True, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no", "--", "src", "benchmarks"],
+            cwd=root,
+            text=True,
+            capture_output=True,
+        ).stdout.strip()
         return head + ("+dirty" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
@@ -69,6 +76,7 @@ def realtime_settings(cpu: int | None, fifo: bool) -> str:
     """The runtime's own real-time settings (fbgcomp.runtime.realtime) on this process."""
     from fbgcomp.runtime.realtime import RealtimeConfig, apply
 
-    done = apply(RealtimeConfig(cpu=-1 if cpu is None else cpu,
-                                fifo_priority=50 if fifo else 0, gc_threshold=0))
+    done = apply(
+        RealtimeConfig(cpu=-1 if cpu is None else cpu, fifo_priority=50 if fifo else 0, gc_threshold=0)
+    )
     return "; ".join(done) or "normal scheduling, any CPU"

@@ -36,7 +36,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
@@ -53,25 +53,40 @@ COVERAGE = (0.90, 0.99)
 
 def fbgcomp_fit(campaigns, out: Path, *extra) -> None:
     """The default fit, as a user runs it."""
-    r = subprocess.run([sys.executable, "-m", "fbgcomp", "fit", *map(str, campaigns), *map(str, extra),
-                        "-o", str(out)], capture_output=True, text=True, cwd=REPO)
+    r = subprocess.run(
+        [sys.executable, "-m", "fbgcomp", "fit", *map(str, campaigns), *map(str, extra), "-o", str(out)],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+    )
     if r.returncode != 0:
         raise SystemExit(f"fbgcomp fit failed: {r.stderr.strip()[-2000:]}")
 
 
 def figures(model_path: Path, held: dict) -> dict:
     """Per held-out campaign: per axis peak, max |error|, RMS, coverage, harm; plateau errors."""
-    from fbgcomp.io.campaign import read_campaign
     from fbgcomp.cli.demo import judge
+    from fbgcomp.io.campaign import read_campaign
     from fbgcomp.models.registry import load_model
 
     model = load_model(model_path)
     out = {}
     for role, path in held.items():
         m = judge(model, read_campaign(path))
-        axes = {a: {k: m["axes"][a].get(k) for k in ("peak_um", "max_abs_error_um", "rms_error_um",
-                                                       "uncompensated_rms_um", "pi95_coverage", "harm")}
-                for a in AXES}
+        axes = {
+            a: {
+                k: m["axes"][a].get(k)
+                for k in (
+                    "peak_um",
+                    "max_abs_error_um",
+                    "rms_error_um",
+                    "uncompensated_rms_um",
+                    "pi95_coverage",
+                    "harm",
+                )
+            }
+            for a in AXES
+        }
         entry = {"campaign": Path(path).name, "axes": axes}
         if "static_levels" in m:
             entry["plateaus"] = m["static_levels"]["axes"]
@@ -90,49 +105,93 @@ def targets(fig: dict) -> list:
     b = c["thermal_b"]
     name = b["campaign"]
     v = b["axes"]["dz"]
-    row(f"{name} dz max |error| <= 2 um", v["max_abs_error_um"], 2.0, v["max_abs_error_um"] <= 2.0,
-        f"{v['max_abs_error_um']:.2f} um (uncompensated {v['peak_um']:.2f})")
+    row(
+        f"{name} dz max |error| <= 2 um",
+        v["max_abs_error_um"],
+        2.0,
+        v["max_abs_error_um"] <= 2.0,
+        f"{v['max_abs_error_um']:.2f} um (uncompensated {v['peak_um']:.2f})",
+    )
     for what, key, limit in (("max", "max_abs_error_um", 50.0), ("RMS", "rms_error_um", 30.0)):
         for a in ("dx", "dy"):
             v = b["axes"][a]
             pct = 100.0 * v[key] / v["peak_um"] if v["peak_um"] > 0 else float("inf")
-            row(f"{name} {a} {what} <= {limit:g} % of the uncompensated peak", pct, limit, pct <= limit,
-                f"{v[key]:.2f} um = {pct:.1f} % of {v['peak_um']:.2f}")
+            row(
+                f"{name} {a} {what} <= {limit:g} % of the uncompensated peak",
+                pct,
+                limit,
+                pct <= limit,
+                f"{v[key]:.2f} um = {pct:.1f} % of {v['peak_um']:.2f}",
+            )
 
     s = c["static_x"]
     for a in AXES:
         p = s["plateaus"][a]
         if p["max_plateau_deflection_um"] >= LOADED_UM:
             pct = p["error_pct_of_deflection"]
-            row(f"{s['campaign']} {a} load-plateau error <= 1 % of the plateau deflection", pct, 1.0, pct <= 1.0,
-                f"{p['max_plateau_error_um']:.2f} um = {pct:.2f} % of {p['max_plateau_deflection_um']:.1f}")
+            row(
+                f"{s['campaign']} {a} load-plateau error <= 1 % of the plateau deflection",
+                pct,
+                1.0,
+                pct <= 1.0,
+                f"{p['max_plateau_error_um']:.2f} um = {pct:.2f} % of {p['max_plateau_deflection_um']:.1f}",
+            )
 
     t = c["thermal_c"]
     loaded = max(("dx", "dy"), key=lambda a: t["axes"][a]["peak_um"])
     other = "dy" if loaded == "dx" else "dx"
     v = t["axes"][loaded]
     pct = 100.0 * v["max_abs_error_um"] / v["peak_um"]
-    row(f"{t['campaign']} {loaded} (loaded axis) max <= 3 % of its peak", pct, 3.0, pct <= 3.0,
-        f"{v['max_abs_error_um']:.2f} um = {pct:.1f} % of {v['peak_um']:.2f}")
+    row(
+        f"{t['campaign']} {loaded} (loaded axis) max <= 3 % of its peak",
+        pct,
+        3.0,
+        pct <= 3.0,
+        f"{v['max_abs_error_um']:.2f} um = {pct:.1f} % of {v['peak_um']:.2f}",
+    )
     v = t["axes"]["dz"]
-    row(f"{t['campaign']} dz max |error| <= 2 um", v["max_abs_error_um"], 2.0, v["max_abs_error_um"] <= 2.0,
-        f"{v['max_abs_error_um']:.2f} um (uncompensated {v['peak_um']:.2f})")
+    row(
+        f"{t['campaign']} dz max |error| <= 2 um",
+        v["max_abs_error_um"],
+        2.0,
+        v["max_abs_error_um"] <= 2.0,
+        f"{v['max_abs_error_um']:.2f} um (uncompensated {v['peak_um']:.2f})",
+    )
     v = t["axes"][other]
-    row(f"{t['campaign']} {other} not worse than uncompensated (+0.5 um)", v["max_abs_error_um"],
-        v["peak_um"] + 0.5, not v["harm"], f"{v['max_abs_error_um']:.2f} um vs {v['peak_um']:.2f}")
+    row(
+        f"{t['campaign']} {other} not worse than uncompensated (+0.5 um)",
+        v["max_abs_error_um"],
+        v["peak_um"] + 0.5,
+        not v["harm"],
+        f"{v['max_abs_error_um']:.2f} um vs {v['peak_um']:.2f}",
+    )
 
     for role in ("thermal_b", "thermal_c", "static_x"):
         e = c[role]
         cov = [e["axes"][a]["pi95_coverage"] for a in AXES]
         ok = all(x is not None and COVERAGE[0] <= x <= COVERAGE[1] for x in cov)
-        row(f"{e['campaign']} PI95 coverage in {COVERAGE[0]:.2f}-{COVERAGE[1]:.2f} on every axis", cov,
-            list(COVERAGE), ok, "/".join("-" if x is None else f"{x:.2f}" for x in cov) + " (dx/dy/dz)")
+        row(
+            f"{e['campaign']} PI95 coverage in {COVERAGE[0]:.2f}-{COVERAGE[1]:.2f} on every axis",
+            cov,
+            list(COVERAGE),
+            ok,
+            "/".join("-" if x is None else f"{x:.2f}" for x in cov) + " (dx/dy/dz)",
+        )
     for role in ("thermal_b", "thermal_c", "static_x"):
         e = c[role]
         harmed = [a for a in AXES if e["axes"][a]["harm"]]
-        row(f"{e['campaign']} do-no-harm on every axis", harmed, [], not harmed,
-            "none worse" if not harmed else "worse: " + ", ".join(
-                f"{a} {e['axes'][a]['max_abs_error_um']:.2f} vs {e['axes'][a]['peak_um']:.2f}" for a in harmed))
+        row(
+            f"{e['campaign']} do-no-harm on every axis",
+            harmed,
+            [],
+            not harmed,
+            "none worse"
+            if not harmed
+            else "worse: "
+            + ", ".join(
+                f"{a} {e['axes'][a]['max_abs_error_um']:.2f} vs {e['axes'][a]['peak_um']:.2f}" for a in harmed
+            ),
+        )
     return rows
 
 
@@ -162,7 +221,9 @@ def twin_campaigns(work: Path, seed: int) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--ram2", help="the ram2 data set (default: $FBGCOMP_RAM2, else ../shared/reference/ram2)")
+    ap.add_argument(
+        "--ram2", help="the ram2 data set (default: $FBGCOMP_RAM2, else ../shared/reference/ram2)"
+    )
     ap.add_argument("--work", help="folder for model files and twin campaigns (default: a temporary one)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the twin campaigns (the demo's: 0)")
     ap.add_argument("--no-twin", action="store_true", help="ram2 only")
@@ -176,18 +237,25 @@ def main(argv=None) -> int:
     import fbgcomp
 
     code = Path(fbgcomp.__file__).resolve().parents[1]
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                            cwd=REPO).stdout.strip()
-    dirty = subprocess.run(["git", "status", "--porcelain", "--", "src"], capture_output=True, text=True,
-                           cwd=REPO).stdout.strip()
+    commit = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=REPO
+    ).stdout.strip()
+    dirty = subprocess.run(
+        ["git", "status", "--porcelain", "--", "src"], capture_output=True, text=True, cwd=REPO
+    ).stdout.strip()
     if code == REPO / "src":
         version = f"commit {commit}" + (" + uncommitted changes in src/" if dirty else "")
-    else:                   # e.g. PYTHONPATH=<git archive of a commit>/src
+    else:  # e.g. PYTHONPATH=<git archive of a commit>/src
         version = f"fbgcomp from {code}"
-    result = {"benchmark": "bench_accuracy", "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-              "code": version}
-    print(f"bench_accuracy — default model (fbgcomp fit, no flags) judged on unseen campaigns; "
-          f"{version}, {result['date_utc']}")
+    result = {
+        "benchmark": "bench_accuracy",
+        "date_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+        "code": version,
+    }
+    print(
+        f"bench_accuracy — default model (fbgcomp fit, no flags) judged on unseen campaigns; "
+        f"{version}, {result['date_utc']}"
+    )
 
     data, looked = find_ram2(args.ram2)
     if data is None:
@@ -198,10 +266,19 @@ def main(argv=None) -> int:
         fbgcomp_fit([data / "thermal_a", data / "static_xyz"], work / "ram2.json", "--machine", RAM2_MACHINE)
         fig = figures(work / "ram2.json", {r: data / n for r, n in RAM2_ROLES.items()})
         rows = targets(fig)
-        print_table(f"ram2 ({data}): fbgcomp fit thermal_a static_xyz --machine examples/machines/ram2.yaml "
-                    f"({fig['model_type']}, {time.perf_counter() - t0:.0f} s)", rows)
-        result["ram2"] = {"data": str(data), "trained_on": ["thermal_a", "static_xyz"], **fig, "targets": rows,
-                          "met": sum(r["met"] for r in rows), "of": len(rows)}
+        print_table(
+            f"ram2 ({data}): fbgcomp fit thermal_a static_xyz --machine examples/machines/ram2.yaml "
+            f"({fig['model_type']}, {time.perf_counter() - t0:.0f} s)",
+            rows,
+        )
+        result["ram2"] = {
+            "data": str(data),
+            "trained_on": ["thermal_a", "static_xyz"],
+            **fig,
+            "targets": rows,
+            "met": sum(r["met"] for r in rows),
+            "of": len(rows),
+        }
 
     if not args.no_twin:
         t0 = time.perf_counter()
@@ -211,12 +288,21 @@ def main(argv=None) -> int:
         fbgcomp_fit([paths[n] for n in TWIN_TRAIN], work / "twin.json", "--machine", _default_path())
         fig = figures(work / "twin.json", {r: paths[n] for r, n in TWIN_ROLES.items()})
         rows = targets(fig)
-        print_table(f"twin (TWIN-ONLY: our own simulator; built-in default ram, seed {args.seed}): fbgcomp fit "
-                    f"thermal-36h static-y --machine <built-in> ({fig['model_type']}, "
-                    f"{time.perf_counter() - t0:.0f} s incl. the twin)",
-                    rows)
-        result["twin"] = {"trained_on": list(TWIN_TRAIN), "roles": TWIN_ROLES, "seed": args.seed, **fig,
-                          "targets": rows, "met": sum(r["met"] for r in rows), "of": len(rows)}
+        print_table(
+            f"twin (TWIN-ONLY: our own simulator; built-in default ram, seed {args.seed}): fbgcomp fit "
+            f"thermal-36h static-y --machine <built-in> ({fig['model_type']}, "
+            f"{time.perf_counter() - t0:.0f} s incl. the twin)",
+            rows,
+        )
+        result["twin"] = {
+            "trained_on": list(TWIN_TRAIN),
+            "roles": TWIN_ROLES,
+            "seed": args.seed,
+            **fig,
+            "targets": rows,
+            "met": sum(r["met"] for r in rows),
+            "of": len(rows),
+        }
 
     from fbgcomp.atomic import json_safe
 

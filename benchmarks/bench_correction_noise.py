@@ -58,8 +58,12 @@ AXES = ("dx", "dy", "dz")
 
 
 def fbgcomp(*args, **kw) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "fbgcomp", *map(str, args)],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, **kw)
+    return subprocess.Popen(
+        [sys.executable, "-m", "fbgcomp", *map(str, args)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        **kw,
+    )
 
 
 def check(p: subprocess.Popen, what: str, timeout_s: float) -> None:
@@ -77,12 +81,36 @@ def free_port() -> int:
 def serve_run(model: Path, campaign: Path, log: Path, rate: float, duration_s: float):
     """serve first (its source retries), then the instrument; both bounded in time."""
     sp, cp = free_port(), free_port()
-    serve = fbgcomp("serve", "--model", model, "--source",
-                    f"hyperion://127.0.0.1:{sp}?command_port={cp}", "--temperatures", campaign,
-                    "--opcua", "off", "--log", log, "--duration", duration_s)
+    serve = fbgcomp(
+        "serve",
+        "--model",
+        model,
+        "--source",
+        f"hyperion://127.0.0.1:{sp}?command_port={cp}",
+        "--temperatures",
+        campaign,
+        "--opcua",
+        "off",
+        "--log",
+        log,
+        "--duration",
+        duration_s,
+    )
     time.sleep(1.0)
-    sim = fbgcomp("sim-interrogator", campaign, "--host", "127.0.0.1", "--port", sp,
-                  "--command-port", cp, "--rate", rate, "--duration", duration_s + 30)
+    sim = fbgcomp(
+        "sim-interrogator",
+        campaign,
+        "--host",
+        "127.0.0.1",
+        "--port",
+        sp,
+        "--command-port",
+        cp,
+        "--rate",
+        rate,
+        "--duration",
+        duration_s + 30,
+    )
     return serve, sim
 
 
@@ -91,7 +119,9 @@ def trim_campaign(src: Path, dst: Path, t0: float, seconds: float) -> Path:
     starting at 0: serve zeroes there, as when it is started in the middle of a working day.
     The last probe reading before ``t0`` is kept, stamped 0."""
     import shutil
+
     import pandas as pd
+
     if (dst / "fbg.csv").is_file():
         return dst
     dst.mkdir(parents=True, exist_ok=True)
@@ -112,6 +142,7 @@ def trim_campaign(src: Path, dst: Path, t0: float, seconds: float) -> Path:
 
 def rest_figures(df, settle_s: float) -> dict:
     import pandas as pd
+
     ok = df["health"].isin([0, 1]).to_numpy() & df["enabled"].to_numpy()
     t = df["time_s"].to_numpy()
     t0 = t[ok][0]
@@ -135,6 +166,7 @@ def offline_prediction(model_path: Path, campaign_dir: Path):
     the correction (-deviation, (n, 3) µm), wavelengths (n, S) and the sensor names."""
     from fbgcomp.io.campaign import read_campaign
     from fbgcomp.models.registry import load_model
+
     model = load_model(model_path)
     campaign = read_campaign(campaign_dir)
     aligned = campaign.aligned(zero_window_s=model.zero_window_s)
@@ -178,6 +210,7 @@ def load_ramps(campaign_dir: Path, min_N: float = 200.0) -> list:
     its 1 s change exceeds 50 N on some axis, joined when closer than 1 s; kept if the force
     changes by ``min_N`` or more."""
     import pandas as pd
+
     ld = pd.read_csv(campaign_dir / "loads.csv")
     t = ld["time_s"].to_numpy(float)
     F = ld[["fx_N", "fy_N", "fz_N"]].to_numpy(float)
@@ -219,13 +252,13 @@ def step_figures(df, model_path: Path, campaign_dir: Path, min_step_um: float = 
     good = ok & np.all(np.isfinite(df[[f"{s}_nm" for s in sensors]].to_numpy()), axis=1)
     w_log = df[[f"{s}_nm" for s in sensors]].to_numpy()
     c = campaign_clock(t_log[good], w_log[good], ft, w)
-    tc = t_log - t_log[good][0] + c                       # campaign clock of every logged frame
+    tc = t_log - t_log[good][0] + c  # campaign clock of every logged frame
     raw = -df[[f"dev_{a}_um" for a in AXES]].to_numpy()
     corr = df[[f"corr_{a}_um" for a in AXES]].to_numpy()
     steps = []
     for ts, te in load_ramps(campaign_dir):
         if tc[ok][0] > ts - 6 or tc[ok][-1] < te + 50:
-            continue                                          # not served in full
+            continue  # not served in full
         seen = False
         for j, axis in enumerate(AXES):
             A = float(np.median(c_off[(ft >= ts - 6) & (ft < ts - 1), j]))
@@ -240,15 +273,21 @@ def step_figures(df, model_path: Path, campaign_dir: Path, min_step_um: float = 
                 hit = np.flatnonzero(sgn * (v[sel] - target) >= 0)
                 return float(tt[sel][hit[0]] - te) if hit.size else None
 
-            s = {"axis": axis, "load_start_s": ts, "load_end_s": te, "from_um": A, "to_um": B,
-                 "offline_t90_s": first(ft, c_off[:, j]),
-                 "served_model_t90_s": first(tc[ok], raw[ok, j]),
-                 "applied_t90_s": first(tc[ok], corr[ok, j])}
+            s = {
+                "axis": axis,
+                "load_start_s": ts,
+                "load_end_s": te,
+                "from_um": A,
+                "to_um": B,
+                "offline_t90_s": first(ft, c_off[:, j]),
+                "served_model_t90_s": first(tc[ok], raw[ok, j]),
+                "applied_t90_s": first(tc[ok], corr[ok, j]),
+            }
             s["followed"] = s["offline_t90_s"] is not None and s["applied_t90_s"] is not None
             if s["followed"]:
                 s["lag_behind_model_s"] = s["applied_t90_s"] - s["offline_t90_s"]
             steps.append(s)
-        if not seen:        # a load change the model itself does not show: a model issue
+        if not seen:  # a load change the model itself does not show: a model issue
             steps.append({"axis": None, "load_start_s": ts, "load_end_s": te, "followed": None})
     return {"clock_offset_s": c, "steps": steps}
 
@@ -257,27 +296,48 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--rest-s", type=float, default=840.0)
     ap.add_argument("--settle-s", type=float, default=300.0)
-    ap.add_argument("--rest-from-s", type=float, default=28800.0,
-                    help="campaign time the thermal replays start from (8 h: drifting on every "
-                         "axis, ram2's radiant load starting; 0: the cold start, where the "
-                         "default model's output does not move)")
-    ap.add_argument("--step-s", type=float, default=620.0,
-                    help="served time of the static runs: 620 s covers every load change")
-    ap.add_argument("--ram2", help="the ram2 data set (default: $FBGCOMP_RAM2, else ../shared/reference/ram2)")
+    ap.add_argument(
+        "--rest-from-s",
+        type=float,
+        default=28800.0,
+        help="campaign time the thermal replays start from (8 h: drifting on every "
+        "axis, ram2's radiant load starting; 0: the cold start, where the "
+        "default model's output does not move)",
+    )
+    ap.add_argument(
+        "--step-s",
+        type=float,
+        default=620.0,
+        help="served time of the static runs: 620 s covers every load change",
+    )
+    ap.add_argument(
+        "--ram2", help="the ram2 data set (default: $FBGCOMP_RAM2, else ../shared/reference/ram2)"
+    )
     ap.add_argument("--rate", type=float, default=100.0, help="instrument frames per second")
-    ap.add_argument("--model", choices=("default", "mra"), default="default",
-                    help="default: fbgcomp fit as is; mra: the paper's regression (eq13)")
+    ap.add_argument(
+        "--model",
+        choices=("default", "mra"),
+        default="default",
+        help="default: fbgcomp fit as is; mra: the paper's regression (eq13)",
+    )
     ap.add_argument("--work", type=Path, default=None)
     args = ap.parse_args()
     import fbgcomp as package
+
     code = Path(package.__file__).resolve().parents[1]
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True,
-                            text=True, cwd=REPO).stdout.strip() if (REPO / ".git").exists() else ""
+    commit = (
+        subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True, cwd=REPO
+        ).stdout.strip()
+        if (REPO / ".git").exists()
+        else ""
+    )
     if code == REPO / "src" and commit:
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "src"], capture_output=True,
-                               text=True, cwd=REPO).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--", "src"], capture_output=True, text=True, cwd=REPO
+        ).stdout.strip()
         version = f"commit {commit}" + (" + uncommitted changes in src/" if dirty else "")
-    else:                   # e.g. PYTHONPATH=<git archive of a commit>/src
+    else:  # e.g. PYTHONPATH=<git archive of a commit>/src
         version = f"fbgcomp from {code}"
     extra = ["--features", "eq13"] if args.model == "mra" else []
     from fbgcomp.runtime.log import read_log
@@ -286,33 +346,53 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     t_start = time.time()
     twin = {s: work / s for s in ("static-y", "thermal-36h")}
-    sims = [fbgcomp("simulate", "--scenario", s, "-o", d) for s, d in twin.items()
-            if not (d / "fbg.csv").is_file()]
+    sims = [
+        fbgcomp("simulate", "--scenario", s, "-o", d)
+        for s, d in twin.items()
+        if not (d / "fbg.csv").is_file()
+    ]
     for p in sims:
         check(p, "simulate", 900)
     fits = [fbgcomp("fit", *twin.values(), *extra, "-o", work / "twin-model.json")]
     from fbgcomp.cli.demo import find_ram2
+
     RAM2, _ = find_ram2(args.ram2)
     have_ram2 = RAM2 is not None and (RAM2 / "static_x").is_dir()
     if have_ram2:
         machine = [] if extra else ["--machine", RAM2_MACHINE]
-        fits.append(fbgcomp("fit", RAM2 / "thermal_a", RAM2 / "static_xyz", *extra, *machine,
-                            "-o", work / "ram2-model.json"))
+        fits.append(
+            fbgcomp(
+                "fit",
+                RAM2 / "thermal_a",
+                RAM2 / "static_xyz",
+                *extra,
+                *machine,
+                "-o",
+                work / "ram2-model.json",
+            )
+        )
     for p in fits:
         check(p, "fit", 900)
+
     def rest_campaign(src: Path, name: str) -> Path:
         if args.rest_from_s <= 0:
             return src
-        return trim_campaign(src, work / f"{name}-from-{args.rest_from_s:g}s", args.rest_from_s,
-                             args.rest_s)
+        return trim_campaign(src, work / f"{name}-from-{args.rest_from_s:g}s", args.rest_from_s, args.rest_s)
 
-    runs = {"twin rest (thermal-36h)": ("twin-model.json",
-                                        rest_campaign(twin["thermal-36h"], "thermal-36h"),
-                                        args.rest_s),
-            "twin steps (static-y)": ("twin-model.json", twin["static-y"], args.step_s)}
+    runs = {
+        "twin rest (thermal-36h)": (
+            "twin-model.json",
+            rest_campaign(twin["thermal-36h"], "thermal-36h"),
+            args.rest_s,
+        ),
+        "twin steps (static-y)": ("twin-model.json", twin["static-y"], args.step_s),
+    }
     if have_ram2:
-        runs["ram2 rest (thermal_b)"] = ("ram2-model.json", rest_campaign(RAM2 / "thermal_b",
-                                                                         "thermal_b"), args.rest_s)
+        runs["ram2 rest (thermal_b)"] = (
+            "ram2-model.json",
+            rest_campaign(RAM2 / "thermal_b", "thermal_b"),
+            args.rest_s,
+        )
         runs["ram2 steps (static_x)"] = ("ram2-model.json", RAM2 / "static_x", args.step_s)
     procs = {}
     for k, (name, (model, campaign, dur)) in enumerate(runs.items()):
@@ -325,46 +405,66 @@ def main() -> None:
         sim.communicate(timeout=30)
         _, df = read_log(log)
         model, campaign, _ = runs[name]
-        results[name] = rest_figures(df, args.settle_s) if "rest" in name else \
-            step_figures(df, work / model, campaign)
+        results[name] = (
+            rest_figures(df, args.settle_s) if "rest" in name else step_figures(df, work / model, campaign)
+        )
 
-    print(f"correction at rest and on load steps, served live at {args.rate:g} frames/s; "
-          f"{args.model} model; {version}; {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} "
-          f"(work folder {work}, {time.time() - t_start:.0f} s, load average "
-          f"{os.getloadavg()[0]:.1f})")
+    print(
+        f"correction at rest and on load steps, served live at {args.rate:g} frames/s; "
+        f"{args.model} model; {version}; {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())} "
+        f"(work folder {work}, {time.time() - t_start:.0f} s, load average "
+        f"{os.getloadavg()[0]:.1f})"
+    )
     summary = {"rate_hz": args.rate, "model": args.model, "code": version, "runs": results}
     for name, r in results.items():
         if "rest" in name:
-            print(f"\n{name}: RMS deviation from the 60 s moving mean over {r['seconds']:.0f} s "
-                  f"after {args.settle_s:g} s (replay from campaign time {args.rest_from_s:g} s)")
+            print(
+                f"\n{name}: RMS deviation from the 60 s moving mean over {r['seconds']:.0f} s "
+                f"after {args.settle_s:g} s (replay from campaign time {args.rest_from_s:g} s)"
+            )
             for j, a in enumerate(AXES):
                 ratio = r["unfiltered"][j] / max(r["applied"][j], 1e-12)
-                print(f"  {a}: applied {r['applied'][j]:.4f} µm  unfiltered model output "
-                      f"{r['unfiltered'][j]:.4f} µm  (x{ratio:.0f} quieter)")
+                print(
+                    f"  {a}: applied {r['applied'][j]:.4f} µm  unfiltered model output "
+                    f"{r['unfiltered'][j]:.4f} µm  (x{ratio:.0f} quieter)"
+                )
         else:
-            print(f"\n{name}: load changes, 90 % of the change in the model's offline prediction,"
-                  f" s after the load stopped moving (campaign clock = log + {r['clock_offset_s']:.3f} s)")
+            print(
+                f"\n{name}: load changes, 90 % of the change in the model's offline prediction,"
+                f" s after the load stopped moving (campaign clock = log + {r['clock_offset_s']:.3f} s)"
+            )
             if not r["steps"]:
                 print("  none: no load change moves the offline prediction by 5 µm or more")
             fmt = lambda v: "   never" if v is None else f"{v:+8.2f}"
             for s in r["steps"]:
                 if s["axis"] is None:
-                    print(f"  load {s['load_start_s']:6.1f}-{s['load_end_s']:6.1f} s  moves no axis "
-                          f"of the offline prediction by 5 µm (the model does not see it)")
+                    print(
+                        f"  load {s['load_start_s']:6.1f}-{s['load_end_s']:6.1f} s  moves no axis "
+                        f"of the offline prediction by 5 µm (the model does not see it)"
+                    )
                     continue
                 lag = f"{s['lag_behind_model_s']:+.2f} s" if s["followed"] else "NOT followed"
-                print(f"  load {s['load_start_s']:6.1f}-{s['load_end_s']:6.1f} s  {s['axis']} "
-                      f"{s['from_um']:8.1f} -> {s['to_um']:8.1f} µm: offline model "
-                      f"{fmt(s['offline_t90_s'])}, served model {fmt(s['served_model_t90_s'])}, "
-                      f"applied {fmt(s['applied_t90_s'])}; applied behind the offline model {lag}")
+                print(
+                    f"  load {s['load_start_s']:6.1f}-{s['load_end_s']:6.1f} s  {s['axis']} "
+                    f"{s['from_um']:8.1f} -> {s['to_um']:8.1f} µm: offline model "
+                    f"{fmt(s['offline_t90_s'])}, served model {fmt(s['served_model_t90_s'])}, "
+                    f"applied {fmt(s['applied_t90_s'])}; applied behind the offline model {lag}"
+                )
     rest_max = max((max(r["applied"]) for n, r in results.items() if "rest" in n), default=None)
-    lags = [s.get("lag_behind_model_s", np.inf) for n, r in results.items() if "steps" in n
-            for s in r["steps"] if s["axis"] is not None]
+    lags = [
+        s.get("lag_behind_model_s", np.inf)
+        for n, r in results.items()
+        if "steps" in n
+        for s in r["steps"]
+        if s["axis"] is not None
+    ]
     summary["max_rest_rms_um"] = rest_max
     summary["max_step_lag_s"] = max(lags) if lags else None
     lag = summary["max_step_lag_s"]
-    print(f"\nworst axis at rest {rest_max:.4f} µm RMS (target <= 0.2); worst step lag "
-          + (f"{lag:.2f} s (target <= 1)" if lag is not None else "not measured (no step)"))
+    print(
+        f"\nworst axis at rest {rest_max:.4f} µm RMS (target <= 0.2); worst step lag "
+        + (f"{lag:.2f} s (target <= 1)" if lag is not None else "not measured (no step)")
+    )
     print(json.dumps(summary, default=float))
 
 

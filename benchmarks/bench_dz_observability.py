@@ -26,7 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -74,8 +74,12 @@ def measured(ram2, name):
 def truth(ram2, name, power):
     d = pd.read_csv(ram2 / "truth" / f"{name}.csv")
     t = d["time_s"].to_numpy(float)
-    X = housing_features(t, d["T_flange_C"].to_numpy(float) - 22.0, d["T_amb_C"].to_numpy(float) - 22.0,
-                         d["spindle_W"].to_numpy(float) if power else None)
+    X = housing_features(
+        t,
+        d["T_flange_C"].to_numpy(float) - 22.0,
+        d["T_amb_C"].to_numpy(float) - 22.0,
+        d["spindle_W"].to_numpy(float) if power else None,
+    )
     return X, d["dz_um"].to_numpy(float) - 0.826e-3 * d["fz_N"].to_numpy(float)
 
 
@@ -85,7 +89,10 @@ def errors(data, train):
     out = {}
     for name, (Xc, yc) in data.items():
         e = Xc @ coef - yc
-        out[name] = {"max_abs_error_um": float(np.abs(e).max()), "rms_error_um": float(np.sqrt(np.mean(e ** 2)))}
+        out[name] = {
+            "max_abs_error_um": float(np.abs(e).max()),
+            "rms_error_um": float(np.sqrt(np.mean(e**2))),
+        }
     return out
 
 
@@ -93,11 +100,17 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ram2", type=Path, default=ROOT.parent / "shared" / "reference" / "ram2")
     args = ap.parse_args(argv)
-    sources = {"measured": lambda n: measured(args.ram2, n),
-               "truth": lambda n: truth(args.ram2, n, False),
-               "truth + spindle power": lambda n: truth(args.ram2, n, True)}
-    result = {"benchmark": "bench_dz_observability", "date_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-              "features": ["1", "flange", "amb"] + [f"lead{t:g}" for t in LEADS_S], "rows": []}
+    sources = {
+        "measured": lambda n: measured(args.ram2, n),
+        "truth": lambda n: truth(args.ram2, n, False),
+        "truth + spindle power": lambda n: truth(args.ram2, n, True),
+    }
+    result = {
+        "benchmark": "bench_dz_observability",
+        "date_utc": datetime.now(UTC).isoformat(timespec="seconds"),
+        "features": ["1", "flange", "amb"] + [f"lead{t:g}" for t in LEADS_S],
+        "rows": [],
+    }
     print("dz max |error| / RMS (um): linear housing models, fitted on thermal_a or in-sample (oracle)")
     print(f"{'inputs':<24}{'fitted on':<12}" + "".join(f"{n:>16}" for n in CAMPAIGNS))
     for label, load in sources.items():
@@ -107,8 +120,12 @@ def main(argv=None):
                 figs = {n: errors(data, n)[n] for n in CAMPAIGNS}
             else:
                 figs = errors(data, train)
-            print(f"{label:<24}{train:<12}" + "".join(
-                f"{figs[n]['max_abs_error_um']:>9.2f} /{figs[n]['rms_error_um']:>5.2f}" for n in CAMPAIGNS))
+            print(
+                f"{label:<24}{train:<12}"
+                + "".join(
+                    f"{figs[n]['max_abs_error_um']:>9.2f} /{figs[n]['rms_error_um']:>5.2f}" for n in CAMPAIGNS
+                )
+            )
             result["rows"].append({"inputs": label, "fitted_on": train, "campaigns": figs})
     print(json.dumps(result))
     return 0

@@ -41,16 +41,21 @@ NOISE_UM = 0.5
 
 def term_names() -> list[str]:
     t = PROBES
-    return (["const"] + [f"dL_{s}" for s in SENSORS] + [f"dT_{p}" for p in t]
-            + [f"dT_{p}^2" for p in t]
-            + [f"dT_{t[i]}*dT_{t[j]}" for i in range(3) for j in range(i + 1, 3)])
+    return (
+        ["const"]
+        + [f"dL_{s}" for s in SENSORS]
+        + [f"dT_{p}" for p in t]
+        + [f"dT_{p}^2" for p in t]
+        + [f"dT_{t[i]}*dT_{t[j]}" for i in range(3) for j in range(i + 1, 3)]
+    )
 
 
 def eq12_design(elongation_um: np.ndarray, temperature_C: np.ndarray) -> np.ndarray:
     """Eq. 12 quadratic design (n, 15) from elongations (n, 5) µm and temperature changes (n, 3) °C."""
     t = temperature_C
-    return np.column_stack([np.ones(len(t)), elongation_um, t, t * t,
-                            t[:, 0] * t[:, 1], t[:, 0] * t[:, 2], t[:, 1] * t[:, 2]])
+    return np.column_stack(
+        [np.ones(len(t)), elongation_um, t, t * t, t[:, 0] * t[:, 1], t[:, 0] * t[:, 2], t[:, 1] * t[:, 2]]
+    )
 
 
 def true_coefficients(seed: int) -> np.ndarray:
@@ -66,13 +71,13 @@ def campaign_chunk(seed: int, index: int, start: int, rows: int, total: int):
     time_s = (start + np.arange(rows)) * (CAMPAIGN_S / total)
     phase = 2.0 * np.pi * time_s / CAMPAIGN_S
     # Thermal drift of the ram over the campaign: slow cycles plus probe noise (°C).
-    temperature_C = (np.column_stack([4.0 * (1 - np.cos(phase)), 1.5 * np.sin(3 * phase + 0.4),
-                                      2.5 * (1 - np.cos(2 * phase + 1.1))])
-                     + rng.normal(scale=0.05, size=(rows, 3)))
+    temperature_C = np.column_stack(
+        [4.0 * (1 - np.cos(phase)), 1.5 * np.sin(3 * phase + 0.4), 2.5 * (1 - np.cos(2 * phase + 1.1))]
+    ) + rng.normal(scale=0.05, size=(rows, 3))
     # Elongations: thermal expansion seen by each grating plus load-induced strain (µm).
-    thermal = temperature_C @ np.array([[1.2, 0.8, 1.0, 0.6, 1.1],
-                                        [0.3, -0.5, 0.2, 0.9, -0.4],
-                                        [0.5, 0.4, -0.7, 0.2, 0.6]])
+    thermal = temperature_C @ np.array(
+        [[1.2, 0.8, 1.0, 0.6, 1.1], [0.3, -0.5, 0.2, 0.9, -0.4], [0.5, 0.4, -0.7, 0.2, 0.6]]
+    )
     elongation_um = thermal + rng.normal(scale=2.0, size=(rows, 5))
     design = eq12_design(elongation_um, temperature_C)
     deviation_um = design @ true_coefficients(seed) + rng.normal(scale=NOISE_UM, size=(rows, 3))
@@ -90,7 +95,7 @@ def current_rss_mb() -> float | None:
         import psutil
     except ImportError:
         return None
-    return psutil.Process().memory_info().rss / 2 ** 20
+    return psutil.Process().memory_info().rss / 2**20
 
 
 def main(argv=None) -> dict:
@@ -140,19 +145,26 @@ def main(argv=None) -> dict:
         "resid_sd_um": [f.resid_sd for f in fits],
         "rsquared": [f.rsquared for f in fits],
     }
-    print(f"rows                {acc.n_obs:,} x {len(names)} columns x {len(AXES)} targets "
-          f"(chunks of {args.chunk_rows:,})")
-    print(f"accumulate          {figures['accumulate_rows_per_s']:,.0f} rows/s "
-          f"({t_update:.2f} s; data pass in "
-          f"{'double-double' if acc.extended_ else 'LAPACK double'})")
-    print(f"end to end          {figures['end_to_end_rows_per_s']:,.0f} rows/s "
-          f"({wall:.2f} s, of which generating the data {t_generate:.2f} s)")
+    print(
+        f"rows                {acc.n_obs:,} x {len(names)} columns x {len(AXES)} targets "
+        f"(chunks of {args.chunk_rows:,})"
+    )
+    print(
+        f"accumulate          {figures['accumulate_rows_per_s']:,.0f} rows/s "
+        f"({t_update:.2f} s; data pass in "
+        f"{'double-double' if acc.extended_ else 'LAPACK double'})"
+    )
+    print(
+        f"end to end          {figures['end_to_end_rows_per_s']:,.0f} rows/s "
+        f"({wall:.2f} s, of which generating the data {t_generate:.2f} s)"
+    )
     print(f"fit dx, dy, dz      {t_fit * 1e3:.1f} ms from the factor")
-    print(f"peak RSS            {figures['peak_rss_mb']:.1f} MB (before accumulating: "
-          f"{rss_start:.1f} MB)")
-    print(f"truth recovery      max |estimate - truth| / SE = {worst_z:.2f} over 45 coefficients; "
-          f"residual SD {', '.join(f'{s:.4f}' for s in figures['resid_sd_um'])} µm "
-          f"(simulated {NOISE_UM})")
+    print(f"peak RSS            {figures['peak_rss_mb']:.1f} MB (before accumulating: {rss_start:.1f} MB)")
+    print(
+        f"truth recovery      max |estimate - truth| / SE = {worst_z:.2f} over 45 coefficients; "
+        f"residual SD {', '.join(f'{s:.4f}' for s in figures['resid_sd_um'])} µm "
+        f"(simulated {NOISE_UM})"
+    )
     print(json.dumps(figures))
     return figures
 

@@ -24,7 +24,7 @@ import argparse
 import json
 import os
 import time
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 import numpy as np
 
@@ -41,20 +41,21 @@ def _models():
     machine = load_machine()
     twin = Twin(machine, resolution=0.3)
     train, _ = simulate(machine, load_scenario("combined"), seed=1, twin=twin)
-    return {"mra eq13": MRAModel(features="eq13").fit([train]),
-            "dynamic": DynamicModel().fit([train]),
-            "kinematic": KinematicModel(machine).fit(),
-            "hybrid eq13": HybridModel(machine, features="eq13").fit([train]),
-            "calibrated": CalibratedModel(machine, features="eq13").fit([train]),
-            "physical": PhysicalModel(machine=machine).fit([train])}
+    return {
+        "mra eq13": MRAModel(features="eq13").fit([train]),
+        "dynamic": DynamicModel().fit([train]),
+        "kinematic": KinematicModel(machine).fit(),
+        "hybrid eq13": HybridModel(machine, features="eq13").fit([train]),
+        "calibrated": CalibratedModel(machine, features="eq13").fit([train]),
+        "physical": PhysicalModel(machine=machine).fit([train]),
+    }
 
 
 def _inputs(model, n_frames, rng):
     w0 = np.array([s.lambda0_nm for s in model.sensors])
     t0 = np.full(len(model.probe_names), 30.0)
     # a slow drift plus noise: every frame differs from the one before (no stuck channel)
-    w = w0 + 1e-4 * np.linspace(0, 1, n_frames)[:, None] + 1e-5 * rng.standard_normal(
-        (n_frames, w0.size))
+    w = w0 + 1e-4 * np.linspace(0, 1, n_frames)[:, None] + 1e-5 * rng.standard_normal((n_frames, w0.size))
     t = t0 + 0.01 * rng.standard_normal((n_frames, t0.size))
     return w, t, w0, t0
 
@@ -66,7 +67,7 @@ def predictor_rate(model, w, t, w0, t0, batch) -> float:
     time_s = 1.7e9 + np.arange(w.shape[0]) * 1e-3
     start = time.perf_counter()
     for i in range(0, w.shape[0], batch):
-        p.predict(w[i:i + batch], t[i:i + batch], w0, t0, time_s=time_s[i:i + batch])
+        p.predict(w[i : i + batch], t[i : i + batch], w0, t0, time_s=time_s[i : i + batch])
     return w.shape[0] / (time.perf_counter() - start)
 
 
@@ -82,13 +83,23 @@ def core_rate(model, w, t, batch) -> float:
     # the zero window (model.zero_window_s) and one block more, untimed
     warm = int(np.searchsorted(time_s, time_s[0] + model.zero_window_s, "right")) + batch
     for i in range(0, warm, batch):
-        pipe.process(time_s[i:i + batch], w[i:i + batch], counts[i:i + batch],
-                     near[i:i + batch], t[i:i + batch])
+        pipe.process(
+            time_s[i : i + batch],
+            w[i : i + batch],
+            counts[i : i + batch],
+            near[i : i + batch],
+            t[i : i + batch],
+        )
     assert pipe.zeroed
     start = time.perf_counter()
     for i in range(warm, n, batch):
-        pipe.process(time_s[i:i + batch], w[i:i + batch], counts[i:i + batch],
-                     near[i:i + batch], t[i:i + batch])
+        pipe.process(
+            time_s[i : i + batch],
+            w[i : i + batch],
+            counts[i : i + batch],
+            near[i : i + batch],
+            t[i : i + batch],
+        )
     return (n - warm) / (time.perf_counter() - start)
 
 
@@ -100,7 +111,7 @@ def main(argv=None):
     ap.add_argument("--pin", type=int, default=None, help="pin this process to one CPU")
     ap.add_argument("--fifo", action="store_true", help="SCHED_FIFO where permitted")
     args = ap.parse_args(argv)
-    started = datetime.now(timezone.utc)
+    started = datetime.now(UTC)
     print(f"{started:%Y-%m-%d %H:%M} UTC, code of {git_commit()}")
     models = _models()
     rng = np.random.default_rng(0)
@@ -117,24 +128,34 @@ def main(argv=None):
                 for batch, n in frames.items():
                     r = rates.setdefault(name, {})
                     r.setdefault(f"predictor_batch_{batch}", []).append(
-                        predictor_rate(model, w[:n], t[:n], w0, t0, batch))
+                        predictor_rate(model, w[:n], t[:n], w0, t0, batch)
+                    )
                     r.setdefault(f"core_batch_{batch}", []).append(
-                        core_rate(model, w[:n + 20_000], t[:n + 20_000], batch))
+                        core_rate(model, w[: n + 20_000], t[: n + 20_000], batch)
+                    )
             loads.append(os.getloadavg()[0])
-    summary = {"utc": f"{started:%Y-%m-%dT%H:%MZ}", "commit": git_commit(),
-               "background_processes": args.load, "measuring_process": settings,
-               "load_average_1min": [round(x, 2) for x in loads], "frames_per_s": {}}
-    print(f"median of {args.runs} interleaved runs, frames/s; 1-min load average "
-          f"{min(loads):.2f}-{max(loads):.2f}")
-    print(f"{'type':<12} {'pred. b100':>12} {'core b100':>12} {'pred. b5000':>12} "
-          f"{'core b5000':>12}")
+    summary = {
+        "utc": f"{started:%Y-%m-%dT%H:%MZ}",
+        "commit": git_commit(),
+        "background_processes": args.load,
+        "measuring_process": settings,
+        "load_average_1min": [round(x, 2) for x in loads],
+        "frames_per_s": {},
+    }
+    print(
+        f"median of {args.runs} interleaved runs, frames/s; 1-min load average "
+        f"{min(loads):.2f}-{max(loads):.2f}"
+    )
+    print(f"{'type':<12} {'pred. b100':>12} {'core b100':>12} {'pred. b5000':>12} {'core b5000':>12}")
     ok = True
     for name, r in rates.items():
         med = {k: float(np.median(v)) for k, v in r.items()}
         summary["frames_per_s"][name] = {k: round(v) for k, v in med.items()}
         ok &= med["core_batch_100"] >= 100_000
-        print(f"{name:<12} {med['predictor_batch_100']:>12,.0f} {med['core_batch_100']:>12,.0f} "
-              f"{med['predictor_batch_5000']:>12,.0f} {med['core_batch_5000']:>12,.0f}")
+        print(
+            f"{name:<12} {med['predictor_batch_100']:>12,.0f} {med['core_batch_100']:>12,.0f} "
+            f"{med['predictor_batch_5000']:>12,.0f} {med['core_batch_5000']:>12,.0f}"
+        )
     summary["targets_met"] = {"core_batch_100_ge_100k_every_type": bool(ok)}
     print(json.dumps(summary))
 

@@ -13,6 +13,7 @@ and the same two thermal campaigns are simulated with the same seeds. Printed:
 Last line: one JSON object with the same figures. Run: ``python benchmarks/bench_reference_gratings.py``.
 These are figures on our own simulator, not an accuracy a user can expect on a real machine.
 """
+
 from __future__ import annotations
 
 import json
@@ -27,7 +28,6 @@ from fbgcomp.io.campaign import Campaign
 from fbgcomp.models.mra import MRAModel
 from fbgcomp.structure import Twin, load_machine
 
-
 SCENARIOS = ("thermal-36h", "thermal-36h-b")
 
 
@@ -39,25 +39,44 @@ def with_reference_gratings(machine):
 
 def compensated_by(campaign: Campaign, how: str) -> Campaign:
     """The same measurements with each sensor compensated by its probe or its reference grating."""
-    sensors = [s.model_copy(update={"temperature_probe": s.reference_probe if how == "reference"
-                                    else s.temperature_probe}) for s in campaign.meta.sensors]
+    sensors = [
+        s.model_copy(
+            update={"temperature_probe": s.reference_probe if how == "reference" else s.temperature_probe}
+        )
+        for s in campaign.meta.sensors
+    ]
     meta = campaign.meta.model_copy(update={"sensors": sensors})
-    return Campaign.from_arrays(meta, fbg=campaign.fbg, temperatures=campaign.temperatures,
-                                reference=campaign.reference, loads=campaign.loads)
+    return Campaign.from_arrays(
+        meta,
+        fbg=campaign.fbg,
+        temperatures=campaign.temperatures,
+        reference=campaign.reference,
+        loads=campaign.loads,
+    )
 
 
 def elongation_errors(campaign: Campaign, truth: dict) -> dict:
     """Max |compensated elongation - true host elongation| per sensor, µm."""
     a = campaign.aligned()
-    true = np.column_stack([np.interp(a.time_s, truth["time_s"], truth["sensor_elongation_um"][:, j])
-                            for j in range(len(a.sensor_names))])
+    true = np.column_stack(
+        [
+            np.interp(a.time_s, truth["time_s"], truth["sensor_elongation_um"][:, j])
+            for j in range(len(a.sensor_names))
+        ]
+    )
     out = {}
     for j, s in enumerate(campaign.meta.sensors):
         k = a.probe_names.index(s.temperature_probe)
         dT = a.temperature_C[:, k] - a.temperature_zero_C[k]
-        e = optics.elongation_um(a.wavelength_nm[:, j], a.wavelength_zero_nm[j], s.gauge_length_mm, dT,
-                                 photoelastic=s.photoelastic, thermo_optic_per_K=s.thermo_optic_per_K,
-                                 fibre_cte_per_K=s.fibre_cte_per_K)
+        e = optics.elongation_um(
+            a.wavelength_nm[:, j],
+            a.wavelength_zero_nm[j],
+            s.gauge_length_mm,
+            dT,
+            photoelastic=s.photoelastic,
+            thermo_optic_per_K=s.thermo_optic_per_K,
+            fibre_cte_per_K=s.fibre_cte_per_K,
+        )
         out[s.name] = float(np.abs(e - (true[:, j] - true[0, j])).max())
     return out
 

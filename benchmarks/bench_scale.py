@@ -44,8 +44,8 @@ NOISE_UM = 0.3
 
 
 def _sensors():
-    from fbgcomp.io.campaign import CampaignMeta
     from fbgcomp.bench.synthetic import default_meta
+    from fbgcomp.io.campaign import CampaignMeta
 
     return list(CampaignMeta(**default_meta()).sensors)
 
@@ -71,7 +71,7 @@ def synthetic_partition(task: dict) -> dict:
     truth = default_coefficients()
     names = ["const"] + model.candidates_
     beta = np.array([[truth[a].get(n, 0.0) for a in ("dx", "dy", "dz")] for n in names])
-    probes = model.probe_names_                    # T_surf, T_bulk, T_flange (model order)
+    probes = model.probe_names_  # T_surf, T_bulk, T_flange (model order)
     t_zero = np.array([30.0, 30.0, 30.0])[: len(probes)]
     rng = np.random.default_rng([SEED, task["index"]])
     period_s = 36 * 3600.0
@@ -84,8 +84,9 @@ def synthetic_partition(task: dict) -> dict:
         temps += rng.normal(scale=0.02, size=temps.shape)
         elong = np.column_stack([15.0 * np.sin(ph * (j + 1) + j) for j in range(len(sensors))])
         elong += rng.normal(scale=1.0, size=elong.shape)
-        dt_sensor = (temps[:, [probes.index("T_surf")]] - t_zero[probes.index("T_surf")]) \
-            * np.ones(len(sensors))
+        dt_sensor = (temps[:, [probes.index("T_surf")]] - t_zero[probes.index("T_surf")]) * np.ones(
+            len(sensors)
+        )
         wl = optics.wavelength_nm(elong, lam0, gauge, dt_sensor)
         design = model.design_from_arrays(wl, temps, lam0, t_zero)
         dev = design @ beta + rng.normal(scale=NOISE_UM, size=(m, 3))
@@ -102,8 +103,15 @@ def merge_states(a: dict, b: dict) -> dict:
 def tasks_for(rows: int, partition_rows: int, chunk_rows: int) -> list[dict]:
     out = []
     for i, start in enumerate(range(0, rows, partition_rows)):
-        out.append({"index": i, "start": start, "rows": min(partition_rows, rows - start),
-                    "total": rows, "chunk_rows": chunk_rows})
+        out.append(
+            {
+                "index": i,
+                "start": start,
+                "rows": min(partition_rows, rows - start),
+                "total": rows,
+                "chunk_rows": chunk_rows,
+            }
+        )
     return out
 
 
@@ -119,7 +127,7 @@ def cpu_s() -> float:
 def current_rss_mb() -> float:
     import psutil
 
-    return psutil.Process().memory_info().rss / 2 ** 20
+    return psutil.Process().memory_info().rss / 2**20
 
 
 def fit_from_state(state: dict):
@@ -137,11 +145,15 @@ def in_process_run(rows: int, partition_rows: int, chunk_rows: int) -> dict:
 
     idle = current_rss_mb()
     t0, c0 = time.perf_counter(), cpu_s()
-    state = tree_reduce(synthetic_partition, tasks_for(rows, partition_rows, chunk_rows),
-                        merge_states)
+    state = tree_reduce(synthetic_partition, tasks_for(rows, partition_rows, chunk_rows), merge_states)
     reduce_s = time.perf_counter() - t0
-    return {"state": state, "reduce_s": reduce_s, "idle_rss_mb": idle, "peak_rss_mb": peak_rss_mb(),
-            "cpu_s": [cpu_s() - c0]}
+    return {
+        "state": state,
+        "reduce_s": reduce_s,
+        "idle_rss_mb": idle,
+        "peak_rss_mb": peak_rss_mb(),
+        "cpu_s": [cpu_s() - c0],
+    }
 
 
 def dask_run(rows: int, partition_rows: int, chunk_rows: int, workers: int) -> dict:
@@ -153,34 +165,47 @@ def dask_run(rows: int, partition_rows: int, chunk_rows: int, workers: int) -> d
         idle = client.run(current_rss_mb)
         cpu0 = client.run(cpu_s)
         t0 = time.perf_counter()
-        state = tree_reduce(synthetic_partition, tasks_for(rows, partition_rows, chunk_rows),
-                            merge_states, dask=client)
+        state = tree_reduce(
+            synthetic_partition, tasks_for(rows, partition_rows, chunk_rows), merge_states, dask=client
+        )
         reduce_s = time.perf_counter() - t0
         peaks = client.run(peak_rss_mb)
         cpu1 = client.run(cpu_s)
-    return {"state": state, "reduce_s": reduce_s, "idle_rss_mb": sorted(idle.values()),
-            "peak_rss_mb": sorted(peaks.values()),
-            "cpu_s": sorted(cpu1[w] - cpu0[w] for w in cpu1)}
+    return {
+        "state": state,
+        "reduce_s": reduce_s,
+        "idle_rss_mb": sorted(idle.values()),
+        "peak_rss_mb": sorted(peaks.values()),
+        "cpu_s": sorted(cpu1[w] - cpu0[w] for w in cpu1),
+    }
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--rows", default="10000000,100000000",
-                    help="comma-separated row counts (e.g. 1000000,10000000)")
+    ap.add_argument(
+        "--rows", default="10000000,100000000", help="comma-separated row counts (e.g. 1000000,10000000)"
+    )
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--partition-rows", type=int, default=1_000_000)
     ap.add_argument("--chunk-rows", type=int, default=100_000)
-    ap.add_argument("--skip-in-process", action="store_true",
-                    help="only the Dask run (the in-process one takes ~workers x longer)")
+    ap.add_argument(
+        "--skip-in-process",
+        action="store_true",
+        help="only the Dask run (the in-process one takes ~workers x longer)",
+    )
     args = ap.parse_args(argv)
     sizes = [int(float(s)) for s in args.rows.split(",") if s]
 
-    print(f"load average (1/5/15 min) at start: {', '.join(f'{v:.1f}' for v in os.getloadavg())} "
-          "(a shared machine: wall times depend on the neighbours, CPU times and RSS do not)")
-    print(f"bench_scale: eq13 stepwise + loo fallbacks, partitions of {args.partition_rows} rows "
-          f"generated in-task in chunks of {args.chunk_rows}; LocalCluster of {args.workers} "
-          f"worker processes x 1 thread; Python {platform.python_version()}, "
-          f"{os.cpu_count()} cores")
+    print(
+        f"load average (1/5/15 min) at start: {', '.join(f'{v:.1f}' for v in os.getloadavg())} "
+        "(a shared machine: wall times depend on the neighbours, CPU times and RSS do not)"
+    )
+    print(
+        f"bench_scale: eq13 stepwise + loo fallbacks, partitions of {args.partition_rows} rows "
+        f"generated in-task in chunks of {args.chunk_rows}; LocalCluster of {args.workers} "
+        f"worker processes x 1 thread; Python {platform.python_version()}, "
+        f"{os.cpu_count()} cores"
+    )
     results = []
     ctx = multiprocessing.get_context("spawn")
     for rows in sizes:
@@ -190,28 +215,41 @@ def main(argv=None):
             with concurrent.futures.ProcessPoolExecutor(1, mp_context=ctx) as ex:
                 local = ex.submit(in_process_run, rows, args.partition_rows, args.chunk_rows).result()
             model_local, select_s = fit_from_state(local["state"])
-            line.update({"in_process_s": round(local["reduce_s"] + select_s, 2),
-                         "in_process_cpu_s": round(local["cpu_s"][0], 1),
-                         "load_avg_1min": round(os.getloadavg()[0], 1),
-                         "in_process_peak_rss_mb": round(local["peak_rss_mb"], 1),
-                         "in_process_idle_rss_mb": round(local["idle_rss_mb"], 1)})
-            print(f"{rows:>12,d} rows  in-process: {line['in_process_s']:8.1f} s "
-                  f"({rows / line['in_process_s']:,.0f} rows/s; CPU {local['cpu_s'][0]:.0f} s), peak RSS "
-                  f"{local['peak_rss_mb']:.0f} MB (idle {local['idle_rss_mb']:.0f} MB)")
+            line.update(
+                {
+                    "in_process_s": round(local["reduce_s"] + select_s, 2),
+                    "in_process_cpu_s": round(local["cpu_s"][0], 1),
+                    "load_avg_1min": round(os.getloadavg()[0], 1),
+                    "in_process_peak_rss_mb": round(local["peak_rss_mb"], 1),
+                    "in_process_idle_rss_mb": round(local["idle_rss_mb"], 1),
+                }
+            )
+            print(
+                f"{rows:>12,d} rows  in-process: {line['in_process_s']:8.1f} s "
+                f"({rows / line['in_process_s']:,.0f} rows/s; CPU {local['cpu_s'][0]:.0f} s), peak RSS "
+                f"{local['peak_rss_mb']:.0f} MB (idle {local['idle_rss_mb']:.0f} MB)"
+            )
             sys.stdout.flush()
         dask = dask_run(rows, args.partition_rows, args.chunk_rows, args.workers)
         model_dask, select_s = fit_from_state(dask["state"])
-        line.update({"dask_s": round(dask["reduce_s"] + select_s, 2), "select_s": round(select_s, 3),
-                     "dask_peak_rss_mb_per_worker": [round(v, 1) for v in dask["peak_rss_mb"]],
-                     "dask_idle_rss_mb_per_worker": [round(v, 1) for v in dask["idle_rss_mb"]],
-                     "dask_cpu_s_per_worker": [round(v, 1) for v in dask["cpu_s"]],
-                     "load_avg_1min_after": round(os.getloadavg()[0], 1)})
-        print(f"{rows:>12,d} rows  dask x{args.workers}:   {line['dask_s']:8.1f} s "
-              f"({rows / line['dask_s']:,.0f} rows/s; CPU per worker "
-              f"{', '.join(f'{v:.0f}' for v in dask['cpu_s'])} s), peak RSS per worker "
-              f"{', '.join(f'{v:.0f}' for v in dask['peak_rss_mb'])} MB (idle "
-              f"{', '.join(f'{v:.0f}' for v in dask['idle_rss_mb'])} MB); selection from the "
-              f"factor {select_s:.2f} s")
+        line.update(
+            {
+                "dask_s": round(dask["reduce_s"] + select_s, 2),
+                "select_s": round(select_s, 3),
+                "dask_peak_rss_mb_per_worker": [round(v, 1) for v in dask["peak_rss_mb"]],
+                "dask_idle_rss_mb_per_worker": [round(v, 1) for v in dask["idle_rss_mb"]],
+                "dask_cpu_s_per_worker": [round(v, 1) for v in dask["cpu_s"]],
+                "load_avg_1min_after": round(os.getloadavg()[0], 1),
+            }
+        )
+        print(
+            f"{rows:>12,d} rows  dask x{args.workers}:   {line['dask_s']:8.1f} s "
+            f"({rows / line['dask_s']:,.0f} rows/s; CPU per worker "
+            f"{', '.join(f'{v:.0f}' for v in dask['cpu_s'])} s), peak RSS per worker "
+            f"{', '.join(f'{v:.0f}' for v in dask['peak_rss_mb'])} MB (idle "
+            f"{', '.join(f'{v:.0f}' for v in dask['idle_rss_mb'])} MB); selection from the "
+            f"factor {select_s:.2f} s"
+        )
         if local is not None:
             worst = 0.0
             for a in ("dx", "dy", "dz"):
@@ -220,18 +258,30 @@ def main(argv=None):
                 worst = max(worst, float(np.max(np.abs(p - q) / np.abs(p))))
             line["speedup"] = round(line["in_process_s"] / line["dask_s"], 2)
             line["max_rel_coef_diff"] = worst
-            print(f"{'':>12}       speed-up {line['speedup']:.2f}x; dask vs in-process "
-                  f"coefficients: max relative difference {worst:.1e}")
+            print(
+                f"{'':>12}       speed-up {line['speedup']:.2f}x; dask vs in-process "
+                f"coefficients: max relative difference {worst:.1e}"
+            )
         line["dx_terms"] = model_dask.axes_["dx"].terms
         results.append(line)
         sys.stdout.flush()
     if len(results) > 1:
         a, b = results[0], results[-1]
         growth = max(b["dask_peak_rss_mb_per_worker"]) / max(a["dask_peak_rss_mb_per_worker"])
-        print(f"peak RSS per worker, {b['rows']:,d} vs {a['rows']:,d} rows: x{growth:.2f} "
-              f"for x{b['rows'] / a['rows']:.0f} rows")
-    print(json.dumps({"bench": "scale", "workers": args.workers,
-                      "partition_rows": args.partition_rows, "results": results}))
+        print(
+            f"peak RSS per worker, {b['rows']:,d} vs {a['rows']:,d} rows: x{growth:.2f} "
+            f"for x{b['rows'] / a['rows']:.0f} rows"
+        )
+    print(
+        json.dumps(
+            {
+                "bench": "scale",
+                "workers": args.workers,
+                "partition_rows": args.partition_rows,
+                "results": results,
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -53,9 +53,18 @@ from fbgcomp.models.features import design_matrix, term_name  # noqa: E402
 from fbgcomp.models.regression import QRAccumulator, stepwise  # noqa: E402
 
 BASE = [f"dL_S{i}" for i in range(1, 6)] + ["dT_bulk", "dT_surf", "dT_flange"]
-TRUTH = {"const": 0.3, "dL_S1": 0.40, "dL_S2": -0.35, "dL_S4": 0.25, "dT_bulk": 1.5,
-         "dT_surf": -2.0, "dT_bulk^2": 0.08, "dL_S1*dT_bulk": 0.01, "dL_S3^2": 0.002,
-         "dT_surf*dT_flange": -0.15}
+TRUTH = {
+    "const": 0.3,
+    "dL_S1": 0.40,
+    "dL_S2": -0.35,
+    "dL_S4": 0.25,
+    "dT_bulk": 1.5,
+    "dT_surf": -2.0,
+    "dT_bulk^2": 0.08,
+    "dL_S1*dT_bulk": 0.01,
+    "dL_S3^2": 0.002,
+    "dT_surf*dT_flange": -0.15,
+}
 
 
 def make_data(n_rows: int, seed: int):
@@ -79,11 +88,11 @@ def make_data(n_rows: int, seed: int):
 def fbgcomp_stepwise(X, y, names, p_enter, p_remove):
     acc = QRAccumulator(X.shape[1], 1, feature_names=names, target_names=["dx"])
     for lo in range(0, len(X), 100_000):
-        acc.update(X[lo:lo + 100_000], y[lo:lo + 100_000])
-    sw = stepwise(acc, include=["const"], direction="both", p_enter=p_enter, p_remove=p_remove,
-                  cov_type="nonrobust")
-    path = ("double-double" if acc.extended_ else
-            "gram" if getattr(acc, "gram_rows_", 0) else "qr")
+        acc.update(X[lo : lo + 100_000], y[lo : lo + 100_000])
+    sw = stepwise(
+        acc, include=["const"], direction="both", p_enter=p_enter, p_remove=p_remove, cov_type="nonrobust"
+    )
+    path = "double-double" if acc.extended_ else "gram" if getattr(acc, "gram_rows_", 0) else "qr"
     return sw.selected, np.asarray(sw.result.params), len(sw.history), path
 
 
@@ -194,8 +203,7 @@ def _rel_diff(a, b) -> float:
 def bench_size(n_rows, args) -> dict:
     X, y, names = make_data(n_rows, args.seed)
     rules = (names, args.p_enter, args.p_remove)
-    print(f"\n== {n_rows} rows, {X.shape[1] - 1} candidate terms + const; load average "
-          f"{_load()}")
+    print(f"\n== {n_rows} rows, {X.shape[1] - 1} candidate terms + const; load average {_load()}")
     runs = {"fbgcomp": [], "gram": [], "statsmodels": []}
     out = {}
     for r in range(args.runs):
@@ -204,60 +212,99 @@ def bench_size(n_rows, args) -> dict:
         if r < args.sm_runs:
             order.append("statsmodels")
         for who in order:
-            fn = {"fbgcomp": fbgcomp_stepwise, "gram": gram_stepwise,
-                  "statsmodels": statsmodels_stepwise}[who]
+            fn = {"fbgcomp": fbgcomp_stepwise, "gram": gram_stepwise, "statsmodels": statsmodels_stepwise}[
+                who
+            ]
             out[who], wall, cpu = _timed(fn, X, y, *rules)
             runs[who].append((wall, cpu))
-        print(f"  run {r + 1}: " + ", ".join(f"{w} {runs[w][-1][0]:.3f} s" for w in order)
-              + f"  (load {_load()})")
+        print(
+            f"  run {r + 1}: "
+            + ", ".join(f"{w} {runs[w][-1][0]:.3f} s" for w in order)
+            + f"  (load {_load()})"
+        )
         sys.stdout.flush()
-    med = {w: (float(np.median([t[0] for t in v])), float(np.median([t[1] for t in v])))
-           for w, v in runs.items() if v}
+    med = {
+        w: (float(np.median([t[0] for t in v])), float(np.median([t[1] for t in v])))
+        for w, v in runs.items()
+        if v
+    }
     sel_f, par_f, steps_f, path = out["fbgcomp"]
     sel_g, par_g, steps_g, fits_g = out["gram"]
-    print(f"  fbgcomp (one pass, {path} data path, then stepwise on the factor): "
-          f"median {med['fbgcomp'][0]:.3f} s wall / {med['fbgcomp'][1]:.3f} s CPU of "
-          f"{len(runs['fbgcomp'])}; {steps_f} steps, {len(sel_f)} terms")
-    print(f"  Gram/Cholesky recipe (X'X once, {fits_g} sub-Gram Choleskys): median "
-          f"{med['gram'][0]:.3f} s wall / {med['gram'][1]:.3f} s CPU of {len(runs['gram'])}")
-    res = {"rows": n_rows, "candidates": X.shape[1] - 1, "runs": args.runs,
-           "fbgcomp_path": path, "fbgcomp_s": round(med["fbgcomp"][0], 4),
-           "gram_s": round(med["gram"][0], 4), "fbgcomp_cpu_s": round(med["fbgcomp"][1], 4),
-           "gram_cpu_s": round(med["gram"][1], 4), "steps": steps_f,
-           "terms": len(sel_f), "same_terms_gram": sel_f == sel_g,
-           "max_rel_coef_diff_gram": _rel_diff(par_f, par_g) if sel_f == sel_g else None,
-           "ratio_gram": round(med["gram"][0] / med["fbgcomp"][0], 2),
-           "cpu_ratio_gram": round(med["gram"][1] / med["fbgcomp"][1], 2)}
+    print(
+        f"  fbgcomp (one pass, {path} data path, then stepwise on the factor): "
+        f"median {med['fbgcomp'][0]:.3f} s wall / {med['fbgcomp'][1]:.3f} s CPU of "
+        f"{len(runs['fbgcomp'])}; {steps_f} steps, {len(sel_f)} terms"
+    )
+    print(
+        f"  Gram/Cholesky recipe (X'X once, {fits_g} sub-Gram Choleskys): median "
+        f"{med['gram'][0]:.3f} s wall / {med['gram'][1]:.3f} s CPU of {len(runs['gram'])}"
+    )
+    res = {
+        "rows": n_rows,
+        "candidates": X.shape[1] - 1,
+        "runs": args.runs,
+        "fbgcomp_path": path,
+        "fbgcomp_s": round(med["fbgcomp"][0], 4),
+        "gram_s": round(med["gram"][0], 4),
+        "fbgcomp_cpu_s": round(med["fbgcomp"][1], 4),
+        "gram_cpu_s": round(med["gram"][1], 4),
+        "steps": steps_f,
+        "terms": len(sel_f),
+        "same_terms_gram": sel_f == sel_g,
+        "max_rel_coef_diff_gram": _rel_diff(par_f, par_g) if sel_f == sel_g else None,
+        "ratio_gram": round(med["gram"][0] / med["fbgcomp"][0], 2),
+        "cpu_ratio_gram": round(med["gram"][1] / med["fbgcomp"][1], 2),
+    }
     if runs["statsmodels"]:
         sel_s, par_s, _, fits_s = out["statsmodels"]
-        print(f"  statsmodels (sm.OLS refit per candidate, {fits_s} fits): median "
-              f"{med['statsmodels'][0]:.3f} s wall / {med['statsmodels'][1]:.3f} s CPU of "
-              f"{len(runs['statsmodels'])}")
-        res.update({"statsmodels_s": round(med["statsmodels"][0], 3),
-                    "statsmodels_cpu_s": round(med["statsmodels"][1], 3),
-                    "same_terms_statsmodels": sel_f == sel_s,
-                    "max_rel_coef_diff_statsmodels": (_rel_diff(par_f, par_s) if sel_f == sel_s
-                                                      else None),
-                    "ratio_statsmodels": round(med["statsmodels"][0] / med["fbgcomp"][0], 1),
-                    "cpu_ratio_statsmodels": round(med["statsmodels"][1] / med["fbgcomp"][1], 1)})
-    print(f"  selected terms identical to the Gram recipe: {res['same_terms_gram']}"
-          + (f", to statsmodels: {res['same_terms_statsmodels']}" if runs["statsmodels"] else "")
-          + f" ({', '.join(sel_f)})")
-    print(f"  max relative coefficient difference: vs Gram recipe "
-          f"{res['max_rel_coef_diff_gram']!s}"
-          + (f", vs statsmodels {res['max_rel_coef_diff_statsmodels']!s}"
-             if runs["statsmodels"] else "") + " (must be <= 1e-8)")
-    print(f"  ratio (baseline time / fbgcomp time): Gram recipe {res['ratio_gram']:.2f}x wall, "
-          f"{res['cpu_ratio_gram']:.2f}x CPU (target >= 1.0x)"
-          + (f"; statsmodels {res['ratio_statsmodels']:.1f}x wall, "
-             f"{res['cpu_ratio_statsmodels']:.1f}x CPU (target >= 50x)" if runs["statsmodels"]
-             else ""))
-    ok = (res["same_terms_gram"] and res["max_rel_coef_diff_gram"] is not None
-          and res["max_rel_coef_diff_gram"] <= 1e-8)
+        print(
+            f"  statsmodels (sm.OLS refit per candidate, {fits_s} fits): median "
+            f"{med['statsmodels'][0]:.3f} s wall / {med['statsmodels'][1]:.3f} s CPU of "
+            f"{len(runs['statsmodels'])}"
+        )
+        res.update(
+            {
+                "statsmodels_s": round(med["statsmodels"][0], 3),
+                "statsmodels_cpu_s": round(med["statsmodels"][1], 3),
+                "same_terms_statsmodels": sel_f == sel_s,
+                "max_rel_coef_diff_statsmodels": (_rel_diff(par_f, par_s) if sel_f == sel_s else None),
+                "ratio_statsmodels": round(med["statsmodels"][0] / med["fbgcomp"][0], 1),
+                "cpu_ratio_statsmodels": round(med["statsmodels"][1] / med["fbgcomp"][1], 1),
+            }
+        )
+    print(
+        f"  selected terms identical to the Gram recipe: {res['same_terms_gram']}"
+        + (f", to statsmodels: {res['same_terms_statsmodels']}" if runs["statsmodels"] else "")
+        + f" ({', '.join(sel_f)})"
+    )
+    print(
+        f"  max relative coefficient difference: vs Gram recipe "
+        f"{res['max_rel_coef_diff_gram']!s}"
+        + (f", vs statsmodels {res['max_rel_coef_diff_statsmodels']!s}" if runs["statsmodels"] else "")
+        + " (must be <= 1e-8)"
+    )
+    print(
+        f"  ratio (baseline time / fbgcomp time): Gram recipe {res['ratio_gram']:.2f}x wall, "
+        f"{res['cpu_ratio_gram']:.2f}x CPU (target >= 1.0x)"
+        + (
+            f"; statsmodels {res['ratio_statsmodels']:.1f}x wall, "
+            f"{res['cpu_ratio_statsmodels']:.1f}x CPU (target >= 50x)"
+            if runs["statsmodels"]
+            else ""
+        )
+    )
+    ok = (
+        res["same_terms_gram"]
+        and res["max_rel_coef_diff_gram"] is not None
+        and res["max_rel_coef_diff_gram"] <= 1e-8
+    )
     if runs["statsmodels"]:
-        ok = (ok and res["same_terms_statsmodels"]
-              and res["max_rel_coef_diff_statsmodels"] is not None
-              and res["max_rel_coef_diff_statsmodels"] <= 1e-8)
+        ok = (
+            ok
+            and res["same_terms_statsmodels"]
+            and res["max_rel_coef_diff_statsmodels"] is not None
+            and res["max_rel_coef_diff_statsmodels"] <= 1e-8
+        )
     res["ok"] = bool(ok)
     res["load_average_after"] = _load()
     return res
@@ -276,29 +323,34 @@ def ram2_before_after(root: str) -> int:
 
     from fbgcomp.io.campaign import read_campaign
     from fbgcomp.models.metrics import validation_metrics
-    from fbgcomp.units import AXES
     from fbgcomp.models.mra import MRAModel
+    from fbgcomp.units import AXES
 
     root = Path(root)
     train = [read_campaign(root / "thermal_a"), read_campaign(root / "static_xyz")]
     tests = {name: read_campaign(root / name) for name in ("thermal_b", "thermal_c", "static_x")}
-    print("MRA eq13 stepwise, fit on thermal_a + static_xyz (balanced), held out: "
-          + ", ".join(tests))
+    print("MRA eq13 stepwise, fit on thermal_a + static_xyz (balanced), held out: " + ", ".join(tests))
     for cov_type in ("nonrobust", "HAC"):
         model = MRAModel(features="eq13", stepwise=True, cov_type=cov_type).fit(train)
         print(f"\n== cov_type={cov_type}")
         for a in AXES:
             fit = model.axes_[a]
-            extra = (f"  [{fit.hac['maxlags']} lags, lag-1 rho {fit.hac['rho1']:.3f}, "
-                     f"n_eff {fit.hac['n_eff']:.0f} of {fit.nobs}]" if fit.cov_type == "HAC" else "")
+            extra = (
+                f"  [{fit.hac['maxlags']} lags, lag-1 rho {fit.hac['rho1']:.3f}, "
+                f"n_eff {fit.hac['n_eff']:.0f} of {fit.nobs}]"
+                if fit.cov_type == "HAC"
+                else ""
+            )
             print(f"  {a}: {len(fit.terms) - 1} terms: {' '.join(fit.terms[1:])}{extra}")
         print(f"  {'campaign':<10}" + "".join(f"{a + ' max|err|':>14}{a + ' PI95':>9}" for a in AXES))
         for name, camp in tests.items():
             aligned = camp.aligned(zero_window_s=model.zero_window_s)
             pred, half = model.predict_interval(camp)
             m = validation_metrics(aligned.reference_um, pred, half)["axes"]
-            print(f"  {name:<10}" + "".join(f"{m[a]['max_abs_error_um']:>14.2f}"
-                                            f"{m[a]['pi95_coverage']:>9.3f}" for a in AXES))
+            print(
+                f"  {name:<10}"
+                + "".join(f"{m[a]['max_abs_error_um']:>14.2f}{m[a]['pi95_coverage']:>9.3f}" for a in AXES)
+            )
     return 0
 
 
@@ -306,10 +358,18 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ram2", metavar="DIR", help="print the naive vs HAC table on ram2 instead")
     ap.add_argument("--rows", type=int, nargs="+", default=[1_000_000, 100_000])
-    ap.add_argument("--runs", type=int, default=5, help="interleaved runs of fbgcomp and the "
-                    "Gram recipe per size (median reported)")
-    ap.add_argument("--sm-runs", type=int, default=1, help="statsmodels runs per size (it takes "
-                    "minutes at 10^6 rows; 0 skips it)")
+    ap.add_argument(
+        "--runs",
+        type=int,
+        default=5,
+        help="interleaved runs of fbgcomp and the Gram recipe per size (median reported)",
+    )
+    ap.add_argument(
+        "--sm-runs",
+        type=int,
+        default=1,
+        help="statsmodels runs per size (it takes minutes at 10^6 rows; 0 skips it)",
+    )
     ap.add_argument("--p-enter", type=float, default=0.05)
     ap.add_argument("--p-remove", type=float, default=0.10)
     ap.add_argument("--seed", type=int, default=0)
@@ -319,10 +379,12 @@ def main(argv=None):
     import scipy
     import statsmodels
 
-    print(f"stepwise 'both', p_enter {args.p_enter}, p_remove {args.p_remove}; Python "
-          f"{platform.python_version()}, numpy {np.__version__}, scipy {scipy.__version__}, "
-          f"statsmodels {statsmodels.__version__}, {os.cpu_count()} cores, "
-          f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}")
+    print(
+        f"stepwise 'both', p_enter {args.p_enter}, p_remove {args.p_remove}; Python "
+        f"{platform.python_version()}, numpy {np.__version__}, scipy {scipy.__version__}, "
+        f"statsmodels {statsmodels.__version__}, {os.cpu_count()} cores, "
+        f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}"
+    )
     results = [bench_size(n, args) for n in args.rows]
     ok = all(r["ok"] for r in results)
     print(json.dumps({"bench": "stepwise", "sizes": results, "ok": ok}))

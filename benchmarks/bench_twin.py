@@ -43,8 +43,9 @@ def campaign_inputs(time_s: np.ndarray, machine):
     ambient_C = 30.0 - 3.0 * np.sin(2 * np.pi * hours / 24.0)
     # Spindle on for 2 h, off for 2 h, first switched on after 5 min (so a short full-order
     # window sees a heat step).
-    spindle_W = machine.thermal.nominal_spindle_heat_W * ((hours >= 1 / 12)
-                                                          & (((hours - 1 / 12) // 2) % 2 == 0))
+    spindle_W = machine.thermal.nominal_spindle_heat_W * (
+        (hours >= 1 / 12) & (((hours - 1 / 12) // 2) % 2 == 0)
+    )
     radiant = machine.thermal.nominal_radiant_W_per_m2 * ((hours % 24 > 12) & (hours % 24 < 16))
     return ambient_C, spindle_W.astype(float), radiant.astype(float)
 
@@ -63,36 +64,45 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--resolution", type=float, default=None)
     ap.add_argument("--reps", type=int, default=3, help="interleaved repetitions (medians)")
-    ap.add_argument("--window-s", type=float, default=900.0,
-                    help="campaign window the full-order stepper is timed on (s at 1 s steps)")
+    ap.add_argument(
+        "--window-s",
+        type=float,
+        default=900.0,
+        help="campaign window the full-order stepper is timed on (s at 1 s steps)",
+    )
     args = ap.parse_args()
     machine = load_machine()
     loads = [load1()]
-    print(f"load average (1 min) at start: {' '.join(f'{v:.2f}' for v in os.getloadavg())}; "
-          f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}")
+    print(
+        f"load average (1 min) at start: {' '.join(f'{v:.2f}' for v in os.getloadavg())}; "
+        f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS')}"
+    )
 
     with tempfile.TemporaryDirectory(prefix="bench-twin-cache-") as cache_root:
         os.environ["FBGCOMP_CACHE_DIR"] = cache_root
         # ---------------------------------------------------------------- build vs cache
         miss_s, twin = timed(lambda: Twin(machine, resolution=args.resolution))
         b = twin.times
-        print(f"mesh: {twin.n_nodes} nodes, {twin.n_dof} thermo-elastic DOF "
-              f"({3 * twin.n_nodes} displacement + {twin.n_nodes} temperature)")
-        print(f"first build (cache miss): {miss_s:.2f} s = mesh {b.mesh_s:.2f} + assemble "
-              f"{b.assemble_s:.2f} + elastic factor and {twin._R.shape[0]} adjoint solves "
-              f"{b.elastic_factor_s:.2f} [{twin._elastic.backend}] + thermal reduction "
-              f"{b.thermal_reduction_s:.2f} ({twin.reduced.n_modes} modes) + cache write "
-              f"{b.cache_store_s:.2f} s")
+        print(
+            f"mesh: {twin.n_nodes} nodes, {twin.n_dof} thermo-elastic DOF "
+            f"({3 * twin.n_nodes} displacement + {twin.n_nodes} temperature)"
+        )
+        print(
+            f"first build (cache miss): {miss_s:.2f} s = mesh {b.mesh_s:.2f} + assemble "
+            f"{b.assemble_s:.2f} + elastic factor and {twin._R.shape[0]} adjoint solves "
+            f"{b.elastic_factor_s:.2f} [{twin._elastic.backend}] + thermal reduction "
+            f"{b.thermal_reduction_s:.2f} ({twin.reduced.n_modes} modes) + cache write "
+            f"{b.cache_store_s:.2f} s"
+        )
         entry_mib = os.path.getsize(b.cache_path) / 2**20
         n_dof = twin.n_dof
-        del twin                      # one twin in memory at a time (peak RSS of one build)
+        del twin  # one twin in memory at a time (peak RSS of one build)
         cold, warm, cold_parts = [], [], []
         for _ in range(args.reps):
             loads.append(load1())
             s, tw = timed(lambda: Twin(machine, resolution=args.resolution, cache=False))
             cold.append(s)
-            cold_parts.append((tw.times.assemble_s, tw.times.elastic_factor_s,
-                               tw.times.thermal_reduction_s))
+            cold_parts.append((tw.times.assemble_s, tw.times.elastic_factor_s, tw.times.thermal_reduction_s))
             del tw
             loads.append(load1())
             s, tw = timed(lambda: Twin(machine, resolution=args.resolution))
@@ -102,14 +112,18 @@ def main():
         loads.append(load1())
         cold_med, warm_med = statistics.median(cold), statistics.median(warm)
         parts = np.median(np.array(cold_parts), axis=0)
-        print(f"cold build (no cache), median of {args.reps}: {cold_med:.2f} s "
-              f"[{', '.join(f'{v:.2f}' for v in cold)}] (assemble {parts[0]:.2f}, elastic factor "
-              f"{parts[1]:.2f}, thermal reduction {parts[2]:.2f}; target <= 8 s: "
-              f"{'met' if cold_med <= 8 else 'MISSED'})")
-        print(f"warm load (twin cache, {entry_mib:.0f} MiB entry), median of {args.reps}: "
-              f"{warm_med:.3f} s [{', '.join(f'{v:.3f}' for v in warm)}]")
+        print(
+            f"cold build (no cache), median of {args.reps}: {cold_med:.2f} s "
+            f"[{', '.join(f'{v:.2f}' for v in cold)}] (assemble {parts[0]:.2f}, elastic factor "
+            f"{parts[1]:.2f}, thermal reduction {parts[2]:.2f}; target <= 8 s: "
+            f"{'met' if cold_med <= 8 else 'MISSED'})"
+        )
+        print(
+            f"warm load (twin cache, {entry_mib:.0f} MiB entry), median of {args.reps}: "
+            f"{warm_med:.3f} s [{', '.join(f'{v:.3f}' for v in warm)}]"
+        )
         print(f"cold / warm: {cold_med / warm_med:.0f}x")
-        twin = Twin(machine, resolution=args.resolution)     # from the cache: same numbers
+        twin = Twin(machine, resolution=args.resolution)  # from the cache: same numbers
         os.environ.pop("FBGCOMP_CACHE_DIR")
 
     # -------------------------------------------------------- reduced vs full-order stepper
@@ -123,11 +137,15 @@ def main():
         reduced.append(s)
         loads.append(load1())
         # setup: the one factorisation of C/h + K and the first output (a 2-sample campaign)
-        s, _ = timed(lambda: twin.thermal_direct(time_s[:2], ambient[:2], spindle[:2],
-                                                 radiant[:2], initial_C=30.0))
+        s, _ = timed(
+            lambda: twin.thermal_direct(time_s[:2], ambient[:2], spindle[:2], radiant[:2], initial_C=30.0)
+        )
         full_setup.append(s)
-        s, d = timed(lambda: twin.thermal_direct(time_s[:n_win], ambient[:n_win], spindle[:n_win],
-                                                 radiant[:n_win], initial_C=30.0))
+        s, d = timed(
+            lambda: twin.thermal_direct(
+                time_s[:n_win], ambient[:n_win], spindle[:n_win], radiant[:n_win], initial_C=30.0
+            )
+        )
         full_win.append(s)
     loads.append(load1())
     red_med = statistics.median(reduced)
@@ -135,31 +153,52 @@ def main():
     per_step = max(win_med - setup_med, 0.0) / (n_win - 2)
     full_36h = setup_med + per_step * (n - 2)
     drift = h.change_from_start()
-    print(f"reduced twin, 36 h at 1 s ({n} samples), median of {args.reps}: {red_med:.3f} s "
-          f"[{', '.join(f'{v:.3f}' for v in reduced)}] (target < 60 s: "
-          f"{'met' if red_med < 60 else 'MISSED'}) = {1e6 * red_med / n:.2f} us/step")
-    print(f"full-order implicit Euler with adjoint outputs (Twin.thermal_direct), "
-          f"{n_win}-step window, median of {args.reps}: {win_med:.2f} s "
-          f"[{', '.join(f'{v:.2f}' for v in full_win)}] = setup {setup_med:.3f} s + "
-          f"{1e3 * per_step:.2f} ms/step -> 36 h extrapolated {full_36h:.0f} s")
+    print(
+        f"reduced twin, 36 h at 1 s ({n} samples), median of {args.reps}: {red_med:.3f} s "
+        f"[{', '.join(f'{v:.3f}' for v in reduced)}] (target < 60 s: "
+        f"{'met' if red_med < 60 else 'MISSED'}) = {1e6 * red_med / n:.2f} us/step"
+    )
+    print(
+        f"full-order implicit Euler with adjoint outputs (Twin.thermal_direct), "
+        f"{n_win}-step window, median of {args.reps}: {win_med:.2f} s "
+        f"[{', '.join(f'{v:.2f}' for v in full_win)}] = setup {setup_med:.3f} s + "
+        f"{1e3 * per_step:.2f} ms/step -> 36 h extrapolated {full_36h:.0f} s"
+    )
     print(f"speed-up reduced vs full-order stepper (36 h): {full_36h / red_med:.0f}x")
     err = np.abs(h.ttp_um[:n_win] - d.ttp_um).max()
-    print(f"  reduced vs full-order on the window: max |TTP diff| {err:.4f} um of range "
-          f"{np.ptp(d.ttp_um, axis=0).max():.3f} um")
-    print("  36 h TTP drift range dx, dy, dz [um]: "
-          + ", ".join(f"{v:.1f}" for v in np.ptp(drift.ttp_um, axis=0)))
+    print(
+        f"  reduced vs full-order on the window: max |TTP diff| {err:.4f} um of range "
+        f"{np.ptp(d.ttp_um, axis=0).max():.3f} um"
+    )
+    print(
+        "  36 h TTP drift range dx, dy, dz [um]: "
+        + ", ".join(f"{v:.1f}" for v in np.ptp(drift.ttp_um, axis=0))
+    )
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(f"peak RSS: {rss:.0f} MiB; load average (1 min) during the runs "
-          f"{min(loads):.2f}-{max(loads):.2f}")
-    print(json.dumps({
-        "bench": "twin", "dof": n_dof, "reps": args.reps,
-        "first_build_miss_s": round(miss_s, 3), "cache_store_s": round(b.cache_store_s, 3), "cache_entry_mib": round(entry_mib),
-        "cold_build_s": round(cold_med, 3), "warm_load_s": round(warm_med, 4),
-        "cold_over_warm": round(cold_med / warm_med, 1),
-        "reduced_36h_s": round(red_med, 4), "full_order_ms_per_step": round(1e3 * per_step, 3),
-        "full_order_36h_s": round(full_36h, 1), "reduced_speedup": round(full_36h / red_med, 0),
-        "window_max_ttp_diff_um": float(err), "peak_rss_mib": round(rss),
-        "load1_min": min(loads), "load1_max": max(loads)}))
+    print(f"peak RSS: {rss:.0f} MiB; load average (1 min) during the runs {min(loads):.2f}-{max(loads):.2f}")
+    print(
+        json.dumps(
+            {
+                "bench": "twin",
+                "dof": n_dof,
+                "reps": args.reps,
+                "first_build_miss_s": round(miss_s, 3),
+                "cache_store_s": round(b.cache_store_s, 3),
+                "cache_entry_mib": round(entry_mib),
+                "cold_build_s": round(cold_med, 3),
+                "warm_load_s": round(warm_med, 4),
+                "cold_over_warm": round(cold_med / warm_med, 1),
+                "reduced_36h_s": round(red_med, 4),
+                "full_order_ms_per_step": round(1e3 * per_step, 3),
+                "full_order_36h_s": round(full_36h, 1),
+                "reduced_speedup": round(full_36h / red_med, 0),
+                "window_max_ttp_diff_um": float(err),
+                "peak_rss_mib": round(rss),
+                "load1_min": min(loads),
+                "load1_max": max(loads),
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -13,8 +13,8 @@ import math
 import os
 import secrets
 import shutil
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
@@ -35,8 +35,9 @@ def json_safe(obj):
 
 
 @contextlib.contextmanager
-def atomic_path(target, *, mode: int = 0o600, prefix: str | None = None, suffix: str = ".tmp",
-                fsync: bool = True) -> Iterator[Path]:
+def atomic_path(
+    target, *, mode: int = 0o600, prefix: str | None = None, suffix: str = ".tmp", fsync: bool = True
+) -> Iterator[Path]:
     """Yield a new, empty temporary file beside ``target`` to write by name; on success it
     replaces ``target``.
 
@@ -72,8 +73,7 @@ def atomic_path(target, *, mode: int = 0o600, prefix: str | None = None, suffix:
         raise
 
 
-def write_bytes(path, data: bytes, check=None, *, mode: int = 0o600,
-                prefix: str | None = None) -> Path:
+def write_bytes(path, data: bytes, check=None, *, mode: int = 0o600, prefix: str | None = None) -> Path:
     """Write ``data`` to ``path`` atomically (temporary file, fsync, rename), creating its folder.
 
     ``check``, if given, is called with the temporary file's path once it is completely

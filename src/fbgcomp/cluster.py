@@ -19,7 +19,7 @@ import re
 
 from fbgcomp.errors import InputError
 
-__all__ = ["cluster", "local_cluster", "map_over_cluster", "tree_reduce", "pairwise", "parse_dask"]
+__all__ = ["cluster", "local_cluster", "map_over_cluster", "pairwise", "parse_dask", "tree_reduce"]
 
 _LOCAL_RE = re.compile(r"^local(?::(\d+))?$")
 
@@ -35,13 +35,15 @@ def parse_dask(spec) -> tuple[str, object]:
     if m:
         n = int(m.group(1) or (os.cpu_count() or 1))
         if n < 1:
-            raise InputError("local:N needs N >= 1 workers", file="<command line>",
-                             column="option --dask")
+            raise InputError("local:N needs N >= 1 workers", file="<command line>", column="option --dask")
         return "local", n
     if re.match(r"^(tcp|tls|inproc|ws|wss|ucx)://\S+$", spec.strip()):
         return "address", spec.strip()
-    raise InputError(f"--dask expects tcp://HOST:PORT or local:N, got {spec!r}",
-                     file="<command line>", column="option --dask")
+    raise InputError(
+        f"--dask expects tcp://HOST:PORT or local:N, got {spec!r}",
+        file="<command line>",
+        column="option --dask",
+    )
 
 
 def local_cluster(n_workers: int, **kwargs):
@@ -56,8 +58,7 @@ def local_cluster(n_workers: int, **kwargs):
     import dask  # noqa: PLC0415 - the scale extra (Dask) is optional: imported when a cluster is used
     from distributed import LocalCluster  # noqa: PLC0415 - as above
 
-    options = {"threads_per_worker": 1, "processes": True, "dashboard_address": None,
-               "silence_logs": 40}
+    options = {"threads_per_worker": 1, "processes": True, "dashboard_address": None, "silence_logs": 40}
     options.update(kwargs)
     with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
         return LocalCluster(n_workers=n_workers, **options)
@@ -80,8 +81,11 @@ def cluster(spec):
     try:
         from distributed import Client  # noqa: PLC0415 - the scale extra is optional
     except ImportError:
-        raise InputError("--dask needs the scale extra: pip install 'fbgcomp[scale]'",
-                         file="<command line>", column="option --dask") from None
+        raise InputError(
+            "--dask needs the scale extra: pip install 'fbgcomp[scale]'",
+            file="<command line>",
+            column="option --dask",
+        ) from None
     if kind == "local":
         with local_cluster(value) as lc, Client(lc) as client:
             yield client
@@ -89,8 +93,11 @@ def cluster(spec):
     try:
         client = Client(value, timeout="10s")
     except (OSError, TimeoutError) as exc:
-        raise InputError(f"cannot reach the Dask scheduler at {value}: {exc}",
-                         file="<command line>", column="option --dask") from None
+        raise InputError(
+            f"cannot reach the Dask scheduler at {value}: {exc}",
+            file="<command line>",
+            column="option --dask",
+        ) from None
     try:
         yield client
     finally:

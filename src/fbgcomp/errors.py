@@ -26,8 +26,9 @@ class InputError(Exception):
         Column name (CSV) or field path (YAML / JSON), e.g. ``sensors[2].lambda0_nm``.
     """
 
-    def __init__(self, message: str, file: str | Path | None = None,
-                 row: int | None = None, column: str | None = None):
+    def __init__(
+        self, message: str, file: str | Path | None = None, row: int | None = None, column: str | None = None
+    ):
         self.message = message
         self.file = None if file is None else str(file)
         self.row = row
@@ -41,15 +42,15 @@ class InputError(Exception):
         if self.row is not None:
             where.append(f"row {self.row} (line {self.row + 1})")
         if self.column is not None:
-            where.append(f"column {self.column}" if not self.column.startswith("field ")
-                         else self.column)
+            where.append(f"column {self.column}" if not self.column.startswith("field ") else self.column)
         prefix = ", ".join(where)
         text = f"{prefix}: {self.message}" if prefix else self.message
         return " ".join(text.split())  # exactly one line
 
 
-def read_bounded(path: str | Path, max_bytes: int, *, what: str,
-                 unreadable: str = "cannot read the file") -> bytes:
+def read_bounded(
+    path: str | Path, max_bytes: int, *, what: str, unreadable: str = "cannot read the file"
+) -> bytes:
     """The bytes of ``path``, read without ever holding more than ``max_bytes + 1`` of them.
 
     InputError naming the file: ``"<unreadable>: <reason>"`` when it cannot be opened or read,

@@ -132,7 +132,7 @@ def bar_elongation_um(alpha_rad, beta_rad, c_um, bar_xy_mm, length_mm):
     upper = np.stack([xy[:, 0], xy[:, 1], np.zeros(len(xy)), np.ones(len(xy))], axis=-1)
     lower = np.einsum("...ij,bj->...bi", m, upper)[..., :3]
     d = lower - upper[:, :3]
-    return (np.sqrt(np.sum(d ** 2, axis=-1)) - length_mm) * UM_PER_MM
+    return (np.sqrt(np.sum(d**2, axis=-1)) - length_mm) * UM_PER_MM
 
 
 def elongation_design(bar_xy_mm, cover) -> np.ndarray:
@@ -157,17 +157,19 @@ class SegmentStatus:
 
     z_lo_mm: float
     z_hi_mm: float
-    material: str               # cfrp, steel, tool
-    bars: list                  # sensor names spanning it
-    independent_bars: int       # rank of the segment's own columns over its bars
-    status: str                 # determined, underdetermined, unsensed, rigid
-    closure: str = ""           # how the chain fills what the bars do not give
+    material: str  # cfrp, steel, tool
+    bars: list  # sensor names spanning it
+    independent_bars: int  # rank of the segment's own columns over its bars
+    status: str  # determined, underdetermined, unsensed, rigid
+    closure: str = ""  # how the chain fills what the bars do not give
 
     def line(self) -> str:
         bars = ",".join(self.bars) or "-"
-        return (f"z {self.z_lo_mm:8.1f} .. {self.z_hi_mm:8.1f} mm  {self.material:<6}"
-                f" bars {bars:<16} independent {self.independent_bars}  {self.status:<15}"
-                f" {self.closure}")
+        return (
+            f"z {self.z_lo_mm:8.1f} .. {self.z_hi_mm:8.1f} mm  {self.material:<6}"
+            f" bars {bars:<16} independent {self.independent_bars}  {self.status:<15}"
+            f" {self.closure}"
+        )
 
 
 def segment_kinematics(elongation_um, bar_xy_mm, cover):
@@ -189,9 +191,14 @@ def segment_kinematics(elongation_um, bar_xy_mm, cover):
     K = A.shape[1] // 3
     pinv, identifiable = _identifiable_pinv(A)
     params = (np.atleast_2d(elongation_um) @ pinv.T).reshape(-1, K, 3)
-    rank = np.array([np.linalg.matrix_rank(A[cover[:, k] > 0][:, 3 * k:3 * k + 3] * _col_scale(),
-                                           tol=1e-6) if np.any(cover[:, k] > 0) else 0
-                     for k in range(K)])
+    rank = np.array(
+        [
+            np.linalg.matrix_rank(A[cover[:, k] > 0][:, 3 * k : 3 * k + 3] * _col_scale(), tol=1e-6)
+            if np.any(cover[:, k] > 0)
+            else 0
+            for k in range(K)
+        ]
+    )
     return params, identifiable.reshape(K, 3).all(axis=1), rank
 
 
@@ -208,8 +215,8 @@ def _identifiable_pinv(A):
     u, s, vt = np.linalg.svd(As, full_matrices=True)
     tol = _RANK_TOL * (s[0] if s.size else 1.0) * max(As.shape)
     r = int(np.sum(s > tol))
-    null = vt[r:].T                                     # (n_par, n_null)
-    identifiable = np.sqrt(np.sum(null ** 2, axis=1)) < 1e-6
+    null = vt[r:].T  # (n_par, n_null)
+    identifiable = np.sqrt(np.sum(null**2, axis=1)) < 1e-6
     pinv = np.linalg.pinv(As, rcond=max(tol / s[0], 1e-15) if s.size else 1e-15) * scale[:, None]
     return pinv, identifiable
 
@@ -219,10 +226,10 @@ def _identifiable_pinv(A):
 class Section:
     """Beam properties of a stretch of the structure (mm, MPa)."""
 
-    EI_x: float      # bending about X (curvature alpha per mm), N mm^2
-    EI_y: float      # bending about Y, N mm^2
-    GA_x: float      # shear stiffness for forces along X, N
-    GA_y: float      # shear stiffness for forces along Y, N
+    EI_x: float  # bending about X (curvature alpha per mm), N mm^2
+    EI_y: float  # bending about Y, N mm^2
+    GA_x: float  # shear stiffness for forces along X, N
+    GA_y: float  # shear stiffness for forces along Y, N
     cte_per_K: float  # axial thermal expansion
 
 
@@ -232,8 +239,13 @@ def ram_section(machine) -> Section:
     w, d = W - 2 * t, D - 2 * t
     E, G = 1e3 * m.E_L_GPa, 1e3 * m.G_LT_GPa
     # Shear is carried by the walls parallel to the force (the webs).
-    return Section(EI_x=E * (W * D ** 3 - w * d ** 3) / 12, EI_y=E * (D * W ** 3 - d * w ** 3) / 12,
-                   GA_x=G * 2 * t * W, GA_y=G * 2 * t * D, cte_per_K=m.cte_L_per_K)
+    return Section(
+        EI_x=E * (W * D**3 - w * d**3) / 12,
+        EI_y=E * (D * W**3 - d * w**3) / 12,
+        GA_x=G * 2 * t * W,
+        GA_y=G * 2 * t * D,
+        cte_per_K=m.cte_L_per_K,
+    )
 
 
 def housing_section(machine) -> Section:
@@ -241,8 +253,13 @@ def housing_section(machine) -> Section:
     E = 1e3 * s.E_GPa
     G = E / (2 * (1 + s.nu))
     A = h.width_mm * h.depth_mm
-    return Section(EI_x=E * h.width_mm * h.depth_mm ** 3 / 12, EI_y=E * h.depth_mm * h.width_mm ** 3 / 12,
-                   GA_x=G * A * 5 / 6, GA_y=G * A * 5 / 6, cte_per_K=s.cte_per_K)
+    return Section(
+        EI_x=E * h.width_mm * h.depth_mm**3 / 12,
+        EI_y=E * h.depth_mm * h.width_mm**3 / 12,
+        GA_x=G * A * 5 / 6,
+        GA_y=G * A * 5 / 6,
+        cte_per_K=s.cte_per_K,
+    )
 
 
 # ------------------------------------------------------------------------------- the chain
@@ -330,10 +347,18 @@ class KinematicChain:
         self.top_z_mm = float(z[0])
         K = len(self.segments)
         hw, hd = m.ram.outer_width_mm / 2, m.ram.outer_depth_mm / 2
-        self.bar_xy_mm = np.array([bar_position_mm(sn.face, sn.offset_mm, hw, hd) for sn in self.sensors]
-                                  ).reshape(-1, 2)
-        self.cover = np.array([[1.0 if (g.z_lo >= sn.z_start_mm - 1e-6 and g.z_hi <= sn.z_end_mm + 1e-6)
-                                else 0.0 for g in self.segments] for sn in self.sensors]).reshape(-1, K)
+        self.bar_xy_mm = np.array(
+            [bar_position_mm(sn.face, sn.offset_mm, hw, hd) for sn in self.sensors]
+        ).reshape(-1, 2)
+        self.cover = np.array(
+            [
+                [
+                    1.0 if (g.z_lo >= sn.z_start_mm - 1e-6 and g.z_hi <= sn.z_end_mm + 1e-6) else 0.0
+                    for g in self.segments
+                ]
+                for sn in self.sensors
+            ]
+        ).reshape(-1, K)
         self.lengths_mm = np.array([g.z_hi - g.z_lo for g in self.segments])
         self.housing_probe = housing_probe(m)
         self._compile()
@@ -350,8 +375,7 @@ class KinematicChain:
         """
         ram, hs = ram_section(self.machine), housing_section(self.machine)
         z_lc, z_uc, z_t = self.carriage_z_mm[0], self.carriage_z_mm[1], self.ttp_z_mm
-        sensed = [k for k, g in enumerate(self.segments)
-                  if g.material == "cfrp" and self.cover[:, k].any()]
+        sensed = [k for k, g in enumerate(self.segments) if g.material == "cfrp" and self.cover[:, k].any()]
         self.axial_groups = sensed
         G = np.zeros((len(self.segments), 5, 2 + len(sensed)))
         lever_lc = z_lc - z_t
@@ -365,7 +389,7 @@ class KinematicChain:
             # the reacting span between the carriages, nothing above the upper one.
             zm = mids[k]
             if zm <= z_lc:
-                moment_int = L * (zm - z_t)              # ∫ (z - z_ttp) dz over the segment
+                moment_int = L * (zm - z_t)  # ∫ (z - z_ttp) dz over the segment
                 shear = 1.0
             elif zm <= z_uc:
                 a = z_uc - z_lc
@@ -373,13 +397,13 @@ class KinematicChain:
                 shear = -lever_lc / a
             else:
                 moment_int, shear = 0.0, 0.0
-            G[k, 0, 1] = moment_int / sec.EI_x                 # alpha from Fy
-            G[k, 1, 0] = -moment_int / sec.EI_y                # beta from Fx
-            G[k, 3, 0] = UM_PER_MM * shear * L / sec.GA_x      # a from Fx (µm)
-            G[k, 4, 1] = UM_PER_MM * shear * L / sec.GA_y      # b from Fy (µm)
+            G[k, 0, 1] = moment_int / sec.EI_x  # alpha from Fy
+            G[k, 1, 0] = -moment_int / sec.EI_y  # beta from Fx
+            G[k, 3, 0] = UM_PER_MM * shear * L / sec.GA_x  # a from Fx (µm)
+            G[k, 4, 1] = UM_PER_MM * shear * L / sec.GA_y  # b from Fy (µm)
             if g.material == "cfrp" and zm <= self.nut_z_mm and sensed:
                 if k in sensed:
-                    G[k, 2, 2 + sensed.index(k)] = UM_PER_MM * L      # c = eps * L (µm)
+                    G[k, 2, 2 + sensed.index(k)] = UM_PER_MM * L  # c = eps * L (µm)
                 else:
                     d = np.abs(mids[sensed] - zm)
                     near = np.nonzero(d <= d.min() + 1e-6)[0]
@@ -388,8 +412,8 @@ class KinematicChain:
 
     def _compile(self):
         K, S = len(self.segments), len(self.sensors)
-        G = self._closure_basis()                                    # (K, 5, 2 + G)
-        f = {k: 1.0 for k in CLOSURE_FACTORS}
+        G = self._closure_basis()  # (K, 5, 2 + G)
+        f = dict.fromkeys(CLOSURE_FACTORS, 1.0)
         unknown = set(self.closure_factors or {}) - set(CLOSURE_FACTORS)
         if unknown:
             raise ValueError(f"unknown closure factors {sorted(unknown)}; expected {CLOSURE_FACTORS}")
@@ -405,7 +429,7 @@ class KinematicChain:
         Gf[:, 4, 1] *= f["shear_y"]
         params_meas = np.zeros((K, 5, S))
         if S:
-            A = elongation_design(self.bar_xy_mm, self.cover)            # (S, 3K)
+            A = elongation_design(self.bar_xy_mm, self.cover)  # (S, 3K)
             pinv, ident = _identifiable_pinv(A)
             determined = ident.reshape(K, 3).all(axis=1)
             # Generalized loads from all bars: dL = A (G3 g) -> g = pinv(A G3) dL.
@@ -413,11 +437,14 @@ class KinematicChain:
             used = np.linalg.norm(AG, axis=0) > 0
             gmap = np.zeros((G.shape[2], S))
             if used.any():
-                gmap[used] = np.linalg.pinv(AG[:, used] / np.linalg.norm(AG[:, used], axis=0),
-                                            rcond=1e-10) / np.linalg.norm(AG[:, used], axis=0)[:, None]
-            self.load_identifiable = used & (np.linalg.matrix_rank(AG[:, used]) == used.sum()
-                                             if used.any() else used)
-            closure = np.einsum("kpg,gs->kps", Gf, gmap)             # (K, 5, S)
+                gmap[used] = (
+                    np.linalg.pinv(AG[:, used] / np.linalg.norm(AG[:, used], axis=0), rcond=1e-10)
+                    / np.linalg.norm(AG[:, used], axis=0)[:, None]
+                )
+            self.load_identifiable = used & (
+                np.linalg.matrix_rank(AG[:, used]) == used.sum() if used.any() else used
+            )
+            closure = np.einsum("kpg,gs->kps", Gf, gmap)  # (K, 5, S)
             direct = pinv.reshape(K, 3, S)
             params_meas = closure.copy()
             params_meas[determined, :3, :] = direct[determined]
@@ -434,7 +461,7 @@ class KinematicChain:
             self.inconsistency_projector = np.eye(S) - A @ pinv
         else:
             self.inconsistency_projector = np.zeros((0, 0))
-        self.param_map = params_meas                                 # (K, 5, S) per µm of bar
+        self.param_map = params_meas  # (K, 5, S) per µm of bar
         # Housing thermal expansion per K of its probe (steel, free expansion).
         self.param_housing = np.zeros((K, 5))
         hs = housing_section(self.machine)
@@ -452,22 +479,28 @@ class KinematicChain:
             if bars:
                 A = elongation_design(self.bar_xy_mm, self.cover)
                 rows = self.cover[:, k] > 0
-                rank = int(np.linalg.matrix_rank(A[rows][:, 3 * k:3 * k + 3] * _col_scale(), tol=1e-6))
+                rank = int(np.linalg.matrix_rank(A[rows][:, 3 * k : 3 * k + 3] * _col_scale(), tol=1e-6))
             if g.material == "tool":
                 status, closure = "rigid", "tool: rigid extension"
             elif self.determined[k]:
                 status, closure = "determined", "alpha, beta, c from bars; shear a, b: beam closure"
             elif bars:
                 status = "underdetermined"
-                closure = (f"{rank} independent bar(s) < 3: bending from beam closure (TTP force), "
-                           "axial strain from its bars")
+                closure = (
+                    f"{rank} independent bar(s) < 3: bending from beam closure (TTP force), "
+                    "axial strain from its bars"
+                )
             else:
                 status = "unsensed"
-                closure = ("beam closure (TTP force), axial strain of the nearest sensed segment"
-                           if g.material == "cfrp"
-                           else ("steel: beam closure, thermal expansion from probe "
-                                 f"{self.housing_probe}" if self.housing_probe
-                                 else "steel: beam closure, no housing probe: isothermal"))
+                closure = (
+                    "beam closure (TTP force), axial strain of the nearest sensed segment"
+                    if g.material == "cfrp"
+                    else (
+                        f"steel: beam closure, thermal expansion from probe {self.housing_probe}"
+                        if self.housing_probe
+                        else "steel: beam closure, no housing probe: isothermal"
+                    )
+                )
             out.append(SegmentStatus(g.z_lo, g.z_hi, g.material, bars, rank, status, closure))
         return out
 
@@ -477,17 +510,22 @@ class KinematicChain:
         return [r for r in self.report if r.status in ("underdetermined", "unsensed")]
 
     def format_report(self) -> str:
-        head = (f"kinematic chain at Z = {self.z_axis_mm:g} mm: carriages at "
-                f"{self.carriage_z_mm[0]:g}, {self.carriage_z_mm[1]:g} mm, nut at {self.nut_z_mm:g} mm, "
-                f"TTP at {self.ttp_z_mm:g} mm (ram frame)")
+        head = (
+            f"kinematic chain at Z = {self.z_axis_mm:g} mm: carriages at "
+            f"{self.carriage_z_mm[0]:g}, {self.carriage_z_mm[1]:g} mm, nut at {self.nut_z_mm:g} mm, "
+            f"TTP at {self.ttp_z_mm:g} mm (ram frame)"
+        )
         return "\n".join([head] + [r.line() for r in self.report])
 
     # -- evaluation ----------------------------------------------------------------------
     def segment_parameters(self, elongation_um, housing_dT_K=None):
         """(n, K, 5): alpha rad, beta rad, c µm, a µm, b µm of every segment."""
         dl = np.atleast_2d(np.asarray(elongation_um, dtype=float))
-        p = np.einsum("kps,ns->nkp", self.param_map, dl) if dl.shape[1] else \
-            np.zeros((dl.shape[0],) + self.param_map.shape[:2])
+        p = (
+            np.einsum("kps,ns->nkp", self.param_map, dl)
+            if dl.shape[1]
+            else np.zeros((dl.shape[0],) + self.param_map.shape[:2])
+        )
         if housing_dT_K is not None:
             p = p + np.asarray(housing_dT_K, dtype=float).reshape(-1, 1, 1) * self.param_housing[None]
         return p
@@ -503,7 +541,7 @@ class KinematicChain:
         # down the ram, so translations along Z are negative.
         first = m_c(-np.broadcast_to(half, (n, K)))
         second = segment_htm(al, be, -(half + c_mm), a_mm, b_mm)
-        frames = chain_frames(first @ second)                        # (n, K+1, 4, 4)
+        frames = chain_frames(first @ second)  # (n, K+1, 4, 4)
         pos = frames[..., :3, 3]
         return pos
 
@@ -514,7 +552,7 @@ class KinematicChain:
         F = np.atleast_2d(np.asarray(force_N, dtype=float))
         z_lc, z_uc = self.carriage_z_mm
         a = z_uc - z_lc
-        k = self.machine.supports.carriage_stiffness_value_N_per_um   # inf: rigid carriages
+        k = self.machine.supports.carriage_stiffness_value_N_per_um  # inf: rigid carriages
         # The ram pushes on the lower station with F (z_uc - z_t) / a and pulls on the upper one
         # with F (z_lc - z_t) / a: each station yields by its load over its stiffness.
         lower = F * (z_uc - self.ttp_z_mm) / (a * k)
@@ -528,7 +566,7 @@ class KinematicChain:
         stations (their guides' compliance); None: rigid guides.
         """
         pos = self._chain(params)
-        u = (pos - self._nominal[None]) * UM_PER_MM                  # (n, K+1, 3)
+        u = (pos - self._nominal[None]) * UM_PER_MM  # (n, K+1, 3)
         zb = self.top_z_mm - np.concatenate([[0.0], np.cumsum(self.lengths_mm)])
         i_lc, i_uc = (int(np.argmin(np.abs(zb - z))) for z in self.carriage_z_mm)
         i_nut = int(np.argmin(np.abs(zb - self.nut_z_mm)))
@@ -541,13 +579,13 @@ class KinematicChain:
         # Rigid base motion (small rotation phi about the top point + translation t) that puts
         # both carriage stations back on their guides and the nut on the screw. A base
         # rotation about X by phi moves a point h below the top by +h*phi in Y, about Y by -h*phi in X.
-        phi_x = -(u[:, i_lc, 1] - u[:, i_uc, 1]) / ((h_lc - h_uc) * UM_PER_MM)     # rad
-        t_y = -u[:, i_uc, 1] - h_uc * UM_PER_MM * phi_x                             # µm
+        phi_x = -(u[:, i_lc, 1] - u[:, i_uc, 1]) / ((h_lc - h_uc) * UM_PER_MM)  # rad
+        t_y = -u[:, i_uc, 1] - h_uc * UM_PER_MM * phi_x  # µm
         phi_y = (u[:, i_lc, 0] - u[:, i_uc, 0]) / ((h_lc - h_uc) * UM_PER_MM)
         t_x = -u[:, i_uc, 0] + h_uc * UM_PER_MM * phi_y
         t_z = -u[:, i_nut, 2]
         base = segment_htm(phi_x, phi_y, t_z / UM_PER_MM, t_x / UM_PER_MM, t_y / UM_PER_MM)
-        tip_rel = pos[:, -1, :]                                       # relative to the top point
+        tip_rel = pos[:, -1, :]  # relative to the top point
         tip = np.einsum("nij,nj->ni", base[..., :3, :3], tip_rel) + base[..., :3, 3]
         return (tip - self._nominal[-1][None]) * UM_PER_MM
 
@@ -555,8 +593,9 @@ class KinematicChain:
         """TTP deviation (n, 3) µm from bar elongations (n, S) µm and the housing probe's ΔT (n,) K."""
         dl = np.atleast_2d(np.asarray(elongation_um, dtype=float))
         force = dl @ self.load_map[:2].T if dl.shape[1] else np.zeros((len(dl), 2))
-        return self.deflection_um(self.segment_parameters(dl, housing_dT_K),
-                                  self.support_deflection_um(force))
+        return self.deflection_um(
+            self.segment_parameters(dl, housing_dT_K), self.support_deflection_um(force)
+        )
 
     def jacobian(self):
         """Linear maps: TTP µm per µm of each bar (3, S) and per K of housing probe (3,)."""

@@ -59,8 +59,15 @@ def relative_shift(wavelength_nm, wavelength0_nm):
     return (np.asarray(wavelength_nm, dtype=float) - wavelength0_nm) / wavelength0_nm
 
 
-def host_strain(wavelength_nm, wavelength0_nm, delta_t_C=0.0, *, photoelastic=PHOTOELASTIC,
-                thermo_optic_per_K=THERMO_OPTIC_PER_K, fibre_cte_per_K=FIBRE_CTE_PER_K):
+def host_strain(
+    wavelength_nm,
+    wavelength0_nm,
+    delta_t_C=0.0,
+    *,
+    photoelastic=PHOTOELASTIC,
+    thermo_optic_per_K=THERMO_OPTIC_PER_K,
+    fibre_cte_per_K=FIBRE_CTE_PER_K,
+):
     """Temperature-compensated total strain of the host under a bonded FBG (paper eq. 2-3).
 
     ``eps_host = [d_lambda/lambda_0 - (alpha_f + xi) * dT] / (1 - p_e) + alpha_f * dT``
@@ -88,8 +95,9 @@ def host_strain(wavelength_nm, wavelength0_nm, delta_t_C=0.0, *, photoelastic=PH
     """
     delta_t_C = np.asarray(delta_t_C, dtype=float)
     shift = relative_shift(wavelength_nm, wavelength0_nm)
-    return ((shift - (fibre_cte_per_K + thermo_optic_per_K) * delta_t_C) / (1.0 - photoelastic)
-            + fibre_cte_per_K * delta_t_C)
+    return (shift - (fibre_cte_per_K + thermo_optic_per_K) * delta_t_C) / (
+        1.0 - photoelastic
+    ) + fibre_cte_per_K * delta_t_C
 
 
 def uncompensated_strain(wavelength_nm, wavelength0_nm, *, photoelastic=PHOTOELASTIC):
@@ -97,9 +105,16 @@ def uncompensated_strain(wavelength_nm, wavelength0_nm, *, photoelastic=PHOTOELA
     return relative_shift(wavelength_nm, wavelength0_nm) / (1.0 - photoelastic)
 
 
-def elongation_um(wavelength_nm, wavelength0_nm, gauge_length_mm, delta_t_C=0.0, *,
-                  photoelastic=PHOTOELASTIC, thermo_optic_per_K=THERMO_OPTIC_PER_K,
-                  fibre_cte_per_K=FIBRE_CTE_PER_K):
+def elongation_um(
+    wavelength_nm,
+    wavelength0_nm,
+    gauge_length_mm,
+    delta_t_C=0.0,
+    *,
+    photoelastic=PHOTOELASTIC,
+    thermo_optic_per_K=THERMO_OPTIC_PER_K,
+    fibre_cte_per_K=FIBRE_CTE_PER_K,
+):
     """Elongation dL of a long-gauge sensor path, temperature-compensated (paper eq. 2-4).
 
     ``dL = eps_host * L_gauge`` (eq. 4), reported in µm.
@@ -120,14 +135,27 @@ def elongation_um(wavelength_nm, wavelength0_nm, gauge_length_mm, delta_t_C=0.0,
     ndarray
         Elongation of the host along the path, µm.
     """
-    strain = host_strain(wavelength_nm, wavelength0_nm, delta_t_C, photoelastic=photoelastic,
-                         thermo_optic_per_K=thermo_optic_per_K, fibre_cte_per_K=fibre_cte_per_K)
+    strain = host_strain(
+        wavelength_nm,
+        wavelength0_nm,
+        delta_t_C,
+        photoelastic=photoelastic,
+        thermo_optic_per_K=thermo_optic_per_K,
+        fibre_cte_per_K=fibre_cte_per_K,
+    )
     return strain * np.asarray(gauge_length_mm, dtype=float) * _UM_PER_MM
 
 
-def wavelength_nm(elongation_um, wavelength0_nm, gauge_length_mm, delta_t_C=0.0, *,
-                  photoelastic=PHOTOELASTIC, thermo_optic_per_K=THERMO_OPTIC_PER_K,
-                  fibre_cte_per_K=FIBRE_CTE_PER_K):
+def wavelength_nm(
+    elongation_um,
+    wavelength0_nm,
+    gauge_length_mm,
+    delta_t_C=0.0,
+    *,
+    photoelastic=PHOTOELASTIC,
+    thermo_optic_per_K=THERMO_OPTIC_PER_K,
+    fibre_cte_per_K=FIBRE_CTE_PER_K,
+):
     """Bragg wavelength of a bonded FBG whose host path elongates by ``elongation_um`` (eq. 2, 4).
 
     The forward model used by the virtual test bench and the simulated interrogator; exact
@@ -151,14 +179,15 @@ def wavelength_nm(elongation_um, wavelength0_nm, gauge_length_mm, delta_t_C=0.0,
     """
     delta_t_C = np.asarray(delta_t_C, dtype=float)
     strain = np.asarray(elongation_um, dtype=float) / (np.asarray(gauge_length_mm, dtype=float) * _UM_PER_MM)
-    shift = ((1.0 - photoelastic) * (strain - fibre_cte_per_K * delta_t_C)
-             + (fibre_cte_per_K + thermo_optic_per_K) * delta_t_C)
+    shift = (1.0 - photoelastic) * (strain - fibre_cte_per_K * delta_t_C) + (
+        fibre_cte_per_K + thermo_optic_per_K
+    ) * delta_t_C
     return np.asarray(wavelength0_nm, dtype=float) * (1.0 + shift)
 
 
-def grating_temperature_change_K(wavelength_nm, wavelength0_nm, *,
-                                 thermo_optic_per_K=THERMO_OPTIC_PER_K,
-                                 fibre_cte_per_K=FIBRE_CTE_PER_K):
+def grating_temperature_change_K(
+    wavelength_nm, wavelength0_nm, *, thermo_optic_per_K=THERMO_OPTIC_PER_K, fibre_cte_per_K=FIBRE_CTE_PER_K
+):
     """Temperature change of a strain-free (loose, unbonded) reference grating, K (paper eq. 3
     inverted): ``dT = (d_lambda / lambda_0) / (alpha_f + xi)``.
 
@@ -175,16 +204,19 @@ def grating_temperature_change_K(wavelength_nm, wavelength0_nm, *,
     return relative_shift(wavelength_nm, wavelength0_nm) / (fibre_cte_per_K + thermo_optic_per_K)
 
 
-def free_grating_wavelength_nm(delta_t_C, wavelength0_nm, *, thermo_optic_per_K=THERMO_OPTIC_PER_K,
-                               fibre_cte_per_K=FIBRE_CTE_PER_K):
+def free_grating_wavelength_nm(
+    delta_t_C, wavelength0_nm, *, thermo_optic_per_K=THERMO_OPTIC_PER_K, fibre_cte_per_K=FIBRE_CTE_PER_K
+):
     """Bragg wavelength of a strain-free grating warmed by ``delta_t_C`` K (eq. 3), nm: the
     forward model of :func:`grating_temperature_change_K`."""
     return np.asarray(wavelength0_nm, dtype=float) * (
-        1.0 + (fibre_cte_per_K + thermo_optic_per_K) * np.asarray(delta_t_C, dtype=float))
+        1.0 + (fibre_cte_per_K + thermo_optic_per_K) * np.asarray(delta_t_C, dtype=float)
+    )
 
 
-def temperature_sensitivity_nm_per_K(wavelength0_nm, *, thermo_optic_per_K=THERMO_OPTIC_PER_K,
-                                     fibre_cte_per_K=FIBRE_CTE_PER_K):
+def temperature_sensitivity_nm_per_K(
+    wavelength0_nm, *, thermo_optic_per_K=THERMO_OPTIC_PER_K, fibre_cte_per_K=FIBRE_CTE_PER_K
+):
     """Wavelength shift of a free (unbonded) grating per kelvin (paper eq. 3), nm/K."""
     return (fibre_cte_per_K + thermo_optic_per_K) * np.asarray(wavelength0_nm, dtype=float)
 
@@ -202,7 +234,8 @@ def elongation_noise_um(sensors, wavelength_noise_nm=0.001):
     ``gauge_length_mm`` (a campaign's sensor record) or ``gauge_length`` (a machine description's).
     """
     lam0 = np.array([s.lambda0_nm for s in sensors], dtype=float)
-    gauge = np.array([s.gauge_length if hasattr(s, "gauge_length") else s.gauge_length_mm
-                      for s in sensors], dtype=float)
+    gauge = np.array(
+        [s.gauge_length if hasattr(s, "gauge_length") else s.gauge_length_mm for s in sensors], dtype=float
+    )
     pe = np.array([s.photoelastic for s in sensors], dtype=float)
     return wavelength_noise_nm / strain_sensitivity_nm(lam0, photoelastic=pe) * gauge * _UM_PER_MM

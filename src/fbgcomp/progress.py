@@ -42,8 +42,16 @@ def track(iterable, desc: str, unit: str = "item", total: int | None = None):
     or a pipe, one line ``desc: N/total`` per item instead of redrawn bars."""
     if enabled() and not _terminal():
         return _lines(iterable, desc, unit, total)
-    return tqdm(iterable, desc=desc, unit=unit, total=total, disable=not enabled(),
-                leave=False, file=sys.stderr, dynamic_ncols=True)
+    return tqdm(
+        iterable,
+        desc=desc,
+        unit=unit,
+        total=total,
+        disable=not enabled(),
+        leave=False,
+        file=sys.stderr,
+        dynamic_ncols=True,
+    )
 
 
 def _lines(iterable, desc, unit, total):
@@ -58,10 +66,17 @@ def stages(command: str, total: int):
     """A bar over a command's ``total`` named stages; yields ``stage(name)``, called at the
     start of each stage (it completes the previous one). The last stage is completed on exit
     without an exception; the bar is then left on the terminal as a record of the run."""
-    plain = enabled() and not _terminal()      # forced into a file or pipe: plain lines
-    bar = tqdm(total=total, desc=command, unit="stage", disable=plain or not enabled(), leave=True,
-               file=sys.stderr, dynamic_ncols=True,
-               bar_format="{desc}: {n_fmt}/{total_fmt} stages [{elapsed}]")
+    plain = enabled() and not _terminal()  # forced into a file or pipe: plain lines
+    bar = tqdm(
+        total=total,
+        desc=command,
+        unit="stage",
+        disable=plain or not enabled(),
+        leave=True,
+        file=sys.stderr,
+        dynamic_ncols=True,
+        bar_format="{desc}: {n_fmt}/{total_fmt} stages [{elapsed}]",
+    )
     started = [False]
 
     def stage(name: str) -> None:

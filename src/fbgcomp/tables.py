@@ -37,7 +37,7 @@ def format_number(value, decimals: int = 3) -> str:
         return MISSING
     if math.isinf(x):
         return "inf" if x > 0 else "-inf"
-    if abs(x) < 0.5 * 10.0 ** -decimals:
+    if abs(x) < 0.5 * 10.0**-decimals:
         return "0"
     text = f"{x:.{decimals}f}"
     # a value just above the threshold that still rounds to zero (binary representation)
@@ -94,5 +94,4 @@ def format_table(columns, rows, *, indent: str = "", gap: int = 2) -> str:
         out = out.rstrip() if not note else f"{out}{sep}{note}"
         return indent + out
 
-    return "\n".join([line([c.header for c in columns])]
-                     + [line(r, n) for r, n in zip(cells, notes)])
+    return "\n".join([line([c.header for c in columns])] + [line(r, n) for r, n in zip(cells, notes)])

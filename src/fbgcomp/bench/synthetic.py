@@ -9,7 +9,7 @@ known, a fit can be checked coefficient by coefficient.
 
 from __future__ import annotations
 
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 
 import numpy as np
 import pandas as pd
@@ -23,25 +23,38 @@ SENSORS = ("S1", "S2", "S3", "S4", "S5")
 PROBES = ("T_bulk", "T_surf", "T_flange", "T_amb")
 
 
-def default_meta(name="synthetic", kind="thermal", sensors=SENSORS, probes=PROBES,
-                 sensor_probe="T_surf") -> dict:
+def default_meta(
+    name="synthetic", kind="thermal", sensors=SENSORS, probes=PROBES, sensor_probe="T_surf"
+) -> dict:
     """Campaign metadata (as a dict for ``CampaignMeta``) for the default 5-sensor ram layout."""
     faces = ["+X", "-X", "+Y", "-Y", "+X"]
     spans = [(100, 600)] * 4 + [(650, 1050)]
     sensor_list = []
     for i, s in enumerate(sensors):
         z0, z1 = spans[i % len(spans)]
-        sensor_list.append({"name": s, "lambda0_nm": 1530.0 + 5.0 * i, "gauge_length_mm": float(z1 - z0),
-                            "photoelastic": optics.PHOTOELASTIC,
-                            "thermo_optic_per_K": optics.THERMO_OPTIC_PER_K,
-                            "fibre_cte_per_K": optics.FIBRE_CTE_PER_K, "face": faces[i % len(faces)],
-                            "z_start_mm": float(z0), "z_end_mm": float(z1),
-                            "temperature_probe": sensor_probe})
-    return {"name": name, "kind": kind, "description": "synthetic campaign with a known linear truth",
-            "start": datetime(2026, 1, 12, 8, 0, tzinfo=timezone.utc),
-            "sensors": sensor_list,
-            "temperature_probes": [{"name": p, "location": "synthetic"} for p in probes],
-            "reference": {"instrument": "synthetic", "point": "TTP", "units": "um"}}
+        sensor_list.append(
+            {
+                "name": s,
+                "lambda0_nm": 1530.0 + 5.0 * i,
+                "gauge_length_mm": float(z1 - z0),
+                "photoelastic": optics.PHOTOELASTIC,
+                "thermo_optic_per_K": optics.THERMO_OPTIC_PER_K,
+                "fibre_cte_per_K": optics.FIBRE_CTE_PER_K,
+                "face": faces[i % len(faces)],
+                "z_start_mm": float(z0),
+                "z_end_mm": float(z1),
+                "temperature_probe": sensor_probe,
+            }
+        )
+    return {
+        "name": name,
+        "kind": kind,
+        "description": "synthetic campaign with a known linear truth",
+        "start": datetime(2026, 1, 12, 8, 0, tzinfo=UTC),
+        "sensors": sensor_list,
+        "temperature_probes": [{"name": p, "location": "synthetic"} for p in probes],
+        "reference": {"instrument": "synthetic", "point": "TTP", "units": "um"},
+    }
 
 
 def _smooth_signal(rng, t, amplitude, periods_s=(900.0, 3000.0), n_terms=4):
@@ -52,10 +65,21 @@ def _smooth_signal(rng, t, amplitude, periods_s=(900.0, 3000.0), n_terms=4):
     return out
 
 
-def linear_truth_campaign(name="synthetic", *, seed=0, duration_s=3600.0, fbg_dt_s=1.0,
-                          temperature_dt_s=1.0, reference_dt_s=1.0, reference_offset_s=0.0,
-                          coefficients=None, noise_um=0.05, wavelength_noise_nm=0.0,
-                          kind="thermal", settle_s=60.0):
+def linear_truth_campaign(
+    name="synthetic",
+    *,
+    seed=0,
+    duration_s=3600.0,
+    fbg_dt_s=1.0,
+    temperature_dt_s=1.0,
+    reference_dt_s=1.0,
+    reference_offset_s=0.0,
+    coefficients=None,
+    noise_um=0.05,
+    wavelength_noise_nm=0.0,
+    kind="thermal",
+    settle_s=60.0,
+):
     """A campaign whose TTP deviation is an exact linear function of eq. 13 regressors.
 
     Parameters
@@ -132,7 +156,7 @@ def linear_truth_campaign(name="synthetic", *, seed=0, duration_s=3600.0, fbg_dt
 
 
 def _temperature_features(temps):
-    """eq. 13 features relative to t = 0 (columns T_bulk, T_surf, T_flange, ...)."""
+    """Eq. 13 features relative to t = 0 (columns T_bulk, T_surf, T_flange, ...)."""
     d = temps - temps[0]
     return np.column_stack([d[:, 0], d[:, 0] - d[:, 1], d[:, 2] - d[:, 0]])
 

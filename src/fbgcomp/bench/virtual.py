@@ -20,7 +20,7 @@ The output is a campaign folder in exactly the format :mod:`fbgcomp.io.campaign`
 
 from __future__ import annotations
 
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from importlib import resources
 from pathlib import Path
 from typing import Literal
@@ -42,6 +42,7 @@ class _Strict(BaseModel):
 
 class Cycle(_Strict):
     """A sinusoidal component: ``amplitude * sin(2 pi (t - phase) / period)``."""
+
     amplitude: float
     period_h: float = Field(gt=0)
     phase_h: float = 0.0
@@ -49,12 +50,14 @@ class Cycle(_Strict):
 
 class RandomPart(_Strict):
     """A smooth random component (Gaussian-filtered white noise), seeded by the run's seed."""
+
     sd: float = Field(ge=0)
     correlation_h: float = Field(gt=0)
 
 
 class Duty(_Strict):
     """Level ``level`` between ``start_h`` and ``end_h``, optionally switched on/off in cycles."""
+
     start_h: float
     end_h: float
     level: float
@@ -64,11 +67,12 @@ class Duty(_Strict):
 
 class History(_Strict):
     """A scalar input history: base + piecewise-linear knots + cycles + duty + random part."""
+
     base: float = 0.0
-    knots_h: list[tuple[float, float]] = []     # (time h, value) added, linearly interpolated
+    knots_h: list[tuple[float, float]] = []  # (time h, value) added, linearly interpolated
     cycles: list[Cycle] = []
     duty: list[Duty] = []
-    edge_s: float = Field(default=120.0, ge=0)   # duty switching is smoothed over this time
+    edge_s: float = Field(default=120.0, ge=0)  # duty switching is smoothed over this time
     random: RandomPart | None = None
 
     def sample(self, time_s: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -93,31 +97,35 @@ class History(_Strict):
 
 class LoadStep(_Strict):
     """A force (N, X Y Z) held at the TTP for ``hold_s``."""
+
     force_N: tuple[float, float, float]
     hold_s: float = Field(gt=0)
 
 
 class Fbg(_Strict):
     """The simulated interrogator: sample step, clock offset, noise, drift, installation offset."""
+
     dt_s: float = Field(default=1.0, gt=0)
     clock_offset_s: float = 0.0
-    noise_nm: float = Field(default=0.001, ge=0)         # ~1 pm, ≈ 0.8 µε at 1550 nm
-    drift_nm_per_h: float = 0.0                          # slow interrogator drift (per channel, random sign)
+    noise_nm: float = Field(default=0.001, ge=0)  # ~1 pm, ≈ 0.8 µε at 1550 nm
+    drift_nm_per_h: float = 0.0  # slow interrogator drift (per channel, random sign)
     install_offset_nm: float = Field(default=0.3, ge=0)  # initial wavelength = lambda0 ± this (pre-strain)
 
 
 class Probes(_Strict):
     """The simulated temperature probes: sample step, clock offset, calibration offset, noise,
     quantisation."""
+
     dt_s: float = Field(default=10.0, gt=0)
     clock_offset_s: float = 0.0
-    offset_C: float = Field(default=0.3, ge=0)           # fixed calibration offset, uniform ±
+    offset_C: float = Field(default=0.3, ge=0)  # fixed calibration offset, uniform ±
     noise_C: float = Field(default=0.1, ge=0)
     quantum_C: float = Field(default=0.1, ge=0)
 
 
 class Interferometer(_Strict):
     """The simulated TTP reference: sample step, clock offset, noise."""
+
     dt_s: float = Field(default=1.0, gt=0)
     clock_offset_s: float = 0.0
     noise_um: float = Field(default=0.05, ge=0)
@@ -125,6 +133,7 @@ class Interferometer(_Strict):
 
 class LoadCell(_Strict):
     """The simulated load cell: sample step, clock offset, noise."""
+
     dt_s: float = Field(default=1.0, gt=0)
     clock_offset_s: float = 0.0
     noise_N: float = Field(default=1.0, ge=0)
@@ -132,6 +141,7 @@ class LoadCell(_Strict):
 
 class Instruments(_Strict):
     """How a scenario is measured: one entry per simulated instrument."""
+
     fbg: Fbg = Fbg()
     probes: Probes = Probes()
     interferometer: Interferometer = Interferometer()
@@ -140,23 +150,24 @@ class Instruments(_Strict):
 
 class Scenario(_Strict):
     """What happens to the machine and how it is measured (every field has a unit in its name)."""
+
     name: str
     kind: Literal["thermal", "static", "combined"]
     description: str = ""
-    duration_h: float | None = Field(default=None, gt=0)   # static: from the load steps
-    rest_s: float = Field(default=600.0, ge=0)             # nothing changes for this long at the start
-    solver_dt_s: float = Field(default=1.0, gt=0)          # step of the FE history
+    duration_h: float | None = Field(default=None, gt=0)  # static: from the load steps
+    rest_s: float = Field(default=600.0, ge=0)  # nothing changes for this long at the start
+    solver_dt_s: float = Field(default=1.0, gt=0)  # step of the FE history
     z_axis_mm: float | None = None
     initial_C: float = 30.0
-    ambient_C: History = History(base=0.0)                 # added to initial_C
+    ambient_C: History = History(base=0.0)  # added to initial_C
     spindle_W: History = History()
     radiant_W_per_m2: History = History()
     loads: list[LoadStep] = []
-    load_start_h: float = 0.0                               # loads start after rest_s + this
+    load_start_h: float = 0.0  # loads start after rest_s + this
     load_ramp_s: float = Field(default=2.0, ge=0)
     instruments: Instruments = Instruments()
 
-    def compressed(self, hours: float) -> "Scenario":
+    def compressed(self, hours: float) -> Scenario:
         """The same histories squeezed into ``hours``: every time in the inputs (temperature and
         heat histories, load start and hold times) scaled by the same factor."""
         if self.duration_h is None or self.duration_h <= hours:
@@ -202,15 +213,17 @@ def load_scenario(name_or_path) -> Scenario:
         where = f"<built-in scenario {name_or_path}>"
     else:
         if not path.is_file():
-            raise InputError(f"no such scenario file (built-in scenarios: {', '.join(BUILTIN_SCENARIOS)})",
-                             file=path)
+            raise InputError(
+                f"no such scenario file (built-in scenarios: {', '.join(BUILTIN_SCENARIOS)})", file=path
+            )
         text, where = path.read_text(encoding="utf-8"), str(path)
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         line = getattr(getattr(exc, "problem_mark", None), "line", None)
-        raise InputError(f"invalid YAML: {getattr(exc, 'problem', exc)}", file=where,
-                         row=None if line is None else line) from None
+        raise InputError(
+            f"invalid YAML: {getattr(exc, 'problem', exc)}", file=where, row=None if line is None else line
+        ) from None
     try:
         return Scenario.model_validate(data)
     except ValidationError as exc:
@@ -239,7 +252,7 @@ def _smooth_noise(time_s, sd, correlation_s, rng):
     white = rng.standard_normal(len(grid))
     half = int(np.ceil(3 * correlation_s / grid_dt))
     k = np.exp(-0.5 * (np.arange(-half, half + 1) * grid_dt / correlation_s) ** 2)
-    smooth = np.convolve(white, k / np.sqrt(np.sum(k ** 2)), mode="same")
+    smooth = np.convolve(white, k / np.sqrt(np.sum(k**2)), mode="same")
     return sd * np.interp(time_s, grid, smooth)
 
 
@@ -287,8 +300,7 @@ def true_response(twin, scenario: Scenario, seed: int = 0):
         probe_t = np.full((len(time_s), P), scenario.initial_C)
         ttp = np.zeros((len(time_s), 3))
     else:
-        h = twin.thermal(time_s, ambient, spindle, radiant_W_per_m2=radiant,
-                         initial_C=scenario.initial_C)
+        h = twin.thermal(time_s, ambient, spindle, radiant_W_per_m2=radiant, initial_C=scenario.initial_C)
         elong = np.asarray(h.sensor_elongation_um)
         sensor_t = np.asarray(h.sensor_temperature_C)
         probe_t = _probe_matrix(h.probe_C, twin.probe_names)
@@ -297,8 +309,15 @@ def true_response(twin, scenario: Scenario, seed: int = 0):
         st = twin.static(force)
         elong = elong + np.asarray(st.sensor_elongation_um)
         ttp = ttp + np.asarray(st.ttp_um)
-    return {"time_s": time_s, "sensor_elongation_um": elong - elong[0], "sensor_temperature_C": sensor_t,
-            "probe_C": probe_t, "ttp_um": ttp - ttp[0], "force_N": force, "ambient_C": ambient}
+    return {
+        "time_s": time_s,
+        "sensor_elongation_um": elong - elong[0],
+        "sensor_temperature_C": sensor_t,
+        "probe_C": probe_t,
+        "ttp_um": ttp - ttp[0],
+        "force_N": force,
+        "ambient_C": ambient,
+    }
 
 
 def _probe_matrix(probe_C, names):
@@ -333,10 +352,15 @@ def measure(machine, scenario: Scenario, truth: dict, seed: int = 0, start=None)
     lam_init = np.array([s.lambda0_nm for s in sensors]) + rng.uniform(-1, 1, S) * f.install_offset_nm
     gauge = np.array([s.gauge_length for s in sensors])
     d_temp = _at(t_fbg, t, truth["sensor_temperature_C"] - truth["sensor_temperature_C"][0])
-    lam = optics.wavelength_nm(_at(t_fbg, t, truth["sensor_elongation_um"]), lam_init, gauge, d_temp,
-                               photoelastic=np.array([s.photoelastic for s in sensors]),
-                               thermo_optic_per_K=np.array([s.thermo_optic_per_K for s in sensors]),
-                               fibre_cte_per_K=np.array([s.fibre_cte_per_K for s in sensors]))
+    lam = optics.wavelength_nm(
+        _at(t_fbg, t, truth["sensor_elongation_um"]),
+        lam_init,
+        gauge,
+        d_temp,
+        photoelastic=np.array([s.photoelastic for s in sensors]),
+        thermo_optic_per_K=np.array([s.thermo_optic_per_K for s in sensors]),
+        fibre_cte_per_K=np.array([s.fibre_cte_per_K for s in sensors]),
+    )
     lam += f.noise_nm * rng.standard_normal(lam.shape)
     lam += rng.choice([-1.0, 1.0], S) * f.drift_nm_per_h * (t_fbg[:, None] / 3600.0)
     fbg = pd.DataFrame(lam, columns=[f"{s.name}_nm" for s in sensors])
@@ -345,8 +369,11 @@ def measure(machine, scenario: Scenario, truth: dict, seed: int = 0, start=None)
     for j, s in enumerate(sensors):
         if s.reference_lambda0_nm is not None:
             lam_ref = optics.free_grating_wavelength_nm(
-                d_temp[:, j], s.reference_lambda0_nm + rng.uniform(-1, 1) * f.install_offset_nm,
-                thermo_optic_per_K=s.thermo_optic_per_K, fibre_cte_per_K=s.fibre_cte_per_K)
+                d_temp[:, j],
+                s.reference_lambda0_nm + rng.uniform(-1, 1) * f.install_offset_nm,
+                thermo_optic_per_K=s.thermo_optic_per_K,
+                fibre_cte_per_K=s.fibre_cte_per_K,
+            )
             lam_ref = lam_ref + f.noise_nm * rng.standard_normal(lam_ref.shape)
             fbg[f"{s.name}_ref_nm"] = lam_ref
 
@@ -357,7 +384,9 @@ def measure(machine, scenario: Scenario, truth: dict, seed: int = 0, start=None)
     true_p = _at(t_tmp, t, truth["probe_C"])
     if true_p.ndim == 1:
         true_p = true_p[:, None]
-    read = true_p + rng.uniform(-1, 1, len(probes)) * p.offset_C + p.noise_C * rng.standard_normal(true_p.shape)
+    read = (
+        true_p + rng.uniform(-1, 1, len(probes)) * p.offset_C + p.noise_C * rng.standard_normal(true_p.shape)
+    )
     if p.quantum_C > 0:
         read = np.round(read / p.quantum_C) * p.quantum_C
     temperatures = pd.DataFrame(read, columns=[f"{pr.name}_C" for pr in probes])
@@ -384,26 +413,42 @@ def measure(machine, scenario: Scenario, truth: dict, seed: int = 0, start=None)
 
 def campaign_meta(machine, scenario: Scenario, seed: int, start=None) -> dict:
     """campaign.yaml content for a simulated campaign."""
+
     def where(pr):
         if pr.kind == "ambient":
             return "ambient air"
         return f"FE point ({pr.x_mm:g}, {pr.y_mm:g}, {pr.z_mm:g}) mm"
 
     return {
-        "name": scenario.name, "kind": scenario.kind,
+        "name": scenario.name,
+        "kind": scenario.kind,
         "description": scenario.description or f"virtual test bench: scenario {scenario.name}",
-        "start": start or datetime(2026, 1, 12, 8, 0, tzinfo=timezone.utc) + timedelta(days=seed % 365),
-        "sensors": [{"name": s.name, "lambda0_nm": s.lambda0_nm, "gauge_length_mm": s.gauge_length,
-                     "photoelastic": s.photoelastic, "thermo_optic_per_K": s.thermo_optic_per_K,
-                     "fibre_cte_per_K": s.fibre_cte_per_K, "face": s.face,
-                     "z_start_mm": s.z_start_mm, "z_end_mm": s.z_end_mm,
-                     "temperature_probe": s.temperature_probe,
-                     **({"reference_lambda0_nm": s.reference_lambda0_nm}
-                        if s.reference_lambda0_nm is not None else {})}
-                    for s in machine.sensors],
+        "start": start or datetime(2026, 1, 12, 8, 0, tzinfo=UTC) + timedelta(days=seed % 365),
+        "sensors": [
+            {
+                "name": s.name,
+                "lambda0_nm": s.lambda0_nm,
+                "gauge_length_mm": s.gauge_length,
+                "photoelastic": s.photoelastic,
+                "thermo_optic_per_K": s.thermo_optic_per_K,
+                "fibre_cte_per_K": s.fibre_cte_per_K,
+                "face": s.face,
+                "z_start_mm": s.z_start_mm,
+                "z_end_mm": s.z_end_mm,
+                "temperature_probe": s.temperature_probe,
+                **(
+                    {"reference_lambda0_nm": s.reference_lambda0_nm}
+                    if s.reference_lambda0_nm is not None
+                    else {}
+                ),
+            }
+            for s in machine.sensors
+        ],
         "temperature_probes": [{"name": pr.name, "location": where(pr)} for pr in machine.probes],
         "reference": {"instrument": "laser interferometer (simulated)", "point": "TTP", "units": "um"},
-        "scenario": scenario.name, "seed": seed, "source": "fbgcomp virtual test bench",
+        "scenario": scenario.name,
+        "seed": seed,
+        "source": "fbgcomp virtual test bench",
         "z_axis_mm": scenario.z_axis_mm if scenario.z_axis_mm is not None else machine.supports.z_axis_mm,
     }
 
@@ -411,7 +456,7 @@ def campaign_meta(machine, scenario: Scenario, seed: int, start=None) -> dict:
 def simulate(machine, scenario: Scenario, seed: int = 0, twin=None):
     """Run a scenario on the twin and measure it: returns (Campaign, truth dict)."""
     if twin is None:
-        from fbgcomp.structure import Twin   # needs scikit-fem, the optional fe extra
+        from fbgcomp.structure import Twin  # needs scikit-fem, the optional fe extra
 
         twin = Twin(machine, z_axis_mm=scenario.z_axis_mm)
     truth = true_response(twin, scenario, seed)

@@ -20,12 +20,23 @@ from fbgcomp import progress
 from fbgcomp.cli import cnc_demo, demo, offline, runtime, scale, twin
 from fbgcomp.errors import InputError
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
-                  help="fbgcomp: compensate machine-tool deformations from FBG sensors.")
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    help="fbgcomp: compensate machine-tool deformations from FBG sensors.",
+)
 
 
 @app.callback()
-def _options(quiet: bool = typer.Option(False, "--quiet", "-q", help="No progress on stderr (also FBGCOMP_PROGRESS=0; FBGCOMP_PROGRESS=1 shows it even when stderr is not a terminal).")):
+def _options(
+    quiet: bool = typer.Option(
+        False,
+        "--quiet",
+        "-q",
+        help="No progress on stderr (also FBGCOMP_PROGRESS=0; FBGCOMP_PROGRESS=1 shows it even when stderr is not a terminal).",
+    ),
+):
     """fbgcomp: compensate machine-tool deformations from FBG sensors."""
     progress.QUIET = quiet
 

@@ -29,14 +29,13 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Optional
 
 import typer
 
 from fbgcomp.errors import InputError
 
 CNC_USER = "fbgcomp-cnc"
-LOCK_PATH = "/tmp/fbgcomp-linuxcnc.lock"   # HAL shared memory is machine-wide: one instance
+LOCK_PATH = "/tmp/fbgcomp-linuxcnc.lock"  # HAL shared memory is machine-wide: one instance
 CONFIG_FILES = ("fbgcomp-mill.ini", "fbgcomp-mill.hal", "tool.tbl", "demo.ngc")
 SCRIPTS = ("fbgcomp_hal.py", "fbgcomp_display.py")
 
@@ -58,9 +57,22 @@ def ensure_user(name: str = CNC_USER) -> pwd.struct_passwd | None:
     try:
         return pwd.getpwnam(name)
     except KeyError:
-        subprocess.run(["useradd", "--system", "--user-group", "--no-create-home",
-                        "--home-dir", "/nonexistent", "--shell", "/usr/sbin/nologin", name],
-                       check=True, capture_output=True, timeout=30)
+        subprocess.run(
+            [
+                "useradd",
+                "--system",
+                "--user-group",
+                "--no-create-home",
+                "--home-dir",
+                "/nonexistent",
+                "--shell",
+                "/usr/sbin/nologin",
+                name,
+            ],
+            check=True,
+            capture_output=True,
+            timeout=30,
+        )
         return pwd.getpwnam(name)
 
 
@@ -94,8 +106,14 @@ def free_udp_port() -> int:
 class LinuxCncMachine:
     """The simulated machine, headless. Use as a context manager; every wait is bounded."""
 
-    def __init__(self, config_dir: str | Path | None = None, *, fbgcomp: dict | None = None,
-                 user: str = CNC_USER, start_timeout_s: float = 60.0):
+    def __init__(
+        self,
+        config_dir: str | Path | None = None,
+        *,
+        fbgcomp: dict | None = None,
+        user: str = CNC_USER,
+        start_timeout_s: float = 60.0,
+    ):
         self.config_dir = Path(config_dir) if config_dir else example_dir()
         self.port = free_udp_port()
         self.fbgcomp = {"LISTEN": f"udp://127.0.0.1:{self.port}", **(fbgcomp or {})}
@@ -146,7 +164,7 @@ class LinuxCncMachine:
                 os.chown(p, account.pw_uid, account.pw_gid)
         return run
 
-    def start(self) -> "LinuxCncMachine":
+    def start(self) -> LinuxCncMachine:
         """Start LinuxCNC headless on a private copy of the configuration and connect to its
         display; on any failure everything started so far is stopped."""
         linuxcnc = shutil.which("linuxcnc")
@@ -158,13 +176,27 @@ class LinuxCncMachine:
             self.run_dir = self._prepare(account)
             cmd = [linuxcnc, "-r", str(self.run_dir / CONFIG_FILES[0])]
             if account is not None:
-                cmd = ["runuser", "-u", account.pw_name, "--", "env", f"HOME={self.run_dir}",
-                       f"USER={account.pw_name}", *cmd]
+                cmd = [
+                    "runuser",
+                    "-u",
+                    account.pw_name,
+                    "--",
+                    "env",
+                    f"HOME={self.run_dir}",
+                    f"USER={account.pw_name}",
+                    *cmd,
+                ]
             self._log = open(self.run_dir / "linuxcnc.log", "wb")
             env = {k: v for k, v in os.environ.items() if k != "DISPLAY"}
-            self.proc = subprocess.Popen(cmd, cwd=self.run_dir, stdin=subprocess.DEVNULL,
-                                         stdout=self._log, stderr=subprocess.STDOUT, env=env,
-                                         start_new_session=True)
+            self.proc = subprocess.Popen(
+                cmd,
+                cwd=self.run_dir,
+                stdin=subprocess.DEVNULL,
+                stdout=self._log,
+                stderr=subprocess.STDOUT,
+                env=env,
+                start_new_session=True,
+            )
             self._connect()
         except BaseException:
             self.stop()
@@ -187,8 +219,7 @@ class LinuxCncMachine:
                     self._sock, self._file = s, s.makefile("rwb")
                     return
             time.sleep(0.1)
-        raise CncError(f"the display did not come up in {self.start_timeout_s} s:\n"
-                       f"{self.log_tail()}")
+        raise CncError(f"the display did not come up in {self.start_timeout_s} s:\n{self.log_tail()}")
 
     def log_tail(self, n: int = 30) -> str:
         """The last ``n`` lines of LinuxCNC's log ("" when there is none)."""
@@ -304,11 +335,11 @@ class LinuxCncMachine:
 
 # -- the demo ------------------------------------------------------------------------------
 
-def _demo_inputs(work: Path, model_path: Path | None, campaign_dir: Path | None,
-                 echo) -> tuple[Path, Path]:
+
+def _demo_inputs(work: Path, model_path: Path | None, campaign_dir: Path | None, echo) -> tuple[Path, Path]:
+    from fbgcomp.bench.synthetic import linear_truth_campaign
     from fbgcomp.io.campaign import write_campaign
     from fbgcomp.models.mra import MRAModel
-    from fbgcomp.bench.synthetic import linear_truth_campaign
 
     if model_path is None:
         echo("fitting a model on a synthetic 2 h thermal campaign ...")
@@ -318,8 +349,7 @@ def _demo_inputs(work: Path, model_path: Path | None, campaign_dir: Path | None,
     if campaign_dir is None:
         # a different thermal history replayed through the simulated interrogator; the
         # signals move from the first sample (a resting replay would look like stuck gratings)
-        replay, _ = linear_truth_campaign("cnc-replay", seed=12, duration_s=2 * 3600,
-                                          settle_s=0.0)
+        replay, _ = linear_truth_campaign("cnc-replay", seed=12, duration_s=2 * 3600, settle_s=0.0)
         campaign_dir = Path(write_campaign(replay, work / "replay"))
     return model_path, campaign_dir
 
@@ -332,9 +362,14 @@ def _row(r, pins):
     return t, cmd, act, corr, eo
 
 
-def run_demo(model_path: Path | None = None, campaign_dir: Path | None = None,
-             speed: float = 300.0, program: Path | None = None,
-             config_dir: Path | None = None, echo=print) -> dict:
+def run_demo(
+    model_path: Path | None = None,
+    campaign_dir: Path | None = None,
+    speed: float = 300.0,
+    program: Path | None = None,
+    config_dir: Path | None = None,
+    echo=print,
+) -> dict:
     """Home the machine, compensate during a program run, print positions; stop everything."""
     pins = [f"fbgcomp.{a}.offset-um" for a in "xyz"] + [f"axis.{a}.eoffset" for a in "xyz"]
     work = Path(tempfile.mkdtemp(prefix="fbgcomp-cnc-demo-"))
@@ -346,12 +381,29 @@ def run_demo(model_path: Path | None = None, campaign_dir: Path | None = None,
             m.call("machine_on")
             m.call("home")
             serve = subprocess.Popen(
-                [sys.executable, "-m", "fbgcomp", "serve", "--model", str(model_path),
-                 "--source", f"sim://{campaign_dir}?rate=200&speed={speed:g}",
-                 "--opcua", "off", "--cnc", "linuxcnc", "--cnc-address", m.address],
-                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-            echo(f"fbgcomp serve --cnc linuxcnc --cnc-address {m.address} "
-                 f"(campaign replayed at {speed:g}x) ...")
+                [
+                    sys.executable,
+                    "-m",
+                    "fbgcomp",
+                    "serve",
+                    "--model",
+                    str(model_path),
+                    "--source",
+                    f"sim://{campaign_dir}?rate=200&speed={speed:g}",
+                    "--opcua",
+                    "off",
+                    "--cnc",
+                    "linuxcnc",
+                    "--cnc-address",
+                    m.address,
+                ],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.PIPE,
+            )
+            echo(
+                f"fbgcomp serve --cnc linuxcnc --cnc-address {m.address} "
+                f"(campaign replayed at {speed:g}x) ..."
+            )
             m.call("wait_pin", pin="fbgcomp.active", value=1, tol=0, timeout_s=30.0)
             prog = program or (m.run_dir / "demo.ngc")
             if program is not None:
@@ -370,23 +422,29 @@ def run_demo(model_path: Path | None = None, campaign_dir: Path | None = None,
                     break
             final = m.status(pins)
             echo("")
-            echo("   t_s | commanded (program) X Y Z, mm | correction X Y Z, µm  | "
-                 "compensated (actual) X Y Z, mm")
+            echo(
+                "   t_s | commanded (program) X Y Z, mm | correction X Y Z, µm  | "
+                "compensated (actual) X Y Z, mm"
+            )
             t0 = rows[0][0] if rows else time.time()
             step = max(1, len(rows) // 30)
             for r in rows[::step]:
                 t, pos, act, corr, eo = _row(r, pins)
                 # LinuxCNC's commanded position includes the external offset: take it out
                 cmd = [p - e for p, e in zip(pos, eo)]
-                echo(f"{t - t0:6.2f} | {cmd[0]:9.4f} {cmd[1]:9.4f} {cmd[2]:9.4f}    | "
-                     f"{corr[0]:+6.2f} {corr[1]:+6.2f} {corr[2]:+6.2f} | "
-                     f"{act[0]:10.5f} {act[1]:10.5f} {act[2]:10.5f}")
+                echo(
+                    f"{t - t0:6.2f} | {cmd[0]:9.4f} {cmd[1]:9.4f} {cmd[2]:9.4f}    | "
+                    f"{corr[0]:+6.2f} {corr[1]:+6.2f} {corr[2]:+6.2f} | "
+                    f"{act[0]:10.5f} {act[1]:10.5f} {act[2]:10.5f}"
+                )
             p = final["pins"]
             offs = [p[f"axis.{a}.eoffset"] for a in "xyz"]
             nominal = [round(q - o, 5) for q, o in zip(final["position"], offs)]
-            echo(f"\nend of program: commanded {nominal} mm + external offset "
-                 f"{[round(o * 1000, 2) for o in offs]} µm = actual "
-                 f"{[round(a, 5) for a in final['actual']]} mm")
+            echo(
+                f"\nend of program: commanded {nominal} mm + external offset "
+                f"{[round(o * 1000, 2) for o in offs]} µm = actual "
+                f"{[round(a, 5) for a in final['actual']]} mm"
+            )
             serve.send_signal(signal.SIGINT)
             try:
                 serve.wait(20)
@@ -404,11 +462,19 @@ def run_demo(model_path: Path | None = None, campaign_dir: Path | None = None,
 
 
 def cnc_demo(
-    model: Optional[Path] = typer.Option(None, "--model", help="Model file; default: fitted on a synthetic thermal campaign."),
-    campaign: Optional[Path] = typer.Option(None, "--campaign", help="Campaign folder to replay; default: a synthetic 2 h thermal campaign."),
+    model: Path | None = typer.Option(
+        None, "--model", help="Model file; default: fitted on a synthetic thermal campaign."
+    ),
+    campaign: Path | None = typer.Option(
+        None, "--campaign", help="Campaign folder to replay; default: a synthetic 2 h thermal campaign."
+    ),
     speed: float = typer.Option(300.0, "--speed", help="Campaign seconds per real second."),
-    program: Optional[Path] = typer.Option(None, "--program", help="G-code file to run (default examples/linuxcnc/demo.ngc)."),
-    config_dir: Optional[Path] = typer.Option(None, "--config-dir", help="LinuxCNC configuration folder (default examples/linuxcnc)."),
+    program: Path | None = typer.Option(
+        None, "--program", help="G-code file to run (default examples/linuxcnc/demo.ngc)."
+    ),
+    config_dir: Path | None = typer.Option(
+        None, "--config-dir", help="LinuxCNC configuration folder (default examples/linuxcnc)."
+    ),
 ):
     """Run the compensator against a simulated, headless LinuxCNC mill (docs/linuxcnc.md)."""
     try:

@@ -30,7 +30,6 @@ import os
 import sys
 import time
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -99,8 +98,10 @@ def run_ram2(ram2=None, out=None) -> dict:
 
     data, looked = find_ram2(ram2)
     if data is None:
-        return {"skipped": f"ram2 not found at {looked} (give --ram2 or set {RAM2_ENV}): "
-                           "independent check skipped, twin figures only"}
+        return {
+            "skipped": f"ram2 not found at {looked} (give --ram2 or set {RAM2_ENV}): "
+            "independent check skipped, twin figures only"
+        }
     if not RAM2_MACHINE.is_file():
         return {"skipped": f"ram2 machine description not found at {RAM2_MACHINE}: independent check skipped"}
     try:
@@ -110,12 +111,18 @@ def run_ram2(ram2=None, out=None) -> dict:
         validation = {c.meta.name: judge(model, c) for c in held}
     except InputError as exc:
         return {"skipped": f"ram2 unreadable ({exc.one_line()}): independent check skipped"}
-    except Exception as exc:            # the twin's results stand; say what broke, in one line
+    except Exception as exc:  # the twin's results stand; say what broke, in one line
         return {"skipped": f"ram2 check FAILED ({type(exc).__name__}: {exc})".replace("\n", " ")}
     if out is not None:
         model.save(Path(out) / "ram2_model.json")
-    return {"data": str(data), "machine": str(RAM2_MACHINE), "model_type": model.model_type,
-            "model_id": model.model_id, "trained_on": list(RAM2_TRAIN), "validation": validation}
+    return {
+        "data": str(data),
+        "machine": str(RAM2_MACHINE),
+        "model_type": model.model_type,
+        "model_id": model.model_id,
+        "trained_on": list(RAM2_TRAIN),
+        "validation": validation,
+    }
 
 
 class _Steps:
@@ -127,21 +134,39 @@ class _Steps:
     def __call__(self, text):
         self.n += 1
         if not self.quiet:
-            print(f"[{self.n}/{self.total}] {text}  ({time.perf_counter() - self.t0:.0f} s)",
-                  file=sys.stderr, flush=True)
+            print(
+                f"[{self.n}/{self.total}] {text}  ({time.perf_counter() - self.t0:.0f} s)",
+                file=sys.stderr,
+                flush=True,
+            )
 
 
-def run_demo(out_dir="demo-out", *, machine_path=None, seed=0, quick=False, features="eq13",
-             stepwise=True, quiet=False, report=True, resolution=None, ram2=None,
-             independent=True) -> dict:
+def run_demo(
+    out_dir="demo-out",
+    *,
+    machine_path=None,
+    seed=0,
+    quick=False,
+    features="eq13",
+    stepwise=True,
+    quiet=False,
+    report=True,
+    resolution=None,
+    ram2=None,
+    independent=True,
+) -> dict:
     """Run the demo and return its summary (also written to ``out_dir/metrics.json``)."""
-    from fbgcomp.models.metrics import (format_metrics, format_static_metrics, static_level_metrics,
-                                        validation_metrics)
-    from fbgcomp.bench.virtual import load_scenario, simulate
-    from fbgcomp.models.fe_calibrated import fe_calibrate, resolution_report
-    from fbgcomp.io.campaign import read_campaign, write_campaign
     from fbgcomp.atomic import write_json
+    from fbgcomp.bench.virtual import load_scenario, simulate
+    from fbgcomp.io.campaign import read_campaign, write_campaign
     from fbgcomp.models.calibrated import CalibratedModel
+    from fbgcomp.models.fe_calibrated import fe_calibrate, resolution_report
+    from fbgcomp.models.metrics import (
+        format_metrics,
+        format_static_metrics,
+        static_level_metrics,
+        validation_metrics,
+    )
     from fbgcomp.models.mra import MRAModel
     from fbgcomp.structure import Twin, load_machine
 
@@ -176,19 +201,26 @@ def run_demo(out_dir="demo-out", *, machine_path=None, seed=0, quick=False, feat
     regression = MRAModel(features=features, stepwise=stepwise, zero_window_s=zero).fit(train)
     regression.save(out / "regression_model.json")
     (out / "coefficients.txt").write_text(regression.summary() + "\n")
-    calibrated = CalibratedModel(machine, features=features, stepwise=stepwise,
-                                 zero_window_s=zero).fit(train)
+    calibrated = CalibratedModel(machine, features=features, stepwise=stepwise, zero_window_s=zero).fit(train)
     calibrated.save(out / "calibrated_model.json")
     (out / "calibrated_model.txt").write_text(calibrated.summary() + "\n")
-    step(f"fitted the {features}{' stepwise' if stepwise else ''} regression and the calibrated "
-         f"kinematic model on {', '.join(TRAIN)}")
+    step(
+        f"fitted the {features}{' stepwise' if stepwise else ''} regression and the calibrated "
+        f"kinematic model on {', '.join(TRAIN)}"
+    )
 
     models = {"regression": regression, "calibrated": calibrated, "fe_model": fe_model}
-    summary = {"machine": "built-in default ram" if machine_path is None else str(machine_path),
-               "n_dof": twin.n_dof, "features": features,
-               "stepwise": stepwise, "trained_on": list(TRAIN), "zero_window_s": zero,
-               "models": {k: {"type": m.model_type, "model_id": m.model_id, "validation": {}}
-                          for k, m in models.items()}}
+    summary = {
+        "machine": "built-in default ram" if machine_path is None else str(machine_path),
+        "n_dof": twin.n_dof,
+        "features": features,
+        "stepwise": stepwise,
+        "trained_on": list(TRAIN),
+        "zero_window_s": zero,
+        "models": {
+            k: {"type": m.model_type, "model_id": m.model_id, "validation": {}} for k, m in models.items()
+        },
+    }
     texts = []
     for name in HELD_OUT:
         c = read_campaign(paths[name])
@@ -209,7 +241,7 @@ def run_demo(out_dir="demo-out", *, machine_path=None, seed=0, quick=False, feat
     if report:
         try:
             from fbgcomp.report.html import write_report
-        except ImportError:     # the report module is optional in a minimal install
+        except ImportError:  # the report module is optional in a minimal install
             write_report = None
         if write_report is not None:
             write_report([read_campaign(paths[n]) for n in TRAIN + HELD_OUT], regression, out / "report")
@@ -220,8 +252,10 @@ def run_demo(out_dir="demo-out", *, machine_path=None, seed=0, quick=False, feat
         if "skipped" in summary["ram2"]:
             step(summary["ram2"]["skipped"])
         else:
-            step(f"fitted the default model on ram2 {' + '.join(RAM2_TRAIN)}, judged on "
-                 f"{', '.join(RAM2_HELD_OUT)}")
+            step(
+                f"fitted the default model on ram2 {' + '.join(RAM2_TRAIN)}, judged on "
+                f"{', '.join(RAM2_HELD_OUT)}"
+            )
             for name, m in summary["ram2"]["validation"].items():
                 texts.append(format_metrics(m, title=f"ram2 held-out {name} — default (physical) model"))
                 if "static_levels" in m:
@@ -243,8 +277,9 @@ def _cell(m, axis, static):
             return f"{format_number(v['error_pct_of_deflection'], 2)} %"
         return f"{format_number(v['max_plateau_error_um'], 2)} µm"
     a = m["axes"][axis]
-    return (f"{format_number(a['max_abs_error_um'], 2)} ({format_number(a['rms_error_um'], 2)})"
-            + (" WORSE" if a["harm"] else ""))
+    return f"{format_number(a['max_abs_error_um'], 2)} ({format_number(a['rms_error_um'], 2)})" + (
+        " WORSE" if a["harm"] else ""
+    )
 
 
 def _uncompensated_cell(m, axis, static):
@@ -267,9 +302,11 @@ def summary_table(validation: dict, labels: dict) -> list:
     """
     from fbgcomp.models.metrics import HARM_TOLERANCE_UM
 
-    lines = [f"  held-out max |error| µm (RMS) per axis under the uncompensated drift; static campaigns: "
-             f"load-plateau means, % of the plateau deflection; WORSE = worse than uncompensated "
-             f"+ {HARM_TOLERANCE_UM:g} µm"]
+    lines = [
+        f"  held-out max |error| µm (RMS) per axis under the uncompensated drift; static campaigns: "
+        f"load-plateau means, % of the plateau deflection; WORSE = worse than uncompensated "
+        f"+ {HARM_TOLERANCE_UM:g} µm"
+    ]
     rows = []
     for camp, models in validation.items():
         first = next(iter(models.values()))
@@ -281,8 +318,7 @@ def summary_table(validation: dict, labels: dict) -> list:
             rows.append([labels.get(key, key)] + [_cell(m, a, static) for a in AXES])
     if rows:
         # one table, the blocks' headers as rows, so that every block has the same columns
-        table = format_table([text(rows[0][0])] + [Column(h) for h in rows[0][1:]], rows[1:],
-                             indent="  ")
+        table = format_table([text(rows[0][0])] + [Column(h) for h in rows[0][1:]], rows[1:], indent="  ")
         lines += table.splitlines()
     harmed = {}
     for camp, models in validation.items():
@@ -290,51 +326,75 @@ def summary_table(validation: dict, labels: dict) -> list:
             axes = [a for a, v in m["axes"].items() if v["harm"]]
             if axes:
                 harmed.setdefault(labels.get(key, key), []).append(f"{camp} {'/'.join(axes)}")
-    lines.append("  worse than uncompensated per sample: "
-                 + ("; ".join(f"{k}: {', '.join(v)}" for k, v in harmed.items()) if harmed else "none"))
+    lines.append(
+        "  worse than uncompensated per sample: "
+        + ("; ".join(f"{k}: {', '.join(v)}" for k, v in harmed.items()) if harmed else "none")
+    )
     return lines
 
 
 def _summary_text(summary, res, out) -> str:
-    names = {"regression": "regression (paper eq. 13)", "calibrated": "calibrated kinematic",
-             "fe_model": "FE-calibrated eq. 11"}
+    names = {
+        "regression": "regression (paper eq. 13)",
+        "calibrated": "calibrated kinematic",
+        "fe_model": "FE-calibrated eq. 11",
+    }
     validation = {}
     for key, info in summary["models"].items():
         for camp, m in info["validation"].items():
             validation.setdefault(camp, {})[key] = m
-    lines = ["", f"fbgcomp demo — {summary['machine']}, FE twin with {summary['n_dof']} DOF (twin-only figures: "
-                 f"our own simulator); trained on {', '.join(summary['trained_on'])}, zero state "
-                 f"{summary['zero_window_s']:g} s"]
+    lines = [
+        "",
+        f"fbgcomp demo — {summary['machine']}, FE twin with {summary['n_dof']} DOF (twin-only figures: "
+        f"our own simulator); trained on {', '.join(summary['trained_on'])}, zero state "
+        f"{summary['zero_window_s']:g} s",
+    ]
     lines += summary_table(validation, names)
     lines.append("  Lateral axes are noise- and heat-source-bound with this layout (docs/models.md).")
-    lines.append("FBG resolution (2σ): " + ", ".join(f"{a} {v['resolution_um']:.3f} µm" for a, v in res["axes"].items())
-                 + f"; rank {res['rank']} of {len(res['sensors'])} sensor combinations observable")
+    lines.append(
+        "FBG resolution (2σ): "
+        + ", ".join(f"{a} {v['resolution_um']:.3f} µm" for a, v in res["axes"].items())
+        + f"; rank {res['rank']} of {len(res['sensors'])} sensor combinations observable"
+    )
     ram2 = summary.get("ram2")
     if ram2 is not None and "skipped" in ram2:
         lines.append("")
         lines.append(ram2["skipped"])
     elif ram2 is not None:
         lines.append("")
-        lines.append(f"independent check — ram2 ({ram2['data']}), a ram we did not simulate: the default model "
-                     f"({ram2['model_type']}, fbgcomp fit --machine examples/machines/ram2.yaml) fitted on "
-                     f"{' + '.join(ram2['trained_on'])}, judged on campaigns it never saw")
-        lines += summary_table({c: {"default": m} for c, m in ram2["validation"].items()},
-                               {"default": f"default ({ram2['model_type']})"})
+        lines.append(
+            f"independent check — ram2 ({ram2['data']}), a ram we did not simulate: the default model "
+            f"({ram2['model_type']}, fbgcomp fit --machine examples/machines/ram2.yaml) fitted on "
+            f"{' + '.join(ram2['trained_on'])}, judged on campaigns it never saw"
+        )
+        lines += summary_table(
+            {c: {"default": m} for c, m in ram2["validation"].items()},
+            {"default": f"default ({ram2['model_type']})"},
+        )
         lines.append("  figures of every model type and the targets: docs/accuracy.md")
-    lines.append(f"results in {out}/ (regression_model.json, calibrated_model.json, fe_model.json, "
-                 + ("ram2_model.json, " if ram2 is not None and "skipped" not in ram2 else "")
-                 + "metrics.json, coefficients.txt, validation.txt, resolution.txt, report/)")
+    lines.append(
+        f"results in {out}/ (regression_model.json, calibrated_model.json, fe_model.json, "
+        + ("ram2_model.json, " if ram2 is not None and "skipped" not in ram2 else "")
+        + "metrics.json, coefficients.txt, validation.txt, resolution.txt, report/)"
+    )
     return "\n".join(lines)
 
 
-def demo(output: Path = typer.Option(Path("demo-out"), "-o", "--output", help="Folder for the results."),
-         machine: Optional[Path] = typer.Option(None, help="Machine description YAML (default: the built-in ram)."),
-         seed: int = typer.Option(0, help="Random seed of the simulated campaigns."),
-         quick: bool = typer.Option(False, "--quick", help="6 h thermal campaigns instead of 36 h (for tests)."),
-         mesh_resolution: Optional[float] = typer.Option(None, "--mesh-resolution",
-                                                         help="FE mesh refinement (default: the machine's)."),
-         ram2: Optional[Path] = typer.Option(None, "--ram2", help="The independent ram2 data set (default: "
-                                             "$FBGCOMP_RAM2, else ../shared/reference/ram2 beside the repository).")):
+def demo(
+    output: Path = typer.Option(Path("demo-out"), "-o", "--output", help="Folder for the results."),
+    machine: Path | None = typer.Option(None, help="Machine description YAML (default: the built-in ram)."),
+    seed: int = typer.Option(0, help="Random seed of the simulated campaigns."),
+    quick: bool = typer.Option(False, "--quick", help="6 h thermal campaigns instead of 36 h (for tests)."),
+    mesh_resolution: float | None = typer.Option(
+        None, "--mesh-resolution", help="FE mesh refinement (default: the machine's)."
+    ),
+    ram2: Path | None = typer.Option(
+        None,
+        "--ram2",
+        help="The independent ram2 data set (default: "
+        "$FBGCOMP_RAM2, else ../shared/reference/ram2 beside the repository).",
+    ),
+):
     """The main job: simulate, FE-calibrate, fit and validate on the built-in default machine, then
     the default model on the independent ram2 data set beside it (skipped in one line without it)."""
     run_demo(output, machine_path=machine, seed=seed, quick=quick, resolution=mesh_resolution, ram2=ram2)

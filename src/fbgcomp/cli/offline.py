@@ -11,7 +11,6 @@ from __future__ import annotations
 import json
 from contextlib import contextmanager
 from pathlib import Path
-from typing import List, Optional
 
 import typer
 
@@ -27,8 +26,10 @@ def read_campaigns(paths, desc="reading campaigns"):
     return [read_campaign(p) for p in progress.track(paths, desc, unit="campaign")]
 
 
-def inspect(campaign: Path = typer.Argument(..., help="Campaign folder."),
-            as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON.")):
+def inspect(
+    campaign: Path = typer.Argument(..., help="Campaign folder."),
+    as_json: bool = typer.Option(False, "--json", help="Print the summary as JSON."),
+):
     """Summarise a campaign: duration, rates, ranges, alignment overlap, problems found."""
     from fbgcomp.io.campaign import read_campaign
 
@@ -39,15 +40,18 @@ def inspect(campaign: Path = typer.Argument(..., help="Campaign folder."),
         typer.echo(c.summary_text())
 
 
-def _parse_roles(roles: Optional[str]):
+def _parse_roles(roles: str | None):
     if not roles:
         return None
     out = {}
     for item in roles.split(","):
         key, sep, value = item.partition("=")
         if not sep or key.strip() not in ("bulk", "surf", "flange"):
-            raise InputError(f"--roles expects bulk=PROBE,surf=PROBE,flange=PROBE, got {item!r}",
-                             file="<command line>", column="option --roles")
+            raise InputError(
+                f"--roles expects bulk=PROBE,surf=PROBE,flange=PROBE, got {item!r}",
+                file="<command line>",
+                column="option --roles",
+            )
         out[key.strip()] = value.strip()
     return out
 
@@ -61,43 +65,107 @@ def _numeric_failures(campaigns):
     try:
         yield
     except (OverflowError, FloatingPointError, ZeroDivisionError, np.linalg.LinAlgError) as exc:
-        raise InputError(f"the fit failed on its numbers ({type(exc).__name__}: {exc}); check "
-                         "the campaigns' values (fbgcomp inspect); no model was written",
-                         file=", ".join(str(c) for c in campaigns)) from None
+        raise InputError(
+            f"the fit failed on its numbers ({type(exc).__name__}: {exc}); check "
+            "the campaigns' values (fbgcomp inspect); no model was written",
+            file=", ".join(str(c) for c in campaigns),
+        ) from None
 
 
-def fit(campaigns: List[Path] = typer.Argument(..., help="Training campaign folders or Parquet datasets (fbgcomp ingest)."),
-        output: Path = typer.Option(..., "-o", "--output", help="Model file to write (JSON)."),
-        features: Optional[str] = typer.Option(None, help="Feature set of the paper's regression: eq11, eq13 or eq12 (selects --model mra)."),
-        stepwise: bool = typer.Option(False, "--stepwise", help="Stepwise selection (F-tests; selects --model mra)."),
-        direction: str = typer.Option("both", help="Stepwise direction: both, forward, backward."),
-        p_enter: float = typer.Option(0.05, help="Stepwise p-value to enter."),
-        p_remove: float = typer.Option(0.10, help="Stepwise p-value to remove."),
-        max_terms: Optional[int] = typer.Option(None, help="Upper bound on selected terms."),
-        cov_type: str = typer.Option("HAC", "--cov-type", help="Inference of the paper's regression (mra): HAC (Newey-West, autocorrelation-robust; the default) or nonrobust (the paper's i.i.d. F tests and Table 1)."),
-        hac_maxlags: str = typer.Option("auto", "--hac-maxlags", help="Newey-West bandwidth in lags: auto (Andrews' AR(1) rule) or a positive integer."),
-        roles: Optional[str] = typer.Option(None, help="Probe roles, e.g. bulk=T_bulk,surf=T_surf,flange=T_flange."),
-        zero_window: float = typer.Option(10.0, "--zero-window", help="Zero state: mean of the first N seconds."),
-        fallbacks: str = typer.Option("loo", help="Fallback models for sensor faults: loo, lto or none."),
-        dask: Optional[str] = typer.Option(None, "--dask", help="Reduce on a Dask cluster: tcp://HOST:8786 or local:N (default: in-process)."),
-        model_type: Optional[str] = typer.Option(None, "--model", help="Model type: physical (the default: load signature + housing thermal with the do-no-harm policy), mra (the paper's regression), kinematic, hybrid, calibrated or dynamic (docs/models.md)."),
-        machine: Optional[Path] = typer.Option(None, "--machine", help="Machine description YAML for kinematic/hybrid/calibrated (default: the built-in ram).")):
+def fit(
+    campaigns: list[Path] = typer.Argument(
+        ..., help="Training campaign folders or Parquet datasets (fbgcomp ingest)."
+    ),
+    output: Path = typer.Option(..., "-o", "--output", help="Model file to write (JSON)."),
+    features: str | None = typer.Option(
+        None, help="Feature set of the paper's regression: eq11, eq13 or eq12 (selects --model mra)."
+    ),
+    stepwise: bool = typer.Option(
+        False, "--stepwise", help="Stepwise selection (F-tests; selects --model mra)."
+    ),
+    direction: str = typer.Option("both", help="Stepwise direction: both, forward, backward."),
+    p_enter: float = typer.Option(0.05, help="Stepwise p-value to enter."),
+    p_remove: float = typer.Option(0.10, help="Stepwise p-value to remove."),
+    max_terms: int | None = typer.Option(None, help="Upper bound on selected terms."),
+    cov_type: str = typer.Option(
+        "HAC",
+        "--cov-type",
+        help="Inference of the paper's regression (mra): HAC (Newey-West, autocorrelation-robust; the default) or nonrobust (the paper's i.i.d. F tests and Table 1).",
+    ),
+    hac_maxlags: str = typer.Option(
+        "auto",
+        "--hac-maxlags",
+        help="Newey-West bandwidth in lags: auto (Andrews' AR(1) rule) or a positive integer.",
+    ),
+    roles: str | None = typer.Option(None, help="Probe roles, e.g. bulk=T_bulk,surf=T_surf,flange=T_flange."),
+    zero_window: float = typer.Option(10.0, "--zero-window", help="Zero state: mean of the first N seconds."),
+    fallbacks: str = typer.Option("loo", help="Fallback models for sensor faults: loo, lto or none."),
+    dask: str | None = typer.Option(
+        None, "--dask", help="Reduce on a Dask cluster: tcp://HOST:8786 or local:N (default: in-process)."
+    ),
+    model_type: str | None = typer.Option(
+        None,
+        "--model",
+        help="Model type: physical (the default: load signature + housing thermal with the do-no-harm policy), mra (the paper's regression), kinematic, hybrid, calibrated or dynamic (docs/models.md).",
+    ),
+    machine: Path | None = typer.Option(
+        None,
+        "--machine",
+        help="Machine description YAML for kinematic/hybrid/calibrated (default: the built-in ram).",
+    ),
+):
     """Fit the TTP-deviation model and print its coefficient tables.
 
     Without --model, --features or --stepwise: the physical model with the do-no-harm policy
     (docs/accuracy.md). --features/--stepwise give the paper's regression (Table 1)."""
     if model_type is None:
-        model_type = "mra" if (features is not None or stepwise or dask is not None
-                               or any_dataset(campaigns)) else "physical"
+        model_type = (
+            "mra"
+            if (features is not None or stepwise or dask is not None or any_dataset(campaigns))
+            else "physical"
+        )
     features = features or "eq13"
     with progress.stages("fit", 3) as stage:
-        _fit(stage, campaigns, output, model_type, features, stepwise, direction, p_enter,
-             p_remove, max_terms, cov_type, hac_maxlags, roles, zero_window, fallbacks, dask,
-             machine)
+        _fit(
+            stage,
+            campaigns,
+            output,
+            model_type,
+            features,
+            stepwise,
+            direction,
+            p_enter,
+            p_remove,
+            max_terms,
+            cov_type,
+            hac_maxlags,
+            roles,
+            zero_window,
+            fallbacks,
+            dask,
+            machine,
+        )
 
 
-def _fit(stage, campaigns, output, model_type, features, stepwise, direction, p_enter, p_remove,
-         max_terms, cov_type, hac_maxlags, roles, zero_window, fallbacks, dask, machine):
+def _fit(
+    stage,
+    campaigns,
+    output,
+    model_type,
+    features,
+    stepwise,
+    direction,
+    p_enter,
+    p_remove,
+    max_terms,
+    cov_type,
+    hac_maxlags,
+    roles,
+    zero_window,
+    fallbacks,
+    dask,
+    machine,
+):
     from fbgcomp.models.mra import MRAModel
 
     if model_type == "physical":
@@ -109,7 +177,7 @@ def _fit(stage, campaigns, output, model_type, features, stepwise, direction, p_
         with _numeric_failures(campaigns):
             model = PhysicalModel(machine=machine, zero_window_s=zero_window).fit(data)
         stage(f"writing {output}")
-        model.save(output)   # only a model that loads back replaces an existing file
+        model.save(output)  # only a model that loads back replaces an existing file
         typer.echo(model.summary())
         typer.echo(f"\nmodel {model.model_id} (physical) written to {output}")
         return
@@ -120,10 +188,20 @@ def _fit(stage, campaigns, output, model_type, features, stepwise, direction, p_
         data = read_campaigns(campaigns)
         stage(f"fitting the {model_type} model")
         with _numeric_failures(campaigns):
-            model = fit_from_cli(model_type, data, machine=machine, features=features,
-                                 stepwise=stepwise, direction=direction, p_enter=p_enter,
-                                 p_remove=p_remove, max_terms=max_terms, roles=_parse_roles(roles),
-                                 zero_window_s=zero_window, fallbacks=fallbacks)
+            model = fit_from_cli(
+                model_type,
+                data,
+                machine=machine,
+                features=features,
+                stepwise=stepwise,
+                direction=direction,
+                p_enter=p_enter,
+                p_remove=p_remove,
+                max_terms=max_terms,
+                roles=_parse_roles(roles),
+                zero_window_s=zero_window,
+                fallbacks=fallbacks,
+            )
         stage(f"writing {output}")
         model.save(output)
         typer.echo(model.summary())
@@ -131,31 +209,53 @@ def _fit(stage, campaigns, output, model_type, features, stepwise, direction, p_
         return
 
     if features not in ("eq11", "eq12", "eq13"):
-        raise InputError(f"unknown feature set {features!r}; expected eq11, eq12 or eq13",
-                         file="<command line>", column="option --features")
+        raise InputError(
+            f"unknown feature set {features!r}; expected eq11, eq12 or eq13",
+            file="<command line>",
+            column="option --features",
+        )
     if direction not in ("both", "forward", "backward"):
-        raise InputError(f"unknown direction {direction!r}", file="<command line>", column="option --direction")
+        raise InputError(
+            f"unknown direction {direction!r}", file="<command line>", column="option --direction"
+        )
     if fallbacks not in ("loo", "lto", "none"):
-        raise InputError(f"unknown fallbacks {fallbacks!r}", file="<command line>", column="option --fallbacks")
+        raise InputError(
+            f"unknown fallbacks {fallbacks!r}", file="<command line>", column="option --fallbacks"
+        )
     if cov_type not in ("HAC", "nonrobust"):
-        raise InputError(f"unknown --cov-type {cov_type!r}; expected HAC or nonrobust",
-                         file="<command line>", column="option --cov-type")
+        raise InputError(
+            f"unknown --cov-type {cov_type!r}; expected HAC or nonrobust",
+            file="<command line>",
+            column="option --cov-type",
+        )
     if hac_maxlags != "auto":
         try:
             lags = int(hac_maxlags)
         except ValueError:
             lags = 0
         if lags < 1:
-            raise InputError(f"--hac-maxlags must be auto or a positive integer, not {hac_maxlags!r}",
-                             file="<command line>", column="option --hac-maxlags")
+            raise InputError(
+                f"--hac-maxlags must be auto or a positive integer, not {hac_maxlags!r}",
+                file="<command line>",
+                column="option --hac-maxlags",
+            )
         hac_maxlags = lags
     scaled = dask is not None or any_dataset(campaigns)
     stage("reading campaigns" if not scaled else "opening the datasets")
     data = None if scaled else read_campaigns(campaigns)
-    model = MRAModel(features=features, stepwise=stepwise, direction=direction, p_enter=p_enter,
-                     p_remove=p_remove, max_terms=max_terms, roles=_parse_roles(roles),
-                     zero_window_s=zero_window, fallbacks=fallbacks, cov_type=cov_type,
-                     hac_maxlags=hac_maxlags)
+    model = MRAModel(
+        features=features,
+        stepwise=stepwise,
+        direction=direction,
+        p_enter=p_enter,
+        p_remove=p_remove,
+        max_terms=max_terms,
+        roles=_parse_roles(roles),
+        zero_window_s=zero_window,
+        fallbacks=fallbacks,
+        cov_type=cov_type,
+        hac_maxlags=hac_maxlags,
+    )
     stage(f"fitting the regression ({features}{', stepwise' if stepwise else ''}, per axis)")
     with _numeric_failures(campaigns):
         if scaled:
@@ -170,9 +270,11 @@ def _fit(stage, campaigns, output, model_type, features, stepwise, direction, p_
     typer.echo(f"\nmodel {model.model_id} written to {output}")
 
 
-def validate(model_file: Path = typer.Argument(..., help="Model file (JSON)."),
-             campaigns: List[Path] = typer.Argument(..., help="Campaign folders to judge the model on."),
-             json_out: Optional[Path] = typer.Option(None, "--json", help="Write the metrics as JSON.")):
+def validate(
+    model_file: Path = typer.Argument(..., help="Model file (JSON)."),
+    campaigns: list[Path] = typer.Argument(..., help="Campaign folders to judge the model on."),
+    json_out: Path | None = typer.Option(None, "--json", help="Write the metrics as JSON."),
+):
     """Judge a model on campaigns: per axis peak, max |error|, RMS, % of peak, compensation ratio.
 
     The model is loaded through the checks every consumer uses (fbgcomp.models.base.load_model): a
@@ -180,9 +282,13 @@ def validate(model_file: Path = typer.Argument(..., help="Model file (JSON)."),
     import numpy as np
 
     from fbgcomp.atomic import write_json
+    from fbgcomp.models.metrics import (
+        format_metrics,
+        format_static_metrics,
+        static_level_metrics,
+        validation_metrics,
+    )
     from fbgcomp.models.registry import load_model
-    from fbgcomp.models.metrics import (format_metrics, format_static_metrics, static_level_metrics,
-                                        validation_metrics)
 
     model = load_model(model_file)
     refs, preds, halves, per_campaign = [], [], [], {}
@@ -208,13 +314,19 @@ def validate(model_file: Path = typer.Argument(..., help="Model file (JSON)."),
         typer.echo(f"metrics written to {json_out}")
 
 
-def simulate(machine: Optional[Path] = typer.Option(None, help="Machine description YAML (default: the built-in ram)."),
-             scenario: str = typer.Option(..., help="Scenario: a built-in name (static-y, static-xyz, "
-                                          "thermal-36h, thermal-36h-b, combined) or a scenario YAML."),
-             seed: int = typer.Option(0, help="Random seed of the measurement noise and random inputs."),
-             output: Path = typer.Option(..., "-o", "--output", help="Campaign folder to write.")):
+def simulate(
+    machine: Path | None = typer.Option(None, help="Machine description YAML (default: the built-in ram)."),
+    scenario: str = typer.Option(
+        ...,
+        help="Scenario: a built-in name (static-y, static-xyz, "
+        "thermal-36h, thermal-36h-b, combined) or a scenario YAML.",
+    ),
+    seed: int = typer.Option(0, help="Random seed of the measurement noise and random inputs."),
+    output: Path = typer.Option(..., "-o", "--output", help="Campaign folder to write."),
+):
     """Run a scenario on the FE twin and write the measured campaign (virtual test bench)."""
-    from fbgcomp.bench.virtual import load_scenario, simulate as run
+    from fbgcomp.bench.virtual import load_scenario
+    from fbgcomp.bench.virtual import simulate as run
     from fbgcomp.io.campaign import write_campaign
     from fbgcomp.structure import load_machine
 
@@ -229,17 +341,23 @@ def simulate(machine: Optional[Path] = typer.Option(None, help="Machine descript
     typer.echo(f"campaign {sc.name} ({sc.duration_s() / 3600:.2f} h) written to {output}")
 
 
-def fe_calibrate(machine: Optional[Path] = typer.Option(None, help="Machine description YAML (default: the built-in ram)."),
-                 output: Path = typer.Option(..., "-o", "--output", help="Model file to write (JSON)."),
-                 features: str = typer.Option("eq11", help="eq11 (elongations only, as the paper) or eq13/eq12 (with probe temperatures)."),
-                 samples: int = typer.Option(2000, help="Random combinations of the FE load cases."),
-                 seed: int = typer.Option(0, help="Random seed.")):
+def fe_calibrate(
+    machine: Path | None = typer.Option(None, help="Machine description YAML (default: the built-in ram)."),
+    output: Path = typer.Option(..., "-o", "--output", help="Model file to write (JSON)."),
+    features: str = typer.Option(
+        "eq11", help="eq11 (elongations only, as the paper) or eq13/eq12 (with probe temperatures)."
+    ),
+    samples: int = typer.Option(2000, help="Random combinations of the FE load cases."),
+    seed: int = typer.Option(0, help="Random seed."),
+):
     """Fit the eq. 11 model on a design of FE load cases (paper sec. 2.3) and write a model file."""
     from fbgcomp.models.fe_calibrated import fe_calibrate as run
     from fbgcomp.structure import load_machine
 
     if features not in ("eq11", "eq12", "eq13"):
-        raise InputError(f"unknown feature set {features!r}", file="<command line>", column="option --features")
+        raise InputError(
+            f"unknown feature set {features!r}", file="<command line>", column="option --features"
+        )
     with progress.stages("fe-calibrate", 2) as stage:
         stage("FE twin, load cases and fit")
         model, _ = run(load_machine(machine), features=features, n_samples=samples, seed=seed)
@@ -249,44 +367,76 @@ def fe_calibrate(machine: Optional[Path] = typer.Option(None, help="Machine desc
     typer.echo(f"\nmodel {model.model_id} written to {output}")
 
 
-def compare(train: List[Path] = typer.Option(..., "--train", help="Training campaign folder (repeat the option)."),
-            test: List[Path] = typer.Option(..., "--test", help="Held-out campaign folder (repeat the option)."),
-            machine: Optional[Path] = typer.Option(None, "--machine", help="Machine description YAML (default: the built-in ram; the physical model then runs without one, as fbgcomp fit)."),
-            csv_out: Path = typer.Option(Path("comparison.csv"), "--csv", help="Pooled table, ranked per axis (CSV)."),
-            campaign_csv: Optional[Path] = typer.Option(None, "--campaign-csv", help="Per held-out campaign table with the uncompensated row and harm marks (CSV; default: <csv stem>_by_campaign.csv beside --csv)."),
-            json_out: Path = typer.Option(Path("comparison.json"), "--json", help="Everything (JSON)."),
-            markdown: Optional[Path] = typer.Option(None, "--markdown", help="Also write the per-campaign tables as Markdown.")):
+def compare(
+    train: list[Path] = typer.Option(..., "--train", help="Training campaign folder (repeat the option)."),
+    test: list[Path] = typer.Option(..., "--test", help="Held-out campaign folder (repeat the option)."),
+    machine: Path | None = typer.Option(
+        None,
+        "--machine",
+        help="Machine description YAML (default: the built-in ram; the physical model then runs without one, as fbgcomp fit).",
+    ),
+    csv_out: Path = typer.Option(
+        Path("comparison.csv"), "--csv", help="Pooled table, ranked per axis (CSV)."
+    ),
+    campaign_csv: Path | None = typer.Option(
+        None,
+        "--campaign-csv",
+        help="Per held-out campaign table with the uncompensated row and harm marks (CSV; default: <csv stem>_by_campaign.csv beside --csv).",
+    ),
+    json_out: Path = typer.Option(Path("comparison.json"), "--json", help="Everything (JSON)."),
+    markdown: Path | None = typer.Option(
+        None, "--markdown", help="Also write the per-campaign tables as Markdown."
+    ),
+):
     """Every model type fitted on --train and judged on each --test campaign beside no compensation
     (rows marked WORSE where an axis ends worse than uncompensated), then pooled and ranked per axis."""
-    from fbgcomp.models.compare import (ENTRIES, compare as run, default_campaign_csv, format_comparison,
-                                        write_comparison)
+    from fbgcomp.models.compare import (
+        ENTRIES,
+        default_campaign_csv,
+        format_comparison,
+        write_comparison,
+    )
+    from fbgcomp.models.compare import (
+        compare as run,
+    )
 
     with progress.stages("compare", 2 + len(ENTRIES)) as stage:
         stage("reading campaigns")
         train_c = read_campaigns(train, "reading training campaigns")
         test_c = read_campaigns(test, "reading held-out campaigns")
-        result = run(train_c, test_c, machine=machine,
-                     progress=lambda name: stage(f"fitting and judging {name}"))
+        result = run(
+            train_c, test_c, machine=machine, progress=lambda name: stage(f"fitting and judging {name}")
+        )
         stage("writing the tables")
         campaign_csv = campaign_csv or default_campaign_csv(csv_out)
         write_comparison(result, csv_out, json_out, campaign_csv, markdown)
     typer.echo(format_comparison(result))
-    typer.echo(f"\ntables written to {csv_out}, {campaign_csv} and {json_out}"
-               + (f" (Markdown: {markdown})" if markdown else ""))
+    typer.echo(
+        f"\ntables written to {csv_out}, {campaign_csv} and {json_out}"
+        + (f" (Markdown: {markdown})" if markdown else "")
+    )
 
 
-def import_campaign(mapping: Path = typer.Argument(..., help="Mapping file (YAML): campaign metadata, exports, columns, units, times (docs/import.md)."),
-                    output: Path = typer.Option(..., "-o", "--output", help="Campaign folder to write (an existing one is replaced atomically).")):
+def import_campaign(
+    mapping: Path = typer.Argument(
+        ..., help="Mapping file (YAML): campaign metadata, exports, columns, units, times (docs/import.md)."
+    ),
+    output: Path = typer.Option(
+        ..., "-o", "--output", help="Campaign folder to write (an existing one is replaced atomically)."
+    ),
+):
     """Turn vendor and logger exports (CSV, TSV, Excel) into a campaign folder."""
-    from fbgcomp.io.vendor_import import describe, import_campaign as run
+    from fbgcomp.io.vendor_import import describe
+    from fbgcomp.io.vendor_import import import_campaign as run
 
     typer.echo(describe(run(mapping, output), mapping, output))
 
 
-def report(campaigns: List[Path] = typer.Argument(..., help="Campaign folders to report on."),
-           model: Path = typer.Option(..., "--model", help="Model file (JSON) from fbgcomp fit."),
-           output: Path = typer.Option(..., "-o", "--output",
-                                       help="Report folder to write (report.html + PNGs).")):
+def report(
+    campaigns: list[Path] = typer.Argument(..., help="Campaign folders to report on."),
+    model: Path = typer.Option(..., "--model", help="Model file (JSON) from fbgcomp fit."),
+    output: Path = typer.Option(..., "-o", "--output", help="Report folder to write (report.html + PNGs)."),
+):
     """Write a self-contained HTML report: campaign summaries, paper figs. 6-9, Table 1 per
     axis with the stepwise history, validation metrics and sensor health."""
     import matplotlib  # noqa: F401 - a clear ImportError before any work

@@ -11,7 +11,6 @@ import asyncio
 import logging
 import sys
 from pathlib import Path
-from typing import List, Optional
 
 import typer
 
@@ -27,59 +26,102 @@ def _per_axis_option(text: str, option: str) -> tuple:
     except ValueError:
         values = []
     if len(values) not in (1, 3) or any(not v >= 0 for v in values):
-        raise InputError(f"expected off, one number >= 0 or three (dx,dy,dz), got {text!r}",
-                         column=option)
+        raise InputError(f"expected off, one number >= 0 or three (dx,dy,dz), got {text!r}", column=option)
     return tuple(values * 3 if len(values) == 1 else values)
 
 
 def serve(
-    model: Optional[Path] = typer.Option(None, "--model", help="Model file (JSON) from fbgcomp fit."),
-    source: Optional[str] = typer.Option(
-        None, "--source", help="hyperion://HOST:PORT (stream port; command port = PORT-1 or "
-        "?command_port=N), replay://DIR?speed=S or sim://DIR?rate=HZ&speed=S."),
-    config: Optional[Path] = typer.Option(None, "--config", help="TOML configuration (docs/runtime.md)."),
-    temperatures: Optional[str] = typer.Option(
-        None, "--temperatures", help="Probe temperatures: campaign folder, temperatures CSV or "
-        "const:PROBE=°C,..."),
-    opcua: Optional[str] = typer.Option(None, "--opcua", help="OPC UA endpoint, e.g. "
-                                        "opc.tcp://127.0.0.1:4840/fbgcomp/; 'off' disables."),
-    state_dir: Optional[Path] = typer.Option(None, "--state-dir", help="Certificates and state."),
-    log_dir: Optional[Path] = typer.Option(None, "--log", help="Run-log folder (Parquet)."),
-    rate: Optional[float] = typer.Option(None, "--rate", help="OPC UA update rate, Hz (0 = every batch)."),
-    smoothing: Optional[float] = typer.Option(None, "--smoothing-tau", help="Correction smoothing time constant, s."),
-    max_slew: Optional[str] = typer.Option(None, "--max-slew", help="Largest rate of change of the correction, µm/s: one value or dx,dy,dz (default 1000; 0 or off = no limit)."),
-    max_correction: Optional[str] = typer.Option(None, "--max-correction-um", help="Largest |correction| per axis, µm: one value or dx,dy,dz (default 1000; 0 or off = none; a tighter bound in the model file still applies)."),
-    output_filter: Optional[str] = typer.Option(None, "--output-filter", help="Adaptive output filter: on (default) or off."),
-    allow_anonymous: bool = typer.Option(False, "--allow-anonymous", help="Allow anonymous read-only OPC UA sessions."),
-    users_file: Optional[Path] = typer.Option(None, "--users", help="OPC UA users file (name:pbkdf2_sha256$...)."),
-    trusted_clients: Optional[Path] = typer.Option(
-        None, "--trusted-clients", help="Folder of the client certificates OPC UA trusts "
-        "(default <state-dir>/opcua/trusted; fill it with fbgcomp trust add)."),
-    models_dir: Optional[Path] = typer.Option(
-        None, "--models-dir", help="Folder OPC UA ReloadModel may load models from (default: none, "
-        "ReloadModel only reloads the current model)."),
-    dashboard: Optional[str] = typer.Option(
-        None, "--dashboard", help="Serve the live dashboard on [HOST:]PORT, host 127.0.0.1 if omitted; beyond loopback reads need a login (docs/dashboard.md, docs/security.md)."),
-    dashboard_users: Optional[Path] = typer.Option(
-        None, "--dashboard-users", help="Dashboard users file (name:pbkdf2_sha256$...)."),
-    dashboard_cert: Optional[Path] = typer.Option(
-        None, "--dashboard-cert", help="Serve the dashboard over HTTPS with this PEM certificate (chain)."),
-    dashboard_key: Optional[Path] = typer.Option(
-        None, "--dashboard-key", help="PEM private key of --dashboard-cert."),
-    cnc: Optional[str] = typer.Option(
-        None, "--cnc", help="CNC output: linuxcnc (HAL component fbgcomp, docs/linuxcnc.md) or off."),
-    cnc_address: Optional[str] = typer.Option(
-        None, "--cnc-address", help="Local channel of the CNC output: udp://127.0.0.1:47300 or unix:///path."),
-    duration: Optional[float] = typer.Option(None, "--duration", help="Stop after this many seconds."),
-    cpu: Optional[int] = typer.Option(None, "--cpu", help="Pin serve (and its OPC UA process) to this CPU; -1 = any (default)."),
-    realtime_priority: Optional[int] = typer.Option(None, "--realtime-priority", help="Run under SCHED_FIFO at this priority (1-99) where permitted; where not, one warning and normal priority. 0 = normal scheduling (default)."),
+    model: Path | None = typer.Option(None, "--model", help="Model file (JSON) from fbgcomp fit."),
+    source: str | None = typer.Option(
+        None,
+        "--source",
+        help="hyperion://HOST:PORT (stream port; command port = PORT-1 or "
+        "?command_port=N), replay://DIR?speed=S or sim://DIR?rate=HZ&speed=S.",
+    ),
+    config: Path | None = typer.Option(None, "--config", help="TOML configuration (docs/runtime.md)."),
+    temperatures: str | None = typer.Option(
+        None,
+        "--temperatures",
+        help="Probe temperatures: campaign folder, temperatures CSV or const:PROBE=°C,...",
+    ),
+    opcua: str | None = typer.Option(
+        None, "--opcua", help="OPC UA endpoint, e.g. opc.tcp://127.0.0.1:4840/fbgcomp/; 'off' disables."
+    ),
+    state_dir: Path | None = typer.Option(None, "--state-dir", help="Certificates and state."),
+    log_dir: Path | None = typer.Option(None, "--log", help="Run-log folder (Parquet)."),
+    rate: float | None = typer.Option(None, "--rate", help="OPC UA update rate, Hz (0 = every batch)."),
+    smoothing: float | None = typer.Option(
+        None, "--smoothing-tau", help="Correction smoothing time constant, s."
+    ),
+    max_slew: str | None = typer.Option(
+        None,
+        "--max-slew",
+        help="Largest rate of change of the correction, µm/s: one value or dx,dy,dz (default 1000; 0 or off = no limit).",
+    ),
+    max_correction: str | None = typer.Option(
+        None,
+        "--max-correction-um",
+        help="Largest |correction| per axis, µm: one value or dx,dy,dz (default 1000; 0 or off = none; a tighter bound in the model file still applies).",
+    ),
+    output_filter: str | None = typer.Option(
+        None, "--output-filter", help="Adaptive output filter: on (default) or off."
+    ),
+    allow_anonymous: bool = typer.Option(
+        False, "--allow-anonymous", help="Allow anonymous read-only OPC UA sessions."
+    ),
+    users_file: Path | None = typer.Option(
+        None, "--users", help="OPC UA users file (name:pbkdf2_sha256$...)."
+    ),
+    trusted_clients: Path | None = typer.Option(
+        None,
+        "--trusted-clients",
+        help="Folder of the client certificates OPC UA trusts "
+        "(default <state-dir>/opcua/trusted; fill it with fbgcomp trust add).",
+    ),
+    models_dir: Path | None = typer.Option(
+        None,
+        "--models-dir",
+        help="Folder OPC UA ReloadModel may load models from (default: none, "
+        "ReloadModel only reloads the current model).",
+    ),
+    dashboard: str | None = typer.Option(
+        None,
+        "--dashboard",
+        help="Serve the live dashboard on [HOST:]PORT, host 127.0.0.1 if omitted; beyond loopback reads need a login (docs/dashboard.md, docs/security.md).",
+    ),
+    dashboard_users: Path | None = typer.Option(
+        None, "--dashboard-users", help="Dashboard users file (name:pbkdf2_sha256$...)."
+    ),
+    dashboard_cert: Path | None = typer.Option(
+        None, "--dashboard-cert", help="Serve the dashboard over HTTPS with this PEM certificate (chain)."
+    ),
+    dashboard_key: Path | None = typer.Option(
+        None, "--dashboard-key", help="PEM private key of --dashboard-cert."
+    ),
+    cnc: str | None = typer.Option(
+        None, "--cnc", help="CNC output: linuxcnc (HAL component fbgcomp, docs/linuxcnc.md) or off."
+    ),
+    cnc_address: str | None = typer.Option(
+        None, "--cnc-address", help="Local channel of the CNC output: udp://127.0.0.1:47300 or unix:///path."
+    ),
+    duration: float | None = typer.Option(None, "--duration", help="Stop after this many seconds."),
+    cpu: int | None = typer.Option(
+        None, "--cpu", help="Pin serve (and its OPC UA process) to this CPU; -1 = any (default)."
+    ),
+    realtime_priority: int | None = typer.Option(
+        None,
+        "--realtime-priority",
+        help="Run under SCHED_FIFO at this priority (1-99) where permitted; where not, one warning and normal priority. 0 = normal scheduling (default).",
+    ),
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress to stderr."),
 ):
     """Run the real-time compensator: wavelengths -> model -> correction on OPC UA, logged to Parquet."""
     from fbgcomp.runtime.service import RuntimeConfig, run_service
 
-    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.INFO if verbose else logging.WARNING,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
     cfg = RuntimeConfig.from_toml(config) if config else RuntimeConfig()
     if model is not None:
         cfg.model = str(model)
@@ -105,12 +147,10 @@ def serve(
     if max_slew is not None:
         cfg.pipeline.max_slew_um_per_s = _per_axis_option(max_slew, "--max-slew")
     if max_correction is not None:
-        cfg.pipeline.max_correction_um = _per_axis_option(max_correction,
-                                                          "--max-correction-um")
+        cfg.pipeline.max_correction_um = _per_axis_option(max_correction, "--max-correction-um")
     if output_filter is not None:
         if output_filter not in ("on", "off"):
-            raise InputError(f"expected on or off, got {output_filter!r}",
-                             column="--output-filter")
+            raise InputError(f"expected on or off, got {output_filter!r}", column="--output-filter")
         cfg.pipeline.output_filter.enabled = output_filter == "on"
     if allow_anonymous:
         cfg.opcua.allow_anonymous = True
@@ -121,8 +161,7 @@ def serve(
     if models_dir is not None:
         cfg.opcua.models_dir = str(models_dir)
     if cfg.opcua.models_dir and not Path(cfg.opcua.models_dir).is_dir():
-        raise InputError("models folder not found", file=cfg.opcua.models_dir,
-                         column="opcua.models_dir")
+        raise InputError("models folder not found", file=cfg.opcua.models_dir, column="opcua.models_dir")
     if dashboard is not None:
         cfg.dashboard.listen = dashboard
     if dashboard_users is not None:
@@ -139,8 +178,7 @@ def serve(
         cfg.realtime.cpu = cpu
     if realtime_priority is not None:
         if not 0 <= realtime_priority <= 99:
-            raise InputError(f"expected 0..99, got {realtime_priority}",
-                             column="--realtime-priority")
+            raise InputError(f"expected 0..99, got {realtime_priority}", column="--realtime-priority")
         cfg.realtime.fifo_priority = realtime_priority
     svc = run_service(cfg, duration)
     typer.echo(f"processed {svc.frames} frames in {svc.batches} batches", err=True)
@@ -154,43 +192,75 @@ def sim_interrogator(
     rate: float = typer.Option(1000.0, "--rate", help="Frames per second (up to 5000 and more)."),
     channels: int = typer.Option(1, "--channels", help="Instrument channels the sensors are spread over."),
     extra_peaks: int = typer.Option(0, "--extra-peaks", help="Additional non-sensor peaks per channel."),
-    peaks_per_channel: Optional[int] = typer.Option(None, "--peaks-per-channel", help="Pad every channel with non-sensor peaks up to this many peaks."),
+    peaks_per_channel: int | None = typer.Option(
+        None, "--peaks-per-channel", help="Pad every channel with non-sensor peaks up to this many peaks."
+    ),
     speed: float = typer.Option(1.0, "--speed", help="Campaign seconds per real second."),
     loop: bool = typer.Option(False, "--loop", help="Restart the campaign at its end."),
     noise_pm: float = typer.Option(0.0, "--noise-pm", help="Gaussian wavelength noise, pm."),
-    fault: List[str] = typer.Option([], "--fault", help="drop:S@t, double:S@t, shift:S@t:nm, stuck:S@t, each optionally /duration (drop:S3@5/2 brings S3 back at 7 s, shift:S2@3:+2/10 moves S2 by 2 nm for 10 s; default: to the end), cut@t:s, garbage@t:bytes (random bytes on the stream, at most 1 MiB); t = s since start; S may name a reference grating, S3_ref. Repeatable."),
-    duration: Optional[float] = typer.Option(None, "--duration", help="Stop after this many seconds."),
-    send_log: Optional[Path] = typer.Option(None, "--send-log", help="Save the wall-clock send time of every block of frames (.npy: first stamp s, frames, send time s) at exit, for latency measurements."),
-    temperatures_opcua: Optional[str] = typer.Option(None, "--temperatures-opcua", help="Also serve the campaign's probe temperatures on this OPC UA endpoint (opc.tcp://HOST:PORT; nodes ns=2;s=Probes.<probe>, °C), on the simulator's clock and speed."),
+    fault: list[str] = typer.Option(
+        [],
+        "--fault",
+        help="drop:S@t, double:S@t, shift:S@t:nm, stuck:S@t, each optionally /duration (drop:S3@5/2 brings S3 back at 7 s, shift:S2@3:+2/10 moves S2 by 2 nm for 10 s; default: to the end), cut@t:s, garbage@t:bytes (random bytes on the stream, at most 1 MiB); t = s since start; S may name a reference grating, S3_ref. Repeatable.",
+    ),
+    duration: float | None = typer.Option(None, "--duration", help="Stop after this many seconds."),
+    send_log: Path | None = typer.Option(
+        None,
+        "--send-log",
+        help="Save the wall-clock send time of every block of frames (.npy: first stamp s, frames, send time s) at exit, for latency measurements.",
+    ),
+    temperatures_opcua: str | None = typer.Option(
+        None,
+        "--temperatures-opcua",
+        help="Also serve the campaign's probe temperatures on this OPC UA endpoint (opc.tcp://HOST:PORT; nodes ns=2;s=Probes.<probe>, °C), on the simulator's clock and speed.",
+    ),
 ):
     """Serve a campaign's wavelengths over the Hyperion TCP protocol (a simulated instrument)."""
-    from fbgcomp.runtime.simulator import (OpcUaTemperatureServer, SignalTable, SimConfig,
-                                           parse_fault, run_simulator)
+    from fbgcomp.runtime.simulator import (
+        OpcUaTemperatureServer,
+        SignalTable,
+        SimConfig,
+        parse_fault,
+        run_simulator,
+    )
 
     if not campaign.is_dir():
         raise InputError("campaign folder not found", file=campaign)
     table = SignalTable.from_campaign(campaign)
-    cfg = SimConfig(rate_hz=rate, channels=channels, extra_peaks_per_channel=extra_peaks,
-                    peaks_per_channel=peaks_per_channel,
-                    speed=speed, loop=loop, noise_pm=noise_pm,
-                    faults=[parse_fault(f) for f in fault])
+    cfg = SimConfig(
+        rate_hz=rate,
+        channels=channels,
+        extra_peaks_per_channel=extra_peaks,
+        peaks_per_channel=peaks_per_channel,
+        speed=speed,
+        loop=loop,
+        noise_pm=noise_pm,
+        faults=[parse_fault(f) for f in fault],
+    )
 
     temps = None
     if temperatures_opcua:
         temps = OpcUaTemperatureServer.from_campaign(temperatures_opcua, campaign, cfg, table)
 
     def ready(sim):
-        print(f"serving {len(table.sensor_names)} sensors at {rate:g} Hz on {host}: "
-              f"command {sim.command_port}, stream {sim.stream_port}"
-              + (f"; temperatures {', '.join(temps.probe_names)} on {temps.endpoint}"
-                 if temps is not None else ""), file=sys.stderr, flush=True)
+        print(
+            f"serving {len(table.sensor_names)} sensors at {rate:g} Hz on {host}: "
+            f"command {sim.command_port}, stream {sim.stream_port}"
+            + (
+                f"; temperatures {', '.join(temps.probe_names)} on {temps.endpoint}"
+                if temps is not None
+                else ""
+            ),
+            file=sys.stderr,
+            flush=True,
+        )
 
     try:
-        asyncio.run(run_simulator(table, cfg, host, command_port, port, ready, duration,
-                                  send_log, temperatures=temps))
+        asyncio.run(
+            run_simulator(table, cfg, host, command_port, port, ready, duration, send_log, temperatures=temps)
+        )
     except OSError as exc:
-        raise InputError(f"cannot listen on {host}:{port}/{command_port}: {exc.strerror}",
-                         column="--port")
+        raise InputError(f"cannot listen on {host}:{port}/{command_port}: {exc.strerror}", column="--port")
     except KeyboardInterrupt:
         pass
 
@@ -203,8 +273,10 @@ log_app = typer.Typer(help="Run logs written by serve.", no_args_is_help=True)
 def export(
     log: Path = typer.Argument(..., help="Run-log folder written by serve --log."),
     output: Path = typer.Option(..., "-o", "--output", help="Campaign folder to write."),
-    name: Optional[str] = typer.Option(None, "--name", help="Campaign name."),
-    reference: Optional[Path] = typer.Option(None, "--reference", help="TTP reference CSV (time_s from the log start, dx_um, dy_um, dz_um)."),
+    name: str | None = typer.Option(None, "--name", help="Campaign name."),
+    reference: Path | None = typer.Option(
+        None, "--reference", help="TTP reference CSV (time_s from the log start, dx_um, dy_um, dz_um)."
+    ),
 ):
     """Turn a run log back into a campaign folder (to re-fit a model on a production run)."""
     from fbgcomp.runtime.log import export_campaign
@@ -214,13 +286,13 @@ def export(
 
 
 #: ``fbgcomp trust ...``
-trust_app = typer.Typer(help="Client certificates the OPC UA server trusts (docs/security.md).",
-                        no_args_is_help=True)
-_DIR_HELP = ("Trust-list folder (default <state-dir>/opcua/trusted, as serve uses without "
-            "--trusted-clients).")
+trust_app = typer.Typer(
+    help="Client certificates the OPC UA server trusts (docs/security.md).", no_args_is_help=True
+)
+_DIR_HELP = "Trust-list folder (default <state-dir>/opcua/trusted, as serve uses without --trusted-clients)."
 
 
-def _trust_dir(directory: Optional[Path], state_dir: Optional[Path]) -> Path:
+def _trust_dir(directory: Path | None, state_dir: Path | None) -> Path:
     from fbgcomp.runtime.trust import trusted_dir
 
     return trusted_dir(state_dir, directory)
@@ -229,8 +301,8 @@ def _trust_dir(directory: Optional[Path], state_dir: Optional[Path]) -> Path:
 @trust_app.command("add")
 def trust_add(
     cert: Path = typer.Argument(..., help="Client certificate, DER or PEM."),
-    directory: Optional[Path] = typer.Option(None, "--dir", help=_DIR_HELP),
-    state_dir: Optional[Path] = typer.Option(None, "--state-dir", help="serve's --state-dir."),
+    directory: Path | None = typer.Option(None, "--dir", help=_DIR_HELP),
+    state_dir: Path | None = typer.Option(None, "--state-dir", help="serve's --state-dir."),
 ):
     """Trust a client certificate: check it and copy it into the trust list (atomically)."""
     from fbgcomp.runtime.trust import add_certificate
@@ -246,8 +318,8 @@ def trust_add(
 
 @trust_app.command("list")
 def trust_list(
-    directory: Optional[Path] = typer.Option(None, "--dir", help=_DIR_HELP),
-    state_dir: Optional[Path] = typer.Option(None, "--state-dir", help="serve's --state-dir."),
+    directory: Path | None = typer.Option(None, "--dir", help=_DIR_HELP),
+    state_dir: Path | None = typer.Option(None, "--state-dir", help="serve's --state-dir."),
 ):
     """Show the certificates in the trust list (unreadable files are flagged)."""
     from fbgcomp.runtime.trust import list_certificates
@@ -260,5 +332,7 @@ def trust_list(
     for info in certs:
         typer.echo(f"  {info.describe()}")
     if any(c.error for c in certs):
-        raise InputError("unreadable file(s) in the trust list: the server trusts nobody "
-                         "until they are removed", file=folder)
+        raise InputError(
+            "unreadable file(s) in the trust list: the server trusts nobody until they are removed",
+            file=folder,
+        )

@@ -7,7 +7,6 @@ fast.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List, Optional
 
 import typer
 
@@ -22,18 +21,23 @@ def any_dataset(paths) -> bool:
 
 
 def ingest(
-    sources: List[Path] = typer.Argument(..., help="Campaign folders or runtime run-log folders."),
+    sources: list[Path] = typer.Argument(..., help="Campaign folders or runtime run-log folders."),
     to: Path = typer.Option(..., "--to", help="Dataset folder (created if missing)."),
-    machine: Optional[str] = typer.Option(
-        None, "--machine", help="Machine name when campaign.yaml has no 'machine' key "
-        "(default: 'default')."),
-    zero_window: float = typer.Option(10.0, "--zero-window",
-                                      help="Zero state stored with each campaign: mean of the first N seconds."),
-    rows_per_file: int = typer.Option(1_000_000, "--rows-per-file",
-                                      help="Rows per Parquet file (one file = one distributed task)."),
-    reference: Optional[Path] = typer.Option(
-        None, "--reference", help="For a run log: measured TTP deviation CSV (time_s on the "
-        "log's clock from its first frame, dx_um, dy_um, dz_um)."),
+    machine: str | None = typer.Option(
+        None, "--machine", help="Machine name when campaign.yaml has no 'machine' key (default: 'default')."
+    ),
+    zero_window: float = typer.Option(
+        10.0, "--zero-window", help="Zero state stored with each campaign: mean of the first N seconds."
+    ),
+    rows_per_file: int = typer.Option(
+        1_000_000, "--rows-per-file", help="Rows per Parquet file (one file = one distributed task)."
+    ),
+    reference: Path | None = typer.Option(
+        None,
+        "--reference",
+        help="For a run log: measured TTP deviation CSV (time_s on the "
+        "log's clock from its first frame, dx_um, dy_um, dz_um).",
+    ),
 ):
     """Convert campaign folders (and run logs) into one partitioned Parquet dataset."""
     from fbgcomp.io.campaign import read_campaign
@@ -41,21 +45,35 @@ def ingest(
     from fbgcomp.runtime.log import ingest_run_log
 
     if rows_per_file < 1:
-        raise InputError("--rows-per-file must be at least 1", file="<command line>",
-                         column="option --rows-per-file")
+        raise InputError(
+            "--rows-per-file must be at least 1", file="<command line>", column="option --rows-per-file"
+        )
 
     def report(part):
-        typer.echo(f"machine={part.machine} campaign={part.campaign}: {part.n_rows} rows "
-                   f"in {len(part.files)} file(s) -> {part.path}")
+        typer.echo(
+            f"machine={part.machine} campaign={part.campaign}: {part.n_rows} rows "
+            f"in {len(part.files)} file(s) -> {part.path}"
+        )
 
     parts = []
     for src in sources:
         if is_run_log(src):
-            part = ingest_run_log(src, to, machine=machine, zero_window_s=zero_window,
-                                  rows_per_file=rows_per_file, reference_csv=reference)
+            part = ingest_run_log(
+                src,
+                to,
+                machine=machine,
+                zero_window_s=zero_window,
+                rows_per_file=rows_per_file,
+                reference_csv=reference,
+            )
         else:
-            part = ingest_campaign(read_campaign(src), to, machine=machine, zero_window_s=zero_window,
-                                   rows_per_file=rows_per_file)
+            part = ingest_campaign(
+                read_campaign(src),
+                to,
+                machine=machine,
+                zero_window_s=zero_window,
+                rows_per_file=rows_per_file,
+            )
         report(part)
         parts.append(part)
     typer.echo(f"{len(parts)} campaign(s), {sum(p.n_rows for p in parts)} rows ingested into {to}")

@@ -28,17 +28,30 @@ import sys
 import time
 
 AXES = "xyz"
-DEFAULT_PINS = [f"axis.{a}.eoffset" for a in AXES] + [f"axis.{a}.eoffset-request" for a in AXES] \
-    + [f"fbgcomp.{a}.request-um" for a in AXES] + [f"fbgcomp.{a}.offset-um" for a in AXES] \
-    + [f"fbgcomp.{a}.counts" for a in AXES] \
-    + ["fbgcomp.active", "fbgcomp.fault", "fbgcomp.link-ok", "fbgcomp.enable", "fbgcomp.homed",
-       "fbgcomp.latency-ms", "motion.eoffset-active", "motion.is-all-homed"]
+DEFAULT_PINS = (
+    [f"axis.{a}.eoffset" for a in AXES]
+    + [f"axis.{a}.eoffset-request" for a in AXES]
+    + [f"fbgcomp.{a}.request-um" for a in AXES]
+    + [f"fbgcomp.{a}.offset-um" for a in AXES]
+    + [f"fbgcomp.{a}.counts" for a in AXES]
+    + [
+        "fbgcomp.active",
+        "fbgcomp.fault",
+        "fbgcomp.link-ok",
+        "fbgcomp.enable",
+        "fbgcomp.homed",
+        "fbgcomp.latency-ms",
+        "motion.eoffset-active",
+        "motion.is-all-homed",
+    ]
+)
 
 
 class Machine:
     def __init__(self):
         import hal
         import linuxcnc
+
         self.lc, self.hal = linuxcnc, hal
         self.s = linuxcnc.stat()
         self.c = linuxcnc.command()
@@ -72,13 +85,19 @@ class Machine:
     def status(self, pins=None):
         s = self.poll()
         n = len(AXES)
-        return {"time": time.time(), "estop": bool(s.estop), "enabled": bool(s.enabled),
-                "homed": [bool(h) for h in s.homed[:n]],
-                "all_homed": all(s.homed[:n]), "position": list(s.position[:n]),
-                "actual": list(s.actual_position[:n]),
-                "interp_idle": s.interp_state == self.lc.INTERP_IDLE,
-                "task_mode": s.task_mode, "errors": self.errors[-5:],
-                "pins": self.getp(pins or DEFAULT_PINS)}
+        return {
+            "time": time.time(),
+            "estop": bool(s.estop),
+            "enabled": bool(s.enabled),
+            "homed": [bool(h) for h in s.homed[:n]],
+            "all_homed": all(s.homed[:n]),
+            "position": list(s.position[:n]),
+            "actual": list(s.actual_position[:n]),
+            "interp_idle": s.interp_state == self.lc.INTERP_IDLE,
+            "task_mode": s.task_mode,
+            "errors": self.errors[-5:],
+            "pins": self.getp(pins or DEFAULT_PINS),
+        }
 
     def mode(self, m, timeout_s=5.0):
         if self.poll().task_mode != m:
@@ -104,7 +123,7 @@ class Machine:
         self.c.wait_complete(timeout_s)
         self.c.home(-1)
         self.c.wait_complete(timeout_s)
-        self._until(lambda: all(self.s.homed[:len(AXES)]), timeout_s, "all joints homed")
+        self._until(lambda: all(self.s.homed[: len(AXES)]), timeout_s, "all joints homed")
         # world (teleop) mode after homing, as the stock displays do
         self.c.teleop_enable(1)
         self.c.wait_complete(timeout_s)
@@ -115,11 +134,14 @@ class Machine:
         self.c.wait_complete(timeout_s)
         self.c.unhome(-1)
         self.c.wait_complete(timeout_s)
-        self._until(lambda: not any(self.s.homed[:len(AXES)]), timeout_s, "joints unhomed")
+        self._until(lambda: not any(self.s.homed[: len(AXES)]), timeout_s, "joints unhomed")
 
     def wait_idle(self, timeout_s=60.0):
-        self._until(lambda: self.s.interp_state == self.lc.INTERP_IDLE
-                    and self.s.queue == 0 and self.s.inpos, timeout_s, "interpreter idle")
+        self._until(
+            lambda: self.s.interp_state == self.lc.INTERP_IDLE and self.s.queue == 0 and self.s.inpos,
+            timeout_s,
+            "interpreter idle",
+        )
 
     def mdi(self, text, timeout_s=60.0):
         self.mode(self.lc.MODE_MDI)
@@ -155,12 +177,11 @@ class Machine:
         end = time.monotonic() + float(timeout_s)
         while time.monotonic() < end:
             s = self.poll()
-            act = list(s.actual_position[:len(values)])
+            act = list(s.actual_position[: len(values)])
             if all(abs(a - float(v)) <= float(tol) for a, v in zip(act, values)):
                 return {"reached": time.time(), "actual": act}
             time.sleep(0.001)
-        raise TimeoutError(f"actual position {list(self.s.actual_position[:3])}, "
-                           f"not {values} ± {tol}")
+        raise TimeoutError(f"actual position {list(self.s.actual_position[:3])}, not {values} ± {tol}")
 
     def trace(self, pins, duration_s, interval_s=0.01):
         pins = pins or DEFAULT_PINS
@@ -168,8 +189,14 @@ class Machine:
         end = time.monotonic() + min(float(duration_s), 120.0)
         while time.monotonic() < end:
             s = self.poll()
-            rows.append([time.time(), list(s.position[:3]), list(s.actual_position[:3]),
-                         [self.hal.get_value(p) for p in pins]])
+            rows.append(
+                [
+                    time.time(),
+                    list(s.position[:3]),
+                    list(s.actual_position[:3]),
+                    [self.hal.get_value(p) for p in pins],
+                ]
+            )
             time.sleep(max(0.0005, float(interval_s)))
         return {"pins": pins, "rows": rows}
 
@@ -225,7 +252,7 @@ def main(argv=None) -> int:
         pass
     srv = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     srv.bind(path)
-    os.chmod(path, 0o600)     # the machine is driven by its own user only (and root)
+    os.chmod(path, 0o600)  # the machine is driven by its own user only (and root)
     srv.listen(4)
     print(f"fbgcomp_display: listening on {path}", file=sys.stderr, flush=True)
     quit_ = False

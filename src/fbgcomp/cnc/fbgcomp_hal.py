@@ -68,13 +68,22 @@ POS_MACHINE_ON = 2
 AXES = ("x", "y", "z")
 
 
-def encode_packet(seq: int, correction_um, flags: int, sample_time_s: float = 0.0,
-                  sent_s: float | None = None) -> bytes:
+def encode_packet(
+    seq: int, correction_um, flags: int, sample_time_s: float = 0.0, sent_s: float | None = None
+) -> bytes:
     """One datagram of the local channel (see the module docstring)."""
     cx, cy, cz = (float(v) for v in correction_um)
-    return PACKET.pack(MAGIC, VERSION, int(flags) & 0xFFFF, int(seq) & 0xFFFFFFFF,
-                       time.time() if sent_s is None else float(sent_s), float(sample_time_s),
-                       cx, cy, cz)
+    return PACKET.pack(
+        MAGIC,
+        VERSION,
+        int(flags) & 0xFFFF,
+        int(seq) & 0xFFFFFFFF,
+        time.time() if sent_s is None else float(sent_s),
+        float(sample_time_s),
+        cx,
+        cy,
+        cz,
+    )
 
 
 def decode_packet(data: bytes):
@@ -94,8 +103,14 @@ def decode_packet(data: bytes):
 
 def encode_position(seq: int, z_mm: float, flags: int, sent_s: float | None = None) -> bytes:
     """One position datagram, component -> compensator (see the module docstring)."""
-    return POSITION.pack(POSITION_MAGIC, VERSION, int(flags) & 0xFFFF, int(seq) & 0xFFFFFFFF,
-                         time.time() if sent_s is None else float(sent_s), float(z_mm))
+    return POSITION.pack(
+        POSITION_MAGIC,
+        VERSION,
+        int(flags) & 0xFFFF,
+        int(seq) & 0xFFFFFFFF,
+        time.time() if sent_s is None else float(sent_s),
+        float(z_mm),
+    )
 
 
 def decode_position(data: bytes):
@@ -103,8 +118,7 @@ def decode_position(data: bytes):
     if len(data) != POSITION.size:
         return None
     magic, version, flags, seq, sent_s, z_mm = POSITION.unpack(data)
-    if magic != POSITION_MAGIC or version != VERSION or not (z_mm == z_mm) or \
-            abs(z_mm) == float("inf"):
+    if magic != POSITION_MAGIC or version != VERSION or not (z_mm == z_mm) or abs(z_mm) == float("inf"):
         return None
     return seq, flags, sent_s, z_mm
 
@@ -112,12 +126,12 @@ def decode_position(data: bytes):
 def parse_address(address: str):
     """``(family, sockaddr)`` for ``udp://HOST:PORT`` or ``unix:///path``."""
     if address.startswith("unix://"):
-        path = address[len("unix://"):]
+        path = address[len("unix://") :]
         if not path:
             raise ValueError(f"no socket path in {address!r}")
         return socket.AF_UNIX, path
     if address.startswith("udp://"):
-        hostport = address[len("udp://"):]
+        hostport = address[len("udp://") :]
         host, sep, port = hostport.rpartition(":")
         if not sep or not port.isdigit():
             raise ValueError(f"expected udp://HOST:PORT, got {address!r}")
@@ -137,11 +151,16 @@ def limit_step(current_um, target_um, max_rate_um_s: float, max_abs_um: float, d
     return tuple(out)
 
 
-def target_for(received_um, flags: int, link_ok: bool, machine_on: bool, homed: bool,
-               enable: bool):
+def target_for(received_um, flags: int, link_ok: bool, machine_on: bool, homed: bool, enable: bool):
     """The correction to steer toward: the received one only when everything allows it."""
-    ok = (machine_on and homed and enable and link_ok and bool(flags & FLAG_ENABLED)
-          and not flags & (FLAG_ALARM | FLAG_STALE))
+    ok = (
+        machine_on
+        and homed
+        and enable
+        and link_ok
+        and bool(flags & FLAG_ENABLED)
+        and not flags & (FLAG_ALARM | FLAG_STALE)
+    )
     return (tuple(received_um) if ok else (0.0, 0.0, 0.0)), ok
 
 
@@ -159,10 +178,10 @@ class Receiver:
         self.sock.bind(addr)
         self.sock.setblocking(False)
         self.path = addr if family == socket.AF_UNIX else None
-        self.last = None            # (seq, flags, sent_s, sample_s, corr)
-        self.last_rx = None         # monotonic time of the newest datagram
-        self.peer = None            # its sender's address: where the position goes back to
-        self.latency_ms = -1.0      # sender's send -> received, newest datagram
+        self.last = None  # (seq, flags, sent_s, sample_s, corr)
+        self.last_rx = None  # monotonic time of the newest datagram
+        self.peer = None  # its sender's address: where the position goes back to
+        self.latency_ms = -1.0  # sender's send -> received, newest datagram
         self.rejected = 0
 
     def drain(self, max_datagrams: int = 10000) -> int:
@@ -177,7 +196,7 @@ class Receiver:
                 self.rejected += 1
                 continue
             self.last, self.last_rx = p, time.monotonic()
-            self.peer = peer or None    # an unbound Unix sender cannot be answered
+            self.peer = peer or None  # an unbound Unix sender cannot be answered
             self.latency_ms = (time.time() - p[2]) * 1000.0
             n += 1
         return n
@@ -189,7 +208,7 @@ class Receiver:
         try:
             self.sock.sendto(encode_position(seq, z_mm, flags), self.peer)
             return True
-        except OSError:     # the compensator went away: the next datagram names the new one
+        except OSError:  # the compensator went away: the next datagram names the new one
             return False
 
     def close(self):
@@ -205,8 +224,9 @@ def _args(argv):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--name", default="fbgcomp", help="HAL component name (pin prefix)")
     ap.add_argument("--listen", default=DEFAULT_ADDRESS, help="udp://HOST:PORT or unix:///path")
-    ap.add_argument("--um-per-count", type=float, default=0.1,
-                    help="µm per eoffset count (scale pin = this / 1000 mm)")
+    ap.add_argument(
+        "--um-per-count", type=float, default=0.1, help="µm per eoffset count (scale pin = this / 1000 mm)"
+    )
     ap.add_argument("--period", type=float, default=0.005, help="cycle time, s")
     ap.add_argument("--max-rate-um-s", type=float, default=50.0)
     ap.add_argument("--max-correction-um", type=float, default=200.0)
@@ -231,25 +251,25 @@ def main(argv=None) -> int:
             c[name] = value
 
     for ax in AXES:
-        new(f"{ax}.counts", hal.HAL_S32, hal.HAL_OUT)          # -> axis.L.eoffset-counts
-        new(f"{ax}.offset-um", hal.HAL_FLOAT, hal.HAL_OUT)     # applied (limited) correction
-        new(f"{ax}.request-um", hal.HAL_FLOAT, hal.HAL_OUT)    # newest received correction
+        new(f"{ax}.counts", hal.HAL_S32, hal.HAL_OUT)  # -> axis.L.eoffset-counts
+        new(f"{ax}.offset-um", hal.HAL_FLOAT, hal.HAL_OUT)  # applied (limited) correction
+        new(f"{ax}.request-um", hal.HAL_FLOAT, hal.HAL_OUT)  # newest received correction
     new("scale", hal.HAL_FLOAT, hal.HAL_OUT, a.um_per_count / 1000.0)  # -> axis.L.eoffset-scale
-    new("eoffset-enable", hal.HAL_BIT, hal.HAL_OUT)          # -> axis.L.eoffset-enable
-    new("enable", hal.HAL_BIT, hal.HAL_IN)                   # operator / machine permission
-    new("homed", hal.HAL_BIT, hal.HAL_IN)                    # <- motion.is-all-homed
-    new("machine-on", hal.HAL_BIT, hal.HAL_IN)               # <- motion.motion-enabled
+    new("eoffset-enable", hal.HAL_BIT, hal.HAL_OUT)  # -> axis.L.eoffset-enable
+    new("enable", hal.HAL_BIT, hal.HAL_IN)  # operator / machine permission
+    new("homed", hal.HAL_BIT, hal.HAL_IN)  # <- motion.is-all-homed
+    new("machine-on", hal.HAL_BIT, hal.HAL_IN)  # <- motion.motion-enabled
     new("max-rate-um-s", hal.HAL_FLOAT, hal.HAL_IN, a.max_rate_um_s)
     new("max-correction-um", hal.HAL_FLOAT, hal.HAL_IN, a.max_correction_um)
     new("timeout-s", hal.HAL_FLOAT, hal.HAL_IN, a.timeout_s)
-    new("z-pos-mm", hal.HAL_FLOAT, hal.HAL_IN)               # <- joint.2.pos-fb (to serve)
-    new("active", hal.HAL_BIT, hal.HAL_OUT)                  # received correction is the target
-    new("fault", hal.HAL_BIT, hal.HAL_OUT)                   # compensator ALARM/stale or link lost
-    new("link-ok", hal.HAL_BIT, hal.HAL_OUT)                 # a datagram within timeout-s
-    new("limited", hal.HAL_BIT, hal.HAL_OUT)                 # request beyond max-correction-um
-    new("heartbeat", hal.HAL_BIT, hal.HAL_OUT)               # toggles every cycle (watchdog)
-    new("compensator-seq", hal.HAL_S32, hal.HAL_OUT)         # seq of the newest datagram
-    new("latency-ms", hal.HAL_FLOAT, hal.HAL_OUT)            # sender send -> received, ms
+    new("z-pos-mm", hal.HAL_FLOAT, hal.HAL_IN)  # <- joint.2.pos-fb (to serve)
+    new("active", hal.HAL_BIT, hal.HAL_OUT)  # received correction is the target
+    new("fault", hal.HAL_BIT, hal.HAL_OUT)  # compensator ALARM/stale or link lost
+    new("link-ok", hal.HAL_BIT, hal.HAL_OUT)  # a datagram within timeout-s
+    new("limited", hal.HAL_BIT, hal.HAL_OUT)  # request beyond max-correction-um
+    new("heartbeat", hal.HAL_BIT, hal.HAL_OUT)  # toggles every cycle (watchdog)
+    new("compensator-seq", hal.HAL_S32, hal.HAL_OUT)  # seq of the newest datagram
+    new("latency-ms", hal.HAL_FLOAT, hal.HAL_OUT)  # sender send -> received, ms
     c.ready()
 
     stop = []
@@ -268,18 +288,18 @@ def main(argv=None) -> int:
                 pass
             rx.drain()
             now = time.monotonic()
-            dt = min(now - last_t, 0.1)     # after a stall, never jump more than 0.1 s of rate
+            dt = min(now - last_t, 0.1)  # after a stall, never jump more than 0.1 s of rate
             last_t = now
             link_ok = rx.last_rx is not None and now - rx.last_rx <= c["timeout-s"]
             seq, flags, _, _, received = rx.last if rx.last else (0, 0, 0.0, 0.0, (0.0,) * 3)
             machine_on = bool(c["machine-on"])
-            target, active = target_for(received, flags, link_ok, machine_on, bool(c["homed"]),
-                                        bool(c["enable"]))
+            target, active = target_for(
+                received, flags, link_ok, machine_on, bool(c["homed"]), bool(c["enable"])
+            )
             if machine_on:
-                current = limit_step(current, target, c["max-rate-um-s"],
-                                     c["max-correction-um"], dt)
+                current = limit_step(current, target, c["max-rate-um-s"], c["max-correction-um"], dt)
             else:
-                current = (0.0, 0.0, 0.0)   # LinuxCNC restarts its offset register from zero
+                current = (0.0, 0.0, 0.0)  # LinuxCNC restarts its offset register from zero
             for ax, cur, req in zip(AXES, current, received):
                 c[f"{ax}.counts"] = int(round(cur / a.um_per_count))
                 c[f"{ax}.offset-um"] = cur
@@ -295,9 +315,11 @@ def main(argv=None) -> int:
             c["heartbeat"] = beat
             if link_ok:
                 pos_seq += 1
-                rx.send_position(pos_seq, c["z-pos-mm"],
-                                 (POS_HOMED if c["homed"] else 0)
-                                 | (POS_MACHINE_ON if machine_on else 0))
+                rx.send_position(
+                    pos_seq,
+                    c["z-pos-mm"],
+                    (POS_HOMED if c["homed"] else 0) | (POS_MACHINE_ON if machine_on else 0),
+                )
     finally:
         rx.close()
         c.exit()

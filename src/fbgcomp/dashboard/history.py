@@ -40,10 +40,10 @@ from fbgcomp.units import AXES
 
 MIN_WINDOW_S = 60.0
 MAX_WINDOW_S = 36 * 3600.0
-WINDOWS_S = (60, 600, 3600, 6 * 3600, 12 * 3600, 36 * 3600)   # the page's choices
-BASE_S = 1.0            # cached bucket width for long windows, s
-RAW_MAX_S = 900.0       # windows up to 15 min are bucketed from the frames themselves
-SLACK_S = 120.0         # parts written this long before the window may still hold its frames
+WINDOWS_S = (60, 600, 3600, 6 * 3600, 12 * 3600, 36 * 3600)  # the page's choices
+BASE_S = 1.0  # cached bucket width for long windows, s
+RAW_MAX_S = 900.0  # windows up to 15 min are bucketed from the frames themselves
+SLACK_S = 120.0  # parts written this long before the window may still hold its frames
 MAX_POINTS = 2000
 
 
@@ -81,18 +81,30 @@ def bucketise(time_s, values, indicators, width_s: float) -> Buckets:
     values = np.asarray(values, float).reshape(ids.size, -1)
     indicators = np.asarray(indicators, bool).reshape(ids.size, -1)
     finite = np.isfinite(values)
-    return _reduce(ids, np.ones(ids.size, np.int64), values, values, np.where(finite, values, 0.0),
-                   finite.astype(np.int64), indicators.astype(np.int64))
+    return _reduce(
+        ids,
+        np.ones(ids.size, np.int64),
+        values,
+        values,
+        np.where(finite, values, 0.0),
+        finite.astype(np.int64),
+        indicators.astype(np.int64),
+    )
 
 
 def merge(parts: list[Buckets], factor: int = 1) -> Buckets:
     """Buckets of several reductions (any order, overlapping buckets allowed) on one axis,
     ``factor`` of them per new bucket."""
     cat = np.concatenate
-    return _reduce(cat([p.ids for p in parts]) // factor, cat([p.n for p in parts]),
-                   cat([p.vmin for p in parts]), cat([p.vmax for p in parts]),
-                   cat([p.vsum for p in parts]), cat([p.vcnt for p in parts]),
-                   cat([p.icnt for p in parts]))
+    return _reduce(
+        cat([p.ids for p in parts]) // factor,
+        cat([p.n for p in parts]),
+        cat([p.vmin for p in parts]),
+        cat([p.vmax for p in parts]),
+        cat([p.vsum for p in parts]),
+        cat([p.vcnt for p in parts]),
+        cat([p.icnt for p in parts]),
+    )
 
 
 def _reduce(ids, n, vmin, vmax, vsum, vcnt, icnt) -> Buckets:
@@ -102,12 +114,15 @@ def _reduce(ids, n, vmin, vmax, vsum, vcnt, icnt) -> Buckets:
         return Buckets(ids, n[:0], vmin[:0], vmax[:0], vsum[:0], vcnt[:0], icnt[:0])
     start = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
     with np.errstate(invalid="ignore"):
-        return Buckets(ids[start], np.add.reduceat(n[order], start),
-                       np.fmin.reduceat(vmin[order], start, axis=0),
-                       np.fmax.reduceat(vmax[order], start, axis=0),
-                       np.add.reduceat(vsum[order], start, axis=0),
-                       np.add.reduceat(vcnt[order], start, axis=0),
-                       np.add.reduceat(icnt[order], start, axis=0))
+        return Buckets(
+            ids[start],
+            np.add.reduceat(n[order], start),
+            np.fmin.reduceat(vmin[order], start, axis=0),
+            np.fmax.reduceat(vmax[order], start, axis=0),
+            np.add.reduceat(vsum[order], start, axis=0),
+            np.add.reduceat(vcnt[order], start, axis=0),
+            np.add.reduceat(icnt[order], start, axis=0),
+        )
 
 
 def _codes(column, names) -> np.ndarray:
@@ -115,16 +130,20 @@ def _codes(column, names) -> np.ndarray:
     looked up in ``names`` (unknown: -1); integer codes of older logs are kept."""
     import pyarrow as pa  # the runtime extra (pyarrow): imported only when used
     import pyarrow.compute as pc
+
     column = column.combine_chunks() if isinstance(column, pa.ChunkedArray) else column
     if pa.types.is_dictionary(column.type):
         lookup = {v: k for k, v in enumerate(names)}
-        table = np.array([lookup.get(v, -1) for v in column.dictionary.to_pylist()] + [-1],
-                         np.int64)
+        table = np.array([lookup.get(v, -1) for v in column.dictionary.to_pylist()] + [-1], np.int64)
         idx = column.indices.fill_null(-1).to_numpy(zero_copy_only=False).astype(np.int64)
         return table[idx]
     if pa.types.is_string(column.type) or pa.types.is_large_string(column.type):
-        return pc.index_in(column, pa.array(list(names))).fill_null(-1).to_numpy(
-            zero_copy_only=False).astype(np.int64)
+        return (
+            pc.index_in(column, pa.array(list(names)))
+            .fill_null(-1)
+            .to_numpy(zero_copy_only=False)
+            .astype(np.int64)
+        )
     return column.to_numpy(zero_copy_only=False).astype(np.int64)
 
 
@@ -135,11 +154,11 @@ class LogHistory:
         self.folder = Path(folder)
         self._lock = threading.Lock()
         self._meta: dict | None = None
-        self._done: dict[str, float] = {}     # part name -> newest time_s in it
+        self._done: dict[str, float] = {}  # part name -> newest time_s in it
         self._pending: list[Buckets] = []
-        self._base: Buckets | None = None     # consolidated BASE_S buckets
-        self._t_last = -math.inf               # newest frame time seen, s
-        self.parts_read = 0                    # parts reduced since start (for the tests)
+        self._base: Buckets | None = None  # consolidated BASE_S buckets
+        self._t_last = -math.inf  # newest frame time seen, s
+        self.parts_read = 0  # parts reduced since start (for the tests)
 
     # -- columns -------------------------------------------------------------------------------
     def _columns(self) -> dict:
@@ -147,35 +166,51 @@ class LogHistory:
             meta = read_meta(self.folder)
             probes = list(meta.get("probe_names") or [])
             sensors = list(meta.get("sensor_names") or [])
-            values = [f"corr_{a}_um" for a in AXES] + [f"dev_{a}_um" for a in AXES] + \
-                [f"{p}_C" for p in probes]
+            values = (
+                [f"corr_{a}_um" for a in AXES] + [f"dev_{a}_um" for a in AXES] + [f"{p}_C" for p in probes]
+            )
             health = list(meta.get("health_names") or HEALTH_NAMES)
-            flags = {int(k): v for k, v in (meta.get("flag_names") or {}).items()} or \
-                dict(FLAG_NAMES)
-            indicators = [f"health:{h}" for h in health] + \
-                [f"flag:{name}" for name in flags.values()] + ["disabled"] + \
-                [f"sensor:{s}" for s in sensors]
-            self._meta = {"meta": meta, "probes": probes, "sensors": sensors, "values": values,
-                          "health": health, "flags": flags, "indicators": indicators,
-                          "status": list(meta.get("status_names") or STATUS_NAMES),
-                          "ambient": ambient_probes(meta)}
+            flags = {int(k): v for k, v in (meta.get("flag_names") or {}).items()} or dict(FLAG_NAMES)
+            indicators = (
+                [f"health:{h}" for h in health]
+                + [f"flag:{name}" for name in flags.values()]
+                + ["disabled"]
+                + [f"sensor:{s}" for s in sensors]
+            )
+            self._meta = {
+                "meta": meta,
+                "probes": probes,
+                "sensors": sensors,
+                "values": values,
+                "health": health,
+                "flags": flags,
+                "indicators": indicators,
+                "status": list(meta.get("status_names") or STATUS_NAMES),
+                "ambient": ambient_probes(meta),
+            }
         return self._meta
 
     def _frames(self, path: Path):
         """(time_s, values (n,V), indicators (n,I)) of one part, only the plotted columns."""
         import pyarrow.parquet as pq  # the runtime extra (pyarrow): imported only when used
+
         c = self._columns()
         flag_cols = [f"flags_{a}" for a in AXES]
         status_cols = [f"{s}_status" for s in c["sensors"]]
-        table = pq.read_table(path, columns=["time_s"] + c["values"] + ["health", "enabled"]
-                              + flag_cols + status_cols)
+        table = pq.read_table(
+            path, columns=["time_s"] + c["values"] + ["health", "enabled"] + flag_cols + status_cols
+        )
         t = table.column("time_s").to_numpy()
-        values = np.column_stack([table.column(v).to_numpy(zero_copy_only=False).astype(float)
-                                  for v in c["values"]])
+        values = np.column_stack(
+            [table.column(v).to_numpy(zero_copy_only=False).astype(float) for v in c["values"]]
+        )
         health = _codes(table.column("health"), c["health"])
-        words = np.bitwise_or.reduce(np.column_stack(
-            [table.column(f).to_numpy(zero_copy_only=False).astype(np.int64)
-             for f in flag_cols]), axis=1)
+        words = np.bitwise_or.reduce(
+            np.column_stack(
+                [table.column(f).to_numpy(zero_copy_only=False).astype(np.int64) for f in flag_cols]
+            ),
+            axis=1,
+        )
         ind = [health == k for k in range(len(c["health"]))]
         ind += [(words & bit) != 0 for bit in c["flags"]]
         ind.append(~table.column("enabled").to_numpy(zero_copy_only=False).astype(bool))
@@ -216,8 +251,7 @@ class LogHistory:
     def _forget(self, listed: set[str]) -> None:
         """Drop the names of parts too old to be listed again (or deleted)."""
         cut = time.time() - MAX_WINDOW_S - 2 * SLACK_S
-        self._done = {k: v for k, v in self._done.items()
-                      if k in listed or part_write_s(k) >= cut}
+        self._done = {k: v for k, v in self._done.items() if k in listed or part_write_s(k) >= cut}
 
     # -- a window ---------------------------------------------------------------------------------
     def window(self, window_s: float, points: int = 600, budget_s: float = 1.5) -> dict:
@@ -238,7 +272,7 @@ class LogHistory:
                         t_end = max(t_end, float(t.max()))
                         got.append((t, values, ind))
                         if float(t.min()) < t_end - window_s:
-                            break         # parts are in writing order: older ones are older
+                            break  # parts are in writing order: older ones are older
                     if time.monotonic() > deadline:
                         complete = False
                         break
@@ -246,8 +280,12 @@ class LogHistory:
                     return self._answer(c, window_s, width, -math.inf, None, True)
                 t = np.concatenate([g[0] for g in got])
                 keep = t >= t_end - window_s
-                buckets = bucketise(t[keep], np.concatenate([g[1] for g in got])[keep],
-                                    np.concatenate([g[2] for g in got])[keep], width)
+                buckets = bucketise(
+                    t[keep],
+                    np.concatenate([g[1] for g in got])[keep],
+                    np.concatenate([g[2] for g in got])[keep],
+                    width,
+                )
                 return self._answer(c, window_s, width, t_end, buckets, complete)
             complete = self._fill(parts, deadline)
             self._forget({p.name for p in parts})
@@ -259,17 +297,33 @@ class LogHistory:
             t_end = self._t_last
             base = self._base
             keep = base.ids >= math.floor((t_end - window_s) / BASE_S)
-            buckets = merge([Buckets(*(getattr(base, f)[keep]
-                                       for f in Buckets.__dataclass_fields__))], factor)
+            buckets = merge(
+                [Buckets(*(getattr(base, f)[keep] for f in Buckets.__dataclass_fields__))], factor
+            )
             return self._answer(c, window_s, width, t_end, buckets, complete)
 
     def _answer(self, c, window_s, width, t_end, b: Buckets | None, complete) -> dict:
-        out = {"window_s": window_s, "bucket_s": width, "complete": bool(complete),
-               "probes": c["probes"], "ambient": c["ambient"], "sensors": c["sensors"],
-               "health_names": c["health"], "flag_names": list(c["flags"].values())}
+        out = {
+            "window_s": window_s,
+            "bucket_s": width,
+            "complete": bool(complete),
+            "probes": c["probes"],
+            "ambient": c["ambient"],
+            "sensors": c["sensors"],
+            "health_names": c["health"],
+            "flag_names": list(c["flags"].values()),
+        }
         if b is None or not len(b):
-            return {**out, "t_end": None, "t": [], "n": [], "frames": 0, "series": {},
-                    "counts": {}, "covered_from_s": None}
+            return {
+                **out,
+                "t_end": None,
+                "t": [],
+                "n": [],
+                "frames": 0,
+                "series": {},
+                "counts": {},
+                "covered_from_s": None,
+            }
         # a bucket that starts before the window holds only part of its time: left out, so
         # that every bucket shown is whole and there are at most `points` of them
         whole = b.ids * width >= t_end - window_s - 1e-6 * width
@@ -278,15 +332,25 @@ class LogHistory:
             return self._answer(c, window_s, width, t_end, None, complete)
         with np.errstate(invalid="ignore", divide="ignore"):
             mean = b.vsum / b.vcnt
-        out.update({
-            "t_end": t_end, "covered_from_s": float(b.ids[0] * width),
-            # bucket start times, s on the instrument clock
-            "t": _wire(b.ids * width, 3), "n": b.n.tolist(), "frames": int(b.n.sum()),
-            "series": {name: {"min": _wire(b.vmin[:, j], 4), "max": _wire(b.vmax[:, j], 4),
-                              "mean": _wire(mean[:, j], 4)}
-                       for j, name in enumerate(c["values"])},
-            "counts": {name: b.icnt[:, j].tolist() for j, name in enumerate(c["indicators"])},
-        })
+        out.update(
+            {
+                "t_end": t_end,
+                "covered_from_s": float(b.ids[0] * width),
+                # bucket start times, s on the instrument clock
+                "t": _wire(b.ids * width, 3),
+                "n": b.n.tolist(),
+                "frames": int(b.n.sum()),
+                "series": {
+                    name: {
+                        "min": _wire(b.vmin[:, j], 4),
+                        "max": _wire(b.vmax[:, j], 4),
+                        "mean": _wire(mean[:, j], 4),
+                    }
+                    for j, name in enumerate(c["values"])
+                },
+                "counts": {name: b.icnt[:, j].tolist() for j, name in enumerate(c["indicators"])},
+            }
+        )
         return out
 
 
@@ -301,8 +365,7 @@ def ambient_probes(meta: dict) -> list[str]:
     the machine description does) or whose location or name says so (``T_amb``); empty if none
     does (the page then plots every probe)."""
     names = list(meta.get("probe_names") or [])
-    specs = {p.get("name"): p for p in (meta.get("temperature_probes") or [])
-             if isinstance(p, dict)}
+    specs = {p.get("name"): p for p in (meta.get("temperature_probes") or []) if isinstance(p, dict)}
     out = []
     for name in names:
         spec = specs.get(name, {})

@@ -55,18 +55,24 @@ import os
 import secrets
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 from aiohttp import web
 
-from fbgcomp.dashboard.history import MAX_POINTS, MAX_WINDOW_S, MIN_WINDOW_S, WINDOWS_S, \
-    LogHistory
-from fbgcomp.dashboard.transport import (ConnectionCap, Refused, errors_as_json, is_loopback,
-                                         json_response, parse_listen, security_headers,
-                                         tls_context)
+from fbgcomp.dashboard.history import MAX_POINTS, MAX_WINDOW_S, MIN_WINDOW_S, WINDOWS_S, LogHistory
+from fbgcomp.dashboard.transport import (
+    ConnectionCap,
+    Refused,
+    errors_as_json,
+    is_loopback,
+    json_response,
+    parse_listen,
+    security_headers,
+    tls_context,
+)
 from fbgcomp.errors import InputError
 from fbgcomp.models.features import FeatureMap
 from fbgcomp.runtime.auth import load_users as _load_users
@@ -77,39 +83,43 @@ from fbgcomp.units import AXES
 log = logging.getLogger("fbgcomp.dashboard")
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
-_STATIC = {"index.html": "text/html", "dashboard.js": "text/javascript",
-           "dashboard.css": "text/css"}
+_STATIC = {"index.html": "text/html", "dashboard.js": "text/javascript", "dashboard.css": "text/css"}
 COOKIE = "fbgcomp_session"
-MAX_BODY_BYTES = 4096          # the largest request body (a login or a switch is < 200 bytes)
-MAX_UNSENT_BYTES = 64 * 1024   # a stream with more queued for the browser is dropped
-MAX_SESSIONS = 256             # the oldest login is forgotten beyond this
-FAILED_LOGIN_S = 0.5           # every failed login costs this, one at a time
-KEEPALIVE_COMMENT_S = 15.0     # an SSE comment when nothing new: proxies and dead peers
-
+MAX_BODY_BYTES = 4096  # the largest request body (a login or a switch is < 200 bytes)
+MAX_UNSENT_BYTES = 64 * 1024  # a stream with more queued for the browser is dropped
+MAX_SESSIONS = 256  # the oldest login is forgotten beyond this
+FAILED_LOGIN_S = 0.5  # every failed login costs this, one at a time
+KEEPALIVE_COMMENT_S = 15.0  # an SSE comment when nothing new: proxies and dead peers
 
 
 @dataclass
 class DashboardConfig:
     """The ``[dashboard]`` section of serve's configuration (docs/dashboard.md)."""
 
-    listen: str = ""                 # [HOST:]PORT, HOST 127.0.0.1 if omitted; empty = no dashboard
-    users_file: str | None = None    # lines name:pbkdf2_sha256$... (see module docstring)
-    read_login: str = "auto"         # auto: reads need a login when bound beyond loopback; always
-    tls_cert: str | None = None      # PEM certificate (chain): serve HTTPS, with tls_key
-    tls_key: str | None = None       # PEM private key of tls_cert
-    max_rate_hz: float = 10.0        # updates per second per client, at most
-    max_clients: int = 32            # concurrent live streams; more get 503
-    max_connections: int = 64        # concurrent connections of any kind; more get 503, closed
-    request_timeout_s: float = 5.0   # to send a request (head, body) or finish a TLS handshake
-    session_s: float = 8 * 3600.0    # a login lasts one shift
-    send_timeout_s: float = 5.0      # a client not reading for this long is dropped
-    log_dir: str | None = None       # run log folder for the drift windows (default: serve's --log)
+    listen: str = ""  # [HOST:]PORT, HOST 127.0.0.1 if omitted; empty = no dashboard
+    users_file: str | None = None  # lines name:pbkdf2_sha256$... (see module docstring)
+    read_login: str = "auto"  # auto: reads need a login when bound beyond loopback; always
+    tls_cert: str | None = None  # PEM certificate (chain): serve HTTPS, with tls_key
+    tls_key: str | None = None  # PEM private key of tls_cert
+    max_rate_hz: float = 10.0  # updates per second per client, at most
+    max_clients: int = 32  # concurrent live streams; more get 503
+    max_connections: int = 64  # concurrent connections of any kind; more get 503, closed
+    request_timeout_s: float = 5.0  # to send a request (head, body) or finish a TLS handshake
+    session_s: float = 8 * 3600.0  # a login lasts one shift
+    send_timeout_s: float = 5.0  # a client not reading for this long is dropped
+    log_dir: str | None = None  # run log folder for the drift windows (default: serve's --log)
 
 
 def load_users(users_file: str | Path | None, environ=os.environ) -> dict[str, str]:
     """User -> password hash, from ``users_file`` and ``FBGCOMP_DASHBOARD_USER/PASSWORD``."""
-    return _load_users(users_file, environ, service="dashboard", env_prefix="FBGCOMP_DASHBOARD",
-                       doc="docs/dashboard.md", iterations=20_000)
+    return _load_users(
+        users_file,
+        environ,
+        service="dashboard",
+        env_prefix="FBGCOMP_DASHBOARD",
+        doc="docs/dashboard.md",
+        iterations=20_000,
+    )
 
 
 def _clean(values, digits: int) -> list:
@@ -123,14 +133,21 @@ def _clean(values, digits: int) -> list:
 class Dashboard:
     """The dashboard server. ``start``/``stop`` from any thread; ``publish`` from the service."""
 
-    def __init__(self, config: DashboardConfig, sensor_names, probe_names, model_id: str = "",
-                 control: Callable[[bool], bool] | None = None,
-                 enabled: Callable[[], bool] | None = None, log_dir: str | Path | None = None):
+    def __init__(
+        self,
+        config: DashboardConfig,
+        sensor_names,
+        probe_names,
+        model_id: str = "",
+        control: Callable[[bool], bool] | None = None,
+        enabled: Callable[[], bool] | None = None,
+        log_dir: str | Path | None = None,
+    ):
         self.config = config
         log_dir = log_dir or config.log_dir
         # the drift windows read the run log (it may not exist yet: serve creates it later)
         self.history = LogHistory(log_dir) if log_dir else None
-        self._history_answers: dict = {}   # (window_s, points) -> (monotonic, bytes)
+        self._history_answers: dict = {}  # (window_s, points) -> (monotonic, bytes)
         self._history_lock: asyncio.Lock | None = None
         self.host, self.port = parse_listen(config.listen)
         self.sensor_names = list(sensor_names)
@@ -140,21 +157,26 @@ class Dashboard:
         self.enabled = enabled or (lambda: True)
         self.users = load_users(config.users_file)
         if config.read_login not in ("auto", "always"):
-            raise InputError(f"expected auto or always, got {config.read_login!r}",
-                             column="field dashboard.read_login")
+            raise InputError(
+                f"expected auto or always, got {config.read_login!r}", column="field dashboard.read_login"
+            )
         self.read_login = config.read_login == "always" or not is_loopback(self.host)
         if self.read_login and not self.users:
-            why = (f"the dashboard on {self.host} would show the machine's state to anyone on "
-                   "the network" if not is_loopback(self.host) else
-                   'read_login = "always" needs a login to read')
+            why = (
+                f"the dashboard on {self.host} would show the machine's state to anyone on the network"
+                if not is_loopback(self.host)
+                else 'read_login = "always" needs a login to read'
+            )
             raise InputError(
                 f"{why}: configure a dashboard user (--dashboard-users FILE or "
                 "FBGCOMP_DASHBOARD_USER/PASSWORD), who must then log in to read"
                 + (", or bind to 127.0.0.1" if not is_loopback(self.host) else "")
-                + " (docs/security.md)", column="--dashboard")
+                + " (docs/security.md)",
+                column="--dashboard",
+            )
         self.ssl_context = tls_context(config.tls_cert, config.tls_key)
         self._assets = {name: (STATIC_DIR / name).read_bytes() for name in _STATIC}
-        self.sessions: dict[str, tuple[str, float]] = {}   # token -> (user, expiry monotonic)
+        self.sessions: dict[str, tuple[str, float]] = {}  # token -> (user, expiry monotonic)
         self.clients = 0
         self.messages = 0
         # service thread -> broadcaster: the newest sample, and whether the broadcaster sleeps
@@ -173,7 +195,7 @@ class Dashboard:
         self._message = b""
         self._stopping = False
         self._wake: asyncio.Event | None = None
-        self._next: asyncio.Future | None = None        # resolved when a new message is out
+        self._next: asyncio.Future | None = None  # resolved when a new message is out
         self._failed_login: asyncio.Lock | None = None
         self._runner: web.AppRunner | None = None
         self._server: asyncio.AbstractServer | None = None
@@ -189,33 +211,45 @@ class Dashboard:
     # -- service side -------------------------------------------------------------------
     def publish(self, snapshot, temperature_C, pipeline) -> None:
         """Newest sample (non-blocking: references only; the broadcaster does the work)."""
-        item = (snapshot, temperature_C, pipeline.model, pipeline.wavelength_zero_nm,
-                pipeline.temperature_zero_C, time.time())
+        item = (
+            snapshot,
+            temperature_C,
+            pipeline.model,
+            pipeline.wavelength_zero_nm,
+            pipeline.temperature_zero_C,
+            time.time(),
+        )
         with self._lock:
             self._latest = item
             wake, self._idle = self._idle, False
         loop = self._loop
-        if wake and loop is not None:   # only when the broadcaster waits: once per idle spell
-            with contextlib.suppress(RuntimeError):   # the loop closed meanwhile (stopping)
+        if wake and loop is not None:  # only when the broadcaster waits: once per idle spell
+            with contextlib.suppress(RuntimeError):  # the loop closed meanwhile (stopping)
                 loop.call_soon_threadsafe(self._wake.set)
 
     def start(self) -> None:
         """Listen and serve from a thread of its own; InputError if the address is unusable."""
         loop = asyncio.new_event_loop()
         self._loop = loop
-        self._thread = threading.Thread(target=loop.run_forever, name="fbgcomp-dashboard",
-                                        daemon=True)
+        self._thread = threading.Thread(target=loop.run_forever, name="fbgcomp-dashboard", daemon=True)
         self._thread.start()
         try:
             asyncio.run_coroutine_threadsafe(self._serve(), loop).result(30)
         except BaseException:
             self._end_loop()
             raise
-        log.info("dashboard on %s (%d user(s); reads %s)", self.url, len(self.users),
-                 "need a login" if self.read_login else "open")
+        log.info(
+            "dashboard on %s (%d user(s); reads %s)",
+            self.url,
+            len(self.users),
+            "need a login" if self.read_login else "open",
+        )
         if not is_loopback(self.host) and self.ssl_context is None:
-            log.warning("dashboard on %s without TLS: passwords and values cross the network in "
-                        "clear text (docs/security.md)", self.url)
+            log.warning(
+                "dashboard on %s without TLS: passwords and values cross the network in "
+                "clear text (docs/security.md)",
+                self.url,
+            )
 
     def stop(self) -> None:
         """Close every stream and connection and end the dashboard's thread (any thread)."""
@@ -224,7 +258,7 @@ class Dashboard:
             return
         try:
             asyncio.run_coroutine_threadsafe(self._shutdown(), loop).result(15)
-        except Exception:   # stopping anyway: the loop ends below
+        except Exception:  # stopping anyway: the loop ends below
             log.exception("dashboard: unclean shutdown")
         self._end_loop()
 
@@ -257,19 +291,25 @@ class Dashboard:
         timeout = self.config.request_timeout_s
         # keepalive_timeout: no complete request head within it (idle or half-sent) = closed;
         # lingering_time: how long an unread body is drained after the answer (<= 1 s)
-        self._runner = web.AppRunner(app, access_log=None, keepalive_timeout=timeout,
-                                     lingering_time=min(1.0, timeout), shutdown_timeout=2.0)
+        self._runner = web.AppRunner(
+            app,
+            access_log=None,
+            keepalive_timeout=timeout,
+            lingering_time=min(1.0, timeout),
+            shutdown_timeout=2.0,
+        )
         await self._runner.setup()
         self._cap = ConnectionCap(self._runner.server, self.config.max_connections)
-        tls = {} if self.ssl_context is None else {"ssl": self.ssl_context,
-                                                   "ssl_handshake_timeout": timeout}
+        tls = {} if self.ssl_context is None else {"ssl": self.ssl_context, "ssl_handshake_timeout": timeout}
         try:
-            self._server = await loop.create_server(self._cap, self.host, self.port,
-                                                    backlog=128, reuse_address=True, **tls)
+            self._server = await loop.create_server(
+                self._cap, self.host, self.port, backlog=128, reuse_address=True, **tls
+            )
         except OSError as exc:
             await self._runner.cleanup()
-            raise InputError(f"cannot listen on {self.host}:{self.port}: "
-                             f"{exc.strerror or exc}", column="--dashboard") from None
+            raise InputError(
+                f"cannot listen on {self.host}:{self.port}: {exc.strerror or exc}", column="--dashboard"
+            ) from None
         self.port = self._server.sockets[0].getsockname()[1]
         self._broadcaster = asyncio.create_task(self._broadcast_loop())
 
@@ -278,7 +318,7 @@ class Dashboard:
         if self._server is not None:
             self._server.close()
         if self._next is not None and not self._next.done():
-            self._next.set_result(None)   # every stream wakes up and ends
+            self._next.set_result(None)  # every stream wakes up and ends
         if self._broadcaster is not None:
             self._broadcaster.cancel()
             with contextlib.suppress(asyncio.CancelledError):
@@ -293,11 +333,11 @@ class Dashboard:
         while not self._stopping:
             wait = last + period - loop.time()
             if wait > 0:
-                await asyncio.sleep(wait)   # decimation: whatever arrives meanwhile, newest wins
+                await asyncio.sleep(wait)  # decimation: whatever arrives meanwhile, newest wins
             with self._lock:
                 item, self._latest = self._latest, None
                 if item is None:
-                    self._wake.clear()   # before _idle: a publish after this lock wakes us
+                    self._wake.clear()  # before _idle: a publish after this lock wakes us
                     self._idle = True
             if item is None:
                 await self._wake.wait()
@@ -324,14 +364,15 @@ class Dashboard:
             try:
                 fmap = FeatureMap(list(model.sensors), list(model.probe_names), False)
             except (AttributeError, KeyError, TypeError):
-                fmap = False   # a model without sensor metadata: no elongations to show
-            self._feature_maps = {key: fmap}   # one model at a time (reload replaces it)
+                fmap = False  # a model without sensor metadata: no elongations to show
+            self._feature_maps = {key: fmap}  # one model at a time (reload replaces it)
         if fmap is False:
             return np.full(len(self.sensor_names), np.nan)
         with np.errstate(invalid="ignore"):
-            base = fmap.base(np.asarray(wavelength_nm, float)[None, :],
-                             np.asarray(temperature_C, float)[None, :], w0, t0)
-        return base[0, :len(self.sensor_names)]
+            base = fmap.base(
+                np.asarray(wavelength_nm, float)[None, :], np.asarray(temperature_C, float)[None, :], w0, t0
+            )
+        return base[0, : len(self.sensor_names)]
 
     def _message_for(self, snap, temperature_C, model, w0, t0, published_s, seq=0) -> bytes:
         elong = self._elongations(model, snap.sensor_wavelength_nm, temperature_C, w0, t0)
@@ -340,7 +381,8 @@ class Dashboard:
             "t": snap.sample_time_s,
             # this server's own count and clock (time.time(), s) of the messages it sends: at
             # most max_rate_hz of them per second of this clock, whatever the client sees
-            "seq": seq, "server_s": round(time.time(), 4),
+            "seq": seq,
+            "server_s": round(time.time(), 4),
             "elongation_um": _clean(elong, 3),
             "wavelength_nm": _clean(snap.sensor_wavelength_nm, 5),
             "temperature_C": _clean(temperature_C, 3),
@@ -348,21 +390,25 @@ class Dashboard:
             "half_width_um": _clean(snap.half_width_um, 3),
             "correction_um": _clean(snap.correction_um, 3),
             "expected_rms_um": _clean(snap.expected_rms_um, 3),
-            "health": snap.health, "alarm": bool(snap.alarm), "fallback": snap.fallback,
+            "health": snap.health,
+            "alarm": bool(snap.alarm),
+            "fallback": snap.fallback,
             # per axis: the flag word (fbgcomp.runtime.health.FLAG_*) and its names
             "output_flags": [int(v) for v in getattr(snap, "output_flags", (0, 0, 0))],
             "output_flag_names": [flag_names(v) for v in getattr(snap, "output_flags", (0, 0, 0))],
             "limited": any(int(v) for v in getattr(snap, "output_flags", (0, 0, 0))),
-            "sensor_status": list(snap.sensor_status), "source_status": snap.source_status,
-            "frames": int(snap.frames), "model_id": snap.model_id or self.model_id,
+            "sensor_status": list(snap.sensor_status),
+            "source_status": snap.source_status,
+            "frames": int(snap.frames),
+            "model_id": snap.model_id or self.model_id,
             # a frame may reach the page after the answer to a switch it predates: the page
             # keeps the state of the newest version it has seen
-            "enabled": enabled, "enabled_version": enabled_version,
+            "enabled": enabled,
+            "enabled_version": enabled_version,
             # sample time stamp -> correction computed (interrogator clock vs. this host)
             "latency_ms": round((published_s - snap.sample_time_s) * 1e3, 2),
             # batch received -> correction computed (this host only)
-            "processing_ms": round((published_s - snap.received_s) * 1e3, 2)
-            if snap.received_s else None,
+            "processing_ms": round((published_s - snap.received_s) * 1e3, 2) if snap.received_s else None,
         }
         return json.dumps(frame, separators=(",", ":"), allow_nan=False).encode()
 
@@ -386,9 +432,8 @@ class Dashboard:
         token = secrets.token_urlsafe(32)
         now = time.monotonic()
         with self._lock:
-            live = sorted(((k, v) for k, v in self.sessions.items() if v[1] > now),
-                          key=lambda kv: kv[1][1])
-            self.sessions = dict(live[-(MAX_SESSIONS - 1):])
+            live = sorted(((k, v) for k, v in self.sessions.items() if v[1] > now), key=lambda kv: kv[1][1])
+            self.sessions = dict(live[-(MAX_SESSIONS - 1) :])
             self.sessions[token] = (user, now + self.config.session_s)
         return token
 
@@ -412,13 +457,19 @@ class Dashboard:
         sensors, probes, model, drift windows and the Enabled state too."""
         access = {"user": user, "login_possible": bool(self.users), "read_login": self.read_login}
         if self.read_login and user is None:
-            return access   # nothing about the machine before a login
-        return {"sensors": self.sensor_names, "probes": self.probe_names, "axes": list(AXES),
-                "model_id": self.model_id, "max_rate_hz": self.config.max_rate_hz,
-                "control_available": self.control is not None, **access,
-                "history": self.history is not None,
-                "windows_s": list(WINDOWS_S) if self.history is not None else [60],
-                **dict(zip(("enabled", "enabled_version"), self.enabled_state()))}
+            return access  # nothing about the machine before a login
+        return {
+            "sensors": self.sensor_names,
+            "probes": self.probe_names,
+            "axes": list(AXES),
+            "model_id": self.model_id,
+            "max_rate_hz": self.config.max_rate_hz,
+            "control_available": self.control is not None,
+            **access,
+            "history": self.history is not None,
+            "windows_s": list(WINDOWS_S) if self.history is not None else [60],
+            **dict(zip(("enabled", "enabled_version"), self.enabled_state())),
+        }
 
     # -- request handlers ---------------------------------------------------------------------
     def _user(self, request: web.Request) -> str | None:
@@ -431,9 +482,8 @@ class Dashboard:
     async def _read_json(self, request: web.Request) -> dict | None:
         """The JSON object of a small ``application/json`` body, None if it is something else."""
         length = request.content_length
-        if length is None and request.body_exists or (length or 0) > MAX_BODY_BYTES:
-            raise Refused(400, f"expected a JSON body of at most {MAX_BODY_BYTES} bytes",
-                           close=True)
+        if (length is None and request.body_exists) or (length or 0) > MAX_BODY_BYTES:
+            raise Refused(400, f"expected a JSON body of at most {MAX_BODY_BYTES} bytes", close=True)
         try:
             async with asyncio.timeout(self.config.request_timeout_s):
                 body = await request.read()
@@ -469,42 +519,45 @@ class Dashboard:
     async def _history(self, request: web.Request) -> web.Response:
         self._check_read(request)
         if self.history is None:
-            raise Refused(404, "no run log: start serve with --log DIR to see the drift "
-                                "beyond the live minute")
+            raise Refused(
+                404, "no run log: start serve with --log DIR to see the drift beyond the live minute"
+            )
         try:
             window_s = float(request.query.get("window_s", "3600"))
             points = int(request.query.get("points", "600"))
         except ValueError:
             raise Refused(400, "expected window_s (s) and points as numbers") from None
         if not (MIN_WINDOW_S <= window_s <= MAX_WINDOW_S) or not 10 <= points <= MAX_POINTS:
-            raise Refused(400, f"window_s must be in [{MIN_WINDOW_S:g}, {MAX_WINDOW_S:g}] s "
-                                f"and points in [10, {MAX_POINTS}]")
+            raise Refused(
+                400,
+                f"window_s must be in [{MIN_WINDOW_S:g}, {MAX_WINDOW_S:g}] s "
+                f"and points in [10, {MAX_POINTS}]",
+            )
         key = (window_s, points)
-        async with self._history_lock:   # one computation at a time, however many browsers
+        async with self._history_lock:  # one computation at a time, however many browsers
             now = time.monotonic()
             done = self._history_answers.get(key)
             if done is None or now - done[0] > 1.0:
                 try:
                     answer = await asyncio.get_running_loop().run_in_executor(
-                        None, self.history.window, window_s, points)
-                except InputError as exc:   # no meta.json yet: serve has not started logging
+                        None, self.history.window, window_s, points
+                    )
+                except InputError as exc:  # no meta.json yet: serve has not started logging
                     raise Refused(404, str(exc)) from None
                 body = json.dumps(answer, separators=(",", ":"), allow_nan=False).encode()
-                self._history_answers = {k: v for k, v in self._history_answers.items()
-                                         if now - v[0] <= 1.0}
+                self._history_answers = {k: v for k, v in self._history_answers.items() if now - v[0] <= 1.0}
                 done = self._history_answers[key] = (time.monotonic(), body)
         return web.Response(body=done[1], content_type="application/json")
 
     async def _stream(self, request: web.Request) -> web.StreamResponse:
         self._check_read(request)
         if self.clients >= self.config.max_clients:
-            return json_response({"error": "too many live clients"}, 503,
-                                 headers={"Retry-After": "5"})
+            return json_response({"error": "too many live clients"}, 503, headers={"Retry-After": "5"})
         self.clients += 1
         loop = asyncio.get_running_loop()
         period = 1.0 / self.config.max_rate_hz if self.config.max_rate_hz > 0 else 0.0
         resp = web.StreamResponse(headers={"Content-Type": "text/event-stream"})
-        resp.force_close()   # one stream per connection
+        resp.force_close()  # one stream per connection
         try:
             await resp.prepare(request)
             await self._send(request, resp, b"retry: 2000\n\n")
@@ -547,22 +600,29 @@ class Dashboard:
         token = None
         if isinstance(user, str) and isinstance(password, str):
             # PBKDF2 takes a while: in a worker thread, so other requests go on meanwhile
-            token = await asyncio.get_running_loop().run_in_executor(None, self.login, user,
-                                                                     password)
+            token = await asyncio.get_running_loop().run_in_executor(None, self.login, user, password)
         if token is None:
-            async with self._failed_login:   # failures one at a time: slows password guessing
+            async with self._failed_login:  # failures one at a time: slows password guessing
                 await asyncio.sleep(FAILED_LOGIN_S)
             raise Refused(401, "wrong user name or password")
         resp = json_response({"user": user})
-        resp.set_cookie(COOKIE, token, path="/", httponly=True, samesite="Strict",
-                        secure=self.ssl_context is not None, max_age=int(self.config.session_s))
+        resp.set_cookie(
+            COOKIE,
+            token,
+            path="/",
+            httponly=True,
+            samesite="Strict",
+            secure=self.ssl_context is not None,
+            max_age=int(self.config.session_s),
+        )
         return resp
 
     async def _logout(self, request: web.Request) -> web.Response:
         self.logout(request.cookies.get(COOKIE))
         resp = json_response({"user": None})
-        resp.del_cookie(COOKIE, path="/", httponly=True, samesite="Strict",
-                        secure=self.ssl_context is not None)
+        resp.del_cookie(
+            COOKIE, path="/", httponly=True, samesite="Strict", secure=self.ssl_context is not None
+        )
         return resp
 
     async def _set_enabled(self, request: web.Request) -> web.Response:
@@ -576,12 +636,15 @@ class Dashboard:
             raise Refused(409, "no control in this service")
         try:
             # the service may wait on the OPC UA process: not in this loop
-            state = await asyncio.get_running_loop().run_in_executor(None, self.control,
-                                                                     data["enabled"])
+            state = await asyncio.get_running_loop().run_in_executor(None, self.control, data["enabled"])
         except Exception as exc:
             log.warning("dashboard: enable/disable by %s failed: %s", user, exc)
             raise Refused(500, f"could not change the state: {exc}") from None
-        log.warning("compensation %s by %s from the dashboard (%s)",
-                    "enabled" if state else "disabled", user, request.remote)
+        log.warning(
+            "compensation %s by %s from the dashboard (%s)",
+            "enabled" if state else "disabled",
+            user,
+            request.remote,
+        )
         state, version = self.enabled_state()
         return json_response({"enabled": state, "enabled_version": version})

@@ -14,8 +14,8 @@ import asyncio
 import ipaddress
 import json
 import ssl
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 from aiohttp import web
 
@@ -28,7 +28,7 @@ SECURITY_HEADERS = {
     "X-Frame-Options": "DENY",
     "Referrer-Policy": "no-referrer",
     "Content-Security-Policy": "default-src 'self'; img-src 'self' data:; object-src 'none'; "
-                               "frame-ancestors 'none'; base-uri 'none'; form-action 'self'",
+    "frame-ancestors 'none'; base-uri 'none'; form-action 'self'",
     "Server": "fbgcomp-dashboard",
 }
 
@@ -41,8 +41,9 @@ def parse_listen(listen: str) -> tuple[str, int]:
         host, port = "", text
     host = host.strip("[]") or DEFAULT_HOST
     if not port.isdigit() or not 0 <= int(port) <= 65535:
-        raise InputError(f"expected [HOST:]PORT, e.g. 8080 or 127.0.0.1:8080, got {listen!r}",
-                         column="--dashboard")
+        raise InputError(
+            f"expected [HOST:]PORT, e.g. 8080 or 127.0.0.1:8080, got {listen!r}", column="--dashboard"
+        )
     return host, int(port)
 
 
@@ -61,8 +62,9 @@ def tls_context(cert: str | None, key: str | None) -> ssl.SSLContext | None:
     if not cert and not key:
         return None
     if not (cert and key):
-        raise InputError("TLS needs both a certificate and its private key",
-                         column="--dashboard-cert/--dashboard-key")
+        raise InputError(
+            "TLS needs both a certificate and its private key", column="--dashboard-cert/--dashboard-key"
+        )
     ctx = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
     ctx.minimum_version = ssl.TLSVersion.TLSv1_2
     for path in (cert, key):
@@ -73,15 +75,15 @@ def tls_context(cert: str | None, key: str | None) -> ssl.SSLContext | None:
     except (ssl.SSLError, ValueError) as exc:
         # the reason only (e.g. KEY_VALUES_MISMATCH), never the file's content
         reason = getattr(exc, "reason", None) or type(exc).__name__
-        raise InputError(f"cannot use this TLS certificate and key ({reason})", file=cert) \
-            from None
+        raise InputError(f"cannot use this TLS certificate and key ({reason})", file=cert) from None
     return ctx
 
 
 def json_response(data, status: int = 200, headers=None) -> web.Response:
     """``data`` as an ``application/json`` answer."""
-    return web.Response(body=json.dumps(data).encode(), status=status,
-                        content_type="application/json", headers=headers)
+    return web.Response(
+        body=json.dumps(data).encode(), status=status, content_type="application/json", headers=headers
+    )
 
 
 class Refused(Exception):
@@ -103,7 +105,7 @@ async def errors_as_json(request: web.Request, handler):
         if exc.close:
             resp.force_close()
         return resp
-    except web.HTTPException as exc:   # aiohttp's own 404, 405, 413...
+    except web.HTTPException as exc:  # aiohttp's own 404, 405, 413...
         if exc.status < 400:
             raise
         allow = {"Allow": exc.headers["Allow"]} if "Allow" in exc.headers else None
@@ -117,9 +119,10 @@ async def security_headers(request: web.Request, response: web.StreamResponse) -
 
 
 _BUSY_BODY = b'{"error": "too many connections"}'
-_BUSY = (b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n"
-         b"Content-Length: %d\r\nRetry-After: 5\r\nConnection: close\r\n\r\n%s"
-         % (len(_BUSY_BODY), _BUSY_BODY))
+_BUSY = (
+    b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n"
+    b"Content-Length: %d\r\nRetry-After: 5\r\nConnection: close\r\n\r\n%s" % (len(_BUSY_BODY), _BUSY_BODY)
+)
 
 
 class ConnectionCap:

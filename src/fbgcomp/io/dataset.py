@@ -43,7 +43,7 @@ import os
 import shutil
 import uuid
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from urllib.parse import quote
 
@@ -59,9 +59,23 @@ try:
 except ImportError:  # not POSIX: the files stay the source of truth (open_dataset)
     fcntl = None
 
-__all__ = ["DATASET_FORMAT", "INDEX_FILE", "METADATA_KEY", "Partition", "Dataset", "is_dataset",
-           "is_run_log", "open_dataset", "ingest", "ingest_campaign", "partition_arrays",
-           "accumulate_partition_file", "partition_design", "REFERENCE_COLUMNS", "LOAD_COLUMNS"]
+__all__ = [
+    "DATASET_FORMAT",
+    "INDEX_FILE",
+    "LOAD_COLUMNS",
+    "METADATA_KEY",
+    "REFERENCE_COLUMNS",
+    "Dataset",
+    "Partition",
+    "accumulate_partition_file",
+    "ingest",
+    "ingest_campaign",
+    "is_dataset",
+    "is_run_log",
+    "open_dataset",
+    "partition_arrays",
+    "partition_design",
+]
 
 DATASET_FORMAT = "fbgcomp-dataset"
 DATASET_VERSION = 1
@@ -78,6 +92,7 @@ ROW_GROUP_ROWS = 100_000
 # --------------------------------------------------------------------------------------------
 # Paths
 # --------------------------------------------------------------------------------------------
+
 
 def _segment(key: str, value: str) -> str:
     # Hive partitions are URI-encoded path segments (pyarrow decodes them by default).
@@ -114,14 +129,15 @@ def is_run_log(path) -> bool:
 # Metadata
 # --------------------------------------------------------------------------------------------
 
+
 @dataclass
 class Partition:
     """One (machine, campaign) partition: where its files are and what is needed to fit on it."""
 
     machine: str
     campaign: str
-    path: Path                      # the partition folder
-    files: list                     # file names inside it, in row order
+    path: Path  # the partition folder
+    files: list  # file names inside it, in row order
     n_rows: int
     sensor_names: list
     probe_names: list
@@ -129,7 +145,7 @@ class Partition:
     temperature_zero_C: np.ndarray
     reference_zero_um: np.ndarray
     zero_window_s: float
-    meta: dict                      # campaign.yaml content (JSON-safe)
+    meta: dict  # campaign.yaml content (JSON-safe)
     dropped: dict = field(default_factory=dict)
     columns: list = field(default_factory=list)
     source: str | None = None
@@ -151,32 +167,48 @@ class Partition:
 
     def to_entry(self) -> dict:
         """The partition as its JSON-safe index entry (also stored in each Parquet file)."""
-        return {"machine": self.machine, "campaign": self.campaign,
-                "path": f"{_segment('machine', self.machine)}/{_segment('campaign', self.campaign)}",
-                "files": list(self.files), "n_rows": int(self.n_rows),
-                "sensor_names": list(self.sensor_names), "probe_names": list(self.probe_names),
-                "wavelength_zero_nm": [float(v) for v in self.wavelength_zero_nm],
-                "temperature_zero_C": [float(v) for v in self.temperature_zero_C],
-                "reference_zero_um": [float(v) for v in self.reference_zero_um],
-                "zero_window_s": float(self.zero_window_s), "meta": self.meta,
-                "dropped": self.dropped, "columns": list(self.columns), "source": self.source,
-                "ingested_utc": self.ingested_utc}
+        return {
+            "machine": self.machine,
+            "campaign": self.campaign,
+            "path": f"{_segment('machine', self.machine)}/{_segment('campaign', self.campaign)}",
+            "files": list(self.files),
+            "n_rows": int(self.n_rows),
+            "sensor_names": list(self.sensor_names),
+            "probe_names": list(self.probe_names),
+            "wavelength_zero_nm": [float(v) for v in self.wavelength_zero_nm],
+            "temperature_zero_C": [float(v) for v in self.temperature_zero_C],
+            "reference_zero_um": [float(v) for v in self.reference_zero_um],
+            "zero_window_s": float(self.zero_window_s),
+            "meta": self.meta,
+            "dropped": self.dropped,
+            "columns": list(self.columns),
+            "source": self.source,
+            "ingested_utc": self.ingested_utc,
+        }
 
     @classmethod
-    def from_entry(cls, root: Path, e: dict, where=None) -> "Partition":
+    def from_entry(cls, root: Path, e: dict, where=None) -> Partition:
         """The partition an index entry describes, in dataset ``root``; InputError naming
         ``where`` (default ``root``) when the entry is malformed."""
         try:
-            return cls(machine=str(e["machine"]), campaign=str(e["campaign"]),
-                       path=_partition_dir(root, e["machine"], e["campaign"]),
-                       files=[str(f) for f in e["files"]], n_rows=int(e["n_rows"]),
-                       sensor_names=list(e["sensor_names"]), probe_names=list(e["probe_names"]),
-                       wavelength_zero_nm=np.asarray(e["wavelength_zero_nm"], dtype=float),
-                       temperature_zero_C=np.asarray(e["temperature_zero_C"], dtype=float),
-                       reference_zero_um=np.asarray(e["reference_zero_um"], dtype=float),
-                       zero_window_s=float(e["zero_window_s"]), meta=dict(e["meta"]),
-                       dropped=dict(e.get("dropped") or {}), columns=list(e.get("columns") or []),
-                       source=e.get("source"), ingested_utc=e.get("ingested_utc"))
+            return cls(
+                machine=str(e["machine"]),
+                campaign=str(e["campaign"]),
+                path=_partition_dir(root, e["machine"], e["campaign"]),
+                files=[str(f) for f in e["files"]],
+                n_rows=int(e["n_rows"]),
+                sensor_names=list(e["sensor_names"]),
+                probe_names=list(e["probe_names"]),
+                wavelength_zero_nm=np.asarray(e["wavelength_zero_nm"], dtype=float),
+                temperature_zero_C=np.asarray(e["temperature_zero_C"], dtype=float),
+                reference_zero_um=np.asarray(e["reference_zero_um"], dtype=float),
+                zero_window_s=float(e["zero_window_s"]),
+                meta=dict(e["meta"]),
+                dropped=dict(e.get("dropped") or {}),
+                columns=list(e.get("columns") or []),
+                source=e.get("source"),
+                ingested_utc=e.get("ingested_utc"),
+            )
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(f"malformed partition metadata: {exc}", file=where or root) from None
 
@@ -205,8 +237,9 @@ class Dataset:
         and ``campaign`` columns. Materialises the rows: for big data, stream instead."""
         frames = []
         for p in self.partitions:
-            if (machine is not None and p.machine != machine) or \
-                    (campaign is not None and p.campaign != campaign):
+            if (machine is not None and p.machine != machine) or (
+                campaign is not None and p.campaign != campaign
+            ):
                 continue
             for f in p.file_paths:
                 frame = _read_table(f, columns).to_pandas()
@@ -235,8 +268,10 @@ def _file_entry(path: Path) -> dict:
     except (OSError, ValueError) as exc:
         raise InputError(f"cannot read Parquet file: {exc}", file=path) from None
     if METADATA_KEY not in metadata:
-        raise InputError(f"Parquet file lacks the {METADATA_KEY.decode()} metadata: not written "
-                         "by fbgcomp ingest", file=path)
+        raise InputError(
+            f"Parquet file lacks the {METADATA_KEY.decode()} metadata: not written by fbgcomp ingest",
+            file=path,
+        )
     return json.loads(metadata[METADATA_KEY])
 
 
@@ -264,8 +299,7 @@ def open_dataset(path) -> Dataset:
                 entry = _file_entry(cdir / on_disk[0])
             partitions.append(Partition.from_entry(root, entry, where=cdir))
     if not partitions:
-        raise InputError("no partition (machine=*/campaign=*/part-*.parquet) in the dataset",
-                         file=root)
+        raise InputError("no partition (machine=*/campaign=*/part-*.parquet) in the dataset", file=root)
     return Dataset(root, partitions)
 
 
@@ -278,12 +312,18 @@ def _read_index(root: Path) -> dict:
     except (OSError, ValueError) as exc:
         raise InputError(f"unreadable dataset index: {exc}", file=file) from None
     if not isinstance(data, dict) or data.get("format") != DATASET_FORMAT:
-        raise InputError(f"not an fbgcomp dataset index (field 'format' must be {DATASET_FORMAT!r})",
-                         file=file, column="field format")
+        raise InputError(
+            f"not an fbgcomp dataset index (field 'format' must be {DATASET_FORMAT!r})",
+            file=file,
+            column="field format",
+        )
     if int(data.get("version", 0)) > DATASET_VERSION:
-        raise InputError(f"dataset version {data.get('version')} is newer than this fbgcomp "
-                         f"supports ({DATASET_VERSION}); upgrade fbgcomp", file=file,
-                         column="field version")
+        raise InputError(
+            f"dataset version {data.get('version')} is newer than this fbgcomp "
+            f"supports ({DATASET_VERSION}); upgrade fbgcomp",
+            file=file,
+            column="field version",
+        )
     return data
 
 
@@ -293,8 +333,7 @@ def _update_index(root: Path, partition: Partition) -> None:
     with open(root / ".index.lock", "a") as lock:
         if fcntl is not None:
             fcntl.flock(lock.fileno(), fcntl.LOCK_EX)
-        index = _read_index(root) or {"format": DATASET_FORMAT, "version": DATASET_VERSION,
-                                      "campaigns": []}
+        index = _read_index(root) or {"format": DATASET_FORMAT, "version": DATASET_VERSION, "campaigns": []}
         entry = partition.to_entry()
         entries = [e for e in index.get("campaigns", []) if e.get("path") != entry["path"]]
         entries.append(entry)
@@ -307,9 +346,17 @@ def _update_index(root: Path, partition: Partition) -> None:
 # Ingest
 # --------------------------------------------------------------------------------------------
 
-def ingest_campaign(campaign, dataset, *, machine: str | None = None, zero_window_s: float = 10.0,
-                    rows_per_file: int = ROWS_PER_FILE, row_group_rows: int = ROW_GROUP_ROWS,
-                    source: str | None = None) -> Partition:
+
+def ingest_campaign(
+    campaign,
+    dataset,
+    *,
+    machine: str | None = None,
+    zero_window_s: float = 10.0,
+    rows_per_file: int = ROWS_PER_FILE,
+    row_group_rows: int = ROW_GROUP_ROWS,
+    source: str | None = None,
+) -> Partition:
     """Write one campaign (a :class:`~fbgcomp.io.campaign.Campaign`) as a partition, atomically.
 
     The machine is ``campaign.yaml``'s ``machine`` key when present, else ``machine``, else
@@ -324,8 +371,11 @@ def ingest_campaign(campaign, dataset, *, machine: str | None = None, zero_windo
     if root.exists() and not root.is_dir():
         raise InputError("cannot write a dataset: a file of that name exists", file=root)
     if root.is_dir() and any(root.iterdir()) and not is_dataset(root):
-        raise InputError("refusing to write a dataset into a folder that is not one "
-                         f"(no {INDEX_FILE}, no machine=* folders)", file=root)
+        raise InputError(
+            "refusing to write a dataset into a folder that is not one "
+            f"(no {INDEX_FILE}, no machine=* folders)",
+            file=root,
+        )
     meta_extra = campaign.meta.model_extra or {}
     machine_name = str(meta_extra.get("machine") or machine or DEFAULT_MACHINE)
     aligned = campaign.aligned(zero_window_s=zero_window_s)
@@ -335,7 +385,7 @@ def ingest_campaign(campaign, dataset, *, machine: str | None = None, zero_windo
     ref_t = campaign.reference["time_s"].to_numpy()
     first = int(np.searchsorted(ref_t, aligned.time_s[0], side="left"))
     raw_ref = campaign.reference[list(REFERENCE_COLUMNS)].to_numpy(dtype=np.float64)
-    raw_ref = raw_ref[first:first + len(aligned)]
+    raw_ref = raw_ref[first : first + len(aligned)]
 
     columns = {"time_s": aligned.time_s}
     for j, s in enumerate(aligned.sensor_names):
@@ -351,16 +401,23 @@ def ingest_campaign(campaign, dataset, *, machine: str | None = None, zero_windo
     n_files = max(1, math.ceil(n / rows_per_file))
     files = [f"part-{i:05d}.parquet" for i in range(n_files)]
     partition = Partition(
-        machine=machine_name, campaign=campaign.meta.name,
-        path=_partition_dir(root, machine_name, campaign.meta.name), files=files, n_rows=n,
-        sensor_names=list(aligned.sensor_names), probe_names=list(aligned.probe_names),
-        wavelength_zero_nm=aligned.wavelength_zero_nm, temperature_zero_C=aligned.temperature_zero_C,
-        reference_zero_um=aligned.reference_zero_um, zero_window_s=aligned.zero_window_s,
+        machine=machine_name,
+        campaign=campaign.meta.name,
+        path=_partition_dir(root, machine_name, campaign.meta.name),
+        files=files,
+        n_rows=n,
+        sensor_names=list(aligned.sensor_names),
+        probe_names=list(aligned.probe_names),
+        wavelength_zero_nm=aligned.wavelength_zero_nm,
+        temperature_zero_C=aligned.temperature_zero_C,
+        reference_zero_um=aligned.reference_zero_um,
+        zero_window_s=aligned.zero_window_s,
         meta=json_safe(campaign.meta.model_dump(mode="json")),
-        dropped=json_safe({k: (list(v) if isinstance(v, tuple) else v)
-                            for k, v in aligned.dropped.items()}),
-        columns=list(columns), source=source or (None if campaign.path is None else str(campaign.path)),
-        ingested_utc=datetime.now(timezone.utc).isoformat(timespec="seconds"))
+        dropped=json_safe({k: (list(v) if isinstance(v, tuple) else v) for k, v in aligned.dropped.items()}),
+        columns=list(columns),
+        source=source or (None if campaign.path is None else str(campaign.path)),
+        ingested_utc=datetime.now(UTC).isoformat(timespec="seconds"),
+    )
     kv = {METADATA_KEY: json.dumps(partition.to_entry(), allow_nan=False).encode()}
     schema = pa.schema([(name, pa.float64()) for name in columns], metadata=kv)
 
@@ -372,8 +429,7 @@ def ingest_campaign(campaign, dataset, *, machine: str | None = None, zero_windo
         for i, name in enumerate(files):
             lo, hi = i * rows_per_file, min(n, (i + 1) * rows_per_file)
             table = pa.table({k: v[lo:hi] for k, v in columns.items()}, schema=schema)
-            pq.write_table(table, staging / name, row_group_size=row_group_rows,
-                           compression="zstd")
+            pq.write_table(table, staging / name, row_group_size=row_group_rows, compression="zstd")
             with open(staging / name, "rb") as fh:
                 os.fsync(fh.fileno())
         target = partition.path
@@ -386,8 +442,15 @@ def ingest_campaign(campaign, dataset, *, machine: str | None = None, zero_windo
     return partition
 
 
-def ingest(sources, dataset, *, machine: str | None = None, zero_window_s: float = 10.0,
-           rows_per_file: int = ROWS_PER_FILE, progress=None) -> list:
+def ingest(
+    sources,
+    dataset,
+    *,
+    machine: str | None = None,
+    zero_window_s: float = 10.0,
+    rows_per_file: int = ROWS_PER_FILE,
+    progress=None,
+) -> list:
     """Ingest campaign folders into ``dataset``; returns their partitions.
 
     A runtime run log is not a campaign (it has no measurement of the true TTP deviation): it
@@ -398,10 +461,18 @@ def ingest(sources, dataset, *, machine: str | None = None, zero_window_s: float
     for src in sources:
         src = Path(src)
         if is_run_log(src):
-            raise InputError("a runtime run log, not a campaign folder: ingest it with "
-                             "fbgcomp ingest or fbgcomp.runtime.log.ingest_run_log", file=src)
-        part = ingest_campaign(read_campaign(src), dataset, machine=machine,
-                               zero_window_s=zero_window_s, rows_per_file=rows_per_file)
+            raise InputError(
+                "a runtime run log, not a campaign folder: ingest it with "
+                "fbgcomp ingest or fbgcomp.runtime.log.ingest_run_log",
+                file=src,
+            )
+        part = ingest_campaign(
+            read_campaign(src),
+            dataset,
+            machine=machine,
+            zero_window_s=zero_window_s,
+            rows_per_file=rows_per_file,
+        )
         out.append(part)
         if progress is not None:
             progress(part)
@@ -411,6 +482,7 @@ def ingest(sources, dataset, *, machine: str | None = None, zero_window_s: float
 # --------------------------------------------------------------------------------------------
 # Reading for a fit: stream one file of a partition in row groups
 # --------------------------------------------------------------------------------------------
+
 
 def partition_arrays(file, sensor_names, probe_names, batch_rows: int = ROW_GROUP_ROWS):
     """Yield ``(wavelength_nm (m, S), temperature_C (m, P), reference_um (m, 3))`` batches of
@@ -429,10 +501,11 @@ def partition_arrays(file, sensor_names, probe_names, batch_rows: int = ROW_GROU
     if missing:
         raise InputError(f"missing column(s) {', '.join(missing)}", file=file, column=missing[0])
     for batch in pf.iter_batches(batch_size=batch_rows, columns=cols):
-        arr = np.column_stack([batch.column(i).to_numpy(zero_copy_only=False)
-                               for i in range(len(cols))]).astype(np.float64, copy=False)
+        arr = np.column_stack(
+            [batch.column(i).to_numpy(zero_copy_only=False) for i in range(len(cols))]
+        ).astype(np.float64, copy=False)
         s, p = len(wl_cols), len(t_cols)
-        yield arr[:, :s], arr[:, s:s + p], arr[:, s + p:]
+        yield arr[:, :s], arr[:, s : s + p], arr[:, s + p :]
 
 
 def check_partition(model, partition: Partition) -> None:
@@ -441,30 +514,46 @@ def check_partition(model, partition: Partition) -> None:
     have = {s.name: s for s in partition.sensors()}
     for s in model.sensors_:
         if s.name not in have:
-            raise InputError(f"model expects sensor {s.name} but the partition has "
-                             f"{', '.join(have) or 'none'}", file=where, column="field sensors")
+            raise InputError(
+                f"model expects sensor {s.name} but the partition has {', '.join(have) or 'none'}",
+                file=where,
+                column="field sensors",
+            )
         c = have[s.name]
         if abs(c.gauge_length_mm - s.gauge_length_mm) > 1e-6 * max(1.0, s.gauge_length_mm):
-            raise InputError(f"sensor {s.name} has gauge_length_mm {c.gauge_length_mm} but the "
-                             f"model was fitted with {s.gauge_length_mm}", file=where,
-                             column="field sensors")
+            raise InputError(
+                f"sensor {s.name} has gauge_length_mm {c.gauge_length_mm} but the "
+                f"model was fitted with {s.gauge_length_mm}",
+                file=where,
+                column="field sensors",
+            )
         if abs(c.lambda0_nm - s.lambda0_nm) > 5.0:
-            raise InputError(f"sensor {s.name} has lambda0_nm {c.lambda0_nm} but the model "
-                             f"expects {s.lambda0_nm} ± 5 nm", file=where, column="field sensors")
+            raise InputError(
+                f"sensor {s.name} has lambda0_nm {c.lambda0_nm} but the model expects {s.lambda0_nm} ± 5 nm",
+                file=where,
+                column="field sensors",
+            )
     for p in model.probe_names_:
         if p not in partition.probe_names:
-            raise InputError(f"model needs temperature probe {p} which the partition does not have",
-                             file=where, column="field temperature_probes")
+            raise InputError(
+                f"model needs temperature probe {p} which the partition does not have",
+                file=where,
+                column="field temperature_probes",
+            )
     if abs(float(partition.zero_window_s) - float(model.zero_window_s)) > 1e-12:
-        raise InputError(f"the partition was ingested with a {partition.zero_window_s:g} s zero "
-                         f"window but the fit asks for {model.zero_window_s:g} s: fit with "
-                         f"--zero-window {partition.zero_window_s:g} or ingest again with "
-                         f"--zero-window {model.zero_window_s:g}", file=where,
-                         column="option --zero-window")
+        raise InputError(
+            f"the partition was ingested with a {partition.zero_window_s:g} s zero "
+            f"window but the fit asks for {model.zero_window_s:g} s: fit with "
+            f"--zero-window {partition.zero_window_s:g} or ingest again with "
+            f"--zero-window {model.zero_window_s:g}",
+            file=where,
+            column="option --zero-window",
+        )
 
 
-def accumulate_partition_file(model, partition: Partition, file, acc=None, *,
-                              second_pass: bool = False, weight=None):
+def accumulate_partition_file(
+    model, partition: Partition, file, acc=None, *, second_pass: bool = False, weight=None
+):
     """Stream one file of a partition into ``acc`` (default: a fresh accumulator of ``model``,
     which must have had :meth:`~fbgcomp.models.base.MRAModel.new_accumulator` called); returns it.
 

@@ -20,6 +20,17 @@ from fbgcomp.models.mra import MRAModel
 from fbgcomp.models.physical import PhysicalModel
 from fbgcomp.models.registry import MODEL_TYPES, load_model, make_estimator, register_model_type
 
-__all__ = ["ModelFile", "Predictor", "MRAModel", "KinematicModel", "HybridModel", "CalibratedModel",
-           "DynamicModel", "PhysicalModel", "MODEL_TYPES", "load_model", "make_estimator",
-           "register_model_type"]
+__all__ = [
+    "MODEL_TYPES",
+    "CalibratedModel",
+    "DynamicModel",
+    "HybridModel",
+    "KinematicModel",
+    "MRAModel",
+    "ModelFile",
+    "PhysicalModel",
+    "Predictor",
+    "load_model",
+    "make_estimator",
+    "register_model_type",
+]

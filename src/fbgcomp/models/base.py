@@ -18,7 +18,7 @@ nothing above it; :mod:`fbgcomp.models.registry` knows them all and loads any mo
 from __future__ import annotations
 
 import inspect
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from itertools import combinations
 from pathlib import Path
 
@@ -31,8 +31,14 @@ from fbgcomp.atomic import write_json
 from fbgcomp.errors import InputError
 from fbgcomp.io.campaign import Campaign, SensorSpec, read_campaign
 from fbgcomp.models.features import CONSTANT, FeatureMap, design_matrix, parse_term
-from fbgcomp.models.modelfile import (MODEL_FORMAT, SCHEMA_VERSION, build_model, model_id, read_model_dict,
-                                      short_text)
+from fbgcomp.models.modelfile import (
+    MODEL_FORMAT,
+    SCHEMA_VERSION,
+    build_model,
+    model_id,
+    read_model_dict,
+    short_text,
+)
 from fbgcomp.units import AXES, REFERENCE_COLUMNS
 
 #: Rows of a campaign's design added to a QR factor at a time (bounds the memory of a fit).
@@ -78,8 +84,12 @@ def fallback_sets(sensor_names, policy) -> list:
     """The sensor sets (as frozensets of excluded names) a fallback ``policy`` asks for: each
     sensor ("loo"), each sensor and each pair ("lto"), none ("none"); at least one sensor stays."""
     names = list(sensor_names)
-    return [frozenset(c) for k in _FALLBACK_SIZES[check_fallback_policy(policy)]
-            for c in combinations(names, k) if len(names) - k >= 1]
+    return [
+        frozenset(c)
+        for k in _FALLBACK_SIZES[check_fallback_policy(policy)]
+        for c in combinations(names, k)
+        if len(names) - k >= 1
+    ]
 
 
 def plain(obj):
@@ -123,7 +133,7 @@ class Predictor:
             w, v = np.linalg.eigh((fit.cov + fit.cov.T) / 2)
             root = v * np.sqrt(np.clip(w, 0.0, None))
             self._cov_sqrt[j][np.ix_(idx, range(len(idx)))] = root
-            self._resid_var[j] = fit.resid_sd ** 2
+            self._resid_var[j] = fit.resid_sd**2
             self._t[j] = stats.t.ppf(1 - alpha / 2, fit.df_resid)
         self.expected_rms_error_um = np.sqrt(self._resid_var)
         self._compile()
@@ -143,7 +153,7 @@ class Predictor:
             fs = parse_term(term)
             missing = [f for f in fs if f not in index]
             if missing:
-                factors = None     # design_matrix names the missing feature at predict time
+                factors = None  # design_matrix names the missing feature at predict time
                 break
             factors.append([index[f] for f in fs])
         if factors:
@@ -165,7 +175,7 @@ class Predictor:
             ext = np.empty((n, width + 1))
             ext[:, :width] = base
             ext[:, width] = 1.0
-            cols = ext[:, fac]                                   # (n, terms, k)
+            cols = ext[:, fac]  # (n, terms, k)
             out[:, 1:] = cols[:, :, 0]
             for c in range(1, fac.shape[1]):
                 out[:, 1:] *= cols[:, :, c]
@@ -188,8 +198,7 @@ class Predictor:
         base = self.feature_map.base(wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C)
         return self._design_from_base(base)
 
-    def predict(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C, *,
-                time_s=None):
+    def predict(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C, *, time_s=None):
         """TTP deviation (n, 3) µm and the half-width (n, 3) µm of its 95 % prediction interval.
 
         Parameters
@@ -226,8 +235,11 @@ class EstimatorParams:
     @classmethod
     def _param_names(cls):
         sig = inspect.signature(cls.__init__)
-        return [p.name for p in sig.parameters.values()
-                if p.name != "self" and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)]
+        return [
+            p.name
+            for p in sig.parameters.values()
+            if p.name != "self" and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+        ]
 
     def get_params(self, deep=True) -> dict:
         """The estimator's hyper-parameters (``__init__``'s arguments) by name."""
@@ -238,8 +250,9 @@ class EstimatorParams:
         valid = set(self._param_names())
         for key, value in params.items():
             if key not in valid:
-                raise ValueError(f"invalid parameter {key!r} for {type(self).__name__}; "
-                                 f"valid: {', '.join(sorted(valid))}")
+                raise ValueError(
+                    f"invalid parameter {key!r} for {type(self).__name__}; valid: {', '.join(sorted(valid))}"
+                )
             setattr(self, key, value)
         return self
 
@@ -252,7 +265,10 @@ def deviation_range(reference_um) -> dict:
     """The range of TTP deviations (n, 3) µm a training campaign showed, as its entry in a model
     file's ``training.campaigns`` records it (the envelope of :attr:`ModelFile.max_correction_um`)."""
     ref = np.asarray(reference_um, float)
-    return {"deviation_low_um": np.min(ref, axis=0).tolist(), "deviation_high_um": np.max(ref, axis=0).tolist()}
+    return {
+        "deviation_low_um": np.min(ref, axis=0).tolist(),
+        "deviation_high_um": np.max(ref, axis=0).tolist(),
+    }
 
 
 class ModelFile:
@@ -283,8 +299,12 @@ class ModelFile:
         return model_id(self.to_dict())
 
     def _header(self) -> dict:
-        return {"format": MODEL_FORMAT, "schema_version": SCHEMA_VERSION,
-                "model_type": self.model_type, "fbgcomp_version": __version__}
+        return {
+            "format": MODEL_FORMAT,
+            "schema_version": SCHEMA_VERSION,
+            "model_type": self.model_type,
+            "fbgcomp_version": __version__,
+        }
 
     def save(self, path) -> Path:
         """Write the model file atomically, with its id and creation time.
@@ -298,15 +318,18 @@ class ModelFile:
         path = Path(path)
         d = self.to_dict()
         d["model_id"] = model_id(d)
-        d["created_utc"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+        d["created_utc"] = datetime.now(UTC).isoformat(timespec="seconds")
 
         def loads_back(written: Path) -> None:
             try:
                 build_model(type(self), read_model_dict(written), written)
             except InputError as err:
-                raise InputError(f"the model is not valid, so {path.name} was not written "
-                                 f"(an existing one is unchanged): {err.message}", file=path,
-                                 column=err.column) from None
+                raise InputError(
+                    f"the model is not valid, so {path.name} was not written "
+                    f"(an existing one is unchanged): {err.message}",
+                    file=path,
+                    column=err.column,
+                ) from None
 
         return write_json(path, d, check=loads_back)
 
@@ -351,8 +374,12 @@ class ModelFile:
         """Wavelengths, temperatures and zero states of an aligned campaign in the model's order."""
         s_idx = [list(aligned.sensor_names).index(s) for s in self.sensor_names]
         p_idx = [list(aligned.probe_names).index(p) for p in self.probe_names_]
-        return (aligned.wavelength_nm[:, s_idx], aligned.temperature_C[:, p_idx],
-                aligned.wavelength_zero_nm[s_idx], aligned.temperature_zero_C[p_idx])
+        return (
+            aligned.wavelength_nm[:, s_idx],
+            aligned.temperature_C[:, p_idx],
+            aligned.wavelength_zero_nm[s_idx],
+            aligned.temperature_zero_C[p_idx],
+        )
 
 
 def as_campaign_list(X) -> list:
@@ -375,20 +402,33 @@ def check_compatible(model, campaign) -> None:
     have = {s.name: s for s in campaign.meta.sensors}
     for s in model.sensors_:
         if s.name not in have:
-            raise InputError(f"model expects sensor {s.name} but the campaign has "
-                             f"{', '.join(have) or 'none'}", file=where, column="field sensors")
+            raise InputError(
+                f"model expects sensor {s.name} but the campaign has {', '.join(have) or 'none'}",
+                file=where,
+                column="field sensors",
+            )
         c = have[s.name]
         if abs(c.gauge_length_mm - s.gauge_length_mm) > 1e-6 * max(1.0, s.gauge_length_mm):
-            raise InputError(f"sensor {s.name} has gauge_length_mm {c.gauge_length_mm} but the model "
-                             f"was fitted with {s.gauge_length_mm}", file=where, column="field sensors")
+            raise InputError(
+                f"sensor {s.name} has gauge_length_mm {c.gauge_length_mm} but the model "
+                f"was fitted with {s.gauge_length_mm}",
+                file=where,
+                column="field sensors",
+            )
         if abs(c.lambda0_nm - s.lambda0_nm) > 5.0:
-            raise InputError(f"sensor {s.name} has lambda0_nm {c.lambda0_nm} but the model expects "
-                             f"{s.lambda0_nm} ± 5 nm", file=where, column="field sensors")
+            raise InputError(
+                f"sensor {s.name} has lambda0_nm {c.lambda0_nm} but the model expects {s.lambda0_nm} ± 5 nm",
+                file=where,
+                column="field sensors",
+            )
     probes = set(campaign.meta.probe_names) | set(getattr(campaign, "undeclared_probes", ()))
     for p in model.probe_names_:
         if p not in probes and p not in campaign.temperatures.columns.str.removesuffix("_C"):
-            raise InputError(f"model needs temperature probe {p} which the campaign does not have",
-                             file=where, column="field temperature_probes")
+            raise InputError(
+                f"model needs temperature probe {p} which the campaign does not have",
+                file=where,
+                column="field temperature_probes",
+            )
 
 
 def sensor_specs_from_file(items, source) -> list:
@@ -402,8 +442,11 @@ def sensor_specs_from_file(items, source) -> list:
         except ValidationError as exc:
             err = exc.errors()[0]
             where = ".".join(str(p) for p in err["loc"])
-            raise InputError(short_text(err["msg"]), file=source,
-                             column=f"field sensors[{i}]" + (f".{where}" if where else "")) from None
+            raise InputError(
+                short_text(err["msg"]),
+                file=source,
+                column=f"field sensors[{i}]" + (f".{where}" if where else ""),
+            ) from None
     return specs
 
 
@@ -414,14 +457,19 @@ def check_finite_fit_data(campaign, aligned, design, names) -> None:
     inputs still overflows; the regression would otherwise fit NaN and write a model of nulls.
     """
     where = campaign.path if campaign.path is not None else campaign.meta.name
-    for what, values, columns in (("design", design, names),
-                                  ("reference deviation", aligned.reference_um, REFERENCE_COLUMNS)):
+    for what, values, columns in (
+        ("design", design, names),
+        ("reference deviation", aligned.reference_um, REFERENCE_COLUMNS),
+    ):
         bad = ~np.isfinite(values)
         if bad.any():
             row, col = np.argwhere(bad)[0]
-            raise InputError(f"the {what} built from this campaign is not finite at t = "
-                             f"{aligned.time_s[row]:g} s (term {columns[col]}): an input is out of "
-                             "range; nothing was fitted", file=where)
+            raise InputError(
+                f"the {what} built from this campaign is not finite at t = "
+                f"{aligned.time_s[row]:g} s (term {columns[col]}): an input is out of "
+                "range; nothing was fitted",
+                file=where,
+            )
 
 
 def zero_state_frames(model):
@@ -439,8 +487,7 @@ def check_predictors(model, source="<dict>") -> None:
     sets = [frozenset()] + [frozenset(s) for s in getattr(model, "fallback_sets", ())]
     w, t, w0, t0 = zero_state_frames(model)
     for exclude in sets:
-        label = ("the full sensor set" if not exclude
-                 else f"the fallback without {', '.join(sorted(exclude))}")
+        label = "the full sensor set" if not exclude else f"the fallback without {', '.join(sorted(exclude))}"
         field = "field axes" if not exclude else "field fallbacks"
         try:
             p = model.predictor(exclude)
@@ -451,13 +498,18 @@ def check_predictors(model, source="<dict>") -> None:
             dev, half = (np.asarray(v, dtype=float) for v in out)
         except InputError:
             raise
-        except Exception as exc:  # noqa: BLE001 - any failure: the file's parts disagree
-            raise InputError(f"{label} cannot predict: its terms, coefficients and sensors "
-                             f"disagree ({type(exc).__name__}: {short_text(str(exc))})",
-                             file=source, column=field) from None
-        if dev.shape != (2, 3) or half.shape != (2, 3) or not (np.isfinite(dev).all()
-                                                                and np.isfinite(half).all()):
-            raise InputError(f"{label} predicts non-finite or misshapen numbers", file=source,
-                             column=field)
+        except Exception as exc:
+            raise InputError(
+                f"{label} cannot predict: its terms, coefficients and sensors "
+                f"disagree ({type(exc).__name__}: {short_text(str(exc))})",
+                file=source,
+                column=field,
+            ) from None
+        if (
+            dev.shape != (2, 3)
+            or half.shape != (2, 3)
+            or not (np.isfinite(dev).all() and np.isfinite(half).all())
+        ):
+            raise InputError(f"{label} predicts non-finite or misshapen numbers", file=source, column=field)
     if hasattr(model, "_predictors"):
-        model._predictors = {}   # the runtime starts from fresh predictors, not the check's
+        model._predictors = {}  # the runtime starts from fresh predictors, not the check's

@@ -17,7 +17,6 @@ from fbgcomp.models.hybrid import HybridModel, HybridPredictor
 from fbgcomp.models.kinematic import KinematicModel
 from fbgcomp.models.metrics import load_plateaus
 
-
 #: Prior standard deviation of a closure compliance factor (prior mean 1: the machine
 #: description's sections). 0.5 says "the description is right within a factor ~2"; it only
 #: matters for the combinations the load campaigns do not separate (one Z position: bending
@@ -32,8 +31,10 @@ def closure_parameter_groups(machine) -> dict:
     one bending and one shear factor serve both axes (and a campaign loading one axis calibrates
     the other); otherwise each axis has its own pair."""
     r, h = machine.ram, machine.housing
-    square = (abs(r.outer_width_mm - r.outer_depth_mm) <= 1e-6 * r.outer_width_mm
-              and abs(h.width_mm - h.depth_mm) <= 1e-6 * h.width_mm)
+    square = (
+        abs(r.outer_width_mm - r.outer_depth_mm) <= 1e-6 * r.outer_width_mm
+        and abs(h.width_mm - h.depth_mm) <= 1e-6 * h.width_mm
+    )
     if square:
         return {"bending": ("bending_x", "bending_y"), "shear": ("shear_x", "shear_y")}
     return {k: (k,) for k in CLOSURE_FACTORS}
@@ -46,11 +47,11 @@ def closure_sensitivity(machine, sensor_names, z_axis_mm, groups, factors):
     (the force is read from the bars with the nominal sections; the factors only scale what the
     closure adds): prediction = J(0) dL + sum_p f_p J_p dL. ``factors`` only fixes the chain's
     parameters that are not varied (all of them are: kept for clarity of the contract)."""
-    zero = {k: 0.0 for k in CLOSURE_FACTORS}
+    zero = dict.fromkeys(CLOSURE_FACTORS, 0.0)
     J0 = KinematicChain(machine, sensor_names, z_axis_mm=z_axis_mm, closure_factors=zero).jacobian()[0]
     out = []
     for keys in groups.values():
-        one = dict(zero, **{k: 1.0 for k in keys})
+        one = dict(zero, **dict.fromkeys(keys, 1.0))
         Jp = KinematicChain(machine, sensor_names, z_axis_mm=z_axis_mm, closure_factors=one).jacobian()[0]
         out.append((Jp - J0)[:2])
     return np.array(out).reshape(len(groups), 2, len(sensor_names)), J0[:2]
@@ -74,7 +75,7 @@ def fit_closure_factors(rows_x, rows_y, offset_group, prior_sd=CLOSURE_PRIOR_SD)
     Xa = np.hstack([X, D])
     z = y - X @ np.ones(P)
     prec = np.zeros(Xa.shape[1])
-    prec[:P] = 1.0 / prior_sd ** 2
+    prec[:P] = 1.0 / prior_sd**2
 
     def solve(s2):
         cov = np.linalg.pinv(Xa.T @ Xa / s2 + np.diag(prec))
@@ -108,11 +109,11 @@ class CalibratedPredictor(HybridPredictor):
         key = None if not np.isfinite(z_axis_mm) else round(float(z_axis_mm), 3)
         if key not in self._sens:
             ch = k.chain(key)
-            sens = closure_sensitivity(k.machine, ch.sensor_names, key, self._groups,
-                                       k.closure_factors)[0]                  # (P, 2, S)
+            sens = closure_sensitivity(k.machine, ch.sensor_names, key, self._groups, k.closure_factors)[
+                0
+            ]  # (P, 2, S)
             # (S, 2P): one matrix product gives g (n, 2, P) for every frame
-            self._sens[key] = np.ascontiguousarray(
-                sens.transpose(2, 1, 0).reshape(sens.shape[2], -1))
+            self._sens[key] = np.ascontiguousarray(sens.transpose(2, 1, 0).reshape(sens.shape[2], -1))
         n = len(elongation_um)
         g = (np.asarray(elongation_um, float) @ self._sens[key]).reshape(n * 2, -1)
         var = np.zeros((n, 3))
@@ -141,14 +142,36 @@ class CalibratedModel(HybridModel):
 
     model_type = "calibrated"
 
-    def __init__(self, machine=None, features="eq13", stepwise=True, taus_s=DEFAULT_TAUS_S,
-                 p_enter=0.05, p_remove=0.10, max_terms=None, roles=None, zero_window_s=10.0,
-                 fallbacks="loo", elongation_axes=("dz",), campaign_weights="balanced",
-                 prior_sd=CLOSURE_PRIOR_SD):
-        super().__init__(machine, features=features, stepwise=stepwise, taus_s=taus_s,
-                         p_enter=p_enter, p_remove=p_remove, max_terms=max_terms, roles=roles,
-                         zero_window_s=zero_window_s, fallbacks=fallbacks,
-                         elongation_axes=elongation_axes, campaign_weights=campaign_weights)
+    def __init__(
+        self,
+        machine=None,
+        features="eq13",
+        stepwise=True,
+        taus_s=DEFAULT_TAUS_S,
+        p_enter=0.05,
+        p_remove=0.10,
+        max_terms=None,
+        roles=None,
+        zero_window_s=10.0,
+        fallbacks="loo",
+        elongation_axes=("dz",),
+        campaign_weights="balanced",
+        prior_sd=CLOSURE_PRIOR_SD,
+    ):
+        super().__init__(
+            machine,
+            features=features,
+            stepwise=stepwise,
+            taus_s=taus_s,
+            p_enter=p_enter,
+            p_remove=p_remove,
+            max_terms=max_terms,
+            roles=roles,
+            zero_window_s=zero_window_s,
+            fallbacks=fallbacks,
+            elongation_axes=elongation_axes,
+            campaign_weights=campaign_weights,
+        )
         self.prior_sd = prior_sd
 
     def _calibrate_closure(self, kin, cache):
@@ -171,28 +194,41 @@ class CalibratedModel(HybridModel):
             for r in runs:
                 d = corrected[r].mean(axis=0)
                 ref = a.reference_um[r].mean(axis=0)
-                rows_x.extend((S @ d).T)                             # (2, P): dx, dy rows
+                rows_x.extend((S @ d).T)  # (2, P): dx, dy rows
                 rows_y.extend(ref[:2] - J0 @ d)
                 offset.extend((2 * len(used), 2 * len(used) + 1))
             used.append({"name": c.meta.name, "z_axis_mm": z, "n_plateaus": len(runs)})
-        cal = {"parameters": names, "groups": {k: list(v) for k, v in groups.items()},
-               "shared_axes": len(names) == 2, "prior_sd": float(self.prior_sd),
-               "campaigns": used, "n_plateaus": int(len(rows_y) // 2)}
+        cal = {
+            "parameters": names,
+            "groups": {k: list(v) for k, v in groups.items()},
+            "shared_axes": len(names) == 2,
+            "prior_sd": float(self.prior_sd),
+            "campaigns": used,
+            "n_plateaus": int(len(rows_y) // 2),
+        }
         X = np.array(rows_x).reshape(-1, len(names))
         if not used or np.max(np.abs(X), initial=0.0) < 1e-9:
             f, cov = np.ones(len(names)), np.diag(np.full(len(names), float(self.prior_sd) ** 2))
-            cal.update(status="not calibrated: no held loads in the training campaigns",
-                       residual_sd_um=None, identified=[False] * len(names))
+            cal.update(
+                status="not calibrated: no held loads in the training campaigns",
+                residual_sd_um=None,
+                identified=[False] * len(names),
+            )
         else:
             f, cov, sd, ratio = fit_closure_factors(X, np.array(rows_y), np.array(offset), self.prior_sd)
-            cal.update(status="calibrated on load plateaus", residual_sd_um=sd,
-                       identified=[bool(r < 0.5) for r in ratio])
-        cal.update(factors=f.tolist(), standard_errors=np.sqrt(np.diag(cov)).tolist(),
-                   covariance=cov.tolist())
+            cal.update(
+                status="calibrated on load plateaus",
+                residual_sd_um=sd,
+                identified=[bool(r < 0.5) for r in ratio],
+            )
+        cal.update(
+            factors=f.tolist(), standard_errors=np.sqrt(np.diag(cov)).tolist(), covariance=cov.tolist()
+        )
         self.calibration_ = cal
         factors = {k: float(fi) for fi, keys in zip(f, groups.values()) for k in keys}
-        self.kinematic_ = KinematicModel(machine, zero_window_s=self.zero_window_s,
-                                         fallbacks=self.fallbacks, closure_factors=factors).fit()
+        self.kinematic_ = KinematicModel(
+            machine, zero_window_s=self.zero_window_s, fallbacks=self.fallbacks, closure_factors=factors
+        ).fit()
         return self.kinematic_.predictor()
 
     def predictor(self, exclude=frozenset()) -> CalibratedPredictor:
@@ -203,35 +239,55 @@ class CalibratedModel(HybridModel):
             res = self.residual_.predictor(exclude)
             cal = self.calibration_
             self._predictors[exclude] = CalibratedPredictor(
-                kin, res, self.correction_, self.probe_names_,
-                {k: tuple(v) for k, v in cal["groups"].items()}, cal["covariance"])
+                kin,
+                res,
+                self.correction_,
+                self.probe_names_,
+                {k: tuple(v) for k, v in cal["groups"].items()},
+                cal["covariance"],
+            )
         return self._predictors[exclude]
 
     def format_calibration(self) -> str:
         """The fitted closure factors with their standard errors, correlation and caveats."""
         cal = self.calibration_
-        lines = [f"Closure compliance factors ({cal['status']}; "
-                 f"{'shared by X and Y: square sections' if cal['shared_axes'] else 'per axis'}; "
-                 f"prior 1 ± {cal['prior_sd']:g}; {cal['n_plateaus']} load plateaus)"]
+        lines = [
+            f"Closure compliance factors ({cal['status']}; "
+            f"{'shared by X and Y: square sections' if cal['shared_axes'] else 'per axis'}; "
+            f"prior 1 ± {cal['prior_sd']:g}; {cal['n_plateaus']} load plateaus)"
+        ]
         corr = np.asarray(cal["covariance"])
         se = np.sqrt(np.diag(corr))
         for i, name in enumerate(cal["parameters"]):
-            lines.append(f"  {name:<10} {cal['factors'][i]:8.4f} ± {se[i]:.4f} (SE)  "
-                         + ("identified by the loads" if cal["identified"][i]
-                            else "not separated by the loads: prior-weighted share"))
+            lines.append(
+                f"  {name:<10} {cal['factors'][i]:8.4f} ± {se[i]:.4f} (SE)  "
+                + (
+                    "identified by the loads"
+                    if cal["identified"][i]
+                    else "not separated by the loads: prior-weighted share"
+                )
+            )
         if len(se) > 1 and np.all(se > 0):
             r = corr / np.outer(se, se)
-            lines.append("  correlation " + ", ".join(f"{cal['parameters'][i]}/{cal['parameters'][j]} {r[i, j]:+.3f}"
-                                                      for i in range(len(se)) for j in range(i + 1, len(se))))
+            lines.append(
+                "  correlation "
+                + ", ".join(
+                    f"{cal['parameters'][i]}/{cal['parameters'][j]} {r[i, j]:+.3f}"
+                    for i in range(len(se))
+                    for j in range(i + 1, len(se))
+                )
+            )
         if cal.get("residual_sd_um") is not None:
             lines.append(f"  plateau-mean residual sd {cal['residual_sd_um']:.3g} µm")
         zs = sorted({c["z_axis_mm"] for c in cal["campaigns"] if c["z_axis_mm"] is not None})
         if len(zs) == 1:
             # Measured on the FE twin: calibrated at Z = 0 only, static-y at Z = 300 mm was off
             # by 10 % (fit-free 5.5 %); with loads at Z = 0 and 300 both were within 1.5 %.
-            lines.append(f"  loads at one Z position ({zs[0]:g} mm): the factors are an effective "
-                         "closure for that position; give load campaigns at two Z positions to "
-                         "use other positions")
+            lines.append(
+                f"  loads at one Z position ({zs[0]:g} mm): the factors are an effective "
+                "closure for that position; give load campaigns at two Z positions to "
+                "use other positions"
+            )
         return "\n".join(lines)
 
     def summary(self) -> str:
@@ -242,12 +298,15 @@ class CalibratedModel(HybridModel):
         """The hybrid's model file plus the closure calibration (``calibrated``)."""
         d = super().to_dict()
         d["calibrated"] = plain(self.calibration_)
-        d["uncertainty"] = {"level": 0.95, "method": "residual regression: covariance + residual "
-                            "variance; + closure factors' covariance through the chain"}
+        d["uncertainty"] = {
+            "level": 0.95,
+            "method": "residual regression: covariance + residual "
+            "variance; + closure factors' covariance through the chain",
+        }
         return d
 
     @classmethod
-    def from_dict(cls, d: dict, source="<dict>") -> "CalibratedModel":
+    def from_dict(cls, d: dict, source="<dict>") -> CalibratedModel:
         """The model of a model file's dict; its predictors checked."""
         m = super().from_dict(d, source, check=False)
         m.calibration_ = dict(d["calibrated"])

@@ -89,8 +89,7 @@ def ridge_fit(X, Y, w=None, lambdas=np.logspace(-6, 2, 17)):
             c = solve(X[train], Y[train], lam, w_all[train])
             err[i] += np.sum(w_all[f, None] * (X[f] @ c - Y[f]) ** 2, axis=0)
     best = np.argmin(err, axis=0)
-    coef = np.column_stack([solve(X, Y[:, [j]], lambdas[best[j]], w_all)[:, 0]
-                            for j in range(Y.shape[1])])
+    coef = np.column_stack([solve(X, Y[:, [j]], lambdas[best[j]], w_all)[:, 0] for j in range(Y.shape[1])])
     return coef, lambdas[best]
 
 
@@ -190,9 +189,14 @@ def _make(kind, features, options, machine, machine_given):
         return _DesignModel(kind, features)
     # as `fbgcomp fit` with no flags, the physical model gets the machine description only when
     # one was given; the dynamic entry's "eq13+lp" names its eq13 features plus the filters
-    return make_estimator(kind, machine=machine if kind != "physical" or machine_given else None,
-                          features="eq13" if kind == "dynamic" else features, where="<compare entry>",
-                          fallbacks="none", **options)
+    return make_estimator(
+        kind,
+        machine=machine if kind != "physical" or machine_given else None,
+        features="eq13" if kind == "dynamic" else features,
+        where="<compare entry>",
+        fallbacks="none",
+        **options,
+    )
 
 
 def _campaign_names(campaigns):
@@ -207,14 +211,23 @@ def _campaign_names(campaigns):
 
 def _campaign_row(campaign, name, kind, features, axis, m, plateau):
     p = (plateau or {}).get("axes", {}).get(axis, {})
-    return {"campaign": campaign, "axis": axis, "name": name, "model_type": kind, "features": features,
-            "max_abs_error_um": m["max_abs_error_um"], "rms_error_um": m["rms_error_um"],
-            "uncompensated_max_um": m["uncompensated_max_um"],
-            "uncompensated_rms_um": m["uncompensated_rms_um"], "harm": bool(m["harm"]),
-            "error_pct_of_peak": m["error_pct_of_peak"], "pi95_coverage": m.get("pi95_coverage"),
-            "plateau_max_error_um": p.get("max_plateau_error_um"),
-            "plateau_deflection_um": p.get("max_plateau_deflection_um"),
-            "plateau_error_pct_of_deflection": p.get("error_pct_of_deflection")}
+    return {
+        "campaign": campaign,
+        "axis": axis,
+        "name": name,
+        "model_type": kind,
+        "features": features,
+        "max_abs_error_um": m["max_abs_error_um"],
+        "rms_error_um": m["rms_error_um"],
+        "uncompensated_max_um": m["uncompensated_max_um"],
+        "uncompensated_rms_um": m["uncompensated_rms_um"],
+        "harm": bool(m["harm"]),
+        "error_pct_of_peak": m["error_pct_of_peak"],
+        "pi95_coverage": m.get("pi95_coverage"),
+        "plateau_max_error_um": p.get("max_plateau_error_um"),
+        "plateau_deflection_um": p.get("max_plateau_deflection_um"),
+        "plateau_error_pct_of_deflection": p.get("error_pct_of_deflection"),
+    }
 
 
 def compare(train, test, *, machine=None, entries=ENTRIES, progress=None) -> dict:
@@ -237,12 +250,14 @@ def compare(train, test, *, machine=None, entries=ENTRIES, progress=None) -> dic
       the entries worse than uncompensated on some axis.
     """
     machine_given = machine is not None
-    machine = resolve_machine(machine)          # a bad description fails here, before any fit
+    machine = resolve_machine(machine)  # a bad description fails here, before any fit
     names = _campaign_names(test)
     refs = [c.aligned(zero_window_s=10.0) for c in test]
     campaign_rows, failures = [], {}
-    campaigns = {n: {"n_samples": int(len(a.time_s)), "has_loads": a.loads_N is not None, "harmed_by": {}}
-                 for n, a in zip(names, refs)}
+    campaigns = {
+        n: {"n_samples": len(a.time_s), "has_loads": a.loads_N is not None, "harmed_by": {}}
+        for n, a in zip(names, refs)
+    }
 
     def add_campaign_rows(name, kind, features, per):
         for n, a in zip(names, refs):
@@ -274,7 +289,7 @@ def compare(train, test, *, machine=None, entries=ENTRIES, progress=None) -> dic
         try:
             model = _make(kind, features, options, machine, machine_given).fit(list(train))
             per, parts = judge(lambda c, a: model.predict_interval(c))
-        except Exception as exc:        # one failing entry must not hide the others
+        except Exception as exc:  # one failing entry must not hide the others
             failures[name] = f"{type(exc).__name__}: {exc}"
             continue
         add_campaign_rows(name, kind, features, per)
@@ -286,15 +301,37 @@ def compare(train, test, *, machine=None, entries=ENTRIES, progress=None) -> dic
         pooled = validation_metrics(np.vstack(r), np.vstack(p), np.vstack(h) if has_pi else None)
         for a in AXES:
             m = pooled["axes"][a]
-            rows.append({"name": name, "model_type": kind, "features": features, "axis": a,
-                         "peak_um": m["peak_um"], "max_abs_error_um": m["max_abs_error_um"],
-                         "rms_error_um": m["rms_error_um"], "error_pct_of_peak": m["error_pct_of_peak"],
-                         "pi95_coverage": m.get("pi95_coverage"), "harm": bool(m["harm"]),
-                         "per_campaign": {k: v["axes"][a] for k, v in per.items()}})
-    ranking = {a: [r["name"] for r in sorted((r for r in rows if r["axis"] == a),
-                                             key=lambda r: r["max_abs_error_um"])] for a in AXES}
-    return {"train": [c.meta.name for c in train], "test": names, "rows": rows, "ranking": ranking,
-            "failures": failures, "campaigns": campaigns, "campaign_rows": campaign_rows}
+            rows.append(
+                {
+                    "name": name,
+                    "model_type": kind,
+                    "features": features,
+                    "axis": a,
+                    "peak_um": m["peak_um"],
+                    "max_abs_error_um": m["max_abs_error_um"],
+                    "rms_error_um": m["rms_error_um"],
+                    "error_pct_of_peak": m["error_pct_of_peak"],
+                    "pi95_coverage": m.get("pi95_coverage"),
+                    "harm": bool(m["harm"]),
+                    "per_campaign": {k: v["axes"][a] for k, v in per.items()},
+                }
+            )
+    ranking = {
+        a: [
+            r["name"]
+            for r in sorted((r for r in rows if r["axis"] == a), key=lambda r: r["max_abs_error_um"])
+        ]
+        for a in AXES
+    }
+    return {
+        "train": [c.meta.name for c in train],
+        "test": names,
+        "rows": rows,
+        "ranking": ranking,
+        "failures": failures,
+        "campaigns": campaigns,
+        "campaign_rows": campaign_rows,
+    }
 
 
 def _cell(r):
@@ -327,14 +364,14 @@ def _by_campaign(result):
 def format_campaign_tables(result: dict) -> str:
     """Per held-out campaign: every entry's max |error| (RMS) per axis beside the uncompensated
     row, WORSE where an axis ends worse than uncompensated (+ the harm tolerance)."""
-
-    out = [f"per held-out campaign: max |error| µm (RMS µm) per axis; uncompensated = the deviation "
-           f"itself; WORSE = max |error| above uncompensated + {HARM_TOLERANCE_UM:g} µm"]
+    out = [
+        f"per held-out campaign: max |error| µm (RMS µm) per axis; uncompensated = the deviation "
+        f"itself; WORSE = max |error| above uncompensated + {HARM_TOLERANCE_UM:g} µm"
+    ]
     for camp, models in _by_campaign(result).items():
         info = result["campaigns"][camp]
         out.append(f"\n== {camp} (held out, {info['n_samples']} samples) ==")
-        cols = ([text("model")] + [Column(a, "µm") for a in AXES]
-                + [Column("PI95 cover dx/dy/dz")])
+        cols = [text("model")] + [Column(a, "µm") for a in AXES] + [Column("PI95 cover dx/dy/dz")]
         rows = []
         for name, axes in models.items():
             cov = [axes[a]["pi95_coverage"] for a in AXES]
@@ -342,14 +379,22 @@ def format_campaign_tables(result: dict) -> str:
             rows.append([name] + [_cell(axes[a]) for a in AXES] + [cov])
         out.append(format_table(cols, rows, indent="  "))
         if info["has_loads"]:
-            out.append(f"  load-plateau means: max error µm (% of the largest plateau deflection, "
-                       f"on axes deflected ≥ {PLATEAU_MIN_DEFLECTION_UM:g} µm)")
-            out.append(format_table([text("model")] + [Column(a, "µm") for a in AXES],
-                                    [[name] + [_plateau_cell(axes[a]) for a in AXES]
-                                     for name, axes in models.items()], indent="  "))
+            out.append(
+                f"  load-plateau means: max error µm (% of the largest plateau deflection, "
+                f"on axes deflected ≥ {PLATEAU_MIN_DEFLECTION_UM:g} µm)"
+            )
+            out.append(
+                format_table(
+                    [text("model")] + [Column(a, "µm") for a in AXES],
+                    [[name] + [_plateau_cell(axes[a]) for a in AXES] for name, axes in models.items()],
+                    indent="  ",
+                )
+            )
         harmed = info["harmed_by"]
-        out.append("  worse than uncompensated: " + ("; ".join(f"{n} ({', '.join(ax)})" for n, ax in harmed.items())
-                                                      if harmed else "none"))
+        out.append(
+            "  worse than uncompensated: "
+            + ("; ".join(f"{n} ({', '.join(ax)})" for n, ax in harmed.items()) if harmed else "none")
+        )
     return "\n".join(out)
 
 
@@ -360,8 +405,10 @@ def format_campaign_markdown(result: dict) -> str:
         info = result["campaigns"][camp]
         legend = "max \\|error\\| µm (RMS µm); **worse** = above uncompensated + 0.5 µm"
         if info["has_loads"]:
-            legend += (f"; plateau = largest error of the load-plateau means, µm (% of the largest plateau "
-                       f"deflection on axes deflected ≥ {PLATEAU_MIN_DEFLECTION_UM:g} µm)")
+            legend += (
+                f"; plateau = largest error of the load-plateau means, µm (% of the largest plateau "
+                f"deflection on axes deflected ≥ {PLATEAU_MIN_DEFLECTION_UM:g} µm)"
+            )
         out.append(f"**{camp}** ({info['n_samples']} samples): {legend}\n")
         head = "| model | dx | dy | dz | PI95 dx/dy/dz |"
         if info["has_loads"]:
@@ -389,23 +436,67 @@ def format_comparison(result: dict) -> str:
         if not rows:
             continue
         out.append(f"\n== {a} (peak {format_number(rows[0]['peak_um'])} µm) ==")
-        cols = [Column("rank"), text("model"), Column("max|err|", "µm"), Column("RMS", "µm"),
-                Column("max err", "% of peak", 2), Column("PI95 cover", "", 3)]
-        out.append(format_table(cols, [
-            [i, r["name"], r["max_abs_error_um"], r["rms_error_um"], r["error_pct_of_peak"],
-             "-" if r["pi95_coverage"] is None else r["pi95_coverage"]]
-            + (["WORSE"] if r.get("harm") else []) for i, r in enumerate(rows, 1)]))
+        cols = [
+            Column("rank"),
+            text("model"),
+            Column("max|err|", "µm"),
+            Column("RMS", "µm"),
+            Column("max err", "% of peak", 2),
+            Column("PI95 cover", "", 3),
+        ]
+        out.append(
+            format_table(
+                cols,
+                [
+                    [
+                        i,
+                        r["name"],
+                        r["max_abs_error_um"],
+                        r["rms_error_um"],
+                        r["error_pct_of_peak"],
+                        "-" if r["pi95_coverage"] is None else r["pi95_coverage"],
+                    ]
+                    + (["WORSE"] if r.get("harm") else [])
+                    for i, r in enumerate(rows, 1)
+                ],
+            )
+        )
     for name, why in result.get("failures", {}).items():
         out.append(f"failed: {name}: {why}")
     return "\n".join(out)
 
 
-POOLED_COLUMNS = ["axis", "rank", "name", "model_type", "features", "max_abs_error_um", "rms_error_um",
-                  "error_pct_of_peak", "peak_um", "pi95_coverage", "harm"]
-CAMPAIGN_COLUMNS = ["campaign", "axis", "rank", "name", "model_type", "features", "max_abs_error_um",
-                    "rms_error_um", "uncompensated_max_um", "uncompensated_rms_um", "harm",
-                    "error_pct_of_peak", "pi95_coverage", "plateau_max_error_um", "plateau_deflection_um",
-                    "plateau_error_pct_of_deflection"]
+POOLED_COLUMNS = [
+    "axis",
+    "rank",
+    "name",
+    "model_type",
+    "features",
+    "max_abs_error_um",
+    "rms_error_um",
+    "error_pct_of_peak",
+    "peak_um",
+    "pi95_coverage",
+    "harm",
+]
+CAMPAIGN_COLUMNS = [
+    "campaign",
+    "axis",
+    "rank",
+    "name",
+    "model_type",
+    "features",
+    "max_abs_error_um",
+    "rms_error_um",
+    "uncompensated_max_um",
+    "uncompensated_rms_um",
+    "harm",
+    "error_pct_of_peak",
+    "pi95_coverage",
+    "plateau_max_error_um",
+    "plateau_deflection_um",
+    "plateau_error_pct_of_deflection",
+]
 
 
 def _csv_text(rows, cols) -> str:
@@ -451,7 +542,6 @@ def write_comparison(result: dict, csv_path=None, json_path=None, campaign_csv_p
     Every file is written atomically; the CSVs hold the same rows (and ranks) as the JSON's
     ``rows`` and ``campaign_rows``, undefined numbers as empty cells (null in the JSON).
     """
-
     texts = []
     if csv_path is not None:
         texts.append((csv_path, _csv_text(ranked_rows(result), POOLED_COLUMNS)))
@@ -461,7 +551,8 @@ def write_comparison(result: dict, csv_path=None, json_path=None, campaign_csv_p
         texts.append((markdown_path, format_campaign_markdown(result)))
     # everything is rendered before the first file is replaced: a failure leaves the old set whole
     if json_path is not None:
-        write_json(json_path, {**result, "rows": ranked_rows(result),
-                               "campaign_rows": ranked_campaign_rows(result)})
+        write_json(
+            json_path, {**result, "rows": ranked_rows(result), "campaign_rows": ranked_campaign_rows(result)}
+        )
     for path, text in texts:
         write_bytes(path, text.encode("utf-8"))

@@ -37,11 +37,12 @@ from fbgcomp.models.base import campaign_weights_for, check_compatible
 from fbgcomp.models.mra import MRAModel
 from fbgcomp.models.regression import QRAccumulator
 
-__all__ = ["fit_paths", "accumulate_paths"]
+__all__ = ["accumulate_paths", "fit_paths"]
 
 # --------------------------------------------------------------------------------------------
 # Fitting: sources are dataset files and campaign folders
 # --------------------------------------------------------------------------------------------
+
 
 def _model_params(model) -> dict:
     params = model.get_params()
@@ -84,8 +85,10 @@ def _source_rows(model, source: dict, info: dict | None = None):
         w, t, w0, t0 = model.instrument_arrays(aligned)
         chunk = 100_000
         for lo in range(0, len(aligned), chunk):
-            yield (model.design_from_arrays(w[lo:lo + chunk], t[lo:lo + chunk], w0, t0),
-                   aligned.reference_um[lo:lo + chunk])
+            yield (
+                model.design_from_arrays(w[lo : lo + chunk], t[lo : lo + chunk], w0, t0),
+                aligned.reference_um[lo : lo + chunk],
+            )
 
 
 def _hac_campaign(sources: list, spec: dict, acc, weight: float) -> tuple:
@@ -119,13 +122,21 @@ def _plan(model, paths) -> tuple[list, list, dict]:
                 if first_sensors is None:
                     first_sensors = part.sensors()
                 partitions_seen.append(part)
-                described.append({"key": key, "name": part.campaign, "kind": part.kind,
-                                  "machine": part.machine, "path": str(part.path),
-                                  "dropped": part.dropped})
+                described.append(
+                    {
+                        "key": key,
+                        "name": part.campaign,
+                        "kind": part.kind,
+                        "machine": part.machine,
+                        "path": str(part.path),
+                        "dropped": part.dropped,
+                    }
+                )
                 entry = part.to_entry()
                 for f in part.file_paths:
-                    sources.append({"kind": "file", "root": str(path), "entry": entry,
-                                    "file": str(f), "key": key})
+                    sources.append(
+                        {"kind": "file", "root": str(path), "entry": entry, "file": str(f), "key": key}
+                    )
         else:
             if not path.is_dir():
                 raise InputError("campaign folder or dataset not found", file=raw)
@@ -133,16 +144,14 @@ def _plan(model, paths) -> tuple[list, list, dict]:
             if first_sensors is None:
                 first_sensors = list(meta.sensors)
             key = str(path)
-            described.append({"key": key, "name": meta.name, "kind": meta.kind,
-                              "path": str(raw)})
+            described.append({"key": key, "name": meta.name, "kind": meta.kind, "path": str(raw)})
             sources.append({"kind": "campaign", "path": str(path), "key": key})
     if not sources:
         raise ValueError("fit needs at least one campaign or dataset")
     model.new_accumulator(first_sensors)
     for part in partitions_seen:
         check_partition(model, part)
-    spec = {"params": _model_params(model),
-            "sensors": [s.model_dump(mode="json") for s in model.sensors_]}
+    spec = {"params": _model_params(model), "sensors": [s.model_dump(mode="json") for s in model.sensors_]}
     return sources, described, spec
 
 
@@ -154,8 +163,9 @@ def _campaign_weights(model, counts: list) -> list:
 def _pool(states: list, weights: list):
     """Merge per-campaign factors with their campaign weights (``QRAccumulator.merge``)."""
     first = QRAccumulator.from_dict(states[0]["acc"])
-    acc = QRAccumulator(first.n_features, first.n_targets, first.feature_names,
-                        first.target_names, precision=first.precision)
+    acc = QRAccumulator(
+        first.n_features, first.n_targets, first.feature_names, first.target_names, precision=first.precision
+    )
     for st, w in zip(states, weights):
         acc.merge(QRAccumulator.from_dict(st["acc"]), weight=w)
     return acc
@@ -173,8 +183,9 @@ def _second_pass(acc, spec: dict, sources: list, weights: dict, client) -> None:
         parts = [_hac_campaign(g, spec, acc, weights[k]) for k, g in groups.items()]
     else:
         shared = client.scatter(acc, broadcast=True)
-        futures = [client.submit(_hac_campaign, g, spec, shared, weights[k], pure=False)
-                   for k, g in groups.items()]
+        futures = [
+            client.submit(_hac_campaign, g, spec, shared, weights[k], pure=False) for k, g in groups.items()
+        ]
         parts = client.gather(futures)
     for g0, k, ka, rows in parts:
         acc.hac_g0_ += g0
@@ -204,16 +215,16 @@ def accumulate_paths(model, paths, dask=None):
             groups = {k: [] for k in keys}
             for src, fut in zip(sources, futures):
                 groups[src["key"]].append(fut)
-            reduced = [pairwise(lambda a, b: client.submit(_merge_states, a, b, pure=False),
-                                 groups[k]) for k in keys]
+            reduced = [
+                pairwise(lambda a, b: client.submit(_merge_states, a, b, pure=False), groups[k]) for k in keys
+            ]
             per_campaign = client.gather(reduced)
         counts = [int(st["acc"]["n_obs"]) for st in per_campaign]
         weights = _campaign_weights(model, counts)
         acc = _pool(per_campaign, weights)
         if acc.hac_lags_ is not None:
             _second_pass(acc, spec, sources, dict(zip(keys, weights)), client)
-    dropped = {t["key"]: t["dropped"] for st in per_campaign for t in st["training"]
-               if "dropped" in t}
+    dropped = {t["key"]: t["dropped"] for st in per_campaign for t in st["training"] if "dropped" in t}
     campaigns = []
     for d, n, w in zip(described, counts, weights):
         entry = {k: v for k, v in d.items() if k != "key"}

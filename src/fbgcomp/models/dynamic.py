@@ -30,16 +30,24 @@ class FilteredFeatureMap(FeatureMap):
         super().__init__(sensors, probe_names, True, roles)
         self.taus_s = tuple(float(t) for t in taus_s)
         self.static_names = list(self.base_names)
-        self.base_names = self.static_names + [lowpass_name(t, b) for t in self.taus_s
-                                               for b in TEMPERATURE_FEATURES]
+        self.base_names = self.static_names + [
+            lowpass_name(t, b) for t in self.taus_s for b in TEMPERATURE_FEATURES
+        ]
 
-    def base_filtered(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C,
-                      time_s=None, state=None, nominal_dt_s=1.0):
+    def base_filtered(
+        self,
+        wavelength_nm,
+        temperature_C,
+        wavelength_zero_nm,
+        temperature_zero_C,
+        time_s=None,
+        state=None,
+        nominal_dt_s=1.0,
+    ):
         """Base features (n, k) with the filtered temperature features appended, and the filters'
         new state (``{tau: state}``), from raw instrument arrays; ``state`` from the last call."""
-        static = FeatureMap.base(self, wavelength_nm, temperature_C, wavelength_zero_nm,
-                                 temperature_zero_C)
-        temps = static[:, -len(TEMPERATURE_FEATURES):]
+        static = FeatureMap.base(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C)
+        temps = static[:, -len(TEMPERATURE_FEATURES) :]
         state = state or {}
         cols, new_state = [static], {}
         for tau in self.taus_s:
@@ -65,18 +73,31 @@ class DynamicPredictor(Predictor):
         """Forget the filter state (the next call starts from its first sample)."""
         self.state = None
 
-    def design(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C,
-               time_s=None):
+    def design(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C, time_s=None):
         """Design matrix (n, 1 + terms), advancing the filter state (``last_base`` keeps the
         base features of the call)."""
         base, self.state = self.feature_map.base_filtered(
-            wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C, time_s,
-            self.state, self.nominal_dt_s)
+            wavelength_nm,
+            temperature_C,
+            wavelength_zero_nm,
+            temperature_zero_C,
+            time_s,
+            self.state,
+            self.nominal_dt_s,
+        )
         self.last_base = base
         return self._design_from_base(base)
 
-    def predict(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C, *,
-                z_axis_mm=None, time_s=None):
+    def predict(
+        self,
+        wavelength_nm,
+        temperature_C,
+        wavelength_zero_nm,
+        temperature_zero_C,
+        *,
+        z_axis_mm=None,
+        time_s=None,
+    ):
         """TTP deviation (n, 3) µm and 95 % half-width (n, 3) µm, continuing the stream (see
         :meth:`fbgcomp.models.base.Predictor.predict`; ``z_axis_mm`` is not used)."""
         wavelength_nm = np.atleast_2d(np.asarray(wavelength_nm, dtype=float))
@@ -106,9 +127,20 @@ class DynamicModel(MRAModel):
     hac_maxlags = "auto"
     records_frame_interval = True
 
-    def __init__(self, taus_s=DEFAULT_TAUS_S, stepwise=True, direction="both", p_enter=0.05,
-                 p_remove=0.10, max_terms=None, roles=None, zero_window_s=10.0, fallbacks="loo",
-                 elongation_axes=None, campaign_weights="balanced"):
+    def __init__(
+        self,
+        taus_s=DEFAULT_TAUS_S,
+        stepwise=True,
+        direction="both",
+        p_enter=0.05,
+        p_remove=0.10,
+        max_terms=None,
+        roles=None,
+        zero_window_s=10.0,
+        fallbacks="loo",
+        elongation_axes=None,
+        campaign_weights="balanced",
+    ):
         self.taus_s = taus_s
         self.stepwise = stepwise
         self.direction = direction
@@ -125,8 +157,9 @@ class DynamicModel(MRAModel):
         return FilteredFeatureMap(self.sensors_, self.probe_names_, self._roles(), tuple(self.taus_s))
 
     def _candidates(self, sensor_names):
-        terms = candidate_terms("eq13", sensor_names) + [lowpass_name(t, b) for t in tuple(self.taus_s)
-                                                         for b in TEMPERATURE_FEATURES]
+        terms = candidate_terms("eq13", sensor_names) + [
+            lowpass_name(t, b) for t in tuple(self.taus_s) for b in TEMPERATURE_FEATURES
+        ]
         return terms
 
     def _select(self, acc, exclude) -> dict:
@@ -168,8 +201,9 @@ class DynamicModel(MRAModel):
         exclude = frozenset(exclude)
         if exclude not in self._predictors:
             axes = self.axes_ if not exclude else self.fallbacks_[exclude]
-            self._predictors[exclude] = DynamicPredictor(self._feature_map(), axes, exclude,
-                                                         self.training_.get("dt_s", 1.0))
+            self._predictors[exclude] = DynamicPredictor(
+                self._feature_map(), axes, exclude, self.training_.get("dt_s", 1.0)
+            )
         return self._predictors[exclude]
 
     def predict_interval(self, X, exclude=frozenset()):
@@ -179,20 +213,31 @@ class DynamicModel(MRAModel):
     def to_dict(self) -> dict:
         """The regression's model file plus the filters (``dynamic``)."""
         d = super().to_dict()
-        d["dynamic"] = {"taus_s": list(self.taus_s), "filtered": list(TEMPERATURE_FEATURES),
-                        "elongation_axes": None if self.elongation_axes is None else list(self.elongation_axes),
-                        "filter": "first-order low-pass, exact for inputs held between samples"}
+        d["dynamic"] = {
+            "taus_s": list(self.taus_s),
+            "filtered": list(TEMPERATURE_FEATURES),
+            "elongation_axes": None if self.elongation_axes is None else list(self.elongation_axes),
+            "filter": "first-order low-pass, exact for inputs held between samples",
+        }
         return d
 
     @classmethod
-    def from_dict(cls, d: dict, source="<dict>", check=True) -> "DynamicModel":
+    def from_dict(cls, d: dict, source="<dict>", check=True) -> DynamicModel:
         """The model of a model file's dict (``check=False``: the caller checks the predictors)."""
         base = MRAModel.from_dict(d, source, check=False)
-        m = cls(taus_s=d["dynamic"]["taus_s"], stepwise=base.stepwise, direction=base.direction,
-                p_enter=base.p_enter, p_remove=base.p_remove, max_terms=base.max_terms,
-                roles=base.roles, zero_window_s=base.zero_window_s, fallbacks=base.fallbacks,
-                elongation_axes=d["dynamic"].get("elongation_axes"),
-                campaign_weights=getattr(base, "campaign_weights", "samples"))
+        m = cls(
+            taus_s=d["dynamic"]["taus_s"],
+            stepwise=base.stepwise,
+            direction=base.direction,
+            p_enter=base.p_enter,
+            p_remove=base.p_remove,
+            max_terms=base.max_terms,
+            roles=base.roles,
+            zero_window_s=base.zero_window_s,
+            fallbacks=base.fallbacks,
+            elongation_axes=d["dynamic"].get("elongation_axes"),
+            campaign_weights=getattr(base, "campaign_weights", "samples"),
+        )
         for k in ("candidates_", "sensors_", "probe_names_", "axes_", "fallbacks_", "training_", "coef_"):
             setattr(m, k, getattr(base, k))
         m._predictors = {}

@@ -23,8 +23,15 @@ from fbgcomp.optics import elongation_noise_um
 from fbgcomp.structure.loadcases import LOAD_CASES, load_case_responses
 from fbgcomp.units import AXES
 
-__all__ = ["LOAD_CASES", "load_case_responses", "fe_design", "fe_calibrate", "elongation_noise_um",
-           "resolution_report", "format_resolution"]
+__all__ = [
+    "LOAD_CASES",
+    "elongation_noise_um",
+    "fe_calibrate",
+    "fe_design",
+    "format_resolution",
+    "load_case_responses",
+    "resolution_report",
+]
 
 
 def fe_design(machine, twin, *, n_samples=2000, wavelength_noise_nm=0.001, seed=0):
@@ -49,33 +56,47 @@ def fe_design(machine, twin, *, n_samples=2000, wavelength_noise_nm=0.001, seed=
     probe_rise = w @ cases["probe_C"]
     probe_index = {p: i for i, p in enumerate(twin.probe_names)}
     sensors = machine.sensors
-    consts = dict(photoelastic=np.array([s.photoelastic for s in sensors]),
-                  thermo_optic_per_K=np.array([s.thermo_optic_per_K for s in sensors]),
-                  fibre_cte_per_K=np.array([s.fibre_cte_per_K for s in sensors]))
+    consts = dict(
+        photoelastic=np.array([s.photoelastic for s in sensors]),
+        thermo_optic_per_K=np.array([s.thermo_optic_per_K for s in sensors]),
+        fibre_cte_per_K=np.array([s.fibre_cte_per_K for s in sensors]),
+    )
     lam0 = np.array([s.lambda0_nm for s in sensors])
     gauge = np.array([s.gauge_length for s in sensors])
-    compensating = np.column_stack([probe_rise[:, probe_index[s.temperature_probe]] if s.temperature_probe
-                                    else np.zeros(n_samples) for s in sensors])
+    compensating = np.column_stack(
+        [
+            probe_rise[:, probe_index[s.temperature_probe]] if s.temperature_probe else np.zeros(n_samples)
+            for s in sensors
+        ]
+    )
     lam = optics.wavelength_nm(host, lam0, gauge, sensor_rise, **consts)
     lam = lam + wavelength_noise_nm * rng.standard_normal(lam.shape)
     read = optics.elongation_um(lam, lam0, gauge, compensating, **consts)
     roles = TemperatureRoles()
-    rise = {r: (probe_rise[:, probe_index[p]] if p in probe_index else np.zeros(n_samples))
-            for r, p in roles.as_dict().items()}
+    rise = {
+        r: (probe_rise[:, probe_index[p]] if p in probe_index else np.zeros(n_samples))
+        for r, p in roles.as_dict().items()
+    }
     temps = np.column_stack([rise["bulk"], rise["bulk"] - rise["surf"], rise["flange"] - rise["bulk"]])
-    X = pd.DataFrame(np.hstack([read, temps]),
-                     columns=[f"dL_{s.name}" for s in sensors] + list(TEMPERATURE_FEATURES))
+    X = pd.DataFrame(
+        np.hstack([read, temps]), columns=[f"dL_{s.name}" for s in sensors] + list(TEMPERATURE_FEATURES)
+    )
     return X, w @ cases["ttp_um"], cases
 
 
 def _design_record(seed, n_samples, wavelength_noise_nm):
-    rec = {"load_cases": [{"name": n, "magnitude": m, "unit": u} for n, m, u in LOAD_CASES],
-           "n_samples": int(n_samples), "wavelength_noise_nm": wavelength_noise_nm, "seed": seed}
+    rec = {
+        "load_cases": [{"name": n, "magnitude": m, "unit": u} for n, m, u in LOAD_CASES],
+        "n_samples": int(n_samples),
+        "wavelength_noise_nm": wavelength_noise_nm,
+        "seed": seed,
+    }
     return rec
 
 
-def fe_calibrate(machine, twin=None, *, features="eq11", n_samples=2000, wavelength_noise_nm=0.001,
-                 seed=0, stepwise=False):
+def fe_calibrate(
+    machine, twin=None, *, features="eq11", n_samples=2000, wavelength_noise_nm=0.001, seed=0, stepwise=False
+):
     """Fit a model on a random design of FE load cases (paper sec. 2.3): an ordinary model file.
 
     ``features`` "eq11" (the paper's FE step: elongations only) or "eq13"/"eq12" (with the
@@ -90,17 +111,27 @@ def fe_calibrate(machine, twin=None, *, features="eq11", n_samples=2000, wavelen
     from fbgcomp.structure import Twin  # the FE twin needs scikit-fem, the optional ``fe`` extra
 
     twin = twin or Twin(machine)
-    X, y, cases = fe_design(machine, twin, n_samples=n_samples,
-                            wavelength_noise_nm=wavelength_noise_nm, seed=seed)
+    X, y, cases = fe_design(
+        machine, twin, n_samples=n_samples, wavelength_noise_nm=wavelength_noise_nm, seed=seed
+    )
     model = MRAModel(features=features, stepwise=stepwise, fallbacks="loo")
     sensors = campaign_sensor_specs(machine)
     acc = model.new_accumulator(sensors, [p.name for p in machine.probes])
     fmap = model._feature_map()
     keep = [c for c in X.columns if c in fmap.base_names]
-    accumulate_series(acc, [(design_matrix(X[keep].to_numpy(), keep, model.candidates_),
-                             np.asarray(y, dtype=float), None)], chunk_rows=CHUNK_ROWS)
-    model.fit_factor(acc, training={"campaigns": [], "n_samples": int(n_samples),
-                                    "fe_design": _design_record(seed, n_samples, wavelength_noise_nm)})
+    accumulate_series(
+        acc,
+        [(design_matrix(X[keep].to_numpy(), keep, model.candidates_), np.asarray(y, dtype=float), None)],
+        chunk_rows=CHUNK_ROWS,
+    )
+    model.fit_factor(
+        acc,
+        training={
+            "campaigns": [],
+            "n_samples": int(n_samples),
+            "fe_design": _design_record(seed, n_samples, wavelength_noise_nm),
+        },
+    )
     return model, cases
 
 
@@ -121,31 +152,40 @@ def resolution_report(machine, twin=None, wavelength_noise_nm=0.001):
     cases = load_case_responses(twin)
     elong, ttp = cases["sensor_elongation_um"], cases["ttp_um"]
     noise = elongation_noise_um(machine.sensors, wavelength_noise_nm)
-    scaled = elong / noise                                   # (C, S) in noise units
+    scaled = elong / noise  # (C, S) in noise units
     u, sv, vt = np.linalg.svd(scaled, full_matrices=True)
-    rank = int(np.sum(sv > 1.0))                             # excited above one noise SD
+    rank = int(np.sum(sv > 1.0))  # excited above one noise SD
     # TTP = scaled @ G: G from the observable subspace only.
     inv = np.zeros((len(sv), len(sv)))
     inv[:rank, :rank] = np.diag(1.0 / sv[:rank])
-    G = vt[:len(sv)].T @ inv @ u[:, :len(sv)].T @ ttp       # (S, 3) µm per noise unit
+    G = vt[: len(sv)].T @ inv @ u[:, : len(sv)].T @ ttp  # (S, 3) µm per noise unit
     unexplained = ttp - scaled @ G
-    sigma_ttp = np.sqrt((G ** 2).sum(axis=0))                # white unit noise per sensor
-    unobservable = [dict(zip([s.name for s in machine.sensors], np.round(v, 3).tolist()))
-                    for v in vt[rank:]]
+    sigma_ttp = np.sqrt((G**2).sum(axis=0))  # white unit noise per sensor
+    unobservable = [dict(zip([s.name for s in machine.sensors], np.round(v, 3).tolist())) for v in vt[rank:]]
     axes = {}
     for j, a in enumerate(AXES):
-        axes[a] = {"resolution_um": float(2 * sigma_ttp[j]), "noise_sd_um": float(sigma_ttp[j]),
-                   "max_load_case_ttp_um": float(np.max(np.abs(ttp[:, j]))),
-                   "max_unexplained_um": float(np.max(np.abs(unexplained[:, j]))),
-                   "um_per_sensor_um": (G[:, j] / noise).tolist()}
+        axes[a] = {
+            "resolution_um": float(2 * sigma_ttp[j]),
+            "noise_sd_um": float(sigma_ttp[j]),
+            "max_load_case_ttp_um": float(np.max(np.abs(ttp[:, j]))),
+            "max_unexplained_um": float(np.max(np.abs(unexplained[:, j]))),
+            "um_per_sensor_um": (G[:, j] / noise).tolist(),
+        }
     return {
         "sensors": [s.name for s in machine.sensors],
         "wavelength_noise_nm": wavelength_noise_nm,
         "elongation_noise_um": noise.tolist(),
-        "load_cases": [{"name": n, "magnitude": m, "unit": unit,
-                        "sensor_elongation_um": elong[i].tolist(), "ttp_um": ttp[i].tolist(),
-                        "snr": (np.abs(elong[i]) / noise).tolist()}
-                       for i, (n, m, unit) in enumerate(LOAD_CASES)],
+        "load_cases": [
+            {
+                "name": n,
+                "magnitude": m,
+                "unit": unit,
+                "sensor_elongation_um": elong[i].tolist(),
+                "ttp_um": ttp[i].tolist(),
+                "snr": (np.abs(elong[i]) / noise).tolist(),
+            }
+            for i, (n, m, unit) in enumerate(LOAD_CASES)
+        ],
         "singular_values": sv.tolist(),
         "rank": rank,
         "condition_number": float(sv[0] / sv[rank - 1]) if rank else float("inf"),
@@ -156,23 +196,36 @@ def resolution_report(machine, twin=None, wavelength_noise_nm=0.001):
 
 def format_resolution(rep: dict) -> str:
     """The resolution report (:func:`resolution_report`) as text tables."""
-    lines = ["FBG resolution check (2σ, interrogator noise on the elongations)",
-             "sensor noise (µm): " + ", ".join(f"{s} {n:.3f}" for s, n in
-                                               zip(rep["sensors"], rep["elongation_noise_um"]))]
-    lines.append(f"{'load case':<12}{'magnitude':>11}  " + "".join(f"{s + ' µm':>10}" for s in rep["sensors"])
-                 + f"{'dx µm':>9}{'dy µm':>9}{'dz µm':>9}")
+    lines = [
+        "FBG resolution check (2σ, interrogator noise on the elongations)",
+        "sensor noise (µm): "
+        + ", ".join(f"{s} {n:.3f}" for s, n in zip(rep["sensors"], rep["elongation_noise_um"])),
+    ]
+    lines.append(
+        f"{'load case':<12}{'magnitude':>11}  "
+        + "".join(f"{s + ' µm':>10}" for s in rep["sensors"])
+        + f"{'dx µm':>9}{'dy µm':>9}{'dz µm':>9}"
+    )
     for c in rep["load_cases"]:
-        lines.append(f"{c['name']:<12}{c['magnitude']:>8g} {c['unit']:<2} "
-                     + "".join(f"{v:>10.3f}" for v in c["sensor_elongation_um"])
-                     + "".join(f"{v:>9.3f}" for v in c["ttp_um"]))
+        lines.append(
+            f"{c['name']:<12}{c['magnitude']:>8g} {c['unit']:<2} "
+            + "".join(f"{v:>10.3f}" for v in c["sensor_elongation_um"])
+            + "".join(f"{v:>9.3f}" for v in c["ttp_um"])
+        )
     lines.append(f"{'axis':<5}{'resolves µm':>13}{'max case µm':>13}{'unexplained µm':>16}")
     for a, m in rep["axes"].items():
-        lines.append(f"{a:<5}{m['resolution_um']:>13.3f}{m['max_load_case_ttp_um']:>13.3f}"
-                     f"{m['max_unexplained_um']:>16.3f}")
-    lines.append(f"sensor-to-TTP map (noise units): singular values "
-                 f"{', '.join(f'{v:.3g}' for v in rep['singular_values'])}; rank {rep['rank']} of "
-                 f"{len(rep['sensors'])}, condition number {rep['condition_number']:.3g}")
+        lines.append(
+            f"{a:<5}{m['resolution_um']:>13.3f}{m['max_load_case_ttp_um']:>13.3f}"
+            f"{m['max_unexplained_um']:>16.3f}"
+        )
+    lines.append(
+        f"sensor-to-TTP map (noise units): singular values "
+        f"{', '.join(f'{v:.3g}' for v in rep['singular_values'])}; rank {rep['rank']} of "
+        f"{len(rep['sensors'])}, condition number {rep['condition_number']:.3g}"
+    )
     for combo in rep["unobservable_combinations"]:
-        lines.append("unobservable (no load case excites it above the noise): "
-                     + " ".join(f"{v:+.2f}·{k}" for k, v in combo.items() if abs(v) > 1e-3))
+        lines.append(
+            "unobservable (no load case excites it above the noise): "
+            + " ".join(f"{v:+.2f}·{k}" for k, v in combo.items() if abs(v) > 1e-3)
+        )
     return "\n".join(lines)

@@ -74,8 +74,16 @@ def candidate_terms(feature_set: str, sensor_names) -> list[str]:
     return terms
 
 
-def sensor_elongations_um(wavelength_nm, wavelength_zero_nm, gauge_length_mm, delta_t_C, *,
-                          photoelastic, thermo_optic_per_K, fibre_cte_per_K):
+def sensor_elongations_um(
+    wavelength_nm,
+    wavelength_zero_nm,
+    gauge_length_mm,
+    delta_t_C,
+    *,
+    photoelastic,
+    thermo_optic_per_K,
+    fibre_cte_per_K,
+):
     """Elongations of all sensor paths at once (paper eq. 2-4), µm.
 
     Parameters
@@ -91,9 +99,15 @@ def sensor_elongations_um(wavelength_nm, wavelength_zero_nm, gauge_length_mm, de
     photoelastic, thermo_optic_per_K, fibre_cte_per_K : ndarray, shape (S,)
         Fibre constants per sensor.
     """
-    return optics.elongation_um(wavelength_nm, wavelength_zero_nm, gauge_length_mm, delta_t_C,
-                                photoelastic=photoelastic, thermo_optic_per_K=thermo_optic_per_K,
-                                fibre_cte_per_K=fibre_cte_per_K)
+    return optics.elongation_um(
+        wavelength_nm,
+        wavelength_zero_nm,
+        gauge_length_mm,
+        delta_t_C,
+        photoelastic=photoelastic,
+        thermo_optic_per_K=thermo_optic_per_K,
+        fibre_cte_per_K=fibre_cte_per_K,
+    )
 
 
 def temperature_features_C(temperature_C, temperature_zero_C, bulk: int, surf: int, flange: int):
@@ -138,15 +152,19 @@ class FeatureMap:
         self._xi = np.array([s.thermo_optic_per_K for s in self.sensors], dtype=float)
         self._af = np.array([s.fibre_cte_per_K for s in self.sensors], dtype=float)
         index = {p: i for i, p in enumerate(self.probe_names)}
-        missing = [s.temperature_probe for s in self.sensors
-                   if s.temperature_probe is not None and s.temperature_probe not in index]
+        missing = [
+            s.temperature_probe
+            for s in self.sensors
+            if s.temperature_probe is not None and s.temperature_probe not in index
+        ]
         if self.uses_temperature_features:
             missing += [p for p in self.roles.as_dict().values() if p not in index]
         if missing:
             raise KeyError(f"temperature probe(s) not available: {', '.join(dict.fromkeys(missing))}")
         # Sensors without a probe get dT = 0 (uncompensated): index a column of zeros.
-        self._sensor_probe = np.array([index.get(s.temperature_probe, -1) if s.temperature_probe else -1
-                                       for s in self.sensors])
+        self._sensor_probe = np.array(
+            [index.get(s.temperature_probe, -1) if s.temperature_probe else -1 for s in self.sensors]
+        )
         self._compensated = self._sensor_probe >= 0
         if self.uses_temperature_features:
             self._roles = (index[self.roles.bulk], index[self.roles.surf], index[self.roles.flange])
@@ -172,9 +190,15 @@ class FeatureMap:
             sensor_dt = np.where(self._compensated, delta[:, np.maximum(self._sensor_probe, 0)], 0.0)
         else:
             sensor_dt = np.zeros((n, len(self.sensors)))
-        dl = sensor_elongations_um(wavelength_nm, wavelength_zero_nm, self._gauge_mm, sensor_dt,
-                                   photoelastic=self._pe, thermo_optic_per_K=self._xi,
-                                   fibre_cte_per_K=self._af)
+        dl = sensor_elongations_um(
+            wavelength_nm,
+            wavelength_zero_nm,
+            self._gauge_mm,
+            sensor_dt,
+            photoelastic=self._pe,
+            thermo_optic_per_K=self._xi,
+            fibre_cte_per_K=self._af,
+        )
         if not self.uses_temperature_features:
             return dl
         return np.hstack([dl, temperature_features_C(temperature_C, temperature_zero_C, *self._roles)])

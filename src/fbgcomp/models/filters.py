@@ -23,7 +23,7 @@ def first_order_recursion(x, u, y0, gain=True):
     ``+ u_i``), from ``y0``; (n, k) from (n, k) ``u``. Closed form per stretch whose summed
     decay stays below e^-600 (so that no weight overflows); every weight is positive, so no
     cancellation beyond the recursion's own."""
-    x = np.minimum(np.asarray(x, float), 600.0)       # exp(-600): no memory left either way
+    x = np.minimum(np.asarray(x, float), 600.0)  # exp(-600): no memory left either way
     u = np.asarray(u, float)
     w = -np.expm1(-x)[:, None] * u if gain else u
     out = np.empty_like(w)
@@ -35,7 +35,7 @@ def first_order_recursion(x, u, y0, gain=True):
         base = L[start - 1] if start else 0.0
         stop = int(np.searchsorted(L, base + 600.0, side="right"))
         stop = min(max(stop, start + 1), n)
-        Ls = L[start:stop] - base                                 # >= 0, <= 600 (or one row)
+        Ls = L[start:stop] - base  # >= 0, <= 600 (or one row)
         acc = np.cumsum(np.exp(Ls)[:, None] * w[start:stop], axis=0)
         out[start:stop] = np.exp(-Ls)[:, None] * (y_prev[None, :] + acc)
         y_prev = out[stop - 1]

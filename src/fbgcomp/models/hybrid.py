@@ -12,8 +12,14 @@ from __future__ import annotations
 import numpy as np
 
 from fbgcomp.errors import InputError
-from fbgcomp.models.base import (EstimatorParams, ModelFile, as_campaign_list, campaign_z_axis_mm,
-                                 check_compatible, check_predictors)
+from fbgcomp.models.base import (
+    EstimatorParams,
+    ModelFile,
+    as_campaign_list,
+    campaign_z_axis_mm,
+    check_compatible,
+    check_predictors,
+)
 from fbgcomp.models.dynamic import DEFAULT_TAUS_S, DynamicModel, DynamicPredictor
 from fbgcomp.models.kinematic import KinematicModel, KinematicPredictor
 
@@ -32,15 +38,14 @@ def hybrid_chain_part(chain, elongation_um, housing_dT_K):
 class HybridPredictor:
     """Thermally corrected kinematic chain + temperature regression (see :class:`HybridModel`)."""
 
-    def __init__(self, kinematic: KinematicPredictor, residual: DynamicPredictor, correction,
-                 probe_names):
+    def __init__(self, kinematic: KinematicPredictor, residual: DynamicPredictor, correction, probe_names):
         self.kinematic, self.residual = kinematic, residual
         self.exclude = kinematic.exclude
         self.sensor_names = kinematic.sensor_names
         self.probe_names = list(probe_names)
         self._k_probe = [self.probe_names.index(p) for p in kinematic.probe_names]
         self._r_probe = [self.probe_names.index(p) for p in residual.probe_names]
-        self._correction = np.asarray(correction, dtype=float)      # (T, S) µm per feature
+        self._correction = np.asarray(correction, dtype=float)  # (T, S) µm per feature
         self.expected_rms_error_um = residual.expected_rms_error_um
         self._used = kinematic._used
 
@@ -52,7 +57,7 @@ class HybridPredictor:
         """TTP µm per µm of each used bar: the chain's plus the residual regression's own
         elongation terms (which, on dz, largely replace the chain's axial path)."""
         J = chain.jacobian()[0].copy()
-        J[2] = 0.0                                   # dz: no bar path in the chain's share
+        J[2] = 0.0  # dz: no bar path in the chain's share
         for i, name in enumerate(self.residual.terms, start=1):
             if name.startswith("dL_") and name[3:] in self.sensor_names:
                 col = self.sensor_names.index(name[3:])
@@ -60,8 +65,16 @@ class HybridPredictor:
                     J[:, self._used.index(col)] += self.residual.coef[i]
         return J
 
-    def predict(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C, *,
-                z_axis_mm=None, time_s=None):
+    def predict(
+        self,
+        wavelength_nm,
+        temperature_C,
+        wavelength_zero_nm,
+        temperature_zero_C,
+        *,
+        z_axis_mm=None,
+        time_s=None,
+    ):
         """TTP deviation (n, 3) µm and 95 % half-width (n, 3) µm: the chain on the thermally
         corrected elongations (at ``z_axis_mm``) plus the residual regression (over ``time_s``)."""
         w = np.atleast_2d(np.asarray(wavelength_nm, dtype=float))
@@ -73,12 +86,12 @@ class HybridPredictor:
             cols = [i for i, s in enumerate(self.sensor_names) if s in self.exclude]
             w[:, cols] = w0[cols]
         tr, tr0 = t[:, self._r_probe], t0[self._r_probe]
-        design = self.residual.design(w, tr, w0, tr0, time_s)          # const + temperature terms
+        design = self.residual.design(w, tr, w0, tr0, time_s)  # const + temperature terms
         dr = design @ self.residual.coef
         var = self.residual._interval_var(design)
         # Elongations minus their temperature-explained part: what the structure's loads did.
         base = self.residual.last_base
-        temps = base[:, len(self.residual.feature_map.sensor_names):]
+        temps = base[:, len(self.residual.feature_map.sensor_names) :]
         k = self.kinematic
         dl = k.feature_map.base(w, t[:, self._k_probe], w0, t0[self._k_probe])
         dl = dl - temps @ self._correction
@@ -125,9 +138,21 @@ class HybridModel(EstimatorParams, ModelFile):
 
     model_type = "hybrid"
 
-    def __init__(self, machine=None, features="eq13", stepwise=True, taus_s=DEFAULT_TAUS_S,
-                 p_enter=0.05, p_remove=0.10, max_terms=None, roles=None, zero_window_s=10.0,
-                 fallbacks="loo", elongation_axes=("dz",), campaign_weights="balanced"):
+    def __init__(
+        self,
+        machine=None,
+        features="eq13",
+        stepwise=True,
+        taus_s=DEFAULT_TAUS_S,
+        p_enter=0.05,
+        p_remove=0.10,
+        max_terms=None,
+        roles=None,
+        zero_window_s=10.0,
+        fallbacks="loo",
+        elongation_axes=("dz",),
+        campaign_weights="balanced",
+    ):
         self.machine = machine
         self.campaign_weights = campaign_weights
         self.elongation_axes = elongation_axes
@@ -142,20 +167,27 @@ class HybridModel(EstimatorParams, ModelFile):
     def _residual_estimator(self):
         if self.features not in ("eq13", "dynamic"):
             raise ValueError(f"hybrid features must be eq13 or dynamic, not {self.features!r}")
-        return DynamicModel(taus_s=self.taus_s if self.features == "dynamic" else (),
-                            stepwise=self.stepwise, p_enter=self.p_enter, p_remove=self.p_remove,
-                            max_terms=self.max_terms, roles=self.roles,
-                            zero_window_s=self.zero_window_s, fallbacks=self.fallbacks,
-                            elongation_axes=self.elongation_axes,
-                            campaign_weights=self.campaign_weights)
+        return DynamicModel(
+            taus_s=self.taus_s if self.features == "dynamic" else (),
+            stepwise=self.stepwise,
+            p_enter=self.p_enter,
+            p_remove=self.p_remove,
+            max_terms=self.max_terms,
+            roles=self.roles,
+            zero_window_s=self.zero_window_s,
+            fallbacks=self.fallbacks,
+            elongation_axes=self.elongation_axes,
+            campaign_weights=self.campaign_weights,
+        )
 
     def fit(self, X, y=None, *, progress=None):
         """Fit on campaigns (``y`` None): thermal correction, chain, residual regression."""
         campaigns = as_campaign_list(X)
         if not campaigns:
             raise ValueError("fit needs at least one campaign")
-        self.kinematic_ = KinematicModel(self.machine, zero_window_s=self.zero_window_s,
-                                         fallbacks=self.fallbacks).fit()
+        self.kinematic_ = KinematicModel(
+            self.machine, zero_window_s=self.zero_window_s, fallbacks=self.fallbacks
+        ).fit()
         res = self._residual_estimator()
         res.new_accumulator(list(campaigns[0].meta.sensors), None)
         self.residual_ = res
@@ -174,12 +206,12 @@ class HybridModel(EstimatorParams, ModelFile):
             base, _ = fmap.base_filtered(w, t[:, rp], w0, t0[rp], a.time_s)
             # Through the origin: at the zero state both sides are zero by definition, and a
             # constant would absorb the mean elongation of load campaigns (ΔT = 0 there).
-            temps = base[:, len(fmap.sensor_names):]
+            temps = base[:, len(fmap.sensor_names) :]
             dl = kin.feature_map.base(w, t[:, kp], w0, t0[kp])
             xtx = xtx + temps.T @ temps
             xty = xty + temps.T @ dl
             cache.append((c, a, temps, dl, t[:, kp], t0[kp]))
-        self.correction_ = np.linalg.lstsq(xtx, xty, rcond=None)[0]       # (T, S)
+        self.correction_ = np.linalg.lstsq(xtx, xty, rcond=None)[0]  # (T, S)
         kin = self._calibrate_closure(kin, cache)
         # 2-3. chain on corrected elongations, regression of the residual on temperatures
         targets = {}
@@ -214,11 +246,15 @@ class HybridModel(EstimatorParams, ModelFile):
 
     def summary(self) -> str:
         """The chain's summary, the thermal correction of the elongations and the regression's tables."""
-        names = self.residual_._feature_map().base_names[len(self.sensors_):]
-        lines = ["Hybrid model: thermally corrected kinematic chain + temperature regression", "",
-                 self.kinematic_.summary(), "",
-                 "Thermal part of the elongations (µm per unit feature):",
-                 f"{'':<24}" + "".join(f"{s.name:>10}" for s in self.sensors_)]
+        names = self.residual_._feature_map().base_names[len(self.sensors_) :]
+        lines = [
+            "Hybrid model: thermally corrected kinematic chain + temperature regression",
+            "",
+            self.kinematic_.summary(),
+            "",
+            "Thermal part of the elongations (µm per unit feature):",
+            f"{'':<24}" + "".join(f"{s.name:>10}" for s in self.sensors_),
+        ]
         for name, row in zip(names, self.correction_):
             lines.append(f"{name:<24}" + "".join(f"{v:>10.4g}" for v in row))
         lines += ["", "Regression of the chain's residual", self.residual_.summary()]
@@ -227,35 +263,51 @@ class HybridModel(EstimatorParams, ModelFile):
     def to_dict(self) -> dict:
         """The model file's content (the chain's and the regression's files embedded)."""
         d = self._header()
-        d.update({
-            "zero_state": {"method": "mean_of_first_window", "window_s": self.zero_window_s},
-            "sensors": [s.model_dump(mode="json") for s in self.sensors_],
-            "probes": list(self.probe_names_),
-            "hybrid": {"features": self.features, "kinematic": self.kinematic_.to_dict(),
-                       "thermal_correction_um": self.correction_.tolist(),
-                       "residual": self.residual_.to_dict()},
-            "uncertainty": {"level": 0.95, "method": "residual regression: covariance + residual variance"},
-            "z_axis_mm": self.kinematic_.machine_.supports.z_axis_mm,
-            "fallback_policy": self.fallbacks,
-            "training": self.training_,
-        })
+        d.update(
+            {
+                "zero_state": {"method": "mean_of_first_window", "window_s": self.zero_window_s},
+                "sensors": [s.model_dump(mode="json") for s in self.sensors_],
+                "probes": list(self.probe_names_),
+                "hybrid": {
+                    "features": self.features,
+                    "kinematic": self.kinematic_.to_dict(),
+                    "thermal_correction_um": self.correction_.tolist(),
+                    "residual": self.residual_.to_dict(),
+                },
+                "uncertainty": {
+                    "level": 0.95,
+                    "method": "residual regression: covariance + residual variance",
+                },
+                "z_axis_mm": self.kinematic_.machine_.supports.z_axis_mm,
+                "fallback_policy": self.fallbacks,
+                "training": self.training_,
+            }
+        )
         return d
 
     @classmethod
-    def from_dict(cls, d: dict, source="<dict>", check=True) -> "HybridModel":
+    def from_dict(cls, d: dict, source="<dict>", check=True) -> HybridModel:
         """The model of a model file's dict (``check=False``: the caller checks the predictors)."""
         h = d["hybrid"]
         kin = KinematicModel.from_dict(h["kinematic"], source)
         res = DynamicModel.from_dict(h["residual"], source)
-        m = cls(machine=kin.machine_, features=h["features"], zero_window_s=d["zero_state"]["window_s"],
-                fallbacks=d.get("fallback_policy", "loo"), taus_s=res.taus_s,
-                elongation_axes=res.elongation_axes, campaign_weights=res.campaign_weights)
+        m = cls(
+            machine=kin.machine_,
+            features=h["features"],
+            zero_window_s=d["zero_state"]["window_s"],
+            fallbacks=d.get("fallback_policy", "loo"),
+            taus_s=res.taus_s,
+            elongation_axes=res.elongation_axes,
+            campaign_weights=res.campaign_weights,
+        )
         m.kinematic_, m.residual_ = kin, res
         m.correction_ = np.asarray(h["thermal_correction_um"], dtype=float)
         if m.correction_.ndim != 2 or m.correction_.shape[1] != len(kin.sensors_):
-            raise InputError(f"shape {m.correction_.shape} disagrees with the model's "
-                             f"{len(kin.sensors_)} sensors", file=source,
-                             column="field hybrid.thermal_correction_um")
+            raise InputError(
+                f"shape {m.correction_.shape} disagrees with the model's {len(kin.sensors_)} sensors",
+                file=source,
+                column="field hybrid.thermal_correction_um",
+            )
         m.sensors_ = kin.sensors_
         m.probe_names_ = list(d["probes"])
         m.training_ = d.get("training", res.training_)

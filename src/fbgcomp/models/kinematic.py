@@ -21,8 +21,17 @@ from scipy.optimize import nnls
 
 from fbgcomp.errors import InputError
 from fbgcomp.kinematics import CLOSURE_FACTORS, KinematicChain
-from fbgcomp.models.base import (EstimatorParams, ModelFile, as_campaign_list, check_compatible,
-                                 check_fallback_policy, check_predictors, deviation_range, fallback_sets, plain)
+from fbgcomp.models.base import (
+    EstimatorParams,
+    ModelFile,
+    as_campaign_list,
+    check_compatible,
+    check_fallback_policy,
+    check_predictors,
+    deviation_range,
+    fallback_sets,
+    plain,
+)
 from fbgcomp.models.features import FeatureMap, TemperatureRoles
 from fbgcomp.models.machines import campaign_sensor_specs, resolve_machine
 from fbgcomp.optics import elongation_noise_um
@@ -40,8 +49,18 @@ KINEMATIC_DEFAULT_FLOOR_UM = 0.5
 class KinematicPredictor:
     """Pure-numpy kinematic prediction for one sensor set; chains compiled per Z position."""
 
-    def __init__(self, machine, sensors, probe_names, exclude, pi_relative, pi_floor_um,
-                 wavelength_noise_nm=0.001, probe_noise_C=0.1, closure_factors=None):
+    def __init__(
+        self,
+        machine,
+        sensors,
+        probe_names,
+        exclude,
+        pi_relative,
+        pi_floor_um,
+        wavelength_noise_nm=0.001,
+        probe_noise_C=0.1,
+        closure_factors=None,
+    ):
         self.machine = machine
         self.closure_factors = None if closure_factors is None else dict(closure_factors)
         self.exclude = frozenset(exclude)
@@ -51,8 +70,9 @@ class KinematicPredictor:
         self._used = [i for i, s in enumerate(self.sensor_names) if s not in self.exclude]
         self._chains: dict = {}
         chain = self.chain(None)
-        self._housing = (self.probe_names.index(chain.housing_probe)
-                         if chain.housing_probe in self.probe_names else None)
+        self._housing = (
+            self.probe_names.index(chain.housing_probe) if chain.housing_probe in self.probe_names else None
+        )
         self._noise_um = elongation_noise_um(sensors, wavelength_noise_nm)[self._used]
         self._probe_noise_C = probe_noise_C
         # Elongation change per K of each probe (temperature compensation, eq. 2-3): probe
@@ -61,21 +81,26 @@ class KinematicPredictor:
         if n_p:
             w0 = np.array([s.lambda0_nm for s in sensors])
             t0 = np.zeros(n_p)
-            self._per_probe = (self.feature_map.base(np.tile(w0, (n_p, 1)), np.eye(n_p), w0, t0)
-                               [:, self._used]).T                     # (S_used, P) µm/K
+            self._per_probe = (
+                self.feature_map.base(np.tile(w0, (n_p, 1)), np.eye(n_p), w0, t0)[:, self._used]
+            ).T  # (S_used, P) µm/K
         else:
             self._per_probe = np.zeros((len(self._used), 0))
         self._rel = np.broadcast_to(np.asarray(pi_relative, float), (3,)).copy()
         self._floor = np.broadcast_to(np.asarray(pi_floor_um, float), (3,)).copy()
-        self.expected_rms_error_um = np.sqrt(self._noise_var(chain) + self._floor ** 2)
+        self.expected_rms_error_um = np.sqrt(self._noise_var(chain) + self._floor**2)
 
     def chain(self, z_axis_mm) -> KinematicChain:
         """The HTM chain of the used bars at Z position ``z_axis_mm`` (None: the description's),
         compiled once per position (rounded to 1 µm)."""
         key = None if z_axis_mm is None else round(float(z_axis_mm), 3)
         if key not in self._chains:
-            self._chains[key] = KinematicChain(self.machine, [self.sensor_names[i] for i in self._used],
-                                               z_axis_mm=key, closure_factors=self.closure_factors)
+            self._chains[key] = KinematicChain(
+                self.machine,
+                [self.sensor_names[i] for i in self._used],
+                z_axis_mm=key,
+                closure_factors=self.closure_factors,
+            )
         return self._chains[key]
 
     def inconsistency_var(self, chain, elongation_um, jacobian=None):
@@ -93,28 +118,38 @@ class KinematicPredictor:
         n = len(elongation_um)
         if not P.size or np.trace(P) < 0.5:
             return np.zeros((n, 3))
-        sigma = np.diag(self._noise_um ** 2) + (self._per_probe * self._probe_noise_C) @ \
-            (self._per_probe * self._probe_noise_C).T
+        sigma = (
+            np.diag(self._noise_um**2)
+            + (self._per_probe * self._probe_noise_C) @ (self._per_probe * self._probe_noise_C).T
+        )
         expected = float(np.trace(P @ sigma @ P.T))
         rho = elongation_um @ P.T
-        rho2 = np.sum(rho ** 2, axis=1)
+        rho2 = np.sum(rho**2, axis=1)
         shrink = np.where(rho2 > 0, np.maximum(1.0 - 3.84 * expected / np.maximum(rho2, 1e-300), 0.0), 0.0)
         d = np.diag(P)
         ok = d > 1e-9
         J = chain.jacobian()[0] if jacobian is None else jacobian
-        eps = rho[:, ok] / d[ok]                                     # (n, k) µm on one bar
+        eps = rho[:, ok] / d[ok]  # (n, k) µm on one bar
         effect = np.max((eps[:, :, None] * J.T[ok][None, :, :]) ** 2, axis=1)
         return effect * shrink[:, None]
 
     def _noise_var(self, chain):
         J, Jh = chain.jacobian()
-        var = (J ** 2) @ (self._noise_um ** 2)
+        var = (J**2) @ (self._noise_um**2)
         if chain.housing_probe is not None:
             var = var + (Jh * self._probe_noise_C) ** 2
         return var
 
-    def predict(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C, *,
-                z_axis_mm=None, time_s=None):
+    def predict(
+        self,
+        wavelength_nm,
+        temperature_C,
+        wavelength_zero_nm,
+        temperature_zero_C,
+        *,
+        z_axis_mm=None,
+        time_s=None,
+    ):
         """TTP deviation (n, 3) µm and 95 % half-width (n, 3) µm (see the module docstring)."""
         w = np.atleast_2d(np.asarray(wavelength_nm, dtype=float))
         w0 = np.asarray(wavelength_zero_nm, dtype=float)
@@ -135,8 +170,12 @@ class KinematicPredictor:
             sel = (zs == z) if np.isfinite(z) else ~np.isfinite(zs)
             ch = self.chain(None if not np.isfinite(z) else z)
             d = ch.ttp_deviation_um(dl[sel], None if dT is None else dT[sel])
-            var = (self._noise_var(ch)[None, :] + self._floor ** 2 + (self._rel * d) ** 2
-                   + self.inconsistency_var(ch, dl[sel]))
+            var = (
+                self._noise_var(ch)[None, :]
+                + self._floor**2
+                + (self._rel * d) ** 2
+                + self.inconsistency_var(ch, dl[sel])
+            )
             dev[sel], half[sel] = d, _Z95 * np.sqrt(var)
         return dev, half
 
@@ -162,8 +201,15 @@ class KinematicModel(EstimatorParams, ModelFile):
 
     model_type = "kinematic"
 
-    def __init__(self, machine=None, zero_window_s=10.0, fallbacks="loo", pi_relative=None,
-                 pi_floor_um=None, closure_factors=None):
+    def __init__(
+        self,
+        machine=None,
+        zero_window_s=10.0,
+        fallbacks="loo",
+        pi_relative=None,
+        pi_floor_um=None,
+        closure_factors=None,
+    ):
         self.machine = machine
         self.closure_factors = closure_factors
         self.zero_window_s = zero_window_s
@@ -182,10 +228,12 @@ class KinematicModel(EstimatorParams, ModelFile):
             probes = list(dict.fromkeys(probes + [chain.housing_probe]))
         self.probe_names_ = probes
         self.segment_report_ = chain.report
-        self.pi_relative_ = np.full(3, KINEMATIC_DEFAULT_RELATIVE if self.pi_relative is None
-                                    else float(self.pi_relative))
-        self.pi_floor_um_ = np.full(3, KINEMATIC_DEFAULT_FLOOR_UM if self.pi_floor_um is None
-                                    else float(self.pi_floor_um))
+        self.pi_relative_ = np.full(
+            3, KINEMATIC_DEFAULT_RELATIVE if self.pi_relative is None else float(self.pi_relative)
+        )
+        self.pi_floor_um_ = np.full(
+            3, KINEMATIC_DEFAULT_FLOOR_UM if self.pi_floor_um is None else float(self.pi_floor_um)
+        )
         self.pi_source_ = "default"
         self.training_ = {"campaigns": [], "n_samples": 0}
         self._predictors = {}
@@ -205,13 +253,19 @@ class KinematicModel(EstimatorParams, ModelFile):
             p, _ = self.predict_interval(c)
             preds.append(p)
             refs.append(c.aligned(zero_window_s=self.zero_window_s).reference_um)
-            training.append({"name": c.meta.name, "kind": c.meta.kind, "n_samples": int(len(p)),
-                             **deviation_range(refs[-1])})
+            training.append(
+                {
+                    "name": c.meta.name,
+                    "kind": c.meta.kind,
+                    "n_samples": len(p),
+                    **deviation_range(refs[-1]),
+                }
+            )
         pred, ref = np.vstack(preds), np.vstack(refs)
         if self.pi_relative is None and self.pi_floor_um is None:
             self.pi_floor_um_, self.pi_relative_ = error_model(ref - pred, pred)
             self.pi_source_ = "training campaigns"
-        self.training_ = {"campaigns": training, "n_samples": int(len(pred))}
+        self.training_ = {"campaigns": training, "n_samples": len(pred)}
         self._predictors = {}
         return self
 
@@ -222,8 +276,9 @@ class KinematicModel(EstimatorParams, ModelFile):
 
     def _check_fitted(self):
         if not hasattr(self, "machine_"):
-            raise AttributeError(f"this {type(self).__name__} is not fitted: call fit() first "
-                                 "(it needs no campaign)")
+            raise AttributeError(
+                f"this {type(self).__name__} is not fitted: call fit() first (it needs no campaign)"
+            )
 
     def predictor(self, exclude=frozenset()) -> KinematicPredictor:
         """Compiled predictor of the full sensor set or of a fallback (KeyError if none)."""
@@ -233,8 +288,14 @@ class KinematicModel(EstimatorParams, ModelFile):
             raise KeyError(exclude)
         if exclude not in self._predictors:
             self._predictors[exclude] = KinematicPredictor(
-                self.machine_, self.sensors_, self.probe_names_, exclude, self.pi_relative_,
-                self.pi_floor_um_, closure_factors=self.closure_factors)
+                self.machine_,
+                self.sensors_,
+                self.probe_names_,
+                exclude,
+                self.pi_relative_,
+                self.pi_floor_um_,
+                closure_factors=self.closure_factors,
+            )
         return self._predictors[exclude]
 
     def chain(self, z_axis_mm=None, exclude=frozenset()) -> KinematicChain:
@@ -245,51 +306,79 @@ class KinematicModel(EstimatorParams, ModelFile):
         """The chain's segment report, its linearised gains and the interval's model-form error."""
         ch = self.chain()
         J, Jh = ch.jacobian()
-        lines = ["Kinematic model (paper eq. 4-10, HTM chain; no fitted coefficient)", ch.format_report(),
-                 "TTP µm per µm of bar elongation (linearised chain):",
-                 f"{'':<6}" + "".join(f"{s:>10}" for s in ch.sensor_names)
-                 + (f"{'dT_' + ch.housing_probe:>14}" if ch.housing_probe else "")]
+        lines = [
+            "Kinematic model (paper eq. 4-10, HTM chain; no fitted coefficient)",
+            ch.format_report(),
+            "TTP µm per µm of bar elongation (linearised chain):",
+            f"{'':<6}"
+            + "".join(f"{s:>10}" for s in ch.sensor_names)
+            + (f"{'dT_' + ch.housing_probe:>14}" if ch.housing_probe else ""),
+        ]
         for j, a in enumerate(AXES):
-            lines.append(f"{a:<6}" + "".join(f"{v:>10.4g}" for v in J[j])
-                         + (f"{Jh[j]:>14.4g}" if ch.housing_probe else ""))
-        lines.append(f"95 % interval model-form error ({self.pi_source_}): relative "
-                     + ", ".join(f"{a} {r:.3g}" for a, r in zip(AXES, self.pi_relative_))
-                     + "; floor " + ", ".join(f"{a} {f:.3g} µm" for a, f in zip(AXES, self.pi_floor_um_)))
+            lines.append(
+                f"{a:<6}"
+                + "".join(f"{v:>10.4g}" for v in J[j])
+                + (f"{Jh[j]:>14.4g}" if ch.housing_probe else "")
+            )
+        lines.append(
+            f"95 % interval model-form error ({self.pi_source_}): relative "
+            + ", ".join(f"{a} {r:.3g}" for a, r in zip(AXES, self.pi_relative_))
+            + "; floor "
+            + ", ".join(f"{a} {f:.3g} µm" for a, f in zip(AXES, self.pi_floor_um_))
+        )
         return "\n".join(lines)
 
     def to_dict(self) -> dict:
         """The model file's content (the machine description embedded)."""
         self._check_fitted()
         d = self._header()
-        d.update({
-            "zero_state": {"method": "mean_of_first_window", "window_s": self.zero_window_s},
-            "sensors": [s.model_dump(mode="json") for s in self.sensors_],
-            "probes": list(self.probe_names_),
-            "machine": self.machine_.model_dump(mode="json"),
-            "kinematic": {"segments": [plain(vars(r)) for r in self.segment_report_],
-                          # v2-compatible addition: absent (= all 1) in files of the fit-free type
-                          "closure_factors": (None if self.closure_factors is None
-                                              else {k: float(v) for k, v in self.closure_factors.items()})},
-            "uncertainty": {"level": 0.95, "method": "kinematic: sensor noise through the chain "
-                            "+ model-form error (relative, floor)", "source": self.pi_source_,
-                            "relative": self.pi_relative_.tolist(), "floor_um": self.pi_floor_um_.tolist()},
-            "z_axis_mm": self.machine_.supports.z_axis_mm,
-            "fallback_policy": self.fallbacks,
-            "training": self.training_,
-        })
+        d.update(
+            {
+                "zero_state": {"method": "mean_of_first_window", "window_s": self.zero_window_s},
+                "sensors": [s.model_dump(mode="json") for s in self.sensors_],
+                "probes": list(self.probe_names_),
+                "machine": self.machine_.model_dump(mode="json"),
+                "kinematic": {
+                    "segments": [plain(vars(r)) for r in self.segment_report_],
+                    # v2-compatible addition: absent (= all 1) in files of the fit-free type
+                    "closure_factors": (
+                        None
+                        if self.closure_factors is None
+                        else {k: float(v) for k, v in self.closure_factors.items()}
+                    ),
+                },
+                "uncertainty": {
+                    "level": 0.95,
+                    "method": "kinematic: sensor noise through the chain "
+                    "+ model-form error (relative, floor)",
+                    "source": self.pi_source_,
+                    "relative": self.pi_relative_.tolist(),
+                    "floor_um": self.pi_floor_um_.tolist(),
+                },
+                "z_axis_mm": self.machine_.supports.z_axis_mm,
+                "fallback_policy": self.fallbacks,
+                "training": self.training_,
+            }
+        )
         return d
 
     @classmethod
-    def from_dict(cls, d: dict, source="<dict>") -> "KinematicModel":
+    def from_dict(cls, d: dict, source="<dict>") -> KinematicModel:
         """The model of a model file's dict; InputError naming the field when it is malformed."""
         u = d.get("uncertainty", {})
         closure = d.get("kinematic", {}).get("closure_factors")
         if closure is not None and not (isinstance(closure, dict) and set(closure) <= set(CLOSURE_FACTORS)):
-            raise InputError(f"closure_factors must map {', '.join(CLOSURE_FACTORS)} to numbers",
-                             file=source, column="field kinematic.closure_factors")
-        m = cls(machine=parse_machine(d["machine"], file=str(source)),
-                zero_window_s=d["zero_state"]["window_s"], fallbacks=d.get("fallback_policy", "loo"),
-                closure_factors=closure)
+            raise InputError(
+                f"closure_factors must map {', '.join(CLOSURE_FACTORS)} to numbers",
+                file=source,
+                column="field kinematic.closure_factors",
+            )
+        m = cls(
+            machine=parse_machine(d["machine"], file=str(source)),
+            zero_window_s=d["zero_state"]["window_s"],
+            fallbacks=d.get("fallback_policy", "loo"),
+            closure_factors=closure,
+        )
         check_fallback_policy(m.fallbacks, file=source, column="field fallback_policy")
         m._setup()
         if "relative" in u:
@@ -298,8 +387,11 @@ class KinematicModel(EstimatorParams, ModelFile):
             m.pi_source_ = u.get("source", "file")
             for key, value in (("relative", m.pi_relative_), ("floor_um", m.pi_floor_um_)):
                 if value.shape != (3,) or not (value >= 0).all():
-                    raise InputError("expected three numbers >= 0 (dx, dy, dz)", file=source,
-                                     column=f"field uncertainty.{key}")
+                    raise InputError(
+                        "expected three numbers >= 0 (dx, dy, dz)",
+                        file=source,
+                        column=f"field uncertainty.{key}",
+                    )
         m.training_ = d.get("training", m.training_)
         check_predictors(m, source)
         return m

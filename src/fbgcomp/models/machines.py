@@ -27,8 +27,18 @@ def resolve_machine(machine) -> Machine:
 
 def campaign_sensor_specs(machine: Machine) -> list:
     """The machine description's gratings as campaign sensor records (``SensorSpec``), in order."""
-    return [SensorSpec(name=s.name, lambda0_nm=s.lambda0_nm, gauge_length_mm=s.gauge_length,
-                       photoelastic=s.photoelastic, thermo_optic_per_K=s.thermo_optic_per_K,
-                       fibre_cte_per_K=s.fibre_cte_per_K, face=s.face, z_start_mm=s.z_start_mm,
-                       z_end_mm=s.z_end_mm, temperature_probe=s.temperature_probe)
-            for s in machine.sensors]
+    return [
+        SensorSpec(
+            name=s.name,
+            lambda0_nm=s.lambda0_nm,
+            gauge_length_mm=s.gauge_length,
+            photoelastic=s.photoelastic,
+            thermo_optic_per_K=s.thermo_optic_per_K,
+            fibre_cte_per_K=s.fibre_cte_per_K,
+            face=s.face,
+            z_start_mm=s.z_start_mm,
+            z_end_mm=s.z_end_mm,
+            temperature_probe=s.temperature_probe,
+        )
+        for s in machine.sensors
+    ]

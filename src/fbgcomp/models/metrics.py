@@ -9,6 +9,7 @@ of the 95 % interval (the fraction of reference samples inside it, ~0.95 when ho
 from __future__ import annotations
 
 import numpy as np
+
 from fbgcomp.tables import Column, format_table, text
 from fbgcomp.units import AXES
 
@@ -22,8 +23,8 @@ def axis_metrics(reference_um, predicted_um, halfwidth_um=None) -> dict:
     reference_um = np.asarray(reference_um, dtype=float)
     error = np.asarray(predicted_um, dtype=float) - reference_um
     peak = float(np.max(np.abs(reference_um))) if reference_um.size else float("nan")
-    rms_ref = float(np.sqrt(np.mean(reference_um ** 2))) if reference_um.size else float("nan")
-    rms_err = float(np.sqrt(np.mean(error ** 2))) if error.size else float("nan")
+    rms_ref = float(np.sqrt(np.mean(reference_um**2))) if reference_um.size else float("nan")
+    rms_err = float(np.sqrt(np.mean(error**2))) if error.size else float("nan")
     max_err = float(np.max(np.abs(error))) if error.size else float("nan")
     out = {
         "peak_um": peak,
@@ -56,24 +57,38 @@ def validation_metrics(reference_um, predicted_um, halfwidth_um=None) -> dict:
     reference_um = np.asarray(reference_um, dtype=float).reshape(-1, 3)
     predicted_um = np.asarray(predicted_um, dtype=float).reshape(-1, 3)
     hw = None if halfwidth_um is None else np.asarray(halfwidth_um, dtype=float).reshape(-1, 3)
-    axes = {a: axis_metrics(reference_um[:, j], predicted_um[:, j], None if hw is None else hw[:, j])
-            for j, a in enumerate(AXES)}
+    axes = {
+        a: axis_metrics(reference_um[:, j], predicted_um[:, j], None if hw is None else hw[:, j])
+        for j, a in enumerate(AXES)
+    }
     return {"n_samples": int(reference_um.shape[0]), "axes": axes}
 
 
 def format_metrics(metrics: dict, title: str = "") -> str:
     """A readable table of :func:`validation_metrics` output (:mod:`fbgcomp.tables`)."""
-
     has_cov = any("pi95_coverage" in m for m in metrics["axes"].values())
-    cols = [text("axis"), Column("uncomp. max", "µm"), Column("max|err|", "µm"),
-            Column("uncomp. RMS", "µm"), Column("RMS err", "µm"), Column("max err", "% of peak", 2),
-            Column("comp. ratio", "", 4)]
+    cols = [
+        text("axis"),
+        Column("uncomp. max", "µm"),
+        Column("max|err|", "µm"),
+        Column("uncomp. RMS", "µm"),
+        Column("RMS err", "µm"),
+        Column("max err", "% of peak", 2),
+        Column("comp. ratio", "", 4),
+    ]
     if has_cov:
         cols.append(Column("PI95 cover", "", 3))
     rows = []
     for a, m in metrics["axes"].items():
-        row = [a, m["peak_um"], m["max_abs_error_um"], m.get("uncompensated_rms_um", float("nan")),
-               m["rms_error_um"], m["error_pct_of_peak"], m["compensation_ratio"]]
+        row = [
+            a,
+            m["peak_um"],
+            m["max_abs_error_um"],
+            m.get("uncompensated_rms_um", float("nan")),
+            m["rms_error_um"],
+            m["error_pct_of_peak"],
+            m["compensation_ratio"],
+        ]
         if has_cov:
             row.append(m.get("pi95_coverage", float("nan")))
         if m.get("harm"):
@@ -115,26 +130,44 @@ def static_level_metrics(loads_N, reference_um, predicted_um, **plateau_options)
     levels = []
     for idx in load_plateaus(loads_N, **plateau_options):
         force = np.nanmean(np.asarray(loads_N, dtype=float)[idx], axis=0)
-        levels.append({"force_N": force.tolist(), "n_samples": int(idx.size),
-                       "reference_um": reference_um[idx].mean(axis=0).tolist(),
-                       "predicted_um": predicted_um[idx].mean(axis=0).tolist()})
+        levels.append(
+            {
+                "force_N": force.tolist(),
+                "n_samples": int(idx.size),
+                "reference_um": reference_um[idx].mean(axis=0).tolist(),
+                "predicted_um": predicted_um[idx].mean(axis=0).tolist(),
+            }
+        )
     axes = {}
     for j, a in enumerate(AXES):
         ref = np.array([lv["reference_um"][j] for lv in levels]) if levels else np.zeros(0)
-        err = np.array([lv["predicted_um"][j] - lv["reference_um"][j] for lv in levels]) if levels else np.zeros(0)
+        err = (
+            np.array([lv["predicted_um"][j] - lv["reference_um"][j] for lv in levels])
+            if levels
+            else np.zeros(0)
+        )
         peak = float(np.max(np.abs(ref))) if ref.size else float("nan")
         worst = float(np.max(np.abs(err))) if err.size else float("nan")
-        axes[a] = {"max_plateau_deflection_um": peak, "max_plateau_error_um": worst,
-                   "error_pct_of_deflection": 100.0 * worst / peak if peak > 0 else float("nan")}
+        axes[a] = {
+            "max_plateau_deflection_um": peak,
+            "max_plateau_error_um": worst,
+            "error_pct_of_deflection": 100.0 * worst / peak if peak > 0 else float("nan"),
+        }
     return {"n_levels": len(levels), "levels": levels, "axes": axes}
 
 
 def format_static_metrics(m: dict) -> str:
     """A readable table of :func:`static_level_metrics` output (:mod:`fbgcomp.tables`)."""
-
-    cols = [text("axis"), Column("max deflection", "µm"), Column("max error", "µm"),
-            Column("max error", "% of deflection", 2)]
-    rows = [[a, v["max_plateau_deflection_um"], v["max_plateau_error_um"],
-             v["error_pct_of_deflection"]] for a, v in m["axes"].items()]
-    return "\n".join([f"static load plateaus: {m['n_levels']} (means over each hold)",
-                      format_table(cols, rows)])
+    cols = [
+        text("axis"),
+        Column("max deflection", "µm"),
+        Column("max error", "µm"),
+        Column("max error", "% of deflection", 2),
+    ]
+    rows = [
+        [a, v["max_plateau_deflection_um"], v["max_plateau_error_um"], v["error_pct_of_deflection"]]
+        for a, v in m["axes"].items()
+    ]
+    return "\n".join(
+        [f"static load plateaus: {m['n_levels']} (means over each hold)", format_table(cols, rows)]
+    )

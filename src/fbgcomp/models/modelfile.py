@@ -30,8 +30,20 @@ MAX_MODEL_VALUE = 1e12
 #: Fields holding descriptive statistics, reported and never used to predict: inside them a
 #: null (an undefined F, an infinite t of an exact fit) or a large number (a sum of squares) is
 #: allowed. NaN and infinity are refused everywhere.
-STATISTICS = frozenset({"fvalue", "f_pvalue", "tvalues", "pvalues", "bse", "rsquared",
-                        "rsquared_adj", "stepwise_history", "hac", "training"})
+STATISTICS = frozenset(
+    {
+        "fvalue",
+        "f_pvalue",
+        "tvalues",
+        "pvalues",
+        "bse",
+        "rsquared",
+        "rsquared_adj",
+        "stepwise_history",
+        "hac",
+        "training",
+    }
+)
 
 #: The ``format`` field of every model file.
 MODEL_FORMAT = "fbgcomp-model"
@@ -93,16 +105,19 @@ def read_model_json(path: Path):
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as exc:
-        raise InputError(f"not UTF-8 text: byte 0x{raw[exc.start]:02x} at offset {exc.start}",
-                         file=path) from None
+        raise InputError(
+            f"not UTF-8 text: byte 0x{raw[exc.start]:02x} at offset {exc.start}", file=path
+        ) from None
     try:
         return json.loads(text, parse_float=_parse_float, parse_constant=_NonFinite)
     except json.JSONDecodeError as exc:
-        raise InputError(f"not a JSON model file: {exc.msg} at line {exc.lineno}, column {exc.colno}",
-                         file=path) from None
+        raise InputError(
+            f"not a JSON model file: {exc.msg} at line {exc.lineno}, column {exc.colno}", file=path
+        ) from None
     except RecursionError:
-        raise InputError(f"JSON nested deeper than {MAX_MODEL_DEPTH} levels: not a model file",
-                         file=path) from None
+        raise InputError(
+            f"JSON nested deeper than {MAX_MODEL_DEPTH} levels: not a model file", file=path
+        ) from None
     except ValueError as exc:  # e.g. an integer literal of thousands of digits
         raise InputError(f"not a JSON model file: {short_text(exc)}", file=path) from None
 
@@ -127,26 +142,46 @@ def check_model_numbers(d, source="<dict>") -> None:
     while stack:
         node, parts, statistic = stack.pop()
         if len(parts) > MAX_MODEL_DEPTH:
-            raise InputError(f"nested deeper than {MAX_MODEL_DEPTH} levels: not a model file",
-                             file=source, column=f"field {_field_text(parts[:8])}...")
+            raise InputError(
+                f"nested deeper than {MAX_MODEL_DEPTH} levels: not a model file",
+                file=source,
+                column=f"field {_field_text(parts[:8])}...",
+            )
         if isinstance(node, dict):
-            stack.extend((v, parts + (k,), statistic or k in STATISTICS)
-                         for k, v in reversed(list(node.items())))
+            stack.extend(
+                (v, parts + (k,), statistic or k in STATISTICS) for k, v in reversed(list(node.items()))
+            )
         elif isinstance(node, list):
             if not statistic and any(v is None for v in node):
                 i = next(i for i, v in enumerate(node) if v is None)
-                raise InputError("null where a number is expected (a NaN written out?)",
-                                 file=source, column=f"field {_field_text(parts + (i,))}")
+                raise InputError(
+                    "null where a number is expected (a NaN written out?)",
+                    file=source,
+                    column=f"field {_field_text(parts + (i,))}",
+                )
             stack.extend((v, parts + (i,), statistic) for i, v in reversed(list(enumerate(node))))
         elif isinstance(node, _NonFinite):
-            raise InputError(f"non-finite number {short_text(node.text, 24)}; a model holds finite "
-                             "numbers only", file=source, column=f"field {_field_text(parts)}")
-        elif (isinstance(node, (int, float)) and not isinstance(node, bool) and not statistic
-              and abs(node) > MAX_MODEL_VALUE):
-            shown = f"{node:.3g}" if isinstance(node, float) or abs(node) < 10 ** 300 else "an integer of over 300 digits"
-            raise InputError(f"{shown} is beyond the {MAX_MODEL_VALUE:g} a model may hold "
-                             "(a corrupted or hostile file?)", file=source,
-                             column=f"field {_field_text(parts)}")
+            raise InputError(
+                f"non-finite number {short_text(node.text, 24)}; a model holds finite numbers only",
+                file=source,
+                column=f"field {_field_text(parts)}",
+            )
+        elif (
+            isinstance(node, (int, float))
+            and not isinstance(node, bool)
+            and not statistic
+            and abs(node) > MAX_MODEL_VALUE
+        ):
+            shown = (
+                f"{node:.3g}"
+                if isinstance(node, float) or abs(node) < 10**300
+                else "an integer of over 300 digits"
+            )
+            raise InputError(
+                f"{shown} is beyond the {MAX_MODEL_VALUE:g} a model may hold (a corrupted or hostile file?)",
+                file=source,
+                column=f"field {_field_text(parts)}",
+            )
 
 
 def read_model_dict(path) -> dict:
@@ -156,16 +191,22 @@ def read_model_dict(path) -> dict:
     path = Path(path)
     d = read_model_json(path)
     if not isinstance(d, dict) or d.get("format") != MODEL_FORMAT:
-        raise InputError(f"not an fbgcomp model file (field 'format' must be {MODEL_FORMAT!r})",
-                         file=path, column="field format")
+        raise InputError(
+            f"not an fbgcomp model file (field 'format' must be {MODEL_FORMAT!r})",
+            file=path,
+            column="field format",
+        )
     check_model_numbers(d, path)
     version = d.get("schema_version")
     if not isinstance(version, int) or isinstance(version, bool) or version < 1:
-        raise InputError("schema_version must be an integer >= 1", file=path,
-                         column="field schema_version")
+        raise InputError("schema_version must be an integer >= 1", file=path, column="field schema_version")
     if version > SCHEMA_VERSION:
-        raise InputError(f"model schema version {version} is newer than this fbgcomp supports "
-                         f"({SCHEMA_VERSION}); upgrade fbgcomp", file=path, column="field schema_version")
+        raise InputError(
+            f"model schema version {version} is newer than this fbgcomp supports "
+            f"({SCHEMA_VERSION}); upgrade fbgcomp",
+            file=path,
+            column="field schema_version",
+        )
     while version < SCHEMA_VERSION:
         d = MIGRATIONS[version](d)
         version = d["schema_version"]
@@ -183,6 +224,7 @@ def build_model(cls, d: dict, path):
         raise
     except KeyError as exc:
         raise InputError(f"missing field {short_text(repr(exc.args[0]), 40)}", file=path) from None
-    except Exception as exc:  # noqa: BLE001 - whatever a malformed file makes fail is its fault
-        raise InputError(f"malformed model file: {type(exc).__name__}: {short_text(exc)}",
-                         file=path) from None
+    except Exception as exc:
+        raise InputError(
+            f"malformed model file: {type(exc).__name__}: {short_text(exc)}", file=path
+        ) from None

@@ -23,12 +23,31 @@ import numpy as np
 
 from fbgcomp import __version__
 from fbgcomp.errors import InputError
-from fbgcomp.models.base import (CAMPAIGN_WEIGHTS, CHUNK_ROWS, EstimatorParams, ModelFile, Predictor,
-                                 as_campaign_list, campaign_weights_for, check_compatible,
-                                 check_fallback_policy, check_finite_fit_data, check_predictors,
-                                 deviation_range, fallback_sets, plain, sensor_specs_from_file)
-from fbgcomp.models.features import (CONSTANT, FEATURE_SETS, FeatureMap, TemperatureRoles, candidate_terms,
-                                     design_matrix)
+from fbgcomp.models.base import (
+    CAMPAIGN_WEIGHTS,
+    CHUNK_ROWS,
+    EstimatorParams,
+    ModelFile,
+    Predictor,
+    as_campaign_list,
+    campaign_weights_for,
+    check_compatible,
+    check_fallback_policy,
+    check_finite_fit_data,
+    check_predictors,
+    deviation_range,
+    fallback_sets,
+    plain,
+    sensor_specs_from_file,
+)
+from fbgcomp.models.features import (
+    CONSTANT,
+    FEATURE_SETS,
+    FeatureMap,
+    TemperatureRoles,
+    candidate_terms,
+    design_matrix,
+)
 from fbgcomp.models.modelfile import MODEL_FORMAT, SCHEMA_VERSION, short_text
 from fbgcomp.models.regression import QRAccumulator, accumulate_series, ols_from_factor, stepwise
 from fbgcomp.units import AXES
@@ -38,83 +57,125 @@ from fbgcomp.units import AXES
 class AxisFit:
     """The fitted linear model of one TTP axis, as stored in the model file."""
 
-    terms: list            # term names, "const" first
-    params: np.ndarray     # µm per unit of each term
+    terms: list  # term names, "const" first
+    params: np.ndarray  # µm per unit of each term
     bse: np.ndarray
     tvalues: np.ndarray
     pvalues: np.ndarray
-    cov: np.ndarray        # covariance of params
-    resid_sd: float        # µm
+    cov: np.ndarray  # covariance of params
+    resid_sd: float  # µm
     df_resid: float
     nobs: int
     rsquared: float
     rsquared_adj: float
     fvalue: float
     f_pvalue: float
-    history: list = field(default_factory=list)   # stepwise steps
-    cov_type: str = "nonrobust"                   # "HAC": Newey-West bse, cov, tests
-    hac: dict = field(default_factory=dict)       # HAC bandwidth, lag-1 rho, n_eff
+    history: list = field(default_factory=list)  # stepwise steps
+    cov_type: str = "nonrobust"  # "HAC": Newey-West bse, cov, tests
+    hac: dict = field(default_factory=dict)  # HAC bandwidth, lag-1 rho, n_eff
 
     @classmethod
     def from_result(cls, result, history=()):
         """The axis of a regression result (:mod:`fbgcomp.models.regression`), with its stepwise
         ``history`` (a list of step records)."""
-        return cls(terms=list(result.feature_names), params=np.asarray(result.params, float),
-                   bse=np.asarray(result.bse, float), tvalues=np.asarray(result.tvalues, float),
-                   pvalues=np.asarray(result.pvalues, float),
-                   cov=np.asarray(result.cov_params(), float), resid_sd=float(result.resid_sd),
-                   df_resid=float(result.df_resid), nobs=int(result.nobs),
-                   rsquared=float(result.rsquared), rsquared_adj=float(result.rsquared_adj),
-                   fvalue=float(result.fvalue), f_pvalue=float(result.f_pvalue),
-                   history=[plain(h) for h in history],
-                   cov_type=getattr(result, "cov_type", "nonrobust"),
-                   hac=plain(dict(getattr(result, "cov_kwds", {}) or {})))
+        return cls(
+            terms=list(result.feature_names),
+            params=np.asarray(result.params, float),
+            bse=np.asarray(result.bse, float),
+            tvalues=np.asarray(result.tvalues, float),
+            pvalues=np.asarray(result.pvalues, float),
+            cov=np.asarray(result.cov_params(), float),
+            resid_sd=float(result.resid_sd),
+            df_resid=float(result.df_resid),
+            nobs=int(result.nobs),
+            rsquared=float(result.rsquared),
+            rsquared_adj=float(result.rsquared_adj),
+            fvalue=float(result.fvalue),
+            f_pvalue=float(result.f_pvalue),
+            history=[plain(h) for h in history],
+            cov_type=getattr(result, "cov_type", "nonrobust"),
+            hac=plain(dict(getattr(result, "cov_kwds", {}) or {})),
+        )
 
     def to_dict(self) -> dict:
         """The axis as the model file stores it."""
-        return {"terms": self.terms, "params": self.params.tolist(), "bse": self.bse.tolist(),
-                "tvalues": self.tvalues.tolist(), "pvalues": self.pvalues.tolist(),
-                "cov_params": self.cov.tolist(), "resid_sd_um": self.resid_sd,
-                "df_resid": self.df_resid, "nobs": self.nobs, "rsquared": self.rsquared,
-                "rsquared_adj": self.rsquared_adj, "fvalue": self.fvalue, "f_pvalue": self.f_pvalue,
-                "stepwise_history": self.history, "cov_type": self.cov_type, "hac": self.hac}
+        return {
+            "terms": self.terms,
+            "params": self.params.tolist(),
+            "bse": self.bse.tolist(),
+            "tvalues": self.tvalues.tolist(),
+            "pvalues": self.pvalues.tolist(),
+            "cov_params": self.cov.tolist(),
+            "resid_sd_um": self.resid_sd,
+            "df_resid": self.df_resid,
+            "nobs": self.nobs,
+            "rsquared": self.rsquared,
+            "rsquared_adj": self.rsquared_adj,
+            "fvalue": self.fvalue,
+            "f_pvalue": self.f_pvalue,
+            "stepwise_history": self.history,
+            "cov_type": self.cov_type,
+            "hac": self.hac,
+        }
 
     @classmethod
-    def from_dict(cls, d: dict, where: str = "axes", source="<dict>") -> "AxisFit":
+    def from_dict(cls, d: dict, where: str = "axes", source="<dict>") -> AxisFit:
         """An axis of a model file; InputError naming ``where`` (its field path) when its
         arrays disagree with its terms or its residual statistics cannot predict."""
         terms = d["terms"]
         if not isinstance(terms, list) or not all(isinstance(t, str) for t in terms) or not terms:
-            raise InputError("terms must be a non-empty list of names", file=source,
-                             column=f"field {where}.terms")
+            raise InputError(
+                "terms must be a non-empty list of names", file=source, column=f"field {where}.terms"
+            )
         k = len(terms)
 
         def arr(key, shape):
             try:
                 value = np.asarray(d[key], dtype=float)
             except (TypeError, ValueError):
-                raise InputError("expected an array of numbers", file=source,
-                                 column=f"field {where}.{key}") from None
+                raise InputError(
+                    "expected an array of numbers", file=source, column=f"field {where}.{key}"
+                ) from None
             if value.shape != shape:
-                raise InputError(f"shape {value.shape} disagrees with the {k} terms (expected "
-                                 f"{shape})", file=source, column=f"field {where}.{key}")
+                raise InputError(
+                    f"shape {value.shape} disagrees with the {k} terms (expected {shape})",
+                    file=source,
+                    column=f"field {where}.{key}",
+                )
             return value
 
         cov = arr("cov_params", (k, k))
         resid_sd, df_resid = float(d["resid_sd_um"]), float(d["df_resid"])
         if not (math.isfinite(resid_sd) and resid_sd >= 0):
-            raise InputError(f"residual SD must be a finite number >= 0, not {resid_sd!r}",
-                             file=source, column=f"field {where}.resid_sd_um")
+            raise InputError(
+                f"residual SD must be a finite number >= 0, not {resid_sd!r}",
+                file=source,
+                column=f"field {where}.resid_sd_um",
+            )
         if not (math.isfinite(df_resid) and df_resid > 0):
-            raise InputError(f"residual degrees of freedom must be > 0, not {df_resid!r}",
-                             file=source, column=f"field {where}.df_resid")
-        return cls(terms=list(terms), params=arr("params", (k,)), bse=arr("bse", (k,)),
-                   tvalues=arr("tvalues", (k,)), pvalues=arr("pvalues", (k,)),
-                   cov=cov, resid_sd=resid_sd, df_resid=df_resid,
-                   nobs=int(d["nobs"]), rsquared=float(d["rsquared"]),
-                   rsquared_adj=float(d["rsquared_adj"]), fvalue=float_or_nan(d["fvalue"]),
-                   f_pvalue=float_or_nan(d["f_pvalue"]), history=list(d.get("stepwise_history", [])),
-                   cov_type=d.get("cov_type", "nonrobust"), hac=dict(d.get("hac") or {}))
+            raise InputError(
+                f"residual degrees of freedom must be > 0, not {df_resid!r}",
+                file=source,
+                column=f"field {where}.df_resid",
+            )
+        return cls(
+            terms=list(terms),
+            params=arr("params", (k,)),
+            bse=arr("bse", (k,)),
+            tvalues=arr("tvalues", (k,)),
+            pvalues=arr("pvalues", (k,)),
+            cov=cov,
+            resid_sd=resid_sd,
+            df_resid=df_resid,
+            nobs=int(d["nobs"]),
+            rsquared=float(d["rsquared"]),
+            rsquared_adj=float(d["rsquared_adj"]),
+            fvalue=float_or_nan(d["fvalue"]),
+            f_pvalue=float_or_nan(d["f_pvalue"]),
+            history=list(d.get("stepwise_history", [])),
+            cov_type=d.get("cov_type", "nonrobust"),
+            hac=dict(d.get("hac") or {}),
+        )
 
     def table(self) -> str:
         """Paper Table 1 style coefficient table."""
@@ -122,15 +183,19 @@ class AxisFit:
         lines = [f"{'term':<22} {'estimate':>12} {'std err':>11} {'t':>8} {'P>|t|':>9}"]
         for name, p, se, t, pv in zip(self.terms, self.params, self.bse, self.tvalues, self.pvalues):
             lines.append(f"{name:<22} {p:>12.5g} {se:>11.4g} {t:>8.2f} {pv:>9.3g}")
-        lines.append(f"n = {self.nobs}, R² = {self.rsquared:.5f}, adj. R² = {self.rsquared_adj:.5f}, "
-                     f"residual SD = {self.resid_sd:.4g} µm, "
-                     f"{'Wald F (HAC)' if self.cov_type == 'HAC' else 'F'} = {self.fvalue:.4g} "
-                     f"(p = {self.f_pvalue:.3g})")
+        lines.append(
+            f"n = {self.nobs}, R² = {self.rsquared:.5f}, adj. R² = {self.rsquared_adj:.5f}, "
+            f"residual SD = {self.resid_sd:.4g} µm, "
+            f"{'Wald F (HAC)' if self.cov_type == 'HAC' else 'F'} = {self.fvalue:.4g} "
+            f"(p = {self.f_pvalue:.3g})"
+        )
         if self.cov_type == "HAC":
             h = self.hac
-            lines.append(f"std errors: HAC (Newey-West, Bartlett, {h.get('maxlags')} lags); "
-                         f"residual lag-1 autocorrelation {h.get('rho1', float('nan')):.4f}, "
-                         f"effective sample size {h.get('n_eff', float('nan')):.4g} of {self.nobs}")
+            lines.append(
+                f"std errors: HAC (Newey-West, Bartlett, {h.get('maxlags')} lags); "
+                f"residual lag-1 autocorrelation {h.get('rho1', float('nan')):.4f}, "
+                f"effective sample size {h.get('n_eff', float('nan')):.4g} of {self.nobs}"
+            )
         else:
             lines.append("std errors: nonrobust (i.i.d. errors assumed)")
         return "\n".join(lines)
@@ -190,9 +255,21 @@ class MRAModel(EstimatorParams, ModelFile):
 
     model_type = "mra"
 
-    def __init__(self, features="eq13", stepwise=False, direction="both", p_enter=0.05,
-                 p_remove=0.10, max_terms=None, roles=None, zero_window_s=10.0, fallbacks="loo",
-                 campaign_weights="balanced", cov_type="HAC", hac_maxlags="auto"):
+    def __init__(
+        self,
+        features="eq13",
+        stepwise=False,
+        direction="both",
+        p_enter=0.05,
+        p_remove=0.10,
+        max_terms=None,
+        roles=None,
+        zero_window_s=10.0,
+        fallbacks="loo",
+        campaign_weights="balanced",
+        cov_type="HAC",
+        hac_maxlags="auto",
+    ):
         self.features = features
         self.stepwise = stepwise
         self.direction = direction
@@ -221,13 +298,16 @@ class MRAModel(EstimatorParams, ModelFile):
             raise ValueError(f"direction must be both, forward or backward, not {self.direction!r}")
         check_fallback_policy(self.fallbacks)
         if getattr(self, "campaign_weights", "samples") not in CAMPAIGN_WEIGHTS:
-            raise ValueError(f"campaign_weights must be one of {', '.join(CAMPAIGN_WEIGHTS)}, "
-                             f"not {self.campaign_weights!r}")
+            raise ValueError(
+                f"campaign_weights must be one of {', '.join(CAMPAIGN_WEIGHTS)}, "
+                f"not {self.campaign_weights!r}"
+            )
         if getattr(self, "cov_type", "nonrobust") not in ("HAC", "nonrobust"):
             raise ValueError(f"cov_type must be HAC or nonrobust, not {self.cov_type!r}")
         lags = getattr(self, "hac_maxlags", "auto")
-        if lags != "auto" and not (isinstance(lags, (int, np.integer)) and not isinstance(lags, bool)
-                                   and lags >= 1):
+        if lags != "auto" and not (
+            isinstance(lags, (int, np.integer)) and not isinstance(lags, bool) and lags >= 1
+        ):
             raise ValueError(f"hac_maxlags must be 'auto' or a positive int, not {lags!r}")
 
     def _hac_lags(self):
@@ -238,8 +318,9 @@ class MRAModel(EstimatorParams, ModelFile):
         return "auto" if lags == "auto" else [int(lags)]
 
     def _new_qr(self, names):
-        return QRAccumulator(len(names), len(AXES), feature_names=names, target_names=list(AXES),
-                             hac_lags=self._hac_lags())
+        return QRAccumulator(
+            len(names), len(AXES), feature_names=names, target_names=list(AXES), hac_lags=self._hac_lags()
+        )
 
     def fit(self, X, y=None, *, progress=None):
         """Fit on campaigns (``X`` a campaign, a path or a list of them, ``y`` None) or on arrays.
@@ -276,8 +357,9 @@ class MRAModel(EstimatorParams, ModelFile):
         for c in campaigns:
             check_compatible(self, c)
         aligned_all = [c.aligned(zero_window_s=self.zero_window_s) for c in campaigns]
-        weights = campaign_weights_for([len(a.time_s) for a in aligned_all],
-                                       getattr(self, "campaign_weights", "samples"))
+        weights = campaign_weights_for(
+            [len(a.time_s) for a in aligned_all], getattr(self, "campaign_weights", "samples")
+        )
         series, training, dts = [], [], []
         for i, (c, aligned, weight) in enumerate(zip(campaigns, aligned_all, weights)):
             design = self.campaign_design(c, aligned)
@@ -286,10 +368,17 @@ class MRAModel(EstimatorParams, ModelFile):
             series.append((design, y, weight))
             if len(aligned.time_s) > 1:
                 dts.append(float(np.median(np.diff(aligned.time_s))))
-            training.append({"name": c.meta.name, "kind": c.meta.kind,
-                             "path": None if c.path is None else str(c.path),
-                             "n_samples": int(len(design)), "row_weight": float(weight),
-                             "dropped": plain(aligned.dropped), **deviation_range(aligned.reference_um)})
+            training.append(
+                {
+                    "name": c.meta.name,
+                    "kind": c.meta.kind,
+                    "path": None if c.path is None else str(c.path),
+                    "n_samples": len(design),
+                    "row_weight": float(weight),
+                    "dropped": plain(aligned.dropped),
+                    **deviation_range(aligned.reference_um),
+                }
+            )
             if progress is not None:
                 progress(c.meta.name)
         accumulate_series(acc, series, chunk_rows=CHUNK_ROWS)
@@ -309,20 +398,20 @@ class MRAModel(EstimatorParams, ModelFile):
         """
         self._check_params()
         self.sensors_ = list(sensors)
-        self.probe_names_ = FeatureMap.required_probes(self.sensors_, self.features != "eq11",
-                                                       self._roles())
+        self.probe_names_ = FeatureMap.required_probes(self.sensors_, self.features != "eq11", self._roles())
         if probe_names is not None:
             missing = [p for p in self.probe_names_ if p not in set(probe_names)]
             if missing:
-                raise InputError(f"the data lacks temperature probe(s) {', '.join(missing)} "
-                                 f"needed by features {self.features}",
-                                 column="field temperature_probes")
+                raise InputError(
+                    f"the data lacks temperature probe(s) {', '.join(missing)} "
+                    f"needed by features {self.features}",
+                    column="field temperature_probes",
+                )
         self.candidates_ = candidate_terms(self.features, [s.name for s in self.sensors_])
         names = [CONSTANT] + self.candidates_
         return self._new_qr(names)
 
-    def design_from_arrays(self, wavelength_nm, temperature_C, wavelength_zero_nm,
-                           temperature_zero_C):
+    def design_from_arrays(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C):
         """Design matrix (n, 1 + terms) from raw instrument arrays in the model's sensor and
         probe order (nm, °C, zero states nm and °C); after :meth:`new_accumulator`."""
         fmap = self._feature_map()
@@ -341,8 +430,9 @@ class MRAModel(EstimatorParams, ModelFile):
             raise ValueError("call new_accumulator(sensors) before fit_factor")
         if list(acc.feature_names) != [CONSTANT] + list(self.candidates_):
             raise ValueError("the accumulator's columns are not this model's terms")
-        self.training_ = (dict(training) if training is not None
-                          else {"campaigns": [], "n_samples": int(acc.n_obs)})
+        self.training_ = (
+            dict(training) if training is not None else {"campaigns": [], "n_samples": int(acc.n_obs)}
+        )
         return self._fit_factor(acc)
 
     def _fit_arrays(self, X, y):
@@ -356,7 +446,7 @@ class MRAModel(EstimatorParams, ModelFile):
         acc = self._new_qr(names)
         y = np.asarray(y, dtype=float).reshape(len(design), len(AXES))
         accumulate_series(acc, [(design, y, None)], chunk_rows=CHUNK_ROWS)
-        self.training_ = {"campaigns": [], "n_samples": int(len(design))}
+        self.training_ = {"campaigns": [], "n_samples": len(design)}
         return self._fit_factor(acc)
 
     def _fit_factor(self, acc):
@@ -380,25 +470,40 @@ class MRAModel(EstimatorParams, ModelFile):
         axes = {}
         for j, a in enumerate(AXES):
             if self.stepwise:
-                sw = stepwise(acc, candidates, target=j, direction=self.direction,
-                              p_enter=self.p_enter, p_remove=self.p_remove,
-                              max_terms=self.max_terms, include=[CONSTANT],
-                              cov_type=cov_type, maxlags=maxlags)
-                history = sw.history.to_dict("records") if hasattr(sw.history, "to_dict") else list(sw.history)
+                sw = stepwise(
+                    acc,
+                    candidates,
+                    target=j,
+                    direction=self.direction,
+                    p_enter=self.p_enter,
+                    p_remove=self.p_remove,
+                    max_terms=self.max_terms,
+                    include=[CONSTANT],
+                    cov_type=cov_type,
+                    maxlags=maxlags,
+                )
+                history = (
+                    sw.history.to_dict("records") if hasattr(sw.history, "to_dict") else list(sw.history)
+                )
                 axes[a] = AxisFit.from_result(sw.result, history)
             else:
-                axes[a] = AxisFit.from_result(ols_from_factor(acc, [CONSTANT] + candidates, target=j,
-                                                              cov_type=cov_type, maxlags=maxlags))
+                axes[a] = AxisFit.from_result(
+                    ols_from_factor(
+                        acc, [CONSTANT] + candidates, target=j, cov_type=cov_type, maxlags=maxlags
+                    )
+                )
         return axes
 
     def campaign_design(self, campaign, aligned):
         """Design matrix (n, 1 + terms) of an aligned campaign (after :meth:`new_accumulator`)."""
         fmap = self._feature_map()
         probe_cols = [list(aligned.probe_names).index(p) for p in self.probe_names_]
-        base = fmap.base(aligned.wavelength_nm[:, [list(aligned.sensor_names).index(s) for s in fmap.sensor_names]],
-                         aligned.temperature_C[:, probe_cols],
-                         aligned.wavelength_zero_nm[[list(aligned.sensor_names).index(s) for s in fmap.sensor_names]],
-                         aligned.temperature_zero_C[probe_cols])
+        base = fmap.base(
+            aligned.wavelength_nm[:, [list(aligned.sensor_names).index(s) for s in fmap.sensor_names]],
+            aligned.temperature_C[:, probe_cols],
+            aligned.wavelength_zero_nm[[list(aligned.sensor_names).index(s) for s in fmap.sensor_names]],
+            aligned.temperature_zero_C[probe_cols],
+        )
         return design_matrix(base, fmap.base_names, self.candidates_)
 
     # -- prediction ----------------------------------------------------------------------
@@ -421,7 +526,10 @@ class MRAModel(EstimatorParams, ModelFile):
     def predict_interval(self, X, exclude=frozenset()):
         """Prediction (n, 3) µm and half-width (n, 3) µm of its 95 % prediction interval."""
         if hasattr(X, "columns"):
-            pred = Predictor(IdentityMap(list(X.columns)), self.axes_ if not exclude else self.fallbacks_[frozenset(exclude)])
+            pred = Predictor(
+                IdentityMap(list(X.columns)),
+                self.axes_ if not exclude else self.fallbacks_[frozenset(exclude)],
+            )
             return pred.predict(X.to_numpy(dtype=float), None, None, None)
         (campaign,) = as_campaign_list(X)
         check_compatible(self, campaign)
@@ -433,10 +541,12 @@ class MRAModel(EstimatorParams, ModelFile):
     # -- reporting and persistence ------------------------------------------------------
     def summary(self) -> str:
         """Table 1 style coefficient table per axis, with the stepwise history."""
-        out = [f"MRA model ({self.features}{', stepwise' if self.stepwise else ''}, "
-               f"{self.axes_['dx'].cov_type} inference), "
-               f"{self.training_['n_samples']} samples from "
-               f"{', '.join(c['name'] for c in self.training_['campaigns']) or 'arrays'}"]
+        out = [
+            f"MRA model ({self.features}{', stepwise' if self.stepwise else ''}, "
+            f"{self.axes_['dx'].cov_type} inference), "
+            f"{self.training_['n_samples']} samples from "
+            f"{', '.join(c['name'] for c in self.training_['campaigns']) or 'arrays'}"
+        ]
         for a in AXES:
             fit = self.axes_[a]
             out.append(f"\n== {a} (µm) ==")
@@ -445,9 +555,11 @@ class MRAModel(EstimatorParams, ModelFile):
                 out.append("stepwise history:")
                 out.append(f"  {'step':>4} {'action':<7}{'term':<22}{'F':>10}{'p':>10}{'terms':>6}")
                 for h in fit.history:
-                    out.append(f"  {h.get('step', ''):>4} {h.get('action', ''):<7}{str(h.get('term', '')):<22}"
-                               f"{h.get('F', float('nan')):>10.4g}{h.get('p', float('nan')):>10.3g}"
-                               f"{h.get('n_terms', ''):>6}")
+                    out.append(
+                        f"  {h.get('step', ''):>4} {h.get('action', ''):<7}{h.get('term', '')!s:<22}"
+                        f"{h.get('F', float('nan')):>10.4g}{h.get('p', float('nan')):>10.3g}"
+                        f"{h.get('n_terms', ''):>6}"
+                    )
         return "\n".join(out)
 
     def to_dict(self) -> dict:
@@ -457,43 +569,66 @@ class MRAModel(EstimatorParams, ModelFile):
             "schema_version": SCHEMA_VERSION,
             "model_type": self.model_type,
             "fbgcomp_version": __version__,
-            "features": {"set": self.features, "candidates": list(self.candidates_),
-                         "roles": self._roles().as_dict(),
-                         "stepwise": ({"direction": self.direction, "p_enter": self.p_enter,
-                                       "p_remove": self.p_remove, "max_terms": self.max_terms}
-                                      if self.stepwise else None)},
+            "features": {
+                "set": self.features,
+                "candidates": list(self.candidates_),
+                "roles": self._roles().as_dict(),
+                "stepwise": (
+                    {
+                        "direction": self.direction,
+                        "p_enter": self.p_enter,
+                        "p_remove": self.p_remove,
+                        "max_terms": self.max_terms,
+                    }
+                    if self.stepwise
+                    else None
+                ),
+            },
             "zero_state": {"method": "mean_of_first_window", "window_s": self.zero_window_s},
             "sensors": [s.model_dump(mode="json") for s in self.sensors_] if self.sensors_ else [],
             "probes": list(self.probe_names_),
             "axes": {a: f.to_dict() for a, f in self.axes_.items()},
-            "fallbacks": [{"exclude": sorted(k), "axes": {a: f.to_dict() for a, f in v.items()}}
-                          for k, v in self.fallbacks_.items()],
+            "fallbacks": [
+                {"exclude": sorted(k), "axes": {a: f.to_dict() for a, f in v.items()}}
+                for k, v in self.fallbacks_.items()
+            ],
             "fallback_policy": self.fallbacks,
             "campaign_weights": getattr(self, "campaign_weights", "samples"),
             "training": self.training_,
-            "inference": {"cov_type": getattr(self, "cov_type", "nonrobust"),
-                          "hac_maxlags": getattr(self, "hac_maxlags", "auto")},
-            "uncertainty": {"level": 0.95, "method": ("regression: HAC (Newey-West) covariance + residual variance"
-                                                      if self.axes_["dx"].cov_type == "HAC" else
-                                                      "regression: covariance + residual variance")},
+            "inference": {
+                "cov_type": getattr(self, "cov_type", "nonrobust"),
+                "hac_maxlags": getattr(self, "hac_maxlags", "auto"),
+            },
+            "uncertainty": {
+                "level": 0.95,
+                "method": (
+                    "regression: HAC (Newey-West) covariance + residual variance"
+                    if self.axes_["dx"].cov_type == "HAC"
+                    else "regression: covariance + residual variance"
+                ),
+            },
             "z_axis_mm": None,
         }
         return d
 
     @classmethod
-    def from_dict(cls, d: dict, source="<dict>", check=True) -> "MRAModel":
+    def from_dict(cls, d: dict, source="<dict>", check=True) -> MRAModel:
         """The model of a model file's dict; ``check=False`` skips :func:`check_predictors`
         (for a subclass that builds on this one and checks its own predictors)."""
         f = d["features"]
         sw = f.get("stepwise")
-        m = cls(features=f["set"], stepwise=sw is not None,
-                **({k: sw[k] for k in ("direction", "p_enter", "p_remove", "max_terms")} if sw else {}),
-                roles=f.get("roles"), zero_window_s=d["zero_state"]["window_s"],
-                fallbacks=d.get("fallback_policy", "none"),
-                campaign_weights=d.get("campaign_weights", "samples"),
-                # files written before issue 12 were fitted with naive inference
-                cov_type=d.get("inference", {}).get("cov_type", "nonrobust"),
-                hac_maxlags=d.get("inference", {}).get("hac_maxlags", "auto"))
+        m = cls(
+            features=f["set"],
+            stepwise=sw is not None,
+            **({k: sw[k] for k in ("direction", "p_enter", "p_remove", "max_terms")} if sw else {}),
+            roles=f.get("roles"),
+            zero_window_s=d["zero_state"]["window_s"],
+            fallbacks=d.get("fallback_policy", "none"),
+            campaign_weights=d.get("campaign_weights", "samples"),
+            # files written before issue 12 were fitted with naive inference
+            cov_type=d.get("inference", {}).get("cov_type", "nonrobust"),
+            hac_maxlags=d.get("inference", {}).get("hac_maxlags", "auto"),
+        )
         m._check_params()
         m.candidates_ = list(f["candidates"])
         m.sensors_ = sensor_specs_from_file(d["sensors"], source)
@@ -503,18 +638,26 @@ class MRAModel(EstimatorParams, ModelFile):
         for i, fb in enumerate(d.get("fallbacks", [])):
             exclude = frozenset(fb["exclude"])
             if not exclude <= set(m.sensor_names):
-                raise InputError("a fallback excludes sensors the model does not have",
-                                 file=source, column=f"field fallbacks[{i}].exclude")
-            m.fallbacks_[exclude] = {a: AxisFit.from_dict(fb["axes"][a], f"fallbacks[{i}].axes.{a}",
-                                                          source) for a in AXES}
+                raise InputError(
+                    "a fallback excludes sensors the model does not have",
+                    file=source,
+                    column=f"field fallbacks[{i}].exclude",
+                )
+            m.fallbacks_[exclude] = {
+                a: AxisFit.from_dict(fb["axes"][a], f"fallbacks[{i}].axes.{a}", source) for a in AXES
+            }
         known = {CONSTANT, *m.candidates_}
-        for where, axes in [("axes", m.axes_)] + [(f"fallbacks[{i}].axes", v) for i, v in
-                                                  enumerate(m.fallbacks_.values())]:
+        for where, axes in [("axes", m.axes_)] + [
+            (f"fallbacks[{i}].axes", v) for i, v in enumerate(m.fallbacks_.values())
+        ]:
             for a, fit in axes.items():
                 unknown = [t for t in fit.terms if t not in known]
                 if unknown:
-                    raise InputError(f"term {short_text(unknown[0])} is not among the model's "
-                                     "candidates", file=source, column=f"field {where}.{a}.terms")
+                    raise InputError(
+                        f"term {short_text(unknown[0])} is not among the model's candidates",
+                        file=source,
+                        column=f"field {where}.{a}.terms",
+                    )
         m.training_ = d.get("training", {"campaigns": [], "n_samples": 0})
         m.coef_ = {a: dict(zip(fit.terms, fit.params)) for a, fit in m.axes_.items()}
         m._predictors = {}

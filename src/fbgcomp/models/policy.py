@@ -55,7 +55,9 @@ def firm(estimate, sigma, k_low=3.0, k_high=6.0):
     lo, hi = k_low * s, k_high * s
     with np.errstate(divide="ignore", invalid="ignore"):
         ramp = np.where(hi > lo, (np.abs(x) - lo) / (hi - lo), 1.0)
-        factor = np.where(np.abs(x) <= lo, 0.0, np.clip(ramp * hi / np.where(x == 0, 1.0, np.abs(x)), 0.0, 1.0))
+        factor = np.where(
+            np.abs(x) <= lo, 0.0, np.clip(ramp * hi / np.where(x == 0, 1.0, np.abs(x)), 0.0, 1.0)
+        )
     factor = np.where(np.abs(x) >= hi, 1.0, factor)
     return x * factor
 

@@ -28,8 +28,10 @@ from fbgcomp.models.modelfile import build_model, read_model_dict, short_text
 from fbgcomp.models.mra import MRAModel
 from fbgcomp.models.physical import PhysicalModel
 
-_MODEL_TYPES = {cls.model_type: cls for cls in (MRAModel, KinematicModel, HybridModel, CalibratedModel,
-                                                  DynamicModel, PhysicalModel)}
+_MODEL_TYPES = {
+    cls.model_type: cls
+    for cls in (MRAModel, KinematicModel, HybridModel, CalibratedModel, DynamicModel, PhysicalModel)
+}
 #: The model types of the CLI's ``fit --model`` (the registered ones; "physical" is the default).
 MODEL_TYPES = tuple(_MODEL_TYPES)
 #: Types whose ``machine`` is the description of the kinematic chain (None: the built-in ram);
@@ -60,8 +62,11 @@ def load_model(path):
     d = read_model_dict(path)
     kind = d["model_type"]
     if kind not in _MODEL_TYPES:
-        raise InputError(f"unknown model_type {short_text(repr(kind), 40)}; known: "
-                         f"{', '.join(_MODEL_TYPES)}", file=path, column="field model_type")
+        raise InputError(
+            f"unknown model_type {short_text(repr(kind), 40)}; known: {', '.join(_MODEL_TYPES)}",
+            file=path,
+            column="field model_type",
+        )
     return build_model(_MODEL_TYPES[kind], d, path)
 
 
@@ -76,8 +81,11 @@ def make_estimator(model_type: str, *, machine=None, features="eq13", where="<co
     it, each other type keeping its own default; an option no type takes is a TypeError.
     """
     if model_type not in _MODEL_TYPES:
-        raise InputError(f"unknown model type {short_text(repr(model_type), 40)}; expected "
-                         f"{', '.join(_MODEL_TYPES)}", file=where, column="option --model")
+        raise InputError(
+            f"unknown model type {short_text(repr(model_type), 40)}; expected {', '.join(_MODEL_TYPES)}",
+            file=where,
+            column="option --model",
+        )
     known = {p for cls in _MODEL_TYPES.values() for p in cls._param_names()}
     unknown = sorted(set(options) - known)
     if unknown:
@@ -85,11 +93,17 @@ def make_estimator(model_type: str, *, machine=None, features="eq13", where="<co
     if "fallbacks" in options:
         check_fallback_policy(options["fallbacks"], file=where, column="option --fallbacks")
     if model_type in ("hybrid", "calibrated") and features not in ("eq13", "dynamic"):
-        raise InputError(f"--model {model_type} takes --features eq13 or dynamic, not {features!r}",
-                         file=where, column="option --features")
+        raise InputError(
+            f"--model {model_type} takes --features eq13 or dynamic, not {features!r}",
+            file=where,
+            column="option --features",
+        )
     if model_type == "dynamic" and features != "eq13":
-        raise InputError("--model dynamic uses eq13 plus filtered temperatures: give --features eq13",
-                         file=where, column="option --features")
+        raise InputError(
+            "--model dynamic uses eq13 plus filtered temperatures: give --features eq13",
+            file=where,
+            column="option --features",
+        )
     cls = _MODEL_TYPES[model_type]
     takes = set(cls._param_names())
     params = {k: v for k, v in options.items() if k in takes}
@@ -100,12 +114,34 @@ def make_estimator(model_type: str, *, machine=None, features="eq13", where="<co
     return cls(**params)
 
 
-def fit_from_cli(model_type, campaigns, *, machine=None, features="eq13", stepwise=False,
-                 direction="both", p_enter=0.05, p_remove=0.10, max_terms=None, roles=None,
-                 zero_window_s=10.0, fallbacks="loo"):
+def fit_from_cli(
+    model_type,
+    campaigns,
+    *,
+    machine=None,
+    features="eq13",
+    stepwise=False,
+    direction="both",
+    p_enter=0.05,
+    p_remove=0.10,
+    max_terms=None,
+    roles=None,
+    zero_window_s=10.0,
+    fallbacks="loo",
+):
     """``fbgcomp fit --model kinematic|hybrid|calibrated|dynamic``: check the options, fit on
     ``campaigns``, return the fitted model (:func:`make_estimator`, then ``fit``)."""
-    model = make_estimator(model_type, machine=machine, features=features, stepwise=stepwise,
-                           direction=direction, p_enter=p_enter, p_remove=p_remove, max_terms=max_terms,
-                           roles=roles, zero_window_s=zero_window_s, fallbacks=fallbacks)
+    model = make_estimator(
+        model_type,
+        machine=machine,
+        features=features,
+        stepwise=stepwise,
+        direction=direction,
+        p_enter=p_enter,
+        p_remove=p_remove,
+        max_terms=max_terms,
+        roles=roles,
+        zero_window_s=zero_window_s,
+        fallbacks=fallbacks,
+    )
     return model.fit(campaigns)

@@ -28,8 +28,17 @@ from fbgcomp.atomic import write_bytes
 
 matplotlib.use("Agg", force=False)
 
-__all__ = ["elongation_vs_load", "static_validation", "time_history", "drift_validation",
-           "save_figure", "png_bytes", "time_axis", "load_levels", "MAX_PLOT_POINTS"]
+__all__ = [
+    "MAX_PLOT_POINTS",
+    "drift_validation",
+    "elongation_vs_load",
+    "load_levels",
+    "png_bytes",
+    "save_figure",
+    "static_validation",
+    "time_axis",
+    "time_history",
+]
 
 #: Time histories are thinned to at most this many points per curve: a 36 h campaign at 10 Hz
 #: would otherwise make multi-megabyte PNGs without showing anything more at print resolution.
@@ -121,8 +130,7 @@ def _level_means(values, index, n_levels):
     return out.reshape((n_levels,) + values.shape[1:])
 
 
-def elongation_vs_load(load_N, elongation_um, sensor_names, *, load_label="F", title=None,
-                       path=None):
+def elongation_vs_load(load_N, elongation_um, sensor_names, *, load_label="F", title=None, path=None):
     """Paper fig. 6: (a) each sensor's elongation against the applied force; (b) sensitivity.
 
     Parameters
@@ -146,29 +154,34 @@ def elongation_vs_load(load_N, elongation_um, sensor_names, *, load_label="F", t
     for j, name in enumerate(sensor_names):
         c = _COLOURS[j % len(_COLOURS)]
         means = _level_means(dl[:, j], index, levels.size)
-        spread = np.array([np.nanstd(dl[index == k, j]) if (index == k).any() else np.nan
-                           for k in range(levels.size)])
-        ax.errorbar(levels, means, yerr=spread, fmt=_MARKERS[j % len(_MARKERS)], color=c,
-                    ms=5, capsize=3, label=name)
+        spread = np.array(
+            [np.nanstd(dl[index == k, j]) if (index == k).any() else np.nan for k in range(levels.size)]
+        )
+        ax.errorbar(
+            levels, means, yerr=spread, fmt=_MARKERS[j % len(_MARKERS)], color=c, ms=5, capsize=3, label=name
+        )
         ok = finite & np.isfinite(dl[:, j])
         if ok.sum() >= 2 and np.ptp(load[ok]) > 0:
             slope, icpt = np.polyfit(load[ok], dl[ok, j], 1)
             slopes[j] = slope * 1000.0
             xs = np.array([load[ok].min(), load[ok].max()])
-            ax.plot(xs, icpt + slope * xs, color=c, linestyle=_STYLES[j % len(_STYLES)],
-                    linewidth=1.2)
+            ax.plot(xs, icpt + slope * xs, color=c, linestyle=_STYLES[j % len(_STYLES)], linewidth=1.2)
     ax.axhline(0.0, color="0.4", linewidth=0.8)
     ax.set_xlabel(f"applied force {load_label} (N)")
     ax.set_ylabel("sensor elongation ΔS (µm)")
     ax.set_title("(a) elongation vs. applied force (mean ± 1 SD per load level)", fontsize=10)
     ax.legend(title="sensor", fontsize=8, title_fontsize=8, ncols=2 if dl.shape[1] > 4 else 1)
     positions = np.arange(dl.shape[1])
-    bars = bx.bar(positions, np.nan_to_num(slopes), color=[_COLOURS[j % len(_COLOURS)]
-                                                           for j in positions])
+    bars = bx.bar(positions, np.nan_to_num(slopes), color=[_COLOURS[j % len(_COLOURS)] for j in positions])
     for rect, s in zip(bars, slopes):
         if np.isfinite(s):
-            bx.annotate(f"{s:.3g}", (rect.get_x() + rect.get_width() / 2, rect.get_height()),
-                        ha="center", va="bottom" if s >= 0 else "top", fontsize=8)
+            bx.annotate(
+                f"{s:.3g}",
+                (rect.get_x() + rect.get_width() / 2, rect.get_height()),
+                ha="center",
+                va="bottom" if s >= 0 else "top",
+                fontsize=8,
+            )
     bx.axhline(0.0, color="0.4", linewidth=0.8)
     bx.set_xticks(positions, list(sensor_names))
     bx.set_xlabel("sensor")
@@ -178,8 +191,9 @@ def elongation_vs_load(load_N, elongation_um, sensor_names, *, load_label="F", t
     return _finish(fig, path)
 
 
-def static_validation(load_N, reference_um, predicted_um, halfwidth_um, *, axis_name="dy",
-                      load_label="F", title=None, path=None):
+def static_validation(
+    load_N, reference_um, predicted_um, halfwidth_um, *, axis_name="dy", load_label="F", title=None, path=None
+):
     """Paper fig. 7: real vs. predicted TTP deviation against the applied force.
 
     Parameters
@@ -204,28 +218,38 @@ def static_validation(load_N, reference_um, predicted_um, halfwidth_um, *, axis_
     fig, axes = _new_figure(8.0, 5.6, 2, 1, sharex=True, height_ratios=[2.2, 1])
     ax, ex = axes[:, 0]
     ax.plot(levels, m_ref, "o-", color=_COLOURS[0], ms=6, label="real (interferometer)")
-    ax.errorbar(levels, m_pred, yerr=m_half, fmt="s--", color=_COLOURS[1], ms=5, capsize=4,
-                label="predicted ± 95 % prediction interval")
+    ax.errorbar(
+        levels,
+        m_pred,
+        yerr=m_half,
+        fmt="s--",
+        color=_COLOURS[1],
+        ms=5,
+        capsize=4,
+        label="predicted ± 95 % prediction interval",
+    )
     ax.set_ylabel(f"TTP deviation {axis_name} (µm)")
     ax.legend(fontsize=8)
     ax.set_title(f"(a) real vs. predicted TTP deviation, axis {axis_name}", fontsize=10)
     peak = float(np.nanmax(np.abs(ref))) if np.isfinite(ref).any() else float("nan")
     err_pct = 100.0 * (m_pred - m_ref) / peak if peak > 0 else np.full(levels.size, np.nan)
-    ex.bar(levels, err_pct, width=0.6 * (np.min(np.diff(levels)) if levels.size > 1 else 1.0),
-           color=_COLOURS[2], label="predicted − real")
+    ex.bar(
+        levels,
+        err_pct,
+        width=0.6 * (np.min(np.diff(levels)) if levels.size > 1 else 1.0),
+        color=_COLOURS[2],
+        label="predicted − real",
+    )
     ex.axhline(0.0, color="0.4", linewidth=0.8)
     ex.set_xlabel(f"applied force {load_label} (N)")
     ex.set_ylabel("error (% of peak)")
     ex.legend(fontsize=8)
-    ex.set_title(f"(b) prediction error, % of the peak real deviation ({peak:.3g} µm)",
-                 fontsize=10)
-    fig.suptitle(title or "Static loads: real vs. predicted TTP deviation (paper fig. 7)",
-                 fontsize=11)
+    ex.set_title(f"(b) prediction error, % of the peak real deviation ({peak:.3g} µm)", fontsize=10)
+    fig.suptitle(title or "Static loads: real vs. predicted TTP deviation (paper fig. 7)", fontsize=11)
     return _finish(fig, path)
 
 
-def time_history(time_s, elongation_um, sensor_names, temperature_C, probe_names, *,
-                 title=None, path=None):
+def time_history(time_s, elongation_um, sensor_names, temperature_C, probe_names, *, title=None, path=None):
     """Paper fig. 8: sensor elongations (top) and probe temperatures (bottom) over time.
 
     Parameters
@@ -241,30 +265,40 @@ def time_history(time_s, elongation_um, sensor_names, temperature_C, probe_names
     fig, axes = _new_figure(10.0, 6.4, 2, 1, sharex=True)
     ax, tx = axes[:, 0]
     for j, name in enumerate(sensor_names):
-        ax.plot(t[rows], dl[rows, j], color=_COLOURS[j % len(_COLOURS)],
-                linestyle=_STYLES[j % len(_STYLES)], linewidth=1.2, label=name)
+        ax.plot(
+            t[rows],
+            dl[rows, j],
+            color=_COLOURS[j % len(_COLOURS)],
+            linestyle=_STYLES[j % len(_STYLES)],
+            linewidth=1.2,
+            label=name,
+        )
     ax.axhline(0.0, color="0.4", linewidth=0.8)
     ax.set_ylabel("sensor elongation ΔS (µm)")
     ax.set_title("(a) elongations measured by the FBG sensors", fontsize=10)
     # legends outside the plot: 36 h of data leaves no empty corner to put them in
-    ax.legend(title="sensor", fontsize=8, title_fontsize=8, loc="upper left",
-              bbox_to_anchor=(1.01, 1.0))
+    ax.legend(title="sensor", fontsize=8, title_fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     for j, name in enumerate(probe_names):
-        tx.plot(t[rows], temp[rows, j], color=_COLOURS[(j + 4) % len(_COLOURS)],
-                linestyle=_STYLES[j % len(_STYLES)], linewidth=1.2, label=name)
+        tx.plot(
+            t[rows],
+            temp[rows, j],
+            color=_COLOURS[(j + 4) % len(_COLOURS)],
+            linestyle=_STYLES[j % len(_STYLES)],
+            linewidth=1.2,
+            label=name,
+        )
     tx.set_ylabel("temperature (°C)")
     tx.set_xlabel(t_label)
     tx.set_title("(b) probe temperatures", fontsize=10)
     if len(probe_names):
-        tx.legend(title="probe", fontsize=8, title_fontsize=8, loc="upper left",
-                  bbox_to_anchor=(1.01, 1.0))
-    fig.suptitle(title or "Sensor elongations and temperatures over time (paper fig. 8)",
-                 fontsize=11)
+        tx.legend(title="probe", fontsize=8, title_fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    fig.suptitle(title or "Sensor elongations and temperatures over time (paper fig. 8)", fontsize=11)
     return _finish(fig, path)
 
 
-def drift_validation(time_s, reference_um, predicted_um, halfwidth_um=None, *,
-                     axis_names=_AXIS_NAMES, title=None, path=None):
+def drift_validation(
+    time_s, reference_um, predicted_um, halfwidth_um=None, *, axis_names=_AXIS_NAMES, title=None, path=None
+):
     """Paper fig. 9: real vs. predicted TTP drift per axis, residual and uncompensated error.
 
     Parameters
@@ -284,32 +318,46 @@ def drift_validation(time_s, reference_um, predicted_um, halfwidth_um=None, *,
     pred = np.asarray(predicted_um, dtype=float).reshape(t.size, -1)
     half = None if halfwidth_um is None else np.asarray(halfwidth_um, dtype=float).reshape(t.size, -1)
     n_axes = ref.shape[1]
-    fig, axes = _new_figure(10.0, 2.6 * n_axes + 0.8, n_axes, 2, sharex=True,
-                            width_ratios=[1.25, 1])
+    fig, axes = _new_figure(10.0, 2.6 * n_axes + 0.8, n_axes, 2, sharex=True, width_ratios=[1.25, 1])
     for j in range(n_axes):
         name = axis_names[j]
         ax, rx = axes[j]
         if half is not None:
-            ax.fill_between(t[rows], pred[rows, j] - half[rows, j], pred[rows, j] + half[rows, j],
-                            color=_COLOURS[1], alpha=0.18, linewidth=0,
-                            label="95 % prediction interval")
+            ax.fill_between(
+                t[rows],
+                pred[rows, j] - half[rows, j],
+                pred[rows, j] + half[rows, j],
+                color=_COLOURS[1],
+                alpha=0.18,
+                linewidth=0,
+                label="95 % prediction interval",
+            )
         ax.plot(t[rows], ref[rows, j], color=_COLOURS[0], linewidth=1.4, label="real")
-        ax.plot(t[rows], pred[rows, j], color=_COLOURS[1], linestyle="--", linewidth=1.4,
-                label="predicted")
+        ax.plot(t[rows], pred[rows, j], color=_COLOURS[1], linestyle="--", linewidth=1.4, label="predicted")
         ax.set_ylabel(f"{name} (µm)")
         ax.set_title(f"axis {name}: real vs. predicted TTP deviation", fontsize=10)
         ax.legend(fontsize=8, loc="best")
         resid = ref[:, j] - pred[:, j]
-        rx.plot(t[rows], ref[rows, j], color="0.25", linestyle=":", linewidth=1.6,
-                label=f"uncompensated error (max |·| {np.nanmax(np.abs(ref[:, j])):.3g} µm)")
-        rx.plot(t[rows], resid[rows], color=_COLOURS[2], linewidth=1.4,
-                label=f"residual after compensation (max |·| {np.nanmax(np.abs(resid)):.3g} µm)")
+        rx.plot(
+            t[rows],
+            ref[rows, j],
+            color="0.25",
+            linestyle=":",
+            linewidth=1.6,
+            label=f"uncompensated error (max |·| {np.nanmax(np.abs(ref[:, j])):.3g} µm)",
+        )
+        rx.plot(
+            t[rows],
+            resid[rows],
+            color=_COLOURS[2],
+            linewidth=1.4,
+            label=f"residual after compensation (max |·| {np.nanmax(np.abs(resid)):.3g} µm)",
+        )
         rx.axhline(0.0, color="0.4", linewidth=0.8)
         rx.set_ylabel(f"{name} error (µm)")
         rx.set_title(f"axis {name}: error without and with compensation", fontsize=10)
         rx.legend(fontsize=8, loc="best")
     for ax in axes[-1]:
         ax.set_xlabel(t_label)
-    fig.suptitle(title or "Thermal drift: real vs. predicted TTP deviation (paper fig. 9)",
-                 fontsize=11)
+    fig.suptitle(title or "Thermal drift: real vs. predicted TTP deviation (paper fig. 9)", fontsize=11)
     return _finish(fig, path)

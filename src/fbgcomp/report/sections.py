@@ -18,17 +18,28 @@ from fbgcomp.models.metrics import validation_metrics
 from fbgcomp.report import figures
 from fbgcomp.units import AXES
 
-__all__ = ["CampaignSection", "analyse_campaign", "sensor_health", "probe_health", "slugify",
-           "LOAD_LABELS", "MAX_JUMP_NM", "STUCK_S", "NOISE_WARN_PM", "MAX_TEMPERATURE_JUMP_C",
-           "TEMPERATURE_STUCK_S", "TEMPERATURE_NOISE_WARN_C"]
+__all__ = [
+    "LOAD_LABELS",
+    "MAX_JUMP_NM",
+    "MAX_TEMPERATURE_JUMP_C",
+    "NOISE_WARN_PM",
+    "STUCK_S",
+    "TEMPERATURE_NOISE_WARN_C",
+    "TEMPERATURE_STUCK_S",
+    "CampaignSection",
+    "analyse_campaign",
+    "probe_health",
+    "sensor_health",
+    "slugify",
+]
 
 LOAD_LABELS = ("F_x", "F_y", "F_z")
 
 # Offline sensor-health thresholds: the runtime's own (fbgcomp.runtime.health.HealthConfig
 # defaults, repeated so the offline report does not import the runtime) plus a noise bound.
-MAX_JUMP_NM = 0.1            # ~80 µε or ~10 K between two samples: not physical for the ram
-STUCK_S = 2.0                # exactly the same wavelength this long = stuck interrogator channel
-NOISE_WARN_PM = 5.0          # sample-to-sample noise above this swamps sub-µm elongations
+MAX_JUMP_NM = 0.1  # ~80 µε or ~10 K between two samples: not physical for the ram
+STUCK_S = 2.0  # exactly the same wavelength this long = stuck interrogator channel
+NOISE_WARN_PM = 5.0  # sample-to-sample noise above this swamps sub-µm elongations
 MAX_TEMPERATURE_JUMP_C = 2.0  # a probe jumping 2 K between samples is a contact/wiring fault
 TEMPERATURE_STUCK_S = 600.0  # a probe logging the very same value for 10 min is suspicious
 TEMPERATURE_NOISE_WARN_C = 0.2
@@ -93,16 +104,25 @@ def sensor_health(time_s, wavelength_nm, lambda0_nm, sensor_names, *, band_nm=5.
     for j, name in enumerate(sensor_names):
         v = wl[:, j]
         noise, jumps, stuck, problems = _channel_health(
-            t, v, noise_unit_scale=1000.0, noise_warn=NOISE_WARN_PM, jump=MAX_JUMP_NM,
-            stuck_s=STUCK_S)
+            t, v, noise_unit_scale=1000.0, noise_warn=NOISE_WARN_PM, jump=MAX_JUMP_NM, stuck_s=STUCK_S
+        )
         excursion = np.abs(v - lam0[j])
         outside = float(np.mean(excursion > band_nm)) if v.size else float("nan")
         if outside > 0:
             problems.append(f"{100 * outside:.3g} % of samples outside ±{band_nm:g} nm")
-        out.append({"sensor": name, "samples": int(v.size), "noise_pm": noise, "jumps": jumps,
-                    "longest_constant_s": stuck, "out_of_band_fraction": outside,
-                    "band_margin_nm": float(band_nm - np.max(excursion)) if v.size else float("nan"),
-                    "status": "CHECK" if problems else "OK", "problems": problems})
+        out.append(
+            {
+                "sensor": name,
+                "samples": int(v.size),
+                "noise_pm": noise,
+                "jumps": jumps,
+                "longest_constant_s": stuck,
+                "out_of_band_fraction": outside,
+                "band_margin_nm": float(band_nm - np.max(excursion)) if v.size else float("nan"),
+                "status": "CHECK" if problems else "OK",
+                "problems": problems,
+            }
+        )
     return out
 
 
@@ -114,11 +134,24 @@ def probe_health(time_s, temperature_C, probe_names) -> list[dict]:
     out = []
     for j, name in enumerate(probe_names):
         noise, jumps, stuck, problems = _channel_health(
-            t, temp[:, j], noise_unit_scale=1.0, noise_warn=TEMPERATURE_NOISE_WARN_C,
-            jump=MAX_TEMPERATURE_JUMP_C, stuck_s=TEMPERATURE_STUCK_S)
-        out.append({"probe": name, "samples": int(t.size), "noise_C": noise, "jumps": jumps,
-                    "longest_constant_s": stuck, "status": "CHECK" if problems else "OK",
-                    "problems": problems})
+            t,
+            temp[:, j],
+            noise_unit_scale=1.0,
+            noise_warn=TEMPERATURE_NOISE_WARN_C,
+            jump=MAX_TEMPERATURE_JUMP_C,
+            stuck_s=TEMPERATURE_STUCK_S,
+        )
+        out.append(
+            {
+                "probe": name,
+                "samples": int(t.size),
+                "noise_C": noise,
+                "jumps": jumps,
+                "longest_constant_s": stuck,
+                "status": "CHECK" if problems else "OK",
+                "problems": problems,
+            }
+        )
     return out
 
 
@@ -132,7 +165,7 @@ class CampaignSection:
     metrics: dict
     sensor_health: list
     probe_health: list
-    figures: dict = field(default_factory=dict)      # key -> (title, png bytes, file name)
+    figures: dict = field(default_factory=dict)  # key -> (title, png bytes, file name)
     not_applicable: dict = field(default_factory=dict)  # key -> reason
     notes: list = field(default_factory=list)
 
@@ -153,8 +186,8 @@ def analyse_campaign(campaign, model, *, slug: str | None = None) -> CampaignSec
     # elongations a regression model uses, and defined for every model type
     sensors = list(aligned.sensor_names)
     elongation = FeatureMap(list(campaign.meta.sensors), list(aligned.probe_names), False).base(
-        aligned.wavelength_nm, aligned.temperature_C, aligned.wavelength_zero_nm,
-        aligned.temperature_zero_C)
+        aligned.wavelength_nm, aligned.temperature_C, aligned.wavelength_zero_nm, aligned.temperature_zero_C
+    )
     ref = aligned.reference_um
     slug = slug or slugify(campaign.name)
 
@@ -163,13 +196,17 @@ def analyse_campaign(campaign, model, *, slug: str | None = None) -> CampaignSec
     lam0 = [s.lambda0_nm for s in campaign.meta.sensors]
     temp_cols = [f"{p}_C" for p in campaign.probe_names]
     section = CampaignSection(
-        name=campaign.name, kind=campaign.meta.kind, summary=campaign.summary(),
+        name=campaign.name,
+        kind=campaign.meta.kind,
+        summary=campaign.summary(),
         metrics=validation_metrics(ref, pred, half),
-        sensor_health=sensor_health(fbg_t, fbg_v, lam0, campaign.sensor_names,
-                                    band_nm=WAVELENGTH_BAND_NM),
-        probe_health=probe_health(campaign.temperatures["time_s"].to_numpy(),
-                                  campaign.temperatures[temp_cols].to_numpy(dtype=float),
-                                  campaign.probe_names))
+        sensor_health=sensor_health(fbg_t, fbg_v, lam0, campaign.sensor_names, band_nm=WAVELENGTH_BAND_NM),
+        probe_health=probe_health(
+            campaign.temperatures["time_s"].to_numpy(),
+            campaign.temperatures[temp_cols].to_numpy(dtype=float),
+            campaign.probe_names,
+        ),
+    )
 
     def add(key, title, fig):
         section.figures[key] = (title, figures.png_bytes(fig), f"{slug}_{key}.png")
@@ -183,37 +220,75 @@ def analyse_campaign(campaign, model, *, slug: str | None = None) -> CampaignSec
         k = int(np.nanargmax(ranges))
         load = loads[:, k]
         axis = max(range(3), key=lambda j: np.nanmax(np.abs(ref[:, j])))
-        add("fig6", f"Fig. 6 - sensor elongations vs. applied force {LOAD_LABELS[k]}",
-            figures.elongation_vs_load(load, elongation, sensors, load_label=LOAD_LABELS[k],
-                                       title=f"{campaign.name}: sensor elongations vs. applied "
-                                             f"force {LOAD_LABELS[k]} (paper fig. 6)"))
-        add("fig7", f"Fig. 7 - real vs. predicted TTP deviation {AXES[axis]} under static load",
-            figures.static_validation(load, ref[:, axis], pred[:, axis], half[:, axis],
-                                      axis_name=AXES[axis], load_label=LOAD_LABELS[k],
-                                      title=f"{campaign.name}: real vs. predicted TTP deviation "
-                                            f"{AXES[axis]} under static load (paper fig. 7)"))
-        section.notes.append(f"Load component varied: {LOAD_LABELS[k]} "
-                             f"({np.nanmin(load):.4g} to {np.nanmax(load):.4g} N); figure 7 "
-                             f"shows axis {AXES[axis]}, the largest measured deviation.")
+        add(
+            "fig6",
+            f"Fig. 6 - sensor elongations vs. applied force {LOAD_LABELS[k]}",
+            figures.elongation_vs_load(
+                load,
+                elongation,
+                sensors,
+                load_label=LOAD_LABELS[k],
+                title=f"{campaign.name}: sensor elongations vs. applied "
+                f"force {LOAD_LABELS[k]} (paper fig. 6)",
+            ),
+        )
+        add(
+            "fig7",
+            f"Fig. 7 - real vs. predicted TTP deviation {AXES[axis]} under static load",
+            figures.static_validation(
+                load,
+                ref[:, axis],
+                pred[:, axis],
+                half[:, axis],
+                axis_name=AXES[axis],
+                load_label=LOAD_LABELS[k],
+                title=f"{campaign.name}: real vs. predicted TTP deviation "
+                f"{AXES[axis]} under static load (paper fig. 7)",
+            ),
+        )
+        section.notes.append(
+            f"Load component varied: {LOAD_LABELS[k]} "
+            f"({np.nanmin(load):.4g} to {np.nanmax(load):.4g} N); figure 7 "
+            f"shows axis {AXES[axis]}, the largest measured deviation."
+        )
     else:
-        why = ("no loads.csv in this campaign" if loads is None
-               else "loads.csv does not vary inside the aligned time range")
+        why = (
+            "no loads.csv in this campaign"
+            if loads is None
+            else "loads.csv does not vary inside the aligned time range"
+        )
         section.not_applicable["fig6"] = f"Fig. 6 not applicable: {why}."
         section.not_applicable["fig7"] = f"Fig. 7 not applicable: {why}."
 
     if campaign.meta.kind in ("thermal", "combined") or not has_loads:
-        add("fig8", "Fig. 8 - sensor elongations and temperatures over time",
-            figures.time_history(aligned.time_s, elongation, sensors, aligned.temperature_C,
-                                 aligned.probe_names,
-                                 title=f"{campaign.name}: sensor elongations and temperatures "
-                                       "over time (paper fig. 8)"))
-        add("fig9", "Fig. 9 - real vs. predicted TTP drift, residual and uncompensated error",
-            figures.drift_validation(aligned.time_s, ref, pred, half,
-                                     title=f"{campaign.name}: real vs. predicted TTP drift "
-                                           "(paper fig. 9)"))
+        add(
+            "fig8",
+            "Fig. 8 - sensor elongations and temperatures over time",
+            figures.time_history(
+                aligned.time_s,
+                elongation,
+                sensors,
+                aligned.temperature_C,
+                aligned.probe_names,
+                title=f"{campaign.name}: sensor elongations and temperatures over time (paper fig. 8)",
+            ),
+        )
+        add(
+            "fig9",
+            "Fig. 9 - real vs. predicted TTP drift, residual and uncompensated error",
+            figures.drift_validation(
+                aligned.time_s,
+                ref,
+                pred,
+                half,
+                title=f"{campaign.name}: real vs. predicted TTP drift (paper fig. 9)",
+            ),
+        )
     else:
-        why = (f"a {campaign.meta.kind} campaign is judged against the applied load "
-               "(figs. 6 and 7), not as a time history")
+        why = (
+            f"a {campaign.meta.kind} campaign is judged against the applied load "
+            "(figs. 6 and 7), not as a time history"
+        )
         section.not_applicable["fig8"] = f"Fig. 8 not applicable: {why}."
         section.not_applicable["fig9"] = f"Fig. 9 not applicable: {why}."
     return section

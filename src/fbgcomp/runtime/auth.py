@@ -20,13 +20,11 @@ from fbgcomp.errors import InputError
 PBKDF2_ITERATIONS = 100_000
 
 
-def hash_password(password: str, salt: bytes | None = None,
-                  iterations: int = PBKDF2_ITERATIONS) -> str:
+def hash_password(password: str, salt: bytes | None = None, iterations: int = PBKDF2_ITERATIONS) -> str:
     """``pbkdf2_sha256$<iterations>$<salt b64>$<hash b64>`` for the users file."""
     salt = salt or os.urandom(16)
     digest = hashlib.pbkdf2_hmac("sha256", password.encode(), salt, iterations)
-    return (f"pbkdf2_sha256${iterations}${base64.b64encode(salt).decode()}$"
-            f"{base64.b64encode(digest).decode()}")
+    return f"pbkdf2_sha256${iterations}${base64.b64encode(salt).decode()}${base64.b64encode(digest).decode()}"
 
 
 def verify_password(password: str, stored: str) -> bool:
@@ -42,8 +40,15 @@ def verify_password(password: str, stored: str) -> bool:
         return False
 
 
-def load_users(users_file: str | Path | None, environ=os.environ, *, service="OPC UA",
-               env_prefix="FBGCOMP_OPCUA", doc="docs/runtime.md", iterations=1000) -> dict[str, str]:
+def load_users(
+    users_file: str | Path | None,
+    environ=os.environ,
+    *,
+    service="OPC UA",
+    env_prefix="FBGCOMP_OPCUA",
+    doc="docs/runtime.md",
+    iterations=1000,
+) -> dict[str, str]:
     """User -> password hash, from ``users_file`` (lines ``name:pbkdf2_sha256$...``) and the
     environment (``<env_prefix>_USER`` / ``<env_prefix>_PASSWORD``, hashed in memory only).
 
@@ -60,8 +65,9 @@ def load_users(users_file: str | Path | None, environ=os.environ, *, service="OP
                 continue
             name, sep, stored = line.partition(":")
             if not sep or not stored.startswith("pbkdf2_sha256$"):
-                raise InputError(f"expected name:pbkdf2_sha256$... (see {doc})",
-                                 file=path, column=f"line {i}")
+                raise InputError(
+                    f"expected name:pbkdf2_sha256$... (see {doc})", file=path, column=f"line {i}"
+                )
             users[name.strip()] = stored.strip()
     user, pwd = environ.get(f"{env_prefix}_USER"), environ.get(f"{env_prefix}_PASSWORD")
     if user and pwd:

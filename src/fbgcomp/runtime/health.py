@@ -25,19 +25,28 @@ from dataclasses import dataclass
 
 import numpy as np
 
-OK, MISSING, DOUBLED, OUT_OF_WINDOW, JUMP, STUCK, NAN, RECOVERING, NO_ZERO, INCONSISTENT = \
-    range(10)
-STATUS_NAMES = ("OK", "MISSING", "DOUBLED", "OUT_OF_WINDOW", "JUMP", "STUCK", "NAN",
-                "RECOVERING", "NO_ZERO", "INCONSISTENT")
+OK, MISSING, DOUBLED, OUT_OF_WINDOW, JUMP, STUCK, NAN, RECOVERING, NO_ZERO, INCONSISTENT = range(10)
+STATUS_NAMES = (
+    "OK",
+    "MISSING",
+    "DOUBLED",
+    "OUT_OF_WINDOW",
+    "JUMP",
+    "STUCK",
+    "NAN",
+    "RECOVERING",
+    "NO_ZERO",
+    "INCONSISTENT",
+)
 
 
 @dataclass
 class HealthConfig:
     """Thresholds of the sensor checks (``[pipeline.health]``, docs/runtime.md)."""
 
-    max_jump_nm: float = 0.1      # ~80 µε or ~10 K in one sample: not physical for the ram
-    stuck_s: float = 2.0          # exactly constant wavelength this long = stuck channel (0: off)
-    recover_s: float = 1.0        # a recovered sensor must stay good this long
+    max_jump_nm: float = 0.1  # ~80 µε or ~10 K in one sample: not physical for the ram
+    stuck_s: float = 2.0  # exactly constant wavelength this long = stuck channel (0: off)
+    recover_s: float = 1.0  # a recovered sensor must stay good this long
     # re-admission: the models with and without the grating agree within this many combined
     # expected errors (sqrt(rms_with^2 + rms_without^2)) per axis; 0 = no check
     readmit_k_sigma: float = 4.0
@@ -48,17 +57,16 @@ class SensorChecks:
 
     def __init__(self, n_sensors: int, config: HealthConfig | None = None):
         self.config = config or HealthConfig()
-        self.last_value = np.full(n_sensors, np.nan)       # last finite wavelength, nm
-        self.last_raw = np.full(n_sensors, np.nan)         # last sample as received
-        self.last_change_s = np.full(n_sensors, -np.inf)   # time the value last changed
-        self.last_bad_s = np.full(n_sensors, -np.inf)      # time of the last bad sample
+        self.last_value = np.full(n_sensors, np.nan)  # last finite wavelength, nm
+        self.last_raw = np.full(n_sensors, np.nan)  # last sample as received
+        self.last_change_s = np.full(n_sensors, -np.inf)  # time the value last changed
+        self.last_bad_s = np.full(n_sensors, -np.inf)  # time of the last bad sample
         self.never_zeroed = np.zeros(n_sensors, bool)
-        self.offset_nm = np.zeros(n_sensors)               # summed mode-hop steps, nm
-        self.row_offset_nm = np.zeros((0, n_sensors))      # offset_nm per frame, last batch
+        self.offset_nm = np.zeros(n_sensors)  # summed mode-hop steps, nm
+        self.row_offset_nm = np.zeros((0, n_sensors))  # offset_nm per frame, last batch
         self._zeros_cache: dict[int, np.ndarray] = {}
 
-    def all_good(self, time_s: np.ndarray, wavelength_nm: np.ndarray,
-                 peak_count: np.ndarray) -> bool:
+    def all_good(self, time_s: np.ndarray, wavelength_nm: np.ndarray, peak_count: np.ndarray) -> bool:
         """The usual batch in a handful of numpy calls: True when :meth:`check` would find every
         sample OK and no sensor faulted (one peak each, finite, every value changed from the
         previous one by at most ``max_jump_nm``, no sensor recovering or without a zero), and
@@ -80,8 +88,7 @@ class SensorChecks:
         else:
             step = np.abs(np.diff(wavelength_nm, axis=0, prepend=self.last_value[None, :]))
         # NaN (missing value or no previous one) fails both comparisons
-        if not ((step <= cfg.max_jump_nm) & (step > 0.0)).all() or \
-                not (peak_count == 1).all():
+        if not ((step <= cfg.max_jump_nm) & (step > 0.0)).all() or not (peak_count == 1).all():
             return False
         if not self.offset_nm.any():
             self.row_offset_nm = self._zero_offsets(n)
@@ -91,8 +98,9 @@ class SensorChecks:
         self.last_raw = last
         self.last_value = last
         # every sample changed: check's running maximum of the change times
-        self.last_change_s = np.maximum(self.last_change_s,
-                                        float(time_s[0]) if n == 1 else float(time_s.max()))
+        self.last_change_s = np.maximum(
+            self.last_change_s, float(time_s[0]) if n == 1 else float(time_s.max())
+        )
         return True
 
     def _zero_offsets(self, n: int) -> np.ndarray:
@@ -109,8 +117,9 @@ class SensorChecks:
     def _any_never_zeroed(self) -> bool:
         return bool(self.never_zeroed.any())
 
-    def check(self, time_s: np.ndarray, wavelength_nm: np.ndarray, peak_count: np.ndarray,
-              near_count: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def check(
+        self, time_s: np.ndarray, wavelength_nm: np.ndarray, peak_count: np.ndarray, near_count: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Check a batch: (status (n, S) codes of :data:`STATUS_NAMES`, faulted (n, S) bool).
 
         A sensor is faulted from its first bad sample until it has been good for ``recover_s``;
@@ -124,17 +133,18 @@ class SensorChecks:
 
         # Jump: against the previous finite value (carried over from the previous batch).
         all_finite = bool(finite.all())
-        if all_finite:        # the usual case: the previous value is simply the previous row
+        if all_finite:  # the usual case: the previous value is simply the previous row
             last_fin = None
             prev_val = np.concatenate([self.last_value[None, :], wavelength_nm[:-1]])
         else:
             idx = np.arange(n)[:, None]
             last_fin = np.maximum.accumulate(np.where(finite, idx, -1), axis=0)
             prev_fin = np.vstack([np.full((1, S), -1), last_fin[:-1]])
-            prev_val = np.where(prev_fin >= 0,
-                                np.take_along_axis(wavelength_nm, np.maximum(prev_fin, 0),
-                                                   axis=0),
-                                self.last_value)
+            prev_val = np.where(
+                prev_fin >= 0,
+                np.take_along_axis(wavelength_nm, np.maximum(prev_fin, 0), axis=0),
+                self.last_value,
+            )
         with np.errstate(invalid="ignore"):
             jump = finite & (np.abs(wavelength_nm - prev_val) > cfg.max_jump_nm)
 
@@ -144,8 +154,7 @@ class SensorChecks:
         t_change = np.maximum.accumulate(np.where(changed, t, -np.inf), axis=0)
         t_change = np.maximum(t_change, self.last_change_s)
         # a live grating always shows some noise; noise-free replays must set stuck_s = 0
-        stuck = finite & ((t - t_change) >= cfg.stuck_s) if cfg.stuck_s > 0 else \
-            np.zeros((n, S), bool)
+        stuck = finite & ((t - t_change) >= cfg.stuck_s) if cfg.stuck_s > 0 else np.zeros((n, S), bool)
 
         # Re-zero rule: a jump between consecutive finite samples (no gap) is a step of the
         # reading, not of the machine; from that frame on it is subtracted (offset_nm). A jump
@@ -183,8 +192,8 @@ class SensorChecks:
             else:
                 has = last_fin[-1] >= 0
                 self.last_value = np.where(
-                    has, wavelength_nm[np.maximum(last_fin[-1], 0), np.arange(S)],
-                    self.last_value)
+                    has, wavelength_nm[np.maximum(last_fin[-1], 0), np.arange(S)], self.last_value
+                )
         return status, faulted
 
 
@@ -192,15 +201,20 @@ class SensorChecks:
 # One flag word per frame and TTP axis (uint8), OR-ed from the model's own policy flags
 # (its predictor's ``last_flags``) and the runtime's output limits. Published in the batch
 # result, the run log (``flags_dx``...), OPC UA (``OutputFlagsX``...) and the dashboard.
-FLAG_SHRUNK = 1          # model: inputs outside the training envelope, correction shrunk
-FLAG_CLAMPED = 2         # model: bounded to the model's own maximum
-FLAG_LOAD_REFUSED = 4    # model: the gratings contradict each other, the load part dropped
-FLAG_RATE_LIMITED = 8    # runtime: the rate limit held the published correction back
-FLAG_MAX_LIMITED = 16    # runtime: the per-axis maximum |correction| held it back
+FLAG_SHRUNK = 1  # model: inputs outside the training envelope, correction shrunk
+FLAG_CLAMPED = 2  # model: bounded to the model's own maximum
+FLAG_LOAD_REFUSED = 4  # model: the gratings contradict each other, the load part dropped
+FLAG_RATE_LIMITED = 8  # runtime: the rate limit held the published correction back
+FLAG_MAX_LIMITED = 16  # runtime: the per-axis maximum |correction| held it back
 MODEL_FLAGS = FLAG_SHRUNK | FLAG_CLAMPED | FLAG_LOAD_REFUSED
 LIMIT_FLAGS = FLAG_RATE_LIMITED | FLAG_MAX_LIMITED
-FLAG_NAMES = {FLAG_SHRUNK: "SHRUNK", FLAG_CLAMPED: "CLAMPED", FLAG_LOAD_REFUSED: "LOAD_REFUSED",
-              FLAG_RATE_LIMITED: "RATE_LIMITED", FLAG_MAX_LIMITED: "MAX_LIMITED"}
+FLAG_NAMES = {
+    FLAG_SHRUNK: "SHRUNK",
+    FLAG_CLAMPED: "CLAMPED",
+    FLAG_LOAD_REFUSED: "LOAD_REFUSED",
+    FLAG_RATE_LIMITED: "RATE_LIMITED",
+    FLAG_MAX_LIMITED: "MAX_LIMITED",
+}
 
 
 def flag_names(word: int) -> list[str]:

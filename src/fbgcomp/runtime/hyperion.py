@@ -42,19 +42,19 @@ import numpy as np
 COMMAND_PORT = 51971
 STREAM_PORT = 51972
 
-HEADER = struct.Struct("<BBHI")          # 8 bytes, request and response
-PEAK_HEADER = struct.Struct("<HHIQII")   # 24 bytes
+HEADER = struct.Struct("<BBHI")  # 8 bytes, request and response
+PEAK_HEADER = struct.Struct("<HHIQII")  # 24 bytes
 HEADER_SIZE = HEADER.size
 PEAK_HEADER_SIZE = PEAK_HEADER.size
 PEAK_HEADER_VERSION = 1
 
-DEFAULT_CHANNELS = 16            # when the instrument does not say (no command port)
-MAX_CHANNELS = 128               # the most a reported channel count is believed
+DEFAULT_CHANNELS = 16  # when the instrument does not say (no command port)
+MAX_CHANNELS = 128  # the most a reported channel count is believed
 # An interrogator sweeps at most ~160 nm and cannot separate peaks closer than ~0.3 nm: a
 # channel never carries 512 peaks. Our bound, not a vendor figure.
 MAX_PEAKS_PER_CHANNEL = 512
-READ_SIZE = 1 << 16              # bytes asked of the socket per read
-MAX_RESPONSE_BYTES = 1 << 20     # command-port answer content (serial number, counts: bytes)
+READ_SIZE = 1 << 16  # bytes asked of the socket per read
+MAX_RESPONSE_BYTES = 1 << 20  # command-port answer content (serial number, counts: bytes)
 
 
 class HyperionError(Exception):
@@ -86,8 +86,9 @@ def encode_request(command: str, argument: str | bytes = b"", request_options: i
     return HEADER.pack(request_options, 0, len(cmd), len(arg)) + cmd + arg
 
 
-def encode_response(message: str | bytes = b"", content: bytes = b"", status: int = 0,
-                    response_type: int = 0) -> bytes:
+def encode_response(
+    message: str | bytes = b"", content: bytes = b"", status: int = 0, response_type: int = 0
+) -> bytes:
     """Bytes of one command-port response (also the outer header of a stream frame)."""
     msg = message.encode("ascii") if isinstance(message, str) else bytes(message)
     return HEADER.pack(status, response_type, len(msg), len(content)) + msg + content
@@ -101,8 +102,9 @@ async def read_request(reader: asyncio.StreamReader) -> tuple[int, str, bytes]:
     return options, cmd, arg
 
 
-async def read_response(reader: asyncio.StreamReader, max_content_bytes: int = MAX_RESPONSE_BYTES
-                        ) -> tuple[int, int, bytes, bytes]:
+async def read_response(
+    reader: asyncio.StreamReader, max_content_bytes: int = MAX_RESPONSE_BYTES
+) -> tuple[int, int, bytes, bytes]:
     """Read one response: (status, response_type, message, content).
 
     A content longer than ``max_content_bytes`` raises HyperionError before it is read: the
@@ -110,16 +112,18 @@ async def read_response(reader: asyncio.StreamReader, max_content_bytes: int = M
     """
     status, rtype, msg_len, content_len = HEADER.unpack(await reader.readexactly(HEADER_SIZE))
     if content_len > max_content_bytes:
-        raise HyperionError(f"corrupt response: {content_len} bytes of content announced, "
-                            f"more than {max_content_bytes}")
+        raise HyperionError(
+            f"corrupt response: {content_len} bytes of content announced, more than {max_content_bytes}"
+        )
     message = await reader.readexactly(msg_len) if msg_len else b""
     content = await reader.readexactly(content_len) if content_len else b""
     return status, rtype, message, content
 
 
 # --------------------------------------------------------------------------- peak stream
-def encode_peak_frame(serial_number: int, timestamp_s: float, peak_counts: np.ndarray,
-                      wavelengths_nm: np.ndarray) -> bytes:
+def encode_peak_frame(
+    serial_number: int, timestamp_s: float, peak_counts: np.ndarray, wavelengths_nm: np.ndarray
+) -> bytes:
     """Bytes of one streamed peak frame (outer header + peak header + counts + peaks).
 
     ``peak_counts`` holds one int16 count per channel, ``wavelengths_nm`` the concatenated
@@ -132,13 +136,17 @@ def encode_peak_frame(serial_number: int, timestamp_s: float, peak_counts: np.nd
     t_frac_ns = int(round((timestamp_s - t_int) * 1e9))
     if t_frac_ns >= 1_000_000_000:
         t_int, t_frac_ns = t_int + 1, t_frac_ns - 1_000_000_000
-    content = (PEAK_HEADER.pack(length, PEAK_HEADER_VERSION, 0, serial_number, t_int, t_frac_ns)
-               + counts.tobytes() + peaks.tobytes())
+    content = (
+        PEAK_HEADER.pack(length, PEAK_HEADER_VERSION, 0, serial_number, t_int, t_frac_ns)
+        + counts.tobytes()
+        + peaks.tobytes()
+    )
     return HEADER.pack(0, 0, 0, len(content)) + content
 
 
-def encode_peak_frames(serial_number: int, timestamps_s: np.ndarray, peak_counts: np.ndarray,
-                       wavelengths_nm: np.ndarray) -> bytes:
+def encode_peak_frames(
+    serial_number: int, timestamps_s: np.ndarray, peak_counts: np.ndarray, wavelengths_nm: np.ndarray
+) -> bytes:
     """Vectorised encoding of ``n`` frames that share one layout.
 
     ``peak_counts`` (C,) is common to all frames; ``wavelengths_nm`` is (n, sum(peak_counts)).
@@ -167,9 +175,18 @@ def encode_peak_frames(serial_number: int, timestamps_s: np.ndarray, peak_counts
 
 @functools.lru_cache(maxsize=64)
 def _frame_dtype(n_channels: int, n_peaks: int) -> np.dtype:
-    fields = [("status", "u1"), ("rtype", "u1"), ("msg_len", "<u2"), ("content_length", "<u4"),
-              ("length", "<u2"), ("version", "<u2"), ("reserved", "<u4"), ("serial", "<u8"),
-              ("t_int", "<u4"), ("t_frac", "<u4")]
+    fields = [
+        ("status", "u1"),
+        ("rtype", "u1"),
+        ("msg_len", "<u2"),
+        ("content_length", "<u4"),
+        ("length", "<u2"),
+        ("version", "<u2"),
+        ("reserved", "<u4"),
+        ("serial", "<u8"),
+        ("t_int", "<u4"),
+        ("t_frac", "<u4"),
+    ]
     if n_channels:
         fields.append(("counts", "<i2", (n_channels,)))
     if n_peaks:
@@ -200,8 +217,9 @@ class PeakBlock:
         return np.repeat(np.arange(self.peak_counts.size), np.maximum(self.peak_counts, 0))
 
 
-def decode_peak_frames(buffer: bytes | bytearray | memoryview,
-                       limits: FrameLimits = DEFAULT_LIMITS) -> tuple[list[PeakBlock], int]:
+def decode_peak_frames(
+    buffer: bytes | bytearray | memoryview, limits: FrameLimits = DEFAULT_LIMITS
+) -> tuple[list[PeakBlock], int]:
     """Decode every complete frame in ``buffer``.
 
     Returns the decoded blocks (runs of frames with identical layout) and the number of bytes
@@ -223,7 +241,8 @@ def decode_peak_frames(buffer: bytes | bytearray | memoryview,
             raise HyperionError(
                 f"corrupt peak stream: a frame of {frame_len} bytes announced, more than the "
                 f"{max_frame} bytes of {limits.channels} channels x "
-                f"{limits.peaks_per_channel} peaks")
+                f"{limits.peaks_per_channel} peaks"
+            )
         if status != 0 or msg_len != 0:
             # Not a peak frame (an error message from the instrument): skip it whole.
             if total - pos < frame_len:
@@ -231,33 +250,41 @@ def decode_peak_frames(buffer: bytes | bytearray | memoryview,
             pos += frame_len
             continue
         if content_len < PEAK_HEADER_SIZE:
-            raise HyperionError(f"corrupt peak stream: content of {content_len} bytes, shorter "
-                                f"than the {PEAK_HEADER_SIZE}-byte peak header")
+            raise HyperionError(
+                f"corrupt peak stream: content of {content_len} bytes, shorter "
+                f"than the {PEAK_HEADER_SIZE}-byte peak header"
+            )
         if total - pos < HEADER_SIZE + PEAK_HEADER_SIZE:
             break
         length = PEAK_HEADER.unpack_from(buf, pos + HEADER_SIZE)[0]
-        if length < PEAK_HEADER_SIZE or length > min(content_len, max_length) \
-                or (length - PEAK_HEADER_SIZE) % 2 or (content_len - length) % 8:
-            raise HyperionError(f"corrupt peak stream: peak header length={length}, "
-                                f"content={content_len}")
+        if (
+            length < PEAK_HEADER_SIZE
+            or length > min(content_len, max_length)
+            or (length - PEAK_HEADER_SIZE) % 2
+            or (content_len - length) % 8
+        ):
+            raise HyperionError(f"corrupt peak stream: peak header length={length}, content={content_len}")
         n_ch = (length - PEAK_HEADER_SIZE) // 2
         n_pk = (content_len - length) // 8
         if total - pos < HEADER_SIZE + length:
             break
-        counts = np.frombuffer(buf, dtype="<i2", count=n_ch, offset=pos + HEADER_SIZE
-                               + PEAK_HEADER_SIZE).astype(np.int16)
-        if (counts < 0).any() or (counts > limits.peaks_per_channel).any() \
-                or int(counts.sum()) != n_pk:
-            raise HyperionError(f"corrupt peak stream: counts sum {int(counts.sum())} != {n_pk} "
-                                f"peaks, or a count outside 0..{limits.peaks_per_channel}")
+        counts = np.frombuffer(
+            buf, dtype="<i2", count=n_ch, offset=pos + HEADER_SIZE + PEAK_HEADER_SIZE
+        ).astype(np.int16)
+        if (counts < 0).any() or (counts > limits.peaks_per_channel).any() or int(counts.sum()) != n_pk:
+            raise HyperionError(
+                f"corrupt peak stream: counts sum {int(counts.sum())} != {n_pk} "
+                f"peaks, or a count outside 0..{limits.peaks_per_channel}"
+            )
         if total - pos < frame_len:
             break
         n_max = (total - pos) // frame_len
         raw = np.frombuffer(buf, dtype=np.uint8, count=n_max * frame_len, offset=pos)
         raw = raw.reshape(n_max, frame_len)
         # A run continues while the layout bytes (outer header and counts) are identical.
-        layout = np.concatenate([raw[:, :HEADER_SIZE + 4],
-                                 raw[:, HEADER_SIZE + PEAK_HEADER_SIZE:HEADER_SIZE + length]], axis=1)
+        layout = np.concatenate(
+            [raw[:, : HEADER_SIZE + 4], raw[:, HEADER_SIZE + PEAK_HEADER_SIZE : HEADER_SIZE + length]], axis=1
+        )
         same = np.all(layout == layout[0], axis=1)
         n = n_max if same.all() else int(np.argmin(same))
         rec = raw[:n].copy().view(_frame_dtype(n_ch, n_pk)).reshape(n)
@@ -297,7 +324,7 @@ class PeakStreamDecoder:
             # to a frame plus a read) goes now rather than whenever the exception is collected.
             self._buffer = bytearray()
             traceback.clear_frames(exc.__traceback__)
-            data = None   # noqa: F841 - this frame stays in the traceback too, with the read
+            data = None
             raise
         if used:
             del self._buffer[:used]
@@ -313,9 +340,14 @@ class HyperionClient:
     command port answers before the stream is opened), else :data:`DEFAULT_CHANNELS`.
     """
 
-    def __init__(self, host: str, command_port: int = COMMAND_PORT,
-                 stream_port: int = STREAM_PORT, timeout_s: float = 2.0,
-                 limits: FrameLimits | None = None):
+    def __init__(
+        self,
+        host: str,
+        command_port: int = COMMAND_PORT,
+        stream_port: int = STREAM_PORT,
+        timeout_s: float = 2.0,
+        limits: FrameLimits | None = None,
+    ):
         self.host = host
         self.command_port = command_port
         self.stream_port = stream_port
@@ -330,14 +362,14 @@ class HyperionClient:
         """Send one command, return (message, content); raise HyperionError on a bad status."""
         if self._cmd is None:
             self._cmd = await asyncio.wait_for(
-                asyncio.open_connection(self.host, self.command_port), self.timeout_s)
+                asyncio.open_connection(self.host, self.command_port), self.timeout_s
+            )
         reader, writer = self._cmd
         try:
             writer.write(encode_request(command, argument))
             await writer.drain()
-            status, _, message, content = await asyncio.wait_for(read_response(reader),
-                                                                 self.timeout_s)
-        except (HyperionError, OSError, asyncio.TimeoutError, asyncio.IncompleteReadError):
+            status, _, message, content = await asyncio.wait_for(read_response(reader), self.timeout_s)
+        except (TimeoutError, HyperionError, OSError, asyncio.IncompleteReadError):
             # no answer boundary can be trusted any more: the next command reconnects
             self._cmd = None
             writer.close()
@@ -373,11 +405,11 @@ class HyperionClient:
         if self._cmd is not None and not self._limits_given:
             try:
                 await self.channel_count()
-            except (OSError, asyncio.TimeoutError, HyperionError, asyncio.IncompleteReadError,
-                    struct.error):
-                pass            # keep the default channel count
+            except (TimeoutError, OSError, HyperionError, asyncio.IncompleteReadError, struct.error):
+                pass  # keep the default channel count
         self._stream = await asyncio.wait_for(
-            asyncio.open_connection(self.host, self.stream_port), self.timeout_s)
+            asyncio.open_connection(self.host, self.stream_port), self.timeout_s
+        )
         self._decoder = PeakStreamDecoder(self.limits)
 
     async def read_blocks(self, timeout_s: float | None = None) -> list[PeakBlock]:
@@ -397,7 +429,7 @@ class HyperionClient:
             while True:
                 remaining = deadline - loop.time()
                 if remaining <= 0:
-                    raise asyncio.TimeoutError()
+                    raise TimeoutError()
                 chunk = await asyncio.wait_for(reader.read(READ_SIZE), remaining)
                 if not chunk:
                     raise ConnectionError("instrument closed the peak stream")
@@ -410,7 +442,7 @@ class HyperionClient:
             # the exception its traceback, the traceback wait_for's frame and that future):
             # the reader and its receive buffer (hundreds of KiB) would then live until the
             # cyclic collector runs. Dropping them from the frame lets close() free them at once.
-            reader = chunk = None   # noqa: F841
+            reader = chunk = None
 
     async def close(self) -> None:
         """Close the command and stream connections (waiting at most 1 s for each)."""
@@ -419,6 +451,6 @@ class HyperionClient:
                 conn[1].close()
                 try:
                     await asyncio.wait_for(conn[1].wait_closed(), 1.0)
-                except (OSError, asyncio.TimeoutError):
+                except (TimeoutError, OSError):
                     pass
         self._cmd = self._stream = None

@@ -40,7 +40,7 @@ import os
 import tempfile
 import threading
 import time
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -60,13 +60,14 @@ if TYPE_CHECKING:
     import pyarrow
 
 log = logging.getLogger("fbgcomp.runtime")
-DATA_DIR = "data"          # LOG/data/date=YYYY-MM-DD/part-*.parquet
+DATA_DIR = "data"  # LOG/data/date=YYYY-MM-DD/part-*.parquet
 
 
-def _labels(codes: np.ndarray, names) -> "pyarrow.DictionaryArray":
+def _labels(codes: np.ndarray, names) -> pyarrow.DictionaryArray:
     """Integer codes as a dictionary-encoded string column (names[code]); a code beyond the
     names is kept as ``CODE<n>`` rather than lost."""
     import pyarrow as pa  # the runtime extra (pyarrow): imported only when used
+
     names = list(names)
     codes = np.asarray(codes)
     top = int(codes.max()) if codes.size else -1
@@ -80,7 +81,7 @@ def _codes(column, names) -> np.ndarray:
     lookup = {n: k for k, n in enumerate(names)}
     if isinstance(column.dtype, pd.CategoricalDtype):
         table = np.array([lookup.get(c, -1) for c in column.cat.categories] + [-1], np.int16)
-        return table[column.cat.codes.to_numpy()]          # code -1 (no value) -> the last: -1
+        return table[column.cat.codes.to_numpy()]  # code -1 (no value) -> the last: -1
     if pd.api.types.is_numeric_dtype(column.dtype):
         return column.to_numpy()
     return column.map(lookup).fillna(-1).to_numpy(np.int16)
@@ -89,12 +90,13 @@ def _codes(column, names) -> np.ndarray:
 class RunLog:
     """Background Parquet writer; ``submit`` never blocks."""
 
-    def __init__(self, folder: str | Path, meta: dict, flush_s: float = 0.5,
-                 max_queue: int = 2000, fsync: bool = True):
+    def __init__(
+        self, folder: str | Path, meta: dict, flush_s: float = 0.5, max_queue: int = 2000, fsync: bool = True
+    ):
         import pyarrow  # noqa: F401  (fail early if the runtime extra is missing)
+
         if not 0 < flush_s <= 1.0:
-            raise InputError(f"log flush interval {flush_s} s must be in (0, 1]",
-                             column="log.flush_s")
+            raise InputError(f"log flush interval {flush_s} s must be in (0, 1]", column="log.flush_s")
         self.folder = Path(folder)
         self.folder.mkdir(parents=True, exist_ok=True)
         self.data_dir = self.folder / DATA_DIR
@@ -122,12 +124,15 @@ class RunLog:
                 previous = json.loads(old.read_text())
             except (OSError, json.JSONDecodeError):
                 previous = {}
-            if (previous.get("sensor_names"), previous.get("probe_names")) != \
-                    (self.sensor_names, self.probe_names):
-                raise InputError("the log folder holds a run with other sensors or probes; "
-                                 "give a new folder", file=self.folder)
-        write_bytes(self.folder / "meta.json",
-                            json.dumps(meta, indent=2, default=str).encode())
+            if (previous.get("sensor_names"), previous.get("probe_names")) != (
+                self.sensor_names,
+                self.probe_names,
+            ):
+                raise InputError(
+                    "the log folder holds a run with other sensors or probes; give a new folder",
+                    file=self.folder,
+                )
+        write_bytes(self.folder / "meta.json", json.dumps(meta, indent=2, default=str).encode())
         self._thread = threading.Thread(target=self._run, name="fbgcomp-log", daemon=True)
         self._thread.start()
 
@@ -144,8 +149,10 @@ class RunLog:
         b = [i[0] for i in items]
         r = [i[1] for i in items]
         cat = np.concatenate
-        cols = {"time_s": cat([x.time_s for x in b]),
-                "received_s": cat([np.full(len(x), x.received_s) for x in b])}
+        cols = {
+            "time_s": cat([x.time_s for x in b]),
+            "received_s": cat([np.full(len(x), x.received_s) for x in b]),
+        }
         wl = cat([x.wavelength_nm for x in b])
         pk = cat([x.peak_count for x in b])
         st = cat([x.sensor_status for x in r])
@@ -156,8 +163,7 @@ class RunLog:
         temp = cat([x.temperature_C for x in r])
         for j, p in enumerate(self.probe_names):
             cols[f"{p}_C"] = temp[:, j]
-        for name, attr in (("dev", "deviation_um"), ("half", "half_width_um"),
-                           ("corr", "correction_um")):
+        for name, attr in (("dev", "deviation_um"), ("half", "half_width_um"), ("corr", "correction_um")):
             v = cat([getattr(x, attr) for x in r])
             for j, a in enumerate(AXES):
                 cols[f"{name}_{a}_um"] = v[:, j]
@@ -172,6 +178,7 @@ class RunLog:
     def _write(self, items) -> None:
         import pyarrow as pa  # the runtime extra (pyarrow): imported only when used
         import pyarrow.parquet as pq
+
         table = pa.table(self._columns(items))
         now = time.time()
         name = f"part-{int(now * 1000):013d}-{self._seq:06d}.parquet"
@@ -263,6 +270,7 @@ def read_log(folder: str | Path, labels: bool = False):
     ``labels=True`` as their names (a pandas categorical, every name a category, in code order).
     """
     import pyarrow.parquet as pq  # the runtime extra (pyarrow): imported only when used
+
     folder = Path(folder)
     meta = read_meta(folder)
     parts = log_parts(folder)
@@ -274,7 +282,8 @@ def read_log(folder: str | Path, labels: bool = False):
     health_names = list(meta.get("health_names") or HEALTH_NAMES)
     status_names = list(meta.get("status_names") or STATUS_NAMES)
     for col, names in [("health", health_names)] + [
-            (f"{s}_status", status_names) for s in meta.get("sensor_names", [])]:
+        (f"{s}_status", status_names) for s in meta.get("sensor_names", [])
+    ]:
         if col not in df:
             continue
         codes = _codes(df[col], names)
@@ -286,8 +295,9 @@ def read_log(folder: str | Path, labels: bool = False):
     return meta, df
 
 
-def export_campaign(log_folder: str | Path, out: str | Path, name: str | None = None,
-                    reference_csv: str | Path | None = None):
+def export_campaign(
+    log_folder: str | Path, out: str | Path, name: str | None = None, reference_csv: str | Path | None = None
+):
     """Turn a run log into a campaign folder (``fbgcomp.io.campaign.write_campaign``).
 
     The campaign clock starts at the first logged frame. Only frames where every sensor was
@@ -306,8 +316,11 @@ def export_campaign(log_folder: str | Path, out: str | Path, name: str | None = 
     sensors, probes = meta["sensor_names"], meta["probe_names"]
     # a strain-free reference grating was logged as its sensor's gauge temperature <S>_ref_C
     # (relative to reference_lambda0_nm); it goes back to fbg.csv as the wavelength it read
-    refs = {f"{d['name']}_ref": d for d in meta.get("sensors") or []
-            if d.get("reference_lambda0_nm") is not None and f"{d['name']}_ref" in probes}
+    refs = {
+        f"{d['name']}_ref": d
+        for d in meta.get("sensors") or []
+        if d.get("reference_lambda0_nm") is not None and f"{d['name']}_ref" in probes
+    }
     probes = [p for p in probes if p not in refs]
     ok = np.ones(len(df), bool)
     for s in sensors:
@@ -321,8 +334,9 @@ def export_campaign(log_folder: str | Path, out: str | Path, name: str | None = 
         fbg[f"{s}_nm"] = df[f"{s}_nm"].to_numpy()[ok]
     for p, d in refs.items():
         kw = {k: d[k] for k in ("thermo_optic_per_K", "fibre_cte_per_K") if d.get(k) is not None}
-        fbg[f"{d['name']}_ref_nm"] = free_grating_wavelength_nm(df[f"{p}_C"].to_numpy()[ok],
-                                                                d["reference_lambda0_nm"], **kw)
+        fbg[f"{d['name']}_ref_nm"] = free_grating_wavelength_nm(
+            df[f"{p}_C"].to_numpy()[ok], d["reference_lambda0_nm"], **kw
+        )
     tok = np.ones(len(df), bool)
     for p in probes:
         tok &= np.isfinite(df[f"{p}_C"].to_numpy())
@@ -334,25 +348,23 @@ def export_campaign(log_folder: str | Path, out: str | Path, name: str | None = 
         reference = pd.read_csv(reference_csv)
         missing = [c for c in ("time_s", "dx_um", "dy_um", "dz_um") if c not in reference.columns]
         if missing:
-            raise InputError(f"reference lacks column(s) {', '.join(missing)}",
-                             file=reference_csv)
+            raise InputError(f"reference lacks column(s) {', '.join(missing)}", file=reference_csv)
         reference_spec.setdefault("instrument", "laser interferometer")
     else:
         dev = df[[f"dev_{a}_um" for a in AXES]].to_numpy()
         rok = np.all(np.isfinite(dev), axis=1)
         if not rok.any():
-            raise InputError("the log holds no prediction to use as reference; give --reference",
-                             file=log_folder)
-        reference = pd.DataFrame({"time_s": t[rok], **{f"{a}_um": dev[rok, j]
-                                                       for j, a in enumerate(AXES)}})
+            raise InputError(
+                "the log holds no prediction to use as reference; give --reference", file=log_folder
+            )
+        reference = pd.DataFrame({"time_s": t[rok], **{f"{a}_um": dev[rok, j] for j, a in enumerate(AXES)}})
         reference_spec["instrument"] = f"fbgcomp prediction, model {meta.get('model_id')}"
     known = {p["name"]: p for p in (meta.get("temperature_probes") or [])}
     cmeta = {
         "name": name or Path(log_folder).name,
         "kind": meta.get("campaign_kind", "combined"),
-        "description": f"exported from run log {Path(log_folder).name} "
-                       f"(model {meta.get('model_id')})",
-        "start": datetime.fromtimestamp(t0, tz=timezone.utc),
+        "description": f"exported from run log {Path(log_folder).name} (model {meta.get('model_id')})",
+        "start": datetime.fromtimestamp(t0, tz=UTC),
         "sensors": meta["sensors"],
         "temperature_probes": [known.get(p, {"name": p, "location": "unknown"}) for p in probes],
         "reference": reference_spec,
@@ -362,9 +374,15 @@ def export_campaign(log_folder: str | Path, out: str | Path, name: str | None = 
     return campaign
 
 
-def ingest_run_log(log_folder: str | Path, dataset: str | Path, *, machine: str | None = None,
-                   zero_window_s: float = 10.0, rows_per_file: int = ROWS_PER_FILE,
-                   reference_csv: str | Path | None = None):
+def ingest_run_log(
+    log_folder: str | Path,
+    dataset: str | Path,
+    *,
+    machine: str | None = None,
+    zero_window_s: float = 10.0,
+    rows_per_file: int = ROWS_PER_FILE,
+    reference_csv: str | Path | None = None,
+):
     """Ingest a run log into a Parquet dataset (:mod:`fbgcomp.io.dataset`) as one campaign.
 
     The log is first turned into a campaign by :func:`export_campaign` (healthy frames only;
@@ -374,9 +392,15 @@ def ingest_run_log(log_folder: str | Path, dataset: str | Path, *, machine: str 
     log_folder = Path(log_folder)
     log_meta = read_meta(log_folder)
     with tempfile.TemporaryDirectory(prefix=".fbgcomp-log-") as tmp:
-        export_campaign(log_folder, Path(tmp) / log_folder.name, name=log_folder.name,
-                        reference_csv=reference_csv)
+        export_campaign(
+            log_folder, Path(tmp) / log_folder.name, name=log_folder.name, reference_csv=reference_csv
+        )
         campaign = read_campaign(Path(tmp) / log_folder.name)
-        return ingest_campaign(campaign, dataset, machine=log_meta.get("machine") or machine,
-                               zero_window_s=zero_window_s, rows_per_file=rows_per_file,
-                               source=str(log_folder))
+        return ingest_campaign(
+            campaign,
+            dataset,
+            machine=log_meta.get("machine") or machine,
+            zero_window_s=zero_window_s,
+            rows_per_file=rows_per_file,
+            source=str(log_folder),
+        )

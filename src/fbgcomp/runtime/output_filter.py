@@ -49,7 +49,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-SD_FLOOR_UM = 1e-3        # the robust noise SD never drops below this (a noise-free replay)
+SD_FLOOR_UM = 1e-3  # the robust noise SD never drops below this (a noise-free replay)
 
 
 @dataclass
@@ -57,20 +57,20 @@ class OutputFilterConfig:
     """Settings of the adaptive output filter (``[pipeline.output_filter]``, docs/runtime.md)."""
 
     enabled: bool = True
-    block_s: float = 0.05          # frames averaged per decision block
-    short_s: float = 0.6           # fast robust statistic: median of the block medians over this
-    rest_median_s: float = 8.0     # slow robust statistic feeding the rest fit
-    rest_tau_s: float = 600.0      # rest fit: exponential weights of this time constant
-    trend_t2: float = 25.0         # a trend of t = 5 standard errors counts half
-    fast_confirm_s: float = 0.15   # beyond the large threshold this long: a step
-    slow_confirm_s: float = 1.6    # the median over this long beyond the small threshold: a step
-    threshold_sd: float = 6.0      # thresholds: at least this many robust noise SDs ...
-    margin: float = 1.5            # ... and this times the noise's own excursion envelope ...
-    min_threshold_um: float = 1.0   # ... and at least this: smaller changes wait for the rest fit
+    block_s: float = 0.05  # frames averaged per decision block
+    short_s: float = 0.6  # fast robust statistic: median of the block medians over this
+    rest_median_s: float = 8.0  # slow robust statistic feeding the rest fit
+    rest_tau_s: float = 600.0  # rest fit: exponential weights of this time constant
+    trend_t2: float = 25.0  # a trend of t = 5 standard errors counts half
+    fast_confirm_s: float = 0.15  # beyond the large threshold this long: a step
+    slow_confirm_s: float = 1.6  # the median over this long beyond the small threshold: a step
+    threshold_sd: float = 6.0  # thresholds: at least this many robust noise SDs ...
+    margin: float = 1.5  # ... and this times the noise's own excursion envelope ...
+    min_threshold_um: float = 1.0  # ... and at least this: smaller changes wait for the rest fit
     envelope_tau_s: float = 1800.0  # memory of the excursion envelopes
-    noise_block_s: float = 10.0    # robust noise SD measured per block this long ...
-    noise_tau_s: float = 60.0      # ... and blended with this time constant
-    hold_s: float = 2.5            # after a restart: back to the old level within this = noise
+    noise_block_s: float = 10.0  # robust noise SD measured per block this long ...
+    noise_tau_s: float = 60.0  # ... and blended with this time constant
+    hold_s: float = 2.5  # after a restart: back to the old level within this = noise
 
 
 class AdaptiveLevelFilter:
@@ -81,7 +81,7 @@ class AdaptiveLevelFilter:
         dt = float(min(max(frame_interval_s, 1e-5), 10.0))
         self.frame_interval_s = dt
         self.block_n = max(1, int(round(cfg.block_s / dt)))
-        blk = self.block_n * dt                                  # block duration, s
+        blk = self.block_n * dt  # block duration, s
         self.block_duration_s = blk
         self.short_n = max(1, int(round(cfg.short_s / blk)))
         self.rest_n = max(self.short_n, int(round(cfg.rest_median_s / blk)))
@@ -91,33 +91,32 @@ class AdaptiveLevelFilter:
         self.lam = math.exp(-blk / cfg.rest_tau_s) if cfg.rest_tau_s > 0 else 0.0
         self.env_decay = math.exp(-blk / cfg.envelope_tau_s) if cfg.envelope_tau_s > 0 else 0.0
         self.noise_n = max(1, int(round(cfg.noise_block_s / blk)))
-        self.noise_gain = min(1.0, cfg.noise_block_s / cfg.noise_tau_s) \
-            if cfg.noise_tau_s > 0 else 1.0
+        self.noise_gain = min(1.0, cfg.noise_block_s / cfg.noise_tau_s) if cfg.noise_tau_s > 0 else 1.0
         noise = np.nan_to_num(np.asarray(noise_um, float) * np.ones(3), nan=1.0)
         self.sd = np.maximum(np.abs(noise), SD_FLOOR_UM)
         self.noise_blocks = np.zeros(3, np.int64)
         self.ring_n = max(self.rest_n, self.slow_n, self.short_n) + 1
-        self.b = np.zeros((self.ring_n, 3))      # block means (ring)
-        self.e = np.zeros((self.ring_n, 3))      # m - level (ring)
-        self.eb = np.zeros((self.ring_n, 3))     # m - level before the episode (ring)
-        self.k = 0                               # completed blocks
+        self.b = np.zeros((self.ring_n, 3))  # block means (ring)
+        self.e = np.zeros((self.ring_n, 3))  # m - level (ring)
+        self.eb = np.zeros((self.ring_n, 3))  # m - level before the episode (ring)
+        self.k = 0  # completed blocks
         self._part = np.empty((self.block_n, 3))  # frames of the block not yet complete ...
-        self._held = 0                            # ... this many of them
-        self.level = None                        # (3,) after the first block
-        self.since = np.zeros(3, np.int64)       # blocks the rest median may use
-        self.fresh = np.zeros(3, np.int64)       # blocks compared with the level since a restart
-        self.fit = np.zeros((3, 6))              # weighted sums: w, w u, w u², w y, w u y, w y²
-        self.fit_origin = np.zeros(3)            # block index u is counted from
-        self.env = np.zeros((3, 2))              # excursion envelopes (fast, slow), µm
-        self.pending = np.zeros((self.hold_n, 3, 2))   # excursions waiting to be learnt
+        self._held = 0  # ... this many of them
+        self.level = None  # (3,) after the first block
+        self.since = np.zeros(3, np.int64)  # blocks the rest median may use
+        self.fresh = np.zeros(3, np.int64)  # blocks compared with the level since a restart
+        self.fit = np.zeros((3, 6))  # weighted sums: w, w u, w u², w y, w u y, w y²
+        self.fit_origin = np.zeros(3)  # block index u is counted from
+        self.env = np.zeros((3, 2))  # excursion envelopes (fast, slow), µm
+        self.pending = np.zeros((self.hold_n, 3, 2))  # excursions waiting to be learnt
         self.abs_dev: list[list[float]] = [[], [], []]
-        self.episode_end = np.full(3, -1, np.int64)    # block index; -1: not in an episode
+        self.episode_end = np.full(3, -1, np.int64)  # block index; -1: not in an episode
         self.saved: list[dict | None] = [None, None, None]
         self.ep_max = np.zeros((3, 2))
         self.restarts = np.zeros(3, np.int64)
         self.undone = np.zeros(3, np.int64)
 
-    def reseated(self) -> "AdaptiveLevelFilter":
+    def reseated(self) -> AdaptiveLevelFilter:
         """A filter that starts afresh from the next frame (its level the running mean of
         the new frames until its first block closes), keeping what this one learnt of the
         noise: its robust SD and excursion envelopes. For a switch of model (a fallback taken
@@ -133,7 +132,7 @@ class AdaptiveLevelFilter:
     @property
     def partial(self) -> np.ndarray:
         """The frames (k, 3) of the block not yet complete (k < ``block_n``)."""
-        return self._part[:self._held]
+        return self._part[: self._held]
 
     @property
     def noise_sd_um(self) -> np.ndarray:
@@ -157,15 +156,18 @@ class AdaptiveLevelFilter:
         if self.level is not None and held + m < self.block_n:
             # no block closes (the usual small batch): every frame sees the current level
             out[:] = self.level
-            self._part[held:held + m] = x
+            self._part[held : held + m] = x
             self._held = held + m
             return out
         allx = np.vstack([self.partial, x]) if held else x
         nb = allx.shape[0] // self.block_n
         # block medians, not means: a model that flickers for a few frames (ram2's load
         # refusals: 4-12 frames, 370 µm each) moves no block
-        med = np.median(allx[:nb * self.block_n].reshape(nb, self.block_n, 3), axis=1) \
-            if nb else np.empty((0, 3))
+        med = (
+            np.median(allx[: nb * self.block_n].reshape(nb, self.block_n, 3), axis=1)
+            if nb
+            else np.empty((0, 3))
+        )
         for q in range(nb + 1):
             lo, hi = q * self.block_n - held, min((q + 1) * self.block_n - held, m)
             lo = max(lo, 0)
@@ -174,15 +176,15 @@ class AdaptiveLevelFilter:
             if self.level is None:
                 # before the first block closes: the running mean of the frames so far
                 start = q * self.block_n
-                cs = np.cumsum(allx[start:hi + held], axis=0)[lo + held - start:]
+                cs = np.cumsum(allx[start : hi + held], axis=0)[lo + held - start :]
                 out[lo:hi] = cs / (np.arange(lo + held - start, hi + held - start) + 1)[:, None]
             else:
                 out[lo:hi] = self.level
             if q < nb:
                 self._block(med[q])
-                out[hi - 1] = self.level          # the frame that closes a block sees it
-        rest = allx[nb * self.block_n:]
-        self._part[:rest.shape[0]] = rest
+                out[hi - 1] = self.level  # the frame that closes a block sees it
+        rest = allx[nb * self.block_n :]
+        self._part[: rest.shape[0]] = rest
         self._held = rest.shape[0]
         return out
 
@@ -210,7 +212,7 @@ class AdaptiveLevelFilter:
         resid = max(syy / w - ybar * ybar - slope * cov, 0.0)
         # the fitted points are medians over rest_n blocks: about one independent per window
         n_eff = w / self.rest_n
-        if n_eff < 3.0:              # too few independent points to tell a trend
+        if n_eff < 3.0:  # too few independent points to tell a trend
             return ybar
         var_slope = resid / ((n_eff - 2.0) * var_u)
         t2 = slope * slope / var_slope if var_slope > 0 else math.inf
@@ -259,18 +261,25 @@ class AdaptiveLevelFilter:
             level = self._fit_level(j)
             self.e[slot, j] = mj - level
             p = self._excursions(j, self.e, level, self.fresh[j])
-            trigger = 0 if first else (self.fast_n if p[0] > thr[j, 0] else
-                                       self.slow_n if p[1] > thr[j, 1] else 0)
+            trigger = (
+                0 if first else (self.fast_n if p[0] > thr[j, 0] else self.slow_n if p[1] > thr[j, 1] else 0)
+            )
             if trigger:
                 # a change the noise does not explain: follow it (track) for hold_s, keeping
                 # the rest state in case it was noise after all
-                self.saved[j] = {"level": level, "fit": self.fit[j].copy(),
-                                 "origin": float(self.fit_origin[j]), "since": int(self.since[j]),
-                                 "start": self.k, "first": self.k - trigger + 1,
-                                 "thr": float(thr[j, 1]), "within": 0}
+                self.saved[j] = {
+                    "level": level,
+                    "fit": self.fit[j].copy(),
+                    "origin": float(self.fit_origin[j]),
+                    "since": int(self.since[j]),
+                    "start": self.k,
+                    "first": self.k - trigger + 1,
+                    "thr": float(thr[j, 1]),
+                    "within": 0,
+                }
                 self.ep_max[j] = p
                 self.eb[:, j] = self.e[:, j]
-                self.pending[:, j] = 0.0          # a step follows: nothing recent was noise
+                self.pending[:, j] = 0.0  # a step follows: nothing recent was noise
                 self.episode_end[j] = self.k + self.hold_n
                 self.restarts[j] += 1
                 level = float(np.median(self._window(self.b, j, trigger)))
@@ -300,8 +309,9 @@ class AdaptiveLevelFilter:
         level = float(np.median(self._window(self.b, j, n)))
         slot = self.k % self.ring_n
         self.eb[slot, j] = mj - s["level"]
-        self.ep_max[j] = np.maximum(self.ep_max[j], self._excursions(
-            j, self.eb, s["level"], self.k - s["start"] + s["since"]))
+        self.ep_max[j] = np.maximum(
+            self.ep_max[j], self._excursions(j, self.eb, s["level"], self.k - s["start"] + s["since"])
+        )
         if abs(mj - s["level"]) <= s["thr"]:
             s["within"] += 1
         if self.k < self.episode_end[j]:
@@ -312,7 +322,7 @@ class AdaptiveLevelFilter:
             # back where it was (or kept coming back): noise. Restore the rest state, learn it
             self.fit[j], self.fit_origin[j] = s["fit"], s["origin"]
             self.since[j] = s["since"] + (self.k - s["start"])
-            self.fresh[j] = 0          # the episode's comparisons were with other levels
+            self.fresh[j] = 0  # the episode's comparisons were with other levels
             self.env[j] = np.maximum(self.env[j], self.ep_max[j])
             self.undone[j] += 1
             return self._fit_level(j)

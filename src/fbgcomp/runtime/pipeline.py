@@ -49,8 +49,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fbgcomp.runtime import health as H
-from fbgcomp.runtime.outputs.cnc_form import reference_z_mm, takes_z
 from fbgcomp.runtime.output_filter import AdaptiveLevelFilter, OutputFilterConfig
+from fbgcomp.runtime.outputs.cnc_form import reference_z_mm, takes_z
 
 HEALTH_OK, HEALTH_DEGRADED, HEALTH_ALARM, HEALTH_ZEROING = range(4)
 HEALTH_NAMES = ("OK", "DEGRADED", "ALARM", "ZEROING")
@@ -71,7 +71,8 @@ def _takes_time(predictor) -> bool:
         except (TypeError, ValueError):
             params = {}
         _TAKES_TIME[kind] = "time_s" in params or any(
-            p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+            p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()
+        )
     return _TAKES_TIME[kind]
 
 
@@ -79,12 +80,12 @@ def _takes_time(predictor) -> bool:
 class PipelineConfig:
     """Output policy and checks of the pipeline (``[pipeline]``, docs/runtime.md)."""
 
-    ramp_s: float = 2.0              # hold-then-ramp-to-zero time when no model is usable
-    smoothing_tau_s: float = 0.0     # exponential smoothing of the correction; 0 = off
+    ramp_s: float = 2.0  # hold-then-ramp-to-zero time when no model is usable
+    smoothing_tau_s: float = 0.0  # exponential smoothing of the correction; 0 = off
     # Per axis (dx, dy, dz) or one value for all; 0 = off on that axis (docs/runtime.md: why
     # these defaults). A real load step of a few hundred µm is still followed within 1 s.
-    max_slew_um_per_s: tuple = (1000.0, 1000.0, 1000.0)   # largest rate of change, µm/s
-    max_correction_um: tuple = (1000.0, 1000.0, 1000.0)   # largest |correction|, µm
+    max_slew_um_per_s: tuple = (1000.0, 1000.0, 1000.0)  # largest rate of change, µm/s
+    max_correction_um: tuple = (1000.0, 1000.0, 1000.0)  # largest |correction|, µm
     health: H.HealthConfig = field(default_factory=H.HealthConfig)
     output_filter: OutputFilterConfig = field(default_factory=OutputFilterConfig)
 
@@ -103,16 +104,16 @@ def per_axis(value, name: str = "value") -> np.ndarray:
 class BatchResult:
     """Per-frame outputs of one batch (n frames)."""
 
-    time_s: np.ndarray                 # (n,)
-    deviation_um: np.ndarray           # (n,3) predicted TTP deviation, NaN without a model
-    half_width_um: np.ndarray          # (n,3) 95 % prediction interval half-width
-    correction_um: np.ndarray          # (n,3) published correction (-deviation, held, smoothed)
-    expected_rms_um: np.ndarray        # (n,3) residual SD of the model in use
-    health: np.ndarray                 # (n,) uint8 HEALTH_*
-    sensor_status: np.ndarray          # (n,S) uint8 health.* codes
-    model_set: np.ndarray              # (n,) int16 index into Pipeline.model_sets, -1 none
-    temperature_C: np.ndarray          # (n,P) temperatures paired with the frames
-    output_flags: np.ndarray = None    # (n,3) uint8 health.FLAG_* (model policy | limits)
+    time_s: np.ndarray  # (n,)
+    deviation_um: np.ndarray  # (n,3) predicted TTP deviation, NaN without a model
+    half_width_um: np.ndarray  # (n,3) 95 % prediction interval half-width
+    correction_um: np.ndarray  # (n,3) published correction (-deviation, held, smoothed)
+    expected_rms_um: np.ndarray  # (n,3) residual SD of the model in use
+    health: np.ndarray  # (n,) uint8 HEALTH_*
+    sensor_status: np.ndarray  # (n,S) uint8 health.* codes
+    model_set: np.ndarray  # (n,) int16 index into Pipeline.model_sets, -1 none
+    temperature_C: np.ndarray  # (n,P) temperatures paired with the frames
+    output_flags: np.ndarray = None  # (n,3) uint8 health.FLAG_* (model policy | limits)
 
     def __post_init__(self):
         if self.output_flags is None:
@@ -142,7 +143,8 @@ class Pipeline:
         self.temperature_zero_C: np.ndarray | None = None
         # model_sets[0] is the full model; the rest the stored fallbacks
         self.model_sets: list[frozenset[str]] = [frozenset()] + sorted(
-            (frozenset(s) for s in model.fallback_sets), key=lambda s: (len(s), sorted(s)))
+            (frozenset(s) for s in model.fallback_sets), key=lambda s: (len(s), sorted(s))
+        )
         self._predictors: dict[int, object] = {}
         self._choice_cache: dict[bytes, int] = {}
         self._last_correction = np.zeros(3)
@@ -155,27 +157,27 @@ class Pipeline:
         self.max_slew_um_per_s = per_axis(self.config.max_slew_um_per_s, "max_slew_um_per_s")
         cap = per_axis(self.config.max_correction_um, "max_correction_um")
         own = getattr(model, "max_correction_um", None)
-        if own is not None:   # the model file's own bound wins where it is tighter
+        if own is not None:  # the model file's own bound wins where it is tighter
             cap = np.minimum(cap, per_axis(own, "model max_correction_um"))
         self.max_correction_um = cap
         self.output_filter: AdaptiveLevelFilter | None = None
-        self._filter_set: int | None = None      # model set of the last filtered frame
+        self._filter_set: int | None = None  # model set of the last filtered frame
         self._zero_frames = 0
         self._t_zero_last: float | None = None
-        self.frame_dt_s: float | None = None   # nominal frame interval (the rate limit's cap)
-        self._prev_mask = np.zeros(S, bool)      # faulted sensors on the last predicted frame
-        self._prev_choice = 0                    # model set of the last predicted frame
-        self._inconsistent_until = np.full(S, -np.inf)   # kept out by the re-admission check
+        self.frame_dt_s: float | None = None  # nominal frame interval (the rate limit's cap)
+        self._prev_mask = np.zeros(S, bool)  # faulted sensors on the last predicted frame
+        self._prev_choice = 0  # model set of the last predicted frame
+        self._inconsistent_until = np.full(S, -np.inf)  # kept out by the re-admission check
         self.readmissions_refused = 0
-        self._no_fault = np.zeros(S, bool)               # read only: _prev_mask, no fault
+        self._no_fault = np.zeros(S, bool)  # read only: _prev_mask, no fault
         self._no_fault.flags.writeable = False
         rate = self.max_slew_um_per_s
-        self._slew_axes = ~np.isinf(rate)                # axes with a rate limit
+        self._slew_axes = ~np.isinf(rate)  # axes with a rate limit
         self._slew_rate = np.where(self._slew_axes, rate, 0.0)
-        self._z: np.ndarray | None = None        # this batch's Z position per frame, mm
+        self._z: np.ndarray | None = None  # this batch's Z position per frame, mm
         self._uses_z: bool | None = None
 
-    def continue_from(self, old: "Pipeline") -> None:
+    def continue_from(self, old: Pipeline) -> None:
         """Take over the running state of ``old`` (a model reload: the machine has not been
         re-zeroed, the gratings have not been re-checked). Zero state, sensor checks, hold,
         smoothing, rate limit and output filter carry over, and so does the re-admission check:
@@ -205,7 +207,7 @@ class Pipeline:
             self._filter_set = None
         elif old._filter_set >= 0 and old.model_sets[old._filter_set] in self.model_sets:
             self._filter_set = self.model_sets.index(old.model_sets[old._filter_set])
-        else:   # a set this model does not have: its first frame is a switch (filter re-seated)
+        else:  # a set this model does not have: its first frame is a switch (filter re-seated)
             self._filter_set = -2
 
     # -- model selection
@@ -255,19 +257,24 @@ class Pipeline:
             self._tzero_n += tg.sum(axis=0)
         if m < t.size or self.zero_window_s <= 0:
             with np.errstate(invalid="ignore", divide="ignore"):
-                self.wavelength_zero_nm = np.where(self._zero_n > 0,
-                                                   self._zero_sum / self._zero_n, np.nan)
-                self.temperature_zero_C = np.where(self._tzero_n > 0,
-                                                   self._tzero_sum / self._tzero_n, np.nan)
+                self.wavelength_zero_nm = np.where(self._zero_n > 0, self._zero_sum / self._zero_n, np.nan)
+                self.temperature_zero_C = np.where(self._tzero_n > 0, self._tzero_sum / self._tzero_n, np.nan)
             self.checks.never_zeroed = ~np.isfinite(self.wavelength_zero_nm)
             if self._zero_frames > 1 and self._t_zero_last > self._t_first:
                 self.frame_dt_s = (self._t_zero_last - self._t_first) / (self._zero_frames - 1)
         return m
 
     # -- main entry
-    def process(self, time_s: np.ndarray, wavelength_nm: np.ndarray, peak_count: np.ndarray,
-                near_count: np.ndarray, temperature_C: np.ndarray,
-                enabled: bool = True, z_axis_mm=None) -> BatchResult:
+    def process(
+        self,
+        time_s: np.ndarray,
+        wavelength_nm: np.ndarray,
+        peak_count: np.ndarray,
+        near_count: np.ndarray,
+        temperature_C: np.ndarray,
+        enabled: bool = True,
+        z_axis_mm=None,
+    ) -> BatchResult:
         """One batch of frames -> :class:`BatchResult`.
 
         ``z_axis_mm`` is the Z-axis position, mm (scalar or (n,)), passed to the model's
@@ -275,26 +282,28 @@ class Pipeline:
         assumes. For a model whose prediction depends on Z (a kinematic chain), a non-finite Z
         is a missing input, as a missing temperature is: no model usable, ALARM, hold / ramp.
         A model without Z dependence ignores it."""
-        self._z = None if z_axis_mm is None else \
-            np.broadcast_to(np.asarray(z_axis_mm, dtype=np.float64), time_s.shape)
+        self._z = (
+            None
+            if z_axis_mm is None
+            else np.broadcast_to(np.asarray(z_axis_mm, dtype=np.float64), time_s.shape)
+        )
         if self.wavelength_zero_nm is not None and time_s.size:
             res = self._process_steady(time_s, wavelength_nm, peak_count, temperature_C, enabled)
             if res is not None:
                 return res
-        return self._process(time_s, wavelength_nm, peak_count, near_count, temperature_C,
-                             enabled)
+        return self._process(time_s, wavelength_nm, peak_count, near_count, temperature_C, enabled)
 
-    def _process_steady(self, time_s, wavelength_nm, peak_count, temperature_C,
-                        enabled) -> BatchResult | None:
+    def _process_steady(
+        self, time_s, wavelength_nm, peak_count, temperature_C, enabled
+    ) -> BatchResult | None:
         """The usual batch of a running machine, in few numpy calls (its fixed cost is what
         limits the frame rate at small batches): zeroed, every grating good and none
         recovering, every probe finite, the full model in use and no re-admission pending.
         The same steps as :meth:`_process` - only the branches such a batch cannot take are
         left out - so the results are the same to the bit (tests/test_runtime_fastpath.py).
         None (nothing changed) for any other batch."""
-        if self._prev_choice != 0 and self._prev_mask.any() \
-                and self.config.health.readmit_k_sigma > 0:
-            return None            # the previous frame was on a fallback: a re-admission
+        if self._prev_choice != 0 and self._prev_mask.any() and self.config.health.readmit_k_sigma > 0:
+            return None  # the previous frame was on a fallback: a re-admission
         if temperature_C.shape[1] and not np.isfinite(temperature_C).all():
             return None
         if self._z is not None and self.uses_z and not np.isfinite(self._z).all():
@@ -303,48 +312,64 @@ class Pipeline:
             return None
         n, S = wavelength_nm.shape
         offset = self.checks.offset_nm
-        if offset.any():     # a grating that jumped reads from its offset after the step
+        if offset.any():  # a grating that jumped reads from its offset after the step
             wavelength_nm = wavelength_nm - offset
         self._prev_mask = self._no_fault
         self._prev_choice = 0
         p = self._predictors.get(0)
         if p is None:
             p = self.predictor(0)
-        d, h = p.predict(wavelength_nm, temperature_C, self.wavelength_zero_nm,
-                         self.temperature_zero_C, **self._inputs(p, time_s, slice(None)))
+        d, h = p.predict(
+            wavelength_nm,
+            temperature_C,
+            self.wavelength_zero_nm,
+            self.temperature_zero_C,
+            **self._inputs(p, time_s, slice(None)),
+        )
         dev = np.empty((n, 3))
         dev[:] = d
         half = np.empty((n, 3))
         half[:] = h
         rms = np.empty((n, 3))
         rms[:] = p.expected_rms_error_um
-        health = np.zeros(n, np.uint8)                  # HEALTH_OK
+        health = np.zeros(n, np.uint8)  # HEALTH_OK
         model_set = np.zeros(n, np.int16)
         flags = np.zeros((n, 3), np.uint8)
-        own = getattr(p, "last_flags", None)            # the model's own output policy
+        own = getattr(p, "last_flags", None)  # the model's own output policy
         if own is not None:
             flags |= np.asarray(own, np.uint8).reshape(n, 3) & H.MODEL_FLAGS
         target = -dev
         if not (np.abs(target) <= self.max_correction_um).all():
             target = self._envelope(target, health, flags)
-        if self.config.output_filter.enabled and self.output_filter is not None \
-                and self._filter_set == 0 and np.isfinite(target).all():
-            correction = self.output_filter.process(target)   # no switch: one segment
+        if (
+            self.config.output_filter.enabled
+            and self.output_filter is not None
+            and self._filter_set == 0
+            and np.isfinite(target).all()
+        ):
+            correction = self.output_filter.process(target)  # no switch: one segment
         else:
             correction = self._filter(time_s, target, rms, model_set)
-        if np.isfinite(correction).all():                # nothing to hold
+        if np.isfinite(correction).all():  # nothing to hold
             self._hold_start_s = None
             self._last_correction = correction[-1].copy()
         else:
             correction = self._hold_and_ramp(time_s, correction, health)
         correction = self._shape(time_s, correction, enabled, flags, self._gap_cap(time_s))
-        status = np.zeros((n, S), np.uint8)             # health.OK
-        return BatchResult(time_s, dev, half, correction, rms, health, status, model_set,
-                           temperature_C, flags)
+        status = np.zeros((n, S), np.uint8)  # health.OK
+        return BatchResult(
+            time_s, dev, half, correction, rms, health, status, model_set, temperature_C, flags
+        )
 
-    def _process(self, time_s: np.ndarray, wavelength_nm: np.ndarray, peak_count: np.ndarray,
-                 near_count: np.ndarray, temperature_C: np.ndarray,
-                 enabled: bool = True) -> BatchResult:
+    def _process(
+        self,
+        time_s: np.ndarray,
+        wavelength_nm: np.ndarray,
+        peak_count: np.ndarray,
+        near_count: np.ndarray,
+        temperature_C: np.ndarray,
+        enabled: bool = True,
+    ) -> BatchResult:
         n, S = wavelength_nm.shape
         status, faulted = self.checks.check(time_s, wavelength_nm, peak_count, near_count)
         if n and (self._inconsistent_until > time_s[0]).any():
@@ -371,14 +396,18 @@ class Pipeline:
         if start < n:
             rows = slice(start, n)
             f = faulted[rows]
-            temp_ok = np.all(np.isfinite(temperature_C[rows]), axis=1) if temperature_C.shape[1] \
+            temp_ok = (
+                np.all(np.isfinite(temperature_C[rows]), axis=1)
+                if temperature_C.shape[1]
                 else np.ones(n - start, bool)
-            if self._z is not None and self.uses_z:     # a Z-dependent model without its Z
+            )
+            if self._z is not None and self.uses_z:  # a Z-dependent model without its Z
                 temp_ok &= np.isfinite(self._z[rows])
             choice = self._choices(f, temp_ok)
             if self.config.health.readmit_k_sigma > 0:
-                choice = self._check_readmissions(time_s, wavelength_nm, temperature_C, start,
-                                                  status, faulted, temp_ok, choice)
+                choice = self._check_readmissions(
+                    time_s, wavelength_nm, temperature_C, start, status, faulted, temp_ok, choice
+                )
             self._prev_mask = faulted[-1].copy()
             self._prev_choice = int(choice[-1])
             model_set[rows] = choice
@@ -387,22 +416,28 @@ class Pipeline:
                     continue
                 sel = np.flatnonzero(choice == k) + start
                 p = self.predictor(int(k))
-                d, h = p.predict(wavelength_nm[sel], temperature_C[sel],
-                                 self.wavelength_zero_nm, self.temperature_zero_C,
-                                 **self._inputs(p, time_s, sel))
+                d, h = p.predict(
+                    wavelength_nm[sel],
+                    temperature_C[sel],
+                    self.wavelength_zero_nm,
+                    self.temperature_zero_C,
+                    **self._inputs(p, time_s, sel),
+                )
                 dev[sel], half[sel] = d, h
                 rms[sel] = np.asarray(p.expected_rms_error_um, float)
-                own = getattr(p, "last_flags", None)    # the model's own output policy
+                own = getattr(p, "last_flags", None)  # the model's own output policy
                 if own is not None:
                     flags[sel] |= np.asarray(own, np.uint8).reshape(sel.size, 3) & H.MODEL_FLAGS
-            health[rows] = np.where(choice == 0, HEALTH_OK,
-                                    np.where(choice > 0, HEALTH_DEGRADED, HEALTH_ALARM))
+            health[rows] = np.where(
+                choice == 0, HEALTH_OK, np.where(choice > 0, HEALTH_DEGRADED, HEALTH_ALARM)
+            )
         target = self._envelope(-dev, health, flags)
         correction = self._filter(time_s, target, rms, model_set)
         correction = self._hold_and_ramp(time_s, correction, health)
         correction = self._shape(time_s, correction, enabled, flags, self._gap_cap(time_s))
-        return BatchResult(time_s, dev, half, correction, rms, health, status, model_set,
-                           temperature_C, flags)
+        return BatchResult(
+            time_s, dev, half, correction, rms, health, status, model_set, temperature_C, flags
+        )
 
     def _inputs(self, p, time_s, sel) -> dict:
         """Keywords of ``p.predict`` for the rows ``sel``: the frame clock (models with memory
@@ -433,12 +468,18 @@ class Pipeline:
     def _predict_one(self, k: int, time_s, wavelength_nm, temperature_C, row: int):
         p = self.predictor(int(k))
         sel = slice(row, row + 1)
-        d, _ = p.predict(wavelength_nm[sel], temperature_C[sel], self.wavelength_zero_nm,
-                         self.temperature_zero_C, **self._inputs(p, time_s, sel))
+        d, _ = p.predict(
+            wavelength_nm[sel],
+            temperature_C[sel],
+            self.wavelength_zero_nm,
+            self.temperature_zero_C,
+            **self._inputs(p, time_s, sel),
+        )
         return np.asarray(d, float).reshape(3), np.asarray(p.expected_rms_error_um, float)
 
-    def _check_readmissions(self, time_s, wavelength_nm, temperature_C, start, status, faulted,
-                            temp_ok, choice) -> np.ndarray:
+    def _check_readmissions(
+        self, time_s, wavelength_nm, temperature_C, start, status, faulted, temp_ok, choice
+    ) -> np.ndarray:
         """Keep out a grating whose re-admission the other gratings contradict.
 
         On a frame where gratings come back (the faulted set shrinks from one predicted frame
@@ -454,17 +495,14 @@ class Pipeline:
         while i < f.shape[0]:
             prev_mask = np.vstack([self._prev_mask[None, :], f[:-1]])
             prev_k = np.concatenate([[self._prev_choice], choice[:-1]])
-            back = (prev_mask & ~f).any(axis=1) & (prev_k >= 0) & (choice >= 0) \
-                & (prev_k != choice)
+            back = (prev_mask & ~f).any(axis=1) & (prev_k >= 0) & (choice >= 0) & (prev_k != choice)
             back[:i] = False
             if not back.any():
                 break
             r = int(np.argmax(back))
             row = start + r
-            d_new, rms_new = self._predict_one(choice[r], time_s, wavelength_nm,
-                                               temperature_C, row)
-            d_old, rms_old = self._predict_one(prev_k[r], time_s, wavelength_nm,
-                                               temperature_C, row)
+            d_new, rms_new = self._predict_one(choice[r], time_s, wavelength_nm, temperature_C, row)
+            d_old, rms_old = self._predict_one(prev_k[r], time_s, wavelength_nm, temperature_C, row)
             tol = cfg.readmit_k_sigma * np.hypot(rms_new, rms_old)
             with np.errstate(invalid="ignore"):
                 agree = np.abs(d_new - d_old) <= tol
@@ -477,8 +515,7 @@ class Pipeline:
             span = t[r:] < until
             f[r:, js] |= span[:, None]
             st = status[row:, :]
-            st[:, js] = np.where(span[:, None] & (st[:, js] == H.OK), H.INCONSISTENT,
-                                 st[:, js])
+            st[:, js] = np.where(span[:, None] & (st[:, js] == H.OK), H.INCONSISTENT, st[:, js])
             self.checks.last_bad_s[js] = np.maximum(self.checks.last_bad_s[js], float(t[r]))
             self._inconsistent_until[js] = until
             self.readmissions_refused += 1
@@ -517,8 +554,9 @@ class Pipeline:
                 self.frame_dt_s = float(np.median(d))
         return np.inf if self.frame_dt_s is None else 2.0 * self.frame_dt_s
 
-    def _filter(self, t: np.ndarray, corr: np.ndarray, rms: np.ndarray,
-                model_set: np.ndarray | None = None) -> np.ndarray:
+    def _filter(
+        self, t: np.ndarray, corr: np.ndarray, rms: np.ndarray, model_set: np.ndarray | None = None
+    ) -> np.ndarray:
         """Adaptive output filter over the rows with a prediction (the others stay NaN).
 
         It is re-seated (:meth:`AdaptiveLevelFilter.reseated`) on the first frame of another
@@ -540,8 +578,7 @@ class Pipeline:
             self.output_filter = AdaptiveLevelFilter(self.config.output_filter, dt, rms[first])
         out = corr.copy()
         rows = np.flatnonzero(good)
-        sets = np.zeros(rows.size, np.int64) if model_set is None else \
-            model_set[rows].astype(np.int64)
+        sets = np.zeros(rows.size, np.int64) if model_set is None else model_set[rows].astype(np.int64)
         prev = self._filter_set if self._filter_set is not None else int(sets[0])
         switch = set(np.flatnonzero(np.concatenate([[prev], sets[:-1]]) != sets).tolist())
         edges = sorted({0, rows.size, *switch})
@@ -576,9 +613,18 @@ class Pipeline:
         corr = self._hold_and_ramp(t, nan3, health)
         flags = np.zeros((1, 3), np.uint8)
         corr = self._shape(t, corr, enabled, flags)
-        return BatchResult(t, nan3, nan3, corr, nan3, health,
-                           np.full((1, S), H.MISSING, np.uint8), np.array([-1], np.int16),
-                           np.full((1, P), np.nan), flags)
+        return BatchResult(
+            t,
+            nan3,
+            nan3,
+            corr,
+            nan3,
+            health,
+            np.full((1, S), H.MISSING, np.uint8),
+            np.array([-1], np.int16),
+            np.full((1, P), np.nan),
+            flags,
+        )
 
     def _hold_and_ramp(self, t: np.ndarray, corr: np.ndarray, health: np.ndarray) -> np.ndarray:
         """Rows without a model hold the last good correction, ramped to zero over ramp_s."""
@@ -591,16 +637,15 @@ class Pipeline:
             idx = np.arange(n)
             last_good = np.maximum.accumulate(np.where(good, idx, -1))
             from_batch = last_good >= 0
-            held_value = np.where(from_batch[:, None], corr[np.maximum(last_good, 0)],
-                                  self._last_correction)
+            held_value = np.where(from_batch[:, None], corr[np.maximum(last_good, 0)], self._last_correction)
             # a hold starts at the first frame after the last good one
-            first_hold_t = np.where(from_batch,
-                                    t[np.minimum(last_good + 1, n - 1)],
-                                    self._hold_start_s if self._hold_start_s is not None
-                                    else t[np.argmax(hold)])
+            first_hold_t = np.where(
+                from_batch,
+                t[np.minimum(last_good + 1, n - 1)],
+                self._hold_start_s if self._hold_start_s is not None else t[np.argmax(hold)],
+            )
             ramp = self.config.ramp_s
-            frac = np.clip(1.0 - (t - first_hold_t) / ramp, 0.0, 1.0) if ramp > 0 \
-                else np.zeros(n)
+            frac = np.clip(1.0 - (t - first_hold_t) / ramp, 0.0, 1.0) if ramp > 0 else np.zeros(n)
             out = np.where(hold[:, None], held_value * frac[:, None], out)
             if hold[-1]:
                 self._hold_start_s = float(first_hold_t[-1])
@@ -619,6 +664,7 @@ class Pipeline:
         # scipy.signal takes seconds to import, and only this optional smoothing needs it: not
         # at module top, which the OPC UA server process and the log readers also load
         from scipy.signal import lfilter
+
         prev_t = self._last_t if self._last_t is not None else t[0]
         dt = np.diff(np.concatenate([[prev_t], t]))
         dt_typ = float(np.median(dt)) if dt.size else 0.0
@@ -644,16 +690,17 @@ class Pipeline:
             return corr
         prev = self._slew_y if self._slew_y is not None else corr[0]
         t_prev = self._slew_t if self._slew_t is not None else float(t[0])
-        if n == 1:     # one frame (the usual batch at a high rate): the same test on scalars
+        if n == 1:  # one frame (the usual batch at a high rate): the same test on scalars
             dt1 = min(max(float(t[0]) - t_prev, 0.0), dt_cap)
-            if not ((np.abs(corr[0] - prev) > self._slew_rate * dt1 + 1e-12)
-                    & self._slew_axes).any():
+            if not ((np.abs(corr[0] - prev) > self._slew_rate * dt1 + 1e-12) & self._slew_axes).any():
                 self._slew_y = corr[0].copy()
                 self._slew_t = float(t[0])
                 return corr
         dt = np.clip(np.diff(np.concatenate([[t_prev], t])), 0.0, dt_cap)[:, None]
-        step = np.where(np.isinf(rate)[None, :], np.inf,
-                        np.where(np.isinf(rate), 0.0, rate)[None, :] * dt) + 1e-12
+        step = (
+            np.where(np.isinf(rate)[None, :], np.inf, np.where(np.isinf(rate), 0.0, rate)[None, :] * dt)
+            + 1e-12
+        )
         out = corr.copy()
         i = 0
         while i < n:
@@ -665,12 +712,12 @@ class Pipeline:
             if k > i:
                 prev = corr[k - 1]
             j = k
-            while j < n:                   # engaged: follow the target at the limited rate
+            while j < n:  # engaged: follow the target at the limited rate
                 prev = prev + np.clip(corr[j] - prev, -step[j], step[j])
                 out[j] = prev
                 j += 1
                 if np.array_equal(prev, corr[j - 1]):
-                    break                  # caught up: back to the batch-wide check
+                    break  # caught up: back to the batch-wide check
             i = j
         self._slew_y = out[-1].copy()
         self._slew_t = float(t[-1])

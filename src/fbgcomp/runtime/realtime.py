@@ -26,8 +26,8 @@ log = logging.getLogger("fbgcomp.runtime")
 class RealtimeConfig:
     """``--cpu``, ``--realtime-priority``: what :func:`apply` sets for the process."""
 
-    cpu: int = -1               # pin the service to this CPU; -1 = no pinning
-    fifo_priority: int = 0      # SCHED_FIFO priority 1..99; 0 = normal scheduling
+    cpu: int = -1  # pin the service to this CPU; -1 = no pinning
+    fifo_priority: int = 0  # SCHED_FIFO priority 1..99; 0 = normal scheduling
     gc_threshold: int = 50_000  # young-generation threshold of the cyclic collector (0: keep)
 
 
@@ -49,8 +49,10 @@ def apply(config: RealtimeConfig, pid: int = 0) -> list[str]:
             done.append(f"SCHED_FIFO priority {config.fifo_priority}")
         except (OSError, AttributeError) as exc:
             reason = getattr(exc, "strerror", None) or str(exc)
-            msg = (f"SCHED_FIFO not permitted ({reason}): running at normal priority (grant "
-                   "CAP_SYS_NICE or an rtprio limit to the service's user)")
+            msg = (
+                f"SCHED_FIFO not permitted ({reason}): running at normal priority (grant "
+                "CAP_SYS_NICE or an rtprio limit to the service's user)"
+            )
             log.warning(msg)
             done.append(msg)
     if config.gc_threshold > 0 and pid == 0:

@@ -26,8 +26,7 @@ from fbgcomp.io.campaign import read_campaign
 from fbgcomp.models.registry import load_model
 from fbgcomp.runtime import health as H
 from fbgcomp.runtime import realtime
-from fbgcomp.runtime.live_inputs import (LiveInputs, LiveTemperatures, PositionConfig,
-                                         TemperaturesConfig)
+from fbgcomp.runtime.live_inputs import LiveInputs, LiveTemperatures, PositionConfig, TemperaturesConfig
 from fbgcomp.runtime.log import RunLog
 from fbgcomp.runtime.outputs.cnc_form import newest_slope
 from fbgcomp.runtime.outputs.linuxcnc import CncConfig, open_cnc_output
@@ -36,9 +35,16 @@ from fbgcomp.runtime.outputs.opcua import OpcUaConfig, OpcUaServer, Snapshot
 from fbgcomp.runtime.pipeline import HEALTH_ALARM, HEALTH_NAMES, Pipeline, PipelineConfig
 from fbgcomp.runtime.realtime import RealtimeConfig
 from fbgcomp.runtime.simulator import SignalTable, SimConfig, SimulatedHyperion
-from fbgcomp.runtime.sources import (HyperionSource, PeakMapper, ReferenceThermometers,
-                                     ReplaySource, SensorBatch, TableTemperatures,
-                                     open_temperatures, parse_source_url)
+from fbgcomp.runtime.sources import (
+    HyperionSource,
+    PeakMapper,
+    ReferenceThermometers,
+    ReplaySource,
+    SensorBatch,
+    TableTemperatures,
+    open_temperatures,
+    parse_source_url,
+)
 
 log = logging.getLogger("fbgcomp.runtime")
 
@@ -49,12 +55,12 @@ class SourceConfig:
 
     url: str = ""
     window_nm: float = 2.5
-    speed: float = 1.0               # replay:// and sim:// only
-    loop: bool = False               # replay:// and sim:// only
+    speed: float = 1.0  # replay:// and sim:// only
+    loop: bool = False  # replay:// and sim:// only
     backoff_initial_s: float = 0.1
     backoff_max_s: float = 5.0
     stall_timeout_s: float = 2.0
-    no_data_s: float = 0.1           # no frame for this long = hold and ramp (alarm)
+    no_data_s: float = 0.1  # no frame for this long = hold and ramp (alarm)
     temperatures: str | None = None  # campaign folder, temperatures CSV or const:P=°C,...
 
 
@@ -78,16 +84,16 @@ class RuntimeConfig:
     log: LogConfig = field(default_factory=LogConfig)
     opcua_enabled: bool = True
     dashboard: DashboardConfig = field(default_factory=DashboardConfig)
-    cnc: CncConfig = field(default_factory=CncConfig)   # --cnc linuxcnc (docs/linuxcnc.md)
-    modbus: ModbusConfig = field(default_factory=ModbusConfig)   # docs/cnc-integration.md
-    realtime: RealtimeConfig = field(default_factory=RealtimeConfig)   # --cpu, --realtime-priority
+    cnc: CncConfig = field(default_factory=CncConfig)  # --cnc linuxcnc (docs/linuxcnc.md)
+    modbus: ModbusConfig = field(default_factory=ModbusConfig)  # docs/cnc-integration.md
+    realtime: RealtimeConfig = field(default_factory=RealtimeConfig)  # --cpu, --realtime-priority
     # live probe temperatures (OPC UA, Modbus TCP) and the Z position (LinuxCNC, OPC UA):
     # fbgcomp.runtime.live_inputs, docs/runtime.md "Live inputs"
     temperatures: TemperaturesConfig = field(default_factory=TemperaturesConfig)
     position: PositionConfig = field(default_factory=PositionConfig)
 
     @classmethod
-    def from_toml(cls, path: str | Path) -> "RuntimeConfig":
+    def from_toml(cls, path: str | Path) -> RuntimeConfig:
         """The configuration in a TOML file; InputError naming the file and field otherwise."""
         path = Path(path)
         try:
@@ -106,26 +112,30 @@ def _update(obj, data: dict, file: str, prefix: str) -> None:
     for key, value in data.items():
         where = f"field {prefix}{key}"
         if key not in known:
-            raise InputError(f"unknown configuration key (known: {', '.join(known)})",
-                             file=file, column=where)
+            raise InputError(
+                f"unknown configuration key (known: {', '.join(known)})", file=file, column=where
+            )
         current = getattr(obj, key)
         if is_dataclass(current):
             if not isinstance(value, dict):
                 raise InputError("expected a table", file=file, column=where)
             _update(current, value, file, f"{prefix}{key}.")
-        elif isinstance(current, tuple):     # per-axis (dx, dy, dz) or one value for all
+        elif isinstance(current, tuple):  # per-axis (dx, dy, dz) or one value for all
             items = value if isinstance(value, list) else [value]
             if len(items) not in (1, 3) or not all(
-                    isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 0
-                    for v in items):
-                raise InputError(f"expected one number >= 0 or three (dx, dy, dz), got {value!r}",
-                                 file=file, column=where)
+                isinstance(v, (int, float)) and not isinstance(v, bool) and v >= 0 for v in items
+            ):
+                raise InputError(
+                    f"expected one number >= 0 or three (dx, dy, dz), got {value!r}", file=file, column=where
+                )
             setattr(obj, key, tuple(float(v) for v in items) * (3 if len(items) == 1 else 1))
         else:
-            if current is not None and not isinstance(value, type(current)) and not (
-                    isinstance(current, float) and isinstance(value, int)):
-                raise InputError(f"expected {type(current).__name__}, got {value!r}",
-                                 file=file, column=where)
+            if (
+                current is not None
+                and not isinstance(value, type(current))
+                and not (isinstance(current, float) and isinstance(value, int))
+            ):
+                raise InputError(f"expected {type(current).__name__}, got {value!r}", file=file, column=where)
             setattr(obj, key, float(value) if isinstance(current, float) else value)
 
 
@@ -133,18 +143,26 @@ def model_meta(model, pipeline: Pipeline, temperature_probes=None) -> dict:
     """The run log's ``meta.json``: model, sensors, probes, model sets, names of the codes and
     limits in force.
     """
+
     def dump(s):
         return s.model_dump(mode="json") if hasattr(s, "model_dump") else dict(vars(s))
-    return {"format": "fbgcomp-runlog", "version": 1, "model_id": model.model_id,
-            "sensor_names": pipeline.sensor_names, "probe_names": pipeline.probe_names,
-            "sensors": [dump(s) for s in model.sensors],
-            "temperature_probes": temperature_probes,
-            "model_sets": [sorted(s) for s in pipeline.model_sets],
-            "health_names": list(HEALTH_NAMES), "status_names": list(H.STATUS_NAMES),
-            "flag_names": {str(bit): name for bit, name in H.FLAG_NAMES.items()},
-            "max_correction_um": [float(v) for v in pipeline.max_correction_um],
-            "max_slew_um_per_s": [float(v) for v in pipeline.max_slew_um_per_s],
-            "zero_window_s": pipeline.zero_window_s}
+
+    return {
+        "format": "fbgcomp-runlog",
+        "version": 1,
+        "model_id": model.model_id,
+        "sensor_names": pipeline.sensor_names,
+        "probe_names": pipeline.probe_names,
+        "sensors": [dump(s) for s in model.sensors],
+        "temperature_probes": temperature_probes,
+        "model_sets": [sorted(s) for s in pipeline.model_sets],
+        "health_names": list(HEALTH_NAMES),
+        "status_names": list(H.STATUS_NAMES),
+        "flag_names": {str(bit): name for bit, name in H.FLAG_NAMES.items()},
+        "max_correction_um": [float(v) for v in pipeline.max_correction_um],
+        "max_slew_um_per_s": [float(v) for v in pipeline.max_slew_um_per_s],
+        "zero_window_s": pipeline.zero_window_s,
+    }
 
 
 class Service:
@@ -158,25 +176,26 @@ class Service:
         self.mapper = PeakMapper.for_sensors(self.model.sensors, config.source.window_nm)
         # the model's <sensor>_ref probes come from the reference gratings' peaks, the others
         # from the temperature source
-        self.thermometers = ReferenceThermometers(self.pipeline.probe_names, self.model.sensors,
-                                                  self.mapper.reference_probes)
+        self.thermometers = ReferenceThermometers(
+            self.pipeline.probe_names, self.model.sensors, self.mapper.reference_probes
+        )
         self.frames = 0
         self.batches = 0
         self.busy_s = 0.0
         self.last_result = None
         self.opc: OpcUaServer | None = None
-        self.dashboard = None             # fbgcomp.dashboard.Dashboard when configured
-        self.cnc = None                   # fbgcomp.runtime.outputs.linuxcnc.LinuxCncOutput (--cnc)
-        self.modbus = None                # fbgcomp.runtime.outputs.modbus.ModbusOutput ([modbus])
-        self.live: LiveInputs | None = None   # [temperatures.*], [position]
-        self.z_mm: float | None = None    # the Z position given to the model on the last batch
-        self.input_status = ""            # live inputs: "inputs OK" or which are stale
-        self.frames_waiting = 0           # frames dropped before zeroing, live inputs not up
-        self._enabled = True              # used only without OPC UA
+        self.dashboard = None  # fbgcomp.dashboard.Dashboard when configured
+        self.cnc = None  # fbgcomp.runtime.outputs.linuxcnc.LinuxCncOutput (--cnc)
+        self.modbus = None  # fbgcomp.runtime.outputs.modbus.ModbusOutput ([modbus])
+        self.live: LiveInputs | None = None  # [temperatures.*], [position]
+        self.z_mm: float | None = None  # the Z position given to the model on the last batch
+        self.input_status = ""  # live inputs: "inputs OK" or which are stale
+        self.frames_waiting = 0  # frames dropped before zeroing, live inputs not up
+        self._enabled = True  # used only without OPC UA
         self.runlog = None
         self.sim = None
         self._stop = asyncio.Event()
-        self._offset_s = 0.0   # wall clock - instrument clock, for no-data hold times
+        self._offset_s = 0.0  # wall clock - instrument clock, for no-data hold times
         self._no_data_since: float | None = None
 
     @staticmethod
@@ -193,43 +212,71 @@ class Service:
         live = LiveInputs(self.config.temperatures, self.config.position, probes, self.cnc)
         self.live = live if live else None
         if self.live is not None and self.live.has_position and not self.pipeline.uses_z:
-            log.warning("[position]: this model's prediction does not depend on Z; the position "
-                        "is read but changes nothing")
+            log.warning(
+                "[position]: this model's prediction does not depend on Z; the position "
+                "is read but changes nothing"
+            )
         # the probes no live input supplies come from --temperatures (or the replayed campaign)
         probes = [p for p in probes if p not in live.probe_reader]
         temps = None
         probe_specs = None
         if scheme == "hyperion":
-            src = HyperionSource(opts["host"], int(opts["stream_port"]), int(opts["command_port"]),
-                                 self.mapper, cfg.backoff_initial_s, cfg.backoff_max_s,
-                                 cfg.stall_timeout_s)
+            src = HyperionSource(
+                opts["host"],
+                int(opts["stream_port"]),
+                int(opts["command_port"]),
+                self.mapper,
+                cfg.backoff_initial_s,
+                cfg.backoff_max_s,
+                cfg.stall_timeout_s,
+            )
         elif scheme == "replay":
-            src = ReplaySource(opts["path"], self.pipeline.sensor_names, probes,
-                               float(opts.get("speed", cfg.speed)),
-                               loop=opts.get("loop", str(cfg.loop)).lower() in ("1", "true"),
-                               reference_probes=self.mapper.reference_probes)
+            src = ReplaySource(
+                opts["path"],
+                self.pipeline.sensor_names,
+                probes,
+                float(opts.get("speed", cfg.speed)),
+                loop=opts.get("loop", str(cfg.loop)).lower() in ("1", "true"),
+                reference_probes=self.mapper.reference_probes,
+            )
             temps = src.temperatures
             probe_specs = _probe_specs(opts["path"])
         else:  # sim://DIR: an in-process simulated instrument replaying the campaign
             table = SignalTable.from_campaign(opts["path"])
             speed = float(opts.get("speed", cfg.speed))
             loop = opts.get("loop", str(cfg.loop)).lower() in ("1", "true")
-            sim = SimulatedHyperion(table, SimConfig(rate_hz=float(opts.get("rate", 1000)),
-                                                     channels=int(opts.get("channels", 1)),
-                                                     speed=speed, loop=loop))
+            sim = SimulatedHyperion(
+                table,
+                SimConfig(
+                    rate_hz=float(opts.get("rate", 1000)),
+                    channels=int(opts.get("channels", 1)),
+                    speed=speed,
+                    loop=loop,
+                ),
+            )
             await sim.start()
             self.sim = sim
-            src = HyperionSource("127.0.0.1", sim.stream_port, sim.command_port, self.mapper,
-                                 cfg.backoff_initial_s, cfg.backoff_max_s, cfg.stall_timeout_s)
+            src = HyperionSource(
+                "127.0.0.1",
+                sim.stream_port,
+                sim.command_port,
+                self.mapper,
+                cfg.backoff_initial_s,
+                cfg.backoff_max_s,
+                cfg.stall_timeout_s,
+            )
             if probes:
                 temps = TableTemperatures.from_campaign(opts["path"], probes, speed, loop)
                 temps.origin = sim._t0 - table.time_s[0] / speed
             probe_specs = _probe_specs(opts["path"])
         if cfg.temperatures is not None or temps is None:
             if probes and cfg.temperatures is None and live.probes:
-                raise InputError(f"probe {probes[0]} has no source: name it in "
-                                 "[temperatures.opcua] nodes or [temperatures.modbus] registers, "
-                                 "or give --temperatures", column="--temperatures")
+                raise InputError(
+                    f"probe {probes[0]} has no source: name it in "
+                    "[temperatures.opcua] nodes or [temperatures.modbus] registers, "
+                    "or give --temperatures",
+                    column="--temperatures",
+                )
             temps = open_temperatures(cfg.temperatures, probes, cfg.speed, cfg.loop)
             if cfg.temperatures and Path(cfg.temperatures).is_dir():
                 probe_specs = _probe_specs(cfg.temperatures)
@@ -245,8 +292,10 @@ class Service:
         path = path or self.config.model
         loop = asyncio.get_running_loop()
         new = await loop.run_in_executor(None, self._load_model, path)
-        if list(new.sensor_names) != self.pipeline.sensor_names or \
-                list(new.probe_names) != self.pipeline.probe_names:
+        if (
+            list(new.sensor_names) != self.pipeline.sensor_names
+            or list(new.probe_names) != self.pipeline.probe_names
+        ):
             raise InputError("reloaded model expects other sensors or probes", file=path)
         pipe = Pipeline(new, self.config.pipeline)
         # keep the running zero state, sensor history and re-admission state: the machine
@@ -273,7 +322,7 @@ class Service:
         value = bool(value)
         opc = self.opc
         if opc is not None:
-            opc.set_enabled(value)      # the OPC UA process writes its Enabled node
+            opc.set_enabled(value)  # the OPC UA process writes its Enabled node
         else:
             self._enabled = value
         return self.enabled
@@ -286,14 +335,19 @@ class Service:
         main_loop = asyncio.get_running_loop()
         self.modbus = open_modbus_output(self.config.modbus)
         if self.modbus is not None:
-            self.modbus.start()      # a busy port fails before anything else runs
+            self.modbus.start()  # a busy port fails before anything else runs
         if self.config.opcua_enabled:
             # first: the slowest to start, and a busy port must fail before anything runs
-            self.opc = OpcUaServer(self.config.opcua, self.pipeline.sensor_names, self.model_id,
-                                   on_reload=self.reload, main_loop=main_loop)
+            self.opc = OpcUaServer(
+                self.config.opcua,
+                self.pipeline.sensor_names,
+                self.model_id,
+                on_reload=self.reload,
+                main_loop=main_loop,
+            )
             await main_loop.run_in_executor(None, self.opc.start)
         try:
-            self.cnc = open_cnc_output(self.config.cnc)    # started below; read by [position]
+            self.cnc = open_cnc_output(self.config.cnc)  # started below; read by [position]
             source, temps, probe_specs = await self._open_source()
         except BaseException:
             if self.opc is not None:
@@ -303,14 +357,22 @@ class Service:
             raise
         self.source, self.temps = source, temps
         if self.config.log.dir:
-            self.runlog = RunLog(self.config.log.dir,
-                                 model_meta(self.model, self.pipeline, probe_specs),
-                                 self.config.log.flush_s, fsync=self.config.log.fsync)
+            self.runlog = RunLog(
+                self.config.log.dir,
+                model_meta(self.model, self.pipeline, probe_specs),
+                self.config.log.flush_s,
+                fsync=self.config.log.fsync,
+            )
         if self.config.dashboard.listen:
-            self.dashboard = Dashboard(self.config.dashboard, self.pipeline.sensor_names,
-                                       self.pipeline.probe_names, self.model_id,
-                                       control=self.set_enabled, enabled=lambda: self.enabled,
-                                       log_dir=self.config.log.dir)
+            self.dashboard = Dashboard(
+                self.config.dashboard,
+                self.pipeline.sensor_names,
+                self.pipeline.probe_names,
+                self.model_id,
+                control=self.set_enabled,
+                enabled=lambda: self.enabled,
+                log_dir=self.config.log.dir,
+            )
             self.dashboard.start()
         if self.cnc is not None:
             self.cnc.start()
@@ -334,8 +396,11 @@ class Service:
         try:
             while not self._stop.is_set():
                 # once data has stopped, tick at 50 Hz so the ramp to zero is smooth
-                timeout = min(self.config.source.no_data_s, 0.02) if self._no_data_since \
+                timeout = (
+                    min(self.config.source.no_data_s, 0.02)
+                    if self._no_data_since
                     else self.config.source.no_data_s
+                )
                 if end is not None:
                     remaining = end - time.monotonic()
                     if remaining <= 0:
@@ -343,7 +408,7 @@ class Service:
                     timeout = min(timeout, remaining)
                 try:
                     first = await asyncio.wait_for(queue.get(), timeout)
-                except asyncio.TimeoutError:
+                except TimeoutError:
                     if end is None or time.monotonic() < end:
                         self._no_data_since = self._no_data_since or time.monotonic()
                         self._no_data()
@@ -360,7 +425,7 @@ class Service:
                 self._process(SensorBatch.concat(items))
         finally:
             if self.cnc is not None:
-                self.cnc.stop()   # the CNC ramps its offsets to zero without waiting for a timeout
+                self.cnc.stop()  # the CNC ramps its offsets to zero without waiting for a timeout
             if self.live is not None:
                 await self.live.close()
             if self.modbus is not None:
@@ -385,23 +450,27 @@ class Service:
             return
         t0 = time.perf_counter()
         enabled = self.enabled
-        temps = self.thermometers.temperature_C(self.temps.latest(batch.time_s),
-                                                batch.reference_nm)
+        temps = self.thermometers.temperature_C(self.temps.latest(batch.time_s), batch.reference_nm)
         z = None
         if self.live is not None:
             # the newest Z for the whole batch (a batch lasts milliseconds); NaN when stale
             z = self.live.z_mm()
             self.input_status = self.live.check(getattr(self.temps, "last_live", {}), z)
         self.z_mm = z
-        if self.live is not None and not self.pipeline.zeroed and \
-                self.pipeline._t_first is None and not self._inputs_ready(temps, z):
+        if (
+            self.live is not None
+            and not self.pipeline.zeroed
+            and self.pipeline._t_first is None
+            and not self._inputs_ready(temps, z)
+        ):
             # the zero state is the mean of the first seconds: it must not start before every
             # live input has a value (an OPC UA or Modbus link takes a moment to come up), or
             # a probe without a zero would leave the model unusable for the whole run
             self.frames_waiting += len(batch)
             return
-        res = self.pipeline.process(batch.time_s, batch.wavelength_nm, batch.peak_count,
-                                    batch.near_count, temps, enabled, z_axis_mm=z)
+        res = self.pipeline.process(
+            batch.time_s, batch.wavelength_nm, batch.peak_count, batch.near_count, temps, enabled, z_axis_mm=z
+        )
         self._offset_s = batch.received_s - float(batch.time_s[-1])
         self.frames += len(batch)
         self.batches += 1
@@ -428,19 +497,18 @@ class Service:
 
     def _publish(self, res, wavelength_nm, received_s) -> None:
         """Newest sample to the outputs; each only stores it (never blocks this loop)."""
-        if self.opc is None and self.dashboard is None and self.cnc is None \
-                and self.modbus is None:
+        if self.opc is None and self.dashboard is None and self.cnc is None and self.modbus is None:
             return
         snap = self._snapshot(res, wavelength_nm, received_s)
         if self.cnc is not None:
             self.cnc.publish(snap, self.enabled)
-        if self.modbus is not None or self.opc is not None:   # offset + Z slope, the form a
+        if self.modbus is not None or self.opc is not None:  # offset + Z slope, the form a
             # CNC's PLC takes
             z = self.z_mm if self.z_mm is not None and np.isfinite(self.z_mm) else None
             slope, z_ref = newest_slope(self.pipeline, res, wavelength_nm, z)
         if self.modbus is not None:
             self.modbus.publish(snap, self.enabled, slope, z_ref)
-        if self.opc is not None:      # the Modbus output's limited values, else its limits
+        if self.opc is not None:  # the Modbus output's limited values, else its limits
             self.opc.publish(snap, self.enabled, slope, z_ref, self.modbus or self.config.modbus)
         if self.dashboard is not None:
             self.dashboard.publish(snap, res.temperature_C[-1], self.pipeline)
@@ -456,20 +524,27 @@ class Service:
             deviation_um=tuple(res.deviation_um[-1].tolist()),
             half_width_um=tuple(res.half_width_um[-1].tolist()),
             expected_rms_um=tuple(res.expected_rms_um[-1].tolist()),
-            health=HEALTH_NAMES[h], fallback=fallback, alarm=bool(h == HEALTH_ALARM),
+            health=HEALTH_NAMES[h],
+            fallback=fallback,
+            alarm=bool(h == HEALTH_ALARM),
             output_flags=tuple(int(v) for v in res.output_flags[-1].tolist()),
             sensor_status=[H.STATUS_NAMES[c] for c in res.sensor_status[-1].tolist()],
             sensor_wavelength_nm=np.asarray(wavelength_nm, float).tolist(),
             source_status=str(getattr(self.source, "status", ""))
-            + (f"; {self.input_status}" if self.input_status else ""), frames=int(self.frames),
-            model_id=self.model_id, received_s=float(received_s))
+            + (f"; {self.input_status}" if self.input_status else ""),
+            frames=int(self.frames),
+            model_id=self.model_id,
+            received_s=float(received_s),
+        )
 
 
 def _probe_specs(folder):
     try:
         c = read_campaign(folder)
-        return [p.model_dump(mode="json") if hasattr(p, "model_dump") else dict(vars(p))
-                for p in c.meta.temperature_probes]
+        return [
+            p.model_dump(mode="json") if hasattr(p, "model_dump") else dict(vars(p))
+            for p in c.meta.temperature_probes
+        ]
     except Exception:
         return None
 

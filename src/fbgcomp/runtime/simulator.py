@@ -39,7 +39,7 @@ import signal
 import struct
 import time
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 import numpy as np
@@ -49,8 +49,10 @@ from fbgcomp.errors import InputError
 from fbgcomp.io.campaign import read_campaign
 from fbgcomp.runtime import hyperion
 
-_FAULT_RE = re.compile(r"^(drop|double|shift|stuck):([^@]+)@([0-9.eE+-]+)(?::([0-9.eE+-]+))?"
-                       r"(?:/([0-9.eE+-]+))?$")
+_FAULT_RE = re.compile(
+    r"^(drop|double|shift|stuck):([^@]+)@([0-9.eE+-]+)(?::([0-9.eE+-]+))?"
+    r"(?:/([0-9.eE+-]+))?$"
+)
 _CUT_RE = re.compile(r"^(cut|garbage)@([0-9.eE+-]+)(?::([0-9.eE+-]+))?$")
 GARBAGE_BYTES = 4096
 MAX_GARBAGE_BYTES = 1 << 20
@@ -90,14 +92,21 @@ def parse_fault(text: str) -> Fault:
             kind, at, value = m.groups()
             default = 1.0 if kind == "cut" else GARBAGE_BYTES
             f = Fault(kind, None, float(at), float(value) if value else default)
-            if f.at_s >= 0 and np.isfinite(f.value) and f.value >= 0 and \
-                    (kind == "cut" or f.value <= MAX_GARBAGE_BYTES):
+            if (
+                f.at_s >= 0
+                and np.isfinite(f.value)
+                and f.value >= 0
+                and (kind == "cut" or f.value <= MAX_GARBAGE_BYTES)
+            ):
                 return f
     except ValueError:
         pass
-    raise InputError(f"bad fault {text!r}: expected drop:S@t, double:S@t, shift:S@t:nm, "
-                     "stuck:S@t (each optionally /duration), cut@t:duration or "
-                     f"garbage@t:bytes (at most {MAX_GARBAGE_BYTES})", column="--fault")
+    raise InputError(
+        f"bad fault {text!r}: expected drop:S@t, double:S@t, shift:S@t:nm, "
+        "stuck:S@t (each optionally /duration), cut@t:duration or "
+        f"garbage@t:bytes (at most {MAX_GARBAGE_BYTES})",
+        column="--fault",
+    )
 
 
 @dataclass
@@ -107,10 +116,10 @@ class SignalTable:
     time_s: np.ndarray
     wavelengths_nm: np.ndarray
     sensor_names: list[str]
-    channel: list[int] | None = None   # 1-based instrument channel per sensor (campaign meta)
+    channel: list[int] | None = None  # 1-based instrument channel per sensor (campaign meta)
 
     @classmethod
-    def from_campaign(cls, folder: str | Path) -> "SignalTable":
+    def from_campaign(cls, folder: str | Path) -> SignalTable:
         """The campaign's gratings: its sensors, then the strain-free reference gratings of
         those that carry one (signal ``<sensor>_ref`` from column ``<sensor>_ref_nm``, on the
         sensor's channel; faults name them so: ``drop:S3_ref@5``)."""
@@ -120,8 +129,7 @@ class SignalTable:
         columns = [s.column for s in c.meta.sensors] + [s.reference_column for s in refs]
         wl = c.fbg[columns].to_numpy(dtype=np.float64)
         channel = [int(getattr(s, "channel", None) or 0) for s in c.meta.sensors + refs]
-        return cls(c.fbg["time_s"].to_numpy(dtype=np.float64), wl, names,
-                   channel if all(channel) else None)
+        return cls(c.fbg["time_s"].to_numpy(dtype=np.float64), wl, names, channel if all(channel) else None)
 
     def at(self, campaign_time_s: np.ndarray) -> np.ndarray:
         """Linear interpolation of every sensor at the given campaign times, (n, S)."""
@@ -138,7 +146,7 @@ class SimConfig:
     rate_hz: float = 1000.0
     channels: int = 1
     extra_peaks_per_channel: int = 0
-    peaks_per_channel: int | None = None   # pad every channel with far peaks up to this count
+    peaks_per_channel: int | None = None  # pad every channel with far peaks up to this count
     speed: float = 1.0
     loop: bool = False
     noise_pm: float = 0.0
@@ -151,8 +159,14 @@ class SimConfig:
 class SimulatedHyperion:
     """Asyncio Hyperion instrument serving ``table`` on ``host`` (command and stream ports)."""
 
-    def __init__(self, table: SignalTable, config: SimConfig | None = None,
-                 host: str = "127.0.0.1", command_port: int = 0, stream_port: int = 0):
+    def __init__(
+        self,
+        table: SignalTable,
+        config: SimConfig | None = None,
+        host: str = "127.0.0.1",
+        command_port: int = 0,
+        stream_port: int = 0,
+    ):
         self.table = table
         self.config = config or SimConfig()
         if not 0 < self.config.rate_hz <= 20_000:
@@ -161,8 +175,10 @@ class SimulatedHyperion:
             raise InputError("at least one channel is needed", column="--channels")
         for f in self.config.faults:
             if f.sensor is not None and f.sensor not in table.sensor_names:
-                raise InputError(f"fault names unknown sensor {f.sensor!r}; sensors are "
-                                 f"{', '.join(table.sensor_names)}", column="--fault")
+                raise InputError(
+                    f"fault names unknown sensor {f.sensor!r}; sensors are {', '.join(table.sensor_names)}",
+                    column="--fault",
+                )
         self.host = host
         self._ports = (command_port, stream_port)
         self._servers: list[asyncio.AbstractServer] = []
@@ -185,7 +201,7 @@ class SimulatedHyperion:
         self._stuck_value: dict[int, float] = {}
         self.send_log: list[tuple[float, int, float]] | None = None
         self._fired_cuts: set[int] = set()
-        self.garbage_sent = 0                  # bursts of random bytes sent (garbage faults)
+        self.garbage_sent = 0  # bursts of random bytes sent (garbage faults)
 
     @property
     def command_port(self) -> int:
@@ -220,7 +236,7 @@ class SimulatedHyperion:
         for s in self._servers:
             try:
                 await asyncio.wait_for(s.wait_closed(), 1.0)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 pass
 
     def _close_clients(self) -> None:
@@ -338,10 +354,14 @@ class SimulatedHyperion:
         if cfg.noise_pm:
             wl += self._rng.normal(0.0, cfg.noise_pm * 1e-3, wl.shape)
         # Fault boundaries split the block into runs with one peak layout each.
-        edges = sorted({e for f in cfg.faults if f.sensor is not None
-                        for e in (f.at_s, f.until_s) if np.isfinite(e)})
-        seg = np.searchsorted(np.asarray(edges), t_rel_s, side="right") if edges else \
-            np.zeros(t_rel_s.size, int)
+        edges = sorted(
+            {e for f in cfg.faults if f.sensor is not None for e in (f.at_s, f.until_s) if np.isfinite(e)}
+        )
+        seg = (
+            np.searchsorted(np.asarray(edges), t_rel_s, side="right")
+            if edges
+            else np.zeros(t_rel_s.size, int)
+        )
         out = []
         for s in np.unique(seg):
             rows = seg == s
@@ -376,8 +396,11 @@ class SimulatedHyperion:
                 ch_cols.append(wl[:, j])
                 if j in doubled:
                     ch_cols.append(wl[:, j] + 0.3)
-            n_extra = cfg.extra_peaks_per_channel if cfg.peaks_per_channel is None else \
-                max(0, cfg.peaks_per_channel - len(ch_cols))
+            n_extra = (
+                cfg.extra_peaks_per_channel
+                if cfg.peaks_per_channel is None
+                else max(0, cfg.peaks_per_channel - len(ch_cols))
+            )
             for e in range(n_extra):
                 # Other gratings on the fibre, far from every sensor window.
                 ch_cols.append(np.full(wl.shape[0], 1600.0 + 2.0 * e + 0.1 * ch))
@@ -391,7 +414,7 @@ class SimulatedHyperion:
         return hyperion.encode_peak_frames(serial, stamp_s, counts, peaks)
 
 
-def save_send_log(sim: "SimulatedHyperion", path: str | Path) -> None:
+def save_send_log(sim: SimulatedHyperion, path: str | Path) -> None:
     """Atomically save (first frame stamp s, frames, send wall time s) rows as ``.npy``."""
     # the temporary name ends in .npy, else np.save would append it
     with atomic_path(path, suffix=".npy") as tmp:
@@ -421,12 +444,20 @@ class OpcUaTemperatureServer:
 
     NAMESPACE = "urn:fbgcomp:sim-interrogator"
 
-    def __init__(self, endpoint: str, time_s, temperature_C, probe_names, speed: float = 1.0,
-                 loop: bool = False, span_s: float | None = None, t_start_s: float | None = None,
-                 period_s: float = 0.1):
+    def __init__(
+        self,
+        endpoint: str,
+        time_s,
+        temperature_C,
+        probe_names,
+        speed: float = 1.0,
+        loop: bool = False,
+        span_s: float | None = None,
+        t_start_s: float | None = None,
+        period_s: float = 0.1,
+    ):
         if not endpoint.startswith("opc.tcp://"):
-            raise InputError(f"expected opc.tcp://HOST:PORT, got {endpoint!r}",
-                             column="--temperatures-opcua")
+            raise InputError(f"expected opc.tcp://HOST:PORT, got {endpoint!r}", column="--temperatures-opcua")
         self.endpoint = endpoint
         self.time_s = np.asarray(time_s, float)
         self.values = np.asarray(temperature_C, float).reshape(self.time_s.size, -1)
@@ -443,18 +474,24 @@ class OpcUaTemperatureServer:
         self.updates = 0
 
     @classmethod
-    def from_campaign(cls, endpoint: str, folder, config: SimConfig,
-                      table: SignalTable) -> "OpcUaTemperatureServer":
+    def from_campaign(
+        cls, endpoint: str, folder, config: SimConfig, table: SignalTable
+    ) -> OpcUaTemperatureServer:
         """A server of the campaign's probe temperatures (InputError if it has none)."""
         c = read_campaign(folder)
-        probes = [p.name for p in c.meta.temperature_probes
-                  if f"{p.name}_C" in c.temperatures.columns]
+        probes = [p.name for p in c.meta.temperature_probes if f"{p.name}_C" in c.temperatures.columns]
         if not probes:
             raise InputError("the campaign has no probe temperatures to serve", file=folder)
-        return cls(endpoint, c.temperatures["time_s"].to_numpy(float),
-                   c.temperatures[[f"{p}_C" for p in probes]].to_numpy(float), probes,
-                   config.speed, config.loop, table.time_s[-1] - table.time_s[0],
-                   table.time_s[0])
+        return cls(
+            endpoint,
+            c.temperatures["time_s"].to_numpy(float),
+            c.temperatures[[f"{p}_C" for p in probes]].to_numpy(float),
+            probes,
+            config.speed,
+            config.loop,
+            table.time_s[-1] - table.time_s[0],
+            table.time_s[0],
+        )
 
     def at(self, elapsed_s: float) -> np.ndarray:
         """(P,) the newest sample at or before the campaign time reached after ``elapsed_s``."""
@@ -477,8 +514,9 @@ class OpcUaTemperatureServer:
         probes = await server.nodes.objects.add_object(ua.NodeId("Probes", idx), "Probes")
         first = self.at(0.0)
         for name, v in zip(self.probe_names, first):
-            var = await probes.add_variable(ua.NodeId(f"Probes.{name}", idx), name, float(v),
-                                            varianttype=ua.VariantType.Double)
+            var = await probes.add_variable(
+                ua.NodeId(f"Probes.{name}", idx), name, float(v), varianttype=ua.VariantType.Double
+            )
             self._vars.append(var)
         await server.start()
         self.server = server
@@ -490,10 +528,11 @@ class OpcUaTemperatureServer:
 
         while True:
             row = self.at(time.time() - self._t0)
-            now = datetime.now(timezone.utc)    # a fresh timestamp: the value is live
+            now = datetime.now(UTC)  # a fresh timestamp: the value is live
             for var, v in zip(self._vars, row):
-                dv = ua.DataValue(ua.Variant(float(v), ua.VariantType.Double),
-                                  SourceTimestamp=now, ServerTimestamp=now)
+                dv = ua.DataValue(
+                    ua.Variant(float(v), ua.VariantType.Double), SourceTimestamp=now, ServerTimestamp=now
+                )
                 await var.write_value(dv)
             self.updates += 1
             await asyncio.sleep(self.period_s)
@@ -517,10 +556,17 @@ async def _cancel(task) -> None:
         pass
 
 
-async def run_simulator(table: SignalTable, config: SimConfig, host: str, command_port: int,
-                        stream_port: int, ready=None, duration_s: float | None = None,
-                        send_log: str | Path | None = None,
-                        temperatures: "OpcUaTemperatureServer | None" = None) -> None:
+async def run_simulator(
+    table: SignalTable,
+    config: SimConfig,
+    host: str,
+    command_port: int,
+    stream_port: int,
+    ready=None,
+    duration_s: float | None = None,
+    send_log: str | Path | None = None,
+    temperatures: OpcUaTemperatureServer | None = None,
+) -> None:
     """Serve until the signals end (unless looping), ``duration_s`` passes, or cancellation;
     with ``temperatures``, the campaign's probe temperatures over OPC UA on the same clock."""
     sim = SimulatedHyperion(table, config, host, command_port, stream_port)
@@ -534,7 +580,7 @@ async def run_simulator(table: SignalTable, config: SimConfig, host: str, comman
             await sim.stop()
             raise
     gc.collect()
-    gc.freeze()     # the campaign tables stay: no full collector passes over them mid-stream
+    gc.freeze()  # the campaign tables stay: no full collector passes over them mid-stream
     if ready is not None:
         ready(sim)
     stop = asyncio.Event()

@@ -19,9 +19,10 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import AsyncIterator, Protocol
+from typing import Protocol
 from urllib.parse import parse_qs, urlparse
 
 import numpy as np
@@ -59,25 +60,32 @@ class SensorBatch:
         return self.time_s.size
 
     @staticmethod
-    def concat(batches: list["SensorBatch"]) -> "SensorBatch":
+    def concat(batches: list[SensorBatch]) -> SensorBatch:
         """One batch of several, in order."""
         if len(batches) == 1:
             return batches[0]
-        return SensorBatch(np.concatenate([b.time_s for b in batches]),
-                           np.concatenate([b.wavelength_nm for b in batches]),
-                           np.concatenate([b.peak_count for b in batches]),
-                           np.concatenate([b.near_count for b in batches]),
-                           max(b.received_s for b in batches),
-                           None if batches[0].reference_nm is None else
-                           np.concatenate([b.reference_nm for b in batches]))
+        return SensorBatch(
+            np.concatenate([b.time_s for b in batches]),
+            np.concatenate([b.wavelength_nm for b in batches]),
+            np.concatenate([b.peak_count for b in batches]),
+            np.concatenate([b.near_count for b in batches]),
+            max(b.received_s for b in batches),
+            None if batches[0].reference_nm is None else np.concatenate([b.reference_nm for b in batches]),
+        )
 
 
 class PeakMapper:
     """Assign peaks to sensors by wavelength windows (vectorised over frames and peaks)."""
 
-    def __init__(self, lambda0_nm: np.ndarray, window_nm: float = 2.5,
-                 guard_nm: float | None = None, channel: np.ndarray | None = None,
-                 n_sensors: int | None = None, reference_probes: list[str] | None = None):
+    def __init__(
+        self,
+        lambda0_nm: np.ndarray,
+        window_nm: float = 2.5,
+        guard_nm: float | None = None,
+        channel: np.ndarray | None = None,
+        n_sensors: int | None = None,
+        reference_probes: list[str] | None = None,
+    ):
         self.lambda0_nm = np.asarray(lambda0_nm, dtype=np.float64)
         # windows beyond the first n_sensors are strain-free reference gratings, named by the
         # probe they read (<sensor>_ref); they go to SensorBatch.reference_nm
@@ -87,8 +95,9 @@ class PeakMapper:
             raise ValueError("one name per reference grating window")
         # instrument channel (1-based, as the Hyperion numbers them) of each sensor, 0 = any:
         # several fibres may carry gratings of the same nominal wavelength
-        self.channel = (np.zeros(self.lambda0_nm.size, int) if channel is None
-                        else np.asarray(channel, dtype=int))
+        self.channel = (
+            np.zeros(self.lambda0_nm.size, int) if channel is None else np.asarray(channel, dtype=int)
+        )
         self.window_nm = float(window_nm)
         self.guard_nm = float(window_nm if guard_nm is None else guard_nm)
         self.lo = self.lambda0_nm - self.window_nm
@@ -96,18 +105,28 @@ class PeakMapper:
         self._all = np.arange(self.lambda0_nm.size)
 
     @classmethod
-    def for_sensors(cls, sensors, window_nm: float = 2.5) -> "PeakMapper":
+    def for_sensors(cls, sensors, window_nm: float = 2.5) -> PeakMapper:
         """Windows from sensor specs (``lambda0_nm`` and optional extra key ``channel``), then
         one per strain-free reference grating (``reference_lambda0_nm``, the sensor's channel)."""
         channel = [int(getattr(s, "channel", None) or 0) for s in sensors]
-        refs = [(s, c) for s, c in zip(sensors, channel)
-                if getattr(s, "reference_lambda0_nm", None) is not None]
-        return cls([s.lambda0_nm for s in sensors] + [s.reference_lambda0_nm for s, _ in refs],
-                   window_nm, channel=channel + [c for _, c in refs], n_sensors=len(sensors),
-                   reference_probes=[f"{s.name}_ref" for s, _ in refs])
+        refs = [
+            (s, c) for s, c in zip(sensors, channel) if getattr(s, "reference_lambda0_nm", None) is not None
+        ]
+        return cls(
+            [s.lambda0_nm for s in sensors] + [s.reference_lambda0_nm for s, _ in refs],
+            window_nm,
+            channel=channel + [c for _, c in refs],
+            n_sensors=len(sensors),
+            reference_probes=[f"{s.name}_ref" for s, _ in refs],
+        )
 
-    def map(self, peaks_nm: np.ndarray, received_s: float, time_s: np.ndarray,
-            peak_channel: np.ndarray | None = None) -> SensorBatch:
+    def map(
+        self,
+        peaks_nm: np.ndarray,
+        received_s: float,
+        time_s: np.ndarray,
+        peak_channel: np.ndarray | None = None,
+    ) -> SensorBatch:
         """Map (n, K) peaks (NaN = no peak) to (n, S) sensor wavelengths.
 
         ``peak_channel`` (K,) gives the 1-based instrument channel of each peak column; sensors
@@ -118,7 +137,7 @@ class PeakMapper:
         value = np.zeros(n * S)
         near = np.zeros(n * S, np.int64)
         by_channel = peak_channel is not None and self.channel.all()
-        groups = (np.unique(peak_channel) if by_channel else [None])
+        groups = np.unique(peak_channel) if by_channel else [None]
         for ch in groups:
             cols = np.flatnonzero(peak_channel == ch) if ch is not None else slice(None)
             sens = np.flatnonzero(self.channel == ch) if ch is not None else self._all
@@ -131,8 +150,7 @@ class PeakMapper:
         k = self.n_sensors
         if k == S:
             return SensorBatch(time_s, wl, count, near, received_s)
-        return SensorBatch(time_s, wl[:, :k], count[:, :k], near[:, :k], received_s,
-                           reference_nm=wl[:, k:])
+        return SensorBatch(time_s, wl[:, :k], count[:, :k], near[:, :k], received_s, reference_nm=wl[:, k:])
 
     def _map_group(self, peaks, sens, count, value, near) -> None:
         """Windows of the sensors ``sens`` (one fibre) against its (n, k) peaks, O(n k log s).
@@ -155,7 +173,7 @@ class PeakMapper:
         row = np.broadcast_to(np.arange(n)[:, None] * S, peaks.shape)
         finite = np.isfinite(peaks)
         p = np.where(finite, peaks, -np.inf)
-        j = np.searchsorted(lo, p, side="right") - 1             # window starting at or below
+        j = np.searchsorted(lo, p, side="right") - 1  # window starting at or below
         jc = np.clip(j, 0, order.size - 1)
         inside = finite & (j >= 0) & (p <= hi[jc])
         flat = row[inside] + order[jc[inside]]
@@ -166,7 +184,7 @@ class PeakMapper:
         stray = finite & ~inside
         if not stray.any():
             return
-        for cand in (j, j + 1):                  # the windows just below and just above
+        for cand in (j, j + 1):  # the windows just below and just above
             valid = (cand >= 0) & (cand < order.size)
             k = np.clip(cand, 0, order.size - 1)
             d = np.abs(p - lam[k])
@@ -179,7 +197,7 @@ class PeakMapper:
         S = self.lambda0_nm.size
         n = peaks.shape[0]
         p = peaks[:, :, None]
-        inside = (p >= self.lo[sens]) & (p <= self.hi[sens])             # (n, k, s)
+        inside = (p >= self.lo[sens]) & (p <= self.hi[sens])  # (n, k, s)
         dist = np.abs(p - self.lambda0_nm[sens])
         owned = inside.any(axis=2, keepdims=True)
         stray = (dist > self.window_nm) & (dist <= self.window_nm + self.guard_nm) & ~owned
@@ -191,9 +209,14 @@ class PeakMapper:
     def map_blocks(self, blocks: list[hyperion.PeakBlock], received_s: float) -> SensorBatch:
         """A batch of the decoded peak blocks of one read (received at ``received_s``)."""
         by_channel = bool(self.channel.all())
-        return SensorBatch.concat([self.map(b.wavelengths_nm, received_s, b.timestamp_s,
-                                            b.peak_channel + 1 if by_channel else None)
-                                   for b in blocks])
+        return SensorBatch.concat(
+            [
+                self.map(
+                    b.wavelengths_nm, received_s, b.timestamp_s, b.peak_channel + 1 if by_channel else None
+                )
+                for b in blocks
+            ]
+        )
 
 
 class WavelengthSource(Protocol):
@@ -234,8 +257,9 @@ class ReferenceThermometers:
 
     def __init__(self, probe_names: list[str], sensors, mapped_references: list[str]):
         self.probe_names = list(probe_names)
-        by_probe = {f"{s.name}_ref": s for s in sensors
-                    if getattr(s, "reference_lambda0_nm", None) is not None}
+        by_probe = {
+            f"{s.name}_ref": s for s in sensors if getattr(s, "reference_lambda0_nm", None) is not None
+        }
         self.reference_probes = [p for p in self.probe_names if p in by_probe]
         self.real_probes = [p for p in self.probe_names if p not in by_probe]
         self._real = [self.probe_names.index(p) for p in self.real_probes]
@@ -254,10 +278,10 @@ class ReferenceThermometers:
         n = probes_C.shape[0]
         out = np.empty((n, len(self.probe_names)))
         out[:, self._real] = probes_C
-        lam = np.full((n, len(self._ref)), np.nan) if reference_nm is None else \
-            reference_nm[:, self._col]
+        lam = np.full((n, len(self._ref)), np.nan) if reference_nm is None else reference_nm[:, self._col]
         out[:, self._ref] = optics.grating_temperature_change_K(
-            lam, self._lambda0, thermo_optic_per_K=self._xi, fibre_cte_per_K=self._af)
+            lam, self._lambda0, thermo_optic_per_K=self._xi, fibre_cte_per_K=self._af
+        )
         return out
 
 
@@ -278,8 +302,9 @@ class ConstantTemperatures:
     def __init__(self, probe_names: list[str], values_C: dict[str, float]):
         missing = [p for p in probe_names if p not in values_C]
         if missing:
-            raise InputError(f"no constant temperature for probe(s) {', '.join(missing)}",
-                             column="--temperatures")
+            raise InputError(
+                f"no constant temperature for probe(s) {', '.join(missing)}", column="--temperatures"
+            )
         self.probe_names = list(probe_names)
         self._row = np.array([values_C[p] for p in probe_names], dtype=np.float64)
 
@@ -297,8 +322,15 @@ class TableTemperatures:
     requested time are used (latest value per probe, no look-ahead).
     """
 
-    def __init__(self, probe_names: list[str], time_s: np.ndarray, temperature_C: np.ndarray,
-                 speed: float = 1.0, clock_origin_s: float | None = None, loop: bool = False):
+    def __init__(
+        self,
+        probe_names: list[str],
+        time_s: np.ndarray,
+        temperature_C: np.ndarray,
+        speed: float = 1.0,
+        clock_origin_s: float | None = None,
+        loop: bool = False,
+    ):
         self.probe_names = list(probe_names)
         self.time_s = np.asarray(time_s, dtype=np.float64)
         self.values = np.asarray(temperature_C, dtype=np.float64).reshape(self.time_s.size, -1)
@@ -307,20 +339,22 @@ class TableTemperatures:
         self.loop = loop
 
     @classmethod
-    def from_campaign(cls, folder: str | Path, probe_names: list[str], speed: float = 1.0,
-                      loop: bool = False) -> "TableTemperatures":
+    def from_campaign(
+        cls, folder: str | Path, probe_names: list[str], speed: float = 1.0, loop: bool = False
+    ) -> TableTemperatures:
         """The temperatures of a campaign folder."""
         c = read_campaign(folder)
         return cls.from_frame(c.temperatures, probe_names, speed, str(folder), loop=loop)
 
     @classmethod
-    def from_csv(cls, path: str | Path, probe_names: list[str], speed: float = 1.0,
-                 loop: bool = False) -> "TableTemperatures":
+    def from_csv(
+        cls, path: str | Path, probe_names: list[str], speed: float = 1.0, loop: bool = False
+    ) -> TableTemperatures:
         """The temperatures of a CSV with ``time_s`` and ``<probe>_C`` columns."""
         return cls.from_frame(pd.read_csv(path), probe_names, speed, str(path), loop=loop)
 
     @classmethod
-    def from_frame(cls, df, probe_names, speed, where, loop=False) -> "TableTemperatures":
+    def from_frame(cls, df, probe_names, speed, where, loop=False) -> TableTemperatures:
         """The temperatures of a table with ``time_s`` and ``<probe>_C`` columns; InputError
         naming ``where`` when a column is missing.
         """
@@ -328,8 +362,7 @@ class TableTemperatures:
         missing = [c for c in cols + ["time_s"] if c not in df.columns]
         if missing:
             raise InputError(f"temperature table lacks column(s) {', '.join(missing)}", file=where)
-        return cls(probe_names, df["time_s"].to_numpy(float), df[cols].to_numpy(float),
-                   speed, loop=loop)
+        return cls(probe_names, df["time_s"].to_numpy(float), df[cols].to_numpy(float), speed, loop=loop)
 
     def latest(self, time_s: np.ndarray) -> np.ndarray:
         """The newest recorded temperatures at or before each frame's time on the campaign clock."""
@@ -348,18 +381,24 @@ class TableTemperatures:
         return out
 
 
-def open_temperatures(spec: str | None, probe_names: list[str], speed: float = 1.0,
-                      loop: bool = False) -> TemperatureSource:
+def open_temperatures(
+    spec: str | None, probe_names: list[str], speed: float = 1.0, loop: bool = False
+) -> TemperatureSource:
     """Temperature source from ``--temperatures``: a campaign folder, a CSV file or ``const:...``."""
     if not probe_names:
         return NoTemperatures([])
     if spec is None:
-        raise InputError(f"the model needs probe temperatures ({', '.join(probe_names)}); give "
-                         "--temperatures DIR|FILE.csv|const:P=°C,...", column="--temperatures")
+        raise InputError(
+            f"the model needs probe temperatures ({', '.join(probe_names)}); give "
+            "--temperatures DIR|FILE.csv|const:P=°C,...",
+            column="--temperatures",
+        )
     if spec.startswith("const:"):
         try:
-            values = {k.strip(): float(v) for k, v in
-                      (item.split("=") for item in spec[6:].split(",") if item.strip())}
+            values = {
+                k.strip(): float(v)
+                for k, v in (item.split("=") for item in spec[6:].split(",") if item.strip())
+            }
         except ValueError:
             raise InputError(f"bad constant temperatures {spec!r}", column="--temperatures")
         return ConstantTemperatures(probe_names, values)
@@ -375,9 +414,16 @@ def open_temperatures(spec: str | None, probe_names: list[str], speed: float = 1
 class HyperionSource:
     """Peaks from a Hyperion instrument; reconnects with capped exponential back-off."""
 
-    def __init__(self, host: str, stream_port: int, command_port: int, mapper: PeakMapper,
-                 backoff_initial_s: float = 0.1, backoff_max_s: float = 5.0,
-                 stall_timeout_s: float = 2.0):
+    def __init__(
+        self,
+        host: str,
+        stream_port: int,
+        command_port: int,
+        mapper: PeakMapper,
+        backoff_initial_s: float = 0.1,
+        backoff_max_s: float = 5.0,
+        stall_timeout_s: float = 2.0,
+    ):
         self.host, self.stream_port, self.command_port = host, stream_port, command_port
         self.mapper = mapper
         self.backoff_initial_s = backoff_initial_s
@@ -390,12 +436,13 @@ class HyperionSource:
         self._closed = False
 
     async def _connect(self) -> hyperion.HyperionClient:
-        client = hyperion.HyperionClient(self.host, self.command_port, self.stream_port,
-                                         timeout_s=self.stall_timeout_s)
+        client = hyperion.HyperionClient(
+            self.host, self.command_port, self.stream_port, timeout_s=self.stall_timeout_s
+        )
         try:
             # The command port is optional for streaming; use it when present.
             self.serial_number = await client.serial_number()
-        except (OSError, asyncio.TimeoutError, hyperion.HyperionError, asyncio.IncompleteReadError):
+        except (TimeoutError, OSError, hyperion.HyperionError, asyncio.IncompleteReadError):
             pass
         await client.open_stream()
         return client
@@ -413,11 +460,17 @@ class HyperionSource:
                     # drops connections must not be hammered)
                     delay = self.backoff_initial_s
                     yield self.mapper.map_blocks(blocks, time.time())
-            except (OSError, ConnectionError, asyncio.TimeoutError, asyncio.IncompleteReadError,
-                    hyperion.HyperionError) as exc:
+            except (
+                TimeoutError,
+                OSError,
+                ConnectionError,
+                asyncio.IncompleteReadError,
+                hyperion.HyperionError,
+            ) as exc:
                 self.status = f"reconnecting ({type(exc).__name__})"
-                log.warning("hyperion link %s:%s lost (%s); retry in %.2f s", self.host,
-                            self.stream_port, exc, delay)
+                log.warning(
+                    "hyperion link %s:%s lost (%s); retry in %.2f s", self.host, self.stream_port, exc, delay
+                )
             if self._client is not None:
                 await self._client.close()
                 self._client = None
@@ -441,30 +494,43 @@ class ReplaySource:
     (same origin) is exposed as ``temperatures``.
     """
 
-    def __init__(self, folder: str | Path, sensor_names: list[str], probe_names: list[str],
-                 speed: float = 1.0, chunk_s: float = 0.002, loop: bool = False,
-                 reference_probes: list[str] | None = None):
+    def __init__(
+        self,
+        folder: str | Path,
+        sensor_names: list[str],
+        probe_names: list[str],
+        speed: float = 1.0,
+        chunk_s: float = 0.002,
+        loop: bool = False,
+        reference_probes: list[str] | None = None,
+    ):
         c = read_campaign(folder)
         missing = [s for s in sensor_names if f"{s}_nm" not in c.fbg.columns]
         if missing:
-            raise InputError(f"campaign lacks sensor(s) {', '.join(missing)} the model needs",
-                             file=folder)
+            raise InputError(f"campaign lacks sensor(s) {', '.join(missing)} the model needs", file=folder)
         self.time_s = c.fbg["time_s"].to_numpy(float)
         self.wavelength_nm = c.fbg[[f"{s}_nm" for s in sensor_names]].to_numpy(float)
         # strain-free reference gratings (<sensor>_ref -> column <sensor>_ref_nm); a campaign
         # without one replays it as lost (NaN), as an instrument without its peak would
         self.reference_nm = None
         if reference_probes:
-            self.reference_nm = np.column_stack([
-                c.fbg[f"{p}_nm"].to_numpy(float) if f"{p}_nm" in c.fbg.columns
-                else np.full(self.time_s.size, np.nan) for p in reference_probes])
+            self.reference_nm = np.column_stack(
+                [
+                    c.fbg[f"{p}_nm"].to_numpy(float)
+                    if f"{p}_nm" in c.fbg.columns
+                    else np.full(self.time_s.size, np.nan)
+                    for p in reference_probes
+                ]
+            )
         self.speed = float(speed)
         self.chunk_s = chunk_s
         self.loop = loop
         self.origin_s = time.time() - self.time_s[0] / self.speed
-        self.temperatures = (TableTemperatures.from_frame(c.temperatures, probe_names, speed,
-                                                          str(folder), loop=loop)
-                             if probe_names else NoTemperatures([]))
+        self.temperatures = (
+            TableTemperatures.from_frame(c.temperatures, probe_names, speed, str(folder), loop=loop)
+            if probe_names
+            else NoTemperatures([])
+        )
         if probe_names:
             self.temperatures.origin = self.origin_s
         self.status = "replaying"
@@ -483,9 +549,14 @@ class ReplaySource:
                 wl = self.wavelength_nm[i:j]
                 ok = np.isfinite(wl)
                 stamp = self.origin_s + (self.time_s[i:j] + lap * span) / self.speed
-                yield SensorBatch(stamp, wl, ok.astype(np.int8), np.zeros(wl.shape, np.int8),
-                                  time.time(), None if self.reference_nm is None
-                                  else self.reference_nm[i:j])
+                yield SensorBatch(
+                    stamp,
+                    wl,
+                    ok.astype(np.int8),
+                    np.zeros(wl.shape, np.int8),
+                    time.time(),
+                    None if self.reference_nm is None else self.reference_nm[i:j],
+                )
                 i = j
             if i >= n:
                 if not self.loop:
@@ -503,16 +574,16 @@ def parse_source_url(url: str) -> tuple[str, dict]:
     """``hyperion://HOST[:PORT]``, ``replay://DIR?speed=10``, ``sim://DIR?rate=1000``."""
     u = urlparse(url)
     if u.scheme not in ("hyperion", "replay", "sim"):
-        raise InputError(f"unknown source {url!r}: use hyperion://HOST:PORT, replay://DIR or "
-                         "sim://DIR", column="--source")
+        raise InputError(
+            f"unknown source {url!r}: use hyperion://HOST:PORT, replay://DIR or sim://DIR", column="--source"
+        )
     opts = {k: v[-1] for k, v in parse_qs(u.query).items()}
     if u.scheme == "hyperion":
         if not u.hostname:
             raise InputError(f"no host in {url!r}", column="--source")
         opts["host"] = u.hostname
         opts["stream_port"] = u.port or hyperion.STREAM_PORT
-        opts.setdefault("command_port", str(hyperion.COMMAND_PORT if u.port is None
-                                            else u.port - 1))
+        opts.setdefault("command_port", str(hyperion.COMMAND_PORT if u.port is None else u.port - 1))
     else:
         opts["path"] = (u.netloc + u.path) if u.netloc else u.path
     return u.scheme, opts

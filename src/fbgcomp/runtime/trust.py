@@ -31,7 +31,7 @@ from fbgcomp.errors import InputError
 log = logging.getLogger("fbgcomp.runtime")
 audit = logging.getLogger("fbgcomp.audit")
 
-MAX_CERT_BYTES = 64 * 1024        # a certificate is a few kB; anything larger is not one
+MAX_CERT_BYTES = 64 * 1024  # a certificate is a few kB; anything larger is not one
 MAX_REJECTED = 64
 
 
@@ -62,15 +62,17 @@ class CertificateInfo:
     application_uri: str = ""
     sha256: str = ""
     not_after: str = ""
-    error: str = ""          # set when the file is not a readable certificate
+    error: str = ""  # set when the file is not a readable certificate
 
     def describe(self) -> str:
         """One line: file name, subject, application URI, expiry and SHA-256 (or the error)."""
         if self.error:
             return f"{self.path.name}: {self.error}"
-        return (f"{self.path.name}: {self.subject or '(no subject)'}, "
-                f"uri {self.application_uri or '(none)'}, valid until {self.not_after}, "
-                f"sha256 {self.sha256}")
+        return (
+            f"{self.path.name}: {self.subject or '(no subject)'}, "
+            f"uri {self.application_uri or '(none)'}, valid until {self.not_after}, "
+            f"sha256 {self.sha256}"
+        )
 
 
 def _info(cert, path: Path) -> CertificateInfo:
@@ -79,13 +81,18 @@ def _info(cert, path: Path) -> CertificateInfo:
 
     der = cert.public_bytes(serialization.Encoding.DER)
     try:
-        uris = cert.extensions.get_extension_for_class(
-            x509.SubjectAlternativeName).value.get_values_for_type(x509.UniformResourceIdentifier)
+        uris = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value.get_values_for_type(
+            x509.UniformResourceIdentifier
+        )
     except x509.ExtensionNotFound:
         uris = []
-    return CertificateInfo(path, cert.subject.rfc4514_string(), ", ".join(uris),
-                           hashlib.sha256(der).hexdigest(),
-                           cert.not_valid_after_utc.strftime("%Y-%m-%d"))
+    return CertificateInfo(
+        path,
+        cert.subject.rfc4514_string(),
+        ", ".join(uris),
+        hashlib.sha256(der).hexdigest(),
+        cert.not_valid_after_utc.strftime("%Y-%m-%d"),
+    )
 
 
 def parse_certificate(data: bytes):
@@ -93,8 +100,7 @@ def parse_certificate(data: bytes):
     from cryptography import x509  # the runtime extra: imported only when used
 
     if b"-----BEGIN" in data:
-        blocks = re.findall(rb"-----BEGIN CERTIFICATE-----.+?-----END CERTIFICATE-----", data,
-                            re.S)
+        blocks = re.findall(rb"-----BEGIN CERTIFICATE-----.+?-----END CERTIFICATE-----", data, re.S)
         if len(blocks) != 1:
             raise ValueError(f"PEM file holds {len(blocks)} certificates, expected one")
         return x509.load_pem_x509_certificate(blocks[0])
@@ -115,7 +121,7 @@ def read_certificate(path: str | Path):
     except ValueError as exc:
         reason = str(exc) if "expected one" in str(exc) else "not an X.509 certificate (DER or PEM)"
         raise InputError(reason, file=path)
-    if cert.not_valid_after_utc < dt.datetime.now(dt.timezone.utc):
+    if cert.not_valid_after_utc < dt.datetime.now(dt.UTC):
         raise InputError(f"certificate expired on {cert.not_valid_after_utc:%Y-%m-%d}", file=path)
     return cert
 
@@ -141,8 +147,7 @@ def add_certificate(path: str | Path, directory: str | Path) -> tuple[Certificat
     directory.mkdir(parents=True, exist_ok=True)
     # world-readable like any certificate; the temporary name ".incoming-<hex>.tmp" holds
     # neither "der" nor "pem", so a server reloading the folder meanwhile never reads a half
-    write_bytes(target, cert.public_bytes(serialization.Encoding.DER), mode=0o644,
-                prefix=".incoming-")
+    write_bytes(target, cert.public_bytes(serialization.Encoding.DER), mode=0o644, prefix=".incoming-")
     info.path = target
     audit.info("trust list %s: added %s", directory, info.describe())
     return info, True
@@ -188,8 +193,9 @@ class TrustListValidator:
 
     def _folder_signature(self):
         try:
-            return tuple(sorted((e.name, e.stat().st_mtime_ns, e.stat().st_size)
-                                for e in os.scandir(self.directory)))
+            return tuple(
+                sorted((e.name, e.stat().st_mtime_ns, e.stat().st_size) for e in os.scandir(self.directory))
+            )
         except OSError:
             return None
 
@@ -205,38 +211,52 @@ class TrustListValidator:
                 try:
                     await store.load()
                     self._store = store
-                except ValueError:          # no certificate in the folder
+                except ValueError:  # no certificate in the folder
                     pass
-                except Exception as exc:    # a foreign file: trust nobody rather than guess
-                    log.error("OPC UA trust list %s unreadable (%s): every client is refused; "
-                              "see fbgcomp trust list", self.directory, type(exc).__name__)
-            log.info("OPC UA trust list %s: %d certificate file(s)", self.directory,
-                     len(signature or ()))
+                except Exception as exc:  # a foreign file: trust nobody rather than guess
+                    log.error(
+                        "OPC UA trust list %s unreadable (%s): every client is refused; "
+                        "see fbgcomp trust list",
+                        self.directory,
+                        type(exc).__name__,
+                    )
+            log.info("OPC UA trust list %s: %d certificate file(s)", self.directory, len(signature or ()))
         return self._store
 
     async def __call__(self, cert, app_description) -> None:
         """Accept (return) or refuse (asyncua ``ServiceError``) a session's client certificate."""
         from asyncua import ua  # the runtime extra: imported only when used
-        from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
         from asyncua.common.utils import ServiceError
+        from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
 
         info = _info(cert, Path("client"))
         store = await self._current_store()
         try:
             if store is None:
                 raise ServiceError(ua.StatusCodes.BadCertificateUntrusted)
-            await CertificateValidator(CertificateValidatorOptions.TRUSTED_VALIDATION
-                                       | CertificateValidatorOptions.PEER_CLIENT,
-                                       store).validate(cert, app_description)
+            await CertificateValidator(
+                CertificateValidatorOptions.TRUSTED_VALIDATION | CertificateValidatorOptions.PEER_CLIENT,
+                store,
+            ).validate(cert, app_description)
         except ServiceError as exc:
             reason = ua.StatusCode(exc.code).name
             kept = self._keep_rejected(cert, info)
             hint = f"; to trust it: fbgcomp trust add {kept}" if kept else ""
-            audit.warning("OPC UA client refused (%s): %s, uri %s, sha256 %s%s", reason,
-                          info.subject, app_description.ApplicationUri, info.sha256, hint)
+            audit.warning(
+                "OPC UA client refused (%s): %s, uri %s, sha256 %s%s",
+                reason,
+                info.subject,
+                app_description.ApplicationUri,
+                info.sha256,
+                hint,
+            )
             raise
-        audit.info("OPC UA client accepted: %s, uri %s, sha256 %s", info.subject,
-                   app_description.ApplicationUri, info.sha256)
+        audit.info(
+            "OPC UA client accepted: %s, uri %s, sha256 %s",
+            info.subject,
+            app_description.ApplicationUri,
+            info.sha256,
+        )
 
     def _keep_rejected(self, cert, info: CertificateInfo) -> Path | None:
         from cryptography.hazmat.primitives import serialization  # the runtime extra: imported only when used
@@ -247,8 +267,7 @@ class TrustListValidator:
         try:
             if target.exists():
                 return target
-            if self.rejected.is_dir() and \
-                    sum(1 for _ in self.rejected.glob("*.der")) >= MAX_REJECTED:
+            if self.rejected.is_dir() and sum(1 for _ in self.rejected.glob("*.der")) >= MAX_REJECTED:
                 return None
             write_bytes(target, cert.public_bytes(serialization.Encoding.DER))
             return target

@@ -8,8 +8,14 @@ imported on first use.
 
 from fbgcomp.structure.machine import Machine, load_machine, parse_machine
 
-_TWIN_NAMES = ("Twin", "Influence", "PathInfluence", "StaticResponse", "ThermalResponse",
-               "TemperatureLoadResponse")
+_TWIN_NAMES = (
+    "Twin",
+    "Influence",
+    "PathInfluence",
+    "StaticResponse",
+    "ThermalResponse",
+    "TemperatureLoadResponse",
+)
 
 __all__ = ["Machine", "load_machine", "parse_machine", *_TWIN_NAMES]
 
@@ -17,5 +23,6 @@ __all__ = ["Machine", "load_machine", "parse_machine", *_TWIN_NAMES]
 def __getattr__(name):
     if name in _TWIN_NAMES:
         from fbgcomp.structure import twin
+
         return getattr(twin, name)
     raise AttributeError(f"module 'fbgcomp.structure' has no attribute {name!r}")

@@ -72,15 +72,17 @@ def cache_dir() -> Path | None:
         root = Path(value.strip()).expanduser()
     else:
         import platformdirs
+
         root = Path(platformdirs.user_cache_dir("fbgcomp"))
     return root / "twin"
 
 
 @functools.lru_cache(maxsize=1)
 def code_version() -> str:
-    """fbgcomp's version, a hash of the structure package's sources, and the numeric libraries'
+    """Fbgcomp's version, a hash of the structure package's sources, and the numeric libraries'
     versions: anything that could change a twin's numbers for the same machine."""
     import fbgcomp
+
     h = hashlib.sha256()
     here = Path(__file__).resolve().parent
     for path in sorted(here.glob("*.py")):
@@ -98,14 +100,18 @@ def machine_content(machine) -> str:
     """Canonical JSON of a validated machine description (independent of its file and layout)."""
     # allow_nan: an infinite value (if a field allows one) is written Infinity, not refused,
     # and stays distinct from null.
-    return json.dumps(machine.model_dump(mode="json"), sort_keys=True, separators=(",", ":"),
-                      allow_nan=True)
+    return json.dumps(machine.model_dump(mode="json"), sort_keys=True, separators=(",", ":"), allow_nan=True)
 
 
 def twin_key(machine, resolution: float, n_shifts: int) -> str:
     """Cache key (64 hex digits) of the twin of ``machine`` at this resolution and shift count."""
-    ident = {"format": FORMAT_VERSION, "code": code_version(), "machine": machine_content(machine),
-             "resolution": repr(float(resolution)), "n_shifts": int(n_shifts)}
+    ident = {
+        "format": FORMAT_VERSION,
+        "code": code_version(),
+        "machine": machine_content(machine),
+        "resolution": repr(float(resolution)),
+        "n_shifts": int(n_shifts),
+    }
     return hashlib.sha256(json.dumps(ident, sort_keys=True).encode()).hexdigest()
 
 
@@ -167,10 +173,10 @@ def dumps(key: str, arrays: dict) -> bytes:
 def loads(key: str, data: bytes, required=()) -> dict:
     """Arrays of an entry's content; ValueError if it is not a complete entry of this key."""
     head = len(MAGIC) + 32
-    if len(data) < head or data[:len(MAGIC)] != MAGIC:
+    if len(data) < head or data[: len(MAGIC)] != MAGIC:
         raise ValueError("not a twin cache entry")
     payload = memoryview(data)[head:]
-    if hashlib.sha256(payload).digest() != data[len(MAGIC):head]:
+    if hashlib.sha256(payload).digest() != data[len(MAGIC) : head]:
         raise ValueError("digest mismatch (truncated or corrupt)")
     with np.load(io.BytesIO(payload), allow_pickle=False) as npz:
         files = {name: npz[name] for name in npz.files}
@@ -201,11 +207,11 @@ def load(key: str, required=(), folder: Path | None = None) -> dict | None:
         return None
     try:
         arrays = loads(key, data, required)
-    except Exception as err:    # anything wrong with the file means: rebuild it
+    except Exception as err:  # anything wrong with the file means: rebuild it
         log.warning("twin cache: ignoring %s (%s); rebuilding", path, err)
         return None
     try:
-        os.utime(path)          # most recently used: the last to be pruned
+        os.utime(path)  # most recently used: the last to be pruned
     except OSError:
         pass
     return arrays
@@ -215,6 +221,7 @@ def store(key: str, arrays: dict, folder: Path | None = None) -> Path | None:
     """Write the entry of ``key`` atomically; returns its path, or None (cache off or the write
     failed: logged, the caller goes on without the cache)."""
     from fbgcomp.atomic import write_bytes
+
     folder = cache_dir() if folder is None else folder
     if folder is None:
         return None

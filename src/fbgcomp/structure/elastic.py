@@ -71,6 +71,7 @@ def anisotropic_elasticity(C_MPa: np.ndarray) -> BilinearForm:
     def form(u, v, w):
         eu, ev = _voigt(sym_grad(u)), _voigt(sym_grad(v))
         return sum(c * ev[i] * eu[j] for i, j, c in pairs)
+
     return form
 
 
@@ -82,6 +83,7 @@ def thermal_stress_load(beta_MPa_per_K: np.ndarray) -> BilinearForm:
     def form(theta, v, w):
         ev = _voigt(sym_grad(v))
         return theta * sum(b * ev[i] for i, b in terms)
+
     return form
 
 
@@ -127,8 +129,7 @@ def facet_mean_rows(vbasis: Basis, facets) -> np.ndarray:
     return np.vstack([asm(f, fb) for f in (_unit_x, _unit_y, _unit_z)]) / area
 
 
-def rigid_extension_rows(vbasis: Basis, facets, centre_xy_mm=(0.0, 0.0),
-                         lever_mm: float = 0.0) -> np.ndarray:
+def rigid_extension_rows(vbasis: Basis, facets, centre_xy_mm=(0.0, 0.0), lever_mm: float = 0.0) -> np.ndarray:
     """(3, n_u) rows: displacement (dx, dy, dz) of a point ``lever_mm`` below a plane face.
 
     The point sits on a rigid extension of the face: mean face translation plus the face's
@@ -153,7 +154,7 @@ def rigid_extension_rows(vbasis: Basis, facets, centre_xy_mm=(0.0, 0.0),
     area = asm(_area, sb).sum()
     zx = asm(_z_times_x, fb) - x0 * mean[2] * area
     zy = asm(_z_times_y, fb) - y0 * mean[2] * area
-    rot_x = zy / Iyy            # uz = rot_x * y - rot_y * x for a rigid rotation
+    rot_x = zy / Iyy  # uz = rot_x * y - rot_y * x for a rigid rotation
     rot_y = -zx / Ixx
     return np.vstack([mean[0] - lever_mm * rot_y, mean[1] + lever_mm * rot_x, mean[2]])
 
@@ -181,8 +182,10 @@ def assemble_elasticity_forms(rm, cfrp: CFRP, steel: Steel):
     sbasis = Basis(rm.mesh, ElementHex1(), intorder=INTORDER)
     K = None
     Th = None
-    for elements, C, alpha in ((rm.cfrp_elements, cfrp_stiffness_MPa(cfrp), cfrp_cte_voigt_per_K(cfrp)),
-                               (rm.steel_elements, steel_stiffness_MPa(steel), steel_cte_voigt_per_K(steel))):
+    for elements, C, alpha in (
+        (rm.cfrp_elements, cfrp_stiffness_MPa(cfrp), cfrp_cte_voigt_per_K(cfrp)),
+        (rm.steel_elements, steel_stiffness_MPa(steel), steel_cte_voigt_per_K(steel)),
+    ):
         if len(elements) == 0:
             continue
         vb = Basis(rm.mesh, e, intorder=INTORDER, elements=elements)
@@ -197,23 +200,24 @@ def assemble_elasticity_forms(rm, cfrp: CFRP, steel: Steel):
 def _box_geometry(p: np.ndarray, t: np.ndarray):
     """Reference-corner signs (n_e, 8, 3) and edge lengths (n_e, 3) of hexahedra that are
     axis-aligned boxes with their 8 nodes on distinct corners; (None, None) if any is not."""
-    xyz = p[:, t]                                              # (3, 8, n_e)
+    xyz = p[:, t]  # (3, 8, n_e)
     lo, hi = xyz.min(axis=1), xyz.max(axis=1)
-    h = hi - lo                                                # (3, n_e)
+    h = hi - lo  # (3, n_e)
     tol = 1e-9 * np.maximum(np.abs(lo), np.abs(hi)) + 1e-12
     on_lo = np.abs(xyz - lo[:, None, :]) <= tol[:, None, :]
     on_hi = np.abs(xyz - hi[:, None, :]) <= tol[:, None, :]
     if not np.all(on_lo ^ on_hi) or not np.all(h > 0):
         return None, None
-    signs = np.where(on_hi, 1.0, -1.0)                          # (3, 8, n_e)
-    corner = ((signs > 0) * np.array([1, 2, 4])[:, None, None]).sum(axis=0)   # (8, n_e)
+    signs = np.where(on_hi, 1.0, -1.0)  # (3, 8, n_e)
+    corner = ((signs > 0) * np.array([1, 2, 4])[:, None, None]).sum(axis=0)  # (8, n_e)
     if not np.all(np.sort(corner, axis=0) == np.arange(8)[:, None]):
         return None, None
     return signs.transpose(2, 1, 0), h.T
 
 
-def _hex8_box_element_matrices(signs: np.ndarray, h_mm: np.ndarray, C_MPa: np.ndarray,
-                               beta_MPa_per_K: np.ndarray):
+def _hex8_box_element_matrices(
+    signs: np.ndarray, h_mm: np.ndarray, C_MPa: np.ndarray, beta_MPa_per_K: np.ndarray
+):
     """Stiffness (n_e, 24, 24) N/mm and thermal load (n_e, 24, 8) N/K of trilinear box
     hexahedra, 2x2x2 Gauss rule (exact on boxes), all elements at once.
 
@@ -222,16 +226,16 @@ def _hex8_box_element_matrices(signs: np.ndarray, h_mm: np.ndarray, C_MPa: np.nd
     (xx, yy, zz, yz, xz, xy; engineering shears) as in :func:`anisotropic_elasticity`.
     """
     n_e = signs.shape[0]
-    scale = 2.0 / h_mm                                         # (n_e, 3) d(xi)/dx per axis
-    detJ = np.prod(h_mm, axis=1) / 8.0                         # (n_e,)
+    scale = 2.0 / h_mm  # (n_e, 3) d(xi)/dx per axis
+    detJ = np.prod(h_mm, axis=1) / 8.0  # (n_e,)
     Ke = np.zeros((n_e, 24, 24))
     Te = np.zeros((n_e, 24, 8))
     B = np.zeros((n_e, 6, 24))
     for gx in _GAUSS:
         for gy in _GAUSS:
             for gz in _GAUSS:
-                f = 1.0 + signs * np.array([gx, gy, gz])       # (n_e, 8, 3)
-                N = np.prod(f, axis=2) / 8.0                   # (n_e, 8)
+                f = 1.0 + signs * np.array([gx, gy, gz])  # (n_e, 8, 3)
+                N = np.prod(f, axis=2) / 8.0  # (n_e, 8)
                 dN = np.empty_like(f)
                 dN[..., 0] = signs[..., 0] * f[..., 1] * f[..., 2]
                 dN[..., 1] = signs[..., 1] * f[..., 0] * f[..., 2]
@@ -260,11 +264,13 @@ def assemble_hex8_box(rm, cfrp: CFRP, steel: Steel, signs=None, h_mm=None):
     e = vector_element()
     vbasis = Basis(rm.mesh, e, intorder=INTORDER)
     sbasis = Basis(rm.mesh, ElementHex1(), intorder=INTORDER)
-    G = vbasis.nodal_dofs[:, t].transpose(2, 1, 0).reshape(t.shape[1], 24)   # (n_e, 24)
+    G = vbasis.nodal_dofs[:, t].transpose(2, 1, 0).reshape(t.shape[1], 24)  # (n_e, 24)
     n_u, n = vbasis.N, rm.n_nodes
     rows_K, cols_K, vals_K, rows_T, cols_T, vals_T = [], [], [], [], [], []
-    for elements, C, alpha in ((rm.cfrp_elements, cfrp_stiffness_MPa(cfrp), cfrp_cte_voigt_per_K(cfrp)),
-                               (rm.steel_elements, steel_stiffness_MPa(steel), steel_cte_voigt_per_K(steel))):
+    for elements, C, alpha in (
+        (rm.cfrp_elements, cfrp_stiffness_MPa(cfrp), cfrp_cte_voigt_per_K(cfrp)),
+        (rm.steel_elements, steel_stiffness_MPa(steel), steel_cte_voigt_per_K(steel)),
+    ):
         if len(elements) == 0:
             continue
         Ke, Te = _hex8_box_element_matrices(signs[elements], h_mm[elements], C, C @ alpha)
@@ -275,12 +281,14 @@ def assemble_hex8_box(rm, cfrp: CFRP, steel: Steel, signs=None, h_mm=None):
         rows_T.append(np.repeat(g, 8, axis=1).ravel())
         cols_T.append(np.tile(t[:, elements].T, (1, 24)).ravel())
         vals_T.append(Te.ravel())
-    K = sp.coo_matrix((np.concatenate(vals_K), (np.concatenate(rows_K), np.concatenate(cols_K))),
-                      shape=(n_u, n_u))
-    Th = sp.coo_matrix((np.concatenate(vals_T), (np.concatenate(rows_T), np.concatenate(cols_T))),
-                       shape=(n_u, n))
+    K = sp.coo_matrix(
+        (np.concatenate(vals_K), (np.concatenate(rows_K), np.concatenate(cols_K))), shape=(n_u, n_u)
+    )
+    Th = sp.coo_matrix(
+        (np.concatenate(vals_T), (np.concatenate(rows_T), np.concatenate(cols_T))), shape=(n_u, n)
+    )
     K, Th = K.tocsc(), Th.tocsr()
-    K.eliminate_zeros()          # exact zeros of the closed form (skfem leaves round-off there)
+    K.eliminate_zeros()  # exact zeros of the closed form (skfem leaves round-off there)
     Th.eliminate_zeros()
     return vbasis, sbasis, K, Th
 
@@ -296,8 +304,9 @@ def spring_matrix(rows: np.ndarray, stiffness_N_per_mm) -> sp.csc_matrix:
 _GAUSS = np.array([-1.0, 1.0]) / np.sqrt(3.0)
 
 
-def _box_element_matrices(signs: np.ndarray, h_mm: np.ndarray, C_MPa: np.ndarray,
-                          beta_MPa_per_K: np.ndarray, incompatible: bool):
+def _box_element_matrices(
+    signs: np.ndarray, h_mm: np.ndarray, C_MPa: np.ndarray, beta_MPa_per_K: np.ndarray, incompatible: bool
+):
     """Stiffness (24, 24) N/mm and thermal load (24, 8) N/K of one box-shaped 8-node hexahedron.
 
     ``signs`` (8, 3): reference coordinates (+-1) of the local nodes; ``h_mm`` (3,): edge lengths.
@@ -307,7 +316,7 @@ def _box_element_matrices(signs: np.ndarray, h_mm: np.ndarray, C_MPa: np.ndarray
     which a plain trilinear hexahedron locks on. On a box the Jacobian is constant, so no
     patch-test correction is needed.
     """
-    scale = 2.0 / h_mm                                         # d(xi)/dx per axis
+    scale = 2.0 / h_mm  # d(xi)/dx per axis
     detJ = np.prod(h_mm) / 8.0
     Kuu = np.zeros((24, 24))
     Kua = np.zeros((24, 9))
@@ -318,15 +327,15 @@ def _box_element_matrices(signs: np.ndarray, h_mm: np.ndarray, C_MPa: np.ndarray
         for gy in _GAUSS:
             for gz in _GAUSS:
                 g = np.array([gx, gy, gz])
-                f = 1.0 + signs * g                            # (8, 3)
+                f = 1.0 + signs * g  # (8, 3)
                 N = np.prod(f, axis=1) / 8.0
                 dN = np.empty((8, 3))
                 for a in range(3):
                     others = np.prod(np.delete(f, a, axis=1), axis=1)
                     dN[:, a] = signs[:, a] * others / 8.0 * scale[a]
-                Bu = _strain_matrix(dN)                        # (6, 24)
-                dP = np.diag(-2.0 * g * scale)                 # mode b depends on coordinate b only
-                Ba = _strain_matrix(dP)                        # (6, 9)
+                Bu = _strain_matrix(dN)  # (6, 24)
+                dP = np.diag(-2.0 * g * scale)  # mode b depends on coordinate b only
+                Ba = _strain_matrix(dP)  # (6, 9)
                 w = detJ
                 Kuu += w * Bu.T @ C_MPa @ Bu
                 Tu += w * np.outer(Bu.T @ beta_MPa_per_K, N)
@@ -336,7 +345,7 @@ def _box_element_matrices(signs: np.ndarray, h_mm: np.ndarray, C_MPa: np.ndarray
                     Ta += w * np.outer(Ba.T @ beta_MPa_per_K, N)
     if not incompatible:
         return Kuu, Tu
-    X = np.linalg.solve(Kaa, np.hstack([Kua.T, Ta]))          # K_aa^-1 [K_au, T_a]
+    X = np.linalg.solve(Kaa, np.hstack([Kua.T, Ta]))  # K_aa^-1 [K_au, T_a]
     return Kuu - Kua @ X[:, :24], Tu - Kua @ X[:, 24:]
 
 
@@ -360,14 +369,16 @@ def assemble_box_elasticity(rm, cfrp: CFRP, steel: Steel, incompatible: bool = T
     vbasis = Basis(rm.mesh, e, intorder=INTORDER)
     sbasis = Basis(rm.mesh, ElementHex1(), intorder=INTORDER)
     p, t = rm.mesh.p, rm.mesh.t
-    xyz = p[:, t]                                              # (3, 8, n_e)
+    xyz = p[:, t]  # (3, 8, n_e)
     lo, hi = xyz.min(axis=1), xyz.max(axis=1)
-    h = (hi - lo).T                                            # (n_e, 3)
-    signs = np.sign(xyz - 0.5 * (lo + hi)[:, None, :]).transpose(2, 1, 0)   # (n_e, 8, 3)
+    h = (hi - lo).T  # (n_e, 3)
+    signs = np.sign(xyz - 0.5 * (lo + hi)[:, None, :]).transpose(2, 1, 0)  # (n_e, 8, 3)
     material = np.zeros(t.shape[1], dtype=np.int64)
     material[rm.steel_elements] = 1
-    props = [(cfrp_stiffness_MPa(cfrp), cfrp_cte_voigt_per_K(cfrp)),
-             (steel_stiffness_MPa(steel), steel_cte_voigt_per_K(steel))]
+    props = [
+        (cfrp_stiffness_MPa(cfrp), cfrp_cte_voigt_per_K(cfrp)),
+        (steel_stiffness_MPa(steel), steel_cte_voigt_per_K(steel)),
+    ]
     key = np.column_stack([material, np.round(h, 6), signs.reshape(len(h), -1)])
     kinds, kind_of = np.unique(key, axis=0, return_inverse=True)
     Ke = np.empty((len(kinds), 24, 24))
@@ -375,11 +386,15 @@ def assemble_box_elasticity(rm, cfrp: CFRP, steel: Steel, incompatible: bool = T
     for j, k in enumerate(kinds):
         C, alpha = props[int(k[0])]
         Ke[j], Te[j] = _box_element_matrices(k[4:].reshape(8, 3), k[1:4], C, C @ alpha, incompatible)
-    G = vbasis.nodal_dofs[:, t].transpose(2, 1, 0).reshape(t.shape[1], 24)   # (n_e, 24)
+    G = vbasis.nodal_dofs[:, t].transpose(2, 1, 0).reshape(t.shape[1], 24)  # (n_e, 24)
     kind_of = kind_of.ravel()
     n_u, n = vbasis.N, rm.n_nodes
-    K = sp.coo_matrix((Ke[kind_of].ravel(), (np.repeat(G, 24, axis=1).ravel(),
-                                             np.tile(G, (1, 24)).ravel())), shape=(n_u, n_u))
-    Th = sp.coo_matrix((Te[kind_of].ravel(), (np.repeat(G, 8, axis=1).ravel(),
-                                              np.tile(t.T, (1, 24)).ravel())), shape=(n_u, n))
+    K = sp.coo_matrix(
+        (Ke[kind_of].ravel(), (np.repeat(G, 24, axis=1).ravel(), np.tile(G, (1, 24)).ravel())),
+        shape=(n_u, n_u),
+    )
+    Th = sp.coo_matrix(
+        (Te[kind_of].ravel(), (np.repeat(G, 8, axis=1).ravel(), np.tile(t.T, (1, 24)).ravel())),
+        shape=(n_u, n),
+    )
     return vbasis, sbasis, K.tocsc(), Th.tocsr()

@@ -27,6 +27,7 @@ def _one_blas_thread():
     machine): factorise single-threaded when threadpoolctl is there to say so."""
     try:
         from threadpoolctl import threadpool_limits
+
         return threadpool_limits(1)
     except ImportError:
         return contextlib.nullcontext()
@@ -56,11 +57,11 @@ def block_partition(row: np.ndarray, col: np.ndarray, n: int, min_block: int = 6
     coupled to any column before block k's start (greedy, so the blocks follow the coupling
     range: about one node layer of a layer-ordered mesh).
     """
-    first = np.arange(n)                                   # first column of each row
+    first = np.arange(n)  # first column of each row
     np.minimum.at(first, row, col)
     last_row = np.full(n + 1, -1)
     np.maximum.at(last_row, first + 1, np.arange(n))
-    reach = np.maximum.accumulate(last_row)                # reach[s] = max{r : first(r) < s}
+    reach = np.maximum.accumulate(last_row)  # reach[s] = max{r : first(r) < s}
     bounds = [0]
     while bounds[-1] < n:
         s = bounds[-1]
@@ -79,13 +80,13 @@ class _BlockTridiagonalCholesky:
 
     def __init__(self, Ap: sp.csr_matrix, bounds: np.ndarray):
         self.bounds = bounds
-        self.L, self.C = [], []                            # L_k; A_{k,k-1} (sparse, CSR)
+        self.L, self.C = [], []  # L_k; A_{k,k-1} (sparse, CSR)
         prev = None
         for k in range(len(bounds) - 1):
             a, b = bounds[k], bounds[k + 1]
             Akk = Ap[a:b, a:b].toarray()
             if k:
-                C = Ap[a:b, bounds[k - 1]:a].tocsr()
+                C = Ap[a:b, bounds[k - 1] : a].tocsr()
                 self.C.append(C)
                 # B = A_{k,k-1} L_{k-1}^-T; A_kk -= B B^T
                 Bt = sla.solve_triangular(prev, C.T.toarray(), lower=True, check_finite=False)
@@ -98,17 +99,17 @@ class _BlockTridiagonalCholesky:
         m = len(L)
         y = []
         for k in range(m):
-            v = b[bounds[k]:bounds[k + 1]]
-            if k:   # - L_{k,k-1} y_{k-1} = - A_{k,k-1} L_{k-1}^-T y_{k-1}
-                v = v - C[k - 1] @ sla.solve_triangular(L[k - 1], y[-1], lower=True, trans="T",
-                                                        check_finite=False)
+            v = b[bounds[k] : bounds[k + 1]]
+            if k:  # - L_{k,k-1} y_{k-1} = - A_{k,k-1} L_{k-1}^-T y_{k-1}
+                v = v - C[k - 1] @ sla.solve_triangular(
+                    L[k - 1], y[-1], lower=True, trans="T", check_finite=False
+                )
             y.append(sla.solve_triangular(L[k], v, lower=True, check_finite=False))
         x = [None] * m
         for k in reversed(range(m)):
             v = y[k]
-            if k + 1 < m:   # - L_{k+1,k}^T x_{k+1} = - L_k^-1 A_{k+1,k}^T x_{k+1}
-                v = v - sla.solve_triangular(L[k], C[k].T @ x[k + 1], lower=True,
-                                             check_finite=False)
+            if k + 1 < m:  # - L_{k+1,k}^T x_{k+1} = - L_k^-1 A_{k+1,k}^T x_{k+1}
+                v = v - sla.solve_triangular(L[k], C[k].T @ x[k + 1], lower=True, check_finite=False)
             x[k] = sla.solve_triangular(L[k], v, lower=True, trans="T", check_finite=False)
         return np.concatenate(x)
 
@@ -139,13 +140,13 @@ class Factorised:
         bw = int(np.max(col - row)) if len(row) else 0
         self.bandwidth = bw
         if blocked and n > 1:
-            bounds = block_partition(col, row, n)          # (col, row) of the upper = lower
+            bounds = block_partition(col, row, n)  # (col, row) of the upper = lower
             m = np.diff(bounds).astype(float)
             # flops: potrf m^3/3 + trsm and update m_k m_{k-1}^2 + m_k^2 m_{k-1} per block,
             # against n bw^2 for the band
-            work = (m ** 3 / 3).sum() + (m[1:] * m[:-1] ** 2 + m[1:] ** 2 * m[:-1]).sum()
+            work = (m**3 / 3).sum() + (m[1:] * m[:-1] ** 2 + m[1:] ** 2 * m[:-1]).sum()
             if work < 0.8 * n * float(bw) ** 2:
-                Ap = sp.csr_matrix((data, (col, row)), shape=A.shape)   # lower triangle
+                Ap = sp.csr_matrix((data, (col, row)), shape=A.shape)  # lower triangle
                 Ap = (Ap + sp.triu(Ap.T, k=1)).tocsr()
                 self._perm = perm
                 self._inv = inv
@@ -157,14 +158,14 @@ class Factorised:
             ab = np.zeros((bw + 1, n))
             ab[bw + row - col, col] = data
             with _one_blas_thread():
-                self._band = sla.cholesky_banded(ab, lower=False, overwrite_ab=True,
-                                                 check_finite=False)
+                self._band = sla.cholesky_banded(ab, lower=False, overwrite_ab=True, check_finite=False)
             self._perm = perm
             self._inv = inv
             self.backend = f"banded-cholesky(bw={bw})"
             return
         try:
             from sksparse.cholmod import cholesky
+
             self._chol = cholesky(A.tocsc())
             self.backend = "cholmod"
         except ImportError:

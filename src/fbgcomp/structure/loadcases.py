@@ -14,9 +14,14 @@ __all__ = ["LOAD_CASES", "load_case_responses"]
 
 #: Typical magnitudes of each elementary load case in a working machine (the design's scale).
 LOAD_CASES = (
-    ("force_x", 4000.0, "N"), ("force_y", 4000.0, "N"), ("force_z", 4000.0, "N"),
-    ("uniform", 5.0, "K"), ("gradient_x", 1.0, "K"), ("gradient_y", 1.0, "K"),
-    ("gradient_z", 1.0, "K"), ("housing", 5.0, "K"),
+    ("force_x", 4000.0, "N"),
+    ("force_y", 4000.0, "N"),
+    ("force_z", 4000.0, "N"),
+    ("uniform", 5.0, "K"),
+    ("gradient_x", 1.0, "K"),
+    ("gradient_y", 1.0, "K"),
+    ("gradient_z", 1.0, "K"),
+    ("housing", 5.0, "K"),
 )
 
 

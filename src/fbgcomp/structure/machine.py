@@ -13,7 +13,15 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import yaml
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from fbgcomp.errors import InputError
 
@@ -88,7 +96,7 @@ def _stiffness(v):
     if v == "rigid":
         return v
     try:
-        k = float(v)            # YAML reads 1.0e6 (no sign in the exponent) as a string
+        k = float(v)  # YAML reads 1.0e6 (no sign in the exponent) as a string
     except (TypeError, ValueError):
         k = float("nan")
     if isinstance(v, bool) or not k > 0:
@@ -173,19 +181,25 @@ class Supports(_Strict):
     def _consistent_supports(self):
         for i, c in enumerate(self.carriages):
             if c.z_range_mm is None and self.shoe_length_mm is None:
-                raise _FieldError(f"supports.carriages[{i}].z_range_mm",
-                                  "give the station's z_range_mm or supports.shoe_length_mm")
+                raise _FieldError(
+                    f"supports.carriages[{i}].z_range_mm",
+                    "give the station's z_range_mm or supports.shoe_length_mm",
+                )
         if self.rails is None:
             a, b = self.shoe_faces
             if a[1] != b[1] or a == b:
-                raise _FieldError("supports.shoe_faces",
-                                  "shoe_faces must be two opposite faces, e.g. ['+X', '-X']")
+                raise _FieldError(
+                    "supports.shoe_faces", "shoe_faces must be two opposite faces, e.g. ['+X', '-X']"
+                )
             if len(self.carriages) != 2:
-                raise _FieldError("supports.carriages", "shoe_faces supports take exactly two "
-                                  "carriage stations; give rails for more")
+                raise _FieldError(
+                    "supports.carriages",
+                    "shoe_faces supports take exactly two carriage stations; give rails for more",
+                )
             if self.shoe_width_mm is None:
-                raise _FieldError("supports.shoe_width_mm", "required field is missing "
-                                  "(or describe the guides with rails)")
+                raise _FieldError(
+                    "supports.shoe_width_mm", "required field is missing (or describe the guides with rails)"
+                )
             return self
         if not self.rails:
             raise _FieldError("supports.rails", "give at least one rail")
@@ -196,8 +210,11 @@ class Supports(_Strict):
                 holds["Y" if r.face[1] == "X" else "X"] = True
         for axis, held in holds.items():
             if not held:
-                raise _FieldError("supports.rails", f"no rail holds the ram along {axis}: add a "
-                                  f"rail on a +-{axis} face or make a rail on the other faces locating")
+                raise _FieldError(
+                    "supports.rails",
+                    f"no rail holds the ram along {axis}: add a "
+                    f"rail on a +-{axis} face or make a rail on the other faces locating",
+                )
         return self
 
     @property
@@ -268,8 +285,7 @@ class Probe(_Strict):
 
 
 FilmSurface = Literal["+X", "-X", "+Y", "-Y", "cavity", "top", "housing_sides", "housing_bottom"]
-FILM_SURFACES: tuple[str, ...] = ("+X", "-X", "+Y", "-Y", "cavity", "top", "housing_sides",
-                                  "housing_bottom")
+FILM_SURFACES: tuple[str, ...] = ("+X", "-X", "+Y", "-Y", "cavity", "top", "housing_sides", "housing_bottom")
 
 
 class HeatSource(_Strict):
@@ -299,14 +315,17 @@ class HeatSource(_Strict):
     def _kind_fields(self):
         if self.kind == "volume":
             if self.face is not None or self.nominal_W_per_m2 is not None:
-                raise ValueError("a volume source takes x_mm, y_mm, z_mm and nominal_W "
-                                 "(no face, no nominal_W_per_m2)")
+                raise ValueError(
+                    "a volume source takes x_mm, y_mm, z_mm and nominal_W (no face, no nominal_W_per_m2)"
+                )
         else:
             if self.face is None:
                 raise ValueError("a radiant source needs its face")
             if self.x_mm is not None or self.y_mm is not None or self.nominal_W is not None:
-                raise ValueError("a radiant source takes face, z_mm, absorptivity and "
-                                 "nominal_W_per_m2 (no x_mm, y_mm, nominal_W)")
+                raise ValueError(
+                    "a radiant source takes face, z_mm, absorptivity and "
+                    "nominal_W_per_m2 (no x_mm, y_mm, nominal_W)"
+                )
         return self
 
     @property
@@ -339,14 +358,15 @@ class Thermal(_Strict):
         for surface in FILM_SURFACES:
             if self.film_W_per_m2K(surface) is None:
                 fallback = "film_inner_W_per_m2K" if surface == "cavity" else "film_outer_W_per_m2K"
-                raise _FieldError(f"thermal.films_W_per_m2K.{surface}",
-                                  f"no film coefficient for {surface!r}: give it or {fallback}")
+                raise _FieldError(
+                    f"thermal.films_W_per_m2K.{surface}",
+                    f"no film coefficient for {surface!r}: give it or {fallback}",
+                )
         if self.heat_sources is not None:
             names = [h.name for h in self.heat_sources]
             for i, n in enumerate(names):
                 if n in names[:i]:
-                    raise _FieldError(f"thermal.heat_sources[{i}].name",
-                                      f"duplicate heat source name {n!r}")
+                    raise _FieldError(f"thermal.heat_sources[{i}].name", f"duplicate heat source name {n!r}")
         return self
 
     def film_W_per_m2K(self, surface: str) -> float | None:
@@ -361,10 +381,16 @@ class Thermal(_Strict):
         flux on ``radiant_face`` (inputs ``spindle_heat_W``, ``radiant_W_per_m2``)."""
         if self.heat_sources is not None:
             return self.heat_sources
-        return (HeatSource(name="spindle_heat", kind="volume", nominal_W=self.nominal_spindle_heat_W),
-                HeatSource(name="radiant", kind="radiant", face=self.radiant_face,
-                           absorptivity=self.radiant_absorptivity,
-                           nominal_W_per_m2=self.nominal_radiant_W_per_m2))
+        return (
+            HeatSource(name="spindle_heat", kind="volume", nominal_W=self.nominal_spindle_heat_W),
+            HeatSource(
+                name="radiant",
+                kind="radiant",
+                face=self.radiant_face,
+                absorptivity=self.radiant_absorptivity,
+                nominal_W_per_m2=self.nominal_radiant_W_per_m2,
+            ),
+        )
 
 
 class MeshSettings(_Strict):
@@ -406,27 +432,37 @@ class Machine(_Strict):
             if probe_names.count(p.name) > 1:
                 raise _FieldError(f"probes[{i}].name", f"duplicate probe name {p.name!r}")
             if p.kind == "point" and not self.contains_point(p.x_mm, p.y_mm, p.z_mm):
-                raise _FieldError(f"probes[{i}]", f"probe {p.name!r} at ({p.x_mm:g}, {p.y_mm:g}, "
-                                  f"{p.z_mm:g}) mm is not inside the ram wall or the housing")
+                raise _FieldError(
+                    f"probes[{i}]",
+                    f"probe {p.name!r} at ({p.x_mm:g}, {p.y_mm:g}, "
+                    f"{p.z_mm:g}) mm is not inside the ram wall or the housing",
+                )
         for group in ("sensors", "candidate_sensors"):
             for i, s in enumerate(getattr(self, group)):
                 across = half_d if s.face[1] == "X" else half_w
                 if abs(s.offset_mm) > across:
-                    raise _FieldError(f"{group}[{i}].offset_mm",
-                                      f"offset {s.offset_mm:g} mm lies off the {s.face} face")
+                    raise _FieldError(
+                        f"{group}[{i}].offset_mm", f"offset {s.offset_mm:g} mm lies off the {s.face} face"
+                    )
                 if s.z_start_mm < 0 or s.z_end_mm > self.ram.length_mm:
-                    raise _FieldError(f"{group}[{i}].z_end_mm" if s.z_end_mm > self.ram.length_mm
-                                      else f"{group}[{i}].z_start_mm",
-                                      f"path must lie on the ram, 0..{self.ram.length_mm:g} mm")
+                    raise _FieldError(
+                        f"{group}[{i}].z_end_mm"
+                        if s.z_end_mm > self.ram.length_mm
+                        else f"{group}[{i}].z_start_mm",
+                        f"path must lie on the ram, 0..{self.ram.length_mm:g} mm",
+                    )
                 if s.temperature_probe is not None and s.temperature_probe not in probe_names:
-                    raise _FieldError(f"{group}[{i}].temperature_probe",
-                                      f"unknown probe {s.temperature_probe!r}; known: {probe_names}")
+                    raise _FieldError(
+                        f"{group}[{i}].temperature_probe",
+                        f"unknown probe {s.temperature_probe!r}; known: {probe_names}",
+                    )
         sup = self.supports
         for i, (lo, hi) in enumerate(sup.station_ranges_mm()):
-            if not (-1e-6 <= lo and hi <= self.ram.length_mm + 1e-6):
-                raise _FieldError(f"supports.carriages[{i}].z_mm",
-                                  f"carriage station at z = {lo:g}..{hi:g} mm in the ram frame "
-                                  f"lies off the ram")
+            if not (lo >= -1e-6 and hi <= self.ram.length_mm + 1e-6):
+                raise _FieldError(
+                    f"supports.carriages[{i}].z_mm",
+                    f"carriage station at z = {lo:g}..{hi:g} mm in the ram frame lies off the ram",
+                )
         zc = [c.z_mm for c in sup.carriages]
         for i in range(1, len(zc)):
             if zc[i] in zc[:i]:
@@ -434,12 +470,15 @@ class Machine(_Strict):
         for i, r in enumerate(sup.rails or ()):
             across = half_d if r.face[1] == "X" else half_w
             if r.across_mm[0] < -across - 1e-6 or r.across_mm[1] > across + 1e-6:
-                raise _FieldError(f"supports.rails[{i}].across_mm",
-                                  f"strip {r.across_mm[0]:g}..{r.across_mm[1]:g} mm lies off the "
-                                  f"{r.face} face (+-{across:g} mm)")
+                raise _FieldError(
+                    f"supports.rails[{i}].across_mm",
+                    f"strip {r.across_mm[0]:g}..{r.across_mm[1]:g} mm lies off the "
+                    f"{r.face} face (+-{across:g} mm)",
+                )
         patch = self.tool.nose_patch_mm
-        if patch is not None and (patch[0] > self.housing.width_mm + 1e-6
-                                  or patch[1] > self.housing.depth_mm + 1e-6):
+        if patch is not None and (
+            patch[0] > self.housing.width_mm + 1e-6 or patch[1] > self.housing.depth_mm + 1e-6
+        ):
             raise _FieldError("tool.nose_patch_mm", "the nose patch must fit on the housing bottom")
         for i, h in enumerate(self.thermal.sources):
             self._check_source(i, h)
@@ -450,10 +489,14 @@ class Machine(_Strict):
     def _check_source(self, i: int, h) -> None:
         where = f"thermal.heat_sources[{i}]"
         if h.kind == "radiant":
-            if h.z_mm is not None and (h.z_mm[0] < -self.housing.height_mm - 1e-6
-                                       or h.z_mm[1] > self.ram.length_mm + 1e-6):
-                raise _FieldError(f"{where}.z_mm", "the radiant zone must lie on the structure, "
-                                  f"{-self.housing.height_mm:g}..{self.ram.length_mm:g} mm")
+            if h.z_mm is not None and (
+                h.z_mm[0] < -self.housing.height_mm - 1e-6 or h.z_mm[1] > self.ram.length_mm + 1e-6
+            ):
+                raise _FieldError(
+                    f"{where}.z_mm",
+                    "the radiant zone must lie on the structure, "
+                    f"{-self.housing.height_mm:g}..{self.ram.length_mm:g} mm",
+                )
             return
         lo, hi = self.volume_source_box_mm(h)
         if hi[2] <= lo[2] or hi[0] <= lo[0] or hi[1] <= lo[1]:
@@ -465,6 +508,7 @@ class Machine(_Strict):
     def volume_source_box_mm(self, h):
         """(low, high) corners (mm) of a volume heat zone; omitted ranges span the housing."""
         import numpy as np
+
         hw, hd, H = self.housing.width_mm / 2, self.housing.depth_mm / 2, self.housing.height_mm
         x = h.x_mm or (-hw, hw)
         y = h.y_mm or (-hd, hd)
@@ -480,20 +524,23 @@ class Machine(_Strict):
                 return True
         if 0 <= z_mm <= r.length_mm + tol_mm:
             inside_outer = ax <= r.outer_width_mm / 2 + tol_mm and ay <= r.outer_depth_mm / 2 + tol_mm
-            in_cavity = (ax < r.outer_width_mm / 2 - r.wall_mm - tol_mm
-                         and ay < r.outer_depth_mm / 2 - r.wall_mm - tol_mm)
+            in_cavity = (
+                ax < r.outer_width_mm / 2 - r.wall_mm - tol_mm
+                and ay < r.outer_depth_mm / 2 - r.wall_mm - tol_mm
+            )
             return inside_outer and not in_cavity
         return False
 
     @property
     def ttp_z_mm(self) -> float:
-        """z of the tool tip point in the ram frame (mm)."""
+        """Z of the tool tip point in the ram frame (mm)."""
         return -self.housing.height_mm - self.tool.ttp_below_housing_mm
 
-    def with_z_axis(self, z_axis_mm: float) -> "Machine":
+    def with_z_axis(self, z_axis_mm: float) -> Machine:
         """The same machine with the Z axis at ``z_axis_mm`` (carriages move along the ram)."""
-        return self.model_copy(update={"supports": self.supports.model_copy(
-            update={"z_axis_mm": float(z_axis_mm)})})
+        return self.model_copy(
+            update={"supports": self.supports.model_copy(update={"z_axis_mm": float(z_axis_mm)})}
+        )
 
 
 class _FieldError(ValueError):

@@ -43,14 +43,15 @@ def _segment_lines(breaks_mm, step_mm: float, single_spans_mm=()) -> np.ndarray:
     return np.concatenate(lines)
 
 
-def _cross_lines(outer_half_mm: float, wall_mm: float, n_wall: int, n_span: int,
-                 extra_mm=()) -> np.ndarray:
+def _cross_lines(outer_half_mm: float, wall_mm: float, n_wall: int, n_span: int, extra_mm=()) -> np.ndarray:
     inner = outer_half_mm - wall_mm
-    lines = np.concatenate([
-        np.linspace(-outer_half_mm, -inner, n_wall + 1),
-        np.linspace(-inner, inner, n_span + 1)[1:-1],
-        np.linspace(inner, outer_half_mm, n_wall + 1),
-    ])
+    lines = np.concatenate(
+        [
+            np.linspace(-outer_half_mm, -inner, n_wall + 1),
+            np.linspace(-inner, inner, n_span + 1)[1:-1],
+            np.linspace(inner, outer_half_mm, n_wall + 1),
+        ]
+    )
     extra = [e for e in extra_mm if np.min(np.abs(lines - e)) > 1e-3]
     return np.unique(np.concatenate([lines, np.asarray(extra, dtype=float)]))
 
@@ -134,8 +135,9 @@ class RamMesh:
             xy = (offset_mm, sign * self.half_depth_mm)
         return np.column_stack([np.full_like(z, xy[0]), np.full_like(z, xy[1]), z])
 
-    def path_mean_rows(self, face: str, offset_mm: float, z_start_mm: float,
-                       z_end_mm: float) -> sp.csr_matrix:
+    def path_mean_rows(
+        self, face: str, offset_mm: float, z_start_mm: float, z_end_mm: float
+    ) -> sp.csr_matrix:
         """(1, n_nodes) row: mean of a nodal field along a straight path on an outer face.
 
         Trapezoid over the grid's z-lines inside the path: exact, as the trilinear field is linear
@@ -160,32 +162,47 @@ class RamMesh:
         hw, hd, t = self.half_width_mm, self.half_depth_mm, self.wall_mm
 
         def in_cavity(x):
-            return ((np.abs(x[0]) < hw - t + _TOL_MM) & (np.abs(x[1]) < hd - t + _TOL_MM)
-                    & (x[2] > -_TOL_MM) & (x[2] < self.length_mm - _TOL_MM))
+            return (
+                (np.abs(x[0]) < hw - t + _TOL_MM)
+                & (np.abs(x[1]) < hd - t + _TOL_MM)
+                & (x[2] > -_TOL_MM)
+                & (x[2] < self.length_mm - _TOL_MM)
+            )
+
         return self.facets_where(lambda x: ~in_cavity(x))
 
     def inner_facets(self) -> np.ndarray:
         """Boundary facets facing the air inside the box (inner walls, housing top in the cavity)."""
         hw, hd, t = self.half_width_mm, self.half_depth_mm, self.wall_mm
         return self.facets_where(
-            lambda x: ((np.abs(x[0]) < hw - t + _TOL_MM) & (np.abs(x[1]) < hd - t + _TOL_MM)
-                       & (x[2] > -_TOL_MM) & (x[2] < self.length_mm - _TOL_MM)))
+            lambda x: (
+                (np.abs(x[0]) < hw - t + _TOL_MM)
+                & (np.abs(x[1]) < hd - t + _TOL_MM)
+                & (x[2] > -_TOL_MM)
+                & (x[2] < self.length_mm - _TOL_MM)
+            )
+        )
 
-    def face_facets(self, face: str, z_lo_mm: float = -np.inf, z_hi_mm: float = np.inf,
-                    across_half_mm: float = np.inf) -> np.ndarray:
+    def face_facets(
+        self, face: str, z_lo_mm: float = -np.inf, z_hi_mm: float = np.inf, across_half_mm: float = np.inf
+    ) -> np.ndarray:
         """Facets on an outer ram/housing face (``+X`` ...) within a z range and a band across it."""
         return self.strip_facets(face, z_lo_mm, z_hi_mm, -across_half_mm, across_half_mm)
 
-    def end_facets(self, z_mm: float, half_x_mm: float = np.inf,
-                   half_y_mm: float = np.inf) -> np.ndarray:
+    def end_facets(self, z_mm: float, half_x_mm: float = np.inf, half_y_mm: float = np.inf) -> np.ndarray:
         """Boundary facets in the plane z = ``z_mm`` (e.g. the ram top or the housing bottom),
         optionally only the central |x| <= half_x_mm, |y| <= half_y_mm patch."""
-        return self.facets_where(lambda x: ((np.abs(x[2] - z_mm) < _TOL_MM)
-                                            & (np.abs(x[0]) <= half_x_mm + _TOL_MM)
-                                            & (np.abs(x[1]) <= half_y_mm + _TOL_MM)))
+        return self.facets_where(
+            lambda x: (
+                (np.abs(x[2] - z_mm) < _TOL_MM)
+                & (np.abs(x[0]) <= half_x_mm + _TOL_MM)
+                & (np.abs(x[1]) <= half_y_mm + _TOL_MM)
+            )
+        )
 
-    def strip_facets(self, face: str, z_lo_mm: float, z_hi_mm: float, across_lo_mm: float,
-                     across_hi_mm: float) -> np.ndarray:
+    def strip_facets(
+        self, face: str, z_lo_mm: float, z_hi_mm: float, across_lo_mm: float, across_hi_mm: float
+    ) -> np.ndarray:
         """Facets on an outer ram face within z_lo..z_hi and across_lo..across_hi (mm; across is
         y on the +-X faces, x on the +-Y faces): a carriage patch on a rail strip."""
         axis = 0 if face[1] == "X" else 1
@@ -193,9 +210,14 @@ class RamMesh:
         sign = 1.0 if face[0] == "+" else -1.0
         other = 1 - axis
         return self.facets_where(
-            lambda x: ((np.abs(x[axis] - sign * half) < _TOL_MM)
-                       & (x[2] >= z_lo_mm - _TOL_MM) & (x[2] <= z_hi_mm + _TOL_MM)
-                       & (x[other] >= across_lo_mm - _TOL_MM) & (x[other] <= across_hi_mm + _TOL_MM)))
+            lambda x: (
+                (np.abs(x[axis] - sign * half) < _TOL_MM)
+                & (x[2] >= z_lo_mm - _TOL_MM)
+                & (x[2] <= z_hi_mm + _TOL_MM)
+                & (x[other] >= across_lo_mm - _TOL_MM)
+                & (x[other] <= across_hi_mm + _TOL_MM)
+            )
+        )
 
     def film_surface_facets(self, housing_height_mm: float) -> dict[str, np.ndarray]:
         """Boundary facets by film surface: the four outer ram faces, the cavity, the top ring
@@ -204,11 +226,18 @@ class RamMesh:
         mid = self.mesh.p[:, self.mesh.facets[:, f]].mean(axis=1)
         x, y, z = mid
         hw, hd, t, L = self.half_width_mm, self.half_depth_mm, self.wall_mm, self.length_mm
-        cavity = ((np.abs(x) < hw - t + _TOL_MM) & (np.abs(y) < hd - t + _TOL_MM)
-                  & (z > -_TOL_MM) & (z < L - _TOL_MM))
+        cavity = (
+            (np.abs(x) < hw - t + _TOL_MM)
+            & (np.abs(y) < hd - t + _TOL_MM)
+            & (z > -_TOL_MM)
+            & (z < L - _TOL_MM)
+        )
         on_ram = (z > _TOL_MM) & (z < L - _TOL_MM) & ~cavity
-        out = {"cavity": f[cavity], "top": f[np.abs(z - L) < _TOL_MM],
-               "housing_bottom": f[np.abs(z + housing_height_mm) < _TOL_MM]}
+        out = {
+            "cavity": f[cavity],
+            "top": f[np.abs(z - L) < _TOL_MM],
+            "housing_bottom": f[np.abs(z + housing_height_mm) < _TOL_MM],
+        }
         taken = cavity | (np.abs(z - L) < _TOL_MM) | (np.abs(z + housing_height_mm) < _TOL_MM)
         for face, axis, half in (("+X", 0, hw), ("-X", 0, -hw), ("+Y", 1, hd), ("-Y", 1, -hd)):
             sel = on_ram & (np.abs(mid[axis] - half) < _TOL_MM)
@@ -218,12 +247,24 @@ class RamMesh:
         return out
 
 
-def build_mesh(*, half_width_mm: float, half_depth_mm: float, wall_mm: float, length_mm: float,
-               housing_half_width_mm: float | None = None,
-               housing_half_depth_mm: float | None = None, housing_height_mm: float = 0.0,
-               n_wall: int = 3, n_span: int = 12, dz_mm: float = 17.0,
-               z_breaks_mm=(), xy_breaks_mm=(), single_spans_mm=(), x_breaks_mm=(),
-               y_breaks_mm=()) -> RamMesh:
+def build_mesh(
+    *,
+    half_width_mm: float,
+    half_depth_mm: float,
+    wall_mm: float,
+    length_mm: float,
+    housing_half_width_mm: float | None = None,
+    housing_half_depth_mm: float | None = None,
+    housing_height_mm: float = 0.0,
+    n_wall: int = 3,
+    n_span: int = 12,
+    dz_mm: float = 17.0,
+    z_breaks_mm=(),
+    xy_breaks_mm=(),
+    single_spans_mm=(),
+    x_breaks_mm=(),
+    y_breaks_mm=(),
+) -> RamMesh:
     """Mesh a hollow box (z = 0..length) and optionally a solid block below it (z < 0).
 
     ``n_wall`` elements through the wall, ``n_span`` (even, so the face centre is a grid line)
@@ -249,8 +290,12 @@ def build_mesh(*, half_width_mm: float, half_depth_mm: float, wall_mm: float, le
     cz = 0.5 * (zs[:-1] + zs[1:])
     CY, CX, CZ = np.meshgrid(cy, cx, cz, indexing="ij")
     ax, ay = np.abs(CX), np.abs(CY)
-    in_ram = ((CZ > 0) & (ax < half_width_mm) & (ay < half_depth_mm)
-              & ~((ax < half_width_mm - wall_mm) & (ay < half_depth_mm - wall_mm)))
+    in_ram = (
+        (CZ > 0)
+        & (ax < half_width_mm)
+        & (ay < half_depth_mm)
+        & ~((ax < half_width_mm - wall_mm) & (ay < half_depth_mm - wall_mm))
+    )
     in_housing = np.zeros_like(in_ram)
     if has_housing:
         in_housing = (CZ < 0) & (ax < housing_half_width_mm) & (ay < housing_half_depth_mm)
@@ -273,10 +318,20 @@ def build_mesh(*, half_width_mm: float, half_depth_mm: float, wall_mm: float, le
     node_of[iy, ix, iz] = np.arange(len(old_nodes))
 
     zc = mesh.p[:, mesh.t].mean(axis=1)[2]
-    return RamMesh(mesh=mesh, xs_mm=xs, ys_mm=ys, zs_mm=zs, node_of=node_of, cell_kept=kept,
-                   steel_elements=np.nonzero(zc < 0)[0], cfrp_elements=np.nonzero(zc > 0)[0],
-                   half_width_mm=half_width_mm, half_depth_mm=half_depth_mm, wall_mm=wall_mm,
-                   length_mm=length_mm)
+    return RamMesh(
+        mesh=mesh,
+        xs_mm=xs,
+        ys_mm=ys,
+        zs_mm=zs,
+        node_of=node_of,
+        cell_kept=kept,
+        steel_elements=np.nonzero(zc < 0)[0],
+        cfrp_elements=np.nonzero(zc > 0)[0],
+        half_width_mm=half_width_mm,
+        half_depth_mm=half_depth_mm,
+        wall_mm=wall_mm,
+        length_mm=length_mm,
+    )
 
 
 def carriage_z_mm(machine: Machine, z_axis_mm: float | None = None) -> list[float]:
@@ -295,8 +350,9 @@ def station_ranges_mm(machine: Machine, z_axis_mm: float | None = None) -> list[
     return machine.supports.station_ranges_mm(z_axis_mm)
 
 
-def machine_mesh(machine: Machine, resolution: float | None = None,
-                 z_axis_mm: float | None = None) -> RamMesh:
+def machine_mesh(
+    machine: Machine, resolution: float | None = None, z_axis_mm: float | None = None
+) -> RamMesh:
     """The twin's mesh of ``machine``: element counts scaled by ``resolution``."""
     m = machine.mesh
     r = m.resolution if resolution is None else float(resolution)
@@ -329,14 +385,20 @@ def machine_mesh(machine: Machine, resolution: float | None = None,
     x_breaks = [v for v in x_breaks if abs(v) < hw]
     y_breaks = [v for v in y_breaks if abs(v) < hd]
     return build_mesh(
-        half_width_mm=hw, half_depth_mm=hd,
-        wall_mm=machine.ram.wall_mm, length_mm=machine.ram.length_mm,
+        half_width_mm=hw,
+        half_depth_mm=hd,
+        wall_mm=machine.ram.wall_mm,
+        length_mm=machine.ram.length_mm,
         housing_half_width_mm=machine.housing.width_mm / 2,
         housing_half_depth_mm=machine.housing.depth_mm / 2,
         housing_height_mm=machine.housing.height_mm,
         n_wall=max(1, int(round(m.wall_elements * r))),
         n_span=max(2, int(round(m.span_elements * r))),
-        dz_mm=m.dz_mm / r, z_breaks_mm=breaks,
+        dz_mm=m.dz_mm / r,
+        z_breaks_mm=breaks,
         # Off-centre sensor paths get their own grid line; support patches snap to the grid.
         xy_breaks_mm=[s_.offset_mm for s_ in machine.sensors + machine.candidate_sensors],
-        single_spans_mm=single, x_breaks_mm=x_breaks, y_breaks_mm=y_breaks)
+        single_spans_mm=single,
+        x_breaks_mm=x_breaks,
+        y_breaks_mm=y_breaks,
+    )

@@ -34,8 +34,8 @@ from functools import partial
 
 import numpy as np
 
-from fbgcomp.errors import InputError
 from fbgcomp.cluster import map_over_cluster
+from fbgcomp.errors import InputError
 from fbgcomp.optics import elongation_noise_um
 from fbgcomp.structure.loadcases import LOAD_CASES, load_case_responses
 from fbgcomp.structure.machine import Sensor
@@ -45,8 +45,17 @@ from fbgcomp.units import AXES
 FACES = ("+X", "-X", "+Y", "-Y")
 
 
-def candidate_grid(machine, faces=FACES, offsets_mm=(0.0,), length_mm=500.0, step_mm=250.0,
-                   z_min_mm=None, z_max_mm=None, template=None, prefix="C"):
+def candidate_grid(
+    machine,
+    faces=FACES,
+    offsets_mm=(0.0,),
+    length_mm=500.0,
+    step_mm=250.0,
+    z_min_mm=None,
+    z_max_mm=None,
+    template=None,
+    prefix="C",
+):
     """Candidate paths on a grid: on each face, at each offset across it, paths ``length_mm`` long
     starting every ``step_mm`` between ``z_min_mm`` (default 0) and ``z_max_mm`` (default: the
     ram's length). Fibre constants come from ``template`` (default: the machine's first sensor).
@@ -63,9 +72,19 @@ def candidate_grid(machine, faces=FACES, offsets_mm=(0.0,), length_mm=500.0, ste
             start = z0
             while start + length_mm <= z1 + 1e-9:
                 name = f"{prefix}{face}o{off:g}z{start:g}-{start + length_mm:g}"
-                out.append(Sensor(**{**template.model_dump(), "name": name, "face": face,
-                                     "offset_mm": float(off), "z_start_mm": start,
-                                     "z_end_mm": start + length_mm, "gauge_length_mm": None}))
+                out.append(
+                    Sensor(
+                        **{
+                            **template.model_dump(),
+                            "name": name,
+                            "face": face,
+                            "offset_mm": float(off),
+                            "z_start_mm": start,
+                            "z_end_mm": start + length_mm,
+                            "gauge_length_mm": None,
+                        }
+                    )
+                )
                 start += step_mm
     return out
 
@@ -76,9 +95,9 @@ class PlacementDesign:
 
     names: list
     case_names: list
-    elongation_um: np.ndarray      # (cases, N)
-    ttp_um: np.ndarray             # (cases, 3)
-    noise_um: np.ndarray           # (N,) elongation noise SD
+    elongation_um: np.ndarray  # (cases, N)
+    ttp_um: np.ndarray  # (cases, 3)
+    noise_um: np.ndarray  # (N,) elongation noise SD
     sensors: list = field(default_factory=list)
 
 
@@ -93,18 +112,25 @@ def sensor_pool(machine, candidates=()):
     return pool, machine.model_copy(update={"sensors": tuple(pool), "candidate_sensors": ()})
 
 
-def placement_design(machine, candidates=(), *, twin=None, resolution=None, z_axis_mm=None,
-                     wavelength_noise_nm=0.001) -> PlacementDesign:
+def placement_design(
+    machine, candidates=(), *, twin=None, resolution=None, z_axis_mm=None, wavelength_noise_nm=0.001
+) -> PlacementDesign:
     """One FE twin with every path (machine sensors + candidates) as a sensor; load-case responses."""
-    from fbgcomp.structure import Twin   # needs scikit-fem, the optional fe extra
+    from fbgcomp.structure import Twin  # needs scikit-fem, the optional fe extra
 
     pool, m = sensor_pool(machine, candidates)
     if twin is None:
         twin = Twin(m, resolution=resolution, z_axis_mm=z_axis_mm)
     cases = load_case_responses(twin)
     names, elong, ttp = cases["names"], cases["sensor_elongation_um"], cases["ttp_um"]
-    return PlacementDesign([s.name for s in pool], names, np.asarray(elong), np.asarray(ttp),
-                           elongation_noise_um(pool, wavelength_noise_nm), pool)
+    return PlacementDesign(
+        [s.name for s in pool],
+        names,
+        np.asarray(elong),
+        np.asarray(ttp),
+        elongation_noise_um(pool, wavelength_noise_nm),
+        pool,
+    )
 
 
 def predicted_error_um(elongation_um, ttp_um, noise_um):
@@ -114,7 +140,7 @@ def predicted_error_um(elongation_um, ttp_um, noise_um):
     N = np.diag(np.asarray(noise_um, dtype=float) ** 2)
     B = np.linalg.solve(E.T @ E + N, E.T @ T) if E.shape[1] else np.zeros((0, 3))
     resid = T - E @ B
-    noise = np.sqrt(np.sum(B ** 2 * np.asarray(noise_um, dtype=float)[:, None] ** 2, axis=0))
+    noise = np.sqrt(np.sum(B**2 * np.asarray(noise_um, dtype=float)[:, None] ** 2, axis=0))
     return np.max(np.abs(resid), axis=0) + 2 * noise
 
 
@@ -122,8 +148,9 @@ def objective_um(design: PlacementDesign, subset) -> float:
     """The search's objective: the largest per-axis predicted worst-case TTP error (µm) of the
     paths ``subset`` (indices into ``design.names``)."""
     idx = list(subset)
-    return float(np.max(predicted_error_um(design.elongation_um[:, idx], design.ttp_um,
-                                           design.noise_um[idx])))
+    return float(
+        np.max(predicted_error_um(design.elongation_um[:, idx], design.ttp_um, design.noise_um[idx]))
+    )
 
 
 def _score(design, subset):
@@ -152,17 +179,27 @@ class PlacementResult:
     def format(self) -> str:
         """The result for the console: the chosen paths, then a table of the predicted worst-case
         TTP error of the chosen and the default layout, then the improvement."""
-        lines = [f"{len(self.chosen)} paths chosen from {self.n_candidates} candidates "
-                 "(greedy + exchange on the predicted worst-case TTP error over the FE load design "
-                 "with interrogator noise):"]
+        lines = [
+            f"{len(self.chosen)} paths chosen from {self.n_candidates} candidates "
+            "(greedy + exchange on the predicted worst-case TTP error over the FE load design "
+            "with interrogator noise):"
+        ]
         lines += [f"  {n}" for n in self.chosen]
         lines.append("predicted worst-case TTP error:")
         rows = [["chosen", *self.per_axis_um, self.objective_um]]
         if self.default_objective_um is not None:
-            rows.append([f"default layout ({', '.join(self.default)})", *self.default_per_axis_um,
-                         self.default_objective_um])
-        lines.append(format_table([text("layout")] + [Column(a, "µm") for a in AXES]
-                                  + [Column("max", "µm")], rows, indent="  "))
+            rows.append(
+                [
+                    f"default layout ({', '.join(self.default)})",
+                    *self.default_per_axis_um,
+                    self.default_objective_um,
+                ]
+            )
+        lines.append(
+            format_table(
+                [text("layout")] + [Column(a, "µm") for a in AXES] + [Column("max", "µm")], rows, indent="  "
+            )
+        )
         if self.default_objective_um is not None and self.default_objective_um > 0:
             lines.append(f"improvement: {100 * (1 - self.objective_um / self.default_objective_um):.1f} %")
         return "\n".join(lines)
@@ -187,13 +224,19 @@ def choose(design: PlacementDesign, k: int, *, default=None, dask=None, max_pass
         cur, cur_val = list(start), score(list(start))
         for _ in range(max_passes):
             swaps = [(i, j) for i in range(len(cur)) for j in range(n) if j not in cur]
-            subsets = [cur[:i] + [j] + cur[i + 1:] for i, j in swaps]
+            subsets = [cur[:i] + [j] + cur[i + 1 :] for i, j in swaps]
             vals = map_over_cluster(score, subsets, dask=dask) if subsets else []
             if not len(vals) or min(vals) >= cur_val - 1e-12:
                 break
             b = int(np.argmin(vals))
-            history.append({"step": "swap", "out": design.names[cur[swaps[b][0]]],
-                            "in": design.names[swaps[b][1]], "objective_um": float(vals[b])})
+            history.append(
+                {
+                    "step": "swap",
+                    "out": design.names[cur[swaps[b][0]]],
+                    "in": design.names[swaps[b][1]],
+                    "objective_um": float(vals[b]),
+                }
+            )
             cur, cur_val = subsets[b], float(vals[b])
         return cur, cur_val
 
@@ -208,28 +251,45 @@ def choose(design: PlacementDesign, k: int, *, default=None, dask=None, max_pass
         cur, val = exchange(s)
         if val < best_val:
             best_set, best_val = cur, val
-    per_axis = predicted_error_um(design.elongation_um[:, best_set], design.ttp_um,
-                                  design.noise_um[best_set])
+    per_axis = predicted_error_um(design.elongation_um[:, best_set], design.ttp_um, design.noise_um[best_set])
     d_val = d_axes = None
     if default_idx:
-        d_axes = predicted_error_um(design.elongation_um[:, default_idx], design.ttp_um,
-                                    design.noise_um[default_idx]).tolist()
+        d_axes = predicted_error_um(
+            design.elongation_um[:, default_idx], design.ttp_um, design.noise_um[default_idx]
+        ).tolist()
         d_val = float(max(d_axes))
-    return PlacementResult([design.names[i] for i in best_set], float(best_val), per_axis.tolist(),
-                           list(default or []), d_val, d_axes, history, n)
+    return PlacementResult(
+        [design.names[i] for i in best_set],
+        float(best_val),
+        per_axis.tolist(),
+        list(default or []),
+        d_val,
+        d_axes,
+        history,
+        n,
+    )
 
 
 def parse_grid(spec: str) -> dict:
     """``faces=+X,-X;offsets=-80,0,80;length=400;step=200;zmin=0;zmax=1200`` -> grid arguments."""
-    keys = {"faces": "faces", "offsets": "offsets_mm", "length": "length_mm", "step": "step_mm",
-            "zmin": "z_min_mm", "zmax": "z_max_mm"}
+    keys = {
+        "faces": "faces",
+        "offsets": "offsets_mm",
+        "length": "length_mm",
+        "step": "step_mm",
+        "zmin": "z_min_mm",
+        "zmax": "z_max_mm",
+    }
     out = {}
     for item in filter(None, (p.strip() for p in spec.split(";"))):
         key, sep, value = item.partition("=")
         key = key.strip()
         if not sep or key not in keys:
-            raise InputError(f"--grid expects {'; '.join(k + '=...' for k in keys)}, got {item!r}",
-                             file="<command line>", column="option --grid")
+            raise InputError(
+                f"--grid expects {'; '.join(k + '=...' for k in keys)}, got {item!r}",
+                file="<command line>",
+                column="option --grid",
+            )
         try:
             if key == "faces":
                 faces = tuple(f.strip() for f in value.split(","))
@@ -244,23 +304,51 @@ def parse_grid(spec: str) -> dict:
         except ValueError as exc:
             raise InputError(f"--grid {key}: {exc}", file="<command line>", column="option --grid") from None
     if out.get("length_mm", 1.0) <= 0 or out.get("step_mm", 1.0) <= 0:
-        raise InputError("--grid length and step must be positive", file="<command line>",
-                         column="option --grid")
+        raise InputError(
+            "--grid length and step must be positive", file="<command line>", column="option --grid"
+        )
     return out
 
 
-def place(machine, k: int, *, grid=None, twin=None, resolution=None, z_axis_mm=None, dask=None,
-          wavelength_noise_nm=0.001) -> PlacementResult:
+def place(
+    machine,
+    k: int,
+    *,
+    grid=None,
+    twin=None,
+    resolution=None,
+    z_axis_mm=None,
+    dask=None,
+    wavelength_noise_nm=0.001,
+) -> PlacementResult:
     """Choose ``k`` paths among the machine's sensors, its candidates and an optional grid
     (a dict of :func:`candidate_grid` arguments); compare with the machine's own layout."""
     cands = candidate_grid(machine, **grid) if grid else []
-    design = placement_design(machine, cands, twin=twin, resolution=resolution, z_axis_mm=z_axis_mm,
-                              wavelength_noise_nm=wavelength_noise_nm)
+    design = placement_design(
+        machine,
+        cands,
+        twin=twin,
+        resolution=resolution,
+        z_axis_mm=z_axis_mm,
+        wavelength_noise_nm=wavelength_noise_nm,
+    )
     if k > len(design.names):
-        raise InputError(f"--k {k} exceeds the {len(design.names)} candidate paths", file="<command line>",
-                         column="option --k")
+        raise InputError(
+            f"--k {k} exceeds the {len(design.names)} candidate paths",
+            file="<command line>",
+            column="option --k",
+        )
     return choose(design, k, default=[s.name for s in machine.sensors], dask=dask)
 
 
-__all__ = ["candidate_grid", "placement_design", "predicted_error_um", "objective_um", "choose",
-           "place", "PlacementDesign", "PlacementResult", "LOAD_CASES"]
+__all__ = [
+    "LOAD_CASES",
+    "PlacementDesign",
+    "PlacementResult",
+    "candidate_grid",
+    "choose",
+    "objective_um",
+    "place",
+    "placement_design",
+    "predicted_error_um",
+]

@@ -44,7 +44,13 @@ from fbgcomp import optics
 from fbgcomp.errors import InputError
 from fbgcomp.optics import elongation_noise_um
 from fbgcomp.structure.loadcases import LOAD_CASES, load_case_responses
-from fbgcomp.structure.placement import PlacementDesign, candidate_grid, choose, predicted_error_um, sensor_pool
+from fbgcomp.structure.placement import (
+    PlacementDesign,
+    candidate_grid,
+    choose,
+    predicted_error_um,
+    sensor_pool,
+)
 from fbgcomp.tables import Column, format_number, format_table, text
 from fbgcomp.units import AXES
 
@@ -54,9 +60,11 @@ def false_elongation_per_K_um(sensors) -> np.ndarray:
     its compensation uses (paper eq. 2-4), per sensor (S,)."""
     lam0 = np.array([s.lambda0_nm for s in sensors], dtype=float)
     gauge = np.array([s.gauge_length for s in sensors], dtype=float)
-    consts = dict(photoelastic=np.array([s.photoelastic for s in sensors], dtype=float),
-                  thermo_optic_per_K=np.array([s.thermo_optic_per_K for s in sensors], dtype=float),
-                  fibre_cte_per_K=np.array([s.fibre_cte_per_K for s in sensors], dtype=float))
+    consts = dict(
+        photoelastic=np.array([s.photoelastic for s in sensors], dtype=float),
+        thermo_optic_per_K=np.array([s.thermo_optic_per_K for s in sensors], dtype=float),
+        fibre_cte_per_K=np.array([s.fibre_cte_per_K for s in sensors], dtype=float),
+    )
     warm = optics.wavelength_nm(np.zeros_like(lam0), lam0, gauge, 1.0, **consts)
     return optics.elongation_um(warm, lam0, gauge, 0.0, **consts)
 
@@ -67,8 +75,10 @@ def reference_temperature_noise_K(sensors, wavelength_noise_nm=0.001) -> np.ndar
     declared ``reference_lambda0_nm`` is given one at its own wavelength."""
     lam = np.array([s.reference_lambda0_nm or s.lambda0_nm for s in sensors], dtype=float)
     sens = optics.temperature_sensitivity_nm_per_K(
-        lam, thermo_optic_per_K=np.array([s.thermo_optic_per_K for s in sensors], dtype=float),
-        fibre_cte_per_K=np.array([s.fibre_cte_per_K for s in sensors], dtype=float))
+        lam,
+        thermo_optic_per_K=np.array([s.thermo_optic_per_K for s in sensors], dtype=float),
+        fibre_cte_per_K=np.array([s.fibre_cte_per_K for s in sensors], dtype=float),
+    )
     return wavelength_noise_nm / sens
 
 
@@ -99,7 +109,7 @@ def estimator(elongation_um, ttp_um, noise_um) -> np.ndarray:
     ``B = (E'E + N)^-1 E'T`` with N the elongation noise variances."""
     E = np.asarray(elongation_um, dtype=float)
     noise = np.asarray(noise_um, dtype=float)
-    return np.linalg.solve(E.T @ E + np.diag(noise ** 2), E.T @ np.asarray(ttp_um, dtype=float))
+    return np.linalg.solve(E.T @ E + np.diag(noise**2), E.T @ np.asarray(ttp_um, dtype=float))
 
 
 @dataclass
@@ -107,25 +117,36 @@ class PlanDesign:
     """The placement design plus the temperatures the thermal cases put on gauges and probes."""
 
     design: PlacementDesign
-    sensor_temperature_C: np.ndarray      # (cases, N) mean gauge temperature rise
-    probe_C: np.ndarray                   # (cases, P) probe rises (ambient 0)
+    sensor_temperature_C: np.ndarray  # (cases, N) mean gauge temperature rise
+    probe_C: np.ndarray  # (cases, P) probe rises (ambient 0)
     probe_names: list
     wavelength_noise_nm: float
 
 
-def plan_design(machine, candidates=(), *, twin=None, resolution=None, z_axis_mm=None,
-                wavelength_noise_nm=0.001) -> PlanDesign:
+def plan_design(
+    machine, candidates=(), *, twin=None, resolution=None, z_axis_mm=None, wavelength_noise_nm=0.001
+) -> PlanDesign:
     """One FE twin with the machine's sensors (first, in order) and the candidate paths."""
-    from fbgcomp.structure import Twin   # needs scikit-fem, the optional fe extra
+    from fbgcomp.structure import Twin  # needs scikit-fem, the optional fe extra
 
     pool, m = sensor_pool(machine, candidates)
     twin = twin or Twin(m, resolution=resolution, z_axis_mm=z_axis_mm)
     cases = load_case_responses(twin)
-    design = PlacementDesign([s.name for s in pool], cases["names"],
-                             np.asarray(cases["sensor_elongation_um"]), np.asarray(cases["ttp_um"]),
-                             elongation_noise_um(pool, wavelength_noise_nm), pool)
-    return PlanDesign(design, np.asarray(cases["sensor_temperature_C"]), np.asarray(cases["probe_C"]),
-                      list(twin.probe_names), wavelength_noise_nm)
+    design = PlacementDesign(
+        [s.name for s in pool],
+        cases["names"],
+        np.asarray(cases["sensor_elongation_um"]),
+        np.asarray(cases["ttp_um"]),
+        elongation_noise_um(pool, wavelength_noise_nm),
+        pool,
+    )
+    return PlanDesign(
+        design,
+        np.asarray(cases["sensor_temperature_C"]),
+        np.asarray(cases["probe_C"]),
+        list(twin.probe_names),
+        wavelength_noise_nm,
+    )
 
 
 def layout_error_um(pdes: PlanDesign, subset, *, noise_scale=1.0, references=None) -> dict:
@@ -144,22 +165,30 @@ def layout_error_um(pdes: PlanDesign, subset, *, noise_scale=1.0, references=Non
     noise = d.noise_um[idx] * noise_scale
     B = estimator(E, T, noise)
     unexplained = np.max(np.abs(T - E @ B), axis=0)
-    noise_part = 2 * np.sqrt(np.sum(B ** 2 * noise[:, None] ** 2, axis=0))
+    noise_part = 2 * np.sqrt(np.sum(B**2 * noise[:, None] ** 2, axis=0))
     if references is None:
         references = np.array([s.reference_lambda0_nm is not None for s in sensors])
     references = np.asarray(references, dtype=bool)
     e_K = false_elongation_per_K_um(sensors)
-    mismatch = probe_mismatch_K(pdes.sensor_temperature_C[:, idx], pdes.probe_C, sensors, pdes.probe_names,
-                                references=references)
+    mismatch = probe_mismatch_K(
+        pdes.sensor_temperature_C[:, idx], pdes.probe_C, sensors, pdes.probe_names, references=references
+    )
     probe_part = np.max(np.abs((mismatch * e_K) @ B), axis=0)
-    ref_sd_um = np.where(references, e_K * reference_temperature_noise_K(
-        sensors, pdes.wavelength_noise_nm * noise_scale), 0.0)
-    ref_part = 2 * np.sqrt(np.sum(B ** 2 * ref_sd_um[:, None] ** 2, axis=0))
+    ref_sd_um = np.where(
+        references, e_K * reference_temperature_noise_K(sensors, pdes.wavelength_noise_nm * noise_scale), 0.0
+    )
+    ref_part = 2 * np.sqrt(np.sum(B**2 * ref_sd_um[:, None] ** 2, axis=0))
     loads_noise = unexplained + noise_part
     thermal = probe_part + ref_part
-    return {"unexplained_um": unexplained, "noise_um": noise_part, "loads_noise_um": loads_noise,
-            "probe_mismatch_um": probe_part, "reference_noise_um": ref_part, "thermal_um": thermal,
-            "total_um": loads_noise + thermal}
+    return {
+        "unexplained_um": unexplained,
+        "noise_um": noise_part,
+        "loads_noise_um": loads_noise,
+        "probe_mismatch_um": probe_part,
+        "reference_noise_um": ref_part,
+        "thermal_um": thermal,
+        "total_um": loads_noise + thermal,
+    }
 
 
 def noise_scan(pdes: PlanDesign, subset, axis: int, *, floor_pm=1e-3, n=61):
@@ -197,11 +226,11 @@ class AxisPlan:
     thermal_um: float
     total_um: float
     meets: bool
-    meets_loads_noise: bool                # the placement figure alone (no compensation error)
-    margin_um: float                       # target - total: > 0 spare, < 0 missed by -margin
-    noise_needed_pm: float | None          # largest scanned noise that meets the target
-    best_noise_total_um: float | None      # the lowest total over the noise scan ...
-    best_noise_pm: float | None            # ... and its noise
+    meets_loads_noise: bool  # the placement figure alone (no compensation error)
+    margin_um: float  # target - total: > 0 spare, < 0 missed by -margin
+    noise_needed_pm: float | None  # largest scanned noise that meets the target
+    best_noise_total_um: float | None  # the lowest total over the noise scan ...
+    best_noise_pm: float | None  # ... and its noise
     with_references_um: float
 
 
@@ -219,11 +248,13 @@ class Plan:
     reference_temperature_noise_K: dict
     axes: list
     larger_layouts: list = field(default_factory=list)
-    covers: str = ("TTP forces of 4000 N along X, Y, Z and steady temperature fields (5 K uniform, "
-                   "1 K gradients across X, Y and along Z, 5 K housing) on the machine description's "
-                   "FE twin; the interrogator's noise; the gratings' compensation error in those "
-                   "fields. Not transients (probe lag), not the twin's model error, not the "
-                   "reference instrument.")
+    covers: str = (
+        "TTP forces of 4000 N along X, Y, Z and steady temperature fields (5 K uniform, "
+        "1 K gradients across X, Y and along Z, 5 K housing) on the machine description's "
+        "FE twin; the interrogator's noise; the gratings' compensation error in those "
+        "fields. Not transients (probe lag), not the twin's model error, not the "
+        "reference instrument."
+    )
 
     @property
     def meets(self) -> bool:
@@ -239,61 +270,109 @@ class Plan:
     def format(self) -> str:
         """The plan for the console: per axis the parts of the predicted error against the
         target, what the thermal part covers, the verdict and what would close a gap."""
-        lines = [f"plan for {self.machine}: {len(self.sensors)} gratings ({', '.join(self.sensors)}), "
-                 f"interrogator noise {self.wavelength_noise_pm:g} pm, target {self.target_um:g} µm",
-                 "predicted worst-case TTP error over the FE load design (eq. 11 estimator, as "
-                 "fbgcomp place):"]
+        lines = [
+            f"plan for {self.machine}: {len(self.sensors)} gratings ({', '.join(self.sensors)}), "
+            f"interrogator noise {self.wavelength_noise_pm:g} pm, target {self.target_um:g} µm",
+            "predicted worst-case TTP error over the FE load design (eq. 11 estimator, as fbgcomp place):",
+        ]
         rows = []
         for a in self.axes:
-            verdict = (f"meets ({format_number(a.margin_um, 2)} µm spare)" if a.meets
-                       else f"MISSES by {format_number(-a.margin_um, 2)} µm"
-                       + (" (loads+noise alone would meet)" if a.meets_loads_noise else ""))
-            rows.append([a.axis, a.loads_noise_um, a.unexplained_um, a.noise_um, a.thermal_um,
-                         a.total_um, a.target_um, verdict])
-        lines.append(format_table(
-            [text("axis")] + [Column(name, "µm", 2) for name in
-                              ("loads+noise", "unexplained", "noise 2σ", "thermal", "total", "target")]
-            + [text("verdict")], rows))
+            verdict = (
+                f"meets ({format_number(a.margin_um, 2)} µm spare)"
+                if a.meets
+                else f"MISSES by {format_number(-a.margin_um, 2)} µm"
+                + (" (loads+noise alone would meet)" if a.meets_loads_noise else "")
+            )
+            rows.append(
+                [
+                    a.axis,
+                    a.loads_noise_um,
+                    a.unexplained_um,
+                    a.noise_um,
+                    a.thermal_um,
+                    a.total_um,
+                    a.target_um,
+                    verdict,
+                ]
+            )
+        lines.append(
+            format_table(
+                [text("axis")]
+                + [
+                    Column(name, "µm", 2)
+                    for name in ("loads+noise", "unexplained", "noise 2σ", "thermal", "total", "target")
+                ]
+                + [text("verdict")],
+                rows,
+            )
+        )
         comp = ", ".join(f"{s}: {how}" for s, how in self.probes_compensating.items())
-        lines.append("thermal = what the same eq. 11 map makes of the gratings' compensation error in "
-                     f"the design's temperature fields ({comp}; the paper's recipe: the default "
-                     "physical model reads the gratings' thermal signal instead, docs/accuracy.md); "
-                     "false elongation per K of gauge-to-probe mismatch: "
-                     + ", ".join(f"{s} {v:.2f}" for s, v in self.false_elongation_per_K_um.items())
-                     + " µm/K")
+        lines.append(
+            "thermal = what the same eq. 11 map makes of the gratings' compensation error in "
+            f"the design's temperature fields ({comp}; the paper's recipe: the default "
+            "physical model reads the gratings' thermal signal instead, docs/accuracy.md); "
+            "false elongation per K of gauge-to-probe mismatch: "
+            + ", ".join(f"{s} {v:.2f}" for s, v in self.false_elongation_per_K_um.items())
+            + " µm/K"
+        )
         lines.append(f"covers: {self.covers}")
         missed = [a for a in self.axes if not a.meets]
         if not missed:
-            lines.append(f"verdict: the layout meets {self.target_um:g} µm on "
-                         f"{', '.join(a.axis for a in self.axes)} in this design.")
+            lines.append(
+                f"verdict: the layout meets {self.target_um:g} µm on "
+                f"{', '.join(a.axis for a in self.axes)} in this design."
+            )
             return "\n".join(lines)
-        lines.append(f"verdict: misses {self.target_um:g} µm on {', '.join(a.axis for a in missed)}. "
-                     "What would help (computed on the same design):")
+        lines.append(
+            f"verdict: misses {self.target_um:g} µm on {', '.join(a.axis for a in missed)}. "
+            "What would help (computed on the same design):"
+        )
         for a in missed:
             if a.noise_needed_pm is None:
-                lines.append(f"  {a.axis}: no interrogator noise from 0.001 pm to {self.wavelength_noise_pm:g} pm "
-                             f"meets it (best {a.best_noise_total_um:.2f} µm at {a.best_noise_pm:.3g} pm)")
+                lines.append(
+                    f"  {a.axis}: no interrogator noise from 0.001 pm to {self.wavelength_noise_pm:g} pm "
+                    f"meets it (best {a.best_noise_total_um:.2f} µm at {a.best_noise_pm:.3g} pm)"
+                )
             else:
-                lines.append(f"  {a.axis}: interrogator noise ≤ {a.noise_needed_pm:.3g} pm "
-                             f"(now {self.wavelength_noise_pm:g} pm)")
+                lines.append(
+                    f"  {a.axis}: interrogator noise ≤ {a.noise_needed_pm:.3g} pm "
+                    f"(now {self.wavelength_noise_pm:g} pm)"
+                )
             if a.with_references_um < a.total_um - 1e-9:
-                lines.append(f"  {a.axis}: a strain-free reference grating beside every sensor: "
-                             f"{a.with_references_um:.2f} µm (thermal {a.thermal_um:.2f} µm → "
-                             "the references' noise only)")
+                lines.append(
+                    f"  {a.axis}: a strain-free reference grating beside every sensor: "
+                    f"{a.with_references_um:.2f} µm (thermal {a.thermal_um:.2f} µm → "
+                    "the references' noise only)"
+                )
         if self.larger_layouts:
-            lines.append("  layouts chosen by `fbgcomp place` (on the loads+noise figure; "
-                         + ("the default grid" if self.larger_layouts[0]["grid"] else "the machine's candidate paths")
-                         + "), total µm:")
+            lines.append(
+                "  layouts chosen by `fbgcomp place` (on the loads+noise figure; "
+                + ("the default grid" if self.larger_layouts[0]["grid"] else "the machine's candidate paths")
+                + "), total µm:"
+            )
             for lay in self.larger_layouts:
-                per = ", ".join(f"{a.axis} {format_number(lay['total_um'][AXES.index(a.axis)], 2)}"
-                                + (" meets" if lay["total_um"][AXES.index(a.axis)] <= a.target_um else "")
-                                for a in self.axes)
+                per = ", ".join(
+                    f"{a.axis} {format_number(lay['total_um'][AXES.index(a.axis)], 2)}"
+                    + (" meets" if lay["total_um"][AXES.index(a.axis)] <= a.target_um else "")
+                    for a in self.axes
+                )
                 lines.append(f"    --k {lay['k']}: {per} [{', '.join(lay['paths'])}]")
         return "\n".join(lines)
 
 
-def plan(machine, target_um: float, *, axes=AXES, wavelength_noise_nm=0.001, grid=None,
-         extra_sensors=2, twin=None, resolution=None, z_axis_mm=None, machine_name="the built-in ram"):
+def plan(
+    machine,
+    target_um: float,
+    *,
+    axes=AXES,
+    wavelength_noise_nm=0.001,
+    grid=None,
+    extra_sensors=2,
+    twin=None,
+    resolution=None,
+    z_axis_mm=None,
+    machine_name="the built-in ram",
+):
     """Predicted TTP accuracy of the machine description's layout against ``target_um`` (µm).
 
     The layout's figures come from a twin of the machine as described (as ``fbgcomp resolution``
@@ -302,8 +381,13 @@ def plan(machine, target_um: float, *, axes=AXES, wavelength_noise_nm=0.001, gri
     of K = n .. n + extra_sensors paths are chosen by :func:`fbgcomp.structure.placement.choose` (0: none)
     on a twin meshed with the candidates too, as ``fbgcomp place`` does.
     """
-    pdes = plan_design(machine, twin=twin, resolution=resolution, z_axis_mm=z_axis_mm,
-                       wavelength_noise_nm=wavelength_noise_nm)
+    pdes = plan_design(
+        machine,
+        twin=twin,
+        resolution=resolution,
+        z_axis_mm=z_axis_mm,
+        wavelength_noise_nm=wavelength_noise_nm,
+    )
     n = len(machine.sensors)
     own = list(range(n))
     parts = layout_error_um(pdes, own)
@@ -315,40 +399,84 @@ def plan(machine, target_um: float, *, axes=AXES, wavelength_noise_nm=0.001, gri
         needed = best = best_pm = None
         if total > target_um:
             needed, best, best_pm = noise_needed_pm(pdes, own, j, target_um)
-        rows.append(AxisPlan(
-            axis=a, target_um=float(target_um),
-            **{k: float(parts[k][j]) for k in ("unexplained_um", "noise_um", "loads_noise_um",
-                                                "probe_mismatch_um", "reference_noise_um", "thermal_um")},
-            total_um=total, meets=total <= target_um,
-            meets_loads_noise=float(parts["loads_noise_um"][j]) <= target_um, margin_um=float(target_um - total),
-            noise_needed_pm=needed, best_noise_total_um=best, best_noise_pm=best_pm,
-            with_references_um=float(with_refs[j])))
+        rows.append(
+            AxisPlan(
+                axis=a,
+                target_um=float(target_um),
+                **{
+                    k: float(parts[k][j])
+                    for k in (
+                        "unexplained_um",
+                        "noise_um",
+                        "loads_noise_um",
+                        "probe_mismatch_um",
+                        "reference_noise_um",
+                        "thermal_um",
+                    )
+                },
+                total_um=total,
+                meets=total <= target_um,
+                meets_loads_noise=float(parts["loads_noise_um"][j]) <= target_um,
+                margin_um=float(target_um - total),
+                noise_needed_pm=needed,
+                best_noise_total_um=best,
+                best_noise_pm=best_pm,
+                with_references_um=float(with_refs[j]),
+            )
+        )
     larger = []
     cands = candidate_grid(machine, **grid) if grid else []
     if extra_sensors > 0 and (cands or machine.candidate_sensors):
         # A twin meshed with the candidate paths too, as `fbgcomp place` builds it (the mesh
         # follows the paths' ends, so its figures differ slightly from the layout's own twin).
-        pool = plan_design(machine, cands, resolution=resolution, z_axis_mm=z_axis_mm,
-                           wavelength_noise_nm=wavelength_noise_nm)
+        pool = plan_design(
+            machine,
+            cands,
+            resolution=resolution,
+            z_axis_mm=z_axis_mm,
+            wavelength_noise_nm=wavelength_noise_nm,
+        )
         default = [s.name for s in machine.sensors]
         for k in range(n, min(n + extra_sensors, len(pool.design.names)) + 1):
             res = choose(pool.design, k, default=default)
             idx = [pool.design.names.index(p) for p in res.chosen]
             total = layout_error_um(pool, idx)["total_um"]
-            larger.append({"k": k, "paths": res.chosen, "grid": bool(grid),
-                           "loads_noise_um": list(res.per_axis_um), "total_um": total.tolist()})
+            larger.append(
+                {
+                    "k": k,
+                    "paths": res.chosen,
+                    "grid": bool(grid),
+                    "loads_noise_um": list(res.per_axis_um),
+                    "total_um": total.tolist(),
+                }
+            )
     sensors = list(machine.sensors)
     return Plan(
-        machine=machine_name, sensors=[s.name for s in sensors],
-        probes_compensating={s.name: ("reference grating" if s.reference_lambda0_nm is not None
-                                      else (s.temperature_probe or "uncompensated")) for s in sensors},
-        wavelength_noise_pm=wavelength_noise_nm * 1e3, target_um=float(target_um),
+        machine=machine_name,
+        sensors=[s.name for s in sensors],
+        probes_compensating={
+            s.name: (
+                "reference grating"
+                if s.reference_lambda0_nm is not None
+                else (s.temperature_probe or "uncompensated")
+            )
+            for s in sensors
+        },
+        wavelength_noise_pm=wavelength_noise_nm * 1e3,
+        target_um=float(target_um),
         load_cases=[{"name": nm, "magnitude": mg, "unit": u} for nm, mg, u in LOAD_CASES],
-        false_elongation_per_K_um=dict(zip([s.name for s in sensors],
-                                           false_elongation_per_K_um(sensors).round(6).tolist())),
-        reference_temperature_noise_K=dict(zip([s.name for s in sensors], reference_temperature_noise_K(
-            sensors, wavelength_noise_nm).round(6).tolist())),
-        axes=rows, larger_layouts=larger)
+        false_elongation_per_K_um=dict(
+            zip([s.name for s in sensors], false_elongation_per_K_um(sensors).round(6).tolist())
+        ),
+        reference_temperature_noise_K=dict(
+            zip(
+                [s.name for s in sensors],
+                reference_temperature_noise_K(sensors, wavelength_noise_nm).round(6).tolist(),
+            )
+        ),
+        axes=rows,
+        larger_layouts=larger,
+    )
 
 
 def parse_axes(spec: str) -> tuple:
@@ -356,14 +484,30 @@ def parse_axes(spec: str) -> tuple:
     axes = tuple(a.strip() for a in spec.split(",") if a.strip())
     bad = [a for a in axes if a not in AXES]
     if not axes or bad:
-        raise InputError(f"--axes expects a comma-separated subset of {','.join(AXES)}, got "
-                         f"{(bad[0] if bad else spec)!r}", file="<command line>", column="option --axes")
+        raise InputError(
+            f"--axes expects a comma-separated subset of {','.join(AXES)}, got {(bad[0] if bad else spec)!r}",
+            file="<command line>",
+            column="option --axes",
+        )
     if len(set(axes)) != len(axes):
-        raise InputError(f"--axes names an axis twice: {spec!r}", file="<command line>",
-                         column="option --axes")
+        raise InputError(
+            f"--axes names an axis twice: {spec!r}", file="<command line>", column="option --axes"
+        )
     return axes
 
 
-__all__ = ["plan", "Plan", "AxisPlan", "plan_design", "layout_error_um", "noise_scan", "noise_needed_pm",
-           "false_elongation_per_K_um", "reference_temperature_noise_K", "probe_mismatch_K",
-           "estimator", "parse_axes", "predicted_error_um"]
+__all__ = [
+    "AxisPlan",
+    "Plan",
+    "estimator",
+    "false_elongation_per_K_um",
+    "layout_error_um",
+    "noise_needed_pm",
+    "noise_scan",
+    "parse_axes",
+    "plan",
+    "plan_design",
+    "predicted_error_um",
+    "probe_mismatch_K",
+    "reference_temperature_noise_K",
+]

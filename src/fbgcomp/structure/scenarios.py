@@ -33,8 +33,16 @@ def generic_heat_machine(machine: Machine, flux_W_per_m2: float = 60.0) -> Machi
     sources = [h.model_dump() for h in machine.thermal.sources]
     for face in FACES:
         tag = ("p" if face[0] == "+" else "m") + face[1]
-        sources.append({"name": f"generic_radiant_{tag}", "kind": "radiant", "face": face,
-                        "z_mm": None, "absorptivity": 1.0, "nominal_W_per_m2": flux_W_per_m2})
+        sources.append(
+            {
+                "name": f"generic_radiant_{tag}",
+                "kind": "radiant",
+                "face": face,
+                "z_mm": None,
+                "absorptivity": 1.0,
+                "nominal_W_per_m2": flux_W_per_m2,
+            }
+        )
     d["thermal"]["heat_sources"] = sources
     return parse_machine(d)
 
@@ -48,9 +56,9 @@ class ScenarioDesign:
     ambient_day_amplitude_K: float = 1.5
     ambient_walk_K: float = 0.5
     duty_fraction_levels: tuple[float, ...] = (0.0, 0.33, 0.5, 0.75, 1.0, 1.25)
-    duty_steps: tuple[int, int] = (20, 240)            # length of a duty level, in steps
+    duty_steps: tuple[int, int] = (20, 240)  # length of a duty level, in steps
     radiant_peak_W_per_m2: float = 120.0
-    radiant_probability: float = 0.5                   # chance that a face sees a pulse at all
+    radiant_probability: float = 0.5  # chance that a face sees a pulse at all
     radiant_width_steps: tuple[int, int] = (60, 600)
 
 
@@ -60,7 +68,7 @@ def _day_cycle(rng, t, design):
     x = amp * np.sin(2 * np.pi * t / period + rng.uniform(0, 2 * np.pi))
     walk = np.cumsum(rng.normal(0.0, 1.0, t.size))
     k = np.exp(-np.arange(150) / 30.0)
-    walk = np.convolve(walk, k / k.sum())[:t.size]
+    walk = np.convolve(walk, k / k.sum())[: t.size]
     walk = design.ambient_walk_K * (walk - walk[0]) / max(np.std(walk), 1e-9)
     x = x + walk
     return x - x[0]
@@ -72,7 +80,7 @@ def _duty(rng, n, nominal, design):
     lo, hi = design.duty_steps
     while i < n:
         k = int(rng.integers(lo, hi))
-        out[i:i + k] = nominal * rng.choice(design.duty_fraction_levels)
+        out[i : i + k] = nominal * rng.choice(design.duty_fraction_levels)
         i += k
     return out
 
@@ -88,8 +96,7 @@ def _pulses(rng, n, design):
     return out
 
 
-def thermal_scenarios(twin, n_scenarios: int = 40, seed: int = 0,
-                      design: ScenarioDesign = ScenarioDesign()):
+def thermal_scenarios(twin, n_scenarios: int = 40, seed: int = 0, design: ScenarioDesign = ScenarioDesign()):
     """Yield ``(inputs, ThermalResponse)`` for ``n_scenarios`` seeded scenarios of ``twin``
     (built on :func:`generic_heat_machine`), each from the uniform reference temperature."""
     rng = np.random.default_rng(seed)

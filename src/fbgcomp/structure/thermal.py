@@ -33,11 +33,13 @@ INPUT_NAMES = ("ambient_C", "spindle_heat_W", "radiant_W_per_m2")
 
 
 def anisotropic_conduction(k_T_W_per_mmK: float, k_L_W_per_mmK: float) -> BilinearForm:
-    """integral k_T (dx theta dx v + dy theta dy v) + k_L dz theta dz v."""
+    """Integral k_T (dx theta dx v + dy theta dy v) + k_L dz theta dz v."""
+
     @BilinearForm
     def form(u, v, w):
         gu, gv = grad(u), grad(v)
         return k_T_W_per_mmK * (gu[0] * gv[0] + gu[1] * gv[1]) + k_L_W_per_mmK * gu[2] * gv[2]
+
     return form
 
 
@@ -45,6 +47,7 @@ def isotropic_conduction(k_W_per_mmK: float) -> BilinearForm:
     @BilinearForm
     def form(u, v, w):
         return k_W_per_mmK * dot(grad(u), grad(v))
+
     return form
 
 
@@ -52,12 +55,13 @@ def capacity(rho_c_J_per_mm3K: float) -> BilinearForm:
     @BilinearForm
     def form(u, v, w):
         return rho_c_J_per_mm3K * u * v
+
     return form
 
 
 @BilinearForm
 def film(u, v, w):
-    """integral h theta v over a surface; h enters by scaling (W/mm^2K)."""
+    """Integral h theta v over a surface; h enters by scaling (W/mm^2K)."""
     return u * v
 
 
@@ -142,8 +146,9 @@ def _foh_weights(lam_per_s: np.ndarray, h_s: float):
     return E, g0, g1
 
 
-def rational_krylov_basis(K, C, B, shifts_per_s, factor: Factorised | None = None,
-                          moments_at_zero: int = 2) -> np.ndarray:
+def rational_krylov_basis(
+    K, C, B, shifts_per_s, factor: Factorised | None = None, moments_at_zero: int = 2
+) -> np.ndarray:
     """Basis spanning (K + s C)^-1 B at each shift s (and extra moments at s = 0), orthonormal.
 
     Matching the transfer function (K + sC)^-1 B at log-spaced s from hours^-1 to 1 s^-1
@@ -192,21 +197,21 @@ class ReducedThermal:
         Kr = V.T @ (K @ V)
         Cr = V.T @ (C @ V)
         lam, Psi = scipy.linalg.eigh(0.5 * (Kr + Kr.T), 0.5 * (Cr + Cr.T))
-        Phi = V @ Psi                                          # C-orthonormal, K-diagonal
+        Phi = V @ Psi  # C-orthonormal, K-diagonal
         self.lam_per_s = lam
         self.n_modes = len(lam)
         O = np.asarray(O.todense() if sp.issparse(O) else O)
-        self.PhiB = Phi.T @ B                                  # (N, m)
-        self.OPhi = O @ Phi                                    # (p, N)
-        self.PhiTC = (C @ Phi).T                               # (N, n): initial-state projection
+        self.PhiB = Phi.T @ B  # (N, m)
+        self.OPhi = O @ Phi  # (p, N)
+        self.PhiTC = (C @ Phi).T  # (N, n): initial-state projection
         self.Phi = Phi
         self._B = B
-        static = O @ self.factor.solve(B)                      # (p, m) exact steady gain
+        static = O @ self.factor.solve(B)  # (p, m) exact steady gain
         self.D = static - self.OPhi @ (self.PhiB / self.lam_per_s[:, None])
         self.steady_gain = static
 
     @classmethod
-    def from_arrays(cls, K, B, arrays: dict, factor: Factorised | None = None) -> "ReducedThermal":
+    def from_arrays(cls, K, B, arrays: dict, factor: Factorised | None = None) -> ReducedThermal:
         """A reduction rebuilt from :meth:`arrays` (and K, B) without recomputing it; K is
         factorised only if :meth:`projected_outputs` needs it."""
         self = cls.__new__(cls)
@@ -233,7 +238,7 @@ class ReducedThermal:
 
     def initial_modal(self, u0: np.ndarray, theta0: np.ndarray | None) -> np.ndarray:
         if theta0 is None:
-            return (self.PhiB @ u0) / self.lam_per_s       # steady state at the first input
+            return (self.PhiB @ u0) / self.lam_per_s  # steady state at the first input
         return self.PhiTC @ theta0
 
     def projected_outputs(self, O):
@@ -243,8 +248,7 @@ class ReducedThermal:
         static = O @ self.factor.solve(self._B)
         return OPhi, static - OPhi @ (self.PhiB / self.lam_per_s[:, None])
 
-    def simulate(self, time_s: np.ndarray, u: np.ndarray, theta0: np.ndarray | None = None,
-                 outputs=None):
+    def simulate(self, time_s: np.ndarray, u: np.ndarray, theta0: np.ndarray | None = None, outputs=None):
         """Outputs (n_steps, p) for inputs u (n_steps, m) sampled at time_s (piecewise linear).
 
         ``outputs``: optional (O Phi, D) from :meth:`projected_outputs` instead of the built-in O.
@@ -252,7 +256,7 @@ class ReducedThermal:
         t = np.asarray(time_s, dtype=float)
         u = np.asarray(u, dtype=float)
         q0 = self.initial_modal(u[0], theta0)
-        b = self.PhiB @ u.T                                    # (N, n_steps)
+        b = self.PhiB @ u.T  # (N, n_steps)
         q = np.empty_like(b)
         q[:, 0] = q0
         if len(t) > 1:
@@ -263,8 +267,7 @@ class ReducedThermal:
                 E, g0, g1 = _foh_weights(self.lam_per_s, h[0])
                 f = g0[:, None] * b[:, :-1] + g1[:, None] * b[:, 1:]
                 for i in range(self.n_modes):  # one C-level recursion per mode, not per sample
-                    q[i, 1:], _ = scipy.signal.lfilter([1.0], [1.0, -E[i]], f[i],
-                                                       zi=[E[i] * q0[i]])
+                    q[i, 1:], _ = scipy.signal.lfilter([1.0], [1.0, -E[i]], f[i], zi=[E[i] * q0[i]])
             else:
                 # Irregular sampling: same exact update, step by step.
                 for k, hk in enumerate(h):

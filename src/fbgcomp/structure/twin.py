@@ -30,8 +30,8 @@ UM_PER_MM = 1000.0
 class StaticResponse:
     """Response to forces at the TTP: one row per load case."""
 
-    sensor_elongation_um: np.ndarray    # (n, S)
-    ttp_um: np.ndarray                  # (n, 3): dx, dy, dz
+    sensor_elongation_um: np.ndarray  # (n, S)
+    ttp_um: np.ndarray  # (n, 3): dx, dy, dz
     sensor_names: tuple[str, ...]
 
 
@@ -43,11 +43,11 @@ class ThermalResponse:
     :meth:`change_from_start` for changes since the first sample (what an FBG or a laser reads).
     """
 
-    time_s: np.ndarray                  # (n,)
-    sensor_elongation_um: np.ndarray    # (n, S)
-    sensor_temperature_C: np.ndarray    # (n, S): mean temperature along each path
-    probe_C: np.ndarray                 # (n, P): in the order of probe_names
-    ttp_um: np.ndarray                  # (n, 3)
+    time_s: np.ndarray  # (n,)
+    sensor_elongation_um: np.ndarray  # (n, S)
+    sensor_temperature_C: np.ndarray  # (n, S): mean temperature along each path
+    probe_C: np.ndarray  # (n, P): in the order of probe_names
+    ttp_um: np.ndarray  # (n, 3)
     sensor_names: tuple[str, ...]
     probe_names: tuple[str, ...]
 
@@ -55,22 +55,27 @@ class ThermalResponse:
         """Temperature history (°C) of one probe."""
         return self.probe_C[:, self.probe_names.index(name)]
 
-    def change_from_start(self) -> "ThermalResponse":
+    def change_from_start(self) -> ThermalResponse:
         """The same response with every output referred to its first sample."""
-        return ThermalResponse(self.time_s, self.sensor_elongation_um - self.sensor_elongation_um[:1],
-                               self.sensor_temperature_C - self.sensor_temperature_C[:1],
-                               self.probe_C - self.probe_C[:1], self.ttp_um - self.ttp_um[:1],
-                               self.sensor_names, self.probe_names)
+        return ThermalResponse(
+            self.time_s,
+            self.sensor_elongation_um - self.sensor_elongation_um[:1],
+            self.sensor_temperature_C - self.sensor_temperature_C[:1],
+            self.probe_C - self.probe_C[:1],
+            self.ttp_um - self.ttp_um[:1],
+            self.sensor_names,
+            self.probe_names,
+        )
 
 
 @dataclass(frozen=True)
 class TemperatureLoadResponse:
     """Steady response to a prescribed temperature-rise field (FE calibration load design)."""
 
-    sensor_elongation_um: np.ndarray    # (S,) or (n, S)
-    sensor_temperature_C: np.ndarray    # temperature rise along each path, K
-    probe_C: np.ndarray                 # temperature rise at each probe, K (the ambient probe: 0)
-    ttp_um: np.ndarray                  # (3,) or (n, 3)
+    sensor_elongation_um: np.ndarray  # (S,) or (n, S)
+    sensor_temperature_C: np.ndarray  # temperature rise along each path, K
+    probe_C: np.ndarray  # temperature rise at each probe, K (the ambient probe: 0)
+    ttp_um: np.ndarray  # (3,) or (n, 3)
 
     def __iter__(self):
         return iter((self.sensor_elongation_um, self.sensor_temperature_C, self.probe_C, self.ttp_um))
@@ -96,7 +101,7 @@ class Influence:
     probe_temperature_rows: sp.csr_matrix
     steady_per_input: np.ndarray
     output_names: tuple[str, ...]
-    input_names: tuple[str, ...] = thermal.INPUT_NAMES   # ambient_C, then one per heat source
+    input_names: tuple[str, ...] = thermal.INPUT_NAMES  # ambient_C, then one per heat source
 
 
 @dataclass(frozen=True)
@@ -121,9 +126,9 @@ class BuildTimes:
     elastic_factor_s: float = 0.0
     thermal_reduction_s: float = 0.0
     extra: dict = field(default_factory=dict)
-    from_cache: bool = False            # loaded from the twin cache (nothing assembled)
-    cache_load_s: float = 0.0           # reading (and checking) the cache entry, hit or miss
-    cache_store_s: float = 0.0          # writing a new entry after a build
+    from_cache: bool = False  # loaded from the twin cache (nothing assembled)
+    cache_load_s: float = 0.0  # reading (and checking) the cache entry, hit or miss
+    cache_store_s: float = 0.0  # writing a new entry after a build
     cache_path: str | None = None
 
 
@@ -136,6 +141,7 @@ RIGID_PENALTY = 1e7
 def _node_weights(vbasis, facets) -> tuple[np.ndarray, np.ndarray]:
     """Nodes of a facet set and their tributary area fractions (sum 1)."""
     from skfem import ElementHex1, FacetBasis, asm
+
     fb = FacetBasis(vbasis.mesh, ElementHex1(), facets=facets, intorder=elastic.INTORDER)
     area = asm(thermal.unit_load, fb)
     nodes = np.nonzero(area > 0)[0]
@@ -146,8 +152,7 @@ def _stiffness_N_per_mm(value, rigid_N_per_mm: float) -> float:
     return rigid_N_per_mm if value == "rigid" else float(value) * UM_PER_MM
 
 
-def nodal_support_rows(rm: RamMesh, vbasis, machine: Machine, z_axis_mm: float | None,
-                       rigid_N_per_mm: float):
+def nodal_support_rows(rm: RamMesh, vbasis, machine: Machine, z_axis_mm: float | None, rigid_N_per_mm: float):
     """Sparse (n_c, n_u) rows (one supported DOF each) and stiffnesses (N/mm) of rail supports.
 
     Every node of each carriage patch (rail strip x station z range) is held along its face
@@ -161,16 +166,17 @@ def nodal_support_rows(rm: RamMesh, vbasis, machine: Machine, z_axis_mm: float |
         for rail in s.rails:
             facets = rm.strip_facets(rail.face, lo, hi, *rail.across_mm)
             if len(facets) == 0:
-                raise ValueError(f"rail on {rail.face} at {rail.across_mm} mm: no mesh facet in "
-                                 f"the carriage patch z = {lo:g}..{hi:g} mm")
+                raise ValueError(
+                    f"rail on {rail.face} at {rail.across_mm} mm: no mesh facet in "
+                    f"the carriage patch z = {lo:g}..{hi:g} mm"
+                )
             nodes, frac = _node_weights(vbasis, facets)
             normal = 0 if rail.face[1] == "X" else 1
             k_patch = _stiffness_N_per_mm(s.carriage_stiffness_N_per_um, rigid_N_per_mm)
-            for axis in ([normal, 1 - normal] if rail.locating else [normal]):
+            for axis in [normal, 1 - normal] if rail.locating else [normal]:
                 dofs.append(vbasis.nodal_dofs[axis, nodes])
                 ks.append(rigid_N_per_mm if k_patch == rigid_N_per_mm else k_patch * frac)
-    rows = [sp.csr_matrix((np.ones(len(d)), (np.arange(len(d)), d)), shape=(len(d), vbasis.N))
-            for d in dofs]
+    rows = [sp.csr_matrix((np.ones(len(d)), (np.arange(len(d)), d)), shape=(len(d), vbasis.N)) for d in dofs]
     k = [np.broadcast_to(np.asarray(v, float), (len(d),)) for v, d in zip(ks, dofs)]
     layer = np.nonzero(np.abs(rm.mesh.p[2] - s.nut.z_mm) < 1e-6)[0]
     k_nut = _stiffness_N_per_mm(s.nut.stiffness_N_per_um, rigid_N_per_mm)
@@ -186,8 +192,9 @@ def nodal_support_rows(rm: RamMesh, vbasis, machine: Machine, z_axis_mm: float |
     return sp.vstack(rows).tocsr(), np.concatenate(k)
 
 
-def support_rows(rm: RamMesh, vbasis, machine: Machine, z_axis_mm: float | None,
-                 rigid_N_per_mm: float = np.inf):
+def support_rows(
+    rm: RamMesh, vbasis, machine: Machine, z_axis_mm: float | None, rigid_N_per_mm: float = np.inf
+):
     """(6, n_u) constraint rows (mm) and stiffnesses (N/mm) of the statically determinate supports.
 
     Per carriage station the mean ux and the mean uy over the shoe length; each lateral direction
@@ -203,12 +210,13 @@ def support_rows(rm: RamMesh, vbasis, machine: Machine, z_axis_mm: float | None,
     rows = []
     k_shoe = _stiffness_N_per_mm(s.carriage_stiffness_N_per_um, rigid_N_per_mm)
     stations = sorted(carriage_z_mm(machine, z_axis_mm))
-    along = 1 if s.shoe_faces[0][1] == "X" else 0    # in-plane lateral component on shoe faces
+    along = 1 if s.shoe_faces[0][1] == "X" else 0  # in-plane lateral component on shoe faces
     for j, zc in enumerate(stations):
         lo, hi = zc - s.shoe_length_mm / 2, zc + s.shoe_length_mm / 2
 
         def patch(face):
             return rm.face_facets(face, lo, hi, s.shoe_width_mm / 2)
+
         on_y_walls = elastic.facet_mean_rows(vbasis, np.concatenate([patch("+Y"), patch("-Y")]))
         on_x_walls = elastic.facet_mean_rows(vbasis, np.concatenate([patch("+X"), patch("-X")]))
         rows += [on_y_walls[0], on_x_walls[1]]
@@ -247,12 +255,31 @@ class Twin:
 
     # Arrays a built twin is made of (everything else is rebuilt in milliseconds from them and
     # the machine description): what the cache stores.
-    _ARRAYS = ("K", "Th", "R", "support_rows_mm", "support_stiffness_N_per_mm", "Kt", "Ct", "Bt",
-               "force", "W", "Tsens", "Tprobe", "build_times_s",
-               *(f"reduced_{n}" for n in thermal.ReducedThermal.ARRAYS))
+    _ARRAYS = (
+        "K",
+        "Th",
+        "R",
+        "support_rows_mm",
+        "support_stiffness_N_per_mm",
+        "Kt",
+        "Ct",
+        "Bt",
+        "force",
+        "W",
+        "Tsens",
+        "Tprobe",
+        "build_times_s",
+        *(f"reduced_{n}" for n in thermal.ReducedThermal.ARRAYS),
+    )
 
-    def __init__(self, machine: Machine, resolution: float | None = None,
-                 z_axis_mm: float | None = None, n_shifts: int | None = None, cache: bool = True):
+    def __init__(
+        self,
+        machine: Machine,
+        resolution: float | None = None,
+        z_axis_mm: float | None = None,
+        n_shifts: int | None = None,
+        cache: bool = True,
+    ):
         if z_axis_mm is not None:
             # Re-validate: the carriage stations must stay on the ram at this axis position.
             machine = parse_machine(machine.with_z_axis(z_axis_mm).model_dump())
@@ -284,9 +311,12 @@ class Twin:
         if arrays is not None:
             self.times.from_cache = True
             self.times.cache_path = str(folder / f"{key}{twin_cache.SUFFIX}")
-            self.times.extra["cold_build_s"] = dict(zip(
-                ("mesh_s", "assemble_s", "elastic_factor_s", "thermal_reduction_s"),
-                (float(v) for v in arrays["build_times_s"])))
+            self.times.extra["cold_build_s"] = dict(
+                zip(
+                    ("mesh_s", "assemble_s", "elastic_factor_s", "thermal_reduction_s"),
+                    (float(v) for v in arrays["build_times_s"]),
+                )
+            )
             self._adopt(arrays)
             return
         arrays, thermal_factor = self._build(n_shifts)
@@ -301,9 +331,13 @@ class Twin:
         """Sanity check of a cache entry against this twin's mesh and outputs (the key already
         covers machine and code; this only guards against an entry of the wrong shape)."""
         n, S = self.mesh.n_nodes, len(self.sensor_names)
-        return (arrays["Kt"].shape == (n, n) and arrays["K"].shape == (3 * n, 3 * n)
-                and arrays["W"].shape == (S + 3, n) and arrays["Th"].shape == (3 * n, n)
-                and arrays["Tprobe"].shape == (len(self._point_probes), n))
+        return (
+            arrays["Kt"].shape == (n, n)
+            and arrays["K"].shape == (3 * n, 3 * n)
+            and arrays["W"].shape == (S + 3, n)
+            and arrays["Th"].shape == (3 * n, n)
+            and arrays["Tprobe"].shape == (len(self._point_probes), n)
+        )
 
     def _build(self, n_shifts: int):
         """Assemble, factorise and reduce: the expensive part, returned as plain arrays (and the
@@ -334,33 +368,45 @@ class Twin:
         patch = machine.tool.nose_patch_mm or (np.inf, np.inf)
         nose = rm.end_facets(-machine.housing.height_mm, patch[0] / 2, patch[1] / 2)
         ttp_rows = elastic.rigid_extension_rows(vb, nose, lever_mm=machine.tool.ttp_below_housing_mm)
-        R = UM_PER_MM * np.vstack(el_rows + [ttp_rows])               # (S + 3, n_u)
+        R = UM_PER_MM * np.vstack(el_rows + [ttp_rows])  # (S + 3, n_u)
 
         t0 = time.perf_counter()
-        self._elastic_built = Factorised(K, order=layer_order(rm.mesh.p, vb.nodal_dofs),
-                                         blocked=True)
-        X = self._elastic_built.solve(R.T)                            # adjoint: K^-1 g_i
+        self._elastic_built = Factorised(K, order=layer_order(rm.mesh.p, vb.nodal_dofs), blocked=True)
+        X = self._elastic_built.solve(R.T)  # adjoint: K^-1 g_i
         self.times.elastic_factor_s = time.perf_counter() - t0
-        force = X.T @ ttp_rows.T                                      # (S + 3, 3) µm/N
-        W = np.asarray((Th.T @ X).T)                                  # (S + 3, n_nodes) µm/K
+        force = X.T @ ttp_rows.T  # (S + 3, 3) µm/N
+        W = np.asarray((Th.T @ X).T)  # (S + 3, n_nodes) µm/K
 
-        Tsens = sp.vstack([rm.path_mean_rows(s.face, s.offset_mm, s.z_start_mm, s.z_end_mm)
-                           for s in machine.sensors]).tocsr()
-        pts = [[machine.probes[i].x_mm, machine.probes[i].y_mm, machine.probes[i].z_mm]
-               for i in self._point_probes]
+        Tsens = sp.vstack(
+            [rm.path_mean_rows(s.face, s.offset_mm, s.z_start_mm, s.z_end_mm) for s in machine.sensors]
+        ).tocsr()
+        pts = [
+            [machine.probes[i].x_mm, machine.probes[i].y_mm, machine.probes[i].z_mm]
+            for i in self._point_probes
+        ]
         Tprobe = (rm.point_rows(pts) if pts else sp.csr_matrix((0, rm.n_nodes))).tocsr()
         O = np.vstack([W, Tsens.toarray(), Tprobe.toarray()])
 
         t0 = time.perf_counter()
-        thermal_factor = Factorised(Kt)   # the mesh's node order is already layer-wise
+        thermal_factor = Factorised(Kt)  # the mesh's node order is already layer-wise
         reduced = thermal.ReducedThermal(Kt, Ct, Bt, O, n_shifts, factor=thermal_factor)
         self.times.thermal_reduction_s = time.perf_counter() - t0
         b = self.times
-        arrays = {"K": K, "Th": Th, "R": R, "support_rows_mm": rows,
-                  "support_stiffness_N_per_mm": k, "Kt": Kt, "Ct": Ct, "Bt": Bt,
-                  "force": force, "W": W, "Tsens": Tsens, "Tprobe": Tprobe,
-                  "build_times_s": np.array([b.mesh_s, b.assemble_s, b.elastic_factor_s,
-                                             b.thermal_reduction_s])}
+        arrays = {
+            "K": K,
+            "Th": Th,
+            "R": R,
+            "support_rows_mm": rows,
+            "support_stiffness_N_per_mm": k,
+            "Kt": Kt,
+            "Ct": Ct,
+            "Bt": Bt,
+            "force": force,
+            "W": W,
+            "Tsens": Tsens,
+            "Tprobe": Tprobe,
+            "build_times_s": np.array([b.mesh_s, b.assemble_s, b.elastic_factor_s, b.thermal_reduction_s]),
+        }
         arrays.update({f"reduced_{n}": a for n, a in reduced.arrays().items()})
         return arrays, thermal_factor
 
@@ -375,16 +421,24 @@ class Twin:
         self._thermal_K, self._thermal_C, self._thermal_B = Kt, Ct, Bt
         self._O = np.vstack([W, Tsens.toarray(), Tprobe.toarray()])
         self.reduced = thermal.ReducedThermal.from_arrays(
-            Kt, Bt, {n: arrays[f"reduced_{n}"] for n in thermal.ReducedThermal.ARRAYS},
-            factor=thermal_factor)
-        names = ([f"{n}_elongation_um" for n in self.sensor_names] + ["dx_um", "dy_um", "dz_um"]
-                 + [f"{n}_temperature_C" for n in self.sensor_names]
-                 + [self.probe_names[i] for i in self._point_probes])
+            Kt, Bt, {n: arrays[f"reduced_{n}"] for n in thermal.ReducedThermal.ARRAYS}, factor=thermal_factor
+        )
+        names = (
+            [f"{n}_elongation_um" for n in self.sensor_names]
+            + ["dx_um", "dy_um", "dz_um"]
+            + [f"{n}_temperature_C" for n in self.sensor_names]
+            + [self.probe_names[i] for i in self._point_probes]
+        )
         self.influence = Influence(
-            sensor_per_force_um_per_N=force[:S], ttp_per_force_um_per_N=force[S:],
-            elastic_per_temperature=W, sensor_temperature_rows=Tsens,
-            probe_temperature_rows=Tprobe, steady_per_input=self.reduced.steady_gain,
-            output_names=tuple(names), input_names=thermal.input_names(self.machine))
+            sensor_per_force_um_per_N=force[:S],
+            ttp_per_force_um_per_N=force[S:],
+            elastic_per_temperature=W,
+            sensor_temperature_rows=Tsens,
+            probe_temperature_rows=Tprobe,
+            steady_per_input=self.reduced.steady_gain,
+            output_names=tuple(names),
+            input_names=thermal.input_names(self.machine),
+        )
 
     # ------------------------------------------------------------- built on first use
     @property
@@ -392,8 +446,8 @@ class Twin:
         """The vector (displacement) basis of the mesh."""
         if self._vbasis_built is None:
             from skfem import Basis
-            self._vbasis_built = Basis(self.mesh.mesh, elastic.vector_element(),
-                                       intorder=elastic.INTORDER)
+
+            self._vbasis_built = Basis(self.mesh.mesh, elastic.vector_element(), intorder=elastic.INTORDER)
         return self._vbasis_built
 
     @property
@@ -427,18 +481,29 @@ class Twin:
             rows[i, vb.nodal_dofs[2]] = UM_PER_MM * (ends[1] - ends[0]).toarray().ravel()
         X = self._elastic.solve(rows.T)
         ttp_rows = self._R[-3:] / UM_PER_MM
-        temps = sp.vstack([rm.path_mean_rows(s.face, s.offset_mm, s.z_start_mm, s.z_end_mm)
-                           for s in sensors]).tocsr()
-        return PathInfluence(tuple(s.name for s in sensors), X.T @ ttp_rows.T,
-                             np.asarray((self._Th.T @ X).T), temps)
+        temps = sp.vstack(
+            [rm.path_mean_rows(s.face, s.offset_mm, s.z_start_mm, s.z_end_mm) for s in sensors]
+        ).tocsr()
+        return PathInfluence(
+            tuple(s.name for s in sensors), X.T @ ttp_rows.T, np.asarray((self._Th.T @ X).T), temps
+        )
 
-    def thermal_paths(self, paths: PathInfluence, time_s, ambient_C, spindle_heat_W=None,
-                      radiant_W_per_m2=None, initial_C=None, heat=None):
+    def thermal_paths(
+        self,
+        paths: PathInfluence,
+        time_s,
+        ambient_C,
+        spindle_heat_W=None,
+        radiant_W_per_m2=None,
+        initial_C=None,
+        heat=None,
+    ):
         """Elongation (n, k) µm and mean temperature (n, k) °C of extra paths in a campaign."""
         t, u = self._inputs(time_s, ambient_C, spindle_heat_W, radiant_W_per_m2, heat)
         O = np.vstack([paths.per_temperature_um_per_K, paths.temperature_rows.toarray()])
-        y = self.reduced.simulate(t, u, self._initial_theta(initial_C),
-                                  outputs=self.reduced.projected_outputs(O))
+        y = self.reduced.simulate(
+            t, u, self._initial_theta(initial_C), outputs=self.reduced.projected_outputs(O)
+        )
         k = len(paths.names)
         return y[:, :k], y[:, k:] + self.machine.reference_temperature_C
 
@@ -459,8 +524,9 @@ class Twin:
         if F.shape[-1] != 3:
             raise ValueError("forces_N must have 3 columns (Fx, Fy, Fz)")
         inf = self.influence
-        return StaticResponse(F @ inf.sensor_per_force_um_per_N.T, F @ inf.ttp_per_force_um_per_N.T,
-                              self.sensor_names)
+        return StaticResponse(
+            F @ inf.sensor_per_force_um_per_N.T, F @ inf.ttp_per_force_um_per_N.T, self.sensor_names
+        )
 
     # --------------------------------------------------------------------------- thermal
     @property
@@ -487,8 +553,10 @@ class Twin:
             if not match:
                 raise ValueError(f"unknown heat source {key!r}; inputs: {self.input_names[1:]}")
             values[match[0]] = v
-        cols = [np.broadcast_to(np.asarray(ambient_C, dtype=float), t.shape)
-                - self.machine.reference_temperature_C]
+        cols = [
+            np.broadcast_to(np.asarray(ambient_C, dtype=float), t.shape)
+            - self.machine.reference_temperature_C
+        ]
         for i in range(len(sources)):
             v = values.get(i)
             cols.append(np.broadcast_to(np.asarray(0.0 if v is None else v, dtype=float), t.shape))
@@ -505,13 +573,21 @@ class Twin:
         S = len(self.sensor_names)
         Tref = self.machine.reference_temperature_C
         probe = np.empty((len(t), len(self.probe_names)))
-        probe[:, self._point_probes] = y[:, 2 * S + 3:] + Tref
+        probe[:, self._point_probes] = y[:, 2 * S + 3 :] + Tref
         probe[:, self._ambient_probes] = (u[:, 0] + Tref)[:, None]
-        return ThermalResponse(t, y[:, :S], y[:, S + 3:2 * S + 3] + Tref, probe, y[:, S:S + 3],
-                               self.sensor_names, self.probe_names)
+        return ThermalResponse(
+            t,
+            y[:, :S],
+            y[:, S + 3 : 2 * S + 3] + Tref,
+            probe,
+            y[:, S : S + 3],
+            self.sensor_names,
+            self.probe_names,
+        )
 
-    def thermal(self, time_s, ambient_C, spindle_heat_W=None, radiant_W_per_m2=None,
-                initial_C=None, heat=None) -> ThermalResponse:
+    def thermal(
+        self, time_s, ambient_C, spindle_heat_W=None, radiant_W_per_m2=None, initial_C=None, heat=None
+    ) -> ThermalResponse:
         """Thermal campaign: inputs (n,) sampled at ``time_s`` (s), piecewise linear in between.
 
         ``spindle_heat_W`` drives the first volume heat source, ``radiant_W_per_m2`` the first
@@ -524,12 +600,14 @@ class Twin:
         y = self.reduced.simulate(t, u, self._initial_theta(initial_C))
         return self._split(t, u, y)
 
-    def thermal_direct(self, time_s, ambient_C, spindle_heat_W=None, radiant_W_per_m2=None,
-                       initial_C=None, heat=None) -> ThermalResponse:
+    def thermal_direct(
+        self, time_s, ambient_C, spindle_heat_W=None, radiant_W_per_m2=None, initial_C=None, heat=None
+    ) -> ThermalResponse:
         """Full-order implicit Euler reference of :meth:`thermal` (one sparse solve per step)."""
         t, u = self._inputs(time_s, ambient_C, spindle_heat_W, radiant_W_per_m2, heat)
-        y = thermal.implicit_euler(self._thermal_K, self._thermal_C, self._thermal_B, self._O,
-                                   t, u, self._initial_theta(initial_C))
+        y = thermal.implicit_euler(
+            self._thermal_K, self._thermal_C, self._thermal_B, self._O, t, u, self._initial_theta(initial_C)
+        )
         return self._split(t, u, y)
 
     # ------------------------------------------------------------ temperature load designs
@@ -566,11 +644,11 @@ class Twin:
         """
         unit = self.temperature_field(field_kind, 1.0)
         S = len(self.sensor_names)
-        y = self._O @ unit                                              # linear in the magnitude
+        y = self._O @ unit  # linear in the magnitude
         mag = np.asarray(magnitude_C, dtype=float)
         probe = np.zeros(len(self.probe_names))
-        probe[self._point_probes] = y[2 * S + 3:]
-        out = [y[:S], y[S + 3:2 * S + 3], probe, y[S:S + 3]]
+        probe[self._point_probes] = y[2 * S + 3 :]
+        out = [y[:S], y[S + 3 : 2 * S + 3], probe, y[S : S + 3]]
         if mag.ndim == 0:
             return TemperatureLoadResponse(*(float(mag) * o for o in out))
         return TemperatureLoadResponse(*(mag[:, None] * o[None, :] for o in out))

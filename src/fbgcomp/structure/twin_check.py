@@ -26,11 +26,11 @@ from fbgcomp import tables
 from fbgcomp.errors import InputError
 from fbgcomp.structure import load_machine
 
-UNIT_LOAD_TARGET = 0.03        # relative, unit-load TTP compliances and sensor responses
-UNIFORM_DZ_TARGET = 0.02       # relative, uniform +10 K dz
-MAIN_SENSOR_FRACTION = 0.1     # a sensor reading below this share of the largest is a cross term
+UNIT_LOAD_TARGET = 0.03  # relative, unit-load TTP compliances and sensor responses
+UNIFORM_DZ_TARGET = 0.02  # relative, uniform +10 K dz
+MAIN_SENSOR_FRACTION = 0.1  # a sensor reading below this share of the largest is a cross term
 UNIFORM_DT_K = 10.0
-PER_KN = 1000.0                # the table shows µm per 1000 N
+PER_KN = 1000.0  # the table shows µm per 1000 N
 
 
 @dataclass(frozen=True)
@@ -38,9 +38,9 @@ class Reference:
     """The independent model's figures: µm/N per load axis, and the uniform +10 K response (µm)."""
 
     sensor_names: tuple[str, ...]
-    unit_um_per_N: dict           # axis -> (3 + S,) dx, dy, dz, sensors
-    uniform_ttp_um: np.ndarray    # (3,)
-    uniform_elongation_um: np.ndarray   # (S,)
+    unit_um_per_N: dict  # axis -> (3 + S,) dx, dy, dz, sensors
+    uniform_ttp_um: np.ndarray  # (3,)
+    uniform_elongation_um: np.ndarray  # (S,)
 
 
 @dataclass(frozen=True)
@@ -53,7 +53,7 @@ class Row:
     twin: float
     difference_pct: float | None
     target: str
-    judged: str                   # "relative", "absolute" or "report"
+    judged: str  # "relative", "absolute" or "report"
     passed: bool | None
 
 
@@ -83,26 +83,43 @@ def load_reference(path: str | Path) -> Reference:
     try:
         text = Path(path).read_text(encoding="utf-8")
     except OSError as exc:
-        raise InputError(f"cannot read the independent model's results: {exc.strerror}",
-                         file=file) from None
+        raise InputError(f"cannot read the independent model's results: {exc.strerror}", file=file) from None
     try:
         data = json.loads(text)
     except json.JSONDecodeError as exc:
-        raise InputError(f"invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}",
-                         file=file) from None
+        raise InputError(
+            f"invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}", file=file
+        ) from None
     if not isinstance(data, dict):
         raise InputError("the results must be a JSON object", file=file)
     elong = _field(data, "checks.uniform10.fe_elong_um", file)
     if not isinstance(elong, dict) or not elong:
-        raise InputError("expected an object of sensor elongations (um)", file=file,
-                         column="field checks.uniform10.fe_elong_um")
+        raise InputError(
+            "expected an object of sensor elongations (um)",
+            file=file,
+            column="field checks.uniform10.fe_elong_um",
+        )
     names = tuple(str(k) for k in elong)
     uniform_elong = _numbers(list(elong.values()), "checks.uniform10.fe_elong_um", file)
-    uniform_ttp = np.array([float(_numbers(_field(data, f"checks.uniform10.fe_{a}_um", file),
-                                           f"checks.uniform10.fe_{a}_um", file, 1)[0])
-                            for a in ("dx", "dy", "dz")])
-    unit = {a: _numbers(_field(data, f"unit_response_um_per_N.{a}", file),
-                        f"unit_response_um_per_N.{a}", file, 3 + len(names)) for a in "xyz"}
+    uniform_ttp = np.array(
+        [
+            float(
+                _numbers(
+                    _field(data, f"checks.uniform10.fe_{a}_um", file), f"checks.uniform10.fe_{a}_um", file, 1
+                )[0]
+            )
+            for a in ("dx", "dy", "dz")
+        ]
+    )
+    unit = {
+        a: _numbers(
+            _field(data, f"unit_response_um_per_N.{a}", file),
+            f"unit_response_um_per_N.{a}",
+            file,
+            3 + len(names),
+        )
+        for a in "xyz"
+    }
     return Reference(names, unit, uniform_ttp, uniform_elong)
 
 
@@ -115,8 +132,9 @@ def _row(quantity, independent, twin, target_rel, scale=None, report_only=False)
         ok = abs(twin - independent) <= target_rel * abs(independent)
         return Row(quantity, independent, twin, diff_pct, f"{100 * target_rel:g} %", "relative", ok)
     tol = target_rel * abs(scale)
-    return Row(quantity, independent, twin, diff_pct, f"+-{tol:.3g}", "absolute",
-               abs(twin - independent) <= tol)
+    return Row(
+        quantity, independent, twin, diff_pct, f"+-{tol:.3g}", "absolute", abs(twin - independent) <= tol
+    )
 
 
 def compare(twin, ref: Reference, machine_file: str | None = None) -> list[Row]:
@@ -124,8 +142,11 @@ def compare(twin, ref: Reference, machine_file: str | None = None) -> list[Row]:
     names = list(twin.sensor_names)
     missing = [n for n in ref.sensor_names if n not in names]
     if missing:
-        raise InputError(f"the independent model's sensors {missing} are not in the machine "
-                         f"description (it has {names})", file=machine_file, column="field sensors")
+        raise InputError(
+            f"the independent model's sensors {missing} are not in the machine description (it has {names})",
+            file=machine_file,
+            column="field sensors",
+        )
     idx = [names.index(n) for n in ref.sensor_names]
     inf = twin.influence
     rows: list[Row] = []
@@ -135,17 +156,24 @@ def compare(twin, ref: Reference, machine_file: str | None = None) -> list[Row]:
         sens = PER_KN * inf.sensor_per_force_um_per_N[idx, j]
         main = ind[j]
         for k, comp in enumerate(("dx", "dy", "dz")):
-            rows.append(_row(f"F{axis} {comp} (um/kN)", ind[k], ttp[k], UNIT_LOAD_TARGET,
-                             None if k == j else main))
+            rows.append(
+                _row(f"F{axis} {comp} (um/kN)", ind[k], ttp[k], UNIT_LOAD_TARGET, None if k == j else main)
+            )
         largest = np.abs(ind[3:]).max()
         for name, a, b in zip(ref.sensor_names, ind[3:], sens):
             cross = abs(a) < MAIN_SENSOR_FRACTION * largest
-            rows.append(_row(f"F{axis} {name} (um/kN)", a, b, UNIT_LOAD_TARGET,
-                             largest if cross else None))
+            rows.append(_row(f"F{axis} {name} (um/kN)", a, b, UNIT_LOAD_TARGET, largest if cross else None))
     u = twin.static_temperature_response("uniform", UNIFORM_DT_K)
     for k, comp in enumerate(("dx", "dy", "dz")):
-        rows.append(_row(f"+10 K {comp} (um)", ref.uniform_ttp_um[k], u.ttp_um[k],
-                         UNIFORM_DZ_TARGET, report_only=comp != "dz"))
+        rows.append(
+            _row(
+                f"+10 K {comp} (um)",
+                ref.uniform_ttp_um[k],
+                u.ttp_um[k],
+                UNIFORM_DZ_TARGET,
+                report_only=comp != "dz",
+            )
+        )
     for name, a, i in zip(ref.sensor_names, ref.uniform_elongation_um, idx):
         rows.append(_row(f"+10 K {name} (um)", a, u.sensor_elongation_um[i], 0.0, report_only=True))
     return rows
@@ -154,12 +182,22 @@ def compare(twin, ref: Reference, machine_file: str | None = None) -> list[Row]:
 def format_table(rows: list[Row]) -> str:
     """The rows as a console table, then how many of the judged quantities are within target."""
     verdicts = {True: "pass", False: "FAIL", None: "report"}
-    lines = [tables.format_table(
-        [tables.text("quantity"), tables.Column("independent", decimals=4),
-         tables.Column("twin", decimals=4), tables.Column("diff", "%", 2), tables.Column("target"),
-         tables.text("result")],
-        [[r.quantity, r.independent, r.twin, r.difference_pct, r.target, verdicts[r.passed]]
-         for r in rows])]
+    lines = [
+        tables.format_table(
+            [
+                tables.text("quantity"),
+                tables.Column("independent", decimals=4),
+                tables.Column("twin", decimals=4),
+                tables.Column("diff", "%", 2),
+                tables.Column("target"),
+                tables.text("result"),
+            ],
+            [
+                [r.quantity, r.independent, r.twin, r.difference_pct, r.target, verdicts[r.passed]]
+                for r in rows
+            ],
+        )
+    ]
     judged = [r for r in rows if r.passed is not None]
     lines.append(f"{sum(r.passed for r in judged)} of {len(judged)} judged quantities within target")
     return "\n".join(lines)
@@ -167,16 +205,18 @@ def format_table(rows: list[Row]) -> str:
 
 def run(machine_path: str | Path, against: str | Path, resolution: float | None = None) -> dict:
     """Build the twin of ``machine_path`` and compare it with ``against``; returns the figures."""
-    from fbgcomp.structure import Twin   # needs scikit-fem, the optional fe extra
+    from fbgcomp.structure import Twin  # needs scikit-fem, the optional fe extra
 
     ref = load_reference(against)
     machine = load_machine(machine_path)
     twin = Twin(machine, resolution=resolution)
     rows = compare(twin, ref, str(machine_path))
     return {
-        "machine": str(machine_path), "against": str(against),
+        "machine": str(machine_path),
+        "against": str(against),
         "resolution": machine.mesh.resolution if resolution is None else resolution,
-        "element": machine.mesh.element, "n_nodes": int(twin.n_nodes),
+        "element": machine.mesh.element,
+        "n_nodes": int(twin.n_nodes),
         "rows": [asdict(r) for r in rows],
         "passed": all(r.passed for r in rows if r.passed is not None),
     }

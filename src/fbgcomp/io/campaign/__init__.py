@@ -54,18 +54,60 @@ I/O. Every public name is importable from ``fbgcomp.io.campaign`` itself.
 
 from fbgcomp.io.campaign.align import AVERAGE_MIN_SAMPLES, AlignedCampaign
 from fbgcomp.io.campaign.folder import GAP_FACTOR, Campaign, read_campaign, write_campaign
-from fbgcomp.io.campaign.layout import (FBG_FILE, LOAD_COLUMNS, LOADS_FILE, META_FILE,
-                                        REFERENCE_COLUMNS, REFERENCE_FILE, TEMPERATURES_FILE,
-                                        TIME_COLUMN)
-from fbgcomp.io.campaign.meta import (MAX_META_BYTES, CampaignMeta, MetaLoader, ProbeSpec,
-                                      ReferenceSpec, SensorSpec, meta_error, read_meta)
-from fbgcomp.io.campaign.tables import (MAX_CELL_BYTES, MAX_COLUMNS, MAX_HEADER_BYTES, VALUE_BOUNDS,
-                                        WAVELENGTH_BAND_NM)
+from fbgcomp.io.campaign.layout import (
+    FBG_FILE,
+    LOAD_COLUMNS,
+    LOADS_FILE,
+    META_FILE,
+    REFERENCE_COLUMNS,
+    REFERENCE_FILE,
+    TEMPERATURES_FILE,
+    TIME_COLUMN,
+)
+from fbgcomp.io.campaign.meta import (
+    MAX_META_BYTES,
+    CampaignMeta,
+    MetaLoader,
+    ProbeSpec,
+    ReferenceSpec,
+    SensorSpec,
+    meta_error,
+    read_meta,
+)
+from fbgcomp.io.campaign.tables import (
+    MAX_CELL_BYTES,
+    MAX_COLUMNS,
+    MAX_HEADER_BYTES,
+    VALUE_BOUNDS,
+    WAVELENGTH_BAND_NM,
+)
 
 __all__ = [
-    "SensorSpec", "ProbeSpec", "ReferenceSpec", "CampaignMeta", "Campaign", "AlignedCampaign",
-    "read_campaign", "write_campaign", "read_meta", "MetaLoader", "meta_error",
-    "META_FILE", "FBG_FILE", "TEMPERATURES_FILE", "REFERENCE_FILE", "LOADS_FILE", "TIME_COLUMN",
-    "REFERENCE_COLUMNS", "LOAD_COLUMNS", "WAVELENGTH_BAND_NM", "GAP_FACTOR", "AVERAGE_MIN_SAMPLES",
-    "MAX_COLUMNS", "MAX_HEADER_BYTES", "MAX_CELL_BYTES", "MAX_META_BYTES", "VALUE_BOUNDS",
+    "AVERAGE_MIN_SAMPLES",
+    "FBG_FILE",
+    "GAP_FACTOR",
+    "LOADS_FILE",
+    "LOAD_COLUMNS",
+    "MAX_CELL_BYTES",
+    "MAX_COLUMNS",
+    "MAX_HEADER_BYTES",
+    "MAX_META_BYTES",
+    "META_FILE",
+    "REFERENCE_COLUMNS",
+    "REFERENCE_FILE",
+    "TEMPERATURES_FILE",
+    "TIME_COLUMN",
+    "VALUE_BOUNDS",
+    "WAVELENGTH_BAND_NM",
+    "AlignedCampaign",
+    "Campaign",
+    "CampaignMeta",
+    "MetaLoader",
+    "ProbeSpec",
+    "ReferenceSpec",
+    "SensorSpec",
+    "meta_error",
+    "read_campaign",
+    "read_meta",
+    "write_campaign",
 ]

@@ -15,12 +15,19 @@ import numpy as np
 from fbgcomp.errors import InputError
 from fbgcomp.io.campaign.meta import CampaignMeta
 
-__all__ = ["AlignedCampaign", "AVERAGE_MIN_SAMPLES", "interp_columns", "onto_reference",
-           "zero_state", "check_window"]
+__all__ = [
+    "AVERAGE_MIN_SAMPLES",
+    "AlignedCampaign",
+    "check_window",
+    "interp_columns",
+    "onto_reference",
+    "zero_state",
+]
 
 
-def interp_columns(time_s: np.ndarray, source_time_s: np.ndarray, values: np.ndarray,
-                   outside: float | None = None) -> np.ndarray:
+def interp_columns(
+    time_s: np.ndarray, source_time_s: np.ndarray, values: np.ndarray, outside: float | None = None
+) -> np.ndarray:
     """Linear interpolation of every column of ``values`` onto ``time_s``."""
     out = np.empty((time_s.size, values.shape[1]))
     for j in range(values.shape[1]):
@@ -33,8 +40,13 @@ def interp_columns(time_s: np.ndarray, source_time_s: np.ndarray, values: np.nda
 AVERAGE_MIN_SAMPLES = 3
 
 
-def _local_linear_columns(time_s: np.ndarray, source_time_s: np.ndarray, values: np.ndarray,
-                          half_width_s: float, chunk: int = 20_000) -> np.ndarray:
+def _local_linear_columns(
+    time_s: np.ndarray,
+    source_time_s: np.ndarray,
+    values: np.ndarray,
+    half_width_s: float,
+    chunk: int = 20_000,
+) -> np.ndarray:
     """Value at each ``time_s`` of the least-squares line through the source samples within
     ``± half_width_s`` (an anti-aliasing filter: exact for linear signals, noise / sqrt(n)).
 
@@ -54,15 +66,18 @@ def _local_linear_columns(time_s: np.ndarray, source_time_s: np.ndarray, values:
         idx = np.minimum(idx, source_time_s.size - 1)
         n = valid.sum(axis=1)
         ok = n >= 2
-        dt = np.where(valid, source_time_s[idx] - time_s[a:b, None], 0.0)     # centred: exact
+        dt = np.where(valid, source_time_s[idx] - time_s[a:b, None], 0.0)  # centred: exact
         mean_dt = dt.sum(axis=1) / np.maximum(n, 1)
         ddt = np.where(valid, dt - mean_dt[:, None], 0.0)
-        sxx = (ddt ** 2).sum(axis=1)
+        sxx = (ddt**2).sum(axis=1)
         for j in range(values.shape[1]):
             v = np.where(valid, values[idx, j], 0.0)
             mean_v = v.sum(axis=1) / np.maximum(n, 1)
-            slope = np.where(sxx > 0, (ddt * np.where(valid, v - mean_v[:, None], 0.0)).sum(axis=1)
-                             / np.where(sxx > 0, sxx, 1.0), 0.0)
+            slope = np.where(
+                sxx > 0,
+                (ddt * np.where(valid, v - mean_v[:, None], 0.0)).sum(axis=1) / np.where(sxx > 0, sxx, 1.0),
+                0.0,
+            )
             out[a:b, j] = np.where(ok, mean_v - slope * mean_dt, out[a:b, j])
     return out
 
@@ -89,8 +104,10 @@ def check_window(zero_window_s) -> float:
     except (TypeError, ValueError):
         window = math.nan
     if not math.isfinite(window) or window < 0:
-        raise InputError(f"zero window must be a finite number of seconds >= 0, got "
-                         f"{zero_window_s!r}", column="zero_window_s")
+        raise InputError(
+            f"zero window must be a finite number of seconds >= 0, got {zero_window_s!r}",
+            column="zero_window_s",
+        )
     return window
 
 
@@ -147,5 +164,7 @@ class AlignedCampaign:
 
     def __repr__(self) -> str:
         t0, t1 = self.dropped["overlap_s"]
-        return (f"AlignedCampaign(name={self.name!r}, n={len(self)}, overlap_s=({t0:g}, {t1:g}), "
-                f"sensors={self.sensor_names}, probes={self.probe_names})")
+        return (
+            f"AlignedCampaign(name={self.name!r}, n={len(self)}, overlap_s=({t0:g}, {t1:g}), "
+            f"sensors={self.sensor_names}, probes={self.probe_names})"
+        )

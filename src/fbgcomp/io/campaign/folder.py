@@ -7,9 +7,9 @@ from __future__ import annotations
 import os
 import shutil
 import uuid
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping
 
 import numpy as np
 import pandas as pd
@@ -17,15 +17,27 @@ import pandas as pd
 from fbgcomp import optics
 from fbgcomp.atomic import replace_dir
 from fbgcomp.errors import InputError
-from fbgcomp.io.campaign.align import (AlignedCampaign, check_window, interp_columns, onto_reference,
-                                       zero_state)
-from fbgcomp.io.campaign.layout import (FBG_FILE, LOAD_COLUMNS, LOADS_FILE, META_FILE,
-                                        REFERENCE_COLUMNS, REFERENCE_FILE, TEMPERATURES_FILE,
-                                        TIME_COLUMN)
+from fbgcomp.io.campaign.align import (
+    AlignedCampaign,
+    check_window,
+    interp_columns,
+    onto_reference,
+    zero_state,
+)
+from fbgcomp.io.campaign.layout import (
+    FBG_FILE,
+    LOAD_COLUMNS,
+    LOADS_FILE,
+    META_FILE,
+    REFERENCE_COLUMNS,
+    REFERENCE_FILE,
+    TEMPERATURES_FILE,
+    TIME_COLUMN,
+)
 from fbgcomp.io.campaign.meta import CampaignMeta, meta_yaml, read_meta, validate_meta
 from fbgcomp.io.campaign.tables import read_table, table_from_input, write_csv
 
-__all__ = ["Campaign", "read_campaign", "write_campaign", "GAP_FACTOR"]
+__all__ = ["GAP_FACTOR", "Campaign", "read_campaign", "write_campaign"]
 
 #: Sampling gaps longer than this many median intervals are reported by ``summary()``.
 GAP_FACTOR = 5.0
@@ -63,20 +75,29 @@ class Campaign:
     def undeclared_probes(self) -> list[str]:
         """Probes of temperatures.csv columns that campaign.yaml does not declare, in file order."""
         declared = {p.column for p in self.meta.temperature_probes}
-        return [c[:-2] for c in self.temperatures.columns
-                if c != TIME_COLUMN and c not in declared]
+        return [c[:-2] for c in self.temperatures.columns if c != TIME_COLUMN and c not in declared]
 
     def __repr__(self) -> str:
         loads = "none" if self.loads is None else f"{len(self.loads)} rows"
-        return (f"Campaign(name={self.name!r}, kind={self.meta.kind!r}, path={self.path}, "
-                f"fbg={len(self.fbg)} rows x {len(self.sensor_names)} sensors, "
-                f"temperatures={len(self.temperatures)} rows x {len(self.probe_names)} probes, "
-                f"reference={len(self.reference)} rows, loads={loads})")
+        return (
+            f"Campaign(name={self.name!r}, kind={self.meta.kind!r}, path={self.path}, "
+            f"fbg={len(self.fbg)} rows x {len(self.sensor_names)} sensors, "
+            f"temperatures={len(self.temperatures)} rows x {len(self.probe_names)} probes, "
+            f"reference={len(self.reference)} rows, loads={loads})"
+        )
 
     # -- construction ------------------------------------------------------------------------
     @classmethod
-    def from_arrays(cls, meta: CampaignMeta | Mapping, *, fbg, temperatures, reference,
-                    loads=None, path: str | Path | None = None) -> "Campaign":
+    def from_arrays(
+        cls,
+        meta: CampaignMeta | Mapping,
+        *,
+        fbg,
+        temperatures,
+        reference,
+        loads=None,
+        path: str | Path | None = None,
+    ) -> Campaign:
         """Build a validated campaign from DataFrames or mappings ``{column: 1-D array}``.
 
         The same checks as :func:`read_campaign` apply (columns, finite numbers, strictly
@@ -88,23 +109,31 @@ class Campaign:
             path=None if path is None else Path(path),
             meta=meta,
             fbg=table_from_input(FBG_FILE, fbg, meta, FBG_FILE),
-            temperatures=table_from_input(TEMPERATURES_FILE, temperatures, meta,
-                                          TEMPERATURES_FILE),
+            temperatures=table_from_input(TEMPERATURES_FILE, temperatures, meta, TEMPERATURES_FILE),
             reference=table_from_input(REFERENCE_FILE, reference, meta, REFERENCE_FILE),
             loads=None if loads is None else table_from_input(LOADS_FILE, loads, meta, LOADS_FILE),
         )
 
-    def validate(self) -> "Campaign":
+    def validate(self) -> Campaign:
         """Re-run every check on the in-memory tables (after editing them); returns a campaign
         with canonical column order."""
-        return Campaign.from_arrays(self.meta, fbg=self.fbg, temperatures=self.temperatures,
-                                    reference=self.reference, loads=self.loads, path=self.path)
+        return Campaign.from_arrays(
+            self.meta,
+            fbg=self.fbg,
+            temperatures=self.temperatures,
+            reference=self.reference,
+            loads=self.loads,
+            path=self.path,
+        )
 
     # -- alignment ---------------------------------------------------------------------------
     def _spans(self) -> dict[str, tuple[float, float]]:
         spans = {}
-        for role, frame in ((FBG_FILE, self.fbg), (TEMPERATURES_FILE, self.temperatures),
-                            (REFERENCE_FILE, self.reference)):
+        for role, frame in (
+            (FBG_FILE, self.fbg),
+            (TEMPERATURES_FILE, self.temperatures),
+            (REFERENCE_FILE, self.reference),
+        ):
             t = frame[TIME_COLUMN].to_numpy()
             spans[role] = (float(t[0]), float(t[-1]))
         return spans
@@ -131,15 +160,16 @@ class Campaign:
         t1 = min(span[1] for span in spans.values())
         if t0 > t1:
             ranges = "; ".join(f"{role} {a:g} to {b:g} s" for role, (a, b) in spans.items())
-            raise InputError(f"the instruments' records do not overlap in time: {ranges}",
-                             file=self._where())
+            raise InputError(f"the instruments' records do not overlap in time: {ranges}", file=self._where())
         ref_t = self.reference[TIME_COLUMN].to_numpy()
         first = int(np.searchsorted(ref_t, t0, side="left"))
         stop = int(np.searchsorted(ref_t, t1, side="right"))
         if stop <= first:
-            raise InputError(f"no reference sample falls inside the overlap {t0:g} to {t1:g} s "
-                             "of fbg.csv, temperatures.csv and reference.csv",
-                             file=self._where())
+            raise InputError(
+                f"no reference sample falls inside the overlap {t0:g} to {t1:g} s "
+                "of fbg.csv, temperatures.csv and reference.csv",
+                file=self._where(),
+            )
         time_s = ref_t[first:stop].copy()
         ref_dt = float(np.median(np.diff(ref_t))) if ref_t.size > 1 else 0.0
 
@@ -175,8 +205,12 @@ class Campaign:
             reference_um=ref_v[first:stop] - reference_zero_um,
             reference_zero_um=reference_zero_um,
             loads_N=loads_N,
-            dropped={"before": first, "after": int(ref_t.size - stop), "overlap_s": (t0, t1),
-                     "loads_outside": loads_outside},
+            dropped={
+                "before": first,
+                "after": int(ref_t.size - stop),
+                "overlap_s": (t0, t1),
+                "loads_outside": loads_outside,
+            },
             sensor_names=list(self.sensor_names),
             probe_names=list(self.probe_names),
             zero_window_s=window,
@@ -189,21 +223,27 @@ class Campaign:
         since the first sample (eq. 3 inverted, :func:`fbgcomp.optics.grating_temperature_change_K`)."""
         refs = set(self.meta.reference_probe_names)
         probes = tuple(p for p in self.probe_names if p not in refs)
-        out = {probes: (self.temperatures[TIME_COLUMN].to_numpy(),
-                        self.temperatures[[f"{p}_C" for p in probes]].to_numpy(dtype=np.float64))}
+        out = {
+            probes: (
+                self.temperatures[TIME_COLUMN].to_numpy(),
+                self.temperatures[[f"{p}_C" for p in probes]].to_numpy(dtype=np.float64),
+            )
+        }
         with_ref = [s for s in self.meta.sensors if s.reference_column is not None]
         if with_ref:
             lam = self.fbg[[s.reference_column for s in with_ref]].to_numpy(dtype=np.float64)
             dT = optics.grating_temperature_change_K(
-                lam, lam[0], thermo_optic_per_K=np.array([s.thermo_optic_per_K for s in with_ref]),
-                fibre_cte_per_K=np.array([s.fibre_cte_per_K for s in with_ref]))
+                lam,
+                lam[0],
+                thermo_optic_per_K=np.array([s.thermo_optic_per_K for s in with_ref]),
+                fibre_cte_per_K=np.array([s.fibre_cte_per_K for s in with_ref]),
+            )
             out[tuple(s.reference_probe for s in with_ref)] = (self.fbg[TIME_COLUMN].to_numpy(), dT)
         return out
 
     # -- inspection --------------------------------------------------------------------------
     def _tables(self) -> dict[str, pd.DataFrame]:
-        tables = {FBG_FILE: self.fbg, TEMPERATURES_FILE: self.temperatures,
-                  REFERENCE_FILE: self.reference}
+        tables = {FBG_FILE: self.fbg, TEMPERATURES_FILE: self.temperatures, REFERENCE_FILE: self.reference}
         if self.loads is not None:
             tables[LOADS_FILE] = self.loads
         return tables
@@ -224,8 +264,11 @@ class Campaign:
                 "duration_s": float(t[-1] - t[0]),
                 "median_interval_s": median,
                 "rate_hz": (1.0 / median) if median else None,
-                "columns": {c: {"min": float(frame[c].min()), "max": float(frame[c].max())}
-                            for c in frame.columns if c != TIME_COLUMN},
+                "columns": {
+                    c: {"min": float(frame[c].min()), "max": float(frame[c].max())}
+                    for c in frame.columns
+                    if c != TIME_COLUMN
+                },
             }
             if median:
                 gaps = np.flatnonzero(step > GAP_FACTOR * median)
@@ -235,7 +278,8 @@ class Campaign:
                     problems.append(
                         f"{role}: {gaps.size} gap(s) longer than {GAP_FACTOR:g} x the median "
                         f"interval ({median:g} s); longest {step[longest]:g} s before row "
-                        f"{longest + 2} (t = {t[longest + 1]:g} s)")
+                        f"{longest + 2} (t = {t[longest + 1]:g} s)"
+                    )
             else:
                 info["gaps"] = 0
             files[role] = info
@@ -249,30 +293,35 @@ class Campaign:
             before = int(np.searchsorted(ref_t, t0, side="left"))
             after = int(ref_t.size - np.searchsorted(ref_t, t1, side="right"))
             if before + after:
-                problems.append(f"{before + after} reference sample(s) outside the overlap "
-                                f"{t0:g} to {t1:g} s will be dropped ({before} before, "
-                                f"{after} after)")
+                problems.append(
+                    f"{before + after} reference sample(s) outside the overlap "
+                    f"{t0:g} to {t1:g} s will be dropped ({before} before, "
+                    f"{after} after)"
+                )
             if self.loads is not None:
                 lt = self.loads[TIME_COLUMN].to_numpy()
                 inside = ref_t[(ref_t >= t0) & (ref_t <= t1)]
                 uncovered = int(((inside < lt[0]) | (inside > lt[-1])).sum())
                 if uncovered:
-                    problems.append(f"{LOADS_FILE} covers {lt[0]:g} to {lt[-1]:g} s only: "
-                                    f"{uncovered} aligned sample(s) will have NaN loads")
+                    problems.append(
+                        f"{LOADS_FILE} covers {lt[0]:g} to {lt[-1]:g} s only: "
+                        f"{uncovered} aligned sample(s) will have NaN loads"
+                    )
         else:
             overlap, before, after = None, int(ref_t.size), 0
             problems.append("fbg.csv, temperatures.csv and reference.csv do not overlap in time")
 
         for probe in self.undeclared_probes:
-            problems.append(f"{TEMPERATURES_FILE}: column {probe}_C is not declared in "
-                            f"campaign.yaml temperature_probes (used as probe {probe!r})")
+            problems.append(
+                f"{TEMPERATURES_FILE}: column {probe}_C is not declared in "
+                f"campaign.yaml temperature_probes (used as probe {probe!r})"
+            )
         for role, frame in self._tables().items():
             for column in frame.attrs.get("ignored_columns", []):
                 problems.append(f"{role}: column {column!r} is not part of the format and was ignored")
         for i, sensor in enumerate(self.meta.sensors):
             for key in sensor.model_extra or {}:
-                problems.append(f"{META_FILE}: sensors[{i}] has unrecognised key {key!r} "
-                                "(kept; a typo?)")
+                problems.append(f"{META_FILE}: sensors[{i}] has unrecognised key {key!r} (kept; a typo?)")
 
         return {
             "name": self.name,
@@ -283,8 +332,10 @@ class Campaign:
             "files": files,
             "overlap_s": overlap,
             "reference_outside_overlap": {"before": before, "after": after},
-            "sensors": [{"name": s.name, "lambda0_nm": s.lambda0_nm,
-                         "temperature_probe": s.temperature_probe} for s in self.meta.sensors],
+            "sensors": [
+                {"name": s.name, "lambda0_nm": s.lambda0_nm, "temperature_probe": s.temperature_probe}
+                for s in self.meta.sensors
+            ],
             "probes": self.probe_names,
             "undeclared_probes": self.undeclared_probes,
             "problems": problems,
@@ -299,22 +350,33 @@ class Campaign:
         if s["description"]:
             lines.append(f"  {s['description']}")
         for role, info in s["files"].items():
-            rate = (f"every {info['median_interval_s']:g} s ({info['rate_hz']:.4g} Hz)"
-                    if info["median_interval_s"] else "single sample")
-            lines.append(f"{role}: {info['rows']} rows, {info['start_s']:g} to {info['end_s']:g} s "
-                         f"({info['duration_s']:g} s), {rate}")
+            rate = (
+                f"every {info['median_interval_s']:g} s ({info['rate_hz']:.4g} Hz)"
+                if info["median_interval_s"]
+                else "single sample"
+            )
+            lines.append(
+                f"{role}: {info['rows']} rows, {info['start_s']:g} to {info['end_s']:g} s "
+                f"({info['duration_s']:g} s), {rate}"
+            )
             for column, mm in info["columns"].items():
                 lines.append(f"    {column:<16} min {mm['min']:.12g}  max {mm['max']:.12g}")
         if s["overlap_s"] is None:
             lines.append("overlap: none")
         else:
             out = s["reference_outside_overlap"]
-            lines.append(f"overlap: {s['overlap_s'][0]:g} to {s['overlap_s'][1]:g} s; reference "
-                         f"samples outside: {out['before']} before, {out['after']} after")
+            lines.append(
+                f"overlap: {s['overlap_s'][0]:g} to {s['overlap_s'][1]:g} s; reference "
+                f"samples outside: {out['before']} before, {out['after']} after"
+            )
         probes = {sensor["name"]: sensor["temperature_probe"] for sensor in s["sensors"]}
-        lines.append("sensors: " + ", ".join(
-            f"{name} (probe {probe})" if probe else f"{name} (uncompensated)"
-            for name, probe in probes.items()))
+        lines.append(
+            "sensors: "
+            + ", ".join(
+                f"{name} (probe {probe})" if probe else f"{name} (uncompensated)"
+                for name, probe in probes.items()
+            )
+        )
         lines.append("probes: " + (", ".join(s["probes"]) or "none"))
         if s["problems"]:
             lines.append("problems:")
@@ -343,8 +405,9 @@ def read_campaign(path: str | Path) -> Campaign:
     temperatures = read_table(folder, TEMPERATURES_FILE, meta)
     reference = read_table(folder, REFERENCE_FILE, meta)
     loads = read_table(folder, LOADS_FILE, meta) if (folder / LOADS_FILE).exists() else None
-    return Campaign(path=folder, meta=meta, fbg=fbg, temperatures=temperatures,
-                    reference=reference, loads=loads)
+    return Campaign(
+        path=folder, meta=meta, fbg=fbg, temperatures=temperatures, reference=reference, loads=loads
+    )
 
 
 def write_campaign(campaign: Campaign, path: str | Path) -> Path:
@@ -358,8 +421,10 @@ def write_campaign(campaign: Campaign, path: str | Path) -> Path:
     if target.exists() and not target.is_dir():
         raise InputError("cannot write a campaign folder: a file of that name exists", file=target)
     if target.is_dir() and any(target.iterdir()) and not (target / META_FILE).is_file():
-        raise InputError("refusing to replace a folder that is not a campaign folder "
-                         "(it has no campaign.yaml)", file=target)
+        raise InputError(
+            "refusing to replace a folder that is not a campaign folder (it has no campaign.yaml)",
+            file=target,
+        )
     checked = campaign.validate()
     target.parent.mkdir(parents=True, exist_ok=True)
     token = uuid.uuid4().hex[:12]

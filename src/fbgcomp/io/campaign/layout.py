@@ -8,8 +8,16 @@ from __future__ import annotations
 
 from fbgcomp.units import REFERENCE_COLUMNS
 
-__all__ = ["META_FILE", "FBG_FILE", "TEMPERATURES_FILE", "REFERENCE_FILE", "LOADS_FILE",
-           "TIME_COLUMN", "REFERENCE_COLUMNS", "LOAD_COLUMNS"]
+__all__ = [
+    "FBG_FILE",
+    "LOADS_FILE",
+    "LOAD_COLUMNS",
+    "META_FILE",
+    "REFERENCE_COLUMNS",
+    "REFERENCE_FILE",
+    "TEMPERATURES_FILE",
+    "TIME_COLUMN",
+]
 
 META_FILE = "campaign.yaml"
 FBG_FILE = "fbg.csv"

@@ -8,21 +8,41 @@ Errors are :class:`fbgcomp.errors.InputError` naming campaign.yaml and the field
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Annotated, Any, Literal, Mapping
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import (AwareDatetime, BaseModel, ConfigDict, Field, StrictStr, ValidationError,
-                      field_validator, model_validator)
+from pydantic import (
+    AwareDatetime,
+    BaseModel,
+    ConfigDict,
+    Field,
+    StrictStr,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 from pydantic_core import PydanticCustomError
 
 from fbgcomp.errors import InputError, read_bounded
 from fbgcomp.io.campaign.layout import META_FILE
 
-__all__ = ["SensorSpec", "ProbeSpec", "ReferenceSpec", "CampaignMeta", "MetaLoader",
-           "MAX_META_BYTES", "meta_error", "validate_meta", "read_meta", "meta_yaml",
-           "to_builtins", "short_repr"]
+__all__ = [
+    "MAX_META_BYTES",
+    "CampaignMeta",
+    "MetaLoader",
+    "ProbeSpec",
+    "ReferenceSpec",
+    "SensorSpec",
+    "meta_error",
+    "meta_yaml",
+    "read_meta",
+    "short_repr",
+    "to_builtins",
+    "validate_meta",
+]
 
 #: Largest campaign.yaml read, bytes (a real one is a few kB).
 MAX_META_BYTES = 1 << 20
@@ -51,21 +71,27 @@ class SensorSpec(BaseModel):
     name: _Name
     lambda0_nm: _PositiveFloat = Field(description="nominal Bragg wavelength of the grating, nm")
     gauge_length_mm: _PositiveFloat = Field(description="bonded length of the sensor path, mm")
-    photoelastic: _FiniteFloat = Field(_DEFAULT_PHOTOELASTIC, ge=0, lt=1,
-                                       description="effective photo-elastic coefficient p_e")
-    thermo_optic_per_K: _FiniteFloat = Field(_DEFAULT_THERMO_OPTIC_PER_K,
-                                             description="thermo-optic coefficient xi, 1/K")
-    fibre_cte_per_K: _FiniteFloat = Field(_DEFAULT_FIBRE_CTE_PER_K,
-                                          description="fibre thermal expansion alpha_f, 1/K")
+    photoelastic: _FiniteFloat = Field(
+        _DEFAULT_PHOTOELASTIC, ge=0, lt=1, description="effective photo-elastic coefficient p_e"
+    )
+    thermo_optic_per_K: _FiniteFloat = Field(
+        _DEFAULT_THERMO_OPTIC_PER_K, description="thermo-optic coefficient xi, 1/K"
+    )
+    fibre_cte_per_K: _FiniteFloat = Field(
+        _DEFAULT_FIBRE_CTE_PER_K, description="fibre thermal expansion alpha_f, 1/K"
+    )
     face: Literal["+X", "-X", "+Y", "-Y", "+Z", "-Z"] | None = None
     z_start_mm: _FiniteFloat | None = None
     z_end_mm: _FiniteFloat | None = None
     temperature_probe: _Name | None = Field(
-        None, description="probe used for temperature compensation; none: uncompensated")
+        None, description="probe used for temperature compensation; none: uncompensated"
+    )
     reference_lambda0_nm: _PositiveFloat | None = Field(
-        None, description="nominal wavelength of a strain-free reference grating beside the "
-                          "sensor (fbg.csv column <name>_ref_nm); it compensates the sensor "
-                          "unless temperature_probe names another probe")
+        None,
+        description="nominal wavelength of a strain-free reference grating beside the "
+        "sensor (fbg.csv column <name>_ref_nm); it compensates the sensor "
+        "unless temperature_probe names another probe",
+    )
 
     @model_validator(mode="after")
     def _reference_compensates(self):
@@ -142,8 +168,14 @@ class CampaignMeta(BaseModel):
                     raise PydanticCustomError(
                         "duplicate_name",
                         "duplicate {kind} name '{name}' (first declared as {key}[{first}])",
-                        {"kind": kind, "name": item.name, "key": key, "first": first[item.name],
-                         "field": f"{key}[{i}].name"})
+                        {
+                            "kind": kind,
+                            "name": item.name,
+                            "key": key,
+                            "first": first[item.name],
+                            "field": f"{key}[{i}].name",
+                        },
+                    )
                 first[item.name] = i
         refs = set(self.reference_probe_names)
         for i, probe in enumerate(self.temperature_probes):
@@ -151,8 +183,8 @@ class CampaignMeta(BaseModel):
                 raise PydanticCustomError(
                     "duplicate_name",
                     "probe name '{name}' is taken by the reference grating of sensor '{sensor}'",
-                    {"name": probe.name, "sensor": probe.name[:-4],
-                     "field": f"temperature_probes[{i}].name"})
+                    {"name": probe.name, "sensor": probe.name[:-4], "field": f"temperature_probes[{i}].name"},
+                )
         probes = self.probe_names
         for i, sensor in enumerate(self.sensors):
             if sensor.temperature_probe is not None and sensor.temperature_probe not in probes:
@@ -160,9 +192,13 @@ class CampaignMeta(BaseModel):
                     "unknown_probe",
                     "sensor '{sensor}' names temperature probe '{probe}', which is not declared "
                     "in temperature_probes (declared: {declared})",
-                    {"sensor": sensor.name, "probe": sensor.temperature_probe,
-                     "declared": ", ".join(probes) or "none",
-                     "field": f"sensors[{i}].temperature_probe"})
+                    {
+                        "sensor": sensor.name,
+                        "probe": sensor.temperature_probe,
+                        "declared": ", ".join(probes) or "none",
+                        "field": f"sensors[{i}].temperature_probe",
+                    },
+                )
         return self
 
     @property
@@ -196,11 +232,14 @@ class CampaignMeta(BaseModel):
         raise KeyError(name)
 
 
-_YAML_FLOAT_RE = re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+_YAML_FLOAT_RE = re.compile(
+    r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
     |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
     |[-+]?\.[0-9_]+(?:[eE][-+]?[0-9]+)?
     |[-+]?\.(?:inf|Inf|INF)
-    |\.(?:nan|NaN|NAN))$""", re.X)
+    |\.(?:nan|NaN|NAN))$""",
+    re.X,
+)
 
 
 class MetaLoader(yaml.SafeLoader):
@@ -219,8 +258,8 @@ class MetaLoader(yaml.SafeLoader):
                 break
             if duplicate:
                 raise yaml.constructor.ConstructorError(
-                    None, None, f"duplicate key {key!r} (first at line {seen[key] + 1})",
-                    key_node.start_mark)
+                    None, None, f"duplicate key {key!r} (first at line {seen[key] + 1})", key_node.start_mark
+                )
             seen[key] = key_node.start_mark.line
         return super().construct_mapping(node, deep=deep)
 
@@ -278,8 +317,11 @@ def validate_meta(data: Any, file) -> CampaignMeta:
     if isinstance(data, CampaignMeta):
         data = data.model_dump()
     if not isinstance(data, Mapping):
-        raise InputError("expected a mapping of fields (name: ..., kind: ..., sensors: ...) at the "
-                         f"top level, found {type(data).__name__}", file=file)
+        raise InputError(
+            "expected a mapping of fields (name: ..., kind: ..., sensors: ...) at the "
+            f"top level, found {type(data).__name__}",
+            file=file,
+        )
     try:
         return CampaignMeta.model_validate(dict(data))
     except ValidationError as exc:
@@ -291,20 +333,23 @@ def read_meta(folder: Path) -> CampaignMeta:
     naming the file and the line or field path."""
     file = folder / META_FILE
     if not file.is_file():
-        raise InputError("missing file: a campaign folder needs campaign.yaml "
-                         "(name, kind, start, sensors, temperature_probes, reference)", file=file)
+        raise InputError(
+            "missing file: a campaign folder needs campaign.yaml "
+            "(name, kind, start, sensors, temperature_probes, reference)",
+            file=file,
+        )
     raw = read_bounded(file, MAX_META_BYTES, what="campaign metadata")
     if not raw.strip():
-        raise InputError("empty file: expected the campaign metadata "
-                         "(name, kind, start, sensors, ...)", file=file)
+        raise InputError(
+            "empty file: expected the campaign metadata (name, kind, start, sensors, ...)", file=file
+        )
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
         line = raw[: exc.start].count(b"\n") + 1
-        raise InputError(f"not UTF-8 text: byte 0x{raw[exc.start]:02x} at line {line}",
-                         file=file) from None
+        raise InputError(f"not UTF-8 text: byte 0x{raw[exc.start]:02x} at line {line}", file=file) from None
     try:
-        data = yaml.load(text, Loader=MetaLoader)  # noqa: S506 - a SafeLoader subclass
+        data = yaml.load(text, Loader=MetaLoader)
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
@@ -343,7 +388,8 @@ def meta_yaml(meta: CampaignMeta, file) -> str:
         if probe.get("location", "") is None:
             del probe["location"]
     try:
-        return yaml.dump(data, Dumper=_MetaDumper, sort_keys=False, allow_unicode=True,
-                         default_flow_style=None, width=160)
+        return yaml.dump(
+            data, Dumper=_MetaDumper, sort_keys=False, allow_unicode=True, default_flow_style=None, width=160
+        )
     except yaml.YAMLError as exc:
         raise InputError(f"metadata cannot be written as YAML: {exc}", file=file) from None

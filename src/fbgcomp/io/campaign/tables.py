@@ -19,12 +19,26 @@ import numpy as np
 import pandas as pd
 
 from fbgcomp.errors import InputError
-from fbgcomp.io.campaign.layout import (FBG_FILE, LOAD_COLUMNS, REFERENCE_COLUMNS, REFERENCE_FILE,
-                                        TEMPERATURES_FILE, TIME_COLUMN)
+from fbgcomp.io.campaign.layout import (
+    FBG_FILE,
+    LOAD_COLUMNS,
+    REFERENCE_COLUMNS,
+    REFERENCE_FILE,
+    TEMPERATURES_FILE,
+    TIME_COLUMN,
+)
 from fbgcomp.io.campaign.meta import CampaignMeta, short_repr
 
-__all__ = ["WAVELENGTH_BAND_NM", "MAX_COLUMNS", "MAX_HEADER_BYTES", "MAX_CELL_BYTES", "VALUE_BOUNDS",
-           "read_table", "table_from_input", "write_csv"]
+__all__ = [
+    "MAX_CELL_BYTES",
+    "MAX_COLUMNS",
+    "MAX_HEADER_BYTES",
+    "VALUE_BOUNDS",
+    "WAVELENGTH_BAND_NM",
+    "read_table",
+    "table_from_input",
+    "write_csv",
+]
 
 #: A peak further than this from the grating's nominal lambda0_nm is a lost peak, a peak picked
 #: from the neighbouring grating or a wrong channel mapping: no structure strains an FBG by ~0.4 %.
@@ -66,11 +80,12 @@ def _role_columns(role: str, meta: CampaignMeta) -> tuple[list[str], str]:
     """Required columns of a file and a description of what it holds (for messages)."""
     if role == FBG_FILE:
         refs = [s.reference_column for s in meta.sensors if s.reference_column is not None]
-        return ([TIME_COLUMN] + [s.column for s in meta.sensors] + refs,
-                "time_s, <sensor>_nm and, for sensors with reference_lambda0_nm, <sensor>_ref_nm columns")
+        return (
+            [TIME_COLUMN] + [s.column for s in meta.sensors] + refs,
+            "time_s, <sensor>_nm and, for sensors with reference_lambda0_nm, <sensor>_ref_nm columns",
+        )
     if role == TEMPERATURES_FILE:
-        return ([TIME_COLUMN] + [p.column for p in meta.temperature_probes],
-                "time_s and <probe>_C columns")
+        return ([TIME_COLUMN] + [p.column for p in meta.temperature_probes], "time_s and <probe>_C columns")
     if role == REFERENCE_FILE:
         return [TIME_COLUMN, *REFERENCE_COLUMNS], "time_s, dx_um, dy_um, dz_um"
     return [TIME_COLUMN, *LOAD_COLUMNS], "time_s, fx_N, fy_N, fz_N"
@@ -94,9 +109,12 @@ def _check_columns(role: str, names: list[str], meta: CampaignMeta, file) -> lis
             close = difflib.get_close_matches(column, shown[:MAX_COLUMNS], n=1, cutoff=0.75)
             hint = f"; did you mean {close[0]!r}?" if close else ""
             # Never list the header itself: fbg.csv may be a link to some other file.
-            raise InputError(f"missing column {column!r}; {role} must hold {holds} (the header "
-                             f"has {len(names)} column{'s' if len(names) != 1 else ''}{hint})",
-                             file=file, column=column)
+            raise InputError(
+                f"missing column {column!r}; {role} must hold {holds} (the header "
+                f"has {len(names)} column{'s' if len(names) != 1 else ''}{hint})",
+                file=file,
+                column=column,
+            )
     wanted = set(required)
     extra = [(position, n) for position, n in enumerate(names, start=1) if n not in wanted]
     for position, column in extra:
@@ -104,19 +122,23 @@ def _check_columns(role: str, names: list[str], meta: CampaignMeta, file) -> lis
             raise InputError(
                 f"column {column} holds a reference grating for sensor {column[:-7]}, which "
                 f"declares none: give it reference_lambda0_nm in campaign.yaml",
-                file=file, column=column)
+                file=file,
+                column=column,
+            )
         if role == FBG_FILE and column.endswith("_nm"):
             label = _column_label(column, position)
             sensor = f"{column[:-3]!r}" if label == column else "of that name"
             raise InputError(
                 f"unknown sensor {sensor}: column {label} has no entry in campaign.yaml "
-                f"sensors (declared: {', '.join(meta.sensor_names)})", file=file, column=label)
+                f"sensors (declared: {', '.join(meta.sensor_names)})",
+                file=file,
+                column=label,
+            )
     # Any other extra column (a status flag, a second interferometer axis, ...) is read, checked
     # like the rest, and left out of the campaign; summary() reports it. The format names the
     # columns a file must hold, not the only ones it may hold. Undeclared <probe>_C columns are
     # kept as probes (and reported by summary()).
-    return required + [n for _, n in extra
-                       if role == TEMPERATURES_FILE and n.endswith("_C") and len(n) > 2]
+    return required + [n for _, n in extra if role == TEMPERATURES_FILE and n.endswith("_C") and len(n) > 2]
 
 
 def _cell_problem(text: str) -> str | None:
@@ -143,10 +165,20 @@ def _locate_bad_cell(file, names: list[str], body: bytes, first_row: int = 1) ->
     the text read itself fails) is every line scanned in Python.
     """
     try:
-        text = pd.read_csv(io.BytesIO(body + b"\n"), header=None, names=names, index_col=False,
-                           dtype=str, sep=",", engine="c", quoting=csv.QUOTE_NONE,
-                           na_filter=False, skip_blank_lines=False, encoding="utf-8")
-    except Exception:  # noqa: BLE001 - e.g. bytes that are not UTF-8: the line scan names them
+        text = pd.read_csv(
+            io.BytesIO(body + b"\n"),
+            header=None,
+            names=names,
+            index_col=False,
+            dtype=str,
+            sep=",",
+            engine="c",
+            quoting=csv.QUOTE_NONE,
+            na_filter=False,
+            skip_blank_lines=False,
+            encoding="utf-8",
+        )
+    except Exception:
         text = None
     if text is not None and text.shape[1] == len(names):
         suspects = []
@@ -163,8 +195,12 @@ def _locate_bad_cell(file, names: list[str], body: bytes, first_row: int = 1) ->
             decoded = line.decode("utf-8")
         except UnicodeDecodeError as exc:
             col = line[: exc.start].count(b",")
-            raise InputError(f"not UTF-8 text: byte 0x{line[exc.start]:02x}", file=file, row=row,
-                             column=names[col] if col < len(names) else None) from None
+            raise InputError(
+                f"not UTF-8 text: byte 0x{line[exc.start]:02x}",
+                file=file,
+                row=row,
+                column=names[col] if col < len(names) else None,
+            ) from None
         for col, cell in enumerate(decoded.split(",")[: len(names)]):
             problem = _cell_problem(cell)
             if problem:
@@ -180,8 +216,7 @@ def _open_table(file: Path):
     try:
         return open(file, "rb")
     except OSError as exc:
-        raise InputError(f"cannot open the file: {exc.strerror or type(exc).__name__}",
-                         file=file) from None
+        raise InputError(f"cannot open the file: {exc.strerror or type(exc).__name__}", file=file) from None
 
 
 def _read_header(handle, file) -> tuple[list[str], bytes]:
@@ -192,24 +227,31 @@ def _read_header(handle, file) -> tuple[list[str], bytes]:
     """
     head = handle.readline(MAX_HEADER_BYTES + 1)
     if not head:
-        raise InputError("empty file (0 bytes); expected a header row such as 'time_s,...' "
-                         "followed by data rows", file=file)
+        raise InputError(
+            "empty file (0 bytes); expected a header row such as 'time_s,...' followed by data rows",
+            file=file,
+        )
     cut = _LINE_END_RE.search(head)
     if cut is None and len(head) > MAX_HEADER_BYTES:
-        raise InputError(f"the header (line 1) is longer than {MAX_HEADER_BYTES} bytes; a "
-                         f"campaign CSV holds at most {MAX_COLUMNS} columns", file=file)
-    line, rest = (head, b"") if cut is None else (head[: cut.start()], head[cut.start():])
+        raise InputError(
+            f"the header (line 1) is longer than {MAX_HEADER_BYTES} bytes; a "
+            f"campaign CSV holds at most {MAX_COLUMNS} columns",
+            file=file,
+        )
+    line, rest = (head, b"") if cut is None else (head[: cut.start()], head[cut.start() :])
     if line.startswith(codecs.BOM_UTF8):
-        line = line[len(codecs.BOM_UTF8):]
+        line = line[len(codecs.BOM_UTF8) :]
     n_columns = line.count(b",") + 1
     if n_columns > MAX_COLUMNS:
-        raise InputError(f"the header has {n_columns} columns; a campaign CSV holds at most "
-                         f"{MAX_COLUMNS}", file=file)
+        raise InputError(
+            f"the header has {n_columns} columns; a campaign CSV holds at most {MAX_COLUMNS}", file=file
+        )
     try:
         header = line.decode("utf-8")
     except UnicodeDecodeError as exc:
-        raise InputError(f"header (line 1) is not UTF-8 text: byte 0x{line[exc.start]:02x}",
-                         file=file) from None
+        raise InputError(
+            f"header (line 1) is not UTF-8 text: byte 0x{line[exc.start]:02x}", file=file
+        ) from None
     if not header.strip():
         raise InputError("line 1 is blank; expected the header row, e.g. 'time_s,...'", file=file)
     if "," not in header:
@@ -225,9 +267,11 @@ def _read_header(handle, file) -> tuple[list[str], bytes]:
         if not name:
             raise InputError(f"header column {position} has no name", file=file)
         if name in first:
-            raise InputError(f"column name appears twice in the header (columns "
-                             f"{first[name]} and {position})", file=file,
-                             column=_column_label(name, position))
+            raise InputError(
+                f"column name appears twice in the header (columns {first[name]} and {position})",
+                file=file,
+                column=_column_label(name, position),
+            )
         first[name] = position
         names.append(name)
     return names, rest
@@ -237,7 +281,7 @@ def _body_blocks(handle, rest: bytes):
     """The data rows' bytes, in blocks of about :data:`_CHUNK_BYTES`, with CR LF and lone CR
     line ends turned into LF. ``rest`` is what the header read took beyond the header line:
     empty (the file ends there) or starting with the header's own line end, which is dropped."""
-    pending_cr = False   # the previous block ended with CR: an LF opening this one belongs to it
+    pending_cr = False  # the previous block ended with CR: an LF opening this one belongs to it
     first = True
     block = rest
     while block:
@@ -260,9 +304,9 @@ def _parse_rows(file, names: list[str], blocks) -> np.ndarray:
     n_cols = len(names)
     longest = max(_MIN_ROW_BYTES, n_cols * MAX_CELL_BYTES)
     parts: list[np.ndarray] = []
-    rows = 0      # data rows parsed so far
-    blank = 0     # blank lines after them, not yet known to be the file's trailing ones
-    carry = b""   # a line whose end has not been read yet
+    rows = 0  # data rows parsed so far
+    blank = 0  # blank lines after them, not yet known to be the file's trailing ones
+    carry = b""  # a line whose end has not been read yet
 
     def take(lines: bytes) -> None:
         nonlocal rows, blank
@@ -271,8 +315,9 @@ def _parse_rows(file, names: list[str], blocks) -> np.ndarray:
             blank += lines.count(b"\n") + 1
             return
         if blank:
-            raise InputError(f"empty row (blank line); expected {n_cols} comma-separated values",
-                             file=file, row=rows + 1)
+            raise InputError(
+                f"empty row (blank line); expected {n_cols} comma-separated values", file=file, row=rows + 1
+            )
         tail = lines.find(b"\n", end)
         if tail >= 0:
             blank = lines.count(b"\n", tail)
@@ -285,13 +330,16 @@ def _parse_rows(file, names: list[str], blocks) -> np.ndarray:
         buffer = carry + block if carry else block
         last = buffer.rfind(b"\n")
         if last >= 0:
-            carry = buffer[last + 1:]
+            carry = buffer[last + 1 :]
             take(buffer[:last])
         else:
             carry = buffer
         if len(carry) > longest:
-            raise InputError(f"row is longer than {longest} bytes; expected {n_cols} "
-                             "comma-separated numbers", file=file, row=rows + blank + 1)
+            raise InputError(
+                f"row is longer than {longest} bytes; expected {n_cols} comma-separated numbers",
+                file=file,
+                row=rows + blank + 1,
+            )
     if carry.strip(b" \t"):
         take(carry.rstrip(b" \t"))
     if not parts:
@@ -313,8 +361,7 @@ def _parse_body(file, names: list[str], body: bytes, first_row: int = 1) -> np.n
     buffer = np.frombuffer(body, dtype=np.uint8)
     line_ends = np.flatnonzero(buffer == ord("\n"))
     n_rows = line_ends.size + 1
-    separators = np.bincount(np.searchsorted(line_ends, np.flatnonzero(buffer == ord(","))),
-                             minlength=n_rows)
+    separators = np.bincount(np.searchsorted(line_ends, np.flatnonzero(buffer == ord(","))), minlength=n_rows)
     wrong = np.flatnonzero(separators != n_cols - 1)
     if wrong.size:
         index = int(wrong[0])
@@ -323,24 +370,41 @@ def _parse_body(file, names: list[str], body: bytes, first_row: int = 1) -> np.n
         line = body[start:stop].decode("utf-8", errors="replace")
         found = int(separators[index]) + 1
         if not line.strip():
-            raise InputError(f"empty row (blank line); expected {n_cols} comma-separated values",
-                             file=file, row=first_row + index)
+            raise InputError(
+                f"empty row (blank line); expected {n_cols} comma-separated values",
+                file=file,
+                row=first_row + index,
+            )
         if found == 1:
             for delimiter, label in _DELIMITERS:
                 if delimiter in line:
-                    raise InputError(f"expected comma-separated columns, found {label}",
-                                     file=file, row=first_row + index)
-        raise InputError(f"row has {found} values, expected {n_cols} ({_columns_text(names)})",
-                         file=file, row=first_row + index,
-                         column=names[found] if found < n_cols else None)
+                    raise InputError(
+                        f"expected comma-separated columns, found {label}", file=file, row=first_row + index
+                    )
+        raise InputError(
+            f"row has {found} values, expected {n_cols} ({_columns_text(names)})",
+            file=file,
+            row=first_row + index,
+            column=names[found] if found < n_cols else None,
+        )
     try:
-        frame = pd.read_csv(io.BytesIO(body + b"\n"), header=None, names=names, index_col=False,
-                            dtype=np.float64, sep=",", engine="c", quoting=csv.QUOTE_NONE,
-                            na_filter=False, skip_blank_lines=False, encoding="utf-8")
+        frame = pd.read_csv(
+            io.BytesIO(body + b"\n"),
+            header=None,
+            names=names,
+            index_col=False,
+            dtype=np.float64,
+            sep=",",
+            engine="c",
+            quoting=csv.QUOTE_NONE,
+            na_filter=False,
+            skip_blank_lines=False,
+            encoding="utf-8",
+        )
         values = frame.to_numpy(dtype=np.float64)
         if values.shape != (n_rows, n_cols):
             raise ValueError(f"parsed {values.shape}, expected {(n_rows, n_cols)}")
-    except Exception as exc:  # noqa: BLE001 - any parser failure is located cell by cell below
+    except Exception as exc:
         _locate_bad_cell(file, names, body, first_row)
         raise InputError(f"cannot read the numbers: {type(exc).__name__}", file=file) from None
     bad = ~np.isfinite(values)
@@ -350,8 +414,12 @@ def _parse_body(file, names: list[str], body: bytes, first_row: int = 1) -> np.n
         start = 0 if index == 0 else int(line_ends[index - 1]) + 1
         stop = int(line_ends[index]) if index < line_ends.size else len(body)
         cell = body[start:stop].decode("utf-8", errors="replace").split(",")[col]
-        raise InputError(_cell_problem(cell) or f"non-finite value {short_repr(cell, 32)}",
-                         file=file, row=first_row + index, column=names[col])
+        raise InputError(
+            _cell_problem(cell) or f"non-finite value {short_repr(cell, 32)}",
+            file=file,
+            row=first_row + index,
+            column=names[col],
+        )
     return values
 
 
@@ -384,9 +452,13 @@ def _check_bounds(names: list[str], kept, values: np.ndarray, file) -> None:
     low, high, closed, quantity, unit = _bounds_of(names[col])
     short = lambda v: f"{v:g}".replace("e+", "e").replace("e0", "e")  # noqa: E731 - 1e6, not 1e+06
     ends = f"[{short(low)}, {short(high)}]" if closed else f"({short(low)}, {short(high)})"
-    raise InputError(f"{quantity} {float(values[row, col])!r} {unit} is outside the physical "
-                     f"range {ends} {unit}; a unit mix-up or a corrupted record?",
-                     file=file, row=row + 1, column=names[col])
+    raise InputError(
+        f"{quantity} {float(values[row, col])!r} {unit} is outside the physical "
+        f"range {ends} {unit}; a unit mix-up or a corrupted record?",
+        file=file,
+        row=row + 1,
+        column=names[col],
+    )
 
 
 def _check_values(role: str, names: list[str], values: np.ndarray, meta: CampaignMeta, file):
@@ -397,8 +469,12 @@ def _check_values(role: str, names: list[str], values: np.ndarray, meta: Campaig
     if bad.any():
         index = int(np.argmax(bad.any(axis=1)))
         col = int(np.argmax(bad[index]))
-        raise InputError(f"non-finite value {float(values[index, col])!r}; every cell must be "
-                         "a finite number", file=file, row=index + 1, column=names[col])
+        raise InputError(
+            f"non-finite value {float(values[index, col])!r}; every cell must be a finite number",
+            file=file,
+            row=index + 1,
+            column=names[col],
+        )
     kept = set(_check_columns(role, names, meta, file))
     _check_bounds(names, kept, values, file)
     time_s = values[:, names.index(TIME_COLUMN)]
@@ -407,17 +483,27 @@ def _check_values(role: str, names: list[str], values: np.ndarray, meta: Campaig
     if wrong.size:
         index = int(wrong[0]) + 1
         if step[index - 1] == 0:
-            message = (f"duplicated time {float(time_s[index])!r} s (same as row {index}); "
-                       "time_s must increase strictly")
+            message = (
+                f"duplicated time {float(time_s[index])!r} s (same as row {index}); "
+                "time_s must increase strictly"
+            )
         else:
-            message = (f"time goes backwards: {float(time_s[index])!r} s after "
-                       f"{float(time_s[index - 1])!r} s in row {index}; time_s must increase "
-                       "strictly")
+            message = (
+                f"time goes backwards: {float(time_s[index])!r} s after "
+                f"{float(time_s[index - 1])!r} s in row {index}; time_s must increase "
+                "strictly"
+            )
         raise InputError(message, file=file, row=index + 1, column=TIME_COLUMN)
     if role == FBG_FILE:
-        gratings = [(s.name, s.column, s.lambda0_nm) for s in meta.sensors] + \
-            [(f"{s.name} (reference grating, reference_lambda0_nm)", s.reference_column,
-              s.reference_lambda0_nm) for s in meta.sensors if s.reference_column is not None]
+        gratings = [(s.name, s.column, s.lambda0_nm) for s in meta.sensors] + [
+            (
+                f"{s.name} (reference grating, reference_lambda0_nm)",
+                s.reference_column,
+                s.reference_lambda0_nm,
+            )
+            for s in meta.sensors
+            if s.reference_column is not None
+        ]
         cols = [names.index(column) for _, column, _ in gratings]
         lambda0_nm = np.array([lam for _, _, lam in gratings])
         outside = np.abs(values[:, cols] - lambda0_nm) > WAVELENGTH_BAND_NM
@@ -429,7 +515,10 @@ def _check_values(role: str, names: list[str], values: np.ndarray, meta: Campaig
                 f"wavelength {value!r} nm is outside the grating's plausible band "
                 f"{lambda0_nm[j]:g} ± {WAVELENGTH_BAND_NM:g} nm (lambda0_nm of sensor "
                 f"{gratings[j][0]}): a lost peak or a wrong channel mapping?",
-                file=file, row=index + 1, column=gratings[j][1])
+                file=file,
+                row=index + 1,
+                column=gratings[j][1],
+            )
 
 
 def read_table(folder: Path, role: str, meta: CampaignMeta) -> pd.DataFrame:
@@ -442,8 +531,9 @@ def read_table(folder: Path, role: str, meta: CampaignMeta) -> pd.DataFrame:
             order = _check_columns(role, names, meta, file)
             values = _parse_rows(file, names, _body_blocks(handle, rest))
         except OSError as exc:  # e.g. EIO, or a file that vanished while being read
-            raise InputError(f"cannot read the file: {exc.strerror or type(exc).__name__}",
-                             file=file) from None
+            raise InputError(
+                f"cannot read the file: {exc.strerror or type(exc).__name__}", file=file
+            ) from None
     _check_values(role, names, values, meta, file)
     frame = pd.DataFrame(values, columns=names)
     ignored = [n for n in names if n not in order]
@@ -465,8 +555,9 @@ def table_from_input(role: str, table, meta: CampaignMeta, file) -> pd.DataFrame
             raise InputError("column name appears twice", file=file, column=name)
         seen.add(name)
     if len(names) > MAX_COLUMNS:
-        raise InputError(f"the table has {len(names)} columns; a campaign table holds at most "
-                         f"{MAX_COLUMNS}", file=file)
+        raise InputError(
+            f"the table has {len(names)} columns; a campaign table holds at most {MAX_COLUMNS}", file=file
+        )
     order = _check_columns(role, names, meta, file)
     columns = []
     for name, column in zip(names, frame.columns):

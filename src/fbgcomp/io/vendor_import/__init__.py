@@ -39,16 +39,52 @@ Modules: :mod:`~fbgcomp.io.vendor_import.mapping` (the mapping file's schema),
 """
 
 from fbgcomp.io.vendor_import.importer import describe, import_campaign
-from fbgcomp.io.vendor_import.mapping import (MAX_MAPPING_BYTES, ROLE_FILES, ROLE_SUFFIX, UNITS,
-                                              ColumnSpec, FormatSpec, HeaderField, ImportMapping,
-                                              SourceSpec, TimeSpec, parse_zone, read_mapping)
+from fbgcomp.io.vendor_import.mapping import (
+    MAX_MAPPING_BYTES,
+    ROLE_FILES,
+    ROLE_SUFFIX,
+    UNITS,
+    ColumnSpec,
+    FormatSpec,
+    HeaderField,
+    ImportMapping,
+    SourceSpec,
+    TimeSpec,
+    parse_zone,
+    read_mapping,
+)
 from fbgcomp.io.vendor_import.presets import NOT_SHIPPED, PRESETS
-from fbgcomp.io.vendor_import.readers import (MAX_EXPORT_BYTES, MAX_PREAMBLE_LINES, ExportError,
-                                              RawExport, read_export)
+from fbgcomp.io.vendor_import.readers import (
+    MAX_EXPORT_BYTES,
+    MAX_PREAMBLE_LINES,
+    ExportError,
+    RawExport,
+    read_export,
+)
 from fbgcomp.io.vendor_import.values import convert_units, source_times
 
-__all__ = ["ImportMapping", "SourceSpec", "FormatSpec", "TimeSpec", "HeaderField", "ColumnSpec",
-           "PRESETS", "NOT_SHIPPED", "ExportError", "RawExport", "read_mapping", "read_export",
-           "import_campaign", "describe", "convert_units", "source_times", "parse_zone",
-           "ROLE_FILES", "ROLE_SUFFIX", "UNITS", "MAX_EXPORT_BYTES", "MAX_MAPPING_BYTES",
-           "MAX_PREAMBLE_LINES"]
+__all__ = [
+    "MAX_EXPORT_BYTES",
+    "MAX_MAPPING_BYTES",
+    "MAX_PREAMBLE_LINES",
+    "NOT_SHIPPED",
+    "PRESETS",
+    "ROLE_FILES",
+    "ROLE_SUFFIX",
+    "UNITS",
+    "ColumnSpec",
+    "ExportError",
+    "FormatSpec",
+    "HeaderField",
+    "ImportMapping",
+    "RawExport",
+    "SourceSpec",
+    "TimeSpec",
+    "convert_units",
+    "describe",
+    "import_campaign",
+    "parse_zone",
+    "read_export",
+    "read_mapping",
+    "source_times",
+]

@@ -10,36 +10,72 @@ from __future__ import annotations
 import codecs
 import datetime as dt
 import re
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Annotated, Any, Literal, Mapping
+from typing import Annotated, Any, Literal
 from zoneinfo import ZoneInfo, ZoneInfoNotFoundError
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from fbgcomp.errors import InputError, read_bounded
-from fbgcomp.io.campaign import (FBG_FILE, LOADS_FILE, REFERENCE_FILE, TEMPERATURES_FILE, MetaLoader,
-                                 meta_error)
+from fbgcomp.io.campaign import (
+    FBG_FILE,
+    LOADS_FILE,
+    REFERENCE_FILE,
+    TEMPERATURES_FILE,
+    MetaLoader,
+    meta_error,
+)
 from fbgcomp.io.vendor_import.presets import apply_preset
 
-__all__ = ["ImportMapping", "SourceSpec", "FormatSpec", "TimeSpec", "HeaderField", "ColumnSpec",
-           "ROLE_FILES", "ROLE_SUFFIX", "UNITS", "MAX_MAPPING_BYTES", "parse_zone", "read_mapping"]
+__all__ = [
+    "MAX_MAPPING_BYTES",
+    "ROLE_FILES",
+    "ROLE_SUFFIX",
+    "UNITS",
+    "ColumnSpec",
+    "FormatSpec",
+    "HeaderField",
+    "ImportMapping",
+    "SourceSpec",
+    "TimeSpec",
+    "parse_zone",
+    "read_mapping",
+]
 
 #: Largest mapping file, bytes.
 MAX_MAPPING_BYTES = 1 << 20
 
-ROLE_FILES = {"fbg": FBG_FILE, "temperatures": TEMPERATURES_FILE, "reference": REFERENCE_FILE,
-              "loads": LOADS_FILE}
+ROLE_FILES = {
+    "fbg": FBG_FILE,
+    "temperatures": TEMPERATURES_FILE,
+    "reference": REFERENCE_FILE,
+    "loads": LOADS_FILE,
+}
 #: The campaign unit of each role (suffix of its columns).
 ROLE_SUFFIX = {"fbg": "_nm", "temperatures": "_C", "reference": "_um", "loads": "_N"}
 
 #: Source unit -> (scale, offset) onto the campaign unit: ``value * scale + offset``.
 UNITS = {
     "_nm": {"nm": (1.0, 0.0), "pm": (1e-3, 0.0), "um": (1e3, 0.0), "µm": (1e3, 0.0)},
-    "_C": {"degC": (1.0, 0.0), "C": (1.0, 0.0), "°C": (1.0, 0.0), "K": (1.0, -273.15),
-           "degF": (5.0 / 9.0, -32.0 * 5.0 / 9.0), "°F": (5.0 / 9.0, -32.0 * 5.0 / 9.0)},
-    "_um": {"um": (1.0, 0.0), "µm": (1.0, 0.0), "nm": (1e-3, 0.0), "mm": (1e3, 0.0),
-            "m": (1e6, 0.0), "in": (25400.0, 0.0), "mil": (25.4, 0.0)},
+    "_C": {
+        "degC": (1.0, 0.0),
+        "C": (1.0, 0.0),
+        "°C": (1.0, 0.0),
+        "K": (1.0, -273.15),
+        "degF": (5.0 / 9.0, -32.0 * 5.0 / 9.0),
+        "°F": (5.0 / 9.0, -32.0 * 5.0 / 9.0),
+    },
+    "_um": {
+        "um": (1.0, 0.0),
+        "µm": (1.0, 0.0),
+        "nm": (1e-3, 0.0),
+        "mm": (1e3, 0.0),
+        "m": (1e6, 0.0),
+        "in": (25400.0, 0.0),
+        "mil": (25.4, 0.0),
+    },
     "_N": {"N": (1.0, 0.0), "kN": (1e3, 0.0), "daN": (10.0, 0.0), "lbf": (4.4482216152605, 0.0)},
 }
 
@@ -51,7 +87,7 @@ def parse_zone(text: str) -> dt.tzinfo:
     (``+01:00``, ``UTC-05``). Raises ValueError naming what it expected."""
     text = str(text).strip()
     if text.upper() in ("UTC", "Z", "GMT"):
-        return dt.timezone.utc
+        return dt.UTC
     match = _OFFSET_RE.match(text)
     if match:
         sign, hours, minutes = match.groups()
@@ -62,8 +98,10 @@ def parse_zone(text: str) -> dt.tzinfo:
     try:
         return ZoneInfo(text)
     except (ZoneInfoNotFoundError, ValueError):
-        raise ValueError(f"unknown time zone {text!r}; give an IANA name such as 'Europe/Berlin', "
-                         "'UTC' or an offset such as '+01:00'") from None
+        raise ValueError(
+            f"unknown time zone {text!r}; give an IANA name such as 'Europe/Berlin', "
+            "'UTC' or an offset such as '+01:00'"
+        ) from None
 
 
 def _check_zone(value):
@@ -81,23 +119,31 @@ class FormatSpec(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     kind: Literal["csv", "excel"] | None = Field(
-        None, description="csv (any delimited text) or excel (.xlsx); default from the extension")
+        None, description="csv (any delimited text) or excel (.xlsx); default from the extension"
+    )
     delimiter: str | None = Field(
-        None, description="one character, or 'tab' / 'space'; default ',' (tab for .tsv / .tab)")
+        None, description="one character, or 'tab' / 'space'; default ',' (tab for .tsv / .tab)"
+    )
     decimal: Literal[".", ","] = "."
     thousands: Literal["", " ", ".", ",", "'", "\u202f"] = Field(
-        "", description="digit-group separator dropped before parsing numbers")
+        "", description="digit-group separator dropped before parsing numbers"
+    )
     encoding: str = "utf-8-sig"
     header_row: Annotated[int, Field(ge=1)] | None = Field(
-        None, description="1-based line (spreadsheet row) holding the column names")
+        None, description="1-based line (spreadsheet row) holding the column names"
+    )
     header_marker: str | None = Field(
-        None, description="the column names are on the first line whose first cell is this")
+        None, description="the column names are on the first line whose first cell is this"
+    )
     skip_after_header: Annotated[int, Field(ge=0)] = Field(
-        0, description="lines between the column names and the first data row (e.g. units)")
+        0, description="lines between the column names and the first data row (e.g. units)"
+    )
     sheet: str | Annotated[int, Field(ge=1)] | None = Field(
-        None, description="spreadsheet: sheet name or 1-based index; default the first")
+        None, description="spreadsheet: sheet name or 1-based index; default the first"
+    )
     on_empty: Literal["error", "drop_row"] = Field(
-        "error", description="an empty cell in a mapped column: refuse, or drop its row")
+        "error", description="an empty cell in a mapped column: refuse, or drop its row"
+    )
 
     @field_validator("delimiter")
     @classmethod
@@ -106,7 +152,7 @@ class FormatSpec(BaseModel):
             return value
         named = {"tab": "\t", "\\t": "\t", "space": " "}
         value = named.get(value, value)
-        if len(value) != 1 or value in "\r\n\"":
+        if len(value) != 1 or value in '\r\n"':
             raise ValueError("delimiter must be one character (or 'tab' / 'space')")
         return value
 
@@ -123,8 +169,9 @@ class FormatSpec(BaseModel):
     def _one_header_rule(self):
         if self.header_row is not None and self.header_marker is not None:
             raise ValueError("give header_row or header_marker, not both")
-        if self.decimal == self.thousands or (self.delimiter is not None
-                                              and self.delimiter in (self.decimal, self.thousands)):
+        if self.decimal == self.thousands or (
+            self.delimiter is not None and self.delimiter in (self.decimal, self.thousands)
+        ):
             raise ValueError("delimiter, decimal mark and digit-group separator must differ")
         return self
 
@@ -145,15 +192,18 @@ class TimeSpec(BaseModel):
 
     column: _ColumnRef | Annotated[list[_ColumnRef], Field(min_length=1)] = Field(
         description="time column (name or 1-based position); a list is joined with spaces "
-                    "(a date column and a time column)")
+        "(a date column and a time column)"
+    )
     kind: Literal["datetime", "elapsed"] = "datetime"
     format: str | None = Field(None, description="datetime: strptime format; default ISO 8601")
     timezone: str | None = Field(
-        None, description="zone of timestamps without a UTC offset (default: the mapping's)")
+        None, description="zone of timestamps without a UTC offset (default: the mapping's)"
+    )
     unit: Literal["s", "ms", "us", "min", "h", "d"] = Field("s", description="elapsed: unit")
     origin: str | None = Field(None, description="elapsed: the date and time of elapsed 0")
     origin_from_header: HeaderField | None = Field(
-        None, description="elapsed: read the date and time of elapsed 0 from the file's header")
+        None, description="elapsed: read the date and time of elapsed 0 from the file's header"
+    )
 
     @field_validator("timezone")
     @classmethod
@@ -195,8 +245,10 @@ class SourceSpec(BaseModel):
     def _shorthand(cls, value):
         # ``S1_nm: "Peak 1"`` is ``S1_nm: {column: "Peak 1"}`` (already in the campaign unit).
         if isinstance(value, Mapping):
-            return {k: ({"column": v} if isinstance(v, (str, int)) and not isinstance(v, bool)
-                        else v) for k, v in value.items()}
+            return {
+                k: ({"column": v} if isinstance(v, (str, int)) and not isinstance(v, bool) else v)
+                for k, v in value.items()
+            }
         return value
 
     @model_validator(mode="after")
@@ -204,11 +256,14 @@ class SourceSpec(BaseModel):
         suffix = ROLE_SUFFIX[self.role]
         for target, spec in self.columns.items():
             if not target.endswith(suffix) or target == suffix:
-                raise ValueError(f"column {target!r} cannot go into {ROLE_FILES[self.role]}: its "
-                                 f"columns are named <name>{suffix}")
+                raise ValueError(
+                    f"column {target!r} cannot go into {ROLE_FILES[self.role]}: its "
+                    f"columns are named <name>{suffix}"
+                )
             if spec.unit is not None and spec.unit not in UNITS[suffix]:
-                raise ValueError(f"unit {spec.unit!r} of column {target!r} is not one of "
-                                 f"{', '.join(UNITS[suffix])}")
+                raise ValueError(
+                    f"unit {spec.unit!r} of column {target!r} is not one of {', '.join(UNITS[suffix])}"
+                )
         return self
 
 
@@ -218,7 +273,8 @@ class ImportMapping(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     campaign: dict[str, Any] | Annotated[str, Field(min_length=1)] = Field(
-        description="campaign.yaml content without start, or the path of such a YAML file")
+        description="campaign.yaml content without start, or the path of such a YAML file"
+    )
     start: str | None = Field(None, description="campaign start; default the first sample")
     timezone: str | None = Field(None, description="default zone of timestamps without offset")
     sources: Annotated[list[SourceSpec], Field(min_length=1)]
@@ -233,15 +289,18 @@ class ImportMapping(BaseModel):
         seen: dict[str, int] = {}
         for i, source in enumerate(self.sources):
             if source.role in seen:
-                raise ValueError(f"sources[{i}] and sources[{seen[source.role]}] both give "
-                                 f"role {source.role!r}; one export per campaign file")
+                raise ValueError(
+                    f"sources[{i}] and sources[{seen[source.role]}] both give "
+                    f"role {source.role!r}; one export per campaign file"
+                )
             seen[source.role] = i
         missing = [r for r in ("fbg", "temperatures", "reference") if r not in seen]
         if missing:
-            raise ValueError(f"no source for role(s) {', '.join(missing)}: a campaign needs "
-                             "fbg, temperatures and reference (loads is optional)")
+            raise ValueError(
+                f"no source for role(s) {', '.join(missing)}: a campaign needs "
+                "fbg, temperatures and reference (loads is optional)"
+            )
         return self
-
 
 
 def read_mapping(path: str | Path) -> ImportMapping:
@@ -251,21 +310,20 @@ def read_mapping(path: str | Path) -> ImportMapping:
         raise InputError("mapping file not found", file=file)
     raw = read_bounded(file, MAX_MAPPING_BYTES, what="a mapping file")
     try:
-        data = yaml.load(raw.decode("utf-8-sig"), Loader=MetaLoader)  # noqa: S506 - SafeLoader
+        data = yaml.load(raw.decode("utf-8-sig"), Loader=MetaLoader)
     except UnicodeDecodeError as exc:
         raise InputError(f"not UTF-8 text: byte 0x{raw[exc.start]:02x}", file=file) from None
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        raise InputError(f"YAML syntax error{where}: {exc.problem or exc.context}",
-                         file=file) from None
+        raise InputError(f"YAML syntax error{where}: {exc.problem or exc.context}", file=file) from None
     if not isinstance(data, Mapping):
-        raise InputError("expected a mapping (campaign: ..., sources: [...]) at the top level",
-                         file=file)
+        raise InputError("expected a mapping (campaign: ..., sources: [...]) at the top level", file=file)
     data = dict(data)
     if isinstance(data.get("sources"), list):
-        data["sources"] = [apply_preset(s, i, file) if isinstance(s, Mapping) else s
-                           for i, s in enumerate(data["sources"])]
+        data["sources"] = [
+            apply_preset(s, i, file) if isinstance(s, Mapping) else s for i, s in enumerate(data["sources"])
+        ]
     try:
         return ImportMapping.model_validate(data)
     except ValidationError as exc:

@@ -18,8 +18,16 @@ import pandas as pd
 from fbgcomp.errors import InputError
 from fbgcomp.io.vendor_import.mapping import FormatSpec
 
-__all__ = ["ExportError", "RawExport", "MAX_EXPORT_BYTES", "MAX_PREAMBLE_LINES", "read_export",
-           "resolve_column", "is_empty", "text_cells"]
+__all__ = [
+    "MAX_EXPORT_BYTES",
+    "MAX_PREAMBLE_LINES",
+    "ExportError",
+    "RawExport",
+    "is_empty",
+    "read_export",
+    "resolve_column",
+    "text_cells",
+]
 
 #: Largest export read, bytes. A 36 h campaign at 10 Hz with 16 gratings is ~60 MB of text.
 MAX_EXPORT_BYTES = 2 << 30
@@ -31,8 +39,15 @@ class ExportError(InputError):
     """An :class:`InputError` in an export whose data rows do not start on line 2: names the
     data row and the file line (or spreadsheet row) it is on, ``row 3 (line 12)``."""
 
-    def __init__(self, message: str, file=None, row: int | None = None, line: int | None = None,
-                 column: str | None = None, line_label: str = "line"):
+    def __init__(
+        self,
+        message: str,
+        file=None,
+        row: int | None = None,
+        line: int | None = None,
+        column: str | None = None,
+        line_label: str = "line",
+    ):
         self.line = line
         self.line_label = line_label
         super().__init__(message, file=file, row=row, column=column)
@@ -51,24 +66,34 @@ class ExportError(InputError):
 class RawExport:
     """The cells of one export: column names, the mapped columns' cells, file lines per row."""
 
-    def __init__(self, label: str, names: list[str], preamble: list[list[str]],
-                 cells: dict[int, np.ndarray], lines: np.ndarray, line_label: str,
-                 text: bool = False):
-        self.label = label              # file name for messages
-        self.text = text                # every cell is a str (delimited text): vectorised paths
-        self.names = names              # every column name of the header
-        self.preamble = preamble        # cells of the lines above the header
-        self.cells = cells              # 0-based column index -> object array of cells
-        self.lines = lines              # file line (spreadsheet row) of each data row
+    def __init__(
+        self,
+        label: str,
+        names: list[str],
+        preamble: list[list[str]],
+        cells: dict[int, np.ndarray],
+        lines: np.ndarray,
+        line_label: str,
+        text: bool = False,
+    ):
+        self.label = label  # file name for messages
+        self.text = text  # every cell is a str (delimited text): vectorised paths
+        self.names = names  # every column name of the header
+        self.preamble = preamble  # cells of the lines above the header
+        self.cells = cells  # 0-based column index -> object array of cells
+        self.lines = lines  # file line (spreadsheet row) of each data row
         self.line_label = line_label
 
     def error(self, message: str, row_index: int | None = None, column: int | None = None):
         """An :class:`ExportError` at the 0-based data row ``row_index`` and column index."""
-        return ExportError(message, file=self.label,
-                           row=None if row_index is None else int(row_index) + 1,
-                           line=None if row_index is None else int(self.lines[row_index]),
-                           column=None if column is None else self.column_label(column),
-                           line_label=self.line_label)
+        return ExportError(
+            message,
+            file=self.label,
+            row=None if row_index is None else int(row_index) + 1,
+            line=None if row_index is None else int(self.lines[row_index]),
+            column=None if column is None else self.column_label(column),
+            line_label=self.line_label,
+        )
 
     def column_label(self, index: int) -> str:
         """Column ``index`` (0-based) as messages show it: its quoted name, or ``#n``."""
@@ -92,16 +117,20 @@ def resolve_column(ref, names: list[str], label: str, what: str, raw_label: str)
     ``what``; InputError naming the export, with the closest header name as a hint."""
     if isinstance(ref, int):
         if ref > len(names):
-            raise InputError(f"{what} is column {ref}, but the header has {len(names)} columns",
-                             file=raw_label)
+            raise InputError(
+                f"{what} is column {ref}, but the header has {len(names)} columns", file=raw_label
+            )
         return ref - 1
     stripped = [n.strip() for n in names]
     if ref.strip() in stripped:
         return stripped.index(ref.strip())
     close = difflib.get_close_matches(ref, [n for n in stripped if n.isprintable()], n=1, cutoff=0.6)
     hint = f"; did you mean {close[0]!r}?" if close else ""
-    raise InputError(f"no column {ref!r} ({what}) in the header ({len(names)} columns){hint}",
-                     file=raw_label, column=repr(ref) if len(ref) <= 64 else None)
+    raise InputError(
+        f"no column {ref!r} ({what}) in the header ({len(names)} columns){hint}",
+        file=raw_label,
+        column=repr(ref) if len(ref) <= 64 else None,
+    )
 
 
 def _split_line(line: str, delimiter: str) -> list[str]:
@@ -121,39 +150,58 @@ def _read_csv(path: Path, fmt: FormatSpec, wanted) -> RawExport:
                 if not line:
                     break
                 cells = _split_line(line.rstrip("\r\n"), delimiter)
-                is_header = (number == fmt.header_row if fmt.header_row is not None else
-                             bool(cells) and cells[0] == fmt.header_marker
-                             if fmt.header_marker is not None else number == 1)
+                is_header = (
+                    number == fmt.header_row
+                    if fmt.header_row is not None
+                    else bool(cells) and cells[0] == fmt.header_marker
+                    if fmt.header_marker is not None
+                    else number == 1
+                )
                 if is_header:
                     header, header_line = cells, number
                     break
                 preamble.append(cells)
     except UnicodeDecodeError as exc:
-        raise InputError(f"not {fmt.encoding} text ({exc.reason}); set format.encoding "
-                         "(e.g. cp1252, shift_jis)", file=label) from None
+        raise InputError(
+            f"not {fmt.encoding} text ({exc.reason}); set format.encoding (e.g. cp1252, shift_jis)",
+            file=label,
+        ) from None
     except OSError as exc:
-        raise InputError(f"cannot read the file: {exc.strerror or type(exc).__name__}",
-                         file=label) from None
+        raise InputError(f"cannot read the file: {exc.strerror or type(exc).__name__}", file=label) from None
     if header is None:
-        rule = (f"line {fmt.header_row}" if fmt.header_row is not None else
-                f"a line starting with {fmt.header_marker!r}" if fmt.header_marker else "line 1")
-        raise InputError(f"no column header: expected it on {rule} (format.header_row / "
-                         "format.header_marker)", file=label)
+        rule = (
+            f"line {fmt.header_row}"
+            if fmt.header_row is not None
+            else f"a line starting with {fmt.header_marker!r}"
+            if fmt.header_marker
+            else "line 1"
+        )
+        raise InputError(
+            f"no column header: expected it on {rule} (format.header_row / format.header_marker)", file=label
+        )
     if len(header) == 1 and delimiter not in (";", "\t") and any(d in header[0] for d in ";\t"):
         found = "';'" if ";" in header[0] else "tab"
-        raise InputError(f"the header has one column but holds {found}: set format.delimiter",
-                         file=label)
+        raise InputError(f"the header has one column but holds {found}: set format.delimiter", file=label)
     columns = sorted({resolve_column(ref, header, label, what, label) for ref, what in wanted})
     first_data_line = header_line + 1 + fmt.skip_after_header
     try:
-        frame = pd.read_csv(path, sep=delimiter, header=None, skiprows=first_data_line - 1,
-                            usecols=columns, dtype=str, na_filter=False, skip_blank_lines=False,
-                            encoding=fmt.encoding, engine="c", quotechar='"')
+        frame = pd.read_csv(
+            path,
+            sep=delimiter,
+            header=None,
+            skiprows=first_data_line - 1,
+            usecols=columns,
+            dtype=str,
+            na_filter=False,
+            skip_blank_lines=False,
+            encoding=fmt.encoding,
+            engine="c",
+            quotechar='"',
+        )
     except pd.errors.EmptyDataError:
         frame = pd.DataFrame({c: pd.Series([], dtype=object) for c in columns})
     except UnicodeDecodeError as exc:
-        raise InputError(f"not {fmt.encoding} text ({exc.reason}); set format.encoding",
-                         file=label) from None
+        raise InputError(f"not {fmt.encoding} text ({exc.reason}); set format.encoding", file=label) from None
     except (pd.errors.ParserError, ValueError) as exc:
         text = " ".join(str(exc).split())
         match = re.search(r"line (\d+)", text)
@@ -170,11 +218,10 @@ def _read_excel(path: Path, fmt: FormatSpec, wanted) -> RawExport:
     try:
         import openpyxl  # noqa: PLC0415 - only .xlsx exports need openpyxl, and it is slow to import
     except ImportError:  # pragma: no cover - a declared dependency
-        raise InputError("reading Excel files needs openpyxl (pip install openpyxl)",
-                         file=path) from None
+        raise InputError("reading Excel files needs openpyxl (pip install openpyxl)", file=path) from None
     try:
         book = openpyxl.load_workbook(path, read_only=True, data_only=True)
-    except Exception as exc:  # noqa: BLE001 - zip / XML errors of a damaged or foreign file
+    except Exception as exc:
         raise InputError(f"not a readable .xlsx workbook: {type(exc).__name__}", file=path) from None
     try:
         names = book.sheetnames
@@ -182,8 +229,7 @@ def _read_excel(path: Path, fmt: FormatSpec, wanted) -> RawExport:
             sheet = names[0]
         elif isinstance(fmt.sheet, int):
             if fmt.sheet > len(names):
-                raise InputError(f"sheet {fmt.sheet} requested, the workbook has {len(names)}",
-                                 file=path)
+                raise InputError(f"sheet {fmt.sheet} requested, the workbook has {len(names)}", file=path)
             sheet = names[fmt.sheet - 1]
         elif fmt.sheet in names:
             sheet = fmt.sheet
@@ -196,9 +242,13 @@ def _read_excel(path: Path, fmt: FormatSpec, wanted) -> RawExport:
         for number, values in enumerate(book[sheet].iter_rows(values_only=True), start=1):
             if header is None:
                 cells = ["" if v is None else str(v).strip() for v in values]
-                is_header = (number == fmt.header_row if fmt.header_row is not None else
-                             bool(cells) and cells[0] == fmt.header_marker
-                             if fmt.header_marker is not None else number == 1)
+                is_header = (
+                    number == fmt.header_row
+                    if fmt.header_row is not None
+                    else bool(cells) and cells[0] == fmt.header_marker
+                    if fmt.header_marker is not None
+                    else number == 1
+                )
                 if is_header:
                     header = cells
                     first_data = number + 1 + fmt.skip_after_header
@@ -213,13 +263,10 @@ def _read_excel(path: Path, fmt: FormatSpec, wanted) -> RawExport:
     finally:
         book.close()
     if header is None:
-        raise InputError("no column header found (format.header_row / format.header_marker)",
-                         file=label)
+        raise InputError("no column header found (format.header_row / format.header_marker)", file=label)
     columns = sorted({resolve_column(ref, header, label, what, label) for ref, what in wanted})
-    cells = {c: np.array([row[c] if c < len(row) else None for row in body], dtype=object)
-             for c in columns}
-    raw = RawExport(label, header, preamble, cells, np.asarray(body_rows, dtype=np.int64),
-                    "sheet row")
+    cells = {c: np.array([row[c] if c < len(row) else None for row in body], dtype=object) for c in columns}
+    raw = RawExport(label, header, preamble, cells, np.asarray(body_rows, dtype=np.int64), "sheet row")
     _drop_trailing_blank(raw)
     return raw
 
@@ -228,8 +275,13 @@ def is_empty(cells: np.ndarray, text: bool = False) -> np.ndarray:
     """Mask of the empty cells (None, blank text, NaN); ``text``: every cell is a str."""
     if text:
         return (text_cells(cells) == "").to_numpy(dtype=bool)
-    return np.array([c is None or (isinstance(c, str) and not c.strip())
-                     or (isinstance(c, float) and c != c) for c in cells], dtype=bool)
+    return np.array(
+        [
+            c is None or (isinstance(c, str) and not c.strip()) or (isinstance(c, float) and c != c)
+            for c in cells
+        ],
+        dtype=bool,
+    )
 
 
 def text_cells(cells: np.ndarray) -> pd.Series:

@@ -44,14 +44,49 @@ sensor set), :mod:`~fbgcomp.models.physical.shapes` (the model file's shape chec
 """
 
 from fbgcomp.models.physical.model import PhysicalModel
-from fbgcomp.models.physical.predictor import (FORCE_AXES, LOAD_FALSE_STARTS_PER_H, LOAD_FAST_S, LOAD_HOLD_S,
-                                               STEADY_BACKOFF, STEADY_WINDOW, PhysicalPredictor, excursion2,
-                                               gls_operator)
-from fbgcomp.models.physical.thermal import (CAL_LEADS_S, MAP_LEADS_S, PROBE_SMOOTHING_S, housing_leads, housing_mean,
-                                             map_features, ridge_from_moments, thermal_regressors,
-                                             twin_thermal_population, weighted_lstsq)
+from fbgcomp.models.physical.predictor import (
+    FORCE_AXES,
+    LOAD_FALSE_STARTS_PER_H,
+    LOAD_FAST_S,
+    LOAD_HOLD_S,
+    STEADY_BACKOFF,
+    STEADY_WINDOW,
+    PhysicalPredictor,
+    excursion2,
+    gls_operator,
+)
+from fbgcomp.models.physical.thermal import (
+    CAL_LEADS_S,
+    MAP_LEADS_S,
+    PROBE_SMOOTHING_S,
+    housing_leads,
+    housing_mean,
+    map_features,
+    ridge_from_moments,
+    thermal_regressors,
+    twin_thermal_population,
+    weighted_lstsq,
+)
 
-__all__ = ["PhysicalModel", "PhysicalPredictor", "FORCE_AXES", "LOAD_FALSE_STARTS_PER_H", "LOAD_FAST_S",
-           "LOAD_HOLD_S", "STEADY_BACKOFF", "STEADY_WINDOW", "excursion2", "gls_operator", "CAL_LEADS_S",
-           "MAP_LEADS_S", "PROBE_SMOOTHING_S", "housing_leads", "housing_mean", "map_features",
-           "ridge_from_moments", "thermal_regressors", "twin_thermal_population", "weighted_lstsq"]
+__all__ = [
+    "CAL_LEADS_S",
+    "FORCE_AXES",
+    "LOAD_FALSE_STARTS_PER_H",
+    "LOAD_FAST_S",
+    "LOAD_HOLD_S",
+    "MAP_LEADS_S",
+    "PROBE_SMOOTHING_S",
+    "STEADY_BACKOFF",
+    "STEADY_WINDOW",
+    "PhysicalModel",
+    "PhysicalPredictor",
+    "excursion2",
+    "gls_operator",
+    "housing_leads",
+    "housing_mean",
+    "map_features",
+    "ridge_from_moments",
+    "thermal_regressors",
+    "twin_thermal_population",
+    "weighted_lstsq",
+]

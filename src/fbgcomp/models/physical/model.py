@@ -18,9 +18,16 @@ from fbgcomp.io.campaign import SensorSpec
 from fbgcomp.models.base import EstimatorParams, ModelFile, as_campaign_list, check_compatible
 from fbgcomp.models.physical.predictor import FORCE_AXES, PhysicalPredictor, excursion2
 from fbgcomp.models.physical.shapes import check_shapes
-from fbgcomp.models.physical.thermal import (CAL_LEADS_S, ambient_probe_names, grating_map, housing_probe_names,
-                                             ridge_from_moments, thermal_regressors, twin_thermal_population,
-                                             weighted_lstsq)
+from fbgcomp.models.physical.thermal import (
+    CAL_LEADS_S,
+    ambient_probe_names,
+    grating_map,
+    housing_probe_names,
+    ridge_from_moments,
+    thermal_regressors,
+    twin_thermal_population,
+    weighted_lstsq,
+)
 from fbgcomp.structure.machine import Machine, load_machine
 from fbgcomp.units import AXES
 
@@ -69,10 +76,22 @@ class PhysicalModel(EstimatorParams, ModelFile):
 
     model_type = "physical"
 
-    def __init__(self, machine=None, zero_window_s=10.0, lead_tau_s=300.0, envelope_margin=0.1,
-                 load_k_sigma=3.0, contradiction_p=1e-3, thermal_error_inflation=4.0,
-                 load_relative_error=0.03, twin_scenarios=40, map_ridge=1e-3, separability_cos=0.95,
-                 offset_tau_s=20.0, calibrate_housing=True):
+    def __init__(
+        self,
+        machine=None,
+        zero_window_s=10.0,
+        lead_tau_s=300.0,
+        envelope_margin=0.1,
+        load_k_sigma=3.0,
+        contradiction_p=1e-3,
+        thermal_error_inflation=4.0,
+        load_relative_error=0.03,
+        twin_scenarios=40,
+        map_ridge=1e-3,
+        separability_cos=0.95,
+        offset_tau_s=20.0,
+        calibrate_housing=True,
+    ):
         self.machine = machine
         self.zero_window_s = zero_window_s
         self.lead_tau_s = lead_tau_s
@@ -103,8 +122,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         machine = self._machine()
         first = campaigns[0]
         self.sensors_ = list(first.meta.sensors)
-        common = [p for p in first.meta.probe_names
-                  if all(p in c.meta.probe_names for c in campaigns[1:])]
+        common = [p for p in first.meta.probe_names if all(p in c.meta.probe_names for c in campaigns[1:])]
         self.housing_probes_ = housing_probe_names(common, machine)
         self.ambient_probes_ = ambient_probe_names(common, machine)
         sensor_probes = [s.temperature_probe for s in self.sensors_ if s.temperature_probe]
@@ -127,13 +145,27 @@ class PhysicalModel(EstimatorParams, ModelFile):
         for c, a in zip(campaigns, aligned):
             w, t, w0, t0 = self.instrument_arrays(a)
             e = fmap.base(w, t, w0, t0)
-            H, _ = thermal_regressors(t - t0, [self.probe_names_.index(p) for p in self.housing_probes_],
-                                      [self.probe_names_.index(p) for p in self.ambient_probes_],
-                                      self.lead_tau_s, a.time_s)
+            H, _ = thermal_regressors(
+                t - t0,
+                [self.probe_names_.index(p) for p in self.housing_probes_],
+                [self.probe_names_.index(p) for p in self.ambient_probes_],
+                self.lead_tau_s,
+                a.time_s,
+            )
             F = a.loads_N
             loaded = F is not None and np.nanmax(np.abs(np.nan_to_num(F))) > 50.0
-            rows.append({"name": c.meta.name, "e": e, "H": H, "dT": t - t0, "t": a.time_s, "y": a.reference_um,
-                         "F": None if F is None else np.nan_to_num(F), "loaded": loaded})
+            rows.append(
+                {
+                    "name": c.meta.name,
+                    "e": e,
+                    "H": H,
+                    "dT": t - t0,
+                    "t": a.time_s,
+                    "y": a.reference_um,
+                    "F": None if F is None else np.nan_to_num(F),
+                    "loaded": loaded,
+                }
+            )
         thermal_rows = [r for r in rows if not r["loaded"]]
         loaded_rows = [r for r in rows if r["loaded"]]
         nh = rows[0]["H"].shape[1]
@@ -175,15 +207,15 @@ class PhysicalModel(EstimatorParams, ModelFile):
                 ws_.append(np.full(n, 1.0 / n))
             X = np.vstack(Xs)
             w_all = np.concatenate(ws_)
-            Fall = X[:, k:k + 3]
-            active = np.sqrt(np.average(Fall ** 2, axis=0, weights=w_all)) > 100.0
+            Fall = X[:, k : k + 3]
+            active = np.sqrt(np.average(Fall**2, axis=0, weights=w_all)) > 100.0
             cols = list(range(k)) + [k + j for j in range(3) if active[j]] + list(range(k + 3, X.shape[1]))
             Bg, _ = weighted_lstsq(X[:, cols], np.vstack(Es_), w_all)
             By, _ = weighted_lstsq(X[:, cols], np.vstack(Ys), w_all)
             G = np.zeros((S, 3))
             C = np.zeros((3, 3))
-            G[:, active] = Bg[k:k + active.sum()].T
-            C[:, active] = By[k:k + active.sum()].T
+            G[:, active] = Bg[k : k + active.sum()].T
+            C[:, active] = By[k : k + active.sum()].T
             # white noise of each grating from successive differences (robust: MAD), so load
             # steps and ramps do not count as noise
             diffs = np.vstack([np.diff(r["e"], axis=0) for r in loaded_rows])
@@ -217,14 +249,19 @@ class PhysicalModel(EstimatorParams, ModelFile):
             active = active & separable
         if G is not None and active.any():
             if np.isnan(noise_var).any():
-                noise_var = np.full(S, 0.05 ** 2)
-            self.load_ = {"G_um_per_N": G.tolist(), "C_um_per_N": C.tolist(),
-                          "active_forces": active.tolist(), "grating_thermal_coef": B.tolist(),
-                          "thermal_sigma_unit_um2": (self.thermal_error_inflation * cov_unit).tolist(),
-                          "thermal_scale": scale.tolist(), "noise_var_um2": noise_var.tolist(),
-                          "max_force_N": np.where(max_force > 0, max_force, 5000.0).tolist(),
-                          "source": source,
-                          "not_separable": [f for f, ok in zip(FORCE_AXES, separable) if not ok]}
+                noise_var = np.full(S, 0.05**2)
+            self.load_ = {
+                "G_um_per_N": G.tolist(),
+                "C_um_per_N": C.tolist(),
+                "active_forces": active.tolist(),
+                "grating_thermal_coef": B.tolist(),
+                "thermal_sigma_unit_um2": (self.thermal_error_inflation * cov_unit).tolist(),
+                "thermal_scale": scale.tolist(),
+                "noise_var_um2": noise_var.tolist(),
+                "max_force_N": np.where(max_force > 0, max_force, 5000.0).tolist(),
+                "source": source,
+                "not_separable": [f for f, ok in zip(FORCE_AXES, separable) if not ok],
+            }
         # Thermal part of the TTP: y minus the (policy-applied) load part, on load-free campaigns.
         self.thermal_coef_ = np.zeros((nh, 3))
         self.thermal_envelope_ = (np.zeros(nh - 1), np.zeros(nh - 1))
@@ -240,8 +277,10 @@ class PhysicalModel(EstimatorParams, ModelFile):
             self.thermal_envelope_ = (Hs[:, 1:].min(axis=0), Hs[:, 1:].max(axis=0))
             fitted = Hs @ A
             span = np.abs(Ys).max(axis=0)
-            self.thermal_range_um_ = (np.minimum(fitted.min(axis=0), Ys.min(axis=0)) - 0.1 * span,
-                                      np.maximum(fitted.max(axis=0), Ys.max(axis=0)) + 0.1 * span)
+            self.thermal_range_um_ = (
+                np.minimum(fitted.min(axis=0), Ys.min(axis=0)) - 0.1 * span,
+                np.maximum(fitted.max(axis=0), Ys.max(axis=0)) + 0.1 * span,
+            )
             self.thermal_resid_sd_um_ = np.sqrt(np.diag(cov_y))
             # the part's response to probe noise (the zero state itself is one noisy reading of
             # a slow probe): each regressor's probe noise (robust, from successive differences)
@@ -256,16 +295,26 @@ class PhysicalModel(EstimatorParams, ModelFile):
         # campaign without a gradient can teach).
         self.twin_map_ = None
         if machine is not None and self.twin_scenarios > 0:
-            pop = twin_thermal_population(machine, self.sensors_, self.probe_names_, self.housing_probes_,
-                                          n_scenarios=self.twin_scenarios, seed=0)
+            pop = twin_thermal_population(
+                machine,
+                self.sensors_,
+                self.probe_names_,
+                self.housing_probes_,
+                n_scenarios=self.twin_scenarios,
+                seed=0,
+            )
             if pop is not None:
-                pop["coef"] = ridge_from_moments(pop["gram"], pop["xty"], pop["scale"],
-                                                 range(len(pop["scale"])), self.map_ridge).tolist()
+                pop["coef"] = ridge_from_moments(
+                    pop["gram"], pop["xty"], pop["scale"], range(len(pop["scale"])), self.map_ridge
+                ).tolist()
                 self.twin_map_ = pop
         # Load-part uncertainty calibrated on loaded campaigns: the load part's residual.
-        self.training_ = {"campaigns": [{"name": r["name"], "loaded": bool(r["loaded"]),
-                                         "n_samples": int(len(r["y"]))} for r in rows],
-                          "n_samples": int(sum(len(r["y"]) for r in rows))}
+        self.training_ = {
+            "campaigns": [
+                {"name": r["name"], "loaded": bool(r["loaded"]), "n_samples": len(r["y"])} for r in rows
+            ],
+            "n_samples": int(sum(len(r["y"]) for r in rows)),
+        }
         self._predictors = {}
         if self.load_ is not None:
             self._calibrate_drift(rows)
@@ -283,11 +332,13 @@ class PhysicalModel(EstimatorParams, ModelFile):
                 pred, _ = self.predict_interval(c, policy=False)
                 res.append(pred - r["y"])
             res = np.vstack(res)
-            self.thermal_resid_sd_um_ = np.sqrt(np.mean(res ** 2, axis=0))
+            self.thermal_resid_sd_um_ = np.sqrt(np.mean(res**2, axis=0))
             lo, hi = np.asarray(self.twin_map_["ttp_low_um"]), np.asarray(self.twin_map_["ttp_high_um"])
             span = hi - lo
-            self.thermal_range_um_ = (np.minimum(self.thermal_range_um_[0], lo - 0.1 * span),
-                                      np.maximum(self.thermal_range_um_[1], hi + 0.1 * span))
+            self.thermal_range_um_ = (
+                np.minimum(self.thermal_range_um_[0], lo - 0.1 * span),
+                np.maximum(self.thermal_range_um_[1], hi + 0.1 * span),
+            )
         self.interval_ = self._fit_interval(rows, campaigns) if thermal_rows else None
         self._predictors = {}
         return self
@@ -303,8 +354,12 @@ class PhysicalModel(EstimatorParams, ModelFile):
         coefficients stay the twin's (no campaign without a gradient can teach them)."""
         k = 1 + len(CAL_LEADS_S)
         # the map as it stands, with the leads computed alongside (zero coefficients)
-        self.twin_map_["calibration"] = {"leads_s": list(CAL_LEADS_S), "coef": np.zeros((k, 3)).tolist(),
-                                         "envelope_low": [-1e9] * k, "envelope_high": [1e9] * k}
+        self.twin_map_["calibration"] = {
+            "leads_s": list(CAL_LEADS_S),
+            "coef": np.zeros((k, 3)).tolist(),
+            "envelope_low": [-1e9] * k,
+            "envelope_high": [1e9] * k,
+        }
         self._predictors = {}
         A_rows, b_rows, feats = [], [], []
         for r, c in zip(rows, campaigns):
@@ -319,8 +374,13 @@ class PhysicalModel(EstimatorParams, ModelFile):
         A, b = np.vstack(A_rows), np.vstack(b_rows)
         coef = np.linalg.lstsq(A, b, rcond=None)[0]
         L = np.vstack(feats)
-        return {"leads_s": list(CAL_LEADS_S), "coef": coef.tolist(), "source": "measured load-free campaigns",
-                "envelope_low": L.min(axis=0).tolist(), "envelope_high": L.max(axis=0).tolist()}
+        return {
+            "leads_s": list(CAL_LEADS_S),
+            "coef": coef.tolist(),
+            "source": "measured load-free campaigns",
+            "envelope_low": L.min(axis=0).tolist(),
+            "envelope_high": L.max(axis=0).tolist(),
+        }
 
     def _fit_interval(self, rows, campaigns):
         """Thermal part's error variance as v0 + vs s + v1 s² + v2 a², s² the squared probe
@@ -354,19 +414,21 @@ class PhysicalModel(EstimatorParams, ModelFile):
             e2.append((pred - r["y"]) ** 2)
             S.append(excursion2(r["dT"], scale, deadband))
             act.append(p.last_activity[at])
-            w.append(np.full(len(pred), 1.0 / len(pred)))          # campaigns weighted equally
+            w.append(np.full(len(pred), 1.0 / len(pred)))  # campaigns weighted equally
         e2, s2, act, w = np.vstack(e2), np.concatenate(S), np.concatenate(act), np.concatenate(w)
         a_scale = max(float(np.abs(act).max()), 1e-3)
         A = np.column_stack([np.sqrt(s2), s2, (act / a_scale) ** 2])
         sw = np.sqrt(w)[:, None]
-        v = np.array([nnls(A * sw, (e2[:, j] - v0[j]) * sw[:, 0])[0] for j in range(3)])   # (axes, [vs, v1, v2])
+        v = np.array(
+            [nnls(A * sw, (e2[:, j] - v0[j]) * sw[:, 0])[0] for j in range(3)]
+        )  # (axes, [vs, v1, v2])
         # The errors are not Gaussian (heavy tails from the transients): scale the state terms
         # so that the 95 % interval covers 95 % of the training samples (campaigns weighted
         # equally), v0 staying the instrument's. A sample is covered for every scale from
         # (e² / z² - v0) / (its state variance) up: the scale is the weighted 95th percentile of
         # that, within [1e-3, 1e3].
         z2 = stats.norm.ppf(0.975) ** 2
-        shape = A @ v.T                                                  # (n, 3) state variance
+        shape = A @ v.T  # (n, 3) state variance
         for j in range(3):
             if not np.any(shape[:, j] > 0):
                 continue
@@ -377,9 +439,15 @@ class PhysicalModel(EstimatorParams, ModelFile):
             # push the level to the next sample)
             at = np.searchsorted(np.cumsum(w[order]) / w.sum(), 0.95 - 1e-12)
             v[j] *= np.clip(need[order][min(at, len(order) - 1)], 1e-3, 1e3)
-        return {"v0_um2": v0.tolist(), "vs_um2": v[:, 0].tolist(), "v1_um2": v[:, 1].tolist(),
-                "v2_um2": v[:, 2].tolist(), "dT_scale_K": scale.tolist(), "deadband_K": deadband.tolist(),
-                "activity_scale_K": a_scale}
+        return {
+            "v0_um2": v0.tolist(),
+            "vs_um2": v[:, 0].tolist(),
+            "v1_um2": v[:, 1].tolist(),
+            "v2_um2": v[:, 2].tolist(),
+            "dT_scale_K": scale.tolist(),
+            "deadband_K": deadband.tolist(),
+            "activity_scale_K": a_scale,
+        }
 
     def _calibrate_drift(self, rows):
         """How far heat (and noise) move the force reading the step test sees, on the load-free
@@ -448,7 +516,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         interrogator's, e.g. +0.3 s), the predictor that ran, and the frame index of each
         reference time."""
         aligned = campaign.aligned(zero_window_s=self.zero_window_s)
-        p = PhysicalPredictor(self, exclude)       # fresh filter state per campaign
+        p = PhysicalPredictor(self, exclude)  # fresh filter state per campaign
         _, _, w0, t0 = self.instrument_arrays(aligned)
         frame_t, w, t = self.frame_arrays(campaign, aligned)
         mean, half = p.predict(w, t, w0, t0, time_s=frame_t, raw=raw, thermal_policy=policy)
@@ -482,40 +550,58 @@ class PhysicalModel(EstimatorParams, ModelFile):
     # -- reporting and persistence -----------------------------------------------------------
     def summary(self) -> str:
         """The thermal part's coefficients or twin map, its validated range and the load signature."""
-        names = ["const"] + [f"dT_{p}" for p in self.housing_probes_] + \
-            [f"dT_{p}" for p in self.ambient_probes_] + \
-            ([f"lead{self.lead_tau_s:g}s_housing"] if self.housing_probes_ else [])
-        out = [f"physical model (default): load signature + housing thermal, do-no-harm policy; "
-               f"{self.training_['n_samples']} samples from "
-               f"{', '.join(c['name'] for c in self.training_['campaigns'])}",
-               f"housing probes: {', '.join(self.housing_probes_) or 'none'}; ambient: "
-               f"{', '.join(self.ambient_probes_) or 'none'}",
-               ""]
+        names = (
+            ["const"]
+            + [f"dT_{p}" for p in self.housing_probes_]
+            + [f"dT_{p}" for p in self.ambient_probes_]
+            + ([f"lead{self.lead_tau_s:g}s_housing"] if self.housing_probes_ else [])
+        )
+        out = [
+            f"physical model (default): load signature + housing thermal, do-no-harm policy; "
+            f"{self.training_['n_samples']} samples from "
+            f"{', '.join(c['name'] for c in self.training_['campaigns'])}",
+            f"housing probes: {', '.join(self.housing_probes_) or 'none'}; ambient: "
+            f"{', '.join(self.ambient_probes_) or 'none'}",
+            "",
+        ]
         tm = self.twin_map_
         if tm is None:
-            out += ["thermal part (µm per K; lead in µm per K of T - lowpass(T))",
-                    f"{'term':<22}" + "".join(f"{a:>11}" for a in AXES)]
+            out += [
+                "thermal part (µm per K; lead in µm per K of T - lowpass(T))",
+                f"{'term':<22}" + "".join(f"{a:>11}" for a in AXES),
+            ]
             for name, row in zip(names, np.asarray(self.thermal_coef_)):
                 out.append(f"{name:<22}" + "".join(f"{v:>11.4g}" for v in row))
         else:
-            out.append(f"thermal part: ridge map learned on {tm['n_scenarios']} thermal scenarios of the "
-                       f"machine's FE twin ({len(tm['features'])} features: {', '.join(tm['features'])})")
+            out.append(
+                f"thermal part: ridge map learned on {tm['n_scenarios']} thermal scenarios of the "
+                f"machine's FE twin ({len(tm['features'])} features: {', '.join(tm['features'])})"
+            )
             cal = tm.get("calibration")
             if cal is not None:
-                out += [f"housing transient calibrated on the {cal.get('source', 'measured campaigns')} "
-                        "(µm per K)", f"{'term':<22}" + "".join(f"{a:>11}" for a in AXES)]
-                for name, row in zip(["dT_housing"] + [f"lead{t:g}s_housing" for t in cal["leads_s"]],
-                                     np.asarray(cal["coef"])):
+                out += [
+                    f"housing transient calibrated on the {cal.get('source', 'measured campaigns')} "
+                    "(µm per K)",
+                    f"{'term':<22}" + "".join(f"{a:>11}" for a in AXES),
+                ]
+                for name, row in zip(
+                    ["dT_housing"] + [f"lead{t:g}s_housing" for t in cal["leads_s"]], np.asarray(cal["coef"])
+                ):
                     out.append(f"{name:<22}" + "".join(f"{v:>11.4g}" for v in row))
         out.append(f"{'residual SD µm':<22}" + "".join(f"{v:>11.3g}" for v in self.thermal_resid_sd_um_))
         lo, hi = self.thermal_range_um_
-        out.append(f"{'validated range µm':<22}" + ", ".join(f"{ax} {a:.3g}..{b:.3g}" for ax, a, b in zip(AXES, lo, hi)))
+        out.append(
+            f"{'validated range µm':<22}"
+            + ", ".join(f"{ax} {a:.3g}..{b:.3g}" for ax, a, b in zip(AXES, lo, hi))
+        )
         if self.load_ is None:
             out.append("\nload part: none (no training campaign with loads and no machine description)")
         else:
             L = self.load_
-            out.append(f"\nload part ({L['source']}); forces estimated: "
-                       + ", ".join(f for f, on in zip(FORCE_AXES, L["active_forces"]) if on))
+            out.append(
+                f"\nload part ({L['source']}); forces estimated: "
+                + ", ".join(f for f, on in zip(FORCE_AXES, L["active_forces"]) if on)
+            )
             out.append(f"{'':<8}" + "".join(f"{f + ' µm/kN':>13}" for f in FORCE_AXES))
             for s, row in zip(self.sensor_names, np.asarray(L["G_um_per_N"])):
                 out.append(f"{s:<8}" + "".join(f"{1e3 * v:>13.4g}" for v in row))
@@ -523,40 +609,49 @@ class PhysicalModel(EstimatorParams, ModelFile):
                 out.append(f"{a:<8}" + "".join(f"{1e3 * v:>13.4g}" for v in row))
             p = self.predictor()
             at_rest, warm = p.F_sds
-            out.append("force 1-sigma N at rest / at the training's thermal extreme: "
-                       + ", ".join(f"{f} {a:.3g}/{b:.3g}" for f, a, b in zip(FORCE_AXES, at_rest, warm))
-                       + f"; applied from {self.load_k_sigma:g} sigma, in full beyond {2 * self.load_k_sigma:g}")
+            out.append(
+                "force 1-sigma N at rest / at the training's thermal extreme: "
+                + ", ".join(f"{f} {a:.3g}/{b:.3g}" for f, a, b in zip(FORCE_AXES, at_rest, warm))
+                + f"; applied from {self.load_k_sigma:g} sigma, in full beyond {2 * self.load_k_sigma:g}"
+            )
         return "\n".join(out)
 
     def to_dict(self) -> dict:
         """The model file's content (hyper-parameters but the machine, learned state)."""
         d = self._header()
-        d.update({
-            "params": {k: v for k, v in self.get_params().items() if k != "machine"},
-            "zero_state": {"method": "mean_of_first_window", "window_s": self.zero_window_s},
-            "sensors": [s.model_dump(mode="json") for s in self.sensors_],
-            "probes": list(self.probe_names_),
-            "housing_probes": list(self.housing_probes_),
-            "ambient_probes": list(self.ambient_probes_),
-            "nominal_dt_s": self.nominal_dt_s_,
-            "thermal": {"coef": np.asarray(self.thermal_coef_).tolist(),
-                        "envelope_low": np.asarray(self.thermal_envelope_[0]).tolist(),
-                        "envelope_high": np.asarray(self.thermal_envelope_[1]).tolist(),
-                        "range_low_um": np.asarray(self.thermal_range_um_[0]).tolist(),
-                        "range_high_um": np.asarray(self.thermal_range_um_[1]).tolist(),
-                        "resid_sd_um": np.asarray(self.thermal_resid_sd_um_).tolist(),
-                        "noise_sd_um": np.asarray(self.thermal_noise_sd_um_).tolist()},
-            "twin_map": self.twin_map_,
-            "interval": getattr(self, "interval_", None),
-            "load": self.load_,
-            "training": self.training_,
-            "uncertainty": {"level": 0.95, "method": "thermal error v0 (reference noise) + vs excursion + v1 excursion^2 + v2 lead^2, calibrated to 95 % training coverage, + applied load's GLS and relative error"},
-            "z_axis_mm": None,
-        })
+        d.update(
+            {
+                "params": {k: v for k, v in self.get_params().items() if k != "machine"},
+                "zero_state": {"method": "mean_of_first_window", "window_s": self.zero_window_s},
+                "sensors": [s.model_dump(mode="json") for s in self.sensors_],
+                "probes": list(self.probe_names_),
+                "housing_probes": list(self.housing_probes_),
+                "ambient_probes": list(self.ambient_probes_),
+                "nominal_dt_s": self.nominal_dt_s_,
+                "thermal": {
+                    "coef": np.asarray(self.thermal_coef_).tolist(),
+                    "envelope_low": np.asarray(self.thermal_envelope_[0]).tolist(),
+                    "envelope_high": np.asarray(self.thermal_envelope_[1]).tolist(),
+                    "range_low_um": np.asarray(self.thermal_range_um_[0]).tolist(),
+                    "range_high_um": np.asarray(self.thermal_range_um_[1]).tolist(),
+                    "resid_sd_um": np.asarray(self.thermal_resid_sd_um_).tolist(),
+                    "noise_sd_um": np.asarray(self.thermal_noise_sd_um_).tolist(),
+                },
+                "twin_map": self.twin_map_,
+                "interval": getattr(self, "interval_", None),
+                "load": self.load_,
+                "training": self.training_,
+                "uncertainty": {
+                    "level": 0.95,
+                    "method": "thermal error v0 (reference noise) + vs excursion + v1 excursion^2 + v2 lead^2, calibrated to 95 % training coverage, + applied load's GLS and relative error",
+                },
+                "z_axis_mm": None,
+            }
+        )
         return d
 
     @classmethod
-    def from_dict(cls, d: dict, source="<dict>") -> "PhysicalModel":
+    def from_dict(cls, d: dict, source="<dict>") -> PhysicalModel:
         """The model of a model file's dict; InputError unless its shapes agree and every sensor
         set predicts finite numbers."""
         check_shapes(d, source)
@@ -583,9 +678,12 @@ class PhysicalModel(EstimatorParams, ModelFile):
         for exclude in [frozenset()] + m.fallback_sets:
             dev, half = PhysicalPredictor(m, exclude).predict(w0[None, :] + 0.01, t0[None, :] + 0.5, w0, t0)
             if not (np.isfinite(dev).all() and np.isfinite(half).all()):
-                raise InputError("model cannot predict finite numbers"
-                                 + (f" without {', '.join(sorted(exclude))}" if exclude else ""),
-                                 file=source, column="field thermal/load/twin_map")
+                raise InputError(
+                    "model cannot predict finite numbers"
+                    + (f" without {', '.join(sorted(exclude))}" if exclude else ""),
+                    file=source,
+                    column="field thermal/load/twin_map",
+                )
         m._predictors = {}
         return m
 

@@ -13,8 +13,15 @@ from scipy import stats
 
 import fbgcomp.models.policy as P
 from fbgcomp.models.filters import first_order_recursion
-from fbgcomp.models.physical.thermal import (MAP_LEADS_S, grating_map, housing_leads, housing_mean, map_features,
-                                             ridge_from_moments, thermal_regressors)
+from fbgcomp.models.physical.thermal import (
+    MAP_LEADS_S,
+    grating_map,
+    housing_leads,
+    housing_mean,
+    map_features,
+    ridge_from_moments,
+    thermal_regressors,
+)
 
 #: Names of the TTP force components, in the order of every force array.
 FORCE_AXES = ("fx", "fy", "fz")
@@ -43,7 +50,6 @@ def gls_operator(G, Sigma):
     return cov @ G.T @ W, cov, W
 
 
-
 def excursion2(dT, scale_K, deadband_K=0.0):
     """Squared thermal excursion of each frame: sum over probes of (dT / scale)^2, where
     ``scale_K`` is each probe's largest |dT| in training (so 1 ~ the training's extreme) and
@@ -70,22 +76,29 @@ class PhysicalPredictor:
         self._a_idx = [self.probe_names.index(p) for p in m.ambient_probes_]
         self.lead_tau_s = float(m.lead_tau_s)
         self.nominal_dt_s = float(m.nominal_dt_s_)
-        self.A = np.asarray(m.thermal_coef_)                  # (1 + nh, 3)
+        self.A = np.asarray(m.thermal_coef_)  # (1 + nh, 3)
         self.h_low, self.h_high = np.asarray(m.thermal_envelope_[0]), np.asarray(m.thermal_envelope_[1])
         self.t_low, self.t_high = np.asarray(m.thermal_range_um_[0]), np.asarray(m.thermal_range_um_[1])
         self.margin = float(m.envelope_margin)
-        self.k_sigma = float(m.load_k_sigma)       # also the thermal part's noise shrinkage
+        self.k_sigma = float(m.load_k_sigma)  # also the thermal part's noise shrinkage
         self.thermal_resid_var = np.asarray(m.thermal_resid_sd_um_) ** 2
         # interval of the thermal part: variance = v0 + vs s + v1 s^2 + v2 a^2 (s the thermal
         # excursion, a the housing's lead), fitted on the load-free training campaigns
         # (``PhysicalModel._fit_interval``); a constant without it
         iv = getattr(m, "interval_", None)
-        self.interval = None if iv is None else {
-            "v0": np.asarray(iv["v0_um2"], float), "v1": np.asarray(iv["v1_um2"], float),
-            "scale": np.asarray(iv["dT_scale_K"], float), "v2": np.asarray(iv["v2_um2"], float),
-            "activity_scale": float(iv["activity_scale_K"]),
-            "vs": np.asarray(iv.get("vs_um2", np.zeros(3)), float),
-            "deadband": np.asarray(iv.get("deadband_K", 0.0), float)}
+        self.interval = (
+            None
+            if iv is None
+            else {
+                "v0": np.asarray(iv["v0_um2"], float),
+                "v1": np.asarray(iv["v1_um2"], float),
+                "scale": np.asarray(iv["dT_scale_K"], float),
+                "v2": np.asarray(iv["v2_um2"], float),
+                "activity_scale": float(iv["activity_scale_K"]),
+                "vs": np.asarray(iv.get("vs_um2", np.zeros(3)), float),
+                "deadband": np.asarray(iv.get("deadband_K", 0.0), float),
+            }
+        )
         self.thermal_noise_sd_um = np.asarray(getattr(m, "thermal_noise_sd_um_", np.zeros(3)), float)
         keep = [i for i, s in enumerate(self.sensor_names) if s not in self.exclude]
         self._keep = keep
@@ -93,7 +106,7 @@ class PhysicalPredictor:
         if self.has_load:
             L = m.load_
             G = np.asarray(L["G_um_per_N"])[keep]
-            self.C = np.asarray(L["C_um_per_N"])                          # (3 axes, 3 forces)
+            self.C = np.asarray(L["C_um_per_N"])  # (3 axes, 3 forces)
             self.noise_var = np.asarray(L["noise_var_um2"], float)[keep]
             noise = np.diag(self.noise_var)
             unit = np.asarray(L["thermal_sigma_unit_um2"], float)[np.ix_(keep, keep)]
@@ -137,21 +150,34 @@ class PhysicalPredictor:
             S = len(self.sensor_names)
             k = len(tm["scale"])
             cols = [i for i in range(k) if i >= S or i in keep]
-            coef = (np.asarray(tm["coef"], float) if len(cols) == k else
-                    ridge_from_moments(tm["gram"], tm["xty"], tm["scale"], cols, float(m.map_ridge)))
+            coef = (
+                np.asarray(tm["coef"], float)
+                if len(cols) == k
+                else ridge_from_moments(tm["gram"], tm["xty"], tm["scale"], cols, float(m.map_ridge))
+            )
             lo, hi = np.asarray(tm["envelope_low"], float), np.asarray(tm["envelope_high"], float)
             nz = np.asarray(tm.get("noise_gram", np.zeros((k, k))), float)
             self.map_noise_sd_um = np.sqrt(np.clip(np.einsum("ka,kl,la->a", coef, nz, coef), 0, None))
-            self.map = {"coef": coef, "low": lo, "high": hi,
-                        "G": (np.asarray(m.load_["G_um_per_N"], float) if m.load_ is not None
-                              else np.zeros((S, 3)))}
+            self.map = {
+                "coef": coef,
+                "low": lo,
+                "high": hi,
+                "G": (np.asarray(m.load_["G_um_per_N"], float) if m.load_ is not None else np.zeros((S, 3))),
+            }
             cal = tm.get("calibration")
-            self.cal = None if cal is None else {
-                "leads_s": tuple(float(x) for x in cal["leads_s"]), "coef": np.asarray(cal["coef"], float),
-                "low": np.asarray(cal["envelope_low"], float), "high": np.asarray(cal["envelope_high"], float)}
+            self.cal = (
+                None
+                if cal is None
+                else {
+                    "leads_s": tuple(float(x) for x in cal["leads_s"]),
+                    "coef": np.asarray(cal["coef"], float),
+                    "low": np.asarray(cal["envelope_low"], float),
+                    "high": np.asarray(cal["envelope_high"], float),
+                }
+            )
         var = self.thermal_resid_var.copy()
         if self.has_load:
-            var = var + (self.C ** 2 @ self.F_sds[1] ** 2)
+            var = var + (self.C**2 @ self.F_sds[1] ** 2)
         self.expected_rms_error_um = np.sqrt(var)
         self._t = stats.norm.ppf(0.975)
         self.state = None
@@ -213,7 +239,7 @@ class PhysicalPredictor:
         f_fast = (y - off_prev) @ self.ops[0].T
         k = self.k_sigma
         sd_fast = self.F_sd[None, :] * np.sqrt(k_fast)[:, None]
-        sq = f_fast ** 2
+        sq = f_fast**2
         cross = self.relative_error * np.sqrt(np.maximum(sq.sum(axis=1, keepdims=True) - sq, 0.0)) / k
         limit = np.maximum(np.hypot(k_start[:, None] * sd_fast, k * lag), k * cross)
         fires = (np.abs(f_fast - applied[None, :]) > limit).any(axis=1)
@@ -251,16 +277,19 @@ class PhysicalPredictor:
         state = state or {}
         offset = np.array(state.get("offset", np.zeros(S)), float)
         applied = np.array(state.get("force", np.zeros(3)), float)
-        xs = state.get("fast")                           # low-passed e - offset (S,)
-        f_hold = state.get("hold")                       # slow estimate of the force (3,)
-        mean_sum = np.array(state.get("mean_sum", np.zeros(3)), float)   # since the load stopped
+        xs = state.get("fast")  # low-passed e - offset (S,)
+        f_hold = state.get("hold")  # slow estimate of the force (3,)
+        mean_sum = np.array(state.get("mean_sum", np.zeros(3)), float)  # since the load stopped
         mean_w = np.array(state.get("mean_w", np.zeros(3)), float)
         # what the offset took in over the last ~LOAD_HOLD_S: a load's first moments, before its
         # step is taken, are given back when it is (else each step leaves ~1 % in the offset)
         recent = np.array(state.get("recent", np.zeros(S)), float)
         t_last = state.get("t")
-        t = (np.arange(1, n + 1) * self.nominal_dt_s + (t_last or 0.0) if time_s is None
-             else np.asarray(time_s, float).ravel())
+        t = (
+            np.arange(1, n + 1) * self.nominal_dt_s + (t_last or 0.0)
+            if time_s is None
+            else np.asarray(time_s, float).ravel()
+        )
         dt = np.diff(np.concatenate([[t[0] if t_last is None else t_last], t]))
         dt = np.clip(dt, 0.0, None)
         first = xs is None
@@ -280,19 +309,29 @@ class PhysicalPredictor:
         Ga = self.G
         force = np.zeros((n, 3))
         clamped = np.zeros(n, bool)
-        settle = np.array(state.get("settle", np.zeros(3)), float)   # s left of a load transition
+        settle = np.array(state.get("settle", np.zeros(3)), float)  # s left of a load transition
         refused = np.zeros(n, bool)
         act = self.active
         chi2_limit = self._quantile("chi2", 1 - self.p_contra, max(self.dof, 1))
         k = self.k_sigma
         look_s, at = np.unique(np.maximum(dt, 2.0 * LOAD_FAST_S), return_inverse=True)
-        k_start = np.maximum(k, np.array([self._quantile("isf", 0.5 * LOAD_FALSE_STARTS_PER_H * s / 3600.0)
-                                          for s in look_s])[at.ravel()] if n else np.zeros(0))
+        k_start = np.maximum(
+            k,
+            np.array([self._quantile("isf", 0.5 * LOAD_FALSE_STARTS_PER_H * s / 3600.0) for s in look_s])[
+                at.ravel()
+            ]
+            if n
+            else np.zeros(0),
+        )
         i, slow_until = -1, 0
         while i + 1 < n:
             i += 1
-            if (self.steady_fast_path and i >= slow_until and not (raw or listen or (first and i == 0))
-                    and not (settle > 0).any()):
+            if (
+                self.steady_fast_path
+                and i >= slow_until
+                and not (raw or listen or (first and i == 0))
+                and not (settle > 0).any()
+            ):
                 # No transition under way: the recursion is linear until the first frame whose
                 # step test fires, so run it vectorised up to that frame, at most STEADY_WINDOW
                 # frames at a time (equal to the per-frame recursion to rounding, not bit for
@@ -300,14 +339,15 @@ class PhysicalPredictor:
                 # repeating), the next STEADY_BACKOFF frames go through the recursion.
                 w = slice(i, min(i + STEADY_WINDOW, n))
                 m, offset, xs, f_hold, recent = self._steady_run(
-                    e[w], dt[w], applied, offset, xs, f_hold, recent, k_fast[w], k_start[w], lag[w])
-                force[i:i + m] = applied
+                    e[w], dt[w], applied, offset, xs, f_hold, recent, k_fast[w], k_start[w], lag[w]
+                )
+                force[i : i + m] = applied
                 if m == 0:
                     slow_until = i + STEADY_BACKOFF
                 i += m
                 if i >= n:
                     break
-                if m == w.stop - w.start:       # the window ran out before any test fired
+                if m == w.stop - w.start:  # the window ran out before any test fired
                     i -= 1
                     continue
             x_now = e[i] - offset
@@ -328,7 +368,7 @@ class PhysicalPredictor:
                 xs -= shift
                 continue
             sd_fast = self.F_sd * np.sqrt(k_fast[i])
-            other = np.sqrt(np.maximum((f_fast ** 2).sum() - f_fast ** 2, 0.0))
+            other = np.sqrt(np.maximum((f_fast**2).sum() - f_fast**2, 0.0))
             cross = self.relative_error * other / k
             moving = settle > 0
             step = f_fast - applied
@@ -339,7 +379,7 @@ class PhysicalPredictor:
             if take.any() and self.dof >= 1:
                 # a step no load explains (one grating jumps: a fibre slips, a connector is
                 # re-seated) is refused, and the offset absorbs it
-                new = np.where(take | moving, f_fast, applied)   # moving ones follow too
+                new = np.where(take | moving, f_fast, applied)  # moving ones follow too
                 r = xs - Ga @ new
                 g = self.relative_error * (Ga[:, act] @ (new - applied)[act])
                 cov = self.noise_cov * k_fast[i] + self.nuisance_cov + np.outer(g, g)
@@ -359,8 +399,7 @@ class PhysicalPredictor:
                 # in a transition: follow the low-passed force; still moving while the fast and
                 # slow estimates disagree beyond their noise
                 sd_hold = self.F_sd * np.sqrt(k_hold[i])
-                still = moving & (np.abs(f_fast - f_hold)
-                                  > k * np.maximum(np.hypot(sd_fast, sd_hold), cross))
+                still = moving & (np.abs(f_fast - f_hold) > k * np.maximum(np.hypot(sd_fast, sd_hold), cross))
                 settle = np.where(still, self.settle_s, settle)
                 mean_sum = np.where(still, 0.0, mean_sum + dt[i] * f_fast)
                 mean_w = np.where(still, 0.0, mean_w + dt[i])
@@ -377,16 +416,34 @@ class PhysicalPredictor:
             if not (settle > 0).any():
                 shift = alpha[i] * (e[i] - Ga @ applied - offset)
                 offset += shift
-                xs -= shift                        # xs is relative to the offset
+                xs -= shift  # xs is relative to the offset
                 recent = recent * forget[i] + shift
             force[i] = applied
-        new_state["load"] = {"offset": offset, "force": applied, "settle": settle, "fast": xs,
-                             "hold": f_hold, "mean_sum": mean_sum, "mean_w": mean_w, "recent": recent,
-                             "t": float(t[-1]) if n else t_last}
+        new_state["load"] = {
+            "offset": offset,
+            "force": applied,
+            "settle": settle,
+            "fast": xs,
+            "hold": f_hold,
+            "mean_sum": mean_sum,
+            "mean_w": mean_w,
+            "recent": recent,
+            "t": float(t[-1]) if n else t_last,
+        }
         return force, clamped, refused
 
-    def predict(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C, *,
-                time_s=None, z_axis_mm=None, raw=False, thermal_policy=True):
+    def predict(
+        self,
+        wavelength_nm,
+        temperature_C,
+        wavelength_zero_nm,
+        temperature_zero_C,
+        *,
+        time_s=None,
+        z_axis_mm=None,
+        raw=False,
+        thermal_policy=True,
+    ):
         """Applied TTP deviation (n, 3) µm and 95 % half-width (n, 3) µm; ``raw=True`` skips
         the policy (envelope clipping, axis clamp, load gating) for diagnosis."""
         wl = np.atleast_2d(np.asarray(wavelength_nm, dtype=float))
@@ -403,8 +460,9 @@ class PhysicalPredictor:
         load = np.zeros((n, 3))
         force = np.zeros((n, 3))
         if self.has_load:
-            force, clamped, refused = self._track_load(e_all[:, self._keep], time_s, state.get("load"),
-                                                       new_state, raw)
+            force, clamped, refused = self._track_load(
+                e_all[:, self._keep], time_s, state.get("load"), new_state, raw
+            )
             flags[clamped] |= P.CLAMPED
             flags[refused] |= P.LOAD_REFUSED
             load = force @ self.C.T
@@ -412,17 +470,29 @@ class PhysicalPredictor:
             # the gratings minus the load read from them are thermometers of their gauges
             e_th = e_all - force @ self.map["G"].T
             e_th[:, lost] = 0.0
-            X, new_state["map"] = map_features(e_th, dT, self._h_idx, time_s, state.get("map"),
-                                               self.nominal_dt_s)
-            activity = X[:, -len(MAP_LEADS_S)]          # the housing's fastest lead, K
+            X, new_state["map"] = map_features(
+                e_th, dT, self._h_idx, time_s, state.get("map"), self.nominal_dt_s
+            )
+            activity = X[:, -len(MAP_LEADS_S)]  # the housing's fastest lead, K
             L = None
             if self.cal is not None:
                 S = len(self.sensor_names)
-                smooth = X[:, S:S + len(self.probe_names)]
+                smooth = X[:, S : S + len(self.probe_names)]
                 new_state["cal"] = {}
                 housing = housing_mean(smooth, self._h_idx)
-                L = np.hstack([housing, housing_leads(housing, self.cal["leads_s"], time_s, state.get("cal", {}),
-                                                      new_state["cal"], self.nominal_dt_s)])
+                L = np.hstack(
+                    [
+                        housing,
+                        housing_leads(
+                            housing,
+                            self.cal["leads_s"],
+                            time_s,
+                            state.get("cal", {}),
+                            new_state["cal"],
+                            self.nominal_dt_s,
+                        ),
+                    ]
+                )
             self.last_cal_features = L
             if raw or not thermal_policy:
                 thermal = X @ self.map["coef"]
@@ -442,8 +512,9 @@ class PhysicalPredictor:
                 flags[clamped] |= P.CLAMPED
         else:
             # no twin: the housing fit on the measured load-free campaigns
-            H, new_state["h"] = thermal_regressors(dT, self._h_idx, self._a_idx, self.lead_tau_s, time_s,
-                                                   state.get("h"), self.nominal_dt_s)
+            H, new_state["h"] = thermal_regressors(
+                dT, self._h_idx, self._a_idx, self.lead_tau_s, time_s, state.get("h"), self.nominal_dt_s
+            )
             activity = H[:, -1] if self._h_idx else np.zeros(n)
             if raw or not thermal_policy:
                 thermal = H @ self.A
@@ -471,9 +542,17 @@ class PhysicalPredictor:
         iv = self.interval
         s2 = excursion2(dT, iv["scale"], iv["deadband"])
         a2 = (np.asarray(activity, float) / iv["activity_scale"]) ** 2
-        var = (iv["v0"][None, :] + iv["vs"][None, :] * np.sqrt(s2)[:, None] + iv["v1"][None, :] * s2[:, None]
-               + iv["v2"][None, :] * a2[:, None])
+        var = (
+            iv["v0"][None, :]
+            + iv["vs"][None, :] * np.sqrt(s2)[:, None]
+            + iv["v1"][None, :] * s2[:, None]
+            + iv["v2"][None, :] * a2[:, None]
+        )
         if self.has_load:
-            on = (force != 0.0).astype(float)                       # components applied
-            var = var + (on * self.F_sds[1] ** 2) @ (self.C ** 2).T + (self.relative_error * force @ self.C.T) ** 2
+            on = (force != 0.0).astype(float)  # components applied
+            var = (
+                var
+                + (on * self.F_sds[1] ** 2) @ (self.C**2).T
+                + (self.relative_error * force @ self.C.T) ** 2
+            )
         return var

@@ -11,6 +11,7 @@ from fbgcomp.models.physical.thermal import MAP_LEADS_S
 def check_shapes(d: dict, source) -> None:
     """Every array of a physical model file has the shape its sensors and probes imply, and the
     sensor and probe names are distinct strings; InputError naming the first field that does not."""
+
     def need(cond, field, what):
         if not cond:
             raise InputError(what, file=source, column=f"field {field}")
@@ -24,12 +25,19 @@ def check_shapes(d: dict, source) -> None:
         return a
 
     def names(node, field):
-        need(isinstance(node, list) and all(isinstance(x, str) for x in node), field, "must be a list of names")
+        need(
+            isinstance(node, list) and all(isinstance(x, str) for x in node), field, "must be a list of names"
+        )
         need(len(set(node)) == len(node), field, "names must be distinct")
         return node
 
-    need(isinstance(d.get("sensors"), list) and d["sensors"]
-         and all(isinstance(x, dict) for x in d["sensors"]), "sensors", "must be a non-empty list of sensors")
+    need(
+        isinstance(d.get("sensors"), list)
+        and d["sensors"]
+        and all(isinstance(x, dict) for x in d["sensors"]),
+        "sensors",
+        "must be a non-empty list of sensors",
+    )
     sensor_names = names([x.get("name") for x in d["sensors"]], "sensors")
     probes = names(d.get("probes"), "probes")
     for key in ("housing_probes", "ambient_probes"):
@@ -37,8 +45,13 @@ def check_shapes(d: dict, source) -> None:
         need(all(p in probes for p in got), key, "names a probe the model does not read")
     S, P = len(sensor_names), len(probes)
     nh = 1 + len(d["housing_probes"]) + len(d["ambient_probes"]) + (1 if d["housing_probes"] else 0)
-    need(isinstance(d.get("nominal_dt_s"), (int, float)) and not isinstance(d["nominal_dt_s"], bool)
-         and d["nominal_dt_s"] > 0, "nominal_dt_s", "must be a positive number")
+    need(
+        isinstance(d.get("nominal_dt_s"), (int, float))
+        and not isinstance(d["nominal_dt_s"], bool)
+        and d["nominal_dt_s"] > 0,
+        "nominal_dt_s",
+        "must be a positive number",
+    )
     th = d.get("thermal")
     need(isinstance(th, dict), "thermal", "must be a mapping")
     array(th.get("coef"), "thermal.coef", (nh, 3))
@@ -52,9 +65,15 @@ def check_shapes(d: dict, source) -> None:
     L = d.get("load")
     if L is not None:
         need(isinstance(L, dict), "load", "must be a mapping or null")
-        for key, shape in (("G_um_per_N", (S, 3)), ("C_um_per_N", (3, 3)), ("grating_thermal_coef", (nh, S)),
-                           ("thermal_sigma_unit_um2", (S, S)), ("thermal_scale", (P,)),
-                           ("noise_var_um2", (S,)), ("active_forces", (3,))):
+        for key, shape in (
+            ("G_um_per_N", (S, 3)),
+            ("C_um_per_N", (3, 3)),
+            ("grating_thermal_coef", (nh, S)),
+            ("thermal_sigma_unit_um2", (S, S)),
+            ("thermal_scale", (P,)),
+            ("noise_var_um2", (S,)),
+            ("active_forces", (3,)),
+        ):
             array(L.get(key), f"load.{key}", shape)
         for key in ("max_force_N", "drift_N_per_s"):
             if key in L:
@@ -66,27 +85,45 @@ def check_shapes(d: dict, source) -> None:
         # vs_um2 is absent from files written before the interval's linear term
         for key in ("v0_um2", "v1_um2", "v2_um2") + (("vs_um2",) if "vs_um2" in iv else ()):
             need(np.all(array(iv.get(key), f"interval.{key}", (3,)) >= 0), f"interval.{key}", "must be >= 0")
-        need(np.all(array(iv.get("dT_scale_K"), "interval.dT_scale_K", (P,)) > 0), "interval.dT_scale_K",
-             "must be > 0")
+        need(
+            np.all(array(iv.get("dT_scale_K"), "interval.dT_scale_K", (P,)) > 0),
+            "interval.dT_scale_K",
+            "must be > 0",
+        )
         if "deadband_K" in iv:
             array(iv["deadband_K"], "interval.deadband_K", (P,))
         a = iv.get("activity_scale_K")
-        need(isinstance(a, (int, float)) and not isinstance(a, bool) and a > 0, "interval.activity_scale_K",
-             "must be a positive number")
+        need(
+            isinstance(a, (int, float)) and not isinstance(a, bool) and a > 0,
+            "interval.activity_scale_K",
+            "must be a positive number",
+        )
     tm = d.get("twin_map")
     if tm is not None:
         need(isinstance(tm, dict), "twin_map", "must be a mapping or null")
         k = S + P + len(MAP_LEADS_S)
-        for key, shape in (("coef", (k, 3)), ("gram", (k, k)), ("xty", (k, 3)), ("scale", (k,)),
-                           ("noise_gram", (k, k)), ("envelope_low", (k,)), ("envelope_high", (k,))):
+        for key, shape in (
+            ("coef", (k, 3)),
+            ("gram", (k, k)),
+            ("xty", (k, 3)),
+            ("scale", (k,)),
+            ("noise_gram", (k, k)),
+            ("envelope_low", (k,)),
+            ("envelope_high", (k,)),
+        ):
             array(tm.get(key), f"twin_map.{key}", shape)
         need(np.all(np.asarray(tm["scale"], float) > 0), "twin_map.scale", "must be > 0")
         cal = tm.get("calibration")
         if cal is not None:
             need(isinstance(cal, dict), "twin_map.calibration", "must be a mapping or null")
-            leads = array(cal.get("leads_s"), "twin_map.calibration.leads_s", (len(cal.get("leads_s") or []),))
-            need(leads.size > 0 and np.all(leads > 0), "twin_map.calibration.leads_s",
-                 "must be positive time constants")
+            leads = array(
+                cal.get("leads_s"), "twin_map.calibration.leads_s", (len(cal.get("leads_s") or []),)
+            )
+            need(
+                leads.size > 0 and np.all(leads > 0),
+                "twin_map.calibration.leads_s",
+                "must be positive time constants",
+            )
             array(cal.get("coef"), "twin_map.calibration.coef", (1 + leads.size, 3))
             for key in ("envelope_low", "envelope_high"):
                 array(cal.get(key), f"twin_map.calibration.{key}", (1 + leads.size,))

@@ -32,8 +32,9 @@ def weighted_lstsq(X, Y, w):
     return B, cov
 
 
-def thermal_regressors(delta_T_K, housing_idx, ambient_idx, lead_tau_s, time_s=None, state=None,
-                       nominal_dt_s=1.0):
+def thermal_regressors(
+    delta_T_K, housing_idx, ambient_idx, lead_tau_s, time_s=None, state=None, nominal_dt_s=1.0
+):
     """Thermal regressors (n, 1 + nh): [1, ΔT of each housing probe, ΔT of each ambient probe,
     lead of the mean housing ΔT (``T - lowpass(T, lead_tau_s)``, K)] and the filter state.
 
@@ -44,16 +45,18 @@ def thermal_regressors(delta_T_K, housing_idx, ambient_idx, lead_tau_s, time_s=N
     # Probes are quantised (0.1 K is typical) and sampled slowly: a 60 s low-pass keeps their
     # steps out of the correction (thermal drift is far slower), then the lead term is formed.
     used = list(housing_idx) + list(ambient_idx)
-    smooth, state_in = first_order_filter(dT[:, used], time_s, PROBE_SMOOTHING_S, state.get("in"), nominal_dt_s)
+    smooth, state_in = first_order_filter(
+        dT[:, used], time_s, PROBE_SMOOTHING_S, state.get("in"), nominal_dt_s
+    )
     cols = [np.ones((n, 1)), smooth]
     new_state = {"in": state_in}
     if len(housing_idx):
-        housing = smooth[:, :len(housing_idx)].mean(axis=1, keepdims=True)
-        slow, new_state["lead"] = first_order_filter(housing, time_s, lead_tau_s, state.get("lead"), nominal_dt_s)
+        housing = smooth[:, : len(housing_idx)].mean(axis=1, keepdims=True)
+        slow, new_state["lead"] = first_order_filter(
+            housing, time_s, lead_tau_s, state.get("lead"), nominal_dt_s
+        )
         cols.append(housing - slow)
     return np.hstack(cols), new_state
-
-
 
 
 #: Time constants of the housing lead terms of the twin-learned thermal map, s.
@@ -84,8 +87,11 @@ def housing_mean(smooth_K, housing_idx):
     """Mean ΔT (n, 1) K of the housing probes among probe ΔTs already low-passed over
     ``PROBE_SMOOTHING_S`` (zeros without a housing probe)."""
     smooth = np.atleast_2d(smooth_K)
-    return (smooth[:, list(housing_idx)].mean(axis=1, keepdims=True) if len(housing_idx)
-            else np.zeros((smooth.shape[0], 1)))
+    return (
+        smooth[:, list(housing_idx)].mean(axis=1, keepdims=True)
+        if len(housing_idx)
+        else np.zeros((smooth.shape[0], 1))
+    )
 
 
 def housing_leads(housing_K, taus_s, time_s, state, new_state, nominal_dt_s=1.0):
@@ -112,8 +118,16 @@ def ridge_from_moments(gram, xty, scale, keep, lam):
     return coef
 
 
-def twin_thermal_population(machine, sensors, probe_names, housing_probes, n_scenarios=40, seed=0,
-                            grating_noise_um=0.1, probe_noise_K=0.1):
+def twin_thermal_population(
+    machine,
+    sensors,
+    probe_names,
+    housing_probes,
+    n_scenarios=40,
+    seed=0,
+    grating_noise_um=0.1,
+    probe_noise_K=0.1,
+):
     """Second moments of (map features, TTP) over the twin's generic thermal scenarios
     (:mod:`fbgcomp.structure.scenarios`), or None when the machine description lacks one of
     the campaign's gratings or probes. Measurement noise is added as the instruments have it
@@ -122,20 +136,28 @@ def twin_thermal_population(machine, sensors, probe_names, housing_probes, n_sce
     mprobes = [p.name for p in machine.probes]
     # a strain-free reference grating (<sensor>_ref) reads the temperature of its sensor's gauge
     ref_of = {f"{n}_ref": n for n in names}
-    if any(s.name not in names for s in sensors) or \
-            any(p not in mprobes and p not in ref_of for p in probe_names):
+    if any(s.name not in names for s in sensors) or any(
+        p not in mprobes and p not in ref_of for p in probe_names
+    ):
         return None
     from fbgcomp.structure import Twin  # the FE twin needs scikit-fem, the optional ``fe`` extra
 
     twin = Twin(generic_heat_machine(machine))
     idx = [twin.sensor_names.index(s.name) for s in sensors]
     # each thermometer's column in the twin's response: a probe's, or its gauge's temperature
-    sources = [("probe_C", twin.probe_names.index(p)) if p in mprobes
-               else ("sensor_temperature_C", twin.sensor_names.index(ref_of[p])) for p in probe_names]
+    sources = [
+        ("probe_C", twin.probe_names.index(p))
+        if p in mprobes
+        else ("sensor_temperature_C", twin.sensor_names.index(ref_of[p]))
+        for p in probe_names
+    ]
 
     def thermometers(r):
-        return np.column_stack([getattr(r, field)[:, i] for field, i in sources]) if sources \
+        return (
+            np.column_stack([getattr(r, field)[:, i] for field, i in sources])
+            if sources
             else np.zeros((r.time_s.size, 0))
+        )
 
     h_idx = [list(probe_names).index(p) for p in housing_probes]
     fmap = grating_map(sensors, probe_names)
@@ -152,17 +174,29 @@ def twin_thermal_population(machine, sensors, probe_names, housing_probes, n_sce
         el = el0 + rng.normal(0, grating_noise_um, (t.size, len(idx)))
 
         def features(el, dT):
-            wl = np.column_stack([
-                wavelength_nm(el[:, j], s.lambda0_nm, s.gauge_length_mm, r.sensor_temperature_C[:, i],
-                              photoelastic=s.photoelastic, thermo_optic_per_K=s.thermo_optic_per_K,
-                              fibre_cte_per_K=s.fibre_cte_per_K)
-                for j, (i, s) in enumerate(zip(idx, sensors))])
+            wl = np.column_stack(
+                [
+                    wavelength_nm(
+                        el[:, j],
+                        s.lambda0_nm,
+                        s.gauge_length_mm,
+                        r.sensor_temperature_C[:, i],
+                        photoelastic=s.photoelastic,
+                        thermo_optic_per_K=s.thermo_optic_per_K,
+                        fibre_cte_per_K=s.fibre_cte_per_K,
+                    )
+                    for j, (i, s) in enumerate(zip(idx, sensors))
+                ]
+            )
             return map_features(fmap.base(wl, dT, lam0, np.zeros(len(sources))), dT, h_idx, t)[0]
 
         # probe noise, and the error of a zero state read from a single slow probe sample
         dT0 = thermometers(r)
-        dT = (dT0 + rng.normal(0, probe_noise_K, (t.size, len(sources)))
-              + rng.normal(0, probe_noise_K, len(sources)))
+        dT = (
+            dT0
+            + rng.normal(0, probe_noise_K, (t.size, len(sources)))
+            + rng.normal(0, probe_noise_K, len(sources))
+        )
         X = features(el, dT)
         N = X - features(el0, dT0)
         noise += N.T @ N
@@ -173,13 +207,22 @@ def twin_thermal_population(machine, sensors, probe_names, housing_probes, n_sce
         lo, hi = np.minimum(lo, X.min(axis=0)), np.maximum(hi, X.max(axis=0))
         ylo, yhi = np.minimum(ylo, Y.min(axis=0)), np.maximum(yhi, Y.max(axis=0))
     gram, xty, noise = gram / n, xty / n, noise / n
-    return {"gram": gram.tolist(), "xty": xty.tolist(), "scale": np.sqrt(np.diag(gram)).tolist(),
-            "noise_gram": noise.tolist(),
-            "n_samples": n, "n_scenarios": n_scenarios, "seed": seed,
-            "envelope_low": lo.tolist(), "envelope_high": hi.tolist(),
-            "ttp_low_um": ylo.tolist(), "ttp_high_um": yhi.tolist(),
-            "features": [f"e_{s.name}" for s in sensors] + [f"dT_{p}" for p in probe_names]
-            + [f"lead{tau:g}s_housing" for tau in MAP_LEADS_S]}
+    return {
+        "gram": gram.tolist(),
+        "xty": xty.tolist(),
+        "scale": np.sqrt(np.diag(gram)).tolist(),
+        "noise_gram": noise.tolist(),
+        "n_samples": n,
+        "n_scenarios": n_scenarios,
+        "seed": seed,
+        "envelope_low": lo.tolist(),
+        "envelope_high": hi.tolist(),
+        "ttp_low_um": ylo.tolist(),
+        "ttp_high_um": yhi.tolist(),
+        "features": [f"e_{s.name}" for s in sensors]
+        + [f"dT_{p}" for p in probe_names]
+        + [f"lead{tau:g}s_housing" for tau in MAP_LEADS_S],
+    }
 
 
 def grating_map(sensors, probe_names):
@@ -196,8 +239,11 @@ def housing_probe_names(probe_names, machine=None):
     """Probes on the spindle housing (the machine description's point probes below z = 0, else
     names containing 'flange', 'housing' or 'spindle')."""
     if machine is not None:
-        found = [p.name for p in machine.probes
-                 if p.kind == "point" and p.z_mm is not None and p.z_mm < 0 and p.name in probe_names]
+        found = [
+            p.name
+            for p in machine.probes
+            if p.kind == "point" and p.z_mm is not None and p.z_mm < 0 and p.name in probe_names
+        ]
         if found:
             return found
     keys = ("flange", "housing", "spindle")

@@ -75,16 +75,16 @@ from fbgcomp.models.regression.results import OLSResults
 from fbgcomp.models.regression.stepwise import StepwiseResult, stepwise
 
 __all__ = [
-    "RankDeficientError",
-    "QRAccumulator",
+    "COV_TYPES",
+    "HAC_MAX_LAG",
     "OLSResults",
+    "QRAccumulator",
+    "RankDeficientError",
     "StepwiseResult",
+    "accumulate_series",
+    "andrews_bartlett_lags",
+    "hac_lag_grid",
     "ols",
     "ols_from_factor",
     "stepwise",
-    "accumulate_series",
-    "hac_lag_grid",
-    "andrews_bartlett_lags",
-    "HAC_MAX_LAG",
-    "COV_TYPES",
 ]

@@ -69,8 +69,11 @@ def _check_finite(arr: np.ndarray, names: Sequence[str], first_row: int, what: s
     """InputError naming the (1-based) row and the column of the first non-finite value."""
     if not np.isfinite(arr).all():
         bad_row, bad_col = np.argwhere(~np.isfinite(arr))[0]
-        raise InputError(f"non-finite {what} value {arr[bad_row, bad_col]!r} in regression data",
-                         row=first_row + int(bad_row), column=names[int(bad_col)])
+        raise InputError(
+            f"non-finite {what} value {arr[bad_row, bad_col]!r} in regression data",
+            row=first_row + int(bad_row),
+            column=names[int(bad_col)],
+        )
 
 
 def _names(names: Sequence[str] | None, count: int, default: list[str], what: str) -> list[str]:
@@ -144,8 +147,16 @@ class QRAccumulator(AccumulatedFactor):
     :class:`~fbgcomp.models.regression.hac.HACStatistics` for what is kept and why.
     """
 
-    def __init__(self, n_features: int, n_targets: int = 1, feature_names=None, target_names=None,
-                 *, precision: str = "auto", hac_lags=None):
+    def __init__(
+        self,
+        n_features: int,
+        n_targets: int = 1,
+        feature_names=None,
+        target_names=None,
+        *,
+        precision: str = "auto",
+        hac_lags=None,
+    ):
         if int(n_features) < 1 or int(n_targets) < 1:
             raise ValueError("n_features and n_targets must be at least 1")
         if precision not in _PRECISIONS:
@@ -153,8 +164,9 @@ class QRAccumulator(AccumulatedFactor):
         self.n_features = int(n_features)
         self.n_targets = int(n_targets)
         self.precision = precision
-        self.feature_names = _names(feature_names, self.n_features,
-                                    [f"x{i}" for i in range(self.n_features)], "feature_names")
+        self.feature_names = _names(
+            feature_names, self.n_features, [f"x{i}" for i in range(self.n_features)], "feature_names"
+        )
         default_targets = ["y"] if self.n_targets == 1 else [f"y{j}" for j in range(self.n_targets)]
         self.target_names = _names(target_names, self.n_targets, default_targets, "target_names")
         q = self.n_features + self.n_targets
@@ -173,7 +185,6 @@ class QRAccumulator(AccumulatedFactor):
         self.weight_sum_ = 0.0
         self.hac_lags_ = hac_lag_grid(hac_lags)
         self._hac_reset()
-
 
     def _rows(self, X_chunk, Y_chunk, weights, check: bool = True):
         """Validated (X, Y, w or None) of a chunk (``check=False``: finiteness not checked)."""
@@ -222,8 +233,7 @@ class QRAccumulator(AccumulatedFactor):
             root = np.sqrt(w)[:, None]
             X, Y = X * root, Y * root
         if self.scale_ is None:
-            rms = np.sqrt(np.concatenate([np.einsum("ij,ij->j", X, X),
-                                          np.einsum("ij,ij->j", Y, Y)]) / m)
+            rms = np.sqrt(np.concatenate([np.einsum("ij,ij->j", X, X), np.einsum("ij,ij->j", Y, Y)]) / m)
             self.scale_ = _power_of_two_scale(rms)
         start = 0
         if self._gram_eligible():
@@ -265,7 +275,7 @@ class QRAccumulator(AccumulatedFactor):
         as it was (one strided read of the few constant columns instead of two full passes)."""
         if not X_raw.shape[0]:
             return
-        if not np.isfinite(self.column_min_).all():          # first rows
+        if not np.isfinite(self.column_min_).all():  # first rows
             self.column_min_ = np.minimum(self.column_min_, X_raw.min(axis=0))
             self.column_max_ = np.maximum(self.column_max_, X_raw.max(axis=0))
             return
@@ -275,8 +285,9 @@ class QRAccumulator(AccumulatedFactor):
             self.column_min_[flat] = np.minimum(self.column_min_[flat], part.min(axis=0))
             self.column_max_[flat] = np.maximum(self.column_max_[flat], part.max(axis=0))
 
-    def _gram_rows(self, X: np.ndarray, Y: np.ndarray, X_raw: np.ndarray,
-                   Y_raw: np.ndarray, offset: int) -> bool:
+    def _gram_rows(
+        self, X: np.ndarray, Y: np.ndarray, X_raw: np.ndarray, Y_raw: np.ndarray, offset: int
+    ) -> bool:
         """Gram fast path: add the (weighted) rows through their Gram ``[X Y]^T [X Y]``
         and a Cholesky of ``R^T R + G`` (scaled exactly by the power-of-two scales), committed
         only if :func:`~fbgcomp.models.regression.gram.gram_factor` accepts the new factor;
@@ -285,7 +296,7 @@ class QRAccumulator(AccumulatedFactor):
         q = self.n_features + self.n_targets
         g = gram(X, Y)
         if not np.isfinite(np.diag(g)).all():
-            self._check_rows(X_raw, Y_raw, offset)   # names the bad cell; else squares overflowed
+            self._check_rows(X_raw, Y_raw, offset)  # names the bad cell; else squares overflowed
             self._gram_ok = False
             return False
         g /= np.outer(self.scale_, self.scale_)  # exact: powers of two
@@ -406,8 +417,15 @@ class QRAccumulator(AccumulatedFactor):
         self.extended_ = self.extended_ or other.extended_
         root = float(np.sqrt(weight))
         if self.n_obs == 0:
-            for name in ("R_", "R_lo_", "scale_", "column_min_", "column_max_", "target_mean_",
-                         "target_css_"):
+            for name in (
+                "R_",
+                "R_lo_",
+                "scale_",
+                "column_min_",
+                "column_max_",
+                "target_mean_",
+                "target_css_",
+            ):
                 setattr(self, name, getattr(other, name).copy())
             self.n_obs = other.n_obs
             self.gram_rows_ = other.gram_rows_
@@ -418,8 +436,9 @@ class QRAccumulator(AccumulatedFactor):
             return self
         self._merge_hac(other, weight)
         ratio = root * other.scale_ / self.scale_
-        self.R_, self.R_lo_ = dd_qr_r(np.vstack([self.R_, other.R_ * ratio]),
-                                       np.vstack([self.R_lo_, other.R_lo_ * ratio]))
+        self.R_, self.R_lo_ = dd_qr_r(
+            np.vstack([self.R_, other.R_ * ratio]), np.vstack([self.R_lo_, other.R_lo_ * ratio])
+        )
         self.column_min_ = np.minimum(self.column_min_, other.column_min_)
         self.column_max_ = np.maximum(self.column_max_, other.column_max_)
         self._merge_moments(other.weight_sum_ * weight, other.target_mean_, other.target_css_ * weight)
@@ -462,16 +481,22 @@ class QRAccumulator(AccumulatedFactor):
         """Rebuild an accumulator from :meth:`to_dict` output (e.g. after a JSON round trip)."""
         try:
             hac = state.get("hac")
-            acc = cls(state["n_features"], state["n_targets"], state["feature_names"],
-                      state["target_names"], precision=state.get("precision", "auto"),
-                      hac_lags=None if hac is None else hac["lags"])
+            acc = cls(
+                state["n_features"],
+                state["n_targets"],
+                state["feature_names"],
+                state["target_names"],
+                precision=state.get("precision", "auto"),
+                hac_lags=None if hac is None else hac["lags"],
+            )
             q = acc.n_features + acc.n_targets
             acc.n_obs = int(state["n_obs"])
             acc.extended_ = bool(state.get("extended", acc.extended_))
             acc.gram_rows_ = int(state.get("gram_rows", 0))
             acc.R_ = field_array(state, "R", (q, q))
-            acc.R_lo_ = (field_array(state, "R_lo", (q, q)) if state.get("R_lo") is not None
-                         else np.zeros((q, q)))
+            acc.R_lo_ = (
+                field_array(state, "R_lo", (q, q)) if state.get("R_lo") is not None else np.zeros((q, q))
+            )
             if acc.n_obs:
                 acc.scale_ = field_array(state, "scale", (q,))
                 acc.column_min_ = field_array(state, "column_min", (acc.n_features,))
@@ -482,13 +507,13 @@ class QRAccumulator(AccumulatedFactor):
             if hac is not None:
                 acc._hac_load(hac)
         except KeyError as exc:
-            raise InputError(f"missing field {exc.args[0]!r} in accumulator state",
-                             column=f"field {exc.args[0]}") from None
+            raise InputError(
+                f"missing field {exc.args[0]!r} in accumulator state", column=f"field {exc.args[0]}"
+            ) from None
         return acc
 
     def __repr__(self) -> str:
-        return (f"QRAccumulator(n_features={self.n_features}, n_targets={self.n_targets}, "
-                f"n_obs={self.n_obs})")
+        return f"QRAccumulator(n_features={self.n_features}, n_targets={self.n_targets}, n_obs={self.n_obs})"
 
 
 def accumulate_series(acc: QRAccumulator, series, chunk_rows: int = 100_000) -> QRAccumulator:
@@ -504,8 +529,8 @@ def accumulate_series(acc: QRAccumulator, series, chunk_rows: int = 100_000) -> 
     def chunks():
         for X, Y, w in series:
             for lo in range(0, len(X), chunk_rows):
-                part = w if w is None or np.ndim(w) == 0 else w[lo:lo + chunk_rows]
-                yield X[lo:lo + chunk_rows], Y[lo:lo + chunk_rows], part
+                part = w if w is None or np.ndim(w) == 0 else w[lo : lo + chunk_rows]
+                yield X[lo : lo + chunk_rows], Y[lo : lo + chunk_rows], part
             yield None
 
     for chunk in chunks():
@@ -521,10 +546,9 @@ def accumulate_series(acc: QRAccumulator, series, chunk_rows: int = 100_000) -> 
     return acc
 
 
-
-
-def ols(X, y, *, feature_names=None, target_name: str | None = None, cov_type: str = "HAC",
-        maxlags=None) -> OLSResults:
+def ols(
+    X, y, *, feature_names=None, target_name: str | None = None, cov_type: str = "HAC", maxlags=None
+) -> OLSResults:
     """Ordinary least squares of ``y`` (n,) on the design ``X`` (n, p) exactly as given.
 
     Add a column of ones yourself for an intercept. Column names default to those of a
@@ -562,10 +586,12 @@ def ols(X, y, *, feature_names=None, target_name: str | None = None, cov_type: s
         raise ValueError(f"cov_type must be one of {COV_TYPES}, not {cov_type!r}")
     lags = None
     if cov_type == "HAC":
-        lags = (max(1, min(HAC_MAX_LAG, X.shape[0] - 1)) if maxlags in (None, "auto")
-                else [int(maxlags)])
-    acc = accumulate_series(QRAccumulator(X.shape[1], 1, feature_names, [target_name],
-                                          hac_lags=lags), [(X, y, None)], chunk_rows=len(X) or 1)
+        lags = max(1, min(HAC_MAX_LAG, X.shape[0] - 1)) if maxlags in (None, "auto") else [int(maxlags)]
+    acc = accumulate_series(
+        QRAccumulator(X.shape[1], 1, feature_names, [target_name], hac_lags=lags),
+        [(X, y, None)],
+        chunk_rows=len(X) or 1,
+    )
     res = ols_from_factor(acc, cov_type=cov_type, maxlags=maxlags)
     res.named = named
     res._data = (X, y, index)

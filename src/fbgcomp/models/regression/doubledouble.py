@@ -13,8 +13,16 @@ import math
 
 import numpy as np
 
-__all__ = ["dd_add", "dd_mul", "dd_div", "dd_sqrt", "dd_sum_rows", "dd_householder", "dd_qr_r",
-           "dd_solve_upper"]
+__all__ = [
+    "dd_add",
+    "dd_div",
+    "dd_householder",
+    "dd_mul",
+    "dd_qr_r",
+    "dd_solve_upper",
+    "dd_sqrt",
+    "dd_sum_rows",
+]
 
 _DEKKER = 134217729.0  # 2**27 + 1
 
@@ -113,14 +121,14 @@ def dd_householder(mh: np.ndarray, ml: np.ndarray, ncols: int) -> tuple[np.ndarr
         vh[0], vl[0] = dd_add(xh[0], xl[0], sign * sig_h, sign * sig_l)
         if j + 1 < c:
             dh, dl = dd_mul(sig_h, sig_l, sign * vh[0], sign * vl[0])
-            th, tl = mh[j:, j + 1:], ml[j:, j + 1:]
+            th, tl = mh[j:, j + 1 :], ml[j:, j + 1 :]
             wh, wl = dd_sum_rows(*dd_mul(vh[:, None], vl[:, None], th, tl))
             fh, fl = dd_div(wh, wl, dh, dl)
             uh, ul = dd_mul(vh[:, None], vl[:, None], fh[None, :], fl[None, :])
-            mh[j:, j + 1:], ml[j:, j + 1:] = dd_add(th, tl, -uh, -ul)
+            mh[j:, j + 1 :], ml[j:, j + 1 :] = dd_add(th, tl, -uh, -ul)
         mh[j, j], ml[j, j] = -sign * sig_h, -sign * sig_l
-        mh[j + 1:, j] = 0.0
-        ml[j + 1:, j] = 0.0
+        mh[j + 1 :, j] = 0.0
+        ml[j + 1 :, j] = 0.0
     return mh, ml
 
 
@@ -148,11 +156,9 @@ def dd_solve_upper(th, tl, zh, zl) -> tuple[np.ndarray, np.ndarray]:
     for i in range(n - 1, -1, -1):
         sh, sl = zh[i], zl[i]
         if i + 1 < n:
-            ah = th[i, i + 1:].reshape((-1,) + (1,) * (zh.ndim - 1))
-            al = tl[i, i + 1:].reshape(ah.shape)
-            qh, ql = dd_sum_rows(*dd_mul(ah, al, bh[i + 1:], bl[i + 1:]))
+            ah = th[i, i + 1 :].reshape((-1,) + (1,) * (zh.ndim - 1))
+            al = tl[i, i + 1 :].reshape(ah.shape)
+            qh, ql = dd_sum_rows(*dd_mul(ah, al, bh[i + 1 :], bl[i + 1 :]))
             sh, sl = dd_add(sh, sl, -qh, -ql)
         bh[i], bl[i] = dd_div(sh, sl, th[i, i], tl[i, i])
     return bh, bl
-
-

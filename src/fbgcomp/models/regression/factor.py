@@ -14,8 +14,14 @@ import numpy as np
 
 from fbgcomp.errors import InputError
 
-__all__ = ["EPS", "KAPPA_EXTENDED", "RankDeficientError", "deficient_columns", "equilibrated_cond",
-           "field_array"]
+__all__ = [
+    "EPS",
+    "KAPPA_EXTENDED",
+    "RankDeficientError",
+    "deficient_columns",
+    "equilibrated_cond",
+    "field_array",
+]
 
 EPS = np.finfo(float).eps
 # Above this condition number of the scaled design, double-precision QR would lose more than
@@ -71,6 +77,5 @@ def field_array(state: dict, key: str, shape: tuple[int, ...]) -> np.ndarray:
     except (TypeError, ValueError):
         raise InputError(f"field {key!r} is not numeric", column=f"field {key}") from None
     if arr.shape != shape:
-        raise InputError(f"field {key!r} has shape {arr.shape}, expected {shape}",
-                         column=f"field {key}")
+        raise InputError(f"field {key!r} has shape {arr.shape}, expected {shape}", column=f"field {key}")
     return arr

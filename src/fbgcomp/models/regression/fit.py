@@ -13,8 +13,12 @@ import numpy as np
 from scipy import linalg
 
 from fbgcomp.models.regression.doubledouble import dd_qr_r, dd_solve_upper
-from fbgcomp.models.regression.factor import (KAPPA_EXTENDED, RankDeficientError, deficient_columns,
-                                              equilibrated_cond)
+from fbgcomp.models.regression.factor import (
+    KAPPA_EXTENDED,
+    RankDeficientError,
+    deficient_columns,
+    equilibrated_cond,
+)
 from fbgcomp.models.regression.hac import HACStatistics, hac_cov_scaled, resolve_cov_type
 from fbgcomp.models.regression.results import OLSResults
 
@@ -102,7 +106,6 @@ class AccumulatedFactor(HACStatistics):
                 pilot[cols, t] = bh + bl
         return pilot
 
-
     def _subset_factor(self, cols: list[int], t: int):
         """Double-double QR factor of the scaled ``[X_S | y_t]``, from R alone.
 
@@ -119,8 +122,7 @@ class AccumulatedFactor(HACStatistics):
         statistics (Householder QR of the factor's columns: relative error ~ kappa u, 1e-10 at
         the limit, far below anything a partial F test resolves): equilibrated kappa of R
         (design and targets) <= ``limit`` and the data pass never needed double-double."""
-        return (not self.extended_ and self.n_obs > 0
-                and equilibrated_cond(self.R_ + self.R_lo_) <= limit)
+        return not self.extended_ and self.n_obs > 0 and equilibrated_cond(self.R_ + self.R_lo_) <= limit
 
     def _tss(self, t: int) -> tuple[float, float]:
         """(centred, uncentred) total sum of squares of target t."""
@@ -132,8 +134,9 @@ class AccumulatedFactor(HACStatistics):
         return ols_from_factor(self, columns, target)
 
 
-def ols_from_factor(acc: AccumulatedFactor, columns=None, target=0, *, cov_type=None,
-                    maxlags=None) -> OLSResults:
+def ols_from_factor(
+    acc: AccumulatedFactor, columns=None, target=0, *, cov_type=None, maxlags=None
+) -> OLSResults:
     """OLS of one target on a subset of the design columns, from the accumulated factor only.
 
     Parameters
@@ -168,12 +171,13 @@ def ols_from_factor(acc: AccumulatedFactor, columns=None, target=0, *, cov_type=
     names = [acc.feature_names[c] for c in cols]
     if bad:
         culprits = [names[i] for i in bad]
-        extra = (f" (only {acc.n_obs} rows for {len(cols)} columns)"
-                 if acc.n_obs < len(cols) else "")
+        extra = f" (only {acc.n_obs} rows for {len(cols)} columns)" if acc.n_obs < len(cols) else ""
         raise RankDeficientError(
             f"design is rank deficient{extra}: column(s) {', '.join(map(repr, culprits))} "
             f"are (nearly) linear combinations of the columns before them; drop them or "
-            f"reparametrise", culprits)
+            f"reparametrise",
+            culprits,
+        )
     p = acc.n_features
     sx = acc.scale_[cols]
     sy = float(acc.scale_[p + t])
@@ -189,10 +193,19 @@ def ols_from_factor(acc: AccumulatedFactor, columns=None, target=0, *, cov_type=
         cov_s, info = hac_cov_scaled(acc, cols, t, bh + bl, r_inv, rho * rho, maxlags)
         robust = cov_s * sy * sy / np.outer(sx, sx)
     const_pos = [i for i, c in enumerate(cols) if c in const]
-    return OLSResults(beta, th, sx, ssr=(rho * sy) ** 2, nobs=acc.n_obs,
-                      k_constant=int(bool(const_pos)), centered_tss=centred,
-                      uncentered_tss=uncentred, feature_names=names,
-                      target_name=acc.target_names[t], cov_type=cov_type, robust_cov=robust,
-                      cov_kwds=info, const_index=const_pos[0] if const_pos else None)
-
-
+    return OLSResults(
+        beta,
+        th,
+        sx,
+        ssr=(rho * sy) ** 2,
+        nobs=acc.n_obs,
+        k_constant=int(bool(const_pos)),
+        centered_tss=centred,
+        uncentered_tss=uncentred,
+        feature_names=names,
+        target_name=acc.target_names[t],
+        cov_type=cov_type,
+        robust_cov=robust,
+        cov_kwds=info,
+        const_index=const_pos[0] if const_pos else None,
+    )

@@ -14,8 +14,15 @@ from scipy import linalg
 
 from fbgcomp.models.regression.factor import equilibrated_cond
 
-__all__ = ["GRAM_BLOCK_ROWS", "KAPPA_GRAM", "RESID_RATIO_GRAM", "GRAM_MIN_ROWS", "GRAM_MAX_REFUSALS",
-           "gram", "gram_factor"]
+__all__ = [
+    "GRAM_BLOCK_ROWS",
+    "GRAM_MAX_REFUSALS",
+    "GRAM_MIN_ROWS",
+    "KAPPA_GRAM",
+    "RESID_RATIO_GRAM",
+    "gram",
+    "gram_factor",
+]
 
 # Rows per BLAS Gram product.
 GRAM_BLOCK_ROWS = 65536
@@ -52,7 +59,7 @@ def gram(X: np.ndarray, Y: np.ndarray) -> np.ndarray:
     p, q = X.shape[1], X.shape[1] + Y.shape[1]
     g = np.zeros((q, q))
     for start in range(0, X.shape[0], GRAM_BLOCK_ROWS):
-        xb, yb = X[start:start + GRAM_BLOCK_ROWS], Y[start:start + GRAM_BLOCK_ROWS]
+        xb, yb = X[start : start + GRAM_BLOCK_ROWS], Y[start : start + GRAM_BLOCK_ROWS]
         g[:p, :p] += xb.T @ xb
         xy = xb.T @ yb
         g[:p, p:] += xy
@@ -68,9 +75,11 @@ def gram_factor(r: np.ndarray, g: np.ndarray, p: int) -> np.ndarray | None:
     RESID_RATIO_GRAM times its residual's, or the sum is not positive definite."""
     try:
         new = linalg.cholesky(r.T @ r + g, lower=False, check_finite=False)
-        ok = (equilibrated_cond(new[:p, :p]) <= KAPPA_GRAM
-              and bool(np.all(np.linalg.norm(new[:, p:], axis=0)
-                              <= RESID_RATIO_GRAM * np.linalg.norm(new[p:, p:], axis=0))))
+        ok = equilibrated_cond(new[:p, :p]) <= KAPPA_GRAM and bool(
+            np.all(
+                np.linalg.norm(new[:, p:], axis=0) <= RESID_RATIO_GRAM * np.linalg.norm(new[p:, p:], axis=0)
+            )
+        )
     except linalg.LinAlgError:
         return None
     return new if ok else None

@@ -18,8 +18,15 @@ import numpy as np
 
 from fbgcomp.models.regression.factor import field_array
 
-__all__ = ["HAC_MAX_LAG", "COV_TYPES", "hac_lag_grid", "andrews_bartlett_lags", "HACStatistics",
-           "resolve_cov_type", "hac_cov_scaled"]
+__all__ = [
+    "COV_TYPES",
+    "HAC_MAX_LAG",
+    "HACStatistics",
+    "andrews_bartlett_lags",
+    "hac_cov_scaled",
+    "hac_lag_grid",
+    "resolve_cov_type",
+]
 
 # Largest Newey-West bandwidth (lags) of the default grid of an autocorrelation-robust fit.
 HAC_MAX_LAG = 4096
@@ -52,8 +59,9 @@ def hac_lag_grid(hac_lags) -> list[int] | None:
         try:
             lags = {int(v) for v in hac_lags}
         except (TypeError, ValueError):
-            raise ValueError(f"hac_lags must be None, True, 'auto', an int or a sequence of "
-                             f"ints, not {hac_lags!r}") from None
+            raise ValueError(
+                f"hac_lags must be None, True, 'auto', an int or a sequence of ints, not {hac_lags!r}"
+            ) from None
         if not lags or min(lags) < 1:
             raise ValueError(f"hac_lags must be positive, not {hac_lags!r}")
     return sorted(lags | {1})
@@ -71,9 +79,9 @@ def _bartlett_sums(w: np.ndarray, first: int, lags: Sequence[int]) -> list[np.nd
             for l in range(1, lag + 1):
                 lo = first - l
                 if lo >= 0:
-                    acc += (lag + 1 - l) * w[lo:n - l]
+                    acc += (lag + 1 - l) * w[lo : n - l]
                 elif n - l > 0:
-                    acc[-lo:] += (lag + 1 - l) * w[:n - l]
+                    acc[-lo:] += (lag + 1 - l) * w[: n - l]
         else:
             if p_sum is None:
                 # P[k] = sum_{j<k} w[j],  Q[k] = sum_{j<k} P[j]:
@@ -151,14 +159,14 @@ class HACStatistics:
             self.hac_n_obs_ = 0
             return
         nl = len(self.hac_lags_)
-        self.hac_g0_ = np.zeros((p * q, p * q))          # sum u_i u_i^T
-        self.hac_k_ = np.zeros((nl, p * q, p * q))       # sum u_i (Bartlett past of u)_i^T
-        self.hac_ka_ = np.zeros((nl, q, q))              # sum a_i (Bartlett past of a)_i^T
-        self._hac_tail = np.zeros((0, q))                # last max(L) scaled rows of the series
+        self.hac_g0_ = np.zeros((p * q, p * q))  # sum u_i u_i^T
+        self.hac_k_ = np.zeros((nl, p * q, p * q))  # sum u_i (Bartlett past of u)_i^T
+        self.hac_ka_ = np.zeros((nl, q, q))  # sum a_i (Bartlett past of a)_i^T
+        self._hac_tail = np.zeros((0, q))  # last max(L) scaled rows of the series
         self.hac_pilot_ = np.zeros((p, self.n_targets))  # scaled coefficients the targets are
-                                                         # kept relative to (see Notes)
-        self.hac_frozen_ = False                         # second pass: pilot fixed (begin_hac)
-        self.hac_n_obs_ = 0                              # rows in the statistics
+        # kept relative to (see Notes)
+        self.hac_frozen_ = False  # second pass: pilot fixed (begin_hac)
+        self.hac_n_obs_ = 0  # rows in the statistics
 
     def _hac_update(self, a: np.ndarray) -> None:
         """Add the lagged products of the scaled rows ``a`` (m, q), targets taken relative to
@@ -168,7 +176,7 @@ class HACStatistics:
         a[:, p:] -= a[:, :p] @ self.hac_pilot_
         top = max(self.hac_lags_)
         for start in range(0, a.shape[0], _HAC_BLOCK_ROWS):
-            block = a[start:start + _HAC_BLOCK_ROWS]
+            block = a[start : start + _HAC_BLOCK_ROWS]
             ext = np.vstack([self._hac_tail, block])
             first = self._hac_tail.shape[0]
             u = (ext[:, :p, None] * ext[:, None, :]).reshape(ext.shape[0], p * q)
@@ -176,8 +184,8 @@ class HACStatistics:
             u_new = u[first:]
             self.hac_g0_ += u_new.T @ u_new
             for i, past in enumerate(_bartlett_sums(w, first, self.hac_lags_)):
-                self.hac_k_[i] += u_new.T @ past[:, :p * q]
-                self.hac_ka_[i] += block.T @ past[:, p * q:]
+                self.hac_k_[i] += u_new.T @ past[:, : p * q]
+                self.hac_ka_[i] += block.T @ past[:, p * q :]
             self._hac_tail = ext[-top:].copy()
         self.hac_n_obs_ += a.shape[0]
 
@@ -193,8 +201,8 @@ class HACStatistics:
         A[:p, p:] = delta
         nl = len(self.hac_lags_)
 
-        def both_sides(m: np.ndarray, count: int) -> np.ndarray:   # (I(x)A)^T m (I(x)A)
-            m = m.reshape(count, p, q, p, q) @ A                  # right factor, last axis
+        def both_sides(m: np.ndarray, count: int) -> np.ndarray:  # (I(x)A)^T m (I(x)A)
+            m = m.reshape(count, p, q, p, q) @ A  # right factor, last axis
             m = np.einsum("cimjn,ma->ciajn", m, A, optimize=True)
             return m.reshape(count, p * q, p * q)
 
@@ -221,12 +229,14 @@ class HACStatistics:
             self._hac_reset()
             return
         if list(other.hac_lags_) != list(self.hac_lags_):
-            raise ValueError(f"cannot merge autocorrelation statistics of different bandwidths "
-                             f"({other.hac_lags_} vs {self.hac_lags_})")
+            raise ValueError(
+                f"cannot merge autocorrelation statistics of different bandwidths "
+                f"({other.hac_lags_} vs {self.hac_lags_})"
+            )
         p = self.n_features
         ratio = other.scale_ / self.scale_
-        r_u = (ratio[:p, None] * ratio[None, :]).reshape(-1)       # u = x (x) a
-        f_u = weight ** 2 * np.outer(r_u, r_u)                    # u scales by the weight
+        r_u = (ratio[:p, None] * ratio[None, :]).reshape(-1)  # u = x (x) a
+        f_u = weight**2 * np.outer(r_u, r_u)  # u scales by the weight
         # Bring other's statistics to its pilot expressed in this accumulator's scales, then
         # both to this one's pilot (exact algebra; small rounding when the pilots are close).
         other_pilot = other.hac_pilot_ * ratio[p:][None, :] / ratio[:p, None]
@@ -246,8 +256,8 @@ class HACStatistics:
         self._hac_reset()
         if self.hac_lags_ is not None:
             # a row's weight w scales a_i by sqrt(w), u_i = x_i (x) a_i by w
-            self.hac_g0_ = other.hac_g0_ * weight ** 2
-            self.hac_k_ = other.hac_k_ * weight ** 2
+            self.hac_g0_ = other.hac_g0_ * weight**2
+            self.hac_k_ = other.hac_k_ * weight**2
             self.hac_ka_ = other.hac_ka_ * weight
             self.hac_pilot_ = other.hac_pilot_.copy()
             self.hac_frozen_ = other.hac_frozen_
@@ -257,10 +267,16 @@ class HACStatistics:
         """The statistics as plain JSON-able lists (the ``"hac"`` field of ``to_dict``)."""
         if self.hac_lags_ is None:
             return None
-        return {"lags": list(self.hac_lags_), "g0": self.hac_g0_.tolist(),
-                "k": self.hac_k_.tolist(), "ka": self.hac_ka_.tolist(),
-                "tail": self._hac_tail.tolist(), "pilot": self.hac_pilot_.tolist(),
-                "frozen": bool(self.hac_frozen_), "n_obs": int(self.hac_n_obs_)}
+        return {
+            "lags": list(self.hac_lags_),
+            "g0": self.hac_g0_.tolist(),
+            "k": self.hac_k_.tolist(),
+            "ka": self.hac_ka_.tolist(),
+            "tail": self._hac_tail.tolist(),
+            "pilot": self.hac_pilot_.tolist(),
+            "frozen": bool(self.hac_frozen_),
+            "n_obs": int(self.hac_n_obs_),
+        }
 
     def _hac_load(self, hac: dict) -> None:
         """Restore the statistics from :meth:`_hac_state` output (bandwidths already set)."""
@@ -285,12 +301,16 @@ def resolve_cov_type(acc: HACStatistics, cov_type) -> str:
     if cov_type not in COV_TYPES:
         raise ValueError(f"cov_type must be one of {COV_TYPES}, not {cov_type!r}")
     if cov_type == "HAC" and acc.hac_lags_ is None:
-        raise ValueError("cov_type='HAC' needs an accumulator created with hac_lags (it keeps the "
-                         "lagged score sums); pass cov_type='nonrobust' for naive i.i.d. inference")
+        raise ValueError(
+            "cov_type='HAC' needs an accumulator created with hac_lags (it keeps the "
+            "lagged score sums); pass cov_type='nonrobust' for naive i.i.d. inference"
+        )
     if cov_type == "HAC" and acc.hac_n_obs_ != acc.n_obs:
-        raise ValueError(f"the autocorrelation statistics cover {acc.hac_n_obs_} of the "
-                         f"{acc.n_obs} rows in the factor: feed every row to update_hac after "
-                         f"begin_hac (or use accumulate_series)")
+        raise ValueError(
+            f"the autocorrelation statistics cover {acc.hac_n_obs_} of the "
+            f"{acc.n_obs} rows in the factor: feed every row to update_hac after "
+            f"begin_hac (or use accumulate_series)"
+        )
     return cov_type
 
 
@@ -310,8 +330,15 @@ def _choose_lag(acc: HACStatistics, maxlags, rho: float) -> int:
     return lag
 
 
-def hac_cov_scaled(acc: HACStatistics, cols: list[int], t: int, beta_s: np.ndarray,
-                   r_inv: np.ndarray, ssr_s: float, maxlags=None) -> tuple[np.ndarray, dict]:
+def hac_cov_scaled(
+    acc: HACStatistics,
+    cols: list[int],
+    t: int,
+    beta_s: np.ndarray,
+    r_inv: np.ndarray,
+    ssr_s: float,
+    maxlags=None,
+) -> tuple[np.ndarray, dict]:
     """Newey-West covariance of the *scaled* coefficients of the sub-model ``cols`` on target t.
 
     ``beta_s``: scaled coefficients; ``r_inv``: inverse of its scaled triangular factor;
@@ -338,8 +365,11 @@ def hac_cov_scaled(acc: HACStatistics, cols: list[int], t: int, beta_s: np.ndarr
     omega = np.einsum("imjn,m,n->ij", sub, c, c)
     bread = r_inv @ r_inv.T
     cov = bread @ omega @ bread
-    info = {"kernel": "bartlett", "maxlags": int(lag), "rho1": float(rho),
-            "n_eff": float(n_eff), "bandwidth": "andrews-ar1" if maxlags in (None, "auto")
-            else "fixed"}
+    info = {
+        "kernel": "bartlett",
+        "maxlags": int(lag),
+        "rho1": float(rho),
+        "n_eff": float(n_eff),
+        "bandwidth": "andrews-ar1" if maxlags in (None, "auto") else "fixed",
+    }
     return (cov + cov.T) / 2.0, info
-

@@ -99,15 +99,30 @@ class OLSResults:
     """
 
     params = _TermSeries("_params", "Estimated coefficients.")
-    bse = _TermSeries("_bse", "Standard errors of the coefficients (HAC ones when ``cov_type`` is \"HAC\").")
+    bse = _TermSeries("_bse", 'Standard errors of the coefficients (HAC ones when ``cov_type`` is "HAC").')
     tvalues = _TermSeries("_tvalues", "t statistics of the coefficients (estimate / standard error).")
     pvalues = _TermSeries("_pvalues", "Two-sided p-values of the t statistics on ``df_resid`` df.")
 
-    def __init__(self, params, r_factor, feature_scale, *, ssr: float, nobs: int, k_constant: int,
-                 centered_tss: float, uncentered_tss: float, feature_names: Sequence[str],
-                 target_name: str = "y", cov_type: str = "nonrobust", robust_cov=None,
-                 cov_kwds: dict | None = None, const_index: int | None = None,
-                 named: bool = False, data=None):
+    def __init__(
+        self,
+        params,
+        r_factor,
+        feature_scale,
+        *,
+        ssr: float,
+        nobs: int,
+        k_constant: int,
+        centered_tss: float,
+        uncentered_tss: float,
+        feature_names: Sequence[str],
+        target_name: str = "y",
+        cov_type: str = "nonrobust",
+        robust_cov=None,
+        cov_kwds: dict | None = None,
+        const_index: int | None = None,
+        named: bool = False,
+        data=None,
+    ):
         self._params = np.asarray(params, dtype=float).copy()
         # named: params & co. as pandas Series; data: (X, y, row index or None) of ols()
         self.named = bool(named)
@@ -133,8 +148,9 @@ class OLSResults:
         self.cov_type = cov_type
         self.cov_kwds = dict(cov_kwds or {})
         self.const_index = None if const_index is None else int(const_index)
-        self._robust_cov = (None if robust_cov is None
-                            else np.asarray(robust_cov, dtype=float).reshape(m, m).copy())
+        self._robust_cov = (
+            None if robust_cov is None else np.asarray(robust_cov, dtype=float).reshape(m, m).copy()
+        )
 
         with np.errstate(divide="ignore", invalid="ignore"):
             self.mse_resid = self.ssr / self.df_resid if self.df_resid > 0 else math.nan
@@ -143,15 +159,21 @@ class OLSResults:
             # LAPACK trtri: the triangular inverse is computed to high relative accuracy.
             self._r_inv = linalg.lapack.dtrtri(self._r, lower=0)[0] if m else np.zeros((0, 0))
             self.bse_nonrobust = self.resid_sd * np.linalg.norm(self._r_inv, axis=1) / self._scale
-            self._bse = (self.bse_nonrobust if self._robust_cov is None
-                        else np.sqrt(np.clip(np.diag(self._robust_cov), 0.0, None)))
+            self._bse = (
+                self.bse_nonrobust
+                if self._robust_cov is None
+                else np.sqrt(np.clip(np.diag(self._robust_cov), 0.0, None))
+            )
             self._tvalues = self._params / self._bse
             self._pvalues = 2.0 * stats.t.sf(np.abs(self._tvalues), self.df_resid)
             tss = self.centered_tss if self.k_constant else self.uncentered_tss
             self.ess = tss - self.ssr
             self.rsquared = 1.0 - self.ssr / tss if tss > 0 else math.nan
-            self.rsquared_adj = (1.0 - (self.nobs - self.k_constant) / self.df_resid
-                                 * (1.0 - self.rsquared)) if self.df_resid > 0 else math.nan
+            self.rsquared_adj = (
+                (1.0 - (self.nobs - self.k_constant) / self.df_resid * (1.0 - self.rsquared))
+                if self.df_resid > 0
+                else math.nan
+            )
             if self.df_model > 0 and self.df_resid > 0:
                 self.mse_model = self.ess / self.df_model
                 self.fvalue = float(self.mse_model / self.mse_resid)
@@ -171,9 +193,11 @@ class OLSResults:
 
     def _need_data(self, what: str):
         if self._data is None:
-            raise AttributeError(f"{what} needs the fitted rows: this fit comes from an "
-                                 f"accumulated factor (or a saved model), which keeps none; fit "
-                                 f"with ols(X, y) or compute y - res.predict(X)")
+            raise AttributeError(
+                f"{what} needs the fitted rows: this fit comes from an "
+                f"accumulated factor (or a saved model), which keeps none; fit "
+                f"with ols(X, y) or compute y - res.predict(X)"
+            )
         return self._data
 
     @property
@@ -272,8 +296,7 @@ class OLSResults:
         else:
             cov_s = self._robust_cov * np.outer(self._scale, self._scale)
             var_fit = np.clip(np.einsum("ni,ij,nj->n", zs, cov_s, zs), 0.0, None)
-        half = (stats.t.ppf(1.0 - alpha / 2.0, self.df_resid)
-                * np.sqrt(self.mse_resid + var_fit))
+        half = stats.t.ppf(1.0 - alpha / 2.0, self.df_resid) * np.sqrt(self.mse_resid + var_fit)
         yhat = X @ self._params
         return yhat - half, yhat + half
 
@@ -288,33 +311,48 @@ class OLSResults:
         total_df = self.nobs - self.k_constant
         total_ss = self.ess + self.ssr
         return pd.DataFrame(
-            {"df": [self.df_model, self.df_resid, total_df],
-             "sum_sq": [self.ess, self.ssr, total_ss],
-             "mean_sq": [self.mse_model, self.mse_resid, math.nan],
-             "F": [self.fvalue, math.nan, math.nan],
-             "PR(>F)": [self.f_pvalue, math.nan, math.nan]},
-            index=["Regression", "Residual", "Total"])
+            {
+                "df": [self.df_model, self.df_resid, total_df],
+                "sum_sq": [self.ess, self.ssr, total_ss],
+                "mean_sq": [self.mse_model, self.mse_resid, math.nan],
+                "F": [self.fvalue, math.nan, math.nan],
+                "PR(>F)": [self.f_pvalue, math.nan, math.nan],
+            },
+            index=["Regression", "Residual", "Total"],
+        )
 
     def summary(self) -> str:
         """Coefficient table in the style of the paper's Table 1, plus the overall fit figures."""
         ci = np.asarray(self.conf_int())
         width = max([len("term")] + [len(n) for n in self.feature_names])
-        head = (f"{'term':<{width}}  {'estimate':>13} {'std error':>12} {'t':>9} {'P>|t|':>9}"
-                f" {'[0.025':>13} {'0.975]':>13}")
+        head = (
+            f"{'term':<{width}}  {'estimate':>13} {'std error':>12} {'t':>9} {'P>|t|':>9}"
+            f" {'[0.025':>13} {'0.975]':>13}"
+        )
         rule = "=" * len(head)
-        lines = [f"OLS regression of {self.target_name} on {self._params.size} terms".center(len(head)),
-                 rule, head, "-" * len(head)]
+        lines = [
+            f"OLS regression of {self.target_name} on {self._params.size} terms".center(len(head)),
+            rule,
+            head,
+            "-" * len(head),
+        ]
         for i, name in enumerate(self.feature_names):
-            lines.append(f"{name:<{width}}  {self._params[i]:>13.6g} {self._bse[i]:>12.4g} "
-                         f"{_fmt_t(self._tvalues[i]):>9} {fmt_p(self._pvalues[i]):>9} "
-                         f"{ci[i, 0]:>13.6g} {ci[i, 1]:>13.6g}")
+            lines.append(
+                f"{name:<{width}}  {self._params[i]:>13.6g} {self._bse[i]:>12.4g} "
+                f"{_fmt_t(self._tvalues[i]):>9} {fmt_p(self._pvalues[i]):>9} "
+                f"{ci[i, 0]:>13.6g} {ci[i, 1]:>13.6g}"
+            )
         lines.append(rule)
         kind = "" if self.k_constant else " (uncentred)"
-        lines.append(f"R-squared{kind}: {self.rsquared:.6f}   Adj. R-squared: {self.rsquared_adj:.6f}"
-                     f"   Residual SD: {self.resid_sd:.6g} on {self.df_resid} df")
+        lines.append(
+            f"R-squared{kind}: {self.rsquared:.6f}   Adj. R-squared: {self.rsquared_adj:.6f}"
+            f"   Residual SD: {self.resid_sd:.6g} on {self.df_resid} df"
+        )
         fname = "Wald F (HAC)" if self.cov_type == "HAC" else "F-statistic"
-        lines.append(f"{fname}: {self.fvalue:.6g} on {self.df_model} and {self.df_resid} df"
-                     f"   Prob(F): {fmt_p(self.f_pvalue)}   n: {self.nobs}")
+        lines.append(
+            f"{fname}: {self.fvalue:.6g} on {self.df_model} and {self.df_resid} df"
+            f"   Prob(F): {fmt_p(self.f_pvalue)}   n: {self.nobs}"
+        )
         lines.append("Covariance: " + self.cov_description())
         return "\n".join(lines)
 
@@ -323,15 +361,18 @@ class OLSResults:
         if self.cov_type != "HAC":
             return "nonrobust (i.i.d. errors assumed; wrong for autocorrelated residuals)"
         k = self.cov_kwds
-        how = ("Andrews AR(1) bandwidth" if k.get("bandwidth") == "andrews-ar1"
-               else "fixed bandwidth")
-        return (f"HAC (Newey-West, Bartlett kernel, {k.get('maxlags')} lags, {how}); residual "
-                f"lag-1 autocorrelation {k.get('rho1', math.nan):.4f}, effective sample size "
-                f"{k.get('n_eff', math.nan):.4g} of {self.nobs}")
+        how = "Andrews AR(1) bandwidth" if k.get("bandwidth") == "andrews-ar1" else "fixed bandwidth"
+        return (
+            f"HAC (Newey-West, Bartlett kernel, {k.get('maxlags')} lags, {how}); residual "
+            f"lag-1 autocorrelation {k.get('rho1', math.nan):.4f}, effective sample size "
+            f"{k.get('n_eff', math.nan):.4g} of {self.nobs}"
+        )
 
     def __repr__(self) -> str:
-        return (f"<OLSResults {self.target_name} ~ {' + '.join(self.feature_names)}: "
-                f"n={self.nobs}, R2={self.rsquared:.4g}>")
+        return (
+            f"<OLSResults {self.target_name} ~ {' + '.join(self.feature_names)}: "
+            f"n={self.nobs}, R2={self.rsquared:.4g}>"
+        )
 
     # -- serialisation -------------------------------------------------------------------------
 
@@ -365,20 +406,29 @@ class OLSResults:
         try:
             names = [str(n) for n in state["feature_names"]]
             m = len(names)
-            return cls(field_array(state, "params", (m,)), field_array(state, "r_factor", (m, m)),
-                       field_array(state, "feature_scale", (m,)), ssr=float(state["ssr"]),
-                       nobs=int(state["nobs"]), k_constant=int(state["k_constant"]),
-                       centered_tss=float(state["centered_tss"]),
-                       uncentered_tss=float(state["uncentered_tss"]),
-                       feature_names=names, target_name=state.get("target_name", "y"),
-                       cov_type=state.get("cov_type", "nonrobust"),
-                       robust_cov=(None if state.get("robust_cov") is None
-                                   else field_array(state, "robust_cov", (m, m))),
-                       cov_kwds=state.get("cov_kwds"), const_index=state.get("const_index"),
-                       named=bool(state.get("named", False)))
+            return cls(
+                field_array(state, "params", (m,)),
+                field_array(state, "r_factor", (m, m)),
+                field_array(state, "feature_scale", (m,)),
+                ssr=float(state["ssr"]),
+                nobs=int(state["nobs"]),
+                k_constant=int(state["k_constant"]),
+                centered_tss=float(state["centered_tss"]),
+                uncentered_tss=float(state["uncentered_tss"]),
+                feature_names=names,
+                target_name=state.get("target_name", "y"),
+                cov_type=state.get("cov_type", "nonrobust"),
+                robust_cov=(
+                    None if state.get("robust_cov") is None else field_array(state, "robust_cov", (m, m))
+                ),
+                cov_kwds=state.get("cov_kwds"),
+                const_index=state.get("const_index"),
+                named=bool(state.get("named", False)),
+            )
         except KeyError as exc:
-            raise InputError(f"missing field {exc.args[0]!r} in regression model",
-                             column=f"field {exc.args[0]}") from None
+            raise InputError(
+                f"missing field {exc.args[0]!r} in regression model", column=f"field {exc.args[0]}"
+            ) from None
 
 
 def _fmt_t(t: float) -> str:
@@ -391,5 +441,3 @@ def fmt_p(p: float) -> str:
     if not np.isfinite(p):
         return "nan"
     return f"{p:.4f}" if p >= 1e-4 else f"{p:.1e}"
-
-

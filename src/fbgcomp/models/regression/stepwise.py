@@ -16,14 +16,20 @@ import numpy as np
 from scipy import linalg, stats
 
 from fbgcomp.models.regression.accumulator import QRAccumulator
-from fbgcomp.models.regression.doubledouble import (dd_add, dd_div, dd_householder, dd_mul, dd_solve_upper,
-                                                    dd_sum_rows)
+from fbgcomp.models.regression.doubledouble import (
+    dd_add,
+    dd_div,
+    dd_householder,
+    dd_mul,
+    dd_solve_upper,
+    dd_sum_rows,
+)
 from fbgcomp.models.regression.factor import EPS, RankDeficientError, deficient_columns
 from fbgcomp.models.regression.fit import ols_from_factor
 from fbgcomp.models.regression.hac import hac_cov_scaled, resolve_cov_type
 from fbgcomp.models.regression.results import OLSResults, fmt_p
 
-__all__ = ["StepwiseResult", "StepState", "stepwise"]
+__all__ = ["StepState", "StepwiseResult", "stepwise"]
 
 
 @dataclass
@@ -53,15 +59,18 @@ class StepwiseResult:
 
     def summary(self) -> str:
         """The step history table, then the final model's summary."""
-        how = ("Newey-West (HAC) Wald tests" if self.cov_type == "HAC"
-               else "partial F tests, i.i.d. errors")
-        lines = [f"Stepwise regression of {self.target_name} ({how})",
-                 f"{'step':>4}  {'action':<6} {'term':<16} {'F':>12} {'p':>10} {'terms':>5} "
-                 f"{'SSR':>13} {'adj. R2':>9}"]
+        how = "Newey-West (HAC) Wald tests" if self.cov_type == "HAC" else "partial F tests, i.i.d. errors"
+        lines = [
+            f"Stepwise regression of {self.target_name} ({how})",
+            f"{'step':>4}  {'action':<6} {'term':<16} {'F':>12} {'p':>10} {'terms':>5} "
+            f"{'SSR':>13} {'adj. R2':>9}",
+        ]
         for h in self.history:
-            lines.append(f"{h['step']:>4}  {h['action']:<6} {h['term']:<16} {h['F']:>12.5g} "
-                         f"{fmt_p(h['p']):>10} {h['n_terms']:>5} {h['ssr']:>13.6g} "
-                         f"{h['rsquared_adj']:>9.5f}")
+            lines.append(
+                f"{h['step']:>4}  {h['action']:<6} {h['term']:<16} {h['F']:>12.5g} "
+                f"{fmt_p(h['p']):>10} {h['n_terms']:>5} {h['ssr']:>13.6g} "
+                f"{h['rsquared_adj']:>9.5f}"
+            )
         if not self.history:
             lines.append("  (no step taken)")
         lines.append("")
@@ -104,8 +113,7 @@ class StepState:
     solution, ``SSR(S - s) - SSR(S) = b_s^2 / [(X^T X)^-1]_ss`` and ``(X^T X)^-1 = T^-1 T^-T``.
     """
 
-    def __init__(self, acc: QRAccumulator, model: list[int], others: list[int], t: int,
-                 exact: bool = True):
+    def __init__(self, acc: QRAccumulator, model: list[int], others: list[int], t: int, exact: bool = True):
         p = acc.n_features
         m = len(model)
         sel = model + others + [p + t]
@@ -138,8 +146,7 @@ class StepState:
         self.model, self.others, self.sy2 = model, others, sy2
         if m:
             qr_a, tau = linalg.lapack.dgeqrf(np.asfortranarray(a[:, :m]))[:2]
-            rest, _, info = linalg.lapack.dormqr("L", "T", qr_a, tau,
-                                                 np.asfortranarray(a[:, m:]), a.shape[1])
+            rest, _, info = linalg.lapack.dormqr("L", "T", qr_a, tau, np.asfortranarray(a[:, m:]), a.shape[1])
             if info != 0:
                 raise np.linalg.LinAlgError(f"dormqr failed ({info})")
             tri = np.triu(qr_a[:m, :m])
@@ -161,8 +168,12 @@ class StepState:
             return cols, np.zeros(0), np.zeros(0), np.zeros(0, dtype=bool)
         if self.exact:
             out = self.entries()
-            return (cols, np.array([o[1] for o in out]), np.array([o[2] for o in out]),
-                    np.array([o[3] for o in out], dtype=bool))
+            return (
+                cols,
+                np.array([o[1] for o in out]),
+                np.array([o[2] for o in out]),
+                np.array([o[3] for o in out], dtype=bool),
+            )
         w, y, ssr_s = self._d_trail
         norm2 = np.einsum("ij,ij->j", w, w)
         dot = w.T @ y
@@ -189,7 +200,7 @@ class StepState:
         tri, z = self._d_tri
         t_inv = linalg.lapack.dtrtri(tri, lower=0)[0]
         b = t_inv @ z
-        g = np.einsum("ij,ij->i", t_inv, t_inv)             # diag of T^-1 T^-T
+        g = np.einsum("ij,ij->i", t_inv, t_inv)  # diag of T^-1 T^-T
         rise = b * b / g * self.sy2
         return cols, rise, self.ssr + rise
 
@@ -199,8 +210,7 @@ class StepState:
             return []
         if not self.exact:
             cols, drop, after, ok = self.entries_arrays()
-            return [(int(c), float(d), float(a), bool(o))
-                    for c, d, a, o in zip(cols, drop, after, ok)]
+            return [(int(c), float(d), float(a), bool(o)) for c, d, a, o in zip(cols, drop, after, ok)]
         wh, wl, yh, yl = self._trail
         nh, nl = dd_sum_rows(*dd_mul(wh, wl, wh, wl))
         dh, dl = dd_sum_rows(*dd_mul(wh, wl, yh[:, None], yl[:, None]))
@@ -210,8 +220,7 @@ class StepState:
         out = []
         for i, c in enumerate(self.others):
             new_diag = math.sqrt(max(float(nh[i]), 0.0))
-            ok = self.full_rank and not deficient_columns(np.append(self.diag, new_diag),
-                                                           self.nobs)
+            ok = self.full_rank and not deficient_columns(np.append(self.diag, new_diag), self.nobs)
             drop = float(eh[i]) * self.sy2 if ok else math.nan
             out.append((c, drop, max(float(after_h[i]), 0.0) * self.sy2, ok))
         return out
@@ -227,15 +236,27 @@ class StepState:
             return []
         bh, bl = dd_solve_upper(th, tl, zh, zl)
         ih, il = dd_solve_upper(th, tl, np.eye(m), np.zeros((m, m)))
-        gh, gl = dd_sum_rows(*dd_mul(ih.T, il.T, ih.T, il.T))        # diag of T^-1 T^-T
+        gh, gl = dd_sum_rows(*dd_mul(ih.T, il.T, ih.T, il.T))  # diag of T^-1 T^-T
         rh, _ = dd_div(*dd_mul(bh, bl, bh, bl), gh, gl)
-        return [(c, float(rh[i]) * self.sy2, self.ssr + float(rh[i]) * self.sy2)
-                for i, c in enumerate(self.model)]
+        return [
+            (c, float(rh[i]) * self.sy2, self.ssr + float(rh[i]) * self.sy2) for i, c in enumerate(self.model)
+        ]
 
 
-def stepwise(acc: QRAccumulator, candidates=None, *, target=0, direction: str = "both",
-             p_enter: float = 0.05, p_remove: float = 0.10, max_terms: int | None = None,
-             include: Iterable = (), start=None, cov_type=None, maxlags=None) -> StepwiseResult:
+def stepwise(
+    acc: QRAccumulator,
+    candidates=None,
+    *,
+    target=0,
+    direction: str = "both",
+    p_enter: float = 0.05,
+    p_remove: float = 0.10,
+    max_terms: int | None = None,
+    include: Iterable = (),
+    start=None,
+    cov_type=None,
+    maxlags=None,
+) -> StepwiseResult:
     """Stepwise selection by partial F (or HAC Wald) tests, from the accumulated factor only.
 
     The paper tunes its regression "with a stepwise regression ... counting or removing a
@@ -271,8 +292,9 @@ def stepwise(acc: QRAccumulator, candidates=None, *, target=0, direction: str = 
     if direction not in ("forward", "backward", "both"):
         raise ValueError(f"direction must be 'forward', 'backward' or 'both', not {direction!r}")
     if direction == "both" and p_enter > p_remove:
-        raise ValueError(f"p_enter ({p_enter}) must not exceed p_remove ({p_remove}): "
-                         "a term could enter and leave forever")
+        raise ValueError(
+            f"p_enter ({p_enter}) must not exceed p_remove ({p_remove}): a term could enter and leave forever"
+        )
     if acc.n_obs == 0:
         raise ValueError("no data accumulated yet")
     cov_type = resolve_cov_type(acc, cov_type)
@@ -327,8 +349,10 @@ def stepwise(acc: QRAccumulator, candidates=None, *, target=0, direction: str = 
 
     current = state()
     if not current.full_rank:
-        raise RankDeficientError("the starting model of the stepwise search is rank deficient",
-                                 [acc.feature_names[c] for c in ordered(model)])
+        raise RankDeficientError(
+            "the starting model of the stepwise search is rank deficient",
+            [acc.feature_names[c] for c in ordered(model)],
+        )
     history: list[dict] = []
     visited = {frozenset(model)}
 
@@ -342,10 +366,16 @@ def stepwise(acc: QRAccumulator, candidates=None, *, target=0, direction: str = 
 
     def record(action, term, f, pval, ssr, info=None):
         cols = ordered(model)
-        entry = {"step": len(history) + 1, "action": action,
-                 "term": acc.feature_names[term], "F": float(f), "p": float(pval),
-                 "n_terms": len(cols), "ssr": float(ssr),
-                 "rsquared_adj": _adj_r2(acc, cols, t, ssr)}
+        entry = {
+            "step": len(history) + 1,
+            "action": action,
+            "term": acc.feature_names[term],
+            "F": float(f),
+            "p": float(pval),
+            "n_terms": len(cols),
+            "ssr": float(ssr),
+            "rsquared_adj": _adj_r2(acc, cols, t, ssr),
+        }
         if info is not None:
             entry["maxlags"] = info["maxlags"]
             entry["n_eff"] = info["n_eff"]
@@ -357,8 +387,9 @@ def stepwise(acc: QRAccumulator, candidates=None, *, target=0, direction: str = 
             return False
         df_big = acc.n_obs - len(current.model) - 1
         cols, drop, after, ok = current.entries_arrays()
-        keep = np.array([bool(o) and frozenset(model + [int(c)]) not in visited
-                         for c, o in zip(cols, ok)], dtype=bool)
+        keep = np.array(
+            [bool(o) and frozenset(model + [int(c)]) not in visited for c, o in zip(cols, ok)], dtype=bool
+        )
         # collinear with the model (no new information), or a loop
         cols, drop, after = cols[keep], drop[keep], after[keep]
         infos = [None] * len(cols)
@@ -388,9 +419,14 @@ def stepwise(acc: QRAccumulator, candidates=None, *, target=0, direction: str = 
         df_big = acc.n_obs - len(current.model)
         fs, info = wald(current.model) if robust else (None, None)
         cols, rise, after = current.removals_arrays()
-        keep = np.array([int(c) not in forced and not (
-            direction == "both" and frozenset(d for d in model if d != int(c)) in visited)
-            for c in cols], dtype=bool)
+        keep = np.array(
+            [
+                int(c) not in forced
+                and not (direction == "both" and frozenset(d for d in model if d != int(c)) in visited)
+                for c in cols
+            ],
+            dtype=bool,
+        )
         cols, rise = cols[keep], rise[keep]
         if robust:
             f = np.array([fs[int(c)] for c in cols], dtype=float)
@@ -419,5 +455,10 @@ def stepwise(acc: QRAccumulator, candidates=None, *, target=0, direction: str = 
 
     final = ordered(model)
     result = ols_from_factor(acc, final, t, cov_type=cov_type, maxlags=maxlags) if final else None
-    return StepwiseResult(selected=[acc.feature_names[c] for c in final], history=history,
-                          result=result, target_name=acc.target_names[t], cov_type=cov_type)
+    return StepwiseResult(
+        selected=[acc.feature_names[c] for c in final],
+        history=history,
+        result=result,
+        target_name=acc.target_names[t],
+        cov_type=cov_type,
+    )

@@ -47,14 +47,34 @@ Each model probe comes from exactly one source: the live ones named here, the re
 name, stops the start with a one-line error.
 """
 
-from fbgcomp.runtime.live_inputs.config import (MODBUS_TYPES, POSITION_SOURCES, Z_NAME, Latest,
-                                                ModbusInputConfig, OpcUaInputConfig,
-                                                PositionConfig, TemperaturesConfig)
+from fbgcomp.runtime.live_inputs.config import (
+    MODBUS_TYPES,
+    POSITION_SOURCES,
+    Z_NAME,
+    Latest,
+    ModbusInputConfig,
+    OpcUaInputConfig,
+    PositionConfig,
+    TemperaturesConfig,
+)
 from fbgcomp.runtime.live_inputs.inputs import LinuxCncPositionReader, LiveInputs, LiveTemperatures
 from fbgcomp.runtime.live_inputs.modbus_reader import ModbusReader, RegisterSpec, register_spec
 from fbgcomp.runtime.live_inputs.opcua_reader import OpcUaReader
 
-__all__ = ["MODBUS_TYPES", "POSITION_SOURCES", "Z_NAME", "Latest", "LinuxCncPositionReader",
-           "LiveInputs", "LiveTemperatures", "ModbusInputConfig", "ModbusReader",
-           "OpcUaInputConfig", "OpcUaReader", "PositionConfig", "RegisterSpec",
-           "TemperaturesConfig", "register_spec"]
+__all__ = [
+    "MODBUS_TYPES",
+    "POSITION_SOURCES",
+    "Z_NAME",
+    "Latest",
+    "LinuxCncPositionReader",
+    "LiveInputs",
+    "LiveTemperatures",
+    "ModbusInputConfig",
+    "ModbusReader",
+    "OpcUaInputConfig",
+    "OpcUaReader",
+    "PositionConfig",
+    "RegisterSpec",
+    "TemperaturesConfig",
+    "register_spec",
+]

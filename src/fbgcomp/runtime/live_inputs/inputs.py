@@ -11,8 +11,14 @@ import time
 import numpy as np
 
 from fbgcomp.errors import InputError
-from fbgcomp.runtime.live_inputs.config import (POSITION_SOURCES, Z_NAME, Latest, OpcUaInputConfig,
-                                                PositionConfig, TemperaturesConfig)
+from fbgcomp.runtime.live_inputs.config import (
+    POSITION_SOURCES,
+    Z_NAME,
+    Latest,
+    OpcUaInputConfig,
+    PositionConfig,
+    TemperaturesConfig,
+)
 from fbgcomp.runtime.live_inputs.modbus_reader import ModbusReader
 from fbgcomp.runtime.live_inputs.opcua_reader import OpcUaReader
 
@@ -42,7 +48,7 @@ class LinuxCncPositionReader:
 
     async def run(self) -> None:
         """Nothing to run: the output's own thread receives the positions."""
-        await asyncio.Event().wait()     # the output's thread receives; nothing to run here
+        await asyncio.Event().wait()  # the output's thread receives; nothing to run here
 
     async def close(self) -> None:
         """Nothing to close (the output owns the socket)."""
@@ -53,10 +59,15 @@ class LinuxCncPositionReader:
 class LiveInputs:
     """The configured readers, the probes and Z they supply, and their freshness."""
 
-    def __init__(self, temperatures: TemperaturesConfig, position: PositionConfig,
-                 model_probes: list[str], cnc_output=None):
+    def __init__(
+        self,
+        temperatures: TemperaturesConfig,
+        position: PositionConfig,
+        model_probes: list[str],
+        cnc_output=None,
+    ):
         self.readers: list = []
-        self.probe_reader: dict[str, tuple] = {}      # probe -> (reader, stale_s)
+        self.probe_reader: dict[str, tuple] = {}  # probe -> (reader, stale_s)
         self.z_reader: tuple | None = None
         self._tasks: list[asyncio.Task] = []
         self._stale: tuple = ()
@@ -65,8 +76,9 @@ class LiveInputs:
         by_endpoint: dict[str, OpcUaReader] = {}
         if opc.endpoint or opc.nodes:
             if not opc.endpoint:
-                raise InputError("nodes given without an endpoint",
-                                 column="field temperatures.opcua.endpoint")
+                raise InputError(
+                    "nodes given without an endpoint", column="field temperatures.opcua.endpoint"
+                )
             _positive(opc.stale_s, "temperatures.opcua.stale_s")
             r = OpcUaReader(opc.endpoint, {k: str(v) for k, v in opc.nodes.items()}, opc)
             by_endpoint[opc.endpoint] = r
@@ -74,41 +86,43 @@ class LiveInputs:
             self._add_probes(r, opc.nodes, opc.stale_s, model_probes, "temperatures.opcua.nodes")
         if mb.host or mb.registers:
             if not mb.host:
-                raise InputError("registers given without a host",
-                                 column="field temperatures.modbus.host")
+                raise InputError("registers given without a host", column="field temperatures.modbus.host")
             r = ModbusReader(mb)
             self.readers.append(r)
-            self._add_probes(r, mb.registers, mb.stale_s, model_probes,
-                             "temperatures.modbus.registers")
+            self._add_probes(r, mb.registers, mb.stale_s, model_probes, "temperatures.modbus.registers")
         if position.source not in POSITION_SOURCES:
-            raise InputError(f"expected linuxcnc or opcua, got {position.source!r}",
-                             column="field position.source")
+            raise InputError(
+                f"expected linuxcnc or opcua, got {position.source!r}", column="field position.source"
+            )
         self.z_resolution_mm = float(position.resolution_mm)
         if position.source:
             _positive(position.stale_s, "position.stale_s")
         if position.source == "opcua":
             endpoint = position.endpoint or opc.endpoint
             if not endpoint or not position.node:
-                raise InputError("position over OPC UA needs node (and endpoint, or the one "
-                                 "of [temperatures.opcua])", column="field position.node")
+                raise InputError(
+                    "position over OPC UA needs node (and endpoint, or the one of [temperatures.opcua])",
+                    column="field position.node",
+                )
             r = by_endpoint.get(endpoint)
             if r is None:
-                r = OpcUaReader(endpoint, {}, OpcUaInputConfig(endpoint=endpoint),
-                                where="position")
+                r = OpcUaReader(endpoint, {}, OpcUaInputConfig(endpoint=endpoint), where="position")
                 by_endpoint[endpoint] = r
                 self.readers.append(r)
             try:
                 from asyncua import ua  # the runtime extra (asyncua): imported only when used
+
                 ua.NodeId.from_string(position.node)
             except Exception:
-                raise InputError(f"not an OPC UA node id: {position.node!r}",
-                                 column="field position.node")
+                raise InputError(f"not an OPC UA node id: {position.node!r}", column="field position.node")
             r.add(Z_NAME, position.node, position.scale)
             self.z_reader = (r, position.stale_s)
         elif position.source == "linuxcnc":
             if cnc_output is None:
-                raise InputError("position from LinuxCNC needs the LinuxCNC output "
-                                 "(--cnc linuxcnc)", column="field position.source")
+                raise InputError(
+                    "position from LinuxCNC needs the LinuxCNC output (--cnc linuxcnc)",
+                    column="field position.source",
+                )
             r = LinuxCncPositionReader(cnc_output)
             self.readers.append(r)
             self.z_reader = (r, position.stale_s)
@@ -116,13 +130,16 @@ class LiveInputs:
     def _add_probes(self, reader, names, stale_s, model_probes, where) -> None:
         for p in names:
             if p not in model_probes:
-                raise InputError(f"{p} is not a probe the model reads from a thermometer "
-                                 f"(those: {', '.join(model_probes) or 'none'})",
-                                 column=f"field {where}.{p}")
+                raise InputError(
+                    f"{p} is not a probe the model reads from a thermometer "
+                    f"(those: {', '.join(model_probes) or 'none'})",
+                    column=f"field {where}.{p}",
+                )
             if p in self.probe_reader:
-                raise InputError(f"probe {p} has two live sources "
-                                 f"({self.probe_reader[p][0].kind} and {reader.kind})",
-                                 column=f"field {where}.{p}")
+                raise InputError(
+                    f"probe {p} has two live sources ({self.probe_reader[p][0].kind} and {reader.kind})",
+                    column=f"field {where}.{p}",
+                )
             self.probe_reader[p] = (reader, float(stale_s))
 
     @property
@@ -149,7 +166,7 @@ class LiveInputs:
             await reader.run()
         except asyncio.CancelledError:
             raise
-        except Exception:      # a reader's bug must not end serve: its inputs just go stale
+        except Exception:  # a reader's bug must not end serve: its inputs just go stale
             log.exception("%s input reader stopped", reader.kind)
             reader.status = "stopped (error)"
 
@@ -233,8 +250,7 @@ class LiveTemperatures:
         self.fallback = fallback
         self._live_cols = [i for i, p in enumerate(self.probe_names) if p in live.probe_reader]
         self._live_names = [self.probe_names[i] for i in self._live_cols]
-        self._other_cols = [i for i, p in enumerate(self.probe_names)
-                            if p not in live.probe_reader]
+        self._other_cols = [i for i, p in enumerate(self.probe_names) if p not in live.probe_reader]
         self.last_live: dict = {}
 
     def latest(self, time_s: np.ndarray) -> np.ndarray:

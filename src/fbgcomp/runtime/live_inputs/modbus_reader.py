@@ -8,7 +8,6 @@ import math
 import time
 from dataclasses import dataclass
 
-
 from fbgcomp.errors import InputError
 from fbgcomp.runtime.live_inputs.config import MODBUS_TYPES, Latest, ModbusInputConfig
 
@@ -41,15 +40,15 @@ def register_spec(name: str, spec, where: str) -> RegisterSpec:
         raise InputError("expected a table {address = N, type = ..., scale = ...}", column=col)
     unknown = set(spec) - {"address", "type", "scale", "offset"}
     if unknown:
-        raise InputError(f"unknown key(s) {', '.join(sorted(unknown))} (known: address, type, "
-                         "scale, offset)", column=col)
+        raise InputError(
+            f"unknown key(s) {', '.join(sorted(unknown))} (known: address, type, scale, offset)", column=col
+        )
     addr = spec.get("address")
     if not isinstance(addr, int) or isinstance(addr, bool) or not 0 <= addr <= 65535:
         raise InputError(f"address: expected 0..65535, got {addr!r}", column=col)
     typ = spec.get("type", "int16")
     if typ not in MODBUS_TYPES:
-        raise InputError(f"type: expected one of {', '.join(MODBUS_TYPES)}, got {typ!r}",
-                         column=col)
+        raise InputError(f"type: expected one of {', '.join(MODBUS_TYPES)}, got {typ!r}", column=col)
     nums = {}
     for k, default in (("scale", 1.0), ("offset", 0.0)):
         v = spec.get(k, default)
@@ -72,8 +71,7 @@ class ModbusReader:
             raise InputError(f"expected 1..65535, got {config.port}", column=f"field {where}.port")
         if not config.poll_s > 0 or not config.stale_s > 0:
             raise InputError("poll_s and stale_s must be positive", column=f"field {where}.poll_s")
-        self.specs = {name: register_spec(name, spec, where)
-                      for name, spec in config.registers.items()}
+        self.specs = {name: register_spec(name, spec, where) for name, spec in config.registers.items()}
         self.values = {n: Latest() for n in self.specs}
         self.status = "connecting"
         self._client = None
@@ -94,8 +92,14 @@ class ModbusReader:
         from pymodbus.client import AsyncModbusTcpClient
 
         cfg = self.config
-        client = AsyncModbusTcpClient(cfg.host, port=int(cfg.port), timeout=cfg.timeout_s,
-                                      retries=0, reconnect_delay=0.2, reconnect_delay_max=5.0)
+        client = AsyncModbusTcpClient(
+            cfg.host,
+            port=int(cfg.port),
+            timeout=cfg.timeout_s,
+            retries=0,
+            reconnect_delay=0.2,
+            reconnect_delay_max=5.0,
+        )
         self._client = client
         try:
             while True:
@@ -110,7 +114,7 @@ class ModbusReader:
                         self.status = "connecting"
                 except asyncio.CancelledError:
                     raise
-                except Exception as exc:   # lost link, timeout, exception response
+                except Exception as exc:  # lost link, timeout, exception response
                     self.status = f"error ({type(exc).__name__})"
                     log.debug("Modbus inputs %s:%s: %s", cfg.host, cfg.port, exc)
                 await asyncio.sleep(max(0.0, t_next - time.monotonic()))
@@ -119,10 +123,11 @@ class ModbusReader:
 
     async def _poll(self, client) -> None:
         for name, spec in self.specs.items():
-            rr = await client.read_holding_registers(spec.address, count=spec.words,
-                                                     device_id=int(self.config.unit))
+            rr = await client.read_holding_registers(
+                spec.address, count=spec.words, device_id=int(self.config.unit)
+            )
             if rr.isError():
-                self.values[name].set(math.nan)   # an exception response: no value
+                self.values[name].set(math.nan)  # an exception response: no value
                 self.status = f"exception response for {name}"
                 continue
             self.values[name].set(self.decode(rr.registers, spec))

@@ -7,7 +7,6 @@ import logging
 import math
 import os
 
-
 from fbgcomp.errors import InputError
 from fbgcomp.runtime.live_inputs.config import Latest, OpcUaInputConfig
 
@@ -19,29 +18,40 @@ class OpcUaReader:
 
     kind = "opcua"
 
-    def __init__(self, endpoint: str, nodes: dict, config: OpcUaInputConfig | None = None,
-                 where: str = "temperatures.opcua"):
+    def __init__(
+        self,
+        endpoint: str,
+        nodes: dict,
+        config: OpcUaInputConfig | None = None,
+        where: str = "temperatures.opcua",
+    ):
         self.endpoint = endpoint
         self.config = config or OpcUaInputConfig(endpoint=endpoint)
         self.where = where
         self.nodes = dict(nodes)
         self.values = {n: Latest() for n in self.nodes}
-        self.scale = {n: 1.0 for n in self.nodes}
+        self.scale = dict.fromkeys(self.nodes, 1.0)
         self.status = "connecting"
         self._client = None
         if not endpoint.startswith("opc.tcp://"):
-            raise InputError(f"expected opc.tcp://HOST:PORT, got {endpoint!r}",
-                             column=f"field {where}.endpoint")
+            raise InputError(
+                f"expected opc.tcp://HOST:PORT, got {endpoint!r}", column=f"field {where}.endpoint"
+            )
         if self.config.security not in ("None", "Basic256Sha256"):
-            raise InputError(f"expected None or Basic256Sha256, got {self.config.security!r}",
-                             column=f"field {where}.security")
+            raise InputError(
+                f"expected None or Basic256Sha256, got {self.config.security!r}",
+                column=f"field {where}.security",
+            )
         from asyncua import ua  # the runtime extra (asyncua): imported only when used
+
         for name, nid in self.nodes.items():
             try:
                 ua.NodeId.from_string(str(nid))
             except Exception:
-                raise InputError(f"not an OPC UA node id: {nid!r} (e.g. ns=2;s=Probes.T_bulk)",
-                                 column=f"field {where}.nodes.{name}")
+                raise InputError(
+                    f"not an OPC UA node id: {nid!r} (e.g. ns=2;s=Probes.T_bulk)",
+                    column=f"field {where}.nodes.{name}",
+                )
 
     def add(self, name: str, node: str, scale: float = 1.0) -> None:
         """Read input ``name`` from node id ``node``, multiplied by ``scale``."""
@@ -53,14 +63,21 @@ class OpcUaReader:
         from asyncua import Client, ua  # the runtime extra (asyncua): imported only when used
 
         cfg = self.config
-        client = Client(self.endpoint, timeout=cfg.timeout_s, watchdog_intervall=1.0,
-                        auto_reconnect=True, reconnect_max_delay=5.0)
+        client = Client(
+            self.endpoint,
+            timeout=cfg.timeout_s,
+            watchdog_intervall=1.0,
+            auto_reconnect=True,
+            reconnect_max_delay=5.0,
+        )
         client.application_uri = "urn:fbgcomp:serve:inputs"
-        client.session_timeout = 600_000     # ms: what asyncua servers grant at most
+        client.session_timeout = 600_000  # ms: what asyncua servers grant at most
         if cfg.security == "Basic256Sha256":
             if not cfg.certificate or not cfg.private_key:
-                raise InputError("Basic256Sha256 needs certificate and private_key paths",
-                                 column=f"field {self.where}.certificate")
+                raise InputError(
+                    "Basic256Sha256 needs certificate and private_key paths",
+                    column=f"field {self.where}.certificate",
+                )
             if not (os.path.exists(cfg.certificate) and os.path.exists(cfg.private_key)):
                 await client.setup_self_signed_certificate(cfg.private_key, cfg.certificate)
             parts = ["Basic256Sha256", cfg.mode, cfg.certificate, cfg.private_key]
@@ -86,8 +103,7 @@ class OpcUaReader:
                 reader.status = "connected"
                 dv = data.monitored_item.Value
                 good = dv is None or dv.StatusCode is None or dv.StatusCode.is_good()
-                reader.values[name].set(val * reader.scale[name] if good and val is not None
-                                        else math.nan)
+                reader.values[name].set(val * reader.scale[name] if good and val is not None else math.nan)
 
             def status_change_notification(self, status):
                 reader.status = f"subscription status {status}"
@@ -96,9 +112,12 @@ class OpcUaReader:
         sub = await client.create_subscription(100, Handler())
         # StatusValueTimestamp: a rewritten steady value (new timestamp) is fresh, not stale
         flt = ua.DataChangeFilter(Trigger=ua.DataChangeTrigger.StatusValueTimestamp)
-        handles = await sub._subscribe([client.get_node(nid) for nid in self.nodes.values()],
-                                       mfilter=flt, queuesize=1,
-                                       sampling_interval=float(cfg.sampling_ms))
+        handles = await sub._subscribe(
+            [client.get_node(nid) for nid in self.nodes.values()],
+            mfilter=flt,
+            queuesize=1,
+            sampling_interval=float(cfg.sampling_ms),
+        )
         for (name, nid), h in zip(self.nodes.items(), handles):
             if isinstance(h, ua.StatusCode):
                 log.warning("OPC UA input %s: cannot subscribe to %s (%s)", name, nid, h)
@@ -119,7 +138,7 @@ class OpcUaReader:
                 raise
             except InputError:
                 raise
-            except Exception as exc:   # refused, timed out, bad certificate: retry
+            except Exception as exc:  # refused, timed out, bad certificate: retry
                 self.status = f"connecting ({type(exc).__name__})"
                 log.warning("OPC UA inputs: %s: %s; retry in %.1f s", self.endpoint, exc, delay)
                 await self._disconnect()

@@ -58,14 +58,23 @@ def reference_z_mm(predictor) -> float | None:
 
 
 def _saved_state(predictor) -> list:
-    objs = [predictor] + [getattr(predictor, a) for a in ("kinematic", "residual")
-                          if getattr(predictor, a, None) is not None]
+    objs = [predictor] + [
+        getattr(predictor, a) for a in ("kinematic", "residual") if getattr(predictor, a, None) is not None
+    ]
     return [(o, a, getattr(o, a)) for o in objs for a in _STATE_ATTRS if hasattr(o, a)]
 
 
-def z_slope_um_per_m(predictor, wavelength_nm, temperature_C, wavelength_zero_nm,
-                     temperature_zero_C, z_ref_mm: float | None, *, time_s=None,
-                     dz_mm: float = DZ_MM) -> np.ndarray:
+def z_slope_um_per_m(
+    predictor,
+    wavelength_nm,
+    temperature_C,
+    wavelength_zero_nm,
+    temperature_zero_C,
+    z_ref_mm: float | None,
+    *,
+    time_s=None,
+    dz_mm: float = DZ_MM,
+) -> np.ndarray:
     """Slope (3,) of the correction with the Z position, µm per m, at ``z_ref_mm``.
 
     Parameters
@@ -93,17 +102,15 @@ def z_slope_um_per_m(predictor, wavelength_nm, temperature_C, wavelength_zero_nm
     if not takes_z(predictor):
         return np.zeros(3)
     z0 = reference_z_mm(predictor) if z_ref_mm is None else float(z_ref_mm)
-    if z0 is None:                     # takes the keyword, has no chain: no Z dependence
+    if z0 is None:  # takes the keyword, has no chain: no Z dependence
         return np.zeros(3)
     w = np.atleast_2d(np.asarray(wavelength_nm, float))
     t = np.atleast_2d(np.asarray(temperature_C, float))
     clock = {} if time_s is None else {"time_s": np.atleast_1d(np.asarray(time_s, float))}
     saved = _saved_state(predictor)
     try:
-        lo, _ = predictor.predict(w, t, wavelength_zero_nm, temperature_zero_C,
-                                  z_axis_mm=z0 - dz_mm, **clock)
-        hi, _ = predictor.predict(w, t, wavelength_zero_nm, temperature_zero_C,
-                                  z_axis_mm=z0 + dz_mm, **clock)
+        lo, _ = predictor.predict(w, t, wavelength_zero_nm, temperature_zero_C, z_axis_mm=z0 - dz_mm, **clock)
+        hi, _ = predictor.predict(w, t, wavelength_zero_nm, temperature_zero_C, z_axis_mm=z0 + dz_mm, **clock)
     finally:
         for obj, attr, value in saved:
             setattr(obj, attr, value)
@@ -152,6 +159,13 @@ def newest_slope(pipeline, result, wavelength_nm, z_axis_mm: float | None = None
         return np.zeros(3), z_axis_mm
     z_ref = reference_z_mm(p) if z_axis_mm is None else float(z_axis_mm)
     wl = np.asarray(wavelength_nm, float) - pipeline.checks.offset_nm
-    slope = z_slope_um_per_m(p, wl, result.temperature_C[-1], pipeline.wavelength_zero_nm,
-                             pipeline.temperature_zero_C, z_ref, time_s=result.time_s[-1])
+    slope = z_slope_um_per_m(
+        p,
+        wl,
+        result.temperature_C[-1],
+        pipeline.wavelength_zero_nm,
+        pipeline.temperature_zero_C,
+        z_ref,
+        time_s=result.time_s[-1],
+    )
     return slope, z_ref

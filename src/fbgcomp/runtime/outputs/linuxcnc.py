@@ -28,9 +28,17 @@ import threading
 import time
 from dataclasses import dataclass
 
-from fbgcomp.cnc.fbgcomp_hal import (DEFAULT_ADDRESS, FLAG_ALARM, FLAG_ENABLED, FLAG_STALE,
-                                     FLAG_ZEROING, POS_HOMED, decode_position, encode_packet,
-                                     parse_address)
+from fbgcomp.cnc.fbgcomp_hal import (
+    DEFAULT_ADDRESS,
+    FLAG_ALARM,
+    FLAG_ENABLED,
+    FLAG_STALE,
+    FLAG_ZEROING,
+    POS_HOMED,
+    decode_position,
+    encode_packet,
+    parse_address,
+)
 from fbgcomp.errors import InputError
 
 CNC_KINDS = ("off", "linuxcnc")
@@ -40,10 +48,10 @@ CNC_KINDS = ("off", "linuxcnc")
 class CncConfig:
     """``--cnc linuxcnc`` / ``[cnc]``: the HAL component the correction is sent to (docs/linuxcnc.md)."""
 
-    kind: str = "off"                 # "off" or "linuxcnc"
-    address: str = DEFAULT_ADDRESS    # udp://HOST:PORT or unix:///path of the HAL component
-    heartbeat_s: float = 0.02         # the newest datagram is repeated at least this often
-    stale_s: float = 0.5              # no publication for this long = compensator fault
+    kind: str = "off"  # "off" or "linuxcnc"
+    address: str = DEFAULT_ADDRESS  # udp://HOST:PORT or unix:///path of the HAL component
+    heartbeat_s: float = 0.02  # the newest datagram is repeated at least this often
+    stale_s: float = 0.5  # no publication for this long = compensator fault
 
 
 class LinuxCncOutput:
@@ -55,29 +63,29 @@ class LinuxCncOutput:
         except ValueError as exc:
             raise InputError(str(exc), column="field cnc.address")
         if config.heartbeat_s <= 0 or config.stale_s <= 0:
-            raise InputError("cnc.heartbeat_s and cnc.stale_s must be positive",
-                             column="field cnc.heartbeat_s")
+            raise InputError(
+                "cnc.heartbeat_s and cnc.stale_s must be positive", column="field cnc.heartbeat_s"
+            )
         self.config = config
         self.sock: socket.socket | None = None
         self.seq = 0
         self.sent = 0
         self.send_errors = 0
         self._lock = threading.Lock()
-        self._latest = ((0.0, 0.0, 0.0), FLAG_ZEROING, 0.0)   # correction, flags, sample time
+        self._latest = ((0.0, 0.0, 0.0), FLAG_ZEROING, 0.0)  # correction, flags, sample time
         self._published_at: float | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._position = None      # (z_mm, monotonic receive time, homed) from the component
+        self._position = None  # (z_mm, monotonic receive time, homed) from the component
         self.positions = 0
 
     def start(self) -> None:
         """Open the datagram socket and start the heartbeat thread that repeats the newest values."""
         self.sock = socket.socket(self.family, socket.SOCK_DGRAM)
         if self.family == socket.AF_UNIX:
-            self.sock.bind("")     # Linux autobind: an abstract address the component answers
+            self.sock.bind("")  # Linux autobind: an abstract address the component answers
         self.sock.setblocking(False)
-        self._thread = threading.Thread(target=self._heartbeat, name="fbgcomp-linuxcnc",
-                                        daemon=True)
+        self._thread = threading.Thread(target=self._heartbeat, name="fbgcomp-linuxcnc", daemon=True)
         self._thread.start()
 
     @staticmethod
@@ -92,27 +100,24 @@ class LinuxCncOutput:
 
     def publish(self, snapshot, enabled: bool = True) -> None:
         """Send the newest sample now (never blocks)."""
-        self.publish_values(snapshot.correction_um, self.flags_for(snapshot, enabled),
-                            snapshot.sample_time_s)
+        self.publish_values(snapshot.correction_um, self.flags_for(snapshot, enabled), snapshot.sample_time_s)
 
     def publish_values(self, correction_um, flags: int, sample_time_s: float = 0.0) -> None:
         """Send a correction (µm per axis) with its flags now, and repeat it until the next."""
         with self._lock:
-            self._latest = (tuple(float(v) for v in correction_um), int(flags),
-                            float(sample_time_s))
+            self._latest = (tuple(float(v) for v in correction_um), int(flags), float(sample_time_s))
             self._published_at = time.monotonic()
             self._send_locked()
 
     def _send_locked(self) -> None:
         corr, flags, sample_s = self._latest
-        if self._published_at is not None and \
-                time.monotonic() - self._published_at > self.config.stale_s:
+        if self._published_at is not None and time.monotonic() - self._published_at > self.config.stale_s:
             flags |= FLAG_STALE
         self.seq = (self.seq + 1) & 0xFFFFFFFF
         try:
             self.sock.sendto(encode_packet(self.seq, corr, flags, sample_s), self.sockaddr)
             self.sent += 1
-        except OSError:   # receiver not there yet, buffer full: the next datagram will do
+        except OSError:  # receiver not there yet, buffer full: the next datagram will do
             self.send_errors += 1
 
     def position(self):
@@ -120,12 +125,12 @@ class LinuxCncOutput:
         return self._position
 
     def _receive(self) -> None:
-        for _ in range(1000):          # bounded: a flood cannot hold the heartbeat
+        for _ in range(1000):  # bounded: a flood cannot hold the heartbeat
             try:
                 data = self.sock.recv(64)
             except (BlockingIOError, InterruptedError):
                 return
-            except OSError:            # e.g. ICMP refused from an absent receiver
+            except OSError:  # e.g. ICMP refused from an absent receiver
                 return
             p = decode_position(data)
             if p is not None:
@@ -167,8 +172,9 @@ class LinuxCncOutput:
 def open_cnc_output(config: CncConfig) -> LinuxCncOutput | None:
     """The output named by ``config.kind`` (None for "off")."""
     if config.kind not in CNC_KINDS:
-        raise InputError(f"unknown CNC output {config.kind!r} (known: {', '.join(CNC_KINDS)})",
-                         column="--cnc")
+        raise InputError(
+            f"unknown CNC output {config.kind!r} (known: {', '.join(CNC_KINDS)})", column="--cnc"
+        )
     if config.kind == "off":
         return None
     return LinuxCncOutput(config)

@@ -61,15 +61,15 @@ SLOPE_UM_PER_M_PER_COUNT = 0.01
 Z_MM_PER_COUNT = 0.001
 CORRECTION_UM_PER_COUNT = 0.1
 FLAG_OFFSET_RATE, FLAG_OFFSET_MAX, FLAG_SLOPE_RATE, FLAG_SLOPE_MAX = 256, 512, 1024, 2048
-_INT32 = (-2 ** 31, 2 ** 31 - 1)
+_INT32 = (-(2**31), 2**31 - 1)
 
 
 @dataclass
 class ModbusConfig:
     """``[modbus]``: the Modbus TCP server a PLC reads the offset + Z slope form from."""
 
-    listen: str = ""                      # "HOST:PORT", e.g. "127.0.0.1:5020"; "" = off
-    unit_id: int = 1                      # Modbus unit (device) id answered; 0 = any
+    listen: str = ""  # "HOST:PORT", e.g. "127.0.0.1:5020"; "" = off
+    unit_id: int = 1  # Modbus unit (device) id answered; 0 = any
     # Limits of the published offset and slope, per axis (dx, dy, dz) or one for all; 0 = off.
     # Thermal drift is µm per minute; these still follow it, and keep a load step or a model
     # switch from reaching the CNC as a jump (docs/cnc-integration.md: the defaults).
@@ -151,32 +151,40 @@ class ModbusOutput:
         if not started.wait(timeout_s):
             raise InputError("Modbus server did not start", column="field modbus.listen")
         if failure:
-            raise InputError(f"cannot listen on {self.host}:{self.port}: {failure[0]}",
-                             column="field modbus.listen")
-        log.info("Modbus TCP on %s:%d (unit %d, %d holding registers, read-only)",
-                 self.host, self.port, self.config.unit_id, N_REGISTERS)
+            raise InputError(
+                f"cannot listen on {self.host}:{self.port}: {failure[0]}", column="field modbus.listen"
+            )
+        log.info(
+            "Modbus TCP on %s:%d (unit %d, %d holding registers, read-only)",
+            self.host,
+            self.port,
+            self.config.unit_id,
+            N_REGISTERS,
+        )
 
     async def _serve(self, started: threading.Event, failure: list) -> None:
         from pymodbus.server import ModbusTcpServer  # the runtime extra (pymodbus): imported only when used
         from pymodbus.simulator import DataType, SimData, SimDevice
 
-        device = SimDevice(id=int(self.config.unit_id), action=self._action,
-                           simdata=[SimData(0, count=N_REGISTERS, values=0,
-                                            datatype=DataType.REGISTERS)])
+        device = SimDevice(
+            id=int(self.config.unit_id),
+            action=self._action,
+            simdata=[SimData(0, count=N_REGISTERS, values=0, datatype=DataType.REGISTERS)],
+        )
         try:
-            self._server = ModbusTcpServer(device, address=(self.host, self.port),
-                                           ignore_missing_devices=True)
+            self._server = ModbusTcpServer(
+                device, address=(self.host, self.port), ignore_missing_devices=True
+            )
             await self._server.serve_forever(background=True)
-        except BaseException as exc:   # a busy port: reported by start()
+        except BaseException as exc:  # a busy port: reported by start()
             failure.append(exc)
             started.set()
             return
         started.set()
         await self._server.serving
 
-    async def _action(self, function_code, start_address, address, count, registers,
-                      set_values):
-        """pymodbus calls this on every access: writes refused, reads get the newest sample."""
+    async def _action(self, function_code, start_address, address, count, registers, set_values):
+        """Pymodbus calls this on every access: writes refused, reads get the newest sample."""
         from pymodbus.constants import ExcCodes  # the runtime extra (pymodbus): imported only when used
 
         if set_values is not None:
@@ -197,7 +205,7 @@ class ModbusOutput:
             fut = asyncio.run_coroutine_threadsafe(server.shutdown(), loop)
             try:
                 fut.result(5)
-            except Exception:   # already closing
+            except Exception:  # already closing
                 pass
         if self._thread is not None:
             self._thread.join(5)
@@ -211,31 +219,39 @@ class ModbusOutput:
         apply = bool(enabled) and snapshot.health in ("OK", "DEGRADED")
         correction = np.asarray(snapshot.correction_um, float)
         slope_target = np.asarray(slope_um_per_m, float) if apply else np.zeros(3)
-        self.offset_um, o_rate, o_max = limit_toward(self.offset_um, correction, dt,
-                                                     self.offset_rate, self.max_offset)
-        self.slope_um_per_m, s_rate, s_max = limit_toward(self.slope_um_per_m, slope_target, dt,
-                                                          self.slope_rate, self.max_slope)
-        flags = (np.asarray(snapshot.output_flags, int) & 0xFF) \
-            | np.where(o_rate, FLAG_OFFSET_RATE, 0) | np.where(o_max, FLAG_OFFSET_MAX, 0) \
-            | np.where(s_rate, FLAG_SLOPE_RATE, 0) | np.where(s_max, FLAG_SLOPE_MAX, 0)
+        self.offset_um, o_rate, o_max = limit_toward(
+            self.offset_um, correction, dt, self.offset_rate, self.max_offset
+        )
+        self.slope_um_per_m, s_rate, s_max = limit_toward(
+            self.slope_um_per_m, slope_target, dt, self.slope_rate, self.max_slope
+        )
+        flags = (
+            (np.asarray(snapshot.output_flags, int) & 0xFF)
+            | np.where(o_rate, FLAG_OFFSET_RATE, 0)
+            | np.where(o_max, FLAG_OFFSET_MAX, 0)
+            | np.where(s_rate, FLAG_SLOPE_RATE, 0)
+            | np.where(s_max, FLAG_SLOPE_MAX, 0)
+        )
         regs = [0] * N_REGISTERS
         regs[REG_LAYOUT] = LAYOUT_VERSION
         regs[REG_HEALTH] = HEALTH_NAMES.index(snapshot.health)
         regs[REG_ENABLED] = int(bool(enabled))
         regs[REG_APPLY] = int(apply)
-        regs[REG_Z_REF:REG_Z_REF + 2] = int32_words(0.0 if z_ref_mm is None else z_ref_mm,
-                                                    Z_MM_PER_COUNT)
+        regs[REG_Z_REF : REG_Z_REF + 2] = int32_words(0.0 if z_ref_mm is None else z_ref_mm, Z_MM_PER_COUNT)
         for a in range(3):
-            regs[REG_OFFSET + 2 * a:REG_OFFSET + 2 * a + 2] = int32_words(
-                self.offset_um[a], OFFSET_UM_PER_COUNT)
-            regs[REG_SLOPE + 2 * a:REG_SLOPE + 2 * a + 2] = int32_words(
-                self.slope_um_per_m[a], SLOPE_UM_PER_M_PER_COUNT)
+            regs[REG_OFFSET + 2 * a : REG_OFFSET + 2 * a + 2] = int32_words(
+                self.offset_um[a], OFFSET_UM_PER_COUNT
+            )
+            regs[REG_SLOPE + 2 * a : REG_SLOPE + 2 * a + 2] = int32_words(
+                self.slope_um_per_m[a], SLOPE_UM_PER_M_PER_COUNT
+            )
             regs[REG_FLAGS + a] = int(flags[a]) & 0xFFFF
-            regs[REG_CORRECTION + 2 * a:REG_CORRECTION + 2 * a + 2] = int32_words(
-                correction[a], CORRECTION_UM_PER_COUNT)
+            regs[REG_CORRECTION + 2 * a : REG_CORRECTION + 2 * a + 2] = int32_words(
+                correction[a], CORRECTION_UM_PER_COUNT
+            )
         with self._lock:
             self.sequence = (self.sequence + 1) & 0xFFFFFFFF
-            regs[REG_SEQUENCE:REG_SEQUENCE + 2] = [self.sequence >> 16, self.sequence & 0xFFFF]
+            regs[REG_SEQUENCE : REG_SEQUENCE + 2] = [self.sequence >> 16, self.sequence & 0xFFFF]
             self._registers = regs
 
 

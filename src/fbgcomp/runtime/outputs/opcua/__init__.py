@@ -32,20 +32,47 @@ Every length, wavelength and duration is an ``AnalogItemType`` variable with its
 node carries a Description, and ``ReloadModel``'s arguments are named and described.
 """
 
-from fbgcomp.runtime.outputs.opcua.address_space import (APPLICATION_URI, AXES, DEFAULT_EU_RANGES,
-                                                          DESCRIPTIONS, NAMESPACE,
-                                                          UNECE_NAMESPACE_URI, UNITS,
-                                                          unece_unit_id)
-from fbgcomp.runtime.outputs.opcua.bridge import OpcUaServer
-from fbgcomp.runtime.outputs.opcua.channel import OpcUaConfig, Snapshot, send_control
-from fbgcomp.runtime.outputs.opcua.security import (ModelPathRefused, ensure_certificate,
-                                                     model_in_folder, writer_warning)
 # the users store moved to fbgcomp.runtime.auth; re-exported for the documented
 # ``from fbgcomp.runtime.outputs.opcua import hash_password``
 from fbgcomp.runtime.auth import PBKDF2_ITERATIONS, hash_password, load_users, verify_password
+from fbgcomp.runtime.outputs.opcua.address_space import (
+    APPLICATION_URI,
+    AXES,
+    DEFAULT_EU_RANGES,
+    DESCRIPTIONS,
+    NAMESPACE,
+    UNECE_NAMESPACE_URI,
+    UNITS,
+    unece_unit_id,
+)
+from fbgcomp.runtime.outputs.opcua.bridge import OpcUaServer
+from fbgcomp.runtime.outputs.opcua.channel import OpcUaConfig, Snapshot, send_control
+from fbgcomp.runtime.outputs.opcua.security import (
+    ModelPathRefused,
+    ensure_certificate,
+    model_in_folder,
+    writer_warning,
+)
 
-__all__ = ["APPLICATION_URI", "AXES", "DEFAULT_EU_RANGES", "DESCRIPTIONS", "NAMESPACE",
-           "PBKDF2_ITERATIONS", "UNECE_NAMESPACE_URI", "UNITS", "ModelPathRefused", "OpcUaConfig",
-           "OpcUaServer", "Snapshot", "ensure_certificate", "hash_password", "load_users",
-           "model_in_folder", "send_control", "unece_unit_id", "verify_password",
-           "writer_warning"]
+__all__ = [
+    "APPLICATION_URI",
+    "AXES",
+    "DEFAULT_EU_RANGES",
+    "DESCRIPTIONS",
+    "NAMESPACE",
+    "PBKDF2_ITERATIONS",
+    "UNECE_NAMESPACE_URI",
+    "UNITS",
+    "ModelPathRefused",
+    "OpcUaConfig",
+    "OpcUaServer",
+    "Snapshot",
+    "ensure_certificate",
+    "hash_password",
+    "load_users",
+    "model_in_folder",
+    "send_control",
+    "unece_unit_id",
+    "verify_password",
+    "writer_warning",
+]

@@ -21,8 +21,7 @@ audit = logging.getLogger("fbgcomp.audit")
 # The user of the request being served. asyncua hands the user to the permission ruleset but
 # not to method callbacks; a connection's requests are served one at a time in one task, so
 # the ruleset records it here and ReloadModel reads it back for the audit log.
-request_user: contextvars.ContextVar[str] = contextvars.ContextVar("opcua_user",
-                                                                    default="unknown")
+request_user: contextvars.ContextVar[str] = contextvars.ContextVar("opcua_user", default="unknown")
 
 _WRITE = ua.NodeId(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary)
 _CALL = ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)
@@ -70,8 +69,7 @@ class ReadOnlyAnonymousRuleset(SimpleRoleRuleset):
     def __init__(self):
         super().__init__()
         denied = {_WRITE, _CALL, ua.NodeId(ua.ObjectIds.HistoryReadRequest_Encoding_DefaultBinary)}
-        self._permission_dict[UserRole.Anonymous] = (
-            self._permission_dict[UserRole.User] - denied)
+        self._permission_dict[UserRole.Anonymous] = self._permission_dict[UserRole.User] - denied
 
     def check_validity(self, user, action_type_id, body):
         """Whether ``user`` may make this request; records the user for :data:`request_user`
@@ -79,9 +77,11 @@ class ReadOnlyAnonymousRuleset(SimpleRoleRuleset):
         request_user.set(user_label(user))
         allowed = super().check_validity(user, action_type_id, body)
         if not allowed and action_type_id in (_WRITE, _CALL):
-            audit.warning("OPC UA %s by %s refused: access denied",
-                          "write" if action_type_id == _WRITE else "method call",
-                          user_label(user))
+            audit.warning(
+                "OPC UA %s by %s refused: access denied",
+                "write" if action_type_id == _WRITE else "method call",
+                user_label(user),
+            )
         return allowed
 
 

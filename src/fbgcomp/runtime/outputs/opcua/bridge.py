@@ -16,7 +16,7 @@ import subprocess
 import sys
 import threading
 import time
-from typing import Awaitable, Callable
+from collections.abc import Awaitable, Callable
 
 import numpy as np
 
@@ -28,7 +28,7 @@ from fbgcomp.runtime.outputs.opcua.security import ensure_certificate, writer_wa
 from fbgcomp.runtime.pipeline import per_axis
 
 log = logging.getLogger("fbgcomp.runtime")
-WORKER_MODULE = "fbgcomp.runtime.outputs.opcua"   # run with -m: the server process
+WORKER_MODULE = "fbgcomp.runtime.outputs.opcua"  # run with -m: the server process
 
 
 class OpcUaServer:
@@ -44,10 +44,15 @@ class OpcUaServer:
     (the socket closes).
     """
 
-    def __init__(self, config: OpcUaConfig, sensor_names: list[str], model_id: str,
-                 on_reload: Callable[[str], Awaitable[str]] | None = None,
-                 main_loop: asyncio.AbstractEventLoop | None = None,
-                 eu_ranges: dict[str, tuple[float, float]] | None = None):
+    def __init__(
+        self,
+        config: OpcUaConfig,
+        sensor_names: list[str],
+        model_id: str,
+        on_reload: Callable[[str], Awaitable[str]] | None = None,
+        main_loop: asyncio.AbstractEventLoop | None = None,
+        eu_ranges: dict[str, tuple[float, float]] | None = None,
+    ):
         self.config = config
         # EURange overrides, by kind (keys of DEFAULT_EU_RANGES) or Wavelength_nm.<sensor>
         self.eu_ranges = dict(eu_ranges or {})
@@ -62,7 +67,7 @@ class OpcUaServer:
         self._sock: socket.socket | None = None
         self._proc = None
         self._reader: threading.Thread | None = None
-        self._cnc_state = None        # (monotonic s, offset µm, slope µm/m) of _cnc_form
+        self._cnc_state = None  # (monotonic s, offset µm, slope µm/m) of _cnc_form
 
     @property
     def model_id(self) -> str:
@@ -83,29 +88,37 @@ class OpcUaServer:
         parent, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         self._proc = subprocess.Popen(
             [sys.executable, "-m", WORKER_MODULE, "--worker-fd", str(child.fileno())],
-            pass_fds=[child.fileno()])
+            pass_fds=[child.fileno()],
+        )
         child.close()
-        init = {"config": self.config.__dict__, "sensor_names": self.sensor_names,
-                "model_id": self._model_id, "users": self.users,
-                "cert": str(self.cert_path), "key": str(self.key_path),
-                "enabled": self.enabled, "eu_ranges": self.eu_ranges,
-                "log_level": logging.getLogger("fbgcomp").getEffectiveLevel()}
+        init = {
+            "config": self.config.__dict__,
+            "sensor_names": self.sensor_names,
+            "model_id": self._model_id,
+            "users": self.users,
+            "cert": str(self.cert_path),
+            "key": str(self.key_path),
+            "enabled": self.enabled,
+            "eu_ranges": self.eu_ranges,
+            "log_level": logging.getLogger("fbgcomp").getEffectiveLevel(),
+        }
         parent.sendall(pickle.dumps(("init", init)))
         parent.settimeout(timeout_s)
         try:
             kind, payload = pickle.loads(parent.recv(MESSAGE_BYTES))
-        except (socket.timeout, EOFError, OSError, pickle.UnpicklingError):
+        except (TimeoutError, EOFError, OSError, pickle.UnpicklingError):
             self._proc.kill()
-            raise InputError(f"OPC UA server at {self.config.endpoint} did not start",
-                             column="opcua.endpoint")
+            raise InputError(
+                f"OPC UA server at {self.config.endpoint} did not start", column="opcua.endpoint"
+            )
         if kind != "ready":
             self._proc.wait(5)
-            raise InputError(f"cannot start OPC UA server at {self.config.endpoint}: {payload}",
-                             column="opcua.endpoint")
+            raise InputError(
+                f"cannot start OPC UA server at {self.config.endpoint}: {payload}", column="opcua.endpoint"
+            )
         parent.settimeout(None)
         self._sock = parent
-        self._reader = threading.Thread(target=self._read_messages, name="fbgcomp-opcua-rx",
-                                        daemon=True)
+        self._reader = threading.Thread(target=self._read_messages, name="fbgcomp-opcua-rx", daemon=True)
         self._reader.start()
         warning = writer_warning(self.users, self.config.allow_anonymous)
         if warning:
@@ -122,13 +135,19 @@ class OpcUaServer:
             sock.send(pickle.dumps(message), socket.MSG_DONTWAIT)
             return True
         except (BlockingIOError, InterruptedError):
-            self.dropped += 1          # the server process lags: never wait for it
+            self.dropped += 1  # the server process lags: never wait for it
         except OSError:
             pass
         return False
 
-    def publish(self, snapshot: Snapshot, enabled: bool | None = None, slope_um_per_m=None,
-                z_ref_mm: float | None = None, cnc_limits=None) -> None:
+    def publish(
+        self,
+        snapshot: Snapshot,
+        enabled: bool | None = None,
+        slope_um_per_m=None,
+        z_ref_mm: float | None = None,
+        cnc_limits=None,
+    ) -> None:
         """Send the newest sample; with ``slope_um_per_m`` (runtime.cnc_form.newest_slope) also
         its offset + Z slope form, limited by ``cnc_limits``: a ModbusOutput that has just
         published this sample (its limited values are taken as they are, so a PLC reads the
@@ -136,9 +155,11 @@ class OpcUaServer:
         if slope_um_per_m is not None:
             offset, slope = self._cnc_form(snapshot, bool(enabled), slope_um_per_m, cnc_limits)
             snapshot = dataclasses.replace(
-                snapshot, cnc_offset_um=tuple(float(v) for v in offset),
+                snapshot,
+                cnc_offset_um=tuple(float(v) for v in offset),
                 cnc_slope_um_per_m=tuple(float(v) for v in slope),
-                cnc_z_ref_mm=0.0 if z_ref_mm is None else float(z_ref_mm))
+                cnc_z_ref_mm=0.0 if z_ref_mm is None else float(z_ref_mm),
+            )
         self._send(("snap", snapshot))
 
     def _cnc_form(self, snapshot: Snapshot, enabled: bool, slope_um_per_m, limits):
@@ -154,12 +175,19 @@ class OpcUaServer:
 
         def lim(name):
             return per_axis(getattr(limits, name, float("inf")))
+
         apply = enabled and snapshot.health in ("OK", "DEGRADED")
         target = np.asarray(slope_um_per_m, float) if apply else np.zeros(3)
-        offset = limit_toward(offset, np.asarray(snapshot.correction_um, float), dt,
-                              lim("offset_rate_um_per_s"), lim("max_offset_um"))[0]
-        slope = limit_toward(slope, target, dt, lim("slope_rate_um_per_m_per_s"),
-                             lim("max_slope_um_per_m"))[0]
+        offset = limit_toward(
+            offset,
+            np.asarray(snapshot.correction_um, float),
+            dt,
+            lim("offset_rate_um_per_s"),
+            lim("max_offset_um"),
+        )[0]
+        slope = limit_toward(slope, target, dt, lim("slope_rate_um_per_m_per_s"), lim("max_slope_um_per_m"))[
+            0
+        ]
         self._cnc_state = (now, offset, slope)
         return offset, slope
 
@@ -215,4 +243,3 @@ class OpcUaServer:
         if self._sock is not None:
             self._sock.close()
             self._sock = None
-

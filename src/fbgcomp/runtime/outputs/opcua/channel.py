@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from fbgcomp.runtime import trust
 
 log = logging.getLogger("fbgcomp.runtime")
-MESSAGE_BYTES = 1 << 16            # the largest message either side reads
+MESSAGE_BYTES = 1 << 16  # the largest message either side reads
 
 
 @dataclass
@@ -32,14 +32,14 @@ class OpcUaConfig:
     """The ``[opcua]`` section of serve's configuration (docs/runtime.md)."""
 
     endpoint: str = "opc.tcp://127.0.0.1:4840/fbgcomp/"
-    rate_hz: float = 100.0            # address-space updates per second; 0 = every batch
+    rate_hz: float = 100.0  # address-space updates per second; 0 = every batch
     allow_anonymous: bool = False
     users_file: str | None = None
     # certificates: $XDG_STATE_HOME/fbgcomp (~/.local/state/fbgcomp), never the working folder
     state_dir: str = field(default_factory=lambda: str(trust.default_state_dir()))
     # the client certificates trusted; unset or "": <state_dir>/opcua/trusted (fbgcomp trust add)
     trusted_clients_dir: str | None = None
-    models_dir: str | None = None     # ReloadModel loads only files in this folder
+    models_dir: str | None = None  # ReloadModel loads only files in this folder
 
 
 @dataclass
@@ -60,7 +60,7 @@ class Snapshot:
     frames: int = 0
     model_id: str = ""
     received_s: float = 0.0
-    output_flags: tuple = (0, 0, 0)   # health.FLAG_* per axis: model policy | limits
+    output_flags: tuple = (0, 0, 0)  # health.FLAG_* per axis: model policy | limits
     # the offset + Z slope form (runtime.cnc_form), rate- and magnitude-limited; None: not
     # computed for this sample (the OPC UA variables keep their value)
     cnc_offset_um: tuple | None = None
@@ -86,8 +86,7 @@ def send_control(sock, message, timeout_s: float = 2.0) -> bool:
         except (BlockingIOError, InterruptedError):
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                log.error("control message %r not delivered: the other process is not reading",
-                          message[0])
+                log.error("control message %r not delivered: the other process is not reading", message[0])
                 return False
             select.select([], [sock], [], remaining)
         except OSError:

@@ -19,8 +19,9 @@ from fbgcomp.atomic import write_bytes
 from fbgcomp.runtime.outputs.opcua.address_space import APPLICATION_URI
 
 
-def ensure_certificate(state_dir: str | Path, application_uri: str = APPLICATION_URI,
-                       days: int = 3650) -> tuple[Path, Path]:
+def ensure_certificate(
+    state_dir: str | Path, application_uri: str = APPLICATION_URI, days: int = 3650
+) -> tuple[Path, Path]:
     """Self-signed server certificate (DER) and key (PEM) under ``state_dir/opcua``.
 
     Generated once with ``cryptography`` and reused; both files are written atomically and the
@@ -38,38 +39,61 @@ def ensure_certificate(state_dir: str | Path, application_uri: str = APPLICATION
         try:
             cert = x509.load_der_x509_certificate(cert_path.read_bytes())
             uris = cert.extensions.get_extension_for_class(
-                x509.SubjectAlternativeName).value.get_values_for_type(
-                x509.UniformResourceIdentifier)
-            if application_uri in uris and cert.not_valid_after_utc > dt.datetime.now(dt.timezone.utc):
+                x509.SubjectAlternativeName
+            ).value.get_values_for_type(x509.UniformResourceIdentifier)
+            if application_uri in uris and cert.not_valid_after_utc > dt.datetime.now(dt.UTC):
                 return cert_path, key_path
         except Exception:  # unreadable or foreign certificate: make a new one
             pass
     key = rsa.generate_private_key(public_exponent=65537, key_size=2048)
-    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "fbgcomp runtime"),
-                      x509.NameAttribute(NameOID.ORGANIZATION_NAME, "fbgcomp")])
-    now = dt.datetime.now(dt.timezone.utc)
+    name = x509.Name(
+        [
+            x509.NameAttribute(NameOID.COMMON_NAME, "fbgcomp runtime"),
+            x509.NameAttribute(NameOID.ORGANIZATION_NAME, "fbgcomp"),
+        ]
+    )
+    now = dt.datetime.now(dt.UTC)
     host = socket.gethostname()
-    san = [x509.UniformResourceIdentifier(application_uri), x509.DNSName("localhost"),
-           x509.DNSName(host), x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]
-    cert = (x509.CertificateBuilder().subject_name(name).issuer_name(name)
-            .public_key(key.public_key()).serial_number(x509.random_serial_number())
-            .not_valid_before(now - dt.timedelta(minutes=5))
-            .not_valid_after(now + dt.timedelta(days=days))
-            .add_extension(x509.SubjectAlternativeName(san), critical=False)
-            .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
-            .add_extension(x509.KeyUsage(digital_signature=True, content_commitment=True,
-                                         key_encipherment=True, data_encipherment=True,
-                                         key_agreement=False, key_cert_sign=False,
-                                         crl_sign=False, encipher_only=False,
-                                         decipher_only=False), critical=True)
-            .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH,
-                                                  ExtendedKeyUsageOID.CLIENT_AUTH]),
-                           critical=False)
-            .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()),
-                           critical=False)
-            .sign(key, hashes.SHA256()))
-    key_pem = key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
-                                serialization.NoEncryption())
+    san = [
+        x509.UniformResourceIdentifier(application_uri),
+        x509.DNSName("localhost"),
+        x509.DNSName(host),
+        x509.IPAddress(ipaddress.ip_address("127.0.0.1")),
+    ]
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(name)
+        .issuer_name(name)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - dt.timedelta(minutes=5))
+        .not_valid_after(now + dt.timedelta(days=days))
+        .add_extension(x509.SubjectAlternativeName(san), critical=False)
+        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+        .add_extension(
+            x509.KeyUsage(
+                digital_signature=True,
+                content_commitment=True,
+                key_encipherment=True,
+                data_encipherment=True,
+                key_agreement=False,
+                key_cert_sign=False,
+                crl_sign=False,
+                encipher_only=False,
+                decipher_only=False,
+            ),
+            critical=True,
+        )
+        .add_extension(
+            x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH]),
+            critical=False,
+        )
+        .add_extension(x509.SubjectKeyIdentifier.from_public_key(key.public_key()), critical=False)
+        .sign(key, hashes.SHA256())
+    )
+    key_pem = key.private_bytes(
+        serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
+    )
     write_bytes(key_path, key_pem, mode=0o600)
     write_bytes(cert_path, cert.public_bytes(serialization.Encoding.DER), mode=0o644)
     return cert_path, key_path
@@ -84,13 +108,17 @@ def writer_warning(users: dict, allow_anonymous: bool) -> str | None:
     """
     if users:
         return None
-    who = ("anonymous sessions may only read" if allow_anonymous else
-           "and without --allow-anonymous every session is refused (BadIdentityTokenRejected)")
-    return ("no OPC UA user may write: no client can switch the compensation (Enabled) or "
-            f"reload the model (ReloadModel), {who}. Add a user: --users FILE (lines "
-            "name:pbkdf2_sha256$..., docs/security.md) or FBGCOMP_OPCUA_USER and "
-            "FBGCOMP_OPCUA_PASSWORD in serve's environment")
-
+    who = (
+        "anonymous sessions may only read"
+        if allow_anonymous
+        else "and without --allow-anonymous every session is refused (BadIdentityTokenRejected)"
+    )
+    return (
+        "no OPC UA user may write: no client can switch the compensation (Enabled) or "
+        f"reload the model (ReloadModel), {who}. Add a user: --users FILE (lines "
+        "name:pbkdf2_sha256$..., docs/security.md) or FBGCOMP_OPCUA_USER and "
+        "FBGCOMP_OPCUA_PASSWORD in serve's environment"
+    )
 
 
 class ModelPathRefused(ValueError):
@@ -112,14 +140,16 @@ def model_in_folder(name: str, models_dir: str | Path | None) -> str:
     if not name:
         return ""
     if not models_dir:
-        raise ModelPathRefused("no models folder is configured (opcua.models_dir, --models-dir)",
-                               "BadNotSupported")
+        raise ModelPathRefused(
+            "no models folder is configured (opcua.models_dir, --models-dir)", "BadNotSupported"
+        )
     if "\x00" in name or len(name) > 4096:
         raise ModelPathRefused("not a file name")
     rel = Path(name)
     if rel.is_absolute() or ".." in rel.parts:
-        raise ModelPathRefused(f"{name!r} is not a file name inside the models folder "
-                               "(absolute paths and '..' are refused)")
+        raise ModelPathRefused(
+            f"{name!r} is not a file name inside the models folder (absolute paths and '..' are refused)"
+        )
     folder = Path(models_dir).resolve()
     target = (folder / rel).resolve()
     if not target.is_relative_to(folder):

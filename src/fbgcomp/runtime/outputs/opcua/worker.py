@@ -27,8 +27,7 @@ from asyncua.common.callback import CallbackType
 
 from fbgcomp.runtime import trust
 from fbgcomp.runtime.health import describe_flags
-from fbgcomp.runtime.outputs.opcua.access import (make_ruleset, make_user_manager, request_user,
-                                                   user_label)
+from fbgcomp.runtime.outputs.opcua.access import make_ruleset, make_user_manager, request_user, user_label
 from fbgcomp.runtime.outputs.opcua.address_space import APPLICATION_URI, AXES, NAMESPACE
 from fbgcomp.runtime.outputs.opcua.channel import MESSAGE_BYTES, OpcUaConfig, Snapshot, send_control
 from fbgcomp.runtime.outputs.opcua.nodes import build_address_space
@@ -36,7 +35,7 @@ from fbgcomp.runtime.outputs.opcua.security import ModelPathRefused, model_in_fo
 
 log = logging.getLogger("fbgcomp.runtime")
 audit = logging.getLogger("fbgcomp.audit")
-AUDIT_LOG_BYTES = 1 << 20          # audit.log rotates at 1 MiB, 5 old files kept
+AUDIT_LOG_BYTES = 1 << 20  # audit.log rotates at 1 MiB, 5 old files kept
 
 
 class ServerCore:
@@ -56,10 +55,10 @@ class ServerCore:
         self._latest: Snapshot | None = None
         self._reloads: dict[int, asyncio.Future] = {}
         self._next_reload = 0
-        self._last_text: dict[str, object] = {}   # values written, to skip unchanged ones
-        self._beat_at = 0.0                       # monotonic s of the last Heartbeat
+        self._last_text: dict[str, object] = {}  # values written, to skip unchanged ones
+        self._beat_at = 0.0  # monotonic s of the last Heartbeat
         self._beats = 0
-        self._diag_at = 0.0                       # monotonic s of the last diagnostics
+        self._diag_at = 0.0  # monotonic s of the last diagnostics
 
     def send(self, message) -> None:
         """Control messages to the service (Enabled written by a client, reload requests)."""
@@ -73,7 +72,7 @@ class ServerCore:
                 break
             except OSError:
                 data = b""
-            if not data:             # the service is gone: stop serving
+            if not data:  # the service is gone: stop serving
                 self._stop.set()
                 break
             kind, payload = pickle.loads(data)
@@ -104,20 +103,24 @@ class ServerCore:
         await server.set_application_uri(APPLICATION_URI)
         await server.load_certificate(str(self.cert_path))
         await server.load_private_key(str(self.key_path))
-        server.set_security_policy([ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt],
-                                   permission_ruleset=make_ruleset())
+        server.set_security_policy(
+            [ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt], permission_ruleset=make_ruleset()
+        )
         tokens = [ua.UserNameIdentityToken]
         if cfg.allow_anonymous:
             tokens.append(ua.AnonymousIdentityToken)
         server.set_identity_tokens(tokens)
         # unknown client certificates are refused, always (an empty trust list trusts nobody)
-        server.set_certificate_validator(trust.TrustListValidator(
-            trust.trusted_dir(cfg.state_dir, cfg.trusted_clients_dir),
-            trust.rejected_dir(cfg.state_dir)))
+        server.set_certificate_validator(
+            trust.TrustListValidator(
+                trust.trusted_dir(cfg.state_dir, cfg.trusted_clients_dir), trust.rejected_dir(cfg.state_dir)
+            )
+        )
         server.subscribe_server_callback(CallbackType.PostWrite, self._audit_write)
         idx = await server.register_namespace(NAMESPACE)
-        self._nodes = await build_address_space(server, idx, self.sensor_names, self.model_id,
-                                                self.enabled, self.eu_ranges, self._reload)
+        self._nodes = await build_address_space(
+            server, idx, self.sensor_names, self.model_id, self.enabled, self.eu_ranges, self._reload
+        )
         self._server = server
         async with server:
             logging.getLogger("asyncua").setLevel(logging.WARNING)
@@ -132,7 +135,6 @@ class ServerCore:
             finally:
                 loop.remove_reader(self.sock.fileno())
 
-
     def _audit_write(self, event, _dispatcher) -> None:
         """PostWrite: every client write, with its user, value and result."""
         if not event.is_external:
@@ -141,8 +143,13 @@ class ServerCore:
         for i, item in enumerate(event.request_params.NodesToWrite):
             status = results[i].name if i < len(results) else "?"
             value = item.Value.Value.Value if item.Value and item.Value.Value else None
-            audit.info("OPC UA write %s = %r by %s: %s", item.NodeId.to_string(), value,
-                       user_label(event.user), status)
+            audit.info(
+                "OPC UA write %s = %r by %s: %s",
+                item.NodeId.to_string(),
+                value,
+                user_label(event.user),
+                status,
+            )
 
     async def _reload(self, parent, path_variant):
         """ReloadModel: ask the service to load a model file of the models folder."""
@@ -159,12 +166,16 @@ class ServerCore:
         self.send(("reload", (self._next_reload, path)))
         try:
             ok, message = await asyncio.wait_for(fut, 30.0)
-        except asyncio.TimeoutError:
+        except TimeoutError:
             audit.warning("OPC UA call ReloadModel(%r) by %s: no answer", name, user)
             return ua.StatusCode(ua.StatusCodes.BadTimeout)
-        audit.log(logging.INFO if ok else logging.WARNING,
-                  "OPC UA call ReloadModel(%r) by %s: %s", name, user,
-                  message if ok else f"failed: {message}")
+        audit.log(
+            logging.INFO if ok else logging.WARNING,
+            "OPC UA call ReloadModel(%r) by %s: %s",
+            name,
+            user,
+            message if ok else f"failed: {message}",
+        )
         if not ok:
             return ua.StatusCode(ua.StatusCodes.BadInvalidArgument)
         return [ua.Variant(message, ua.VariantType.String)]
@@ -177,8 +188,9 @@ class ServerCore:
             while not self._stop.is_set():
                 if not self._wake.is_set():
                     wake_task = asyncio.ensure_future(self._wake.wait())
-                    await asyncio.wait({wake_task, stop_task}, timeout=0.2,
-                                       return_when=asyncio.FIRST_COMPLETED)
+                    await asyncio.wait(
+                        {wake_task, stop_task}, timeout=0.2, return_when=asyncio.FIRST_COMPLETED
+                    )
                     wake_task.cancel()
                 self._wake.clear()
                 await self._read_enabled()
@@ -201,26 +213,28 @@ class ServerCore:
         self._beat_at = now
         self._beats = (self._beats + 1) % (1 << 32)
         await self._server.write_attribute_value(
-            self._nodes["Heartbeat"].nodeid,
-            ua.DataValue(ua.Variant(self._beats, ua.VariantType.UInt32)))
+            self._nodes["Heartbeat"].nodeid, ua.DataValue(ua.Variant(self._beats, ua.VariantType.UInt32))
+        )
 
     async def _set_enabled(self, value: bool) -> None:
         self.enabled = value
         await self._server.write_attribute_value(
-            self._nodes["Enabled"].nodeid, ua.DataValue(ua.Variant(value, ua.VariantType.Boolean)))
+            self._nodes["Enabled"].nodeid, ua.DataValue(ua.Variant(value, ua.VariantType.Boolean))
+        )
 
     async def _read_enabled(self) -> None:
         # straight from the address space: no request round trip on every update
-        dv = self._server.iserver.aspace.read_attribute_value(self._nodes["Enabled"].nodeid,
-                                                              ua.AttributeIds.Value)
+        dv = self._server.iserver.aspace.read_attribute_value(
+            self._nodes["Enabled"].nodeid, ua.AttributeIds.Value
+        )
         if dv.Value is not None and bool(dv.Value.Value) != self.enabled:
             self.enabled = bool(dv.Value.Value)
             self.send(("enabled", self.enabled))
 
     async def _write(self, s: Snapshot) -> None:
         server = self._server
-        now = dt.datetime.now(dt.timezone.utc)
-        src = dt.datetime.fromtimestamp(s.sample_time_s, dt.timezone.utc)
+        now = dt.datetime.now(dt.UTC)
+        src = dt.datetime.fromtimestamp(s.sample_time_s, dt.UTC)
 
         async def put(path, value, vtype, always=True):
             if not always and self._last_text.get(path) == value:
@@ -228,13 +242,16 @@ class ServerCore:
             self._last_text[path] = value
             await server.write_attribute_value(
                 self._nodes[path].nodeid,
-                ua.DataValue(ua.Variant(value, vtype), SourceTimestamp=src, ServerTimestamp=now))
+                ua.DataValue(ua.Variant(value, vtype), SourceTimestamp=src, ServerTimestamp=now),
+            )
 
         D = ua.VariantType.Double
-        for prefix, values in (("Correction", s.correction_um),
-                               ("PredictedDeviation", s.deviation_um),
-                               ("IntervalHalfWidth", s.half_width_um),
-                               ("ExpectedError", s.expected_rms_um)):
+        for prefix, values in (
+            ("Correction", s.correction_um),
+            ("PredictedDeviation", s.deviation_um),
+            ("IntervalHalfWidth", s.half_width_um),
+            ("ExpectedError", s.expected_rms_um),
+        ):
             for a, v in zip(AXES, values):
                 await put(f"{prefix}{a}_um", float(v), D, always=prefix == "Correction")
         if s.cnc_offset_um is not None:
@@ -282,11 +299,11 @@ def _setup_logging(init: dict) -> None:
     folder = Path(init["config"]["state_dir"]) / "opcua"
     try:
         folder.mkdir(parents=True, exist_ok=True)
-        handler = RotatingFileHandler(folder / "audit.log", maxBytes=AUDIT_LOG_BYTES,
-                                      backupCount=5, encoding="utf-8")
+        handler = RotatingFileHandler(
+            folder / "audit.log", maxBytes=AUDIT_LOG_BYTES, backupCount=5, encoding="utf-8"
+        )
     except OSError as exc:
-        log.error("no OPC UA audit file in %s (%s): audit records go to stderr only", folder,
-                  exc.strerror)
+        log.error("no OPC UA audit file in %s (%s): audit records go to stderr only", folder, exc.strerror)
         return
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
     audit.addHandler(handler)
@@ -294,7 +311,7 @@ def _setup_logging(init: dict) -> None:
 
 def _worker(fd: int) -> None:
     """Run the server process on the socket-pair end ``fd`` (inherited from the service)."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)   # the service decides when to stop
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the service decides when to stop
     sock = socket.socket(fileno=fd)
     kind, init = pickle.loads(sock.recv(MESSAGE_BYTES))
     _setup_logging(init)
@@ -316,5 +333,4 @@ def main(argv: list[str] | None = None) -> None:
     if len(argv) == 2 and argv[0] == "--worker-fd":
         _worker(int(argv[1]))
     else:
-        raise SystemExit("usage: python -m fbgcomp.runtime.outputs.opcua --worker-fd FD "
-                         "(started by serve)")
+        raise SystemExit("usage: python -m fbgcomp.runtime.outputs.opcua --worker-fd FD (started by serve)")
