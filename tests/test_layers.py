@@ -1,0 +1,68 @@
+"""The package's layering (docs/architecture.md), checked on the real import graph (grimp).
+
+No import circle between modules, and no stage imports a stage above it: optics -> structure ->
+kinematics -> io -> models -> runtime, with the edges (dashboard, report, bench, cli) on top.
+"""
+
+import grimp
+import pytest
+
+#: Stages from the bottom up; a module may import its own stage and those below it.
+LAYERS = [
+    {"errors", "atomic", "units", "tables", "progress", "cluster", "cnc"},
+    {"optics"},
+    {"structure"},
+    {"kinematics"},
+    {"io"},
+    {"models"},
+    {"runtime"},
+    {"dashboard", "report", "bench"},
+    {"cli", "__main__"},
+]
+#: Upward edges allowed, each with its reason (docs/architecture.md says it too).
+ALLOWED_UPWARD = {
+    # serve's orchestrator starts the live page; the page never imports the service
+    ("fbgcomp.runtime.service", "fbgcomp.dashboard"),
+}
+
+
+@pytest.fixture(scope="module")
+def graph():
+    return grimp.build_graph("fbgcomp")
+
+
+def _stage(module: str) -> int:
+    parts = module.split(".")
+    top = parts[1] if len(parts) > 1 else "__init__"
+    if top == "__init__":
+        return 0
+    for level, names in enumerate(LAYERS):
+        if top in names:
+            return level
+    raise AssertionError(f"{module}: its package {top!r} is in no layer of docs/architecture.md")
+
+
+def test_no_import_circle_between_modules(graph):
+    cycles = []
+    for module in sorted(graph.modules):
+        for imported in graph.find_modules_directly_imported_by(module):
+            if graph.chain_exists(importer=imported, imported=module):
+                cycles.append((module, imported))
+    assert not cycles, f"import circles: {cycles[:5]}"
+
+
+def test_no_stage_imports_a_stage_above_it(graph):
+    upward = []
+    for module in sorted(graph.modules):
+        for imported in graph.find_modules_directly_imported_by(module):
+            if _stage(imported) > _stage(module) and not any(
+                module.startswith(a) and (imported == b or imported.startswith(b + "."))
+                for a, b in ALLOWED_UPWARD
+            ):
+                upward.append(f"{module} -> {imported}")
+    assert not upward, "imports against the data flow:\n" + "\n".join(upward)
+
+
+def test_every_package_is_placed(graph):
+    for module in graph.modules:
+        _stage(module)
