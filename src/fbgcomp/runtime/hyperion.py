@@ -32,6 +32,7 @@ maximum frame plus one read.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import functools
 import struct
 import traceback
@@ -133,7 +134,7 @@ def encode_peak_frame(
     peaks = np.asarray(wavelengths_nm, dtype="<f8")
     length = PEAK_HEADER_SIZE + counts.nbytes
     t_int = int(timestamp_s)
-    t_frac_ns = int(round((timestamp_s - t_int) * 1e9))
+    t_frac_ns = round((timestamp_s - t_int) * 1e9)
     if t_frac_ns >= 1_000_000_000:
         t_int, t_frac_ns = t_int + 1, t_frac_ns - 1_000_000_000
     content = (
@@ -175,7 +176,7 @@ def encode_peak_frames(
 
 @functools.lru_cache(maxsize=64)
 def _frame_dtype(n_channels: int, n_peaks: int) -> np.dtype:
-    fields = [
+    fields: list[tuple[str, str] | tuple[str, str, tuple[int]]] = [
         ("status", "u1"),
         ("rtype", "u1"),
         ("msg_len", "<u2"),
@@ -324,7 +325,7 @@ class PeakStreamDecoder:
             # to a frame plus a read) goes now rather than whenever the exception is collected.
             self._buffer = bytearray()
             traceback.clear_frames(exc.__traceback__)
-            data = None
+            del data
             raise
         if used:
             del self._buffer[:used]
@@ -403,10 +404,11 @@ class HyperionClient:
         not given, so the frames are bounded by it).
         """
         if self._cmd is not None and not self._limits_given:
-            try:
+            # on no (or a garbled) answer the default channel count is kept
+            with contextlib.suppress(
+                TimeoutError, OSError, HyperionError, asyncio.IncompleteReadError, struct.error
+            ):
                 await self.channel_count()
-            except (TimeoutError, OSError, HyperionError, asyncio.IncompleteReadError, struct.error):
-                pass  # keep the default channel count
         self._stream = await asyncio.wait_for(
             asyncio.open_connection(self.host, self.stream_port), self.timeout_s
         )
@@ -421,7 +423,7 @@ class HyperionClient:
         """
         if self._stream is None:
             raise ConnectionError("peak stream is not open")
-        reader: asyncio.StreamReader | None = self._stream[0]
+        reader = self._stream[0]
         chunk = b""
         loop = asyncio.get_running_loop()
         deadline = loop.time() + (timeout_s or self.timeout_s)
@@ -442,15 +444,13 @@ class HyperionClient:
             # the exception its traceback, the traceback wait_for's frame and that future):
             # the reader and its receive buffer (hundreds of KiB) would then live until the
             # cyclic collector runs. Dropping them from the frame lets close() free them at once.
-            reader = chunk = None
+            del reader, chunk
 
     async def close(self) -> None:
         """Close the command and stream connections (waiting at most 1 s for each)."""
         for conn in (self._cmd, self._stream):
             if conn is not None:
                 conn[1].close()
-                try:
+                with contextlib.suppress(TimeoutError, OSError):
                     await asyncio.wait_for(conn[1].wait_closed(), 1.0)
-                except (TimeoutError, OSError):
-                    pass
         self._cmd = self._stream = None

@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TypedDict
 
 import numpy as np
 
@@ -73,6 +74,19 @@ class OutputFilterConfig:
     hold_s: float = 2.5  # after a restart: back to the old level within this = noise
 
 
+class _Episode(TypedDict):
+    """The rest state kept while an axis follows a change, restored if it was noise."""
+
+    level: float  # the rest level when the change was seen
+    fit: np.ndarray  # the rest fit's weighted sums then
+    origin: float  # ... and the block index they count from
+    since: int  # blocks the rest median could use then
+    start: int  # block index of the trigger
+    first: int  # block index the change began at
+    thr: float  # the slow threshold then: back within it = noise
+    within: int  # blocks of the episode back within it
+
+
 class AdaptiveLevelFilter:
     """Per-axis rest / step filter of the correction (3 axes), state carried between batches."""
 
@@ -80,17 +94,17 @@ class AdaptiveLevelFilter:
         cfg = self.config = config
         dt = float(min(max(frame_interval_s, 1e-5), 10.0))
         self.frame_interval_s = dt
-        self.block_n = max(1, int(round(cfg.block_s / dt)))
+        self.block_n = max(1, round(cfg.block_s / dt))
         blk = self.block_n * dt  # block duration, s
         self.block_duration_s = blk
-        self.short_n = max(1, int(round(cfg.short_s / blk)))
-        self.rest_n = max(self.short_n, int(round(cfg.rest_median_s / blk)))
+        self.short_n = max(1, round(cfg.short_s / blk))
+        self.rest_n = max(self.short_n, round(cfg.rest_median_s / blk))
         self.fast_n = max(2, math.ceil(cfg.fast_confirm_s / blk - 1e-9))
         self.slow_n = max(self.fast_n + 1, math.ceil(cfg.slow_confirm_s / blk - 1e-9))
         self.hold_n = max(1, math.ceil(cfg.hold_s / blk - 1e-9))
         self.lam = math.exp(-blk / cfg.rest_tau_s) if cfg.rest_tau_s > 0 else 0.0
         self.env_decay = math.exp(-blk / cfg.envelope_tau_s) if cfg.envelope_tau_s > 0 else 0.0
-        self.noise_n = max(1, int(round(cfg.noise_block_s / blk)))
+        self.noise_n = max(1, round(cfg.noise_block_s / blk))
         self.noise_gain = min(1.0, cfg.noise_block_s / cfg.noise_tau_s) if cfg.noise_tau_s > 0 else 1.0
         noise = np.nan_to_num(np.asarray(noise_um, float) * np.ones(3), nan=1.0)
         self.sd = np.maximum(np.abs(noise), SD_FLOOR_UM)
@@ -102,7 +116,7 @@ class AdaptiveLevelFilter:
         self.k = 0  # completed blocks
         self._part = np.empty((self.block_n, 3))  # frames of the block not yet complete ...
         self._held = 0  # ... this many of them
-        self.level = None  # (3,) after the first block
+        self.level: np.ndarray | None = None  # (3,) after the first block
         self.since = np.zeros(3, np.int64)  # blocks the rest median may use
         self.fresh = np.zeros(3, np.int64)  # blocks compared with the level since a restart
         self.fit = np.zeros((3, 6))  # weighted sums: w, w u, w u², w y, w u y, w y²
@@ -111,7 +125,7 @@ class AdaptiveLevelFilter:
         self.pending = np.zeros((self.hold_n, 3, 2))  # excursions waiting to be learnt
         self.abs_dev: list[list[float]] = [[], [], []]
         self.episode_end = np.full(3, -1, np.int64)  # block index; -1: not in an episode
-        self.saved: list[dict | None] = [None, None, None]
+        self.saved: list[_Episode | None] = [None, None, None]
         self.ep_max = np.zeros((3, 2))
         self.restarts = np.zeros(3, np.int64)
         self.undone = np.zeros(3, np.int64)
@@ -245,7 +259,7 @@ class AdaptiveLevelFilter:
         slot = self.k % self.ring_n
         self.b[slot] = bm
         first = self.level is None
-        if first:
+        if self.level is None:
             self.level = bm.copy()
         thr = self.thresholds()
         for j in range(3):
@@ -305,6 +319,7 @@ class AdaptiveLevelFilter:
         change began; at its end either the old rest state returns (noise) or the rest fit
         restarts from the newest blocks."""
         s = self.saved[j]
+        assert s is not None  # an axis in an episode has its rest state saved
         n = min(self.short_n, self.k - s["first"] + 1)
         level = float(np.median(self._window(self.b, j, n)))
         slot = self.k % self.ring_n
