@@ -21,6 +21,7 @@ Every wait is bounded by its ``timeout_s``.
 from __future__ import annotations
 
 import configparser
+import contextlib
 import json
 import os
 import socket
@@ -48,9 +49,10 @@ DEFAULT_PINS = (
 
 
 class Machine:
-    def __init__(self):
-        import hal
-        import linuxcnc
+    def __init__(self) -> None:
+        # LinuxCNC's modules: present only on a LinuxCNC machine, where this display runs
+        import hal  # noqa: PLC0415 - LinuxCNC's module, absent from fbgcomp's venv
+        import linuxcnc  # noqa: PLC0415 - LinuxCNC's module, absent from fbgcomp's venv
 
         self.lc, self.hal = linuxcnc, hal
         self.s = linuxcnc.stat()
@@ -156,10 +158,8 @@ class Machine:
         self.c.auto(self.lc.AUTO_RUN, 0)
         # no wait_complete here: for AUTO_RUN it returns only at the end of the program.
         # Running first, then idle: do not mistake "not started yet" for "finished".
-        try:
+        with contextlib.suppress(TimeoutError):
             self._until(lambda: self.s.interp_state != self.lc.INTERP_IDLE, 2.0, "start")
-        except TimeoutError:
-            pass
         if wait:
             self.wait_idle(timeout_s)
 
@@ -246,10 +246,8 @@ def main(argv=None) -> int:
     path = cp.get("DISPLAY", "FBGCOMP_SOCKET", fallback="display.sock").strip()
     path = os.path.join(os.path.dirname(os.path.abspath(ini)), path)
     m = Machine()
-    try:
+    with contextlib.suppress(FileNotFoundError):
         os.unlink(path)
-    except FileNotFoundError:
-        pass
     srv = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     srv.bind(path)
     os.chmod(path, 0o600)  # the machine is driven by its own user only (and root)
@@ -263,6 +261,7 @@ def main(argv=None) -> int:
                 for line in f:
                     try:
                         req = json.loads(line)
+                        ans: dict[str, object]
                         if req.get("cmd") == "quit":
                             quit_ = True
                             ans = {"ok": True}
@@ -276,10 +275,8 @@ def main(argv=None) -> int:
                         break
     finally:
         srv.close()
-        try:
+        with contextlib.suppress(OSError):
             os.unlink(path)
-        except OSError:
-            pass
     return 0
 
 

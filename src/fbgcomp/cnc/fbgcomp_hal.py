@@ -45,6 +45,8 @@ correction_um / 1000 mm, added to the commanded axis position.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import math
 import os
 import select
 import signal
@@ -95,7 +97,7 @@ def decode_packet(data: bytes):
         return None
     corr = (cx, cy, cz)
     # a non-finite correction is a compensator fault, never a value to apply
-    if not all(c == c and abs(c) != float("inf") for c in corr):
+    if not all(math.isfinite(c) for c in corr):
         flags |= FLAG_ALARM
         corr = (0.0, 0.0, 0.0)
     return seq, flags, sent_s, sample_s, corr
@@ -118,7 +120,7 @@ def decode_position(data: bytes):
     if len(data) != POSITION.size:
         return None
     magic, version, flags, seq, sent_s, z_mm = POSITION.unpack(data)
-    if magic != POSITION_MAGIC or version != VERSION or not (z_mm == z_mm) or abs(z_mm) == float("inf"):
+    if magic != POSITION_MAGIC or version != VERSION or not math.isfinite(z_mm):
         return None
     return seq, flags, sent_s, z_mm
 
@@ -171,15 +173,13 @@ class Receiver:
         family, addr = parse_address(address)
         self.sock = socket.socket(family, socket.SOCK_DGRAM)
         if family == socket.AF_UNIX:
-            try:
+            with contextlib.suppress(FileNotFoundError):
                 os.unlink(addr)
-            except FileNotFoundError:
-                pass
         self.sock.bind(addr)
         self.sock.setblocking(False)
         self.path = addr if family == socket.AF_UNIX else None
-        self.last = None  # (seq, flags, sent_s, sample_s, corr)
-        self.last_rx = None  # monotonic time of the newest datagram
+        self.last: tuple | None = None  # (seq, flags, sent_s, sample_s, corr)
+        self.last_rx: float | None = None  # monotonic time of the newest datagram
         self.peer = None  # its sender's address: where the position goes back to
         self.latency_ms = -1.0  # sender's send -> received, newest datagram
         self.rejected = 0
@@ -214,10 +214,8 @@ class Receiver:
     def close(self):
         self.sock.close()
         if self.path:
-            try:
+            with contextlib.suppress(OSError):
                 os.unlink(self.path)
-            except OSError:
-                pass
 
 
 def _args(argv):
@@ -235,7 +233,7 @@ def _args(argv):
 
 
 def main(argv=None) -> int:
-    import hal  # the system Python's LinuxCNC module
+    import hal  # noqa: PLC0415 - LinuxCNC's module, absent from fbgcomp's venv, which imports this file
 
     a = _args(argv)
     if a.um_per_count <= 0 or a.period <= 0:
@@ -282,10 +280,8 @@ def main(argv=None) -> int:
     last_t = time.monotonic()
     try:
         while not stop:
-            try:
+            with contextlib.suppress(InterruptedError):
                 select.select([rx.sock], [], [], a.period)
-            except InterruptedError:
-                pass
             rx.drain()
             now = time.monotonic()
             dt = min(now - last_t, 0.1)  # after a stall, never jump more than 0.1 s of rate
@@ -301,7 +297,7 @@ def main(argv=None) -> int:
             else:
                 current = (0.0, 0.0, 0.0)  # LinuxCNC restarts its offset register from zero
             for ax, cur, req in zip(AXES, current, received):
-                c[f"{ax}.counts"] = int(round(cur / a.um_per_count))
+                c[f"{ax}.counts"] = round(cur / a.um_per_count)
                 c[f"{ax}.offset-um"] = cur
                 c[f"{ax}.request-um"] = req
             c["eoffset-enable"] = machine_on
