@@ -187,7 +187,7 @@ class SensorChecks:
             self.last_raw = wavelength_nm[-1].copy()
             self.last_change_s = t_change[-1].copy()
             self.last_bad_s = last_bad[-1].copy()
-            if all_finite:
+            if last_fin is None:  # all finite
                 self.last_value = wavelength_nm[-1].copy()
             else:
                 has = last_fin[-1] >= 0

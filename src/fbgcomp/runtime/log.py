@@ -66,7 +66,7 @@ DATA_DIR = "data"  # LOG/data/date=YYYY-MM-DD/part-*.parquet
 def _labels(codes: np.ndarray, names) -> pyarrow.DictionaryArray:
     """Integer codes as a dictionary-encoded string column (names[code]); a code beyond the
     names is kept as ``CODE<n>`` rather than lost."""
-    import pyarrow as pa  # the runtime extra (pyarrow): imported only when used
+    import pyarrow as pa  # noqa: PLC0415 - optional extra: pyarrow (the runtime extra), imported only when used
 
     names = list(names)
     codes = np.asarray(codes)
@@ -93,7 +93,7 @@ class RunLog:
     def __init__(
         self, folder: str | Path, meta: dict, flush_s: float = 0.5, max_queue: int = 2000, fsync: bool = True
     ):
-        import pyarrow  # noqa: F401  (fail early if the runtime extra is missing)
+        import pyarrow  # noqa: F401, PLC0415 - optional extra: pyarrow; fail early if it is missing
 
         if not 0 < flush_s <= 1.0:
             raise InputError(f"log flush interval {flush_s} s must be in (0, 1]", column="log.flush_s")
@@ -176,8 +176,8 @@ class RunLog:
         return cols
 
     def _write(self, items) -> None:
-        import pyarrow as pa  # the runtime extra (pyarrow): imported only when used
-        import pyarrow.parquet as pq
+        import pyarrow as pa  # noqa: PLC0415 - optional extra: pyarrow (the runtime extra)
+        import pyarrow.parquet as pq  # noqa: PLC0415 - optional extra: pyarrow
 
         table = pa.table(self._columns(items))
         now = time.time()
@@ -259,7 +259,7 @@ def read_meta(folder: str | Path) -> dict:
     try:
         return json.loads(meta_path.read_text())
     except json.JSONDecodeError as exc:
-        raise InputError(f"meta.json is not valid JSON: {exc}", file=meta_path)
+        raise InputError(f"meta.json is not valid JSON: {exc}", file=meta_path) from exc
 
 
 def read_log(folder: str | Path, labels: bool = False):
@@ -269,7 +269,7 @@ def read_log(folder: str | Path, labels: bool = False):
     :mod:`fbgcomp.runtime.health` status codes) whichever way the log stored them, or with
     ``labels=True`` as their names (a pandas categorical, every name a category, in code order).
     """
-    import pyarrow.parquet as pq  # the runtime extra (pyarrow): imported only when used
+    import pyarrow.parquet as pq  # noqa: PLC0415 - optional extra: pyarrow (the runtime extra)
 
     folder = Path(folder)
     meta = read_meta(folder)
@@ -289,7 +289,7 @@ def read_log(folder: str | Path, labels: bool = False):
         codes = _codes(df[col], names)
         if labels:
             known = (codes >= 0) & (codes < len(names))
-            df[col] = pd.Categorical.from_codes(np.where(known, codes, -1), categories=names)
+            df[col] = pd.Categorical.from_codes(np.where(known, codes, -1), categories=pd.Index(names))
         else:
             df[col] = codes
     return meta, df

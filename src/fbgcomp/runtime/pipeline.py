@@ -44,7 +44,10 @@ stages that stand alone already live beside it (:mod:`.health`, :mod:`.output_fi
 from __future__ import annotations
 
 import inspect
+import itertools
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -55,7 +58,7 @@ from fbgcomp.runtime.outputs.cnc_form import reference_z_mm, takes_z
 HEALTH_OK, HEALTH_DEGRADED, HEALTH_ALARM, HEALTH_ZEROING = range(4)
 HEALTH_NAMES = ("OK", "DEGRADED", "ALARM", "ZEROING")
 
-_TAKES_TIME: dict = {}
+_TAKES_TIME: dict[type, bool] = {}
 # A prediction beyond this many times the per-axis maximum is no machine state (the maximum
 # already holds the largest validated load with margin) but a broken model or sensor.
 ABSURD_FACTOR = 3.0
@@ -66,6 +69,7 @@ def _takes_time(predictor) -> bool:
     does; a predictor of one's own may not need it)."""
     kind = type(predictor)
     if kind not in _TAKES_TIME:
+        params: Mapping[str, inspect.Parameter]
         try:
             params = inspect.signature(predictor.predict).parameters
         except (TypeError, ValueError):
@@ -113,10 +117,11 @@ class BatchResult:
     sensor_status: np.ndarray  # (n,S) uint8 health.* codes
     model_set: np.ndarray  # (n,) int16 index into Pipeline.model_sets, -1 none
     temperature_C: np.ndarray  # (n,P) temperatures paired with the frames
-    output_flags: np.ndarray = None  # (n,3) uint8 health.FLAG_* (model policy | limits)
+    # (n,3) uint8 health.FLAG_* (model policy | limits); not given: no flag on any frame
+    output_flags: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.uint8))
 
     def __post_init__(self):
-        if self.output_flags is None:
+        if self.output_flags.shape[0] == 0 and self.time_s.size:
             self.output_flags = np.zeros((self.time_s.size, 3), np.uint8)
 
     def __len__(self) -> int:
@@ -142,10 +147,13 @@ class Pipeline:
         self.wavelength_zero_nm: np.ndarray | None = None
         self.temperature_zero_C: np.ndarray | None = None
         # model_sets[0] is the full model; the rest the stored fallbacks
-        self.model_sets: list[frozenset[str]] = [frozenset()] + sorted(
-            (frozenset(s) for s in model.fallback_sets), key=lambda s: (len(s), sorted(s))
-        )
-        self._predictors: dict[int, object] = {}
+        self.model_sets: list[frozenset[str]] = [
+            frozenset(),
+            *sorted((frozenset(s) for s in model.fallback_sets), key=lambda s: (len(s), sorted(s))),
+        ]
+        # duck-typed: any object with predict(...) and expected_rms_error_um (a model's own
+        # predictor classes share no base, and a predictor of one's own may be used)
+        self._predictors: dict[int, Any] = {}
         self._choice_cache: dict[bytes, int] = {}
         self._last_correction = np.zeros(3)
         self._hold_start_s: float | None = None
@@ -211,7 +219,7 @@ class Pipeline:
             self._filter_set = -2
 
     # -- model selection
-    def predictor(self, k: int):
+    def predictor(self, k: int) -> Any:
         """The predictor of model set ``k`` (``model_sets[k]`` excluded), made once and kept."""
         if k not in self._predictors:
             self._predictors[k] = self.model.predictor(exclude=self.model_sets[k])
@@ -238,10 +246,11 @@ class Pipeline:
     def _accumulate_zero(self, t, wl, status, temp) -> int:
         """Use the leading rows that fall in the zero window; return how many were used."""
         first_call = self._t_first is None
-        if first_call:
+        if self._t_first is None:
             self._t_first = float(t[0])
+        t_first = self._t_first
         # same convention as the offline path: samples with t <= t_first + window
-        end = self._t_first + self.zero_window_s
+        end = t_first + self.zero_window_s
         m = int(np.searchsorted(t, end, side="right"))
         if first_call:
             m = max(m, 1)
@@ -260,8 +269,9 @@ class Pipeline:
                 self.wavelength_zero_nm = np.where(self._zero_n > 0, self._zero_sum / self._zero_n, np.nan)
                 self.temperature_zero_C = np.where(self._tzero_n > 0, self._tzero_sum / self._tzero_n, np.nan)
             self.checks.never_zeroed = ~np.isfinite(self.wavelength_zero_nm)
-            if self._zero_frames > 1 and self._t_zero_last > self._t_first:
-                self.frame_dt_s = (self._t_zero_last - self._t_first) / (self._zero_frames - 1)
+            t_last = self._t_zero_last  # set once a frame was used (_zero_frames > 0)
+            if self._zero_frames > 1 and t_last is not None and t_last > t_first:
+                self.frame_dt_s = (t_last - t_first) / (self._zero_frames - 1)
         return m
 
     # -- main entry
@@ -370,7 +380,7 @@ class Pipeline:
         temperature_C: np.ndarray,
         enabled: bool = True,
     ) -> BatchResult:
-        n, S = wavelength_nm.shape
+        n, _ = wavelength_nm.shape
         status, faulted = self.checks.check(time_s, wavelength_nm, peak_count, near_count)
         if n and (self._inconsistent_until > time_s[0]).any():
             held = (status == H.RECOVERING) & (time_s[:, None] < self._inconsistent_until)
@@ -571,6 +581,7 @@ class Pipeline:
         if not good.any():
             return corr
         if self.output_filter is None:
+            assert self._t_first is not None  # a prediction comes after the zero window
             first = int(np.argmax(good))
             # nominal frame interval: the zero window's frames up to the first prediction, the
             # same numbers however the frames were batched
@@ -582,7 +593,7 @@ class Pipeline:
         prev = self._filter_set if self._filter_set is not None else int(sets[0])
         switch = set(np.flatnonzero(np.concatenate([[prev], sets[:-1]]) != sets).tolist())
         edges = sorted({0, rows.size, *switch})
-        for a, b in zip(edges[:-1], edges[1:]):
+        for a, b in itertools.pairwise(edges):
             if a in switch:
                 self.output_filter = self.output_filter.reseated()
             out[rows[a:b]] = self.output_filter.process(corr[rows[a:b]])
@@ -663,7 +674,7 @@ class Pipeline:
             return corr
         # scipy.signal takes seconds to import, and only this optional smoothing needs it: not
         # at module top, which the OPC UA server process and the log readers also load
-        from scipy.signal import lfilter
+        from scipy.signal import lfilter  # noqa: PLC0415 - start-up: scipy.signal takes seconds
 
         prev_t = self._last_t if self._last_t is not None else t[0]
         dt = np.diff(np.concatenate([[prev_t], t]))

@@ -9,6 +9,7 @@ to zero (alarm) while the source reconnects with capped exponential back-off.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import gc
 import logging
 import signal
@@ -29,10 +30,10 @@ from fbgcomp.runtime import realtime
 from fbgcomp.runtime.live_inputs import LiveInputs, LiveTemperatures, PositionConfig, TemperaturesConfig
 from fbgcomp.runtime.log import RunLog
 from fbgcomp.runtime.outputs.cnc_form import newest_slope
-from fbgcomp.runtime.outputs.linuxcnc import CncConfig, open_cnc_output
-from fbgcomp.runtime.outputs.modbus import ModbusConfig, open_modbus_output
+from fbgcomp.runtime.outputs.linuxcnc import CncConfig, LinuxCncOutput, open_cnc_output
+from fbgcomp.runtime.outputs.modbus import ModbusConfig, ModbusOutput, open_modbus_output
 from fbgcomp.runtime.outputs.opcua import OpcUaConfig, OpcUaServer, Snapshot
-from fbgcomp.runtime.pipeline import HEALTH_ALARM, HEALTH_NAMES, Pipeline, PipelineConfig
+from fbgcomp.runtime.pipeline import HEALTH_ALARM, HEALTH_NAMES, BatchResult, Pipeline, PipelineConfig
 from fbgcomp.runtime.realtime import RealtimeConfig
 from fbgcomp.runtime.simulator import SignalTable, SimConfig, SimulatedHyperion
 from fbgcomp.runtime.sources import (
@@ -99,9 +100,9 @@ class RuntimeConfig:
         try:
             data = tomllib.loads(path.read_text())
         except FileNotFoundError:
-            raise InputError("configuration file not found", file=path)
+            raise InputError("configuration file not found", file=path) from None
         except tomllib.TOMLDecodeError as exc:
-            raise InputError(f"not valid TOML: {exc}", file=path)
+            raise InputError(f"not valid TOML: {exc}", file=path) from exc
         cfg = cls()
         _update(cfg, data, str(path), "")
         return cfg
@@ -182,18 +183,18 @@ class Service:
         self.frames = 0
         self.batches = 0
         self.busy_s = 0.0
-        self.last_result = None
+        self.last_result: BatchResult | None = None
         self.opc: OpcUaServer | None = None
-        self.dashboard = None  # fbgcomp.dashboard.Dashboard when configured
-        self.cnc = None  # fbgcomp.runtime.outputs.linuxcnc.LinuxCncOutput (--cnc)
-        self.modbus = None  # fbgcomp.runtime.outputs.modbus.ModbusOutput ([modbus])
+        self.dashboard: Dashboard | None = None  # when configured
+        self.cnc: LinuxCncOutput | None = None  # --cnc
+        self.modbus: ModbusOutput | None = None  # [modbus]
         self.live: LiveInputs | None = None  # [temperatures.*], [position]
         self.z_mm: float | None = None  # the Z position given to the model on the last batch
         self.input_status = ""  # live inputs: "inputs OK" or which are stale
         self.frames_waiting = 0  # frames dropped before zeroing, live inputs not up
         self._enabled = True  # used only without OPC UA
-        self.runlog = None
-        self.sim = None
+        self.runlog: RunLog | None = None
+        self.sim: SimulatedHyperion | None = None
         self._stop = asyncio.Event()
         self._offset_s = 0.0  # wall clock - instrument clock, for no-data hold times
         self._no_data_since: float | None = None
@@ -417,12 +418,12 @@ class Service:
                 items = [first]
                 while not queue.empty():
                     items.append(queue.get_nowait())
-                if any(i is None for i in items):
-                    items = [i for i in items if i is not None]
-                    if items:
-                        self._process(SensorBatch.concat(items))
+                batches = [i for i in items if i is not None]
+                if len(batches) < len(items):
+                    if batches:
+                        self._process(SensorBatch.concat(batches))
                     break  # the source ended (replay finished)
-                self._process(SensorBatch.concat(items))
+                self._process(SensorBatch.concat(batches))
         finally:
             if self.cnc is not None:
                 self.cnc.stop()  # the CNC ramps its offsets to zero without waiting for a timeout
@@ -432,10 +433,8 @@ class Service:
                 await main_loop.run_in_executor(None, self.modbus.stop)
             await source.close()
             pump_task.cancel()
-            try:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
                 await pump_task
-            except (asyncio.CancelledError, Exception):
-                pass
             if self.sim is not None:
                 await self.sim.stop()
             if self.dashboard is not None:
@@ -563,10 +562,8 @@ def run_service(config: RuntimeConfig, duration_s: float | None = None) -> Servi
     async def main():
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
-            try:
+            with contextlib.suppress(NotImplementedError, RuntimeError):  # not on this platform / thread
                 loop.add_signal_handler(sig, service.stop)
-            except (NotImplementedError, RuntimeError):
-                pass
         await service.run(duration_s)
 
     asyncio.run(main())

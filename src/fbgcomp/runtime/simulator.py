@@ -33,6 +33,7 @@ queued) is disconnected rather than slowing the instrument down.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import gc
 import re
 import signal
@@ -41,6 +42,7 @@ import time
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -48,6 +50,9 @@ from fbgcomp.atomic import atomic_path
 from fbgcomp.errors import InputError
 from fbgcomp.io.campaign import read_campaign
 from fbgcomp.runtime import hyperion
+
+if TYPE_CHECKING:
+    from asyncua import Node, Server
 
 _FAULT_RE = re.compile(
     r"^(drop|double|shift|stuck):([^@]+)@([0-9.eE+-]+)(?::([0-9.eE+-]+))?"
@@ -125,7 +130,7 @@ class SignalTable:
         sensor's channel; faults name them so: ``drop:S3_ref@5``)."""
         c = read_campaign(folder)
         refs = [s for s in c.meta.sensors if s.reference_column is not None]
-        names = [s.name for s in c.meta.sensors] + [s.reference_probe for s in refs]
+        names = [s.name for s in c.meta.sensors] + c.meta.reference_probe_names  # refs' probes
         columns = [s.column for s in c.meta.sensors] + [s.reference_column for s in refs]
         wl = c.fbg[columns].to_numpy(dtype=np.float64)
         channel = [int(getattr(s, "channel", None) or 0) for s in c.meta.sensors + refs]
@@ -181,7 +186,7 @@ class SimulatedHyperion:
                 )
         self.host = host
         self._ports = (command_port, stream_port)
-        self._servers: list[asyncio.AbstractServer] = []
+        self._servers: list[asyncio.Server] = []
         self._stream_writers: set[asyncio.StreamWriter] = set()
         self._all_writers: set[asyncio.StreamWriter] = set()
         self._t0: float | None = None
@@ -234,10 +239,8 @@ class SimulatedHyperion:
         for s in self._servers:
             s.close()
         for s in self._servers:
-            try:
+            with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(s.wait_closed(), 1.0)
-            except TimeoutError:
-                pass
 
     def _close_clients(self) -> None:
         for w in list(self._all_writers):
@@ -390,7 +393,7 @@ class SimulatedHyperion:
                 wl[:, j] = self._stuck_value[i]
         cols, counts = [], np.zeros(cfg.channels, np.int16)
         for ch in range(cfg.channels):
-            members = [j for j in np.flatnonzero(self._sensor_channel == ch) if j not in dropped]
+            members = [j for j in np.flatnonzero(self._sensor_channel == ch).tolist() if j not in dropped]
             ch_cols = []
             for j in members:
                 ch_cols.append(wl[:, j])
@@ -467,8 +470,8 @@ class OpcUaTemperatureServer:
         self.t_start_s = float(self.time_s[0] if t_start_s is None else t_start_s)
         self.span_s = float(span_s if span_s is not None else self.time_s[-1] - self.time_s[0])
         self.period_s = period_s
-        self.server = None
-        self._vars = []
+        self.server: Server | None = None
+        self._vars: list[Node] = []
         self._task: asyncio.Task | None = None
         self._t0: float | None = None
         self.updates = 0
@@ -503,7 +506,7 @@ class OpcUaTemperatureServer:
 
     async def start(self, t0: float | None = None) -> None:
         """Start the OPC UA server and its update loop (campaign time 0 at ``t0``, default now)."""
-        from asyncua import Server, ua  # the runtime extra (asyncua): imported only when used
+        from asyncua import Server, ua  # noqa: PLC0415 - optional extra: asyncua (the runtime extra)
 
         server = Server()
         await server.init()
@@ -511,11 +514,15 @@ class OpcUaTemperatureServer:
         server.set_server_name("fbgcomp sim-interrogator temperatures")
         server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
         idx = await server.register_namespace(self.NAMESPACE)
-        probes = await server.nodes.objects.add_object(ua.NodeId("Probes", idx), "Probes")
+        # asyncua annotates NodeId with its own str / int subclasses; plain ones are what it takes
+        probes = await server.nodes.objects.add_object(ua.NodeId("Probes", idx), "Probes")  # type: ignore[arg-type]
         first = self.at(0.0)
         for name, v in zip(self.probe_names, first):
             var = await probes.add_variable(
-                ua.NodeId(f"Probes.{name}", idx), name, float(v), varianttype=ua.VariantType.Double
+                ua.NodeId(f"Probes.{name}", idx),  # type: ignore[arg-type]  # str / int, as above
+                name,
+                float(v),
+                varianttype=ua.VariantType.Double,
             )
             self._vars.append(var)
         await server.start()
@@ -524,14 +531,19 @@ class OpcUaTemperatureServer:
         self._task = asyncio.create_task(self._update_loop())
 
     async def _update_loop(self) -> None:
-        from asyncua import ua  # the runtime extra (asyncua): imported only when used
+        from asyncua import ua  # noqa: PLC0415 - optional extra: asyncua (the runtime extra)
 
+        t0 = self._t0
+        assert t0 is not None  # start() sets it before it starts this loop
         while True:
-            row = self.at(time.time() - self._t0)
+            row = self.at(time.time() - t0)
             now = datetime.now(UTC)  # a fresh timestamp: the value is live
             for var, v in zip(self._vars, row):
+                # asyncua annotates the timestamps as its datetime subclass; a datetime is what it takes
                 dv = ua.DataValue(
-                    ua.Variant(float(v), ua.VariantType.Double), SourceTimestamp=now, ServerTimestamp=now
+                    ua.Variant(float(v), ua.VariantType.Double),
+                    SourceTimestamp=now,  # type: ignore[arg-type]
+                    ServerTimestamp=now,  # type: ignore[arg-type]
                 )
                 await var.write_value(dv)
             self.updates += 1
@@ -550,10 +562,8 @@ async def _cancel(task) -> None:
     if task is None:
         return
     task.cancel()
-    try:
+    with contextlib.suppress(asyncio.CancelledError, Exception):
         await task
-    except (asyncio.CancelledError, Exception):
-        pass
 
 
 async def run_simulator(
@@ -586,10 +596,8 @@ async def run_simulator(
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
-        try:
+        with contextlib.suppress(NotImplementedError, RuntimeError):  # not on this platform / thread
             loop.add_signal_handler(sig, stop.set)
-        except (NotImplementedError, RuntimeError):
-            pass
     try:
         waiters = {asyncio.create_task(sim.finished.wait()), asyncio.create_task(stop.wait())}
         await asyncio.wait(waiters, timeout=duration_s, return_when=asyncio.FIRST_COMPLETED)

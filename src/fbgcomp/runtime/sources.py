@@ -17,6 +17,7 @@ Strain-free reference gratings (``reference_lambda0_nm`` of a sensor) own a wind
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import time
 from collections.abc import AsyncIterator
@@ -26,6 +27,7 @@ from typing import Protocol
 from urllib.parse import parse_qs, urlparse
 
 import numpy as np
+import numpy.typing as npt
 import pandas as pd
 
 from fbgcomp import optics
@@ -79,10 +81,10 @@ class PeakMapper:
 
     def __init__(
         self,
-        lambda0_nm: np.ndarray,
+        lambda0_nm: npt.ArrayLike,
         window_nm: float = 2.5,
         guard_nm: float | None = None,
-        channel: np.ndarray | None = None,
+        channel: npt.ArrayLike | None = None,
         n_sensors: int | None = None,
         reference_probes: list[str] | None = None,
     ):
@@ -136,8 +138,7 @@ class PeakMapper:
         count = np.zeros(n * S, np.int64)
         value = np.zeros(n * S)
         near = np.zeros(n * S, np.int64)
-        by_channel = peak_channel is not None and self.channel.all()
-        groups = np.unique(peak_channel) if by_channel else [None]
+        groups = np.unique(peak_channel) if peak_channel is not None and self.channel.all() else [None]
         for ch in groups:
             cols = np.flatnonzero(peak_channel == ch) if ch is not None else slice(None)
             sens = np.flatnonzero(self.channel == ch) if ch is not None else self._all
@@ -359,7 +360,7 @@ class TableTemperatures:
         naming ``where`` when a column is missing.
         """
         cols = [f"{p}_C" for p in probe_names]
-        missing = [c for c in cols + ["time_s"] if c not in df.columns]
+        missing = [c for c in [*cols, "time_s"] if c not in df.columns]
         if missing:
             raise InputError(f"temperature table lacks column(s) {', '.join(missing)}", file=where)
         return cls(probe_names, df["time_s"].to_numpy(float), df[cols].to_numpy(float), speed, loop=loop)
@@ -399,8 +400,8 @@ def open_temperatures(
                 k.strip(): float(v)
                 for k, v in (item.split("=") for item in spec[6:].split(",") if item.strip())
             }
-        except ValueError:
-            raise InputError(f"bad constant temperatures {spec!r}", column="--temperatures")
+        except ValueError as exc:
+            raise InputError(f"bad constant temperatures {spec!r}", column="--temperatures") from exc
         return ConstantTemperatures(probe_names, values)
     path = Path(spec)
     if path.is_dir():
@@ -439,11 +440,9 @@ class HyperionSource:
         client = hyperion.HyperionClient(
             self.host, self.command_port, self.stream_port, timeout_s=self.stall_timeout_s
         )
-        try:
-            # The command port is optional for streaming; use it when present.
+        # The command port is optional for streaming; use it when present.
+        with contextlib.suppress(TimeoutError, OSError, hyperion.HyperionError, asyncio.IncompleteReadError):
             self.serial_number = await client.serial_number()
-        except (TimeoutError, OSError, hyperion.HyperionError, asyncio.IncompleteReadError):
-            pass
         await client.open_stream()
         return client
 
@@ -531,7 +530,7 @@ class ReplaySource:
             if probe_names
             else NoTemperatures([])
         )
-        if probe_names:
+        if isinstance(self.temperatures, TableTemperatures):  # there are probes
             self.temperatures.origin = self.origin_s
         self.status = "replaying"
         self._closed = False
@@ -582,7 +581,7 @@ def parse_source_url(url: str) -> tuple[str, dict]:
         if not u.hostname:
             raise InputError(f"no host in {url!r}", column="--source")
         opts["host"] = u.hostname
-        opts["stream_port"] = u.port or hyperion.STREAM_PORT
+        opts["stream_port"] = str(u.port or hyperion.STREAM_PORT)
         opts.setdefault("command_port", str(hyperion.COMMAND_PORT if u.port is None else u.port - 1))
     else:
         opts["path"] = (u.netloc + u.path) if u.netloc else u.path
