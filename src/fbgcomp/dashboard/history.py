@@ -128,8 +128,8 @@ def _reduce(ids, n, vmin, vmax, vsum, vcnt, icnt) -> Buckets:
 def _codes(column, names) -> np.ndarray:
     """A pyarrow health/status column as integer codes: names (dictionary-encoded strings) are
     looked up in ``names`` (unknown: -1); integer codes of older logs are kept."""
-    import pyarrow as pa  # the runtime extra (pyarrow): imported only when used
-    import pyarrow.compute as pc
+    import pyarrow as pa  # noqa: PLC0415 - optional extra: pyarrow (the runtime extra)
+    import pyarrow.compute as pc  # noqa: PLC0415 - optional extra: pyarrow
 
     column = column.combine_chunks() if isinstance(column, pa.ChunkedArray) else column
     if pa.types.is_dictionary(column.type):
@@ -192,7 +192,7 @@ class LogHistory:
 
     def _frames(self, path: Path):
         """(time_s, values (n,V), indicators (n,I)) of one part, only the plotted columns."""
-        import pyarrow.parquet as pq  # the runtime extra (pyarrow): imported only when used
+        import pyarrow.parquet as pq  # noqa: PLC0415 - optional extra: pyarrow (the runtime extra)
 
         c = self._columns()
         flag_cols = [f"flags_{a}" for a in AXES]

@@ -58,6 +58,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from aiohttp import web
@@ -181,7 +182,8 @@ class Dashboard:
         self.messages = 0
         # service thread -> broadcaster: the newest sample, and whether the broadcaster sleeps
         self._lock = threading.Lock()
-        self._latest = None
+        # (snapshot, temperature_C, model, wavelength_zero_nm, temperature_zero_C, publish time)
+        self._latest: tuple[Any, Any, Any, Any, Any, float] | None = None
         self._idle = False
         self._feature_maps: dict = {}
         # (value, version) of Enabled as last seen here: the version grows on every change, so
@@ -198,7 +200,7 @@ class Dashboard:
         self._next: asyncio.Future | None = None  # resolved when a new message is out
         self._failed_login: asyncio.Lock | None = None
         self._runner: web.AppRunner | None = None
-        self._server: asyncio.AbstractServer | None = None
+        self._server: asyncio.Server | None = None
         self._cap: ConnectionCap | None = None
         self._broadcaster: asyncio.Task | None = None
 
@@ -222,10 +224,11 @@ class Dashboard:
         with self._lock:
             self._latest = item
             wake, self._idle = self._idle, False
-        loop = self._loop
-        if wake and loop is not None:  # only when the broadcaster waits: once per idle spell
+        loop, event = self._loop, self._wake
+        # only when the broadcaster waits (it made the event first): once per idle spell
+        if wake and loop is not None and event is not None:
             with contextlib.suppress(RuntimeError):  # the loop closed meanwhile (stopping)
-                loop.call_soon_threadsafe(self._wake.set)
+                loop.call_soon_threadsafe(event.set)
 
     def start(self) -> None:
         """Listen and serve from a thread of its own; InputError if the address is unusable."""
@@ -264,9 +267,11 @@ class Dashboard:
 
     def _end_loop(self) -> None:
         loop, self._loop = self._loop, None
+        thread = self._thread
+        assert loop is not None and thread is not None, "start() made both"
         loop.call_soon_threadsafe(loop.stop)
-        self._thread.join(5.0)
-        if not self._thread.is_alive():
+        thread.join(5.0)
+        if not thread.is_alive():
             loop.close()
 
     # -- server (the dashboard's loop) --------------------------------------------------------
@@ -291,26 +296,33 @@ class Dashboard:
         timeout = self.config.request_timeout_s
         # keepalive_timeout: no complete request head within it (idle or half-sent) = closed;
         # lingering_time: how long an unread body is drained after the answer (<= 1 s)
-        self._runner = web.AppRunner(
+        runner = self._runner = web.AppRunner(
             app,
             access_log=None,
             keepalive_timeout=timeout,
             lingering_time=min(1.0, timeout),
             shutdown_timeout=2.0,
         )
-        await self._runner.setup()
-        self._cap = ConnectionCap(self._runner.server, self.config.max_connections)
-        tls = {} if self.ssl_context is None else {"ssl": self.ssl_context, "ssl_handshake_timeout": timeout}
+        await runner.setup()
+        assert runner.server is not None, "made by setup()"
+        self._cap = ConnectionCap(runner.server, self.config.max_connections)
         try:
-            self._server = await loop.create_server(
-                self._cap, self.host, self.port, backlog=128, reuse_address=True, **tls
+            self._server = server = await loop.create_server(
+                self._cap,
+                self.host,
+                self.port,
+                backlog=128,
+                reuse_address=True,
+                ssl=self.ssl_context,
+                # asyncio takes a handshake timeout only with TLS
+                ssl_handshake_timeout=None if self.ssl_context is None else timeout,
             )
         except OSError as exc:
-            await self._runner.cleanup()
+            await runner.cleanup()
             raise InputError(
                 f"cannot listen on {self.host}:{self.port}: {exc.strerror or exc}", column="--dashboard"
             ) from None
-        self.port = self._server.sockets[0].getsockname()[1]
+        self.port = server.sockets[0].getsockname()[1]
         self._broadcaster = asyncio.create_task(self._broadcast_loop())
 
     async def _shutdown(self) -> None:
@@ -329,6 +341,8 @@ class Dashboard:
     async def _broadcast_loop(self) -> None:
         loop = asyncio.get_running_loop()
         period = 1.0 / self.config.max_rate_hz if self.config.max_rate_hz > 0 else 0.0
+        wake = self._wake
+        assert wake is not None, "made by _serve() before this task"
         last = -math.inf
         while not self._stopping:
             wait = last + period - loop.time()
@@ -337,10 +351,10 @@ class Dashboard:
             with self._lock:
                 item, self._latest = self._latest, None
                 if item is None:
-                    self._wake.clear()  # before _idle: a publish after this lock wakes us
+                    wake.clear()  # before _idle: a publish after this lock wakes us
                     self._idle = True
             if item is None:
-                await self._wake.wait()
+                await wake.wait()
                 continue
             last = loop.time()
             try:
@@ -352,6 +366,7 @@ class Dashboard:
             self._seq += 1
             self.messages += 1
             done, self._next = self._next, loop.create_future()
+            assert done is not None, "made by _serve() before this task"
             done.set_result(None)
 
     def _elongations(self, model, wavelength_nm, temperature_C, w0, t0):
@@ -534,7 +549,9 @@ class Dashboard:
                 f"and points in [10, {MAX_POINTS}]",
             )
         key = (window_s, points)
-        async with self._history_lock:  # one computation at a time, however many browsers
+        lock = self._history_lock
+        assert lock is not None, "made by _serve() before the routes"
+        async with lock:  # one computation at a time, however many browsers
             now = time.monotonic()
             done = self._history_answers.get(key)
             if done is None or now - done[0] > 1.0:
@@ -567,8 +584,10 @@ class Dashboard:
                 if wait > 0:
                     await asyncio.sleep(wait)
                 if self._seq == seq:
+                    nxt = self._next
+                    assert nxt is not None, "made by _serve() before the routes"
                     with contextlib.suppress(TimeoutError):
-                        await asyncio.wait_for(asyncio.shield(self._next), KEEPALIVE_COMMENT_S)
+                        await asyncio.wait_for(asyncio.shield(nxt), KEEPALIVE_COMMENT_S)
                 if self._stopping:
                     break
                 if self._seq == seq or not self._message:
@@ -602,7 +621,9 @@ class Dashboard:
             # PBKDF2 takes a while: in a worker thread, so other requests go on meanwhile
             token = await asyncio.get_running_loop().run_in_executor(None, self.login, user, password)
         if token is None:
-            async with self._failed_login:  # failures one at a time: slows password guessing
+            lock = self._failed_login
+            assert lock is not None, "made by _serve() before the routes"
+            async with lock:  # failures one at a time: slows password guessing
                 await asyncio.sleep(FAILED_LOGIN_S)
             raise Refused(401, "wrong user name or password")
         resp = json_response({"user": user})

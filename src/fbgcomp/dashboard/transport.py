@@ -147,7 +147,8 @@ class CappedProtocol(asyncio.Protocol):
     __slots__ = ("cap", "inner")
 
     def __init__(self, cap: ConnectionCap):
-        self.cap, self.inner = cap, None
+        self.cap = cap
+        self.inner: asyncio.Protocol | None = None
 
     def connection_made(self, transport) -> None:
         """Let the connection in, or answer 503 and close it when ``limit`` are open."""
@@ -158,8 +159,8 @@ class CappedProtocol(asyncio.Protocol):
             transport.close()
             return
         cap.open += 1
-        self.inner = cap.factory()
-        self.inner.connection_made(transport)
+        inner = self.inner = cap.factory()
+        inner.connection_made(transport)
 
     def connection_lost(self, exc) -> None:
         inner, self.inner = self.inner, None
