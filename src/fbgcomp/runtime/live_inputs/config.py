@@ -75,7 +75,7 @@ class Latest:
 
     __slots__ = ("received_s", "value")
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.value = math.nan
         self.received_s: float | None = None
 

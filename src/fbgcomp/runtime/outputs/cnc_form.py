@@ -32,7 +32,7 @@ DZ_MM = 10.0
 _STATE_ATTRS = ("state", "last_flags", "last_base")
 
 
-_TAKES_Z: dict = {}
+_TAKES_Z: dict[type, bool] = {}
 
 
 def takes_z(predictor) -> bool:
@@ -40,10 +40,10 @@ def takes_z(predictor) -> bool:
     kind = type(predictor)
     if kind not in _TAKES_Z:
         try:
-            params = inspect.signature(predictor.predict).parameters
+            takes = "z_axis_mm" in inspect.signature(predictor.predict).parameters
         except (TypeError, ValueError):
-            params = {}
-        _TAKES_Z[kind] = "z_axis_mm" in params
+            takes = False
+        _TAKES_Z[kind] = takes
     return _TAKES_Z[kind]
 
 

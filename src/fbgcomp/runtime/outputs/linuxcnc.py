@@ -61,7 +61,7 @@ class LinuxCncOutput:
         try:
             self.family, self.sockaddr = parse_address(config.address)
         except ValueError as exc:
-            raise InputError(str(exc), column="field cnc.address")
+            raise InputError(str(exc), column="field cnc.address") from exc
         if config.heartbeat_s <= 0 or config.stale_s <= 0:
             raise InputError(
                 "cnc.heartbeat_s and cnc.stale_s must be positive", column="field cnc.heartbeat_s"
@@ -72,11 +72,13 @@ class LinuxCncOutput:
         self.sent = 0
         self.send_errors = 0
         self._lock = threading.Lock()
-        self._latest = ((0.0, 0.0, 0.0), FLAG_ZEROING, 0.0)  # correction, flags, sample time
+        # correction µm per axis, flags, sample time
+        self._latest: tuple[tuple[float, ...], int, float] = ((0.0, 0.0, 0.0), FLAG_ZEROING, 0.0)
         self._published_at: float | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._position = None  # (z_mm, monotonic receive time, homed) from the component
+        # (z_mm, monotonic receive time, homed) from the component
+        self._position: tuple[float, float, bool] | None = None
         self.positions = 0
 
     def start(self) -> None:
@@ -110,24 +112,26 @@ class LinuxCncOutput:
             self._send_locked()
 
     def _send_locked(self) -> None:
+        sock = self.sock
+        assert sock is not None, "start() opens the socket before anything is sent"
         corr, flags, sample_s = self._latest
         if self._published_at is not None and time.monotonic() - self._published_at > self.config.stale_s:
             flags |= FLAG_STALE
         self.seq = (self.seq + 1) & 0xFFFFFFFF
         try:
-            self.sock.sendto(encode_packet(self.seq, corr, flags, sample_s), self.sockaddr)
+            sock.sendto(encode_packet(self.seq, corr, flags, sample_s), self.sockaddr)
             self.sent += 1
         except OSError:  # receiver not there yet, buffer full: the next datagram will do
             self.send_errors += 1
 
-    def position(self):
+    def position(self) -> tuple[float, float, bool] | None:
         """``(z_mm, received monotonic s, homed)`` of the newest position datagram, or None."""
         return self._position
 
-    def _receive(self) -> None:
+    def _receive(self, sock: socket.socket) -> None:
         for _ in range(1000):  # bounded: a flood cannot hold the heartbeat
             try:
-                data = self.sock.recv(64)
+                data = sock.recv(64)
             except (BlockingIOError, InterruptedError):
                 return
             except OSError:  # e.g. ICMP refused from an absent receiver
@@ -138,16 +142,19 @@ class LinuxCncOutput:
                 self.positions += 1
 
     def _heartbeat(self) -> None:
+        sock = self.sock
+        if sock is None:  # started by start(), after the socket is open
+            return
         period = self.config.heartbeat_s
         next_beat = time.monotonic() + period
         while not self._stop.is_set():
             wait = max(0.0, next_beat - time.monotonic())
             try:
-                ready, _, _ = select.select([self.sock], [], [], wait)
+                ready, _, _ = select.select([sock], [], [], wait)
             except (OSError, ValueError):
                 return
             if ready:
-                self._receive()
+                self._receive(sock)
             now = time.monotonic()
             if now >= next_beat:
                 with self._lock:
