@@ -39,16 +39,21 @@ addr  words  name                        meaning, scale
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import threading
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from fbgcomp.errors import InputError
 from fbgcomp.runtime.outputs.cnc_form import limit_toward
 from fbgcomp.runtime.pipeline import HEALTH_NAMES, per_axis
+
+if TYPE_CHECKING:
+    from pymodbus.server import ModbusTcpServer
 
 log = logging.getLogger("fbgcomp.runtime.outputs.modbus")
 
@@ -114,7 +119,7 @@ class ModbusOutput:
             self.slope_rate = per_axis(config.slope_rate_um_per_m_per_s)
             self.max_slope = per_axis(config.max_slope_um_per_m)
         except ValueError as exc:
-            raise InputError(str(exc), column="table modbus")
+            raise InputError(str(exc), column="table modbus") from exc
         self._clock = clock
         self._lock = threading.Lock()
         self.sequence = 0
@@ -128,7 +133,7 @@ class ModbusOutput:
         self.writes_refused = 0
         self._thread: threading.Thread | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._server = None
+        self._server: ModbusTcpServer | None = None
 
     # -- the PLC's side: pymodbus server in its own thread
     def start(self, timeout_s: float = 10.0) -> None:
@@ -163,8 +168,8 @@ class ModbusOutput:
         )
 
     async def _serve(self, started: threading.Event, failure: list) -> None:
-        from pymodbus.server import ModbusTcpServer  # the runtime extra (pymodbus): imported only when used
-        from pymodbus.simulator import DataType, SimData, SimDevice
+        from pymodbus.server import ModbusTcpServer  # noqa: PLC0415 - optional extra: pymodbus
+        from pymodbus.simulator import DataType, SimData, SimDevice  # noqa: PLC0415 - optional extra: pymodbus
 
         device = SimDevice(
             id=int(self.config.unit_id),
@@ -172,20 +177,20 @@ class ModbusOutput:
             simdata=[SimData(0, count=N_REGISTERS, values=0, datatype=DataType.REGISTERS)],
         )
         try:
-            self._server = ModbusTcpServer(
+            server = self._server = ModbusTcpServer(
                 device, address=(self.host, self.port), ignore_missing_devices=True
             )
-            await self._server.serve_forever(background=True)
+            await server.serve_forever(background=True)
         except BaseException as exc:  # a busy port: reported by start()
             failure.append(exc)
             started.set()
             return
         started.set()
-        await self._server.serving
+        await server.serving
 
     async def _action(self, function_code, start_address, address, count, registers, set_values):
         """Pymodbus calls this on every access: writes refused, reads get the newest sample."""
-        from pymodbus.constants import ExcCodes  # the runtime extra (pymodbus): imported only when used
+        from pymodbus.constants import ExcCodes  # noqa: PLC0415 - optional extra: pymodbus
 
         if set_values is not None:
             self.writes_refused += 1
@@ -203,10 +208,8 @@ class ModbusOutput:
         loop, server = self._loop, self._server
         if loop is not None and server is not None and loop.is_running():
             fut = asyncio.run_coroutine_threadsafe(server.shutdown(), loop)
-            try:
+            with contextlib.suppress(Exception):  # already closing
                 fut.result(5)
-            except Exception:  # already closing
-                pass
         if self._thread is not None:
             self._thread.join(5)
 

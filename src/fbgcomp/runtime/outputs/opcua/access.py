@@ -13,6 +13,7 @@ import logging
 
 from asyncua import ua
 from asyncua.crypto.permission_rules import SimpleRoleRuleset, User, UserRole
+from asyncua.server.user_managers import UserManager
 
 from fbgcomp.runtime.auth import verify_password
 
@@ -23,8 +24,8 @@ audit = logging.getLogger("fbgcomp.audit")
 # the ruleset records it here and ReloadModel reads it back for the audit log.
 request_user: contextvars.ContextVar[str] = contextvars.ContextVar("opcua_user", default="unknown")
 
-_WRITE = ua.NodeId(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary)
-_CALL = ua.NodeId(ua.ObjectIds.CallRequest_Encoding_DefaultBinary)
+_WRITE = ua.NodeId(ua.Int32(ua.ObjectIds.WriteRequest_Encoding_DefaultBinary))
+_CALL = ua.NodeId(ua.Int32(ua.ObjectIds.CallRequest_Encoding_DefaultBinary))
 
 
 def user_label(user) -> str:
@@ -33,7 +34,7 @@ def user_label(user) -> str:
     return name if name else "anonymous"
 
 
-class FbgUserManager:
+class FbgUserManager(UserManager):
     """Password users get the User role (read, write, call); anonymous only reads.
 
     ``users``: user -> password hash (:func:`fbgcomp.runtime.auth.load_users`). A checked

@@ -8,6 +8,7 @@ passes the server's ``Enabled`` changes and ``ReloadModel`` calls back to the se
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import logging
 import pickle
@@ -16,7 +17,8 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable, Coroutine
+from typing import Any
 
 import numpy as np
 
@@ -49,7 +51,7 @@ class OpcUaServer:
         config: OpcUaConfig,
         sensor_names: list[str],
         model_id: str,
-        on_reload: Callable[[str], Awaitable[str]] | None = None,
+        on_reload: Callable[[str], Coroutine[Any, Any, str]] | None = None,
         main_loop: asyncio.AbstractEventLoop | None = None,
         eu_ranges: dict[str, tuple[float, float]] | None = None,
     ):
@@ -65,9 +67,10 @@ class OpcUaServer:
         self.dropped = 0
         self.cert_path, self.key_path = ensure_certificate(config.state_dir)
         self._sock: socket.socket | None = None
-        self._proc = None
+        self._proc: subprocess.Popen[bytes] | None = None
         self._reader: threading.Thread | None = None
-        self._cnc_state = None  # (monotonic s, offset µm, slope µm/m) of _cnc_form
+        # (monotonic s, offset µm, slope µm/m) of _cnc_form
+        self._cnc_state: tuple[float, np.ndarray, np.ndarray] | None = None
 
     @property
     def model_id(self) -> str:
@@ -86,7 +89,7 @@ class OpcUaServer:
         when no user may write (:func:`~.security.writer_warning`).
         """
         parent, child = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
-        self._proc = subprocess.Popen(
+        proc = self._proc = subprocess.Popen(
             [sys.executable, "-m", WORKER_MODULE, "--worker-fd", str(child.fileno())],
             pass_fds=[child.fileno()],
         )
@@ -106,13 +109,13 @@ class OpcUaServer:
         parent.settimeout(timeout_s)
         try:
             kind, payload = pickle.loads(parent.recv(MESSAGE_BYTES))
-        except (TimeoutError, EOFError, OSError, pickle.UnpicklingError):
-            self._proc.kill()
+        except (TimeoutError, EOFError, OSError, pickle.UnpicklingError) as exc:
+            proc.kill()
             raise InputError(
                 f"OPC UA server at {self.config.endpoint} did not start", column="opcua.endpoint"
-            )
+            ) from exc
         if kind != "ready":
-            self._proc.wait(5)
+            proc.wait(5)
             raise InputError(
                 f"cannot start OPC UA server at {self.config.endpoint}: {payload}", column="opcua.endpoint"
             )
@@ -198,6 +201,7 @@ class OpcUaServer:
 
     def _read_messages(self) -> None:
         sock = self._sock
+        assert sock is not None, "start() opens the socket before this thread"
         while True:
             try:
                 data = sock.recv(MESSAGE_BYTES)
@@ -230,10 +234,8 @@ class OpcUaServer:
     def stop(self, timeout_s: float = 5.0) -> None:
         """Ask the server process to stop, wait for it (kill it after ``timeout_s``), close."""
         if self._sock is not None:
-            try:
+            with contextlib.suppress(OSError):
                 self._sock.send(pickle.dumps(("stop", None)))
-            except OSError:
-                pass
         if self._proc is not None:
             try:
                 self._proc.wait(timeout_s)

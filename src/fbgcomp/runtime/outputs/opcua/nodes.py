@@ -120,7 +120,7 @@ async def build_address_space(
     """
 
     def nid(name):
-        return ua.NodeId(f"FbgComp.{name}", idx)
+        return ua.NodeId(ua.String(f"FbgComp.{name}"), ua.Int16(idx))
 
     def text(key, **fields):
         return ua.LocalizedText(DESCRIPTIONS[key].format(**fields))
@@ -131,13 +131,16 @@ async def build_address_space(
     # our own ObjectType, so a client can recognise the compensator; it stands for
     # OPC 40501-1's ElementMonitoringType (docs/opcua-cnc.md)
     ctype = await server.nodes.base_object_type.add_object_type(
-        ua.NodeId("ThermalCompensationType", idx), ua.QualifiedName("ThermalCompensationType", idx)
+        ua.NodeId(ua.String("ThermalCompensationType"), ua.Int16(idx)),
+        ua.QualifiedName("ThermalCompensationType", idx),
     )
     await ctype.write_attribute(
         ua.AttributeIds.Description, ua.DataValue(ua.Variant(text("ThermalCompensationType")))
     )
     root = await server.nodes.objects.add_object(
-        ua.NodeId("FbgComp", idx), ua.QualifiedName("FbgComp", idx), objecttype=ctype.nodeid
+        ua.NodeId(ua.String("FbgComp"), ua.Int16(idx)),
+        ua.QualifiedName("FbgComp", idx),
+        objecttype=ctype.nodeid,
     )
     await root.write_attribute(ua.AttributeIds.Description, ua.DataValue(ua.Variant(text("FbgComp"))))
     await add_variable(

@@ -27,10 +27,11 @@ def ensure_certificate(
     Generated once with ``cryptography`` and reused; both files are written atomically and the
     key is readable by the owner only.
     """
-    from cryptography import x509  # the runtime extra: imported only when a certificate is needed
-    from cryptography.hazmat.primitives import hashes, serialization
-    from cryptography.hazmat.primitives.asymmetric import rsa
-    from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+    # optional extra (cryptography, of the runtime extra): imported only when a certificate is needed
+    from cryptography import x509  # noqa: PLC0415 - optional extra: cryptography
+    from cryptography.hazmat.primitives import hashes, serialization  # noqa: PLC0415 - optional extra
+    from cryptography.hazmat.primitives.asymmetric import rsa  # noqa: PLC0415 - optional extra
+    from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID  # noqa: PLC0415 - optional extra
 
     folder = Path(state_dir) / "opcua"
     folder.mkdir(parents=True, exist_ok=True)

@@ -59,6 +59,7 @@ class ServerCore:
         self._beat_at = 0.0  # monotonic s of the last Heartbeat
         self._beats = 0
         self._diag_at = 0.0  # monotonic s of the last diagnostics
+        self._tasks: set[asyncio.Future] = set()  # fire-and-forget tasks, held until they end
 
     def send(self, message) -> None:
         """Control messages to the service (Enabled written by a client, reload requests)."""
@@ -82,7 +83,9 @@ class ServerCore:
             elif kind == "model_id":
                 self.model_id = payload
             elif kind == "set_enabled":
-                asyncio.ensure_future(self._set_enabled(bool(payload)))
+                task = asyncio.ensure_future(self._set_enabled(bool(payload)))
+                self._tasks.add(task)
+                task.add_done_callback(self._tasks.discard)
             elif kind == "reload_result":
                 request_id, ok, message = payload
                 fut = self._reloads.pop(request_id, None)
@@ -106,7 +109,7 @@ class ServerCore:
         server.set_security_policy(
             [ua.SecurityPolicyType.Basic256Sha256_SignAndEncrypt], permission_ruleset=make_ruleset()
         )
-        tokens = [ua.UserNameIdentityToken]
+        tokens: list[type] = [ua.UserNameIdentityToken]
         if cfg.allow_anonymous:
             tokens.append(ua.AnonymousIdentityToken)
         server.set_identity_tokens(tokens)
@@ -254,11 +257,13 @@ class ServerCore:
         ):
             for a, v in zip(AXES, values):
                 await put(f"{prefix}{a}_um", float(v), D, always=prefix == "Correction")
-        if s.cnc_offset_um is not None:
-            for a, o, k in zip(AXES, s.cnc_offset_um, s.cnc_slope_um_per_m):
+        offset, slope, z_ref = s.cnc_offset_um, s.cnc_slope_um_per_m, s.cnc_z_ref_mm
+        if offset is not None:
+            assert slope is not None and z_ref is not None, "the bridge sets the CNC form's three together"
+            for a, o, k in zip(AXES, offset, slope):
                 await put(f"Offset{a}_um", float(o), D)
                 await put(f"Slope{a}_um_per_m", float(k), D)
-            await put("ZRef_mm", float(s.cnc_z_ref_mm), D, False)
+            await put("ZRef_mm", float(z_ref), D, False)
         S = ua.VariantType.String
         await put("Health", s.health, S, False)
         await put("Alarm", bool(s.alarm), ua.VariantType.Boolean, False)
@@ -313,7 +318,7 @@ def _worker(fd: int) -> None:
     """Run the server process on the socket-pair end ``fd`` (inherited from the service)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the service decides when to stop
     sock = socket.socket(fileno=fd)
-    kind, init = pickle.loads(sock.recv(MESSAGE_BYTES))
+    _kind, init = pickle.loads(sock.recv(MESSAGE_BYTES))
     _setup_logging(init)
     # start-up failures (busy port...) reach the user as serve's one-line error, not as
     # asyncua tracebacks
@@ -323,7 +328,7 @@ def _worker(fd: int) -> None:
         asyncio.run(core.main())
     except Exception as exc:
         core.send(("error", f"{type(exc).__name__}: {exc}"))
-        raise SystemExit(1)
+        raise SystemExit(1) from exc
 
 
 def main(argv: list[str] | None = None) -> None:
