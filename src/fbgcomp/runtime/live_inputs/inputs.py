@@ -4,6 +4,7 @@ temperature source over them (:class:`LiveTemperatures`)."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 import time
@@ -55,6 +56,9 @@ class LinuxCncPositionReader:
         pass
 
 
+LiveReader = OpcUaReader | ModbusReader | LinuxCncPositionReader
+
+
 # ------------------------------------------------------------------------------ together
 class LiveInputs:
     """The configured readers, the probes and Z they supply, and their freshness."""
@@ -66,9 +70,9 @@ class LiveInputs:
         model_probes: list[str],
         cnc_output=None,
     ):
-        self.readers: list = []
-        self.probe_reader: dict[str, tuple] = {}  # probe -> (reader, stale_s)
-        self.z_reader: tuple | None = None
+        self.readers: list[LiveReader] = []
+        self.probe_reader: dict[str, tuple[LiveReader, float]] = {}  # probe -> (reader, stale_s)
+        self.z_reader: tuple[LiveReader, float] | None = None  # (reader, stale_s)
         self._tasks: list[asyncio.Task] = []
         self._stale: tuple = ()
         opc = temperatures.opcua
@@ -80,16 +84,18 @@ class LiveInputs:
                     "nodes given without an endpoint", column="field temperatures.opcua.endpoint"
                 )
             _positive(opc.stale_s, "temperatures.opcua.stale_s")
-            r = OpcUaReader(opc.endpoint, {k: str(v) for k, v in opc.nodes.items()}, opc)
-            by_endpoint[opc.endpoint] = r
-            self.readers.append(r)
-            self._add_probes(r, opc.nodes, opc.stale_s, model_probes, "temperatures.opcua.nodes")
+            opc_reader = OpcUaReader(opc.endpoint, {k: str(v) for k, v in opc.nodes.items()}, opc)
+            by_endpoint[opc.endpoint] = opc_reader
+            self.readers.append(opc_reader)
+            self._add_probes(opc_reader, opc.nodes, opc.stale_s, model_probes, "temperatures.opcua.nodes")
         if mb.host or mb.registers:
             if not mb.host:
                 raise InputError("registers given without a host", column="field temperatures.modbus.host")
-            r = ModbusReader(mb)
-            self.readers.append(r)
-            self._add_probes(r, mb.registers, mb.stale_s, model_probes, "temperatures.modbus.registers")
+            mb_reader = ModbusReader(mb)
+            self.readers.append(mb_reader)
+            self._add_probes(
+                mb_reader, mb.registers, mb.stale_s, model_probes, "temperatures.modbus.registers"
+            )
         if position.source not in POSITION_SOURCES:
             raise InputError(
                 f"expected linuxcnc or opcua, got {position.source!r}", column="field position.source"
@@ -104,28 +110,30 @@ class LiveInputs:
                     "position over OPC UA needs node (and endpoint, or the one of [temperatures.opcua])",
                     column="field position.node",
                 )
-            r = by_endpoint.get(endpoint)
-            if r is None:
-                r = OpcUaReader(endpoint, {}, OpcUaInputConfig(endpoint=endpoint), where="position")
-                by_endpoint[endpoint] = r
-                self.readers.append(r)
+            z_opc = by_endpoint.get(endpoint)
+            if z_opc is None:
+                z_opc = OpcUaReader(endpoint, {}, OpcUaInputConfig(endpoint=endpoint), where="position")
+                by_endpoint[endpoint] = z_opc
+                self.readers.append(z_opc)
             try:
-                from asyncua import ua  # the runtime extra (asyncua): imported only when used
+                from asyncua import ua  # noqa: PLC0415 - optional extra: asyncua (imported only when used)
 
                 ua.NodeId.from_string(position.node)
-            except Exception:
-                raise InputError(f"not an OPC UA node id: {position.node!r}", column="field position.node")
-            r.add(Z_NAME, position.node, position.scale)
-            self.z_reader = (r, position.stale_s)
+            except Exception as exc:
+                raise InputError(
+                    f"not an OPC UA node id: {position.node!r}", column="field position.node"
+                ) from exc
+            z_opc.add(Z_NAME, position.node, position.scale)
+            self.z_reader = (z_opc, position.stale_s)
         elif position.source == "linuxcnc":
             if cnc_output is None:
                 raise InputError(
                     "position from LinuxCNC needs the LinuxCNC output (--cnc linuxcnc)",
                     column="field position.source",
                 )
-            r = LinuxCncPositionReader(cnc_output)
-            self.readers.append(r)
-            self.z_reader = (r, position.stale_s)
+            z_cnc = LinuxCncPositionReader(cnc_output)
+            self.readers.append(z_cnc)
+            self.z_reader = (z_cnc, position.stale_s)
 
     def _add_probes(self, reader, names, stale_s, model_probes, where) -> None:
         for p in names:
@@ -175,15 +183,11 @@ class LiveInputs:
         for t in self._tasks:
             t.cancel()
         for t in self._tasks:
-            try:
+            with contextlib.suppress(asyncio.CancelledError, Exception):
                 await t
-            except (asyncio.CancelledError, Exception):
-                pass
         for r in self.readers:
-            try:
+            with contextlib.suppress(Exception):
                 await r.close()
-            except Exception:
-                pass
 
     # -- the frame loop's side (cheap: a handful of numbers)
     def _fresh(self, reader, name: str, stale_s: float, now: float) -> float:
@@ -211,10 +215,10 @@ class LiveInputs:
     def check(self, temperatures: dict, z_mm) -> str:
         """The status line for these values (``inputs OK`` or ``stale: T_bulk (opcua), ...``);
         a change of the stale set is logged once."""
-        stale = [p for p, v in temperatures.items() if not math.isfinite(v)]
+        names = [p for p, v in temperatures.items() if not math.isfinite(v)]
         if z_mm is not None and not math.isfinite(z_mm):
-            stale.append(Z_NAME)
-        stale = tuple(stale)
+            names.append(Z_NAME)
+        stale = tuple(names)
         if stale != self._stale:
             if stale:
                 log.warning("live inputs missing or stale: %s", self._describe(stale))
@@ -227,7 +231,11 @@ class LiveInputs:
         now = time.monotonic()
         out = []
         for n in names:
-            r = self.z_reader[0] if n == Z_NAME else self.probe_reader[n][0]
+            if n == Z_NAME:
+                assert self.z_reader is not None, "Z is stale only with a position source"
+                r = self.z_reader[0]
+            else:
+                r = self.probe_reader[n][0]
             lat = r.values[n]
             age = "never" if lat.received_s is None else f"{now - lat.received_s:.1f} s"
             out.append(f"{n} ({r.kind}, {age})")

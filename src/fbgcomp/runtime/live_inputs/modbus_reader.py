@@ -7,9 +7,13 @@ import logging
 import math
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from fbgcomp.errors import InputError
 from fbgcomp.runtime.live_inputs.config import MODBUS_TYPES, Latest, ModbusInputConfig
+
+if TYPE_CHECKING:
+    from pymodbus.client import AsyncModbusTcpClient
 
 log = logging.getLogger("fbgcomp.runtime.inputs")
 
@@ -74,22 +78,21 @@ class ModbusReader:
         self.specs = {name: register_spec(name, spec, where) for name, spec in config.registers.items()}
         self.values = {n: Latest() for n in self.specs}
         self.status = "connecting"
-        self._client = None
+        self._client: AsyncModbusTcpClient | None = None
 
     @staticmethod
     def decode(registers, spec: RegisterSpec) -> float:
         """Raw registers (high word first) -> value * scale + offset."""
-        # the runtime extra (pymodbus): imported only when used
-        from pymodbus.client import AsyncModbusTcpClient
+        from pymodbus.client import AsyncModbusTcpClient  # noqa: PLC0415 - optional extra: pymodbus
 
         dt = getattr(AsyncModbusTcpClient.DATATYPE, MODBUS_TYPES[spec.type][0])
         raw = AsyncModbusTcpClient.convert_from_registers(list(registers), dt, word_order="big")
+        assert isinstance(raw, (int, float)), "MODBUS_TYPES are single numbers"
         return float(raw) * spec.scale + spec.offset
 
     async def run(self) -> None:
         """Poll the registers every ``poll_s`` until cancelled, reconnecting as needed."""
-        # the runtime extra (pymodbus): imported only when used
-        from pymodbus.client import AsyncModbusTcpClient
+        from pymodbus.client import AsyncModbusTcpClient  # noqa: PLC0415 - optional extra: pymodbus
 
         cfg = self.config
         client = AsyncModbusTcpClient(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 import os
@@ -42,16 +43,16 @@ class OpcUaReader:
                 f"expected None or Basic256Sha256, got {self.config.security!r}",
                 column=f"field {where}.security",
             )
-        from asyncua import ua  # the runtime extra (asyncua): imported only when used
+        from asyncua import ua  # noqa: PLC0415 - optional extra: asyncua (imported only when used)
 
         for name, nid in self.nodes.items():
             try:
                 ua.NodeId.from_string(str(nid))
-            except Exception:
+            except Exception as exc:
                 raise InputError(
                     f"not an OPC UA node id: {nid!r} (e.g. ns=2;s=Probes.T_bulk)",
                     column=f"field {where}.nodes.{name}",
-                )
+                ) from exc
 
     def add(self, name: str, node: str, scale: float = 1.0) -> None:
         """Read input ``name`` from node id ``node``, multiplied by ``scale``."""
@@ -60,7 +61,7 @@ class OpcUaReader:
         self.scale[name] = float(scale)
 
     async def _connect(self):
-        from asyncua import Client, ua  # the runtime extra (asyncua): imported only when used
+        from asyncua import Client, ua  # noqa: PLC0415 - optional extra: asyncua (imported only when used)
 
         cfg = self.config
         client = Client(
@@ -148,10 +149,8 @@ class OpcUaReader:
     async def _disconnect(self) -> None:
         client, self._client = self._client, None
         if client is not None:
-            try:
+            with contextlib.suppress(Exception):
                 await asyncio.wait_for(client.disconnect(), 2.0)
-            except Exception:
-                pass
 
     async def close(self) -> None:
         """Unsubscribe and disconnect."""
