@@ -22,7 +22,7 @@ __all__ = ["Machine", "load_machine", "parse_machine", *_TWIN_NAMES]
 
 def __getattr__(name):
     if name in _TWIN_NAMES:
-        from fbgcomp.structure import twin
+        from fbgcomp.structure import twin  # noqa: PLC0415 - optional heavy extra: skfem (the fe extra)
 
         return getattr(twin, name)
     raise AttributeError(f"module 'fbgcomp.structure' has no attribute {name!r}")

@@ -35,6 +35,7 @@ Format and safety
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import io
@@ -46,7 +47,11 @@ from importlib import metadata
 from pathlib import Path
 
 import numpy as np
+import platformdirs
 import scipy.sparse as sp
+
+import fbgcomp
+from fbgcomp.atomic import write_bytes
 
 log = logging.getLogger(__name__)
 
@@ -68,12 +73,11 @@ def cache_dir() -> Path | None:
     value = os.environ.get(ENV)
     if value is not None and value.strip().lower() in OFF_VALUES:
         return None
-    if value and value.strip():
-        root = Path(value.strip()).expanduser()
-    else:
-        import platformdirs
-
-        root = Path(platformdirs.user_cache_dir("fbgcomp"))
+    root = (
+        Path(value.strip()).expanduser()
+        if value and value.strip()
+        else Path(platformdirs.user_cache_dir("fbgcomp"))
+    )
     return root / "twin"
 
 
@@ -81,8 +85,6 @@ def cache_dir() -> Path | None:
 def code_version() -> str:
     """Fbgcomp's version, a hash of the structure package's sources, and the numeric libraries'
     versions: anything that could change a twin's numbers for the same machine."""
-    import fbgcomp
-
     h = hashlib.sha256()
     here = Path(__file__).resolve().parent
     for path in sorted(here.glob("*.py")):
@@ -138,7 +140,8 @@ def _encode(arrays: dict) -> dict[str, np.ndarray]:
 
 
 def _decode(files: dict[str, np.ndarray]) -> dict:
-    out, parts = {}, {}
+    out: dict = {}
+    parts: dict[tuple[str, str], dict[str, np.ndarray]] = {}
     for key, a in files.items():
         name, _, rest = key.partition(".")
         if not rest:
@@ -165,7 +168,7 @@ def dumps(key: str, arrays: dict) -> bytes:
     files = _encode(arrays)
     files["__key__"] = np.frombuffer(key.encode("ascii"), dtype=np.uint8)
     files["__format__"] = np.asarray(FORMAT_VERSION, dtype=np.int64)
-    np.savez(buf, **files)
+    np.savez(buf, allow_pickle=False, **files)
     payload = buf.getvalue()
     return MAGIC + hashlib.sha256(payload).digest() + payload
 
@@ -210,18 +213,14 @@ def load(key: str, required=(), folder: Path | None = None) -> dict | None:
     except Exception as err:  # anything wrong with the file means: rebuild it
         log.warning("twin cache: ignoring %s (%s); rebuilding", path, err)
         return None
-    try:
+    with contextlib.suppress(OSError):
         os.utime(path)  # most recently used: the last to be pruned
-    except OSError:
-        pass
     return arrays
 
 
 def store(key: str, arrays: dict, folder: Path | None = None) -> Path | None:
     """Write the entry of ``key`` atomically; returns its path, or None (cache off or the write
     failed: logged, the caller goes on without the cache)."""
-    from fbgcomp.atomic import write_bytes
-
     folder = cache_dir() if folder is None else folder
     if folder is None:
         return None

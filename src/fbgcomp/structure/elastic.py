@@ -194,6 +194,7 @@ def assemble_elasticity_forms(rm, cfrp: CFRP, steel: Steel):
         Thi = asm(thermal_stress_load(C @ alpha), sb, vb)
         K = Ki if K is None else K + Ki
         Th = Thi if Th is None else Th + Thi
+    assert K is not None and Th is not None  # the ram's CFRP wall always has elements
     return vbasis, sbasis, K.tocsc(), Th.tocsr()
 
 

@@ -26,7 +26,7 @@ def _one_blas_thread():
     """Threaded OpenBLAS dpbtrf spends its time synchronising (4-30x slower on a shared 2-core
     machine): factorise single-threaded when threadpoolctl is there to say so."""
     try:
-        from threadpoolctl import threadpool_limits
+        from threadpoolctl import threadpool_limits  # noqa: PLC0415 - optional: threadpoolctl
 
         return threadpool_limits(1)
     except ImportError:
@@ -97,7 +97,7 @@ class _BlockTridiagonalCholesky:
     def solve(self, b: np.ndarray) -> np.ndarray:
         bounds, L, C = self.bounds, self.L, self.C
         m = len(L)
-        y = []
+        y: list[np.ndarray] = []
         for k in range(m):
             v = b[bounds[k] : bounds[k + 1]]
             if k:  # - L_{k,k-1} y_{k-1} = - A_{k,k-1} L_{k-1}^-T y_{k-1}
@@ -105,7 +105,7 @@ class _BlockTridiagonalCholesky:
                     L[k - 1], y[-1], lower=True, trans="T", check_finite=False
                 )
             y.append(sla.solve_triangular(L[k], v, lower=True, check_finite=False))
-        x = [None] * m
+        x: list[np.ndarray] = [np.empty(0)] * m  # every block is filled below, last to first
         for k in reversed(range(m)):
             v = y[k]
             if k + 1 < m:  # - L_{k+1,k}^T x_{k+1} = - L_k^-1 A_{k+1,k}^T x_{k+1}
@@ -127,7 +127,7 @@ class Factorised:
         A = sp.csr_matrix(A)
         self.shape = A.shape
         n = A.shape[0]
-        self.backend = None
+        self.backend: str  # set by whichever factorisation below is used
         perm = np.arange(n) if order is None else np.asarray(order)
         # A[perm][:, perm] by renumbering the entries (no sparse fancy indexing): entry (i, j)
         # of A goes to (inv[i], inv[j]).
@@ -164,7 +164,7 @@ class Factorised:
             self.backend = f"banded-cholesky(bw={bw})"
             return
         try:
-            from sksparse.cholmod import cholesky
+            from sksparse.cholmod import cholesky  # noqa: PLC0415 - optional heavy extra: sksparse
 
             self._chol = cholesky(A.tocsc())
             self.backend = "cholmod"

@@ -12,6 +12,7 @@ import importlib.resources
 from pathlib import Path
 from typing import Annotated, Literal
 
+import numpy as np
 import yaml
 from pydantic import (
     BaseModel,
@@ -138,9 +139,8 @@ class Carriage(_Strict):
     def _located(self):
         if self.z_mm is None:
             raise ValueError("a carriage needs z_mm or z_range_mm")
-        if self.z_range_mm is not None:
-            if abs(self.z_mm - 0.5 * sum(self.z_range_mm)) > 1e-6:
-                raise ValueError("z_mm must be the centre of z_range_mm (give one of them)")
+        if self.z_range_mm is not None and abs(self.z_mm - 0.5 * sum(self.z_range_mm)) > 1e-6:
+            raise ValueError("z_mm must be the centre of z_range_mm (give one of them)")
         return self
 
 
@@ -231,6 +231,9 @@ class Supports(_Strict):
             if c.z_range_mm is not None:
                 lo, hi = c.z_range_mm
             else:
+                # Carriage._located requires z_mm; Supports._consistent_supports requires
+                # shoe_length_mm for a carriage without z_range_mm
+                assert c.z_mm is not None and self.shoe_length_mm is not None
                 lo, hi = c.z_mm - self.shoe_length_mm / 2, c.z_mm + self.shoe_length_mm / 2
             out.append((lo - z_axis, hi - z_axis))
         return out
@@ -507,8 +510,6 @@ class Machine(_Strict):
 
     def volume_source_box_mm(self, h):
         """(low, high) corners (mm) of a volume heat zone; omitted ranges span the housing."""
-        import numpy as np
-
         hw, hd, H = self.housing.width_mm / 2, self.housing.depth_mm / 2, self.housing.height_mm
         x = h.x_mm or (-hw, hw)
         y = h.y_mm or (-hd, hd)
@@ -519,9 +520,12 @@ class Machine(_Strict):
         """True when the point lies in the ram wall or the housing (boundary included)."""
         r, h = self.ram, self.housing
         ax, ay = abs(x_mm), abs(y_mm)
-        if -h.height_mm - tol_mm <= z_mm <= 0:
-            if ax <= h.width_mm / 2 + tol_mm and ay <= h.depth_mm / 2 + tol_mm:
-                return True
+        if (
+            -h.height_mm - tol_mm <= z_mm <= 0
+            and ax <= h.width_mm / 2 + tol_mm
+            and ay <= h.depth_mm / 2 + tol_mm
+        ):
+            return True
         if 0 <= z_mm <= r.length_mm + tol_mm:
             inside_outer = ax <= r.outer_width_mm / 2 + tol_mm and ay <= r.outer_depth_mm / 2 + tol_mm
             in_cavity = (

@@ -8,6 +8,7 @@ path mean is an exact trapezoid over the grid's z-lines (the field is linear in 
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,7 +36,7 @@ def _segment_lines(breaks_mm, step_mm: float, single_spans_mm=()) -> np.ndarray:
     b = np.asarray(keep)
     lines = [b[:1]]
     single = [(round(lo, 6), round(hi, 6)) for lo, hi in single_spans_mm]
-    for lo, hi in zip(b[:-1], b[1:]):
+    for lo, hi in itertools.pairwise(b):
         n = max(1, int(np.ceil((hi - lo) / step_mm - 1e-9)))
         if (round(lo, 6), round(hi, 6)) in single:
             n = 1
@@ -129,10 +130,11 @@ class RamMesh:
         """Points (n, 3) on an outer face of the ram: ``offset_mm`` across the face, at heights z."""
         z = np.atleast_1d(np.asarray(z_mm, dtype=float))
         sign = 1.0 if face[0] == "+" else -1.0
-        if face[1] == "X":
-            xy = (sign * self.half_width_mm, offset_mm)
-        else:
-            xy = (offset_mm, sign * self.half_depth_mm)
+        xy = (
+            (sign * self.half_width_mm, offset_mm)
+            if face[1] == "X"
+            else (offset_mm, sign * self.half_depth_mm)
+        )
         return np.column_stack([np.full_like(z, xy[0]), np.full_like(z, xy[1]), z])
 
     def path_mean_rows(
@@ -275,6 +277,8 @@ def build_mesh(
     extra_x = list(xy_breaks_mm) + list(x_breaks_mm)
     extra_y = list(xy_breaks_mm) + list(y_breaks_mm)
     if has_housing:
+        if housing_half_width_mm is None or housing_half_depth_mm is None:
+            raise ValueError("a housing (housing_height_mm > 0) needs its half width and half depth")
         extra_x += [-housing_half_width_mm, housing_half_width_mm]
         extra_y += [-housing_half_depth_mm, housing_half_depth_mm]
     xs = _cross_lines(half_width_mm, wall_mm, n_wall, n_span, extra_x)
@@ -342,7 +346,11 @@ def carriage_z_mm(machine: Machine, z_axis_mm: float | None = None) -> list[floa
     """
     s = machine.supports
     z_axis = s.z_axis_mm if z_axis_mm is None else z_axis_mm
-    return [c.z_mm - z_axis for c in s.carriages]
+    out = []
+    for c in s.carriages:
+        assert c.z_mm is not None  # Carriage._located requires z_mm or z_range_mm
+        out.append(c.z_mm - z_axis)
+    return out
 
 
 def station_ranges_mm(machine: Machine, z_axis_mm: float | None = None) -> list[tuple[float, float]]:
@@ -358,7 +366,8 @@ def machine_mesh(
     r = m.resolution if resolution is None else float(resolution)
     s = machine.supports
     breaks = [machine.supports.nut.z_mm]
-    x_breaks, y_breaks = [], []
+    x_breaks: list[float] = []
+    y_breaks: list[float] = []
     stations = s.station_ranges_mm(z_axis_mm)
     single = []
     if s.rails is None:
@@ -380,7 +389,8 @@ def machine_mesh(
             y_breaks += list(h.y_mm or ())
     for sensor in machine.sensors + machine.candidate_sensors:
         breaks += [sensor.z_start_mm, sensor.z_end_mm]
-    breaks += [p.z_mm for p in machine.probes if p.kind == "point"]
+    # a point probe has all three coordinates (Probe._located)
+    breaks += [p.z_mm for p in machine.probes if p.kind == "point" and p.z_mm is not None]
     hw, hd = machine.ram.outer_width_mm / 2, machine.ram.outer_depth_mm / 2
     x_breaks = [v for v in x_breaks if abs(v) < hw]
     y_breaks = [v for v in y_breaks if abs(v) < hd]
@@ -392,8 +402,8 @@ def machine_mesh(
         housing_half_width_mm=machine.housing.width_mm / 2,
         housing_half_depth_mm=machine.housing.depth_mm / 2,
         housing_height_mm=machine.housing.height_mm,
-        n_wall=max(1, int(round(m.wall_elements * r))),
-        n_span=max(2, int(round(m.span_elements * r))),
+        n_wall=max(1, round(m.wall_elements * r)),
+        n_span=max(2, round(m.span_elements * r)),
         dz_mm=m.dz_mm / r,
         z_breaks_mm=breaks,
         # Off-centre sensor paths get their own grid line; support patches snap to the grid.

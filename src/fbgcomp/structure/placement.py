@@ -31,6 +31,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import partial
+from typing import Any
 
 import numpy as np
 
@@ -116,7 +117,7 @@ def placement_design(
     machine, candidates=(), *, twin=None, resolution=None, z_axis_mm=None, wavelength_noise_nm=0.001
 ) -> PlacementDesign:
     """One FE twin with every path (machine sensors + candidates) as a sensor; load-case responses."""
-    from fbgcomp.structure import Twin  # needs scikit-fem, the optional fe extra
+    from fbgcomp.structure import Twin  # noqa: PLC0415 - optional heavy extra: skfem (the fe extra)
 
     pool, m = sensor_pool(machine, candidates)
     if twin is None:
@@ -187,7 +188,7 @@ class PlacementResult:
         lines += [f"  {n}" for n in self.chosen]
         lines.append("predicted worst-case TTP error:")
         rows = [["chosen", *self.per_axis_um, self.objective_um]]
-        if self.default_objective_um is not None:
+        if self.default_objective_um is not None and self.default_per_axis_um is not None:  # set together
             rows.append(
                 [
                     f"default layout ({', '.join(self.default)})",
@@ -215,7 +216,7 @@ def choose(design: PlacementDesign, k: int, *, default=None, dask=None, max_pass
     chosen: list = []
     while len(chosen) < k:
         rest = [j for j in range(n) if j not in chosen]
-        vals = map_over_cluster(score, [chosen + [j] for j in rest], dask=dask)
+        vals = map_over_cluster(score, [[*chosen, j] for j in rest], dask=dask)
         best = int(np.argmin(vals))
         chosen.append(rest[best])
         history.append({"step": "add", "path": design.names[rest[best]], "objective_um": float(vals[best])})
@@ -224,7 +225,7 @@ def choose(design: PlacementDesign, k: int, *, default=None, dask=None, max_pass
         cur, cur_val = list(start), score(list(start))
         for _ in range(max_passes):
             swaps = [(i, j) for i in range(len(cur)) for j in range(n) if j not in cur]
-            subsets = [cur[:i] + [j] + cur[i + 1 :] for i, j in swaps]
+            subsets = [[*cur[:i], j, *cur[i + 1 :]] for i, j in swaps]
             vals = map_over_cluster(score, subsets, dask=dask) if subsets else []
             if not len(vals) or min(vals) >= cur_val - 1e-12:
                 break
@@ -251,6 +252,7 @@ def choose(design: PlacementDesign, k: int, *, default=None, dask=None, max_pass
         cur, val = exchange(s)
         if val < best_val:
             best_set, best_val = cur, val
+    assert best_set is not None  # the objective (a finite error in µm) is below inf for some start
     per_axis = predicted_error_um(design.elongation_um[:, best_set], design.ttp_um, design.noise_um[best_set])
     d_val = d_axes = None
     if default_idx:
@@ -280,7 +282,7 @@ def parse_grid(spec: str) -> dict:
         "zmin": "z_min_mm",
         "zmax": "z_max_mm",
     }
-    out = {}
+    out: dict[str, Any] = {}
     for item in filter(None, (p.strip() for p in spec.split(";"))):
         key, sep, value = item.partition("=")
         key = key.strip()

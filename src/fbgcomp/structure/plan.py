@@ -127,7 +127,7 @@ def plan_design(
     machine, candidates=(), *, twin=None, resolution=None, z_axis_mm=None, wavelength_noise_nm=0.001
 ) -> PlanDesign:
     """One FE twin with the machine's sensors (first, in order) and the candidate paths."""
-    from fbgcomp.structure import Twin  # needs scikit-fem, the optional fe extra
+    from fbgcomp.structure import Twin  # noqa: PLC0415 - optional heavy extra: skfem (the fe extra)
 
     pool, m = sensor_pool(machine, candidates)
     twin = twin or Twin(m, resolution=resolution, z_axis_mm=z_axis_mm)

@@ -72,7 +72,7 @@ def unit_load(v, w):
 
 def input_names(machine) -> tuple[str, ...]:
     """Input channels of the thermal model: the ambient, then one per declared heat source."""
-    return ("ambient_C",) + tuple(h.input_name for h in machine.thermal.sources)
+    return ("ambient_C", *(h.input_name for h in machine.thermal.sources))
 
 
 def _volume_source_column(rm, machine, source, e) -> np.ndarray:
@@ -189,10 +189,10 @@ class ReducedThermal:
     # Arrays that define a built reduction (what the twin cache stores; see from_arrays).
     ARRAYS = ("lam_per_s", "Phi", "PhiB", "OPhi", "PhiTC", "D", "steady_gain")
 
-    def __init__(self, K, C, B, O, n_shifts: int = 12, factor: Factorised | None = None):
+    def __init__(self, K, C, B, O, n_shifts: int = 12, factor: Factorised | None = None):  # noqa: E741 - O: the output matrix of (K, C, B, O)
         self._K = K
-        self._factor = factor or Factorised(K)
-        shifts = np.logspace(-5, 0, int(n_shifts)) if n_shifts > 0 else []
+        self._factor: Factorised | None = factor or Factorised(K)
+        shifts: np.ndarray | list[float] = np.logspace(-5, 0, int(n_shifts)) if n_shifts > 0 else []
         V = rational_krylov_basis(K, C, B, shifts, self.factor)
         Kr = V.T @ (K @ V)
         Cr = V.T @ (C @ V)
@@ -200,7 +200,7 @@ class ReducedThermal:
         Phi = V @ Psi  # C-orthonormal, K-diagonal
         self.lam_per_s = lam
         self.n_modes = len(lam)
-        O = np.asarray(O.todense() if sp.issparse(O) else O)
+        O = np.asarray(O.todense() if sp.issparse(O) else O)  # noqa: E741 - O: the output matrix of (K, C, B, O)
         self.PhiB = Phi.T @ B  # (N, m)
         self.OPhi = O @ Phi  # (p, N)
         self.PhiTC = (C @ Phi).T  # (N, n): initial-state projection
@@ -241,9 +241,9 @@ class ReducedThermal:
             return (self.PhiB @ u0) / self.lam_per_s  # steady state at the first input
         return self.PhiTC @ theta0
 
-    def projected_outputs(self, O):
+    def projected_outputs(self, O):  # noqa: E741 - O: the output matrix of (K, C, B, O)
         """(O Phi, D) for further output rows O (k, n): new functionals without a new reduction."""
-        O = np.asarray(O.todense() if sp.issparse(O) else O)
+        O = np.asarray(O.todense() if sp.issparse(O) else O)  # noqa: E741 - O: the output matrix of (K, C, B, O)
         OPhi = O @ self.Phi
         static = O @ self.factor.solve(self._B)
         return OPhi, static - OPhi @ (self.PhiB / self.lam_per_s[:, None])
@@ -277,7 +277,7 @@ class ReducedThermal:
         return (OPhi @ q).T + u @ D.T
 
 
-def implicit_euler(K, C, B, O, time_s, u, theta0=None, order=None):
+def implicit_euler(K, C, B, O, time_s, u, theta0=None, order=None):  # noqa: E741 - O: the output matrix of (K, C, B, O)
     """Reference: full-order implicit Euler, one solve per step (uniform steps). Outputs (n, p).
 
     ``order``: node numbering for the banded factor (the mesh's own order is already layer-wise).
@@ -285,11 +285,8 @@ def implicit_euler(K, C, B, O, time_s, u, theta0=None, order=None):
     t = np.asarray(time_s, dtype=float)
     h = float(t[1] - t[0])
     fac = Factorised((C / h + K).tocsr(), order=order)
-    if theta0 is None:
-        theta = Factorised(K, order=order).solve(B @ u[0])
-    else:
-        theta = np.asarray(theta0, dtype=float)
-    O = O.toarray() if sp.issparse(O) else np.asarray(O)
+    theta = Factorised(K, order=order).solve(B @ u[0]) if theta0 is None else np.asarray(theta0, dtype=float)
+    O = O.toarray() if sp.issparse(O) else np.asarray(O)  # noqa: E741 - O: the output matrix of (K, C, B, O)
     y = np.empty((len(t), O.shape[0]))
     y[0] = O @ theta
     for k in range(1, len(t)):

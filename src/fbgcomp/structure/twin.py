@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
+from skfem import Basis, ElementHex1, FacetBasis, asm
 
 from fbgcomp.structure import cache as twin_cache
 from fbgcomp.structure import elastic, thermal
@@ -140,8 +141,6 @@ RIGID_PENALTY = 1e7
 
 def _node_weights(vbasis, facets) -> tuple[np.ndarray, np.ndarray]:
     """Nodes of a facet set and their tributary area fractions (sum 1)."""
-    from skfem import ElementHex1, FacetBasis, asm
-
     fb = FacetBasis(vbasis.mesh, ElementHex1(), facets=facets, intorder=elastic.INTORDER)
     area = asm(thermal.unit_load, fb)
     nodes = np.nonzero(area > 0)[0]
@@ -161,6 +160,7 @@ def nodal_support_rows(rm: RamMesh, vbasis, machine: Machine, z_axis_mm: float |
     mean (one spring) or at every node.
     """
     s = machine.supports
+    assert s.rails is not None  # support_rows calls this for rail supports only
     dofs, ks = [], []
     for lo, hi in s.station_ranges_mm(z_axis_mm):
         for rail in s.rails:
@@ -207,15 +207,20 @@ def support_rows(
     s = machine.supports
     if s.rails is not None:
         return nodal_support_rows(rm, vbasis, machine, z_axis_mm, rigid_N_per_mm)
+    # Supports._consistent_supports requires shoe_width_mm when there are no rails
+    assert s.shoe_width_mm is not None
+    if s.shoe_length_mm is None:  # the shoes' patches below are centred on each station's z_mm
+        raise ValueError("shoe_faces supports need supports.shoe_length_mm")
+    half_width_mm, half_length_mm = s.shoe_width_mm / 2, s.shoe_length_mm / 2
     rows = []
     k_shoe = _stiffness_N_per_mm(s.carriage_stiffness_N_per_um, rigid_N_per_mm)
     stations = sorted(carriage_z_mm(machine, z_axis_mm))
     along = 1 if s.shoe_faces[0][1] == "X" else 0  # in-plane lateral component on shoe faces
     for j, zc in enumerate(stations):
-        lo, hi = zc - s.shoe_length_mm / 2, zc + s.shoe_length_mm / 2
+        lo, hi = zc - half_length_mm, zc + half_length_mm
 
-        def patch(face):
-            return rm.face_facets(face, lo, hi, s.shoe_width_mm / 2)
+        def patch(face, lo=lo, hi=hi):
+            return rm.face_facets(face, lo, hi, half_width_mm)
 
         on_y_walls = elastic.facet_mean_rows(vbasis, np.concatenate([patch("+Y"), patch("-Y")]))
         on_x_walls = elastic.facet_mean_rows(vbasis, np.concatenate([patch("+X"), patch("-X")]))
@@ -292,15 +297,16 @@ class Twin:
         self.probe_names = tuple(p.name for p in machine.probes)
         self._point_probes = [i for i, p in enumerate(machine.probes) if p.kind == "point"]
         self._ambient_probes = [i for i, p in enumerate(machine.probes) if p.kind == "ambient"]
-        self._vbasis_built = None
-        self._elastic_built = None
+        self._vbasis_built: Basis | None = None
+        self._elastic_built: Factorised | None = None
 
         t0 = time.perf_counter()
         self.mesh = machine_mesh(machine, resolution, self.z_axis_mm)
         self.times.mesh_s = time.perf_counter() - t0
 
         folder = twin_cache.cache_dir() if cache else None
-        key = twin_cache.twin_key(machine, resolution, n_shifts) if folder is not None else None
+        # the entry's name, needed only when the cache is on
+        key = twin_cache.twin_key(machine, resolution, n_shifts) if folder is not None else ""
         arrays = None
         if folder is not None:
             t0 = time.perf_counter()
@@ -310,6 +316,7 @@ class Twin:
             self.times.cache_load_s = time.perf_counter() - t0
         if arrays is not None:
             self.times.from_cache = True
+            assert folder is not None  # arrays come from the cache only when it is on
             self.times.cache_path = str(folder / f"{key}{twin_cache.SUFFIX}")
             self.times.extra["cold_build_s"] = dict(
                 zip(
@@ -346,9 +353,9 @@ class Twin:
         t0 = time.perf_counter()
         mats = machine.materials
         if machine.mesh.element == "hex8i":
-            vb, sb, K, Th = elastic.assemble_box_elasticity(rm, mats.cfrp, mats.steel)
+            vb, _sb, K, Th = elastic.assemble_box_elasticity(rm, mats.cfrp, mats.steel)
         else:
-            vb, sb, K, Th = elastic.assemble_elasticity(rm, mats.cfrp, mats.steel)
+            vb, _sb, K, Th = elastic.assemble_elasticity(rm, mats.cfrp, mats.steel)
         rigid = RIGID_PENALTY * float(K.diagonal().max())
         rows, k = support_rows(rm, vb, machine, self.z_axis_mm, rigid)
         K = (K + elastic.spring_matrix(rows, k)).tocsr()
@@ -368,7 +375,7 @@ class Twin:
         patch = machine.tool.nose_patch_mm or (np.inf, np.inf)
         nose = rm.end_facets(-machine.housing.height_mm, patch[0] / 2, patch[1] / 2)
         ttp_rows = elastic.rigid_extension_rows(vb, nose, lever_mm=machine.tool.ttp_below_housing_mm)
-        R = UM_PER_MM * np.vstack(el_rows + [ttp_rows])  # (S + 3, n_u)
+        R = UM_PER_MM * np.vstack([*el_rows, ttp_rows])  # (S + 3, n_u)
 
         t0 = time.perf_counter()
         self._elastic_built = Factorised(K, order=layer_order(rm.mesh.p, vb.nodal_dofs), blocked=True)
@@ -385,7 +392,7 @@ class Twin:
             for i in self._point_probes
         ]
         Tprobe = (rm.point_rows(pts) if pts else sp.csr_matrix((0, rm.n_nodes))).tocsr()
-        O = np.vstack([W, Tsens.toarray(), Tprobe.toarray()])
+        O = np.vstack([W, Tsens.toarray(), Tprobe.toarray()])  # noqa: E741 - O: the output matrix of (K, C, B, O)
 
         t0 = time.perf_counter()
         thermal_factor = Factorised(Kt)  # the mesh's node order is already layer-wise
@@ -445,8 +452,6 @@ class Twin:
     def _vbasis(self):
         """The vector (displacement) basis of the mesh."""
         if self._vbasis_built is None:
-            from skfem import Basis
-
             self._vbasis_built = Basis(self.mesh.mesh, elastic.vector_element(), intorder=elastic.INTORDER)
         return self._vbasis_built
 
@@ -500,7 +505,7 @@ class Twin:
     ):
         """Elongation (n, k) µm and mean temperature (n, k) °C of extra paths in a campaign."""
         t, u = self._inputs(time_s, ambient_C, spindle_heat_W, radiant_W_per_m2, heat)
-        O = np.vstack([paths.per_temperature_um_per_K, paths.temperature_rows.toarray()])
+        O = np.vstack([paths.per_temperature_um_per_K, paths.temperature_rows.toarray()])  # noqa: E741 - O: the output matrix of (K, C, B, O)
         y = self.reduced.simulate(
             t, u, self._initial_theta(initial_C), outputs=self.reduced.projected_outputs(O)
         )
