@@ -76,8 +76,8 @@ class CertificateInfo:
 
 
 def _info(cert, path: Path) -> CertificateInfo:
-    from cryptography import x509  # the runtime extra: imported only when used
-    from cryptography.hazmat.primitives import serialization
+    from cryptography import x509  # noqa: PLC0415 - optional extra: cryptography (the runtime extra)
+    from cryptography.hazmat.primitives import serialization  # noqa: PLC0415 - optional extra: cryptography (the runtime extra)
 
     der = cert.public_bytes(serialization.Encoding.DER)
     try:
@@ -97,7 +97,7 @@ def _info(cert, path: Path) -> CertificateInfo:
 
 def parse_certificate(data: bytes):
     """One X.509 certificate from DER or PEM bytes; ValueError with the reason otherwise."""
-    from cryptography import x509  # the runtime extra: imported only when used
+    from cryptography import x509  # noqa: PLC0415 - optional extra: cryptography (the runtime extra)
 
     if b"-----BEGIN" in data:
         blocks = re.findall(rb"-----BEGIN CERTIFICATE-----.+?-----END CERTIFICATE-----", data, re.S)
@@ -120,7 +120,7 @@ def read_certificate(path: str | Path):
         cert = parse_certificate(data)
     except ValueError as exc:
         reason = str(exc) if "expected one" in str(exc) else "not an X.509 certificate (DER or PEM)"
-        raise InputError(reason, file=path)
+        raise InputError(reason, file=path) from exc
     if cert.not_valid_after_utc < dt.datetime.now(dt.UTC):
         raise InputError(f"certificate expired on {cert.not_valid_after_utc:%Y-%m-%d}", file=path)
     return cert
@@ -131,7 +131,7 @@ def add_certificate(path: str | Path, directory: str | Path) -> tuple[Certificat
 
     Returns its description and whether it was new (False: already trusted, nothing written).
     """
-    from cryptography.hazmat.primitives import serialization  # the runtime extra: imported only when used
+    from cryptography.hazmat.primitives import serialization  # noqa: PLC0415 - optional extra: cryptography (the runtime extra)
 
     cert = read_certificate(path)
     directory = Path(directory)
@@ -200,7 +200,7 @@ class TrustListValidator:
             return None
 
     async def _current_store(self):
-        from asyncua.crypto.truststore import TrustStore  # the runtime extra: imported only when used
+        from asyncua.crypto.truststore import TrustStore  # noqa: PLC0415 - optional extra: asyncua (the runtime extra)
 
         signature = self._folder_signature()
         if signature != self._signature:
@@ -225,9 +225,9 @@ class TrustListValidator:
 
     async def __call__(self, cert, app_description) -> None:
         """Accept (return) or refuse (asyncua ``ServiceError``) a session's client certificate."""
-        from asyncua import ua  # the runtime extra: imported only when used
-        from asyncua.common.utils import ServiceError
-        from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions
+        from asyncua import ua  # noqa: PLC0415 - optional extra: asyncua (the runtime extra)
+        from asyncua.common.utils import ServiceError  # noqa: PLC0415 - optional extra: asyncua (the runtime extra)
+        from asyncua.crypto.validator import CertificateValidator, CertificateValidatorOptions  # noqa: PLC0415 - optional extra: asyncua (the runtime extra)
 
         info = _info(cert, Path("client"))
         store = await self._current_store()
@@ -239,7 +239,8 @@ class TrustListValidator:
                 store,
             ).validate(cert, app_description)
         except ServiceError as exc:
-            reason = ua.StatusCode(exc.code).name
+            # asyncua annotates the value as its UInt32 (an int subclass); the int code is what it takes
+            reason = ua.StatusCode(exc.code).name  # type: ignore[arg-type]
             kept = self._keep_rejected(cert, info)
             hint = f"; to trust it: fbgcomp trust add {kept}" if kept else ""
             audit.warning(
@@ -259,7 +260,7 @@ class TrustListValidator:
         )
 
     def _keep_rejected(self, cert, info: CertificateInfo) -> Path | None:
-        from cryptography.hazmat.primitives import serialization  # the runtime extra: imported only when used
+        from cryptography.hazmat.primitives import serialization  # noqa: PLC0415 - optional extra: cryptography (the runtime extra)
 
         if self.rejected is None:
             return None
