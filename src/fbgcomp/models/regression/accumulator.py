@@ -299,6 +299,7 @@ class QRAccumulator(AccumulatedFactor):
             self._check_rows(X_raw, Y_raw, offset)  # names the bad cell; else squares overflowed
             self._gram_ok = False
             return False
+        assert self.scale_ is not None  # update sets it before any rows are factored
         g /= np.outer(self.scale_, self.scale_)  # exact: powers of two
         r = gram_factor(self.R_, g, self.n_features)
         if r is None:
@@ -350,6 +351,7 @@ class QRAccumulator(AccumulatedFactor):
         t = top.shape[0]
         block = np.empty((t + X.shape[0], q), order="F")
         block[:t] = top
+        assert self.scale_ is not None  # update sets it before any rows are factored
         np.divide(X, self.scale_[:p], out=block[t:, :p])
         np.divide(Y, self.scale_[p:], out=block[t:, p:])
         return block
@@ -435,6 +437,7 @@ class QRAccumulator(AccumulatedFactor):
             self._hac_adopt(other, weight)
             return self
         self._merge_hac(other, weight)
+        assert other.scale_ is not None and self.scale_ is not None  # both hold rows
         ratio = root * other.scale_ / self.scale_
         self.R_, self.R_lo_ = dd_qr_r(
             np.vstack([self.R_, other.R_ * ratio]), np.vstack([self.R_lo_, other.R_lo_ * ratio])
@@ -535,14 +538,16 @@ def accumulate_series(acc: QRAccumulator, series, chunk_rows: int = 100_000) -> 
 
     for chunk in chunks():
         if chunk is not None:
-            acc.update(*chunk[:2], weights=chunk[2])
+            X, Y, w = chunk
+            acc.update(X, Y, weights=w)
     if acc.hac_lags_ is not None and acc.n_obs:
         acc.begin_hac()
         for chunk in chunks():
             if chunk is None:
                 acc.end_series()
             else:
-                acc.update_hac(*chunk[:2], weights=chunk[2])
+                X, Y, w = chunk
+                acc.update_hac(X, Y, weights=w)
     return acc
 
 

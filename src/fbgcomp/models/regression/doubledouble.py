@@ -90,14 +90,14 @@ def dd_sqrt(ah: float, al: float) -> tuple[float, float]:
     return _fast_two_sum(x, ((ah - p) - e + al) / (2.0 * x))
 
 
-def dd_sum_rows(h: np.ndarray, l: np.ndarray):
+def dd_sum_rows(h: np.ndarray, lo: np.ndarray):
     """Sum along axis 0 by a pairwise tree of double-double additions."""
     while h.shape[0] > 1:
         if h.shape[0] % 2:
             h = np.concatenate([h, np.zeros_like(h[:1])])
-            l = np.concatenate([l, np.zeros_like(l[:1])])
-        h, l = dd_add(h[0::2], l[0::2], h[1::2], l[1::2])
-    return h[0], l[0]
+            lo = np.concatenate([lo, np.zeros_like(lo[:1])])
+        h, lo = dd_add(h[0::2], lo[0::2], h[1::2], lo[1::2])
+    return h[0], lo[0]
 
 
 def dd_householder(mh: np.ndarray, ml: np.ndarray, ncols: int) -> tuple[np.ndarray, np.ndarray]:

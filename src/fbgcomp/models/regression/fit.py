@@ -113,7 +113,7 @@ class AccumulatedFactor(HACStatistics):
         ``rho^2`` the scaled residual sum of squares.
         """
         m = len(cols)
-        sel = cols + [self.n_features + t]
+        sel = [*cols, self.n_features + t]
         rh, rl = dd_qr_r(self.R_[:, sel], self.R_lo_[:, sel])
         return rh[:m, :m], rl[:m, :m], rh[:m, m], rl[:m, m], float(abs(rh[m, m]))
 
@@ -179,6 +179,7 @@ def ols_from_factor(
             culprits,
         )
     p = acc.n_features
+    assert acc.scale_ is not None  # set by the first rows (n_obs > 0 above)
     sx = acc.scale_[cols]
     sy = float(acc.scale_[p + t])
     # Powers of two: unscaling the double-double solution is exact before the final rounding.

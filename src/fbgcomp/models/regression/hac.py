@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Self
+from typing import NamedTuple, Self
 
 import numpy as np
 
@@ -76,14 +76,14 @@ def _bartlett_sums(w: np.ndarray, first: int, lags: Sequence[int]) -> list[np.nd
     for lag in lags:
         if lag <= _HAC_DIRECT_MAX_LAG:
             acc = np.zeros((n - first, w.shape[1]))
-            for l in range(1, lag + 1):
-                lo = first - l
+            for j in range(1, lag + 1):
+                lo = first - j
                 if lo >= 0:
-                    acc += (lag + 1 - l) * w[lo : n - l]
-                elif n - l > 0:
-                    acc[-lo:] += (lag + 1 - l) * w[: n - l]
+                    acc += (lag + 1 - j) * w[lo : n - j]
+                elif n - j > 0:
+                    acc[-lo:] += (lag + 1 - j) * w[: n - j]
         else:
-            if p_sum is None:
+            if p_sum is None or q_sum is None:  # both are built on the first long lag
                 # P[k] = sum_{j<k} w[j],  Q[k] = sum_{j<k} P[j]:
                 # sum_{l=1..L} (L+1-l) w[i-l] = L P[i] - Q[i] + Q[max(i-L, 0)].
                 p_sum = np.zeros((n + 1, w.shape[1]))
@@ -107,6 +107,17 @@ def andrews_bartlett_lags(rho: float, nobs: int) -> float:
         return 0.0
     alpha = 4.0 * rho * rho / ((1.0 - rho) ** 2 * (1.0 + rho) ** 2)
     return max(0.0, 1.1447 * (alpha * nobs) ** (1.0 / 3.0) - 1.0)
+
+
+class _HACArrays(NamedTuple):
+    """The statistics of an accumulator that keeps them (``hac_lags_`` set), none of them None."""
+
+    lags: list[int]
+    g0: np.ndarray
+    k: np.ndarray
+    ka: np.ndarray
+    tail: np.ndarray
+    pilot: np.ndarray
 
 
 class HACStatistics:
@@ -148,6 +159,22 @@ class HACStatistics:
     n_obs: int
     scale_: np.ndarray | None
     hac_lags_: list[int] | None
+    # all None when hac_lags_ is None, all arrays otherwise (_hac_reset, _hac_load)
+    hac_g0_: np.ndarray | None
+    hac_k_: np.ndarray | None
+    hac_ka_: np.ndarray | None
+    hac_pilot_: np.ndarray | None
+    _hac_tail: np.ndarray | None
+    hac_frozen_: bool
+    hac_n_obs_: int
+
+    def _hac_arrays(self) -> _HACArrays:
+        """The statistics, for code that runs only when they are kept (``hac_lags_`` set)."""
+        lags, g0, k, ka = self.hac_lags_, self.hac_g0_, self.hac_k_, self.hac_ka_
+        tail, pilot = self._hac_tail, self.hac_pilot_
+        assert lags is not None and g0 is not None and k is not None and ka is not None
+        assert tail is not None and pilot is not None
+        return _HACArrays(lags, g0, k, ka, tail, pilot)
 
     def _hac_reset(self) -> None:
         """Empty statistics for ``hac_lags_`` (all None when it is None)."""
@@ -172,44 +199,47 @@ class HACStatistics:
         """Add the lagged products of the scaled rows ``a`` (m, q), targets taken relative to
         the pilot, to the HAC statistics."""
         p, q = self.n_features, self.n_features + self.n_targets
+        s = self._hac_arrays()
         a = a.copy()
-        a[:, p:] -= a[:, :p] @ self.hac_pilot_
-        top = max(self.hac_lags_)
+        a[:, p:] -= a[:, :p] @ s.pilot
+        top = max(s.lags)
+        g0, tail = s.g0, s.tail
         for start in range(0, a.shape[0], _HAC_BLOCK_ROWS):
             block = a[start : start + _HAC_BLOCK_ROWS]
-            ext = np.vstack([self._hac_tail, block])
-            first = self._hac_tail.shape[0]
+            ext = np.vstack([tail, block])
+            first = tail.shape[0]
             u = (ext[:, :p, None] * ext[:, None, :]).reshape(ext.shape[0], p * q)
             w = np.hstack([u, ext])
             u_new = u[first:]
-            self.hac_g0_ += u_new.T @ u_new
-            for i, past in enumerate(_bartlett_sums(w, first, self.hac_lags_)):
-                self.hac_k_[i] += u_new.T @ past[:, : p * q]
-                self.hac_ka_[i] += block.T @ past[:, p * q :]
-            self._hac_tail = ext[-top:].copy()
+            g0 += u_new.T @ u_new  # in place: the arrays are the accumulator's
+            for i, past in enumerate(_bartlett_sums(w, first, s.lags)):
+                s.k[i] += u_new.T @ past[:, : p * q]
+                s.ka[i] += block.T @ past[:, p * q :]
+            tail = self._hac_tail = ext[-top:].copy()
         self.hac_n_obs_ += a.shape[0]
 
     def _hac_move_pilot(self, pilot: np.ndarray) -> None:
         """Re-express the statistics with targets relative to ``pilot`` instead of the current
         one: ``a -> a A`` with ``A = [[I, P_old - P_new], [0, I]]``, so ``u -> u (I (x) A)``."""
         p, q = self.n_features, self.n_features + self.n_targets
-        delta = self.hac_pilot_ - pilot
+        s = self._hac_arrays()
+        delta = s.pilot - pilot
         self.hac_pilot_ = np.array(pilot, dtype=float)
         if not np.any(delta):
             return
         A = np.eye(q)
         A[:p, p:] = delta
-        nl = len(self.hac_lags_)
+        nl = len(s.lags)
 
         def both_sides(m: np.ndarray, count: int) -> np.ndarray:  # (I(x)A)^T m (I(x)A)
             m = m.reshape(count, p, q, p, q) @ A  # right factor, last axis
             m = np.einsum("cimjn,ma->ciajn", m, A, optimize=True)
             return m.reshape(count, p * q, p * q)
 
-        self.hac_g0_ = both_sides(self.hac_g0_, 1)[0]
-        self.hac_k_ = both_sides(self.hac_k_, nl)
-        self.hac_ka_ = A.T @ self.hac_ka_ @ A
-        self._hac_tail = self._hac_tail @ A
+        self.hac_g0_ = both_sides(s.g0, 1)[0]
+        self.hac_k_ = both_sides(s.k, nl)
+        self.hac_ka_ = A.T @ s.ka @ A
+        self._hac_tail = s.tail @ A
 
     def end_series(self) -> Self:
         """Rows added from now on start a new time series (e.g. the next campaign): no lag of
@@ -234,17 +264,21 @@ class HACStatistics:
                 f"({other.hac_lags_} vs {self.hac_lags_})"
             )
         p = self.n_features
+        assert other.scale_ is not None and self.scale_ is not None  # both hold rows (merge)
         ratio = other.scale_ / self.scale_
         r_u = (ratio[:p, None] * ratio[None, :]).reshape(-1)  # u = x (x) a
         f_u = weight**2 * np.outer(r_u, r_u)  # u scales by the weight
         # Bring other's statistics to its pilot expressed in this accumulator's scales, then
         # both to this one's pilot (exact algebra; small rounding when the pilots are close).
-        other_pilot = other.hac_pilot_ * ratio[p:][None, :] / ratio[:p, None]
-        mine = self.hac_pilot_
+        theirs = other._hac_arrays()
+        other_pilot = theirs.pilot * ratio[p:][None, :] / ratio[:p, None]
+        mine = self._hac_arrays().pilot
         self._hac_move_pilot(other_pilot)
-        self.hac_g0_ += other.hac_g0_ * f_u
-        self.hac_k_ += other.hac_k_ * f_u[None]
-        self.hac_ka_ += other.hac_ka_ * (weight * np.outer(ratio, ratio))[None]
+        mine_now = self._hac_arrays()
+        g0, k, ka = mine_now.g0, mine_now.k, mine_now.ka
+        g0 += theirs.g0 * f_u  # in place: the arrays are this accumulator's
+        k += theirs.k * f_u[None]
+        ka += theirs.ka * (weight * np.outer(ratio, ratio))[None]
         self._hac_move_pilot(mine)
         self.hac_n_obs_ += other.hac_n_obs_
         self.end_series()
@@ -255,11 +289,12 @@ class HACStatistics:
         self.hac_lags_ = None if other.hac_lags_ is None else list(other.hac_lags_)
         self._hac_reset()
         if self.hac_lags_ is not None:
+            theirs = other._hac_arrays()
             # a row's weight w scales a_i by sqrt(w), u_i = x_i (x) a_i by w
-            self.hac_g0_ = other.hac_g0_ * weight**2
-            self.hac_k_ = other.hac_k_ * weight**2
-            self.hac_ka_ = other.hac_ka_ * weight
-            self.hac_pilot_ = other.hac_pilot_.copy()
+            self.hac_g0_ = theirs.g0 * weight**2
+            self.hac_k_ = theirs.k * weight**2
+            self.hac_ka_ = theirs.ka * weight
+            self.hac_pilot_ = theirs.pilot.copy()
             self.hac_frozen_ = other.hac_frozen_
             self.hac_n_obs_ = other.hac_n_obs_
 
@@ -267,19 +302,21 @@ class HACStatistics:
         """The statistics as plain JSON-able lists (the ``"hac"`` field of ``to_dict``)."""
         if self.hac_lags_ is None:
             return None
+        s = self._hac_arrays()
         return {
-            "lags": list(self.hac_lags_),
-            "g0": self.hac_g0_.tolist(),
-            "k": self.hac_k_.tolist(),
-            "ka": self.hac_ka_.tolist(),
-            "tail": self._hac_tail.tolist(),
-            "pilot": self.hac_pilot_.tolist(),
+            "lags": list(s.lags),
+            "g0": s.g0.tolist(),
+            "k": s.k.tolist(),
+            "ka": s.ka.tolist(),
+            "tail": s.tail.tolist(),
+            "pilot": s.pilot.tolist(),
             "frozen": bool(self.hac_frozen_),
             "n_obs": int(self.hac_n_obs_),
         }
 
     def _hac_load(self, hac: dict) -> None:
         """Restore the statistics from :meth:`_hac_state` output (bandwidths already set)."""
+        assert self.hac_lags_ is not None  # from_dict sets the bandwidths first
         p, q, nl = self.n_features, self.n_features + self.n_targets, len(self.hac_lags_)
         self.hac_g0_ = field_array(hac, "g0", (p * q, p * q))
         self.hac_k_ = field_array(hac, "k", (nl, p * q, p * q))
@@ -318,6 +355,7 @@ def _choose_lag(acc: HACStatistics, maxlags, rho: float) -> int:
     """Bandwidth: ``maxlags`` (one of the accumulated ones), or for None/"auto" the smallest
     accumulated one at or above Andrews' AR(1) choice for the lag-1 autocorrelation ``rho``."""
     grid = acc.hac_lags_
+    assert grid is not None  # resolve_cov_type let "HAC" through
     if maxlags is None or (isinstance(maxlags, str) and maxlags == "auto"):
         want = andrews_bartlett_lags(rho, acc.n_obs)
         for lag in grid:
@@ -347,20 +385,21 @@ def hac_cov_scaled(
     sample size ``n_eff`` = n / (residual long-run variance / variance) at that bandwidth.
     """
     p, q = acc.n_features, acc.n_features + acc.n_targets
+    s = acc._hac_arrays()
     # Targets are kept relative to the pilot P (a_y = y - x P): e = a_y + x (P - b)
     c = np.zeros(q)
-    c[:p] = acc.hac_pilot_[:, t]
+    c[:p] = s.pilot[:, t]
     c[cols] -= np.asarray(beta_s, dtype=float)
     c[p + t] = 1.0
-    i1 = acc.hac_lags_.index(1)
+    i1 = s.lags.index(1)
     # hac_ka_ at L = 1 holds (1/2) sum a_i a_{i-1}^T
-    rho = 2.0 * float(c @ acc.hac_ka_[i1] @ c) / ssr_s if ssr_s > 0 else 0.0
+    rho = 2.0 * float(c @ s.ka[i1] @ c) / ssr_s if ssr_s > 0 else 0.0
     lag = _choose_lag(acc, maxlags, rho)
-    il = acc.hac_lags_.index(lag)
-    lrv = ssr_s + 2.0 * float(c @ acc.hac_ka_[il] @ c)
+    il = s.lags.index(lag)
+    lrv = ssr_s + 2.0 * float(c @ s.ka[il] @ c)
     n_eff = acc.n_obs * ssr_s / lrv if lrv > 0 else math.nan
-    k = acc.hac_k_[il]
-    meat4 = (acc.hac_g0_ + k + k.T).reshape(p, q, p, q)
+    k = s.k[il]
+    meat4 = (s.g0 + k + k.T).reshape(p, q, p, q)
     sub = meat4[np.ix_(cols, range(q), cols, range(q))]
     omega = np.einsum("imjn,m,n->ij", sub, c, c)
     bread = r_inv @ r_inv.T

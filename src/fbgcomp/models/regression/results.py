@@ -27,7 +27,7 @@ RESULTS_KIND = "fbgcomp.regression.OLSResults"
 
 def _pandas():
     """pandas, imported on first use: named results only."""
-    import pandas  # reason: the runtime imports the models without pandas (~1 s to import)
+    import pandas  # noqa: PLC0415 - start-up: the runtime imports the models without pandas (~1 s)
 
     return pandas
 
@@ -178,7 +178,7 @@ class OLSResults:
                 self.mse_model = self.ess / self.df_model
                 self.fvalue = float(self.mse_model / self.mse_resid)
                 if self._robust_cov is not None:
-                    self.fvalue = self._wald_f()
+                    self.fvalue = self._wald_f(self._robust_cov)
                 self.f_pvalue = float(stats.f.sf(self.fvalue, self.df_model, self.df_resid))
             else:
                 self.mse_model = self.fvalue = self.f_pvalue = math.nan
@@ -230,13 +230,13 @@ class OLSResults:
         """Bayesian information criterion ``-2 llf + log(n) k``."""
         return -2.0 * self.llf + math.log(self.nobs) * (self.df_model + self.k_constant)
 
-    def _wald_f(self) -> float:
+    def _wald_f(self, robust_cov: np.ndarray) -> float:
         """Wald F of "every non-constant coefficient is 0" with the robust covariance."""
         keep = [i for i in range(self._params.size) if i != self.const_index]
         if self.k_constant and self.const_index is None:
             return math.nan
         b = self._params[keep]
-        v = self._robust_cov[np.ix_(keep, keep)]
+        v = robust_cov[np.ix_(keep, keep)]
         try:
             stat = float(b @ np.linalg.solve(v, b))
         except np.linalg.LinAlgError:

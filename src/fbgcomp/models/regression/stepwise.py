@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import cast
 
 import numpy as np
 from scipy import linalg, stats
@@ -93,8 +94,9 @@ def _double_subset(acc: QRAccumulator, cols: list[int], t: int):
 
     Enough for test statistics (the double-double path is kept for reported coefficients)."""
     m = len(cols)
-    sel = cols + [acc.n_features + t]
-    r = np.linalg.qr(acc.R_[:, sel] + acc.R_lo_[:, sel], mode="r")
+    sel = [*cols, acc.n_features + t]
+    # numpy's stubs type every mode as QRResult; mode="r" returns the triangle alone
+    r = cast(np.ndarray, np.linalg.qr(acc.R_[:, sel] + acc.R_lo_[:, sel], mode="r"))
     if r.shape[0] < m + 1:
         r = np.vstack([r, np.zeros((m + 1 - r.shape[0], m + 1))])
     tri = np.triu(r[:m, :m])
@@ -118,6 +120,7 @@ class StepState:
         m = len(model)
         sel = model + others + [p + t]
         self.exact = exact
+        assert acc.scale_ is not None  # stepwise starts only on an accumulator with rows
         sy2 = float(acc.scale_[p + t]) ** 2
         if not exact:
             self._init_double(acc, model, others, sel, sy2)
@@ -215,7 +218,8 @@ class StepState:
         nh, nl = dd_sum_rows(*dd_mul(wh, wl, wh, wl))
         dh, dl = dd_sum_rows(*dd_mul(wh, wl, yh[:, None], yl[:, None]))
         with np.errstate(divide="ignore", invalid="ignore"):
-            eh, el = dd_div(*dd_mul(dh, dl, dh, dl), nh, nl)
+            sh, sl = dd_mul(dh, dl, dh, dl)
+            eh, el = dd_div(sh, sl, nh, nl)
             after_h, _ = dd_add(self._ssr_dd[0], self._ssr_dd[1], -eh, -el)
         out = []
         for i, c in enumerate(self.others):
@@ -237,7 +241,8 @@ class StepState:
         bh, bl = dd_solve_upper(th, tl, zh, zl)
         ih, il = dd_solve_upper(th, tl, np.eye(m), np.zeros((m, m)))
         gh, gl = dd_sum_rows(*dd_mul(ih.T, il.T, ih.T, il.T))  # diag of T^-1 T^-T
-        rh, _ = dd_div(*dd_mul(bh, bl, bh, bl), gh, gl)
+        sh, sl = dd_mul(bh, bl, bh, bl)
+        rh, _ = dd_div(sh, sl, gh, gl)
         return [
             (c, float(rh[i]) * self.sy2, self.ssr + float(rh[i]) * self.sy2) for i, c in enumerate(self.model)
         ]
@@ -388,16 +393,16 @@ def stepwise(
         df_big = acc.n_obs - len(current.model) - 1
         cols, drop, after, ok = current.entries_arrays()
         keep = np.array(
-            [bool(o) and frozenset(model + [int(c)]) not in visited for c, o in zip(cols, ok)], dtype=bool
+            [bool(o) and frozenset([*model, int(c)]) not in visited for c, o in zip(cols, ok)], dtype=bool
         )
         # collinear with the model (no new information), or a loop
         cols, drop, after = cols[keep], drop[keep], after[keep]
         infos = [None] * len(cols)
         if robust:
             f = np.empty(len(cols))
-            for i, c in enumerate(cols):
-                fs, infos[i] = wald(ordered(model + [int(c)]))
-                f[i] = fs[int(c)]
+            for k, c in enumerate(cols):
+                fs, infos[k] = wald(ordered([*model, int(c)]))
+                f[k] = fs[int(c)]
         else:
             f = partial_f(drop, after, df_big)
         i = pick(f, largest=True)
@@ -418,7 +423,7 @@ def stepwise(
             return False
         df_big = acc.n_obs - len(current.model)
         fs, info = wald(current.model) if robust else (None, None)
-        cols, rise, after = current.removals_arrays()
+        cols, rise, _after = current.removals_arrays()
         keep = np.array(
             [
                 int(c) not in forced
@@ -428,10 +433,12 @@ def stepwise(
             dtype=bool,
         )
         cols, rise = cols[keep], rise[keep]
-        if robust:
-            f = np.array([fs[int(c)] for c in cols], dtype=float)
-        else:
-            f = partial_f(rise, current.ssr, df_big)
+        # fs is None exactly when the search is not robust
+        f = (
+            np.array([fs[int(c)] for c in cols], dtype=float)
+            if fs is not None
+            else partial_f(rise, current.ssr, df_big)
+        )
         i = pick(f, largest=False)
         if i is None:
             return False
