@@ -108,7 +108,7 @@ def fe_calibrate(
         The fitted model (sensors from the machine, ready for campaigns and the runtime) and the
         case responses.
     """
-    from fbgcomp.structure import Twin  # the FE twin needs scikit-fem, the optional ``fe`` extra
+    from fbgcomp.structure import Twin  # noqa: PLC0415 - optional extra: scikit-fem (the FE twin)
 
     twin = twin or Twin(machine)
     X, y, cases = fe_design(
@@ -146,7 +146,7 @@ def resolution_report(machine, twin=None, wavelength_noise_nm=0.001):
     case and the part the sensors cannot explain; and the map's singular values, numerical rank,
     condition number over the observable part and the unobservable sensor combinations.
     """
-    from fbgcomp.structure import Twin  # the FE twin needs scikit-fem, the optional ``fe`` extra
+    from fbgcomp.structure import Twin  # noqa: PLC0415 - optional extra: scikit-fem (the FE twin)
 
     twin = twin or Twin(machine)
     cases = load_case_responses(twin)

@@ -476,7 +476,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         names = [s.name for s in machine.sensors]
         if any(s not in names for s in self.sensor_names):
             return None
-        from fbgcomp.structure import Twin  # the FE twin needs scikit-fem, the optional ``fe`` extra
+        from fbgcomp.structure import Twin  # noqa: PLC0415 - optional extra: scikit-fem (the FE twin)
 
         twin = Twin(machine)
         inf = twin.influence
@@ -643,7 +643,10 @@ class PhysicalModel(EstimatorParams, ModelFile):
                 "training": self.training_,
                 "uncertainty": {
                     "level": 0.95,
-                    "method": "thermal error v0 (reference noise) + vs excursion + v1 excursion^2 + v2 lead^2, calibrated to 95 % training coverage, + applied load's GLS and relative error",
+                    "method": (
+                        "thermal error v0 (reference noise) + vs excursion + v1 excursion^2 + v2 lead^2,"
+                        " calibrated to 95 % training coverage, + applied load's GLS and relative error"
+                    ),
                 },
                 "z_axis_mm": None,
             }
@@ -675,7 +678,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         # what loaded must predict finite numbers with every sensor set the runtime may use
         w0 = np.array([s.lambda0_nm for s in m.sensors_])
         t0 = np.full(len(m.probe_names_), 20.0)
-        for exclude in [frozenset()] + m.fallback_sets:
+        for exclude in [frozenset(), *m.fallback_sets]:
             dev, half = PhysicalPredictor(m, exclude).predict(w0[None, :] + 0.01, t0[None, :] + 0.5, w0, t0)
             if not (np.isfinite(dev).all() and np.isfinite(half).all()):
                 raise InputError(

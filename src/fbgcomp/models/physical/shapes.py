@@ -53,7 +53,8 @@ def check_shapes(d: dict, source) -> None:
         "must be a positive number",
     )
     th = d.get("thermal")
-    need(isinstance(th, dict), "thermal", "must be a mapping")
+    if not isinstance(th, dict):
+        raise InputError("must be a mapping", file=source, column="field thermal")
     array(th.get("coef"), "thermal.coef", (nh, 3))
     for key in ("envelope_low", "envelope_high"):
         array(th.get(key), f"thermal.{key}", (nh - 1,))

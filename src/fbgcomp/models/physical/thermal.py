@@ -140,7 +140,7 @@ def twin_thermal_population(
         p not in mprobes and p not in ref_of for p in probe_names
     ):
         return None
-    from fbgcomp.structure import Twin  # the FE twin needs scikit-fem, the optional ``fe`` extra
+    from fbgcomp.structure import Twin  # noqa: PLC0415 - optional extra: scikit-fem (the FE twin)
 
     twin = Twin(generic_heat_machine(machine))
     idx = [twin.sensor_names.index(s.name) for s in sensors]
@@ -161,35 +161,36 @@ def twin_thermal_population(
 
     h_idx = [list(probe_names).index(p) for p in housing_probes]
     fmap = grating_map(sensors, probe_names)
-    rng = np.random.default_rng(seed)
     lam0 = np.array([s.lambda0_nm for s in sensors])
+
+    def features(r, el, dT):
+        """The map's features of the scenario ``r`` from the elongations ``el`` and thermometers ``dT``."""
+        wl = np.column_stack(
+            [
+                wavelength_nm(
+                    el[:, j],
+                    s.lambda0_nm,
+                    s.gauge_length_mm,
+                    r.sensor_temperature_C[:, i],
+                    photoelastic=s.photoelastic,
+                    thermo_optic_per_K=s.thermo_optic_per_K,
+                    fibre_cte_per_K=s.fibre_cte_per_K,
+                )
+                for j, (i, s) in enumerate(zip(idx, sensors))
+            ]
+        )
+        return map_features(fmap.base(wl, dT, lam0, np.zeros(len(sources))), dT, h_idx, r.time_s)[0]
+
+    rng = np.random.default_rng(seed)
     k = len(sensors) + len(probe_names) + len(MAP_LEADS_S)
     gram, xty, noise, n = np.zeros((k, k)), np.zeros((k, 3)), np.zeros((k, k)), 0
     lo, hi = np.full(k, np.inf), np.full(k, -np.inf)
     ylo, yhi = np.full(3, np.inf), np.full(3, -np.inf)
-    for inputs, r in thermal_scenarios(twin, n_scenarios, seed):
+    for _inputs, r in thermal_scenarios(twin, n_scenarios, seed):
         r = r.change_from_start()
         t = r.time_s
         el0 = r.sensor_elongation_um[:, idx]
         el = el0 + rng.normal(0, grating_noise_um, (t.size, len(idx)))
-
-        def features(el, dT):
-            wl = np.column_stack(
-                [
-                    wavelength_nm(
-                        el[:, j],
-                        s.lambda0_nm,
-                        s.gauge_length_mm,
-                        r.sensor_temperature_C[:, i],
-                        photoelastic=s.photoelastic,
-                        thermo_optic_per_K=s.thermo_optic_per_K,
-                        fibre_cte_per_K=s.fibre_cte_per_K,
-                    )
-                    for j, (i, s) in enumerate(zip(idx, sensors))
-                ]
-            )
-            return map_features(fmap.base(wl, dT, lam0, np.zeros(len(sources))), dT, h_idx, t)[0]
-
         # probe noise, and the error of a zero state read from a single slow probe sample
         dT0 = thermometers(r)
         dT = (
@@ -197,8 +198,8 @@ def twin_thermal_population(
             + rng.normal(0, probe_noise_K, (t.size, len(sources)))
             + rng.normal(0, probe_noise_K, len(sources))
         )
-        X = features(el, dT)
-        N = X - features(el0, dT0)
+        X = features(r, el, dT)
+        N = X - features(r, el0, dT0)
         noise += N.T @ N
         Y = r.ttp_um
         gram += X.T @ X
