@@ -36,6 +36,7 @@ Units: geometry mm, elongations and displacements µm, angles rad, forces N, tem
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -47,7 +48,7 @@ _RANK_TOL = 1e-9
 # --------------------------------------------------------------------------- HTM core (eq. 5-10)
 def _stack(entries, shape):
     """(…, 4, 4) array from a 4x4 nested list of broadcastable entries."""
-    out = np.zeros(shape + (4, 4))
+    out = np.zeros((*shape, 4, 4))
     for i in range(4):
         for j in range(4):
             out[..., i, j] = entries[i][j]
@@ -97,7 +98,7 @@ def chain_htm(segment_htms):
 def chain_frames(segment_htms):
     """Cumulative products M_00 (identity), M_01, …, M_0n: shape (…, n_segments + 1, 4, 4)."""
     m = np.asarray(segment_htms, dtype=float)
-    frames = [np.broadcast_to(np.eye(4), m.shape[:-3] + (4, 4))]
+    frames = [np.broadcast_to(np.eye(4), (*m.shape[:-3], 4, 4))]
     for i in range(m.shape[-3]):
         frames.append(frames[-1] @ m[..., i, :, :])
     return np.stack(frames, axis=-3)
@@ -212,7 +213,7 @@ def _identifiable_pinv(A):
     n_par = A.shape[1]
     scale = np.tile(_col_scale(), n_par // 3)
     As = A * scale
-    u, s, vt = np.linalg.svd(As, full_matrices=True)
+    _u, s, vt = np.linalg.svd(As, full_matrices=True)
     tol = _RANK_TOL * (s[0] if s.size else 1.0) * max(As.shape)
     r = int(np.sum(s > tol))
     null = vt[r:].T  # (n_par, n_null)
@@ -341,7 +342,7 @@ class KinematicChain:
         z = np.array(sorted(breaks, reverse=True))
         z = z[np.concatenate([[True], np.abs(np.diff(z)) > 1e-6])]
         self.segments = []
-        for hi, lo in zip(z[:-1], z[1:]):
+        for hi, lo in itertools.pairwise(z):
             mat = "cfrp" if lo >= -1e-9 else ("steel" if lo >= -hh - 1e-9 else "tool")
             self.segments.append(_Segment(float(lo), float(hi), mat))
         self.top_z_mm = float(z[0])
@@ -472,9 +473,11 @@ class KinematicChain:
         self.report = self._report()
 
     def _report(self) -> list:
+        names = self.sensor_names
+        assert names is not None  # __post_init__ fills in the default
         out = []
         for k, g in enumerate(self.segments):
-            bars = [self.sensor_names[i] for i in np.nonzero(self.cover[:, k])[0]]
+            bars = [names[i] for i in np.nonzero(self.cover[:, k])[0]]
             rank = 0
             if bars:
                 A = elongation_design(self.bar_xy_mm, self.cover)
@@ -524,7 +527,7 @@ class KinematicChain:
         p = (
             np.einsum("kps,ns->nkp", self.param_map, dl)
             if dl.shape[1]
-            else np.zeros((dl.shape[0],) + self.param_map.shape[:2])
+            else np.zeros((dl.shape[0], *self.param_map.shape[:2]))
         )
         if housing_dT_K is not None:
             p = p + np.asarray(housing_dT_K, dtype=float).reshape(-1, 1, 1) * self.param_housing[None]

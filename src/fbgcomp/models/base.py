@@ -21,6 +21,7 @@ import inspect
 from datetime import UTC, datetime
 from itertools import combinations
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from pydantic import ValidationError
@@ -277,6 +278,14 @@ class ModelFile:
     Subclasses define ``model_type``, ``to_dict()`` and a ``from_dict`` classmethod, and set
     ``sensors_`` and ``probe_names_`` when fitted.
     """
+
+    model_type: str
+    sensors_: list[SensorSpec]
+    probe_names_: list[str]
+
+    if TYPE_CHECKING:  # defined by every subclass
+
+        def to_dict(self) -> dict: ...
 
     @property
     def sensors(self):

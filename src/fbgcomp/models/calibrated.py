@@ -8,6 +8,8 @@ machine description's sections, :func:`fit_closure_factors`) and otherwise is th
 
 from __future__ import annotations
 
+from typing import Self
+
 import numpy as np
 
 from fbgcomp.kinematics import CLOSURE_FACTORS, KinematicChain
@@ -179,7 +181,7 @@ class CalibratedModel(HybridModel):
         groups = closure_parameter_groups(machine)
         names = list(groups)
         rows_x, rows_y, offset, used, sens = [], [], [], [], {}
-        for c, a, temps, dl, tk, tk0 in cache:
+        for c, a, temps, dl, _tk, _tk0 in cache:
             if a.loads_N is None:
                 continue
             runs = load_plateaus(a.loads_N)
@@ -306,10 +308,11 @@ class CalibratedModel(HybridModel):
         return d
 
     @classmethod
-    def from_dict(cls, d: dict, source="<dict>") -> CalibratedModel:
-        """The model of a model file's dict; its predictors checked."""
+    def from_dict(cls, d: dict, source="<dict>", check=True) -> Self:
+        """The model of a model file's dict (``check=False``: the caller checks the predictors)."""
         m = super().from_dict(d, source, check=False)
         m.calibration_ = dict(d["calibrated"])
         m.prior_sd = m.calibration_.get("prior_sd", CLOSURE_PRIOR_SD)
-        check_predictors(m, source)
+        if check:
+            check_predictors(m, source)
         return m

@@ -9,12 +9,13 @@ worse than that (do-no-harm, :data:`fbgcomp.models.metrics.HARM_TOLERANCE_UM`). 
 ranked per axis by max |error|. Written as CSV (pooled; per campaign), JSON and Markdown,
 each atomically.
 
-Entries: ``physical`` (the default model of ``fbgcomp fit``); ``mra`` with eq11, eq13, eq12 and eq13 stepwise; ``ridge`` and ``pls`` (partial least
-squares) on eq13, both with their complexity (ridge penalty, number of PLS components) chosen by
-blocked cross-validation over contiguous time blocks of the training data (autocorrelated
-samples make random folds optimistic); ``dynamic`` (eq13 + first-order filtered temperatures);
-``kinematic`` (fit-free chain); ``hybrid`` (kinematic + regression, eq13 and dynamic);
-``calibrated`` (hybrid with the closure's compliances fitted on the training load plateaus).
+Entries: ``physical`` (the default model of ``fbgcomp fit``); ``mra`` with eq11, eq13, eq12 and
+eq13 stepwise; ``ridge`` and ``pls`` (partial least squares) on eq13, both with their complexity
+(ridge penalty, number of PLS components) chosen by blocked cross-validation over contiguous time
+blocks of the training data (autocorrelated samples make random folds optimistic); ``dynamic``
+(eq13 + first-order filtered temperatures); ``kinematic`` (fit-free chain); ``hybrid``
+(kinematic + regression, eq13 and dynamic); ``calibrated`` (hybrid with the closure's
+compliances fitted on the training load plateaus).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from __future__ import annotations
 import csv
 import io
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -35,7 +37,7 @@ from fbgcomp.tables import Column, format_number, format_table, text
 from fbgcomp.units import AXES
 
 #: (name, model type, feature set, options)
-ENTRIES = (
+ENTRIES: tuple[tuple[str, str, str, dict[str, Any]], ...] = (
     ("physical", "physical", "-", {}),
     ("mra eq11", "mra", "eq11", {}),
     ("mra eq13", "mra", "eq13", {}),
@@ -64,7 +66,11 @@ def _standardise(X, w):
     return mu, sd
 
 
-def ridge_fit(X, Y, w=None, lambdas=np.logspace(-6, 2, 17)):
+#: the ridge penalties blocked cross-validation chooses from
+RIDGE_LAMBDAS = np.logspace(-6, 2, 17)
+
+
+def ridge_fit(X, Y, w=None, lambdas=RIDGE_LAMBDAS):
     """Weighted ridge on standardised columns (the constant unpenalised), penalty by blocked CV.
 
     ``X`` (n, 1 + p) with the constant first, ``Y`` (n, 3), ``w`` (n,) row weights.
@@ -260,7 +266,7 @@ def compare(train, test, *, machine=None, entries=ENTRIES, progress=None) -> dic
     }
 
     def add_campaign_rows(name, kind, features, per):
-        for n, a in zip(names, refs):
+        for n, _a in zip(names, refs):
             m, plateau = per[n], per[n].get("static_levels")
             for ax in AXES:
                 campaign_rows.append(_campaign_row(n, name, kind, features, ax, m["axes"][ax], plateau))
@@ -288,7 +294,7 @@ def compare(train, test, *, machine=None, entries=ENTRIES, progress=None) -> dic
             progress(name)
         try:
             model = _make(kind, features, options, machine, machine_given).fit(list(train))
-            per, parts = judge(lambda c, a: model.predict_interval(c))
+            per, parts = judge(lambda c, a, model=model: model.predict_interval(c))
         except Exception as exc:  # one failing entry must not hide the others
             failures[name] = f"{type(exc).__name__}: {exc}"
             continue
@@ -374,8 +380,8 @@ def format_campaign_tables(result: dict) -> str:
         cols = [text("model")] + [Column(a, "µm") for a in AXES] + [Column("PI95 cover dx/dy/dz")]
         rows = []
         for name, axes in models.items():
-            cov = [axes[a]["pi95_coverage"] for a in AXES]
-            cov = "-" if any(c is None for c in cov) else "/".join(f"{c:.2f}" for c in cov)
+            covs = [axes[a]["pi95_coverage"] for a in AXES]
+            cov = "-" if any(c is None for c in covs) else "/".join(f"{c:.2f}" for c in covs)
             rows.append([name] + [_cell(axes[a]) for a in AXES] + [cov])
         out.append(format_table(cols, rows, indent="  "))
         if info["has_loads"]:
@@ -554,5 +560,5 @@ def write_comparison(result: dict, csv_path=None, json_path=None, campaign_csv_p
         write_json(
             json_path, {**result, "rows": ranked_rows(result), "campaign_rows": ranked_campaign_rows(result)}
         )
-    for path, text in texts:
-        write_bytes(path, text.encode("utf-8"))
+    for path, body in texts:
+        write_bytes(path, body.encode("utf-8"))

@@ -179,7 +179,7 @@ class DynamicModel(MRAModel):
         """As :meth:`MRAModel.new_accumulator`, with the filtered terms and naive inference."""
         super().new_accumulator(sensors, probe_names)
         self.candidates_ = self._candidates([s.name for s in self.sensors_])
-        names = [CONSTANT] + self.candidates_
+        names = [CONSTANT, *self.candidates_]
         return QRAccumulator(len(names), len(AXES), feature_names=names, target_names=list(AXES))
 
     def campaign_design(self, campaign, aligned):

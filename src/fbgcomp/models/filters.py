@@ -14,7 +14,7 @@ from scipy import signal
 
 def lowpass_name(tau_s: float, base: str) -> str:
     """Name of the feature ``base`` low-passed with time constant ``tau_s`` s (``lp3600s_dT_bulk``)."""
-    return f"lp{int(round(tau_s))}s_{base}"
+    return f"lp{round(tau_s)}s_{base}"
 
 
 def first_order_recursion(x, u, y0, gain=True):
@@ -45,9 +45,9 @@ def first_order_recursion(x, u, y0, gain=True):
 
 def first_order_filter(x, time_s, tau_s, state=None, nominal_dt_s=1.0):
     """First-order low-pass ``tau dy/dt = x - y`` of the columns of x (n, m), exact when each
-    input sample holds over the interval that ends at it; returns (y (n, m), state). ``state`` is ``(y_last (m,), t_last)`` or
-    None (start at the first sample's value). Vectorised (``lfilter``) when samples are evenly
-    spaced; ``time_s`` None means evenly spaced at ``nominal_dt_s``.
+    input sample holds over the interval that ends at it; returns (y (n, m), state). ``state`` is
+    ``(y_last (m,), t_last)`` or None (start at the first sample's value). Vectorised (``lfilter``)
+    when samples are evenly spaced; ``time_s`` None means evenly spaced at ``nominal_dt_s``.
     """
     x = np.atleast_2d(np.asarray(x, dtype=float))
     n = x.shape[0]

@@ -9,6 +9,8 @@ contradict plane sections. :mod:`fbgcomp.models.calibrated` extends it with a fi
 
 from __future__ import annotations
 
+from typing import Self
+
 import numpy as np
 
 from fbgcomp.errors import InputError
@@ -286,7 +288,7 @@ class HybridModel(EstimatorParams, ModelFile):
         return d
 
     @classmethod
-    def from_dict(cls, d: dict, source="<dict>", check=True) -> HybridModel:
+    def from_dict(cls, d: dict, source="<dict>", check=True) -> Self:
         """The model of a model file's dict (``check=False``: the caller checks the predictors)."""
         h = d["hybrid"]
         kin = KinematicModel.from_dict(h["kinematic"], source)

@@ -225,7 +225,7 @@ class KinematicModel(EstimatorParams, ModelFile):
         chain = KinematicChain(self.machine_, closure_factors=self.closure_factors)
         probes = FeatureMap.required_probes(self.sensors_, False, TemperatureRoles())
         if chain.housing_probe:
-            probes = list(dict.fromkeys(probes + [chain.housing_probe]))
+            probes = list(dict.fromkeys([*probes, chain.housing_probe]))
         self.probe_names_ = probes
         self.segment_report_ = chain.report
         self.pi_relative_ = np.full(
@@ -305,6 +305,7 @@ class KinematicModel(EstimatorParams, ModelFile):
     def summary(self) -> str:
         """The chain's segment report, its linearised gains and the interval's model-form error."""
         ch = self.chain()
+        assert ch.sensor_names is not None  # the chain's __post_init__ fills in the default
         J, Jh = ch.jacobian()
         lines = [
             "Kinematic model (paper eq. 4-10, HTM chain; no fitted coefficient)",

@@ -17,6 +17,7 @@ import hashlib
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 from fbgcomp.errors import InputError, read_bounded
 
@@ -138,7 +139,7 @@ def check_model_numbers(d, source="<dict>") -> None:
     at most :data:`MAX_MODEL_DEPTH`, no NaN or infinity anywhere, and outside :data:`STATISTICS` no
     null inside an array and no number beyond :data:`MAX_MODEL_VALUE`. InputError names the
     first offending field (in file order)."""
-    stack = [(d, (), False)]
+    stack: list[tuple[Any, tuple[Any, ...], bool]] = [(d, (), False)]
     while stack:
         node, parts, statistic = stack.pop()
         if len(parts) > MAX_MODEL_DEPTH:
@@ -149,7 +150,7 @@ def check_model_numbers(d, source="<dict>") -> None:
             )
         if isinstance(node, dict):
             stack.extend(
-                (v, parts + (k,), statistic or k in STATISTICS) for k, v in reversed(list(node.items()))
+                (v, (*parts, k), statistic or k in STATISTICS) for k, v in reversed(list(node.items()))
             )
         elif isinstance(node, list):
             if not statistic and any(v is None for v in node):
@@ -157,9 +158,9 @@ def check_model_numbers(d, source="<dict>") -> None:
                 raise InputError(
                     "null where a number is expected (a NaN written out?)",
                     file=source,
-                    column=f"field {_field_text(parts + (i,))}",
+                    column=f"field {_field_text((*parts, i))}",
                 )
-            stack.extend((v, parts + (i,), statistic) for i, v in reversed(list(enumerate(node))))
+            stack.extend((v, (*parts, i), statistic) for i, v in reversed(list(enumerate(node))))
         elif isinstance(node, _NonFinite):
             raise InputError(
                 f"non-finite number {short_text(node.text, 24)}; a model holds finite numbers only",

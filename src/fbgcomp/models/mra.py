@@ -408,7 +408,7 @@ class MRAModel(EstimatorParams, ModelFile):
                     column="field temperature_probes",
                 )
         self.candidates_ = candidate_terms(self.features, [s.name for s in self.sensors_])
-        names = [CONSTANT] + self.candidates_
+        names = [CONSTANT, *self.candidates_]
         return self._new_qr(names)
 
     def design_from_arrays(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C):
@@ -428,7 +428,7 @@ class MRAModel(EstimatorParams, ModelFile):
         self._check_params()
         if getattr(self, "candidates_", None) is None:
             raise ValueError("call new_accumulator(sensors) before fit_factor")
-        if list(acc.feature_names) != [CONSTANT] + list(self.candidates_):
+        if list(acc.feature_names) != [CONSTANT, *self.candidates_]:
             raise ValueError("the accumulator's columns are not this model's terms")
         self.training_ = (
             dict(training) if training is not None else {"campaigns": [], "n_samples": int(acc.n_obs)}
@@ -441,7 +441,7 @@ class MRAModel(EstimatorParams, ModelFile):
         self.sensors_ = None
         self.probe_names_ = []
         self.candidates_ = candidate_terms(self.features, sensor_names)
-        names = [CONSTANT] + self.candidates_
+        names = [CONSTANT, *self.candidates_]
         design = design_matrix(X.to_numpy(dtype=float), base_names, self.candidates_)
         acc = self._new_qr(names)
         y = np.asarray(y, dtype=float).reshape(len(design), len(AXES))
@@ -489,7 +489,7 @@ class MRAModel(EstimatorParams, ModelFile):
             else:
                 axes[a] = AxisFit.from_result(
                     ols_from_factor(
-                        acc, [CONSTANT] + candidates, target=j, cov_type=cov_type, maxlags=maxlags
+                        acc, [CONSTANT, *candidates], target=j, cov_type=cov_type, maxlags=maxlags
                     )
                 )
         return axes
