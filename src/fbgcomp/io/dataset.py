@@ -57,7 +57,7 @@ from fbgcomp.io.campaign import LOAD_COLUMNS, REFERENCE_COLUMNS, CampaignMeta, r
 try:
     import fcntl
 except ImportError:  # not POSIX: the files stay the source of truth (open_dataset)
-    fcntl = None
+    fcntl = None  # type: ignore[assignment]  # mypy cannot type an optional module's None fallback
 
 __all__ = [
     "DATASET_FORMAT",

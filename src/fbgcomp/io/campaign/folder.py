@@ -150,9 +150,10 @@ class Campaign:
         that samples at least three times per reference interval (e.g. a 10 Hz interrogator
         against a 1 Hz interferometer) is first averaged over that interval — a local
         least-squares line centred on each reference time, exact for linear signals — so its
-        noise drops by the square root of the samples averaged instead of aliasing. Loads do not restrict the overlap: they are
-        interpolated inside their own time range and NaN outside it. Zero states are the mean of
-        the first ``zero_window_s`` seconds of each signal on its own clock.
+        noise drops by the square root of the samples averaged instead of aliasing. Loads do not
+        restrict the overlap: they are interpolated inside their own time range and NaN outside
+        it. Zero states are the mean of the first ``zero_window_s`` seconds of each signal on its
+        own clock.
         """
         window = check_window(zero_window_s)
         spans = self._spans()
@@ -238,7 +239,9 @@ class Campaign:
                 thermo_optic_per_K=np.array([s.thermo_optic_per_K for s in with_ref]),
                 fibre_cte_per_K=np.array([s.fibre_cte_per_K for s in with_ref]),
             )
-            out[tuple(s.reference_probe for s in with_ref)] = (self.fbg[TIME_COLUMN].to_numpy(), dT)
+            # a sensor with a reference grating always has its reference probe (SensorSpec)
+            probes = tuple(s.reference_probe for s in with_ref if s.reference_probe is not None)
+            out[probes] = (self.fbg[TIME_COLUMN].to_numpy(), dT)
         return out
 
     # -- inspection --------------------------------------------------------------------------

@@ -72,22 +72,22 @@ class SensorSpec(BaseModel):
     lambda0_nm: _PositiveFloat = Field(description="nominal Bragg wavelength of the grating, nm")
     gauge_length_mm: _PositiveFloat = Field(description="bonded length of the sensor path, mm")
     photoelastic: _FiniteFloat = Field(
-        _DEFAULT_PHOTOELASTIC, ge=0, lt=1, description="effective photo-elastic coefficient p_e"
+        default=_DEFAULT_PHOTOELASTIC, ge=0, lt=1, description="effective photo-elastic coefficient p_e"
     )
     thermo_optic_per_K: _FiniteFloat = Field(
-        _DEFAULT_THERMO_OPTIC_PER_K, description="thermo-optic coefficient xi, 1/K"
+        default=_DEFAULT_THERMO_OPTIC_PER_K, description="thermo-optic coefficient xi, 1/K"
     )
     fibre_cte_per_K: _FiniteFloat = Field(
-        _DEFAULT_FIBRE_CTE_PER_K, description="fibre thermal expansion alpha_f, 1/K"
+        default=_DEFAULT_FIBRE_CTE_PER_K, description="fibre thermal expansion alpha_f, 1/K"
     )
     face: Literal["+X", "-X", "+Y", "-Y", "+Z", "-Z"] | None = None
     z_start_mm: _FiniteFloat | None = None
     z_end_mm: _FiniteFloat | None = None
     temperature_probe: _Name | None = Field(
-        None, description="probe used for temperature compensation; none: uncompensated"
+        default=None, description="probe used for temperature compensation; none: uncompensated"
     )
     reference_lambda0_nm: _PositiveFloat | None = Field(
-        None,
+        default=None,
         description="nominal wavelength of a strain-free reference grating beside the "
         "sensor (fbg.csv column <name>_ref_nm); it compensates the sensor "
         "unless temperature_probe names another probe",

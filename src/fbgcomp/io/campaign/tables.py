@@ -181,12 +181,12 @@ def _locate_bad_cell(file, names: list[str], body: bytes, first_row: int = 1) ->
     except Exception:
         text = None
     if text is not None and text.shape[1] == len(names):
-        suspects = []
+        suspects: list[tuple[int, int]] = []
         for col, name in enumerate(names):
             numbers = pd.to_numeric(text[name], errors="coerce").to_numpy(dtype=np.float64)
             suspects.extend((int(row), col) for row in np.flatnonzero(~np.isfinite(numbers)))
         for row, col in sorted(suspects):
-            problem = _cell_problem(text.iat[row, col])
+            problem = _cell_problem(str(text.iat[row, col]))  # read as text (dtype=str)
             if problem:
                 raise InputError(problem, file=file, row=first_row + row, column=names[col])
     for index, line in enumerate(body.split(b"\n")):

@@ -142,7 +142,9 @@ def import_campaign(mapping_file: str | Path, output: str | Path) -> Campaign:
     meta, meta_file, prefix = _campaign_meta(mapping, mapping_file)
     if "start" in meta and mapping.start is None:
         mapping.start = str(meta["start"])
-    tables = {s.role: _build_table(s, mapping_file.parent, mapping.timezone) for s in mapping.sources}
+    tables: dict[str, _Table] = {
+        s.role: _build_table(s, mapping_file.parent, mapping.timezone) for s in mapping.sources
+    }
 
     relative = [t for t in tables.values() if not t.absolute]
     if relative and len(relative) != len(tables):
@@ -198,13 +200,13 @@ def _point_back(exc: InputError, tables: dict[str, _Table], meta_file: Path, pre
     table = tables.get(role) if role else None
     if table is None:
         return exc
-    column = table.time_column if exc.column == TIME_COLUMN else table.column_of.get(exc.column or "")
+    index = table.time_column if exc.column == TIME_COLUMN else table.column_of.get(exc.column or "")
     message = exc.message if exc.column is None else f"{exc.message} [campaign column {exc.column}]"
     if exc.row is None:
         return InputError(
-            message, file=table.raw.label, column=None if column is None else table.raw.column_label(column)
+            message, file=table.raw.label, column=None if index is None else table.raw.column_label(index)
         )
-    return table.raw.error(message, exc.row - 1, column)
+    return table.raw.error(message, exc.row - 1, index)
 
 
 def describe(campaign: Campaign, mapping: str | Path, output: str | Path) -> str:

@@ -119,30 +119,30 @@ class FormatSpec(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     kind: Literal["csv", "excel"] | None = Field(
-        None, description="csv (any delimited text) or excel (.xlsx); default from the extension"
+        default=None, description="csv (any delimited text) or excel (.xlsx); default from the extension"
     )
     delimiter: str | None = Field(
-        None, description="one character, or 'tab' / 'space'; default ',' (tab for .tsv / .tab)"
+        default=None, description="one character, or 'tab' / 'space'; default ',' (tab for .tsv / .tab)"
     )
     decimal: Literal[".", ","] = "."
     thousands: Literal["", " ", ".", ",", "'", "\u202f"] = Field(
-        "", description="digit-group separator dropped before parsing numbers"
+        default="", description="digit-group separator dropped before parsing numbers"
     )
     encoding: str = "utf-8-sig"
     header_row: Annotated[int, Field(ge=1)] | None = Field(
-        None, description="1-based line (spreadsheet row) holding the column names"
+        default=None, description="1-based line (spreadsheet row) holding the column names"
     )
     header_marker: str | None = Field(
-        None, description="the column names are on the first line whose first cell is this"
+        default=None, description="the column names are on the first line whose first cell is this"
     )
     skip_after_header: Annotated[int, Field(ge=0)] = Field(
-        0, description="lines between the column names and the first data row (e.g. units)"
+        default=0, description="lines between the column names and the first data row (e.g. units)"
     )
     sheet: str | Annotated[int, Field(ge=1)] | None = Field(
-        None, description="spreadsheet: sheet name or 1-based index; default the first"
+        default=None, description="spreadsheet: sheet name or 1-based index; default the first"
     )
     on_empty: Literal["error", "drop_row"] = Field(
-        "error", description="an empty cell in a mapped column: refuse, or drop its row"
+        default="error", description="an empty cell in a mapped column: refuse, or drop its row"
     )
 
     @field_validator("delimiter")
@@ -182,7 +182,7 @@ class HeaderField(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     label: Annotated[str, Field(min_length=1)]
-    format: str | None = Field(None, description="strptime format; default ISO 8601")
+    format: str | None = Field(default=None, description="strptime format; default ISO 8601")
 
 
 class TimeSpec(BaseModel):
@@ -195,14 +195,14 @@ class TimeSpec(BaseModel):
         "(a date column and a time column)"
     )
     kind: Literal["datetime", "elapsed"] = "datetime"
-    format: str | None = Field(None, description="datetime: strptime format; default ISO 8601")
+    format: str | None = Field(default=None, description="datetime: strptime format; default ISO 8601")
     timezone: str | None = Field(
-        None, description="zone of timestamps without a UTC offset (default: the mapping's)"
+        default=None, description="zone of timestamps without a UTC offset (default: the mapping's)"
     )
-    unit: Literal["s", "ms", "us", "min", "h", "d"] = Field("s", description="elapsed: unit")
-    origin: str | None = Field(None, description="elapsed: the date and time of elapsed 0")
+    unit: Literal["s", "ms", "us", "min", "h", "d"] = Field(default="s", description="elapsed: unit")
+    origin: str | None = Field(default=None, description="elapsed: the date and time of elapsed 0")
     origin_from_header: HeaderField | None = Field(
-        None, description="elapsed: read the date and time of elapsed 0 from the file's header"
+        default=None, description="elapsed: read the date and time of elapsed 0 from the file's header"
     )
 
     @field_validator("timezone")
@@ -225,7 +225,7 @@ class ColumnSpec(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     column: _ColumnRef = Field(description="export column name or 1-based position")
-    unit: str | None = Field(None, description="its unit; default the campaign's")
+    unit: str | None = Field(default=None, description="its unit; default the campaign's")
 
 
 class SourceSpec(BaseModel):
@@ -275,8 +275,8 @@ class ImportMapping(BaseModel):
     campaign: dict[str, Any] | Annotated[str, Field(min_length=1)] = Field(
         description="campaign.yaml content without start, or the path of such a YAML file"
     )
-    start: str | None = Field(None, description="campaign start; default the first sample")
-    timezone: str | None = Field(None, description="default zone of timestamps without offset")
+    start: str | None = Field(default=None, description="campaign start; default the first sample")
+    timezone: str | None = Field(default=None, description="default zone of timestamps without offset")
     sources: Annotated[list[SourceSpec], Field(min_length=1)]
 
     @field_validator("timezone")

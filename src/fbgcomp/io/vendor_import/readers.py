@@ -149,18 +149,18 @@ def _read_csv(path: Path, fmt: FormatSpec, wanted) -> RawExport:
                 line = handle.readline(1 << 20)
                 if not line:
                     break
-                cells = _split_line(line.rstrip("\r\n"), delimiter)
+                line_cells = _split_line(line.rstrip("\r\n"), delimiter)
                 is_header = (
                     number == fmt.header_row
                     if fmt.header_row is not None
-                    else bool(cells) and cells[0] == fmt.header_marker
+                    else bool(line_cells) and line_cells[0] == fmt.header_marker
                     if fmt.header_marker is not None
                     else number == 1
                 )
                 if is_header:
-                    header, header_line = cells, number
+                    header, header_line = line_cells, number
                     break
-                preamble.append(cells)
+                preamble.append(line_cells)
     except UnicodeDecodeError as exc:
         raise InputError(
             f"not {fmt.encoding} text ({exc.reason}); set format.encoding (e.g. cp1252, shift_jis)",
@@ -237,23 +237,25 @@ def _read_excel(path: Path, fmt: FormatSpec, wanted) -> RawExport:
             raise InputError(f"no sheet {fmt.sheet!r} (sheets: {', '.join(names)})", file=path)
         label = f"{path}[{sheet}]"
         preamble: list[list[str]] = []
-        header, body, body_rows = None, [], []
-        first_data = None
+        header: list[str] | None = None
+        body: list[tuple] = []
+        body_rows: list[int] = []
+        first_data = 0  # set with the header; no data row is read before it
         for number, values in enumerate(book[sheet].iter_rows(values_only=True), start=1):
             if header is None:
-                cells = ["" if v is None else str(v).strip() for v in values]
+                line_cells = ["" if v is None else str(v).strip() for v in values]
                 is_header = (
                     number == fmt.header_row
                     if fmt.header_row is not None
-                    else bool(cells) and cells[0] == fmt.header_marker
+                    else bool(line_cells) and line_cells[0] == fmt.header_marker
                     if fmt.header_marker is not None
                     else number == 1
                 )
                 if is_header:
-                    header = cells
+                    header = line_cells
                     first_data = number + 1 + fmt.skip_after_header
                 else:
-                    preamble.append(cells)
+                    preamble.append(line_cells)
                     if number >= MAX_PREAMBLE_LINES:
                         break
                 continue

@@ -12,7 +12,7 @@ import numpy as np
 import pandas as pd
 
 from fbgcomp.errors import InputError
-from fbgcomp.io.vendor_import.mapping import UNITS, FormatSpec, TimeSpec, parse_zone
+from fbgcomp.io.vendor_import.mapping import UNITS, FormatSpec, HeaderField, TimeSpec, parse_zone
 from fbgcomp.io.vendor_import.readers import RawExport, is_empty, text_cells
 
 __all__ = ["NS_PER_S", "convert_units", "origin_ns", "parse_numbers", "quote_cell", "source_times"]
@@ -158,8 +158,7 @@ def _parse_datetimes(
     return parsed.dt.tz_convert("UTC").dt.as_unit("ns").astype("int64").to_numpy()
 
 
-def _header_origin(raw: RawExport, spec: TimeSpec, zone_name: str | None) -> int:
-    field = spec.origin_from_header
+def _header_origin(raw: RawExport, field: HeaderField, zone_name: str | None) -> int:
     for cells in raw.preamble:
         if cells and cells[0].strip().strip('"') == field.label:
             if len(cells) < 2 or not cells[1].strip():
@@ -210,7 +209,7 @@ def source_times(
         if spec.origin is not None:
             return ns + origin_ns(spec.origin, None, zone_name, raw.label, "time.origin"), True
         if spec.origin_from_header is not None:
-            return ns + _header_origin(raw, spec, zone_name), True
+            return ns + _header_origin(raw, spec.origin_from_header, zone_name), True
         return ns, False
     parts = [raw.cells[c] for c in time_columns]
     if len(parts) == 1:
