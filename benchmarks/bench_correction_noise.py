@@ -67,7 +67,7 @@ def fbgcomp(*args, **kw) -> subprocess.Popen:
 
 
 def check(p: subprocess.Popen, what: str, timeout_s: float) -> None:
-    out, err = p.communicate(timeout=timeout_s)
+    _out, err = p.communicate(timeout=timeout_s)
     if p.returncode != 0:
         raise SystemExit(f"{what} failed: {err.decode()[-2000:]}")
 
@@ -268,7 +268,7 @@ def step_figures(df, model_path: Path, campaign_dir: Path, min_step_um: float = 
             seen = True
             target, sgn = A + 0.9 * (B - A), np.sign(B - A)
 
-            def first(tt, v):
+            def first(tt, v, ts=ts, te=te, sgn=sgn, target=target):
                 sel = (tt >= ts - 1) & (tt <= te + 50)
                 hit = np.flatnonzero(sgn * (v[sel] - target) >= 0)
                 return float(tt[sel][hit[0]] - te) if hit.size else None
@@ -435,7 +435,10 @@ def main() -> None:
             )
             if not r["steps"]:
                 print("  none: no load change moves the offline prediction by 5 µm or more")
-            fmt = lambda v: "   never" if v is None else f"{v:+8.2f}"
+
+            def fmt(v):
+                return "   never" if v is None else f"{v:+8.2f}"
+
             for s in r["steps"]:
                 if s["axis"] is None:
                     print(

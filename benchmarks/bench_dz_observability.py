@@ -116,10 +116,7 @@ def main(argv=None):
     for label, load in sources.items():
         data = {n: load(n) for n in CAMPAIGNS}
         for train in ("thermal_a", "in-sample"):
-            if train == "in-sample":
-                figs = {n: errors(data, n)[n] for n in CAMPAIGNS}
-            else:
-                figs = errors(data, train)
+            figs = {n: errors(data, n)[n] for n in CAMPAIGNS} if train == "in-sample" else errors(data, train)
             print(
                 f"{label:<24}{train:<12}"
                 + "".join(

@@ -215,7 +215,7 @@ class CoreRun:
             spread = d @ cov
             half = p._t * np.sqrt(p._resid_var + (spread * spread).reshape(rec.size, 3, K).sum(axis=2))
             corr = np.clip(-dev, -limit, limit)
-            np.abs(np.diff(corr, axis=0)) > step
+            _ = np.abs(np.diff(corr, axis=0)) > step  # the slew check's work, timed with the rest
             out.append((dev, half, good.all()))
         rate = self.n_frames / (time.perf_counter() - start)
         if check_against is not None:
@@ -292,8 +292,8 @@ def end_to_end(model_path, campaign, seconds: float, rate_hz=1000.0, opcua_rate_
         url = f"opc.tcp://127.0.0.1:{op}/fbgcomp/"
         cmd = [sys.executable, "-m", "fbgcomp"]
         serve = subprocess.Popen(
-            cmd
-            + [
+            [
+                *cmd,
                 "serve",
                 "--model",
                 str(model_path),
@@ -322,8 +322,8 @@ def end_to_end(model_path, campaign, seconds: float, rate_hz=1000.0, opcua_rate_
         try:
             wait_port(op)
             sim = subprocess.Popen(
-                cmd
-                + [
+                [
+                    *cmd,
                     "sim-interrogator",
                     str(campaign),
                     "--port",

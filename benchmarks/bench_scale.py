@@ -69,7 +69,7 @@ def synthetic_partition(task: dict) -> dict:
     lam0 = np.array([s.lambda0_nm for s in sensors])
     gauge = np.array([s.gauge_length_mm for s in sensors])
     truth = default_coefficients()
-    names = ["const"] + model.candidates_
+    names = ["const", *model.candidates_]
     beta = np.array([[truth[a].get(n, 0.0) for a in ("dx", "dy", "dz")] for n in names])
     probes = model.probe_names_  # T_surf, T_bulk, T_flange (model order)
     t_zero = np.array([30.0, 30.0, 30.0])[: len(probes)]

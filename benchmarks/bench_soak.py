@@ -112,10 +112,10 @@ def soak(seconds: float, seed: int, rate_hz: float, tmp: Path) -> dict:
     )
     py = [sys.executable, "-m", "fbgcomp"]
     (tmp / "serve.toml").write_text("[source]\nbackoff_initial_s = 0.05\nbackoff_max_s = 0.4\n")
-    serve_err = open(tmp / "serve.err", "w")
+    serve_err = open(tmp / "serve.err", "w")  # noqa: SIM115 - closed in the finally below, after serve
     serve = subprocess.Popen(
-        py
-        + [
+        [
+            *py,
             "serve",
             "--config",
             str(tmp / "serve.toml"),
@@ -140,7 +140,8 @@ def soak(seconds: float, seed: int, rate_hz: float, tmp: Path) -> dict:
     rss = []
     try:
         wait_port(op, 60)
-        sim_cmd = py + [
+        sim_cmd = [
+            *py,
             "sim-interrogator",
             str(campaign),
             "--port",

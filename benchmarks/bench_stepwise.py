@@ -79,7 +79,7 @@ def make_data(n_rows: int, seed: int):
         base[:, j] += 0.05 * amp * rng.standard_normal(n_rows)
     terms = BASE + [term_name(p) for p in combinations_with_replacement(BASE, 2)]
     X = design_matrix(base, BASE, terms)
-    names = ["const"] + terms
+    names = ["const", *terms]
     beta = np.array([TRUTH.get(n, 0.0) for n in names])
     y = X @ beta + 0.5 * rng.standard_normal(n_rows)
     return X, y, names
@@ -115,9 +115,9 @@ def _search(n_cand, p_enter, p_remove, df_of, fit):
         best = None
         df_big = df_of(len(model) + 2)
         for c in range(1, n_cand + 1):
-            if c in model or frozenset(model + [c]) in visited:
+            if c in model or frozenset([*model, c]) in visited:
                 continue
-            big = fit([0] + model + [c])
+            big = fit([0, *model, c])
             if big is None:
                 continue
             f, p = partial_f(current[0], big[0], df_big)
@@ -136,7 +136,7 @@ def _search(n_cand, p_enter, p_remove, df_of, fit):
                 rest = [d for d in model if d != c]
                 if frozenset(rest) in visited:
                     continue
-                small = fit([0] + rest)
+                small = fit([0, *rest])
                 f, p = partial_f(small[0], current[0], df_big)
                 if worst is None or f < worst[1]:
                     worst = (c, f, p, small)
@@ -146,7 +146,7 @@ def _search(n_cand, p_enter, p_remove, df_of, fit):
             visited.add(frozenset(model))
             current = worst[3]
             steps += 1
-    return sorted([0] + model), current, steps
+    return sorted([0, *model]), current, steps
 
 
 def gram_stepwise(X, y, names, p_enter, p_remove):
@@ -229,7 +229,7 @@ def bench_size(n_rows, args) -> dict:
         if v
     }
     sel_f, par_f, steps_f, path = out["fbgcomp"]
-    sel_g, par_g, steps_g, fits_g = out["gram"]
+    sel_g, par_g, _steps_g, fits_g = out["gram"]
     print(
         f"  fbgcomp (one pass, {path} data path, then stepwise on the factor): "
         f"median {med['fbgcomp'][0]:.3f} s wall / {med['fbgcomp'][1]:.3f} s CPU of "
