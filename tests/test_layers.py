@@ -66,3 +66,18 @@ def test_no_stage_imports_a_stage_above_it(graph):
 def test_every_package_is_placed(graph):
     for module in graph.modules:
         _stage(module)
+
+
+def test_a_source_file_over_600_lines_says_why_at_its_top():
+    """Issue 14: no source file over 600 lines without a reason written at its top."""
+    from pathlib import Path
+
+    import fbgcomp
+
+    root = Path(fbgcomp.__file__).parent
+    silent = []
+    for path in sorted(root.rglob("*.py")):
+        lines = path.read_text(encoding="utf-8").splitlines()
+        if len(lines) > 600 and not any("600 lines" in line for line in lines[:60]):
+            silent.append(f"{path.relative_to(root)} ({len(lines)} lines)")
+    assert not silent, "over 600 lines with no reason at the top: " + ", ".join(silent)

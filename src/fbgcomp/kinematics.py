@@ -1,6 +1,9 @@
 """The paper's kinematic model (sec. 2.3, eq. 4-10): the ram as a chain of elementary parallel
 manipulators whose "bars" are the FBG sensor paths.
 
+Over 600 lines as one unit: the paper's eq. 4-10 in one place, from the HTM core to the TTP chain,
+so that it reads beside the paper.
+
 Three layers, all pure and vectorised over time samples:
 
 1. **HTM core** (eq. 5-9): :func:`m_a`, :func:`m_b`, :func:`m_c` exactly as the paper writes them,

@@ -1,5 +1,8 @@
 """Live dashboard: an aiohttp server with Server-Sent Events for browsers on the shop-floor network.
 
+Over 600 lines as one unit: every endpoint reads the same published state under one lock; the HTTP
+plumbing is in :mod:`fbgcomp.dashboard.transport`.
+
 Its own thread and event loop, never the compensation loop:
 
 * :meth:`Dashboard.publish` is called by the service for every processed batch. It only stores

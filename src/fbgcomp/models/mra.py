@@ -1,5 +1,8 @@
 """The paper's multiple regression analysis (sec. 3, eq. 11-13, Table 1): :class:`MRAModel`.
 
+Over 600 lines as one unit: the estimator's three fit paths (campaigns, arrays, an accumulated
+factor), its stepwise selection, fallbacks and model file act on the same learned state.
+
 One linear model per TTP axis (dx, dy, dz) on the regressors of :mod:`fbgcomp.models.features`,
 optionally with stepwise selection (ANOVA partial F-tests, or HAC Wald tests). It follows the
 scikit-learn contract (hyper-parameters in ``__init__``, learned state with a trailing

@@ -1,5 +1,8 @@
 """Simulated Hyperion instrument: serves the Hyperion protocol on loopback from recorded signals.
 
+Over 600 lines as one unit: the protocol server, the signal interpolation and the fault injection
+share the streaming loop's state.
+
 The signal table (a campaign's ``fbg.csv``, later the digital twin) is interpolated in time at
 the configured frame rate; sensors are laid out over channels in order. Faults can be injected
 at given times (seconds since the simulator started streaming)::

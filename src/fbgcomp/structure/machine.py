@@ -1,5 +1,8 @@
 """Machine description: the CFRP ram, its housing, materials, supports, FBG paths and probes.
 
+Over 600 lines as one unit: the pydantic schema of a machine description, whose validators check the
+parts against each other.
+
 Read from YAML (``load_machine``) and validated with pydantic v2; every problem is raised as
 :class:`fbgcomp.errors.InputError` naming the file and the field (``field sensors[2].lambda0_nm``).
 Geometry follows the paper's prototype (sections 2.3-2.4): ram axis along Z, z = 0 at the spindle

@@ -1,5 +1,8 @@
 """The FE digital twin of the ram: static tool-tip loads and thermal campaigns as linear operators.
 
+Over 600 lines as one unit: the static, thermal and reduced operators share the mesh, the
+factorisations and the output functionals.
+
 Everything the virtual test bench reads is a linear functional of the displacement u or of the
 temperature rise theta = T - T_ref: FBG path elongations (u_z(end) - u_z(start), µm, the host's
 total elongation, mechanical + thermal expansion, paper eq. 4), path mean temperatures (°C),

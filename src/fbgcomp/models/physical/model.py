@@ -1,5 +1,9 @@
 """The physical model type (``model_type`` "physical", the default of ``fbgcomp fit``): :class:`PhysicalModel`.
 
+Over 600 lines as one unit: the fits of the default model's parts (load signature, thermal map,
+housing calibration, drift allowance, interval) share one set of training arrays and end in one
+model file.
+
 Fitting (load signature and compliance, the thermal part, the twin map's housing calibration,
 the load tracker's drift allowance and the interval), the runtime contract and the model file.
 The design is described in :mod:`fbgcomp.models.physical`.

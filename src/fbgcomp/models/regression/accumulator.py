@@ -2,6 +2,9 @@
 needs), :func:`accumulate_series` to fill one from series in memory, and :func:`ols`, the
 one-call fit of data in memory. The mathematics and the precision rules are in the notes of
 :mod:`fbgcomp.models.regression`.
+
+Over 600 lines as one unit: the factor's update, merge, weighting and serialisation act on the same
+arrays.
 """
 
 from __future__ import annotations
