@@ -1,14 +1,111 @@
-import atexit
+"""Session-wide test set-up: the twin cache folder of the session, the shared state the tests
+build once (session fixtures, never module-level caches), and the ``slow`` marker of the tests
+that take longer than a fast check should (``scripts/test -m "not slow"`` leaves them out)."""
+
 import os
 import shutil
 import sys
 import tempfile
 
+import pytest
+
 sys.path.insert(0, os.path.dirname(__file__))
 
-# The twin cache (fbgcomp.structure.cache) of the test session: a fresh folder, removed at exit,
-# so tests never read nor write the user's cache (~/.cache/fbgcomp) and start cold. Subprocesses
-# (CLI tests) inherit it.
-_TWIN_CACHE_DIR = tempfile.mkdtemp(prefix="fbgcomp-test-cache-")
-os.environ["FBGCOMP_CACHE_DIR"] = _TWIN_CACHE_DIR
-atexit.register(shutil.rmtree, _TWIN_CACHE_DIR, ignore_errors=True)
+
+@pytest.fixture(scope="session", autouse=True)
+def twin_cache_dir():
+    """The twin cache (fbgcomp.structure.cache) of the test session: a fresh folder, removed at
+    the end, so tests never read nor write the user's cache (~/.cache/fbgcomp) and start cold.
+    Subprocesses (CLI tests) inherit it."""
+    folder = tempfile.mkdtemp(prefix="fbgcomp-test-cache-")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("FBGCOMP_CACHE_DIR", folder)
+        yield folder
+    shutil.rmtree(folder, ignore_errors=True)
+
+
+@pytest.fixture(scope="session")
+def runtime_model_and_campaign(tmp_path_factory):
+    """(model.json, campaign folder) of the runtime tests, built once per session
+    (test_runtime_support.model_and_campaign)."""
+    from test_runtime_support import model_and_campaign
+
+    return model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+
+
+# Slow tests of the files that do not mark them with @pytest.mark.slow themselves: a whole file,
+# or a test with all its parametrisations. The seconds: setup + call, all cases, as measured
+# per file (pytest --durations) on the shared 2-core machine under load, November 2026.
+SLOW = {
+    # whole files: subprocesses, servers, fits on long campaigns; few or no fast tests
+    "tests/test_compare.py": 189,
+    "tests/test_dataset.py": 23,
+    "tests/test_distributed.py": 74,
+    "tests/test_import.py": 48,
+    "tests/test_models.py": 154,
+    "tests/test_predictor_compiled.py": 2,
+    "tests/test_runtime_e2e.py": 15,
+    "tests/test_runtime_envelope.py": 9,
+    "tests/test_runtime_fastpath.py": 7,
+    "tests/test_runtime_live_inputs.py": 76,
+    "tests/test_runtime_log.py": 15,
+    "tests/test_runtime_modbus.py": 25,
+    "tests/test_runtime_modehop.py": 57,
+    "tests/test_runtime_opcua.py": 47,
+    "tests/test_runtime_opcua_cnc_form.py": 29,
+    "tests/test_runtime_output.py": 16,
+    "tests/test_runtime_refgratings.py": 24,
+    "tests/test_runtime_trust.py": 10,
+    # single tests of files that are otherwise fast
+    "tests/test_campaign.py::test_a_link_to_another_file_never_has_its_content_echoed": 8.7,
+    "tests/test_campaign.py::test_a_million_column_header_is_refused_in_seconds_by_inspect_and_fit": 7.3,
+    "tests/test_campaign.py::test_arbitrary_bytes_in_fbg_csv_give_a_campaign_or_an_input_error": 3.9,
+    "tests/test_campaign.py::test_parser_survives_garbage_in_a_cell_or_header": 2.7,
+    "tests/test_campaign.py::test_reader_survives_arbitrary_file_contents": 1.6,
+    "tests/test_campaign.py::test_streamed_blocks_read_exactly_what_a_whole_read_does": 7.7,
+    "tests/test_campaign.py::test_the_column_cap_is_documented_and_exact": 1.0,
+    "tests/test_campaign.py::test_write_read_round_trip": 5.7,
+    # the first two: every user of the physical model the module builds once (59 s)
+    "tests/test_model_boundary.py::test_a_physical_model_whose_shapes_disagree_is_refused_on_loading": 60.7,
+    "tests/test_model_boundary.py::test_any_mutation_of_a_physical_model_loads_or_is_an_input_error": 4.0,
+    "tests/test_model_boundary.py::test_any_mutation_of_a_regression_model_loads_or_is_an_input_error": 7.4,
+    "tests/test_model_boundary.py::test_any_mutation_of_a_kinematic_model_loads_or_is_an_input_error": 1.3,
+    "tests/test_model_types.py::test_calibrated_closure_recovers_unseen_x_loads_from_y_loads": 64.9,
+    "tests/test_model_types.py::test_calibrated_factors_are_near_one_where_the_beam_closure_holds": 13.1,
+    "tests/test_model_types.py::test_calibrated_without_loads_keeps_the_nominal_closure": 24.8,
+    "tests/test_model_types.py::test_cli_compare_writes_ranked_tables": 13.4,
+    "tests/test_model_types.py::test_cli_fit_model_types_and_validate_prints_coverage": 40.7,
+    "tests/test_model_types.py::test_hybrid_keeps_the_physics_where_regression_cannot_extrapolate": 1.9,
+    "tests/test_model_types.py::test_kinematic_model_needs_no_campaign_and_follows_z": 6.0,
+    "tests/test_model_types.py::test_v1_model_file_is_migrated": 1.1,
+    "tests/test_physical.py::test_a_force_the_training_never_applied_is_read_over_the_trained_range": 20.8,
+    # with these three, every user of the twin-fitted model of the module is slow (12-20 s to fit)
+    "tests/test_physical.py::test_default_beats_the_simplest_physical_model_on_dz": 0.5,
+    "tests/test_physical.py::test_interval_is_the_interferometers_at_rest_and_grows_with_the_thermal_state": 0.9,
+    "tests/test_physical.py::test_a_grating_that_jumps_alone_is_not_read_as_a_load": 0.0,
+    "tests/test_physical.py::test_a_lost_grating_keeps_the_load_part": 1.1,
+    "tests/test_physical.py::test_calibrated_map_streams_and_round_trips": 1.5,
+    "tests/test_physical.py::test_model_file_round_trip_and_runtime_predictor": 1.5,
+    "tests/test_physical.py::test_static_load_is_read_through_the_load_signature": 1.3,
+    "tests/test_physical.py::test_the_served_correction_does_not_depend_on_frame_rate_or_batching": 34.4,
+    "tests/test_physical.py::test_the_vectorised_steady_stretches_equal_the_per_frame_recursion": 51.9,
+    "tests/test_physical.py::test_twin_learned_thermal_map_meets_the_lateral_targets": 20.3,
+    "tests/test_runtime_hyperion.py::test_temporary_faults_end_and_garbage_makes_the_source_reconnect": 1.0,
+    "tests/test_runtime_pipeline.py::test_model_reload_keeps_the_re_admission_check": 1.8,
+}
+
+
+def pytest_collection_modifyitems(config, items):
+    used = set()
+    for item in items:
+        path, _, name = item.nodeid.partition("::")
+        for key in (path, f"{path}::{name.split('[', 1)[0]}"):
+            if key in SLOW:
+                item.add_marker(pytest.mark.slow)
+                used.add(key)
+    # a renamed test would silently join the fast subset: say so
+    collected = {item.nodeid.partition("::")[0] for item in items}
+    stale = [k for k in SLOW if k not in used and k.partition("::")[0] in collected]
+    if stale:
+        config.issue_config_time_warning(
+            pytest.PytestConfigWarning(f"tests/conftest.py SLOW names no collected test: {stale}"), 2)

@@ -39,6 +39,7 @@ def _rate(frame):
     return float(np.median(np.diff(frame["time_s"])))
 
 
+@pytest.mark.slow
 def test_static_campaign_is_valid_with_independent_clocks(static_y):
     c, truth = static_y
     assert c.meta.kind == "static" and c.meta.name == "static-y"
@@ -55,6 +56,7 @@ def test_static_campaign_is_valid_with_independent_clocks(static_y):
     assert np.abs(truth["ttp_um"][:, 1]).max() > 100 * np.abs(truth["ttp_um"][:, [0, 2]]).max()
 
 
+@pytest.mark.slow
 def test_wavelengths_follow_the_bonded_fbg_formula_with_1pm_noise(machine, twin):
     sc = load_scenario("static-y")
     truth = true_response(twin, sc, seed=1)
@@ -73,6 +75,7 @@ def test_wavelengths_follow_the_bonded_fbg_formula_with_1pm_noise(machine, twin)
     assert np.all(np.abs(lam_init - lam0) < 0.31) and np.all(np.abs(lam_init - lam0) > 1e-4)
 
 
+@pytest.mark.slow
 def test_thermal_bench_is_honest(machine, twin):
     """Sensor temperature comes from the FE field, probes have offsets and are quantised."""
     sc = load_scenario("thermal-36h")
@@ -89,6 +92,7 @@ def test_thermal_bench_is_honest(machine, twin):
     assert c.aligned().reference_um.shape[1] == 3
 
 
+@pytest.mark.slow
 def test_same_seed_same_campaign_other_seed_other_noise(machine, twin):
     sc = load_scenario("static-y")
     a, _ = simulate(machine, sc, seed=5, twin=twin)
@@ -111,6 +115,7 @@ def test_scenario_errors_name_the_field(tmp_path):
         load_scenario(tmp_path / "missing.yaml")
 
 
+@pytest.mark.slow
 def test_fe_calibrated_model_and_resolution(machine, twin, static_y, tmp_path):
     model, cases = fe_calibrate(machine, twin, features="eq13")
     path = model.save(tmp_path / "fe.json")
@@ -132,6 +137,7 @@ def test_fe_calibrated_model_and_resolution(machine, twin, static_y, tmp_path):
     assert rep["axes"]["dz"]["resolution_um"] < rep["axes"]["dy"]["resolution_um"]
 
 
+@pytest.mark.slow
 def test_demo_runs_end_to_end(tmp_path):
     out = tmp_path / "demo"
     r = subprocess.run([sys.executable, "-m", "fbgcomp", "demo", "--quick", "--mesh-resolution",
@@ -154,6 +160,7 @@ def test_demo_runs_end_to_end(tmp_path):
         read_campaign(out / "campaigns" / name)
 
 
+@pytest.mark.slow
 def test_the_scenario_example_in_the_docs_runs(machine, twin):
     """docs/bench.md shows how to write a scenario: that example must validate and simulate."""
     import re

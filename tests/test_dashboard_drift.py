@@ -24,6 +24,9 @@ SPAN_S = 36 * HOUR
 SENSORS = ["S1", "S2", "S3"]
 PROBES = ["T_bulk", "T_amb"]
 
+# the module fixture writes a 36 h run log through the real RunLog (10-15 s under load)
+pytestmark = pytest.mark.slow
+
 
 def _scenario(t_rel):
     """Per-frame logged values of the 36 h scenario (t_rel: s since the start)."""

@@ -92,6 +92,7 @@ def isotropic_twin():
     return iso, Twin(iso, resolution=COARSE)
 
 
+@pytest.mark.slow
 def test_pure_bending_on_the_twin_is_recovered_within_5_percent(isotropic_twin):
     machine, twin = isotropic_twin
     delta_C = 100.0                                  # +X face minus -X face
@@ -118,6 +119,7 @@ def test_pure_bending_on_the_twin_is_recovered_within_5_percent(isotropic_twin):
     assert abs(predicted[1]) < 1e-6 and abs(ttp[1]) < 0.01 * abs(ttp[0])
 
 
+@pytest.mark.slow
 def test_kinematic_model_predicts_static_tool_tip_loads_without_fitting():
     machine = load_machine()
     twin = Twin(machine, resolution=COARSE)
@@ -136,6 +138,7 @@ def test_kinematic_model_predicts_static_tool_tip_loads_without_fitting():
     assert z3[1, 1] < 0.8 * z0[1, 1]
 
 
+@pytest.mark.slow
 def test_guide_compliance_from_the_machine_description_enters_the_chain():
     machine = load_machine()
     soft = machine.model_copy(update={"supports": machine.supports.model_copy(

@@ -35,6 +35,7 @@ def test_candidate_grid_lies_on_the_faces():
         "faces": ("+X", "-Y"), "offsets_mm": (0.0, 50.0), "length_mm": 300.0, "step_mm": 100.0}
 
 
+@pytest.mark.slow
 def test_objective_is_the_estimators_worst_case_error(design):
     _, d = design
     idx = [d.names.index(s) for s in ("S1", "S2", "S3", "S4", "S5")]
@@ -51,6 +52,7 @@ def test_objective_is_the_estimators_worst_case_error(design):
     assert objective_um(d, idx + [d.names.index(d.names[-1])]) <= objective_um(d, idx) + 1e-9
 
 
+@pytest.mark.slow
 def test_placement_beats_or_equals_the_default_layout(design):
     machine, d = design
     default = [s.name for s in machine.sensors]
@@ -62,6 +64,7 @@ def test_placement_beats_or_equals_the_default_layout(design):
     assert choose(d, 3).objective_um >= result.objective_um - 1e-9
 
 
+@pytest.mark.slow
 def test_cli_place(tmp_path):
     out = tmp_path / "place.json"
     r = subprocess.run([*FBGCOMP, "place", "--k", "5", "--resolution", "0.3", "--grid",

@@ -22,6 +22,9 @@ BUILTIN = ROOT / "src" / "fbgcomp" / "data" / "ram.yaml"
 FBGCOMP = [sys.executable, "-m", "fbgcomp"]
 AXES = ("dx", "dy", "dz")
 
+# every test here runs `fbgcomp plan` (1-26 s each under load)
+pytestmark = pytest.mark.slow
+
 
 def run_plan(*args, check=True):
     proc = subprocess.run(FBGCOMP + ["plan", *map(str, args)], capture_output=True, text=True,

@@ -90,6 +90,7 @@ def toured(tmp_path_factory):
     return work, tour.stdout, py.stdout
 
 
+@pytest.mark.slow
 def test_the_readme_tour_runs_as_written(toured):
     work, out, _ = toured
     for name in ("thermal_a", "static_y", "thermal_b", "production_run"):
@@ -111,6 +112,7 @@ def test_the_readme_tour_runs_as_written(toured):
     assert list((work / "fleet").rglob("*.parquet"))
 
 
+@pytest.mark.slow
 def test_the_readme_python_api_runs_on_the_tour_campaigns(toured):
     _, _, out = toured
     assert "== dz (µm) ==" in out and "term" in out            # Table 1 style coefficient tables

@@ -226,6 +226,7 @@ def test_thermal_steady_state_equals_static_temperature_superposition(twin):
     assert h.sensor_temperature_C[-1] == pytest.approx(np.full(5, 25.0))
 
 
+@pytest.mark.slow
 def test_z_axis_position_moves_the_carriages_and_the_lever_arm(machine, fe):
     """Raising the ram (Z+) brings the carriages closer to the TTP: the tip gets stiffer."""
     low = fe.Twin(machine, resolution=0.4, z_axis_mm=0.0)
@@ -325,6 +326,7 @@ def ram2_twin(ram2, fe):
     return fe.Twin(ram2, resolution=0.5)
 
 
+@pytest.mark.slow
 def test_ram2_supports_hold_the_carriage_patches(ram2_twin, ram2):
     """Every node of the four carriage patches is held in Y; the locating strip's also in X."""
     rm, vb = ram2_twin.mesh, ram2_twin._vbasis
@@ -342,6 +344,7 @@ def test_ram2_supports_hold_the_carriage_patches(ram2_twin, ram2):
     assert held[vb.nodal_dofs[2, top]].all() and held[vb.nodal_dofs[2]].sum() == top.sum()
 
 
+@pytest.mark.slow
 def test_uniform_warming_moves_ram2_away_from_its_reference_face_and_locating_rail(ram2_twin, ram2):
     """Rails on -Y, locating rail at x <= -105: the box grows towards +Y and +X (README sec. 4)."""
     dT = 10.0
@@ -356,6 +359,7 @@ def test_uniform_warming_moves_ram2_away_from_its_reference_face_and_locating_ra
     assert dz == pytest.approx(-1e3 * dT * (cf.cte_L_per_K * 1400 + st.cte_per_K * 180), rel=0.01)
 
 
+@pytest.mark.slow
 def test_heat_sources_drive_the_twin_by_name_or_legacy_argument(ram2_twin):
     t = np.arange(0.0, 3601.0, 60.0)
     spindle = np.where(t > 300, 120.0, 0.0)

@@ -65,6 +65,7 @@ def _assert_identical(a, b):
         assert np.array_equal(x, y)          # bit for bit, not approximately
 
 
+@pytest.mark.slow
 def test_cold_build_writes_one_entry_and_the_warm_load_is_bit_identical(Twin, machine, cache_dir):
     cold = Twin(machine, resolution=RES)
     assert not cold.times.from_cache
@@ -242,6 +243,7 @@ def test_entries_hold_no_pickle(cache_dir):
         twin_cache.dumps("0" * 64, {"x": np.array([object()], dtype=object)})
 
 
+@pytest.mark.slow
 def test_concurrent_builder_processes_leave_one_whole_entry(Twin, machine, cache_dir, good_entry):
     """Two processes build the same twin at once into one cache folder: both finish, one complete
     entry remains, and it loads into the twin the reference build gives."""

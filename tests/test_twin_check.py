@@ -46,6 +46,7 @@ def test_reference_is_read_with_its_sensors(reference):
     assert reference.uniform_ttp_um[2] < 0
 
 
+@pytest.mark.slow
 def test_twin_meets_the_unit_load_targets(rows, reference):
     raw = json.loads(RESULTS.read_text())["unit_response_um_per_N"]
     for j, axis in enumerate("xyz"):
@@ -59,6 +60,7 @@ def test_twin_meets_the_unit_load_targets(rows, reference):
     assert not failing, failing
 
 
+@pytest.mark.slow
 def test_twin_meets_the_uniform_warming_target(rows):
     dz = rows["+10 K dz (um)"]
     assert abs(dz.twin / dz.independent - 1) <= 0.02
@@ -121,6 +123,7 @@ def test_bad_results_name_the_file_and_field(tmp_path, reference, content, colum
     assert err.value.column == column
 
 
+@pytest.mark.slow
 def test_installed_command_reports_bad_input_on_one_line(tmp_path):
     exe = Path(sys.executable).with_name("fbgcomp")
     missing = tmp_path / "nowhere.json"
