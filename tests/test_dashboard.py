@@ -28,8 +28,7 @@ from pathlib import Path
 import pytest
 
 import fbgcomp_testing
-from test_runtime_support import (fallback_peak_um, fbgcomp_process, free_port, model_and_campaign,
-                                  secure_client, wait_port)
+from test_runtime_support import fallback_peak_um, fbgcomp_process, free_port, secure_client, wait_port
 
 ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts" / "dashboard"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
@@ -41,11 +40,14 @@ MAX_RATE_HZ = 10.0     # the dashboard's default max_rate_hz
 REQUEST_TIMEOUT_S = 5.0   # the dashboard's default request_timeout_s
 MAX_CONNECTIONS = 64   # the dashboard's default max_connections
 
+# every test here starts serve, chromium or both (10-35 s each under load)
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
-def service(tmp_path_factory):
+def service(tmp_path_factory, runtime_model_and_campaign):
     fbgcomp_testing.require("asyncua")
-    model, campaign = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+    model, campaign = runtime_model_and_campaign
     tmp = tmp_path_factory.mktemp("dashboard")
     dp, op = free_port(), free_port()
     url = f"opc.tcp://127.0.0.1:{op}/fbgcomp/"
@@ -74,7 +76,7 @@ def service(tmp_path_factory):
     proc.send_signal(signal.SIGTERM)
     try:
         _, err = proc.communicate(timeout=20)
-    except Exception:
+    except subprocess.TimeoutExpired:
         proc.kill()
         raise
     assert proc.returncode == 0, err.decode()[-3000:]
@@ -96,19 +98,21 @@ def _wait_for(predicate, timeout_s):
 
 
 class SseReader(threading.Thread):
-    """A plain Server-Sent-Events client counting the messages and bytes it receives."""
+    """A plain Server-Sent-Events client counting the messages and bytes it receives, until it
+    has ``messages`` of them spanning ``t_span_s`` of sample time (the stream's pace, not the
+    test's clock, decides how long)."""
 
-    def __init__(self, port, seconds):
+    def __init__(self, port, messages, t_span_s=0.0, timeout_s=60.0):
         super().__init__(daemon=True)
-        self.port, self.seconds = port, seconds
+        self.port, self.messages, self.t_span_s, self.timeout_s = port, messages, t_span_s, timeout_s
         self.events, self.bytes, self.frames = 0, 0, []
 
     def run(self):
         with socket.create_connection(("127.0.0.1", self.port), timeout=5) as s:
             s.sendall(b"GET /api/stream HTTP/1.1\r\nHost: x\r\nAccept: text/event-stream\r\n\r\n")
             f = s.makefile("rb")
-            end = time.monotonic() + self.seconds
-            while time.monotonic() < end:
+            end = time.monotonic() + self.timeout_s         # a guard only
+            while not self.done() and time.monotonic() < end:
                 line = f.readline()
                 if not line:
                     break
@@ -117,19 +121,22 @@ class SseReader(threading.Thread):
                     self.events += 1
                     self.frames.append(json.loads(line[6:]))
 
+    def done(self) -> bool:
+        return self.events >= self.messages and \
+            self.frames[-1]["t"] - self.frames[0]["t"] >= self.t_span_s
+
 
 def _assert_decimated(sent: int, server_span_s: float) -> None:
-    """At most MAX_RATE_HZ messages per second of the server's clock; at least a quarter of
-    that (generous slack on the lower side only: a loaded machine may send fewer, never more)."""
-    assert server_span_s > 0, server_span_s
+    """At most MAX_RATE_HZ messages per second of the server's own clock. No lower bound on the
+    rate: a loaded machine sends fewer (that messages flow is checked by waiting for them)."""
+    assert sent >= 1 and server_span_s > 0, (sent, server_span_s)
     assert sent <= server_span_s * MAX_RATE_HZ * 1.02 + 1, (sent, server_span_s)
-    assert sent >= 0.25 * server_span_s * MAX_RATE_HZ, (sent, server_span_s)
 
 
 def _assert_stream(reader: "SseReader") -> None:
     """A plain SSE client got increasing, decimated messages of a few hundred bytes each."""
     seqs = [f["seq"] for f in reader.frames]
-    assert len(seqs) >= 5, seqs
+    assert reader.done(), (seqs, [f["t"] for f in reader.frames[:: max(1, len(seqs) // 10)]])
     assert seqs == sorted(set(seqs)), seqs                 # none twice, none out of order
     sent = seqs[-1] - seqs[0]
     span = reader.frames[-1]["server_s"] - reader.frames[0]["server_s"]
@@ -176,7 +183,7 @@ def _chart_pixels(page, canvas_id):
 def test_live_page_shows_values_that_move_with_the_interrogator_among_ten_clients(service):
     sync_api = fbgcomp_testing.require("playwright.sync_api")
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
-    others = [SseReader(service["port"], 6.0) for _ in range(9)]   # the page is the 10th client
+    others = [SseReader(service["port"], 30) for _ in range(9)]    # the page is the 10th client
     for r in others:
         r.start()
     with sync_api.sync_playwright() as p:
@@ -195,7 +202,10 @@ def test_live_page_shows_values_that_move_with_the_interrogator_among_ten_client
             charts0 = {c: _chart_pixels(page, c) for c in
                        ("chart-elongation", "chart-temperature", "chart-deviation",
                         "chart-correction")}
-            page.wait_for_timeout(3000)
+            # wait for the stream, not the clock: a few more updates and 2 s of sample time
+            page.wait_for_function(
+                "b => fbgcomp.updates >= b.u + 5 && fbgcomp.last.t >= b.t + 2.0 && "
+                "fbgcomp.last.server_s > b.s", arg=before, timeout=60000)
             after = page.evaluate(probe)
             # decimated to <= 10 messages per second of the server's own clock, and the page
             # (one of ten clients) got them all or nearly: it cannot get more than were sent
@@ -204,7 +214,7 @@ def test_live_page_shows_values_that_move_with_the_interrogator_among_ten_client
             assert 0.3 * sent <= received <= sent, (received, sent)
             # every frame of the interval was processed: frames count with sample time
             assert after["f"] - before["f"] >= 0.9 * (after["t"] - before["t"]) * RATE_HZ
-            assert after["t"] > before["t"] + 1.0           # sample time stamps moved on
+            assert after["t"] >= before["t"] + 2.0          # sample time stamps moved on
             texts1 = [page.inner_text(f"#corr-{a}") for a in ("dx", "dy", "dz")]
             assert texts1 != texts0 and all(t != "—" for t in texts1)
             assert page.inner_text("#sensors tbody tr:first-child td.dl") != dl0
@@ -222,7 +232,8 @@ def test_live_page_shows_values_that_move_with_the_interrogator_among_ten_client
         finally:
             browser.close()
     for r in others:
-        r.join(10)
+        r.join(60)
+        assert not r.is_alive()
         _assert_stream(r)
 
 
@@ -280,9 +291,9 @@ def test_control_needs_login_and_switches_the_opcua_enabled_state(service):
             _wait_for_badge(page, "DISABLED")
             assert _enabled_on_opcua(service) is False
             # the published correction is zero while disabled (the prediction goes on)
-            page.wait_for_function("() => fbgcomp.last && !fbgcomp.last.enabled", timeout=5000)
+            page.wait_for_function("() => fbgcomp.last && !fbgcomp.last.enabled", timeout=20000)
             n = page.evaluate("fbgcomp.updates")
-            page.wait_for_function(f"() => fbgcomp.updates >= {n + 3}", timeout=5000)
+            page.wait_for_function(f"() => fbgcomp.updates >= {n + 3}", timeout=20000)
             last = page.evaluate("fbgcomp.last")
             assert last["correction_um"] == [0.0, 0.0, 0.0]
             assert any(abs(v) > 0 for v in last["deviation_um"])
@@ -308,11 +319,11 @@ def test_a_client_that_stops_reading_blocks_no_one(service):
     stalled.sendall(b"GET /api/stream HTTP/1.1\r\nHost: x\r\n\r\n")   # and never read again
     try:
         state0 = _get(service["base"] + "/api/state")
-        readers = [SseReader(service["port"], 3.0) for _ in range(3)]
+        readers = [SseReader(service["port"], 10, t_span_s=1.5) for _ in range(3)]
         for r in readers:
             r.start()
         for r in readers:
-            r.join(10)
+            r.join(60)
         for r in readers:
             _assert_stream(r)
             times = [f["t"] for f in r.frames]
@@ -342,14 +353,14 @@ def _stop(*procs) -> list[str]:
     for proc in procs:
         try:
             err = proc.communicate(timeout=20)[1]
-        except Exception:
+        except subprocess.TimeoutExpired:
             proc.kill()
             err = proc.communicate()[1]
         errs.append(err.decode(errors="replace"))
     return errs
 
 
-def test_a_lost_grating_shows_as_degraded_with_the_fallback_in_use(tmp_path):
+def test_a_lost_grating_shows_as_degraded_with_the_fallback_in_use(tmp_path, runtime_model_and_campaign):
     """A separate simulated instrument; once the service has taken its zero state with all five
     gratings, the instrument is restarted with S3 gone (MISSING: seen at the zero, lost after).
 
@@ -357,7 +368,7 @@ def test_a_lost_grating_shows_as_degraded_with_the_fallback_in_use(tmp_path):
     loaded machine) would take its zero without S3, which is NO_ZERO, another state."""
     sync_api = fbgcomp_testing.require("playwright.sync_api")
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
-    model, campaign = model_and_campaign(tmp_path.parent / "runtime")
+    model, campaign = runtime_model_and_campaign
     # a bound below the fallback's largest correction on each axis (its switch-over step
     # passes it at once) but never 3x beyond it: the output is held back (MAX_LIMITED,
     # DEGRADED), not refused (ALARM, which a correction beyond 3x the bound raises)
@@ -504,8 +515,8 @@ def test_half_sent_requests_are_dropped_and_the_server_still_answers(service):
         assert r.status == 200 and b"fbgcomp live" in r.read()
 
 
-def test_beyond_loopback_without_a_user_serve_refuses_to_start(tmp_path):
-    model, campaign = model_and_campaign(tmp_path.parent / "runtime")
+def test_beyond_loopback_without_a_user_serve_refuses_to_start(runtime_model_and_campaign):
+    model, campaign = runtime_model_and_campaign
     dp = free_port()
     proc = fbgcomp_process("serve", "--model", model, "--source", f"sim://{campaign}?rate=50",
                            "--opcua", "off", "--dashboard", f"0.0.0.0:{dp}",
@@ -547,10 +558,10 @@ def _self_signed(folder: Path) -> tuple[Path, Path]:
     return cert_path, key_path
 
 
-def test_beyond_loopback_every_read_needs_a_login_over_tls(tmp_path):
+def test_beyond_loopback_every_read_needs_a_login_over_tls(tmp_path, runtime_model_and_campaign):
     sync_api = fbgcomp_testing.require("playwright.sync_api")
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
-    model, campaign = model_and_campaign(tmp_path.parent / "runtime")
+    model, campaign = runtime_model_and_campaign
     cert, key = _self_signed(tmp_path)
     dp = free_port()
     serve = fbgcomp_process("serve", "--model", model, "--source",
