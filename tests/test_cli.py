@@ -3,7 +3,6 @@ import os
 import shutil
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
@@ -28,6 +27,7 @@ def run(*args, cwd=None):
                           timeout=300, env={**os.environ, "PYTHONWARNINGS": "ignore"})
 
 
+@pytest.mark.slow
 def test_fit_then_validate_through_the_console(campaigns, tmp_path):
     train, test = campaigns
     model = tmp_path / "model.json"
@@ -49,6 +49,7 @@ def test_fit_then_validate_through_the_console(campaigns, tmp_path):
     assert "campaign test" in r.stdout and "comp. ratio" in r.stdout
 
 
+@pytest.mark.slow
 def test_fit_chooses_the_regression_inference(campaigns, tmp_path):
     """--cov-type nonrobust gives the paper's i.i.d. tables; the default is Newey-West with the
     bandwidth --hac-maxlags fixes; a bad value is a one-line error naming the option."""
@@ -69,12 +70,17 @@ def test_fit_chooses_the_regression_inference(campaigns, tmp_path):
         assert not (tmp_path / "x.json").exists()
 
 
+@pytest.mark.slow
 def test_inspect(campaigns):
     r = run("inspect", campaigns[0])
     assert r.returncode == 0, r.stderr
     assert "fbg.csv: 3601 rows" in r.stdout and "every 10 s" in r.stdout and "overlap" in r.stdout
     r = run("inspect", campaigns[0], "--json")
-    assert json.loads(r.stdout)
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    assert summary["files"]["fbg.csv"]["rows"] == 3601
+    assert summary["files"]["temperatures.csv"]["median_interval_s"] == 10.0
+    assert set(summary["files"]["fbg.csv"]["columns"]) == {f"S{i}_nm" for i in range(1, 6)}
 
 
 def _broken_copy(src, dst, file, transform):
@@ -125,6 +131,7 @@ def test_bad_input_is_one_line_exit_2_no_traceback(campaigns, tmp_path, capsys, 
     assert not (tmp_path / "m.json").exists()
 
 
+@pytest.mark.slow
 def test_console_script_bad_input_and_missing_folder(campaigns, tmp_path):
     broken = _broken_copy(campaigns[0], tmp_path / "broken", "fbg.csv", _replace_cell(5, 2, "abc"))
     r = run("validate", tmp_path / "nope.json", broken)
@@ -138,6 +145,7 @@ def test_existing_model_file_survives_a_failed_fit(campaigns, tmp_path, capsys):
     model = tmp_path / "model.json"
     assert main(["fit", str(campaigns[0]), "-o", str(model)]) == 0
     before = model.read_bytes()
+    assert json.loads(before)["format"] == "fbgcomp-model"
     broken = _broken_copy(campaigns[0], tmp_path / "broken", "fbg.csv", _replace_cell(5, 2, "x"))
     assert main(["fit", str(broken), "-o", str(model)]) == 2
     assert model.read_bytes() == before
@@ -159,13 +167,14 @@ def _one_line_error(r, *fragments):
 
 @pytest.fixture(scope="module")
 def mra_model(campaigns, tmp_path_factory):
-    from fbgcomp.models.base import MRAModel
+    from fbgcomp.models.mra import MRAModel
 
     path = tmp_path_factory.mktemp("model") / "mra.json"
     MRAModel(features="eq13", fallbacks="loo").fit(campaigns[0]).save(path)
     return path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("value, field", [("1e308", "axes.dx.params[1]"), ("NaN", "axes.dx.params[1]"),
                                           ("null", "axes.dx.params[1]"), ("-Infinity", "axes.dx.params[1]")])
 def test_validate_exits_2_on_a_model_with_an_absurd_or_non_finite_coefficient(campaigns, mra_model, tmp_path,
@@ -178,6 +187,7 @@ def test_validate_exits_2_on_a_model_with_an_absurd_or_non_finite_coefficient(ca
     _one_line_error(run("validate", bad, campaigns[1]), str(bad), f"field {field}")
 
 
+@pytest.mark.slow
 def test_validate_exits_2_on_oversized_and_deeply_nested_model_files(campaigns, tmp_path):
     deep = tmp_path / "deep.json"
     deep.write_text('{"format": "fbgcomp-model", "schema_version": 2, "x": ' + "[" * 100_000
@@ -203,6 +213,7 @@ def _with_cell(src, dst, file, row, column, value):
     return dst
 
 
+@pytest.mark.slow
 def test_stepwise_fit_on_a_1e308_reference_keeps_the_existing_model(campaigns, mra_model, tmp_path):
     # It exited 0 and overwrote -o with an all-null model that nothing could load.
     broken = _with_cell(campaigns[0], tmp_path / "broken", "reference.csv", 40, "dy_um", "1e308")
@@ -215,6 +226,7 @@ def test_stepwise_fit_on_a_1e308_reference_keeps_the_existing_model(campaigns, m
     assert sorted(p.name for p in tmp_path.iterdir()) == ["broken", "model.json"]
 
 
+@pytest.mark.slow
 def test_a_1e308_temperature_is_reported_against_temperatures_csv(campaigns, tmp_path):
     # It was reported against the derived column dL_S1 with no file.
     broken = _with_cell(campaigns[0], tmp_path / "broken", "temperatures.csv", 3, "T_bulk_C", "1e308")
@@ -223,6 +235,7 @@ def test_a_1e308_temperature_is_reported_against_temperatures_csv(campaigns, tmp
     assert "dL_" not in line and not (tmp_path / "m.json").exists()
 
 
+@pytest.mark.slow
 def test_default_fit_on_ram2_with_a_1e308_reference_is_one_line(tmp_path):
     # The default (physical) fit on ram2's static_x died with an OverflowError traceback.
     from fbgcomp_testing import RAM2_DIR
@@ -235,6 +248,7 @@ def test_default_fit_on_ram2_with_a_1e308_reference_is_one_line(tmp_path):
     assert not (tmp_path / "m.json").exists()
 
 
+@pytest.mark.slow
 def test_serve_refuses_a_model_with_an_absurd_coefficient(campaigns, mra_model, tmp_path):
     # serve loaded it and published CorrectionX = 1.5e308 um with Health OK
     d = json.loads(mra_model.read_text())

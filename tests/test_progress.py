@@ -8,6 +8,11 @@ import os
 import subprocess
 import sys
 
+import pytest
+
+# both tests run the real CLI several times (3-30 s under load)
+pytestmark = pytest.mark.slow
+
 
 def _run(args, cwd, progress=None):
     env = dict(os.environ)
@@ -53,3 +58,4 @@ def test_quiet_option_wins_over_forcing(tmp_path):
     r = _run(["--quiet", "simulate", "--scenario", "static-y", "--seed", 2, "-o", "s"], tmp_path,
              "1")
     assert r.returncode == 0 and r.stderr == "" and "written to s" in r.stdout
+    assert (tmp_path / "s" / "campaign.yaml").is_file() and (tmp_path / "s" / "fbg.csv").is_file()

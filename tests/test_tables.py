@@ -4,6 +4,7 @@ numbers as 0, no negative zero, missing values as a dash - the shared formatter 
 
 from __future__ import annotations
 
+import json
 import math
 import re
 import subprocess
@@ -86,11 +87,14 @@ def campaigns(tmp_path_factory):
     for scenario, seed, name in (("thermal-36h", 1, "thermal_a"), ("static-y", 2, "static_y")):
         r = _run("simulate", "--scenario", scenario, "--seed", seed, "-o", name, cwd=work)
         assert r.returncode == 0, r.stderr
+        assert (work / name / "campaign.yaml").is_file()
     r = _run("fit", "thermal_a", "static_y", "--features", "eq11", "-o", "m.json", cwd=work)
     assert r.returncode == 0, r.stderr
+    assert json.loads((work / "m.json").read_text())["model_type"] == "mra"
     return work
 
 
+@pytest.mark.slow
 def test_validate_prints_aligned_tables_with_units(campaigns):
     r = _run("validate", "m.json", "thermal_a", "static_y", cwd=campaigns)
     assert r.returncode == 0, r.stderr
