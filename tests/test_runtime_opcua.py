@@ -126,7 +126,7 @@ def test_anonymous_refused_unless_configured_and_wrong_password_refused(server_f
 
 
 def test_no_unencrypted_endpoint(server_factory, tmp_path):
-    from asyncua import Client
+    from asyncua import Client, ua
     srv, url = server_factory(allow_anonymous=True)
 
     async def main():
@@ -134,7 +134,8 @@ def test_no_unencrypted_endpoint(server_factory, tmp_path):
         endpoints = await client.connect_and_get_server_endpoints()
         assert {e.SecurityPolicyUri.rsplit("#", 1)[-1] for e in endpoints} == {"Basic256Sha256"}
         assert {e.SecurityMode.name for e in endpoints} == {"SignAndEncrypt"}
-        with pytest.raises(Exception):
+        # the client finds no endpoint without security and refuses before sending anything
+        with pytest.raises(ua.UaError, match="No matching endpoints"):
             async with client:
                 await _node(client, "CorrectionX_um").read_value()
 
