@@ -108,4 +108,5 @@ def pytest_collection_modifyitems(config, items):
     stale = [k for k in SLOW if k not in used and k.partition("::")[0] in collected]
     if stale:
         config.issue_config_time_warning(
-            pytest.PytestConfigWarning(f"tests/conftest.py SLOW names no collected test: {stale}"), 2)
+            pytest.PytestConfigWarning(f"tests/conftest.py SLOW names no collected test: {stale}"), 2
+        )

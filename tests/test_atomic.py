@@ -17,7 +17,7 @@ def test_atomic_path_replaces_the_target_only_on_success(tmp_path):
         assert tmp.parent == tmp_path and tmp.name.startswith(".data.bin.")
         assert tmp.name.endswith(".tmp") and tmp.is_file() and tmp.stat().st_size == 0
         tmp.write_bytes(b"new")
-        assert target.read_bytes() == b"old"          # not yet: the block has not ended
+        assert target.read_bytes() == b"old"  # not yet: the block has not ended
     assert target.read_bytes() == b"new"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data.bin"]
 
@@ -25,10 +25,9 @@ def test_atomic_path_replaces_the_target_only_on_success(tmp_path):
 def test_atomic_path_keeps_the_old_target_and_removes_the_temporary_file_on_failure(tmp_path):
     target = tmp_path / "data.bin"
     target.write_bytes(b"old")
-    with pytest.raises(RuntimeError, match="disk full"):
-        with atomic_path(target) as tmp:
-            tmp.write_bytes(b"half")
-            raise RuntimeError("disk full")
+    with pytest.raises(RuntimeError, match="disk full"), atomic_path(target) as tmp:
+        tmp.write_bytes(b"half")
+        raise RuntimeError("disk full")
     assert target.read_bytes() == b"old"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data.bin"]
 
@@ -60,8 +59,9 @@ def test_write_json_check_refuses_without_touching_the_target(tmp_path):
     assert target.read_text() == '{\n "a": null,\n "b": 2.0\n}\n'
 
     def refuse(written):
-        assert written.read_text().startswith("{")     # complete before it is checked
+        assert written.read_text().startswith("{")  # complete before it is checked
         raise ValueError("not a model")
+
     with pytest.raises(ValueError, match="not a model"):
         write_json(target, {"a": 1}, check=refuse)
     assert '"b": 2.0' in target.read_text()

@@ -9,10 +9,9 @@ import pytest
 
 from fbgcomp import optics
 from fbgcomp.bench.virtual import load_scenario, simulate, true_response
-from fbgcomp.models.fe_calibrated import fe_calibrate, resolution_report
-from fbgcomp.io.campaign import read_campaign, write_campaign
 from fbgcomp.errors import InputError
-from fbgcomp.models.metrics import validation_metrics
+from fbgcomp.io.campaign import read_campaign, write_campaign
+from fbgcomp.models.fe_calibrated import fe_calibrate, resolution_report
 from fbgcomp.structure import Twin, load_machine
 
 COARSE = 0.4
@@ -46,7 +45,7 @@ def test_static_campaign_is_valid_with_independent_clocks(static_y):
     assert c.meta.sensor_names == ["S1", "S2", "S3", "S4", "S5"]
     assert _rate(c.fbg) == pytest.approx(0.1) and _rate(c.reference) == pytest.approx(1.0)
     assert _rate(c.temperatures) == pytest.approx(10.0) and _rate(c.loads) == pytest.approx(0.5)
-    assert c.reference["time_s"].iloc[0] == pytest.approx(0.35)      # its own clock offset
+    assert c.reference["time_s"].iloc[0] == pytest.approx(0.35)  # its own clock offset
     # Load steps 0, 1000 ... 4000 N along Y and back, held 60 s each (load-cell noise 1 N).
     fy = c.loads["fy_N"].to_numpy()
     levels = np.unique(np.round(fy / 1000.0))
@@ -63,13 +62,14 @@ def test_wavelengths_follow_the_bonded_fbg_formula_with_1pm_noise(machine, twin)
     c, _ = simulate(machine, sc, seed=1, twin=twin)
     t = c.fbg["time_s"].to_numpy()
     lam = c.fbg[[f"{s}_nm" for s in c.meta.sensor_names]].to_numpy()
-    lam_init = lam[:100].mean(axis=0)          # at rest: the installed wavelength + noise
+    lam_init = lam[:100].mean(axis=0)  # at rest: the installed wavelength + noise
     gauge = np.array([s.gauge_length for s in machine.sensors])
-    elong = optics.elongation_um(lam, lam_init, gauge)   # isothermal: no compensation needed
-    true = np.column_stack([np.interp(t, truth["time_s"], truth["sensor_elongation_um"][:, j])
-                            for j in range(5)])
+    elong = optics.elongation_um(lam, lam_init, gauge)  # isothermal: no compensation needed
+    true = np.column_stack(
+        [np.interp(t, truth["time_s"], truth["sensor_elongation_um"][:, j]) for j in range(5)]
+    )
     resid_nm = (elong - true) / (gauge * 1e3) * optics.strain_sensitivity_nm(lam_init)
-    assert 0.7e-3 < np.std(resid_nm) < 1.3e-3                 # ~1 pm white noise
+    assert 0.7e-3 < np.std(resid_nm) < 1.3e-3  # ~1 pm white noise
     # installation offsets: within ±0.3 nm of lambda0, not equal to it
     lam0 = np.array([s.lambda0_nm for s in machine.sensors])
     assert np.all(np.abs(lam_init - lam0) < 0.31) and np.all(np.abs(lam_init - lam0) > 1e-4)
@@ -86,9 +86,9 @@ def test_thermal_bench_is_honest(machine, twin):
     assert np.max(np.abs(truth["sensor_temperature_C"][:, 0] - surf)) > 0.1
     c, _ = simulate(machine, sc, seed=0, twin=twin)
     read = c.temperatures["T_bulk_C"].to_numpy()
-    np.testing.assert_allclose(read * 10, np.round(read * 10), atol=1e-6)      # 0.1 °C quantum
+    np.testing.assert_allclose(read * 10, np.round(read * 10), atol=1e-6)  # 0.1 °C quantum
     peak = np.abs(truth["ttp_um"]).max(axis=0)
-    assert 5 < peak[2] < 100          # thermal drift of the paper's order (51 µm), mostly along Z
+    assert 5 < peak[2] < 100  # thermal drift of the paper's order (51 µm), mostly along Z
     assert c.aligned().reference_um.shape[1] == 3
 
 
@@ -117,10 +117,10 @@ def test_scenario_errors_name_the_field(tmp_path):
 
 @pytest.mark.slow
 def test_fe_calibrated_model_and_resolution(machine, twin, static_y, tmp_path):
-    model, cases = fe_calibrate(machine, twin, features="eq13")
+    model, _cases = fe_calibrate(machine, twin, features="eq13")
     path = model.save(tmp_path / "fe.json")
     assert json.loads(path.read_text())["training"]["fe_design"]["n_samples"] == 2000
-    c, truth = static_y
+    c, _truth = static_y
     pred = model.predict(c)
     ref = c.aligned().reference_um
     # The FE-calibrated model knows the force path: dy tracks the deflection (per-sample error is
@@ -130,8 +130,10 @@ def test_fe_calibrated_model_and_resolution(machine, twin, static_y, tmp_path):
     assert rep["rank"] == 3 and len(rep["unobservable_combinations"]) == 2
     # The squaring mode of the box (S1 + S2 - S3 - S4) is excited by no load case.
     square = rep["unobservable_combinations"]
-    assert any(abs(abs(v["S1"]) - 0.5) < 0.05 and abs(v["S1"] - v["S2"]) < 0.05
-               and abs(v["S1"] + v["S3"]) < 0.05 for v in square)
+    assert any(
+        abs(abs(v["S1"]) - 0.5) < 0.05 and abs(v["S1"] - v["S2"]) < 0.05 and abs(v["S1"] + v["S3"]) < 0.05
+        for v in square
+    )
     for a in ("dx", "dy", "dz"):
         assert np.isfinite(rep["axes"][a]["resolution_um"])
     assert rep["axes"]["dz"]["resolution_um"] < rep["axes"]["dy"]["resolution_um"]
@@ -140,20 +142,41 @@ def test_fe_calibrated_model_and_resolution(machine, twin, static_y, tmp_path):
 @pytest.mark.slow
 def test_demo_runs_end_to_end(tmp_path):
     out = tmp_path / "demo"
-    r = subprocess.run([sys.executable, "-m", "fbgcomp", "demo", "--quick", "--mesh-resolution",
-                        str(COARSE), "-o", str(out)], capture_output=True, text=True, timeout=600)
+    r = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "fbgcomp",
+            "demo",
+            "--quick",
+            "--mesh-resolution",
+            str(COARSE),
+            "-o",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     m = json.loads((out / "metrics.json").read_text())
     assert set(m["models"]) == {"regression", "calibrated", "fe_model"}
     for key in ("regression", "calibrated"):
         v = m["models"][key]["validation"]
         assert set(v) == {"thermal-36h-b", "static-xyz"}
-        assert v["thermal-36h-b"]["axes"]["dz"]["compensation_ratio"] > 0.8   # drift mostly compensated
+        assert v["thermal-36h-b"]["axes"]["dz"]["compensation_ratio"] > 0.8  # drift mostly compensated
         assert v["static-xyz"]["static_levels"]["n_levels"] >= 20
     assert json.loads((out / "calibrated_model.json").read_text())["model_type"] == "calibrated"
     assert json.loads((out / "regression_model.json").read_text())["model_type"] == "mra"
-    for f in ("calibrated_model.json", "regression_model.json", "fe_model.json", "coefficients.txt",
-              "calibrated_model.txt", "resolution.txt", "report/report.html"):
+    for f in (
+        "calibrated_model.json",
+        "regression_model.json",
+        "fe_model.json",
+        "coefficients.txt",
+        "calibrated_model.txt",
+        "resolution.txt",
+        "report/report.html",
+    ):
         assert (out / f).exists(), f
     assert "calibrated kinematic" in r.stdout and "thermal-36h-b dx" in r.stdout
     for name in ("thermal-36h", "static-y", "thermal-36h-b", "static-xyz"):
@@ -172,7 +195,7 @@ def test_the_scenario_example_in_the_docs_runs(machine, twin):
 
     text = (Path(__file__).parent.parent / "docs" / "bench.md").read_text(encoding="utf-8")
     example = yaml.safe_load(re.search(r"```yaml\n(.*?)```", text, re.S).group(1))
-    example["z_axis_mm"] = None          # the coarse test twin is built at the default Z
+    example["z_axis_mm"] = None  # the coarse test twin is built at the default Z
     scenario = Scenario.model_validate(example).compressed(2.0)
     campaign, truth = simulate(machine, scenario, seed=2, twin=twin)
     assert campaign.meta.kind == "thermal" and campaign.loads is not None

@@ -13,8 +13,9 @@ import shutil
 import subprocess
 import sys
 import tempfile
-from datetime import timedelta, timezone
+from datetime import UTC, timedelta, timezone
 from pathlib import Path
+from unittest import mock
 
 import numpy as np
 import pandas as pd
@@ -23,14 +24,18 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
-from unittest import mock
 
 import fbgcomp.io.campaign as campaign_module
 import fbgcomp.io.campaign.tables as campaign_tables  # the reader's block size is patched there
-
-from fbgcomp.io.campaign import (AlignedCampaign, Campaign, CampaignMeta, SensorSpec, read_campaign,
-                              write_campaign)
 from fbgcomp.errors import InputError
+from fbgcomp.io.campaign import (
+    AlignedCampaign,
+    Campaign,
+    CampaignMeta,
+    SensorSpec,
+    read_campaign,
+    write_campaign,
+)
 
 META_YAML = """\
 name: thermal_a
@@ -60,20 +65,29 @@ def csv_text(columns: dict) -> str:
 
 
 def default_tables() -> dict:
-    t = np.arange(61.0)           # FBG every 1 s
+    t = np.arange(61.0)  # FBG every 1 s
     tt = np.arange(0.0, 61.0, 10)  # probes every 10 s
-    tr = np.arange(0.0, 61.0, 2)   # interferometer every 2 s
+    tr = np.arange(0.0, 61.0, 2)  # interferometer every 2 s
     return {
-        "fbg.csv": {"time_s": t, "S1_nm": 1530 + 1e-3 * t, "S2_nm": 1540 - 5e-4 * t,
-                    "S3_nm": 1550 + 2e-4 * t},
+        "fbg.csv": {
+            "time_s": t,
+            "S1_nm": 1530 + 1e-3 * t,
+            "S2_nm": 1540 - 5e-4 * t,
+            "S3_nm": 1550 + 2e-4 * t,
+        },
         "temperatures.csv": {"time_s": tt, "T_bulk_C": 20 + 0.1 * tt, "T_surf_C": 21 + 0.05 * tt},
-        "reference.csv": {"time_s": tr, "dx_um": 0.5 * tr, "dy_um": -0.25 * tr,
-                          "dz_um": np.ones_like(tr)},
+        "reference.csv": {"time_s": tr, "dx_um": 0.5 * tr, "dy_um": -0.25 * tr, "dz_um": np.ones_like(tr)},
     }
 
 
-def make_folder(root: Path, *, meta: str = META_YAML, tables: dict | None = None,
-                loads: dict | None = None, name: str = "camp") -> Path:
+def make_folder(
+    root: Path,
+    *,
+    meta: str = META_YAML,
+    tables: dict | None = None,
+    loads: dict | None = None,
+    name: str = "camp",
+) -> Path:
     folder = Path(root) / name
     folder.mkdir(parents=True)
     (folder / "campaign.yaml").write_text(meta, encoding="utf-8")
@@ -95,8 +109,9 @@ def set_cell(folder: Path, file: str, row: int, column: str, text: str) -> None:
     path.write_text("\n".join(lines), encoding="utf-8")
 
 
-def expect_error(folder, file: str, row: int | None = None, column: str | None = None,
-                 match: str | None = None) -> InputError:
+def expect_error(
+    folder, file: str, row: int | None = None, column: str | None = None, match: str | None = None
+) -> InputError:
     with pytest.raises(InputError) as info:
         read_campaign(folder)
     err = info.value
@@ -124,6 +139,7 @@ def folder(tmp_path) -> Path:
 # Reading a valid folder
 # --------------------------------------------------------------------------------------------
 
+
 def test_reads_valid_folder(folder):
     c = read_campaign(folder)
     assert c.path == folder
@@ -134,7 +150,11 @@ def test_reads_valid_folder(folder):
     assert c.probe_names == ["T_bulk", "T_surf"]
     s1 = c.meta.sensor("S1")
     assert (s1.lambda0_nm, s1.gauge_length_mm, s1.face, s1.temperature_probe) == (
-        1530.0, 500.0, "+X", "T_surf")
+        1530.0,
+        500.0,
+        "+X",
+        "T_surf",
+    )
     assert s1.thermo_optic_per_K == 6.67e-6 and s1.fibre_cte_per_K == 0.55e-6
     s3 = c.meta.sensor("S3")
     assert s3.temperature_probe is None and s3.face is None and s3.photoelastic == 0.22
@@ -149,8 +169,7 @@ def test_reads_valid_folder(folder):
 def test_reads_columns_in_any_order_and_returns_canonical_order(tmp_path):
     tables = default_tables()
     tables["fbg.csv"] = {k: tables["fbg.csv"][k] for k in ("S3_nm", "time_s", "S1_nm", "S2_nm")}
-    tables["reference.csv"] = {k: tables["reference.csv"][k]
-                               for k in ("dz_um", "dx_um", "time_s", "dy_um")}
+    tables["reference.csv"] = {k: tables["reference.csv"][k] for k in ("dz_um", "dx_um", "time_s", "dy_um")}
     c = read_campaign(make_folder(tmp_path, tables=tables))
     assert list(c.fbg.columns) == ["time_s", "S1_nm", "S2_nm", "S3_nm"]
     assert list(c.reference.columns) == ["time_s", "dx_um", "dy_um", "dz_um"]
@@ -162,16 +181,19 @@ def test_accepts_crlf_bom_quoted_header_and_trailing_blank_lines(folder):
     text = path.read_text()
     header, rest = text.split("\n", 1)
     header = ",".join(f'"{name}"' for name in header.split(","))
-    path.write_bytes(b"\xef\xbb\xbf" + (header + "\n" + rest + "\n\n  \n").replace("\n", "\r\n")
-                     .encode())
+    path.write_bytes(b"\xef\xbb\xbf" + (header + "\n" + rest + "\n\n  \n").replace("\n", "\r\n").encode())
     c = read_campaign(folder)
     assert len(c.reference) == 31
     assert c.reference["dy_um"].iloc[-1] == -15.0
 
 
 def test_loads_are_optional_and_read_when_present(tmp_path):
-    loads = {"time_s": np.array([0.0, 30.0, 60.0]), "fx_N": np.array([0.0, 1000.0, 2000.0]),
-             "fy_N": np.zeros(3), "fz_N": np.zeros(3)}
+    loads = {
+        "time_s": np.array([0.0, 30.0, 60.0]),
+        "fx_N": np.array([0.0, 1000.0, 2000.0]),
+        "fy_N": np.zeros(3),
+        "fz_N": np.zeros(3),
+    }
     c = read_campaign(make_folder(tmp_path, loads=loads))
     assert list(c.loads.columns) == ["time_s", "fx_N", "fy_N", "fz_N"]
     assert c.loads["fx_N"].tolist() == [0.0, 1000.0, 2000.0]
@@ -196,6 +218,7 @@ def test_yaml_exponent_without_dot_is_a_number(tmp_path):
 # --------------------------------------------------------------------------------------------
 # Folder and file level errors
 # --------------------------------------------------------------------------------------------
+
 
 def test_missing_folder(tmp_path):
     with pytest.raises(InputError, match="campaign folder not found") as info:
@@ -246,8 +269,7 @@ def test_row_with_too_few_values(folder):
     lines = path.read_text().split("\n")
     lines[3] = lines[3].rsplit(",", 1)[0]
     path.write_text("\n".join(lines))
-    expect_error(folder, "temperatures.csv", row=3, column="T_surf_C",
-                 match="row has 2 values, expected 3")
+    expect_error(folder, "temperatures.csv", row=3, column="T_surf_C", match="row has 2 values, expected 3")
 
 
 def test_row_with_too_many_values(folder):
@@ -287,19 +309,20 @@ def test_duplicate_header_column(folder):
 # campaign.yaml errors
 # --------------------------------------------------------------------------------------------
 
+
 def test_yaml_syntax_error_names_its_line(tmp_path):
-    meta = META_YAML.replace("  - {name: S3, lambda0_nm: 1550.0, gauge_length_mm: 400}",
-                             "  - {name: S3, lambda0_nm: 1550.0, gauge_length_mm: 400")
-    err = expect_error(make_folder(tmp_path, meta=meta), "campaign.yaml",
-                       match="YAML syntax error at line")
+    meta = META_YAML.replace(
+        "  - {name: S3, lambda0_nm: 1550.0, gauge_length_mm: 400}",
+        "  - {name: S3, lambda0_nm: 1550.0, gauge_length_mm: 400",
+    )
+    err = expect_error(make_folder(tmp_path, meta=meta), "campaign.yaml", match="YAML syntax error at line")
     line = int(re.search(r"line (\d+)", err.message).group(1))
     assert line in (11, 12)  # the unclosed flow mapping on line 11 is detected on line 12
 
 
 def test_yaml_duplicate_key(tmp_path):
     meta = META_YAML.replace("seed: 7\n", "seed: 7\nname: other\n")
-    expect_error(make_folder(tmp_path, meta=meta), "campaign.yaml",
-                 match=r"line 7.*duplicate key 'name'")
+    expect_error(make_folder(tmp_path, meta=meta), "campaign.yaml", match=r"line 7.*duplicate key 'name'")
 
 
 def test_yaml_top_level_not_a_mapping(folder):
@@ -307,24 +330,31 @@ def test_yaml_top_level_not_a_mapping(folder):
     expect_error(folder, "campaign.yaml", match="expected a mapping")
 
 
-@pytest.mark.parametrize("edit, field, match", [
-    (("lambda0_nm: 1540.0, ", ""), "field sensors[1].lambda0_nm", "required field is missing"),
-    (("lambda0_nm: 1540.0", "lambda0_nm: abc"), "field sensors[1].lambda0_nm",
-     "valid number.*'abc'"),
-    (("lambda0_nm: 1540.0", "lambda0_nm: '1540'"), "field sensors[1].lambda0_nm", "valid number"),
-    (("kind: thermal", "kind: dynamic"), "field kind", "'thermal', 'static' or 'combined'"),
-    (("start: 2026-01-12T08:00:00Z", "start: 2026-01-12T08:00:00"), "field start", "timezone"),
-    (("start: 2026-01-12T08:00:00Z\n", ""), "field start", "required field is missing"),
-    (("{name: S3,", "{name: S1,"), "field sensors[2].name",
-     "duplicate sensor name 'S1'.*sensors\\[0\\]"),
-    (("temperature_probe: T_bulk", "temperature_probe: T_flange"),
-     "field sensors[1].temperature_probe", "'T_flange'.*not declared.*T_bulk, T_surf"),
-    (("{name: T_surf,", "{name: T_bulk,"), "field temperature_probes[1].name", "duplicate probe"),
-    (("face: -X", "face: left"), "field sensors[1].face", "'left'"),
-    (("gauge_length_mm: 400", "gauge_length_mm: -400"), "field sensors[2].gauge_length_mm",
-     "greater than 0"),
-    (("units: um", "units: mm"), "field reference.units", "'um'"),
-])
+@pytest.mark.parametrize(
+    "edit, field, match",
+    [
+        (("lambda0_nm: 1540.0, ", ""), "field sensors[1].lambda0_nm", "required field is missing"),
+        (("lambda0_nm: 1540.0", "lambda0_nm: abc"), "field sensors[1].lambda0_nm", "valid number.*'abc'"),
+        (("lambda0_nm: 1540.0", "lambda0_nm: '1540'"), "field sensors[1].lambda0_nm", "valid number"),
+        (("kind: thermal", "kind: dynamic"), "field kind", "'thermal', 'static' or 'combined'"),
+        (("start: 2026-01-12T08:00:00Z", "start: 2026-01-12T08:00:00"), "field start", "timezone"),
+        (("start: 2026-01-12T08:00:00Z\n", ""), "field start", "required field is missing"),
+        (("{name: S3,", "{name: S1,"), "field sensors[2].name", "duplicate sensor name 'S1'.*sensors\\[0\\]"),
+        (
+            ("temperature_probe: T_bulk", "temperature_probe: T_flange"),
+            "field sensors[1].temperature_probe",
+            "'T_flange'.*not declared.*T_bulk, T_surf",
+        ),
+        (("{name: T_surf,", "{name: T_bulk,"), "field temperature_probes[1].name", "duplicate probe"),
+        (("face: -X", "face: left"), "field sensors[1].face", "'left'"),
+        (
+            ("gauge_length_mm: 400", "gauge_length_mm: -400"),
+            "field sensors[2].gauge_length_mm",
+            "greater than 0",
+        ),
+        (("units: um", "units: mm"), "field reference.units", "'um'"),
+    ],
+)
 def test_yaml_schema_errors(tmp_path, edit, field, match):
     old, new = edit
     assert old in META_YAML
@@ -335,22 +365,29 @@ def test_yaml_schema_errors(tmp_path, edit, field, match):
 def test_yaml_no_sensors(tmp_path):
     meta = re.sub(r"sensors:\n(  - .*\n(     .*\n)?)+", "sensors: []\n", META_YAML)
     assert "sensors: []" in meta
-    expect_error(make_folder(tmp_path, meta=meta), "campaign.yaml", column="field sensors",
-                 match="at least 1")
+    expect_error(
+        make_folder(tmp_path, meta=meta), "campaign.yaml", column="field sensors", match="at least 1"
+    )
 
 
 # --------------------------------------------------------------------------------------------
 # Column errors
 # --------------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("file, column", [
-    ("fbg.csv", "S2_nm"), ("fbg.csv", "time_s"), ("temperatures.csv", "T_surf_C"),
-    ("reference.csv", "dy_um"), ("loads.csv", "fz_N"),
-])
+
+@pytest.mark.parametrize(
+    "file, column",
+    [
+        ("fbg.csv", "S2_nm"),
+        ("fbg.csv", "time_s"),
+        ("temperatures.csv", "T_surf_C"),
+        ("reference.csv", "dy_um"),
+        ("loads.csv", "fz_N"),
+    ],
+)
 def test_missing_column(tmp_path, file, column):
     tables = default_tables()
-    loads = {"time_s": np.arange(3.0), "fx_N": np.zeros(3), "fy_N": np.zeros(3),
-             "fz_N": np.zeros(3)}
+    loads = {"time_s": np.arange(3.0), "fx_N": np.zeros(3), "fy_N": np.zeros(3), "fz_N": np.zeros(3)}
     target = loads if file == "loads.csv" else tables[file]
     del target[column]
     folder = make_folder(tmp_path, tables=tables, loads=loads)
@@ -360,8 +397,12 @@ def test_missing_column(tmp_path, file, column):
 def test_unknown_sensor_column(tmp_path):
     tables = default_tables()
     tables["fbg.csv"]["S6_nm"] = np.full(61, 1560.0)
-    expect_error(make_folder(tmp_path, tables=tables), "fbg.csv", column="S6_nm",
-                 match="unknown sensor 'S6'.*declared: S1, S2, S3")
+    expect_error(
+        make_folder(tmp_path, tables=tables),
+        "fbg.csv",
+        column="S6_nm",
+        match="unknown sensor 'S6'.*declared: S1, S2, S3",
+    )
 
 
 def test_extra_columns_outside_the_format_are_ignored_and_reported(tmp_path):
@@ -386,6 +427,7 @@ def test_extra_columns_outside_the_format_are_ignored_and_reported(tmp_path):
 # --------------------------------------------------------------------------------------------
 # Cell errors
 # --------------------------------------------------------------------------------------------
+
 
 def test_non_numeric_cell(folder):
     set_cell(folder, "fbg.csv", 12, "S2_nm", "1540.0x1")
@@ -412,20 +454,23 @@ def test_non_finite_cell(folder, text):
 def test_decreasing_time(folder):
     set_cell(folder, "reference.csv", 8, "time_s", "11.0")
     # row 7 is t = 12 s, row 8 now 11 s
-    expect_error(folder, "reference.csv", row=8, column="time_s",
-                 match="time goes backwards: 11.0 s after 12.0 s")
+    expect_error(
+        folder, "reference.csv", row=8, column="time_s", match="time goes backwards: 11.0 s after 12.0 s"
+    )
 
 
 def test_duplicated_time(folder):
     set_cell(folder, "fbg.csv", 21, "time_s", "19.0")
-    expect_error(folder, "fbg.csv", row=21, column="time_s",
-                 match=r"duplicated time 19.0 s \(same as row 20\)")
+    expect_error(
+        folder, "fbg.csv", row=21, column="time_s", match=r"duplicated time 19.0 s \(same as row 20\)"
+    )
 
 
 def test_wavelength_outside_band(folder):
     set_cell(folder, "fbg.csv", 33, "S3_nm", "1555.25")
-    expect_error(folder, "fbg.csv", row=33, column="S3_nm",
-                 match=r"wavelength 1555.25 nm is outside .*1550 ± 5 nm")
+    expect_error(
+        folder, "fbg.csv", row=33, column="S3_nm", match=r"wavelength 1555.25 nm is outside .*1550 ± 5 nm"
+    )
 
 
 def test_wavelength_just_inside_band_is_accepted(folder):
@@ -437,6 +482,7 @@ def test_wavelength_just_inside_band_is_accepted(folder):
 # Alignment and zero state
 # --------------------------------------------------------------------------------------------
 
+
 def staggered_campaign(loads: dict | None = None) -> Campaign:
     """Different clocks: FBG 10 Hz from 3 s, probes 10 s to 95 s, interferometer 1 s to 120 s."""
     tf = np.round(np.arange(3.0, 100.0001, 0.1), 10)
@@ -446,8 +492,12 @@ def staggered_campaign(loads: dict | None = None) -> Campaign:
     meta = yaml.load(META_YAML, Loader=yaml.SafeLoader)
     return Campaign.from_arrays(
         meta,
-        fbg={"time_s": tf, "S1_nm": 1530 + 1e-3 * tf, "S2_nm": 1540 - 2e-3 * tf,
-             "S3_nm": np.full_like(tf, 1550.5)},
+        fbg={
+            "time_s": tf,
+            "S1_nm": 1530 + 1e-3 * tf,
+            "S2_nm": 1540 - 2e-3 * tf,
+            "S3_nm": np.full_like(tf, 1550.5),
+        },
         temperatures={"time_s": tt, "T_bulk_C": 20 + 0.1 * tt, "T_surf_C": 30 - 0.05 * tt},
         reference={"time_s": tr, "dx_um": 2.0 * tr, "dy_um": 100 - tr, "dz_um": np.zeros_like(tr)},
         loads=loads,
@@ -485,8 +535,7 @@ def test_alignment_never_extrapolates():
 def test_zero_state_is_mean_of_first_10_s_of_each_signal():
     a = staggered_campaign().aligned()
     # FBG: samples 3.0 .. 13.0 s (101 samples), mean time 8 s
-    np.testing.assert_allclose(a.wavelength_zero_nm, [1530 + 8e-3, 1540 - 16e-3, 1550.5],
-                               rtol=0, atol=1e-9)
+    np.testing.assert_allclose(a.wavelength_zero_nm, [1530 + 8e-3, 1540 - 16e-3, 1550.5], rtol=0, atol=1e-9)
     # probes: samples at 0 and 10 s, mean time 5 s
     np.testing.assert_allclose(a.temperature_zero_C, [20.5, 29.75], rtol=0, atol=1e-12)
     # interferometer: 0 .. 10 s on its own clock (before the overlap), mean time 5 s
@@ -496,10 +545,13 @@ def test_zero_state_is_mean_of_first_10_s_of_each_signal():
     np.testing.assert_allclose(a.delta_temperature_C[0], [0.3 - 0.5, -0.15 + 0.25], atol=1e-12)
 
 
-@pytest.mark.parametrize("window, t_mean_fbg, t_mean_probe, t_mean_ref", [
-    (0.0, 3.0, 0.0, 0.0),     # first sample only
-    (25.0, 15.5, 10.0, 12.5),  # probes 0, 10, 20 s; reference 0..25 s; FBG 3..28 s
-])
+@pytest.mark.parametrize(
+    "window, t_mean_fbg, t_mean_probe, t_mean_ref",
+    [
+        (0.0, 3.0, 0.0, 0.0),  # first sample only
+        (25.0, 15.5, 10.0, 12.5),  # probes 0, 10, 20 s; reference 0..25 s; FBG 3..28 s
+    ],
+)
 def test_zero_window_is_configurable(window, t_mean_fbg, t_mean_probe, t_mean_ref):
     a = staggered_campaign().aligned(zero_window_s=window)
     assert a.zero_window_s == window
@@ -516,14 +568,19 @@ def test_bad_zero_window(window):
 
 def test_loads_interpolated_inside_their_range_and_nan_outside():
     tl = np.array([10.0, 50.0, 60.0])
-    loads = {"time_s": tl, "fx_N": np.array([0.0, 4000.0, 4000.0]), "fy_N": np.zeros(3),
-             "fz_N": np.array([-1.0, -1.0, -1.0])}
+    loads = {
+        "time_s": tl,
+        "fx_N": np.array([0.0, 4000.0, 4000.0]),
+        "fy_N": np.zeros(3),
+        "fz_N": np.array([-1.0, -1.0, -1.0]),
+    }
     a = staggered_campaign(loads).aligned()
     # loads never narrow the overlap
     assert a.dropped["overlap_s"] == (3.0, 95.0)
     inside = (a.time_s >= 10) & (a.time_s <= 60)
-    np.testing.assert_allclose(a.loads_N[inside, 0],
-                               np.interp(a.time_s[inside], tl, [0, 4000, 4000]), atol=1e-9)
+    np.testing.assert_allclose(
+        a.loads_N[inside, 0], np.interp(a.time_s[inside], tl, [0, 4000, 4000]), atol=1e-9
+    )
     assert a.loads_N[a.time_s == 30.0, 0][0] == 2000.0
     assert np.isnan(a.loads_N[~inside]).all()
     assert a.dropped["loads_outside"] == int((~inside).sum()) == 7 + 35
@@ -538,8 +595,9 @@ def test_no_overlap_is_an_input_error():
 
 def test_no_reference_sample_inside_overlap():
     c = staggered_campaign()
-    c.reference = pd.DataFrame({"time_s": [0.5, 99.5], "dx_um": [0.0, 1.0], "dy_um": [0.0, 1.0],
-                                "dz_um": [0.0, 1.0]})
+    c.reference = pd.DataFrame(
+        {"time_s": [0.5, 99.5], "dx_um": [0.0, 1.0], "dy_um": [0.0, 1.0], "dz_um": [0.0, 1.0]}
+    )
     c.fbg = c.fbg[(c.fbg["time_s"] >= 40) & (c.fbg["time_s"] <= 41)]
     with pytest.raises(InputError, match="no reference sample"):
         c.aligned()
@@ -549,11 +607,16 @@ def test_no_reference_sample_inside_overlap():
 # summary()
 # --------------------------------------------------------------------------------------------
 
+
 def test_summary_reports_files_overlap_and_problems(tmp_path):
     tables = default_tables()
     t = np.concatenate([np.arange(0.0, 20.0), np.arange(120.0, 161.0)])
-    tables["fbg.csv"] = {"time_s": t, "S1_nm": 1530 + 1e-4 * t, "S2_nm": np.full_like(t, 1540.0),
-                         "S3_nm": np.full_like(t, 1550.0)}
+    tables["fbg.csv"] = {
+        "time_s": t,
+        "S1_nm": 1530 + 1e-4 * t,
+        "S2_nm": np.full_like(t, 1540.0),
+        "S3_nm": np.full_like(t, 1550.0),
+    }
     tables["temperatures.csv"]["T_amb_C"] = np.full(7, 24.5)
     meta = META_YAML.replace("gauge_length_mm: 400}", "gauge_length_mm: 400, colour: blue}")
     c = read_campaign(make_folder(tmp_path, tables=tables, meta=meta))
@@ -579,8 +642,7 @@ def test_summary_reports_files_overlap_and_problems(tmp_path):
 
 
 def test_summary_counts_reference_outside_overlap_and_uncovered_loads():
-    loads = {"time_s": np.array([50.0, 60.0]), "fx_N": np.zeros(2), "fy_N": np.zeros(2),
-             "fz_N": np.zeros(2)}
+    loads = {"time_s": np.array([50.0, 60.0]), "fx_N": np.zeros(2), "fy_N": np.zeros(2), "fz_N": np.zeros(2)}
     s = staggered_campaign(loads).summary()
     assert s["overlap_s"] == [3.0, 95.0]
     assert s["reference_outside_overlap"] == {"before": 3, "after": 25}
@@ -592,11 +654,13 @@ def test_summary_counts_reference_outside_overlap_and_uncovered_loads():
 # from_arrays and writing
 # --------------------------------------------------------------------------------------------
 
+
 def test_from_arrays_validates_like_the_reader():
     meta = yaml.load(META_YAML, Loader=yaml.SafeLoader)
     tables = default_tables()
-    good = dict(fbg=tables["fbg.csv"], temperatures=tables["temperatures.csv"],
-                reference=tables["reference.csv"])
+    good = dict(
+        fbg=tables["fbg.csv"], temperatures=tables["temperatures.csv"], reference=tables["reference.csv"]
+    )
     Campaign.from_arrays(meta, **good)
 
     bad = dict(good, fbg={k: v for k, v in tables["fbg.csv"].items() if k != "S1_nm"})
@@ -611,11 +675,13 @@ def test_from_arrays_validates_like_the_reader():
     assert (info.value.file, info.value.row, info.value.column) == ("reference.csv", 5, "dx_um")
 
     with pytest.raises(InputError, match="not numeric"):
-        Campaign.from_arrays(meta, **dict(good, temperatures=dict(
-            tables["temperatures.csv"], T_bulk_C=["warm"] * 7)))
+        Campaign.from_arrays(
+            meta, **dict(good, temperatures=dict(tables["temperatures.csv"], T_bulk_C=["warm"] * 7))
+        )
     with pytest.raises(InputError, match="cannot make a table"):
-        Campaign.from_arrays(meta, **dict(good, temperatures=dict(
-            tables["temperatures.csv"], T_bulk_C=np.zeros(3))))
+        Campaign.from_arrays(
+            meta, **dict(good, temperatures=dict(tables["temperatures.csv"], T_bulk_C=np.zeros(3)))
+        )
     with pytest.raises(InputError) as info:
         Campaign.from_arrays(dict(meta, kind="dynamic"), **good)
     assert info.value.column == "field kind"
@@ -636,14 +702,16 @@ def test_unicode_metadata_and_extra_keys_round_trip(tmp_path):
     c = read_campaign(make_folder(tmp_path, name="src"))
     meta = c.meta.model_dump()
     # NEL and LINE SEPARATOR are YAML line breaks: written raw they would come back as spaces
-    meta.update(description="Prüfstand – 36 h Ωµ°C\x85next\u2028line",
-                scenario={"ü": [1, "1e5"]}, notes=None)
-    edited = Campaign.from_arrays(meta, fbg=c.fbg, temperatures=c.temperatures,
-                                  reference=c.reference)
+    meta.update(description="Prüfstand – 36 h Ωµ°C\x85next\u2028line", scenario={"ü": [1, "1e5"]}, notes=None)
+    edited = Campaign.from_arrays(meta, fbg=c.fbg, temperatures=c.temperatures, reference=c.reference)
     back = read_campaign(write_campaign(edited, tmp_path / "copy"))
     assert back.meta.description == meta["description"]
-    assert back.meta.model_extra == {"machine": "ram prototype", "seed": 7,
-                                     "scenario": {"ü": [1, "1e5"]}, "notes": None}
+    assert back.meta.model_extra == {
+        "machine": "ram prototype",
+        "seed": 7,
+        "scenario": {"ü": [1, "1e5"]},
+        "notes": None,
+    }
 
 
 def assert_same_campaign(a: Campaign, b: Campaign) -> None:
@@ -666,7 +734,11 @@ def test_write_replaces_existing_campaign_and_leaves_no_temporary(tmp_path):
     assert read_campaign(target).reference["dz_um"].eq(7.0).all()
     assert sorted(p.name for p in target.parent.iterdir()) == ["camp"]
     assert sorted(p.name for p in target.iterdir()) == [
-        "campaign.yaml", "fbg.csv", "reference.csv", "temperatures.csv"]
+        "campaign.yaml",
+        "fbg.csv",
+        "reference.csv",
+        "temperatures.csv",
+    ]
 
 
 def test_failed_write_leaves_existing_folder_intact(tmp_path):
@@ -675,8 +747,13 @@ def test_failed_write_leaves_existing_folder_intact(tmp_path):
     write_campaign(c, target)
     before = {p.name: p.read_bytes() for p in target.iterdir()}
     # metadata PyYAML cannot represent: the CSVs are already written when the YAML fails
-    broken = Campaign(path=None, meta=c.meta.model_copy(update={"notes": object()}), fbg=c.fbg,
-                      temperatures=c.temperatures, reference=c.reference)
+    broken = Campaign(
+        path=None,
+        meta=c.meta.model_copy(update={"notes": object()}),
+        fbg=c.fbg,
+        temperatures=c.temperatures,
+        reference=c.reference,
+    )
     with pytest.raises(InputError, match="cannot be written as YAML"):
         write_campaign(broken, target)
     assert {p.name: p.read_bytes() for p in target.iterdir()} == before
@@ -709,11 +786,14 @@ def test_write_refuses_to_replace_a_folder_that_is_not_a_campaign(tmp_path):
 _FIELDS = set(CampaignMeta.model_fields)
 _names = st.from_regex(r"[A-Za-z][A-Za-z0-9_]{0,5}", fullmatch=True)
 _yaml_values = st.recursive(
-    st.none() | st.booleans() | st.integers(-10**12, 10**12)
-    | st.floats(allow_nan=False, allow_infinity=False) | st.text(max_size=12),
-    lambda inner: st.lists(inner, max_size=3)
-    | st.dictionaries(st.text(max_size=6), inner, max_size=3),
-    max_leaves=6)
+    st.none()
+    | st.booleans()
+    | st.integers(-(10**12), 10**12)
+    | st.floats(allow_nan=False, allow_infinity=False)
+    | st.text(max_size=12),
+    lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=6), inner, max_size=3),
+    max_leaves=6,
+)
 _finite = st.floats(allow_nan=False, allow_infinity=False)
 # Inside the reader's physical bounds (campaign.VALUE_BOUNDS): anything else is a bad cell.
 _temperature = st.floats(-273.15, 1000.0)
@@ -722,8 +802,9 @@ _force = st.floats(-1e7, 1e7, exclude_min=True, exclude_max=True)
 
 
 def _times(n):
-    return st.lists(st.floats(-1e7, 1e7, allow_nan=False), min_size=n, max_size=n,
-                    unique=True).map(lambda v: np.array(sorted(v), dtype=float))
+    return st.lists(st.floats(-1e7, 1e7, allow_nan=False), min_size=n, max_size=n, unique=True).map(
+        lambda v: np.array(sorted(v), dtype=float)
+    )
 
 
 @st.composite
@@ -732,12 +813,18 @@ def campaigns(draw) -> Campaign:
     probes = draw(st.lists(_names, max_size=3, unique=True))
     sensor_specs = []
     for name in sensors:
-        spec = {"name": name, "lambda0_nm": draw(st.floats(1000, 2000)),
-                "gauge_length_mm": draw(st.floats(1, 2000))}
+        spec = {
+            "name": name,
+            "lambda0_nm": draw(st.floats(1000, 2000)),
+            "gauge_length_mm": draw(st.floats(1, 2000)),
+        }
         if draw(st.booleans()):
-            spec.update(photoelastic=draw(st.floats(0, 0.5)), face=draw(
-                st.sampled_from(["+X", "-X", "+Y", "-Y", "+Z", "-Z"])),
-                z_start_mm=draw(_finite), z_end_mm=draw(_finite))
+            spec.update(
+                photoelastic=draw(st.floats(0, 0.5)),
+                face=draw(st.sampled_from(["+X", "-X", "+Y", "-Y", "+Z", "-Z"])),
+                z_start_mm=draw(_finite),
+                z_end_mm=draw(_finite),
+            )
         if probes and draw(st.booleans()):
             spec["temperature_probe"] = draw(st.sampled_from(probes))
         sensor_specs.append(spec)
@@ -745,15 +832,19 @@ def campaigns(draw) -> Campaign:
         "name": draw(st.text(min_size=1, max_size=20)),
         "kind": draw(st.sampled_from(["thermal", "static", "combined"])),
         "description": draw(st.text(max_size=40)),
-        "start": draw(st.datetimes(timezones=st.sampled_from(
-            [timezone.utc, timezone(timedelta(hours=5, minutes=30)),
-             timezone(timedelta(hours=-8))]))),
+        "start": draw(
+            st.datetimes(
+                timezones=st.sampled_from(
+                    [UTC, timezone(timedelta(hours=5, minutes=30)), timezone(timedelta(hours=-8))]
+                )
+            )
+        ),
         "sensors": sensor_specs,
         "temperature_probes": [
             {"name": p, **({"location": draw(st.text(max_size=20))} if draw(st.booleans()) else {})}
-            for p in probes],
-        **draw(st.dictionaries(_names.filter(lambda k: k not in _FIELDS), _yaml_values,
-                               max_size=3)),
+            for p in probes
+        ],
+        **draw(st.dictionaries(_names.filter(lambda k: k not in _FIELDS), _yaml_values, max_size=3)),
     }
     n_fbg, n_temp, n_ref = (draw(st.integers(1, 12)) for _ in range(3))
     fbg = {"time_s": draw(_times(n_fbg))}
@@ -773,8 +864,7 @@ def campaigns(draw) -> Campaign:
         loads = {"time_s": draw(_times(n_loads))}
         for column in ("fx_N", "fy_N", "fz_N"):
             loads[column] = draw(hnp.arrays(np.float64, n_loads, elements=_force))
-    return Campaign.from_arrays(meta, fbg=fbg, temperatures=temperatures, reference=reference,
-                                loads=loads)
+    return Campaign.from_arrays(meta, fbg=fbg, temperatures=temperatures, reference=reference, loads=loads)
 
 
 @settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -810,8 +900,12 @@ def _read_or_input_error(folder: Path) -> None:
 
 
 @settings(max_examples=120, deadline=None)
-@given(file=st.sampled_from(["fbg.csv", "temperatures.csv", "reference.csv"]),
-       where=st.integers(0, 6), column=st.integers(0, 3), garbage=st.text(max_size=30))
+@given(
+    file=st.sampled_from(["fbg.csv", "temperatures.csv", "reference.csv"]),
+    where=st.integers(0, 6),
+    column=st.integers(0, 3),
+    garbage=st.text(max_size=30),
+)
 def test_parser_survives_garbage_in_a_cell_or_header(file, where, column, garbage):
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / "c"
@@ -826,8 +920,10 @@ def test_parser_survives_garbage_in_a_cell_or_header(file, where, column, garbag
 
 
 @settings(max_examples=80, deadline=None)
-@given(file=st.sampled_from(["fbg.csv", "reference.csv", "campaign.yaml"]),
-       content=st.binary(max_size=200) | st.text(max_size=200).map(str.encode))
+@given(
+    file=st.sampled_from(["fbg.csv", "reference.csv", "campaign.yaml"]),
+    content=st.binary(max_size=200) | st.text(max_size=200).map(str.encode),
+)
 def test_reader_survives_arbitrary_file_contents(file, content):
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / "c"
@@ -847,14 +943,15 @@ def test_fast_instrument_is_averaged_onto_the_reference_clock_exactly_for_linear
 
     # 10 Hz interrogator, 1 Hz interferometer: linear-in-time wavelengths come through exactly,
     # white noise drops by ~sqrt(10) compared with point interpolation.
-    c, _ = linear_truth_campaign("avg", seed=4, duration_s=600, fbg_dt_s=0.1, reference_dt_s=1.0,
-                                 reference_offset_s=0.37, settle_s=0.0)
+    c, _ = linear_truth_campaign(
+        "avg", seed=4, duration_s=600, fbg_dt_s=0.1, reference_dt_s=1.0, reference_offset_s=0.37, settle_s=0.0
+    )
     t = c.fbg["time_s"].to_numpy()
     ramp = 1530.0 + 1e-4 * t
     rng = np.random.default_rng(0)
     noisy = c.fbg.copy()
     noisy["S1_nm"] = ramp + 1e-3 * rng.standard_normal(t.size)
-    noisy["S2_nm"] = ramp[:, ] + 5.0  # S2 lambda0 is 1535
+    noisy["S2_nm"] = ramp[:,] + 5.0  # S2 lambda0 is 1535
     c2 = type(c).from_arrays(c.meta, fbg=noisy, temperatures=c.temperatures, reference=c.reference)
     a = c2.aligned()
     exact = 1530.0 + 1e-4 * a.time_s
@@ -868,9 +965,15 @@ def test_fast_instrument_is_averaged_onto_the_reference_clock_exactly_for_linear
 # A bounded reader (issue 13): wide headers, streamed bodies, physical bounds, nothing echoed
 # --------------------------------------------------------------------------------------------
 
+
 def _fbgcomp(*args, timeout=30):
-    return subprocess.run([sys.executable, "-m", "fbgcomp", *map(str, args)], capture_output=True,
-                          text=True, timeout=timeout, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    return subprocess.run(
+        [sys.executable, "-m", "fbgcomp", *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
 
 
 def test_a_million_column_header_is_refused_in_seconds_by_inspect_and_fit(folder):
@@ -897,8 +1000,12 @@ def test_the_column_cap_is_documented_and_exact(folder):
     assert len(read_campaign(wide).fbg.attrs["ignored_columns"]) == extra
     tables["fbg.csv"]["one_more"] = np.zeros(61)
     too_wide = make_folder(folder.parent / "too_wide", tables=tables)
-    expect_error(too_wide, "fbg.csv", match=f"the header has {campaign_module.MAX_COLUMNS + 1} "
-                 f"columns; a campaign CSV holds at most {campaign_module.MAX_COLUMNS}")
+    expect_error(
+        too_wide,
+        "fbg.csv",
+        match=f"the header has {campaign_module.MAX_COLUMNS + 1} "
+        f"columns; a campaign CSV holds at most {campaign_module.MAX_COLUMNS}",
+    )
     assert "4096" in campaign_module.__doc__ and "4096" in Path("README.md").read_text()
 
 
@@ -925,10 +1032,17 @@ def _rewrite(path: Path, line_end: bytes, trailing: bytes = b"") -> None:
 
 
 @settings(max_examples=60, deadline=None)
-@given(chunk=st.integers(1, 300), line_end=st.sampled_from([b"\n", b"\r\n", b"\r"]),
-       trailing=st.sampled_from([b"", b"\n", b"\n\n  \n", b"\r\n\t"]),
-       bad=st.none() | st.tuples(st.integers(1, 30), st.sampled_from(["dx_um", "dz_um"]),
-                                 st.sampled_from(["x", "", "nan", "1e999", "3e6"])))
+@given(
+    chunk=st.integers(1, 300),
+    line_end=st.sampled_from([b"\n", b"\r\n", b"\r"]),
+    trailing=st.sampled_from([b"", b"\n", b"\n\n  \n", b"\r\n\t"]),
+    bad=st.none()
+    | st.tuples(
+        st.integers(1, 30),
+        st.sampled_from(["dx_um", "dz_um"]),
+        st.sampled_from(["x", "", "nan", "1e999", "3e6"]),
+    ),
+)
 def test_streamed_blocks_read_exactly_what_a_whole_read_does(chunk, line_end, trailing, bad):
     # The body is parsed in blocks of whole rows: any block size, line end or trailing blank
     # lines give the same numbers, and a bad cell the same row, column and message.
@@ -967,16 +1081,25 @@ def test_a_blank_line_between_blocks_is_an_empty_row(folder):
             expect_error(folder, "reference.csv", row=11, match="empty row")
 
 
-@pytest.mark.parametrize("file, row, column, text, match", [
-    # finding 8: a 1e308 in temperatures.csv was reported against the derived column dL_S1
-    ("temperatures.csv", 3, "T_bulk_C", "1e308", r"temperature 1e\+308 degC is outside the "
-     r"physical range \[-273.15, 1000\] degC"),
-    ("temperatures.csv", 5, "T_surf_C", "-300", "temperature -300.0 degC"),
-    ("reference.csv", 4, "dy_um", "1e308", r"displacement 1e\+308 um .* \(-1e6, 1e6\) um"),
-    ("reference.csv", 9, "dx_um", "-2000000", "displacement -2000000.0 um"),
-    ("fbg.csv", 2, "S1_nm", "-1530", r"wavelength -1530.0 nm .* \(0, 10000\) nm"),
-    ("fbg.csv", 61, "time_s", "1e11", r"time 100000000000.0 s .* \(-1e10, 1e10\) s"),
-])
+@pytest.mark.parametrize(
+    "file, row, column, text, match",
+    [
+        # finding 8: a 1e308 in temperatures.csv was reported against the derived column dL_S1
+        (
+            "temperatures.csv",
+            3,
+            "T_bulk_C",
+            "1e308",
+            r"temperature 1e\+308 degC is outside the "
+            r"physical range \[-273.15, 1000\] degC",
+        ),
+        ("temperatures.csv", 5, "T_surf_C", "-300", "temperature -300.0 degC"),
+        ("reference.csv", 4, "dy_um", "1e308", r"displacement 1e\+308 um .* \(-1e6, 1e6\) um"),
+        ("reference.csv", 9, "dx_um", "-2000000", "displacement -2000000.0 um"),
+        ("fbg.csv", 2, "S1_nm", "-1530", r"wavelength -1530.0 nm .* \(0, 10000\) nm"),
+        ("fbg.csv", 61, "time_s", "1e11", r"time 100000000000.0 s .* \(-1e10, 1e10\) s"),
+    ],
+)
 def test_absurd_magnitudes_are_bad_cells_of_their_file(folder, file, row, column, text, match):
     set_cell(folder, file, row, column, text)
     expect_error(folder, file, row=row, column=column, match=match)
@@ -984,8 +1107,10 @@ def test_absurd_magnitudes_are_bad_cells_of_their_file(folder, file, row, column
 
 def test_absurd_forces_are_bad_cells_of_loads_csv(tmp_path):
     t = np.arange(0.0, 61.0, 5)
-    folder = make_folder(tmp_path, loads={"time_s": t, "fx_N": np.zeros_like(t),
-                                          "fy_N": np.zeros_like(t), "fz_N": np.zeros_like(t)})
+    folder = make_folder(
+        tmp_path,
+        loads={"time_s": t, "fx_N": np.zeros_like(t), "fy_N": np.zeros_like(t), "fz_N": np.zeros_like(t)},
+    )
     set_cell(folder, "loads.csv", 6, "fz_N", "-1e8")
     expect_error(folder, "loads.csv", row=6, column="fz_N", match=r"force -100000000.0 N")
 
@@ -994,19 +1119,26 @@ def test_from_arrays_applies_the_same_bounds():
     meta = yaml.safe_load(META_YAML.replace("start: 2026-01-12T08:00:00Z", "start: '2026-01-12T08:00:00Z'"))
     tables = default_tables()
     tables["temperatures.csv"]["T_bulk_C"] = tables["temperatures.csv"]["T_bulk_C"] * 1e306
-    with pytest.raises(InputError, match="temperatures.csv, row 1 .*T_bulk_C: temperature 2e\\+307"):
-        Campaign.from_arrays(meta, fbg=tables["fbg.csv"], temperatures=tables["temperatures.csv"],
-                             reference=tables["reference.csv"])
+    with pytest.raises(InputError, match=r"temperatures\.csv, row 1 .*T_bulk_C: temperature 2e\+307"):
+        Campaign.from_arrays(
+            meta,
+            fbg=tables["fbg.csv"],
+            temperatures=tables["temperatures.csv"],
+            reference=tables["reference.csv"],
+        )
 
 
 SECRET = "root:x:0:0:root:/root:/bin/bash"
 
 
-@pytest.mark.parametrize("content", [
-    f"{SECRET}\ndaemon:x:1:1:daemon:/usr/sbin:/usr/sbin/nologin\n",
-    "api_key=hunter2,password=swordfish,time\n1,2,3\n",
-    "\x00\x01\x02 secret \x7f,\x1b[2J\n",
-])
+@pytest.mark.parametrize(
+    "content",
+    [
+        f"{SECRET}\ndaemon:x:1:1:daemon:/usr/sbin:/usr/sbin/nologin\n",
+        "api_key=hunter2,password=swordfish,time\n1,2,3\n",
+        "\x00\x01\x02 secret \x7f,\x1b[2J\n",
+    ],
+)
 def test_a_link_to_another_file_never_has_its_content_echoed(folder, tmp_path, content):
     # Finding 8: a fbg.csv linked to a system file printed that file's first line.
     other = tmp_path / "elsewhere" / "passwd"
@@ -1046,13 +1178,40 @@ def test_a_cell_is_quoted_cut_short(folder):
 
 
 @settings(max_examples=150, deadline=None)
-@given(chunk=st.sampled_from([3, 17, 256, 1 << 22]),
-       head=st.sampled_from([b"", b"time_s,S1_nm,S2_nm,S3_nm\n", b"time_s,S1_nm,S2_nm,S3_nm\r",
-                             b"\xef\xbb\xbftime_s,S1_nm,S2_nm,S3_nm\r\n"]),
-       content=st.binary(max_size=400)
-       | st.lists(st.sampled_from(["1530", "1540.5", "1550", "0", "1", ",", "\n", "\r", " ",
-                                   "nan", "1e308", "-", "\x00", "é", "\xff"]),
-                  max_size=120).map(lambda parts: "".join(parts).encode("utf-8", "surrogatepass")))
+@given(
+    chunk=st.sampled_from([3, 17, 256, 1 << 22]),
+    head=st.sampled_from(
+        [
+            b"",
+            b"time_s,S1_nm,S2_nm,S3_nm\n",
+            b"time_s,S1_nm,S2_nm,S3_nm\r",
+            b"\xef\xbb\xbftime_s,S1_nm,S2_nm,S3_nm\r\n",
+        ]
+    ),
+    content=st.binary(max_size=400)
+    | st.lists(
+        st.sampled_from(
+            [
+                "1530",
+                "1540.5",
+                "1550",
+                "0",
+                "1",
+                ",",
+                "\n",
+                "\r",
+                " ",
+                "nan",
+                "1e308",
+                "-",
+                "\x00",
+                "é",
+                "\xff",
+            ]
+        ),
+        max_size=120,
+    ).map(lambda parts: "".join(parts).encode("utf-8", "surrogatepass")),
+)
 def test_arbitrary_bytes_in_fbg_csv_give_a_campaign_or_an_input_error(chunk, head, content):
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / "c"

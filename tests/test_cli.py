@@ -6,9 +6,9 @@ import sys
 
 import pytest
 
-from fbgcomp.io.campaign import write_campaign
-from fbgcomp.cli.app import main
 from fbgcomp.bench.synthetic import linear_truth_campaign
+from fbgcomp.cli.app import main
+from fbgcomp.io.campaign import write_campaign
 
 FBGCOMP = [sys.executable, "-m", "fbgcomp"]
 
@@ -16,15 +16,22 @@ FBGCOMP = [sys.executable, "-m", "fbgcomp"]
 @pytest.fixture(scope="module")
 def campaigns(tmp_path_factory):
     root = tmp_path_factory.mktemp("campaigns")
-    train, _ = linear_truth_campaign("train", seed=1, duration_s=3600, temperature_dt_s=10,
-                                     reference_offset_s=0.3)
+    train, _ = linear_truth_campaign(
+        "train", seed=1, duration_s=3600, temperature_dt_s=10, reference_offset_s=0.3
+    )
     test, _ = linear_truth_campaign("test", seed=2, duration_s=3600, temperature_dt_s=10)
     return write_campaign(train, root / "train"), write_campaign(test, root / "test")
 
 
 def run(*args, cwd=None):
-    return subprocess.run([*FBGCOMP, *map(str, args)], capture_output=True, text=True, cwd=cwd,
-                          timeout=300, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    return subprocess.run(
+        [*FBGCOMP, *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=300,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
 
 
 @pytest.mark.slow
@@ -43,8 +50,13 @@ def test_fit_then_validate_through_the_console(campaigns, tmp_path):
     assert m["n_samples"] > 3000
     for axis in ("dx", "dy", "dz"):
         a = m["axes"][axis]
-        assert set(a) >= {"peak_um", "max_abs_error_um", "rms_error_um", "error_pct_of_peak",
-                          "compensation_ratio"}
+        assert set(a) >= {
+            "peak_um",
+            "max_abs_error_um",
+            "rms_error_um",
+            "error_pct_of_peak",
+            "compensation_ratio",
+        }
         assert a["rms_error_um"] < 0.15 and a["compensation_ratio"] > 0.98
     assert "campaign test" in r.stdout and "comp. ratio" in r.stdout
 
@@ -97,23 +109,44 @@ def _replace_cell(row, column_index, value):
         cells[column_index] = value
         lines[row] = ",".join(cells)
         return "\n".join(lines) + "\n"
+
     return f
 
 
 BAD = {
     "non-numeric": ("fbg.csv", _replace_cell(5, 2, "abc"), ["fbg.csv", "row 5 (line 6)", "S2_nm", "abc"]),
     "nan": ("fbg.csv", _replace_cell(7, 3, "nan"), ["fbg.csv", "row 7 (line 8)", "S3_nm"]),
-    "out-of-band": ("fbg.csv", _replace_cell(9, 1, "1600.0"), ["fbg.csv", "row 9 (line 10)", "S1_nm", "1600"]),
-    "time-not-increasing": ("reference.csv", _replace_cell(4, 0, "0.0"), ["reference.csv", "row 4 (line 5)", "time_s"]),
+    "out-of-band": (
+        "fbg.csv",
+        _replace_cell(9, 1, "1600.0"),
+        ["fbg.csv", "row 9 (line 10)", "S1_nm", "1600"],
+    ),
+    "time-not-increasing": (
+        "reference.csv",
+        _replace_cell(4, 0, "0.0"),
+        ["reference.csv", "row 4 (line 5)", "time_s"],
+    ),
     "semicolons": ("temperatures.csv", lambda t: t.replace(",", ";"), ["temperatures.csv", "';'"]),
     "header-only": ("reference.csv", lambda t: t.splitlines()[0] + "\n", ["reference.csv"]),
     "empty": ("fbg.csv", lambda t: "", ["fbg.csv", "empty"]),
-    "missing-column": ("reference.csv", lambda t: "\n".join(",".join(l.split(",")[:3]) for l in t.splitlines()) + "\n",
-                       ["reference.csv", "dz_um"]),
-    "unknown-sensor": ("fbg.csv", lambda t: "\n".join(l + (",S9_nm" if i == 0 else ",1560.0")
-                                                    for i, l in enumerate(t.splitlines())) + "\n", ["fbg.csv", "S9"]),
-    "unknown-probe": ("campaign.yaml", lambda t: t.replace("temperature_probe: T_surf", "temperature_probe: T_nowhere", 1),
-                      ["campaign.yaml", "T_nowhere"]),
+    "missing-column": (
+        "reference.csv",
+        lambda t: "\n".join(",".join(line.split(",")[:3]) for line in t.splitlines()) + "\n",
+        ["reference.csv", "dz_um"],
+    ),
+    "unknown-sensor": (
+        "fbg.csv",
+        lambda t: (
+            "\n".join(line + (",S9_nm" if i == 0 else ",1560.0") for i, line in enumerate(t.splitlines()))
+            + "\n"
+        ),
+        ["fbg.csv", "S9"],
+    ),
+    "unknown-probe": (
+        "campaign.yaml",
+        lambda t: t.replace("temperature_probe: T_surf", "temperature_probe: T_nowhere", 1),
+        ["campaign.yaml", "T_nowhere"],
+    ),
 }
 
 
@@ -156,6 +189,7 @@ def test_existing_model_file_survives_a_failed_fit(campaigns, tmp_path, capsys):
 # Issue 13: models and fits checked at the boundary (finding 2), the reader's bounds (8)
 # --------------------------------------------------------------------------------------------
 
+
 def _one_line_error(r, *fragments):
     assert r.returncode == 2, (r.returncode, r.stdout[-500:], r.stderr)
     lines = r.stderr.strip().splitlines()
@@ -175,10 +209,18 @@ def mra_model(campaigns, tmp_path_factory):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("value, field", [("1e308", "axes.dx.params[1]"), ("NaN", "axes.dx.params[1]"),
-                                          ("null", "axes.dx.params[1]"), ("-Infinity", "axes.dx.params[1]")])
-def test_validate_exits_2_on_a_model_with_an_absurd_or_non_finite_coefficient(campaigns, mra_model, tmp_path,
-                                                                              value, field):
+@pytest.mark.parametrize(
+    "value, field",
+    [
+        ("1e308", "axes.dx.params[1]"),
+        ("NaN", "axes.dx.params[1]"),
+        ("null", "axes.dx.params[1]"),
+        ("-Infinity", "axes.dx.params[1]"),
+    ],
+)
+def test_validate_exits_2_on_a_model_with_an_absurd_or_non_finite_coefficient(
+    campaigns, mra_model, tmp_path, value, field
+):
     # validate exited 0 on these; serve published 1.5e308 um (1e308) or exactly 0 (NaN)
     d = json.loads(mra_model.read_text())
     d["axes"]["dx"]["params"][1] = "@@"
@@ -190,8 +232,9 @@ def test_validate_exits_2_on_a_model_with_an_absurd_or_non_finite_coefficient(ca
 @pytest.mark.slow
 def test_validate_exits_2_on_oversized_and_deeply_nested_model_files(campaigns, tmp_path):
     deep = tmp_path / "deep.json"
-    deep.write_text('{"format": "fbgcomp-model", "schema_version": 2, "x": ' + "[" * 100_000
-                    + "]" * 100_000 + "}")
+    deep.write_text(
+        '{"format": "fbgcomp-model", "schema_version": 2, "x": ' + "[" * 100_000 + "]" * 100_000 + "}"
+    )
     _one_line_error(run("validate", deep, campaigns[1]), "deep.json", "nested deeper")
     big = tmp_path / "big.json"
     with open(big, "w") as handle:
@@ -220,8 +263,13 @@ def test_stepwise_fit_on_a_1e308_reference_keeps_the_existing_model(campaigns, m
     out = tmp_path / "model.json"
     shutil.copy(mra_model, out)
     before = out.read_bytes()
-    _one_line_error(run("fit", broken, "--features", "eq13", "--stepwise", "-o", out),
-                    "reference.csv", "row 40 (line 41)", "dy_um", "displacement")
+    _one_line_error(
+        run("fit", broken, "--features", "eq13", "--stepwise", "-o", out),
+        "reference.csv",
+        "row 40 (line 41)",
+        "dy_um",
+        "displacement",
+    )
     assert out.read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["broken", "model.json"]
 
@@ -230,8 +278,12 @@ def test_stepwise_fit_on_a_1e308_reference_keeps_the_existing_model(campaigns, m
 def test_a_1e308_temperature_is_reported_against_temperatures_csv(campaigns, tmp_path):
     # It was reported against the derived column dL_S1 with no file.
     broken = _with_cell(campaigns[0], tmp_path / "broken", "temperatures.csv", 3, "T_bulk_C", "1e308")
-    line = _one_line_error(run("fit", broken, "--features", "eq13", "-o", tmp_path / "m.json"),
-                           "temperatures.csv", "row 3 (line 4)", "T_bulk_C")
+    line = _one_line_error(
+        run("fit", broken, "--features", "eq13", "-o", tmp_path / "m.json"),
+        "temperatures.csv",
+        "row 3 (line 4)",
+        "T_bulk_C",
+    )
     assert "dL_" not in line and not (tmp_path / "m.json").exists()
 
 
@@ -255,6 +307,15 @@ def test_serve_refuses_a_model_with_an_absurd_coefficient(campaigns, mra_model, 
     d["fallbacks"][0]["axes"]["dy"]["params"][0] = 1e308
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps(d))
-    r = run("serve", "--model", bad, "--source", f"replay://{campaigns[1]}", "--opcua", "off",
-            "--log", tmp_path / "log")
+    r = run(
+        "serve",
+        "--model",
+        bad,
+        "--source",
+        f"replay://{campaigns[1]}",
+        "--opcua",
+        "off",
+        "--log",
+        tmp_path / "log",
+    )
     _one_line_error(r, "bad.json", "field fallbacks[0].axes.dy.params[0]")

@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fbgcomp_testing import RAM2_DIR, read_ram2
 
 from fbgcomp.models.compare import format_campaign_tables
 from fbgcomp.models.metrics import HARM_TOLERANCE_UM
 from fbgcomp.models.mra import MRAModel
+from fbgcomp_testing import RAM2_DIR, read_ram2
 
 REPO = Path(__file__).resolve().parents[1]
 RAM2 = RAM2_DIR / "data"
@@ -24,8 +24,13 @@ TYPES = {"physical", "mra", "ridge", "pls", "dynamic", "kinematic", "hybrid", "c
 
 
 def run(*args, env=None):
-    return subprocess.run([*FBGCOMP, *map(str, args)], capture_output=True, text=True, timeout=600,
-                          env={**os.environ, "PYTHONWARNINGS": "ignore", **(env or {})})
+    return subprocess.run(
+        [*FBGCOMP, *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={**os.environ, "PYTHONWARNINGS": "ignore", **(env or {})},
+    )
 
 
 @pytest.fixture(scope="module")
@@ -37,9 +42,25 @@ def ram2():
 def compared(tmp_path_factory):
     """The real command on ram2: every model type, judged on static_x and thermal_c."""
     out = tmp_path_factory.mktemp("compare")
-    r = run("compare", "--train", RAM2 / "thermal_a", "--train", RAM2 / "static_xyz",
-            "--test", RAM2 / "static_x", "--test", RAM2 / "thermal_c", "--machine", MACHINE,
-            "--csv", out / "c.csv", "--json", out / "c.json", "--markdown", out / "c.md")
+    r = run(
+        "compare",
+        "--train",
+        RAM2 / "thermal_a",
+        "--train",
+        RAM2 / "static_xyz",
+        "--test",
+        RAM2 / "static_x",
+        "--test",
+        RAM2 / "thermal_c",
+        "--machine",
+        MACHINE,
+        "--csv",
+        out / "c.csv",
+        "--json",
+        out / "c.json",
+        "--markdown",
+        out / "c.md",
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     return r.stdout, json.loads((out / "c.json").read_text()), out
 
@@ -54,14 +75,19 @@ def test_compare_runs_every_model_type_on_ram2_per_campaign(compared):
         assert {r["model_type"] for r in rows if r["campaign"] == camp} == TYPES | {"none"}
         for axis in ("dx", "dy", "dz"):
             sel = [r for r in rows if r["campaign"] == camp and r["axis"] == axis]
-            assert sel[0]["name"] == "uncompensated"          # first row of every campaign table
+            assert sel[0]["name"] == "uncompensated"  # first row of every campaign table
             assert sorted(r["rank"] for r in sel) == list(range(1, len(sel) + 1))
     # the CSV holds exactly the JSON's rows (same order, same values; undefined numbers empty)
     with open(out / "c_by_campaign.csv", newline="", encoding="utf-8") as fh:
         table = list(csv.DictReader(fh))
     assert len(table) == len(rows)
     for t, r in zip(table, rows):
-        assert (t["campaign"], t["axis"], t["name"], int(t["rank"])) == (r["campaign"], r["axis"], r["name"], r["rank"])
+        assert (t["campaign"], t["axis"], t["name"], int(t["rank"])) == (
+            r["campaign"],
+            r["axis"],
+            r["name"],
+            r["rank"],
+        )
         assert float(t["max_abs_error_um"]) == pytest.approx(r["max_abs_error_um"], rel=1e-12)
         assert t["harm"] == str(r["harm"])
         assert (t["pi95_coverage"] == "") == (r["pi95_coverage"] is None)
@@ -83,8 +109,10 @@ def test_uncompensated_row_and_harm_marks_are_computed_right(compared, ram2):
                 assert r["harm"] == (r["max_abs_error_um"] > un["max_abs_error_um"] + HARM_TOLERANCE_UM)
     # one entry recomputed independently: the paper's eq. 13 regression on static_x
     model = MRAModel(features="eq13", fallbacks="none").fit([ram2["thermal_a"], ram2["static_xyz"]])
-    err = np.abs(model.predict_interval(ram2["static_x"])[0]
-                 - ram2["static_x"].aligned(zero_window_s=10.0).reference_um).max(axis=0)
+    err = np.abs(
+        model.predict_interval(ram2["static_x"])[0]
+        - ram2["static_x"].aligned(zero_window_s=10.0).reference_um
+    ).max(axis=0)
     got = {r["axis"]: r for r in rows if r["campaign"] == "static_x" and r["name"] == "mra eq13"}
     for j, axis in enumerate(("dx", "dy", "dz")):
         assert got[axis]["max_abs_error_um"] == pytest.approx(err[j], rel=1e-9)
@@ -100,10 +128,25 @@ def test_uncompensated_row_and_harm_marks_are_computed_right(compared, ram2):
 
 
 def test_compare_bad_machine_is_one_line(tmp_path):
-    r = run("compare", "--train", RAM2 / "thermal_a", "--test", RAM2 / "static_x",
-            "--machine", tmp_path / "missing.yaml", "--csv", tmp_path / "c.csv", "--json", tmp_path / "c.json")
+    r = run(
+        "compare",
+        "--train",
+        RAM2 / "thermal_a",
+        "--test",
+        RAM2 / "static_x",
+        "--machine",
+        tmp_path / "missing.yaml",
+        "--csv",
+        tmp_path / "c.csv",
+        "--json",
+        tmp_path / "c.json",
+    )
     assert r.returncode == 2 and "Traceback" not in r.stderr
-    assert r.stderr.startswith("error: ") and "missing.yaml" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert (
+        r.stderr.startswith("error: ")
+        and "missing.yaml" in r.stderr
+        and len(r.stderr.strip().splitlines()) == 1
+    )
     assert not (tmp_path / "c.csv").exists()
 
 
@@ -125,8 +168,18 @@ def test_demo_fits_what_fbgcomp_fit_fits(monkeypatch, tmp_path, ram2):
 
     monkeypatch.setattr(PhysicalModel, "fit", record)
     with pytest.raises(Stop):
-        cli.app(args=["fit", str(RAM2 / "thermal_a"), str(RAM2 / "static_xyz"), "--machine", str(MACHINE),
-                      "-o", str(tmp_path / "m.json")], standalone_mode=False)
+        cli.app(
+            args=[
+                "fit",
+                str(RAM2 / "thermal_a"),
+                str(RAM2 / "static_xyz"),
+                "--machine",
+                str(MACHINE),
+                "-o",
+                str(tmp_path / "m.json"),
+            ],
+            standalone_mode=False,
+        )
     with pytest.raises(Stop):
         demo.fit_default([ram2[n] for n in demo.RAM2_TRAIN], demo.RAM2_MACHINE)
     assert len(seen) == 2 and seen[0] == seen[1]
@@ -139,8 +192,14 @@ def test_demo_ram2_section(tmp_path):
     got = run_ram2(RAM2.parent, tmp_path)
     assert "skipped" not in got and set(got["validation"]) == set(RAM2_HELD_OUT)
     assert got["model_type"] == "physical" and (tmp_path / "ram2_model.json").exists()
-    summary = {"machine": "built-in default ram", "n_dof": 1, "trained_on": ["a"], "zero_window_s": 30,
-               "models": {}, "ram2": got}
+    summary = {
+        "machine": "built-in default ram",
+        "n_dof": 1,
+        "trained_on": ["a"],
+        "zero_window_s": 30,
+        "models": {},
+        "ram2": got,
+    }
     res = {"axes": {a: {"resolution_um": 1.0} for a in ("dx", "dy", "dz")}, "rank": 3, "sensors": [1]}
     text = _summary_text(summary, res, tmp_path)
     assert "independent check — ram2" in text
@@ -154,8 +213,15 @@ def test_demo_ram2_section(tmp_path):
 
 def test_demo_without_ram2_says_so_in_one_line_and_carries_on(tmp_path):
     missing = tmp_path / "no-ram2"
-    r = run("demo", "--quick", "--mesh-resolution", "0.4", "-o", tmp_path / "demo",
-            env={"FBGCOMP_RAM2": str(missing), "OPENBLAS_NUM_THREADS": "1"})
+    r = run(
+        "demo",
+        "--quick",
+        "--mesh-resolution",
+        "0.4",
+        "-o",
+        tmp_path / "demo",
+        env={"FBGCOMP_RAM2": str(missing), "OPENBLAS_NUM_THREADS": "1"},
+    )
     assert r.returncode == 0, r.stderr[-2000:]
     lines = [ln for ln in r.stdout.splitlines() if "not found" in ln]
     assert len(lines) == 1 and lines[0].startswith("ram2 not found at " + str(missing))

@@ -31,14 +31,25 @@ import fbgcomp_testing
 from test_runtime_support import fallback_peak_um, fbgcomp_process, free_port, secure_client, wait_port
 
 ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts" / "dashboard"
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync", "--no-first-run"]
-ENV = {"FBGCOMP_DASHBOARD_USER": "engineer", "FBGCOMP_DASHBOARD_PASSWORD": "dash-pass-123",
-       "FBGCOMP_OPCUA_USER": "operator", "FBGCOMP_OPCUA_PASSWORD": "opc-pass-123"}
-RATE_HZ = 200          # interrogator frames per second: far more than the page's 10 updates/s
-MAX_RATE_HZ = 10.0     # the dashboard's default max_rate_hz
-REQUEST_TIMEOUT_S = 5.0   # the dashboard's default request_timeout_s
-MAX_CONNECTIONS = 64   # the dashboard's default max_connections
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
+ENV = {
+    "FBGCOMP_DASHBOARD_USER": "engineer",
+    "FBGCOMP_DASHBOARD_PASSWORD": "dash-pass-123",
+    "FBGCOMP_OPCUA_USER": "operator",
+    "FBGCOMP_OPCUA_PASSWORD": "opc-pass-123",
+}
+RATE_HZ = 200  # interrogator frames per second: far more than the page's 10 updates/s
+MAX_RATE_HZ = 10.0  # the dashboard's default max_rate_hz
+REQUEST_TIMEOUT_S = 5.0  # the dashboard's default request_timeout_s
+MAX_CONNECTIONS = 64  # the dashboard's default max_connections
 
 # every test here starts serve, chromium or both (10-35 s each under load)
 pytestmark = pytest.mark.slow
@@ -51,28 +62,38 @@ def service(tmp_path_factory, runtime_model_and_campaign):
     tmp = tmp_path_factory.mktemp("dashboard")
     dp, op = free_port(), free_port()
     url = f"opc.tcp://127.0.0.1:{op}/fbgcomp/"
-    proc = fbgcomp_process("serve", "--model", model, "--source",
-                           f"sim://{campaign}?rate={RATE_HZ}&loop=1", "--opcua", url,
-                           "--state-dir", tmp / "state", "--dashboard", str(dp),   # host: default
-                           env=ENV)
+    proc = fbgcomp_process(
+        "serve",
+        "--model",
+        model,
+        "--source",
+        f"sim://{campaign}?rate={RATE_HZ}&loop=1",
+        "--opcua",
+        url,
+        "--state-dir",
+        tmp / "state",
+        "--dashboard",
+        str(dp),  # host: default
+        env=ENV,
+    )
+
     def ready():
         if proc.poll() is not None:
             raise AssertionError(f"serve exited with {proc.returncode} during start-up")
         try:
             return _get(f"http://127.0.0.1:{dp}/api/state") is not None
-        except OSError:          # refused or reset while the service is still starting
+        except OSError:  # refused or reset while the service is still starting
             return False
 
     try:
         wait_port(dp, 40)
         wait_port(op, 40)
         _wait_for(ready, 30)
-    except BaseException as exc:   # whatever went wrong, show what the service said
+    except BaseException as exc:  # whatever went wrong, show what the service said
         proc.kill()
         stderr = proc.communicate(timeout=5)[1].decode()[-3000:]
         raise AssertionError(f"{type(exc).__name__}: {exc}\nserve stderr:\n{stderr}") from exc
-    yield {"base": f"http://127.0.0.1:{dp}", "port": dp, "opcua": url, "state": tmp / "state",
-           "proc": proc}
+    yield {"base": f"http://127.0.0.1:{dp}", "port": dp, "opcua": url, "state": tmp / "state", "proc": proc}
     proc.send_signal(signal.SIGTERM)
     try:
         _, err = proc.communicate(timeout=20)
@@ -111,7 +132,7 @@ class SseReader(threading.Thread):
         with socket.create_connection(("127.0.0.1", self.port), timeout=5) as s:
             s.sendall(b"GET /api/stream HTTP/1.1\r\nHost: x\r\nAccept: text/event-stream\r\n\r\n")
             f = s.makefile("rb")
-            end = time.monotonic() + self.timeout_s         # a guard only
+            end = time.monotonic() + self.timeout_s  # a guard only
             while not self.done() and time.monotonic() < end:
                 line = f.readline()
                 if not line:
@@ -122,8 +143,7 @@ class SseReader(threading.Thread):
                     self.frames.append(json.loads(line[6:]))
 
     def done(self) -> bool:
-        return self.events >= self.messages and \
-            self.frames[-1]["t"] - self.frames[0]["t"] >= self.t_span_s
+        return self.events >= self.messages and self.frames[-1]["t"] - self.frames[0]["t"] >= self.t_span_s
 
 
 def _assert_decimated(sent: int, server_span_s: float) -> None:
@@ -133,24 +153,25 @@ def _assert_decimated(sent: int, server_span_s: float) -> None:
     assert sent <= server_span_s * MAX_RATE_HZ * 1.02 + 1, (sent, server_span_s)
 
 
-def _assert_stream(reader: "SseReader") -> None:
+def _assert_stream(reader: SseReader) -> None:
     """A plain SSE client got increasing, decimated messages of a few hundred bytes each."""
     seqs = [f["seq"] for f in reader.frames]
     assert reader.done(), (seqs, [f["t"] for f in reader.frames[:: max(1, len(seqs) // 10)]])
-    assert seqs == sorted(set(seqs)), seqs                 # none twice, none out of order
+    assert seqs == sorted(set(seqs)), seqs  # none twice, none out of order
     sent = seqs[-1] - seqs[0]
     span = reader.frames[-1]["server_s"] - reader.frames[0]["server_s"]
     _assert_decimated(sent, span)
     assert 0.3 * sent <= len(seqs) - 1 <= sent, (len(seqs), sent)
-    assert reader.bytes / span < 10_000, reader.bytes      # a few kB/s per client
+    assert reader.bytes / span < 10_000, reader.bytes  # a few kB/s per client
 
 
 def _enabled_on_opcua(service) -> bool:
     from asyncua import ua
 
     async def read():
-        client = await secure_client(service["opcua"], service["state"],
-                                     ENV["FBGCOMP_OPCUA_USER"], ENV["FBGCOMP_OPCUA_PASSWORD"])
+        client = await secure_client(
+            service["opcua"], service["state"], ENV["FBGCOMP_OPCUA_USER"], ENV["FBGCOMP_OPCUA_PASSWORD"]
+        )
         # the server admits only clients in its trust list (as `fbgcomp trust add` fills it)
         trusted = service["state"] / "opcua" / "trusted"
         trusted.mkdir(parents=True, exist_ok=True)
@@ -171,7 +192,10 @@ def _browser(p):
 def _wait_for_badge(page, state):
     page.wait_for_function(
         "s => document.getElementById('enabled-badge').dataset.state === s || "
-        "document.getElementById('control-error').textContent !== ''", arg=state, timeout=20000)
+        "document.getElementById('control-error').textContent !== ''",
+        arg=state,
+        timeout=20000,
+    )
     assert page.inner_text("#control-error") == ""
     assert page.get_attribute("#enabled-badge", "data-state") == state
 
@@ -183,7 +207,7 @@ def _chart_pixels(page, canvas_id):
 def test_live_page_shows_values_that_move_with_the_interrogator_among_ten_clients(service):
     sync_api = fbgcomp_testing.require("playwright.sync_api")
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
-    others = [SseReader(service["port"], 30) for _ in range(9)]    # the page is the 10th client
+    others = [SseReader(service["port"], 30) for _ in range(9)]  # the page is the 10th client
     for r in others:
         r.start()
     with sync_api.sync_playwright() as p:
@@ -194,18 +218,24 @@ def test_live_page_shows_values_that_move_with_the_interrogator_among_ten_client
             page.on("request", lambda r: requested.append(r.url))
             page.goto(service["base"] + "/")
             page.wait_for_function("() => window.fbgcomp && window.fbgcomp.updates >= 3", timeout=15000)
-            probe = ("({u: fbgcomp.updates, f: fbgcomp.last.frames, t: fbgcomp.last.t, "
-                     "seq: fbgcomp.last.seq, s: fbgcomp.last.server_s})")
+            probe = (
+                "({u: fbgcomp.updates, f: fbgcomp.last.frames, t: fbgcomp.last.t, "
+                "seq: fbgcomp.last.seq, s: fbgcomp.last.server_s})"
+            )
             before = page.evaluate(probe)
             texts0 = [page.inner_text(f"#corr-{a}") for a in ("dx", "dy", "dz")]
             dl0 = page.inner_text("#sensors tbody tr:first-child td.dl")
-            charts0 = {c: _chart_pixels(page, c) for c in
-                       ("chart-elongation", "chart-temperature", "chart-deviation",
-                        "chart-correction")}
+            charts0 = {
+                c: _chart_pixels(page, c)
+                for c in ("chart-elongation", "chart-temperature", "chart-deviation", "chart-correction")
+            }
             # wait for the stream, not the clock: a few more updates and 2 s of sample time
             page.wait_for_function(
                 "b => fbgcomp.updates >= b.u + 5 && fbgcomp.last.t >= b.t + 2.0 && "
-                "fbgcomp.last.server_s > b.s", arg=before, timeout=60000)
+                "fbgcomp.last.server_s > b.s",
+                arg=before,
+                timeout=60000,
+            )
             after = page.evaluate(probe)
             # decimated to <= 10 messages per second of the server's own clock, and the page
             # (one of ten clients) got them all or nearly: it cannot get more than were sent
@@ -214,12 +244,12 @@ def test_live_page_shows_values_that_move_with_the_interrogator_among_ten_client
             assert 0.3 * sent <= received <= sent, (received, sent)
             # every frame of the interval was processed: frames count with sample time
             assert after["f"] - before["f"] >= 0.9 * (after["t"] - before["t"]) * RATE_HZ
-            assert after["t"] >= before["t"] + 2.0          # sample time stamps moved on
+            assert after["t"] >= before["t"] + 2.0  # sample time stamps moved on
             texts1 = [page.inner_text(f"#corr-{a}") for a in ("dx", "dy", "dz")]
             assert texts1 != texts0 and all(t != "—" for t in texts1)
             assert page.inner_text("#sensors tbody tr:first-child td.dl") != dl0
             for c, pixels in charts0.items():
-                assert _chart_pixels(page, c) != pixels, c       # every chart redrew new data
+                assert _chart_pixels(page, c) != pixels, c  # every chart redrew new data
             assert page.inner_text("#health").startswith("OK")
             assert page.inner_text("#link") == "live"
             statuses = page.locator("#sensors tbody td.status").all_inner_texts()
@@ -241,9 +271,12 @@ def test_control_needs_login_and_switches_the_opcua_enabled_state(service):
     sync_api = fbgcomp_testing.require("playwright.sync_api")
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     # without a session the control is refused at the server, not only greyed out in the page
-    req = urllib.request.Request(service["base"] + "/api/enabled", method="POST",
-                                 data=b'{"enabled": false}',
-                                 headers={"Content-Type": "application/json"})
+    req = urllib.request.Request(
+        service["base"] + "/api/enabled",
+        method="POST",
+        data=b'{"enabled": false}',
+        headers={"Content-Type": "application/json"},
+    )
     with pytest.raises(urllib.error.HTTPError) as err:
         urllib.request.urlopen(req, timeout=5)
     assert err.value.code == 401
@@ -275,9 +308,11 @@ def test_control_needs_login_and_switches_the_opcua_enabled_state(service):
             assert cookie["httpOnly"] and cookie["sameSite"] == "Strict"
             assert "fbgcomp_session" not in page.evaluate("document.cookie")
             # a cross-site form could only send text/plain: refused even with the session
-            status = page.evaluate("fetch('/api/enabled', {method: 'POST', body: "
-                                   "'{\"enabled\": false}', headers: {'Content-Type': "
-                                   "'text/plain'}}).then(r => r.status)")
+            status = page.evaluate(
+                "fetch('/api/enabled', {method: 'POST', body: "
+                "'{\"enabled\": false}', headers: {'Content-Type': "
+                "'text/plain'}}).then(r => r.status)"
+            )
             assert status == 400
 
             # every state the badge shows from now on: a frame built before the switch but
@@ -299,7 +334,7 @@ def test_control_needs_login_and_switches_the_opcua_enabled_state(service):
             assert any(abs(v) > 0 for v in last["deviation_um"])
             assert page.inner_text("#corr-dx") in ("0.000", "-0.000")
             shown = page.evaluate("window.badgeLog")
-            assert "ENABLED" not in shown[shown.index("DISABLED"):], shown
+            assert "ENABLED" not in shown[shown.index("DISABLED") :], shown
             page.screenshot(path=str(ARTIFACTS / "control-disabled.png"), full_page=True)
 
             page.click("#toggle")
@@ -316,7 +351,7 @@ def test_a_client_that_stops_reading_blocks_no_one(service):
     stalled = socket.socket()
     stalled.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1024)
     stalled.connect(("127.0.0.1", service["port"]))
-    stalled.sendall(b"GET /api/stream HTTP/1.1\r\nHost: x\r\n\r\n")   # and never read again
+    stalled.sendall(b"GET /api/stream HTTP/1.1\r\nHost: x\r\n\r\n")  # and never read again
     try:
         state0 = _get(service["base"] + "/api/state")
         readers = [SseReader(service["port"], 10, t_span_s=1.5) for _ in range(3)]
@@ -340,7 +375,7 @@ def _state_or_none(base, context=None):
     try:
         with urllib.request.urlopen(base + "/api/state", timeout=5, context=context) as r:
             return json.loads(r.read())
-    except OSError:          # not listening yet, or reset while starting
+    except OSError:  # not listening yet, or reset while starting
         return None
 
 
@@ -374,14 +409,25 @@ def test_a_lost_grating_shows_as_degraded_with_the_fallback_in_use(tmp_path, run
     # DEGRADED), not refused (ALARM, which a correction beyond 3x the bound raises)
     bound = fallback_peak_um(model, campaign, "S3") / 2.2
     sp, cp, dp = free_port(), free_port(), free_port()
-    sim_args = ("sim-interrogator", campaign, "--port", sp, "--command-port", cp,
-                "--rate", RATE_HZ, "--loop")
+    sim_args = ("sim-interrogator", campaign, "--port", sp, "--command-port", cp, "--rate", RATE_HZ, "--loop")
     sim = fbgcomp_process(*sim_args)
-    serve = fbgcomp_process("serve", "--model", model, "--source",
-                            f"hyperion://127.0.0.1:{sp}?command_port={cp}", "--temperatures",
-                            campaign, "--opcua", "off", "--dashboard", f"127.0.0.1:{dp}",
-                            "--log", tmp_path / "runlog",
-                            "--max-correction-um", ",".join(f"{b:g}" for b in bound))
+    serve = fbgcomp_process(
+        "serve",
+        "--model",
+        model,
+        "--source",
+        f"hyperion://127.0.0.1:{sp}?command_port={cp}",
+        "--temperatures",
+        campaign,
+        "--opcua",
+        "off",
+        "--dashboard",
+        f"127.0.0.1:{dp}",
+        "--log",
+        tmp_path / "runlog",
+        "--max-correction-um",
+        ",".join(f"{b:g}" for b in bound),
+    )
     base = f"http://127.0.0.1:{dp}"
     try:
         wait_port(dp, 40)
@@ -389,18 +435,22 @@ def test_a_lost_grating_shows_as_degraded_with_the_fallback_in_use(tmp_path, run
         def zeroed_with_all_five():
             # health may already be DEGRADED: the bound also holds the full model back
             state = _state_or_none(base)
-            return bool(state) and state["health"] in ("OK", "DEGRADED") and \
-                state["sensor_status"] == ["OK"] * 5
+            return (
+                bool(state) and state["health"] in ("OK", "DEGRADED") and state["sensor_status"] == ["OK"] * 5
+            )
+
         _wait_for(zeroed_with_all_five, 60)
         _stop(sim)
-        sim = fbgcomp_process(*sim_args, "--fault", "drop:S3@0")   # the service reconnects
+        sim = fbgcomp_process(*sim_args, "--fault", "drop:S3@0")  # the service reconnects
         with sync_api.sync_playwright() as p:
             browser = _browser(p)
             try:
                 page = browser.new_page(viewport={"width": 1280, "height": 1000})
                 page.goto(base + "/")
-                page.wait_for_function("() => window.fbgcomp && fbgcomp.last && "
-                                       "fbgcomp.last.health === 'DEGRADED'", timeout=60000)
+                page.wait_for_function(
+                    "() => window.fbgcomp && fbgcomp.last && fbgcomp.last.health === 'DEGRADED'",
+                    timeout=60000,
+                )
                 n = page.evaluate("fbgcomp.updates")
                 page.wait_for_function(f"() => fbgcomp.updates >= {n + 3}", timeout=10000)
                 assert page.inner_text("#health").startswith("DEGRADED")
@@ -409,7 +459,7 @@ def test_a_lost_grating_shows_as_degraded_with_the_fallback_in_use(tmp_path, run
                 statuses = page.locator("#sensors tbody td.status").all_inner_texts()
                 assert statuses == ["OK", "OK", "MISSING", "OK", "OK"], statuses
                 assert page.inner_text("#sensors tbody tr:nth-child(3) td.wl") == "—"
-                assert page.inner_text("#corr-dx") != "—"     # the fallback still corrects
+                assert page.inner_text("#corr-dx") != "—"  # the fallback still corrects
                 page.wait_for_function("() => fbgcomp.last.limited", timeout=10000)
                 page.wait_for_timeout(300)
                 assert page.is_visible("#limited")
@@ -423,11 +473,13 @@ def test_a_lost_grating_shows_as_degraded_with_the_fallback_in_use(tmp_path, run
                 page.screenshot(path=str(ARTIFACTS / "degraded-fallback.png"), full_page=True)
             finally:
                 browser.close()
+
         # serve hands its --log folder to the dashboard: the drift window counts the lost
         # grating's frames and the held-back ones from what the run log holds
         def history_shows_the_fault():
             d = _get(base + "/api/history?window_s=60&points=60")
             return d if sum(d["counts"].get("sensor:S3", [0])) > 0 else None
+
         d = _wait_for(history_shows_the_fault, 20)
         assert d["frames"] > 0 and sum(d["counts"]["health:DEGRADED"]) > 0
     finally:
@@ -438,8 +490,7 @@ def _listening_ips(pid: int, port: int) -> set[str]:
     import psutil
 
     proc = psutil.Process(pid)
-    conns = proc.net_connections("tcp") if hasattr(proc, "net_connections") \
-        else proc.connections("tcp")
+    conns = proc.net_connections("tcp") if hasattr(proc, "net_connections") else proc.connections("tcp")
     return {c.laddr.ip for c in conns if c.status == psutil.CONN_LISTEN and c.laddr.port == port}
 
 
@@ -455,13 +506,13 @@ def _closed_by_server(socks, deadline_s):
     for s in socks:
         s.setblocking(False)
         sel.register(s, selectors.EVENT_READ)
-    t0, got, closed = time.monotonic(), {s: b"" for s in socks}, {}
+    t0, got, closed = time.monotonic(), dict.fromkeys(socks, b""), {}
     while len(closed) < len(socks) and time.monotonic() - t0 < deadline_s:
         for key, _ in sel.select(0.2):
             s = key.fileobj
             try:
                 data = s.recv(65536)
-            except BlockingIOError:    # nothing after all: wait again
+            except BlockingIOError:  # nothing after all: wait again
                 continue
             except ConnectionResetError:
                 data = b""
@@ -484,13 +535,15 @@ def test_half_sent_requests_are_dropped_and_the_server_still_answers(service):
     try:
         for i in range(200):
             s = socket.create_connection(("127.0.0.1", service["port"]), timeout=5)
-            if i < 20:   # a complete head, then a body that never comes
-                s.sendall(b"POST /api/login HTTP/1.1\r\nHost: x\r\nContent-Type: "
-                          b"application/json\r\nContent-Length: 200\r\n\r\n{\"user")
-            else:        # half a head
+            if i < 20:  # a complete head, then a body that never comes
+                s.sendall(
+                    b"POST /api/login HTTP/1.1\r\nHost: x\r\nContent-Type: "
+                    b'application/json\r\nContent-Length: 200\r\n\r\n{"user'
+                )
+            else:  # half a head
                 s.sendall(b"GET /api/state HTTP/1.1\r\nHost: x\r\nAccept: ")
             socks.append(s)
-        assert proc.num_threads() <= threads0 + 4          # no thread per connection
+        assert proc.num_threads() <= threads0 + 4  # no thread per connection
         t_opened = time.monotonic()
         closed = _closed_by_server(socks, 3 * REQUEST_TIMEOUT_S)
         waited = time.monotonic() - t_opened
@@ -518,9 +571,18 @@ def test_half_sent_requests_are_dropped_and_the_server_still_answers(service):
 def test_beyond_loopback_without_a_user_serve_refuses_to_start(runtime_model_and_campaign):
     model, campaign = runtime_model_and_campaign
     dp = free_port()
-    proc = fbgcomp_process("serve", "--model", model, "--source", f"sim://{campaign}?rate=50",
-                           "--opcua", "off", "--dashboard", f"0.0.0.0:{dp}",
-                           env={"FBGCOMP_DASHBOARD_USER": "", "FBGCOMP_DASHBOARD_PASSWORD": ""})
+    proc = fbgcomp_process(
+        "serve",
+        "--model",
+        model,
+        "--source",
+        f"sim://{campaign}?rate=50",
+        "--opcua",
+        "off",
+        "--dashboard",
+        f"0.0.0.0:{dp}",
+        env={"FBGCOMP_DASHBOARD_USER": "", "FBGCOMP_DASHBOARD_PASSWORD": ""},
+    )
     try:
         _, err = proc.communicate(timeout=120)
     except subprocess.TimeoutExpired:
@@ -542,19 +604,27 @@ def _self_signed(folder: Path) -> tuple[Path, Path]:
 
     key = ec.generate_private_key(ec.SECP256R1())
     name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "fbgcomp dashboard test")])
-    now = dt.datetime.now(dt.timezone.utc)
-    cert = (x509.CertificateBuilder().subject_name(name).issuer_name(name)
-            .public_key(key.public_key()).serial_number(x509.random_serial_number())
-            .not_valid_before(now - dt.timedelta(minutes=5))
-            .not_valid_after(now + dt.timedelta(days=1))
-            .add_extension(x509.SubjectAlternativeName(
-                [x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]), critical=False)
-            .sign(key, hashes.SHA256()))
+    now = dt.datetime.now(dt.UTC)
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(name)
+        .issuer_name(name)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now - dt.timedelta(minutes=5))
+        .not_valid_after(now + dt.timedelta(days=1))
+        .add_extension(
+            x509.SubjectAlternativeName([x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]), critical=False
+        )
+        .sign(key, hashes.SHA256())
+    )
     cert_path, key_path = folder / "dashboard.crt", folder / "dashboard.key"
     cert_path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
-    key_path.write_bytes(key.private_bytes(serialization.Encoding.PEM,
-                                           serialization.PrivateFormat.PKCS8,
-                                           serialization.NoEncryption()))
+    key_path.write_bytes(
+        key.private_bytes(
+            serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
+        )
+    )
     return cert_path, key_path
 
 
@@ -564,10 +634,22 @@ def test_beyond_loopback_every_read_needs_a_login_over_tls(tmp_path, runtime_mod
     model, campaign = runtime_model_and_campaign
     cert, key = _self_signed(tmp_path)
     dp = free_port()
-    serve = fbgcomp_process("serve", "--model", model, "--source",
-                            f"sim://{campaign}?rate={RATE_HZ}&loop=1", "--opcua", "off",
-                            "--dashboard", f"0.0.0.0:{dp}", "--dashboard-cert", cert,
-                            "--dashboard-key", key, env=ENV)
+    serve = fbgcomp_process(
+        "serve",
+        "--model",
+        model,
+        "--source",
+        f"sim://{campaign}?rate={RATE_HZ}&loop=1",
+        "--opcua",
+        "off",
+        "--dashboard",
+        f"0.0.0.0:{dp}",
+        "--dashboard-cert",
+        cert,
+        "--dashboard-key",
+        key,
+        env=ENV,
+    )
     base = f"https://127.0.0.1:{dp}"
     tls = ssl.create_default_context(cafile=str(cert))
 
@@ -596,9 +678,12 @@ def test_beyond_loopback_every_read_needs_a_login_over_tls(tmp_path, runtime_mod
                 reply = b""
             assert b"frames" not in reply and not reply.startswith(b"HTTP/1.1 200")
         # a login over TLS: the cookie is Secure too
-        req = urllib.request.Request(base + "/api/login", method="POST", data=json.dumps(
-            {"username": "engineer", "password": ENV["FBGCOMP_DASHBOARD_PASSWORD"]}).encode(),
-            headers={"Content-Type": "application/json"})
+        req = urllib.request.Request(
+            base + "/api/login",
+            method="POST",
+            data=json.dumps({"username": "engineer", "password": ENV["FBGCOMP_DASHBOARD_PASSWORD"]}).encode(),
+            headers={"Content-Type": "application/json"},
+        )
         with urllib.request.urlopen(req, timeout=10, context=tls) as r:
             set_cookie = r.headers["Set-Cookie"]
         attributes = {a.strip().split("=")[0].lower() for a in set_cookie.split(";")}
@@ -611,8 +696,9 @@ def test_beyond_loopback_every_read_needs_a_login_over_tls(tmp_path, runtime_mod
         with sync_api.sync_playwright() as p:
             browser = _browser(p)
             try:
-                context = browser.new_context(ignore_https_errors=True,
-                                              viewport={"width": 1280, "height": 1000})
+                context = browser.new_context(
+                    ignore_https_errors=True, viewport={"width": 1280, "height": 1000}
+                )
                 page = context.new_page()
                 page.goto(base + "/")
                 page.wait_for_selector("#login-form:not([hidden])")
@@ -626,12 +712,12 @@ def test_beyond_loopback_every_read_needs_a_login_over_tls(tmp_path, runtime_mod
                 assert page.inner_text("#link") == "live"
                 assert page.inner_text("#corr-dx") != "—"
                 page.screenshot(path=str(ARTIFACTS / "tls-after-login.png"), full_page=True)
-                page.click("#logout")   # reloads: nothing stays on screen
+                page.click("#logout")  # reloads: nothing stays on screen
                 page.wait_for_selector("#login-form:not([hidden])")
                 page.wait_for_timeout(500)
                 assert page.evaluate("fbgcomp.updates") == 0
             finally:
                 browser.close()
     finally:
-        err, = _stop(serve)
+        (err,) = _stop(serve)
     assert "without TLS" not in err, err[-2000:]

@@ -9,29 +9,40 @@ import pandas as pd
 import pytest
 import yaml
 
-from fbgcomp.io.campaign import read_campaign, write_campaign
-from fbgcomp.io.dataset import (INDEX_FILE, METADATA_KEY, accumulate_partition_file, ingest,
-                             is_dataset, open_dataset)
-from fbgcomp.errors import InputError
-from fbgcomp.models.mra import MRAModel
 from fbgcomp.bench.synthetic import linear_truth_campaign
-
+from fbgcomp.errors import InputError
+from fbgcomp.io.campaign import read_campaign, write_campaign
+from fbgcomp.io.dataset import (
+    INDEX_FILE,
+    METADATA_KEY,
+    accumulate_partition_file,
+    ingest,
+    is_dataset,
+    open_dataset,
+)
+from fbgcomp.models.mra import MRAModel
 from fbgcomp_testing import require
 
 SCALE_CLI = [sys.executable, "-m", "fbgcomp"]
 
 
 def run(*args):
-    return subprocess.run([*SCALE_CLI, *map(str, args)], capture_output=True, text=True,
-                          timeout=120, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    return subprocess.run(
+        [*SCALE_CLI, *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
 
 
 @pytest.fixture(scope="module")
 def campaigns(tmp_path_factory):
     require("pyarrow")
     root = tmp_path_factory.mktemp("campaigns")
-    a, _ = linear_truth_campaign("run_a", seed=11, duration_s=1500, temperature_dt_s=10,
-                                 reference_offset_s=0.3)
+    a, _ = linear_truth_campaign(
+        "run_a", seed=11, duration_s=1500, temperature_dt_s=10, reference_offset_s=0.3
+    )
     b, _ = linear_truth_campaign("run_b", seed=12, duration_s=900)
     pa_ = write_campaign(a, root / "run_a")
     pb = write_campaign(b, root / "run_b")
@@ -70,6 +81,7 @@ def test_ingest_stores_aligned_raw_samples_readable_by_pandas_duckdb_and_dask(ca
         assert np.array_equal(part.temperature_zero_C, al.temperature_zero_C)
         # The campaign.yaml content travels in every file's key-value metadata.
         import pyarrow.parquet as pq
+
         kv = json.loads(pq.read_schema(part.file_paths[-1]).metadata[METADATA_KEY])
         assert kv["meta"]["name"] == part.campaign and kv["meta"]["sensors"][0]["lambda0_nm"] == 1530.0
         assert kv["zero_window_s"] == 10.0
@@ -78,10 +90,12 @@ def test_ingest_stores_aligned_raw_samples_readable_by_pandas_duckdb_and_dask(ca
     whole = pd.read_parquet(ds)
     assert len(whole) == sum(p.n_rows for p in parts)
     assert set(whole["machine"].astype(str)) == {"ram1", "ram 2/B"}
-    with duckdb.connect() as con:      # not the module's default connection, alive until exit
-        counts = con.sql(f"select machine, campaign, count(*) from read_parquet("
-                         f"'{ds}/machine=*/campaign=*/*.parquet', hive_partitioning=true) "
-                         f"group by all order by all").fetchall()
+    with duckdb.connect() as con:  # not the module's default connection, alive until exit
+        counts = con.sql(
+            f"select machine, campaign, count(*) from read_parquet("
+            f"'{ds}/machine=*/campaign=*/*.parquet', hive_partitioning=true) "
+            f"group by all order by all"
+        ).fetchall()
     assert counts == sorted([(p.machine, p.campaign, p.n_rows) for p in parts])
     mean_dd = dd.read_parquet(str(ds)).groupby("campaign")["S1_nm"].mean().compute()
     mean_pd = whole.groupby("campaign", observed=True)["S1_nm"].mean()
@@ -112,8 +126,7 @@ def test_ingest_through_the_console_and_bad_input(campaigns, tmp_path):
     assert sorted(p.name for p in stray.iterdir()) == ["readme.txt"]
 
 
-def test_failed_or_crashed_ingest_never_shows_a_half_written_partition(campaigns, tmp_path,
-                                                                       monkeypatch):
+def test_failed_or_crashed_ingest_never_shows_a_half_written_partition(campaigns, tmp_path, monkeypatch):
     import pyarrow.parquet as pq
 
     pa_, _ = campaigns
@@ -128,8 +141,8 @@ def test_failed_or_crashed_ingest_never_shows_a_half_written_partition(campaigns
     def failing_write(table, where, **kw):
         calls.append(where)
         if len(calls) == 3:
-            real_write(table.slice(0, 10), where, **kw)   # a partial file on disk ...
-            raise OSError("disk full")                     # ... then the failure
+            real_write(table.slice(0, 10), where, **kw)  # a partial file on disk ...
+            raise OSError("disk full")  # ... then the failure
         return real_write(table, where, **kw)
 
     monkeypatch.setattr(pq, "write_table", failing_write)
@@ -142,8 +155,10 @@ def test_failed_or_crashed_ingest_never_shows_a_half_written_partition(campaigns
     # A kill -9 leaves its staging folder behind: every reader ignores it.
     staging = ds / ".ingest-deadbeef" / "machine=default" / "campaign=run_a"
     staging.mkdir(parents=True)
-    real_write(pq.read_table(ds / "machine=default" / "campaign=run_a" / "part-00000.parquet"),
-               staging / "part-00009.parquet")
+    real_write(
+        pq.read_table(ds / "machine=default" / "campaign=run_a" / "part-00000.parquet"),
+        staging / "part-00009.parquet",
+    )
     pd.testing.assert_frame_equal(pd.read_parquet(ds), before)
     assert open_dataset(ds).n_rows == len(before)
 
@@ -153,10 +168,11 @@ def test_partition_describes_itself_when_the_index_is_stale(campaigns, tmp_path)
     ds = tmp_path / "ds"
     ingest([pa_, pb], ds, rows_per_file=500)
     want = open_dataset(ds)
-    (ds / INDEX_FILE).unlink()            # e.g. a crash between the folder rename and the index
+    (ds / INDEX_FILE).unlink()  # e.g. a crash between the folder rename and the index
     got = open_dataset(ds)
-    assert [(p.machine, p.campaign, p.n_rows, p.files) for p in got.partitions] == \
-        [(p.machine, p.campaign, p.n_rows, p.files) for p in want.partitions]
+    assert [(p.machine, p.campaign, p.n_rows, p.files) for p in got.partitions] == [
+        (p.machine, p.campaign, p.n_rows, p.files) for p in want.partitions
+    ]
     assert np.array_equal(got.partitions[1].wavelength_zero_nm, want.partitions[1].wavelength_zero_nm)
 
 
@@ -169,7 +185,7 @@ def test_partition_stream_accumulates_the_same_factor_as_the_campaign_fit(campai
     for f in part.file_paths:
         accumulate_partition_file(model, part, f, acc)
     with pytest.raises(ValueError, match="cover 0 of the 1500 rows"):
-        model.fit_factor(acc.copy())           # Newey-West needs the second pass
+        model.fit_factor(acc.copy())  # Newey-West needs the second pass
     acc.begin_hac()
     for f in part.file_paths:
         accumulate_partition_file(model, part, f, acc, second_pass=True)
@@ -209,10 +225,16 @@ def _write_run_log(folder: Path, campaign, machine: str) -> Path:
     folder.mkdir()
     sensors = campaign.meta.sensors
     probes = campaign.meta.probe_names
-    meta = {"format": "fbgcomp-runlog", "version": 1, "model_id": "abc123", "machine": machine,
-            "sensor_names": [s.name for s in sensors], "probe_names": probes,
-            "sensors": [s.model_dump(mode="json") for s in sensors],
-            "temperature_probes": [p.model_dump(mode="json") for p in campaign.meta.temperature_probes]}
+    meta = {
+        "format": "fbgcomp-runlog",
+        "version": 1,
+        "model_id": "abc123",
+        "machine": machine,
+        "sensor_names": [s.name for s in sensors],
+        "probe_names": probes,
+        "sensors": [s.model_dump(mode="json") for s in sensors],
+        "temperature_probes": [p.model_dump(mode="json") for p in campaign.meta.temperature_probes],
+    }
     (folder / "meta.json").write_text(json.dumps(meta))
     al = campaign.aligned()
     t = 1.7e9 + al.time_s
@@ -239,8 +261,12 @@ def test_a_run_log_is_ingested_with_a_measured_reference(campaigns, tmp_path):
     c = read_campaign(pa_)
     log = _write_run_log(tmp_path / "log_2026_01_12", c, machine="ram7")
     al = c.aligned()
-    ref = pd.DataFrame({"time_s": al.time_s - al.time_s[0],
-                        **{f"{a}_um": al.reference_um[:, j] for j, a in enumerate(("dx", "dy", "dz"))}})
+    ref = pd.DataFrame(
+        {
+            "time_s": al.time_s - al.time_s[0],
+            **{f"{a}_um": al.reference_um[:, j] for j, a in enumerate(("dx", "dy", "dz"))},
+        }
+    )
     ref.to_csv(tmp_path / "interferometer.csv", index=False)
     ds = tmp_path / "ds"
     r = run("ingest", log, "--to", ds, "--reference", tmp_path / "interferometer.csv")

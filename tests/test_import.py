@@ -30,8 +30,13 @@ PRESET_SAMPLES = {"hioki-lr8431-csv": "hioki_lr8431_written_from_manual_appendix
 
 
 def run(*args):
-    return subprocess.run([*FBGCOMP, *map(str, args)], capture_output=True, text=True,
-                          timeout=300, env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    return subprocess.run(
+        [*FBGCOMP, *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
 
 
 def mapping_dict():
@@ -45,12 +50,16 @@ def write_mapping(folder: Path, mapping: dict) -> Path:
 
 
 def copy_samples(folder: Path) -> None:
-    for name in ("peaks_semicolon_decimal_comma.csv", "interferometer_utc_mm.tsv",
-                 PRESET_SAMPLES["hioki-lr8431-csv"]):
+    for name in (
+        "peaks_semicolon_decimal_comma.csv",
+        "interferometer_utc_mm.tsv",
+        PRESET_SAMPLES["hioki-lr8431-csv"],
+    ):
         shutil.copy(DATA / name, folder / name)
 
 
 # --- independent readings of the sample files (csv module + zoneinfo, not the importer) ---
+
 
 def peaks_expected():
     with open(DATA / "peaks_semicolon_decimal_comma.csv", newline="") as handle:
@@ -65,7 +74,7 @@ def hioki_expected():
         rows = list(csv.reader(handle))
     trigger = dt.datetime.strptime(rows[2][1], "'%y-%m-%d %H:%M:%S").replace(tzinfo=BERLIN)
     header = next(i for i, r in enumerate(rows) if r[0] == "Time")
-    data = [r for r in rows[header + 1:] if r]
+    data = [r for r in rows[header + 1 :] if r]
     times = [trigger + dt.timedelta(seconds=float(r[0])) for r in data]
     return times, np.array([[float(r[1]), float(r[2])] for r in data])
 
@@ -95,15 +104,14 @@ def test_mapped_exports_and_the_preset_sample_become_a_campaign(tmp_path):
     temp_t, temp_v = hioki_expected()
     ref_t, ref_v = interferometer_expected()
     start = min(peak_t[0], temp_t[0], ref_t[0])
-    assert c.meta.start == start == dt.datetime(2026, 3, 2, 7, 0, tzinfo=dt.timezone.utc)
+    assert c.meta.start == start == dt.datetime(2026, 3, 2, 7, 0, tzinfo=dt.UTC)
 
     np.testing.assert_allclose(c.fbg["time_s"], seconds_from(start, peak_t), atol=1e-9)
     np.testing.assert_allclose(c.fbg[["S1_nm", "S2_nm"]].to_numpy(), peak_v, rtol=0, atol=1e-9)
     np.testing.assert_allclose(c.temperatures["time_s"], seconds_from(start, temp_t), atol=1e-9)
     np.testing.assert_allclose(c.temperatures[["T1_C", "T2_C"]].to_numpy(), temp_v, atol=1e-12)
     np.testing.assert_allclose(c.reference["time_s"], seconds_from(start, ref_t), atol=1e-9)
-    np.testing.assert_allclose(c.reference[["dx_um", "dy_um", "dz_um"]].to_numpy(), ref_v,
-                               atol=1e-9)
+    np.testing.assert_allclose(c.reference[["dx_um", "dy_um", "dz_um"]].to_numpy(), ref_v, atol=1e-9)
     assert c.meta.sensor("S1").temperature_probe == "T1"
     assert c.meta.sensor("S2").face == "-X"
     assert c.summary()["problems"] == []
@@ -125,13 +133,20 @@ def test_every_shipped_preset_has_a_cited_sample_that_imports(tmp_path):
     # preset alone, with a user override of its time column kept as the preset gives it
     copy_samples(tmp_path)
     mapping = mapping_dict()
-    mapping["sources"][1]["time"] = {"unit": "s"}          # user keys merge over the preset's
+    mapping["sources"][1]["time"] = {"unit": "s"}  # user keys merge over the preset's
     (tmp_path / "sensors.yaml").write_text(yaml.safe_dump(mapping["campaign"]))
-    mapping["campaign"] = "sensors.yaml"                   # metadata from a file of its own
+    mapping["campaign"] = "sensors.yaml"  # metadata from a file of its own
     r = run("import", write_mapping(tmp_path, mapping), "-o", tmp_path / "out")
     assert r.returncode == 0, r.stderr
     assert read_campaign(tmp_path / "out").temperatures["time_s"].tolist() == [
-        0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0]
+        0.0,
+        10.0,
+        20.0,
+        30.0,
+        40.0,
+        50.0,
+        60.0,
+    ]
 
 
 def write_utc_csv(path: Path, start: dt.datetime, step_s: float, rows: int, columns, value):
@@ -146,21 +161,31 @@ def write_utc_csv(path: Path, start: dt.datetime, step_s: float, rows: int, colu
 def dst_mapping(folder: Path, temperature_source: dict) -> Path:
     """A mapping around the spring-forward night: peaks and interferometer in UTC (CSV) plus the
     temperature source under test."""
-    start = dt.datetime(2026, 3, 29, 0, 58, tzinfo=dt.timezone.utc)
+    start = dt.datetime(2026, 3, 29, 0, 58, tzinfo=dt.UTC)
     write_utc_csv(folder / "peaks.csv", start, 10, 25, ["p1"], lambda j, k: 1530.0 + 1e-4 * k)
     write_utc_csv(folder / "ref.csv", start, 20, 12, ["x", "y", "z"], lambda j, k: 0.01 * k * j)
-    return write_mapping(folder, {
-        "campaign": {"name": "dst", "kind": "thermal",
-                     "sensors": [{"name": "S1", "lambda0_nm": 1530.0, "gauge_length_mm": 500}],
-                     "temperature_probes": [{"name": "T_air"}]},
-        "timezone": "Europe/Berlin",
-        "sources": [
-            {"file": "peaks.csv", "role": "fbg", "time": {"column": "t"},
-             "columns": {"S1_nm": "p1"}},
-            temperature_source,
-            {"file": "ref.csv", "role": "reference", "time": {"column": "t"},
-             "columns": {"dx_um": {"column": "x", "unit": "um"}, "dy_um": "y", "dz_um": "z"}},
-        ]})
+    return write_mapping(
+        folder,
+        {
+            "campaign": {
+                "name": "dst",
+                "kind": "thermal",
+                "sensors": [{"name": "S1", "lambda0_nm": 1530.0, "gauge_length_mm": 500}],
+                "temperature_probes": [{"name": "T_air"}],
+            },
+            "timezone": "Europe/Berlin",
+            "sources": [
+                {"file": "peaks.csv", "role": "fbg", "time": {"column": "t"}, "columns": {"S1_nm": "p1"}},
+                temperature_source,
+                {
+                    "file": "ref.csv",
+                    "role": "reference",
+                    "time": {"column": "t"},
+                    "columns": {"dx_um": {"column": "x", "unit": "um"}, "dy_um": "y", "dz_um": "z"},
+                },
+            ],
+        },
+    )
 
 
 def test_excel_export_with_date_and_time_columns_across_the_spring_forward(tmp_path):
@@ -172,43 +197,70 @@ def test_excel_export_with_date_and_time_columns_across_the_spring_forward(tmp_p
     sheet.append(["Temperature log, unit 7"])
     sheet.append([])
     sheet.append(["Datum", "Uhrzeit", "Fühler 1"])
-    local = [dt.datetime(2026, 3, 29, 1, 58, 30), dt.datetime(2026, 3, 29, 1, 59),
-             dt.datetime(2026, 3, 29, 1, 59, 30), dt.datetime(2026, 3, 29, 3, 0),
-             dt.datetime(2026, 3, 29, 3, 0, 30), dt.datetime(2026, 3, 29, 3, 1)]
+    local = [
+        dt.datetime(2026, 3, 29, 1, 58, 30),
+        dt.datetime(2026, 3, 29, 1, 59),
+        dt.datetime(2026, 3, 29, 1, 59, 30),
+        dt.datetime(2026, 3, 29, 3, 0),
+        dt.datetime(2026, 3, 29, 3, 0, 30),
+        dt.datetime(2026, 3, 29, 3, 1),
+    ]
     fahrenheit = [68.0, 68.9, 69.8, 70.7, 71.6, 72.5]
     for stamp, value in zip(local, fahrenheit):
         sheet.append([stamp.date(), stamp.time(), value])
     book.save(tmp_path / "log.xlsx")
 
-    mapping = dst_mapping(tmp_path, {
-        "file": "log.xlsx", "role": "temperatures", "format": {"sheet": "Log", "header_row": 3},
-        "time": {"column": ["Datum", "Uhrzeit"]},
-        "columns": {"T_air_C": {"column": "Fühler 1", "unit": "degF"}}})
+    mapping = dst_mapping(
+        tmp_path,
+        {
+            "file": "log.xlsx",
+            "role": "temperatures",
+            "format": {"sheet": "Log", "header_row": 3},
+            "time": {"column": ["Datum", "Uhrzeit"]},
+            "columns": {"T_air_C": {"column": "Fühler 1", "unit": "degF"}},
+        },
+    )
     r = run("import", mapping, "-o", tmp_path / "out")
     assert r.returncode == 0, r.stderr
     c = read_campaign(tmp_path / "out")
-    start = dt.datetime(2026, 3, 29, 0, 58, tzinfo=dt.timezone.utc)
+    start = dt.datetime(2026, 3, 29, 0, 58, tzinfo=dt.UTC)
     assert c.meta.start == start
     expected_t = [(s.replace(tzinfo=BERLIN) - start).total_seconds() for s in local]
     assert c.temperatures["time_s"].tolist() == expected_t == [30, 60, 90, 120, 150, 180]
-    np.testing.assert_allclose(c.temperatures["T_air_C"], [(f - 32) * 5 / 9 for f in fahrenheit],
-                               atol=1e-12)
+    np.testing.assert_allclose(c.temperatures["T_air_C"], [(f - 32) * 5 / 9 for f in fahrenheit], atol=1e-12)
 
 
 def test_repeated_autumn_hour_in_local_time_is_placed_by_its_order(tmp_path):
     """25 Oct 2026 in Berlin: 02:00-02:59 happens twice. Rows in order keep 30-min steps."""
-    (tmp_path / "t.tsv").write_text("Zeit\tT\n" + "".join(
-        f"2026-10-25 {hm}\t{20 + k}\n" for k, hm in
-        enumerate(["01:30", "02:00", "02:30", "02:00", "02:30", "03:00"])))
-    mapping = dst_mapping(tmp_path, {
-        "file": "t.tsv", "role": "temperatures", "time": {"column": "Zeit"},
-        "columns": {"T_air_C": "T"}})
+    (tmp_path / "t.tsv").write_text(
+        "Zeit\tT\n"
+        + "".join(
+            f"2026-10-25 {hm}\t{20 + k}\n"
+            for k, hm in enumerate(["01:30", "02:00", "02:30", "02:00", "02:30", "03:00"])
+        )
+    )
+    mapping = dst_mapping(
+        tmp_path,
+        {"file": "t.tsv", "role": "temperatures", "time": {"column": "Zeit"}, "columns": {"T_air_C": "T"}},
+    )
     doc = yaml.safe_load(mapping.read_text())
     doc["start"] = "2026-10-24T23:00:00Z"
-    write_utc_csv(tmp_path / "peaks.csv", dt.datetime(2026, 10, 24, 23, 0, tzinfo=dt.timezone.utc),
-                  600, 20, ["p1"], lambda j, k: 1530.0)
-    write_utc_csv(tmp_path / "ref.csv", dt.datetime(2026, 10, 24, 23, 0, tzinfo=dt.timezone.utc),
-                  600, 20, ["x", "y", "z"], lambda j, k: 0.0)
+    write_utc_csv(
+        tmp_path / "peaks.csv",
+        dt.datetime(2026, 10, 24, 23, 0, tzinfo=dt.UTC),
+        600,
+        20,
+        ["p1"],
+        lambda j, k: 1530.0,
+    )
+    write_utc_csv(
+        tmp_path / "ref.csv",
+        dt.datetime(2026, 10, 24, 23, 0, tzinfo=dt.UTC),
+        600,
+        20,
+        ["x", "y", "z"],
+        lambda j, k: 0.0,
+    )
     r = run("import", write_mapping(tmp_path, doc), "-o", tmp_path / "out")
     assert r.returncode == 0, r.stderr
     t = read_campaign(tmp_path / "out").temperatures["time_s"].to_numpy()
@@ -216,6 +268,7 @@ def test_repeated_autumn_hour_in_local_time_is_placed_by_its_order(tmp_path):
 
 
 # --- bad exports: one line on stderr naming file, row (line) and column; exit 2 ----------------
+
 
 def edit_line(path: Path, number: int, old: str, new: str) -> None:
     lines = path.read_text().splitlines(keepends=True)
@@ -226,8 +279,9 @@ def edit_line(path: Path, number: int, old: str, new: str) -> None:
 
 def bad_cell(folder):
     edit_line(folder / "peaks_semicolon_decimal_comma.csv", 7, "1530,0014", "1530,00x4")
-    return mapping_dict(), ["peaks_semicolon_decimal_comma.csv, row 3 (line 7), column "
-                            "'CH1 Peak 1': not a number: '1530,00x4'"]
+    return mapping_dict(), [
+        "peaks_semicolon_decimal_comma.csv, row 3 (line 7), column 'CH1 Peak 1': not a number: '1530,00x4'"
+    ]
 
 
 def point_in_a_decimal_comma_file(folder):
@@ -238,32 +292,30 @@ def point_in_a_decimal_comma_file(folder):
 def missing_column(folder):
     m = mapping_dict()
     m["sources"][0]["columns"]["S2_nm"]["column"] = "CH1 Peak 3"
-    return m, ["peaks_semicolon_decimal_comma.csv", "no column 'CH1 Peak 3'",
-               "did you mean 'CH1 Peak 2'"]
+    return m, ["peaks_semicolon_decimal_comma.csv", "no column 'CH1 Peak 3'", "did you mean 'CH1 Peak 2'"]
 
 
 def time_backwards(folder):
     edit_line(folder / "interferometer_utc_mm.tsv", 5, "07:00:15.5", "07:00:04.5")
-    return mapping_dict(), ["interferometer_utc_mm.tsv, row 4 (line 5), column 'time'",
-                            "goes backwards"]
+    return mapping_dict(), ["interferometer_utc_mm.tsv, row 4 (line 5), column 'time'", "goes backwards"]
 
 
 def wavelength_off_band(folder):
     edit_line(folder / "peaks_semicolon_decimal_comma.csv", 12, "1530,0019", "1536,0019")
-    return mapping_dict(), ["peaks_semicolon_decimal_comma.csv, row 8 (line 12), column "
-                            "'CH1 Peak 1'", "outside the grating's plausible band",
-                            "[campaign column S1_nm]"]
+    return mapping_dict(), [
+        "peaks_semicolon_decimal_comma.csv, row 8 (line 12), column 'CH1 Peak 1'",
+        "outside the grating's plausible band",
+        "[campaign column S1_nm]",
+    ]
 
 
 def skipped_local_time(folder):
-    edit_line(folder / "peaks_semicolon_decimal_comma.csv", 5, "02.03.2026 08:00:00",
-              "29.03.2026 02:30:00")
+    edit_line(folder / "peaks_semicolon_decimal_comma.csv", 5, "02.03.2026 08:00:00", "29.03.2026 02:30:00")
     return mapping_dict(), ["row 1 (line 5), column 'Timestamp'", "does not exist"]
 
 
 def unplaceable_repeated_hour(folder):
-    edit_line(folder / "peaks_semicolon_decimal_comma.csv", 5, "02.03.2026 08:00:00",
-              "25.10.2026 02:30:00")
+    edit_line(folder / "peaks_semicolon_decimal_comma.csv", 5, "02.03.2026 08:00:00", "25.10.2026 02:30:00")
     return mapping_dict(), ["row 1 (line 5), column 'Timestamp'", "is ambiguous"]
 
 
@@ -301,20 +353,34 @@ def excel_bad_cell(folder):
         sheet.append([k * 10.0, 22.0 + k, "n/a" if k == 3 else 21.0])
     book.save(folder / "temps.xlsx")
     m = mapping_dict()
-    m["sources"][1] = {"file": "temps.xlsx", "role": "temperatures",
-                       "format": {"header_row": 2},
-                       "time": {"column": "t", "kind": "elapsed",
-                                "origin": "2026-03-02T08:00:00+01:00"},
-                       "columns": {"T1_C": "a", "T2_C": "b"}}
+    m["sources"][1] = {
+        "file": "temps.xlsx",
+        "role": "temperatures",
+        "format": {"header_row": 2},
+        "time": {"column": "t", "kind": "elapsed", "origin": "2026-03-02T08:00:00+01:00"},
+        "columns": {"T1_C": "a", "T2_C": "b"},
+    }
     return m, ["temps.xlsx[T], row 4 (sheet row 6), column 'b': not a number: 'n/a'"]
 
 
-@pytest.mark.parametrize("case", [bad_cell, point_in_a_decimal_comma_file, missing_column,
-                                  time_backwards, wavelength_off_band, skipped_local_time,
-                                  unplaceable_repeated_hour,
-                                  wrong_delimiter, unknown_unit, bad_sensor_metadata,
-                                  empty_cell_without_drop, excel_bad_cell],
-                         ids=lambda f: f.__name__)
+@pytest.mark.parametrize(
+    "case",
+    [
+        bad_cell,
+        point_in_a_decimal_comma_file,
+        missing_column,
+        time_backwards,
+        wavelength_off_band,
+        skipped_local_time,
+        unplaceable_repeated_hour,
+        wrong_delimiter,
+        unknown_unit,
+        bad_sensor_metadata,
+        empty_cell_without_drop,
+        excel_bad_cell,
+    ],
+    ids=lambda f: f.__name__,
+)
 def test_bad_exports_give_one_line_errors(tmp_path, case):
     copy_samples(tmp_path)
     mapping, expected = case(tmp_path)
@@ -326,7 +392,7 @@ def test_bad_exports_give_one_line_errors(tmp_path, case):
     assert len(lines) == 1 and lines[0].startswith("error: "), r.stderr
     for piece in expected:
         assert piece in lines[0], lines[0]
-    assert not out.exists() and not list(tmp_path.glob(".out.*"))   # nothing half-written
+    assert not out.exists() and not list(tmp_path.glob(".out.*"))  # nothing half-written
 
 
 def test_empty_cells_can_drop_their_rows(tmp_path):

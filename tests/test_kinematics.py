@@ -3,11 +3,21 @@
 import numpy as np
 import pytest
 
-from fbgcomp.kinematics import (KinematicChain, bar_elongation_um, chain_htm, elongation_design,
-                                m_a, m_b, m_c, segment_htm, segment_kinematics, ttp_position_mm)
+from fbgcomp.kinematics import (
+    KinematicChain,
+    bar_elongation_um,
+    chain_htm,
+    elongation_design,
+    m_a,
+    m_b,
+    m_c,
+    segment_htm,
+    segment_kinematics,
+    ttp_position_mm,
+)
 from fbgcomp.structure import Twin, load_machine
 
-COARSE = 0.3     # coarsest mesh whose answers below are stable to < 1 %
+COARSE = 0.3  # coarsest mesh whose answers below are stable to < 1 %
 
 
 def test_htm_matrices_are_the_papers_hand_computed_rotations():
@@ -23,8 +33,10 @@ def test_htm_matrices_are_the_papers_hand_computed_rotations():
     np.testing.assert_allclose(segment_htm(al, be, 3.0, 1.0, 2.0), m_a(al, 1.0) @ m_b(be, 2.0) @ m_c(3.0))
     two = np.stack([m_a(0.1), m_a(0.25)])
     np.testing.assert_allclose(chain_htm(two), m_a(0.35), atol=1e-15)
-    np.testing.assert_allclose(ttp_position_mm(m_c(-100.0) @ m_a(0.01), (0, 0, -50)),
-                               [0, 50 * np.sin(0.01), -100 - 50 * np.cos(0.01)])
+    np.testing.assert_allclose(
+        ttp_position_mm(m_c(-100.0) @ m_a(0.01), (0, 0, -50)),
+        [0, 50 * np.sin(0.01), -100 - 50 * np.cos(0.01)],
+    )
     # Vectorised over samples: (n,) angles give (n, 4, 4), each equal to the scalar call.
     angles = np.linspace(-0.01, 0.01, 7)
     stack = segment_htm(angles, -angles, 500.0)
@@ -66,15 +78,19 @@ def test_underdetermined_segments_are_reported_not_zero_filled():
     text = chain.format_report()
     assert "underdetermined" in text and "T_flange" in text
     # Losing S1 leaves three independent bars on the lower segment; losing S1 and S3 does not.
-    assert KinematicChain(machine, ["S2", "S3", "S4", "S5"]).report[
-        [i for i, r in enumerate(chain.report) if r.z_lo_mm == 100.0][0]].status == "determined"
+    assert (
+        KinematicChain(machine, ["S2", "S3", "S4", "S5"])
+        .report[next(i for i, r in enumerate(chain.report) if r.z_lo_mm == 100.0)]
+        .status
+        == "determined"
+    )
     two = KinematicChain(machine, ["S2", "S4", "S5"])
-    lower = [r for r in two.report if r.z_lo_mm == 100.0][0]
+    lower = next(r for r in two.report if r.z_lo_mm == 100.0)
     assert lower.status == "underdetermined" and lower.independent_bars == 2
     # The solver says the same: S5's segment is not determined, and its closure is not zero.
     A = elongation_design(chain.bar_xy_mm, chain.cover)
     _, determined, rank = segment_kinematics(np.zeros((1, 5)), chain.bar_xy_mm, chain.cover)
-    k5 = [i for i, r in enumerate(chain.report) if r.bars == ["S5"]][0]
+    k5 = next(i for i, r in enumerate(chain.report) if r.bars == ["S5"])
     assert not determined[k5] and rank[k5] == 1 and A.shape == (5, 3 * len(chain.segments))
     assert np.abs(chain.param_map[k5]).max() > 0
 
@@ -86,24 +102,31 @@ def isotropic_twin():
     m = load_machine()
     mat = m.materials
     cte = mat.cfrp.cte_L_per_K
-    iso = m.model_copy(update={"materials": mat.model_copy(update={
-        "cfrp": mat.cfrp.model_copy(update={"cte_T_per_K": cte}),
-        "steel": mat.steel.model_copy(update={"cte_per_K": cte})})})
+    iso = m.model_copy(
+        update={
+            "materials": mat.model_copy(
+                update={
+                    "cfrp": mat.cfrp.model_copy(update={"cte_T_per_K": cte}),
+                    "steel": mat.steel.model_copy(update={"cte_per_K": cte}),
+                }
+            )
+        }
+    )
     return iso, Twin(iso, resolution=COARSE)
 
 
 @pytest.mark.slow
 def test_pure_bending_on_the_twin_is_recovered_within_5_percent(isotropic_twin):
     machine, twin = isotropic_twin
-    delta_C = 100.0                                  # +X face minus -X face
+    delta_C = 100.0  # +X face minus -X face
     e, _, _, ttp = twin.static_temperature_response("gradient_x", delta_C)
     width = machine.ram.outer_width_mm
-    kappa = machine.materials.cfrp.cte_L_per_K * delta_C / width     # 1/mm, about Y
+    kappa = machine.materials.cfrp.cte_L_per_K * delta_C / width  # 1/mm, about Y
     chain = KinematicChain(machine)
     # Segment kinematics (eq. 4 + plane sections) on the FE elongations: the bending of the
     # S1-S4 segment is -kappa * L about Y (+X face shortens for a negative CTE... or lengthens).
     params, determined, _ = segment_kinematics(e[None], chain.bar_xy_mm, chain.cover)
-    k = [i for i, r in enumerate(chain.report) if r.z_lo_mm == 100.0][0]
+    k = next(i for i, r in enumerate(chain.report) if r.z_lo_mm == 100.0)
     beta_expected = kappa * 500.0
     assert determined[k]
     assert params[0, k, 1] == pytest.approx(beta_expected, rel=0.05)
@@ -141,12 +164,13 @@ def test_kinematic_model_predicts_static_tool_tip_loads_without_fitting():
 @pytest.mark.slow
 def test_guide_compliance_from_the_machine_description_enters_the_chain():
     machine = load_machine()
-    soft = machine.model_copy(update={"supports": machine.supports.model_copy(
-        update={"carriage_stiffness_N_per_um": 300.0})})
+    soft = machine.model_copy(
+        update={"supports": machine.supports.model_copy(update={"carriage_stiffness_N_per_um": 300.0})}
+    )
     forces = np.array([[4000.0, 0, 0], [0, -3000.0, 0]])
     st = Twin(soft, resolution=COARSE).static(forces)
     stiff_ttp = Twin(machine, resolution=COARSE).static(forces).ttp_um
-    assert abs(st.ttp_um[0, 0]) > 1.5 * abs(stiff_ttp[0, 0])     # the guides matter here
+    assert abs(st.ttp_um[0, 0]) > 1.5 * abs(stiff_ttp[0, 0])  # the guides matter here
     pred = KinematicChain(soft).ttp_deviation_um(st.sensor_elongation_um)
     assert pred[0, 0] == pytest.approx(st.ttp_um[0, 0], rel=0.10)
     assert pred[1, 1] == pytest.approx(st.ttp_um[1, 1], rel=0.10)
@@ -162,6 +186,7 @@ def test_chain_reads_a_ram_guided_on_one_face():
     see docs/twin.md)."""
     import json
     from pathlib import Path
+
     root = Path(__file__).resolve().parents[1]
     machine = load_machine(root / "examples" / "machines" / "ram2.yaml")
     chain = KinematicChain(machine)

@@ -14,15 +14,25 @@ import numpy as np
 import pytest
 
 import fbgcomp_testing
-from fbgcomp.cnc.fbgcomp_hal import (FLAG_ALARM, FLAG_ENABLED, FLAG_STALE, PACKET, Receiver,
-                                     decode_packet, encode_packet, limit_step, target_for)
+from fbgcomp.cnc.fbgcomp_hal import (
+    FLAG_ALARM,
+    FLAG_ENABLED,
+    FLAG_STALE,
+    PACKET,
+    Receiver,
+    decode_packet,
+    encode_packet,
+    limit_step,
+    target_for,
+)
 from fbgcomp.runtime.outputs.linuxcnc import CncConfig, LinuxCncOutput
 from test_runtime_support import fbgcomp_process
 
-COUNT_MM = 0.0001          # one eoffset count of the example machine (0.1 µm)
+COUNT_MM = 0.0001  # one eoffset count of the example machine (0.1 µm)
 
 
 # -- the channel and the limiter, no LinuxCNC needed --------------------------------------
+
 
 def test_packet_roundtrip_rejects_malformed_and_non_finite():
     data = encode_packet(7, (1.5, -2.25, 3.0), FLAG_ENABLED, sample_time_s=12.5, sent_s=100.0)
@@ -30,36 +40,39 @@ def test_packet_roundtrip_rejects_malformed_and_non_finite():
     assert decode_packet(data) == (7, FLAG_ENABLED, 100.0, 12.5, (1.5, -2.25, 3.0))
     assert decode_packet(data[:-1]) is None
     assert decode_packet(b"XXXX" + data[4:]) is None
-    seq, flags, *_, corr = decode_packet(encode_packet(8, (float("nan"), 1.0, 2.0), FLAG_ENABLED))
+    _seq, flags, *_, corr = decode_packet(encode_packet(8, (float("nan"), 1.0, 2.0), FLAG_ENABLED))
     assert flags & FLAG_ALARM and corr == (0.0, 0.0, 0.0)
 
 
 def test_limiter_rate_and_magnitude():
     cur = (0.0, 0.0, 0.0)
     path = []
-    for _ in range(30):               # 30 steps of 10 ms at 40 µm/s toward (+20, -500, 0.1)
+    for _ in range(30):  # 30 steps of 10 ms at 40 µm/s toward (+20, -500, 0.1)
         cur = limit_step(cur, (20.0, -500.0, 0.1), 40.0, 100.0, 0.01)
         path.append(cur)
     path = np.array(path)
-    assert np.allclose(np.diff(path[:, 0])[:4], 0.4)          # 40 µm/s * 10 ms
-    assert path[-1, 0] == pytest.approx(12.0)                 # still ramping after 0.3 s
-    assert path[-1, 1] == pytest.approx(-12.0)                # clipped target -100, rate-bound
-    assert path[-1, 2] == pytest.approx(0.1)                  # small steps land exactly
+    assert np.allclose(np.diff(path[:, 0])[:4], 0.4)  # 40 µm/s * 10 ms
+    assert path[-1, 0] == pytest.approx(12.0)  # still ramping after 0.3 s
+    assert path[-1, 1] == pytest.approx(-12.0)  # clipped target -100, rate-bound
+    assert path[-1, 2] == pytest.approx(0.1)  # small steps land exactly
     for _ in range(1000):
         cur = limit_step(cur, (20.0, -500.0, 0.1), 40.0, 100.0, 0.01)
-    assert cur == pytest.approx((20.0, -100.0, 0.1))          # magnitude limit
+    assert cur == pytest.approx((20.0, -100.0, 0.1))  # magnitude limit
 
 
-@pytest.mark.parametrize("flags,link,on,homed,enable,applied", [
-    (FLAG_ENABLED, True, True, True, True, True),
-    (FLAG_ENABLED, True, True, False, True, False),            # not homed
-    (FLAG_ENABLED, True, True, True, False, False),            # HAL enable off
-    (FLAG_ENABLED, False, True, True, True, False),            # heartbeat lost
-    (FLAG_ENABLED | FLAG_ALARM, True, True, True, True, False),
-    (FLAG_ENABLED | FLAG_STALE, True, True, True, True, False),
-    (0, True, True, True, True, False),                        # compensator disabled
-    (FLAG_ENABLED, True, False, True, True, False),            # machine off
-])
+@pytest.mark.parametrize(
+    "flags,link,on,homed,enable,applied",
+    [
+        (FLAG_ENABLED, True, True, True, True, True),
+        (FLAG_ENABLED, True, True, False, True, False),  # not homed
+        (FLAG_ENABLED, True, True, True, False, False),  # HAL enable off
+        (FLAG_ENABLED, False, True, True, True, False),  # heartbeat lost
+        (FLAG_ENABLED | FLAG_ALARM, True, True, True, True, False),
+        (FLAG_ENABLED | FLAG_STALE, True, True, True, True, False),
+        (0, True, True, True, True, False),  # compensator disabled
+        (FLAG_ENABLED, True, False, True, True, False),  # machine off
+    ],
+)
 def test_target_only_when_everything_allows_it(flags, link, on, homed, enable, applied):
     target, active = target_for((5.0, -6.0, 7.0), flags, link, on, homed, enable)
     assert active is applied
@@ -69,17 +82,20 @@ def test_target_only_when_everything_allows_it(flags, link, on, homed, enable, a
 def test_output_heartbeat_stale_flag_and_goodbye_over_udp():
     rx = Receiver("udp://127.0.0.1:0")
     port = rx.sock.getsockname()[1]
-    out = LinuxCncOutput(CncConfig(kind="linuxcnc", address=f"udp://127.0.0.1:{port}",
-                                   heartbeat_s=0.02, stale_s=1.0))
+    out = LinuxCncOutput(
+        CncConfig(kind="linuxcnc", address=f"udp://127.0.0.1:{port}", heartbeat_s=0.02, stale_s=1.0)
+    )
     out.start()
     try:
+
         class Snap:
             correction_um, sample_time_s, alarm, health = (3.0, -4.0, 5.0), 1.0, False, "OK"
+
         published_s = time.time()
         out.publish(Snap(), enabled=True)
         # until the sender calls its newest value stale (an event, not a test-side clock);
         # Receiver.drain keeps the newest datagram only, so this sees some of them
-        got, end = [], time.monotonic() + 30.0              # a guard only
+        got, end = [], time.monotonic() + 30.0  # a guard only
         while time.monotonic() < end and not (got and got[-1][1] & FLAG_STALE):
             if rx.drain() and (not got or rx.last[0] != got[-1][0]):
                 got.append(rx.last)
@@ -92,7 +108,7 @@ def test_output_heartbeat_stale_flag_and_goodbye_over_udp():
         # stale only once stale_s of the sender's own clock has passed since the publication
         assert got[-1][2] - published_s >= 1.0, (got[-1][2], published_s)
     finally:
-        out.stop()              # sends its goodbye before it returns
+        out.stop()  # sends its goodbye before it returns
     end = time.monotonic() + 10.0
     while rx.last[1] != 0 and time.monotonic() < end:
         rx.drain()
@@ -108,7 +124,7 @@ def test_output_over_unix_datagram_socket(tmp_path):
     out.start()
     try:
         out.publish_values((1.0, 2.0, -3.0), FLAG_ENABLED | FLAG_ALARM, 5.0)
-        end = time.monotonic() + 10.0                   # a guard only
+        end = time.monotonic() + 10.0  # a guard only
         while time.monotonic() < end and rx.last is None:
             rx.drain()
             time.sleep(0.002)
@@ -123,19 +139,32 @@ def test_output_over_unix_datagram_socket(tmp_path):
 def test_serve_rejects_unknown_cnc_output(runtime_model_and_campaign):
     fbgcomp_testing.require("asyncua")
     model, campaign = runtime_model_and_campaign
-    p = fbgcomp_process("serve", "--model", model, "--source", f"replay://{campaign}",
-                        "--opcua", "off", "--cnc", "fanuc", "--duration", "1")
-    out, err = p.communicate(timeout=60)
+    p = fbgcomp_process(
+        "serve",
+        "--model",
+        model,
+        "--source",
+        f"replay://{campaign}",
+        "--opcua",
+        "off",
+        "--cnc",
+        "fanuc",
+        "--duration",
+        "1",
+    )
+    _out, err = p.communicate(timeout=60)
     assert p.returncode == 2
     assert err.decode().strip().splitlines()[-1].startswith("error:") and b"fanuc" in err
 
 
 # -- with LinuxCNC -------------------------------------------------------------------------
 
+
 @pytest.fixture
 def machine(request):
     fbgcomp_testing.require_program("linuxcnc")
     from fbgcomp.cli.cnc_demo import LinuxCncMachine
+
     settings = getattr(request, "param", {}) or {}
     m = LinuxCncMachine(fbgcomp=settings)
     m.start()
@@ -189,15 +218,14 @@ def test_correction_reaches_position_within_one_count_and_bounded_delay(machine,
     for corr in [(10.0, -7.3, 4.2), (-25.55, 12.0, -30.0), (3.05, 0.0, -0.15)]:
         t0 = time.time()
         output.publish_values(corr, FLAG_ENABLED)
-        want = np.array(corr) / 1000.0                  # the machine stands at X0 Y0 Z0
+        want = np.array(corr) / 1000.0  # the machine stands at X0 Y0 Z0
         r = machine.call("wait_position", values=list(want), tol=COUNT_MM, timeout_s=5)
         delays.append(r["reached"] - t0)
-        time.sleep(0.1)                                 # settled: the offset holds the value
+        time.sleep(0.1)  # settled: the offset holds the value
         st = machine.status()
         assert np.all(np.abs(np.array(st["actual"]) - want) <= COUNT_MM), st
         # the counts are what the docs say: correction / 0.1 µm, rounded
-        assert [st["pins"][f"fbgcomp.{a}.counts"] for a in "xyz"] == \
-            [int(round(c / 0.1)) for c in corr]
+        assert [st["pins"][f"fbgcomp.{a}.counts"] for a in "xyz"] == [round(c / 0.1) for c in corr]
     # planning a 30 µm offset move at OFFSET_AV_RATIO * MAX_ACCELERATION takes ~50 ms;
     # the channel and the component's 5 ms cycle add a few ms
     print(f"correction -> LinuxCNC position delays: {[round(d * 1000, 1) for d in delays]} ms")
@@ -226,18 +254,18 @@ def test_disable_and_compensator_fault_ramp_to_zero_at_configured_rate(machine, 
     # 1. the machine's enable input (HAL) off: ramp to zero at 40 µm/s
     machine.setp("fbgcomp.enable", 0)
     rows = machine.call("trace", pins=pins, duration_s=0.8, interval_s=0.005)["rows"]
-    slope, t, v = _ramp_rate_um_s(rows, "axis.x.eoffset", pins)
+    slope, _t, _v = _ramp_rate_um_s(rows, "axis.x.eoffset", pins)
     assert slope == pytest.approx(-40.0, rel=0.15)
     st = machine.status()
     assert _counts(st) == [0, 0, 0] and not st["pins"]["fbgcomp.active"]
-    assert np.all(np.abs(_offsets_mm(st)) < 1e-6)     # zero but for float residue of the sum
+    assert np.all(np.abs(_offsets_mm(st)) < 1e-6)  # zero but for float residue of the sum
 
     # 2. back on, then the compensator reports ALARM: fault out, ramp to zero at 40 µm/s
     machine.setp("fbgcomp.enable", 1)
     machine.call("wait_pin", pin="axis.x.eoffset", value=0.02, tol=COUNT_MM / 2, timeout_s=5)
     output.publish_values(corr, FLAG_ENABLED | FLAG_ALARM)
     rows = machine.call("trace", pins=pins, duration_s=0.8, interval_s=0.005)["rows"]
-    slope, t, v = _ramp_rate_um_s(rows, "axis.x.eoffset", pins)
+    slope, _t, _v = _ramp_rate_um_s(rows, "axis.x.eoffset", pins)
     assert slope == pytest.approx(-40.0, rel=0.15)
     assert rows[-1][3][pins.index("fbgcomp.fault")]
     st = machine.status()
@@ -250,7 +278,7 @@ def test_no_offset_before_homing(machine, output):
     machine.call("machine_on")
     output.publish_values((15.0, -15.0, 15.0), FLAG_ENABLED)
     machine.call("wait_pin", pin="fbgcomp.link-ok", value=1, tol=0, timeout_s=10)
-    time.sleep(0.5)                                     # it had time to apply it: it did not
+    time.sleep(0.5)  # it had time to apply it: it did not
     st = machine.status()
     assert not st["all_homed"] and st["pins"]["fbgcomp.link-ok"]
     assert not st["pins"]["fbgcomp.active"]
@@ -264,7 +292,7 @@ def test_no_offset_before_homing(machine, output):
 @pytest.mark.slow
 def test_gcode_move_ends_at_nominal_plus_correction(machine, output):
     _home(machine)
-    corr = np.array([14.7, -9.2, 21.3])                # µm
+    corr = np.array([14.7, -9.2, 21.3])  # µm
     output.publish_values(tuple(corr), FLAG_ENABLED)
     machine.call("wait_position", values=list(corr / 1000), tol=COUNT_MM, timeout_s=10)
     prog = machine.run_dir / "move.ngc"
@@ -286,14 +314,28 @@ def test_serve_drives_linuxcnc_and_heartbeat_loss_ramps_to_zero(machine, runtime
     fbgcomp_testing.require("asyncua")
     model, campaign = runtime_model_and_campaign
     _home(machine)
-    serve = fbgcomp_process("serve", "--model", model, "--source",
-                            f"sim://{campaign}?rate=200&speed=5", "--opcua", "off",
-                            "--cnc", "linuxcnc", "--cnc-address", machine.address,
-                            "--duration", "60")
+    serve = fbgcomp_process(
+        "serve",
+        "--model",
+        model,
+        "--source",
+        f"sim://{campaign}?rate=200&speed=5",
+        "--opcua",
+        "off",
+        "--cnc",
+        "linuxcnc",
+        "--cnc-address",
+        machine.address,
+        "--duration",
+        "60",
+    )
     try:
         machine.call("wait_pin", pin="fbgcomp.active", value=1, tol=0, timeout_s=30)
-        pins = [f"fbgcomp.{a}.request-um" for a in "xyz"] + [f"axis.{a}.eoffset" for a in "xyz"] \
+        pins = (
+            [f"fbgcomp.{a}.request-um" for a in "xyz"]
+            + [f"axis.{a}.eoffset" for a in "xyz"]
             + ["fbgcomp.latency-ms"]
+        )
         # the output filter averages while it learns the noise, so the correction of this
         # drifting campaign (0.2 µm/s at speed 5) needs a few seconds to be worth seeing
         end = time.monotonic() + 20
@@ -303,13 +345,15 @@ def test_serve_drives_linuxcnc_and_heartbeat_loss_ramps_to_zero(machine, runtime
                 break
         rows = machine.call("trace", pins=pins, duration_s=1.5, interval_s=0.01)["rows"]
         transit_ms = np.array([r[3][-1] for r in rows])
-        print(f"serve -> HAL component transit: median {np.median(transit_ms):.2f} ms, "
-              f"max {transit_ms.max():.2f} ms")
+        print(
+            f"serve -> HAL component transit: median {np.median(transit_ms):.2f} ms, "
+            f"max {transit_ms.max():.2f} ms"
+        )
         assert np.all((transit_ms >= 0) & (transit_ms < 100))
         t = np.array([r[0] for r in rows])
         req_mm = np.array([r[3][:3] for r in rows]) / 1000.0
         actual = np.array([r[2] for r in rows])
-        assert np.abs(req_mm).max() > 5 * COUNT_MM          # a correction worth seeing
+        assert np.abs(req_mm).max() > 5 * COUNT_MM  # a correction worth seeing
         # actual = nominal (0) + correction, within one count plus what the correction moves
         # in 0.1 s (channel + component cycle + offset planning + status update)
         drift = np.abs(np.diff(req_mm, axis=0)).max(axis=0) / np.diff(t).min()
@@ -322,7 +366,7 @@ def test_serve_drives_linuxcnc_and_heartbeat_loss_ramps_to_zero(machine, runtime
         serve.wait(10)
         killed = time.time()
         r = machine.call("wait_pin", pin="fbgcomp.fault", value=1, tol=0, timeout_s=2)
-        assert r["reached"] - killed < 0.2 + 0.1          # TIMEOUT_S + a cycle and margin
+        assert r["reached"] - killed < 0.2 + 0.1  # TIMEOUT_S + a cycle and margin
         end = machine.call("wait_position", values=[0, 0, 0], tol=COUNT_MM / 2, timeout_s=5)
         biggest_um = np.abs(_offsets_mm(held)).max() * 1000
         assert end["reached"] - killed < 0.2 + biggest_um / 100.0 + 0.3
@@ -337,6 +381,7 @@ def test_cnc_demo_compensates_a_program_and_stops_everything(tmp_path, runtime_m
     fbgcomp_testing.require_program("linuxcnc")
     fbgcomp_testing.require("asyncua")
     from fbgcomp.cli.cnc_demo import CNC_USER, run_demo
+
     model, campaign = runtime_model_and_campaign
     prog = tmp_path / "short.ngc"
     # a dwell first: the output filter averages the first seconds while it learns the noise
@@ -349,16 +394,16 @@ def test_cnc_demo_compensates_a_program_and_stops_everything(tmp_path, runtime_m
     assert "compensated (actual) X Y Z, mm" in text and "ramped back to zero" in text
     final = res["final"]
     offsets = _offsets_mm(final)
-    assert np.abs(offsets).max() > 5 * COUNT_MM          # compensation was on at the end
+    assert np.abs(offsets).max() > 5 * COUNT_MM  # compensation was on at the end
     # end of the program: actual = program end + external offset (two counts: the offset is
     # still following the replayed correction between the status and the pin reads)
-    assert np.all(np.abs(np.array(final["actual"]) - ([25.0, 8.0, 0.0] + offsets))
-                  <= 2 * COUNT_MM), final
+    assert np.all(np.abs(np.array(final["actual"]) - ([25.0, 8.0, 0.0, *offsets])) <= 2 * COUNT_MM), final
     rows = res["rows"]
     assert len(rows) > 10
     # nothing of the machine is left: no process of its user (root runs it as CNC_USER)
     if os.geteuid() == 0:
         import pwd
+
         uid = pwd.getpwnam(CNC_USER).pw_uid
         left = [d for d in os.listdir("/proc") if d.isdigit() and _owner(d) == uid]
         assert not left, left

@@ -17,11 +17,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from fbgcomp.bench.synthetic import linear_truth_campaign
 from fbgcomp.errors import InputError
 from fbgcomp.models.modelfile import MAX_MODEL_BYTES
 from fbgcomp.models.mra import MRAModel
 from fbgcomp.models.registry import load_model
-from fbgcomp.bench.synthetic import linear_truth_campaign
 
 _CACHE: dict = {}
 
@@ -95,22 +95,25 @@ def test_non_finite_literals_are_refused(tmp_path, literal):
 
 def test_a_null_coefficient_is_refused_but_a_null_statistic_is_not(tmp_path):
     d = _mra_dict()
-    d["axes"]["dx"]["params"][0] = None           # a NaN the writer turned into null
+    d["axes"]["dx"]["params"][0] = None  # a NaN the writer turned into null
     _refused(_write(tmp_path / "m.json", d), "axes.dx.params[0]", "null where a number")
     d = _mra_dict()
-    d["axes"]["dx"]["tvalues"][0] = None          # an infinite t of an exact fit: reported only
+    d["axes"]["dx"]["tvalues"][0] = None  # an infinite t of an exact fit: reported only
     d["axes"]["dx"]["fvalue"] = None
     assert load_model(_write(tmp_path / "ok.json", d)).axes_["dx"].fvalue != 0
 
 
-@pytest.mark.parametrize("mutate, field", [
-    (lambda d: d["axes"]["dx"]["params"].pop(), "axes.dx.params"),
-    (lambda d: d["axes"]["dy"]["cov_params"].pop(), "axes.dy.cov_params"),
-    (lambda d: d["fallbacks"][0]["axes"]["dz"]["bse"].append(0.1), "fallbacks[0].axes.dz.bse"),
-    (lambda d: d["axes"]["dz"]["terms"].__setitem__(1, "dL_S7"), "axes.dz.terms"),
-    (lambda d: d["fallbacks"][1].__setitem__("exclude", ["S7"]), "fallbacks[1].exclude"),
-    (lambda d: d["axes"]["dx"].__setitem__("resid_sd_um", -1.0), "axes.dx.resid_sd_um"),
-])
+@pytest.mark.parametrize(
+    "mutate, field",
+    [
+        (lambda d: d["axes"]["dx"]["params"].pop(), "axes.dx.params"),
+        (lambda d: d["axes"]["dy"]["cov_params"].pop(), "axes.dy.cov_params"),
+        (lambda d: d["fallbacks"][0]["axes"]["dz"]["bse"].append(0.1), "fallbacks[0].axes.dz.bse"),
+        (lambda d: d["axes"]["dz"]["terms"].__setitem__(1, "dL_S7"), "axes.dz.terms"),
+        (lambda d: d["fallbacks"][1].__setitem__("exclude", ["S7"]), "fallbacks[1].exclude"),
+        (lambda d: d["axes"]["dx"].__setitem__("resid_sd_um", -1.0), "axes.dx.resid_sd_um"),
+    ],
+)
 def test_shapes_and_names_that_disagree_are_refused_on_loading(tmp_path, mutate, field):
     d = _mra_dict()
     mutate(d)
@@ -144,17 +147,24 @@ def test_an_oversized_model_file_is_refused_without_reading_it_whole(tmp_path):
 def test_deeply_nested_json_is_refused(tmp_path, depth):
     # 200 000 levels: a RecursionError traceback before; 100: under Python's limit, over ours
     path = tmp_path / "m.json"
-    path.write_text('{"format": "fbgcomp-model", "schema_version": 2, "model_type": "mra", "x": '
-                    + "[" * depth + "]" * depth + "}")
+    path.write_text(
+        '{"format": "fbgcomp-model", "schema_version": 2, "model_type": "mra", "x": '
+        + "[" * depth
+        + "]" * depth
+        + "}"
+    )
     _refused(path, match="nested deeper than 64 levels")
 
 
-@pytest.mark.parametrize("content, match", [
-    ('{"format": "fbgcomp-model", "schema_version": 0}', "schema_version must be"),
-    ('{"format": "fbgcomp-model", "schema_version": 2, "model_type": ["mra"]}', "model_type must be"),
-    ('{"format": "fbgcomp-model", "schema_version": 2, "n": ' + "9" * 5000 + "}", "not a JSON"),
-    (b'\xff\xfe{"format"', "not UTF-8"),
-])
+@pytest.mark.parametrize(
+    "content, match",
+    [
+        ('{"format": "fbgcomp-model", "schema_version": 0}', "schema_version must be"),
+        ('{"format": "fbgcomp-model", "schema_version": 2, "model_type": ["mra"]}', "model_type must be"),
+        ('{"format": "fbgcomp-model", "schema_version": 2, "n": ' + "9" * 5000 + "}", "not a JSON"),
+        (b'\xff\xfe{"format"', "not UTF-8"),
+    ],
+)
 def test_malformed_headers_are_one_line_errors(tmp_path, content, match):
     path = tmp_path / "m.json"
     path.write_bytes(content if isinstance(content, bytes) else content.encode())
@@ -166,12 +176,12 @@ def test_save_never_replaces_a_good_file_with_an_invalid_model(tmp_path):
     model = MRAModel(features="eq11", fallbacks="none").fit(campaign)
     path = model.save(tmp_path / "m.json")
     good = path.read_bytes()
-    model.axes_["dy"].params[0] = math.nan          # what a fit on an overflowing input gave
+    model.axes_["dy"].params[0] = math.nan  # what a fit on an overflowing input gave
     with pytest.raises(InputError, match=r"not valid, so m.json was not written.*null") as info:
         model.save(path)
     assert info.value.file == str(path)
     assert path.read_bytes() == good
-    assert os.listdir(tmp_path) == ["m.json"]        # no temporary file left behind
+    assert os.listdir(tmp_path) == ["m.json"]  # no temporary file left behind
     model.axes_["dy"].params[0] = 1e300
     with pytest.raises(InputError, match="beyond"):
         model.save(tmp_path / "new.json")
@@ -180,9 +190,8 @@ def test_save_never_replaces_a_good_file_with_an_invalid_model(tmp_path):
 
 def test_a_physical_model_with_an_absurd_coefficient_is_refused(tmp_path):
     # The default model type: its thermal coefficients go through the same numeric checks.
-    from fbgcomp_testing import RAM2_DIR
-
     from fbgcomp.models.physical import PhysicalModel
+    from fbgcomp_testing import RAM2_DIR
 
     static_x = RAM2_DIR / "data" / "static_x"
     if not static_x.is_dir():
@@ -200,9 +209,8 @@ def _physical_dict() -> dict:
     """The default model as the README fits it on ram2 (twin map, housing calibration, load
     part, interval), as a dict."""
     if "physical" not in _CACHE:
-        from fbgcomp_testing import RAM2_DIR, read_ram2
-
         from fbgcomp.models.physical import PhysicalModel
+        from fbgcomp_testing import RAM2_DIR, read_ram2
 
         r = read_ram2("thermal_a", "static_xyz")
         machine = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram2.yaml"
@@ -213,17 +221,23 @@ def _physical_dict() -> dict:
     return copy.deepcopy(_CACHE["physical"])
 
 
-@pytest.mark.parametrize("mutate, field", [
-    (lambda d: d["twin_map"]["coef"].pop(), "twin_map.coef"),
-    (lambda d: d["twin_map"]["calibration"]["coef"].pop(), "twin_map.calibration.coef"),
-    (lambda d: d["twin_map"]["calibration"].__setitem__("leads_s", [300.0, -1.0]), "twin_map.calibration.leads_s"),
-    (lambda d: d["load"]["G_um_per_N"][0].append(0.0), "load.G_um_per_N"),
-    (lambda d: d["interval"]["v0_um2"].__setitem__(1, -0.1), "interval.v0_um2"),
-    (lambda d: d["interval"]["dT_scale_K"].pop(), "interval.dT_scale_K"),
-    (lambda d: d["thermal"]["coef"].append([0.0, 0.0, 0.0]), "thermal.coef"),
-    (lambda d: d["housing_probes"].append("T_nowhere"), "housing_probes"),
-    (lambda d: d["probes"].append(d["probes"][0]), "probes"),
-])
+@pytest.mark.parametrize(
+    "mutate, field",
+    [
+        (lambda d: d["twin_map"]["coef"].pop(), "twin_map.coef"),
+        (lambda d: d["twin_map"]["calibration"]["coef"].pop(), "twin_map.calibration.coef"),
+        (
+            lambda d: d["twin_map"]["calibration"].__setitem__("leads_s", [300.0, -1.0]),
+            "twin_map.calibration.leads_s",
+        ),
+        (lambda d: d["load"]["G_um_per_N"][0].append(0.0), "load.G_um_per_N"),
+        (lambda d: d["interval"]["v0_um2"].__setitem__(1, -0.1), "interval.v0_um2"),
+        (lambda d: d["interval"]["dT_scale_K"].pop(), "interval.dT_scale_K"),
+        (lambda d: d["thermal"]["coef"].append([0.0, 0.0, 0.0]), "thermal.coef"),
+        (lambda d: d["housing_probes"].append("T_nowhere"), "housing_probes"),
+        (lambda d: d["probes"].append(d["probes"][0]), "probes"),
+    ],
+)
 def test_a_physical_model_whose_shapes_disagree_is_refused_on_loading(tmp_path, mutate, field):
     # Before, such a file loaded and failed (or broadcast silently) at the first prediction.
     d = _physical_dict()
@@ -236,22 +250,27 @@ def test_a_physical_model_whose_shapes_disagree_is_refused_on_loading(tmp_path, 
 # Property tests: any mutation of a valid model loads or is an InputError, never another error
 # --------------------------------------------------------------------------------------------
 
+
 def _paths(node, prefix=()):
     yield prefix
     if isinstance(node, dict):
         for k, v in node.items():
-            yield from _paths(v, prefix + (k,))
+            yield from _paths(v, (*prefix, k))
     elif isinstance(node, list):
         for i, v in enumerate(node):
-            yield from _paths(v, prefix + (i,))
+            yield from _paths(v, (*prefix, i))
 
 
 _json_values = st.recursive(
-    st.none() | st.booleans() | st.integers(-10**20, 10**20)
-    | st.floats(allow_nan=True, allow_infinity=True) | st.text(max_size=8)
+    st.none()
+    | st.booleans()
+    | st.integers(-(10**20), 10**20)
+    | st.floats(allow_nan=True, allow_infinity=True)
+    | st.text(max_size=8)
     | st.sampled_from(["S1", "dL_S1", "const", "eq13", "HAC", "loo", "mra", "physical"]),
     lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=6), inner, max_size=3),
-    max_leaves=8)
+    max_leaves=8,
+)
 
 
 @st.composite
@@ -277,7 +296,7 @@ def mutations(draw, base):
             else:
                 parent[key] = draw(_json_values)
         except (KeyError, IndexError, TypeError):
-            continue   # an earlier mutation removed or replaced this path
+            continue  # an earlier mutation removed or replaced this path
     return d
 
 
@@ -293,7 +312,7 @@ def _loads_or_input_error(d) -> None:
         # what loaded predicts finite numbers with every sensor set the runtime may use
         w0 = np.array([s.lambda0_nm for s in model.sensors])
         t0 = np.full(len(model.probe_names), 20.0)
-        for exclude in [frozenset()] + list(model.fallback_sets):
+        for exclude in [frozenset(), *list(model.fallback_sets)]:
             dev, half = model.predictor(exclude).predict(w0[None, :] + 0.01, t0[None, :] + 0.5, w0, t0)
             assert np.isfinite(dev).all() and np.isfinite(half).all()
 

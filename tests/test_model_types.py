@@ -8,15 +8,24 @@ import sys
 
 import numpy as np
 import pytest
+from sklearn.base import clone
+from sklearn.utils.estimator_checks import (
+    check_get_params_invariance,
+    check_no_attributes_set_in_init,
+    check_set_params,
+)
 
 from fbgcomp.bench.virtual import Scenario, load_scenario, simulate
 from fbgcomp.io.campaign import read_campaign, write_campaign
-from sklearn.base import clone
-from sklearn.utils.estimator_checks import (check_get_params_invariance, check_no_attributes_set_in_init,
-                                            check_set_params)
-
-from fbgcomp.models import (CalibratedModel, DynamicModel, HybridModel, KinematicModel, MRAModel, PhysicalModel,
-                            load_model)
+from fbgcomp.models import (
+    CalibratedModel,
+    DynamicModel,
+    HybridModel,
+    KinematicModel,
+    MRAModel,
+    PhysicalModel,
+    load_model,
+)
 from fbgcomp.models.filters import first_order_filter
 from fbgcomp.models.metrics import static_level_metrics, validation_metrics
 from fbgcomp.structure import Twin, load_machine
@@ -41,10 +50,14 @@ def campaigns(tmp_path_factory):
     machine = load_machine()
     twin = Twin(machine, resolution=0.3)
     out = {}
-    for i, (name, sc) in enumerate([("thermal-a", _short("thermal-36h")),
-                                    ("thermal-b", _short("thermal-36h-b")),
-                                    ("static-y", load_scenario("static-y")),
-                                    ("static-xyz", load_scenario("static-xyz"))]):
+    for i, (name, sc) in enumerate(
+        [
+            ("thermal-a", _short("thermal-36h")),
+            ("thermal-b", _short("thermal-36h-b")),
+            ("static-y", load_scenario("static-y")),
+            ("static-xyz", load_scenario("static-xyz")),
+        ]
+    ):
         c, _ = simulate(machine, sc, seed=10 + i, twin=twin)
         out[name] = read_campaign(write_campaign(c, root / name))
     tw300 = Twin(machine, resolution=0.3, z_axis_mm=300.0)
@@ -64,7 +77,7 @@ def test_kinematic_model_needs_no_campaign_and_follows_z(campaigns):
     assert model.training_["n_samples"] == 0 and model.pi_source_ == "default"
     for name in ("static-y", "static-y-z300"):
         c = campaigns[name]
-        m, pred, half = _metrics(model, c)
+        m, pred, _half = _metrics(model, c)
         ref = c.aligned().reference_um
         loaded = np.abs(ref[:, 1]) > 0.5 * np.abs(ref[:, 1]).max()
         ratio = np.median(pred[loaded, 1] / ref[loaded, 1])
@@ -73,13 +86,16 @@ def test_kinematic_model_needs_no_campaign_and_follows_z(campaigns):
     assert "underdetermined" in model.summary()
 
 
-@pytest.mark.parametrize("make", [
-    lambda: KinematicModel(),
-    lambda: HybridModel(features="eq13"),
-    lambda: HybridModel(features="dynamic", stepwise=False),
-    lambda: CalibratedModel(features="eq13"),
-    lambda: DynamicModel(stepwise=True),
-])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: KinematicModel(),
+        lambda: HybridModel(features="eq13"),
+        lambda: HybridModel(features="dynamic", stepwise=False),
+        lambda: CalibratedModel(features="eq13"),
+        lambda: DynamicModel(stepwise=True),
+    ],
+)
 def test_model_file_round_trip_and_runtime_contract(campaigns, tmp_path, make):
     model = make().fit([campaigns["thermal-a"], campaigns["static-y"]])
     path = model.save(tmp_path / "m.json")
@@ -109,8 +125,9 @@ def test_model_file_round_trip_and_runtime_contract(campaigns, tmp_path, make):
     assert np.asarray(pred.expected_rms_error_um).shape == (3,)
     # Issue 13 deliver 1: every type records the deviations it was fitted on, per axis and
     # campaign, and bounds the runtime's correction by them.
-    refs = [campaigns[n].aligned(zero_window_s=back.zero_window_s).reference_um
-            for n in ("thermal-a", "static-y")]
+    refs = [
+        campaigns[n].aligned(zero_window_s=back.zero_window_s).reference_um for n in ("thermal-a", "static-y")
+    ]
     for run, ref in zip(d["training"]["campaigns"], refs):
         np.testing.assert_allclose(run["deviation_low_um"], ref.min(axis=0))
         np.testing.assert_allclose(run["deviation_high_um"], ref.max(axis=0))
@@ -126,8 +143,10 @@ def test_dynamic_predictor_streams_exactly_like_the_offline_path(campaigns):
     p.reset()
     whole, _ = p.predict(w, t, w0, t0, time_s=a.time_s)
     p.reset()
-    parts = [p.predict(w[s], t[s], w0, t0, time_s=a.time_s[s])[0]
-             for s in (slice(0, 7), slice(7, 300), slice(300, None))]
+    parts = [
+        p.predict(w[s], t[s], w0, t0, time_s=a.time_s[s])[0]
+        for s in (slice(0, 7), slice(7, 300), slice(300, None))
+    ]
     np.testing.assert_allclose(np.vstack(parts), whole, atol=1e-9)
     offline, _ = model.predict_interval(campaigns["thermal-b"])
     np.testing.assert_allclose(offline, whole, atol=1e-9)
@@ -168,8 +187,13 @@ def test_v1_model_file_is_migrated(campaigns, tmp_path):
 
 
 def run(*args):
-    return subprocess.run([*FBGCOMP, *map(str, args)], capture_output=True, text=True, timeout=300,
-                          env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    return subprocess.run(
+        [*FBGCOMP, *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "PYTHONWARNINGS": "ignore"},
+    )
 
 
 def test_cli_fit_model_types_and_validate_prints_coverage(campaigns, tmp_path):
@@ -190,13 +214,34 @@ def test_cli_fit_model_types_and_validate_prints_coverage(campaigns, tmp_path):
 
 def test_cli_compare_writes_ranked_tables(campaigns, tmp_path):
     csv_path, json_path = tmp_path / "c.csv", tmp_path / "c.json"
-    r = run("compare", "--train", campaigns["thermal-a"].path, "--train", campaigns["static-y"].path,
-            "--test", campaigns["thermal-b"].path, "--csv", csv_path, "--json", json_path)
+    r = run(
+        "compare",
+        "--train",
+        campaigns["thermal-a"].path,
+        "--train",
+        campaigns["static-y"].path,
+        "--test",
+        campaigns["thermal-b"].path,
+        "--csv",
+        csv_path,
+        "--json",
+        json_path,
+    )
     assert r.returncode == 0, r.stderr
     result = json.loads(json_path.read_text())
     names = {row["name"] for row in result["rows"]}
-    assert {"mra eq11", "mra eq13", "mra eq12", "mra eq13 stepwise", "ridge eq13", "pls eq13",
-            "dynamic eq13+lp", "kinematic", "hybrid eq13", "calibrated eq13"} <= names
+    assert {
+        "mra eq11",
+        "mra eq13",
+        "mra eq12",
+        "mra eq13 stepwise",
+        "ridge eq13",
+        "pls eq13",
+        "dynamic eq13+lp",
+        "kinematic",
+        "hybrid eq13",
+        "calibrated eq13",
+    } <= names
     lines = csv_path.read_text().splitlines()
     assert lines[0].startswith("axis,rank,name")
     dz = [ln.split(",") for ln in lines[1:] if ln.startswith("dz,")]
@@ -204,8 +249,14 @@ def test_cli_compare_writes_ranked_tables(campaigns, tmp_path):
     assert errs == sorted(errs) and "== dz" in r.stdout
 
 
-@pytest.mark.parametrize("make", [lambda: KinematicModel(), lambda: HybridModel(features="eq13"),
-                                  lambda: CalibratedModel(features="eq13")])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: KinematicModel(),
+        lambda: HybridModel(features="eq13"),
+        lambda: CalibratedModel(features="eq13"),
+    ],
+)
 def test_runtime_pipeline_gives_the_offline_numbers(campaigns, tmp_path, make):
     from fbgcomp.runtime.pipeline import HEALTH_ZEROING, Pipeline
 
@@ -214,8 +265,16 @@ def test_runtime_pipeline_gives_the_offline_numbers(campaigns, tmp_path, make):
     a = c.aligned(zero_window_s=model.zero_window_s)
     w, t, _, _ = model.instrument_arrays(a)
     pipe = Pipeline(model)
-    out = [pipe.process(a.time_s[i:i + 37], w[i:i + 37], np.ones(w[i:i + 37].shape, np.int8),
-                        np.zeros(w[i:i + 37].shape, np.int8), t[i:i + 37]) for i in range(0, len(w), 37)]
+    out = [
+        pipe.process(
+            a.time_s[i : i + 37],
+            w[i : i + 37],
+            np.ones(w[i : i + 37].shape, np.int8),
+            np.zeros(w[i : i + 37].shape, np.int8),
+            t[i : i + 37],
+        )
+        for i in range(0, len(w), 37)
+    ]
     dev = np.concatenate([r.deviation_um for r in out])
     half = np.concatenate([r.half_width_um for r in out])
     ok = np.concatenate([r.health for r in out]) != HEALTH_ZEROING
@@ -293,8 +352,9 @@ def test_calibrated_closure_recovers_unseen_x_loads_from_y_loads(closure_campaig
     assert np.all(pct_cal50 < 0.5 * pct_hyb50), (pct_cal50, pct_hyb50)
     c = cal.calibration_
     assert c["shared_axes"] and c["parameters"] == ["bending", "shear"]
-    assert c["campaigns"] == [{"name": cc["default", "static-y"].meta.name, "z_axis_mm": 0.0,
-                               "n_plateaus": c["n_plateaus"]}]
+    assert c["campaigns"] == [
+        {"name": cc["default", "static-y"].meta.name, "z_axis_mm": 0.0, "n_plateaus": c["n_plateaus"]}
+    ]
     # One Z position: only the shear (the larger compliance) is pinned by the loads; the
     # bending factor stays at its prior's width and the summary says so.
     assert c["identified"] == [False, True]
@@ -305,7 +365,8 @@ def test_calibrated_closure_recovers_unseen_x_loads_from_y_loads(closure_campaig
 def test_calibrated_factors_are_near_one_where_the_beam_closure_holds(closure_campaigns):
     cc = closure_campaigns
     cal = CalibratedModel(cc["slender"], stepwise=False).fit(
-        [cc["slender", "thermal-36h"], cc["slender", "static-y"]])
+        [cc["slender", "thermal-36h"], cc["slender", "static-y"]]
+    )
     f = dict(zip(cal.calibration_["parameters"], cal.calibration_["factors"]))
     se = dict(zip(cal.calibration_["parameters"], cal.calibration_["standard_errors"]))
     # A slender box bends like a beam: the fitted shear compliance is the nominal one within
@@ -343,21 +404,32 @@ def test_closure_factor_fit_leaves_unexcited_factors_at_their_prior():
     from fbgcomp.models.calibrated import fit_closure_factors
 
     rng = np.random.default_rng(0)
-    load = np.repeat(np.arange(5.0), 2)                          # Y plateaus only, two campaigns
-    X = np.zeros((10, 4))                                        # bending_x, bending_y, shear_x, shear_y
+    load = np.repeat(np.arange(5.0), 2)  # Y plateaus only, two campaigns
+    X = np.zeros((10, 4))  # bending_x, bending_y, shear_x, shear_y
     X[:, 1], X[:, 3] = 20.0 * load, 170.0 * load
     offset = np.tile([0, 1], 5)
     y = X[:, 1] * 1.0 + X[:, 3] * 1.05 + np.where(offset, 3.0, -2.0) + 0.5 * rng.standard_normal(10)
-    f, cov, sd, ratio = fit_closure_factors(X, y, offset, prior_sd=0.5)
-    assert f[0] == pytest.approx(1.0) and f[2] == pytest.approx(1.0) and ratio[0] == pytest.approx(1.0) and ratio[2] == pytest.approx(1.0)
+    f, _cov, sd, ratio = fit_closure_factors(X, y, offset, prior_sd=0.5)
+    assert (
+        f[0] == pytest.approx(1.0)
+        and f[2] == pytest.approx(1.0)
+        and ratio[0] == pytest.approx(1.0)
+        and ratio[2] == pytest.approx(1.0)
+    )
     # The Y pair is only known as a weighted sum: 20 f_by + 170 f_sy ~= 20 + 178.5
     assert 20 * f[1] + 170 * f[3] == pytest.approx(198.5, abs=0.5)
     assert sd < 2.0
 
 
 # ------------------------------------------------------------------ scikit-learn estimator contract
-ESTIMATORS = {"mra": MRAModel, "kinematic": KinematicModel, "hybrid": HybridModel, "calibrated": CalibratedModel,
-              "dynamic": DynamicModel, "physical": PhysicalModel}
+ESTIMATORS = {
+    "mra": MRAModel,
+    "kinematic": KinematicModel,
+    "hybrid": HybridModel,
+    "calibrated": CalibratedModel,
+    "dynamic": DynamicModel,
+    "physical": PhysicalModel,
+}
 
 
 @pytest.mark.parametrize("kind", list(ESTIMATORS))

@@ -5,15 +5,15 @@ import pandas as pd
 import pytest
 from scipy import stats
 
-from fbgcomp.io.campaign import read_campaign, write_campaign
+from fbgcomp.bench.synthetic import linear_truth_campaign
 from fbgcomp.errors import InputError
+from fbgcomp.io.campaign import read_campaign, write_campaign
 from fbgcomp.models.features import candidate_terms
 from fbgcomp.models.metrics import validation_metrics
-from fbgcomp.units import AXES
 from fbgcomp.models.modelfile import SCHEMA_VERSION
 from fbgcomp.models.mra import MRAModel
 from fbgcomp.models.registry import load_model
-from fbgcomp.bench.synthetic import linear_truth_campaign
+from fbgcomp.units import AXES
 
 
 @pytest.fixture(scope="module")
@@ -47,11 +47,14 @@ def test_every_true_coefficient_inside_its_95pct_ci(truth_campaign):
 
 def test_95pct_confidence_intervals_cover_the_truth_95pct_of_the_time():
     # ... and the individual 95 % intervals are checked for what they promise: coverage.
-    z = np.concatenate([
-        _slope_z_scores(MRAModel(features="eq13", fallbacks="none").fit(c), truth)
-        for c, truth in (linear_truth_campaign("rep", seed=100 + i, duration_s=1800) for i in range(20))])
+    z = np.concatenate(
+        [
+            _slope_z_scores(MRAModel(features="eq13", fallbacks="none").fit(c), truth)
+            for c, truth in (linear_truth_campaign("rep", seed=100 + i, duration_s=1800) for i in range(20))
+        ]
+    )
     coverage = np.mean(np.abs(z) <= 1.96)
-    assert 0.92 <= coverage <= 0.98, coverage       # 480 draws: binomial SD 1 %
+    assert 0.92 <= coverage <= 0.98, coverage  # 480 draws: binomial SD 1 %
     # The 24 slopes of one campaign share its design, so their z-scores are correlated and the
     # sample mean and SD spread more than for 480 independent draws: loose bounds on those two.
     assert abs(np.mean(z)) < 0.25 and 0.8 < np.std(z) < 1.25
@@ -60,8 +63,9 @@ def test_95pct_confidence_intervals_cover_the_truth_95pct_of_the_time():
 def test_stepwise_selects_exactly_the_true_terms(truth_campaign):
     campaign, truth = truth_campaign
     for direction in ("forward", "backward", "both"):
-        model = MRAModel(features="eq13", stepwise=True, direction=direction, p_enter=1e-4,
-                         p_remove=1e-3, fallbacks="none").fit(campaign)
+        model = MRAModel(
+            features="eq13", stepwise=True, direction=direction, p_enter=1e-4, p_remove=1e-3, fallbacks="none"
+        ).fit(campaign)
         for a in AXES:
             want = {k for k, v in truth["coefficients"][a].items() if k != "const" and v != 0}
             got = set(model.axes_[a].terms) - {"const"}
@@ -71,7 +75,7 @@ def test_stepwise_selects_exactly_the_true_terms(truth_campaign):
 
 
 def test_validation_on_a_held_out_campaign_is_at_noise_level(truth_campaign):
-    campaign, truth = truth_campaign
+    campaign, _truth = truth_campaign
     model = MRAModel(features="eq13").fit(campaign)
     other, _ = linear_truth_campaign("other", seed=7, duration_s=2 * 3600, noise_um=0.05)
     pred, half = model.predict_interval(other)
@@ -88,7 +92,9 @@ def test_model_file_round_trip(truth_campaign, tmp_path):
     model = MRAModel(features="eq12", stepwise=True, fallbacks="lto").fit(campaign)
     path = model.save(tmp_path / "model.json")
     d = json.loads(path.read_text())
-    assert d["schema_version"] == SCHEMA_VERSION and d["model_type"] == "mra" and d["model_id"] == model.model_id
+    assert (
+        d["schema_version"] == SCHEMA_VERSION and d["model_type"] == "mra" and d["model_id"] == model.model_id
+    )
     assert d["zero_state"] == {"method": "mean_of_first_window", "window_s": 10.0}
     assert [s["name"] for s in d["sensors"]] == ["S1", "S2", "S3", "S4", "S5"]
     assert d["training"]["campaigns"][0]["name"] == "truth"
@@ -159,13 +165,18 @@ def test_model_with_sensors_the_campaign_lacks_is_a_clear_error(truth_campaign, 
         load_model(bad)
 
 
-@pytest.mark.parametrize("content, match", [
-    ("{not json", "not a JSON model file"),
-    ('{"format": "other"}', "not an fbgcomp model file"),
-    ('{"format": "fbgcomp-model", "schema_version": 99}', "newer than this fbgcomp"),
-    ('{"format": "fbgcomp-model", "schema_version": %d, "model_type": "mra"}' % SCHEMA_VERSION,
-     "missing field"),
-])
+@pytest.mark.parametrize(
+    "content, match",
+    [
+        ("{not json", "not a JSON model file"),
+        ('{"format": "other"}', "not an fbgcomp model file"),
+        ('{"format": "fbgcomp-model", "schema_version": 99}', "newer than this fbgcomp"),
+        (
+            f'{{"format": "fbgcomp-model", "schema_version": {SCHEMA_VERSION}, "model_type": "mra"}}',
+            "missing field",
+        ),
+    ],
+)
 def test_bad_model_files(tmp_path, content, match):
     p = tmp_path / "m.json"
     p.write_text(content)
@@ -187,18 +198,20 @@ def test_static_plateau_metrics_average_out_noise_and_skip_ramps():
     from fbgcomp.models.metrics import load_plateaus, static_level_metrics
 
     t = np.arange(0, 300.0)
-    fy = np.interp(t, [0, 60, 62, 120, 122, 180, 182, 240, 242, 300], [0, 0, 1000, 1000, 2000, 2000, 1000, 1000, 0, 0])
+    fy = np.interp(
+        t, [0, 60, 62, 120, 122, 180, 182, 240, 242, 300], [0, 0, 1000, 1000, 2000, 2000, 1000, 1000, 0, 0]
+    )
     loads = np.column_stack([np.zeros_like(t), fy, np.zeros_like(t)])
     rng = np.random.default_rng(0)
     ref = np.column_stack([np.zeros_like(t), 0.2 * fy, np.zeros_like(t)])
-    pred = ref * 1.02 + rng.normal(0, 5.0, ref.shape)        # 2 % gain error + noise
+    pred = ref * 1.02 + rng.normal(0, 5.0, ref.shape)  # 2 % gain error + noise
     runs = load_plateaus(loads)
     assert len(runs) == 5 and all(len(r) >= 50 for r in runs)
-    assert all(np.ptp(fy[r]) == 0 for r in runs)              # no ramp sample inside a plateau
+    assert all(np.ptp(fy[r]) == 0 for r in runs)  # no ramp sample inside a plateau
     m = static_level_metrics(loads, ref, pred)
     assert m["n_levels"] == 5
     assert m["axes"]["dy"]["max_plateau_deflection_um"] == pytest.approx(400.0)
-    assert 1.0 < m["axes"]["dy"]["error_pct_of_deflection"] < 3.0   # the gain error, not the noise
+    assert 1.0 < m["axes"]["dy"]["error_pct_of_deflection"] < 3.0  # the gain error, not the noise
 
 
 def test_scikit_learn_clone_and_params(truth_campaign):
@@ -208,7 +221,7 @@ def test_scikit_learn_clone_and_params(truth_campaign):
     model = MRAModel(features="eq12", stepwise=True, p_enter=0.01).fit(campaign)
     copy = clone(model)
     assert copy.get_params() == model.get_params()
-    assert not hasattr(copy, "axes_")                     # learned state is not cloned
+    assert not hasattr(copy, "axes_")  # learned state is not cloned
     copy.set_params(features="eq11", stepwise=False)
     assert copy.fit(campaign).axes_["dx"].terms == ["const", "dL_S1", "dL_S2", "dL_S3", "dL_S4", "dL_S5"]
     with pytest.raises(ValueError, match="invalid parameter"):
@@ -221,28 +234,32 @@ def test_balanced_pooling_keeps_a_short_informative_campaign_from_being_diluted(
     with a short one where it carries the signal. OLS shrinks the gain; balancing does not."""
     coef = {"dx": {}, "dy": {"dL_S3": 30.0, "dL_S4": -30.0}, "dz": {}}
     quiet = {"dx": {}, "dy": {}, "dz": {}}
-    short, _ = linear_truth_campaign("short", seed=21, duration_s=600, coefficients=coef,
-                                     wavelength_noise_nm=1e-3, settle_s=10)
-    long_, _ = linear_truth_campaign("long", seed=22, duration_s=30 * 3600, coefficients=quiet,
-                                     wavelength_noise_nm=1e-3, settle_s=10)
+    short, _ = linear_truth_campaign(
+        "short", seed=21, duration_s=600, coefficients=coef, wavelength_noise_nm=1e-3, settle_s=10
+    )
+    long_, _ = linear_truth_campaign(
+        "long", seed=22, duration_s=30 * 3600, coefficients=quiet, wavelength_noise_nm=1e-3, settle_s=10
+    )
     # the long campaign's elongations: noise only (no signal in S3/S4)
     fbg = long_.fbg.copy()
     rng = np.random.default_rng(3)
     for s, lam0 in (("S3", 1540.0), ("S4", 1545.0)):
         fbg[f"{s}_nm"] = lam0 + 1e-3 * rng.standard_normal(len(fbg))
-    long_ = type(long_).from_arrays(long_.meta, fbg=fbg, temperatures=long_.temperatures,
-                                    reference=long_.reference)
+    long_ = type(long_).from_arrays(
+        long_.meta, fbg=fbg, temperatures=long_.temperatures, reference=long_.reference
+    )
     gains = {}
     for mode in ("samples", "balanced"):
         m = MRAModel(features="eq11", fallbacks="none", campaign_weights=mode).fit([long_, short])
         gains[mode] = dict(zip(m.axes_["dy"].terms, m.axes_["dy"].params))["dL_S3"]
-    assert gains["samples"] < 0.9 * 30.0            # attenuated by the pooled noise (~14 %)
-    assert gains["balanced"] == pytest.approx(30.0, rel=0.03)   # 29.6: balanced weights keep it
+    assert gains["samples"] < 0.9 * 30.0  # attenuated by the pooled noise (~14 %)
+    assert gains["balanced"] == pytest.approx(30.0, rel=0.03)  # 29.6: balanced weights keep it
 
 
 # --------------------------------------------------------------------------------------------
 # Autocorrelation-robust inference (issue 12)
 # --------------------------------------------------------------------------------------------
+
 
 def test_mra_inference_is_newey_west_by_default_and_the_naive_one_stays_available(truth_campaign, tmp_path):
     campaign, _ = truth_campaign
@@ -251,8 +268,8 @@ def test_mra_inference_is_newey_west_by_default_and_the_naive_one_stays_availabl
     for a in AXES:
         h, n = hac.axes_[a], naive.axes_[a]
         assert h.cov_type == "HAC" and n.cov_type == "nonrobust"
-        assert h.hac["maxlags"] >= 1 and 0 < h.hac["n_eff"]
-        np.testing.assert_allclose(h.params, n.params, rtol=1e-12)      # same estimates
+        assert h.hac["maxlags"] >= 1 and h.hac["n_eff"] > 0
+        np.testing.assert_allclose(h.params, n.params, rtol=1e-12)  # same estimates
         np.testing.assert_allclose(np.sqrt(np.diag(h.cov)), h.bse, rtol=1e-12)
         assert not np.allclose(h.bse, n.bse)
     assert "HAC inference" in hac.summary() and "Newey-West" in hac.summary()
@@ -285,7 +302,9 @@ def test_campaigns_are_separate_series_in_fit_and_in_the_distributed_reduction(t
     campaign, _ = truth_campaign
     other, _ = linear_truth_campaign("other", seed=9, duration_s=1800, noise_um=0.05)
     other_path = write_campaign(other, tmp_path / "other")
-    fitted = MRAModel(features="eq13", fallbacks="none", hac_maxlags=64).fit([campaign, read_campaign(other_path)])
+    fitted = MRAModel(features="eq13", fallbacks="none", hac_maxlags=64).fit(
+        [campaign, read_campaign(other_path)]
+    )
     reducer = MRAModel(features="eq13", fallbacks="none", hac_maxlags=64)
     acc, training = accumulate_paths(reducer, [campaign.path, other_path])
     reduced = reducer.fit_factor(acc, training)
@@ -310,8 +329,9 @@ def test_stepwise_on_autocorrelated_drift_keeps_fewer_spurious_terms_than_naive_
     base["dT_bulk"] = np.cumsum(rng.normal(scale=0.02, size=n))
     base["dT_surf"] = np.cumsum(rng.normal(scale=0.02, size=n))
     base["dT_flange"] = 5 * (1 - np.cos(2 * np.pi * t / 11000.0)) + 0.05 * rng.normal(size=n)
-    X = pd.DataFrame({k: base[k] for k in ["dL_S1", "dL_S2", "dL_S3", "dL_S4", "dL_S5",
-                                          "dT_bulk", "dT_surf", "dT_flange"]})
+    X = pd.DataFrame(
+        {k: base[k] for k in ["dL_S1", "dL_S2", "dL_S3", "dL_S4", "dL_S5", "dT_bulk", "dT_surf", "dT_flange"]}
+    )
     drift = np.zeros(n)
     shocks = rng.normal(scale=0.05, size=n)
     for i in range(1, n):

@@ -6,7 +6,7 @@ from hypothesis import strategies as st
 from fbgcomp import optics
 
 wavelengths = st.floats(1500.0, 1600.0)
-elongations = st.floats(-500.0, 500.0)        # µm over a 0.1-2 m path: |strain| <= 5e-3
+elongations = st.floats(-500.0, 500.0)  # µm over a 0.1-2 m path: |strain| <= 5e-3
 gauges = st.floats(100.0, 2000.0)
 temps = st.floats(-40.0, 60.0)
 
@@ -54,10 +54,16 @@ def test_bonded_on_host_that_only_expands_thermally():
     # Host with CTE 12e-6/K heated by 5 K: the compensated reading is exactly the host's thermal
     # strain, whatever the fibre constants.
     l0, dt, cte = 1535.0, 5.0, 12e-6
-    lam = optics.wavelength_nm(cte * dt * 400.0 * 1e3, l0, 400.0, dt, photoelastic=0.2,
-                               thermo_optic_per_K=7e-6, fibre_cte_per_K=0.5e-6)
-    eps = optics.host_strain(lam, l0, dt, photoelastic=0.2, thermo_optic_per_K=7e-6,
-                             fibre_cte_per_K=0.5e-6)
+    lam = optics.wavelength_nm(
+        cte * dt * 400.0 * 1e3,
+        l0,
+        400.0,
+        dt,
+        photoelastic=0.2,
+        thermo_optic_per_K=7e-6,
+        fibre_cte_per_K=0.5e-6,
+    )
+    eps = optics.host_strain(lam, l0, dt, photoelastic=0.2, thermo_optic_per_K=7e-6, fibre_cte_per_K=0.5e-6)
     assert eps == pytest.approx(cte * dt, rel=1e-9)
     # Ignoring temperature over-reads it by the thermo-optic effect.
     assert optics.uncompensated_strain(lam, l0, photoelastic=0.2) > 1.5 * cte * dt

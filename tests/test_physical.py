@@ -4,13 +4,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fbgcomp_testing import read_ram2
 
 from fbgcomp.models import policy as P
-from fbgcomp.models.metrics import validation_metrics
-from fbgcomp.models.registry import load_model
 from fbgcomp.models.filters import first_order_filter as lowpass
+from fbgcomp.models.metrics import validation_metrics
 from fbgcomp.models.physical import PhysicalModel, PhysicalPredictor
+from fbgcomp.models.registry import load_model
+from fbgcomp_testing import read_ram2
 
 
 @pytest.fixture(scope="module")
@@ -102,6 +102,7 @@ def test_default_beats_the_simplest_physical_model_on_dz(twin_model, ram2):
     """Issue 12's baseline: dz = a + b dT_flange + c dT_amb by least squares on thermal_a,
     judged on thermal_b. The twin map's housing transient is calibrated on thermal_a (how late
     the flange probe sees the bearings' heat), so the default must do better on dz."""
+
     def design(c):
         al = c.aligned(zero_window_s=10.0)
         names = list(al.probe_names)
@@ -129,15 +130,19 @@ def _streamed_like_offline(model, loaded, c, batch):
     _, _, w0, t0 = loaded.instrument_arrays(al)
     ft, w, t = loaded.frame_arrays(c, al)
     p = loaded.predictor()
-    parts = [p.predict(w[i:i + batch], t[i:i + batch], w0, t0, time_s=ft[i:i + batch])[0]
-             for i in range(0, len(w), batch)]
+    parts = [
+        p.predict(w[i : i + batch], t[i : i + batch], w0, t0, time_s=ft[i : i + batch])[0]
+        for i in range(0, len(w), batch)
+    ]
     at = np.clip(np.searchsorted(ft, al.time_s, side="right") - 1, 0, None)
     np.testing.assert_allclose(np.vstack(parts)[at], a, rtol=1e-9, atol=1e-8)
     return p, len(w) - batch * ((len(w) - 1) // batch)
 
 
 def test_calibrated_map_streams_and_round_trips(twin_model, ram2, tmp_path):
-    _streamed_like_offline(twin_model, load_model(twin_model.save(tmp_path / "m.json")), ram2["thermal_b"], 4000)
+    _streamed_like_offline(
+        twin_model, load_model(twin_model.save(tmp_path / "m.json")), ram2["thermal_b"], 4000
+    )
 
 
 def test_interval_is_the_interferometers_at_rest_and_grows_with_the_thermal_state(twin_model, ram2):
@@ -161,7 +166,7 @@ def test_a_grating_that_jumps_alone_is_not_read_as_a_load(twin_model, ram2):
     w, t, w0, t0 = twin_model.instrument_arrays(al)
     w = w.copy()
     j = twin_model.sensor_names.index("S3")
-    w[len(w) // 2:, j] += 0.006            # +6 pm on S3 alone: ~3 µm of false elongation
+    w[len(w) // 2 :, j] += 0.006  # +6 pm on S3 alone: ~3 µm of false elongation
     p = twin_model.predictor()
     pred, _ = p.predict(w, t, w0, t0, time_s=al.time_s)
     assert (p.last_flags[:, 1] & P.LOAD_REFUSED).any()
@@ -197,15 +202,15 @@ def test_the_served_correction_does_not_depend_on_frame_rate_or_batching(twin_mo
         p = PhysicalPredictor(twin_model)
         parts = []
         for lo in range(0, len(t), batch):
-            d, _ = p.predict(w[lo:lo + batch], T[lo:lo + batch], w0, t0, time_s=t[lo:lo + batch])
+            d, _ = p.predict(w[lo : lo + batch], T[lo : lo + batch], w0, t0, time_s=t[lo : lo + batch])
             parts.append(d)
         outs.append(np.vstack(parts))
         if rate_hz == 100.0:
-            break                                     # batching already covered at 10 Hz
+            break  # batching already covered at 10 Hz
     for other in outs[1:]:
         np.testing.assert_allclose(other, outs[0], rtol=0, atol=1e-9)
     d = outs[0]
-    at = lambda s: d[np.searchsorted(t, s), 0]                     # noqa: E731
+    at = lambda s: d[np.searchsorted(t, s), 0]  # noqa: E731
     true = lambda s: ref["dx_um"].to_numpy()[np.argmin(np.abs(ref["time_s"].to_numpy() - s))]  # noqa: E731
     # mid-hold of every level (0, 1, 2, 3, 4, 3, 2, 1 kN, 0): within 1.5 % of the deflection
     for s in (30, 100, 165, 230, 295, 360, 425, 490, 555):
@@ -235,7 +240,7 @@ def test_non_finite_coefficient_is_refused(model, tmp_path):
     from fbgcomp.errors import InputError
 
     d = model.to_dict()
-    d["thermal"]["coef"][1][2] = 1e400   # json writes Infinity
+    d["thermal"]["coef"][1][2] = 1e400  # json writes Infinity
     path = tmp_path / "bad.json"
     path.write_text(json.dumps(d))
     with pytest.raises(InputError, match="non-finite"):
@@ -272,13 +277,18 @@ def test_a_force_the_training_never_applied_is_read_over_the_trained_range(ram2)
 def _served(model, t, w, T, w0, t0, batch, fast):
     p = PhysicalPredictor(model)
     p.steady_fast_path = fast
-    parts = [p.predict(w[lo:lo + batch], T[lo:lo + batch], w0, t0, time_s=t[lo:lo + batch])
-             for lo in range(0, len(t), batch)]
-    return np.vstack([d for d, _ in parts]), np.vstack([h for _, h in parts]), \
-        np.vstack([p.last_flags]) if batch >= len(t) else None
+    parts = [
+        p.predict(w[lo : lo + batch], T[lo : lo + batch], w0, t0, time_s=t[lo : lo + batch])
+        for lo in range(0, len(t), batch)
+    ]
+    return (
+        np.vstack([d for d, _ in parts]),
+        np.vstack([h for _, h in parts]),
+        np.vstack([p.last_flags]) if batch >= len(t) else None,
+    )
 
 
-@pytest.mark.parametrize("batch", [1, 100, 10 ** 9])
+@pytest.mark.parametrize("batch", [1, 100, 10**9])
 def test_the_vectorised_steady_stretches_equal_the_per_frame_recursion(twin_model, ram2, batch):
     """PhysicalPredictor._steady_run runs the stretches without a load transition vectorised:
     the same corrections and intervals as the per-frame recursion (to rounding), through load
@@ -288,7 +298,7 @@ def test_the_vectorised_steady_stretches_equal_the_per_frame_recursion(twin_mode
         t, w, T, w0, t0 = _raw_frames(twin_model, ram2["static_x"], rate_hz)
         if jump:
             w = w.copy()
-            w[len(w) // 3:, twin_model.sensor_names.index("S3")] += 0.006
+            w[len(w) // 3 :, twin_model.sensor_names.index("S3")] += 0.006
         if batch == 1 and rate_hz == 100.0:
             t, w, T = t[:20000], w[:20000], T[:20000]
         slow = _served(twin_model, t, w, T, w0, t0, batch, False)
@@ -296,7 +306,7 @@ def test_the_vectorised_steady_stretches_equal_the_per_frame_recursion(twin_mode
         np.testing.assert_allclose(fast[0], slow[0], rtol=0, atol=1e-8)
         np.testing.assert_allclose(fast[1], slow[1], rtol=0, atol=1e-8)
         if fast[2] is not None:
-            np.testing.assert_array_equal(fast[2], slow[2])     # the same frames refused
+            np.testing.assert_array_equal(fast[2], slow[2])  # the same frames refused
             assert not jump or (fast[2][:, 1] & P.LOAD_REFUSED).any()
 
 
@@ -304,8 +314,8 @@ def test_first_order_closed_form_equals_the_recursion_across_stretches_and_gaps(
     from fbgcomp.models.filters import first_order_recursion as _first_order
 
     rng = np.random.default_rng(3)
-    x = rng.uniform(0.0, 3.0, 2000)          # summed decay ~3000: five closed-form stretches
-    x[[10, 500]] = [0.0, 5000.0]              # no time passes; a gap far beyond any memory
+    x = rng.uniform(0.0, 3.0, 2000)  # summed decay ~3000: five closed-form stretches
+    x[[10, 500]] = [0.0, 5000.0]  # no time passes; a gap far beyond any memory
     u = rng.normal(size=(2000, 3)) * 10.0
     for gain in (True, False):
         y, ref = np.array([1.0, -2.0, 3.0]), []
@@ -313,8 +323,12 @@ def test_first_order_closed_form_equals_the_recursion_across_stretches_and_gaps(
             c = np.exp(-xi)
             y = c * y + ((1 - c) * ui if gain else ui)
             ref.append(y)
-        np.testing.assert_allclose(_first_order(x, u, [1.0, -2.0, 3.0], gain=gain), np.array(ref),
-                                   rtol=0, atol=1e-11 * np.abs(u).max())   # rounding of the input scale
+        np.testing.assert_allclose(
+            _first_order(x, u, [1.0, -2.0, 3.0], gain=gain),
+            np.array(ref),
+            rtol=0,
+            atol=1e-11 * np.abs(u).max(),
+        )  # rounding of the input scale
 
 
 def test_lowpass_on_a_jittered_clock_is_the_per_sample_recursion():
@@ -322,7 +336,7 @@ def test_lowpass_on_a_jittered_clock_is_the_per_sample_recursion():
     closed form, not a per-sample loop: the same values as that loop."""
     rng = np.random.default_rng(5)
     t = 1.7e9 + np.arange(3000) * 1e-3
-    assert not np.allclose(np.diff(t)[1:], np.diff(t)[1])          # the jitter is real
+    assert not np.allclose(np.diff(t)[1:], np.diff(t)[1])  # the jitter is real
     x = rng.normal(size=(3000, 4))
     y, state = lowpass(x, t, 0.5, state=(np.ones(4), t[0] - 1e-3))
     ref, yp, tp = [], np.ones(4), t[0] - 1e-3

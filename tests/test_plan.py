@@ -8,13 +8,12 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 import yaml
 
+from fbgcomp.structure import load_machine
 from fbgcomp.structure.placement import placement_design, predicted_error_um
 from fbgcomp.structure.plan import noise_scan, plan_design
-from fbgcomp.structure import load_machine
 
 ROOT = Path(__file__).resolve().parents[1]
 RAM2 = ROOT / "examples" / "machines" / "ram2.yaml"
@@ -27,8 +26,9 @@ pytestmark = pytest.mark.slow
 
 
 def run_plan(*args, check=True):
-    proc = subprocess.run(FBGCOMP + ["plan", *map(str, args)], capture_output=True, text=True,
-                          cwd=ROOT, timeout=600)
+    proc = subprocess.run(
+        [*FBGCOMP, "plan", *map(str, args)], capture_output=True, text=True, cwd=ROOT, timeout=600
+    )
     if check:
         assert proc.returncode == 0, proc.stderr
     return proc
@@ -53,8 +53,9 @@ def false_elongation_closed_form_um(sensor):
     return (xi + pe * af) / (1 - pe) * sensor.gauge_length * 1e3
 
 
-@pytest.mark.parametrize("machine_args, machine_path", [((), None), (("--machine", RAM2), RAM2)],
-                         ids=["builtin", "ram2"])
+@pytest.mark.parametrize(
+    "machine_args, machine_path", [((), None), (("--machine", RAM2), RAM2)], ids=["builtin", "ram2"]
+)
 def test_plan_agrees_with_placement_and_a_looser_target_flips_the_verdict(machine_args, machine_path):
     tight = plan_json("--target-um", 5, "--extra-sensors", 0, *machine_args)
     expected = placement_figure(machine_path)
@@ -70,7 +71,8 @@ def test_plan_agrees_with_placement_and_a_looser_target_flips_the_verdict(machin
     machine = load_machine(machine_path)
     for s in machine.sensors:
         assert tight["false_elongation_per_K_um"][s.name] == pytest.approx(
-            false_elongation_closed_form_um(s), rel=1e-6)
+            false_elongation_closed_form_um(s), rel=1e-6
+        )
     # Neither layout reaches 5 µm on the 4000 N design: the verdict says so.
     assert not tight["meets"]
 
@@ -89,23 +91,24 @@ def test_the_noise_it_asks_for_meets_the_target(machine_path):
     pdes = plan_design(machine)
     own = range(len(machine.sensors))
     # Not monotone: a quieter interrogator lets the estimator amplify the probe mismatch.
-    pm, total = noise_scan(pdes, own, 2)
+    _pm, total = noise_scan(pdes, own, 2)
     now, best = total[-1], total.min()
     machine_args = ("--machine", machine_path) if machine_path else ()
-    if best >= now:   # noise does not help this axis (built-in dz): the plan must say so
+    if best >= now:  # noise does not help this axis (built-in dz): the plan must say so
         assert machine_path is None
         data = plan_json("--target-um", 0.5 * now, "--axes", "dz", "--extra-sensors", 0, *machine_args)
         assert data["axes"][0]["noise_needed_pm"] is None
         assert data["axes"][0]["best_noise_total_um"] == pytest.approx(best, rel=1e-9)
         return
-    target = 0.5 * (best + now)                 # reachable with a quieter interrogator only
+    target = 0.5 * (best + now)  # reachable with a quieter interrogator only
     data = plan_json("--target-um", target, "--axes", "dz", "--extra-sensors", 0, *machine_args)
     (dz,) = data["axes"]
     assert dz["axis"] == "dz" and not dz["meets"]
     needed = dz["noise_needed_pm"]
     assert needed is not None and 1e-3 <= needed < 1.0
-    quieter = plan_json("--target-um", target, "--axes", "dz", "--extra-sensors", 0,
-                        "--noise-pm", needed, *machine_args)
+    quieter = plan_json(
+        "--target-um", target, "--axes", "dz", "--extra-sensors", 0, "--noise-pm", needed, *machine_args
+    )
     assert quieter["axes"][0]["meets"]
     assert quieter["axes"][0]["total_um"] <= target < dz["total_um"]
     text = run_plan("--target-um", target, "--axes", "dz", "--extra-sensors", 0, *machine_args).stdout
@@ -144,15 +147,18 @@ def test_larger_layouts_never_lose_to_the_machines_own_on_the_placement_figure()
     assert "--k 6:" in text and "MISSES by" in text
 
 
-@pytest.mark.parametrize("args, field", [
-    (("--target-um", 5, "--axes", "dx,dq"), "--axes"),
-    (("--target-um", 5, "--axes", "dx,dx"), "--axes"),
-    (("--target-um", -1), "--target-um"),
-    (("--target-um", 0), "--target-um"),
-    (("--target-um", "nan"), "--target-um"),
-    (("--target-um", 5, "--noise-pm", -0.5), "--noise-pm"),
-    (("--target-um", 5, "--extra-sensors", -1), "--extra-sensors"),
-])
+@pytest.mark.parametrize(
+    "args, field",
+    [
+        (("--target-um", 5, "--axes", "dx,dq"), "--axes"),
+        (("--target-um", 5, "--axes", "dx,dx"), "--axes"),
+        (("--target-um", -1), "--target-um"),
+        (("--target-um", 0), "--target-um"),
+        (("--target-um", "nan"), "--target-um"),
+        (("--target-um", 5, "--noise-pm", -0.5), "--noise-pm"),
+        (("--target-um", 5, "--extra-sensors", -1), "--extra-sensors"),
+    ],
+)
 def test_bad_input_is_one_line_and_exit_2(args, field):
     proc = run_plan(*args, check=False)
     assert proc.returncode == 2

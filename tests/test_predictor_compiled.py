@@ -5,8 +5,8 @@ it replaced to round-off, for the runtime's test model and a dynamic model."""
 import numpy as np
 
 from fbgcomp.io.campaign import read_campaign
-from fbgcomp.models.features import design_matrix
 from fbgcomp.models.dynamic import DynamicModel
+from fbgcomp.models.features import design_matrix
 from fbgcomp.models.registry import load_model
 from test_runtime_support import model_and_campaign
 
@@ -26,7 +26,7 @@ def test_compiled_design_and_interval_equal_the_reference(tmp_path_factory):
     dynamic = DynamicModel().fit([campaign])
     for p in (model.predictor(), model.predictor(frozenset({"S3"})), dynamic.predictor()):
         assert p._factors is not None and len(p.terms) > 3
-        dynamic_state = hasattr(p, "reset")      # its design carries the filters' state
+        dynamic_state = hasattr(p, "reset")  # its design carries the filters' state
         if dynamic_state:
             p.reset()
             dev, half = p.predict(w, t, w0, t0, time_s=aligned.time_s)

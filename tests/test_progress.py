@@ -19,8 +19,14 @@ def _run(args, cwd, progress=None):
     env.pop("FBGCOMP_PROGRESS", None)
     if progress is not None:
         env["FBGCOMP_PROGRESS"] = progress
-    return subprocess.run([sys.executable, "-m", "fbgcomp", *map(str, args)], cwd=cwd, env=env,
-                          capture_output=True, text=True, timeout=900)
+    return subprocess.run(
+        [sys.executable, "-m", "fbgcomp", *map(str, args)],
+        cwd=cwd,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
 
 
 def test_stages_on_stderr_only_and_stdout_unchanged(tmp_path):
@@ -28,8 +34,7 @@ def test_stages_on_stderr_only_and_stdout_unchanged(tmp_path):
     for progress in ("1", "0", None):
         work = tmp_path / f"p{progress}"
         work.mkdir()
-        sim = _run(["simulate", "--scenario", "static-y", "--seed", 2, "-o", "static_y"], work,
-                   progress)
+        sim = _run(["simulate", "--scenario", "static-y", "--seed", 2, "-o", "static_y"], work, progress)
         fit = _run(["fit", "static_y", "--model", "hybrid", "-o", "m.json"], work, progress)
         assert sim.returncode == 0 and fit.returncode == 0, (sim.stderr, fit.stderr)
         val = _run(["validate", "m.json", "static_y", "--json", "metrics.json"], work, progress)
@@ -40,10 +45,14 @@ def test_stages_on_stderr_only_and_stdout_unchanged(tmp_path):
     assert sim.stderr.splitlines() == [
         "simulate: reading the machine and scenario",
         "simulate: running the scenario on the FE twin (built or loaded from its cache)",
-        "simulate: writing static_y"]
-    assert fit.stderr.splitlines() == ["fit: reading campaigns",
-                                       "  reading campaigns: campaign 1/1",
-                                       "fit: fitting the hybrid model", "fit: writing m.json"]
+        "simulate: writing static_y",
+    ]
+    assert fit.stderr.splitlines() == [
+        "fit: reading campaigns",
+        "  reading campaigns: campaign 1/1",
+        "fit: fitting the hybrid model",
+        "fit: writing m.json",
+    ]
     assert "validating: campaign 1/1" in val.stderr
     # not a terminal and not forced: nothing, as with FBGCOMP_PROGRESS=0
     for quiet in (off, default):
@@ -55,7 +64,6 @@ def test_stages_on_stderr_only_and_stdout_unchanged(tmp_path):
 
 
 def test_quiet_option_wins_over_forcing(tmp_path):
-    r = _run(["--quiet", "simulate", "--scenario", "static-y", "--seed", 2, "-o", "s"], tmp_path,
-             "1")
+    r = _run(["--quiet", "simulate", "--scenario", "static-y", "--seed", 2, "-o", "s"], tmp_path, "1")
     assert r.returncode == 0 and r.stderr == "" and "written to s" in r.stdout
     assert (tmp_path / "s" / "campaign.yaml").is_file() and (tmp_path / "s" / "fbg.csv").is_file()

@@ -38,13 +38,20 @@ def _client_certificate(path: Path) -> None:
 
     key = rsa.generate_private_key(public_exponent=65537, key_size=2048)
     name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "plc")])
-    now = datetime.datetime.now(datetime.timezone.utc)
-    cert = (x509.CertificateBuilder().subject_name(name).issuer_name(name).public_key(key.public_key())
-            .serial_number(x509.random_serial_number()).not_valid_before(now)
-            .not_valid_after(now + datetime.timedelta(days=30))
-            .add_extension(x509.SubjectAlternativeName([x509.UniformResourceIdentifier("urn:plc")]),
-                           critical=False)
-            .sign(key, hashes.SHA256()))
+    now = datetime.datetime.now(datetime.UTC)
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(name)
+        .issuer_name(name)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now)
+        .not_valid_after(now + datetime.timedelta(days=30))
+        .add_extension(
+            x509.SubjectAlternativeName([x509.UniformResourceIdentifier("urn:plc")]), critical=False
+        )
+        .sign(key, hashes.SHA256())
+    )
     path.write_bytes(cert.public_bytes(serialization.Encoding.DER))
 
 
@@ -74,18 +81,32 @@ def toured(tmp_path_factory):
     script = _tour()
     for port in ("51972", "4840", "8080"):
         script = re.sub(rf"(?<![\d.]){port}\b", str(free_port()), script)
-    env = dict(os.environ, PATH=f"{bin_dir}{os.pathsep}{os.environ['PATH']}", HOME=str(home),
-               XDG_STATE_HOME=str(home / "state"), XDG_DATA_HOME=str(home / "data"),
-               XDG_CONFIG_HOME=str(home / "config"), PYTHONUNBUFFERED="1")
+    env = dict(
+        os.environ,
+        PATH=f"{bin_dir}{os.pathsep}{os.environ['PATH']}",
+        HOME=str(home),
+        XDG_STATE_HOME=str(home / "state"),
+        XDG_DATA_HOME=str(home / "data"),
+        XDG_CONFIG_HOME=str(home / "config"),
+        PYTHONUNBUFFERED="1",
+    )
     env.pop("FBGCOMP_STATE_DIR", None)
-    traced = "PS4='+ ${EPOCHREALTIME} '\nset -x\n" + script + "\nwait\n"   # each command with its start time
-    tour = subprocess.run(["bash", "-euo", "pipefail", "-c", traced], cwd=work, env=env,
-                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, timeout=900)
+    traced = "PS4='+ ${EPOCHREALTIME} '\nset -x\n" + script + "\nwait\n"  # each command with its start time
+    tour = subprocess.run(
+        ["bash", "-euo", "pipefail", "-c", traced],
+        cwd=work,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        timeout=900,
+    )
     (root / "tour.log").write_text(tour.stdout)
     assert tour.returncode == 0, tour.stdout[-6000:]
     (api,) = _blocks(README.read_text(), "python")
-    py = subprocess.run([sys.executable, "-c", api], cwd=work, env=env, capture_output=True, text=True,
-                        timeout=300)
+    py = subprocess.run(
+        [sys.executable, "-c", api], cwd=work, env=env, capture_output=True, text=True, timeout=300
+    )
     assert py.returncode == 0, py.stderr[-3000:]
     return work, tour.stdout, py.stdout
 
@@ -95,26 +116,33 @@ def test_the_readme_tour_runs_as_written(toured):
     work, out, _ = toured
     for name in ("thermal_a", "static_y", "thermal_b", "production_run"):
         assert (work / name / "campaign.yaml").is_file(), name
-    for name in ("model.json", "mra.json", "hybrid.json", "fe_model.json", "fleet_model.json", "metrics.json"):
+    for name in (
+        "model.json",
+        "mra.json",
+        "hybrid.json",
+        "fe_model.json",
+        "fleet_model.json",
+        "metrics.json",
+    ):
         assert (work / name).stat().st_size > 100, name
     assert list((work / "report").glob("*.html"))
-    assert "uncompensated" in out                              # compare's rows beside no compensation
-    assert "searching the default grid" in out                 # place without --grid says what it does
-    assert re.search(r"(meets|MISSES)", out)                   # plan's verdict against the target
+    assert "uncompensated" in out  # compare's rows beside no compensation
+    assert "searching the default grid" in out  # place without --grid says what it does
+    assert re.search(r"(meets|MISSES)", out)  # plan's verdict against the target
     m = re.search(r"processed (\d+) frames", out)
-    assert m and int(m.group(1)) > 5000                        # serve ran on the simulated stream
+    assert m and int(m.group(1)) > 5000  # serve ran on the simulated stream
     exported = pd.read_csv(work / "production_run" / "fbg.csv")
     assert len(exported) > 5000 and {"S1_nm", "S5_nm"} <= set(exported.columns)
     trusted = list((work.parent / "home").rglob("trusted/*"))
-    assert len(trusted) == 1                                   # trust add put the certificate in
-    assert "WARNING: no OPC UA user may write" in out          # the tour's serve has no users: said loudly
-    assert "ramped back to zero" in out                        # cnc-demo ran LinuxCNC and stopped it
+    assert len(trusted) == 1  # trust add put the certificate in
+    assert "WARNING: no OPC UA user may write" in out  # the tour's serve has no users: said loudly
+    assert "ramped back to zero" in out  # cnc-demo ran LinuxCNC and stopped it
     assert list((work / "fleet").rglob("*.parquet"))
 
 
 @pytest.mark.slow
 def test_the_readme_python_api_runs_on_the_tour_campaigns(toured):
     _, _, out = toured
-    assert "== dz (µm) ==" in out and "term" in out            # Table 1 style coefficient tables
-    assert "pi95_coverage" in out                              # validation metrics printed
-    assert "dT_bulk" in out                                    # the ols summary names its terms
+    assert "== dz (µm) ==" in out and "term" in out  # Table 1 style coefficient tables
+    assert "pi95_coverage" in out  # validation metrics printed
+    assert "dT_bulk" in out  # the ols summary names its terms

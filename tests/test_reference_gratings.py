@@ -9,16 +9,16 @@ import pytest
 
 from fbgcomp import optics
 from fbgcomp.bench import virtual as bench
-from fbgcomp.io.campaign import read_campaign, write_campaign
 from fbgcomp.errors import InputError
+from fbgcomp.io.campaign import read_campaign, write_campaign
 from fbgcomp.models.features import FeatureMap
 from fbgcomp.structure import load_machine
-
 from test_campaign import META_YAML, default_tables, make_folder
 
 REF_META = META_YAML.replace(
     "  - {name: S3, lambda0_nm: 1550.0, gauge_length_mm: 400}",
-    "  - {name: S3, lambda0_nm: 1550.0, gauge_length_mm: 400, reference_lambda0_nm: 1552.0}")
+    "  - {name: S3, lambda0_nm: 1550.0, gauge_length_mm: 400, reference_lambda0_nm: 1552.0}",
+)
 
 
 def _tables_with_reference(gauge_dT):
@@ -40,15 +40,16 @@ def test_free_grating_round_trip():
 
 
 def test_the_reference_grating_compensates_its_sensor(tmp_path):
-    heat = lambda t: 0.2 * t                                    # 12 K over the minute
+    def heat(t):
+        return 0.2 * t  # 12 K over the minute
+
     c = read_campaign(make_folder(tmp_path, meta=REF_META, tables=_tables_with_reference(heat)))
     s3 = c.meta.sensor("S3")
     assert s3.temperature_probe == "S3_ref" and s3.reference_column == "S3_ref_nm"
     assert c.probe_names == ["T_bulk", "T_surf", "S3_ref"]
     a = c.aligned(zero_window_s=0.5)
     k = a.probe_names.index("S3_ref")
-    np.testing.assert_allclose(a.temperature_C[:, k] - a.temperature_zero_C[k], heat(a.time_s),
-                               atol=1e-6)
+    np.testing.assert_allclose(a.temperature_C[:, k] - a.temperature_zero_C[k], heat(a.time_s), atol=1e-6)
     # the models' elongations: S3 compensated by its reference reads no elongation (none
     # happened); read uncompensated it would be ~12 K x 10.5 pm/K of false strain
     fmap = FeatureMap(c.meta.sensors, a.probe_names, uses_temperature_features=False)
@@ -66,7 +67,7 @@ def test_the_reference_grating_compensates_its_sensor(tmp_path):
 def test_a_reference_column_needs_its_declaration(tmp_path):
     tables = _tables_with_reference(lambda t: 0.0 * t)
     with pytest.raises(InputError) as info:
-        read_campaign(make_folder(tmp_path, tables=tables))            # META_YAML: no reference
+        read_campaign(make_folder(tmp_path, tables=tables))  # META_YAML: no reference
     assert info.value.column == "S3_ref_nm" and "reference_lambda0_nm" in str(info.value)
     del tables["fbg.csv"]["S3_ref_nm"]
     with pytest.raises(InputError) as info:
@@ -91,12 +92,18 @@ def test_the_test_bench_simulates_reference_gratings():
     machine = base.model_copy(update={"sensors": type(base.sensors)(sensors)})
     t = np.arange(0.0, 3601.0, 1.0)
     S, P = len(sensors), len(machine.probes)
-    gauge_T = 22.0 + np.outer(1 - np.exp(-t / 900.0), 2.0 + np.arange(S))    # each gauge its own
-    probe_T = 22.0 + np.outer(1 - np.exp(-t / 900.0), np.full(P, 1.0))       # probes lag behind
+    gauge_T = 22.0 + np.outer(1 - np.exp(-t / 900.0), 2.0 + np.arange(S))  # each gauge its own
+    probe_T = 22.0 + np.outer(1 - np.exp(-t / 900.0), np.full(P, 1.0))  # probes lag behind
     elong = np.outer(np.sin(t / 600.0), np.linspace(-3.0, 3.0, S))
-    truth = {"time_s": t, "sensor_elongation_um": elong, "sensor_temperature_C": gauge_T,
-             "probe_C": probe_T, "ttp_um": np.zeros((t.size, 3)), "force_N": np.zeros((t.size, 3)),
-             "ambient_C": np.full(t.size, 22.0)}
+    truth = {
+        "time_s": t,
+        "sensor_elongation_um": elong,
+        "sensor_temperature_C": gauge_T,
+        "probe_C": probe_T,
+        "ttp_um": np.zeros((t.size, 3)),
+        "force_N": np.zeros((t.size, 3)),
+        "ambient_C": np.full(t.size, 22.0),
+    }
     scenario = bench.load_scenario("thermal-36h")
     c = bench.measure(machine, scenario, truth, seed=3)
     assert all(f"{s.name}_ref_nm" in c.fbg.columns for s in sensors)
@@ -107,8 +114,12 @@ def test_the_test_bench_simulates_reference_gratings():
         for j, s in enumerate(c.meta.sensors):
             probe = s.reference_probe if how == "reference" else sensors[j].temperature_probe
             k = a.probe_names.index(probe)
-            e = optics.elongation_um(a.wavelength_nm[:, j], a.wavelength_zero_nm[j], s.gauge_length_mm,
-                                     a.temperature_C[:, k] - a.temperature_zero_C[k])
+            e = optics.elongation_um(
+                a.wavelength_nm[:, j],
+                a.wavelength_zero_nm[j],
+                s.gauge_length_mm,
+                a.temperature_C[:, k] - a.temperature_zero_C[k],
+            )
             errs.append(np.abs(e - (true[:, j] - true[0, j])).max())
         # 1 pm of noise on each grating is ~0.6 µm of elongation per sample
         if how == "reference":

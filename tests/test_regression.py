@@ -18,8 +18,16 @@ from hypothesis import strategies as st
 
 import fbgcomp_testing
 from fbgcomp.errors import InputError
-from fbgcomp.models.regression import (OLSResults, QRAccumulator, RankDeficientError, StepwiseResult,
-                                accumulate_series, ols, ols_from_factor, stepwise)
+from fbgcomp.models.regression import (
+    OLSResults,
+    QRAccumulator,
+    RankDeficientError,
+    StepwiseResult,
+    accumulate_series,
+    ols,
+    ols_from_factor,
+    stepwise,
+)
 
 NIST = json.loads((Path(__file__).parent / "data" / "nist_strd_linear.json").read_text("utf-8"))
 DATASETS = list(NIST["datasets"])
@@ -31,13 +39,13 @@ def nist_problem(name):
     x = np.asarray(ds["x"], dtype=float)
     y = np.asarray(ds["y"], dtype=float)
     cert = ds["certified"]
-    if x.ndim == 2:                                   # Longley: intercept + x1..x6
+    if x.ndim == 2:  # Longley: intercept + x1..x6
         assert "intercept" in ds["model"]
         X = np.column_stack([np.ones(len(y)), x])
-    else:                                             # polynomial: increasing powers of x
+    else:  # polynomial: increasing powers of x
         degree = len(cert["estimate"]) - 1
-        assert f"x^{degree}" in ds["model"] or degree == 2 and "x^2" in ds["model"]
-        X = np.column_stack([x ** k for k in range(degree + 1)])
+        assert f"x^{degree}" in ds["model"] or (degree == 2 and "x^2" in ds["model"])
+        X = np.column_stack([x**k for k in range(degree + 1)])
     return X, y, cert
 
 
@@ -53,13 +61,14 @@ def lre(estimate, certified):
 def accumulate(X, y, chunk, **kw):
     acc = QRAccumulator(X.shape[1], 1 if y.ndim == 1 else y.shape[1], **kw)
     for start in range(0, len(X), chunk):
-        acc.update(X[start:start + chunk], y[start:start + chunk])
+        acc.update(X[start : start + chunk], y[start : start + chunk])
     return acc
 
 
 # --------------------------------------------------------------------------------------------
 # NIST StRD
 # --------------------------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize("chunk", [None, 5, 13], ids=["one-shot", "chunk5", "chunk13"])
 @pytest.mark.parametrize("name", DATASETS)
@@ -89,7 +98,7 @@ def test_filip_beats_statsmodels_default_pinv(capsys):
     X, y, cert = nist_problem("Filip")
     ours = lre(ols(X, y, cov_type="nonrobust").params, cert["estimate"]).min()
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")            # statsmodels rightly warns: it gives up here
+        warnings.simplefilter("ignore")  # statsmodels rightly warns: it gives up here
         theirs = lre(sm.OLS(y, X).fit().params, cert["estimate"]).min()
     with capsys.disabled():
         print(f"\nFilip coefficient digits: fbgcomp {ours:.2f}, statsmodels pinv {theirs:.2f}")
@@ -100,10 +109,10 @@ def test_filip_beats_statsmodels_default_pinv(capsys):
 def test_filip_is_chunking_and_merge_order_invariant_in_double_double():
     # Filip (kappa ~ 5e9) switches the data pass to double-double: every way of streaming it
     # gives the same coefficients to far below the 7 certified digits the double pass could keep.
-    X, y, cert = nist_problem("Filip")
+    X, y, _cert = nist_problem("Filip")
     one_shot = ols(X, y, cov_type="nonrobust")
     bounds = [0, 27, 54, 82]
-    parts = [accumulate(X[a:b], y[a:b], 3) for a, b in zip(bounds, bounds[1:])]
+    parts = [accumulate(X[a:b], y[a:b], 3) for a, b in itertools.pairwise(bounds)]
     assert all(p.extended_ for p in parts)
     for order in itertools.permutations(range(3)):
         merged = QRAccumulator.from_dict(json.loads(json.dumps(parts[order[0]].to_dict())))
@@ -117,6 +126,7 @@ def test_filip_is_chunking_and_merge_order_invariant_in_double_double():
 # --------------------------------------------------------------------------------------------
 # Double-double arithmetic
 # --------------------------------------------------------------------------------------------
+
 
 def test_double_double_qr_factor_matches_exact_rational_gram():
     from fbgcomp.models.regression.doubledouble import dd_qr_r
@@ -152,11 +162,12 @@ def test_auto_precision_switches_only_for_ill_conditioned_designs():
 # Agreement with statsmodels and statistical behaviour
 # --------------------------------------------------------------------------------------------
 
+
 def _well_conditioned(seed, n=300, with_const=True):
     rng = np.random.default_rng(seed)
     Z = rng.normal(size=(n, 4)) * [1.0, 30.0, 0.01, 5.0] + [0.0, 100.0, 0.0, -2.0]
     X = np.column_stack([np.ones(n), Z]) if with_const else Z
-    beta = np.linspace(0.5, 2.0, X.shape[1]) * np.array([1.0, 1.0, 0.01, 200.0, 0.3][-X.shape[1]:])
+    beta = np.linspace(0.5, 2.0, X.shape[1]) * np.array([1.0, 1.0, 0.01, 200.0, 0.3][-X.shape[1] :])
     y = X @ beta + rng.normal(scale=2.0, size=n)
     return X, y
 
@@ -170,12 +181,24 @@ def test_agrees_with_statsmodels(with_const):
     assert res.k_constant == int(with_const) == ref.k_constant
     for attr in ("params", "bse", "tvalues", "pvalues"):
         np.testing.assert_allclose(getattr(res, attr), getattr(ref, attr), rtol=1e-10, err_msg=attr)
-    for attr in ("rsquared", "rsquared_adj", "fvalue", "f_pvalue", "ssr", "ess", "centered_tss",
-                 "uncentered_tss", "df_model", "df_resid", "nobs"):
+    for attr in (
+        "rsquared",
+        "rsquared_adj",
+        "fvalue",
+        "f_pvalue",
+        "ssr",
+        "ess",
+        "centered_tss",
+        "uncentered_tss",
+        "df_model",
+        "df_resid",
+        "nobs",
+    ):
         np.testing.assert_allclose(getattr(res, attr), getattr(ref, attr), rtol=1e-10, err_msg=attr)
     np.testing.assert_allclose(res.resid_sd, math.sqrt(ref.scale), rtol=1e-10)
-    np.testing.assert_allclose(res.cov_params(), ref.cov_params(), rtol=1e-9,
-                               atol=1e-12 * np.abs(ref.cov_params()).max())
+    np.testing.assert_allclose(
+        res.cov_params(), ref.cov_params(), rtol=1e-9, atol=1e-12 * np.abs(ref.cov_params()).max()
+    )
     np.testing.assert_allclose(res.conf_int(0.1), ref.conf_int(0.1), rtol=1e-10)
 
     X_new = X[:7] * 1.1
@@ -187,13 +210,18 @@ def test_agrees_with_statsmodels(with_const):
 
     table = res.anova()
     assert list(table.index) == ["Regression", "Residual", "Total"]
-    np.testing.assert_allclose(table.loc["Regression", ["df", "sum_sq", "F", "PR(>F)"]],
-                               [ref.df_model, ref.ess, ref.fvalue, ref.f_pvalue], rtol=1e-10)
-    np.testing.assert_allclose(table.loc["Residual", ["df", "sum_sq", "mean_sq"]],
-                               [ref.df_resid, ref.ssr, ref.mse_resid], rtol=1e-10)
+    np.testing.assert_allclose(
+        table.loc["Regression", ["df", "sum_sq", "F", "PR(>F)"]],
+        [ref.df_model, ref.ess, ref.fvalue, ref.f_pvalue],
+        rtol=1e-10,
+    )
+    np.testing.assert_allclose(
+        table.loc["Residual", ["df", "sum_sq", "mean_sq"]], [ref.df_resid, ref.ssr, ref.mse_resid], rtol=1e-10
+    )
     total = ref.centered_tss if with_const else ref.uncentered_tss
-    np.testing.assert_allclose(table.loc["Total", ["df", "sum_sq"]],
-                               [ref.nobs - ref.k_constant, total], rtol=1e-10)
+    np.testing.assert_allclose(
+        table.loc["Total", ["df", "sum_sq"]], [ref.nobs - ref.k_constant, total], rtol=1e-10
+    )
 
 
 def test_confidence_and_prediction_intervals_deliver_their_coverage():
@@ -202,7 +230,7 @@ def test_confidence_and_prediction_intervals_deliver_their_coverage():
     # ~4 sigma band; per coefficient (200 draws, SD 1.5 %) +-5 % is > 3 sigma.
     n = 40
     t = np.linspace(-1.0, 1.0, n)
-    X = np.column_stack([np.ones(n), t, t ** 2, np.sin(3.0 * t)])
+    X = np.column_stack([np.ones(n), t, t**2, np.sin(3.0 * t)])
     beta = np.array([1.0, -2.0, 0.5, 3.0])
     rng = np.random.default_rng(2024)
     x_new = np.array([[1.0, 0.3, 0.09, math.sin(0.9)], [1.0, 1.2, 1.44, math.sin(3.6)]])
@@ -225,11 +253,14 @@ def test_multi_target_fit_equals_separate_fits():
     rng = np.random.default_rng(5)
     X = np.column_stack([np.ones(200), rng.normal(size=(200, 3))])
     Y = X @ rng.normal(size=(4, 3)) + rng.normal(size=(200, 3))
-    acc = QRAccumulator(4, 3, feature_names=["const", "S1", "S2", "T1"],
-                        target_names=["dx", "dy", "dz"]).update(X, Y)
+    acc = QRAccumulator(
+        4, 3, feature_names=["const", "S1", "S2", "T1"], target_names=["dx", "dy", "dz"]
+    ).update(X, Y)
     for j, axis in enumerate(["dx", "dy", "dz"]):
         joint = acc.ols(target=axis)
-        alone = ols(X, Y[:, j], feature_names=["const", "S1", "S2", "T1"], target_name=axis, cov_type="nonrobust")
+        alone = ols(
+            X, Y[:, j], feature_names=["const", "S1", "S2", "T1"], target_name=axis, cov_type="nonrobust"
+        )
         assert joint.target_name == axis and joint.feature_names == alone.feature_names
         np.testing.assert_allclose(joint.params, alone.params, rtol=1e-12)
         np.testing.assert_allclose([joint.ssr, joint.rsquared], [alone.ssr, alone.rsquared], rtol=1e-12)
@@ -246,13 +277,17 @@ def test_sub_model_from_factor_equals_refit_on_the_columns():
         direct = ols(X[:, idx], y, cov_type="nonrobust")
         assert sub.feature_names == [names[i] for i in idx]
         np.testing.assert_allclose(sub.params, direct.params, rtol=1e-11)
-        np.testing.assert_allclose([sub.ssr, sub.rsquared_adj, sub.fvalue],
-                                   [direct.ssr, direct.rsquared_adj, direct.fvalue], rtol=1e-11)
+        np.testing.assert_allclose(
+            [sub.ssr, sub.rsquared_adj, sub.fvalue],
+            [direct.ssr, direct.rsquared_adj, direct.fvalue],
+            rtol=1e-11,
+        )
 
 
 # --------------------------------------------------------------------------------------------
 # Streaming: chunked == one-shot == merged in any order
 # --------------------------------------------------------------------------------------------
+
 
 def test_chunked_equals_one_shot_equals_merged_in_any_order():
     X, y = _well_conditioned(11, n=400)
@@ -266,18 +301,21 @@ def test_chunked_equals_one_shot_equals_merged_in_any_order():
     np.testing.assert_allclose(chunked.bse, reference.bse, rtol=1e-12)
 
     bounds = [0, 60, 100, 250, 400]
-    parts = [accumulate(X[a:b], y[a:b], 23) for a, b in zip(bounds, bounds[1:])]
+    parts = [accumulate(X[a:b], y[a:b], 23) for a, b in itertools.pairwise(bounds)]
     assert len({tuple(p.scale_) for p in parts}) > 1
     for order in itertools.permutations(range(4)):
-        states = [json.loads(json.dumps(parts[i].to_dict())) for i in order]   # as shipped by Dask
-        merged = functools.reduce(lambda a, b: a.merge(QRAccumulator.from_dict(b)), states[1:],
-                                  QRAccumulator.from_dict(states[0]))
+        states = [json.loads(json.dumps(parts[i].to_dict())) for i in order]  # as shipped by Dask
+        merged = functools.reduce(
+            lambda a, b: a.merge(QRAccumulator.from_dict(b)), states[1:], QRAccumulator.from_dict(states[0])
+        )
         res = ols_from_factor(merged)
         assert merged.n_obs == 400
         np.testing.assert_allclose(res.params, reference.params, rtol=1e-12)
-        np.testing.assert_allclose([res.ssr, res.centered_tss, res.rsquared],
-                                   [reference.ssr, reference.centered_tss, reference.rsquared],
-                                   rtol=1e-12)
+        np.testing.assert_allclose(
+            [res.ssr, res.centered_tss, res.rsquared],
+            [reference.ssr, reference.centered_tss, reference.rsquared],
+            rtol=1e-12,
+        )
     tree = parts[0].copy().merge(parts[1]).merge(parts[2].copy().merge(parts[3]))
     np.testing.assert_allclose(ols_from_factor(tree).params, reference.params, rtol=1e-12)
 
@@ -293,8 +331,13 @@ def test_merging_empty_accumulators_is_neutral():
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(seed=st.integers(0, 2**32 - 1), n=st.integers(12, 120), p=st.integers(1, 5),
-       k=st.integers(1, 3), cuts=st.lists(st.floats(0.0, 1.0), max_size=6))
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    n=st.integers(12, 120),
+    p=st.integers(1, 5),
+    k=st.integers(1, 3),
+    cuts=st.lists(st.floats(0.0, 1.0), max_size=6),
+)
 def test_chunking_invariance(seed, n, p, k, cuts):
     rng = np.random.default_rng(seed)
     X = rng.normal(size=(n, p)) * rng.uniform(0.1, 10.0, size=p) + rng.uniform(-3, 3, size=p)
@@ -302,7 +345,7 @@ def test_chunking_invariance(seed, n, p, k, cuts):
     one = QRAccumulator(p, k).update(X, Y)
     edges = sorted({0, n, *(int(c * n) for c in cuts)})
     streamed = QRAccumulator(p, k)
-    for a, b in zip(edges, edges[1:]):
+    for a, b in itertools.pairwise(edges):
         streamed.update(X[a:b], Y[a:b])
     assert streamed.n_obs == n
     np.testing.assert_allclose(streamed.target_mean_, one.target_mean_, rtol=1e-12, atol=1e-12)
@@ -319,6 +362,7 @@ def test_chunking_invariance(seed, n, p, k, cuts):
 # Errors and persistence
 # --------------------------------------------------------------------------------------------
 
+
 def test_rank_deficiency_names_the_offending_columns():
     rng = np.random.default_rng(0)
     S1, S2 = rng.normal(size=(2, 50))
@@ -329,7 +373,7 @@ def test_rank_deficiency_names_the_offending_columns():
     assert err.value.columns == ["S_sum", "dead"]
     assert isinstance(err.value, ValueError) and "S_sum" in str(err.value)
     acc = QRAccumulator(5, feature_names=names).update(X, S1)
-    assert ols_from_factor(acc, ["const", "S1", "S2"]).params.shape == (3,)   # subsets still fit
+    assert ols_from_factor(acc, ["const", "S1", "S2"]).params.shape == (3,)  # subsets still fit
     with pytest.raises(RankDeficientError, match="only 3 rows"):
         ols(X[:3, :4], S1[:3])
 
@@ -362,13 +406,31 @@ def test_summary_is_a_table_one_style_report():
     X, y = _well_conditioned(4)
     res = ols(X, y, feature_names=["Intercept", "FBG1", "FBG2", "FBG3", "dT_bulk"], target_name="dz")
     text = res.summary()
-    for word in ("Intercept", "dT_bulk", "estimate", "std error", "P>|t|", "[0.025", "0.975]",
-                 "R-squared", "Adj. R-squared", "Residual SD", "Wald F (HAC)", "n: 300",
-                 "Covariance: HAC (Newey-West", "effective sample size"):
+    for word in (
+        "Intercept",
+        "dT_bulk",
+        "estimate",
+        "std error",
+        "P>|t|",
+        "[0.025",
+        "0.975]",
+        "R-squared",
+        "Adj. R-squared",
+        "Residual SD",
+        "Wald F (HAC)",
+        "n: 300",
+        "Covariance: HAC (Newey-West",
+        "effective sample size",
+    ):
         assert word in text, word
     assert f"{res.params.iloc[4]:.6g}" in text and f"{res.bse.iloc[4]:.4g}" in text
-    naive = ols(X, y, feature_names=["Intercept", "FBG1", "FBG2", "FBG3", "dT_bulk"],
-                target_name="dz", cov_type="nonrobust").summary()
+    naive = ols(
+        X,
+        y,
+        feature_names=["Intercept", "FBG1", "FBG2", "FBG3", "dT_bulk"],
+        target_name="dz",
+        cov_type="nonrobust",
+    ).summary()
     assert "F-statistic" in naive and "Covariance: nonrobust" in naive
 
 
@@ -407,8 +469,7 @@ def _check_history_against_statsmodels(sw, X, y, names, include, start=()):
         # An exactly useless term has F = 0: statsmodels' rounding gives +-1e-14 there.
         np.testing.assert_allclose([h["F"], h["p"]], [f, p], rtol=1e-8, atol=1e-9)
         after = sm.OLS(y, X[:, cols(model)]).fit()
-        np.testing.assert_allclose([h["ssr"], h["rsquared_adj"]], [after.ssr, after.rsquared_adj],
-                                   rtol=1e-10)
+        np.testing.assert_allclose([h["ssr"], h["rsquared_adj"]], [after.ssr, after.rsquared_adj], rtol=1e-10)
         assert h["n_terms"] == len(cols(model))
     assert set(sw.selected) == set(model) | set(include)
 
@@ -416,15 +477,16 @@ def _check_history_against_statsmodels(sw, X, y, names, include, start=()):
 @pytest.mark.parametrize("direction", ["forward", "backward", "both"])
 def test_stepwise_picks_exactly_the_true_terms(direction):
     acc, X, y, names = _stepwise_case()
-    sw = stepwise(acc, names[1:], direction=direction, p_enter=1e-3, p_remove=2e-3,
-                  include=["const"])
+    sw = stepwise(acc, names[1:], direction=direction, p_enter=1e-3, p_remove=2e-3, include=["const"])
     assert isinstance(sw, StepwiseResult)
     assert sw.selected == TRUE_TERMS == sw.result.feature_names
-    assert [h["action"] for h in sw.history] == (["remove"] * 5 if direction == "backward"
-                                                 else ["enter"] * 3)
-    _check_history_against_statsmodels(sw, X, y, names, ["const"],
-                                       start=names[1:] if direction == "backward" else ())
-    np.testing.assert_allclose(sw.result.params, ols(X[:, [0, 1, 3, 7]], y, cov_type="nonrobust").params, rtol=1e-11)
+    assert [h["action"] for h in sw.history] == (["remove"] * 5 if direction == "backward" else ["enter"] * 3)
+    _check_history_against_statsmodels(
+        sw, X, y, names, ["const"], start=names[1:] if direction == "backward" else ()
+    )
+    np.testing.assert_allclose(
+        sw.result.params, ols(X[:, [0, 1, 3, 7]], y, cov_type="nonrobust").params, rtol=1e-11
+    )
     text = sw.summary()
     assert "enter" in text or "remove" in text
     assert "T2" in text and "Adj. R-squared" in text
@@ -445,7 +507,11 @@ def test_stepwise_both_removes_a_term_made_redundant_by_later_entries():
     acc = QRAccumulator(4, feature_names=names).update(X, y)
     both = stepwise(acc, include=["const"], direction="both")
     assert [(h["action"], h["term"]) for h in both.history] == [
-        ("enter", "x3"), ("enter", "x1"), ("enter", "x2"), ("remove", "x3")]
+        ("enter", "x3"),
+        ("enter", "x1"),
+        ("enter", "x2"),
+        ("remove", "x3"),
+    ]
     assert both.selected == ["const", "x1", "x2"]
     _check_history_against_statsmodels(both, X, y, names, ["const"])
     forward = stepwise(acc, include=["const"], direction="forward")
@@ -456,12 +522,13 @@ def test_stepwise_options():
     acc, X, y, names = _stepwise_case()
     capped = stepwise(acc, names[1:], include=["const"], direction="forward", max_terms=2)
     assert capped.selected == ["const", "S1", "S3"]
-    started = stepwise(acc, names[1:], include=["const"], direction="both", p_enter=1e-3,
-                       p_remove=2e-3, start=["S5", "S1"])
+    started = stepwise(
+        acc, names[1:], include=["const"], direction="both", p_enter=1e-3, p_remove=2e-3, start=["S5", "S1"]
+    )
     assert started.selected == TRUE_TERMS
     assert ("remove", "S5") in [(h["action"], h["term"]) for h in started.history]
     _check_history_against_statsmodels(started, X, y, names, ["const"], start=["S5", "S1"])
-    no_const = stepwise(acc, direction="forward", p_enter=1e-3)    # the constant competes too
+    no_const = stepwise(acc, direction="forward", p_enter=1e-3)  # the constant competes too
     assert set(TRUE_TERMS) <= set(no_const.selected)
     with pytest.raises(ValueError, match="p_enter"):
         stepwise(acc, direction="both", p_enter=0.2, p_remove=0.1)
@@ -472,7 +539,7 @@ def test_stepwise_options():
 def test_stepwise_skips_candidates_collinear_with_the_model():
     acc, X, y, names = _stepwise_case()
     Xd = np.column_stack([X, X[:, 1] - X[:, 3]])
-    acc = QRAccumulator(10, feature_names=names + ["S1-S3"]).update(Xd, y)
+    acc = QRAccumulator(10, feature_names=[*names, "S1-S3"]).update(Xd, y)
     sw = stepwise(acc, include=["const"], p_enter=1e-3, p_remove=2e-3)
     assert len(set(sw.selected) & {"S1", "S3", "S1-S3"}) == 2
     assert "T2" in sw.selected
@@ -489,7 +556,7 @@ def test_weighted_least_squares_matches_statsmodels_wls():
     ref = sm.WLS(y, X, weights=w).fit()
     acc = QRAccumulator(4, 1)
     for lo in range(0, n, 70):
-        acc.update(X[lo:lo + 70], y[lo:lo + 70], weights=w[lo:lo + 70])
+        acc.update(X[lo : lo + 70], y[lo : lo + 70], weights=w[lo : lo + 70])
     res = ols_from_factor(acc)
     np.testing.assert_allclose(res.params, ref.params, rtol=1e-10)
     np.testing.assert_allclose(res.bse, ref.bse, rtol=1e-10)
@@ -527,6 +594,7 @@ def test_chunking_invariance_near_zero_rsquared():
 # Autocorrelation-robust (Newey-West / HAC) inference: issue 12
 # --------------------------------------------------------------------------------------------
 
+
 def _ar1(rng, n, phi, scale=1.0):
     e = np.zeros(n)
     shocks = rng.normal(scale=scale, size=n)
@@ -538,8 +606,9 @@ def _ar1(rng, n, phi, scale=1.0):
 def _drift_problem(seed=3, n=700):
     """Slow regressors (a random walk, a sine) and AR(1) errors: the naive SE is too small."""
     rng = np.random.default_rng(seed)
-    X = np.column_stack([np.ones(n), np.cumsum(rng.normal(size=n)), rng.normal(size=n),
-                         np.sin(np.arange(n) / 40.0)])
+    X = np.column_stack(
+        [np.ones(n), np.cumsum(rng.normal(size=n)), rng.normal(size=n), np.sin(np.arange(n) / 40.0)]
+    )
     y = X @ [1.0, 0.3, -0.2, 2.0] + _ar1(rng, n, 0.9)
     return X, y
 
@@ -552,8 +621,9 @@ def test_hac_standard_errors_equal_statsmodels(maxlags):
     res = ols(X, y, maxlags=maxlags)
     assert res.cov_type == "HAC" and res.cov_kwds["maxlags"] == maxlags
     np.testing.assert_allclose(res.bse, ref.bse, rtol=1e-8)
-    np.testing.assert_allclose(res.cov_params(), ref.cov_params(), rtol=1e-8,
-                               atol=1e-10 * np.abs(ref.cov_params()).max())
+    np.testing.assert_allclose(
+        res.cov_params(), ref.cov_params(), rtol=1e-8, atol=1e-10 * np.abs(ref.cov_params()).max()
+    )
     np.testing.assert_allclose(res.tvalues, ref.tvalues, rtol=1e-8)
     np.testing.assert_allclose(res.pvalues, ref.pvalues, rtol=1e-6, atol=1e-300)
     np.testing.assert_allclose(res.conf_int(0.1), ref.conf_int(0.1), rtol=1e-8)
@@ -591,7 +661,7 @@ def test_hac_of_separate_series_and_weights_equals_statsmodels_per_series_sum():
     scores = fit.model.wexog * fit.wresid[:, None]
     meat, start = 0.0, 0
     for p in parts:
-        meat = meat + sw.S_hac_simple(scores[start:start + len(p[1])], nlags=L)
+        meat = meat + sw.S_hac_simple(scores[start : start + len(p[1])], nlags=L)
         start += len(p[1])
     bread = np.linalg.inv(fit.model.wexog.T @ fit.model.wexog)
     expected = np.sqrt(np.diag(bread @ meat @ bread))
@@ -634,7 +704,7 @@ def test_hac_of_an_ill_conditioned_design_in_small_chunks_matches_statsmodels():
     np.testing.assert_allclose(whole.bse, ref.bse, rtol=tol)
     acc = QRAccumulator(6, 1, hac_lags="auto")
     cuts = [0, 60, 61, 300, 301, 900, n]
-    for lo, hi in zip(cuts[:-1], cuts[1:]):
+    for lo, hi in itertools.pairwise(cuts):
         acc.update(X[lo:hi], y[lo:hi])
     with pytest.raises(ValueError, match="cover 0 of the 1500 rows"):
         ols_from_factor(acc, maxlags=16)
@@ -643,11 +713,11 @@ def test_hac_of_an_ill_conditioned_design_in_small_chunks_matches_statsmodels():
     # statistics about a pilot far from the solution (zero): every digit lost
     bad = acc.copy()
     bad.hac_frozen_ = True
-    for lo, hi in zip(cuts[:-1], cuts[1:]):
+    for lo, hi in itertools.pairwise(cuts):
         bad.update_hac(X[lo:hi], y[lo:hi])
     assert not np.allclose(ols_from_factor(bad, maxlags=16).bse, ref.bse, rtol=0.1)
     acc.begin_hac()
-    for lo, hi in zip(cuts[:-1], cuts[1:]):
+    for lo, hi in itertools.pairwise(cuts):
         acc.update_hac(X[lo:hi], y[lo:hi])
     np.testing.assert_allclose(ols_from_factor(acc, maxlags=16).bse, ref.bse, rtol=tol)
     # the same through the helper, in other chunks
@@ -671,7 +741,7 @@ def test_naive_standard_errors_are_too_small_under_ar1_errors_and_hac_ones_are_n
             lo, hi = ols(X, y, cov_type=cov_type).conf_int(0.05)[1]
             hits[cov_type] += lo <= slope <= hi
     naive, hac = hits["nonrobust"] / trials, hits["HAC"] / trials
-    assert naive < 0.7, hits          # theory for these phis: about 0.45
+    assert naive < 0.7, hits  # theory for these phis: about 0.45
     assert hac > 0.8, hits
     assert hac - naive > 0.2, hits
 
@@ -692,15 +762,14 @@ def test_stepwise_hac_rejects_spurious_random_walks_that_naive_f_tests_admit():
         X = np.column_stack([np.ones(n), x1, x2, walks])
         y = 2.0 * x1 - 1.0 * x2 + _ar1(rng, n, 0.98, scale=0.2)
         names = ["const", "x1", "x2"] + [f"rw{i}" for i in range(6)]
-        acc = accumulate_series(QRAccumulator(9, 1, feature_names=names, hac_lags="auto"),
-                                [(X, y, None)])
+        acc = accumulate_series(QRAccumulator(9, 1, feature_names=names, hac_lags="auto"), [(X, y, None)])
         for cov_type in spurious:
             sw = stepwise(acc, include=["const"], cov_type=cov_type)
             spurious[cov_type] += sum(s.startswith("rw") for s in sw.selected)
             missed[cov_type] += sum(s not in sw.selected for s in ("x1", "x2"))
             assert sw.cov_type == cov_type and sw.result.cov_type == cov_type
     assert missed == {"nonrobust": 0, "HAC": 0}
-    assert spurious["nonrobust"] >= 15, spurious       # most of the 36 walks
+    assert spurious["nonrobust"] >= 15, spurious  # most of the 36 walks
     assert spurious["HAC"] <= spurious["nonrobust"] / 3, spurious
 
 
@@ -712,8 +781,8 @@ def test_stepwise_hac_history_is_the_wald_test_of_the_bigger_model():
     assert "Newey-West (HAC) Wald tests" in sw.summary()
     model = []
     for h in sw.history:
-        model = model + [h["term"]] if h["action"] == "enter" else [m for m in model if m != h["term"]]
-        big = model if h["action"] == "enter" else model + [h["term"]]
+        model = [*model, h["term"]] if h["action"] == "enter" else [m for m in model if m != h["term"]]
+        big = model if h["action"] == "enter" else [*model, h["term"]]
         cols = ["const"] + [c for c in acc.feature_names if c in big]
         res = ols_from_factor(acc, cols, maxlags=16)
         i = cols.index(h["term"])
@@ -741,17 +810,18 @@ def test_hac_prediction_interval_uses_the_robust_covariance():
     np.testing.assert_allclose(res.bse_nonrobust, naive.bse, rtol=1e-12)
 
 
-
 # --------------------------------------------------------------------------------------------
 # Gram fast path of the data pass and double-precision stepwise (issue 16)
 # --------------------------------------------------------------------------------------------
 
+
 def _eq12_design(n, seed=0):
     """Well-conditioned eq. 12-style design: const, 4 base signals, their squares and products."""
     rng = np.random.default_rng(seed)
-    t = np.arange(n) / 1000.0                 # every 1000 rows span a period of each signal
-    base = np.column_stack([np.sin(2 * np.pi * (k + 1) * t + k) + 0.05 * rng.normal(size=n)
-                            for k in range(4)]) * [20.0, 20.0, 1.5, 1.5]
+    t = np.arange(n) / 1000.0  # every 1000 rows span a period of each signal
+    base = np.column_stack(
+        [np.sin(2 * np.pi * (k + 1) * t + k) + 0.05 * rng.normal(size=n) for k in range(4)]
+    ) * [20.0, 20.0, 1.5, 1.5]
     cols = [np.ones(n)] + [base[:, i] for i in range(4)]
     names = ["const"] + [f"b{i}" for i in range(4)]
     for i, j in itertools.combinations_with_replacement(range(4), 2):
@@ -766,7 +836,7 @@ def _eq12_design(n, seed=0):
 def _accumulate_named(X, y, names, chunk, **kw):
     acc = QRAccumulator(X.shape[1], 1, feature_names=names, target_names=["dx"], **kw)
     for lo in range(0, len(X), chunk):
-        acc.update(X[lo:lo + chunk], y[lo:lo + chunk])
+        acc.update(X[lo : lo + chunk], y[lo : lo + chunk])
     return acc
 
 
@@ -780,8 +850,7 @@ def test_gram_fast_path_and_accurate_path_give_the_same_fit_and_selection():
     ref = ols_from_factor(dd, cov_type="nonrobust")
     for acc in (fast, qr):
         res = ols_from_factor(acc, cov_type="nonrobust")
-        np.testing.assert_allclose(res.params, ref.params, rtol=1e-9,
-                                   atol=1e-12 * np.abs(ref.params).max())
+        np.testing.assert_allclose(res.params, ref.params, rtol=1e-9, atol=1e-12 * np.abs(ref.params).max())
         np.testing.assert_allclose(res.bse, ref.bse, rtol=1e-9)
         np.testing.assert_allclose(res.ssr, ref.ssr, rtol=1e-11)
     # Stepwise: double-precision steps on the Gram factor against double-double steps on the
@@ -791,8 +860,9 @@ def test_gram_fast_path_and_accurate_path_give_the_same_fit_and_selection():
     sw_exact = stepwise(dd, include=["const"], cov_type="nonrobust")
     assert sw_fast.selected == sw_exact.selected
     assert {"b0", "b1", "b2", "b0*b1", "b1*b1", "b2*b2"} <= set(sw_fast.selected)
-    assert [(h["action"], h["term"]) for h in sw_fast.history] == \
-           [(h["action"], h["term"]) for h in sw_exact.history]
+    assert [(h["action"], h["term"]) for h in sw_fast.history] == [
+        (h["action"], h["term"]) for h in sw_exact.history
+    ]
     for a, b in zip(sw_fast.history, sw_exact.history):
         np.testing.assert_allclose([a["F"], a["ssr"]], [b["F"], b["ssr"]], rtol=1e-9)
     np.testing.assert_allclose(sw_fast.result.params, sw_exact.result.params, rtol=1e-9)
@@ -836,7 +906,7 @@ def test_gram_threshold_keeps_seven_digits_or_refuses(degree, shift):
 
     rng = np.random.default_rng(degree)
     x = np.tile(np.arange(1.0, 22.0), 150) + shift
-    X = np.column_stack([x ** k for k in range(degree + 1)])
+    X = np.column_stack([x**k for k in range(degree + 1)])
     y = X @ np.ones(degree + 1) + 50.0 * rng.normal(size=len(x))
     ref = ols_from_factor(accumulate(X, y, 1500, precision="double-double")).params
     acc = accumulate(X, y, 1500)
@@ -884,13 +954,15 @@ def test_gram_accumulator_round_trips_and_merges():
     merged = again.merge(b)
     assert merged.gram_rows_ == 2 * (3000 - 1024)
     whole = _accumulate_named(X, y, names, 6000, precision="double")
-    np.testing.assert_allclose(ols_from_factor(merged).params, ols_from_factor(whole).params,
-                               rtol=1e-8, atol=1e-12)
+    np.testing.assert_allclose(
+        ols_from_factor(merged).params, ols_from_factor(whole).params, rtol=1e-8, atol=1e-12
+    )
 
 
 # --------------------------------------------------------------------------------------------
 # ols results like statsmodels' (issue 15, item 7)
 # --------------------------------------------------------------------------------------------
+
 
 def test_named_ols_results_match_statsmodels_on_longley():
     sm = fbgcomp_testing.require("statsmodels.api")
@@ -910,11 +982,9 @@ def test_named_ols_results_match_statsmodels_on_longley():
     for attr in ("resid", "fittedvalues"):
         got, want = getattr(res, attr), getattr(ref, attr)
         assert isinstance(got, pd.Series) and got.index.equals(Xd.index), attr
-        np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7 * np.abs(y).max(),
-                                   err_msg=attr)
+        np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7 * np.abs(y).max(), err_msg=attr)
     for attr in ("llf", "aic", "bic"):
-        np.testing.assert_allclose(getattr(res, attr), getattr(ref, attr), rtol=1e-9,
-                                   err_msg=attr)
+        np.testing.assert_allclose(getattr(res, attr), getattr(ref, attr), rtol=1e-9, err_msg=attr)
     ci = res.conf_int()
     assert list(ci.index) == cols and list(ci.columns) == [0, 1]
     np.testing.assert_allclose(ci, ref.conf_int(), rtol=1e-6)
@@ -935,14 +1005,12 @@ def test_unnamed_ols_results_stay_arrays_and_factor_fits_have_no_rows():
         assert type(getattr(res, attr)) is np.ndarray, attr
     np.testing.assert_allclose(res.resid, ref.resid, rtol=1e-9, atol=1e-12 * np.abs(y).max())
     np.testing.assert_allclose(res.fittedvalues, ref.fittedvalues, rtol=1e-10)
-    np.testing.assert_allclose([res.llf, res.aic, res.bic], [ref.llf, ref.aic, ref.bic],
-                               rtol=1e-10)
+    np.testing.assert_allclose([res.llf, res.aic, res.bic], [ref.llf, ref.aic, ref.bic], rtol=1e-10)
     assert type(res.conf_int()) is np.ndarray
     factor_fit = ols_from_factor(accumulate(X, y, 100))
     with pytest.raises(AttributeError, match="needs the fitted rows"):
-        factor_fit.resid
+        _ = factor_fit.resid
     np.testing.assert_allclose(factor_fit.llf, ref.llf, rtol=1e-10)
-
 
 
 def test_saved_kind_tags_are_the_original_format_identifiers_and_load():
@@ -966,9 +1034,10 @@ def test_term_series_are_read_only():
             setattr(res, attr, before * 2)
         np.testing.assert_array_equal(getattr(res, attr), before)
 
+
 def test_readme_api_snippet_runs():
     # The ols lines of README.md's Python API section, as written there.
-    import numpy as np  # noqa: F811
+    import numpy as np
     import pandas as pd
 
     rng = np.random.default_rng(0)

@@ -15,15 +15,22 @@ import pytest
 import fbgcomp_testing
 from fbgcomp import optics
 from fbgcomp.bench import synthetic
-from fbgcomp.io.campaign import Campaign, CampaignMeta, read_campaign, write_campaign
 from fbgcomp.errors import InputError
+from fbgcomp.io.campaign import Campaign, CampaignMeta, read_campaign, write_campaign
+from fbgcomp.models import MRAModel, load_model
 from fbgcomp.models.features import TEMPERATURE_FEATURES, design_matrix
 from fbgcomp.models.metrics import validation_metrics
-from fbgcomp.models import MRAModel, load_model
 
 ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts" / "report"
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync", "--no-first-run"]
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
 SENSITIVITY_UM_PER_N = np.array([0.004, -0.003, 0.006, -0.005, 0.001])
 
 
@@ -43,7 +50,7 @@ def static_campaign(name="static_y", seed=5, hold_s=40.0, dt_s=1.0) -> Campaign:
     coef = synthetic.default_coefficients()
     names = [f"dL_{s}" for s in synthetic.SENSORS] + list(TEMPERATURE_FEATURES)
     design = design_matrix(np.hstack([dl, np.zeros((t.size, 3))]), names, names)
-    beta = np.array([[coef[a].get(n, 0.0) for a in synthetic.AXES] for n in ["const"] + names])
+    beta = np.array([[coef[a].get(n, 0.0) for a in synthetic.AXES] for n in ["const", *names]])
     ref = design @ beta + 0.05 * rng.standard_normal((t.size, 3))
 
     def frame(values, columns):
@@ -52,30 +59,37 @@ def static_campaign(name="static_y", seed=5, hold_s=40.0, dt_s=1.0) -> Campaign:
         return df
 
     return Campaign.from_arrays(
-        meta, fbg=frame(lam, [f"{s}_nm" for s in synthetic.SENSORS]),
+        meta,
+        fbg=frame(lam, [f"{s}_nm" for s in synthetic.SENSORS]),
         temperatures=frame(temps, [f"{p}_C" for p in synthetic.PROBES]),
         reference=frame(ref, ["dx_um", "dy_um", "dz_um"]),
-        loads=frame(np.column_stack([0 * fy, fy, 0 * fy]), ["fx_N", "fy_N", "fz_N"]))
+        loads=frame(np.column_stack([0 * fy, fy, 0 * fy]), ["fx_N", "fy_N", "fz_N"]),
+    )
 
 
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
     fbgcomp_testing.require("matplotlib")
     base = tmp_path_factory.mktemp("report")
-    thermal, _ = synthetic.linear_truth_campaign("thermal_a", seed=3, duration_s=2 * 3600,
-                                                 wavelength_noise_nm=0.0005)
+    thermal, _ = synthetic.linear_truth_campaign(
+        "thermal_a", seed=3, duration_s=2 * 3600, wavelength_noise_nm=0.0005
+    )
     static = static_campaign()
     model = MRAModel(features="eq13", stepwise=True).fit([thermal, static])
     model_path = model.save(base / "model.json")
-    return {"base": base, "model": model_path,
-            "thermal": write_campaign(thermal, base / "thermal_a"),
-            "static": write_campaign(static, base / "static_y")}
+    return {
+        "base": base,
+        "model": model_path,
+        "thermal": write_campaign(thermal, base / "thermal_a"),
+        "static": write_campaign(static, base / "static_y"),
+    }
 
 
 def _cli(*args) -> subprocess.CompletedProcess:
     """``fbgcomp ARGS`` through the console entry point."""
-    return subprocess.run([sys.executable, "-m", "fbgcomp", *map(str, args)], capture_output=True,
-                          text=True, timeout=120)
+    return subprocess.run(
+        [sys.executable, "-m", "fbgcomp", *map(str, args)], capture_output=True, text=True, timeout=120
+    )
 
 
 def _launch(playwright):
@@ -92,7 +106,11 @@ def test_report_cli_writes_one_self_contained_file_with_the_figures_that_apply(s
     text = (out / "report.html").read_text(encoding="utf-8")
     # figures by campaign kind: loads -> 6 and 7, time history -> 8 and 9, else "not applicable"
     assert sorted(p.name for p in out.glob("*.png")) == [
-        "static_y_fig6.png", "static_y_fig7.png", "thermal_a_fig8.png", "thermal_a_fig9.png"]
+        "static_y_fig6.png",
+        "static_y_fig7.png",
+        "thermal_a_fig8.png",
+        "thermal_a_fig9.png",
+    ]
     assert len(re.findall(r'<img src="data:image/png;base64,', text)) == 4
     assert re.search(r'data-not-applicable="fig6">Fig. 6 not applicable: no loads.csv', text)
     assert 'data-not-applicable="fig8"' in text and 'data-not-applicable="fig9"' in text
@@ -107,8 +125,11 @@ def test_report_cli_writes_one_self_contained_file_with_the_figures_that_apply(s
         fit = model.axes_[axis]
         block = text.split(f'id="table1-{axis}"')[1].split("</table>")[0]
         for term, p, se, t in zip(fit.terms, fit.params, fit.bse, fit.tvalues):
-            row = re.search(rf"<code>{re.escape(term)}</code></td><td>([^<]+)</td><td>([^<]+)"
-                            rf"</td><td[^>]*>[^<]*</td><td>([^<]+)</td>", block)
+            row = re.search(
+                rf"<code>{re.escape(term)}</code></td><td>([^<]+)</td><td>([^<]+)"
+                rf"</td><td[^>]*>[^<]*</td><td>([^<]+)</td>",
+                block,
+            )
             assert row, (axis, term)
             assert float(row.group(1)) == pytest.approx(p, rel=1e-4, abs=1e-12)
             assert float(row.group(2)) == pytest.approx(se, rel=1e-3)
@@ -150,9 +171,9 @@ def test_sensor_health_flags_the_faulty_channel_and_only_it():
     lam0 = 1530.0 + 5.0 * np.arange(5)
     slow = 0.02 * np.sin(2 * np.pi * t / 300.0)
     wl = lam0 + slow[:, None] + 0.0005 * rng.standard_normal((t.size, 5))
-    wl[:, 1] += 0.008 * rng.standard_normal(t.size)          # S2: 8 pm noise
-    wl[3000:, 2] += 0.5                                      # S3: a 0.5 nm jump
-    wl[1000:1100, 3] = wl[1000, 3]                           # S4: stuck for 10 s
+    wl[:, 1] += 0.008 * rng.standard_normal(t.size)  # S2: 8 pm noise
+    wl[3000:, 2] += 0.5  # S3: a 0.5 nm jump
+    wl[1000:1100, 3] = wl[1000, 3]  # S4: stuck for 10 s
     h = {r["sensor"]: r for r in sensor_health(t, wl, lam0, ["S1", "S2", "S3", "S4", "S5"])}
     assert h["S1"]["status"] == h["S5"]["status"] == "OK"
     assert h["S1"]["noise_pm"] == pytest.approx(0.5, rel=0.15)
@@ -164,7 +185,7 @@ def test_sensor_health_flags_the_faulty_channel_and_only_it():
     assert h["S3"]["band_margin_nm"] == pytest.approx(5.0 - np.max(np.abs(wl[:, 2] - lam0[2])))
 
     temps = 30.0 + 0.001 * rng.standard_normal((t.size, 2))
-    temps[:, 1] = 25.0                                       # a dead probe: constant > 10 min
+    temps[:, 1] = 25.0  # a dead probe: constant > 10 min
     p = {r["probe"]: r for r in probe_health(t, temps, ["T_bulk", "T_surf"])}
     assert p["T_bulk"]["status"] == "OK" and p["T_surf"]["status"] == "CHECK"
 
@@ -186,13 +207,19 @@ def test_report_in_chromium_shows_every_figure_and_table(setup):
             page.goto((out / "report.html").as_uri())
             page.wait_for_load_state("load")
             figures = page.eval_on_selector_all(
-                "figure img", "imgs => imgs.map(i => [i.closest('figure').id, i.complete, "
-                "i.naturalWidth, i.naturalHeight, i.getBoundingClientRect().width])")
-            assert [f[0] for f in figures] == ["static_y-fig6", "static_y-fig7",
-                                               "thermal_a-fig8", "thermal_a-fig9"]
+                "figure img",
+                "imgs => imgs.map(i => [i.closest('figure').id, i.complete, "
+                "i.naturalWidth, i.naturalHeight, i.getBoundingClientRect().width])",
+            )
+            assert [f[0] for f in figures] == [
+                "static_y-fig6",
+                "static_y-fig7",
+                "thermal_a-fig8",
+                "thermal_a-fig9",
+            ]
             for fid, complete, w, h, shown in figures:
-                assert complete and w >= 1000 and h >= 500, fid    # decoded, print resolution
-                assert shown > 600, fid                            # and laid out readably
+                assert complete and w >= 1000 and h >= 500, fid  # decoded, print resolution
+                assert shown > 600, fid  # and laid out readably
             # the four pictures are different pictures
             sources = page.eval_on_selector_all("figure img", "imgs => imgs.map(i => i.src)")
             assert len(set(sources)) == 4

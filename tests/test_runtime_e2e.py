@@ -6,6 +6,7 @@ at t = 4.5 s for 1.2 s and restored, then the service is killed with SIGKILL. A 
 (Basic256Sha256 Sign & Encrypt, user + password) watches the outputs throughout.
 """
 
+import itertools
 import os
 import signal
 import time
@@ -17,8 +18,17 @@ import fbgcomp_testing
 from test_runtime_support import model_and_campaign, serve_with_simulator
 
 ENV = {"FBGCOMP_OPCUA_USER": "operator", "FBGCOMP_OPCUA_PASSWORD": "e2e-pass-123"}
-NAMES = ["Heartbeat", "CorrectionX_um", "CorrectionY_um", "CorrectionZ_um", "Health",
-         "FallbackInUse", "SourceStatus", "Sensors.S3.Status", "ExpectedErrorY_um"]
+NAMES = [
+    "Heartbeat",
+    "CorrectionX_um",
+    "CorrectionY_um",
+    "CorrectionZ_um",
+    "Health",
+    "FallbackInUse",
+    "SourceStatus",
+    "Sensors.S3.Status",
+    "ExpectedErrorY_um",
+]
 
 
 def _health_sequence(seen):
@@ -37,19 +47,26 @@ def scenario(tmp_path_factory):
 
     model_path, campaign = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
     tmp = tmp_path_factory.mktemp("e2e")
-    config = ("[source]\nbackoff_initial_s = 0.05\nbackoff_max_s = 0.4\n"
-              "no_data_s = 0.2\n\n[pipeline]\nramp_s = 0.5\n"
-              # output policy off: the published correction is the model's own
-              "max_slew_um_per_s = 0\nmax_correction_um = [0, 0, 0]\n"
-              "[pipeline.output_filter]\nenabled = false\n")
-    with serve_with_simulator(tmp, config, model_path, campaign, ENV,
-                              ("--rate", 1000, "--noise-pm", 0.3,
-                               "--fault", "drop:S3@2.5", "--fault", "cut@4.5:1.2")) as run:
+    config = (
+        "[source]\nbackoff_initial_s = 0.05\nbackoff_max_s = 0.4\n"
+        "no_data_s = 0.2\n\n[pipeline]\nramp_s = 0.5\n"
+        # output policy off: the published correction is the model's own
+        "max_slew_um_per_s = 0\nmax_correction_um = [0, 0, 0]\n"
+        "[pipeline.output_filter]\nenabled = false\n"
+    )
+    with serve_with_simulator(
+        tmp,
+        config,
+        model_path,
+        campaign,
+        ENV,
+        ("--rate", 1000, "--noise-pm", 0.3, "--fault", "drop:S3@2.5", "--fault", "cut@4.5:1.2"),
+    ) as run:
+
         def done(seen):
             # 1.5 s after health came back from ALARM (values are notified on change only)
             states = [(v, r) for n, v, _, r in seen if n == "Health"]
-            back = [r for (a, _), (b, r) in zip(states, states[1:])
-                    if a == "ALARM" and b == "DEGRADED"]
+            back = [r for (a, _), (b, r) in itertools.pairwise(states) if a == "ALARM" and b == "DEGRADED"]
             return bool(back) and time.time() - back[-1] > 1.5
 
         seen = run.watch(NAMES, 40.0, done)
@@ -58,8 +75,7 @@ def scenario(tmp_path_factory):
         t_kill = time.time()
         run.serve.wait(10)
     meta, log = read_log(tmp / "log")
-    return dict(seen=seen, alive=alive, t_kill=t_kill, meta=meta, log=log, tmp=tmp,
-                model_path=model_path)
+    return dict(seen=seen, alive=alive, t_kill=t_kill, meta=meta, log=log, tmp=tmp, model_path=model_path)
 
 
 def test_published_correction_equals_offline_model_on_the_same_samples(scenario):
@@ -70,7 +86,7 @@ def test_published_correction_equals_offline_model_on_the_same_samples(scenario)
     t = log["time_s"].to_numpy()
     wl = log[[f"{s}_nm" for s in model.sensor_names]].to_numpy()
     temp = log[[f"{p}_C" for p in model.probe_names]].to_numpy()
-    zero = t <= t[0] + model.zero_window_s        # the documented zero-state convention
+    zero = t <= t[0] + model.zero_window_s  # the documented zero-state convention
     wl0, t0 = wl[zero].mean(axis=0), temp[zero].mean(axis=0)
     checked = {"full": 0, "S3": 0}
     for j, name in enumerate(("CorrectionX_um", "CorrectionY_um", "CorrectionZ_um")):
@@ -78,11 +94,11 @@ def test_published_correction_equals_offline_model_on_the_same_samples(scenario)
             if n != name:
                 continue
             i = int(np.argmin(np.abs(t - ts)))
-            if abs(t[i] - ts) > 2e-6 or log["health"][i] not in (0, 1):   # zeroing / held
+            if abs(t[i] - ts) > 2e-6 or log["health"][i] not in (0, 1):  # zeroing / held
                 continue
             s3_lost = log["S3_peaks"][i] == 0
             pred = model.predictor(frozenset({"S3"}) if s3_lost else frozenset())
-            dev, _ = pred.predict(wl[i:i + 1], temp[i:i + 1], wl0, t0)
+            dev, _ = pred.predict(wl[i : i + 1], temp[i : i + 1], wl0, t0)
             # same numbers up to the summation order of the zero-state mean
             assert value == pytest.approx(-dev[0, j], rel=1e-6, abs=1e-8)
             checked["S3" if s3_lost else "full"] += 1
@@ -98,11 +114,11 @@ def test_lost_grating_switches_to_its_fallback(scenario):
     lost = log["S3_peaks"].to_numpy() == 0
     assert lost.any()
     first = int(np.argmax(lost))
-    assert log["health"][first - 1] == 0 and log["health"][first] == 1   # within one sample
+    assert log["health"][first - 1] == 0 and log["health"][first] == 1  # within one sample
     flowing = lost & (log["health"].to_numpy() != 2)
     assert (log["health"][flowing] == 1).all()
     assert (log["model_set"][flowing] == meta["model_sets"].index(["S3"])).all()
-    assert (log["S3_status"][lost] == 1).all()                            # MISSING
+    assert (log["S3_status"][lost] == 1).all()  # MISSING
     assert "S3" in [v for n, v, *_ in seen if n == "FallbackInUse"]
     assert [v for n, v, *_ in seen if n == "Sensors.S3.Status"][-1] == "MISSING"
     expected = model.predictor(frozenset({"S3"})).expected_rms_error_um[1]
@@ -115,26 +131,26 @@ def test_link_cut_holds_ramps_and_recovers(scenario):
     log, seen = scenario["log"], scenario["seen"]
     health = _health_sequence(seen)
     it = iter(health)
-    assert all(state in it for state in ("ZEROING", "OK", "DEGRADED", "ALARM", "DEGRADED")), \
-        health
-    assert health[-1] == "DEGRADED"                      # link back, S3 still lost
+    assert all(state in it for state in ("ZEROING", "OK", "DEGRADED", "ALARM", "DEGRADED")), health
+    assert health[-1] == "DEGRADED"  # link back, S3 still lost
     assert any(n == "SourceStatus" and str(v).startswith("reconnecting") for n, v, *_ in seen)
     # during the 1.2 s cut the held correction ramps to zero in ramp_s = 0.5 s
-    states = [(v, ts) for n, v, ts, _ in seen if n == "Health"]     # sample (source) times
+    states = [(v, ts) for n, v, ts, _ in seen if n == "Health"]  # sample (source) times
     i = [v for v, _ in states].index("ALARM")
     t_alarm, t_back = states[i][1], states[i + 1][1]
     ramp = [abs(v) for n, v, ts, _ in seen if n == "CorrectionX_um" and t_alarm <= ts < t_back]
     assert len(ramp) >= 3 and ramp[-1] == 0.0 < max(ramp)
-    assert all(b <= a + 1e-12 for a, b in zip(ramp, ramp[1:]))      # monotonic towards zero
+    assert all(b <= a + 1e-12 for a, b in itertools.pairwise(ramp))  # monotonic towards zero
     t = log["time_s"].to_numpy()
     gap = int(np.argmax(np.diff(t)))
-    assert 1.0 < t[gap + 1] - t[gap] < 4.0               # the cut is a gap in the data ...
-    assert (t > t[gap]).sum() > 300                      # ... and frames flow again afterwards
+    assert 1.0 < t[gap + 1] - t[gap] < 4.0  # the cut is a gap in the data ...
+    assert (t > t[gap]).sum() > 300  # ... and frames flow again afterwards
     assert (log["health"][t > t[gap] + 0.2] == 1).all()
 
 
 def test_kill9_loses_at_most_the_last_second_and_every_file_reads(scenario):
     import pyarrow.parquet as pq
+
     from fbgcomp.runtime.log import log_parts
 
     assert scenario["alive"]
@@ -147,7 +163,12 @@ def test_kill9_loses_at_most_the_last_second_and_every_file_reads(scenario):
 
 def test_run_log_records_the_output_flag_word_per_axis(scenario):
     log, meta = scenario["log"], scenario["meta"]
-    assert meta["flag_names"] == {"1": "SHRUNK", "2": "CLAMPED", "4": "LOAD_REFUSED",
-                                  "8": "RATE_LIMITED", "16": "MAX_LIMITED"}
+    assert meta["flag_names"] == {
+        "1": "SHRUNK",
+        "2": "CLAMPED",
+        "4": "LOAD_REFUSED",
+        "8": "RATE_LIMITED",
+        "16": "MAX_LIMITED",
+    }
     for a in ("dx", "dy", "dz"):
-        assert (log[f"flags_{a}"] == 0).all()     # policy off, model without flags
+        assert (log[f"flags_{a}"] == 0).all()  # policy off, model without flags

@@ -20,7 +20,7 @@ def test_mode_hop_inside_the_window_is_re_zeroed_not_readmitted_as_truth(setup, 
     model, time_s, w, t = setup
     s3 = model.sensor_names.index("S3")
     hopped = w.copy()
-    hopped[time_s >= 100.0, s3] += 2.0          # 2 nm: inside the window, 20x max_jump_nm
+    hopped[time_s >= 100.0, s3] += 2.0  # 2 nm: inside the window, 20x max_jump_nm
     clean = run_in_batches(Pipeline(model), time_s, w, t, sizes)
     pipe = Pipeline(model)
     r = run_in_batches(pipe, time_s, hopped, t, sizes)
@@ -29,7 +29,7 @@ def test_mode_hop_inside_the_window_is_re_zeroed_not_readmitted_as_truth(setup, 
     ok = r["health"] == HEALTH_OK
     assert not (ok[:, None] & (np.abs(r["correction_um"]) > pipe.max_correction_um)).any()
     after = time_s > 100.0 + pipe.config.health.recover_s + 1.0
-    assert (r["health"][after] == HEALTH_OK).all()          # re-admitted ...
+    assert (r["health"][after] == HEALTH_OK).all()  # re-admitted ...
     # ... against its new zero: the correction is the fault-free one (a few µm is the
     # fallback model's own difference while S3 was out, and the filter)
     assert np.abs(r["correction_um"][after] - clean["correction_um"][after]).max() < 2.0
@@ -76,9 +76,8 @@ def test_absurd_model_is_never_published_with_health_ok(setup):
 def test_prediction_beyond_the_bound_is_clamped_and_not_ok(setup):
     model, time_s, w, t = setup
     clean = run_in_batches(Pipeline(model), time_s, w, t, [10])
-    cap = 0.7 * np.abs(clean["correction_um"]).max(axis=0)   # within ABSURD_FACTOR x cap
-    r = run_in_batches(Pipeline(model, PipelineConfig(max_correction_um=tuple(cap))),
-                       time_s, w, t, [10])
+    cap = 0.7 * np.abs(clean["correction_um"]).max(axis=0)  # within ABSURD_FACTOR x cap
+    r = run_in_batches(Pipeline(model, PipelineConfig(max_correction_um=tuple(cap))), time_s, w, t, [10])
     over = (np.abs(r["deviation_um"]) > cap).any(axis=1)
     assert over.sum() > 10
     assert (np.abs(r["correction_um"]) <= cap + 1e-9).all()
@@ -89,7 +88,7 @@ def test_prediction_beyond_the_bound_is_clamped_and_not_ok(setup):
 def test_reconnect_cannot_step_the_correction(setup):
     """After a reconnect the correction stepped 0 -> 201 µm in one sample."""
     model, time_s, w, t = setup
-    rate = 5.0                                        # µm/s: 0.5 µm per 0.1 s frame
+    rate = 5.0  # µm/s: 0.5 µm per 0.1 s frame
     pipe = Pipeline(model, PipelineConfig(max_slew_um_per_s=rate, ramp_s=0.5))
     before = time_s < 150.0
     back = time_s >= 200.0
@@ -112,8 +111,9 @@ def test_the_model_file_records_its_training_deviations_and_bounds_the_correctio
     runtime never publishes beyond ENVELOPE_MARGIN x their peak with Health OK."""
     model, time_s, w, t = setup
     runs = model.training_["campaigns"]
-    peak = np.max([np.maximum(np.abs(r["deviation_low_um"]), np.abs(r["deviation_high_um"])) for r in runs],
-                  axis=0)
+    peak = np.max(
+        [np.maximum(np.abs(r["deviation_low_um"]), np.abs(r["deviation_high_um"])) for r in runs], axis=0
+    )
     np.testing.assert_allclose(model.max_correction_um, model.ENVELOPE_MARGIN * peak)
     pipe = Pipeline(model)
     np.testing.assert_allclose(pipe.max_correction_um, np.minimum(1000.0, model.ENVELOPE_MARGIN * peak))

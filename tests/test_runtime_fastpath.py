@@ -10,8 +10,16 @@ from fbgcomp.runtime import health as H
 from fbgcomp.runtime.pipeline import Pipeline, PipelineConfig
 from test_runtime_support import model_and_arrays, run_in_batches
 
-FIELDS = ("deviation_um", "half_width_um", "correction_um", "health", "sensor_status",
-          "model_set", "expected_rms_um", "output_flags")
+FIELDS = (
+    "deviation_um",
+    "half_width_um",
+    "correction_um",
+    "health",
+    "sensor_status",
+    "model_set",
+    "expected_rms_um",
+    "output_flags",
+)
 
 
 class GeneralOnly(Pipeline):
@@ -41,11 +49,11 @@ def _faulted(model, time_s, w, t):
     doubled = (time_s >= 70.0) & (time_s < 71.0)
     counts[doubled, s["S1"]] = 2
     w[doubled, s["S1"]] = np.nan
-    w[time_s >= 90.0, s["S2"]] += 0.4                     # a mode hop, kept
+    w[time_s >= 90.0, s["S2"]] += 0.4  # a mode hop, kept
     stuck = (time_s >= 120.0) & (time_s < 125.0)
     w[stuck, s["S4"]] = w[np.argmax(stuck), s["S4"]]
-    t[(time_s >= 140.0) & (time_s < 141.0), 0] = np.nan    # a probe lost for a second
-    w[(time_s >= 160.0) & (time_s < 161.0), :] += 2.0      # every grating, a huge step
+    t[(time_s >= 140.0) & (time_s < 141.0), 0] = np.nan  # a probe lost for a second
+    w[(time_s >= 160.0) & (time_s < 161.0), :] += 2.0  # every grating, a huge step
     return w, t, counts
 
 
@@ -60,15 +68,13 @@ def test_steady_path_equals_general_path_through_faults(setup, sizes):
     n = int(np.searchsorted(time_s, 200.0))
     wf, tf, counts = _faulted(model, time_s[:n], w[:n], t[:n])
     cfg = dict(max_slew_um_per_s=(50.0, 50.0, 50.0), max_correction_um=(400.0, 400.0, 400.0))
-    fast = run_in_batches(Pipeline(model, PipelineConfig(**cfg)), time_s[:n], wf, tf, sizes,
-                          counts)
-    ref = run_in_batches(GeneralOnly(model, PipelineConfig(**cfg)), time_s[:n], wf, tf, sizes,
-                         counts)
+    fast = run_in_batches(Pipeline(model, PipelineConfig(**cfg)), time_s[:n], wf, tf, sizes, counts)
+    ref = run_in_batches(GeneralOnly(model, PipelineConfig(**cfg)), time_s[:n], wf, tf, sizes, counts)
     _assert_same(fast, ref)
     # the faults did happen (else the test would compare two steady runs only)
     assert (fast["sensor_status"] == H.MISSING).any() and (fast["sensor_status"] == H.STUCK).any()
     assert (fast["output_flags"] & H.FLAG_RATE_LIMITED).any()
-    assert (fast["health"] == 2).any()    # ALARM (the probe lost)
+    assert (fast["health"] == 2).any()  # ALARM (the probe lost)
 
 
 def test_steady_path_is_taken_and_results_do_not_depend_on_batching(setup):
@@ -112,8 +118,7 @@ def test_all_good_carries_the_same_state_as_check():
         assert a.all_good(t[lo:hi], w[lo:hi], counts[lo:hi])
         status, faulted = b.check(t[lo:hi], w[lo:hi], counts[lo:hi], counts[lo:hi] * 0)
         assert not status.any() and not faulted.any()
-        for name in ("last_value", "last_raw", "last_change_s", "last_bad_s", "offset_nm",
-                     "row_offset_nm"):
+        for name in ("last_value", "last_raw", "last_change_s", "last_bad_s", "offset_nm", "row_offset_nm"):
             np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
     # a repeated value, a missing peak, a jump: not for the steady path, state untouched
     before = a.last_value.copy()

@@ -1,6 +1,7 @@
 """Hyperion protocol codec, client and the simulated instrument, over real loopback sockets."""
 
 import asyncio
+import itertools
 import struct
 
 import numpy as np
@@ -20,11 +21,12 @@ def _table():
 
 
 def test_peak_frame_layout_matches_the_protocol_byte_for_byte():
-    frame = hyperion.encode_peak_frame(42, 1700000000.25, np.array([2, 1]),
-                                       np.array([1530.5, 1535.25, 1540.125]))
+    frame = hyperion.encode_peak_frame(
+        42, 1700000000.25, np.array([2, 1]), np.array([1530.5, 1535.25, 1540.125])
+    )
     status, rtype, msg_len, content_len = struct.unpack_from("<BBHI", frame, 0)
     assert (status, rtype, msg_len) == (0, 0, 0) and content_len == len(frame) - 8
-    length, version, _, serial, t_int, t_frac = struct.unpack_from("<HHIQII", frame, 8)
+    length, _version, _, serial, t_int, t_frac = struct.unpack_from("<HHIQII", frame, 8)
     assert length == 24 + 2 * 2 and serial == 42
     assert t_int == 1700000000 and t_frac == 250_000_000
     assert struct.unpack_from("<hh", frame, 8 + 24) == (2, 1)
@@ -32,13 +34,14 @@ def test_peak_frame_layout_matches_the_protocol_byte_for_byte():
 
 
 def test_decoder_splits_layouts_and_keeps_partial_frames():
-    a = hyperion.encode_peak_frames(1, np.array([10.0, 10.001]), np.array([1, 2]),
-                                    np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]))
+    a = hyperion.encode_peak_frames(
+        1, np.array([10.0, 10.001]), np.array([1, 2]), np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    )
     b = hyperion.encode_peak_frame(1, 10.002, np.array([0, 2]), np.array([7.0, 8.0]))
     c = hyperion.encode_peak_frame(1, 10.003, np.array([1, 2]), np.array([9.0, 10.0, 11.0]))
     stream = a + b + c
     blocks, used = hyperion.decode_peak_frames(stream[:-5])
-    assert used == len(a) + len(b)          # the cut frame stays for the next read
+    assert used == len(a) + len(b)  # the cut frame stays for the next read
     assert [len(x.timestamp_s) for x in blocks] == [2, 1]
     np.testing.assert_array_equal(blocks[0].wavelengths_nm, [[1, 2, 3], [4, 5, 6]])
     np.testing.assert_array_equal(blocks[0].peak_channel, [0, 1, 1])
@@ -56,11 +59,15 @@ def test_corrupt_frame_is_an_error_not_a_crash():
 
 def test_window_mapping_flags_missing_doubled_and_out_of_window():
     m = PeakMapper(np.array([1530.0, 1535.0, 1540.0]), window_nm=2.0)
-    peaks = np.array([[1530.1, 1535.2, 1540.3, np.nan],
-                      [1530.1, 1535.2, 1535.4, 1540.3],     # doubled S2
-                      [1530.1, 1537.5, 1540.3, np.nan],     # S2 moved out of its window
-                      [1530.1, 1540.3, np.nan, np.nan],     # S2 gone
-                      [1532.5, 1540.3, np.nan, np.nan]])    # S2 gone, S1 moved out
+    peaks = np.array(
+        [
+            [1530.1, 1535.2, 1540.3, np.nan],
+            [1530.1, 1535.2, 1535.4, 1540.3],  # doubled S2
+            [1530.1, 1537.5, 1540.3, np.nan],  # S2 moved out of its window
+            [1530.1, 1540.3, np.nan, np.nan],  # S2 gone
+            [1532.5, 1540.3, np.nan, np.nan],
+        ]
+    )  # S2 gone, S1 moved out
     b = m.map(peaks, 0.0, np.arange(5.0))
     np.testing.assert_array_equal(b.peak_count[:, 1], [1, 2, 0, 0, 0])
     # a peak in the guard band that another sensor owns is not this grating moved
@@ -73,17 +80,16 @@ def test_window_mapping_flags_missing_doubled_and_out_of_window():
 
 
 def test_fault_specifications():
-    assert parse_fault("drop:S3@5") .kind == "drop"
+    assert parse_fault("drop:S3@5").kind == "drop"
     f = parse_fault("shift:S1@2:-4.5")
     assert (f.sensor, f.at_s, f.value) == ("S1", 2.0, -4.5)
     assert parse_fault("cut@4:1.5").value == 1.5
     with pytest.raises(InputError):
         parse_fault("melt:S1@3")
-    f = parse_fault("shift:S2@3:+2/10")          # a mode hop there and back
+    f = parse_fault("shift:S2@3:+2/10")  # a mode hop there and back
     assert (f.value, f.at_s, f.until_s) == (2.0, 3.0, 13.0) and not f.active(13.0)
     assert parse_fault("drop:S3@5").until_s == float("inf")
-    assert (parse_fault("garbage@6").kind, parse_fault("garbage@6:100").value) == \
-        ("garbage", 100.0)
+    assert (parse_fault("garbage@6").kind, parse_fault("garbage@6:100").value) == ("garbage", 100.0)
     for bad in ("drop:S3@5/0", "drop:S3@5/-1", "garbage@1:1e9", "cut@-1:2", "shift:S1@2:nan"):
         with pytest.raises(InputError):
             parse_fault(bad)
@@ -95,12 +101,20 @@ def test_temporary_faults_end_and_garbage_makes_the_source_reconnect():
     from fbgcomp.runtime.sources import HyperionSource
 
     async def main():
-        sim = SimulatedHyperion(_table(), SimConfig(rate_hz=2000, faults=[
-            parse_fault("drop:S3@0.2/0.2"), parse_fault("garbage@0.6:2000")]))
+        sim = SimulatedHyperion(
+            _table(),
+            SimConfig(rate_hz=2000, faults=[parse_fault("drop:S3@0.2/0.2"), parse_fault("garbage@0.6:2000")]),
+        )
         await sim.start()
         mapper = PeakMapper(_table().wavelengths_nm[0], 2.5)
-        src = HyperionSource("127.0.0.1", sim.stream_port, sim.command_port, mapper,
-                             backoff_initial_s=0.05, stall_timeout_s=5.0)
+        src = HyperionSource(
+            "127.0.0.1",
+            sim.stream_port,
+            sim.command_port,
+            mapper,
+            backoff_initial_s=0.05,
+            stall_timeout_s=5.0,
+        )
         batches = []
         try:
             agen = src.batches()
@@ -129,8 +143,9 @@ def test_temporary_faults_end_and_garbage_makes_the_source_reconnect():
 
 def test_client_talks_to_the_simulated_instrument():
     async def main():
-        sim = SimulatedHyperion(_table(), SimConfig(rate_hz=2000, channels=2,
-                                                    faults=[parse_fault("drop:S3@0.3")]))
+        sim = SimulatedHyperion(
+            _table(), SimConfig(rate_hz=2000, channels=2, faults=[parse_fault("drop:S3@0.3")])
+        )
         await sim.start()
         client = hyperion.HyperionClient("127.0.0.1", sim.command_port, sim.stream_port)
         try:
@@ -154,7 +169,7 @@ def test_client_talks_to_the_simulated_instrument():
             await sim.stop()
 
     sim, t, counts = asyncio.run(main())
-    assert t.size > 600                                  # ~2 kHz for 0.6 s
+    assert t.size > 600  # ~2 kHz for 0.6 s
     assert np.all(np.diff(t) > 0)
     np.testing.assert_allclose(np.median(np.diff(t)), 1 / 2000, rtol=1e-3)
     rel = t - sim._t0
@@ -187,9 +202,12 @@ def test_window_search_agrees_with_the_exhaustive_comparison():
 def test_sensors_with_a_channel_only_see_their_fibre():
     # two fibres with gratings of the same nominal wavelengths
     m = PeakMapper(np.array([1530.0, 1535.0, 1530.0, 1535.0]), 2.5, channel=[1, 1, 2, 2])
-    frames = hyperion.encode_peak_frames(1, np.array([1.0, 1.001]), np.array([2, 1]),
-                                         np.array([[1530.1, 1535.1, 1530.3],
-                                                   [1530.2, 1535.2, 1530.4]]))
+    frames = hyperion.encode_peak_frames(
+        1,
+        np.array([1.0, 1.001]),
+        np.array([2, 1]),
+        np.array([[1530.1, 1535.1, 1530.3], [1530.2, 1535.2, 1530.4]]),
+    )
     blocks, _ = hyperion.decode_peak_frames(frames)
     b = m.map_blocks(blocks, 0.0)
     np.testing.assert_array_equal(b.peak_count, [[1, 1, 1, 0], [1, 1, 1, 0]])
@@ -201,9 +219,17 @@ def test_injected_faults_reach_the_sensor_checks():
     from fbgcomp.runtime import health as H
 
     async def main():
-        cfg = SimConfig(rate_hz=2000, channels=2, peaks_per_channel=6, noise_pm=0.2,
-                        faults=[parse_fault("double:S2@0.2"), parse_fault("shift:S4@0.3:+3.5"),
-                                parse_fault("stuck:S1@0.1")])
+        cfg = SimConfig(
+            rate_hz=2000,
+            channels=2,
+            peaks_per_channel=6,
+            noise_pm=0.2,
+            faults=[
+                parse_fault("double:S2@0.2"),
+                parse_fault("shift:S4@0.3:+3.5"),
+                parse_fault("stuck:S1@0.1"),
+            ],
+        )
         sim = SimulatedHyperion(_table(), cfg)
         await sim.start()
         client = hyperion.HyperionClient("127.0.0.1", sim.command_port, sim.stream_port)
@@ -226,7 +252,7 @@ def test_injected_faults_reach_the_sensor_checks():
             await sim.stop()
 
     t, status, layouts = asyncio.run(main())
-    assert layouts == {(6, 6)}                           # padded to 6 peaks per channel
+    assert layouts == {(6, 6)}  # padded to 6 peaks per channel
     late = t > 0.35
     assert (status[late, 1] == H.DOUBLED).all() and (status[t < 0.19, 1] == H.OK).all()
     assert (status[late, 3] == H.OUT_OF_WINDOW).all() and (status[t < 0.29, 3] == H.OK).all()
@@ -237,6 +263,7 @@ def test_injected_faults_reach_the_sensor_checks():
 # --------------------------------------------------------------------------- hostile streams
 # Issue 13, finding 3: random bytes or a header announcing a 4 GiB frame made the decoder wait
 # for the rest forever (no error, no reconnect, the buffer growing with every read).
+
 
 class _FakeStream:
     """A stream port on loopback whose n-th connection is served by ``scripts[n]`` (the last
@@ -269,6 +296,7 @@ def _endless(chunk: bytes, first: bytes = b"", cap_bytes: int = 32 << 20):
     """Send ``first`` then ``chunk`` again and again as fast as the reader takes it (up to
     ``cap_bytes``, so a decoder that buffers everything is caught without exhausting the
     machine), then hold the connection open."""
+
     async def script(writer):
         writer.write(first)
         sent = len(first)
@@ -277,6 +305,7 @@ def _endless(chunk: bytes, first: bytes = b"", cap_bytes: int = 32 << 20):
             sent += len(chunk)
             await writer.drain()
         await asyncio.sleep(30)
+
     return script
 
 
@@ -286,11 +315,11 @@ def _valid_frames(writer_t0=1700000000.0, n=2000, rate_hz=2000.0):
     async def script(writer):
         for i in range(0, n, 20):
             t = writer_t0 + np.arange(i, i + 20) / rate_hz
-            writer.write(hyperion.encode_peak_frames(7, t, np.array([2, 2]),
-                                                     np.tile(lam, (t.size, 1))))
+            writer.write(hyperion.encode_peak_frames(7, t, np.array([2, 2]), np.tile(lam, (t.size, 1))))
             await writer.drain()
             await asyncio.sleep(0.01)
         await asyncio.sleep(30)
+
     return script
 
 
@@ -300,8 +329,9 @@ def _garbage(seed=13, size=1 << 16) -> bytes:
 
 def _huge_header() -> bytes:
     """Outer header of a peak frame announcing 4 GiB of content, and a plausible peak header."""
-    return (hyperion.HEADER.pack(0, 0, 0, 0xFFFFFFFF)
-            + hyperion.PEAK_HEADER.pack(24 + 2 * 2, 1, 0, 1, 1700000000, 0))
+    return hyperion.HEADER.pack(0, 0, 0, 0xFFFFFFFF) + hyperion.PEAK_HEADER.pack(
+        24 + 2 * 2, 1, 0, 1, 1700000000, 0
+    )
 
 
 def test_a_4_gib_frame_header_is_rejected_at_once():
@@ -331,8 +361,9 @@ def test_random_bytes_drop_the_link_and_the_source_reconnects(caplog):
         port = await fake.start()
         mapper = PeakMapper(np.array([1530.0, 1535.0, 1540.0, 1545.0]), 2.0)
         # the command port refuses: the source streams without it
-        src = HyperionSource("127.0.0.1", port, free_port(), mapper, backoff_initial_s=0.05,
-                             stall_timeout_s=5.0)
+        src = HyperionSource(
+            "127.0.0.1", port, free_port(), mapper, backoff_initial_s=0.05, stall_timeout_s=5.0
+        )
         loop = asyncio.get_running_loop()
         t0 = loop.time()
         try:
@@ -354,9 +385,11 @@ def test_random_bytes_drop_the_link_and_the_source_reconnects(caplog):
     assert (batch.peak_count == 1).all() and len(batch) > 0
 
 
-@pytest.mark.parametrize("first, chunk", [(b"", _garbage(seed=3)),
-                                          (_huge_header(), bytes(1 << 16))],
-                         ids=["random-bytes", "4GiB-header-then-zeros"])
+@pytest.mark.parametrize(
+    "first, chunk",
+    [(b"", _garbage(seed=3)), (_huge_header(), bytes(1 << 16))],
+    ids=["random-bytes", "4GiB-header-then-zeros"],
+)
 def test_memory_stays_bounded_while_a_stream_sends_garbage(first, chunk):
     """Read a hostile stream for 0.5 s, reconnecting after every error, as the source does:
     the Python heap (the receive buffer above all) must not grow with the bytes received."""
@@ -376,7 +409,7 @@ def test_memory_stays_bounded_while_a_stream_sends_garbage(first, chunk):
                     await asyncio.wait_for(client.read_blocks(5.0), end - loop.time())
                 except hyperion.HyperionError:
                     errors += 1
-                except asyncio.TimeoutError:
+                except TimeoutError:
                     break
                 finally:
                     await client.close()
@@ -390,13 +423,15 @@ def test_memory_stays_bounded_while_a_stream_sends_garbage(first, chunk):
         _, peak = tracemalloc.get_traced_memory()
     finally:
         tracemalloc.stop()
-    assert peak < 8 << 20, f"{peak / 2**20:.0f} MiB"   # before: all the stream sent was kept
+    assert peak < 8 << 20, f"{peak / 2**20:.0f} MiB"  # before: all the stream sent was kept
     assert errors >= 1
 
 
-@pytest.mark.parametrize("first, chunk", [(b"", _garbage(seed=3)),
-                                          (_huge_header(), bytes(1 << 16))],
-                         ids=["random-bytes", "4GiB-header-then-zeros"])
+@pytest.mark.parametrize(
+    "first, chunk",
+    [(b"", _garbage(seed=3)), (_huge_header(), bytes(1 << 16))],
+    ids=["random-bytes", "4GiB-header-then-zeros"],
+)
 def test_a_closed_connection_is_freed_without_the_cyclic_collector(first, chunk):
     """With the cyclic garbage collector off, every connection refused as corrupt and closed
     is freed by reference counting alone: its StreamReader (and the receive buffer it holds)
@@ -414,7 +449,7 @@ def test_a_closed_connection_is_freed_without_the_cyclic_collector(first, chunk)
         loop = asyncio.get_running_loop()
         alive, buffered, grown = [], [], []
         try:
-            await client.open_stream()          # warm-up: first-use allocations of asyncio
+            await client.open_stream()  # warm-up: first-use allocations of asyncio
             await client.close()
             base = tracemalloc.get_traced_memory()[0]
             for _ in range(5):
@@ -443,7 +478,7 @@ def test_a_closed_connection_is_freed_without_the_cyclic_collector(first, chunk)
     finally:
         tracemalloc.stop()
         gc.enable()
-    assert min(buffered) >= 2 * hyperion.READ_SIZE      # there was a buffer worth freeing
+    assert min(buffered) >= 2 * hyperion.READ_SIZE  # there was a buffer worth freeing
     assert alive == [False] * 5, "a closed connection's reader still referenced"
     # measured: ~10 KiB a connection left to the collector (the exception and its frames),
     # ~350-500 KiB before the fix
@@ -454,25 +489,29 @@ def test_a_closed_connection_is_freed_without_the_cyclic_collector(first, chunk)
 from hypothesis import HealthCheck, event, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
-SMALL = hyperion.FrameLimits(channels=4, peaks_per_channel=8)      # frames of at most 296 bytes
+SMALL = hyperion.FrameLimits(channels=4, peaks_per_channel=8)  # frames of at most 296 bytes
 
 
 @st.composite
 def _frame(draw, limits=SMALL):
     """(bytes, serial, t, counts, peaks) of one valid frame within ``limits``."""
     n_ch = draw(st.integers(0, limits.channels))
-    counts = np.array(draw(st.lists(st.integers(0, limits.peaks_per_channel), min_size=n_ch,
-                                    max_size=n_ch)), dtype=np.int16)
-    peaks = np.array(draw(st.lists(st.floats(1400.0, 1700.0), min_size=int(counts.sum()),
-                                   max_size=int(counts.sum()))), dtype=np.float64)
+    counts = np.array(
+        draw(st.lists(st.integers(0, limits.peaks_per_channel), min_size=n_ch, max_size=n_ch)), dtype=np.int16
+    )
+    peaks = np.array(
+        draw(st.lists(st.floats(1400.0, 1700.0), min_size=int(counts.sum()), max_size=int(counts.sum()))),
+        dtype=np.float64,
+    )
     serial = draw(st.integers(0, 2**64 - 1))
     t = draw(st.integers(0, 2**32 - 2)) + draw(st.integers(0, 999_999)) * 1e-6
     return hyperion.encode_peak_frame(serial, t, counts, peaks), serial, t, counts, peaks
 
 
 def _error_frame(draw):
-    return hyperion.encode_response(draw(st.binary(max_size=40)), draw(st.binary(max_size=40)),
-                                    status=draw(st.integers(1, 255)))
+    return hyperion.encode_response(
+        draw(st.binary(max_size=40)), draw(st.binary(max_size=40)), status=draw(st.integers(1, 255))
+    )
 
 
 @st.composite
@@ -480,8 +519,7 @@ def _hostile_stream(draw):
     """Valid frames, instrument error frames, random bytes and valid frames with bytes
     overwritten, in any order."""
     parts = []
-    for kind in draw(st.lists(st.sampled_from(["frame", "error", "random", "mutated"]),
-                              max_size=8)):
+    for kind in draw(st.lists(st.sampled_from(["frame", "error", "random", "mutated"]), max_size=8)):
         if kind == "frame":
             parts.append(draw(_frame())[0])
         elif kind == "error":
@@ -498,7 +536,7 @@ def _hostile_stream(draw):
 
 def _chunks(data: bytes, cuts: list[int]) -> list[bytes]:
     edges = sorted({0, len(data), *(c % (len(data) + 1) for c in cuts)})
-    return [data[a:b] for a, b in zip(edges[:-1], edges[1:])]
+    return [data[a:b] for a, b in itertools.pairwise(edges)]
 
 
 def _check_block(block: hyperion.PeakBlock, limits: hyperion.FrameLimits) -> None:
@@ -511,8 +549,10 @@ def _check_block(block: hyperion.PeakBlock, limits: hyperion.FrameLimits) -> Non
 
 
 @settings(max_examples=400, deadline=2000, suppress_health_check=[HealthCheck.too_slow])
-@given(data=st.one_of(st.binary(max_size=2000), _hostile_stream()),
-       cuts=st.lists(st.integers(0, 4000), max_size=6))
+@given(
+    data=st.one_of(st.binary(max_size=2000), _hostile_stream()),
+    cuts=st.lists(st.integers(0, 4000), max_size=6),
+)
 def test_any_bytes_decode_to_valid_frames_or_a_corrupt_error(data, cuts):
     """Whatever arrives, in whatever pieces: each piece yields valid frames or raises the
     decoder's corrupt-stream error (after which the link is dropped), never anything else;
@@ -533,9 +573,12 @@ def test_any_bytes_decode_to_valid_frames_or_a_corrupt_error(data, cuts):
 
 
 @settings(max_examples=200, deadline=2000, suppress_health_check=[HealthCheck.too_slow])
-@given(frames=st.lists(_frame(), min_size=1, max_size=12),
-       errors=st.lists(st.booleans(), max_size=12),
-       cuts=st.lists(st.integers(0, 5000), max_size=8), data=st.data())
+@given(
+    frames=st.lists(_frame(), min_size=1, max_size=12),
+    errors=st.lists(st.booleans(), max_size=12),
+    cuts=st.lists(st.integers(0, 5000), max_size=8),
+    data=st.data(),
+)
 def test_valid_frames_decode_exactly_in_any_pieces(frames, errors, cuts, data):
     """Valid frames (and the instrument's error frames between them, which are skipped) come
     out exactly as sent, however the stream is cut into reads."""
@@ -550,18 +593,24 @@ def test_valid_frames_decode_exactly_in_any_pieces(frames, errors, cuts, data):
         for b in decoder.feed(piece):
             _check_block(b, SMALL)
             for k in range(b.timestamp_s.size):
-                got.append((int(b.serial_number[k]), b.timestamp_s[k], b.peak_counts.tolist(),
-                            b.wavelengths_nm[k].tolist()))
+                got.append(
+                    (
+                        int(b.serial_number[k]),
+                        b.timestamp_s[k],
+                        b.peak_counts.tolist(),
+                        b.wavelengths_nm[k].tolist(),
+                    )
+                )
         assert decoder.buffered < SMALL.max_frame_bytes
     assert decoder.buffered == 0
-    assert [(s, c.tolist(), p.tolist()) for _, s, _, c, p in frames] == \
-        [(s, c, p) for s, _, c, p in got]
-    np.testing.assert_allclose([t for _, _, t, _, _ in frames], [t for _, t, _, _ in got],
-                               rtol=0, atol=2e-6)
+    assert [(s, c.tolist(), p.tolist()) for _, s, _, c, p in frames] == [(s, c, p) for s, _, c, p in got]
+    np.testing.assert_allclose([t for _, _, t, _, _ in frames], [t for _, t, _, _ in got], rtol=0, atol=2e-6)
 
 
-@given(content_len=st.integers(SMALL.max_frame_bytes - hyperion.HEADER_SIZE + 1, 2**32 - 1),
-       status=st.integers(0, 255))
+@given(
+    content_len=st.integers(SMALL.max_frame_bytes - hyperion.HEADER_SIZE + 1, 2**32 - 1),
+    status=st.integers(0, 255),
+)
 def test_an_oversized_header_is_refused_from_its_first_8_bytes(content_len, status):
     """The frame length is checked before any of the frame is awaited (peak or error frame)."""
     with pytest.raises(hyperion.HyperionError, match="corrupt"):
@@ -575,12 +624,14 @@ def test_the_largest_frame_the_limits_allow_is_decoded():
     assert len(frame) == limits.max_frame_bytes == 8 + 24 + 2 * 3 + 8 * 3 * 5
     blocks, used = hyperion.decode_peak_frames(frame, limits)
     assert used == len(frame) and blocks[0].wavelengths_nm.shape == (1, 15)
-    with pytest.raises(hyperion.HyperionError):        # one more peak on a channel: refused
-        hyperion.decode_peak_frames(hyperion.encode_peak_frame(
-            1, 2.5, np.array([6, 4, 5]), 1500.0 + np.arange(15.0)), limits)
-    with pytest.raises(hyperion.HyperionError):        # a fourth channel: refused
-        hyperion.decode_peak_frames(hyperion.encode_peak_frame(
-            1, 2.5, np.array([1, 1, 1, 1]), 1500.0 + np.arange(4.0)), limits)
+    with pytest.raises(hyperion.HyperionError):  # one more peak on a channel: refused
+        hyperion.decode_peak_frames(
+            hyperion.encode_peak_frame(1, 2.5, np.array([6, 4, 5]), 1500.0 + np.arange(15.0)), limits
+        )
+    with pytest.raises(hyperion.HyperionError):  # a fourth channel: refused
+        hyperion.decode_peak_frames(
+            hyperion.encode_peak_frame(1, 2.5, np.array([1, 1, 1, 1]), 1500.0 + np.arange(4.0)), limits
+        )
 
 
 def test_a_command_answer_announcing_4_gib_is_refused_before_it_is_read():
@@ -592,8 +643,7 @@ def test_a_command_answer_announcing_4_gib_is_refused_before_it_is_read():
             await asyncio.sleep(30)
 
         server = await asyncio.start_server(answer, "127.0.0.1", 0)
-        client = hyperion.HyperionClient("127.0.0.1", server.sockets[0].getsockname()[1],
-                                         timeout_s=5.0)
+        client = hyperion.HyperionClient("127.0.0.1", server.sockets[0].getsockname()[1], timeout_s=5.0)
         loop = asyncio.get_running_loop()
         t0 = loop.time()
         try:
@@ -604,4 +654,4 @@ def test_a_command_answer_announcing_4_gib_is_refused_before_it_is_read():
             await client.close()
             server.close()
 
-    assert asyncio.run(main()) < 1.0        # before: waited the 5 s timeout for the 4 GiB
+    assert asyncio.run(main()) < 1.0  # before: waited the 5 s timeout for the 4 GiB

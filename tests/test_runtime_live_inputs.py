@@ -9,10 +9,12 @@ where named, from its own OPC UA server."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import subprocess
 import threading
 import time
 from contextlib import contextmanager
+from datetime import UTC
 from pathlib import Path
 
 import numpy as np
@@ -20,8 +22,7 @@ import pandas as pd
 import pytest
 
 import fbgcomp_testing
-from test_runtime_support import (fbgcomp_process, free_port, model_and_campaign,
-                                  serve_with_simulator)
+from test_runtime_support import fbgcomp_process, free_port, model_and_campaign, serve_with_simulator
 
 ENV = {"FBGCOMP_OPCUA_USER": "operator", "FBGCOMP_OPCUA_PASSWORD": "live-pass-123"}
 
@@ -46,9 +47,10 @@ class OpcUaTestServer:
         self._loop.run_until_complete(self._main())
 
     async def _main(self):
-        from datetime import datetime, timezone
+        from datetime import datetime
 
         from asyncua import Server, ua
+
         server = Server()
         await server.init()
         server.set_endpoint(self.endpoint)
@@ -56,22 +58,21 @@ class OpcUaTestServer:
         idx = await server.register_namespace("urn:fbgcomp:test:plc")
         assert idx == 2
         obj = await server.nodes.objects.add_object(ua.NodeId("PLC", idx), "PLC")
-        nodes = {n: await obj.add_variable(ua.NodeId(n, idx), n, float(v))
-                 for n, v in self.values.items()}
+        nodes = {n: await obj.add_variable(ua.NodeId(n, idx), n, float(v)) for n, v in self.values.items()}
         self._stop = asyncio.Event()
         async with server:
             self._ready.set()
             while not self._stop.is_set():
-                now = datetime.now(timezone.utc)
+                now = datetime.now(UTC)
                 for n, node in nodes.items():
                     if n not in self.frozen:
-                        await node.write_value(ua.DataValue(ua.Variant(float(self.values[n]),
-                                                                       ua.VariantType.Double),
-                                                            SourceTimestamp=now))
-                try:
+                        await node.write_value(
+                            ua.DataValue(
+                                ua.Variant(float(self.values[n]), ua.VariantType.Double), SourceTimestamp=now
+                            )
+                        )
+                with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(self._stop.wait(), self.period_s)
-                except asyncio.TimeoutError:
-                    pass
 
     def __enter__(self):
         self._thread.start()
@@ -99,13 +100,15 @@ class ModbusTestServer:
         from pymodbus.simulator import DataType, SimData, SimDevice
 
         async def action(function_code, start_address, address, count, registers, set_values):
-            registers[:len(self.regs)] = self.regs
+            registers[: len(self.regs)] = self.regs
             return None
 
         async def main():
-            dev = SimDevice(id=1, action=action, simdata=[SimData(0, count=len(self.regs),
-                                                                  values=0,
-                                                                  datatype=DataType.REGISTERS)])
+            dev = SimDevice(
+                id=1,
+                action=action,
+                simdata=[SimData(0, count=len(self.regs), values=0, datatype=DataType.REGISTERS)],
+            )
             self._server = ModbusTcpServer(dev, address=("127.0.0.1", self.port))
             await self._server.serve_forever(background=True)
             self._ready.set()
@@ -144,11 +147,20 @@ def _replay_offline(model, df: pd.DataFrame, z_axis_mm=None):
     counts = df[[f"{s}_peaks" for s in model.sensor_names]].to_numpy(np.int8)
     pipe = Pipeline(model)
     time_s = df["time_s"].to_numpy(float)
-    out = [pipe.process(time_s[i:i + 50], w[i:i + 50], counts[i:i + 50],
-                        np.zeros_like(counts[i:i + 50]), t[i:i + 50], z_axis_mm=z_axis_mm)
-           for i in range(0, time_s.size, 50)]
-    return {n: np.concatenate([getattr(r, n) for r in out])
-            for n in ("deviation_um", "correction_um", "health")}
+    out = [
+        pipe.process(
+            time_s[i : i + 50],
+            w[i : i + 50],
+            counts[i : i + 50],
+            np.zeros_like(counts[i : i + 50]),
+            t[i : i + 50],
+            z_axis_mm=z_axis_mm,
+        )
+        for i in range(0, time_s.size, 50)
+    ]
+    return {
+        n: np.concatenate([getattr(r, n) for r in out]) for n in ("deviation_um", "correction_um", "health")
+    }
 
 
 @contextmanager
@@ -156,11 +168,21 @@ def serve_and_sim(tmp: Path, toml: str, model, campaign, serve_args=(), sim_args
     """``fbgcomp serve`` (OPC UA off, run log ``tmp/log``) then ``sim-interrogator``."""
     (tmp / "serve.toml").write_text(toml)
     sp, cp = free_port(), free_port()
-    serve = fbgcomp_process("serve", "--config", tmp / "serve.toml", "--model", model,
-                            "--source", f"hyperion://127.0.0.1:{sp}?command_port={cp}",
-                            "--opcua", "off", "--log", tmp / "log", *serve_args)
-    sim = fbgcomp_process("sim-interrogator", campaign, "--port", sp, "--command-port", cp,
-                          *sim_args)
+    serve = fbgcomp_process(
+        "serve",
+        "--config",
+        tmp / "serve.toml",
+        "--model",
+        model,
+        "--source",
+        f"hyperion://127.0.0.1:{sp}?command_port={cp}",
+        "--opcua",
+        "off",
+        "--log",
+        tmp / "log",
+        *serve_args,
+    )
+    sim = fbgcomp_process("sim-interrogator", campaign, "--port", sp, "--command-port", cp, *sim_args)
     try:
         yield serve, sim
     finally:
@@ -176,8 +198,7 @@ def serve_and_sim(tmp: Path, toml: str, model, campaign, serve_args=(), sim_args
 
 
 # ------------------------------------------------------------------ tests
-def test_serve_reads_opcua_and_modbus_temperatures_and_holds_when_one_goes_stale(
-        tmp_path_factory):
+def test_serve_reads_opcua_and_modbus_temperatures_and_holds_when_one_goes_stale(tmp_path_factory):
     fbgcomp_testing.require("asyncua")
     fbgcomp_testing.require("pymodbus")
     from fbgcomp.models.registry import load_model
@@ -187,9 +208,11 @@ def test_serve_reads_opcua_and_modbus_temperatures_and_holds_when_one_goes_stale
     assert set(model.probe_names) == {"T_bulk", "T_surf", "T_flange"}
     tmp = tmp_path_factory.mktemp("live")
     camp_t = pd.read_csv(campaign / "temperatures.csv").iloc[0]
-    with OpcUaTestServer({"T_bulk": camp_t["T_bulk_C"], "T_surf": camp_t["T_surf_C"]}) as opc, \
-            ModbusTestServer() as mb:
-        flange_count = int(round(camp_t["T_flange_C"] * 100))      # int16, 0.01 °C
+    with (
+        OpcUaTestServer({"T_bulk": camp_t["T_bulk_C"], "T_surf": camp_t["T_surf_C"]}) as opc,
+        ModbusTestServer() as mb,
+    ):
+        flange_count = round(camp_t["T_flange_C"] * 100)  # int16, 0.01 °C
         mb.regs[3] = int16(flange_count)
         toml = f"""
 [temperatures.opcua]
@@ -205,25 +228,33 @@ registers = {{ T_flange = {{ address = 3, type = "int16", scale = 0.01 }} }}
 poll_s = 0.2
 stale_s = 1.5
 """
-        with serve_with_simulator(tmp, toml, model_path, campaign, ENV,
-                                  sim_args=("--rate", "200", "--speed", "5")) as run:
-            seen = run.watch(["Health", "SourceStatus", "CorrectionX_um"], 25,
-                             lambda s: sum(1 for n, v, *_ in s if n == "Health" and v == "OK")
-                             >= 1)
+        with serve_with_simulator(
+            tmp, toml, model_path, campaign, ENV, sim_args=("--rate", "200", "--speed", "5")
+        ) as run:
+            seen = run.watch(
+                ["Health", "SourceStatus", "CorrectionX_um"],
+                25,
+                lambda s: sum(1 for n, v, *_ in s if n == "Health" and v == "OK") >= 1,
+            )
             assert any(n == "Health" and v == "OK" for n, v, *_ in seen), seen
             time.sleep(2.0)
             # the PLC's values change: a step on both servers
             opc.values["T_bulk"] += 0.4
-            mb.regs[3] = int16(flange_count - 30)                 # -0.30 °C
+            mb.regs[3] = int16(flange_count - 30)  # -0.30 °C
             time.sleep(3.0)
-            opc.frozen.add("T_surf")                              # the PLC stops updating it
+            opc.frozen.add("T_surf")  # the PLC stops updating it
             t_frozen = time.time()
-            seen = run.watch(["Health", "SourceStatus", "CorrectionX_um"], 20,
-                             lambda s: any(n == "Health" and v == "ALARM" for n, v, *_ in s)
-                             and time.time() - t_frozen > 4.0)
-            opc.frozen.discard("T_surf")                          # and resumes
-            seen_back = run.watch(["Health", "SourceStatus"], 20,
-                                  lambda s: any(n == "Health" and v == "OK" for n, v, *_ in s))
+            seen = run.watch(
+                ["Health", "SourceStatus", "CorrectionX_um"],
+                20,
+                lambda s: (
+                    any(n == "Health" and v == "ALARM" for n, v, *_ in s) and time.time() - t_frozen > 4.0
+                ),
+            )
+            opc.frozen.discard("T_surf")  # and resumes
+            seen_back = run.watch(
+                ["Health", "SourceStatus"], 20, lambda s: any(n == "Health" and v == "OK" for n, v, *_ in s)
+            )
             run.serve.terminate()
             run.serve.wait(20)
     alarms = [r for r in seen if r[0] == "Health" and r[1] == "ALARM"]
@@ -239,16 +270,21 @@ stale_s = 1.5
     df = _log(tmp / "log")
     ok = df[df.health == "OK"]
     # the logged temperatures are the servers' values: OPC UA doubles exactly, Modbus counts
-    assert set(np.round(ok["T_bulk_C"], 9)) == {round(camp_t["T_bulk_C"], 9),
-                                               round(camp_t["T_bulk_C"] + 0.4, 9)}
-    assert set(np.round(ok["T_flange_C"], 9)) == {round(flange_count * 0.01, 9),
-                                                 round((flange_count - 30) * 0.01, 9)}
+    assert set(np.round(ok["T_bulk_C"], 9)) == {
+        round(camp_t["T_bulk_C"], 9),
+        round(camp_t["T_bulk_C"] + 0.4, 9),
+    }
+    assert set(np.round(ok["T_flange_C"], 9)) == {
+        round(flange_count * 0.01, 9),
+        round((flange_count - 30) * 0.01, 9),
+    }
     # the correction is the offline model's on the same frames and temperatures
     off = _replay_offline(model, df)
     rows = (df.health == "OK").to_numpy()
-    np.testing.assert_allclose(df.loc[rows, ["dev_dx_um", "dev_dy_um", "dev_dz_um"]],
-                               off["deviation_um"][rows], atol=1e-9)
-    assert np.abs(off["deviation_um"][rows]).max() > 0.5       # a correction worth checking
+    np.testing.assert_allclose(
+        df.loc[rows, ["dev_dx_um", "dev_dy_um", "dev_dz_um"]], off["deviation_um"][rows], atol=1e-9
+    )
+    assert np.abs(off["deviation_um"][rows]).max() > 0.5  # a correction worth checking
     # the temperature step moved it: the model sees live values, not a replay
     after = df.index[df.T_bulk_C > camp_t["T_bulk_C"] + 0.2]
     assert len(after) > 50
@@ -257,7 +293,7 @@ stale_s = 1.5
     assert len(stale) > 100
     corr = np.abs(stale["corr_dx_um"].to_numpy())
     assert corr[-1] <= 1e-9 < corr[0] or corr[0] == 0
-    assert np.all(np.diff(corr) <= 1e-9)                        # never grows while held
+    assert np.all(np.diff(corr) <= 1e-9)  # never grows while held
 
 
 def test_simulator_serves_the_campaigns_temperatures_over_opcua(tmp_path_factory):
@@ -276,9 +312,14 @@ nodes = {{ {nodes} }}
 stale_s = 2
 """
     speed = 10.0
-    with serve_and_sim(tmp, toml, model_path, campaign, ("--duration", "12"),
-                       ("--rate", "200", "--speed", str(speed),
-                        "--temperatures-opcua", f"opc.tcp://127.0.0.1:{port}")) as (serve, sim):
+    with serve_and_sim(
+        tmp,
+        toml,
+        model_path,
+        campaign,
+        ("--duration", "12"),
+        ("--rate", "200", "--speed", str(speed), "--temperatures-opcua", f"opc.tcp://127.0.0.1:{port}"),
+    ) as (serve, _sim):
         serve.wait(60)
     assert serve.returncode == 0, tmp.joinpath("serve.err").read_text()[-3000:]
     df = _log(tmp / "log")
@@ -290,18 +331,24 @@ stale_s = 2
         assert np.isin(ok[f"{p}_C"].to_numpy(), temps[f"{p}_C"].to_numpy()).all(), p
     # ... taken on the simulator's clock: the campaign time of the served sample advances at
     # the simulator's speed against the frames' clock
-    camp_time = np.array([temps["time_s"].to_numpy()[np.flatnonzero(
-        temps["T_bulk_C"].to_numpy() == v)[0]] for v in ok["T_bulk_C"].to_numpy()[::50]])
+    camp_time = np.array(
+        [
+            temps["time_s"].to_numpy()[np.flatnonzero(temps["T_bulk_C"].to_numpy() == v)[0]]
+            for v in ok["T_bulk_C"].to_numpy()[::50]
+        ]
+    )
     slope = np.polyfit(ok["time_s"].to_numpy()[::50], camp_time, 1)[0]
     assert slope == pytest.approx(speed, rel=0.15)
     off = _replay_offline(model, df)
     rows = (df.health == "OK").to_numpy()
-    np.testing.assert_allclose(df.loc[rows, ["dev_dx_um", "dev_dy_um", "dev_dz_um"]],
-                               off["deviation_um"][rows], atol=1e-9)
+    np.testing.assert_allclose(
+        df.loc[rows, ["dev_dx_um", "dev_dy_um", "dev_dz_um"]], off["deviation_um"][rows], atol=1e-9
+    )
 
 
 def _kinematic_model(base: Path) -> Path:
     from fbgcomp.models.kinematic import KinematicModel
+
     path = base / "kinematic.json"
     if not path.exists():
         KinematicModel(zero_window_s=1.0).fit().save(path)
@@ -347,14 +394,15 @@ source = "opcua"
 node = "ns=2;s=AxisZ"
 stale_s = 1
 """
-        with serve_and_sim(tmp, toml, model_path, campaign, ("--duration", "60"),
-                           ("--rate", "200", "--speed", "5")) as (serve, sim):
+        with serve_and_sim(
+            tmp, toml, model_path, campaign, ("--duration", "60"), ("--rate", "200", "--speed", "5")
+        ) as (serve, _sim):
             wait_log(tmp / "log", "OK")
             time.sleep(2)
             opc.values["AxisZ"] = z1
             t_moved = time.time()
             time.sleep(4)
-            opc.frozen.add("AxisZ")                     # the position stops arriving
+            opc.frozen.add("AxisZ")  # the position stops arriving
             t_frozen = time.time()
             time.sleep(4)
             serve.terminate()
@@ -385,6 +433,7 @@ stale_s = 1
 def machine():
     fbgcomp_testing.require_program("linuxcnc")
     from fbgcomp.cli.cnc_demo import LinuxCncMachine
+
     m = LinuxCncMachine(fbgcomp={"MAX_RATE_UM_S": 1e6})
     m.start()
     try:
@@ -406,11 +455,24 @@ def test_linuxcnc_hal_pin_z_reaches_the_model(machine, tmp_path_factory):
     const = ",".join(f"{p}={camp_t[f'{p}_C']}" for p in model.probe_names)
     toml = '[position]\nsource = "linuxcnc"\nstale_s = 1\n'
     machine.call("machine_on")
-    with serve_and_sim(tmp, toml, model_path, campaign,
-                       ("--cnc", "linuxcnc", "--cnc-address", machine.address,
-                        "--temperatures", f"const:{const}", "--duration", "90"),
-                       ("--rate", "200", "--speed", "5")) as (serve, sim):
-        time.sleep(4)                       # not homed yet: Z is no position (missing)
+    with serve_and_sim(
+        tmp,
+        toml,
+        model_path,
+        campaign,
+        (
+            "--cnc",
+            "linuxcnc",
+            "--cnc-address",
+            machine.address,
+            "--temperatures",
+            f"const:{const}",
+            "--duration",
+            "90",
+        ),
+        ("--rate", "200", "--speed", "5"),
+    ) as (serve, _sim):
+        time.sleep(4)  # not homed yet: Z is no position (missing)
         t_homing = time.time()
         machine.call("home")
         machine.call("wait_pin", pin="fbgcomp.active", value=1, tol=0, timeout_s=30)
@@ -441,25 +503,48 @@ def test_linuxcnc_hal_pin_z_reaches_the_model(machine, tmp_path_factory):
     assert np.abs(at_z[moved] - at_home[moved]).max() > 0.05
 
 
-@pytest.mark.parametrize("toml,message", [
-    ('[temperatures.opcua]\nendpoint = "opc.tcp://127.0.0.1:9"\nnodes = { T_bulk = "ns=2;s=T" }\n',
-     "probe T_surf has no source"),
-    ('[temperatures.opcua]\nendpoint = "opc.tcp://127.0.0.1:9"\nnodes = { T_bulk = "ns=2;s=T" }\n'
-     '[temperatures.modbus]\nhost = "127.0.0.1"\nregisters = { T_bulk = { address = 1 } }\n',
-     "probe T_bulk has two live sources"),
-    ('[temperatures.modbus]\nhost = "127.0.0.1"\nregisters = { T_nope = { address = 1 } }\n',
-     "T_nope is not a probe"),
-    ('[temperatures.modbus]\nhost = "127.0.0.1"\n'
-     'registers = { T_bulk = { address = 1, type = "int8" } }\n', "type: expected one of"),
-    ('[position]\nsource = "linuxcnc"\n', "needs the LinuxCNC output"),
-])
+@pytest.mark.parametrize(
+    "toml,message",
+    [
+        (
+            '[temperatures.opcua]\nendpoint = "opc.tcp://127.0.0.1:9"\nnodes = { T_bulk = "ns=2;s=T" }\n',
+            "probe T_surf has no source",
+        ),
+        (
+            '[temperatures.opcua]\nendpoint = "opc.tcp://127.0.0.1:9"\nnodes = { T_bulk = "ns=2;s=T" }\n'
+            '[temperatures.modbus]\nhost = "127.0.0.1"\nregisters = { T_bulk = { address = 1 } }\n',
+            "probe T_bulk has two live sources",
+        ),
+        (
+            '[temperatures.modbus]\nhost = "127.0.0.1"\nregisters = { T_nope = { address = 1 } }\n',
+            "T_nope is not a probe",
+        ),
+        (
+            '[temperatures.modbus]\nhost = "127.0.0.1"\n'
+            'registers = { T_bulk = { address = 1, type = "int8" } }\n',
+            "type: expected one of",
+        ),
+        ('[position]\nsource = "linuxcnc"\n', "needs the LinuxCNC output"),
+    ],
+)
 def test_bad_live_input_configuration_is_one_line(tmp_path_factory, toml, message):
     fbgcomp_testing.require("asyncua")
-    model_path, campaign = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+    model_path, _campaign = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
     tmp = tmp_path_factory.mktemp("badcfg")
     (tmp / "serve.toml").write_text(toml)
-    p = fbgcomp_process("serve", "--config", tmp / "serve.toml", "--model", model_path,
-                        "--source", "hyperion://127.0.0.1:9", "--opcua", "off", "--duration", "1")
+    p = fbgcomp_process(
+        "serve",
+        "--config",
+        tmp / "serve.toml",
+        "--model",
+        model_path,
+        "--source",
+        "hyperion://127.0.0.1:9",
+        "--opcua",
+        "off",
+        "--duration",
+        "1",
+    )
     _, err = p.communicate(timeout=60)
     lines = err.decode().strip().splitlines()
     assert p.returncode == 2 and lines[-1].startswith("error:") and message in lines[-1], lines

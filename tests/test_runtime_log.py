@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 import fbgcomp_testing
-from fbgcomp.io.campaign import read_campaign
 from fbgcomp.cli.app import main
+from fbgcomp.io.campaign import read_campaign
 from test_runtime_support import model_and_campaign
 
 
@@ -22,22 +22,35 @@ def replayed(paths, tmp_path_factory):
     """``fbgcomp serve`` on a campaign replayed at 20x for 3 s, OPC UA off, logged."""
     model, campaign = paths
     out = tmp_path_factory.mktemp("replay")
-    code = main(["serve", "--model", str(model), "--source", f"replay://{campaign}?speed=20",
-                 "--opcua", "off", "--log", str(out / "log"), "--duration", "3"])
+    code = main(
+        [
+            "serve",
+            "--model",
+            str(model),
+            "--source",
+            f"replay://{campaign}?speed=20",
+            "--opcua",
+            "off",
+            "--log",
+            str(out / "log"),
+            "--duration",
+            "3",
+        ]
+    )
     assert code == 0
     return out / "log", campaign, model
 
 
 def test_replayed_run_is_logged_in_closed_parquet_parts(replayed):
     import pyarrow.parquet as pq
+
     from fbgcomp.runtime.log import log_parts, read_log
 
     log_dir, campaign, _ = replayed
     parts = log_parts(log_dir)
-    assert len(parts) >= 4                              # one file per <= 0.5 s
+    assert len(parts) >= 4  # one file per <= 0.5 s
     # data files in their own folder, by day; nothing half-written left, meta.json outside
-    assert all(p.parent.parent == log_dir / "data" and p.parent.name.startswith("date=")
-               for p in parts)
+    assert all(p.parent.parent == log_dir / "data" and p.parent.name.startswith("date=") for p in parts)
     assert not list(log_dir.rglob(".*.tmp"))
     assert sorted(f.name for f in log_dir.iterdir()) == ["data", "meta.json"]
     meta, df = read_log(log_dir)
@@ -50,9 +63,8 @@ def test_replayed_run_is_logged_in_closed_parquet_parts(replayed):
     for s in meta["sensor_names"]:
         np.testing.assert_array_equal(df[f"{s}_nm"].to_numpy(), src.fbg[f"{s}_nm"].to_numpy()[:n])
     for p in meta["probe_names"]:
-        np.testing.assert_array_equal(df[f"{p}_C"].to_numpy(),
-                                      src.temperatures[f"{p}_C"].to_numpy()[:n])
-    assert set(df["health"].unique()) == {0, 3}         # zeroing, then OK
+        np.testing.assert_array_equal(df[f"{p}_C"].to_numpy(), src.temperatures[f"{p}_C"].to_numpy()[:n])
+    assert set(df["health"].unique()) == {0, 3}  # zeroing, then OK
     _, named = read_log(log_dir, labels=True)
     assert set(named["health"].unique()) == {"OK", "ZEROING"}
     assert list(named["health"].cat.categories) == ["OK", "DEGRADED", "ALARM", "ZEROING"]
@@ -64,9 +76,10 @@ def test_the_log_opens_in_pandas_and_duckdb_with_health_as_dictionary_strings(re
     import pandas as pd
     import pyarrow as pa
     import pyarrow.parquet as pq
+
     from fbgcomp.runtime.log import log_parts, read_log
 
-    log_dir, campaign, _ = replayed
+    log_dir, _campaign, _ = replayed
     meta, ours = read_log(log_dir, labels=True)
     df = pd.read_parquet(log_dir / "data").sort_values("time_s", kind="stable")
     assert len(df) == len(ours) > 500
@@ -88,7 +101,9 @@ def test_the_log_opens_in_pandas_and_duckdb_with_health_as_dictionary_strings(re
     con = duckdb.connect()
     n, n_ok, first, last = con.execute(
         "SELECT count(*), count(*) FILTER (WHERE health = 'OK'), min(time_s), max(time_s) "
-        "FROM read_parquet(?)", [glob]).fetchone()
+        "FROM read_parquet(?)",
+        [glob],
+    ).fetchone()
     assert n == len(ours) and n_ok == int((ours["health"] == "OK").sum()) > 0
     assert (first, last) == (ours["time_s"].min(), ours["time_s"].max())
     statuses = con.execute("SELECT DISTINCT S3_status FROM read_parquet(?)", [glob]).fetchall()
@@ -102,7 +117,7 @@ def test_the_log_opens_in_pandas_and_duckdb_with_health_as_dictionary_strings(re
 def test_log_export_round_trips_to_a_campaign(replayed, tmp_path):
     from fbgcomp.runtime.log import read_log
 
-    log_dir, campaign, model = replayed
+    log_dir, campaign, _model = replayed
     out = tmp_path / "exported"
     assert main(["log", "export", str(log_dir), "-o", str(out)]) == 0
     c = read_campaign(out)
@@ -118,21 +133,39 @@ def test_log_export_round_trips_to_a_campaign(replayed, tmp_path):
     assert c.meta.reference.instrument.startswith("fbgcomp prediction")
     # the exported campaign can be fitted again
     from fbgcomp.models.mra import MRAModel
+
     refit = MRAModel(features="eq11", zero_window_s=0.5, fallbacks="none").fit(c)
     assert refit.sensor_names == c.meta.sensor_names
 
 
-@pytest.mark.parametrize("args, fragment", [
-    (["serve", "--model", "nope.json", "--source", "replay://x", "--opcua", "off"], "nope.json"),
-    (["serve", "--model", "{model}", "--source", "ftp://x", "--opcua", "off"], "--source"),
-    (["serve", "--model", "{model}", "--source", "replay://{campaign}", "--opcua", "off",
-      "--config", "{bad_config}"], "field source.speeed"),
-    (["serve", "--model", "{model}", "--source", "hyperion://127.0.0.1:1", "--opcua", "off"],
-     "--temperatures"),
-    (["sim-interrogator", "{campaign}", "--fault", "melt:S1@2"], "--fault"),
-    (["sim-interrogator", "{campaign}", "--fault", "drop:S9@2"], "S9"),
-    (["log", "export", "{campaign}", "-o", "{tmp}/x"], "meta.json"),
-])
+@pytest.mark.parametrize(
+    "args, fragment",
+    [
+        (["serve", "--model", "nope.json", "--source", "replay://x", "--opcua", "off"], "nope.json"),
+        (["serve", "--model", "{model}", "--source", "ftp://x", "--opcua", "off"], "--source"),
+        (
+            [
+                "serve",
+                "--model",
+                "{model}",
+                "--source",
+                "replay://{campaign}",
+                "--opcua",
+                "off",
+                "--config",
+                "{bad_config}",
+            ],
+            "field source.speeed",
+        ),
+        (
+            ["serve", "--model", "{model}", "--source", "hyperion://127.0.0.1:1", "--opcua", "off"],
+            "--temperatures",
+        ),
+        (["sim-interrogator", "{campaign}", "--fault", "melt:S1@2"], "--fault"),
+        (["sim-interrogator", "{campaign}", "--fault", "drop:S9@2"], "S9"),
+        (["log", "export", "{campaign}", "-o", "{tmp}/x"], "meta.json"),
+    ],
+)
 def test_bad_input_is_one_line_and_exit_2(paths, tmp_path, capsys, args, fragment):
     model, campaign = paths
     bad = tmp_path / "bad.toml"
@@ -146,11 +179,13 @@ def test_bad_input_is_one_line_and_exit_2(paths, tmp_path, capsys, args, fragmen
 def test_configuration_example_in_the_docs_is_valid():
     import re
     from pathlib import Path
+
     from fbgcomp.runtime.service import RuntimeConfig
 
     doc = (Path(__file__).parents[1] / "docs" / "runtime.md").read_text()
     block = re.search(r"```toml\n(.*?)```", doc, re.S).group(1)
     import tempfile
+
     with tempfile.TemporaryDirectory() as d:
         f = Path(d) / "serve.toml"
         f.write_text(block)
@@ -162,6 +197,7 @@ def test_configuration_example_in_the_docs_is_valid():
 
 def test_in_process_simulated_source_keeps_temperatures_on_the_instrument_clock(paths, tmp_path):
     import asyncio
+
     from fbgcomp.runtime.log import read_log
     from fbgcomp.runtime.service import RuntimeConfig, Service
 
@@ -171,26 +207,27 @@ def test_in_process_simulated_source_keeps_temperatures_on_the_instrument_clock(
     cfg.log.dir = str(tmp_path / "log")
     svc = Service(cfg)
     asyncio.run(svc.run(2.0))
-    meta, df = read_log(tmp_path / "log")
+    _meta, df = read_log(tmp_path / "log")
     src = read_campaign(campaign)
-    camp_t = (df["time_s"].to_numpy() - svc.sim._t0) * 5.0     # campaign clock of each frame
+    camp_t = (df["time_s"].to_numpy() - svc.sim._t0) * 5.0  # campaign clock of each frame
     assert len(df) > 2000 and (df["health"].iloc[-100:] == 0).all()
-    np.testing.assert_allclose(df["S2_nm"], np.interp(camp_t, src.fbg["time_s"], src.fbg["S2_nm"]),
-                               atol=1e-9)
+    np.testing.assert_allclose(df["S2_nm"], np.interp(camp_t, src.fbg["time_s"], src.fbg["S2_nm"]), atol=1e-9)
     idx = np.searchsorted(src.temperatures["time_s"].to_numpy(), camp_t + 1e-6, "right") - 1
     np.testing.assert_array_equal(df["T_bulk_C"], src.temperatures["T_bulk_C"].to_numpy()[idx])
 
 
 def test_model_reload_keeps_the_zero_state_and_refuses_other_sensors(paths, tmp_path):
     import asyncio
+
     from fbgcomp.errors import InputError
     from fbgcomp.models.mra import MRAModel
     from fbgcomp.runtime.service import RuntimeConfig, Service
 
     model, campaign = paths
     src = read_campaign(campaign)
-    other = MRAModel(features="eq11", zero_window_s=0.5, fallbacks="none").fit(src).save(
-        tmp_path / "other.json")
+    other = (
+        MRAModel(features="eq11", zero_window_s=0.5, fallbacks="none").fit(src).save(tmp_path / "other.json")
+    )
     cfg = RuntimeConfig(model=str(model), opcua_enabled=False)
     cfg.source.url = f"replay://{campaign}?speed=20"
     svc = Service(cfg)
@@ -206,10 +243,10 @@ def test_model_reload_keeps_the_zero_state_and_refuses_other_sensors(paths, tmp_
         assert answer == f"loaded {svc.model_id}"
         np.testing.assert_array_equal(svc.pipeline.wavelength_zero_nm, zero)
         with pytest.raises(InputError):
-            await svc.reload(str(other))                # eq11 needs no probes: other inputs
+            await svc.reload(str(other))  # eq11 needs no probes: other inputs
         frames = svc.frames
         while svc.frames < frames + 100 and loop.time() < end:
-            await asyncio.sleep(0.05)                    # the reloaded model keeps running
+            await asyncio.sleep(0.05)  # the reloaded model keeps running
         svc.stop()
         await run
         return svc.last_result
@@ -227,13 +264,23 @@ def test_a_slow_disk_drops_batches_instead_of_blocking(tmp_path):
     meta = {"sensor_names": ["S1", "S2"], "probe_names": ["T_bulk"]}
     log = RunLog(tmp_path / "log", meta, flush_s=0.2, max_queue=2)
     n, total = 50, 0
-    for k in range(400):                       # far faster than parquet files can be written
+    for k in range(400):  # far faster than parquet files can be written
         t = 1.7e9 + k * n * 1e-3 + np.arange(n) * 1e-3
-        b = SensorBatch(t, np.full((n, 2), 1530.0), np.ones((n, 2), np.int8),
-                        np.zeros((n, 2), np.int8), float(t[-1]))
+        b = SensorBatch(
+            t, np.full((n, 2), 1530.0), np.ones((n, 2), np.int8), np.zeros((n, 2), np.int8), float(t[-1])
+        )
         nan3 = np.full((n, 3), np.nan)
-        r = BatchResult(t, nan3, nan3, np.zeros((n, 3)), nan3, np.zeros(n, np.uint8),
-                        np.zeros((n, 2), np.uint8), np.zeros(n, np.int16), np.full((n, 1), 20.0))
+        r = BatchResult(
+            t,
+            nan3,
+            nan3,
+            np.zeros((n, 3)),
+            nan3,
+            np.zeros(n, np.uint8),
+            np.zeros((n, 2), np.uint8),
+            np.zeros(n, np.int16),
+            np.full((n, 1), 20.0),
+        )
         log.submit(b, r, True)
         total += n
     log.close()
@@ -245,6 +292,7 @@ def test_a_slow_disk_drops_batches_instead_of_blocking(tmp_path):
 
 def test_busy_opcua_port_is_a_one_line_error(paths, tmp_path, capsys, monkeypatch):
     import socket
+
     fbgcomp_testing.require("asyncua")
     monkeypatch.setenv("FBGCOMP_OPCUA_USER", "operator")
     monkeypatch.setenv("FBGCOMP_OPCUA_PASSWORD", "pw-for-test")
@@ -253,9 +301,21 @@ def test_busy_opcua_port_is_a_one_line_error(paths, tmp_path, capsys, monkeypatc
         busy.bind(("127.0.0.1", 0))
         busy.listen()
         port = busy.getsockname()[1]
-        code = main(["serve", "--model", str(model), "--source", f"replay://{campaign}",
-                     "--opcua", f"opc.tcp://127.0.0.1:{port}/fbgcomp/",
-                     "--state-dir", str(tmp_path / "state"), "--duration", "1"])
+        code = main(
+            [
+                "serve",
+                "--model",
+                str(model),
+                "--source",
+                f"replay://{campaign}",
+                "--opcua",
+                f"opc.tcp://127.0.0.1:{port}/fbgcomp/",
+                "--state-dir",
+                str(tmp_path / "state"),
+                "--duration",
+                "1",
+            ]
+        )
     err = capsys.readouterr().err.strip()
     assert code == 2 and err.startswith("error:") and "\n" not in err
     assert "opcua.endpoint" in err and "address already in use" in err
@@ -265,13 +325,22 @@ def test_sigterm_stops_gracefully_and_flushes_every_processed_frame(paths, tmp_p
     import re
     import signal
     import time
+
     from fbgcomp.runtime.log import read_log
     from test_runtime_support import fbgcomp_process
 
     model, campaign = paths
-    serve = fbgcomp_process("serve", "--model", model, "--source",
-                            f"replay://{campaign}?speed=10", "--opcua", "off",
-                            "--log", tmp_path / "log")
+    serve = fbgcomp_process(
+        "serve",
+        "--model",
+        model,
+        "--source",
+        f"replay://{campaign}?speed=10",
+        "--opcua",
+        "off",
+        "--log",
+        tmp_path / "log",
+    )
     try:
         end = time.monotonic() + 30
         while time.monotonic() < end and len(list((tmp_path / "log").rglob("part-*"))) < 3:
@@ -285,7 +354,7 @@ def test_sigterm_stops_gracefully_and_flushes_every_processed_frame(paths, tmp_p
     assert serve.returncode == 0, err.decode()[-2000:]
     frames = int(re.search(rb"processed (\d+) frames", err).group(1))
     _, df = read_log(tmp_path / "log")
-    assert frames > 100 and len(df) == frames          # nothing lost on a graceful stop
+    assert frames > 100 and len(df) == frames  # nothing lost on a graceful stop
 
 
 def test_a_log_folder_of_another_sensor_set_is_refused(tmp_path):
@@ -294,7 +363,7 @@ def test_a_log_folder_of_another_sensor_set_is_refused(tmp_path):
     from fbgcomp.runtime.log import RunLog
 
     RunLog(tmp_path, {"sensor_names": ["S1"], "probe_names": []}).close()
-    RunLog(tmp_path, {"sensor_names": ["S1"], "probe_names": []}).close()   # same run: appends
+    RunLog(tmp_path, {"sensor_names": ["S1"], "probe_names": []}).close()  # same run: appends
     with pytest.raises(InputError):
         RunLog(tmp_path, {"sensor_names": ["S1", "S2"], "probe_names": []})
 
@@ -304,11 +373,20 @@ def _batch(t, wavelength_nm, status, health):
     from fbgcomp.runtime.sources import SensorBatch
 
     n, S = wavelength_nm.shape
-    b = SensorBatch(t, wavelength_nm, np.ones((n, S), np.int8), np.zeros((n, S), np.int8),
-                    float(t[-1]))
+    b = SensorBatch(t, wavelength_nm, np.ones((n, S), np.int8), np.zeros((n, S), np.int8), float(t[-1]))
     dev = np.stack([np.sin(t), np.cos(t), t * 0.0], axis=1)
-    r = BatchResult(t, dev, np.full((n, 3), 0.5), dev * 0.5, np.ones((n, 3)), health, status,
-                    np.zeros(n, np.int16), np.full((n, 1), 20.0), output_flags=np.zeros((n, 3), np.uint8))
+    r = BatchResult(
+        t,
+        dev,
+        np.full((n, 3), 0.5),
+        dev * 0.5,
+        np.ones((n, 3)),
+        health,
+        status,
+        np.zeros(n, np.int16),
+        np.full((n, 1), 20.0),
+        output_flags=np.zeros((n, 3), np.uint8),
+    )
     return b, r
 
 
@@ -319,16 +397,24 @@ def test_health_and_status_are_named_and_old_integer_logs_still_read(tmp_path):
     import pandas as pd
     import pyarrow as pa
     import pyarrow.parquet as pq
+
     from fbgcomp.runtime import health as H
     from fbgcomp.runtime.log import RunLog, export_campaign, log_parts, read_log
     from fbgcomp.runtime.pipeline import HEALTH_NAMES
 
-    meta = {"format": "fbgcomp-runlog", "sensor_names": ["S1", "S2"], "probe_names": ["T_amb"],
-            "sensors": [{"name": "S1", "lambda0_nm": 1530.0, "gauge_length_mm": 100.0},
-                        {"name": "S2", "lambda0_nm": 1540.0, "gauge_length_mm": 100.0}],
-            "health_names": list(HEALTH_NAMES), "status_names": list(H.STATUS_NAMES)}
+    meta = {
+        "format": "fbgcomp-runlog",
+        "sensor_names": ["S1", "S2"],
+        "probe_names": ["T_amb"],
+        "sensors": [
+            {"name": "S1", "lambda0_nm": 1530.0, "gauge_length_mm": 100.0},
+            {"name": "S2", "lambda0_nm": 1540.0, "gauge_length_mm": 100.0},
+        ],
+        "health_names": list(HEALTH_NAMES),
+        "status_names": list(H.STATUS_NAMES),
+    }
     t = 1.7e9 + np.arange(40) * 0.1
-    health = np.repeat(np.arange(4, dtype=np.uint8), 10)           # OK, DEGRADED, ALARM, ZEROING
+    health = np.repeat(np.arange(4, dtype=np.uint8), 10)  # OK, DEGRADED, ALARM, ZEROING
     status = np.zeros((40, 2), np.uint8)
     status[10:20, 1] = H.MISSING
     status[20:30, 0] = H.INCONSISTENT
@@ -349,8 +435,9 @@ def test_health_and_status_are_named_and_old_integer_logs_still_read(tmp_path):
     (old / "meta.json").write_text(json.dumps(meta))
     table = raw.to_pandas()
     table["health"], table["S1_status"], table["S2_status"] = health, status[:, 0], status[:, 1]
-    pq.write_table(pa.Table.from_pandas(table, preserve_index=False),
-                   old / "part-0000000000001-000000.parquet")
+    pq.write_table(
+        pa.Table.from_pandas(table, preserve_index=False), old / "part-0000000000001-000000.parquet"
+    )
     for folder in (tmp_path / "new", old):
         _, codes = read_log(folder)
         np.testing.assert_array_equal(codes["health"], health)

@@ -5,6 +5,7 @@ simulated interrogator."""
 
 from __future__ import annotations
 
+import itertools
 import time
 import types
 
@@ -12,7 +13,7 @@ import numpy as np
 import pytest
 
 import fbgcomp_testing
-from test_runtime_support import free_port, model_and_campaign, modbus_serve_config, serve_with_simulator
+from test_runtime_support import free_port, modbus_serve_config, model_and_campaign, serve_with_simulator
 
 ENV = {"FBGCOMP_OPCUA_USER": "operator", "FBGCOMP_OPCUA_PASSWORD": "modbus-pass-123"}
 
@@ -27,13 +28,19 @@ def _decoded(regs):
     """The documented table (fbgcomp.runtime.outputs.modbus docstring), decoded the PLC's way."""
     from fbgcomp.runtime.outputs.modbus import decode_int32
 
-    i32 = lambda a: decode_int32(regs[a], regs[a + 1])          # noqa: E731
-    return dict(layout=regs[0], health=regs[1], enabled=regs[2], apply=regs[3],
-                sequence=(regs[4] << 16) | regs[5], z_ref_mm=i32(6) * 0.001,
-                offset_um=np.array([i32(8 + 2 * a) for a in range(3)]) * 0.1,
-                slope_um_per_m=np.array([i32(14 + 2 * a) for a in range(3)]) * 0.01,
-                flags=np.array(regs[20:23]),
-                correction_um=np.array([i32(23 + 2 * a) for a in range(3)]) * 0.1)
+    i32 = lambda a: decode_int32(regs[a], regs[a + 1])  # noqa: E731
+    return dict(
+        layout=regs[0],
+        health=regs[1],
+        enabled=regs[2],
+        apply=regs[3],
+        sequence=(regs[4] << 16) | regs[5],
+        z_ref_mm=i32(6) * 0.001,
+        offset_um=np.array([i32(8 + 2 * a) for a in range(3)]) * 0.1,
+        slope_um_per_m=np.array([i32(14 + 2 * a) for a in range(3)]) * 0.01,
+        flags=np.array(regs[20:23]),
+        correction_um=np.array([i32(23 + 2 * a) for a in range(3)]) * 0.1,
+    )
 
 
 # ---------------------------------------------------------------- offset / slope, pure maths
@@ -46,7 +53,7 @@ def test_slope_of_a_z_dependent_model_is_its_finite_difference_and_predicts_othe
     w0 = np.array([s.lambda0_nm for s in model.sensors])
     t0 = np.full(len(model.probe_names), 20.0)
     rng = np.random.default_rng(3)
-    w = w0 + rng.normal(scale=0.03, size=w0.size)       # bars stretched by tens of µm
+    w = w0 + rng.normal(scale=0.03, size=w0.size)  # bars stretched by tens of µm
     t = t0 + 1.5
     z0 = reference_z_mm(p)
     assert takes_z(p) and z0 == pytest.approx(model.machine_.supports.z_axis_mm)
@@ -57,8 +64,8 @@ def test_slope_of_a_z_dependent_model_is_its_finite_difference_and_predicts_othe
     slope = z_slope_um_per_m(p, w, t, w0, t0, z0)
     # independently: least-squares line of the model's own correction over the same ±10 mm
     zs = z0 + np.linspace(-10, 10, 5)
-    fit = np.polyfit(zs, np.array([correction(z) for z in zs]), 1)[0] * 1000.0   # µm/m
-    assert np.abs(slope).max() > 100.0                  # this model does depend on Z
+    fit = np.polyfit(zs, np.array([correction(z) for z in zs]), 1)[0] * 1000.0  # µm/m
+    assert np.abs(slope).max() > 100.0  # this model does depend on Z
     np.testing.assert_allclose(slope, fit, rtol=0.02, atol=0.05)
     # the offset + slope form gives the model 5 mm away far better than the offset alone
     for dz in (-5.0, 5.0):
@@ -96,7 +103,7 @@ def test_slope_leaves_a_predictor_with_memory_as_it_was():
             return types.SimpleNamespace(z_axis_mm=100.0)
 
         def predict(self, w, t, w0, t0, *, z_axis_mm=None, time_s=None):
-            self.state = self.state + 1.0                      # memory: every call counts
+            self.state = self.state + 1.0  # memory: every call counts
             d = np.full((1, 3), self.state) * np.array([1.0, 0.0, 2.0]) * (z_axis_mm or 0) / 1000
             return d, np.zeros((1, 3))
 
@@ -111,15 +118,14 @@ def test_slope_leaves_a_predictor_with_memory_as_it_was():
 def test_limit_toward_rate_and_maximum():
     from fbgcomp.runtime.outputs.cnc_form import limit_toward
 
-    v, rate, cap = limit_toward([0.0, 0.0, 5.0], [100.0, -3.0, np.nan], 0.5, [20.0] * 3,
-                                [50.0, 50.0, 50.0])
-    np.testing.assert_allclose(v, [10.0, -3.0, 0.0])    # NaN target ramps out toward 0
+    v, rate, cap = limit_toward([0.0, 0.0, 5.0], [100.0, -3.0, np.nan], 0.5, [20.0] * 3, [50.0, 50.0, 50.0])
+    np.testing.assert_allclose(v, [10.0, -3.0, 0.0])  # NaN target ramps out toward 0
     assert rate.tolist() == [True, False, False] and cap.tolist() == [True, False, False]
     v, _, cap = limit_toward(v, [100.0, -3.0, 0.0], 100.0, [20.0] * 3, [50.0] * 3)
-    np.testing.assert_allclose(v, [50.0, -3.0, 0.0])    # held at the maximum
+    np.testing.assert_allclose(v, [50.0, -3.0, 0.0])  # held at the maximum
     assert cap[0]
     v, rate, _ = limit_toward(v, [0.0, 0.0, 0.0], -1.0, [20.0] * 3, [50.0] * 3)
-    np.testing.assert_allclose(v, [50.0, -3.0, 0.0])    # time going back moves nothing
+    np.testing.assert_allclose(v, [50.0, -3.0, 0.0])  # time going back moves nothing
     assert rate[:2].all()
 
 
@@ -132,20 +138,28 @@ def test_registers_read_by_a_real_client_limits_and_refused_writes():
 
     now = [0.0]
     port = free_port()
-    out = ModbusOutput(ModbusConfig(listen=f"127.0.0.1:{port}", unit_id=3,
-                                    offset_rate_um_per_s=10, max_offset_um=[30, 30, 500],
-                                    slope_rate_um_per_m_per_s=4, max_slope_um_per_m=5),
-                       clock=lambda: now[0])
+    out = ModbusOutput(
+        ModbusConfig(
+            listen=f"127.0.0.1:{port}",
+            unit_id=3,
+            offset_rate_um_per_s=10,
+            max_offset_um=[30, 30, 500],
+            slope_rate_um_per_m_per_s=4,
+            max_slope_um_per_m=5,
+        ),
+        clock=lambda: now[0],
+    )
     out.start()
     client = ModbusTcpClient("127.0.0.1", port=port, timeout=3)
     try:
         assert client.connect()
         first = _decoded(_regs(client, 3))
         assert first["layout"] == 1 and first["health"] == 3 and first["sequence"] == 0
-        snap = types.SimpleNamespace(correction_um=(-123.44, 7.26, 420.0), health="OK",
-                                     output_flags=(0, 8, 2))
-        out.publish(snap, True, [3.0, -12.5, 0.0], 812.5)        # t = 0: starts from zero
-        for k in range(1, 11):                                   # then 0.5 s apart
+        snap = types.SimpleNamespace(
+            correction_um=(-123.44, 7.26, 420.0), health="OK", output_flags=(0, 8, 2)
+        )
+        out.publish(snap, True, [3.0, -12.5, 0.0], 812.5)  # t = 0: starts from zero
+        for k in range(1, 11):  # then 0.5 s apart
             now[0] = 0.5 * k
             out.publish(snap, True, [3.0, -12.5, 0.0], 812.5)
         d = _decoded(_regs(client, 3))
@@ -159,13 +173,11 @@ def test_registers_read_by_a_real_client_limits_and_refused_writes():
         # Z: the model's CLAMPED + offset rate-limited here
         assert d["flags"].tolist() == [512, 8 | 2048, 2 | 256]
         # writes refused (ILLEGAL FUNCTION), the table unchanged
-        for w in (client.write_register(8, 1, device_id=3),
-                  client.write_registers(8, [0, 0], device_id=3)):
+        for w in (client.write_register(8, 1, device_id=3), client.write_registers(8, [0, 0], device_id=3)):
             assert w.isError() and w.exception_code == 1
         assert _decoded(_regs(client, 3))["offset_um"].tolist() == d["offset_um"].tolist()
         # ALARM: nothing to apply, the slope ramps out, the offset follows the pipeline's ramp
-        alarm = types.SimpleNamespace(correction_um=(0.0, 0.0, 0.0), health="ALARM",
-                                      output_flags=(0, 0, 0))
+        alarm = types.SimpleNamespace(correction_um=(0.0, 0.0, 0.0), health="ALARM", output_flags=(0, 0, 0))
         now[0] += 1.0
         out.publish(alarm, True, [3.0, -12.5, 0.0], 812.5)
         a = _decoded(_regs(client, 3))
@@ -189,7 +201,7 @@ def test_busy_port_is_a_one_line_error():
         s.bind(("127.0.0.1", 0))
         s.listen()
         port = s.getsockname()[1]
-        with pytest.raises(InputError, match="modbus.listen"):
+        with pytest.raises(InputError, match=r"modbus\.listen"):
             ModbusOutput(ModbusConfig(listen=f"127.0.0.1:{port}")).start()
     with pytest.raises(InputError, match="HOST:PORT"):
         ModbusOutput(ModbusConfig(listen="5020"))
@@ -211,8 +223,7 @@ def served(tmp_path_factory):
     rate = 2.0
     config = modbus_serve_config(port, rate)
     reads, writes = [], []
-    with serve_with_simulator(tmp, config, model_path, campaign, ENV,
-                              ("--rate", 1000, "--speed", 30)) as run:
+    with serve_with_simulator(tmp, config, model_path, campaign, ENV, ("--rate", 1000, "--speed", 30)) as run:
         client = ModbusTcpClient("127.0.0.1", port=port, timeout=3)
         assert client.connect()
         end = time.monotonic() + 60
@@ -230,7 +241,7 @@ def served(tmp_path_factory):
             time.sleep(0.05)
         client.close()
         alive = run.serve.poll() is None
-    meta, log = read_log(tmp / "log")
+    _meta, log = read_log(tmp / "log")
     return dict(reads=reads, writes=writes, log=log, rate=rate, alive=alive)
 
 
@@ -243,7 +254,7 @@ def test_serve_publishes_the_logged_correction_in_the_documented_scale(served):
     for t, d in reads:
         if d["health"] != 0:
             continue
-        near = (rx <= t + 0.5) & (rx > t - 1.0)    # t: just before the request was sent
+        near = (rx <= t + 0.5) & (rx > t - 1.0)  # t: just before the request was sent
         if not near.any() or np.abs(d["correction_um"]).max() < 1.0:
             continue
         # the published sample is one the run log holds, to the register's 0.1 µm
@@ -251,14 +262,15 @@ def test_serve_publishes_the_logged_correction_in_the_documented_scale(served):
         assert err <= 0.05 + 1e-6, (t, d["correction_um"], err)
         checked += 1
     assert checked >= 20
-    assert all(d["layout"] == 1 and d["z_ref_mm"] == 0 and not d["slope_um_per_m"].any()
-               for _, d in reads)                   # the regression model has no Z term
+    assert all(
+        d["layout"] == 1 and d["z_ref_mm"] == 0 and not d["slope_um_per_m"].any() for _, d in reads
+    )  # the regression model has no Z term
 
 
 def test_heartbeat_advances_and_writes_are_refused(served):
     seqs = [d["sequence"] for _, d in served["reads"]]
-    assert all(b >= a for a, b in zip(seqs, seqs[1:]))
-    assert len(set(seqs)) >= 10                     # it advances while the PLC polls
+    assert all(b >= a for a, b in itertools.pairwise(seqs))
+    assert len(set(seqs)) >= 10  # it advances while the PLC polls
     (w,) = served["writes"]
     assert w.isError() and w.exception_code == 1
 
@@ -267,17 +279,17 @@ def test_a_step_of_the_correction_reaches_the_registers_rate_limited(served):
     """When the data stop the pipeline ramps its correction to zero within ramp_s (0.5 s): a
     step of several µm for the PLC. The published offset follows at the configured rate."""
     reads, rate = served["reads"], served["rate"]
-    for (t0, a), (t1, b) in zip(reads, reads[1:]):
+    for (t0, a), (t1, b) in itertools.pairwise(reads):
         # the limiter runs on publication times, each at most one batch before the read
         assert np.abs(b["offset_um"] - a["offset_um"]).max() <= rate * (t1 - t0 + 0.1) + 0.1 + 1e-6
     health = [d["health"] for _, d in reads]
     first = health.index(2)
     t_step, before = reads[first - 1][0], reads[first - 1][1]["offset_um"]
     axis = int(np.argmax(np.abs(before)))
-    assert abs(before[axis]) > 5.0                      # a step worth limiting
+    assert abs(before[axis]) > 5.0  # a step worth limiting
     ramp = [(t - t_step, d) for t, d in reads[first:] if d["offset_um"][axis] != 0]
     lags = [abs(d["offset_um"][axis] - d["correction_um"][axis]) for _, d in ramp]
-    assert max(lags) > 4.0                              # the correction went, the offset lags
+    assert max(lags) > 4.0  # the correction went, the offset lags
     assert sum(bool(d["flags"][axis] & 256) for _, d in ramp) >= 0.9 * len(ramp) >= 10
     # it ramps at the configured rate: slope of |offset| over the ramp
     tt = np.array([t for t, _ in ramp])
@@ -286,7 +298,7 @@ def test_a_step_of_the_correction_reaches_the_registers_rate_limited(served):
 
 
 def test_alarm_when_the_data_stops_and_the_offset_ramps_out(served):
-    reads, rate = served["reads"], served["rate"]
+    reads = served["reads"]
     health = [d["health"] for _, d in reads]
     assert 0 in health and health[-1] == 2
     first = health.index(2)
@@ -297,5 +309,5 @@ def test_alarm_when_the_data_stops_and_the_offset_ramps_out(served):
     assert all(not d["correction_um"].any() for t, d in after if t > t_alarm + 1.0)
     # ... and the published offset follows at the configured rate, never growing
     mags = [np.abs(d["offset_um"]) for _, d in after]
-    assert all((b <= a + 1e-9).all() for a, b in zip(mags, mags[1:]))
+    assert all((b <= a + 1e-9).all() for a, b in itertools.pairwise(mags))
     assert not after[-1][1]["offset_um"].any() or after[-1][0] - t_alarm > 14

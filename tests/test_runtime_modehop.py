@@ -23,8 +23,15 @@ from test_runtime_support import model_and_campaign, serve_with_simulator
 
 ENV = {"FBGCOMP_OPCUA_USER": "operator", "FBGCOMP_OPCUA_PASSWORD": "modehop-pass-123"}
 AXES = ("X", "Y", "Z")
-NAMES = ["CorrectionX_um", "CorrectionY_um", "CorrectionZ_um", "Health", "Alarm",
-         "FallbackInUse", "Sensors.S3.Status"]
+NAMES = [
+    "CorrectionX_um",
+    "CorrectionY_um",
+    "CorrectionZ_um",
+    "Health",
+    "Alarm",
+    "FallbackInUse",
+    "Sensors.S3.Status",
+]
 HOP_AT_S, HOP_NM = 8.0, 2.0
 
 
@@ -42,8 +49,9 @@ def _serve(tmp_path_factory, name, faults, done):
     # ALARM ticks (hold, ramp) that the frame-by-frame comparisons below cannot replay
     config = "[source]\nbackoff_initial_s = 0.05\nbackoff_max_s = 0.4\nno_data_s = 5.0\n"
     args = [a for f in faults for a in ("--fault", f)]
-    with serve_with_simulator(tmp, config, model_path, campaign, ENV,
-                              ("--rate", 1000, "--noise-pm", 0.3, *args)) as run:
+    with serve_with_simulator(
+        tmp, config, model_path, campaign, ENV, ("--rate", 1000, "--noise-pm", 0.3, *args)
+    ) as run:
         seen = run.watch(NAMES, 60.0, done)
         alive = run.serve.poll() is None
     meta, log = read_log(tmp / "log")
@@ -53,18 +61,19 @@ def _serve(tmp_path_factory, name, faults, done):
 def _s3_for(states, seconds):
     """done(): S3 showed one of ``states`` on OPC UA, then ``seconds`` passed (OK for the hop,
     where it is re-admitted, the same state for the gap, where it stays out)."""
+
     def done(seen):
         s3 = [(v, r) for n, v, _, r in seen if n == "Sensors.S3.Status"]
         out = [i for i, (v, _) in enumerate(s3) if v in ("JUMP", "RECOVERING", "INCONSISTENT")]
-        back = [r for v, r in s3[out[0]:] if v in states] if out else []
+        back = [r for v, r in s3[out[0] :] if v in states] if out else []
         return bool(back) and time.time() - back[0] > seconds
+
     return done
 
 
 @pytest.fixture(scope="module")
 def hop(tmp_path_factory):
-    return _serve(tmp_path_factory, "modehop", [f"shift:S3@{HOP_AT_S:g}:+{HOP_NM:g}"],
-                  _s3_for(("OK",), 3.0))
+    return _serve(tmp_path_factory, "modehop", [f"shift:S3@{HOP_AT_S:g}:+{HOP_NM:g}"], _s3_for(("OK",), 3.0))
 
 
 def _fault_free(model_path, log):
@@ -93,13 +102,13 @@ def test_the_hop_is_seen_and_s3_is_re_admitted(hop):
     t = log["time_s"].to_numpy()
     s3 = log["S3_status"].to_numpy()
     jumps = np.flatnonzero(s3 == H.JUMP)
-    assert jumps.size == 1, jumps                        # one hop, in one frame
+    assert jumps.size == 1, jumps  # one hop, in one frame
     at = int(jumps[0])
     # the frame the simulator shifted (serve may miss its first frames while it connects)
     assert HOP_AT_S - 1.0 < t[at] - t[0] <= HOP_AT_S + 0.05
     assert log["S3_nm"][at] - log["S3_nm"][at - 1] == pytest.approx(HOP_NM, abs=0.01)
     health = log["health"].to_numpy()
-    assert health[at - 1] == 0 and health[at] == 1       # DEGRADED on the hop frame itself
+    assert health[at - 1] == 0 and health[at] == 1  # DEGRADED on the hop frame itself
     recovering = (t > t[at]) & (t < t[at] + 0.9)
     assert (s3[recovering] == H.RECOVERING).all() and (health[recovering] == 1).all()
     back = t > t[at] + 1.1
@@ -113,8 +122,8 @@ def test_the_hop_is_seen_and_s3_is_re_admitted(hop):
 
 
 def test_the_correction_stays_within_the_bound(hop):
-    from fbgcomp.runtime.pipeline import Pipeline
     from fbgcomp.models.registry import load_model
+    from fbgcomp.runtime.pipeline import Pipeline
 
     bound = Pipeline(load_model(hop["model_path"])).max_correction_um
     log, seen = hop["log"], hop["seen"]
@@ -160,7 +169,7 @@ def test_re_admission_publishes_the_fault_free_correction(hop):
     assert (diff < pipe.config.output_filter.min_threshold_um).all(), diff
     # and the published correction never stepped across the hop: the rate limit's credit
     # per frame (1000 µm/s, at most twice the frame interval) bounds each frame's change
-    step = np.abs(np.diff(corr[at - 1:], axis=0)).max(axis=0)
+    step = np.abs(np.diff(corr[at - 1 :], axis=0)).max(axis=0)
     assert (step <= pipe.max_slew_um_per_s * pipe.frame_dt_s * 2 + 1e-9).all(), step
 
 
@@ -204,7 +213,7 @@ def test_a_grating_back_shifted_from_a_gap_stays_out(sizes, tmp_path_factory):
     after = t > 104.0
     assert pipe.readmissions_refused >= 1
     assert (r["sensor_status"][after, s3] == H.INCONSISTENT).all()
-    assert (r["health"][t >= 100.0] == HEALTH_DEGRADED).all()          # never OK again
+    assert (r["health"][t >= 100.0] == HEALTH_DEGRADED).all()  # never OK again
     assert (r["model_set"][after] == pipe.model_sets.index(frozenset({"S3"}))).all()
     # the fallback's correction: within its own expected error of the fault-free one, plus
     # the output filter's resolution (min_threshold_um: the re-seated filter's level and the
@@ -219,7 +228,7 @@ def test_a_grating_back_shifted_from_a_gap_stays_out(sizes, tmp_path_factory):
     off.health.readmit_k_sigma = 0.0
     # the control runs a model file without the training deviations (as before 80ffb74), so only
     # the re-admission check stands between the shifted grating and a correction with Health OK
-    d = copy.deepcopy(model.to_dict())            # to_dict shares the model's training record
+    d = copy.deepcopy(model.to_dict())  # to_dict shares the model's training record
     for run in d["training"]["campaigns"]:
         run.pop("deviation_low_um", None)
         run.pop("deviation_high_um", None)
@@ -265,7 +274,7 @@ def test_served_grating_back_shifted_from_a_gap_stays_out(gap):
     assert s3[lost - 1] == H.OK and 0.9 < t[back] - t[lost] < 1.1
     assert log["S3_nm"][back] - log["S3_nm"][lost - 1] == pytest.approx(0.5, abs=0.02)
     health = log["health"].to_numpy()
-    assert (health[lost:] == 1).all()                              # DEGRADED, never OK
+    assert (health[lost:] == 1).all()  # DEGRADED, never OK
     assert (s3[t > t[back] + 1.0] == H.INCONSISTENT).all()
     assert "INCONSISTENT" in [v for n, v, *_ in seen if n == "Sensors.S3.Status"]
     states = [v for n, v, *_ in seen if n == "Health"]

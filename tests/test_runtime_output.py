@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from fbgcomp.models import Predictor, load_model
 from fbgcomp.io.campaign import read_campaign
+from fbgcomp.models import Predictor, load_model
 from fbgcomp.runtime import health as H
 from fbgcomp.runtime.output_filter import AdaptiveLevelFilter, OutputFilterConfig
 from fbgcomp.runtime.pipeline import HEALTH_DEGRADED, Pipeline, PipelineConfig
@@ -29,8 +29,7 @@ class EnvelopePredictor(Predictor):
     limit_um = 0.2
 
     def predict(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C):
-        dev, half = super().predict(wavelength_nm, temperature_C, wavelength_zero_nm,
-                                    temperature_zero_C)
+        dev, half = super().predict(wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C)
         over = np.abs(dev) > self.limit_um
         flags = np.where(over, H.FLAG_SHRUNK, 0).astype(np.uint8)
         flags[:, 2] |= np.where(over[:, 1], H.FLAG_LOAD_REFUSED, 0).astype(np.uint8)
@@ -69,8 +68,16 @@ def test_model_flags_and_limiter_flags_reach_the_batch_result(setup):
     model_path, aligned, w, t = setup
     model = _envelope_model(model_path, max_correction_um=(5.0, 0.15, 5.0))
     raw = dict(output_filter=OutputFilterConfig(enabled=False))
-    runs = [run_in_batches(Pipeline(model, PipelineConfig(max_slew_um_per_s=(0, 0.02, 0), **raw)),
-                 aligned.time_s, w, t, sizes) for sizes in ([1], [13, 200], [10_000])]
+    runs = [
+        run_in_batches(
+            Pipeline(model, PipelineConfig(max_slew_um_per_s=(0, 0.02, 0), **raw)),
+            aligned.time_s,
+            w,
+            t,
+            sizes,
+        )
+        for sizes in ([1], [13, 200], [10_000])
+    ]
     for r in runs[1:]:
         np.testing.assert_array_equal(r["output_flags"], runs[0]["output_flags"])
         np.testing.assert_allclose(r["correction_um"], runs[0]["correction_um"], atol=1e-9)
@@ -106,16 +113,28 @@ def test_lost_grating_fallback_still_obeys_the_limits(setup):
     lost = time_s >= 100.0
     wl[lost, s3] = np.nan
     counts[lost, s3] = 0
-    free = run_in_batches(Pipeline(model, PipelineConfig(output_filter=OutputFilterConfig(enabled=False),
-                                               max_slew_um_per_s=0, max_correction_um=0)),
-                time_s, wl, t, [64], counts)
+    free = run_in_batches(
+        Pipeline(
+            model,
+            PipelineConfig(
+                output_filter=OutputFilterConfig(enabled=False), max_slew_um_per_s=0, max_correction_um=0
+            ),
+        ),
+        time_s,
+        wl,
+        t,
+        [64],
+        counts,
+    )
     i = int(np.argmax(lost))
     step = np.abs(free["correction_um"][i] - free["correction_um"][i - 1])
-    cap = 0.5 * np.abs(free["correction_um"][lost]).max(axis=0)     # binds after the switch
+    cap = 0.5 * np.abs(free["correction_um"][lost]).max(axis=0)  # binds after the switch
     rate = 0.5 * step.max() / 0.1
     cfg = PipelineConfig(max_correction_um=tuple(cap), max_slew_um_per_s=rate)
-    runs = [run_in_batches(Pipeline(model, cfg), time_s, wl, t, sizes, counts)
-            for sizes in ([1], [9, 64], [10_000])]
+    runs = [
+        run_in_batches(Pipeline(model, cfg), time_s, wl, t, sizes, counts)
+        for sizes in ([1], [9, 64], [10_000])
+    ]
     for r in runs[1:]:
         np.testing.assert_allclose(r["correction_um"], runs[0]["correction_um"], atol=1e-9)
         np.testing.assert_array_equal(r["output_flags"], runs[0]["output_flags"])
@@ -128,27 +147,27 @@ def test_lost_grating_fallback_still_obeys_the_limits(setup):
     assert (after & H.FLAG_MAX_LIMITED).any() and (after & H.FLAG_RATE_LIMITED).any()
 
 
-def _noisy_step(rate_hz=100.0, duration_s=600.0, step_at_s=400.0, step_um=300.0, sd_um=20.0,
-                seed=3):
+def _noisy_step(rate_hz=100.0, duration_s=600.0, step_at_s=400.0, step_um=300.0, sd_um=20.0, seed=3):
     rng = np.random.default_rng(seed)
     n = int(duration_s * rate_hz)
     t = np.arange(n) / rate_hz
     # noise correlated over 1 s (a 1 Hz source interpolated), like the twin served live
     knots = rng.normal(0.0, sd_um, int(duration_s) + 2)
     noise = np.interp(t, np.arange(knots.size), knots)
-    truth = np.where(t >= step_at_s, step_um, 0.0) + 0.002 * t      # + a slow drift
+    truth = np.where(t >= step_at_s, step_um, 0.0) + 0.002 * t  # + a slow drift
     x = np.column_stack([noise + truth, 0.3 * noise - truth, truth])
     return t, x, truth
 
 
 def test_adaptive_filter_is_still_at_rest_and_follows_a_step():
     import pandas as pd
+
     t, x, truth = _noisy_step()
     f = AdaptiveLevelFilter(OutputFilterConfig(), 0.01, noise_um=np.array([5.0, 5.0, 0.01]))
     y = f.process(x)
     df = pd.DataFrame(y, index=pd.to_timedelta(t, "s"))
     dev = (df - df.rolling("60s", center=True).mean()).to_numpy()
-    rest = (t > 300) & (t < 370)           # settled, 30 s clear of the step
+    rest = (t > 300) & (t < 370)  # settled, 30 s clear of the step
     rms = np.sqrt((dev[rest] ** 2).mean(axis=0))
     raw = np.sqrt(((x[rest] - x[rest].mean(axis=0)) ** 2).mean(axis=0))
     assert (rms[:2] < 0.2).all() and raw[0] > 15 and raw[1] > 4.5
@@ -179,24 +198,26 @@ def _pops(rate_hz=100.0, duration_s=600.0, step_at_s=450.0, step_um=200.0, seed=
         if start + dur > duration_s:
             break
         sel = (t >= start) & (t < start + dur)
-        x[sel] = rng.choice([-1, 1]) * rng.uniform(10.0, 100.0) * np.sin(
-            np.pi * (t[sel] - start) / dur) ** 0.3
+        x[sel] = (
+            rng.choice([-1, 1]) * rng.uniform(10.0, 100.0) * np.sin(np.pi * (t[sel] - start) / dur) ** 0.3
+        )
     truth = np.where(t >= step_at_s, step_um, 0.0)
     return t, np.column_stack([x + truth, x, np.zeros(n)]), truth
 
 
 def test_adaptive_filter_ignores_model_pops_and_still_follows_a_step():
     import pandas as pd
-    t, x, truth = _pops()
+
+    t, x, _truth = _pops()
     f = AdaptiveLevelFilter(OutputFilterConfig(), 0.01, noise_um=np.array([20.0, 20.0, 1.0]))
     y = f.process(x)
     df = pd.DataFrame(y, index=pd.to_timedelta(t, "s"))
     dev = (df - df.rolling("60s", center=True).mean()).to_numpy()
-    rest = (t > 300) & (t < 420)          # after 5 min of learning what the pops look like
+    rest = (t > 300) & (t < 420)  # after 5 min of learning what the pops look like
     rms = np.sqrt((dev[rest] ** 2).mean(axis=0))
     raw = x[rest].std(axis=0)
     assert (rms < 0.2).all() and (raw[:2] > 10).all(), (rms, raw)
-    assert (f.undone[:2] >= 1).all()       # pops it did follow at first were taken back
+    assert (f.undone[:2] >= 1).all()  # pops it did follow at first were taken back
     after = t >= 450.0
     reach = t[after][np.argmax(y[after, 0] >= 0.9 * 200.0)] - 450.0
     assert reach < 1.0, reach
@@ -207,7 +228,7 @@ def test_adaptive_filter_ignores_model_pops_and_still_follows_a_step():
 
 
 def test_adaptive_filter_is_exact_whatever_the_batching():
-    t, x, _ = _noisy_step(duration_s=120.0, step_at_s=60.0)
+    _t, x, _ = _noisy_step(duration_s=120.0, step_at_s=60.0)
     whole = AdaptiveLevelFilter(OutputFilterConfig(), 0.01, [5.0, 5.0, 0.01]).process(x)
     for sizes in ([1], [3, 250], [997]):
         f = AdaptiveLevelFilter(OutputFilterConfig(), 0.01, [5.0, 5.0, 0.01])
@@ -222,7 +243,8 @@ def test_adaptive_filter_is_exact_whatever_the_batching():
 def test_pipeline_with_default_policy_is_batch_invariant(setup):
     model_path, aligned, w, t = setup
     model = load_model(model_path)
-    runs = [run_in_batches(Pipeline(model), aligned.time_s, w, t, sizes) for sizes in ([1], [7, 50],
-                                                                            [10_000])]
+    runs = [
+        run_in_batches(Pipeline(model), aligned.time_s, w, t, sizes) for sizes in ([1], [7, 50], [10_000])
+    ]
     for r in runs[1:]:
         np.testing.assert_allclose(r["correction_um"], runs[0]["correction_um"], atol=1e-9)

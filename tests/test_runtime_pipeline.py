@@ -6,14 +6,19 @@ import pytest
 from fbgcomp.io.campaign import read_campaign
 from fbgcomp.models.registry import load_model
 from fbgcomp.runtime import health as H
-from fbgcomp.runtime.pipeline import (HEALTH_ALARM, HEALTH_DEGRADED, HEALTH_OK, HEALTH_ZEROING,
-                                      Pipeline, PipelineConfig)
 from fbgcomp.runtime.output_filter import OutputFilterConfig
+from fbgcomp.runtime.pipeline import (
+    HEALTH_ALARM,
+    HEALTH_DEGRADED,
+    HEALTH_OK,
+    HEALTH_ZEROING,
+    Pipeline,
+    PipelineConfig,
+)
 from test_runtime_support import model_and_campaign, run_in_batches
 
 # Output policy off: the published correction is exactly - prediction (the model path itself).
-RAW = dict(output_filter=OutputFilterConfig(enabled=False), max_slew_um_per_s=0,
-           max_correction_um=0)
+RAW = dict(output_filter=OutputFilterConfig(enabled=False), max_slew_um_per_s=0, max_correction_um=0)
 
 
 @pytest.fixture(scope="module")
@@ -22,7 +27,7 @@ def setup(tmp_path_factory):
     model = load_model(model_path)
     campaign = read_campaign(campaign_path)
     aligned = campaign.aligned(zero_window_s=model.zero_window_s)
-    w, t, w0, t0 = model.instrument_arrays(aligned)
+    w, t, _w0, _t0 = model.instrument_arrays(aligned)
     return model, campaign, aligned, w, t
 
 
@@ -43,7 +48,7 @@ def test_same_prediction_as_the_offline_model_whatever_the_batching(setup):
 
 
 def test_fault_switches_to_fallback_on_the_same_sample_and_readmits_after_stable(setup):
-    model, campaign, aligned, w, t = setup
+    model, _campaign, aligned, w, t = setup
     time_s = aligned.time_s
     wl = w.copy()
     counts = np.ones(wl.shape, np.int8)
@@ -55,17 +60,18 @@ def test_fault_switches_to_fallback_on_the_same_sample_and_readmits_after_stable
     r = run_in_batches(Pipeline(model, cfg), time_s, wl, t, [33], counts)
     first_bad = np.argmax(lost)
     assert r["health"][first_bad - 1] == HEALTH_OK
-    assert r["health"][first_bad] == HEALTH_DEGRADED             # within one sample
+    assert r["health"][first_bad] == HEALTH_DEGRADED  # within one sample
     assert r["sensor_status"][first_bad, s3] == H.MISSING
     fallback = model.predictor(frozenset({"S3"}))
     dev, _ = fallback.predict(wl[lost], t[lost], *_zero(aligned, model))
     np.testing.assert_allclose(r["deviation_um"][lost], dev, atol=1e-9)
-    np.testing.assert_allclose(r["expected_rms_um"][lost],
-                               np.broadcast_to(fallback.expected_rms_error_um, dev.shape))
+    np.testing.assert_allclose(
+        r["expected_rms_um"][lost], np.broadcast_to(fallback.expected_rms_error_um, dev.shape)
+    )
     last_bad = time_s[lost][-1]
     stable = (time_s > last_bad) & (time_s < last_bad + 5.0 - 1e-9)
     assert stable.sum() >= 45
-    assert (r["health"][stable] == HEALTH_DEGRADED).all()          # recovering, not re-admitted
+    assert (r["health"][stable] == HEALTH_DEGRADED).all()  # recovering, not re-admitted
     assert (r["sensor_status"][stable, s3] == H.RECOVERING).all()
     assert (r["health"][time_s >= last_bad + 5.0 + 1e-9] == HEALTH_OK).all()
 
@@ -76,12 +82,12 @@ def _zero(aligned, model):
 
 
 def test_no_usable_model_holds_then_ramps_to_zero(setup):
-    model, campaign, aligned, w, t = setup
+    model, _campaign, aligned, w, t = setup
     time_s = aligned.time_s
     wl = w.copy()
     counts = np.ones(wl.shape, np.int8)
     lost = time_s >= 50.0
-    for name in ("S1", "S2"):                      # only leave-one-out models are stored
+    for name in ("S1", "S2"):  # only leave-one-out models are stored
         j = model.sensor_names.index(name)
         wl[lost, j] = np.nan
         counts[lost, j] = 0
@@ -96,20 +102,20 @@ def test_no_usable_model_holds_then_ramps_to_zero(setup):
 
 
 def test_jump_stuck_and_doubled_are_faults(setup):
-    model, campaign, aligned, w, t = setup
+    model, _campaign, aligned, w, t = setup
     time_s = aligned.time_s[:400]
     wl, temp = w[:400].copy(), t[:400]
     counts = np.ones(wl.shape, np.int8)
-    wl[100, 0] += 0.5                                # 0.5 nm in one sample: not physical
-    wl[200:, 1] = wl[200, 1]                         # S2 frozen from t = 20 s
-    counts[300, 4] = 2                               # S5 doubled once
+    wl[100, 0] += 0.5  # 0.5 nm in one sample: not physical
+    wl[200:, 1] = wl[200, 1]  # S2 frozen from t = 20 s
+    counts[300, 4] = 2  # S5 doubled once
     wl[300, 4] = np.nan
     r = run_in_batches(Pipeline(model), time_s, wl, temp, [25], counts)
     st = r["sensor_status"]
-    assert st[100, 0] == H.JUMP and st[101, 0] == H.JUMP     # jump there and back
+    assert st[100, 0] == H.JUMP and st[101, 0] == H.JUMP  # jump there and back
     assert st[99, 0] == H.OK
     stuck_from = np.searchsorted(time_s, time_s[200] + 2.0)
-    assert (st[stuck_from:, 1] == H.STUCK).all() and (st[200:stuck_from - 1, 1] != H.STUCK).all()
+    assert (st[stuck_from:, 1] == H.STUCK).all() and (st[200 : stuck_from - 1, 1] != H.STUCK).all()
     assert st[300, 4] == H.DOUBLED
     # S2 stuck and S5 doubled at once: no leave-two-out model stored -> alarm
     assert r["model_set"][300] == -1 and r["health"][300] == HEALTH_ALARM
@@ -117,17 +123,18 @@ def test_jump_stuck_and_doubled_are_faults(setup):
 
 
 def test_smoothing_is_an_exponential_filter(setup):
-    model, campaign, aligned, w, t = setup
+    model, _campaign, aligned, w, t = setup
     raw = run_in_batches(Pipeline(model, PipelineConfig(**RAW)), aligned.time_s, w, t, [64])
-    sm = run_in_batches(Pipeline(model, PipelineConfig(smoothing_tau_s=1.0, **RAW)), aligned.time_s, w, t,
-              [64])
+    sm = run_in_batches(
+        Pipeline(model, PipelineConfig(smoothing_tau_s=1.0, **RAW)), aligned.time_s, w, t, [64]
+    )
     a = np.exp(-0.1 / 1.0)
     x, y = raw["correction_um"], sm["correction_um"]
     np.testing.assert_allclose(y[1:], a * y[:-1] + (1 - a) * x[1:], atol=1e-9)
 
 
 def test_slew_limit_turns_a_fallback_switch_into_a_ramp(setup):
-    model, campaign, aligned, w, t = setup
+    model, _campaign, aligned, w, t = setup
     time_s = aligned.time_s
     wl = w.copy()
     counts = np.ones(wl.shape, np.int8)
@@ -135,29 +142,32 @@ def test_slew_limit_turns_a_fallback_switch_into_a_ramp(setup):
     lost = time_s >= 100.0
     wl[lost, s3] = np.nan
     counts[lost, s3] = 0
-    free = run_in_batches(Pipeline(model, PipelineConfig(**RAW)), time_s, wl, t, [64],
-                counts)["correction_um"]
+    free = run_in_batches(Pipeline(model, PipelineConfig(**RAW)), time_s, wl, t, [64], counts)[
+        "correction_um"
+    ]
     i = int(np.argmax(lost))
-    jump = np.abs(free[i] - free[i - 1]).max()                  # the switch is a step
-    normal = np.abs(np.diff(free[time_s < 99.0], axis=0)).max() / 0.1   # µm/s otherwise
+    jump = np.abs(free[i] - free[i - 1]).max()  # the switch is a step
+    normal = np.abs(np.diff(free[time_s < 99.0], axis=0)).max() / 0.1  # µm/s otherwise
     assert jump > 20 * normal * 0.1
-    rate = 2 * normal                                           # µm/s
+    rate = 2 * normal  # µm/s
     cfg = dict(RAW, max_slew_um_per_s=rate)
-    outs = [run_in_batches(Pipeline(model, PipelineConfig(**cfg)), time_s, wl, t, sizes,
-                 counts)["correction_um"] for sizes in ([1], [7, 50], [10_000])]
+    outs = [
+        run_in_batches(Pipeline(model, PipelineConfig(**cfg)), time_s, wl, t, sizes, counts)["correction_um"]
+        for sizes in ([1], [7, 50], [10_000])
+    ]
     for lim in outs[1:]:
-        np.testing.assert_allclose(lim, outs[0], atol=1e-12)   # whatever the batching
+        np.testing.assert_allclose(lim, outs[0], atol=1e-12)  # whatever the batching
     lim = outs[0]
     dt = np.diff(time_s)[:, None]
     assert (np.abs(np.diff(lim, axis=0)) <= rate * dt + 1e-9).all()
     assert np.abs(lim[i] - lim[i - 1]).max() <= rate * 0.1 + 1e-9  # limited to a ramp
     calm = time_s < 99.0
-    np.testing.assert_allclose(lim[calm], free[calm], atol=1e-12)   # untouched elsewhere
-    assert np.abs(lim[-1] - free[-1]).max() < 1e-9                  # caught up again
+    np.testing.assert_allclose(lim[calm], free[calm], atol=1e-12)  # untouched elsewhere
+    assert np.abs(lim[-1] - free[-1]).max() < 1e-9  # caught up again
 
 
 def test_link_loss_ticks_hold_then_ramp_and_data_resumes(setup):
-    model, campaign, aligned, w, t = setup
+    model, _campaign, aligned, w, t = setup
     n = 400
     pipe = Pipeline(model, PipelineConfig(ramp_s=1.0, **RAW))
     r = run_in_batches(pipe, aligned.time_s[:n], w[:n], t[:n], [50])
@@ -169,8 +179,13 @@ def test_link_loss_ticks_hold_then_ramp_and_data_resumes(setup):
         frac = max(0.0, 1.0 - (dt - 0.1) / 1.0)
         np.testing.assert_allclose(tick.correction_um[0], held * frac, atol=1e-12)
         assert tick.health[0] == HEALTH_ALARM
-    back = pipe.process(aligned.time_s[n:n + 5], w[n:n + 5], np.ones((5, 5), np.int8),
-                        np.zeros((5, 5), np.int8), t[n:n + 5])
+    back = pipe.process(
+        aligned.time_s[n : n + 5],
+        w[n : n + 5],
+        np.ones((5, 5), np.int8),
+        np.zeros((5, 5), np.int8),
+        t[n : n + 5],
+    )
     assert (back.health == HEALTH_OK).all()
 
 
@@ -185,32 +200,34 @@ def test_model_reload_keeps_the_re_admission_check(setup, tmp_path_factory):
     from fbgcomp.runtime.service import RuntimeConfig, Service
     from test_runtime_support import model_and_campaign
 
-    model, campaign, aligned, w, t = setup
+    model, _campaign, aligned, w, t = setup
     model_path, _ = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
     time_s = aligned.time_s
     s3 = model.sensor_names.index("S3")
     wl, counts = w.copy(), np.ones(w.shape, np.int8)
-    gap = (time_s >= 100.0) & (time_s < 102.0)               # S3 lost for 2 s ...
+    gap = (time_s >= 100.0) & (time_s < 102.0)  # S3 lost for 2 s ...
     wl[gap, s3], counts[gap, s3] = np.nan, 0
-    wl[time_s >= 102.0, s3] += 0.5                          # ... and back 0.5 nm off
+    wl[time_s >= 102.0, s3] += 0.5  # ... and back 0.5 nm off
     stop = int(np.searchsorted(time_s, 110.0))
     time_s, wl, counts, t = time_s[:stop], wl[:stop], counts[:stop], t[:stop]
     plain = Pipeline(model)
     ref = run_in_batches(plain, time_s, wl, t, [1], counts)
-    assert plain.readmissions_refused >= 3                  # refused, re-checked, refused ...
+    assert plain.readmissions_refused >= 3  # refused, re-checked, refused ...
     assert (ref["sensor_status"][time_s >= 104.0, s3] == H.INCONSISTENT).all()
 
     svc = Service(RuntimeConfig(model=str(model_path), opcua_enabled=False))
     first = int(np.searchsorted(time_s, 101.0))
-    out = [run_in_batches(svc.pipeline, time_s[:first], wl[:first], t[:first], [first],
-                          counts[:first])]
+    out = [run_in_batches(svc.pipeline, time_s[:first], wl[:first], t[:first], [first], counts[:first])]
     reloads = 0
     for i in range(first, time_s.size):
-        if time_s[i] < 107.0:                               # every frame around the gap
+        if time_s[i] < 107.0:  # every frame around the gap
             asyncio.run(svc.reload(str(model_path)))
             reloads += 1
-        out.append(run_in_batches(svc.pipeline, time_s[i:i + 1], wl[i:i + 1], t[i:i + 1],
-                                  [1], counts[i:i + 1]))
+        out.append(
+            run_in_batches(
+                svc.pipeline, time_s[i : i + 1], wl[i : i + 1], t[i : i + 1], [1], counts[i : i + 1]
+            )
+        )
     got = {k: np.concatenate([o[k] for o in out]) for k in ref}
     assert reloads >= 50
     np.testing.assert_array_equal(got["sensor_status"], ref["sensor_status"])

@@ -32,11 +32,11 @@ from test_runtime_support import fbgcomp_process, serve_with_simulator
 
 ENV = {"FBGCOMP_OPCUA_USER": "operator", "FBGCOMP_OPCUA_PASSWORD": "refgrating-pass-123"}
 NAMES = ["CorrectionX_um", "CorrectionY_um", "CorrectionZ_um", "Health", "Alarm"]
-REFS = {"S1": 1560.0, "S3": 1570.0}          # reference_lambda0_nm, clear of every sensor window
-INSTALL_OFFSET_NM = 0.4                       # the gratings' actual zero sits this far above it
+REFS = {"S1": 1560.0, "S3": 1570.0}  # reference_lambda0_nm, clear of every sensor window
+INSTALL_OFFSET_NM = 0.4  # the gratings' actual zero sits this far above it
 DROP_AT_S = 4.0
 RATE_HZ = 1000
-SPEED = 20.0                                  # campaign seconds per second: ~1.5 K of gauge heat
+SPEED = 20.0  # campaign seconds per second: ~1.5 K of gauge heat
 
 
 def with_reference_gratings(campaign, seed):
@@ -58,36 +58,44 @@ def with_reference_gratings(campaign, seed):
         old_dt = surf - surf[0]
         new_dt = old_dt + 1.5 * np.sin(2 * np.pi * t / rng.uniform(200, 400) + rng.uniform(0, 6))
         new_dt -= new_dt[0]
-        kw = dict(photoelastic=s["photoelastic"], thermo_optic_per_K=s["thermo_optic_per_K"],
-                  fibre_cte_per_K=s["fibre_cte_per_K"])
+        kw = dict(
+            photoelastic=s["photoelastic"],
+            thermo_optic_per_K=s["thermo_optic_per_K"],
+            fibre_cte_per_K=s["fibre_cte_per_K"],
+        )
         col = f"{s['name']}_nm"
-        elong = optics.elongation_um(fbg[col].to_numpy(), s["lambda0_nm"], s["gauge_length_mm"],
-                                     old_dt, **kw)
+        elong = optics.elongation_um(fbg[col].to_numpy(), s["lambda0_nm"], s["gauge_length_mm"], old_dt, **kw)
         fbg[col] = optics.wavelength_nm(elong, s["lambda0_nm"], s["gauge_length_mm"], new_dt, **kw)
         fbg[f"{s['name']}_ref_nm"] = optics.free_grating_wavelength_nm(
-            new_dt, REFS[s["name"]] + INSTALL_OFFSET_NM, thermo_optic_per_K=s["thermo_optic_per_K"],
-            fibre_cte_per_K=s["fibre_cte_per_K"])
+            new_dt,
+            REFS[s["name"]] + INSTALL_OFFSET_NM,
+            thermo_optic_per_K=s["thermo_optic_per_K"],
+            fibre_cte_per_K=s["fibre_cte_per_K"],
+        )
         s["reference_lambda0_nm"] = REFS[s["name"]]
-        s["temperature_probe"] = None            # compensated by its own reference grating
-    return Campaign.from_arrays(CampaignMeta(**meta), fbg=fbg, temperatures=temps,
-                                reference=campaign.reference)
+        s["temperature_probe"] = None  # compensated by its own reference grating
+    return Campaign.from_arrays(
+        CampaignMeta(**meta), fbg=fbg, temperatures=temps, reference=campaign.reference
+    )
 
 
 @pytest.fixture(scope="module")
 def campaigns(tmp_path_factory):
-    from fbgcomp.io.campaign import write_campaign
     from fbgcomp.bench.synthetic import linear_truth_campaign
+    from fbgcomp.io.campaign import write_campaign
 
     base = tmp_path_factory.mktemp("refgratings")
     train, _ = linear_truth_campaign("train", seed=1, duration_s=2 * 3600, noise_um=0.05)
-    serve, _ = linear_truth_campaign("serve", seed=2, duration_s=300, fbg_dt_s=0.1,
-                                     temperature_dt_s=0.1, reference_dt_s=0.1, settle_s=0.0)
+    serve, _ = linear_truth_campaign(
+        "serve", seed=2, duration_s=300, fbg_dt_s=0.1, temperature_dt_s=0.1, reference_dt_s=0.1, settle_s=0.0
+    )
     train_dir = write_campaign(with_reference_gratings(train, 1), base / "train")
     serve_dir = write_campaign(with_reference_gratings(serve, 2), base / "serve")
     model = base / "model.json"
-    fit = fbgcomp_process("fit", train_dir, "--features", "eq13", "--zero-window", 0.5,
-                          "--fallbacks", "loo", "-o", model)
-    out, err = fit.communicate(timeout=600)
+    fit = fbgcomp_process(
+        "fit", train_dir, "--features", "eq13", "--zero-window", 0.5, "--fallbacks", "loo", "-o", model
+    )
+    _out, err = fit.communicate(timeout=600)
     assert fit.returncode == 0, err.decode()[-3000:]
     return dict(base=base, train=train_dir, serve=serve_dir, model=model)
 
@@ -102,13 +110,21 @@ def served(campaigns, tmp_path_factory):
     # output policy off: the published correction is the model's own, frame by frame.
     # no_data_s: a loaded machine pausing the stream must not add no-data ALARM ticks
     # speed: temperatures.csv replayed at the simulator's pace
-    config = (f"[source]\nbackoff_initial_s = 0.05\nbackoff_max_s = 0.4\nspeed = {SPEED}\n"
-              "no_data_s = 5.0\n\n[pipeline]\nramp_s = 0.5\n"
-              "max_slew_um_per_s = 0\nmax_correction_um = [0, 0, 0]\n"
-              "[pipeline.output_filter]\nenabled = false\n")
-    with serve_with_simulator(tmp, config, campaigns["model"], campaigns["serve"], ENV,
-                              ("--rate", RATE_HZ, "--speed", SPEED,
-                               "--fault", f"drop:S1_ref@{DROP_AT_S:g}")) as run:
+    config = (
+        f"[source]\nbackoff_initial_s = 0.05\nbackoff_max_s = 0.4\nspeed = {SPEED}\n"
+        "no_data_s = 5.0\n\n[pipeline]\nramp_s = 0.5\n"
+        "max_slew_um_per_s = 0\nmax_correction_um = [0, 0, 0]\n"
+        "[pipeline.output_filter]\nenabled = false\n"
+    )
+    with serve_with_simulator(
+        tmp,
+        config,
+        campaigns["model"],
+        campaigns["serve"],
+        ENV,
+        ("--rate", RATE_HZ, "--speed", SPEED, "--fault", f"drop:S1_ref@{DROP_AT_S:g}"),
+    ) as run:
+
         def done(seen):
             ok = [r for n, v, _, r in seen if n == "Health" and v == "OK"]
             alarm = [r for n, v, _, r in seen if n == "Health" and v == "ALARM"]
@@ -126,14 +142,21 @@ def _campaign_times(log, fbg):
     started, so the first logged k is found by matching the noise-free wavelengths."""
     t = log["time_s"].to_numpy()
     steps = np.round((t - t[0]) * RATE_HZ).astype(np.int64)
-    assert np.abs((t - t[0]) * RATE_HZ - steps).max() < 0.01        # on the frame grid
+    assert np.abs((t - t[0]) * RATE_HZ - steps).max() < 0.01  # on the frame grid
     ft = fbg["time_s"].to_numpy()
-    cols = [c for c in ("S1_nm", "S2_nm", "S3_nm", "S4_nm", "S5_nm")]
+    cols = ["S1_nm", "S2_nm", "S3_nm", "S4_nm", "S5_nm"]
     first = log[cols].to_numpy()[:50]
     k = np.arange(0, 20 * RATE_HZ)
-    err = sum(((np.interp((k[:, None] + steps[None, :50]) * SPEED / RATE_HZ, ft,
-                          fbg[c].to_numpy())
-                - first[:, j][None, :]) ** 2).sum(axis=1) for j, c in enumerate(cols))
+    err = sum(
+        (
+            (
+                np.interp((k[:, None] + steps[None, :50]) * SPEED / RATE_HZ, ft, fbg[c].to_numpy())
+                - first[:, j][None, :]
+            )
+            ** 2
+        ).sum(axis=1)
+        for j, c in enumerate(cols)
+    )
     k0 = int(np.argmin(err))
     return (k0 + steps) * SPEED / RATE_HZ
 
@@ -152,10 +175,8 @@ def test_the_correction_is_the_offline_models_on_the_same_frames(served, campaig
     c_t = _campaign_times(log, camp.fbg)
     ft = camp.fbg["time_s"].to_numpy()
     # the frames serve logged are the simulator's, sensor by sensor
-    w = np.column_stack([np.interp(c_t, ft, camp.fbg[f"{s}_nm"].to_numpy())
-                         for s in model.sensor_names])
-    np.testing.assert_allclose(log[[f"{s}_nm" for s in model.sensor_names]].to_numpy(), w,
-                               rtol=0, atol=1e-9)
+    w = np.column_stack([np.interp(c_t, ft, camp.fbg[f"{s}_nm"].to_numpy()) for s in model.sensor_names])
+    np.testing.assert_allclose(log[[f"{s}_nm" for s in model.sensor_names]].to_numpy(), w, rtol=0, atol=1e-9)
     # probes: temperatures.csv replayed from serve's first frame on, latest value held (the
     # frames are 0.02 campaign s apart: 1e-3 s settles the epoch clock's rounding either way)
     temp = np.empty((t.size, len(model.probe_names)))
@@ -167,7 +188,7 @@ def test_the_correction_is_the_offline_models_on_the_same_frames(served, campaig
             thermo[p] = (src_t, src_v[:, j])
     ratio = np.ones(len(model.probe_names))
     for k, p in enumerate(model.probe_names):
-        if p.endswith("_ref"):                   # eq. 3 inverted, relative to the first sample
+        if p.endswith("_ref"):  # eq. 3 inverted, relative to the first sample
             temp[:, k] = np.interp(c_t, *thermo[p])
             first = camp.fbg[f"{p}_nm"].to_numpy()[0]
             ratio[k] = first / model.sensors[model.sensor_names.index(p[:-4])].reference_lambda0_nm
@@ -181,17 +202,16 @@ def test_the_correction_is_the_offline_models_on_the_same_frames(served, campaig
     zero = t <= t[0] + model.zero_window_s
     health = log["health"].to_numpy()
     ok = health == 0
-    before = t < t[0] + 3.0            # S1_ref is dropped 4 s after the simulator started
+    before = t < t[0] + 3.0  # S1_ref is dropped 4 s after the simulator started
     assert (c_t[ok] - c_t[0]).max() > 50.0
     assert (ok & before).sum() > 1500, (ok & before).sum()
 
     def offline(T):
-        dev, _ = model.predictor().predict(w[ok], T[ok], w[zero].mean(axis=0),
-                                           T[zero].mean(axis=0))
+        dev, _ = model.predictor().predict(w[ok], T[ok], w[zero].mean(axis=0), T[zero].mean(axis=0))
         return dev
 
-    exact = offline(temp * ratio)      # the runtime's reading: relative to reference_lambda0_nm
-    plain = offline(temp)              # Campaign.thermometers(): relative to the first sample
+    exact = offline(temp * ratio)  # the runtime's reading: relative to reference_lambda0_nm
+    plain = offline(temp)  # Campaign.thermometers(): relative to the first sample
     corr = log[["corr_dx_um", "corr_dy_um", "corr_dz_um"]].to_numpy()[ok]
     np.testing.assert_allclose(corr, -exact, rtol=0, atol=1e-6)
     # the nominal-vs-actual zero of the reference gratings: a scale of 2.6e-4 on their
@@ -219,10 +239,10 @@ def test_a_lost_reference_grating_is_a_missing_temperature(served, campaigns):
     lost = ~np.isfinite(ref)
     assert lost.any() and np.isfinite(log["S3_ref_C"].to_numpy()).all()
     first = int(np.argmax(lost))
-    assert lost[first:].all()                        # gone for good from the drop on
+    assert lost[first:].all()  # gone for good from the drop on
     assert (t[lost] - t[0]).max() > 1.0
     health = log["health"].to_numpy()
-    assert health[first - 1] == 0 and (health[first:] == 2).all()      # ALARM on that frame
+    assert health[first - 1] == 0 and (health[first:] == 2).all()  # ALARM on that frame
     # every grating itself is fine: the sensors stay OK, no fallback can stand in for a probe
     for s in model.sensor_names:
         assert (log[f"{s}_status"].to_numpy()[first:] == 0).all()
@@ -261,8 +281,11 @@ def test_replay_reads_the_reference_gratings_from_fbg_csv(campaigns, tmp_path):
     rows = [int(np.flatnonzero(camp.fbg["S2_nm"].to_numpy() == v)[0]) for v in log["S2_nm"]]
     s3 = camp.meta.sensor("S3")
     expect = optics.grating_temperature_change_K(
-        camp.fbg["S3_ref_nm"].to_numpy()[rows], s3.reference_lambda0_nm,
-        thermo_optic_per_K=s3.thermo_optic_per_K, fibre_cte_per_K=s3.fibre_cte_per_K)
+        camp.fbg["S3_ref_nm"].to_numpy()[rows],
+        s3.reference_lambda0_nm,
+        thermo_optic_per_K=s3.thermo_optic_per_K,
+        fibre_cte_per_K=s3.fibre_cte_per_K,
+    )
     np.testing.assert_allclose(log["S3_ref_C"].to_numpy(), expect, rtol=0, atol=1e-12)
     # `fbgcomp log export` gives the reference gratings back as the wavelengths they read
     # (it refused before: 'S1_ref' was written as a probe, a name the reference grating holds)
@@ -271,7 +294,12 @@ def test_replay_reads_the_reference_gratings_from_fbg_csv(campaigns, tmp_path):
     out = export_campaign(tmp_path / "log", tmp_path / "exported")
     again = read_campaign(tmp_path / "exported")
     assert not any(c.endswith("_ref_C") for c in again.temperatures.columns)
-    np.testing.assert_allclose(again.fbg["S3_ref_nm"].to_numpy(), camp.fbg["S3_ref_nm"].to_numpy()[rows][
-        np.isin(log["time_s"].to_numpy() - log["time_s"].iloc[0], again.fbg["time_s"].to_numpy())],
-        rtol=0, atol=1e-9)
+    np.testing.assert_allclose(
+        again.fbg["S3_ref_nm"].to_numpy(),
+        camp.fbg["S3_ref_nm"].to_numpy()[rows][
+            np.isin(log["time_s"].to_numpy() - log["time_s"].iloc[0], again.fbg["time_s"].to_numpy())
+        ],
+        rtol=0,
+        atol=1e-9,
+    )
     assert out.meta.sensor("S3").reference_lambda0_nm == s3.reference_lambda0_nm

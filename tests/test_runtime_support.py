@@ -19,9 +19,9 @@ def model_and_campaign(base: Path) -> tuple[Path, Path]:
     """(model.json, campaign folder) built once per test session under ``base``."""
     if "paths" in _CACHE:
         return _CACHE["paths"]
+    from fbgcomp.bench.synthetic import linear_truth_campaign
     from fbgcomp.io.campaign import write_campaign
     from fbgcomp.models.mra import MRAModel
-    from fbgcomp.bench.synthetic import linear_truth_campaign
 
     base.mkdir(parents=True, exist_ok=True)
     train, _ = linear_truth_campaign("train", seed=1, duration_s=2 * 3600, noise_um=0.05)
@@ -29,8 +29,9 @@ def model_and_campaign(base: Path) -> tuple[Path, Path]:
     model_path = model.save(base / "model.json")
     # settle_s=0: the signals move from the first sample (a resting machine would look like
     # a stuck channel to a noise-free replay)
-    serve, _ = linear_truth_campaign("serve", seed=2, duration_s=300, fbg_dt_s=0.1,
-                                     temperature_dt_s=0.1, reference_dt_s=0.1, settle_s=0.0)
+    serve, _ = linear_truth_campaign(
+        "serve", seed=2, duration_s=300, fbg_dt_s=0.1, temperature_dt_s=0.1, reference_dt_s=0.1, settle_s=0.0
+    )
     campaign = write_campaign(serve, base / "serve")
     _CACHE["paths"] = (Path(model_path), Path(campaign))
     return _CACHE["paths"]
@@ -59,8 +60,13 @@ def fbgcomp_process(*args, env=None, **kw) -> subprocess.Popen:
     """Start ``python -m fbgcomp ARGS`` (the real console entry point) in a new process."""
     full_env = dict(os.environ)
     full_env.update(env or {})
-    return subprocess.Popen([sys.executable, "-m", "fbgcomp", *map(str, args)], env=full_env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, **kw)
+    return subprocess.Popen(
+        [sys.executable, "-m", "fbgcomp", *map(str, args)],
+        env=full_env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        **kw,
+    )
 
 
 def wait_port(port: int, timeout_s: float = 20.0) -> None:
@@ -74,19 +80,19 @@ def wait_port(port: int, timeout_s: float = 20.0) -> None:
     raise TimeoutError(f"nothing listening on 127.0.0.1:{port}")
 
 
-async def secure_client(url: str, state: Path, user: str | None = None,
-                        password: str | None = None):
+async def secure_client(url: str, state: Path, user: str | None = None, password: str | None = None):
     """An asyncua client with its own certificate, Basic256Sha256 SignAndEncrypt."""
-    from asyncua import Client
+    from asyncua import Client, ua
     from asyncua.crypto.security_policies import SecurityPolicyBasic256Sha256
-    from asyncua import ua
 
     client = Client(url, timeout=10)
     client.application_uri = "urn:fbgcomp:test:client"
-    cert, key = await client.setup_self_signed_certificate(state / "client_key.pem",
-                                                           state / "client_cert.der")
-    await client.set_security(SecurityPolicyBasic256Sha256, str(cert), str(key),
-                              mode=ua.MessageSecurityMode.SignAndEncrypt)
+    cert, key = await client.setup_self_signed_certificate(
+        state / "client_key.pem", state / "client_cert.der"
+    )
+    await client.set_security(
+        SecurityPolicyBasic256Sha256, str(cert), str(key), mode=ua.MessageSecurityMode.SignAndEncrypt
+    )
     if user is not None:
         client.set_user(user)
         client.set_password(password)
@@ -102,12 +108,21 @@ def run_in_batches(pipe, time_s, wl, temp, sizes, counts=None) -> dict:
     counts = np.ones(wl.shape, np.int8) if counts is None else counts
     while i < time_s.size:
         j = min(time_s.size, i + sizes[k % len(sizes)])
-        out.append(pipe.process(time_s[i:j], wl[i:j], counts[i:j],
-                                np.zeros_like(counts[i:j]), temp[i:j]))
+        out.append(pipe.process(time_s[i:j], wl[i:j], counts[i:j], np.zeros_like(counts[i:j]), temp[i:j]))
         i, k = j, k + 1
-    return {n: np.concatenate([getattr(r, n) for r in out])
-            for n in ("deviation_um", "half_width_um", "correction_um", "health",
-                      "sensor_status", "model_set", "expected_rms_um", "output_flags")}
+    return {
+        n: np.concatenate([getattr(r, n) for r in out])
+        for n in (
+            "deviation_um",
+            "half_width_um",
+            "correction_um",
+            "health",
+            "sensor_status",
+            "model_set",
+            "expected_rms_um",
+            "output_flags",
+        )
+    }
 
 
 def fallback_peak_um(model_path, campaign_path, lost: str):
@@ -129,14 +144,16 @@ def fallback_peak_um(model_path, campaign_path, lost: str):
     after = aligned.time_s > aligned.time_s[0] + model.zero_window_s
     w, counts[after, j] = w.copy(), 0
     w[after, j] = np.nan
-    free = PipelineConfig(output_filter=OutputFilterConfig(enabled=False), max_slew_um_per_s=0,
-                          max_correction_um=0)
+    free = PipelineConfig(
+        output_filter=OutputFilterConfig(enabled=False), max_slew_um_per_s=0, max_correction_um=0
+    )
     r = run_in_batches(Pipeline(model, free), aligned.time_s, w, t, [1000], counts)
     return np.abs(r["correction_um"][after]).max(axis=0)
 
 
-async def watch_outputs(url: str, state: Path, trust_dir: Path, env: dict, names, timeout_s: float,
-                        stop_when):
+async def watch_outputs(
+    url: str, state: Path, trust_dir: Path, env: dict, names, timeout_s: float, stop_when
+):
     """A real asyncua client (signed and encrypted, user from ``env``) whose certificate is put
     in serve's trust list ``trust_dir``, subscribed to ``FbgComp.<name>`` for each of ``names``
     until ``stop_when(seen)`` or ``timeout_s``; returns ``seen`` = [(name, value, source time s,
@@ -152,11 +169,17 @@ async def watch_outputs(url: str, state: Path, trust_dir: Path, env: dict, names
     class Handler:
         def datachange_notification(self, node, val, data):
             ts = data.monitored_item.Value.SourceTimestamp
-            seen.append((node.nodeid.Identifier[len("FbgComp."):], val,
-                         ts.timestamp() if ts else float("nan"), time.time()))
+            seen.append(
+                (
+                    node.nodeid.Identifier[len("FbgComp.") :],
+                    val,
+                    ts.timestamp() if ts else float("nan"),
+                    time.time(),
+                )
+            )
 
     client = await secure_client(url, state, env["FBGCOMP_OPCUA_USER"], env["FBGCOMP_OPCUA_PASSWORD"])
-    add_certificate(state / "client_cert.der", trust_dir)     # serve trusts known clients only
+    add_certificate(state / "client_cert.der", trust_dir)  # serve trusts known clients only
     async with client:
         sub = await client.create_subscription(0, Handler())
         await sub.subscribe_data_change([client.get_node(ua.NodeId(f"FbgComp.{n}", 2)) for n in names])
@@ -170,11 +193,13 @@ def modbus_serve_config(port: int, offset_rate_um_per_s: float) -> str:
     """serve TOML for the Modbus output tests: fast reconnects, the pipeline's own policy off
     (the model's correction as is), the [modbus] output on 127.0.0.1:``port`` with its offset
     rate limit."""
-    return ("[source]\nbackoff_initial_s = 0.05\nbackoff_max_s = 0.4\nno_data_s = 0.2\n\n"
-            "[pipeline]\nramp_s = 0.5\nmax_slew_um_per_s = 0\nmax_correction_um = [0, 0, 0]\n"
-            "[pipeline.output_filter]\nenabled = false\n\n"
-            f'[modbus]\nlisten = "127.0.0.1:{port}"\nunit_id = 1\n'
-            f"offset_rate_um_per_s = {offset_rate_um_per_s}\nmax_offset_um = 1000\n")
+    return (
+        "[source]\nbackoff_initial_s = 0.05\nbackoff_max_s = 0.4\nno_data_s = 0.2\n\n"
+        "[pipeline]\nramp_s = 0.5\nmax_slew_um_per_s = 0\nmax_correction_um = [0, 0, 0]\n"
+        "[pipeline.output_filter]\nenabled = false\n\n"
+        f'[modbus]\nlisten = "127.0.0.1:{port}"\nunit_id = 1\n'
+        f"offset_rate_um_per_s = {offset_rate_um_per_s}\nmax_offset_um = 1000\n"
+    )
 
 
 @contextmanager
@@ -191,25 +216,42 @@ def serve_with_simulator(tmp: Path, config_toml: str, model_path, campaign, env:
     config.write_text(config_toml)
     sp, cp, op = free_port(), free_port(), free_port()
     url = f"opc.tcp://127.0.0.1:{op}/fbgcomp/"
-    serve = fbgcomp_process("serve", "--config", config, "--model", model_path, "--source",
-                            f"hyperion://127.0.0.1:{sp}?command_port={cp}",
-                            "--temperatures", campaign, "--opcua", url,
-                            "--state-dir", tmp / "state", "--log", tmp / "log", "--rate", 0,
-                            env=env)
+    serve = fbgcomp_process(
+        "serve",
+        "--config",
+        config,
+        "--model",
+        model_path,
+        "--source",
+        f"hyperion://127.0.0.1:{sp}?command_port={cp}",
+        "--temperatures",
+        campaign,
+        "--opcua",
+        url,
+        "--state-dir",
+        tmp / "state",
+        "--log",
+        tmp / "log",
+        "--rate",
+        0,
+        env=env,
+    )
     sim = None
     try:
         try:
             wait_port(op, 40)
         except TimeoutError:
             serve.kill()
-            raise AssertionError(serve.communicate(timeout=5)[1].decode()[-3000:])
+            raise AssertionError(serve.communicate(timeout=5)[1].decode()[-3000:]) from None
         # the instrument comes up after the service: the source's back-off finds it
-        sim = fbgcomp_process("sim-interrogator", campaign, "--port", sp, "--command-port", cp,
-                              *sim_args)
+        sim = fbgcomp_process("sim-interrogator", campaign, "--port", sp, "--command-port", cp, *sim_args)
 
         def watch(names, timeout_s, stop_when):
-            return asyncio.run(watch_outputs(url, tmp / "client", tmp / "state" / "opcua" / "trusted",
-                                             env, names, timeout_s, stop_when))
+            return asyncio.run(
+                watch_outputs(
+                    url, tmp / "client", tmp / "state" / "opcua" / "trusted", env, names, timeout_s, stop_when
+                )
+            )
 
         yield SimpleNamespace(url=url, serve=serve, sim=sim, watch=watch)
     finally:

@@ -23,21 +23,30 @@ def _certificate(days=365, uri="urn:test:plc", cn="plc-7"):
 
     key = ec.generate_private_key(ec.SECP256R1())
     name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, cn)])
-    now = dt.datetime.now(dt.timezone.utc)
+    now = dt.datetime.now(dt.UTC)
     start = now - dt.timedelta(days=2 * abs(days)) if days < 0 else now - dt.timedelta(minutes=5)
-    cert = (x509.CertificateBuilder().subject_name(name).issuer_name(name)
-            .public_key(key.public_key()).serial_number(x509.random_serial_number())
-            .not_valid_before(start).not_valid_after(now + dt.timedelta(days=days))
-            .add_extension(x509.SubjectAlternativeName([x509.UniformResourceIdentifier(uri)]),
-                           critical=False)
-            .sign(key, hashes.SHA256()))
-    return (cert, cert.public_bytes(serialization.Encoding.DER),
-            cert.public_bytes(serialization.Encoding.PEM))
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(name)
+        .issuer_name(name)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(start)
+        .not_valid_after(now + dt.timedelta(days=days))
+        .add_extension(x509.SubjectAlternativeName([x509.UniformResourceIdentifier(uri)]), critical=False)
+        .sign(key, hashes.SHA256())
+    )
+    return (
+        cert,
+        cert.public_bytes(serialization.Encoding.DER),
+        cert.public_bytes(serialization.Encoding.PEM),
+    )
 
 
 def _fbgcomp(*args):
-    p = subprocess.run([sys.executable, "-m", "fbgcomp", *map(str, args)], capture_output=True,
-                       text=True, timeout=120)
+    p = subprocess.run(
+        [sys.executable, "-m", "fbgcomp", *map(str, args)], capture_output=True, text=True, timeout=120
+    )
     return p.returncode, p.stdout, p.stderr
 
 
@@ -52,28 +61,31 @@ def test_trust_add_takes_pem_or_der_writes_der_and_is_idempotent(tmp_path):
     (tmp_path / "plc.pem").write_bytes(pem)
     (tmp_path / "plc.der").write_bytes(der)
     trusted = tmp_path / "state" / "opcua" / "trusted"
-    code, out, err = _fbgcomp("trust", "add", tmp_path / "plc.pem", "--state-dir",
-                              tmp_path / "state")
+    code, out, err = _fbgcomp("trust", "add", tmp_path / "plc.pem", "--state-dir", tmp_path / "state")
     assert code == 0, err
     assert out.startswith("trusted: ") and "CN=plc-7" in out and "urn:test:plc" in out
     files = sorted(trusted.iterdir())
     assert len(files) == 1 and files[0].suffix == ".der" and files[0].read_bytes() == der
     code, out, _ = _fbgcomp("trust", "add", tmp_path / "plc.der", "--dir", trusted)
     assert code == 0 and out.startswith("already trusted: ")
-    assert sorted(trusted.iterdir()) == files          # nothing written, no temporary left
+    assert sorted(trusted.iterdir()) == files  # nothing written, no temporary left
     code, out, _ = _fbgcomp("trust", "list", "--dir", trusted)
     assert code == 0 and "(1 certificate(s))" in out and "CN=plc-7" in out
 
 
-@pytest.mark.parametrize("content, fragment", [
-    (b"-----BEGIN CERTIFICATE-----\nnot base64\n-----END CERTIFICATE-----\n", "not an X.509"),
-    (b"\x30\x82\x01\x00" + os.urandom(300), "not an X.509"),
-    (b"", "not an X.509"),
-    (b"x" * (65 * 1024), "not a certificate"),
-    ("two", "holds 2 certificates"),
-    ("expired", "expired on"),
-    ("key-only", "holds 0 certificates"),
-], ids=["bad-pem", "bad-der", "empty", "huge", "two-certs", "expired", "key-only"])
+@pytest.mark.parametrize(
+    "content, fragment",
+    [
+        (b"-----BEGIN CERTIFICATE-----\nnot base64\n-----END CERTIFICATE-----\n", "not an X.509"),
+        (b"\x30\x82\x01\x00" + os.urandom(300), "not an X.509"),
+        (b"", "not an X.509"),
+        (b"x" * (65 * 1024), "not a certificate"),
+        ("two", "holds 2 certificates"),
+        ("expired", "expired on"),
+        ("key-only", "holds 0 certificates"),
+    ],
+    ids=["bad-pem", "bad-der", "empty", "huge", "two-certs", "expired", "key-only"],
+)
 def test_trust_add_refuses_what_is_not_one_valid_certificate(tmp_path, content, fragment):
     if content == "two":
         content = _certificate()[2] + _certificate(cn="other")[2]
@@ -84,9 +96,9 @@ def test_trust_add_refuses_what_is_not_one_valid_certificate(tmp_path, content, 
     cert = tmp_path / "client.der"
     cert.write_bytes(content)
     trusted = tmp_path / "trusted"
-    code, out, err = _fbgcomp("trust", "add", cert, "--dir", trusted)
+    code, _out, err = _fbgcomp("trust", "add", cert, "--dir", trusted)
     _one_line_error(code, err, fragment)
-    assert "client.der" in err                     # the file is named
+    assert "client.der" in err  # the file is named
     assert not trusted.exists() or not any(trusted.iterdir())
 
 
@@ -100,8 +112,17 @@ def test_trust_add_errors_name_the_file_or_folder(tmp_path):
 
 
 def test_serve_refuses_a_missing_models_folder(tmp_path):
-    code, _, err = _fbgcomp("serve", "--model", "m.json", "--source", "replay://x",
-                            "--models-dir", tmp_path / "no-such-folder", "--opcua", "off")
+    code, _, err = _fbgcomp(
+        "serve",
+        "--model",
+        "m.json",
+        "--source",
+        "replay://x",
+        "--models-dir",
+        tmp_path / "no-such-folder",
+        "--opcua",
+        "off",
+    )
     _one_line_error(code, err, "no-such-folder")
 
 
@@ -119,8 +140,24 @@ def models(tmp_path_factory):
     return folder
 
 
-_piece = st.sampled_from(["a.json", "sub", "b.json", "..", ".", "out.json", "up",
-                          "outside.json", "inner.json", "", "/", "etc", "passwd", "~"])
+_piece = st.sampled_from(
+    [
+        "a.json",
+        "sub",
+        "b.json",
+        "..",
+        ".",
+        "out.json",
+        "up",
+        "outside.json",
+        "inner.json",
+        "",
+        "/",
+        "etc",
+        "passwd",
+        "~",
+    ]
+)
 
 
 @settings(max_examples=300, deadline=None)

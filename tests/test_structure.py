@@ -30,8 +30,10 @@ def fe():
     from fbgcomp.structure import Twin, elastic
     from fbgcomp.structure.fe import Factorised, layer_order
     from fbgcomp.structure.mesh import build_mesh
-    return SimpleNamespace(Twin=Twin, elastic=elastic, Factorised=Factorised,
-                           layer_order=layer_order, build_mesh=build_mesh)
+
+    return SimpleNamespace(
+        Twin=Twin, elastic=elastic, Factorised=Factorised, layer_order=layer_order, build_mesh=build_mesh
+    )
 
 
 @pytest.fixture(scope="module")
@@ -40,10 +42,15 @@ def twin(machine, fe):
 
 
 def _box(fe, machine, length_mm, resolution):
-    return fe.build_mesh(half_width_mm=machine.ram.outer_width_mm / 2,
-                      half_depth_mm=machine.ram.outer_depth_mm / 2, wall_mm=machine.ram.wall_mm,
-                      length_mm=length_mm, n_wall=max(1, round(3 * resolution)),
-                      n_span=round(10 * resolution), dz_mm=20 / resolution)
+    return fe.build_mesh(
+        half_width_mm=machine.ram.outer_width_mm / 2,
+        half_depth_mm=machine.ram.outer_depth_mm / 2,
+        wall_mm=machine.ram.wall_mm,
+        length_mm=length_mm,
+        n_wall=max(1, round(3 * resolution)),
+        n_span=round(10 * resolution),
+        dz_mm=20 / resolution,
+    )
 
 
 # ------------------------------------------------------------------------------------- machine
@@ -69,17 +76,24 @@ def _assert_names_file_and_field(tmp_path, source_yaml, edit, field):
     assert "\n" not in str(err.value)
 
 
-@pytest.mark.parametrize("edit, field", [
-    (lambda d: d["sensors"][2].__setitem__("lambda0_nm", -1530), "field sensors[2].lambda0_nm"),
-    (lambda d: d["sensors"][1].__setitem__("temperature_probe", "T_nowhere"),
-     "field sensors[1].temperature_probe"),
-    (lambda d: d["materials"]["cfrp"].pop("E_L_GPa"), "field materials.cfrp.E_L_GPa"),
-    (lambda d: d["ram"].__setitem__("wal_mm", 20), "field ram.wal_mm"),
-    (lambda d: d["probes"][0].__setitem__("y_mm", 0.0), "field probes[0]"),
-    (lambda d: d["sensors"][4].__setitem__("z_end_mm", 1500.0), "field sensors[4].z_end_mm"),
-    (lambda d: d["supports"]["carriages"][1].__setitem__("z_mm", 1300.0),
-     "field supports.carriages[1].z_mm"),
-])
+@pytest.mark.parametrize(
+    "edit, field",
+    [
+        (lambda d: d["sensors"][2].__setitem__("lambda0_nm", -1530), "field sensors[2].lambda0_nm"),
+        (
+            lambda d: d["sensors"][1].__setitem__("temperature_probe", "T_nowhere"),
+            "field sensors[1].temperature_probe",
+        ),
+        (lambda d: d["materials"]["cfrp"].pop("E_L_GPa"), "field materials.cfrp.E_L_GPa"),
+        (lambda d: d["ram"].__setitem__("wal_mm", 20), "field ram.wal_mm"),
+        (lambda d: d["probes"][0].__setitem__("y_mm", 0.0), "field probes[0]"),
+        (lambda d: d["sensors"][4].__setitem__("z_end_mm", 1500.0), "field sensors[4].z_end_mm"),
+        (
+            lambda d: d["supports"]["carriages"][1].__setitem__("z_mm", 1300.0),
+            "field supports.carriages[1].z_mm",
+        ),
+    ],
+)
 def test_yaml_errors_name_the_file_and_field(tmp_path, edit, field):
     _assert_names_file_and_field(tmp_path, DEFAULT_YAML, edit, field)
 
@@ -99,10 +113,11 @@ def test_cantilever_box_tip_force_matches_timoshenko(machine, fe):
     vb, _, K, _ = fe.elastic.assemble_elasticity(rm, machine.materials.cfrp, machine.materials.steel)
     tip = fe.elastic.rigid_extension_rows(vb, rm.end_facets(L))
     from skfem import condense
+
     clamped = vb.get_dofs(lambda x: np.abs(x[2]) < 1e-6).all()
     Kc, fc, _, free = condense(K, tip[0] * F, D=clamped)
     u = np.zeros(vb.N)
-    rank = np.argsort(fe.layer_order(rm.mesh.p, vb.nodal_dofs))     # position of each DOF in layers
+    rank = np.argsort(fe.layer_order(rm.mesh.p, vb.nodal_dofs))  # position of each DOF in layers
     u[free] = fe.Factorised(Kc, order=np.argsort(rank[free])).solve(fc)
     fe_um = 1e3 * tip[0] @ u
     assert fe_um == pytest.approx(_timoshenko_box_um(machine, L, F), rel=0.03)
@@ -111,13 +126,13 @@ def test_cantilever_box_tip_force_matches_timoshenko(machine, fe):
 def _timoshenko_box_um(machine, L, F):
     """Tip deflection (µm) of the default box as a Timoshenko cantilever (bending + shear)."""
     a, b, t = 125.0, 105.0, 20.0
-    I = ((2 * a) ** 4 - (2 * b) ** 4) / 12
+    I = ((2 * a) ** 4 - (2 * b) ** 4) / 12  # noqa: E741 - the second moment of area, as written in mechanics
     E_L, G = 1e3 * machine.materials.cfrp.E_L_GPa, 1e3 * machine.materials.cfrp.G_LT_GPa
     bending = F * L**3 / (3 * E_L * I)
     # Shear compliance from the thin-walled shear flow q(s) on the wall centreline (c = 115 mm).
     c = (a + b) / 2
     s = np.linspace(0, c, 4001)
-    q_flange = t * c * s / I                       # per unit shear force
+    q_flange = t * c * s / I  # per unit shear force
     x = np.linspace(-c, c, 8001)
     q_web = q_flange[-1] + t * (c**2 - x**2) / (2 * I)
     shear = F * L * (4 * np.trapezoid(q_flange**2, s) + 2 * np.trapezoid(q_web**2, x)) / (G * t)
@@ -129,8 +144,9 @@ def test_uniform_heating_grows_the_ttp_by_sum_of_cte_times_length(twin, machine)
     dT = 10.0
     r = twin.static_temperature_response("uniform", dT)
     cf, st = machine.materials.cfrp, machine.materials.steel
-    expected_dz_um = -1e3 * dT * (cf.cte_L_per_K * machine.supports.nut.z_mm
-                                  + st.cte_per_K * machine.housing.height_mm)
+    expected_dz_um = (
+        -1e3 * dT * (cf.cte_L_per_K * machine.supports.nut.z_mm + st.cte_per_K * machine.housing.height_mm)
+    )
     assert r.ttp_um[2] == pytest.approx(expected_dz_um, rel=0.01)
     assert np.abs(r.ttp_um[:2]).max() < 1e-3 * abs(expected_dz_um)
     assert r.sensor_temperature_C == pytest.approx(np.full(5, dT))
@@ -155,14 +171,16 @@ def test_linear_temperature_across_box_bends_it_with_curvature_cte_dT_over_h(mac
     at0 = fe.elastic.rigid_extension_rows(vb, root)
     at100 = fe.elastic.rigid_extension_rows(vb, root, lever_mm=100.0)
     first = rm.zs_mm[1]
-    twist = (fe.elastic.facet_mean_rows(vb, rm.face_facets("+X", 0.0, first))[1]
-             - fe.elastic.facet_mean_rows(vb, rm.face_facets("-X", 0.0, first))[1])
+    twist = (
+        fe.elastic.facet_mean_rows(vb, rm.face_facets("+X", 0.0, first))[1]
+        - fe.elastic.facet_mean_rows(vb, rm.face_facets("-X", 0.0, first))[1]
+    )
     rows = np.vstack([at0, at100[:2] - at0[:2], twist])
     K = K + fe.elastic.spring_matrix(rows, 1e9)
     theta = dT * rm.mesh.p[0] / (2 * rm.half_width_mm)
     u = fe.Factorised(K, order=fe.layer_order(rm.mesh.p, vb.nodal_dofs)).solve(Th @ theta)
     tip_um = 1e3 * fe.elastic.rigid_extension_rows(vb, rm.end_facets(L))[0] @ u
-    kappa = -cf.cte_L_per_K * dT / (2 * rm.half_width_mm)   # hotter +X side grows: bends to -X
+    kappa = -cf.cte_L_per_K * dT / (2 * rm.half_width_mm)  # hotter +X side grows: bends to -X
     assert tip_um == pytest.approx(1e3 * kappa * L**2 / 2, rel=0.05)
 
 
@@ -175,7 +193,7 @@ def test_supports_remove_every_rigid_body_mode(twin):
         m = np.zeros(vb.N)
         m[vb.nodal_dofs[axis]] = 1.0
         modes.append(m)
-    for axis in range(3):               # small rotations: u = e_axis x r
+    for axis in range(3):  # small rotations: u = e_axis x r
         m = np.zeros(vb.N)
         i, j = (axis + 1) % 3, (axis + 2) % 3
         m[vb.nodal_dofs[j]] = p[i]
@@ -188,7 +206,7 @@ def test_supports_remove_every_rigid_body_mode(twin):
 
 def test_static_tip_compliance_is_symmetric_positive_and_linear(twin):
     C = twin.influence.ttp_per_force_um_per_N
-    assert np.allclose(C, C.T, atol=1e-9 * np.abs(C).max())          # Maxwell-Betti
+    assert np.allclose(C, C.T, atol=1e-9 * np.abs(C).max())  # Maxwell-Betti
     assert np.all(np.linalg.eigvalsh(0.5 * (C + C.T)) > 0)
     F = np.array([[1000.0, 0, 0], [0, 2000.0, 0], [1000.0, 2000.0, -500.0]])
     r = twin.static(F)
@@ -209,7 +227,7 @@ def test_reduced_thermal_integrator_matches_implicit_euler(twin):
     for name in ("sensor_elongation_um", "sensor_temperature_C", "probe_C", "ttp_um"):
         a, b = getattr(red, name), getattr(ref, name)
         span = np.ptp(b, axis=0)
-        live = span > 1e-6 * np.abs(b).max()        # outputs that move at all in this window
+        live = span > 1e-6 * np.abs(b).max()  # outputs that move at all in this window
         assert live.any()
         err = np.abs(a - b).max(axis=0)[live] / span[live]
         assert err.max() < 0.01, (name, err)
@@ -235,7 +253,7 @@ def test_z_axis_position_moves_the_carriages_and_the_lever_arm(machine, fe):
     c_low = low.influence.ttp_per_force_um_per_N
     c_raised = raised.influence.ttp_per_force_um_per_N
     assert c_raised[0, 0] < 0.8 * c_low[0, 0]
-    assert c_raised[2, 2] == pytest.approx(c_low[2, 2], rel=0.02)   # the nut travels with the ram
+    assert c_raised[2, 2] == pytest.approx(c_low[2, 2], rel=0.02)  # the nut travels with the ram
     with pytest.raises(InputError, match="off the ram"):
         fe.Twin(machine, resolution=0.4, z_axis_mm=1000.0)
 
@@ -264,10 +282,11 @@ def ram2():
 
 
 def test_example_machines_load(ram2):
-    assert (Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram.yaml").resolve() \
-        == DEFAULT_YAML
+    assert (
+        Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram.yaml"
+    ).resolve() == DEFAULT_YAML
     assert [r.face for r in ram2.supports.rails] == ["-Y", "-Y"]
-    assert [c.z_mm for c in ram2.supports.carriages] == [1000.0, 1350.0]     # patch centres
+    assert [c.z_mm for c in ram2.supports.carriages] == [1000.0, 1350.0]  # patch centres
     assert ram2.supports.station_ranges_mm() == [(950.0, 1050.0), (1300.0, 1400.0)]
     assert ram2.ttp_z_mm == pytest.approx(-300.0)
     assert [s.gauge_length for s in ram2.sensors] == [600.0] * 4 + [500.0] * 2
@@ -282,41 +301,62 @@ def test_built_in_ram_keeps_its_legacy_inputs(machine):
     assert machine.thermal.film_W_per_m2K("cavity") == machine.thermal.film_inner_W_per_m2K
 
 
-@pytest.mark.parametrize("edit, field", [
-    (lambda d: d["supports"]["rails"][0].__setitem__("across_mm", [-170.0, -105.0]),
-     "field supports.rails[0].across_mm"),
-    (lambda d: d["supports"]["rails"][0].__setitem__("across_mm", [-105.0, -150.0]),
-     "field supports.rails[0].across_mm"),
-    (lambda d: d["supports"]["rails"][0].__setitem__("locating", False), "field supports.rails"),
-    (lambda d: d["supports"]["rails"][1].__setitem__("face", "+Z"), "field supports.rails[1].face"),
-    (lambda d: d["supports"]["carriages"][1].__setitem__("z_range_mm", [1300.0, 1450.0]),
-     "field supports.carriages[1].z_mm"),
-    (lambda d: d["supports"]["carriages"].pop(), "field supports.carriages"),
-    (lambda d: d["supports"].__setitem__("carriage_stiffness_N_per_um", "stiff"),
-     "field supports.carriage_stiffness_N_per_um"),
-    (lambda d: d["supports"]["nut"].__setitem__("constraint", "ring"), "field supports.nut.constraint"),
-    (lambda d: d["thermal"]["films_W_per_m2K"].pop("cavity"), "field thermal.films_W_per_m2K.cavity"),
-    (lambda d: d["thermal"]["films_W_per_m2K"].__setitem__("roof", 3.0),
-     "field thermal.films_W_per_m2K.roof.[key]"),
-    (lambda d: d["thermal"]["heat_sources"][1].pop("face"), "field thermal.heat_sources[1]"),
-    (lambda d: d["thermal"]["heat_sources"][0].__setitem__("x_mm", [400.0, 500.0]),
-     "field thermal.heat_sources[0]"),
-    (lambda d: d["thermal"]["heat_sources"][1].__setitem__("name", "spindle_heat"),
-     "field thermal.heat_sources[1].name"),
-    (lambda d: d["tool"].__setitem__("nose_patch_mm", [400.0, 135.0]), "field tool.nose_patch_mm"),
-    (lambda d: d["mesh"].__setitem__("element", "hex20"), "field mesh.element"),
-])
+@pytest.mark.parametrize(
+    "edit, field",
+    [
+        (
+            lambda d: d["supports"]["rails"][0].__setitem__("across_mm", [-170.0, -105.0]),
+            "field supports.rails[0].across_mm",
+        ),
+        (
+            lambda d: d["supports"]["rails"][0].__setitem__("across_mm", [-105.0, -150.0]),
+            "field supports.rails[0].across_mm",
+        ),
+        (lambda d: d["supports"]["rails"][0].__setitem__("locating", False), "field supports.rails"),
+        (lambda d: d["supports"]["rails"][1].__setitem__("face", "+Z"), "field supports.rails[1].face"),
+        (
+            lambda d: d["supports"]["carriages"][1].__setitem__("z_range_mm", [1300.0, 1450.0]),
+            "field supports.carriages[1].z_mm",
+        ),
+        (lambda d: d["supports"]["carriages"].pop(), "field supports.carriages"),
+        (
+            lambda d: d["supports"].__setitem__("carriage_stiffness_N_per_um", "stiff"),
+            "field supports.carriage_stiffness_N_per_um",
+        ),
+        (lambda d: d["supports"]["nut"].__setitem__("constraint", "ring"), "field supports.nut.constraint"),
+        (lambda d: d["thermal"]["films_W_per_m2K"].pop("cavity"), "field thermal.films_W_per_m2K.cavity"),
+        (
+            lambda d: d["thermal"]["films_W_per_m2K"].__setitem__("roof", 3.0),
+            "field thermal.films_W_per_m2K.roof.[key]",
+        ),
+        (lambda d: d["thermal"]["heat_sources"][1].pop("face"), "field thermal.heat_sources[1]"),
+        (
+            lambda d: d["thermal"]["heat_sources"][0].__setitem__("x_mm", [400.0, 500.0]),
+            "field thermal.heat_sources[0]",
+        ),
+        (
+            lambda d: d["thermal"]["heat_sources"][1].__setitem__("name", "spindle_heat"),
+            "field thermal.heat_sources[1].name",
+        ),
+        (lambda d: d["tool"].__setitem__("nose_patch_mm", [400.0, 135.0]), "field tool.nose_patch_mm"),
+        (lambda d: d["mesh"].__setitem__("element", "hex20"), "field mesh.element"),
+    ],
+)
 def test_generalised_schema_names_the_bad_field(tmp_path, edit, field):
     _assert_names_file_and_field(tmp_path, RAM2_YAML, edit, field)
 
 
 def test_rails_on_adjacent_faces_and_more_stations_are_valid(ram2):
     d = ram2.model_dump(mode="json")
-    d["supports"]["rails"] = [{"face": "-Y", "across_mm": [-150, -105]},
-                              {"face": "-X", "across_mm": [-150, 150]}]
-    d["supports"]["carriages"] = [{"name": f"c{i}", "z_range_mm": [z, z + 50]}
-                                  for i, z in enumerate((700.0, 1000.0, 1300.0))]
+    d["supports"]["rails"] = [
+        {"face": "-Y", "across_mm": [-150, -105]},
+        {"face": "-X", "across_mm": [-150, 150]},
+    ]
+    d["supports"]["carriages"] = [
+        {"name": f"c{i}", "z_range_mm": [z, z + 50]} for i, z in enumerate((700.0, 1000.0, 1300.0))
+    ]
     from fbgcomp.structure import parse_machine
+
     m = parse_machine(d)
     assert len(m.supports.station_ranges_mm()) == 3
 
@@ -354,7 +394,7 @@ def test_uniform_warming_moves_ram2_away_from_its_reference_face_and_locating_ra
     assert dy > 0 and dx > 0
     # The axis is half a depth from the reference face: it moves by about cte_T dT 150 mm.
     assert dy == pytest.approx(1e3 * cte_T * dT * 150.0, rel=0.05)
-    assert dx == pytest.approx(1e3 * cte_T * dT * 127.5, rel=0.15)   # strip centre 127.5 mm off axis
+    assert dx == pytest.approx(1e3 * cte_T * dT * 127.5, rel=0.15)  # strip centre 127.5 mm off axis
     cf, st = ram2.materials.cfrp, ram2.materials.steel
     assert dz == pytest.approx(-1e3 * dT * (cf.cte_L_per_K * 1400 + st.cte_per_K * 180), rel=0.01)
 
@@ -365,8 +405,9 @@ def test_heat_sources_drive_the_twin_by_name_or_legacy_argument(ram2_twin):
     spindle = np.where(t > 300, 120.0, 0.0)
     radiant = np.where(t > 900, 90.0, 0.0)
     a = ram2_twin.thermal(t, 22.0, spindle, radiant, initial_C=22.0)
-    b = ram2_twin.thermal(t, 22.0, initial_C=22.0,
-                          heat={"spindle_heat": spindle, "radiant_W_per_m2": radiant})
+    b = ram2_twin.thermal(
+        t, 22.0, initial_C=22.0, heat={"spindle_heat": spindle, "radiant_W_per_m2": radiant}
+    )
     assert np.array_equal(a.ttp_um, b.ttp_um)
     assert ram2_twin.input_names == ("ambient_C", "spindle_heat_W", "radiant_W_per_m2")
     # Spindle heat warms the housing's -X face probe; the radiant load only the +X side of the box.
@@ -382,12 +423,13 @@ def test_films_per_surface_reproduce_the_outer_inner_pair(machine, fe):
     """Listing every surface with the legacy outer/inner values assembles the same model."""
     from fbgcomp.structure import parse_machine, thermal
     from fbgcomp.structure.mesh import machine_mesh
+
     th = machine.thermal
     d = machine.model_dump(mode="json")
-    d["thermal"]["films_W_per_m2K"] = {s: (th.film_inner_W_per_m2K if s == "cavity"
-                                           else th.film_outer_W_per_m2K) for s in
-                                       ("+X", "-X", "+Y", "-Y", "cavity", "top", "housing_sides",
-                                        "housing_bottom")}
+    d["thermal"]["films_W_per_m2K"] = {
+        s: (th.film_inner_W_per_m2K if s == "cavity" else th.film_outer_W_per_m2K)
+        for s in ("+X", "-X", "+Y", "-Y", "cavity", "top", "housing_sides", "housing_bottom")
+    }
     d["thermal"]["films_W_per_m2K"]["-Y"] = 2 * th.film_outer_W_per_m2K
     rm = machine_mesh(machine, 0.4)
     K0, _, B0 = thermal.assemble_thermal(rm, machine)
@@ -403,12 +445,14 @@ def test_films_per_surface_reproduce_the_outer_inner_pair(machine, fe):
 def test_incompatible_modes_remove_the_bending_lock_of_the_coarse_cantilever(machine, fe):
     """Same coarse mesh: plain hex8 is too stiff in bending + shear, hex8i within 2 %."""
     from skfem import condense
+
     L, F = 2400.0, 1000.0
     rm = _box(fe, machine, L, 0.4)
     tips = {}
     for incompatible in (False, True):
-        vb, _, K, _ = fe.elastic.assemble_box_elasticity(rm, machine.materials.cfrp,
-                                                         machine.materials.steel, incompatible)
+        vb, _, K, _ = fe.elastic.assemble_box_elasticity(
+            rm, machine.materials.cfrp, machine.materials.steel, incompatible
+        )
         tip = fe.elastic.rigid_extension_rows(vb, rm.end_facets(L))
         clamped = vb.get_dofs(lambda x: np.abs(x[2]) < 1e-6).all()
         Kc, fc, _, free = condense(K, tip[0] * F, D=clamped)
@@ -425,11 +469,12 @@ def test_closed_form_box_assembly_matches_the_skfem_forms(machine, fe):
     """The vectorised hex8 assembly (closed-form box elements) equals scikit-fem's weak forms to
     round-off, on the housing + ram mesh (both materials), numbered the same."""
     from fbgcomp.structure.mesh import machine_mesh
+
     rm = machine_mesh(machine, 0.4)
     mats = machine.materials
     vb1, _, K1, T1 = fe.elastic.assemble_elasticity_forms(rm, mats.cfrp, mats.steel)
     vb2, _, K2, T2 = fe.elastic.assemble_elasticity(rm, mats.cfrp, mats.steel)
-    assert fe.elastic._box_geometry(rm.mesh.p, rm.mesh.t)[0] is not None   # the fast path ran
+    assert fe.elastic._box_geometry(rm.mesh.p, rm.mesh.t)[0] is not None  # the fast path ran
     assert np.array_equal(vb1.nodal_dofs, vb2.nodal_dofs)
     assert K1.shape == K2.shape and T1.shape == T2.shape
     assert abs(K1 - K2).max() <= 1e-13 * abs(K1).max()
@@ -457,5 +502,6 @@ def test_block_tridiagonal_factor_solves_like_the_banded_one(twin, fe):
         assert np.abs(K @ x - rhs).max() <= 1e-9 * np.abs(rhs).max()
     # a matrix without block structure beyond its band keeps the banded factor
     import scipy.sparse as sp
+
     T = sp.diags([-np.ones(99), 4 * np.ones(100), -np.ones(99)], [-1, 0, 1]).tocsr()
     assert fe.Factorised(T, blocked=True).backend.startswith("banded")

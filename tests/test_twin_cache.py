@@ -22,6 +22,7 @@ DEFAULT_YAML = Path(__file__).resolve().parents[1] / "src" / "fbgcomp" / "data" 
 def Twin():
     fbgcomp_testing.require("skfem")
     from fbgcomp.structure import Twin
+
     return Twin
 
 
@@ -49,20 +50,30 @@ def _responses(twin):
     paths = twin.path_influence(twin.machine.sensors[:2])
     elong, temp = twin.thermal_paths(paths, t, ambient, spindle)
     inf = twin.influence
-    return [twin.static([[100.0, -50.0, 20.0], [0.0, 1.0, 0.0]]).ttp_um,
-            twin.static(np.eye(3)).sensor_elongation_um,
-            th.sensor_elongation_um, th.ttp_um, th.probe_C, th.sensor_temperature_C,
-            *twin.static_temperature_response("gradient_x", 2.0),
-            paths.per_force_um_per_N, paths.per_temperature_um_per_K, elong, temp,
-            inf.elastic_per_temperature, inf.steady_per_input, inf.sensor_per_force_um_per_N,
-            twin._elastic.solve(twin._R[-1])]
+    return [
+        twin.static([[100.0, -50.0, 20.0], [0.0, 1.0, 0.0]]).ttp_um,
+        twin.static(np.eye(3)).sensor_elongation_um,
+        th.sensor_elongation_um,
+        th.ttp_um,
+        th.probe_C,
+        th.sensor_temperature_C,
+        *twin.static_temperature_response("gradient_x", 2.0),
+        paths.per_force_um_per_N,
+        paths.per_temperature_um_per_K,
+        elong,
+        temp,
+        inf.elastic_per_temperature,
+        inf.steady_per_input,
+        inf.sensor_per_force_um_per_N,
+        twin._elastic.solve(twin._R[-1]),
+    ]
 
 
 def _assert_identical(a, b):
     assert len(a) == len(b)
     for x, y in zip(a, b):
         assert np.asarray(x).shape == np.asarray(y).shape
-        assert np.array_equal(x, y)          # bit for bit, not approximately
+        assert np.array_equal(x, y)  # bit for bit, not approximately
 
 
 @pytest.mark.slow
@@ -72,7 +83,7 @@ def test_cold_build_writes_one_entry_and_the_warm_load_is_bit_identical(Twin, ma
     entries = _entries(cache_dir)
     assert len(entries) == 1 and entries[0].name.endswith(".twin")
     assert cold.times.cache_path == str(entries[0])
-    assert not list(cache_dir.glob(".*"))                      # no temporary file left over
+    assert not list(cache_dir.glob(".*"))  # no temporary file left over
     warm = Twin(machine, resolution=RES)
     assert warm.times.from_cache and warm.times.assemble_s == 0.0
     assert set(warm.times.extra["cold_build_s"]) >= {"assemble_s", "elastic_factor_s"}
@@ -86,7 +97,7 @@ def test_key_follows_the_machine_content_not_its_file(tmp_path, machine):
     data = yaml.safe_load(DEFAULT_YAML.read_text())
     same = tmp_path / "elsewhere" / "same.yaml"
     same.parent.mkdir()
-    same.write_text(yaml.safe_dump(data, sort_keys=True, indent=4))   # other path and layout
+    same.write_text(yaml.safe_dump(data, sort_keys=True, indent=4))  # other path and layout
     key = twin_cache.twin_key(machine, RES, 12)
     assert twin_cache.twin_key(load_machine(same), RES, 12) == key
     data["materials"]["cfrp"]["E_L_GPa"] = 121.0
@@ -111,6 +122,7 @@ def good_entry(machine, tmp_path_factory):
     """(file name, bytes) of a complete entry of the RES twin, and that twin's responses."""
     fbgcomp_testing.require("skfem")
     from fbgcomp.structure import Twin
+
     folder = tmp_path_factory.mktemp("good-entry")
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("FBGCOMP_CACHE_DIR", str(folder))
@@ -125,21 +137,21 @@ def test_a_bad_entry_is_rebuilt_never_used(Twin, machine, cache_dir, good_entry,
     cache_dir.mkdir(parents=True)
     entry = cache_dir / name
     if damage == "truncate":
-        entry.write_bytes(data[:len(data) // 2])
+        entry.write_bytes(data[: len(data) // 2])
     elif damage == "flip":
         i = len(data) * 2 // 3
-        entry.write_bytes(data[:i] + bytes([data[i] ^ 0x01]) + data[i + 1:])
+        entry.write_bytes(data[:i] + bytes([data[i] ^ 0x01]) + data[i + 1 :])
     elif damage == "garbage":
         entry.write_bytes(b"PK\x03\x04" + bytes(1000))
     elif damage == "empty":
         entry.write_bytes(b"")
-    else:      # a complete, valid entry of another twin under this twin's name
+    else:  # a complete, valid entry of another twin under this twin's name
         entry.write_bytes(twin_cache.dumps("0" * 64, {"K": np.eye(2)}))
     again = Twin(machine, resolution=RES)
     assert not again.times.from_cache
     _assert_identical(reference, _responses(again))
-    assert len(entry.read_bytes()) == len(data)                # rewritten, complete (times differ)
-    assert twin_cache.load(name[:-len(".twin")], Twin._ARRAYS) is not None
+    assert len(entry.read_bytes()) == len(data)  # rewritten, complete (times differ)
+    assert twin_cache.load(name[: -len(".twin")], Twin._ARRAYS) is not None
 
 
 def test_the_good_entry_itself_loads(Twin, machine, cache_dir, good_entry):
@@ -178,8 +190,7 @@ def test_cache_false_reads_and_writes_nothing(Twin, machine, cache_dir):
 
 def test_default_folder_is_the_users_cache_dir(tmp_path, monkeypatch):
     monkeypatch.delenv("FBGCOMP_CACHE_DIR", raising=False)
-    monkeypatch.setattr("platformdirs.user_cache_dir",
-                        lambda name, *a, **k: str(tmp_path / "user" / name))
+    monkeypatch.setattr("platformdirs.user_cache_dir", lambda name, *a, **k: str(tmp_path / "user" / name))
     assert twin_cache.cache_dir() == tmp_path / "user" / "fbgcomp" / "twin"
 
 
@@ -202,7 +213,7 @@ def test_concurrent_writers_and_readers_see_whole_entries_only(cache_dir):
         try:
             for _ in range(5):
                 twin_cache.store(key, arrays)
-        except Exception as err:      # pragma: no cover - the assertion below reports it
+        except Exception as err:  # pragma: no cover - the assertion below reports it
             errors.append(err)
 
     def read():
@@ -217,16 +228,17 @@ def test_concurrent_writers_and_readers_see_whole_entries_only(cache_dir):
     for t in threads:
         t.join()
     assert not errors and all(seen)
-    assert [p.name for p in cache_dir.iterdir()] == [f"{key}.twin"]   # no temporary file left
+    assert [p.name for p in cache_dir.iterdir()] == [f"{key}.twin"]  # no temporary file left
     assert twin_cache.load(key, required=("a",)) is not None
 
 
 def test_old_entries_are_pruned_to_the_most_recently_used(cache_dir):
     import os
+
     keys = [f"{i:064x}" for i in range(5)]
     for i, k in enumerate(keys):
         path = twin_cache.store(k, {"x": np.zeros(3)}, folder=cache_dir)
-        os.utime(path, (1e9 + i, 1e9 + i))      # distinct use times, oldest first
+        os.utime(path, (1e9 + i, 1e9 + i))  # distinct use times, oldest first
     stale = cache_dir / ".dead-writer.twin.abc.tmp"
     stale.write_bytes(b"half")
     os.utime(stale, (1e9, 1e9))
@@ -250,14 +262,21 @@ def test_concurrent_builder_processes_leave_one_whole_entry(Twin, machine, cache
     import os
     import subprocess
     import sys
-    code = ("from fbgcomp.structure import Twin, load_machine; "
-            f"t = Twin(load_machine(), resolution={RES}); print(t.times.from_cache)")
-    env = dict(os.environ)          # FBGCOMP_CACHE_DIR: this test's folder (monkeypatched)
-    procs = [subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.PIPE,
-                              stderr=subprocess.PIPE, text=True) for _ in range(2)]
+
+    code = (
+        "from fbgcomp.structure import Twin, load_machine; "
+        f"t = Twin(load_machine(), resolution={RES}); print(t.times.from_cache)"
+    )
+    env = dict(os.environ)  # FBGCOMP_CACHE_DIR: this test's folder (monkeypatched)
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", code], env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
+        for _ in range(2)
+    ]
     outs = [p.communicate(timeout=300) for p in procs]
     assert [p.returncode for p in procs] == [0, 0], [o[1][-2000:] for o in outs]
-    assert [p.name for p in cache_dir.iterdir()] == [good_entry[0]]     # no temporary file
+    assert [p.name for p in cache_dir.iterdir()] == [good_entry[0]]  # no temporary file
     warm = Twin(machine, resolution=RES)
     assert warm.times.from_cache
     # the entry is another process's build: a threaded BLAS may round its sums differently
@@ -274,16 +293,17 @@ def test_the_test_session_never_uses_the_users_cache():
     import tempfile
 
     import platformdirs
+
     folder = os.environ.get("FBGCOMP_CACHE_DIR", "")
     assert folder and Path(folder).resolve().is_relative_to(Path(tempfile.gettempdir()).resolve())
-    assert not Path(folder).resolve().is_relative_to(
-        Path(platformdirs.user_cache_dir("fbgcomp")).resolve())
+    assert not Path(folder).resolve().is_relative_to(Path(platformdirs.user_cache_dir("fbgcomp")).resolve())
 
 
 def test_a_machine_with_an_infinite_value_has_a_key_of_its_own(machine):
     """The schema accepts carriage_stiffness_N_per_um: .inf; its key must neither crash (JSON
     has no Infinity by default) nor collide with another machine's."""
     from fbgcomp.structure import parse_machine
+
     data = machine.model_dump(mode="json")
     data["supports"]["carriage_stiffness_N_per_um"] = float("inf")
     inf_key = twin_cache.twin_key(parse_machine(data), RES, 12)

@@ -7,15 +7,14 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 import typer
 from typer.testing import CliRunner
 
 import fbgcomp_testing
 from fbgcomp.cli.twin import twin_check as twin_check_command
-from fbgcomp.structure import twin_check
 from fbgcomp.errors import InputError
+from fbgcomp.structure import twin_check
 
 ROOT = Path(__file__).resolve().parents[1]
 RAM2 = Path(__file__).resolve().parents[2] / "shared" / "reference" / "ram2"
@@ -36,6 +35,7 @@ def reference():
 def rows(reference):
     fbgcomp_testing.require("skfem")
     from fbgcomp.structure import Twin, load_machine
+
     twin = Twin(load_machine(RAM2_YAML), resolution=RESOLUTION)
     return {r.quantity: r for r in twin_check.compare(twin, reference)}
 
@@ -83,14 +83,26 @@ def _app():
     @app.callback()
     def _main():
         """fbgcomp (test app)."""
+
     return app
 
 
 def test_cli_prints_the_table_and_writes_the_figures(tmp_path, reference):
     fbgcomp_testing.require("skfem")
     out = tmp_path / "check.json"
-    result = CliRunner().invoke(_app(), ["twin-check", str(RAM2_YAML), "--against", str(RESULTS),
-                                         "--resolution", str(RESOLUTION), "--json", str(out)])
+    result = CliRunner().invoke(
+        _app(),
+        [
+            "twin-check",
+            str(RAM2_YAML),
+            "--against",
+            str(RESULTS),
+            "--resolution",
+            str(RESOLUTION),
+            "--json",
+            str(out),
+        ],
+    )
     assert result.exit_code == 0, result.output
     assert "Fx dx (um/kN)" in result.output and "28 of 28" in result.output
     figures = json.loads(out.read_text())
@@ -99,13 +111,16 @@ def test_cli_prints_the_table_and_writes_the_figures(tmp_path, reference):
     assert not list(tmp_path.glob(".*.tmp"))
 
 
-@pytest.mark.parametrize("content, column", [
-    (None, None),
-    ("{not json", None),
-    (json.dumps({"checks": {"uniform10": {}}}), "field checks.uniform10.fe_elong_um"),
-    ("DROP", "field unit_response_um_per_N.y"),
-    ("SHORT", "field unit_response_um_per_N.x"),
-])
+@pytest.mark.parametrize(
+    "content, column",
+    [
+        (None, None),
+        ("{not json", None),
+        (json.dumps({"checks": {"uniform10": {}}}), "field checks.uniform10.fe_elong_um"),
+        ("DROP", "field unit_response_um_per_N.y"),
+        ("SHORT", "field unit_response_um_per_N.x"),
+    ],
+)
 def test_bad_results_name_the_file_and_field(tmp_path, reference, content, column):
     path = tmp_path / "results.json"
     if content in ("DROP", "SHORT"):
@@ -127,8 +142,12 @@ def test_bad_results_name_the_file_and_field(tmp_path, reference, content, colum
 def test_installed_command_reports_bad_input_on_one_line(tmp_path):
     exe = Path(sys.executable).with_name("fbgcomp")
     missing = tmp_path / "nowhere.json"
-    proc = subprocess.run([str(exe), "twin-check", str(RAM2_YAML), "--against", str(missing)],
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [str(exe), "twin-check", str(RAM2_YAML), "--against", str(missing)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 2, proc.stderr
-    line, = proc.stderr.strip().splitlines()
+    (line,) = proc.stderr.strip().splitlines()
     assert line.startswith("error:") and str(missing) in line
