@@ -141,7 +141,7 @@ def linear_truth_campaign(
     base_names = [f"dL_{s}" for s in SENSORS] + list(TEMPERATURE_FEATURES)
     terms = base_names
     design = design_matrix(base_ref, base_names, terms)
-    beta = np.array([[coefficients[a].get(name, 0.0) for a in AXES] for name in ["const"] + terms])
+    beta = np.array([[coefficients[a].get(name, 0.0) for a in AXES] for name in ["const", *terms]])
     clean = design @ beta
     reference = clean + noise_um * rng.standard_normal(clean.shape)
 

@@ -237,7 +237,7 @@ def _smooth_edges(values, time_s, edge_s):
     if edge_s <= 0 or len(time_s) < 2:
         return values
     dt = float(np.median(np.diff(time_s)))
-    n = max(1, int(round(edge_s / dt)))
+    n = max(1, round(edge_s / dt))
     if n == 1:
         return values
     kernel = np.ones(n) / n
@@ -456,7 +456,7 @@ def campaign_meta(machine, scenario: Scenario, seed: int, start=None) -> dict:
 def simulate(machine, scenario: Scenario, seed: int = 0, twin=None):
     """Run a scenario on the twin and measure it: returns (Campaign, truth dict)."""
     if twin is None:
-        from fbgcomp.structure import Twin  # needs scikit-fem, the optional fe extra
+        from fbgcomp.structure import Twin  # noqa: PLC0415 - optional heavy extra: skfem (the fe extra)
 
         twin = Twin(machine, z_axis_mm=scenario.z_axis_mm)
     truth = true_response(twin, scenario, seed)

@@ -34,7 +34,10 @@ def _options(
         False,
         "--quiet",
         "-q",
-        help="No progress on stderr (also FBGCOMP_PROGRESS=0; FBGCOMP_PROGRESS=1 shows it even when stderr is not a terminal).",
+        help=(
+            "No progress on stderr (also FBGCOMP_PROGRESS=0; FBGCOMP_PROGRESS=1 shows it even when stderr "
+            "is not a terminal)."
+        ),
     ),
 ):
     """fbgcomp: compensate machine-tool deformations from FBG sensors."""

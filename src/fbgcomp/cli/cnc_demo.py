@@ -17,7 +17,9 @@ The models and the campaign writer are imported inside :func:`run_demo`'s helper
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
+import io
 import json
 import os
 import pwd
@@ -121,9 +123,9 @@ class LinuxCncMachine:
         self.start_timeout_s = start_timeout_s
         self.proc: subprocess.Popen | None = None
         self.run_dir: Path | None = None
-        self._lock_fd = None
-        self._sock = None
-        self._file = None
+        self._lock_fd: int | None = None
+        self._sock: socket.socket | None = None
+        self._file: io.BufferedIOBase | None = None
 
     @property
     def address(self) -> str:
@@ -141,7 +143,7 @@ class LinuxCncMachine:
             except BlockingIOError:
                 if time.monotonic() > end:
                     os.close(fd)
-                    raise CncError(f"another LinuxCNC instance holds {LOCK_PATH}")
+                    raise CncError(f"another LinuxCNC instance holds {LOCK_PATH}") from None
                 time.sleep(0.2)
         self._lock_fd = fd
 
@@ -186,17 +188,18 @@ class LinuxCncMachine:
                     f"USER={account.pw_name}",
                     *cmd,
                 ]
-            self._log = open(self.run_dir / "linuxcnc.log", "wb")
             env = {k: v for k, v in os.environ.items() if k != "DISPLAY"}
-            self.proc = subprocess.Popen(
-                cmd,
-                cwd=self.run_dir,
-                stdin=subprocess.DEVNULL,
-                stdout=self._log,
-                stderr=subprocess.STDOUT,
-                env=env,
-                start_new_session=True,
-            )
+            # the child keeps its own copy of the log's descriptor
+            with open(self.run_dir / "linuxcnc.log", "wb") as log:
+                self.proc = subprocess.Popen(
+                    cmd,
+                    cwd=self.run_dir,
+                    stdin=subprocess.DEVNULL,
+                    stdout=log,
+                    stderr=subprocess.STDOUT,
+                    env=env,
+                    start_new_session=True,
+                )
             self._connect()
         except BaseException:
             self.stop()
@@ -204,6 +207,7 @@ class LinuxCncMachine:
         return self
 
     def _connect(self) -> None:
+        assert self.run_dir is not None and self.proc is not None  # start() set them
         path = self.run_dir / "display.sock"
         end = time.monotonic() + self.start_timeout_s
         while time.monotonic() < end:
@@ -223,9 +227,11 @@ class LinuxCncMachine:
 
     def log_tail(self, n: int = 30) -> str:
         """The last ``n`` lines of LinuxCNC's log ("" when there is none)."""
+        if self.run_dir is None:
+            return ""
         try:
             lines = (self.run_dir / "linuxcnc.log").read_text(errors="replace").splitlines()
-        except (OSError, TypeError):
+        except OSError:
             return ""
         return "\n".join(lines[-n:])
 
@@ -248,10 +254,8 @@ class LinuxCncMachine:
         """LinuxCNC's own shutdown first; whatever is left is killed. Safe to call twice."""
         try:
             if self._file is not None and self.proc is not None and self.proc.poll() is None:
-                try:
+                with contextlib.suppress(OSError, CncError, ValueError):
                     self.call("quit", timeout_s=5.0)
-                except (OSError, CncError, ValueError):
-                    pass
             if self._sock is not None:
                 self._sock.close()
                 self._sock = self._file = None
@@ -277,26 +281,21 @@ class LinuxCncMachine:
             cmd = [halrun, "-U"]
             if os.geteuid() == 0:
                 cmd = ["runuser", "-u", self.user, "--", *cmd]
-            try:
+            with contextlib.suppress(subprocess.TimeoutExpired, OSError):
                 subprocess.run(cmd, timeout=15, capture_output=True, cwd=self.run_dir)
-            except (subprocess.TimeoutExpired, OSError):
-                pass
         for sig in (signal.SIGTERM, signal.SIGKILL):
             pids = self._session_pids()
             if not pids:
                 break
             for pid in pids:
-                try:
+                with contextlib.suppress(ProcessLookupError):
                     os.kill(pid, sig)
-                except ProcessLookupError:
-                    pass
             end = time.monotonic() + 3.0
             while time.monotonic() < end and self._session_pids():
                 time.sleep(0.1)
-        try:
+        assert self.proc is not None  # stop() calls this only for a started process
+        with contextlib.suppress(subprocess.TimeoutExpired):
             self.proc.wait(5.0)
-        except subprocess.TimeoutExpired:
-            pass
 
     def __enter__(self):
         return self.start()
@@ -307,7 +306,7 @@ class LinuxCncMachine:
     # -- the display's protocol
     def call(self, cmd: str, timeout_s: float = 30.0, **kw) -> dict:
         """Send one command to the headless display and return its answer (CncError if not ok)."""
-        if self._file is None:
+        if self._file is None or self._sock is None:  # both set by _connect, cleared by stop
             raise CncError("machine not started")
         self._sock.settimeout(timeout_s + 5.0)
         self._file.write((json.dumps({"cmd": cmd, "timeout_s": timeout_s, **kw}) + "\n").encode())
@@ -480,4 +479,4 @@ def cnc_demo(
     try:
         run_demo(model, campaign, speed, program, config_dir, echo=typer.echo)
     except CncError as exc:
-        raise InputError(str(exc), column="cnc-demo")
+        raise InputError(str(exc), column="cnc-demo") from exc

@@ -242,8 +242,8 @@ def run_demo(
         try:
             from fbgcomp.report.html import write_report
         except ImportError:  # the report module is optional in a minimal install
-            write_report = None
-        if write_report is not None:
+            pass
+        else:
             write_report([read_campaign(paths[n]) for n in TRAIN + HELD_OUT], regression, out / "report")
     step("wrote figures and the report")
 
@@ -320,7 +320,7 @@ def summary_table(validation: dict, labels: dict) -> list:
         # one table, the blocks' headers as rows, so that every block has the same columns
         table = format_table([text(rows[0][0])] + [Column(h) for h in rows[0][1:]], rows[1:], indent="  ")
         lines += table.splitlines()
-    harmed = {}
+    harmed: dict[str, list[str]] = {}
     for camp, models in validation.items():
         for key, m in models.items():
             axes = [a for a, v in m["axes"].items() if v["harm"]]
@@ -339,7 +339,7 @@ def _summary_text(summary, res, out) -> str:
         "calibrated": "calibrated kinematic",
         "fe_model": "FE-calibrated eq. 11",
     }
-    validation = {}
+    validation: dict[str, dict] = {}
     for key, info in summary["models"].items():
         for camp, m in info["validation"].items():
             validation.setdefault(camp, {})[key] = m

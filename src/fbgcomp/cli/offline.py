@@ -90,7 +90,10 @@ def fit(
     cov_type: str = typer.Option(
         "HAC",
         "--cov-type",
-        help="Inference of the paper's regression (mra): HAC (Newey-West, autocorrelation-robust; the default) or nonrobust (the paper's i.i.d. F tests and Table 1).",
+        help=(
+            "Inference of the paper's regression (mra): HAC (Newey-West, autocorrelation-robust; the "
+            "default) or nonrobust (the paper's i.i.d. F tests and Table 1)."
+        ),
     ),
     hac_maxlags: str = typer.Option(
         "auto",
@@ -106,7 +109,11 @@ def fit(
     model_type: str | None = typer.Option(
         None,
         "--model",
-        help="Model type: physical (the default: load signature + housing thermal with the do-no-harm policy), mra (the paper's regression), kinematic, hybrid, calibrated or dynamic (docs/models.md).",
+        help=(
+            "Model type: physical (the default: load signature + housing thermal with the do-no-harm "
+            "policy), mra (the paper's regression), kinematic, hybrid, calibrated or dynamic "
+            "(docs/models.md)."
+        ),
     ),
     machine: Path | None = typer.Option(
         None,
@@ -303,7 +310,9 @@ def validate(
             m["static_levels"] = static_level_metrics(loads, ref, pred)
             typer.echo(format_static_metrics(m["static_levels"]))
         typer.echo("")
-        refs.append(ref), preds.append(pred), halves.append(half)
+        refs.append(ref)
+        preds.append(pred)
+        halves.append(half)
     pooled = validation_metrics(np.vstack(refs), np.vstack(preds), np.vstack(halves))
     if len(per_campaign) > 1:
         typer.echo(format_metrics(pooled, title="all campaigns"))
@@ -373,7 +382,10 @@ def compare(
     machine: Path | None = typer.Option(
         None,
         "--machine",
-        help="Machine description YAML (default: the built-in ram; the physical model then runs without one, as fbgcomp fit).",
+        help=(
+            "Machine description YAML (default: the built-in ram; the physical model then runs without one, "
+            "as fbgcomp fit)."
+        ),
     ),
     csv_out: Path = typer.Option(
         Path("comparison.csv"), "--csv", help="Pooled table, ranked per axis (CSV)."
@@ -381,7 +393,10 @@ def compare(
     campaign_csv: Path | None = typer.Option(
         None,
         "--campaign-csv",
-        help="Per held-out campaign table with the uncompensated row and harm marks (CSV; default: <csv stem>_by_campaign.csv beside --csv).",
+        help=(
+            "Per held-out campaign table with the uncompensated row and harm marks (CSV; default: <csv "
+            "stem>_by_campaign.csv beside --csv)."
+        ),
     ),
     json_out: Path = typer.Option(Path("comparison.json"), "--json", help="Everything (JSON)."),
     markdown: Path | None = typer.Option(

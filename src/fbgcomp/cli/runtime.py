@@ -56,12 +56,18 @@ def serve(
     max_slew: str | None = typer.Option(
         None,
         "--max-slew",
-        help="Largest rate of change of the correction, µm/s: one value or dx,dy,dz (default 1000; 0 or off = no limit).",
+        help=(
+            "Largest rate of change of the correction, µm/s: one value or dx,dy,dz (default 1000; 0 or off "
+            "= no limit)."
+        ),
     ),
     max_correction: str | None = typer.Option(
         None,
         "--max-correction-um",
-        help="Largest |correction| per axis, µm: one value or dx,dy,dz (default 1000; 0 or off = none; a tighter bound in the model file still applies).",
+        help=(
+            "Largest |correction| per axis, µm: one value or dx,dy,dz (default 1000; 0 or off = none; a "
+            "tighter bound in the model file still applies)."
+        ),
     ),
     output_filter: str | None = typer.Option(
         None, "--output-filter", help="Adaptive output filter: on (default) or off."
@@ -87,7 +93,10 @@ def serve(
     dashboard: str | None = typer.Option(
         None,
         "--dashboard",
-        help="Serve the live dashboard on [HOST:]PORT, host 127.0.0.1 if omitted; beyond loopback reads need a login (docs/dashboard.md, docs/security.md).",
+        help=(
+            "Serve the live dashboard on [HOST:]PORT, host 127.0.0.1 if omitted; beyond loopback reads need "
+            "a login (docs/dashboard.md, docs/security.md)."
+        ),
     ),
     dashboard_users: Path | None = typer.Option(
         None, "--dashboard-users", help="Dashboard users file (name:pbkdf2_sha256$...)."
@@ -111,7 +120,10 @@ def serve(
     realtime_priority: int | None = typer.Option(
         None,
         "--realtime-priority",
-        help="Run under SCHED_FIFO at this priority (1-99) where permitted; where not, one warning and normal priority. 0 = normal scheduling (default).",
+        help=(
+            "Run under SCHED_FIFO at this priority (1-99) where permitted; where not, one warning and "
+            "normal priority. 0 = normal scheduling (default)."
+        ),
     ),
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress to stderr."),
 ):
@@ -201,18 +213,29 @@ def sim_interrogator(
     fault: list[str] = typer.Option(
         [],
         "--fault",
-        help="drop:S@t, double:S@t, shift:S@t:nm, stuck:S@t, each optionally /duration (drop:S3@5/2 brings S3 back at 7 s, shift:S2@3:+2/10 moves S2 by 2 nm for 10 s; default: to the end), cut@t:s, garbage@t:bytes (random bytes on the stream, at most 1 MiB); t = s since start; S may name a reference grating, S3_ref. Repeatable.",
+        help=(
+            "drop:S@t, double:S@t, shift:S@t:nm, stuck:S@t, each optionally /duration (drop:S3@5/2 brings "
+            "S3 back at 7 s, shift:S2@3:+2/10 moves S2 by 2 nm for 10 s; default: to the end), cut@t:s, "
+            "garbage@t:bytes (random bytes on the stream, at most 1 MiB); t = s since start; S may name a "
+            "reference grating, S3_ref. Repeatable."
+        ),
     ),
     duration: float | None = typer.Option(None, "--duration", help="Stop after this many seconds."),
     send_log: Path | None = typer.Option(
         None,
         "--send-log",
-        help="Save the wall-clock send time of every block of frames (.npy: first stamp s, frames, send time s) at exit, for latency measurements.",
+        help=(
+            "Save the wall-clock send time of every block of frames (.npy: first stamp s, frames, send time "
+            "s) at exit, for latency measurements."
+        ),
     ),
     temperatures_opcua: str | None = typer.Option(
         None,
         "--temperatures-opcua",
-        help="Also serve the campaign's probe temperatures on this OPC UA endpoint (opc.tcp://HOST:PORT; nodes ns=2;s=Probes.<probe>, °C), on the simulator's clock and speed.",
+        help=(
+            "Also serve the campaign's probe temperatures on this OPC UA endpoint (opc.tcp://HOST:PORT; "
+            "nodes ns=2;s=Probes.<probe>, °C), on the simulator's clock and speed."
+        ),
     ),
 ):
     """Serve a campaign's wavelengths over the Hyperion TCP protocol (a simulated instrument)."""
@@ -260,7 +283,9 @@ def sim_interrogator(
             run_simulator(table, cfg, host, command_port, port, ready, duration, send_log, temperatures=temps)
         )
     except OSError as exc:
-        raise InputError(f"cannot listen on {host}:{port}/{command_port}: {exc.strerror}", column="--port")
+        raise InputError(
+            f"cannot listen on {host}:{port}/{command_port}: {exc.strerror}", column="--port"
+        ) from exc
     except KeyboardInterrupt:
         pass
 
@@ -311,7 +336,7 @@ def trust_add(
     try:
         info, new = add_certificate(cert, folder)
     except OSError as exc:
-        raise InputError(f"cannot write the trust list: {exc.strerror}", file=folder)
+        raise InputError(f"cannot write the trust list: {exc.strerror}", file=folder) from exc
     typer.echo(f"{'trusted' if new else 'already trusted'}: {info.describe()}")
     typer.echo(f"trust list: {folder}")
 

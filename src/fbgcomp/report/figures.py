@@ -127,7 +127,7 @@ def _level_means(values, index, n_levels):
         sel = index == k
         if sel.any():
             out[k] = np.nanmean(flat[sel], axis=0)
-    return out.reshape((n_levels,) + values.shape[1:])
+    return out.reshape((n_levels, *values.shape[1:]))
 
 
 def elongation_vs_load(load_N, elongation_um, sensor_names, *, load_label="F", title=None, path=None):

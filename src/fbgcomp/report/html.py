@@ -354,7 +354,7 @@ def _summary_html(s: dict) -> str:
     overlap = s["overlap_s"]
     out.append(
         f'<p class="meta">Start {_e(s["start"])}; folder <code>{_e(s["path"])}</code>; '
-        f"aligned overlap {('%g to %g s' % tuple(overlap)) if overlap else 'none'}; "
+        f"aligned overlap {'{:g} to {:g} s'.format(*overlap) if overlap else 'none'}; "
         f"sensors {_e(', '.join(x['name'] for x in s['sensors']))}; probes "
         f"{_e(', '.join(s['probes']) or 'none')}.</p>"
     )
