@@ -397,7 +397,9 @@ def test_cnc_demo_compensates_a_program_and_stops_everything(tmp_path, runtime_m
     assert np.abs(offsets).max() > 5 * COUNT_MM  # compensation was on at the end
     # end of the program: actual = program end + external offset (two counts: the offset is
     # still following the replayed correction between the status and the pin reads)
-    assert np.all(np.abs(np.array(final["actual"]) - ([25.0, 8.0, 0.0, *offsets])) <= 2 * COUNT_MM), final
+    assert np.all(
+        np.abs(np.array(final["actual"]) - (np.array([25.0, 8.0, 0.0]) + offsets)) <= 2 * COUNT_MM
+    ), final
     rows = res["rows"]
     assert len(rows) > 10
     # nothing of the machine is left: no process of its user (root runs it as CNC_USER)
