@@ -36,6 +36,7 @@ class InputError(Exception):
         super().__init__(self.one_line())
 
     def one_line(self) -> str:
+        """The message on one line, after where it applies: file, row (and line), column."""
         where = []
         if self.file is not None:
             where.append(self.file)

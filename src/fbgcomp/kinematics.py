@@ -168,6 +168,7 @@ class SegmentStatus:
     closure: str = ""  # how the chain fills what the bars do not give
 
     def line(self) -> str:
+        """One report line: z range (mm), material, spanning bars, independent bars, status, closure."""
         bars = ",".join(self.bars) or "-"
         return (
             f"z {self.z_lo_mm:8.1f} .. {self.z_hi_mm:8.1f} mm  {self.material:<6}"
@@ -238,6 +239,8 @@ class Section:
 
 
 def ram_section(machine) -> Section:
+    """Beam section of the hollow CFRP ram box: bending with E_L over the box's second moments,
+    shear with G_LT over the two webs (N mm², N)."""
     r, m = machine.ram, machine.materials.cfrp
     W, D, t = r.outer_width_mm, r.outer_depth_mm, r.wall_mm
     w, d = W - 2 * t, D - 2 * t
@@ -253,6 +256,8 @@ def ram_section(machine) -> Section:
 
 
 def housing_section(machine) -> Section:
+    """Beam section of the solid steel housing block: bending over the full rectangle, shear with
+    the solid rectangle's 5/6 factor (N mm², N)."""
     h, s = machine.housing, machine.materials.steel
     E = 1e3 * s.E_GPa
     G = E / (2 * (1 + s.nu))
@@ -516,6 +521,7 @@ class KinematicChain:
         return [r for r in self.report if r.status in ("underdetermined", "unsensed")]
 
     def format_report(self) -> str:
+        """The chain's layout (Z axis, carriages, nut, TTP in mm, ram frame) and one line per segment."""
         head = (
             f"kinematic chain at Z = {self.z_axis_mm:g} mm: carriages at "
             f"{self.carriage_z_mm[0]:g}, {self.carriage_z_mm[1]:g} mm, nut at {self.nut_z_mm:g} mm, "

@@ -49,6 +49,9 @@ DEFAULT_PINS = (
 
 
 class Machine:
+    """The simulated LinuxCNC machine, driven through ``linuxcnc`` (stat, command, error channel)
+    and ``hal``."""
+
     def __init__(self) -> None:
         # LinuxCNC's modules: present only on a LinuxCNC machine, where this display runs
         import hal  # noqa: PLC0415 - LinuxCNC's module, absent from fbgcomp's venv
@@ -64,6 +67,8 @@ class Machine:
         self.comp.ready()
 
     def poll(self):
+        """The refreshed ``linuxcnc.stat``, after moving up to 100 pending error-channel messages
+        into ``errors``."""
         self.s.poll()
         for _ in range(100):
             err = self.e.poll()
@@ -82,9 +87,12 @@ class Machine:
         raise TimeoutError(f"{what} not reached in {timeout_s} s (errors: {self.errors[-3:]})")
 
     def getp(self, pins):
+        """Current values of the HAL pins ``pins``, by pin name."""
         return {p: self.hal.get_value(p) for p in pins}
 
     def status(self, pins=None):
+        """Answer to ``status``: time, estop, enabled, homing, commanded and actual X, Y, Z position (mm),
+        interpreter idle, task mode, the last errors and the values of ``pins`` (default DEFAULT_PINS)."""
         s = self.poll()
         n = len(AXES)
         return {
@@ -102,12 +110,14 @@ class Machine:
         }
 
     def mode(self, m, timeout_s=5.0):
+        """Switch the task mode to ``m`` (``linuxcnc.MODE_*``) unless already in it (``timeout_s`` s)."""
         if self.poll().task_mode != m:
             self.c.mode(m)
             self.c.wait_complete(timeout_s)
             self._until(lambda: self.s.task_mode == m, timeout_s, "task mode")
 
     def machine_on(self, timeout_s=10.0):
+        """Reset the estop and switch the machine on; waits (up to ``timeout_s`` s) until it is enabled."""
         self.c.state(self.lc.STATE_ESTOP_RESET)
         self.c.wait_complete(timeout_s)
         self.c.state(self.lc.STATE_ON)
@@ -115,11 +125,13 @@ class Machine:
         self._until(lambda: self.s.enabled, timeout_s, "machine on")
 
     def machine_off(self, timeout_s=10.0):
+        """Switch the machine off; waits (up to ``timeout_s`` s) until it is disabled."""
         self.c.state(self.lc.STATE_OFF)
         self.c.wait_complete(timeout_s)
         self._until(lambda: not self.s.enabled, timeout_s, "machine off")
 
     def home(self, timeout_s=20.0):
+        """Home all joints (manual, joint mode), then go back to world (teleop) mode; ``timeout_s`` in s."""
         self.mode(self.lc.MODE_MANUAL)
         self.c.teleop_enable(0)
         self.c.wait_complete(timeout_s)
@@ -131,6 +143,7 @@ class Machine:
         self.c.wait_complete(timeout_s)
 
     def unhome(self, timeout_s=10.0):
+        """Unhome all joints (manual, joint mode); waits (up to ``timeout_s`` s) until none is homed."""
         self.mode(self.lc.MODE_MANUAL)
         self.c.teleop_enable(0)
         self.c.wait_complete(timeout_s)
@@ -139,6 +152,8 @@ class Machine:
         self._until(lambda: not any(self.s.homed[: len(AXES)]), timeout_s, "joints unhomed")
 
     def wait_idle(self, timeout_s=60.0):
+        """Wait (up to ``timeout_s`` s) for an idle interpreter, an empty motion queue and the axes
+        in position."""
         self._until(
             lambda: self.s.interp_state == self.lc.INTERP_IDLE and self.s.queue == 0 and self.s.inpos,
             timeout_s,
@@ -146,12 +161,15 @@ class Machine:
         )
 
     def mdi(self, text, timeout_s=60.0):
+        """Run the MDI line ``text`` and wait (up to ``timeout_s`` s) until the machine is idle again."""
         self.mode(self.lc.MODE_MDI)
         self.c.mdi(text)
         self.c.wait_complete(timeout_s)
         self.wait_idle(timeout_s)
 
     def program(self, path, wait=True, timeout_s=120.0):
+        """Open and run the G-code file ``path`` in auto mode; with ``wait``, until it has ended
+        (up to ``timeout_s`` s)."""
         self.mode(self.lc.MODE_AUTO)
         self.c.program_open(path)
         self.c.wait_complete(timeout_s)
@@ -164,6 +182,7 @@ class Machine:
             self.wait_idle(timeout_s)
 
     def wait_pin(self, pin, value, tol, timeout_s=5.0):
+        """time.time() when HAL pin ``pin`` is within ``tol`` of ``value`` (1 ms poll), and its value then."""
         end = time.monotonic() + float(timeout_s)
         while time.monotonic() < end:
             v = self.hal.get_value(pin)
@@ -184,6 +203,8 @@ class Machine:
         raise TimeoutError(f"actual position {list(self.s.actual_position[:3])}, not {values} ± {tol}")
 
     def trace(self, pins, duration_s, interval_s=0.01):
+        """Samples every ``interval_s`` s for ``duration_s`` s (at most 120 s): time, commanded and actual
+        X, Y, Z position (mm) and the values of ``pins`` (default DEFAULT_PINS)."""
         pins = pins or DEFAULT_PINS
         rows = []
         end = time.monotonic() + min(float(duration_s), 120.0)
@@ -236,6 +257,8 @@ def _handle(m: Machine, req: dict):
 
 
 def main(argv=None) -> int:
+    """Serve the JSON-lines protocol on the INI's ``[DISPLAY] FBGCOMP_SOCKET`` until ``quit``; the
+    exit status (2 when started without ``-ini INIFILE``)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     ini = argv[argv.index("-ini") + 1] if "-ini" in argv else None
     if ini is None:

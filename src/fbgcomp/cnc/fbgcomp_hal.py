@@ -185,6 +185,8 @@ class Receiver:
         self.rejected = 0
 
     def drain(self, max_datagrams: int = 10000) -> int:
+        """Read the pending datagrams (at most ``max_datagrams``), keeping the newest valid one and its
+        sender; the number of valid ones read (invalid ones count in ``rejected``)."""
         n = 0
         for _ in range(max_datagrams):  # bounded: a flood cannot hold the cycle
             try:
@@ -212,6 +214,7 @@ class Receiver:
             return False
 
     def close(self):
+        """Close the socket and remove its Unix socket file, if it has one."""
         self.sock.close()
         if self.path:
             with contextlib.suppress(OSError):
@@ -233,6 +236,8 @@ def _args(argv):
 
 
 def main(argv=None) -> int:
+    """Run the HAL component: every ``--period`` s, steer the X, Y, Z external offsets toward the newest
+    received correction (rate and size limited) and send the Z position back; the exit status."""
     import hal  # noqa: PLC0415 - LinuxCNC's module, absent from fbgcomp's venv, which imports this file
 
     a = _args(argv)

@@ -163,22 +163,27 @@ class CappedProtocol(asyncio.Protocol):
         inner.connection_made(transport)
 
     def connection_lost(self, exc) -> None:
+        """Count the connection out of the cap and pass the loss on to the handler."""
         inner, self.inner = self.inner, None
         if inner is not None:
             self.cap.open -= 1
             inner.connection_lost(exc)
 
     def data_received(self, data: bytes) -> None:
+        """Pass the received bytes on to the handler (dropped for a refused connection)."""
         if self.inner is not None:
             self.inner.data_received(data)
 
     def eof_received(self):
+        """The handler's answer to end of stream; None (close) for a refused connection."""
         return self.inner.eof_received() if self.inner is not None else None
 
     def pause_writing(self) -> None:
+        """Pass the transport's flow-control pause on to the handler."""
         if self.inner is not None:
             self.inner.pause_writing()
 
     def resume_writing(self) -> None:
+        """Pass the transport's flow-control resume on to the handler."""
         if self.inner is not None:
             self.inner.resume_writing()

@@ -44,18 +44,23 @@ def isotropic_stiffness_MPa(E_GPa, nu) -> np.ndarray:
 
 
 def cfrp_stiffness_MPa(m: CFRP) -> np.ndarray:
+    """6x6 Voigt stiffness of the CFRP (MPa), fibre axis along Z."""
     return transversely_isotropic_stiffness_MPa(m.E_L_GPa, m.E_T_GPa, m.G_LT_GPa, m.nu_LT, m.nu_TT)
 
 
 def steel_stiffness_MPa(m: Steel) -> np.ndarray:
+    """6x6 Voigt stiffness of the steel (MPa)."""
     return isotropic_stiffness_MPa(m.E_GPa, m.nu)
 
 
 def cfrp_cte_voigt_per_K(m: CFRP) -> np.ndarray:
+    """Thermal expansion of the CFRP as a Voigt vector (per K): transverse in xx, yy, longitudinal in
+    zz, no shear."""
     return np.array([m.cte_T_per_K, m.cte_T_per_K, m.cte_L_per_K, 0.0, 0.0, 0.0])
 
 
 def steel_cte_voigt_per_K(m: Steel) -> np.ndarray:
+    """Thermal expansion of the steel as a Voigt vector (per K): the same in xx, yy, zz, no shear."""
     return np.array([m.cte_per_K] * 3 + [0.0] * 3)
 
 
@@ -118,6 +123,7 @@ def _area(v, w):
 
 
 def vector_element():
+    """The displacement element: a trilinear hexahedron (Hex1) for each of ux, uy, uz."""
     return ElementVector(ElementHex1())
 
 

@@ -173,6 +173,7 @@ class Factorised:
             self.backend = "superlu"
 
     def solve(self, b: np.ndarray) -> np.ndarray:
+        """A^-1 b for b (n,) or (n, k), by back-substitution in the backend's factor."""
         b = np.asarray(b, dtype=float)
         if self.backend == "cholmod":
             return self._chol(b)
@@ -185,4 +186,5 @@ class Factorised:
         return x[self._inv]
 
     def as_operator(self) -> spla.LinearOperator:
+        """A^-1 as a scipy ``LinearOperator`` (its matvec is :meth:`solve`)."""
         return spla.LinearOperator(self.shape, matvec=self.solve, dtype=float)

@@ -37,6 +37,8 @@ class _Strict(BaseModel):
 
 
 class Ram(_Strict):
+    """The ram: a hollow CFRP box, its outer section, wall thickness and length (mm)."""
+
     outer_width_mm: float = Field(gt=0)
     outer_depth_mm: float = Field(gt=0)
     wall_mm: float = Field(gt=0)
@@ -50,12 +52,16 @@ class Ram(_Strict):
 
 
 class Housing(_Strict):
+    """The solid steel spindle housing below the ram: its block size (mm)."""
+
     width_mm: float = Field(gt=0)
     depth_mm: float = Field(gt=0)
     height_mm: float = Field(gt=0)
 
 
 class Tool(_Strict):
+    """The rigid tool: how far the TTP sits below the housing and the nose patch that carries it (mm)."""
+
     ttp_below_housing_mm: float = Field(ge=0)
     # Size (x, y) of the central spindle-nose patch of the housing bottom face that carries the
     # rigid tool; None: the whole bottom face.
@@ -69,6 +75,9 @@ class Tool(_Strict):
 
 
 class CFRP(_Strict):
+    """The ram's CFRP, transversely isotropic with the fibres along Z: moduli (GPa), Poisson ratios,
+    expansion (per K), conductivity, density and specific heat."""
+
     E_L_GPa: float = Field(gt=0)
     E_T_GPa: float = Field(gt=0)
     G_LT_GPa: float = Field(gt=0)
@@ -83,6 +92,9 @@ class CFRP(_Strict):
 
 
 class Steel(_Strict):
+    """The housing's steel, isotropic: modulus (GPa), Poisson ratio, expansion (per K), conductivity,
+    density and specific heat."""
+
     E_GPa: float = Field(gt=0)
     nu: float = Field(gt=-1, lt=0.5)
     cte_per_K: float
@@ -92,6 +104,8 @@ class Steel(_Strict):
 
 
 class Materials(_Strict):
+    """The two materials: the ram's CFRP and the housing's steel."""
+
     cfrp: CFRP
     steel: Steel
 
@@ -163,6 +177,9 @@ class Rail(_Strict):
 
 
 class Nut(_Strict):
+    """The ball-screw nut: its z (mm), axial stiffness (N/µm or ``rigid``) and how it holds the
+    cross-section."""
+
     z_mm: float
     stiffness_N_per_um: Stiffness
     # mean: one spring on the mean u_z of the cross-section at z_mm; nodes: u_z held at every
@@ -171,6 +188,9 @@ class Nut(_Strict):
 
 
 class Supports(_Strict):
+    """How the ram is held: guide shoes or rails, the carriage stations and their stiffness (N/µm),
+    the nut."""
+
     z_axis_mm: float = 0.0
     shoe_faces: tuple[Face, Face] = ("+X", "-X")
     rails: tuple[Rail, ...] | None = None
@@ -243,6 +263,9 @@ class Supports(_Strict):
 
 
 class Sensor(_Strict):
+    """One FBG path on an outer face: position across the face and end points along z (mm), nominal
+    wavelength (nm), optical and fibre coefficients, its temperature probe."""
+
     name: str = Field(min_length=1)
     face: Face
     offset_mm: float = 0.0
@@ -274,6 +297,8 @@ class Sensor(_Strict):
 
 
 class Probe(_Strict):
+    """One temperature probe: a point in the ram wall or the housing (mm), or the ambient air."""
+
     name: str = Field(min_length=1)
     kind: Literal["point", "ambient"] = "point"
     x_mm: float | None = None
@@ -341,11 +366,15 @@ class HeatSource(_Strict):
 
     @property
     def nominal(self) -> float:
+        """The source's typical input (W for a volume source, W/m² for a radiant one; 0 when not given)."""
         v = self.nominal_W if self.kind == "volume" else self.nominal_W_per_m2
         return 0.0 if v is None else float(v)
 
 
 class Thermal(_Strict):
+    """The thermal model's boundary conditions: film coefficients (W/(m² K)) by surface and the heat
+    sources."""
+
     film_outer_W_per_m2K: float | None = Field(default=None, gt=0)
     film_inner_W_per_m2K: float | None = Field(default=None, ge=0)
     films_W_per_m2K: dict[FilmSurface, float] = {}
@@ -400,6 +429,9 @@ class Thermal(_Strict):
 
 
 class MeshSettings(_Strict):
+    """The FE mesh: element counts and length along Z (mm) at resolution 1, the element type, and the
+    reduced thermal model's number of expansion points."""
+
     resolution: float = Field(default=1.0, gt=0, le=8)
     wall_elements: int = Field(default=3, ge=1)
     span_elements: int = Field(default=10, ge=2)

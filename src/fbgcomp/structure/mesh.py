@@ -88,6 +88,7 @@ class RamMesh:
 
     @property
     def n_nodes(self) -> int:
+        """Number of mesh nodes."""
         return self.mesh.p.shape[1]
 
     def _cell_of(self, x: float, y: float, z: float) -> tuple[int, int, int]:

@@ -44,6 +44,8 @@ def anisotropic_conduction(k_T_W_per_mmK: float, k_L_W_per_mmK: float) -> Biline
 
 
 def isotropic_conduction(k_W_per_mmK: float) -> BilinearForm:
+    """Integral k grad theta . grad v, k in W/(mm K) (the steel housing)."""
+
     @BilinearForm
     def form(u, v, w):
         return k_W_per_mmK * dot(grad(u), grad(v))
@@ -52,6 +54,8 @@ def isotropic_conduction(k_W_per_mmK: float) -> BilinearForm:
 
 
 def capacity(rho_c_J_per_mm3K: float) -> BilinearForm:
+    """Integral rho c theta v, rho c in J/(mm³ K)."""
+
     @BilinearForm
     def form(u, v, w):
         return rho_c_J_per_mm3K * u * v
@@ -67,6 +71,7 @@ def film(u, v, w):
 
 @LinearForm
 def unit_load(v, w):
+    """Integral v: each node's share of the volume (mm³) or surface (mm²) it is assembled over."""
     return 1.0 * v
 
 
@@ -234,9 +239,12 @@ class ReducedThermal:
 
     @property
     def slowest_time_constant_s(self) -> float:
+        """Time constant of the slowest mode, s (1 / smallest eigenvalue)."""
         return float(1.0 / self.lam_per_s[0])
 
     def initial_modal(self, u0: np.ndarray, theta0: np.ndarray | None) -> np.ndarray:
+        """Modal state at the start: the steady state under the first inputs ``u0`` when ``theta0`` is
+        None, else the projection of ``theta0`` (nodal K above T_ref)."""
         if theta0 is None:
             return (self.PhiB @ u0) / self.lam_per_s  # steady state at the first input
         return self.PhiTC @ theta0

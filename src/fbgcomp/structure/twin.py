@@ -125,6 +125,9 @@ class PathInfluence:
 
 @dataclass
 class BuildTimes:
+    """Wall-clock times (s) of building the twin: mesh, assembly, elastic factorisation, thermal
+    reduction, and the twin cache's load and store."""
+
     mesh_s: float = 0.0
     assemble_s: float = 0.0
     elastic_factor_s: float = 0.0
@@ -518,6 +521,7 @@ class Twin:
     # ----------------------------------------------------------------------------- sizes
     @property
     def n_nodes(self) -> int:
+        """Number of nodes of the ram mesh."""
         return self.mesh.n_nodes
 
     @property

@@ -79,6 +79,7 @@ class OpcUaServer:
 
     @model_id.setter
     def model_id(self, value: str) -> None:
+        """Show ``value`` as the model id and tell the server process."""
         self._model_id = value
         send_control(self._sock, ("model_id", value))
 
