@@ -52,7 +52,13 @@ import pandas as pd
 
 from fbgcomp.atomic import json_safe, replace_dir, write_json
 from fbgcomp.errors import InputError
-from fbgcomp.io.campaign import LOAD_COLUMNS, REFERENCE_COLUMNS, CampaignMeta, read_campaign
+from fbgcomp.io.campaign import (
+    LOAD_COLUMNS,
+    REFERENCE_COLUMNS,
+    CampaignMeta,
+    check_sensors_match,
+    read_campaign,
+)
 
 try:
     import fcntl
@@ -511,28 +517,7 @@ def partition_arrays(file, sensor_names, probe_names, batch_rows: int = ROW_GROU
 def check_partition(model, partition: Partition) -> None:
     """Raise InputError when a partition lacks what the model needs (as ``check_compatible``)."""
     where = partition.path
-    have = {s.name: s for s in partition.sensors()}
-    for s in model.sensors_:
-        if s.name not in have:
-            raise InputError(
-                f"model expects sensor {s.name} but the partition has {', '.join(have) or 'none'}",
-                file=where,
-                column="field sensors",
-            )
-        c = have[s.name]
-        if abs(c.gauge_length_mm - s.gauge_length_mm) > 1e-6 * max(1.0, s.gauge_length_mm):
-            raise InputError(
-                f"sensor {s.name} has gauge_length_mm {c.gauge_length_mm} but the "
-                f"model was fitted with {s.gauge_length_mm}",
-                file=where,
-                column="field sensors",
-            )
-        if abs(c.lambda0_nm - s.lambda0_nm) > 5.0:
-            raise InputError(
-                f"sensor {s.name} has lambda0_nm {c.lambda0_nm} but the model expects {s.lambda0_nm} ± 5 nm",
-                file=where,
-                column="field sensors",
-            )
+    check_sensors_match(model.sensors_, partition.sensors(), where, "partition")
     for p in model.probe_names_:
         if p not in partition.probe_names:
             raise InputError(

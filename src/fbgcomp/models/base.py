@@ -30,7 +30,7 @@ from scipy import stats
 from fbgcomp import __version__
 from fbgcomp.atomic import write_json
 from fbgcomp.errors import InputError
-from fbgcomp.io.campaign import Campaign, SensorSpec, read_campaign
+from fbgcomp.io.campaign import Campaign, SensorSpec, check_sensors_match, read_campaign
 from fbgcomp.models.features import CONSTANT, FeatureMap, design_matrix, parse_term
 from fbgcomp.models.modelfile import (
     MODEL_FORMAT,
@@ -408,28 +408,7 @@ def campaign_z_axis_mm(campaign):
 def check_compatible(model, campaign) -> None:
     """Raise InputError when a campaign lacks what the model needs (sensors, probes)."""
     where = (campaign.path / "campaign.yaml") if campaign.path is not None else campaign.meta.name
-    have = {s.name: s for s in campaign.meta.sensors}
-    for s in model.sensors_:
-        if s.name not in have:
-            raise InputError(
-                f"model expects sensor {s.name} but the campaign has {', '.join(have) or 'none'}",
-                file=where,
-                column="field sensors",
-            )
-        c = have[s.name]
-        if abs(c.gauge_length_mm - s.gauge_length_mm) > 1e-6 * max(1.0, s.gauge_length_mm):
-            raise InputError(
-                f"sensor {s.name} has gauge_length_mm {c.gauge_length_mm} but the model "
-                f"was fitted with {s.gauge_length_mm}",
-                file=where,
-                column="field sensors",
-            )
-        if abs(c.lambda0_nm - s.lambda0_nm) > 5.0:
-            raise InputError(
-                f"sensor {s.name} has lambda0_nm {c.lambda0_nm} but the model expects {s.lambda0_nm} ± 5 nm",
-                file=where,
-                column="field sensors",
-            )
+    check_sensors_match(model.sensors_, campaign.meta.sensors, where)
     probes = set(campaign.meta.probe_names) | set(getattr(campaign, "undeclared_probes", ()))
     for p in model.probe_names_:
         if p not in probes and p not in campaign.temperatures.columns.str.removesuffix("_C"):

@@ -71,6 +71,7 @@ from fbgcomp.io.campaign.meta import (
     ProbeSpec,
     ReferenceSpec,
     SensorSpec,
+    check_sensors_match,
     meta_error,
     read_meta,
 )
@@ -106,6 +107,7 @@ __all__ = [
     "ProbeSpec",
     "ReferenceSpec",
     "SensorSpec",
+    "check_sensors_match",
     "meta_error",
     "read_campaign",
     "read_meta",

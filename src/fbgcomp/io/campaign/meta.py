@@ -36,6 +36,7 @@ __all__ = [
     "ProbeSpec",
     "ReferenceSpec",
     "SensorSpec",
+    "check_sensors_match",
     "meta_error",
     "meta_yaml",
     "read_meta",
@@ -113,6 +114,35 @@ class SensorSpec(BaseModel):
     def reference_probe(self) -> str | None:
         """The temperature the reference grating reads, as a probe name (``<name>_ref``)."""
         return None if self.reference_lambda0_nm is None else f"{self.name}_ref"
+
+
+def check_sensors_match(expected, have, where, source: str = "campaign") -> None:
+    """Raise InputError unless every sensor in ``expected`` is among ``have`` with the same gauge
+    length (to 1e-6 relative) and a lambda0_nm within 5 nm: what a fitted model needs of the
+    data it is applied to. ``source`` names that data in the message ("campaign", "partition").
+    """
+    by_name = {s.name: s for s in have}
+    for s in expected:
+        if s.name not in by_name:
+            raise InputError(
+                f"model expects sensor {s.name} but the {source} has {', '.join(by_name) or 'none'}",
+                file=where,
+                column="field sensors",
+            )
+        c = by_name[s.name]
+        if abs(c.gauge_length_mm - s.gauge_length_mm) > 1e-6 * max(1.0, s.gauge_length_mm):
+            raise InputError(
+                f"sensor {s.name} has gauge_length_mm {c.gauge_length_mm} but the model "
+                f"was fitted with {s.gauge_length_mm}",
+                file=where,
+                column="field sensors",
+            )
+        if abs(c.lambda0_nm - s.lambda0_nm) > 5.0:
+            raise InputError(
+                f"sensor {s.name} has lambda0_nm {c.lambda0_nm} but the model expects {s.lambda0_nm} ± 5 nm",
+                file=where,
+                column="field sensors",
+            )
 
 
 class ProbeSpec(BaseModel):
