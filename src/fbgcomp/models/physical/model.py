@@ -15,6 +15,7 @@ from itertools import combinations
 
 import numpy as np
 from scipy import stats
+from scipy.ndimage import uniform_filter1d
 from scipy.optimize import nnls
 
 from fbgcomp.errors import InputError
@@ -34,6 +35,49 @@ from fbgcomp.models.physical.thermal import (
 )
 from fbgcomp.structure.machine import Machine, load_machine
 from fbgcomp.units import AXES
+
+
+def effective_samples(x) -> float:
+    """Effective number of independent samples in the series ``x``: n / tau, with tau the
+    integrated autocorrelation time 1 + 2 sum rho_k, summed while rho_k stays positive (Geyer's
+    initial positive sequence, simplified); between 1 and n."""
+    x = np.asarray(x, float)
+    x = x[np.isfinite(x)] - np.nanmean(x) if x.size else x
+    n = x.size
+    if n < 3 or not np.any(x):
+        return float(max(n, 1))
+    f = np.fft.rfft(x, 2 * n)
+    acf = np.fft.irfft(f * np.conj(f))[:n]
+    rho = acf / acf[0]
+    neg = np.nonzero(rho[1:] <= 0.0)[0]
+    stop = neg[0] + 1 if neg.size else n
+    tau = 1.0 + 2.0 * rho[1:stop].sum()
+    return float(np.clip(n / tau, 1.0, n))
+
+
+def probe_noise_sd_K(campaigns, probe_names) -> np.ndarray:
+    """White noise of each probe (K), from the successive differences of its own samples on its
+    own clock, over all ``campaigns``: RMS / sqrt(2). Differences of the frames would not do: a
+    probe read every 10 s and held over 1 s frames has 9 differences of 10 at zero, and a
+    quantised one (0.1 K steps) most of the rest, so a robust MAD of them reads 0 K (on the
+    twin, where the probes scatter by 0.1 K, the thermal part's noise came out 0.02 µm against
+    0.2 µm, and the noise of a zero state went into the correction). Heat moves a probe far
+    less than its noise between two samples, so no trend is removed. A probe no campaign reads
+    from temperatures.csv (a reference grating) gets 0."""
+    sums = np.zeros(len(probe_names))
+    counts = np.zeros(len(probe_names))
+    for c in campaigns:
+        for names, (_t, values) in c.thermometers().items():
+            d = np.diff(values, axis=0)
+            if len(d) == 0:
+                continue
+            for k, name in enumerate(names):
+                if name in probe_names:
+                    j = probe_names.index(name)
+                    ok = np.isfinite(d[:, k])
+                    sums[j] += float(np.sum(d[ok, k] ** 2))
+                    counts[j] += int(ok.sum())
+    return np.sqrt(np.where(counts > 0, sums / np.maximum(counts, 1) / 2.0, 0.0))
 
 
 class PhysicalModel(EstimatorParams, ModelFile):
@@ -198,6 +242,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         max_force = np.full(3, 5000.0)
         active = np.zeros(3, bool)
         noise_var = np.full(S, np.nan)
+        frame_dt = self.nominal_dt_s_
         if loaded_rows:
             Xs, Es_, Ys, ws_ = [], [], [], []
             k = len(loaded_rows)
@@ -220,11 +265,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
             C = np.zeros((3, 3))
             G[:, active] = Bg[k : k + active.sum()].T
             C[:, active] = By[k : k + active.sum()].T
-            # white noise of each grating from successive differences (robust: MAD), so load
-            # steps and ramps do not count as noise
-            diffs = np.vstack([np.diff(r["e"], axis=0) for r in loaded_rows])
-            mad = np.median(np.abs(diffs - np.median(diffs, axis=0)), axis=0)
-            noise_var = (1.4826 * mad) ** 2 / 2.0
+            noise_var, frame_dt = self._frame_noise_var(campaigns, aligned, fmap)
             # a component the training never excited (its column is load-cell noise) is
             # believed over the range of those it did: its signature comes from the twin
             max_force = np.abs(Fall).max(axis=0)
@@ -262,6 +303,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
                 "thermal_sigma_unit_um2": (self.thermal_error_inflation * cov_unit).tolist(),
                 "thermal_scale": scale.tolist(),
                 "noise_var_um2": noise_var.tolist(),
+                "noise_frame_dt_s": float(frame_dt),
                 "max_force_N": np.where(max_force > 0, max_force, 5000.0).tolist(),
                 "source": source,
                 "not_separable": [f for f, ok in zip(FORCE_AXES, separable) if not ok],
@@ -276,7 +318,11 @@ class PhysicalModel(EstimatorParams, ModelFile):
             Hs = np.vstack([r["H"] for r in thermal_rows])
             Ys = np.vstack([r["y"] for r in thermal_rows])
             ws = np.concatenate([np.full(len(r["H"]), 1.0 / len(r["H"])) for r in thermal_rows])
-            A, cov_y = weighted_lstsq(Hs, Ys, ws)
+            # through the origin: every campaign is zeroed at its start (dT = 0, y = 0), so a
+            # fitted intercept is a bias applied to every frame of every campaign (on the twin
+            # -0.33 µm of dz, more than a static campaign's whole dz: a correction that harms)
+            A1, cov_y = weighted_lstsq(Hs[:, 1:], Ys, ws)
+            A = np.vstack([np.zeros((1, Ys.shape[1])), A1])
             self.thermal_coef_ = A
             self.thermal_envelope_ = (Hs[:, 1:].min(axis=0), Hs[:, 1:].max(axis=0))
             fitted = Hs @ A
@@ -287,10 +333,8 @@ class PhysicalModel(EstimatorParams, ModelFile):
             )
             self.thermal_resid_sd_um_ = np.sqrt(np.diag(cov_y))
             # the part's response to probe noise (the zero state itself is one noisy reading of
-            # a slow probe): each regressor's probe noise (robust, from successive differences)
-            # through its coefficient
-            d = np.vstack([np.diff(r["dT"], axis=0) for r in rows if len(r["dT"]) > 1])
-            sd_p = 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0) / np.sqrt(2)
+            # a slow probe): each regressor's probe noise through its coefficient
+            sd_p = probe_noise_sd_K(campaigns, self.probe_names_)
             used = [self.probe_names_.index(q) for q in self.housing_probes_ + self.ambient_probes_]
             sd_h = np.concatenate([sd_p[used], sd_p[used[:1]] if self.housing_probes_ else []])
             self.thermal_noise_sd_um_ = np.sqrt(((A[1:] * np.asarray(sd_h)[:, None]) ** 2).sum(axis=0))
@@ -410,12 +454,13 @@ class PhysicalModel(EstimatorParams, ModelFile):
         # robust MAD of them read low) is none
         d = np.vstack([np.diff(r["dT"], axis=0) for r in rows if len(r["dT"]) > 1])
         deadband = 2.0 * d.std(axis=0)
-        e2, S, act, w = [], [], [], []
+        e2, S, act, w, n_eff = [], [], [], [], []
         for r, c in zip(rows, campaigns):
             if r["loaded"]:
                 continue
             pred, _, p, at = self._served(c)
             e2.append((pred - r["y"]) ** 2)
+            n_eff.append([effective_samples(pred[:, j] - r["y"][:, j]) for j in range(3)])
             S.append(excursion2(r["dT"], scale, deadband))
             act.append(p.last_activity[at])
             w.append(np.full(len(pred), 1.0 / len(pred)))  # campaigns weighted equally
@@ -430,9 +475,15 @@ class PhysicalModel(EstimatorParams, ModelFile):
         # so that the 95 % interval covers 95 % of the training samples (campaigns weighted
         # equally), v0 staying the instrument's. A sample is covered for every scale from
         # (e² / z² - v0) / (its state variance) up: the scale is the weighted 95th percentile of
-        # that, within [1e-3, 1e3].
+        # that, within [1e-3, 1e3]. The percentile carries the split-conformal finite-sample
+        # correction, ceil((n + 1) 0.95) / n, with n the training's *effective* number of
+        # independent errors (:func:`effective_samples`): thermal errors stay correlated for
+        # hours, so a 36 h campaign holds a few dozen of them, not 130 000, and the plain 95th
+        # percentile covered 88 % on ram2's unseen thermal_b (dy).
         z2 = stats.norm.ppf(0.975) ** 2
         shape = A @ v.T  # (n, 3) state variance
+        n_ind = np.sum(n_eff, axis=0)
+        level = np.minimum(np.ceil((n_ind + 1.0) * 0.95) / np.maximum(n_ind, 1.0), 0.975)
         for j in range(3):
             if not np.any(shape[:, j] > 0):
                 continue
@@ -441,7 +492,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
             order = np.argsort(need)
             # (a share of exactly 0.95 counts as reached: the cumulative sum's rounding must not
             # push the level to the next sample)
-            at = np.searchsorted(np.cumsum(w[order]) / w.sum(), 0.95 - 1e-12)
+            at = np.searchsorted(np.cumsum(w[order]) / w.sum(), level[j] - 1e-12)
             v[j] *= np.clip(need[order][min(at, len(order) - 1)], 1e-3, 1e3)
         return {
             "v0_um2": v0.tolist(),
@@ -453,19 +504,57 @@ class PhysicalModel(EstimatorParams, ModelFile):
             "activity_scale_K": a_scale,
         }
 
+    def _frame_noise_var(self, campaigns, aligned, fmap):
+        """White noise of each grating's frame: its variance (µm²), the largest any training
+        campaign shows, loaded or not, and the fastest frame interval of those campaigns (s).
+
+        From successive differences of the interrogator's own frames (robust: MAD, so load
+        steps and ramps do not count), the frames the runtime sees (:meth:`frame_arrays`), not
+        the aligned ones: aligning a campaign onto its reference's clock interpolates between
+        frames, which halves their noise (on the twin, 0.135 µm on static-y's aligned frames
+        against 0.30 µm on its own), and the step test then took the thermal campaigns' noise
+        for loads. The step test takes a frame slower than the fastest one as carrying this
+        variance (an interrogator's sweep has its noise whatever the rate; the twin's frames at
+        0.1 s and 1 s agree) and a faster one as the same density (variance x interval, the
+        safe side for an interrogator that averages sweeps into its exported frames)."""
+        out = np.zeros(len(self.sensor_names))
+        fastest = np.inf
+        for c, a in zip(campaigns, aligned):
+            ft, w, t = self.frame_arrays(c, a)
+            if ft.size < 10:
+                continue
+            _, _, w0, t0 = self.instrument_arrays(a)
+            d = np.diff(fmap.base(w, t, w0, t0), axis=0)
+            mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0)
+            out = np.maximum(out, (1.4826 * mad) ** 2 / 2.0)
+            fastest = min(fastest, float(np.median(np.diff(ft))))
+        return out, (fastest if np.isfinite(fastest) else self.nominal_dt_s_)
+
     def _calibrate_drift(self, rows):
         """How far heat (and noise) move the force reading the step test sees, on the load-free
         training campaigns: the 99th percentile of its magnitude with the tracker listening
         (no step taken), per component, stored as a rate over the offset's tracking time
         (``drift_N_per_s`` x max(``offset_tau_s``, frame interval) is the allowance; floor
         0.1 N/s). A step must stand ``load_k_sigma`` times clear of it. (Frame-to-frame rates,
-        as before, measured the noise: 622 N/s on the twin, and no load was ever applied.)"""
+        as before, measured the noise: 622 N/s on the twin, and no load was ever applied.)
+
+        The step test judges the sensors' noise on its own (``k_start`` x the low-passed
+        noise), so the gratings are listened to with their noise averaged out first: a centred
+        moving mean over ``3 offset_tau_s`` (the tracker's memory), which leaves the lag of the
+        tracker behind heat as it is. Listening to the raw frames counted the noise twice: on the
+        twin (1 s frames, 56 N of Fy noise per frame) the allowance came out 277 N, of which
+        heat was 30 N, and a 1000 N step stood 1.1 allowances clear: the first 0 -> 1000 N step
+        was missed, the offset took it in, and the tracker stayed one level behind (+188 µm
+        at 0 N)."""
         p = self.predictor()
         seen = [np.zeros((0, 3))]
         for r in rows:
             if r["loaded"] or len(r["t"]) < 3:
                 continue
-            F, _, _ = p._track_load(r["e"][:, p._keep], r["t"], None, {}, listen=True)
+            dt = float(np.median(np.diff(r["t"])))
+            width = max(1, round(3.0 * self.offset_tau_s / dt)) if dt > 0 else 1
+            e = uniform_filter1d(r["e"][:, p._keep], size=min(width, len(r["t"])), axis=0, mode="nearest")
+            F, _, _ = p._track_load(e, r["t"], None, {}, listen=True)
             seen.append(np.abs(F))
         seen = np.vstack(seen)
         q = np.quantile(seen, 0.99, axis=0) if len(seen) else np.full(3, 20.0)

@@ -108,6 +108,8 @@ class PhysicalPredictor:
             G = np.asarray(L["G_um_per_N"])[keep]
             self.C = np.asarray(L["C_um_per_N"])  # (3 axes, 3 forces)
             self.noise_var = np.asarray(L["noise_var_um2"], float)[keep]
+            # (model files before the frame noise was measured: the nominal interval)
+            self.noise_frame_dt_s = float(L.get("noise_frame_dt_s", m.nominal_dt_s_))
             noise = np.diag(self.noise_var)
             unit = np.asarray(L["thermal_sigma_unit_um2"], float)[np.ix_(keep, keep)]
             self.active = np.asarray(L["active_forces"], bool)
@@ -300,8 +302,11 @@ class PhysicalPredictor:
         b_fast = 1.0 - np.exp(-dt / LOAD_FAST_S)
         b_hold = 1.0 - np.exp(-dt / LOAD_HOLD_S)
         # variance left by a first-order low-pass of white noise, per unit of the training
-        # frame's variance: (nominal / dt) b / (2 - b); 1 for a frame without history
-        rate = self.nominal_dt_s / np.where(dt > 0, dt, self.nominal_dt_s)
+        # frame's variance: (frame / dt) b / (2 - b); 1 for a frame without history. A frame
+        # slower than the training's fastest (``noise_frame_dt_s``) carries the training
+        # frame's variance, a faster one its density (PhysicalModel._frame_noise_var).
+        fdt = self.noise_frame_dt_s
+        rate = np.maximum(fdt / np.where(dt > 0, dt, fdt), 1.0)
         k_fast = np.where(dt > 0, rate * b_fast / (2.0 - b_fast), 1.0)
         k_hold = np.where(dt > 0, rate * b_hold / (2.0 - b_hold), 1.0)
         lag = self.drift_N_per_s[None, :] * np.maximum(dt, self.offset_tau_s)[:, None]

@@ -68,12 +68,19 @@ def map_features(e_um, delta_T_K, housing_idx, time_s=None, state=None, nominal_
     [uncompensated grating elongations e (µm), every probe's ΔT low-passed over
     ``PROBE_SMOOTHING_S`` (K), the mean housing ΔT's lead ``T - lowpass(T, tau)`` for each tau
     of ``MAP_LEADS_S`` (K)]. On CFRP the gratings are thermometers of their gauges (~5 µm of
-    uncompensated elongation per K over 600 mm), which is why they carry the face gradients."""
+    uncompensated elongation per K over 600 mm), which is why they carry the face gradients.
+
+    The elongations are low-passed over ``PROBE_SMOOTHING_S`` too, starting from 0 (the zero
+    state): as thermometers they change over minutes, and each raw frame carries the
+    interrogator's noise (0.3-0.4 µm per frame on the twin, four times what the twin
+    population assumes), which the map turned into ±2 µm spikes of dz on a static campaign."""
     e = np.atleast_2d(np.asarray(e_um, float))
     dT = np.atleast_2d(np.asarray(delta_T_K, float))
     state = state or {}
     smooth, s_in = first_order_filter(dT, time_s, PROBE_SMOOTHING_S, state.get("in"), nominal_dt_s)
-    new = {"in": s_in}
+    e_state = state.get("e") or (np.zeros(e.shape[1]), None)
+    e, s_e = first_order_filter(e, time_s, PROBE_SMOOTHING_S, e_state, nominal_dt_s)
+    new = {"in": s_in, "e": s_e}
     leads = housing_leads(housing_mean(smooth, housing_idx), MAP_LEADS_S, time_s, state, new, nominal_dt_s)
     return np.hstack([e, smooth, leads]), new
 
