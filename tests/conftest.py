@@ -26,11 +26,25 @@ def twin_cache_dir():
 
 @pytest.fixture(scope="session")
 def runtime_model_and_campaign(tmp_path_factory):
-    """(model.json, campaign folder) of the runtime tests, built once per session
-    (test_runtime_support.model_and_campaign)."""
+    """(model.json, campaign folder) of the runtime tests, built once per session in
+    ``<basetemp>/runtime`` (test_runtime_support.model_and_campaign)."""
     from test_runtime_support import model_and_campaign
 
     return model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+
+
+@pytest.fixture(scope="session")
+def runtime_model_and_arrays(runtime_model_and_campaign):
+    """(model, time s, wavelengths nm, temperatures °C) of :func:`runtime_model_and_campaign`:
+    the model loaded from its file and the campaign's aligned arrays in the model's order
+    (test_runtime_support.model_and_arrays). Shared by the whole session: the arrays are
+    read-only, so a test that changes them works on its own copy."""
+    from test_runtime_support import model_and_arrays
+
+    model, time_s, w, t = model_and_arrays(*runtime_model_and_campaign)
+    for a in (time_s, w, t):
+        a.flags.writeable = False
+    return model, time_s, w, t
 
 
 # Slow tests of the files that do not mark them with @pytest.mark.slow themselves: a whole file,

@@ -882,14 +882,11 @@ def test_write_read_round_trip(campaign):
         assert os.listdir(tmp) == ["c"]
 
 
-_TEMPLATE = None
-
-
-def _template_folder() -> Path:
-    global _TEMPLATE
-    if _TEMPLATE is None:
-        _TEMPLATE = make_folder(Path(tempfile.mkdtemp(prefix="fbgcomp-template-")))
-    return _TEMPLATE
+@pytest.fixture(scope="session")
+def template_folder(tmp_path_factory) -> Path:
+    """The default campaign folder (:func:`make_folder`), made once per session for the property
+    tests to copy (a session fixture: hypothesis refuses function-scoped ones)."""
+    return make_folder(tmp_path_factory.mktemp("template"))
 
 
 def _read_or_input_error(folder: Path) -> None:
@@ -906,10 +903,10 @@ def _read_or_input_error(folder: Path) -> None:
     column=st.integers(0, 3),
     garbage=st.text(max_size=30),
 )
-def test_parser_survives_garbage_in_a_cell_or_header(file, where, column, garbage):
+def test_parser_survives_garbage_in_a_cell_or_header(template_folder, file, where, column, garbage):
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / "c"
-        shutil.copytree(_template_folder(), folder)
+        shutil.copytree(template_folder, folder)
         path = folder / file
         lines = path.read_text().split("\n")
         cells = lines[where].split(",")
@@ -924,10 +921,10 @@ def test_parser_survives_garbage_in_a_cell_or_header(file, where, column, garbag
     file=st.sampled_from(["fbg.csv", "reference.csv", "campaign.yaml"]),
     content=st.binary(max_size=200) | st.text(max_size=200).map(str.encode),
 )
-def test_reader_survives_arbitrary_file_contents(file, content):
+def test_reader_survives_arbitrary_file_contents(template_folder, file, content):
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / "c"
-        shutil.copytree(_template_folder(), folder)
+        shutil.copytree(template_folder, folder)
         (folder / file).write_bytes(content)
         _read_or_input_error(folder)
 
@@ -1043,12 +1040,12 @@ def _rewrite(path: Path, line_end: bytes, trailing: bytes = b"") -> None:
         st.sampled_from(["x", "", "nan", "1e999", "3e6"]),
     ),
 )
-def test_streamed_blocks_read_exactly_what_a_whole_read_does(chunk, line_end, trailing, bad):
+def test_streamed_blocks_read_exactly_what_a_whole_read_does(template_folder, chunk, line_end, trailing, bad):
     # The body is parsed in blocks of whole rows: any block size, line end or trailing blank
     # lines give the same numbers, and a bad cell the same row, column and message.
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / "c"
-        shutil.copytree(_template_folder(), folder)
+        shutil.copytree(template_folder, folder)
         if bad is not None:
             set_cell(folder, "reference.csv", *bad)
         for name in ("fbg.csv", "temperatures.csv", "reference.csv"):
@@ -1066,7 +1063,7 @@ def test_streamed_blocks_read_exactly_what_a_whole_read_does(chunk, line_end, tr
             assert outcome() == whole
         if bad is None:
             assert isinstance(whole, list)
-            np.testing.assert_array_equal(whole[2], read_campaign(_template_folder()).reference)
+            np.testing.assert_array_equal(whole[2], read_campaign(template_folder).reference)
         else:
             assert f"row {bad[0]} (line {bad[0] + 1}), column {bad[1]}" in whole
 
@@ -1212,10 +1209,10 @@ def test_a_cell_is_quoted_cut_short(folder):
         max_size=120,
     ).map(lambda parts: "".join(parts).encode("utf-8", "surrogatepass")),
 )
-def test_arbitrary_bytes_in_fbg_csv_give_a_campaign_or_an_input_error(chunk, head, content):
+def test_arbitrary_bytes_in_fbg_csv_give_a_campaign_or_an_input_error(template_folder, chunk, head, content):
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp) / "c"
-        shutil.copytree(_template_folder(), folder)
+        shutil.copytree(template_folder, folder)
         (folder / "fbg.csv").write_bytes(head + content)
         with mock.patch.object(campaign_tables, "_CHUNK_BYTES", chunk):
             try:

@@ -5,7 +5,7 @@ with an invalid model. Real files in tmp_path; the CLI side is in test_cli.py.""
 
 from __future__ import annotations
 
-import copy
+import functools
 import json
 import math
 import os
@@ -23,27 +23,34 @@ from fbgcomp.models.modelfile import MAX_MODEL_BYTES
 from fbgcomp.models.mra import MRAModel
 from fbgcomp.models.registry import load_model
 
-_CACHE: dict = {}
+# The valid models the tests mutate, each fitted once per session (functools.cache: the
+# hypothesis strategies below take no fixture) as its file's JSON text, immutable; every
+# test gets its own dict of it.
+
+
+@functools.cache
+def _mra_text() -> str:
+    campaign, _ = linear_truth_campaign("boundary", seed=3, duration_s=900)
+    model = MRAModel(features="eq13", stepwise=True, fallbacks="loo").fit(campaign)
+    with tempfile.TemporaryDirectory() as tmp:
+        return model.save(Path(tmp) / "m.json").read_text()
 
 
 def _mra_dict() -> dict:
     """A small valid regression model (stepwise, leave-one-out fallbacks) as a dict."""
-    if "mra" not in _CACHE:
-        campaign, _ = linear_truth_campaign("boundary", seed=3, duration_s=900)
-        model = MRAModel(features="eq13", stepwise=True, fallbacks="loo").fit(campaign)
-        with tempfile.TemporaryDirectory() as tmp:
-            _CACHE["mra"] = json.loads(model.save(Path(tmp) / "m.json").read_text())
-    return copy.deepcopy(_CACHE["mra"])
+    return json.loads(_mra_text())
+
+
+@functools.cache
+def _kinematic_text() -> str:
+    from fbgcomp.models.kinematic import KinematicModel
+
+    with tempfile.TemporaryDirectory() as tmp:
+        return KinematicModel().fit().save(Path(tmp) / "k.json").read_text()
 
 
 def _kinematic_dict() -> dict:
-    if "kinematic" not in _CACHE:
-        from fbgcomp.models.kinematic import KinematicModel
-
-        with tempfile.TemporaryDirectory() as tmp:
-            path = KinematicModel().fit().save(Path(tmp) / "k.json")
-            _CACHE["kinematic"] = json.loads(path.read_text())
-    return copy.deepcopy(_CACHE["kinematic"])
+    return json.loads(_kinematic_text())
 
 
 def _write(path: Path, d, **dump) -> Path:
@@ -205,20 +212,23 @@ def test_a_physical_model_with_an_absurd_coefficient_is_refused(tmp_path):
     _refused(_write(tmp_path / "bad.json", d), "thermal.coef[0][0]", "null where a number")
 
 
+@functools.cache
+def _physical_text() -> str:
+    from fbgcomp.models.physical import PhysicalModel
+    from fbgcomp_testing import RAM2_DIR, read_ram2
+
+    r = read_ram2("thermal_a", "static_xyz")
+    machine = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram2.yaml"
+    model = PhysicalModel(machine=machine, twin_scenarios=8).fit([r["thermal_a"], r["static_xyz"]])
+    assert RAM2_DIR.is_dir()
+    with tempfile.TemporaryDirectory() as tmp:
+        return model.save(Path(tmp) / "p.json").read_text()
+
+
 def _physical_dict() -> dict:
     """The default model as the README fits it on ram2 (twin map, housing calibration, load
     part, interval), as a dict."""
-    if "physical" not in _CACHE:
-        from fbgcomp.models.physical import PhysicalModel
-        from fbgcomp_testing import RAM2_DIR, read_ram2
-
-        r = read_ram2("thermal_a", "static_xyz")
-        machine = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram2.yaml"
-        model = PhysicalModel(machine=machine, twin_scenarios=8).fit([r["thermal_a"], r["static_xyz"]])
-        assert RAM2_DIR.is_dir()
-        with tempfile.TemporaryDirectory() as tmp:
-            _CACHE["physical"] = json.loads(model.save(Path(tmp) / "p.json").read_text())
-    return copy.deepcopy(_CACHE["physical"])
+    return json.loads(_physical_text())
 
 
 @pytest.mark.parametrize(

@@ -8,7 +8,6 @@ from fbgcomp.io.campaign import read_campaign
 from fbgcomp.models.dynamic import DynamicModel
 from fbgcomp.models.features import design_matrix
 from fbgcomp.models.registry import load_model
-from test_runtime_support import model_and_campaign
 
 
 def _einsum_interval(p, d):
@@ -17,8 +16,8 @@ def _einsum_interval(p, d):
     return p._t[None, :] * np.sqrt(var)
 
 
-def test_compiled_design_and_interval_equal_the_reference(tmp_path_factory):
-    model_path, campaign_path = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+def test_compiled_design_and_interval_equal_the_reference(runtime_model_and_campaign):
+    model_path, campaign_path = runtime_model_and_campaign
     model = load_model(model_path)
     campaign = read_campaign(campaign_path)
     aligned = campaign.aligned(zero_window_s=model.zero_window_s)

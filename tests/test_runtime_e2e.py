@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import fbgcomp_testing
-from test_runtime_support import model_and_campaign, serve_with_simulator
+from test_runtime_support import serve_with_simulator
 
 ENV = {"FBGCOMP_OPCUA_USER": "operator", "FBGCOMP_OPCUA_PASSWORD": "e2e-pass-123"}
 NAMES = [
@@ -40,12 +40,12 @@ def _health_sequence(seen):
 
 
 @pytest.fixture(scope="module")
-def scenario(tmp_path_factory):
+def scenario(tmp_path_factory, runtime_model_and_campaign):
     fbgcomp_testing.require("asyncua")
     fbgcomp_testing.require("pyarrow")
     from fbgcomp.runtime.log import read_log
 
-    model_path, campaign = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+    model_path, campaign = runtime_model_and_campaign
     tmp = tmp_path_factory.mktemp("e2e")
     config = (
         "[source]\nbackoff_initial_s = 0.05\nbackoff_max_s = 0.4\n"

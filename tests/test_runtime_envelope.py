@@ -6,12 +6,12 @@ import pytest
 
 from fbgcomp.runtime import health as H
 from fbgcomp.runtime.pipeline import HEALTH_ALARM, HEALTH_OK, Pipeline, PipelineConfig
-from test_runtime_support import model_and_arrays, run_in_batches
+from test_runtime_support import run_in_batches
 
 
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory):
-    return model_and_arrays(tmp_path_factory.getbasetemp() / "runtime")
+def setup(runtime_model_and_arrays):
+    return runtime_model_and_arrays
 
 
 @pytest.mark.parametrize("sizes", [[1], [10], [10_000]])

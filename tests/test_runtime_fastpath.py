@@ -8,7 +8,7 @@ import pytest
 
 from fbgcomp.runtime import health as H
 from fbgcomp.runtime.pipeline import Pipeline, PipelineConfig
-from test_runtime_support import model_and_arrays, run_in_batches
+from test_runtime_support import run_in_batches
 
 FIELDS = (
     "deviation_um",
@@ -30,8 +30,8 @@ class GeneralOnly(Pipeline):
 
 
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory):
-    model, time_s, w, t = model_and_arrays(tmp_path_factory.getbasetemp() / "runtime")
+def setup(runtime_model_and_arrays):
+    model, time_s, w, t = runtime_model_and_arrays
     rng = np.random.default_rng(4)
     # noise of a live grating (a noise-free replay repeats values: the stuck check's case)
     w = w + 3e-4 * rng.standard_normal(w.shape)

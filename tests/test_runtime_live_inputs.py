@@ -22,7 +22,7 @@ import pandas as pd
 import pytest
 
 import fbgcomp_testing
-from test_runtime_support import fbgcomp_process, free_port, model_and_campaign, serve_with_simulator
+from test_runtime_support import fbgcomp_process, free_port, serve_with_simulator
 
 ENV = {"FBGCOMP_OPCUA_USER": "operator", "FBGCOMP_OPCUA_PASSWORD": "live-pass-123"}
 
@@ -198,12 +198,14 @@ def serve_and_sim(tmp: Path, toml: str, model, campaign, serve_args=(), sim_args
 
 
 # ------------------------------------------------------------------ tests
-def test_serve_reads_opcua_and_modbus_temperatures_and_holds_when_one_goes_stale(tmp_path_factory):
+def test_serve_reads_opcua_and_modbus_temperatures_and_holds_when_one_goes_stale(
+    tmp_path_factory, runtime_model_and_campaign
+):
     fbgcomp_testing.require("asyncua")
     fbgcomp_testing.require("pymodbus")
     from fbgcomp.models.registry import load_model
 
-    model_path, campaign = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+    model_path, campaign = runtime_model_and_campaign
     model = load_model(model_path)
     assert set(model.probe_names) == {"T_bulk", "T_surf", "T_flange"}
     tmp = tmp_path_factory.mktemp("live")
@@ -296,11 +298,11 @@ stale_s = 1.5
     assert np.all(np.diff(corr) <= 1e-9)  # never grows while held
 
 
-def test_simulator_serves_the_campaigns_temperatures_over_opcua(tmp_path_factory):
+def test_simulator_serves_the_campaigns_temperatures_over_opcua(tmp_path_factory, runtime_model_and_campaign):
     fbgcomp_testing.require("asyncua")
     from fbgcomp.models.registry import load_model
 
-    model_path, campaign = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+    model_path, campaign = runtime_model_and_campaign
     model = load_model(model_path)
     tmp = tmp_path_factory.mktemp("simtemps")
     port = free_port()
@@ -369,13 +371,14 @@ def wait_log(folder: Path, health: str, timeout_s: float = 30.0) -> pd.DataFrame
     raise AssertionError(f"no {health} frame in the run log within {timeout_s} s")
 
 
-def test_z_over_opcua_moves_a_kinematic_models_correction_and_stale_z_holds(tmp_path_factory):
+def test_z_over_opcua_moves_a_kinematic_models_correction_and_stale_z_holds(
+    tmp_path_factory, runtime_model_and_campaign
+):
     fbgcomp_testing.require("asyncua")
     from fbgcomp.models.registry import load_model
 
-    base = tmp_path_factory.getbasetemp() / "runtime"
-    _, campaign = model_and_campaign(base)
-    model_path = _kinematic_model(base)
+    shared_model, campaign = runtime_model_and_campaign
+    model_path = _kinematic_model(shared_model.parent)
     model = load_model(model_path)
     tmp = tmp_path_factory.mktemp("zopc")
     camp_t = pd.read_csv(campaign / "temperatures.csv").iloc[0]
@@ -442,13 +445,12 @@ def machine():
         m.stop()
 
 
-def test_linuxcnc_hal_pin_z_reaches_the_model(machine, tmp_path_factory):
+def test_linuxcnc_hal_pin_z_reaches_the_model(machine, tmp_path_factory, runtime_model_and_campaign):
     fbgcomp_testing.require("asyncua")
     from fbgcomp.models.registry import load_model
 
-    base = tmp_path_factory.getbasetemp() / "runtime"
-    _, campaign = model_and_campaign(base)
-    model_path = _kinematic_model(base)
+    shared_model, campaign = runtime_model_and_campaign
+    model_path = _kinematic_model(shared_model.parent)
     model = load_model(model_path)
     tmp = tmp_path_factory.mktemp("zcnc")
     camp_t = pd.read_csv(campaign / "temperatures.csv").iloc[0]
@@ -527,9 +529,11 @@ def test_linuxcnc_hal_pin_z_reaches_the_model(machine, tmp_path_factory):
         ('[position]\nsource = "linuxcnc"\n', "needs the LinuxCNC output"),
     ],
 )
-def test_bad_live_input_configuration_is_one_line(tmp_path_factory, toml, message):
+def test_bad_live_input_configuration_is_one_line(
+    tmp_path_factory, runtime_model_and_campaign, toml, message
+):
     fbgcomp_testing.require("asyncua")
-    model_path, _campaign = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+    model_path, _campaign = runtime_model_and_campaign
     tmp = tmp_path_factory.mktemp("badcfg")
     (tmp / "serve.toml").write_text(toml)
     p = fbgcomp_process(

@@ -8,13 +8,12 @@ import pytest
 import fbgcomp_testing
 from fbgcomp.cli.app import main
 from fbgcomp.io.campaign import read_campaign
-from test_runtime_support import model_and_campaign
 
 
 @pytest.fixture(scope="module")
-def paths(tmp_path_factory):
+def paths(runtime_model_and_campaign):
     fbgcomp_testing.require("pyarrow")
-    return model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+    return runtime_model_and_campaign
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import fbgcomp_testing
-from test_runtime_support import free_port, modbus_serve_config, model_and_campaign, serve_with_simulator
+from test_runtime_support import free_port, modbus_serve_config, serve_with_simulator
 
 ENV = {"FBGCOMP_OPCUA_USER": "operator", "FBGCOMP_OPCUA_PASSWORD": "modbus-pass-123"}
 
@@ -77,11 +77,11 @@ def test_slope_of_a_z_dependent_model_is_its_finite_difference_and_predicts_othe
     np.testing.assert_allclose(z_slope_um_per_m(p, w, t, w0, t0, None), slope)
 
 
-def test_slope_is_zero_for_a_model_without_z(tmp_path_factory):
+def test_slope_is_zero_for_a_model_without_z(runtime_model_and_campaign):
     from fbgcomp.models.registry import load_model
     from fbgcomp.runtime.outputs.cnc_form import takes_z, z_slope_um_per_m
 
-    model_path, _ = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+    model_path, _ = runtime_model_and_campaign
     model = load_model(model_path)
     p = model.predictor()
     w0 = np.array([s.lambda0_nm for s in model.sensors])
@@ -209,7 +209,7 @@ def test_busy_port_is_a_one_line_error():
 
 # ------------------------------------------------------------------ a real serve, end to end
 @pytest.fixture(scope="module")
-def served(tmp_path_factory):
+def served(tmp_path_factory, runtime_model_and_campaign):
     fbgcomp_testing.require("asyncua")
     fbgcomp_testing.require("pyarrow")
     fbgcomp_testing.require("pymodbus")
@@ -217,7 +217,7 @@ def served(tmp_path_factory):
 
     from fbgcomp.runtime.log import read_log
 
-    model_path, campaign = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+    model_path, campaign = runtime_model_and_campaign
     tmp = tmp_path_factory.mktemp("modbus")
     port = free_port()
     rate = 2.0

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 import fbgcomp_testing
-from test_runtime_support import model_and_campaign, serve_with_simulator
+from test_runtime_support import serve_with_simulator
 
 ENV = {"FBGCOMP_OPCUA_USER": "operator", "FBGCOMP_OPCUA_PASSWORD": "modehop-pass-123"}
 AXES = ("X", "Y", "Z")
@@ -35,14 +35,15 @@ NAMES = [
 HOP_AT_S, HOP_NM = 8.0, 2.0
 
 
-def _serve(tmp_path_factory, name, faults, done):
-    """Run serve (default output policy) against sim-interrogator with ``faults`` until
-    ``done(seen)``; return the OPC UA notifications, the run log and the model path."""
+def _serve(tmp_path_factory, paths, name, faults, done):
+    """Run serve (default output policy) with ``paths`` (model file, campaign) against
+    sim-interrogator with ``faults`` until ``done(seen)``; return the OPC UA notifications, the
+    run log and the model path."""
     fbgcomp_testing.require("asyncua")
     fbgcomp_testing.require("pyarrow")
     from fbgcomp.runtime.log import read_log
 
-    model_path, campaign = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+    model_path, campaign = paths
     tmp = tmp_path_factory.mktemp(name)
     # only the reconnect back-off and the no-data time are set, the output policy is serve's
     # default. no_data_s: a machine too loaded to deliver frames for 0.5 s would add no-data
@@ -72,8 +73,14 @@ def _s3_for(states, seconds):
 
 
 @pytest.fixture(scope="module")
-def hop(tmp_path_factory):
-    return _serve(tmp_path_factory, "modehop", [f"shift:S3@{HOP_AT_S:g}:+{HOP_NM:g}"], _s3_for(("OK",), 3.0))
+def hop(tmp_path_factory, runtime_model_and_campaign):
+    return _serve(
+        tmp_path_factory,
+        runtime_model_and_campaign,
+        "modehop",
+        [f"shift:S3@{HOP_AT_S:g}:+{HOP_NM:g}"],
+        _s3_for(("OK",), 3.0),
+    )
 
 
 def _fault_free(model_path, log):
@@ -192,7 +199,7 @@ def _gap_frames(model, aligned_time_s, w, shift_nm):
 
 
 @pytest.mark.parametrize("sizes", [[1], [10], [10_000]])
-def test_a_grating_back_shifted_from_a_gap_stays_out(sizes, tmp_path_factory):
+def test_a_grating_back_shifted_from_a_gap_stays_out(sizes, runtime_model_and_campaign):
     """The real pipeline and model on the served campaign's frames, in any batching."""
     from fbgcomp.io.campaign import read_campaign
     from fbgcomp.models.registry import load_model
@@ -200,7 +207,7 @@ def test_a_grating_back_shifted_from_a_gap_stays_out(sizes, tmp_path_factory):
     from fbgcomp.runtime.pipeline import HEALTH_DEGRADED, HEALTH_OK, Pipeline, PipelineConfig
     from test_runtime_support import run_in_batches
 
-    model_path, campaign = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+    model_path, campaign = runtime_model_and_campaign
     model = load_model(model_path)
     aligned = read_campaign(campaign).aligned(zero_window_s=model.zero_window_s)
     w, temp, _, _ = model.instrument_arrays(aligned)
@@ -251,8 +258,14 @@ def test_a_grating_back_shifted_from_a_gap_stays_out(sizes, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def gap(tmp_path_factory):
-    return _serve(tmp_path_factory, "modehop_gap", GAP_FAULTS, _s3_for(("INCONSISTENT",), 3.0))
+def gap(tmp_path_factory, runtime_model_and_campaign):
+    return _serve(
+        tmp_path_factory,
+        runtime_model_and_campaign,
+        "modehop_gap",
+        GAP_FAULTS,
+        _s3_for(("INCONSISTENT",), 3.0),
+    )
 
 
 def test_served_grating_back_shifted_from_a_gap_stays_out(gap):

@@ -623,15 +623,15 @@ def test_writer_warning_wording():
 
 
 @pytest.mark.parametrize("writer", [False, True])
-def test_serve_warns_loudly_when_no_user_may_write(tmp_path, writer):
+def test_serve_warns_loudly_when_no_user_may_write(tmp_path, runtime_model_and_campaign, writer):
     """The README's serve has no users: before, every client was refused and nothing said so.
     Now a real ``fbgcomp serve`` says it on stdout and in its log (stderr) - and only then."""
     import fbgcomp_testing
 
     fbgcomp_testing.require("asyncua")
-    from test_runtime_support import fbgcomp_process, model_and_campaign
+    from test_runtime_support import fbgcomp_process
 
-    model, campaign = model_and_campaign(tmp_path.parent / "runtime")
+    model, campaign = runtime_model_and_campaign
     env = (
         {"FBGCOMP_OPCUA_USER": "operator", "FBGCOMP_OPCUA_PASSWORD": "pw-for-test-1"}
         if writer

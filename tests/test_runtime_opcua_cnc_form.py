@@ -14,7 +14,7 @@ import pytest
 import fbgcomp_testing
 from test_runtime_modbus import ENV, _decoded, _regs
 from test_runtime_opcua import TRUSTED, server_factory, trusted_client  # noqa: F401 (fixture)
-from test_runtime_support import free_port, modbus_serve_config, model_and_campaign, serve_with_simulator
+from test_runtime_support import free_port, modbus_serve_config, serve_with_simulator
 
 NAMES = [f"Offset{a}_um" for a in "XYZ"] + [f"Slope{a}_um_per_m" for a in "XYZ"] + ["ZRef_mm"]
 
@@ -163,14 +163,14 @@ def test_without_modbus_the_same_limits_apply(server_factory, tmp_path):  # noqa
 
 
 @pytest.fixture(scope="module")
-def served_both(tmp_path_factory):
+def served_both(tmp_path_factory, runtime_model_and_campaign):
     """A real serve with OPC UA and [modbus], fed by the real simulated interrogator; an OPC UA
     subscription to the offset variables while a PLC-side pymodbus client polls the registers."""
     fbgcomp_testing.require("asyncua")
     fbgcomp_testing.require("pymodbus")
     from pymodbus.client import ModbusTcpClient
 
-    model_path, campaign = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+    model_path, campaign = runtime_model_and_campaign
     tmp = tmp_path_factory.mktemp("opcua_modbus")
     port = free_port()
     rate = 2.0

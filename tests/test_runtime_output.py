@@ -8,12 +8,12 @@ from fbgcomp.models import Predictor, load_model
 from fbgcomp.runtime import health as H
 from fbgcomp.runtime.output_filter import AdaptiveLevelFilter, OutputFilterConfig
 from fbgcomp.runtime.pipeline import HEALTH_DEGRADED, Pipeline, PipelineConfig
-from test_runtime_support import model_and_campaign, run_in_batches
+from test_runtime_support import run_in_batches
 
 
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory):
-    model_path, campaign_path = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+def setup(runtime_model_and_campaign):
+    model_path, campaign_path = runtime_model_and_campaign
     campaign = read_campaign(campaign_path)
     model = load_model(model_path)
     aligned = campaign.aligned(zero_window_s=model.zero_window_s)

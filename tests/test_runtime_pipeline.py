@@ -15,15 +15,15 @@ from fbgcomp.runtime.pipeline import (
     Pipeline,
     PipelineConfig,
 )
-from test_runtime_support import model_and_campaign, run_in_batches
+from test_runtime_support import run_in_batches
 
 # Output policy off: the published correction is exactly - prediction (the model path itself).
 RAW = dict(output_filter=OutputFilterConfig(enabled=False), max_slew_um_per_s=0, max_correction_um=0)
 
 
 @pytest.fixture(scope="module")
-def setup(tmp_path_factory):
-    model_path, campaign_path = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+def setup(runtime_model_and_campaign):
+    model_path, campaign_path = runtime_model_and_campaign
     model = load_model(model_path)
     campaign = read_campaign(campaign_path)
     aligned = campaign.aligned(zero_window_s=model.zero_window_s)
@@ -189,7 +189,7 @@ def test_link_loss_ticks_hold_then_ramp_and_data_resumes(setup):
     assert (back.health == HEALTH_OK).all()
 
 
-def test_model_reload_keeps_the_re_admission_check(setup, tmp_path_factory):
+def test_model_reload_keeps_the_re_admission_check(setup, runtime_model_and_campaign):
     """A model reload (``Service.reload``, as OPC UA ReloadModel calls it) in the middle of a
     refused re-admission changes nothing: the grating back shifted from a gap stays
     INCONSISTENT (not RECOVERING), and a reload just before the frame it would come back on
@@ -198,10 +198,9 @@ def test_model_reload_keeps_the_re_admission_check(setup, tmp_path_factory):
     import asyncio
 
     from fbgcomp.runtime.service import RuntimeConfig, Service
-    from test_runtime_support import model_and_campaign
 
     model, _campaign, aligned, w, t = setup
-    model_path, _ = model_and_campaign(tmp_path_factory.getbasetemp() / "runtime")
+    model_path, _ = runtime_model_and_campaign
     time_s = aligned.time_s
     s3 = model.sensor_names.index("S3")
     wl, counts = w.copy(), np.ones(w.shape, np.int8)

@@ -12,13 +12,10 @@ from contextlib import contextmanager
 from pathlib import Path
 from types import SimpleNamespace
 
-_CACHE: dict = {}
-
 
 def model_and_campaign(base: Path) -> tuple[Path, Path]:
-    """(model.json, campaign folder) built once per test session under ``base``."""
-    if "paths" in _CACHE:
-        return _CACHE["paths"]
+    """(model.json, campaign folder) built under ``base``, anew at every call: the runtime
+    tests share the one the session fixture ``runtime_model_and_campaign`` (conftest) builds."""
     from fbgcomp.bench.synthetic import linear_truth_campaign
     from fbgcomp.io.campaign import write_campaign
     from fbgcomp.models.mra import MRAModel
@@ -33,17 +30,16 @@ def model_and_campaign(base: Path) -> tuple[Path, Path]:
         "serve", seed=2, duration_s=300, fbg_dt_s=0.1, temperature_dt_s=0.1, reference_dt_s=0.1, settle_s=0.0
     )
     campaign = write_campaign(serve, base / "serve")
-    _CACHE["paths"] = (Path(model_path), Path(campaign))
-    return _CACHE["paths"]
+    return Path(model_path), Path(campaign)
 
 
-def model_and_arrays(base: Path):
-    """The shared test model (loaded from its file) and its campaign's aligned time (s),
-    wavelengths (nm) and temperatures (°C) in the model's order."""
+def model_and_arrays(model_path: Path, campaign_path: Path):
+    """The model of ``model_path`` (loaded from its file) and the campaign's aligned time (s),
+    wavelengths (nm) and temperatures (°C) in the model's order: the session fixture
+    ``runtime_model_and_arrays`` (conftest) of :func:`model_and_campaign`'s files."""
     from fbgcomp.io.campaign import read_campaign
     from fbgcomp.models.registry import load_model
 
-    model_path, campaign_path = model_and_campaign(base)
     model = load_model(model_path)
     aligned = read_campaign(campaign_path).aligned(zero_window_s=model.zero_window_s)
     w, t, _, _ = model.instrument_arrays(aligned)
