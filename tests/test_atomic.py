@@ -7,7 +7,7 @@ import stat
 import numpy as np
 import pytest
 
-from fbgcomp.atomic import atomic_path, write_bytes, write_json
+from fbgcomp.atomic import atomic_path, staged_dir, write_bytes, write_json
 
 
 def test_atomic_path_replaces_the_target_only_on_success(tmp_path):
@@ -66,3 +66,20 @@ def test_write_json_check_refuses_without_touching_the_target(tmp_path):
         write_json(target, {"a": 1}, check=refuse)
     assert '"b": 2.0' in target.read_text()
     assert sorted(p.name for p in target.parent.iterdir()) == ["model.json"]
+
+
+def test_staged_dir_swaps_the_whole_folder_in_or_leaves_the_old_one(tmp_path):
+    target = tmp_path / "out"
+    target.mkdir()
+    (target / "old.txt").write_text("old")
+    with staged_dir(target) as staging:
+        assert staging.parent == tmp_path and staging.name.startswith(".out.tmp-")
+        assert not list(staging.iterdir())
+        (staging / "new.txt").write_text("new")
+        assert (target / "old.txt").is_file()  # nothing of the new folder is visible yet
+    assert sorted(p.name for p in target.iterdir()) == ["new.txt"]
+    with pytest.raises(RuntimeError, match="half way"), staged_dir(target) as staging:
+        (staging / "half.txt").write_text("half")
+        raise RuntimeError("half way")
+    assert sorted(p.name for p in target.iterdir()) == ["new.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]  # no staging or retired folder left

@@ -149,11 +149,11 @@ def test_failed_or_crashed_ingest_never_shows_a_half_written_partition(campaigns
     with pytest.raises(OSError, match="disk full"):
         ingest([pa_], ds, rows_per_file=400)
     monkeypatch.setattr(pq, "write_table", real_write)
-    assert not [p for p in ds.iterdir() if p.name.startswith(".ingest-")]
+    assert not [p for p in ds.iterdir() if p.name.startswith(".ingest")]
     pd.testing.assert_frame_equal(pd.read_parquet(ds), before)
 
     # A kill -9 leaves its staging folder behind: every reader ignores it.
-    staging = ds / ".ingest-deadbeef" / "machine=default" / "campaign=run_a"
+    staging = ds / ".ingest.tmp-deadbeef" / "machine=default" / "campaign=run_a"
     staging.mkdir(parents=True)
     real_write(
         pq.read_table(ds / "machine=default" / "campaign=run_a" / "part-00000.parquet"),

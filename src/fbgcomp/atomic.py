@@ -1,8 +1,9 @@
 """Atomic writes: a reader sees the old file or folder, or the complete new one, never a half.
 
 Files are written to a temporary name in the same folder (:func:`atomic_path`), flushed to
-disk, then renamed over the target. Folders are built in a staging folder beside the target and
-swapped in with :func:`replace_dir`, which puts the old folder back if the swap fails.
+disk, then renamed over the target. Folders are built in a staging folder beside the target
+(:func:`staged_dir`) and swapped in with :func:`replace_dir`, which puts the old folder back if
+the swap fails.
 """
 
 from __future__ import annotations
@@ -115,3 +116,25 @@ def replace_dir(staging, target, retired) -> None:
         os.rename(retired, target)
         raise
     shutil.rmtree(retired, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def staged_dir(target, staging_parent=None, staging_name=None) -> Iterator[Path]:
+    """Build the folder ``target`` atomically: yields an empty staging folder (in
+    ``staging_parent``, default beside ``target``, so on the same file system); when the block
+    ends without an exception the staging folder replaces ``target`` (:func:`replace_dir`),
+    else it is removed and ``target`` is left as it was."""
+    target = Path(target)
+    parent = Path(staging_parent) if staging_parent is not None else target.parent
+    parent.mkdir(parents=True, exist_ok=True)
+    token = secrets.token_hex(6)
+    name = staging_name or f".{target.name}"
+    staging = parent / f"{name}.tmp-{token}"
+    staging.mkdir()
+    try:
+        yield staging
+        target.parent.mkdir(parents=True, exist_ok=True)
+        replace_dir(staging, target, parent / f"{name}.old-{token}")
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise

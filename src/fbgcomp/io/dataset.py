@@ -25,10 +25,10 @@ the whole ``campaign.yaml`` content: in every Parquet file's key-value metadata 
 with ``_`` or ``.`` are ignored by pyarrow/pandas/Dask discovery; with DuckDB read
 ``DATASET/machine=*/campaign=*/*.parquet`` with ``hive_partitioning = true``.
 
-Writes are atomic: a campaign's files are written into ``DATASET/.ingest-<token>/``, fsynced,
+Writes are atomic: a campaign's files are written into ``DATASET/.ingest.tmp-<token>/``, fsynced,
 and the folder is renamed to ``machine=<m>/campaign=<c>`` (an existing one is swapped out by
-rename and removed, :func:`fbgcomp.atomic.replace_dir`); the sidecar is written with
-:func:`fbgcomp.atomic.write_json`. A crash leaves at worst an ignored ``.ingest-*`` folder, never
+rename and removed, :func:`fbgcomp.atomic.staged_dir`); the sidecar is written with
+:func:`fbgcomp.atomic.write_json`. A crash leaves at worst an ignored ``.ingest.*`` folder, never
 a half-written partition.
 
 pyarrow (the ``scale`` extra) is imported only where Parquet is read or written, so detecting a
@@ -40,8 +40,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import shutil
-import uuid
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -50,7 +48,7 @@ from urllib.parse import quote
 import numpy as np
 import pandas as pd
 
-from fbgcomp.atomic import json_safe, replace_dir, write_json
+from fbgcomp.atomic import json_safe, staged_dir, write_json
 from fbgcomp.errors import InputError
 from fbgcomp.io.campaign import (
     LOAD_COLUMNS,
@@ -428,22 +426,13 @@ def ingest_campaign(
     schema = pa.schema([(name, pa.float64()) for name in columns], metadata=kv)
 
     root.mkdir(parents=True, exist_ok=True)
-    token = uuid.uuid4().hex[:12]
-    staging = root / f".ingest-{token}"
-    staging.mkdir()
-    try:
+    with staged_dir(partition.path, staging_parent=root, staging_name=".ingest") as staging:
         for i, name in enumerate(files):
             lo, hi = i * rows_per_file, min(n, (i + 1) * rows_per_file)
             table = pa.table({k: v[lo:hi] for k, v in columns.items()}, schema=schema)
             pq.write_table(table, staging / name, row_group_size=row_group_rows, compression="zstd")
             with open(staging / name, "rb") as fh:
                 os.fsync(fh.fileno())
-        target = partition.path
-        target.parent.mkdir(parents=True, exist_ok=True)
-        replace_dir(staging, target, root / f".retired-{token}")
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
     _update_index(root, partition)
     return partition
 

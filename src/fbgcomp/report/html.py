@@ -22,13 +22,11 @@ import base64
 import html
 import math
 import os
-import shutil
-import uuid
 from datetime import UTC, datetime
 from pathlib import Path
 
 from fbgcomp import __version__
-from fbgcomp.atomic import replace_dir
+from fbgcomp.atomic import staged_dir
 from fbgcomp.errors import InputError
 from fbgcomp.io.campaign import Campaign, read_campaign
 from fbgcomp.models.features import parse_term
@@ -521,20 +519,12 @@ def write_report(campaigns, model, output_dir, *, model_path="", progress=None) 
             progress(campaign.name)
     document = render_html(sections, model, model_path or "<in memory>")
 
-    target.parent.mkdir(parents=True, exist_ok=True)
-    token = uuid.uuid4().hex[:12]
-    staging = target.parent / f".{target.name}.tmp-{token}"
-    staging.mkdir()
-    try:
+    with staged_dir(target) as staging:
         for s in sections:
             for _title, png, file_name in s.figures.values():
                 _write_bytes(staging / file_name, png)
         # report.html last: a folder with report.html is a complete one.
         _write_bytes(staging / REPORT_FILE, document.encode("utf-8"))
-        replace_dir(staging, target, target.parent / f".{target.name}.old-{token}")
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
     return target / REPORT_FILE
 
 

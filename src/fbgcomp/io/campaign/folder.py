@@ -5,8 +5,6 @@ inspection), :func:`read_campaign` and the atomic :func:`write_campaign`.
 from __future__ import annotations
 
 import os
-import shutil
-import uuid
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,7 +13,7 @@ import numpy as np
 import pandas as pd
 
 from fbgcomp import optics
-from fbgcomp.atomic import replace_dir
+from fbgcomp.atomic import staged_dir
 from fbgcomp.errors import InputError
 from fbgcomp.io.campaign.align import (
     AlignedCampaign,
@@ -429,11 +427,7 @@ def write_campaign(campaign: Campaign, path: str | Path) -> Path:
             file=target,
         )
     checked = campaign.validate()
-    target.parent.mkdir(parents=True, exist_ok=True)
-    token = uuid.uuid4().hex[:12]
-    staging = target.parent / f".{target.name}.tmp-{token}"
-    staging.mkdir()
-    try:
+    with staged_dir(target) as staging:
         write_csv(checked.fbg, staging / FBG_FILE)
         write_csv(checked.temperatures, staging / TEMPERATURES_FILE)
         write_csv(checked.reference, staging / REFERENCE_FILE)
@@ -447,8 +441,4 @@ def write_campaign(campaign: Campaign, path: str | Path) -> Path:
             handle.write(text)
             handle.flush()
             os.fsync(handle.fileno())
-        replace_dir(staging, target, target.parent / f".{target.name}.old-{token}")
-    except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
-        raise
     return target
