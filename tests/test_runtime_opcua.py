@@ -1,11 +1,13 @@
 """OPC UA server with a real asyncua client over TCP, Basic256Sha256 Sign & Encrypt."""
 
 import asyncio
+import json
 import logging
 import os
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -667,3 +669,13 @@ def test_serve_warns_loudly_when_no_user_may_write(tmp_path, runtime_model_and_c
         assert len(warned) == 1 and warned[0].startswith("WARNING: "), out
         assert "BadIdentityTokenRejected" in warned[0] and "--users FILE" in warned[0]
         assert len(logged) == 1 and " WARNING fbgcomp.runtime: " in logged[0], err
+    # the one-line start-up summary, without -v: what runs, and who may change it
+    summary = [line for line in err.splitlines() if line.startswith("serving model ")]
+    assert len(summary) == 1, err
+    meta = json.loads(Path(model).read_text())
+    s = summary[0]
+    assert f"serving model {meta['model_id']} ({meta['model_type']}, {model})" in s, s
+    assert f"| inputs: gratings sim://{campaign}?rate=50 |" in s, s
+    assert "| outputs: OPC UA opc.tcp://127.0.0.1:" in s and "run log" not in s, s
+    assert "| policy: output filter on, max correction " in s and " µm/s" in s, s
+    assert s.endswith("| may write: OPC UA: operator" if writer else "| may write: OPC UA: nobody"), s

@@ -192,7 +192,7 @@ def serve(
         if not 0 <= realtime_priority <= 99:
             raise InputError(f"expected 0..99, got {realtime_priority}", column="--realtime-priority")
         cfg.realtime.fifo_priority = realtime_priority
-    svc = run_service(cfg, duration)
+    svc = run_service(cfg, duration, announce=lambda line: typer.echo(line, err=True))
     typer.echo(f"processed {svc.frames} frames in {svc.batches} batches", err=True)
 
 

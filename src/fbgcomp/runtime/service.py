@@ -16,6 +16,7 @@ import signal
 import sys
 import time
 import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields, is_dataclass
 from pathlib import Path
 
@@ -46,6 +47,7 @@ from fbgcomp.runtime.sources import (
     open_temperatures,
     parse_source_url,
 )
+from fbgcomp.runtime.summary import startup_summary
 
 log = logging.getLogger("fbgcomp.runtime")
 
@@ -169,8 +171,10 @@ def model_meta(model, pipeline: Pipeline, temperature_probes=None) -> dict:
 class Service:
     """One compensation service. ``run`` returns when the duration ends or on stop()."""
 
-    def __init__(self, config: RuntimeConfig, model=None):
+    def __init__(self, config: RuntimeConfig, model=None, announce: Callable[[str], None] | None = None):
         self.config = config
+        # called once with startup_summary() when everything has started (serve prints it)
+        self.announce = announce
         self.model = model if model is not None else self._load_model(config.model)
         self.pipeline = Pipeline(self.model, config.pipeline)
         self.model_id = self.model.model_id
@@ -379,6 +383,8 @@ class Service:
             self.cnc.start()
         if self.live is not None:
             self.live.start()
+        if self.announce is not None:
+            self.announce(self.startup_summary())
         queue: asyncio.Queue[SensorBatch | None] = asyncio.Queue()
 
         async def pump():
@@ -443,6 +449,11 @@ class Service:
                 await main_loop.run_in_executor(None, self.opc.stop)
             if self.runlog is not None:
                 await main_loop.run_in_executor(None, self.runlog.close)
+
+    def startup_summary(self) -> str:
+        """One line on what this service reads, publishes, applies and lets others change
+        (:func:`fbgcomp.runtime.summary.startup_summary`)."""
+        return startup_summary(self)
 
     def _process(self, batch: SensorBatch) -> None:
         if len(batch) == 0:
@@ -548,8 +559,11 @@ def _probe_specs(folder):
         return None
 
 
-def run_service(config: RuntimeConfig, duration_s: float | None = None) -> Service:
-    """Run until SIGINT / SIGTERM (graceful: the run log is flushed) or ``duration_s``."""
+def run_service(
+    config: RuntimeConfig, duration_s: float | None = None, announce: Callable[[str], None] | None = None
+) -> Service:
+    """Run until SIGINT / SIGTERM (graceful: the run log is flushed) or ``duration_s``;
+    ``announce`` is given the one-line start-up summary (:meth:`Service.startup_summary`)."""
     # The log writer (and other outputs) run in threads: when one of them holds the GIL, hand
     # it back within 1 ms (default 5 ms) so a frame waiting to be processed is not held up.
     sys.setswitchinterval(0.001)
@@ -557,7 +571,7 @@ def run_service(config: RuntimeConfig, duration_s: float | None = None) -> Servi
     # threshold: before the OPC UA process starts, so it inherits them
     for line in realtime.apply(config.realtime):
         log.info("real time: %s", line)
-    service = Service(config)
+    service = Service(config, announce=announce)
 
     async def main():
         loop = asyncio.get_running_loop()
