@@ -54,6 +54,14 @@ def test_stages_on_stderr_only_and_stdout_unchanged(tmp_path):
         "fit: writing m.json",
     ]
     assert "validating: campaign 1/1" in val.stderr
+    rep = _run(["report", "static_y", "--model", "m.json", "-o", "rep"], forced[3], "1")
+    assert rep.returncode == 0, rep.stderr
+    assert rep.stderr.splitlines() == [
+        "report: reading the model and campaigns",
+        "report: analysing static-y",  # the campaign's name (campaign.yaml), not its folder
+        "report: written to rep",
+    ]
+    assert (forced[3] / "rep" / "report.html").is_file()
     # not a terminal and not forced: nothing, as with FBGCOMP_PROGRESS=0
     for quiet in (off, default):
         assert all(r.stderr == "" for r in quiet[:3]), [r.stderr for r in quiet[:3]]

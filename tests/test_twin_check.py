@@ -87,8 +87,9 @@ def _app():
     return app
 
 
-def test_cli_prints_the_table_and_writes_the_figures(tmp_path, reference):
+def test_cli_prints_the_table_and_writes_the_figures(tmp_path, reference, monkeypatch):
     fbgcomp_testing.require("skfem")
+    monkeypatch.setenv("FBGCOMP_PROGRESS", "1")  # progress forced: plain lines on stderr
     out = tmp_path / "check.json"
     result = CliRunner().invoke(
         _app(),
@@ -105,6 +106,7 @@ def test_cli_prints_the_table_and_writes_the_figures(tmp_path, reference):
     )
     assert result.exit_code == 0, result.output
     assert "Fx dx (um/kN)" in result.output and "28 of 28" in result.output
+    assert "twin-check: building the twin (or loading it from its cache)" in result.stderr
     figures = json.loads(out.read_text())
     assert figures["passed"] is True and figures["element"] == "hex8i"
     assert len(figures["rows"]) == 36

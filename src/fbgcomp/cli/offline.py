@@ -460,8 +460,17 @@ def report(
     from fbgcomp.models.registry import load_model
     from fbgcomp.report.html import write_report
 
-    fitted = load_model(model)
-    data = [read_campaign(p) for p in campaigns]
-    path = write_report(data, fitted, output, model_path=str(model))
+    with progress.stages("report", 2 + len(campaigns)) as stage:
+        stage("reading the model and campaigns")
+        fitted = load_model(model)
+        data = [read_campaign(p) for p in campaigns]
+        path = write_report(
+            data,
+            fitted,
+            output,
+            model_path=str(model),
+            progress=lambda name: stage(f"analysing {name}"),
+        )
+        stage(f"written to {output}")
     n_fig = sum(1 for _ in output.glob("*.png"))
     typer.echo(f"report written to {path} ({len(data)} campaign(s), {n_fig} figure(s))")

@@ -221,7 +221,9 @@ def twin_check(
         raise InputError(
             "--resolution must be a positive number", file="<command line>", column="option --resolution"
         )
-    out = run(machine, against, resolution)
+    with progress.stages("twin-check", 1) as stage:
+        stage("building the twin (or loading it from its cache) and computing its responses")
+        out = run(machine, against, resolution)
     typer.echo(
         f"twin of {machine} ({out['element']}, resolution {out['resolution']:g}, "
         f"{out['n_nodes']} nodes) against {against}"

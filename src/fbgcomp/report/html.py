@@ -496,6 +496,7 @@ def _unique_slugs(names):
 def write_report(campaigns, model, output_dir, *, model_path="", progress=None) -> Path:
     """Analyse ``campaigns`` (Campaign objects or folders) with ``model`` (an MRAModel or a
     model file path) and write ``output_dir/report.html`` plus one PNG per figure, atomically.
+    ``progress(name)``, when given, is called as each campaign's analysis starts.
 
     Returns the path of report.html.
     """
@@ -514,9 +515,9 @@ def write_report(campaigns, model, output_dir, *, model_path="", progress=None) 
         )
     sections = []
     for campaign, slug in zip(campaigns, _unique_slugs(c.name for c in campaigns)):
-        sections.append(analyse_campaign(campaign, model, slug=slug))
         if progress is not None:
-            progress(campaign.name)
+            progress(campaign.name)  # as each campaign's analysis starts
+        sections.append(analyse_campaign(campaign, model, slug=slug))
     document = render_html(sections, model, model_path or "<in memory>")
 
     with staged_dir(target) as staging:
