@@ -426,6 +426,9 @@ stale_s = 1
     np.testing.assert_allclose(dev[after], at1[after], atol=1e-9)
     # Z matters to this model: the two positions give different corrections
     assert np.abs(at1[after] - at0[after]).max() > 0.3
+    # the run log records the position the model was given, frame by frame
+    z_logged = df["z_mm"].to_numpy()
+    assert (z_logged[before] == z0).all() and (z_logged[after] == z1).all()
     # no Z for longer than stale_s: a missing input -> ALARM (hold / ramp), not the old Z
     late = rt > t_frozen + 2.0
     assert late.sum() > 100 and (df.health.to_numpy()[late] == "ALARM").all()

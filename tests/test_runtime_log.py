@@ -427,6 +427,7 @@ def test_health_and_status_are_named_and_old_integer_logs_still_read(tmp_path):
     assert raw.column("health").to_pylist() == [HEALTH_NAMES[h] for h in health]
     assert raw.column("S2_status").to_pylist()[10:20] == ["MISSING"] * 10
     assert raw.column("S1_status").to_pylist()[20:30] == ["INCONSISTENT"] * 10
+    assert np.isnan(raw.column("z_mm").to_numpy()).all()  # no position given: none logged
 
     # the same frames as the earlier RunLog wrote them: integer codes, parts beside meta.json
     old = tmp_path / "old"

@@ -136,14 +136,15 @@ class RunLog:
         self._thread = threading.Thread(target=self._run, name="fbgcomp-log", daemon=True)
         self._thread.start()
 
-    def submit(self, batch, result, enabled: bool) -> None:
+    def submit(self, batch, result, enabled: bool, z_mm: float | None = None) -> None:
         """Queue a processed batch for writing (never blocks: when the queue is full the batch
-        is dropped and counted in ``dropped_rows``).
+        is dropped and counted in ``dropped_rows``). ``z_mm``: the Z position the model was
+        given for the batch (the live ``[position]``; None or NaN: none, or stale).
         """
         if len(self._q) >= self.max_queue:
             self.dropped_rows += len(batch)
             return
-        self._q.append((batch, result, enabled))
+        self._q.append((batch, result, enabled, np.nan if z_mm is None else float(z_mm)))
 
     def _columns(self, items) -> dict:
         b = [i[0] for i in items]
@@ -172,7 +173,9 @@ class RunLog:
             cols[f"flags_{a}"] = flags[:, j]
         cols["health"] = _labels(cat([x.health for x in r]), self.health_names)
         cols["model_set"] = cat([x.model_set for x in r])
-        cols["enabled"] = cat([np.full(len(x), e, bool) for x, _, e in items])
+        cols["enabled"] = cat([np.full(len(x), e, bool) for x, _, e, _ in items])
+        # the axis position the model was given (paper sec. 2.4: the errors depend on Z)
+        cols["z_mm"] = cat([np.full(len(x), z, float) for x, _, _, z in items])
         return cols
 
     def _write(self, items) -> None:

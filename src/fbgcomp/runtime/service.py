@@ -486,7 +486,7 @@ class Service:
         self.batches += 1
         self.last_result = res
         if self.runlog is not None:
-            self.runlog.submit(batch, res, enabled)
+            self.runlog.submit(batch, res, enabled, z)
         self._publish(res, batch.wavelength_nm[-1], batch.received_s)
         self.busy_s += time.perf_counter() - t0
 
