@@ -490,7 +490,11 @@ def test_analog_items_units_ranges_descriptions_and_method_arguments(server_fact
     from asyncua import ua
 
     _srv, url = server_factory(
-        eu_ranges={"Correction": (-200.0, 200.0), "Wavelength_nm.S2": (1545.0, 1555.0)}
+        eu_ranges={
+            "Correction": (-200.0, 200.0),
+            "Correction.Z": (-50.0, 50.0),
+            "Wavelength_nm.S2": (1545.0, 1555.0),
+        }
     )
 
     async def main():
@@ -557,9 +561,11 @@ def test_analog_items_units_ranges_descriptions_and_method_arguments(server_fact
         assert (eu.UnitId, eu.DisplayName.Text) == (RULE_UNIT_IDS[code], display), name
         assert vtype == ua.VariantType.Double
         assert rng.Low < rng.High
-    assert {(r.Low, r.High) for n, (_, r, _) in analog.items() if n.startswith("Correction")} == {
-        (-200.0, 200.0)
-    }  # configured
+    assert {n: (r.Low, r.High) for n, (_, r, _) in analog.items() if n.startswith("Correction")} == {
+        "CorrectionX_um": (-200.0, 200.0),
+        "CorrectionY_um": (-200.0, 200.0),
+        "CorrectionZ_um": (-50.0, 50.0),
+    }  # configured: by kind, and for one axis
     assert (analog["PredictedDeviationY_um"][1].Low, analog["PredictedDeviationY_um"][1].High) == (
         -1000.0,
         1000.0,
@@ -679,3 +685,14 @@ def test_serve_warns_loudly_when_no_user_may_write(tmp_path, runtime_model_and_c
     assert "| outputs: OPC UA opc.tcp://127.0.0.1:" in s and "run log" not in s, s
     assert "| policy: output filter on, max correction " in s and " µm/s" in s, s
     assert s.endswith("| may write: OPC UA: operator" if writer else "| may write: OPC UA: nobody"), s
+
+
+def test_the_correction_eurange_is_the_cap_in_force():
+    """serve gives the OPC UA server each axis's correction cap as its EURange (a client
+    scaling a bar graph sees the range the correction can take); no cap, the default."""
+    from fbgcomp.runtime.service import correction_eu_ranges
+
+    assert correction_eu_ranges((42.0, 1000.0, float("inf"))) == {
+        "Correction.X": (-42.0, 42.0),
+        "Correction.Y": (-1000.0, 1000.0),
+    }

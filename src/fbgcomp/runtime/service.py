@@ -168,6 +168,17 @@ def model_meta(model, pipeline: Pipeline, temperature_probes=None) -> dict:
     }
 
 
+def correction_eu_ranges(max_correction_um) -> dict[str, tuple[float, float]]:
+    """The OPC UA EURange of each axis's correction from the cap in force at start-up
+    (``CorrectionX_um`` in +-max_correction_um[0], ...; an axis without a cap keeps the
+    default range)."""
+    return {
+        f"Correction.{a}": (-float(c), float(c))
+        for a, c in zip("XYZ", max_correction_um)
+        if np.isfinite(c) and c > 0
+    }
+
+
 class Service:
     """One compensation service. ``run`` returns when the duration ends or on stop()."""
 
@@ -349,6 +360,7 @@ class Service:
                 self.model_id,
                 on_reload=self.reload,
                 main_loop=main_loop,
+                eu_ranges=correction_eu_ranges(self.pipeline.max_correction_um),
             )
             await main_loop.run_in_executor(None, self.opc.start)
         try:

@@ -114,8 +114,9 @@ DESCRIPTIONS = {
 
 
 def eu_range(eu_ranges: dict, kind: str, sensor: str | None = None) -> tuple[float, float]:
-    """EURange of a kind of analog variable: ``eu_ranges`` given to the server (by kind,
-    or ``Wavelength_nm.<sensor>`` for one sensor), else :data:`DEFAULT_EU_RANGES`."""
+    """EURange of a kind of analog variable: ``eu_ranges`` given to the server (by kind, or
+    ``<kind>.<sensor>`` for one sensor or axis: ``Wavelength_nm.S2``, ``Correction.Z``), else
+    :data:`DEFAULT_EU_RANGES`."""
     if sensor is not None and f"{kind}.{sensor}" in eu_ranges:
         return tuple(eu_ranges[f"{kind}.{sensor}"])
     return tuple(eu_ranges.get(kind, DEFAULT_EU_RANGES[kind]))

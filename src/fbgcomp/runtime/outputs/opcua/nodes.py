@@ -175,7 +175,7 @@ async def build_address_space(
     for prefix in ("Correction", "PredictedDeviation", "IntervalHalfWidth", "ExpectedError"):
         for a in AXES:
             await var(
-                root, f"{prefix}{a}_um", f"{prefix}{a}_um", 0.0, D, text(prefix, a=a), "um", rng(prefix)
+                root, f"{prefix}{a}_um", f"{prefix}{a}_um", 0.0, D, text(prefix, a=a), "um", rng(prefix, a)
             )
     # the offset + Z slope form a CNC's thermal compensation takes (docs/cnc-integration.md)
     for a in AXES:
