@@ -286,44 +286,37 @@ def main(argv=None) -> int:
         paths = twin_campaigns(work, args.seed)
         from fbgcomp.structure.machine import _default_path
 
-        fbgcomp_fit([paths[n] for n in TWIN_TRAIN], work / "twin.json", "--machine", _default_path())
-        fig = figures(work / "twin.json", {r: paths[n] for r, n in TWIN_ROLES.items()})
-        rows = targets(fig)
-        print_table(
-            f"twin (TWIN-ONLY: our own simulator; built-in default ram, seed {args.seed}): fbgcomp fit "
-            f"thermal-36h static-y --machine <built-in> ({fig['model_type']}, "
-            f"{time.perf_counter() - t0:.0f} s incl. the twin)",
-            rows,
+        # with the built-in description, as a user of that machine would fit; then the plain
+        # command, no machine description: the load signature and the thermal part come from
+        # the measured campaigns alone (a user who has no YAML of their machine yet)
+        runs = (
+            (
+                "twin",
+                ("--machine", _default_path()),
+                "--machine <built-in>",
+                "TWIN-ONLY: our own simulator; ",
+            ),
+            ("twin_no_machine", (), "(no machine description)", "TWIN-ONLY, "),
         )
-        result["twin"] = {
-            "trained_on": list(TWIN_TRAIN),
-            "roles": TWIN_ROLES,
-            "seed": args.seed,
-            **fig,
-            "targets": rows,
-            "met": sum(r["met"] for r in rows),
-            "of": len(rows),
-        }
-        # the plain command, no machine description: the load signature and the thermal part
-        # come from the measured campaigns alone (a user who has no YAML of their machine yet)
-        t0 = time.perf_counter()
-        fbgcomp_fit([paths[n] for n in TWIN_TRAIN], work / "twin-no-machine.json")
-        fig = figures(work / "twin-no-machine.json", {r: paths[n] for r, n in TWIN_ROLES.items()})
-        rows = targets(fig)
-        print_table(
-            f"twin (TWIN-ONLY), no machine description: fbgcomp fit thermal-36h static-y "
-            f"({fig['model_type']}, {time.perf_counter() - t0:.0f} s)",
-            rows,
-        )
-        result["twin_no_machine"] = {
-            "trained_on": list(TWIN_TRAIN),
-            "roles": TWIN_ROLES,
-            "seed": args.seed,
-            **fig,
-            "targets": rows,
-            "met": sum(r["met"] for r in rows),
-            "of": len(rows),
-        }
+        for key, extra, how, label in runs:
+            fbgcomp_fit([paths[n] for n in TWIN_TRAIN], work / f"{key}.json", *extra)
+            fig = figures(work / f"{key}.json", {r: paths[n] for r, n in TWIN_ROLES.items()})
+            rows = targets(fig)
+            print_table(
+                f"twin ({label}built-in default ram, seed {args.seed}): fbgcomp fit thermal-36h "
+                f"static-y {how} ({fig['model_type']}, {time.perf_counter() - t0:.0f} s incl. the twin)",
+                rows,
+            )
+            result[key] = {
+                "trained_on": list(TWIN_TRAIN),
+                "roles": TWIN_ROLES,
+                "seed": args.seed,
+                **fig,
+                "targets": rows,
+                "met": sum(r["met"] for r in rows),
+                "of": len(rows),
+            }
+            t0 = time.perf_counter()
 
     from fbgcomp.atomic import json_safe
 
