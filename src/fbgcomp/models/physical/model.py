@@ -210,6 +210,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
                     "dT": t - t0,
                     "t": a.time_s,
                     "y": a.reference_um,
+                    "zero": (w0, t0),  # the zero state's wavelengths and temperatures
                     "F": None if F is None else np.nan_to_num(F),
                     "loaded": loaded,
                 }
@@ -265,7 +266,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
             C = np.zeros((3, 3))
             G[:, active] = Bg[k : k + active.sum()].T
             C[:, active] = By[k : k + active.sum()].T
-            noise_var, frame_dt = self._frame_noise_var(campaigns, aligned, fmap)
+            noise_var, frame_dt = self._frame_noise_var(campaigns, aligned, rows, fmap)
             # a component the training never excited (its column is load-cell noise) is
             # believed over the range of those it did: its signature comes from the twin
             max_force = np.abs(Fall).max(axis=0)
@@ -504,7 +505,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
             "activity_scale_K": a_scale,
         }
 
-    def _frame_noise_var(self, campaigns, aligned, fmap):
+    def _frame_noise_var(self, campaigns, aligned, rows, fmap):
         """White noise of each grating's frame: its variance (µm²), the largest any training
         campaign shows, loaded or not, and the fastest frame interval of those campaigns (s).
 
@@ -519,12 +520,11 @@ class PhysicalModel(EstimatorParams, ModelFile):
         safe side for an interrogator that averages sweeps into its exported frames)."""
         out = np.zeros(len(self.sensor_names))
         fastest = np.inf
-        for c, a in zip(campaigns, aligned):
+        for c, a, r in zip(campaigns, aligned, rows):
             ft, w, t = self.frame_arrays(c, a)
             if ft.size < 10:
                 continue
-            _, _, w0, t0 = self.instrument_arrays(a)
-            d = np.diff(fmap.base(w, t, w0, t0), axis=0)
+            d = np.diff(fmap.base(w, t, *r["zero"]), axis=0)
             mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0)
             out = np.maximum(out, (1.4826 * mad) ** 2 / 2.0)
             fastest = min(fastest, float(np.median(np.diff(ft))))
