@@ -54,7 +54,7 @@ class OpcUaTestServer:
         server = Server()
         await server.init()
         server.set_endpoint(self.endpoint)
-        server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
+        await self.secure(server)
         idx = await server.register_namespace("urn:fbgcomp:test:plc")
         assert idx == 2
         obj = await server.nodes.objects.add_object(ua.NodeId("PLC", idx), "PLC")
@@ -73,6 +73,12 @@ class OpcUaTestServer:
                         )
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(self._stop.wait(), self.period_s)
+
+    async def secure(self, server):
+        """The server's endpoints: security None only (a subclass loads a certificate)."""
+        from asyncua import ua
+
+        server.set_security_policy([ua.SecurityPolicyType.NoSecurity])
 
     def __enter__(self):
         self._thread.start()

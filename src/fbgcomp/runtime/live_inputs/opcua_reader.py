@@ -43,6 +43,16 @@ class OpcUaReader:
                 f"expected None or Basic256Sha256, got {self.config.security!r}",
                 column=f"field {where}.security",
             )
+        if self.config.security == "Basic256Sha256":
+            if self.config.mode not in ("SignAndEncrypt", "Sign"):
+                raise InputError(
+                    f"expected SignAndEncrypt or Sign, got {self.config.mode!r}", column=f"field {where}.mode"
+                )
+            if not self.config.certificate or not self.config.private_key:
+                raise InputError(
+                    "Basic256Sha256 needs certificate and private_key paths",
+                    column=f"field {where}.certificate",
+                )
         from asyncua import ua  # noqa: PLC0415 - optional extra: asyncua (imported only when used)
 
         for name, nid in self.nodes.items():
@@ -74,17 +84,35 @@ class OpcUaReader:
         client.application_uri = "urn:fbgcomp:serve:inputs"
         client.session_timeout = 600_000  # ms: what asyncua servers grant at most
         if cfg.security == "Basic256Sha256":
-            if not cfg.certificate or not cfg.private_key:
-                raise InputError(
-                    "Basic256Sha256 needs certificate and private_key paths",
-                    column=f"field {self.where}.certificate",
-                )
+            from asyncua.crypto import uacrypto  # noqa: PLC0415 - optional extra: asyncua (imported only when used)
+            from asyncua.crypto.security_policies import (  # noqa: PLC0415 - optional extra: asyncua (imported only when used)
+                SecurityPolicyBasic256Sha256,
+            )
+
             if not (os.path.exists(cfg.certificate) and os.path.exists(cfg.private_key)):
                 await client.setup_self_signed_certificate(cfg.private_key, cfg.certificate)
-            parts = ["Basic256Sha256", cfg.mode, cfg.certificate, cfg.private_key]
-            if cfg.server_certificate:
-                parts.append(cfg.server_certificate)
-            await client.set_security_string(",".join(parts))
+
+            # each file loaded as what it holds, not as its name says: asyncua writes the
+            # certificate it creates as DER and the key as PEM whatever the names end with
+            def props(path: str) -> uacrypto.CertProperties:
+                with open(path, "rb") as fh:
+                    fmt = "pem" if b"-----BEGIN" in fh.read() else "der"
+                return uacrypto.CertProperties(path, fmt)
+
+            cert = props(cfg.certificate)
+            # the session's application URI is the certificate's (OPC UA Part 4: servers refuse
+            # a session whose URI the certificate does not name - BadCertificateUriInvalid), so a
+            # certificate issued elsewhere works; one created here names client.application_uri
+            uri = certificate_uri(await uacrypto.load_certificate(cert.path_or_content, cert.extension))
+            if uri:
+                client.application_uri = uri
+            await client.set_security(
+                SecurityPolicyBasic256Sha256,
+                cert,
+                props(cfg.private_key),
+                server_certificate=props(cfg.server_certificate) if cfg.server_certificate else None,
+                mode=getattr(ua.MessageSecurityMode, cfg.mode),
+            )
         if cfg.user:
             client.set_user(cfg.user)
             client.set_password(os.environ.get("FBGCOMP_INPUT_PASSWORD", ""))
@@ -141,7 +169,10 @@ class OpcUaReader:
                 raise
             except Exception as exc:  # refused, timed out, bad certificate: retry
                 self.status = f"connecting ({type(exc).__name__})"
-                log.warning("OPC UA inputs: %s: %s; retry in %.1f s", self.endpoint, exc, delay)
+                # the type too: a timeout (e.g. a server that cannot decrypt what a wrongly
+                # pinned server_certificate encrypted) has no message of its own
+                why = f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__
+                log.warning("OPC UA inputs: %s: %s; retry in %.1f s", self.endpoint, why, delay)
                 await self._disconnect()
                 await asyncio.sleep(delay)
                 delay = min(delay * 2.0, 5.0)
@@ -155,3 +186,15 @@ class OpcUaReader:
     async def close(self) -> None:
         """Unsubscribe and disconnect."""
         await self._disconnect()
+
+
+def certificate_uri(cert) -> str:
+    """The application URI a certificate names (its first SubjectAltName URI), or ""."""
+    from cryptography import x509  # noqa: PLC0415 - optional extra: cryptography (with asyncua)
+
+    try:
+        san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    except x509.ExtensionNotFound:
+        return ""
+    uris = san.get_values_for_type(x509.UniformResourceIdentifier)
+    return uris[0] if uris else ""
