@@ -343,7 +343,7 @@ stale_s = 2
     "extra,message",
     [
         (
-            'security = "Basic256Sha256"\nmode = "Encrypt"\ncertificate = "c.der"\nprivate_key = "k.pem"\n',
+            'security = "Basic256Sha256"\nmode = "Encrypt"\ncertificate = "{tmp}/c.der"\nprivate_key = "{tmp}/k.pem"\n',
             "mode: expected SignAndEncrypt or Sign, got 'Encrypt'",
         ),
         ('security = "Basic256Sha256"\n', "Basic256Sha256 needs certificate and private_key paths"),
@@ -360,7 +360,9 @@ def test_a_bad_security_configuration_stops_serve_with_one_line(
     model_path, _campaign = runtime_model_and_campaign
     nodes = ", ".join(f'{p} = "ns=2;s={p}"' for p in load_model(model_path).probe_names)
     (tmp_path / "serve.toml").write_text(
-        f'[temperatures.opcua]\nendpoint = "opc.tcp://127.0.0.1:9"\n{extra}nodes = {{ {nodes} }}\n'
+        # paths in the test's folder: a reader that starts anyway creates them there, not in the cwd
+        f'[temperatures.opcua]\nendpoint = "opc.tcp://127.0.0.1:9"\n{extra.format(tmp=tmp_path)}'
+        f"nodes = {{ {nodes} }}\n"
     )
     p = fbgcomp_process(
         "serve",
