@@ -285,6 +285,10 @@ def test_a_certificate_is_read_as_what_it_holds_and_names_the_session(tmp_path, 
 
         got, reader_status = with_live_inputs(config, body)
     assert got and reader_status == "connected", reader_status
+    if case == "created under other names":  # the created key is a secret: owner only
+        assert Path(files["private_key"]).stat().st_mode & 0o077 == 0, oct(
+            Path(files["private_key"]).stat().st_mode
+        )
 
 
 # ------------------------------------------------------------------ serve
@@ -348,8 +352,14 @@ stale_s = 2
         ),
         ('security = "Basic256Sha256"\n', "Basic256Sha256 needs certificate and private_key paths"),
         ('security = "Basic128Rsa15"\n', "expected None or Basic256Sha256, got 'Basic128Rsa15'"),
+        (
+            # the user's certificate is there, its key path is wrong: creating a new pair would
+            # overwrite the certificate a server may already trust
+            'security = "Basic256Sha256"\ncertificate = "{tmp}/have.der"\nprivate_key = "{tmp}/typo.pem"\n',
+            "typo.pem does not exist but its certificate does",
+        ),
     ],
-    ids=["mode", "no certificate", "policy"],
+    ids=["mode", "no certificate", "policy", "key missing"],
 )
 def test_a_bad_security_configuration_stops_serve_with_one_line(
     tmp_path, runtime_model_and_campaign, extra, message
@@ -358,6 +368,7 @@ def test_a_bad_security_configuration_stops_serve_with_one_line(
     from fbgcomp.models.registry import load_model
 
     model_path, _campaign = runtime_model_and_campaign
+    (tmp_path / "have.der").write_bytes(b"the user's certificate")
     nodes = ", ".join(f'{p} = "ns=2;s={p}"' for p in load_model(model_path).probe_names)
     (tmp_path / "serve.toml").write_text(
         # paths in the test's folder: a reader that starts anyway creates them there, not in the cwd
@@ -381,3 +392,4 @@ def test_a_bad_security_configuration_stops_serve_with_one_line(
     lines = err.decode().strip().splitlines()
     assert p.returncode == 2 and lines[-1].startswith("error:") and message in lines[-1], lines
     assert "temperatures.opcua" in lines[-1], lines
+    assert (tmp_path / "have.der").read_bytes() == b"the user's certificate"

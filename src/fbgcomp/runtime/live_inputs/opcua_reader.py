@@ -53,6 +53,17 @@ class OpcUaReader:
                     "Basic256Sha256 needs certificate and private_key paths",
                     column=f"field {where}.certificate",
                 )
+            have = [os.path.exists(self.config.certificate), os.path.exists(self.config.private_key)]
+            if have[0] != have[1]:
+                # a pair is created only when neither file exists: creating one would overwrite
+                # the certificate (or key) the user has, which a server may already trust
+                missing = "private_key" if have[0] else "certificate"
+                raise InputError(
+                    f"{getattr(self.config, missing)} does not exist but its "
+                    f"{'certificate' if have[0] else 'private key'} does: give both, or neither "
+                    "(a new pair is then created)",
+                    column=f"field {where}.{missing}",
+                )
         from asyncua import ua  # noqa: PLC0415 - optional extra: asyncua (imported only when used)
 
         for name, nid in self.nodes.items():
@@ -91,6 +102,7 @@ class OpcUaReader:
 
             if not (os.path.exists(cfg.certificate) and os.path.exists(cfg.private_key)):
                 await client.setup_self_signed_certificate(cfg.private_key, cfg.certificate)
+                os.chmod(cfg.private_key, 0o600)  # the key is a secret, as serve's own server key
 
             # each file loaded as what it holds, not as its name says: asyncua writes the
             # certificate it creates as DER and the key as PEM whatever the names end with
