@@ -39,6 +39,28 @@ LOAD_FALSE_STARTS_PER_H = 1e-3
 # recursion takes after a stretch stopped at once (PhysicalPredictor._steady_run).
 STEADY_WINDOW = 4096
 STEADY_BACKOFF = 64
+#: Memory of the live noise estimate, s, and the weight, s, of its prior (the training noise):
+#: the step test learns how far the stream's own low-passed noise exceeds the training's
+#: (an interrogator averaging differently, noise correlated over many frames) and never
+#: judges noise smaller than the training's (PhysicalPredictor._noise_excess).
+NOISE_LEARN_S = 120.0
+NOISE_PRIOR_S = 10.0
+
+
+def fast_hold_noise(dt, rate, b_fast, b_hold):
+    """Variance of the fast minus the hold reading (``LOAD_FAST_S`` low-pass, then its
+    ``LOAD_HOLD_S`` low-pass) per unit of the training frame's noise variance, for white noise of
+    ``rate`` times that variance per frame at frame interval ``dt`` (n,): the stationary
+    covariance of the two cascaded first-order filters, solved in closed form. 1 where dt = 0."""
+    a, g = 1.0 - b_fast, 1.0 - b_hold
+    c = b_hold * a
+    ok = dt > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p00 = rate * b_fast**2 / (1.0 - a**2)
+        p01 = (a * c * p00 + rate * b_hold * b_fast**2) / (1.0 - a * g)
+        p11 = (c**2 * p00 + 2.0 * c * g * p01 + rate * (b_hold * b_fast) ** 2) / (1.0 - g**2)
+        out = p00 + p11 - 2.0 * p01
+    return np.where(ok, out, 1.0)
 
 
 def gls_operator(G, Sigma):
@@ -224,34 +246,66 @@ class PhysicalPredictor:
     #: every frame through the per-frame recursion (the reference the fast path is tested on).
     steady_fast_path = True
 
-    def _steady_run(self, e, dt, applied, offset, xs, f_hold, recent, k_fast, k_start, lag):
+    def _steady_run(self, e, dt, applied, offset, xs, f_hold, recent, k_fast, k_start, lag, kd, noise):
         """Frames of :meth:`_track_load` while no load transition is under way, vectorised.
 
         With the applied force fixed the recursion is linear: the low-passed gratings
         ``y = xs + offset`` follow ``e`` (``LOAD_FAST_S``), the thermal offset follows
         ``e - G applied`` (``offset_tau_s``), the slow force estimate follows the fast one
         (``LOAD_HOLD_S``) and ``recent`` sums the offset's shifts with a ``LOAD_HOLD_S``
-        memory. They are formed for every frame, the step test is evaluated on all of them,
-        and the frames before the first one whose test fires are accepted. Returns the number
-        of frames accepted and the state after them (offset, xs, f_hold, recent)."""
+        memory; the live noise estimate (:meth:`_noise_excess`) learns from every frame. They
+        are formed for every frame, the step test is evaluated on all of them, and the frames
+        before the first one whose test fires are accepted. Returns the number of frames
+        accepted and the state after them (offset, xs, f_hold, recent, noise)."""
         e = np.asarray(e, float)
         y = first_order_recursion(dt / LOAD_FAST_S, e, xs + offset)
         off = first_order_recursion(dt / self.offset_tau_s, e - self.G @ applied, offset)
         off_prev = np.vstack([offset[None, :], off[:-1]])
         f_fast = (y - off_prev) @ self.ops[0].T
+        hold = first_order_recursion(dt / LOAD_HOLD_S, f_fast, f_hold)
+        learnt = self._noise_excess(f_fast - hold, dt, kd, noise)
+        excess = np.vstack([self._excess(noise)[None, :], self._excess(learnt[:, :-1])])
         k = self.k_sigma
-        sd_fast = self.F_sd[None, :] * np.sqrt(k_fast)[:, None]
+        sd_fast = self.F_sd[None, :] * np.sqrt(k_fast[:, None] * excess)
         sq = f_fast**2
         cross = self.relative_error * np.sqrt(np.maximum(sq.sum(axis=1, keepdims=True) - sq, 0.0)) / k
         limit = np.maximum(np.hypot(k_start[:, None] * sd_fast, k * lag), k * cross)
         fires = (np.abs(f_fast - applied[None, :]) > limit).any(axis=1)
         m = int(np.argmax(fires)) if fires.any() else len(e)
         if m == 0:
-            return 0, offset, xs, f_hold, recent
-        hold = first_order_recursion(dt[:m] / LOAD_HOLD_S, f_fast[:m], f_hold)
+            return 0, offset, xs, f_hold, recent, noise
         shift = off[:m] - off_prev[:m]
         rec = first_order_recursion(dt[:m] / LOAD_HOLD_S, shift, recent, gain=False)
-        return m, off[m - 1].copy(), y[m - 1] - off[m - 1], hold[m - 1].copy(), rec[m - 1].copy()
+        return (
+            m,
+            off[m - 1].copy(),
+            y[m - 1] - off[m - 1],
+            hold[m - 1].copy(),
+            rec[m - 1].copy(),
+            learnt[:, m - 1].copy(),
+        )
+
+    def _noise_excess(self, d, dt, kd, noise):
+        """Running sums (2, n, 3) of the live noise estimate after each frame, from ``noise``
+        (2, 3): the fast minus the hold reading ``d`` (n, 3) N is noise while no load moves
+        (heat moves it by its drift over ``LOAD_HOLD_S``, a little); its square over what the
+        training noise would give at that frame interval (``kd``, :func:`fast_hold_noise`) is
+        averaged, weighted by frame time, over ``NOISE_LEARN_S``. A stream noisier than the
+        training (a served campaign interpolated to a faster rate, an interrogator that averages
+        less) has its steps judged against its own noise instead of starting false loads;
+        a quieter one keeps the training's threshold (:meth:`_excess`)."""
+        sd2 = np.where(self.F_sd > 0, self.F_sd**2, np.inf)
+        q = np.minimum(d**2 / (sd2[None, :] * kd[:, None]), 100.0)  # (10 sigma: a spike no more)
+        x = dt / NOISE_LEARN_S
+        s = first_order_recursion(x, dt[:, None] * q, noise[0], gain=False)
+        w = first_order_recursion(x, np.repeat(dt[:, None], 3, axis=1), noise[1], gain=False)
+        return np.stack([s, w])
+
+    @staticmethod
+    def _excess(noise):
+        """Factor (3,) on the training's noise variance the step test uses: the live estimate's
+        ratio, never below 1."""
+        return np.maximum(noise[0] / np.maximum(noise[1], 1e-12), 1.0)
 
     def _track_load(self, e, time_s, state, new_state, raw=False, listen=False):
         """Applied force per frame (n, 3) N, and the frames where a force was clamped (n,) and
@@ -286,6 +340,8 @@ class PhysicalPredictor:
         # what the offset took in over the last ~LOAD_HOLD_S: a load's first moments, before its
         # step is taken, are given back when it is (else each step leaves ~1 % in the offset)
         recent = np.array(state.get("recent", np.zeros(S)), float)
+        # the live noise estimate's running sums (weighted squares, weights), from the prior
+        noise = np.array(state.get("noise", np.full((2, 3), NOISE_PRIOR_S)), float)
         t_last = state.get("t")
         t = (
             np.arange(1, n + 1) * self.nominal_dt_s + (t_last or 0.0)
@@ -309,6 +365,7 @@ class PhysicalPredictor:
         rate = np.maximum(fdt / np.where(dt > 0, dt, fdt), 1.0)
         k_fast = np.where(dt > 0, rate * b_fast / (2.0 - b_fast), 1.0)
         k_hold = np.where(dt > 0, rate * b_hold / (2.0 - b_hold), 1.0)
+        kd = fast_hold_noise(dt, rate, b_fast, b_hold)
         lag = self.drift_N_per_s[None, :] * np.maximum(dt, self.offset_tau_s)[:, None]
         op = self.ops[0]
         Ga = self.G
@@ -343,8 +400,19 @@ class PhysicalPredictor:
                 # bit: tests/test_physical.py). Where a test fires at once (a refused step
                 # repeating), the next STEADY_BACKOFF frames go through the recursion.
                 w = slice(i, min(i + STEADY_WINDOW, n))
-                m, offset, xs, f_hold, recent = self._steady_run(
-                    e[w], dt[w], applied, offset, xs, f_hold, recent, k_fast[w], k_start[w], lag[w]
+                m, offset, xs, f_hold, recent, noise = self._steady_run(
+                    e[w],
+                    dt[w],
+                    applied,
+                    offset,
+                    xs,
+                    f_hold,
+                    recent,
+                    k_fast[w],
+                    k_start[w],
+                    lag[w],
+                    kd[w],
+                    noise,
                 )
                 force[i : i + m] = applied
                 if m == 0:
@@ -372,7 +440,8 @@ class PhysicalPredictor:
                 offset += shift
                 xs -= shift
                 continue
-            sd_fast = self.F_sd * np.sqrt(k_fast[i])
+            excess = self._excess(noise)
+            sd_fast = self.F_sd * np.sqrt(k_fast[i] * excess)
             other = np.sqrt(np.maximum((f_fast**2).sum() - f_fast**2, 0.0))
             cross = self.relative_error * other / k
             moving = settle > 0
@@ -381,13 +450,17 @@ class PhysicalPredictor:
             # percentile of what heat did in training) and cross-talk at k sigma
             limit = np.maximum(np.hypot(k_start[i] * sd_fast, k * lag[i]), k * cross)
             take = (~moving) & (np.abs(step) > limit)
+            if not (take.any() or moving.any()):  # a steady frame: the noise estimate learns
+                noise = self._noise_excess((f_fast - f_hold)[None, :], dt[i : i + 1], kd[i : i + 1], noise)[
+                    :, 0
+                ]
             if take.any() and self.dof >= 1:
                 # a step no load explains (one grating jumps: a fibre slips, a connector is
                 # re-seated) is refused, and the offset absorbs it
                 new = np.where(take | moving, f_fast, applied)  # moving ones follow too
                 r = xs - Ga @ new
                 g = self.relative_error * (Ga[:, act] @ (new - applied)[act])
-                cov = self.noise_cov * k_fast[i] + self.nuisance_cov + np.outer(g, g)
+                cov = self.noise_cov * k_fast[i] * excess.max() + self.nuisance_cov + np.outer(g, g)
                 if r @ np.linalg.lstsq(cov, r, rcond=None)[0] > chi2_limit and self._one_grating(xs, cov):
                     refused[i] = True
                     take[:] = False
@@ -403,7 +476,7 @@ class PhysicalPredictor:
             if moving.any():
                 # in a transition: follow the low-passed force; still moving while the fast and
                 # slow estimates disagree beyond their noise
-                sd_hold = self.F_sd * np.sqrt(k_hold[i])
+                sd_hold = self.F_sd * np.sqrt(k_hold[i] * excess)
                 still = moving & (np.abs(f_fast - f_hold) > k * np.maximum(np.hypot(sd_fast, sd_hold), cross))
                 settle = np.where(still, self.settle_s, settle)
                 mean_sum = np.where(still, 0.0, mean_sum + dt[i] * f_fast)
@@ -433,6 +506,7 @@ class PhysicalPredictor:
             "mean_sum": mean_sum,
             "mean_w": mean_w,
             "recent": recent,
+            "noise": noise,
             "t": float(t[-1]) if n else t_last,
         }
         return force, clamped, refused
