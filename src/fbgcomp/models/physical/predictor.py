@@ -3,7 +3,9 @@
 :class:`PhysicalPredictor` is the vectorised, stateful prediction of one sensor set (the runtime
 and the offline validation share it). Its load tracking (:meth:`PhysicalPredictor._track_load`
 with its vectorised steady stretches, :meth:`PhysicalPredictor._steady_run`) and its thermal part
-and interval are one state machine over the same frames, so they stay one class.
+and interval are one state machine over the same frames, so they stay one class: over 600 lines
+as one unit for that reason (the step test, its live noise estimate and the transitions share
+the per-frame state).
 """
 
 from __future__ import annotations
