@@ -53,6 +53,15 @@ import numpy as np
 SD_FLOOR_UM = 1e-3  # the robust noise SD never drops below this (a noise-free replay)
 
 
+def _median(v) -> float:
+    """Median of a short 1-D array: the same value as ``np.median`` (NaN-free input), without
+    its generic-reduction overhead (about 20 µs a call, nine calls a block: a third of the
+    runtime core's time at 1 kHz, batches of 100)."""
+    a = np.sort(np.asarray(v, float))
+    h = a.size // 2
+    return float(a[h]) if a.size % 2 else float(0.5 * (a[h - 1] + a[h]))
+
+
 @dataclass
 class OutputFilterConfig:
     """Settings of the adaptive output filter (``[pipeline.output_filter]``, docs/runtime.md)."""
@@ -240,7 +249,7 @@ class AdaptiveLevelFilter:
         self.fresh[j] = 0
         self.fit[j] = 0.0
         self.fit_origin[j] = self.k
-        r = float(np.median(self._window(self.b, j, n)))
+        r = _median(self._window(self.b, j, n))
         self._fit_point(j, r, -(n - 1) / 2.0)
 
     def _excursions(self, j: int, e_ring: np.ndarray, ref: float, n_avail: int) -> np.ndarray:
@@ -252,7 +261,7 @@ class AdaptiveLevelFilter:
             w = self._window(e_ring, j, self.fast_n)
             p[0] = max(w.min(), -w.max(), 0.0)
         if n_avail >= self.slow_n:
-            p[1] = abs(float(np.median(self._window(self.b, j, self.slow_n))) - ref)
+            p[1] = abs(_median(self._window(self.b, j, self.slow_n)) - ref)
         return p
 
     def _block(self, bm: np.ndarray) -> None:
@@ -265,12 +274,12 @@ class AdaptiveLevelFilter:
         for j in range(3):
             self.since[j] += 1
             self.fresh[j] += 1
-            mj = float(np.median(self._window(self.b, j, min(self.short_n, self.k + 1))))
+            mj = _median(self._window(self.b, j, min(self.short_n, self.k + 1)))
             if self.episode_end[j] >= 0:
                 self.level[j] = self._track(j, mj)
                 continue
             n_rest = int(min(self.rest_n, self.since[j]))
-            r = float(np.median(self._window(self.b, j, n_rest)))
+            r = _median(self._window(self.b, j, n_rest))
             self._fit_point(j, r, (self.k - self.fit_origin[j]) - (n_rest - 1) / 2.0)
             level = self._fit_level(j)
             self.e[slot, j] = mj - level
@@ -296,7 +305,7 @@ class AdaptiveLevelFilter:
                 self.pending[:, j] = 0.0  # a step follows: nothing recent was noise
                 self.episode_end[j] = self.k + self.hold_n
                 self.restarts[j] += 1
-                level = float(np.median(self._window(self.b, j, trigger)))
+                level = _median(self._window(self.b, j, trigger))
             elif not first:
                 # learn from rest: the excursion of hold_n blocks ago (no step since), and the
                 # robust spread of m about the level
@@ -306,7 +315,7 @@ class AdaptiveLevelFilter:
                 dev = self.abs_dev[j]
                 dev.append(abs(mj - level))
                 if len(dev) >= self.noise_n:
-                    sd = 1.4826 * float(np.median(dev))
+                    sd = 1.4826 * _median(dev)
                     self.noise_blocks[j] += 1
                     g = max(self.noise_gain, 1.0 / self.noise_blocks[j])
                     self.sd[j] = max(self.sd[j] + g * (sd - self.sd[j]), SD_FLOOR_UM)
@@ -321,7 +330,7 @@ class AdaptiveLevelFilter:
         s = self.saved[j]
         assert s is not None  # an axis in an episode has its rest state saved
         n = min(self.short_n, self.k - s["first"] + 1)
-        level = float(np.median(self._window(self.b, j, n)))
+        level = _median(self._window(self.b, j, n))
         slot = self.k % self.ring_n
         self.eb[slot, j] = mj - s["level"]
         self.ep_max[j] = np.maximum(
