@@ -58,6 +58,12 @@ def test_lowpass_streams_like_one_call():
     a, st = lowpass(x[:17], t[:17], 7.0)
     b, _ = lowpass(x[17:], t[17:], 7.0, st)
     np.testing.assert_allclose(np.vstack([a, b]), whole, rtol=1e-12, atol=1e-12)
+    # one frame per call (the runtime at batch 1 takes a one-step path): the same values
+    ones, st = [lowpass(x[:1], t[:1], 7.0)[0]], lowpass(x[:1], t[:1], 7.0)[1]
+    for i in range(1, 50):
+        y, st = lowpass(x[i : i + 1], t[i : i + 1], 7.0, st)
+        ones.append(y)
+    np.testing.assert_allclose(np.vstack(ones), whole, rtol=1e-12, atol=1e-12)
 
 
 def test_static_load_is_read_through_the_load_signature(model, ram2):
@@ -390,6 +396,12 @@ def test_first_order_closed_form_equals_the_recursion_across_stretches_and_gaps(
             rtol=0,
             atol=1e-11 * np.abs(u).max(),
         )  # rounding of the input scale
+        # one row per call (the runtime at batch 1), chained: the same recursion
+        y, rows = np.array([1.0, -2.0, 3.0]), []
+        for xi, ui in zip(x, u):
+            y = _first_order(xi[None], ui[None, :], y, gain=gain)[0]
+            rows.append(y)
+        np.testing.assert_allclose(np.array(rows), np.array(ref), rtol=0, atol=1e-11 * np.abs(u).max())
 
 
 def test_lowpass_on_a_jittered_clock_is_the_per_sample_recursion():

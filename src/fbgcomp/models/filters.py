@@ -8,6 +8,8 @@ carried between batches) or over a whole campaign.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy import signal
 
@@ -25,6 +27,9 @@ def first_order_recursion(x, u, y0, gain=True):
     cancellation beyond the recursion's own."""
     x = np.minimum(np.asarray(x, float), 600.0)  # exp(-600): no memory left either way
     u = np.asarray(u, float)
+    if len(x) == 1:  # one frame (a runtime batch of 1): the recursion's single step, no setup
+        c = math.exp(-float(x[0]))
+        return (c * np.asarray(y0, float) + ((1.0 - c) * u[0] if gain else u[0]))[None, :]
     w = -np.expm1(-x)[:, None] * u if gain else u
     out = np.empty_like(w)
     y_prev = np.asarray(y0, float)
@@ -53,6 +58,12 @@ def first_order_filter(x, time_s, tau_s, state=None, nominal_dt_s=1.0):
     n = x.shape[0]
     if n == 0:
         return x.copy(), state
+    if n == 1 and state is not None and state[1] is not None and time_s is not None:  # one step
+        y_prev, t_prev = state
+        t1 = float(np.asarray(time_s, dtype=float).ravel()[0])
+        c = math.exp(-max(t1 - t_prev, 0.0) / tau_s)
+        y = c * np.asarray(y_prev, float) + (1.0 - c) * x[0]
+        return y[None, :], (y.copy(), t1)
     if state is None:
         y_prev, t_prev = x[0].copy(), None
     else:
