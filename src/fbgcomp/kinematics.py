@@ -50,11 +50,13 @@ _RANK_TOL = 1e-9
 
 # --------------------------------------------------------------------------- HTM core (eq. 5-10)
 def _stack(entries, shape):
-    """(…, 4, 4) array from a 4x4 nested list of broadcastable entries."""
+    """(…, 4, 4) array from a 4x4 nested list of broadcastable entries (zeros left unwritten)."""
     out = np.zeros((*shape, 4, 4))
     for i in range(4):
         for j in range(4):
-            out[..., i, j] = entries[i][j]
+            e = entries[i][j]
+            if not (isinstance(e, int | float) and e == 0):
+                out[..., i, j] = e
     return out
 
 
@@ -85,8 +87,27 @@ def m_c(c_mm):
 
 
 def segment_htm(alpha_rad, beta_rad, c_mm, a_mm=0.0, b_mm=0.0):
-    """Paper eq. 5: ``M_{i-1,i} = M_a(alpha, a) · M_b(beta, b) · M_c(c)``, shape (…, 4, 4)."""
-    return m_a(alpha_rad, a_mm) @ m_b(beta_rad, b_mm) @ m_c(c_mm)
+    """Paper eq. 5: ``M_{i-1,i} = M_a(alpha, a) · M_b(beta, b) · M_c(c)``, shape (…, 4, 4).
+
+    The product multiplied out (the same matrix to rounding, ``test_kinematics``): two batched
+    4x4 products over every frame and segment were most of a campaign's chain evaluation."""
+    al, be = np.asarray(alpha_rad, dtype=float), np.asarray(beta_rad, dtype=float)
+    c, a, b = (np.asarray(v, dtype=float) for v in (c_mm, a_mm, b_mm))
+    ca, sa, cb, sb = np.cos(al), np.sin(al), np.cos(be), np.sin(be)
+    out = np.zeros((*_shape(al, be, c, a, b), 4, 4))
+    out[..., 0, 0] = cb
+    out[..., 0, 2] = sb
+    out[..., 0, 3] = a + sb * c
+    out[..., 1, 0] = sa * sb
+    out[..., 1, 1] = ca
+    out[..., 1, 2] = -sa * cb
+    out[..., 1, 3] = ca * b - sa * cb * c
+    out[..., 2, 0] = -ca * sb
+    out[..., 2, 1] = sa
+    out[..., 2, 2] = ca * cb
+    out[..., 2, 3] = sa * b + ca * cb * c
+    out[..., 3, 3] = 1.0
+    return out
 
 
 def chain_htm(segment_htms):
@@ -101,10 +122,11 @@ def chain_htm(segment_htms):
 def chain_frames(segment_htms):
     """Cumulative products M_00 (identity), M_01, …, M_0n: shape (…, n_segments + 1, 4, 4)."""
     m = np.asarray(segment_htms, dtype=float)
-    frames = [np.broadcast_to(np.eye(4), (*m.shape[:-3], 4, 4))]
-    for i in range(m.shape[-3]):
-        frames.append(frames[-1] @ m[..., i, :, :])
-    return np.stack(frames, axis=-3)
+    out = np.empty((*m.shape[:-3], m.shape[-3] + 1, 4, 4))
+    out[..., 0, :, :] = np.eye(4)
+    for i in range(m.shape[-3]):  # products written in place: no list of frames to stack
+        np.matmul(out[..., i, :, :], m[..., i, :, :], out=out[..., i + 1, :, :])
+    return out
 
 
 def ttp_position_mm(m_0n, ttp_local_mm=(0.0, 0.0, 0.0)):
@@ -544,16 +566,15 @@ class KinematicChain:
 
     def _chain(self, params):
         """Positions (n, K+1, 3) mm of the section centres, chain from the top, closed on supports."""
-        n, K = params.shape[0], len(self.segments)
         al, be = params[..., 0], params[..., 1]
         c_mm, a_mm, b_mm = (params[..., i] / UM_PER_MM for i in (2, 3, 4))
         half = self.lengths_mm / 2.0
         # Each segment: half its length, then its rotation, then the other half plus its
         # stretch (eq. 5 with the rotation at mid-length, exact for a uniform curvature); going
         # down the ram, so translations along Z are negative.
-        first = m_c(-np.broadcast_to(half, (n, K)))
-        second = segment_htm(al, be, -(half + c_mm), a_mm, b_mm)
-        frames = chain_frames(first @ second)  # (n, K+1, 4, 4)
+        seg = segment_htm(al, be, -(half + c_mm), a_mm, b_mm)
+        seg[..., 2, 3] -= half  # M_c(-half) @ seg: a translation along Z before it
+        frames = chain_frames(seg)  # (n, K+1, 4, 4)
         pos = frames[..., :3, 3]
         return pos
 
