@@ -160,8 +160,9 @@ def test_demo_runs_end_to_end(tmp_path):
     )
     assert r.returncode == 0, r.stderr[-2000:]
     m = json.loads((out / "metrics.json").read_text())
-    assert set(m["models"]) == {"regression", "calibrated", "fe_model"}
-    for key in ("regression", "calibrated"):
+    assert set(m["models"]) == {"default", "regression", "calibrated", "fe_model"}
+    assert m["models"]["default"]["type"] == "physical"  # what `fbgcomp fit` gives, on the twin too
+    for key in ("default", "regression", "calibrated"):
         v = m["models"][key]["validation"]
         assert set(v) == {"thermal-36h-b", "static-xyz"}
         assert v["thermal-36h-b"]["axes"]["dz"]["compensation_ratio"] > 0.8  # drift mostly compensated
@@ -169,6 +170,7 @@ def test_demo_runs_end_to_end(tmp_path):
     assert json.loads((out / "calibrated_model.json").read_text())["model_type"] == "calibrated"
     assert json.loads((out / "regression_model.json").read_text())["model_type"] == "mra"
     for f in (
+        "default_model.json",
         "calibrated_model.json",
         "regression_model.json",
         "fe_model.json",
@@ -179,6 +181,7 @@ def test_demo_runs_end_to_end(tmp_path):
     ):
         assert (out / f).exists(), f
     assert "calibrated kinematic" in r.stdout and "thermal-36h-b dx" in r.stdout
+    assert "default (physical)" in r.stdout.split("independent check")[0]  # in the twin's table
     for name in ("thermal-36h", "static-y", "thermal-36h-b", "static-xyz"):
         read_campaign(out / "campaigns" / name)
 
