@@ -259,3 +259,12 @@ def test_the_short_median_is_numpys_median_bit_for_bit():
     for n in (1, 2, 3, 4, 5, 20, 21, 120):
         for v in (rng.normal(0.0, 50.0, n), np.round(rng.normal(0.0, 2.0, n)), np.full(n, 0.1)):
             assert _median(v) == float(np.median(v)), (n, v)
+
+
+def test_block_medians_are_numpys_bit_for_bit():
+    from fbgcomp.runtime.output_filter import _block_medians
+
+    rng = np.random.default_rng(12)
+    for n in (1, 2, 5, 50, 51):
+        b = rng.normal(0.0, 30.0, (4, n, 3))
+        np.testing.assert_array_equal(_block_medians(b), np.median(b, axis=1))

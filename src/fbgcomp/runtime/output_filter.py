@@ -53,6 +53,13 @@ import numpy as np
 SD_FLOOR_UM = 1e-3  # the robust noise SD never drops below this (a noise-free replay)
 
 
+def _block_medians(blocks) -> np.ndarray:
+    """Medians (nb, 3) of blocks (nb, n, 3) over their frames, as ``np.median(axis=1)``."""
+    a = np.sort(blocks, axis=1)
+    h = a.shape[1] // 2
+    return a[:, h] if a.shape[1] % 2 else 0.5 * (a[:, h - 1] + a[:, h])
+
+
 def _median(v) -> float:
     """Median of a short 1-D array: the same value as ``np.median`` (NaN-free input), without
     its generic-reduction overhead (about 20 µs a call, nine calls a block: a third of the
@@ -104,6 +111,7 @@ class AdaptiveLevelFilter:
         dt = float(min(max(frame_interval_s, 1e-5), 10.0))
         self.frame_interval_s = dt
         self.block_n = max(1, round(cfg.block_s / dt))
+        self._back: dict[int, np.ndarray] = {}  # n -> n-1, ..., 0 (ring offsets of a window)
         blk = self.block_n * dt  # block duration, s
         self.block_duration_s = blk
         self.short_n = max(1, round(cfg.short_s / blk))
@@ -187,9 +195,7 @@ class AdaptiveLevelFilter:
         # block medians, not means: a model that flickers for a few frames (ram2's load
         # refusals: 4-12 frames, 370 µm each) moves no block
         med = (
-            np.median(allx[: nb * self.block_n].reshape(nb, self.block_n, 3), axis=1)
-            if nb
-            else np.empty((0, 3))
+            _block_medians(allx[: nb * self.block_n].reshape(nb, self.block_n, 3)) if nb else np.empty((0, 3))
         )
         for q in range(nb + 1):
             lo, hi = q * self.block_n - held, min((q + 1) * self.block_n - held, m)
@@ -214,8 +220,10 @@ class AdaptiveLevelFilter:
     # -- per block -----------------------------------------------------------------------
     def _window(self, ring: np.ndarray, j: int, n: int) -> np.ndarray:
         """The newest ``n`` values of one axis of a ring (the current block last)."""
-        idx = (self.k - np.arange(n)[::-1]) % self.ring_n
-        return ring[idx, j]
+        back = self._back.get(n)
+        if back is None:
+            back = self._back[n] = np.arange(n)[::-1]
+        return ring[(self.k - back) % self.ring_n, j]
 
     def _fit_point(self, j: int, y: float, u: float) -> None:
         f = self.fit[j]
