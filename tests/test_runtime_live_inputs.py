@@ -514,6 +514,28 @@ def test_linuxcnc_hal_pin_z_reaches_the_model(machine, tmp_path_factory, runtime
     assert np.abs(at_z[moved] - at_home[moved]).max() > 0.05
 
 
+def assert_serve_refuses(config, model_path, message) -> list[str]:
+    """``fbgcomp serve --config CONFIG`` stops at start with exit code 2 and one ``error:`` line
+    holding ``message``; returns stderr's lines."""
+    p = fbgcomp_process(
+        "serve",
+        "--config",
+        config,
+        "--model",
+        model_path,
+        "--source",
+        "hyperion://127.0.0.1:9",
+        "--opcua",
+        "off",
+        "--duration",
+        "1",
+    )
+    _, err = p.communicate(timeout=60)
+    lines = err.decode().strip().splitlines()
+    assert p.returncode == 2 and lines[-1].startswith("error:") and message in lines[-1], lines
+    return lines
+
+
 @pytest.mark.parametrize(
     "toml,message",
     [
@@ -545,19 +567,4 @@ def test_bad_live_input_configuration_is_one_line(
     model_path, _campaign = runtime_model_and_campaign
     tmp = tmp_path_factory.mktemp("badcfg")
     (tmp / "serve.toml").write_text(toml)
-    p = fbgcomp_process(
-        "serve",
-        "--config",
-        tmp / "serve.toml",
-        "--model",
-        model_path,
-        "--source",
-        "hyperion://127.0.0.1:9",
-        "--opcua",
-        "off",
-        "--duration",
-        "1",
-    )
-    _, err = p.communicate(timeout=60)
-    lines = err.decode().strip().splitlines()
-    assert p.returncode == 2 and lines[-1].startswith("error:") and message in lines[-1], lines
+    assert_serve_refuses(tmp / "serve.toml", model_path, message)

@@ -23,8 +23,7 @@ import pandas as pd
 import pytest
 
 import fbgcomp_testing
-from test_runtime_live_inputs import OpcUaTestServer, serve_and_sim, wait_log
-from test_runtime_support import fbgcomp_process
+from test_runtime_live_inputs import OpcUaTestServer, assert_serve_refuses, serve_and_sim, wait_log
 
 SERVER_URI = "urn:fbgcomp:test:secure-plc"
 READER_URI = "urn:fbgcomp:serve:inputs"  # what the reader names in the certificates it creates
@@ -375,21 +374,6 @@ def test_a_bad_security_configuration_stops_serve_with_one_line(
         f'[temperatures.opcua]\nendpoint = "opc.tcp://127.0.0.1:9"\n{extra.format(tmp=tmp_path)}'
         f"nodes = {{ {nodes} }}\n"
     )
-    p = fbgcomp_process(
-        "serve",
-        "--config",
-        tmp_path / "serve.toml",
-        "--model",
-        model_path,
-        "--source",
-        "hyperion://127.0.0.1:9",
-        "--opcua",
-        "off",
-        "--duration",
-        "1",
-    )
-    _, err = p.communicate(timeout=60)
-    lines = err.decode().strip().splitlines()
-    assert p.returncode == 2 and lines[-1].startswith("error:") and message in lines[-1], lines
+    lines = assert_serve_refuses(tmp_path / "serve.toml", model_path, message)
     assert "temperatures.opcua" in lines[-1], lines
     assert (tmp_path / "have.der").read_bytes() == b"the user's certificate"
