@@ -345,8 +345,9 @@ def summary_table(validation: dict, labels: dict) -> list:
 
 
 def _summary_text(summary, res, out) -> str:
+    default = summary["models"].get("default")  # (a summary written before it was shown: none)
     names = {
-        "default": f"default ({summary['models']['default']['type']})",
+        "default": f"default ({default['type']})" if default else "default",
         "regression": "regression (paper eq. 13)",
         "calibrated": "calibrated kinematic",
         "fe_model": "FE-calibrated eq. 11",
@@ -359,8 +360,8 @@ def _summary_text(summary, res, out) -> str:
         "",
         f"fbgcomp demo — {summary['machine']}, FE twin with {summary['n_dof']} DOF (twin-only figures: "
         f"our own simulator); trained on {', '.join(summary['trained_on'])}, zero state "
-        f"{summary['zero_window_s']:g} s (the default model: {summary['models']['default']['zero_window_s']:g} s, "
-        "as fbgcomp fit)",
+        f"{summary['zero_window_s']:g} s"
+        + (f" (the default model: {default['zero_window_s']:g} s, as fbgcomp fit)" if default else ""),
     ]
     lines += summary_table(validation, names)
     lines.append("  Lateral axes are noise- and heat-source-bound with this layout (docs/models.md).")
