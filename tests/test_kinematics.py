@@ -198,3 +198,17 @@ def test_chain_reads_a_ram_guided_on_one_face():
     unit = json.loads(results.read_text())["unit_response_um_per_N"]
     pred = chain.ttp_deviation_um(4000.0 * np.array([unit["x"][3:]]))
     assert pred[0, 0] == pytest.approx(4000.0 * unit["x"][0], rel=0.10)
+
+
+def test_the_hybrid_chain_part_runs_both_chains_in_one_call_with_the_same_numbers():
+    """hybrid_chain_part evaluates the bars' chain and the housing-only chain (its dz) as one
+    stacked call; every row is the two separate calls' to the bit."""
+    from fbgcomp.models.hybrid import hybrid_chain_part
+
+    chain = KinematicChain(load_machine())
+    rng = np.random.default_rng(1)
+    el = rng.normal(0.0, 5.0, (37, len(chain.sensors)))
+    for dT in (rng.normal(0.0, 2.0, 37), None):
+        ref = chain.ttp_deviation_um(el, dT)
+        ref[:, 2] = chain.ttp_deviation_um(np.zeros_like(el), dT)[:, 2]
+        np.testing.assert_array_equal(hybrid_chain_part(chain, el, dT), ref)

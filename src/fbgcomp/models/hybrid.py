@@ -32,8 +32,14 @@ def hybrid_chain_part(chain, elongation_um, housing_dT_K):
     readings are dominated by the gratings' thermal cross-sensitivity, and the residual
     regression takes them as regressors instead (a chain term it would only cancel at the
     training Z position)."""
-    out = chain.ttp_deviation_um(elongation_um, housing_dT_K)
-    out[:, 2] = chain.ttp_deviation_um(np.zeros_like(elongation_um), housing_dT_K)[:, 2]
+    el = np.atleast_2d(np.asarray(elongation_um, dtype=float))
+    n = len(el)
+    # both chains in one call (rows are independent): the bars with the housing, and the
+    # housing alone for dz
+    dT = None if housing_dT_K is None else np.tile(np.asarray(housing_dT_K, dtype=float).ravel(), 2)
+    both = chain.ttp_deviation_um(np.vstack([el, np.zeros_like(el)]), dT)
+    out = both[:n].copy()
+    out[:, 2] = both[n:, 2]
     return out
 
 
