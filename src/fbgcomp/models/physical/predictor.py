@@ -266,7 +266,7 @@ class PhysicalPredictor:
         f_fast = (y - off_prev) @ self.ops[0].T
         hold = first_order_recursion(dt / LOAD_HOLD_S, f_fast, f_hold)
         learnt = self._noise_excess(f_fast - hold, dt, kd, noise)
-        excess = np.vstack([self._excess(noise)[None, :], self._excess(learnt[:, :-1])])
+        excess = self._excess(np.vstack([noise[None, :], learnt[:-1]]))
         k = self.k_sigma
         sd_fast = self.F_sd[None, :] * np.sqrt(k_fast[:, None] * excess)
         sq = f_fast**2
@@ -284,12 +284,13 @@ class PhysicalPredictor:
             y[m - 1] - off[m - 1],
             hold[m - 1].copy(),
             rec[m - 1].copy(),
-            learnt[:, m - 1].copy(),
+            learnt[m - 1].copy(),
         )
 
     def _noise_excess(self, d, dt, kd, noise):
-        """Running sums (2, n, 3) of the live noise estimate after each frame, from ``noise``
-        (2, 3): the fast minus the hold reading ``d`` (n, 3) N is noise while no load moves
+        """Running sums (n, 4) of the live noise estimate after each frame, from ``noise``
+        (4,: the three components' weighted squares, then their shared weight, s): the fast
+        minus the hold reading ``d`` (n, 3) N is noise while no load moves
         (heat moves it by its drift over ``LOAD_HOLD_S``, a little); its square over what the
         training noise would give at that frame interval (``kd``, :func:`fast_hold_noise`) is
         averaged, weighted by frame time, over ``NOISE_LEARN_S``. A stream noisier than the
@@ -298,16 +299,15 @@ class PhysicalPredictor:
         a quieter one keeps the training's threshold (:meth:`_excess`)."""
         sd2 = np.where(self.F_sd > 0, self.F_sd**2, np.inf)
         q = np.minimum(d**2 / (sd2[None, :] * kd[:, None]), 100.0)  # (10 sigma: a spike no more)
-        x = dt / NOISE_LEARN_S
-        s = first_order_recursion(x, dt[:, None] * q, noise[0], gain=False)
-        w = first_order_recursion(x, np.repeat(dt[:, None], 3, axis=1), noise[1], gain=False)
-        return np.stack([s, w])
+        return first_order_recursion(
+            dt / NOISE_LEARN_S, dt[:, None] * np.hstack([q, np.ones((len(dt), 1))]), noise, gain=False
+        )
 
     @staticmethod
     def _excess(noise):
-        """Factor (3,) on the training's noise variance the step test uses: the live estimate's
-        ratio, never below 1."""
-        return np.maximum(noise[0] / np.maximum(noise[1], 1e-12), 1.0)
+        """Factor (…, 3) on the training's noise variance the step test uses, from running sums
+        (…, 4): the live estimate's ratio, never below 1."""
+        return np.maximum(noise[..., :3] / np.maximum(noise[..., 3:], 1e-12), 1.0)
 
     def _track_load(self, e, time_s, state, new_state, raw=False, listen=False):
         """Applied force per frame (n, 3) N, and the frames where a force was clamped (n,) and
@@ -343,7 +343,7 @@ class PhysicalPredictor:
         # step is taken, are given back when it is (else each step leaves ~1 % in the offset)
         recent = np.array(state.get("recent", np.zeros(S)), float)
         # the live noise estimate's running sums (weighted squares, weights), from the prior
-        noise = np.array(state.get("noise", np.full((2, 3), NOISE_PRIOR_S)), float)
+        noise = np.array(state.get("noise", np.full(4, NOISE_PRIOR_S)), float)
         t_last = state.get("t")
         t = (
             np.arange(1, n + 1) * self.nominal_dt_s + (t_last or 0.0)
@@ -453,9 +453,7 @@ class PhysicalPredictor:
             limit = np.maximum(np.hypot(k_start[i] * sd_fast, k * lag[i]), k * cross)
             take = (~moving) & (np.abs(step) > limit)
             if not (take.any() or moving.any()):  # a steady frame: the noise estimate learns
-                noise = self._noise_excess((f_fast - f_hold)[None, :], dt[i : i + 1], kd[i : i + 1], noise)[
-                    :, 0
-                ]
+                noise = self._noise_excess((f_fast - f_hold)[None, :], dt[i : i + 1], kd[i : i + 1], noise)[0]
             if take.any() and self.dof >= 1:
                 # a step no load explains (one grating jumps: a fibre slips, a connector is
                 # re-seated) is refused, and the offset absorbs it
