@@ -31,13 +31,13 @@ def first_order_recursion(x, u, y0, gain=True):
         c = math.exp(-float(x[0]))
         return (c * np.asarray(y0, float) + ((1.0 - c) * u[0] if gain else u[0]))[None, :]
     w = -np.expm1(-x)[:, None] * u if gain else u
-    out = np.empty_like(w)
     y_prev = np.asarray(y0, float)
     L = np.cumsum(x)
     n = len(x)
     if n and L[-1] <= 600.0:  # one stretch (every runtime batch): the loop below, once
         acc = np.cumsum(np.exp(L)[:, None] * w, axis=0)
         return np.exp(-L)[:, None] * (y_prev[None, :] + acc)
+    out = np.empty_like(w)
     start = 0
     while start < n:
         base = L[start - 1] if start else 0.0
@@ -61,12 +61,6 @@ def first_order_filter(x, time_s, tau_s, state=None, nominal_dt_s=1.0):
     n = x.shape[0]
     if n == 0:
         return x.copy(), state
-    if n == 1 and state is not None and state[1] is not None and time_s is not None:  # one step
-        y_prev, t_prev = state
-        t1 = float(np.asarray(time_s, dtype=float).ravel()[0])
-        c = math.exp(-max(t1 - t_prev, 0.0) / tau_s)
-        y = c * np.asarray(y_prev, float) + (1.0 - c) * x[0]
-        return y[None, :], (y.copy(), t1)
     if state is None:
         y_prev, t_prev = x[0].copy(), None
     else:
