@@ -50,13 +50,11 @@ _RANK_TOL = 1e-9
 
 # --------------------------------------------------------------------------- HTM core (eq. 5-10)
 def _stack(entries, shape):
-    """(…, 4, 4) array from a 4x4 nested list of broadcastable entries (zeros left unwritten)."""
+    """(…, 4, 4) array from a 4x4 nested list of broadcastable entries."""
     out = np.zeros((*shape, 4, 4))
     for i in range(4):
         for j in range(4):
-            e = entries[i][j]
-            if not (isinstance(e, int | float) and e == 0):
-                out[..., i, j] = e
+            out[..., i, j] = entries[i][j]
     return out
 
 
