@@ -114,7 +114,8 @@ class CoreRun:
         from fbgcomp.models.registry import load_model
         from fbgcomp.runtime.pipeline import Pipeline
         from fbgcomp.runtime.simulator import SimConfig, SimulatedHyperion
-        from fbgcomp.runtime.sources import NoTemperatures, PeakMapper, TableTemperatures
+        from fbgcomp.runtime.sources import NoTemperatures, TableTemperatures
+        from fbgcomp.runtime.windows import PeakMapper
 
         self.model = load_model(model_path)
         sim = SimulatedHyperion(table, SimConfig(rate_hz=rate_hz, noise_pm=0.3))

@@ -76,7 +76,7 @@ def write_36h_log(folder: Path, end_s: float) -> dict:
     from fbgcomp.runtime import health as H
     from fbgcomp.runtime.log import RunLog
     from fbgcomp.runtime.pipeline import HEALTH_NAMES, BatchResult
-    from fbgcomp.runtime.sources import SensorBatch
+    from fbgcomp.runtime.windows import SensorBatch
 
     meta = {
         "format": "fbgcomp-runlog",

@@ -40,3 +40,66 @@ def test_compiled_design_and_interval_equal_the_reference(runtime_model_and_camp
         np.testing.assert_array_equal(dev, d @ p.coef)
         np.testing.assert_allclose(half, _einsum_interval(p, d), rtol=1e-12, atol=0)
         assert np.isfinite(half).all() and (half > 0).all()
+
+
+def test_feature_map_base_is_the_optics_arithmetic_to_the_bit():
+    """``FeatureMap.base`` writes eq. 2-4 and the eq. 13 temperature features in place (the
+    runtime's per-frame cost): it must give the pure functions' values exactly, with a grating
+    and a probe missing, uncompensated sensors, one frame and many, with and without probes."""
+    from types import SimpleNamespace
+
+    from fbgcomp.models.features import (
+        FeatureMap,
+        TemperatureRoles,
+        sensor_elongations_um,
+        temperature_features_C,
+    )
+
+    rng = np.random.default_rng(0)
+    probes = ["T_bulk", "T_surf", "T_flange", "T_x"]
+    sensors = [
+        SimpleNamespace(
+            name=f"S{i}",
+            gauge_length_mm=500.0 + i,
+            photoelastic=0.22,
+            thermo_optic_per_K=6.67e-6 + i * 1e-8,
+            fibre_cte_per_K=0.55e-6,
+            temperature_probe=[None, *probes][i % 5],
+        )
+        for i in range(7)
+    ]
+    for probe_names, temperature_features in ((probes, False), (probes, True), ([], False)):
+        bare = (
+            sensors
+            if probe_names
+            else [SimpleNamespace(**{**vars(s), "temperature_probe": None}) for s in sensors]
+        )
+        fm = FeatureMap(bare, probe_names, temperature_features, TemperatureRoles())
+        for n in (1, 9):
+            w0 = 1530.0 + 20.0 * rng.random(7)
+            t0 = 20.0 + rng.random(len(probe_names))
+            w = w0 + rng.normal(0.0, 0.01, (n, 7))
+            t = t0 + rng.normal(0.0, 1.0, (n, len(probe_names)))
+            w[-1, 2] = np.nan
+            if probe_names:
+                t[0, 1] = np.nan
+            delta = t - t0
+            sensor_dt = (
+                np.where(fm._compensated, delta[:, np.maximum(fm._sensor_probe, 0)], 0.0)
+                if probe_names
+                else np.zeros_like(w)
+            )
+            expected = sensor_elongations_um(
+                w,
+                w0,
+                fm._gauge_mm,
+                sensor_dt,
+                photoelastic=fm._pe,
+                thermo_optic_per_K=fm._xi,
+                fibre_cte_per_K=fm._af,
+            )
+            if temperature_features:
+                expected = np.hstack([expected, temperature_features_C(t, t0, *fm._roles)])
+            got = fm.base(w[0] if n == 1 else w, t[0] if n == 1 else t, w0, t0)
+            np.testing.assert_array_equal(got, expected)
+            assert np.isnan(got).any() and np.isfinite(got).sum() > got.size // 2

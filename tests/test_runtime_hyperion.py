@@ -10,7 +10,7 @@ import pytest
 from fbgcomp.errors import InputError
 from fbgcomp.runtime import hyperion
 from fbgcomp.runtime.simulator import SignalTable, SimConfig, SimulatedHyperion, parse_fault
-from fbgcomp.runtime.sources import PeakMapper
+from fbgcomp.runtime.windows import PeakMapper
 from test_runtime_support import free_port
 
 
@@ -182,21 +182,32 @@ def test_simulator_rejects_unknown_sensor_in_fault():
         SimulatedHyperion(_table(), SimConfig(faults=[parse_fault("drop:S9@1")]))
 
 
-def test_window_search_agrees_with_the_exhaustive_comparison():
+@pytest.mark.parametrize("n", [400, 1])
+def test_window_search_agrees_with_the_exhaustive_comparison(n):
+    # NaN and infinite peaks, doubled windows and peaks in the guard bands, in a batch and in
+    # the one-frame batch of a high frame rate
     rng = np.random.default_rng(5)
     lam0 = 1520.0 + 5.0 * np.arange(12)
     m = PeakMapper(lam0, window_nm=2.0)
-    peaks = lam0[rng.integers(0, 12, (400, 15))] + rng.uniform(-4.5, 4.5, (400, 15))
-    peaks[rng.random(peaks.shape) < 0.1] = np.nan
-    fast = m.map(peaks, 0.0, np.arange(400.0))
+    frames = [(400, 15), (2000, 6)][n == 1]
+    peaks_all = lam0[rng.integers(0, 12, frames)] + rng.uniform(-4.5, 4.5, frames)
+    r = rng.random(peaks_all.shape)
+    peaks_all[r < 0.1] = np.nan
+    peaks_all[(r >= 0.1) & (r < 0.12)] = np.inf
+    peaks_all[(r >= 0.12) & (r < 0.14)] = -np.inf
     S = lam0.size
-    count, value, near = np.zeros(400 * S, np.int64), np.zeros(400 * S), np.zeros(400 * S, np.int64)
-    m._map_group_overlapping(peaks, np.arange(S), count, value, near)
-    np.testing.assert_array_equal(fast.peak_count, count.reshape(400, S))
-    np.testing.assert_array_equal(fast.near_count, near.reshape(400, S))
-    one = count.reshape(400, S) == 1
-    np.testing.assert_array_equal(fast.wavelength_nm[one], value.reshape(400, S)[one])
-    assert one.sum() > 1000 and (count > 1).any() and (near > 0).any()
+    seen = np.zeros(3, int)
+    for peaks in np.split(peaks_all, peaks_all.shape[0] // n):
+        fast = m.map(peaks, 0.0, np.arange(float(n)))
+        count, value, near = np.zeros(n * S, np.int64), np.zeros(n * S), np.zeros(n * S, np.int64)
+        m._map_group_overlapping(peaks, np.arange(S), count, value, near)
+        np.testing.assert_array_equal(fast.peak_count, count.reshape(n, S))
+        np.testing.assert_array_equal(fast.near_count, near.reshape(n, S))
+        one = count.reshape(n, S) == 1
+        np.testing.assert_array_equal(fast.wavelength_nm[one], value.reshape(n, S)[one])
+        assert np.isnan(fast.wavelength_nm[~one]).all()
+        seen += [one.sum(), (count > 1).sum(), (near > 0).sum()]
+    assert seen[0] > 1000 and seen[1] > 0 and seen[2] > 0
 
 
 def test_sensors_with_a_channel_only_see_their_fibre():

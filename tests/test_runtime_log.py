@@ -258,7 +258,7 @@ def test_a_slow_disk_drops_batches_instead_of_blocking(tmp_path):
     fbgcomp_testing.require("pyarrow")
     from fbgcomp.runtime.log import RunLog, read_log
     from fbgcomp.runtime.pipeline import BatchResult
-    from fbgcomp.runtime.sources import SensorBatch
+    from fbgcomp.runtime.windows import SensorBatch
 
     meta = {"sensor_names": ["S1", "S2"], "probe_names": ["T_bulk"]}
     log = RunLog(tmp_path / "log", meta, flush_s=0.2, max_queue=2)
@@ -369,7 +369,7 @@ def test_a_log_folder_of_another_sensor_set_is_refused(tmp_path):
 
 def _batch(t, wavelength_nm, status, health):
     from fbgcomp.runtime.pipeline import BatchResult
-    from fbgcomp.runtime.sources import SensorBatch
+    from fbgcomp.runtime.windows import SensorBatch
 
     n, S = wavelength_nm.shape
     b = SensorBatch(t, wavelength_nm, np.ones((n, S), np.int8), np.zeros((n, S), np.int8), float(t[-1]))

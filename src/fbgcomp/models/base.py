@@ -172,7 +172,9 @@ class Predictor:
         n, width = base.shape
         out = np.empty((n, 1 + fac.shape[0]))
         out[:, 0] = 1.0
-        if fac.shape[0]:
+        if fac.shape[0] and fac.shape[1] == 1:  # every term one base feature (eq. 11, 13)
+            np.take(base, fac[:, 0], axis=1, out=out[:, 1:])
+        elif fac.shape[0]:
             ext = np.empty((n, width + 1))
             ext[:, :width] = base
             ext[:, width] = 1.0

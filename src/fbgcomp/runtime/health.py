@@ -61,7 +61,7 @@ class SensorChecks:
         self.last_raw = np.full(n_sensors, np.nan)  # last sample as received
         self.last_change_s = np.full(n_sensors, -np.inf)  # time the value last changed
         self.last_bad_s = np.full(n_sensors, -np.inf)  # time of the last bad sample
-        self.never_zeroed = np.zeros(n_sensors, bool)
+        self.never_zeroed = np.zeros(n_sensors, bool)  # (a property: its any() is kept)
         self.offset_nm = np.zeros(n_sensors)  # summed mode-hop steps, nm
         self.row_offset_nm = np.zeros((0, n_sensors))  # offset_nm per frame, last batch
         self._zeros_cache: dict[int, np.ndarray] = {}
@@ -114,8 +114,16 @@ class SensorChecks:
         return z
 
     @property
-    def _any_never_zeroed(self) -> bool:
-        return bool(self.never_zeroed.any())
+    def never_zeroed(self) -> np.ndarray:
+        """(S,) bool: sensors without a zero wavelength (read-only; assign a new array)."""
+        return self._never_zeroed
+
+    @never_zeroed.setter
+    def never_zeroed(self, value) -> None:
+        value = np.array(value, dtype=bool)
+        value.flags.writeable = False
+        self._never_zeroed = value
+        self._any_never_zeroed = bool(value.any())  # asked per batch by all_good
 
     def check(
         self, time_s: np.ndarray, wavelength_nm: np.ndarray, peak_count: np.ndarray, near_count: np.ndarray

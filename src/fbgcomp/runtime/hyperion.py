@@ -195,6 +195,28 @@ def _frame_dtype(n_channels: int, n_peaks: int) -> np.dtype:
     return np.dtype(fields)
 
 
+@functools.lru_cache(maxsize=64)
+def _counts(raw: bytes, n_peaks: int, peaks_per_channel: int) -> np.ndarray:
+    """The per-channel peak counts of a layout (int16, read-only), checked once per layout: a
+    stream repeats one layout frame after frame, so the checks cost nothing per frame."""
+    counts = np.frombuffer(raw, dtype="<i2").astype(np.int16)
+    if (counts < 0).any() or (counts > peaks_per_channel).any() or int(counts.sum()) != n_peaks:
+        raise HyperionError(
+            f"corrupt peak stream: counts sum {int(counts.sum())} != {n_peaks} "
+            f"peaks, or a count outside 0..{peaks_per_channel}"
+        )
+    counts.setflags(write=False)
+    return counts
+
+
+@functools.lru_cache(maxsize=64)
+def _peak_channel(counts_raw: bytes) -> np.ndarray:
+    counts = np.frombuffer(counts_raw, dtype=np.int16)
+    out = np.repeat(np.arange(counts.size), np.maximum(counts, 0))
+    out.setflags(write=False)
+    return out
+
+
 @dataclass
 class PeakBlock:
     """Frames of one layout decoded together.
@@ -214,8 +236,8 @@ class PeakBlock:
 
     @property
     def peak_channel(self) -> np.ndarray:
-        """Channel index (0-based) of every peak column."""
-        return np.repeat(np.arange(self.peak_counts.size), np.maximum(self.peak_counts, 0))
+        """Channel index (0-based) of every peak column (read-only; one array per layout)."""
+        return _peak_channel(self.peak_counts.tobytes())
 
 
 def decode_peak_frames(
@@ -269,28 +291,30 @@ def decode_peak_frames(
         n_pk = (content_len - length) // 8
         if total - pos < HEADER_SIZE + length:
             break
-        counts = np.frombuffer(
-            buf, dtype="<i2", count=n_ch, offset=pos + HEADER_SIZE + PEAK_HEADER_SIZE
-        ).astype(np.int16)
-        if (counts < 0).any() or (counts > limits.peaks_per_channel).any() or int(counts.sum()) != n_pk:
-            raise HyperionError(
-                f"corrupt peak stream: counts sum {int(counts.sum())} != {n_pk} "
-                f"peaks, or a count outside 0..{limits.peaks_per_channel}"
-            )
+        counts = _counts(
+            bytes(buf[pos + HEADER_SIZE + PEAK_HEADER_SIZE : pos + HEADER_SIZE + length]),
+            n_pk,
+            limits.peaks_per_channel,
+        )
         if total - pos < frame_len:
             break
         n_max = (total - pos) // frame_len
-        raw = np.frombuffer(buf, dtype=np.uint8, count=n_max * frame_len, offset=pos)
-        raw = raw.reshape(n_max, frame_len)
-        # A run continues while the layout bytes (outer header and counts) are identical.
-        layout = np.concatenate(
-            [raw[:, : HEADER_SIZE + 4], raw[:, HEADER_SIZE + PEAK_HEADER_SIZE : HEADER_SIZE + length]], axis=1
-        )
-        same = np.all(layout == layout[0], axis=1)
-        n = n_max if same.all() else int(np.argmin(same))
-        rec = raw[:n].copy().view(_frame_dtype(n_ch, n_pk)).reshape(n)
+        if n_max == 1:
+            n = 1
+        else:
+            raw = np.frombuffer(buf, dtype=np.uint8, count=n_max * frame_len, offset=pos)
+            raw = raw.reshape(n_max, frame_len)
+            # A run continues while the layout bytes (outer header and counts) are identical.
+            layout = np.concatenate(
+                [raw[:, : HEADER_SIZE + 4], raw[:, HEADER_SIZE + PEAK_HEADER_SIZE : HEADER_SIZE + length]],
+                axis=1,
+            )
+            same = np.all(layout == layout[0], axis=1)
+            n = n_max if same.all() else int(np.argmin(same))
+        # the fields are copied out (astype), so nothing keeps a view of the caller's buffer
+        rec = np.frombuffer(buf, dtype=_frame_dtype(n_ch, n_pk), count=n, offset=pos)
         peaks = rec["peaks"].astype(np.float64) if n_pk else np.zeros((n, 0))
-        ts = rec["t_int"].astype(np.float64) + rec["t_frac"].astype(np.float64) * 1e-9
+        ts = rec["t_int"] + rec["t_frac"] * 1e-9  # float64
         blocks.append(PeakBlock(ts, rec["serial"].astype(np.uint64), counts, peaks))
         pos += n * frame_len
     return blocks, pos

@@ -182,6 +182,7 @@ class Pipeline:
         rate = self.max_slew_um_per_s
         self._slew_axes = ~np.isinf(rate)  # axes with a rate limit
         self._slew_rate = np.where(self._slew_axes, rate, 0.0)
+        self._slew_off = not self._slew_axes.any()  # no axis limited
         self._z: np.ndarray | None = None  # this batch's Z position per frame, mm
         self._uses_z: bool | None = None
 
@@ -349,13 +350,14 @@ class Pipeline:
         if own is not None:
             flags |= np.asarray(own, np.uint8).reshape(n, 3) & H.MODEL_FLAGS
         target = -dev
-        if not (np.abs(target) <= self.max_correction_um).all():
+        in_bounds = bool((np.abs(target) <= self.max_correction_um).all())  # NaN is not
+        if not in_bounds:
             target = self._envelope(target, health, flags)
         if (
             self.config.output_filter.enabled
             and self.output_filter is not None
             and self._filter_set == 0
-            and np.isfinite(target).all()
+            and (in_bounds or np.isfinite(target).all())
         ):
             correction = self.output_filter.process(target)  # no switch: one segment
         else:
@@ -697,7 +699,7 @@ class Pipeline:
         """
         rate = self.max_slew_um_per_s
         n = t.size
-        if np.isinf(rate).all() or n == 0:
+        if self._slew_off or n == 0:
             return corr
         prev = self._slew_y if self._slew_y is not None else corr[0]
         t_prev = self._slew_t if self._slew_t is not None else float(t[0])

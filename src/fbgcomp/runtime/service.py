@@ -39,15 +39,14 @@ from fbgcomp.runtime.realtime import RealtimeConfig
 from fbgcomp.runtime.simulator import SignalTable, SimConfig, SimulatedHyperion
 from fbgcomp.runtime.sources import (
     HyperionSource,
-    PeakMapper,
     ReferenceThermometers,
     ReplaySource,
-    SensorBatch,
     TableTemperatures,
     open_temperatures,
     parse_source_url,
 )
 from fbgcomp.runtime.summary import startup_summary
+from fbgcomp.runtime.windows import PeakMapper, SensorBatch
 
 log = logging.getLogger("fbgcomp.runtime")
 

@@ -2,11 +2,8 @@
 
 A wavelength source is an async iterator of :class:`SensorBatch` (every frame that has arrived,
 already mapped to the model's sensors); sources that lose their link reconnect by themselves
-with capped exponential back-off. A temperature source answers the latest value per probe.
-
-Peaks are mapped to sensors by wavelength windows ``lambda0_nm ± window_nm``: exactly one peak
-in the window gives the sensor's wavelength; none (grating lost or moved out of its window) or
-more than one (doubled peak) gives NaN and a peak count the health checks turn into a fault.
+with capped exponential back-off (peaks go to sensors in :mod:`fbgcomp.runtime.windows`). A
+temperature source answers the latest value per probe.
 
 Strain-free reference gratings (``reference_lambda0_nm`` of a sensor) own a window of their own
 (``reference_lambda0_nm ± window_nm``) and travel beside the sensors in
@@ -21,203 +18,20 @@ import contextlib
 import logging
 import time
 from collections.abc import AsyncIterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 from urllib.parse import parse_qs, urlparse
 
 import numpy as np
-import numpy.typing as npt
 import pandas as pd
 
 from fbgcomp import optics
 from fbgcomp.errors import InputError
 from fbgcomp.io.campaign import read_campaign
 from fbgcomp.runtime import hyperion
+from fbgcomp.runtime.windows import PeakMapper, SensorBatch
 
 log = logging.getLogger("fbgcomp.runtime")
-
-
-@dataclass
-class SensorBatch:
-    """Frames mapped to sensors.
-
-    time_s : (n,) instrument time stamps, s since the epoch (replay: start + campaign time)
-    wavelength_nm : (n, S) the single peak found in each sensor's window, NaN otherwise
-    peak_count : (n, S) int8 peaks in the window (0 missing, 1 good, >1 doubled)
-    near_count : (n, S) int8 peaks in the guard band just outside the window
-    received_s : wall-clock time the batch was received (for latency figures)
-    reference_nm : (n, R) the strain-free reference gratings (``PeakMapper.reference_probes``
-        order), NaN unless exactly one peak in the window; None when there are none
-    """
-
-    time_s: np.ndarray
-    wavelength_nm: np.ndarray
-    peak_count: np.ndarray
-    near_count: np.ndarray
-    received_s: float
-    reference_nm: np.ndarray | None = None
-
-    def __len__(self) -> int:
-        return self.time_s.size
-
-    @staticmethod
-    def concat(batches: list[SensorBatch]) -> SensorBatch:
-        """One batch of several, in order."""
-        if len(batches) == 1:
-            return batches[0]
-        return SensorBatch(
-            np.concatenate([b.time_s for b in batches]),
-            np.concatenate([b.wavelength_nm for b in batches]),
-            np.concatenate([b.peak_count for b in batches]),
-            np.concatenate([b.near_count for b in batches]),
-            max(b.received_s for b in batches),
-            None if batches[0].reference_nm is None else np.concatenate([b.reference_nm for b in batches]),
-        )
-
-
-class PeakMapper:
-    """Assign peaks to sensors by wavelength windows (vectorised over frames and peaks)."""
-
-    def __init__(
-        self,
-        lambda0_nm: npt.ArrayLike,
-        window_nm: float = 2.5,
-        guard_nm: float | None = None,
-        channel: npt.ArrayLike | None = None,
-        n_sensors: int | None = None,
-        reference_probes: list[str] | None = None,
-    ):
-        self.lambda0_nm = np.asarray(lambda0_nm, dtype=np.float64)
-        # windows beyond the first n_sensors are strain-free reference gratings, named by the
-        # probe they read (<sensor>_ref); they go to SensorBatch.reference_nm
-        self.n_sensors = self.lambda0_nm.size if n_sensors is None else int(n_sensors)
-        self.reference_probes = list(reference_probes or [])
-        if len(self.reference_probes) != self.lambda0_nm.size - self.n_sensors:
-            raise ValueError("one name per reference grating window")
-        # instrument channel (1-based, as the Hyperion numbers them) of each sensor, 0 = any:
-        # several fibres may carry gratings of the same nominal wavelength
-        self.channel = (
-            np.zeros(self.lambda0_nm.size, int) if channel is None else np.asarray(channel, dtype=int)
-        )
-        self.window_nm = float(window_nm)
-        self.guard_nm = float(window_nm if guard_nm is None else guard_nm)
-        self.lo = self.lambda0_nm - self.window_nm
-        self.hi = self.lambda0_nm + self.window_nm
-        self._all = np.arange(self.lambda0_nm.size)
-
-    @classmethod
-    def for_sensors(cls, sensors, window_nm: float = 2.5) -> PeakMapper:
-        """Windows from sensor specs (``lambda0_nm`` and optional extra key ``channel``), then
-        one per strain-free reference grating (``reference_lambda0_nm``, the sensor's channel)."""
-        channel = [int(getattr(s, "channel", None) or 0) for s in sensors]
-        refs = [
-            (s, c) for s, c in zip(sensors, channel) if getattr(s, "reference_lambda0_nm", None) is not None
-        ]
-        return cls(
-            [s.lambda0_nm for s in sensors] + [s.reference_lambda0_nm for s, _ in refs],
-            window_nm,
-            channel=channel + [c for _, c in refs],
-            n_sensors=len(sensors),
-            reference_probes=[f"{s.name}_ref" for s, _ in refs],
-        )
-
-    def map(
-        self,
-        peaks_nm: np.ndarray,
-        received_s: float,
-        time_s: np.ndarray,
-        peak_channel: np.ndarray | None = None,
-    ) -> SensorBatch:
-        """Map (n, K) peaks (NaN = no peak) to (n, S) sensor wavelengths.
-
-        ``peak_channel`` (K,) gives the 1-based instrument channel of each peak column; sensors
-        with a channel only look at their channel's peaks.
-        """
-        n, S = peaks_nm.shape[0], self.lambda0_nm.size
-        count = np.zeros(n * S, np.int64)
-        value = np.zeros(n * S)
-        near = np.zeros(n * S, np.int64)
-        groups = np.unique(peak_channel) if peak_channel is not None and self.channel.all() else [None]
-        for ch in groups:
-            cols = np.flatnonzero(peak_channel == ch) if ch is not None else slice(None)
-            sens = np.flatnonzero(self.channel == ch) if ch is not None else self._all
-            if sens.size:
-                self._map_group(peaks_nm[:, cols], sens, count, value, near)
-        count = count.reshape(n, S)
-        wl = np.where(count == 1, value.reshape(n, S), np.nan)
-        count = np.minimum(count, 127).astype(np.int8)
-        near = np.minimum(near.reshape(n, S), 127).astype(np.int8)
-        k = self.n_sensors
-        if k == S:
-            return SensorBatch(time_s, wl, count, near, received_s)
-        return SensorBatch(time_s, wl[:, :k], count[:, :k], near[:, :k], received_s, reference_nm=wl[:, k:])
-
-    def _map_group(self, peaks, sens, count, value, near) -> None:
-        """Windows of the sensors ``sens`` (one fibre) against its (n, k) peaks, O(n k log s).
-
-        Windows on one fibre do not overlap (checked at first use), so each peak falls in at
-        most one window: a binary search over the sorted window edges finds it.
-        """
-        S = self.lambda0_nm.size
-        key = sens.tobytes()
-        cache = self.__dict__.setdefault("_groups", {})
-        if key not in cache:
-            order = sens[np.argsort(self.lambda0_nm[sens])]
-            lo, hi = self.lo[order], self.hi[order]
-            cache[key] = (order, lo, hi, self.lambda0_nm[order], bool(np.any(lo[1:] < hi[:-1])))
-        order, lo, hi, lam, overlapping = cache[key]
-        n = peaks.shape[0]
-        if overlapping:
-            self._map_group_overlapping(peaks, sens, count, value, near)
-            return
-        row = np.broadcast_to(np.arange(n)[:, None] * S, peaks.shape)
-        finite = np.isfinite(peaks)
-        p = np.where(finite, peaks, -np.inf)
-        j = np.searchsorted(lo, p, side="right") - 1  # window starting at or below
-        jc = np.clip(j, 0, order.size - 1)
-        inside = finite & (j >= 0) & (p <= hi[jc])
-        flat = row[inside] + order[jc[inside]]
-        size = count.size
-        count += np.bincount(flat, minlength=size)
-        value += np.bincount(flat, weights=p[inside], minlength=size)
-        # peaks owned by no window but within the guard band of one: that grating moved
-        stray = finite & ~inside
-        if not stray.any():
-            return
-        for cand in (j, j + 1):  # the windows just below and just above
-            valid = (cand >= 0) & (cand < order.size)
-            k = np.clip(cand, 0, order.size - 1)
-            d = np.abs(p - lam[k])
-            hit = stray & valid & (d > self.window_nm) & (d <= self.window_nm + self.guard_nm)
-            if hit.any():
-                near += np.bincount(row[hit] + order[k[hit]], minlength=size)
-
-    def _map_group_overlapping(self, peaks, sens, count, value, near) -> None:
-        """Overlapping windows: a peak may count for two sensors (both then see a fault)."""
-        S = self.lambda0_nm.size
-        n = peaks.shape[0]
-        p = peaks[:, :, None]
-        inside = (p >= self.lo[sens]) & (p <= self.hi[sens])  # (n, k, s)
-        dist = np.abs(p - self.lambda0_nm[sens])
-        owned = inside.any(axis=2, keepdims=True)
-        stray = (dist > self.window_nm) & (dist <= self.window_nm + self.guard_nm) & ~owned
-        idx = (np.arange(n)[:, None] * S + sens[None, :]).ravel()
-        count[idx] += inside.sum(axis=1).ravel()
-        value[idx] += np.where(inside, p, 0.0).sum(axis=1).ravel()
-        near[idx] += stray.sum(axis=1).ravel()
-
-    def map_blocks(self, blocks: list[hyperion.PeakBlock], received_s: float) -> SensorBatch:
-        """A batch of the decoded peak blocks of one read (received at ``received_s``)."""
-        by_channel = bool(self.channel.all())
-        return SensorBatch.concat(
-            [
-                self.map(
-                    b.wavelengths_nm, received_s, b.timestamp_s, b.peak_channel + 1 if by_channel else None
-                )
-                for b in blocks
-            ]
-        )
 
 
 class WavelengthSource(Protocol):
@@ -338,6 +152,8 @@ class TableTemperatures:
         self.speed = float(speed)
         self.origin = clock_origin_s
         self.loop = loop
+        self._tol_for: float | None = None  # the origin the clock tolerance below was computed for
+        self._tol = 0.0
 
     @classmethod
     def from_campaign(
@@ -370,16 +186,21 @@ class TableTemperatures:
         if self.origin is None:
             self.origin = float(time_s[0]) - self.time_s[0] / self.speed
         camp_t = (np.asarray(time_s) - self.origin) * self.speed
-        span = self.time_s[-1] - self.time_s[0]
-        if self.loop and span > 0:
+        if self.loop and (span := self.time_s[-1] - self.time_s[0]) > 0:
             camp_t = self.time_s[0] + np.mod(camp_t - self.time_s[0], span)
         # tolerance of the epoch <-> campaign clock arithmetic (an epoch in float64 is only
         # good to ~0.2 µs), so the sample stamped exactly t is not missed
-        tol = 8.0 * float(np.spacing(abs(self.origin) + 1.0)) * self.speed + 1e-9
-        idx = np.searchsorted(self.time_s, camp_t + tol, side="right") - 1
-        out = self.values[np.clip(idx, 0, None)]
-        out[idx < 0] = np.nan
-        return out
+        origin = self.origin
+        if self._tol_for != origin:
+            self._tol = 8.0 * float(np.spacing(abs(origin) + 1.0)) * self.speed + 1e-9
+            self._tol_for = origin
+        camp_t += self._tol
+        idx = np.searchsorted(self.time_s, camp_t, side="right") - 1
+        if idx.size and idx.min() < 0:  # before the first sample: unknown
+            out = self.values[np.maximum(idx, 0)]
+            out[idx < 0] = np.nan
+            return out
+        return self.values[idx]
 
 
 def open_temperatures(
