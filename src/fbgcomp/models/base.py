@@ -165,7 +165,8 @@ class Predictor:
         self._cov_stack = np.concatenate(list(self._cov_sqrt), axis=1)
 
     def _design_from_base(self, base) -> np.ndarray:
-        base = np.atleast_2d(np.asarray(base, dtype=float))
+        if not (isinstance(base, np.ndarray) and base.ndim == 2 and base.dtype == np.float64):
+            base = np.atleast_2d(np.asarray(base, dtype=float))
         fac = getattr(self, "_factors", None)
         if fac is None:
             return design_matrix(base, self.feature_map.base_names, self.terms)
@@ -173,7 +174,7 @@ class Predictor:
         out = np.empty((n, 1 + fac.shape[0]))
         out[:, 0] = 1.0
         if fac.shape[0] and fac.shape[1] == 1:  # every term one base feature (eq. 11, 13)
-            np.take(base, fac[:, 0], axis=1, out=out[:, 1:])
+            out[:, 1:] = base.take(fac[:, 0], axis=1)
         elif fac.shape[0]:
             ext = np.empty((n, width + 1))
             ext[:, :width] = base
@@ -194,7 +195,7 @@ class Predictor:
         spread = d @ stack
         spread *= spread
         K = self._cov_sqrt.shape[1]
-        return self._resid_var[None, :] + spread.reshape(d.shape[0], len(AXES), K).sum(axis=2)
+        return self._resid_var[None, :] + np.add.reduce(spread.reshape(d.shape[0], len(AXES), K), axis=2)
 
     def design(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C):
         """Design matrix (n, 1 + terms) of raw instrument arrays (nm, °C, zero states)."""

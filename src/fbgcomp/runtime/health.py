@@ -83,13 +83,18 @@ class SensorChecks:
         # every sensor good for recover_s before the first frame: nothing is recovering
         if t_first - float(self.last_bad_s.max()) < cfg.recover_s:
             return False
-        if n == 1:
-            step = np.abs(wavelength_nm[0] - self.last_value)
+        # NaN (missing value or no previous one) fails both comparisons
+        if n == 1:  # one frame (a high frame rate): the same tests on Python floats
+            jump = cfg.max_jump_nm
+            for a, b in zip(wavelength_nm[0].tolist(), self.last_value.tolist()):
+                if not 0.0 < abs(a - b) <= jump:
+                    return False
+            if peak_count[0].tolist().count(1) != peak_count.shape[1]:
+                return False
         else:
             step = np.abs(np.diff(wavelength_nm, axis=0, prepend=self.last_value[None, :]))
-        # NaN (missing value or no previous one) fails both comparisons
-        if not ((step <= cfg.max_jump_nm) & (step > 0.0)).all() or not (peak_count == 1).all():
-            return False
+            if not ((step <= cfg.max_jump_nm) & (step > 0.0)).all() or not (peak_count == 1).all():
+                return False
         if not self.offset_nm.any():
             self.row_offset_nm = self._zero_offsets(n)
         else:

@@ -183,6 +183,7 @@ class Pipeline:
         self._slew_axes = ~np.isinf(rate)  # axes with a rate limit
         self._slew_rate = np.where(self._slew_axes, rate, 0.0)
         self._slew_off = not self._slew_axes.any()  # no axis limited
+        self._slew_lists = (self._slew_rate.tolist(), self._slew_axes.tolist())  # the one-frame test
         self._z: np.ndarray | None = None  # this batch's Z position per frame, mm
         self._uses_z: bool | None = None
 
@@ -705,7 +706,8 @@ class Pipeline:
         t_prev = self._slew_t if self._slew_t is not None else float(t[0])
         if n == 1:  # one frame (the usual batch at a high rate): the same test on scalars
             dt1 = min(max(float(t[0]) - t_prev, 0.0), dt_cap)
-            if not ((np.abs(corr[0] - prev) > self._slew_rate * dt1 + 1e-12) & self._slew_axes).any():
+            c, p = corr[0].tolist(), prev.tolist()
+            if not any(ax and abs(a - b) > r * dt1 + 1e-12 for a, b, r, ax in zip(c, p, *self._slew_lists)):
                 self._slew_y = corr[0].copy()
                 self._slew_t = float(t[0])
                 return corr

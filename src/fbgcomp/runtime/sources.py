@@ -14,6 +14,7 @@ Strain-free reference gratings (``reference_lambda0_nm`` of a sensor) own a wind
 from __future__ import annotations
 
 import asyncio
+import bisect
 import contextlib
 import logging
 import time
@@ -154,6 +155,7 @@ class TableTemperatures:
         self.loop = loop
         self._tol_for: float | None = None  # the origin the clock tolerance below was computed for
         self._tol = 0.0
+        self._times: list[float] = []  # time_s as Python floats (the one-frame look-up)
 
     @classmethod
     def from_campaign(
@@ -185,15 +187,22 @@ class TableTemperatures:
         """The newest recorded temperatures at or before each frame's time on the campaign clock."""
         if self.origin is None:
             self.origin = float(time_s[0]) - self.time_s[0] / self.speed
+        if self._tol_for != self.origin:
+            # tolerance of the epoch <-> campaign clock arithmetic (an epoch in float64 is
+            # only good to ~0.2 µs), so the sample stamped exactly t is not missed
+            self._tol = 8.0 * float(np.spacing(abs(self.origin) + 1.0)) * self.speed + 1e-9
+            self._tol_for = self.origin
+            self._times = self.time_s.tolist()
+        if np.ndim(time_s) == 1 and len(time_s) == 1 and not self.loop:
+            # one frame (a high frame rate): the same arithmetic on a Python float
+            i = (
+                bisect.bisect_right(self._times, (float(time_s[0]) - self.origin) * self.speed + self._tol)
+                - 1
+            )
+            return self.values[i : i + 1].copy() if i >= 0 else np.full((1, self.values.shape[1]), np.nan)
         camp_t = (np.asarray(time_s) - self.origin) * self.speed
         if self.loop and (span := self.time_s[-1] - self.time_s[0]) > 0:
             camp_t = self.time_s[0] + np.mod(camp_t - self.time_s[0], span)
-        # tolerance of the epoch <-> campaign clock arithmetic (an epoch in float64 is only
-        # good to ~0.2 µs), so the sample stamped exactly t is not missed
-        origin = self.origin
-        if self._tol_for != origin:
-            self._tol = 8.0 * float(np.spacing(abs(origin) + 1.0)) * self.speed + 1e-9
-            self._tol_for = origin
         camp_t += self._tol
         idx = np.searchsorted(self.time_s, camp_t, side="right") - 1
         if idx.size and idx.min() < 0:  # before the first sample: unknown

@@ -16,6 +16,7 @@ takes one search, one comparison and two counts.
 
 from __future__ import annotations
 
+import bisect
 from dataclasses import dataclass
 
 import numpy as np
@@ -121,6 +122,71 @@ class PeakMapper:
         with a channel only look at their channel's peaks.
         """
         n, S = peaks_nm.shape[0], self.lambda0_nm.size
+        if n == 1 and (one := self._map_one(peaks_nm[0].tolist(), peak_channel)) is not None:
+            wl, count, near8 = one
+        else:
+            wl, count, near8 = self._map_many(peaks_nm, peak_channel)
+        k = self.n_sensors
+        if k == S:
+            return SensorBatch(time_s, wl, count, near8, received_s)
+        return SensorBatch(time_s, wl[:, :k], count[:, :k], near8[:, :k], received_s, reference_nm=wl[:, k:])
+
+    def _map_one(self, peaks: list, peak_channel):
+        """One frame (the batch of a high frame rate) on Python floats: per peak one bisection
+        of the sorted window edges and one comparison, where numpy's per-call cost would be
+        most of the time; the same results as :meth:`_map_many` (tested against the exhaustive
+        comparison). None when a fibre's windows overlap (the array path handles those)."""
+        S = self.lambda0_nm.size
+        count = [0] * S
+        value = [np.nan] * S
+        near = [0] * S
+        w, wg = self.window_nm, self.window_nm + self.guard_nm
+        for cols, sens in self._groups_of(peak_channel):
+            order, lo, hi_ext, order_ext, lam, overlapping = self._tables(sens)[6]
+            if overlapping:
+                return None
+            m = len(order)
+            for p in peaks if isinstance(cols, slice) else [peaks[c] for c in cols.tolist()]:
+                j = bisect.bisect_right(lo, p)  # 1 + the window starting at or below
+                if p <= hi_ext[j]:  # NaN fails, and so does the sentinel's NaN edge
+                    k = order_ext[j]
+                    count[k] += 1
+                    value[k] = p
+                elif p == p:  # a finite (or infinite) stray: in a guard band?
+                    for cand in (j - 1, j):  # the windows just below and just above
+                        if 0 <= cand < m and w < abs(p - lam[cand]) <= wg:
+                            near[order[cand]] += 1
+        wl = np.array([[v if c == 1 else np.nan for v, c in zip(value, count)]])
+        return (
+            wl,
+            np.array([[min(c, 127) for c in count]], np.int8),
+            np.array([[min(c, 127) for c in near]], np.int8),
+        )
+
+    def _tables(self, sens) -> tuple:
+        """The window tables of a fibre's sensors ``sens``: sorted order, lower edges, upper
+        edges behind a NaN sentinel, the order behind a sentinel, centres, overlapping; then
+        the same as Python lists (index 6). Built once per fibre."""
+        key = sens.tobytes()
+        cache = self.__dict__.setdefault("_groups", {})
+        tables = cache.get(key)
+        if tables is None:
+            order = sens[np.argsort(self.lambda0_nm[sens])]
+            lo, hi = self.lo[order], self.hi[order]
+            arrays = (
+                order,
+                lo,
+                np.concatenate([[np.nan], hi]),
+                np.concatenate([order[:1], order]),
+                self.lambda0_nm[order],
+            )
+            overlapping = bool(np.any(lo[1:] < hi[:-1]))
+            lists = tuple(a.tolist() for a in arrays)
+            tables = cache[key] = (*arrays, overlapping, (*lists, overlapping))
+        return tables
+
+    def _map_many(self, peaks_nm, peak_channel):
+        n, S = peaks_nm.shape[0], self.lambda0_nm.size
         count = np.zeros(n * S, np.int64)
         value = np.zeros(n * S)
         near: np.ndarray | None = None  # allocated by the first stray peak (rare)
@@ -132,10 +198,7 @@ class PeakMapper:
         near8 = (
             np.zeros((n, S), np.int8) if near is None else np.minimum(near.reshape(n, S), 127).astype(np.int8)
         )
-        k = self.n_sensors
-        if k == S:
-            return SensorBatch(time_s, wl, count, near8, received_s)
-        return SensorBatch(time_s, wl[:, :k], count[:, :k], near8[:, :k], received_s, reference_nm=wl[:, k:])
+        return wl, count, near8
 
     def _groups_of(self, peak_channel) -> list:
         """(peak columns, sensors) per fibre, for a layout's channel of every peak column;
@@ -165,20 +228,7 @@ class PeakMapper:
         a NaN or infinite peak fails the one comparison and needs no test of its own.
         """
         S = self.lambda0_nm.size
-        key = sens.tobytes()
-        cache = self.__dict__.setdefault("_groups", {})
-        if key not in cache:
-            order = sens[np.argsort(self.lambda0_nm[sens])]
-            lo, hi = self.lo[order], self.hi[order]
-            cache[key] = (
-                order,
-                lo,
-                np.concatenate([[np.nan], hi]),
-                np.concatenate([order[:1], order]),
-                self.lambda0_nm[order],
-                bool(np.any(lo[1:] < hi[:-1])),
-            )
-        order, lo, hi_ext, order_ext, lam, overlapping = cache[key]
+        order, lo, hi_ext, order_ext, lam, overlapping, _ = self._tables(sens)
         if overlapping:
             if near is None:
                 near = np.zeros(count.size, np.int64)
