@@ -218,7 +218,10 @@ class Predictor:
             Frame times, s. A static regression has no memory, so they are not used; the
             keyword is every predictor's, so the runtime passes the clock to all alike.
         """
-        wavelength_nm = np.atleast_2d(np.asarray(wavelength_nm, dtype=float))
+        if not (
+            isinstance(wavelength_nm, np.ndarray) and wavelength_nm.ndim == 2 and wavelength_nm.dtype == float
+        ):
+            wavelength_nm = np.atleast_2d(np.asarray(wavelength_nm, dtype=float))
         if self.exclude:
             # Excluded gratings carry no coefficient; keep NaN from spreading through 0 * NaN.
             cols = [i for i, s in enumerate(self.sensor_names) if s in self.exclude]

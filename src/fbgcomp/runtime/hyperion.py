@@ -279,7 +279,7 @@ def decode_peak_frames(
             )
         if total - pos < HEADER_SIZE + PEAK_HEADER_SIZE:
             break
-        length = PEAK_HEADER.unpack_from(buf, pos + HEADER_SIZE)[0]
+        length, _, _, serial, t_int, t_frac = PEAK_HEADER.unpack_from(buf, pos + HEADER_SIZE)
         if (
             length < PEAK_HEADER_SIZE
             or length > min(content_len, max_length)
@@ -299,18 +299,26 @@ def decode_peak_frames(
         if total - pos < frame_len:
             break
         n_max = (total - pos) // frame_len
-        if n_max == 1:
-            n = 1
-        else:
-            raw = np.frombuffer(buf, dtype=np.uint8, count=n_max * frame_len, offset=pos)
-            raw = raw.reshape(n_max, frame_len)
-            # A run continues while the layout bytes (outer header and counts) are identical.
-            layout = np.concatenate(
-                [raw[:, : HEADER_SIZE + 4], raw[:, HEADER_SIZE + PEAK_HEADER_SIZE : HEADER_SIZE + length]],
-                axis=1,
+        if n_max == 1:  # one frame (a high frame rate): its header is already unpacked
+            peaks = np.frombuffer(buf, dtype="<f8", count=n_pk, offset=pos + HEADER_SIZE + length)
+            blocks.append(
+                PeakBlock(
+                    np.array([t_int + t_frac * 1e-9]),
+                    np.array([serial], np.uint64),
+                    counts,
+                    peaks.astype(np.float64).reshape(1, n_pk),
+                )
             )
-            same = np.all(layout == layout[0], axis=1)
-            n = n_max if same.all() else int(np.argmin(same))
+            pos += frame_len
+            continue
+        raw = np.frombuffer(buf, dtype=np.uint8, count=n_max * frame_len, offset=pos)
+        raw = raw.reshape(n_max, frame_len)
+        # A run continues while the layout bytes (outer header and counts) are identical.
+        layout = np.concatenate(
+            [raw[:, : HEADER_SIZE + 4], raw[:, HEADER_SIZE + PEAK_HEADER_SIZE : HEADER_SIZE + length]], axis=1
+        )
+        same = np.all(layout == layout[0], axis=1)
+        n = n_max if same.all() else int(np.argmin(same))
         # the fields are copied out (astype), so nothing keeps a view of the caller's buffer
         rec = np.frombuffer(buf, dtype=_frame_dtype(n_ch, n_pk), count=n, offset=pos)
         peaks = rec["peaks"].astype(np.float64) if n_pk else np.zeros((n, 0))

@@ -184,6 +184,7 @@ class Pipeline:
         self._slew_rate = np.where(self._slew_axes, rate, 0.0)
         self._slew_off = not self._slew_axes.any()  # no axis limited
         self._slew_lists = (self._slew_rate.tolist(), self._slew_axes.tolist())  # the one-frame test
+        self._max_list = self.max_correction_um.tolist()
         self._z: np.ndarray | None = None  # this batch's Z position per frame, mm
         self._uses_z: bool | None = None
 
@@ -608,8 +609,12 @@ class Pipeline:
         corr = self._smooth(t, corr)
         if not enabled:
             corr = np.zeros_like(corr)
-        over = np.abs(corr) > self.max_correction_um
-        if over.any():
+        if corr.shape[0] == 1:  # one frame: the same test on Python floats
+            over_any = any(abs(v) > m for v, m in zip(corr[0].tolist(), self._max_list))
+        else:
+            over_any = bool((np.abs(corr) > self.max_correction_um).any())
+        if over_any:
+            over = np.abs(corr) > self.max_correction_um
             corr = np.clip(corr, -self.max_correction_um, self.max_correction_um)
             flags[over] |= H.FLAG_MAX_LIMITED
         limited = self._slew_limit(t, corr, dt_cap)
