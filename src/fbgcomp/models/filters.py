@@ -25,11 +25,12 @@ def first_order_recursion(x, u, y0, gain=True):
     ``+ u_i``), from ``y0``; (n, k) from (n, k) ``u``. Closed form per stretch whose summed
     decay stays below e^-600 (so that no weight overflows); every weight is positive, so no
     cancellation beyond the recursion's own."""
+    if len(x) == 1:  # one frame (a runtime batch of 1): the recursion's single step, no setup
+        c = math.exp(-min(float(x[0]), 600.0))
+        u0 = np.asarray(u, float)[0]
+        return (c * np.asarray(y0, float) + ((1.0 - c) * u0 if gain else u0))[None, :]
     x = np.minimum(np.asarray(x, float), 600.0)  # exp(-600): no memory left either way
     u = np.asarray(u, float)
-    if len(x) == 1:  # one frame (a runtime batch of 1): the recursion's single step, no setup
-        c = math.exp(-float(x[0]))
-        return (c * np.asarray(y0, float) + ((1.0 - c) * u[0] if gain else u[0]))[None, :]
     w = -np.expm1(-x)[:, None] * u if gain else u
     y_prev = np.asarray(y0, float)
     L = np.cumsum(x)
@@ -61,6 +62,14 @@ def first_order_filter(x, time_s, tau_s, state=None, nominal_dt_s=1.0):
     n = x.shape[0]
     if n == 0:
         return x.copy(), state
+    if n == 1 and state is not None and state[1] is not None and time_s is not None:
+        # one frame (a runtime batch of 1): the recursion's single step on Python floats, the
+        # same arithmetic as below
+        y_prev, t_prev = state
+        t1 = float(np.ravel(time_s)[0])
+        c = math.exp(-min(max(t1 - t_prev, 0.0) / tau_s, 600.0))
+        y = (c * np.asarray(y_prev, float) + (1.0 - c) * x[0])[None, :]
+        return y, (y[-1].copy(), t1)
     if state is None:
         y_prev, t_prev = x[0].copy(), None
     else:

@@ -271,6 +271,13 @@ class AdaptiveLevelFilter:
             p[1] = abs(_median(self._window(self.b, j, self.slow_n)) - ref)
         return p
 
+    def _windows(self, ring: np.ndarray, n: int) -> np.ndarray:
+        """The newest ``n`` rows of a ring, all three axes (n, 3)."""
+        back = self._back.get(n)
+        if back is None:
+            back = self._back[n] = np.arange(n)[::-1]
+        return ring[(self.k - back) % self.ring_n]
+
     def _block(self, bm: np.ndarray) -> None:
         slot = self.k % self.ring_n
         self.b[slot] = bm
@@ -278,19 +285,43 @@ class AdaptiveLevelFilter:
         if self.level is None:
             self.level = bm.copy()
         thr = self.thresholds()
+        self.since += 1
+        self.fresh += 1
+        # the window medians of the three axes at once (each axis reads only its own column)
+        mj_all = _block_medians(self._windows(self.b, min(self.short_n, self.k + 1)), axis=0).tolist()
+        n_rest = np.minimum(self.rest_n, self.since)
+        rest = (
+            _block_medians(self._windows(self.b, int(n_rest[0])), axis=0).tolist()
+            if n_rest[0] == n_rest[1] == n_rest[2]
+            else [_median(self._window(self.b, j, int(n_rest[j]))) for j in range(3)]
+        )
+        resting = []  # axes at rest: their excursions below, at once
         for j in range(3):
-            self.since[j] += 1
-            self.fresh[j] += 1
-            mj = _median(self._window(self.b, j, min(self.short_n, self.k + 1)))
+            mj = mj_all[j]
             if self.episode_end[j] >= 0:
                 self.level[j] = self._track(j, mj)
                 continue
-            n_rest = int(min(self.rest_n, self.since[j]))
-            r = _median(self._window(self.b, j, n_rest))
-            self._fit_point(j, r, (self.k - self.fit_origin[j]) - (n_rest - 1) / 2.0)
-            level = self._fit_level(j)
-            self.e[slot, j] = mj - level
-            p = self._excursions(j, self.e, level, self.fresh[j])
+            self._fit_point(j, rest[j], (self.k - self.fit_origin[j]) - (int(n_rest[j]) - 1) / 2.0)
+            self.level[j] = self._fit_level(j)
+            self.e[slot, j] = mj - self.level[j]
+            resting.append(j)
+        if not resting:
+            self.k += 1
+            return
+        # excursions (_excursions for every axis at rest): how far m stayed on one side of
+        # the level through the last fast_n blocks, and how far the median of the block means
+        # over the last slow_n blocks is from it (0 where fewer blocks are available)
+        w = self._windows(self.e, self.fast_n)
+        fast = np.maximum(np.maximum(w.min(axis=0), -w.max(axis=0)), 0.0).tolist()
+        slow = np.abs(_block_medians(self._windows(self.b, self.slow_n), axis=0) - self.level).tolist()
+        for j in resting:
+            mj, level = mj_all[j], float(self.level[j])
+            p = np.array(
+                [
+                    fast[j] if self.fresh[j] >= self.fast_n else 0.0,
+                    slow[j] if self.fresh[j] >= self.slow_n else 0.0,
+                ]
+            )
             trigger = (
                 0 if first else (self.fast_n if p[0] > thr[j, 0] else self.slow_n if p[1] > thr[j, 1] else 0)
             )
@@ -312,7 +343,7 @@ class AdaptiveLevelFilter:
                 self.pending[:, j] = 0.0  # a step follows: nothing recent was noise
                 self.episode_end[j] = self.k + self.hold_n
                 self.restarts[j] += 1
-                level = _median(self._window(self.b, j, trigger))
+                self.level[j] = _median(self._window(self.b, j, trigger))
             elif not first:
                 # learn from rest: the excursion of hold_n blocks ago (no step since), and the
                 # robust spread of m about the level
@@ -327,7 +358,6 @@ class AdaptiveLevelFilter:
                     g = max(self.noise_gain, 1.0 / self.noise_blocks[j])
                     self.sd[j] = max(self.sd[j] + g * (sd - self.sd[j]), SD_FLOOR_UM)
                     dev.clear()
-            self.level[j] = level
         self.k += 1
 
     def _track(self, j: int, mj: float) -> float:
