@@ -31,7 +31,7 @@ from fbgcomp import __version__
 from fbgcomp.atomic import write_json
 from fbgcomp.errors import InputError
 from fbgcomp.io.campaign import Campaign, SensorSpec, check_sensors_match, read_campaign
-from fbgcomp.models.features import CONSTANT, FeatureMap, design_matrix, parse_term
+from fbgcomp.models.features import CONSTANT, FeatureMap, as_frames, design_matrix, parse_term
 from fbgcomp.models.modelfile import (
     MODEL_FORMAT,
     SCHEMA_VERSION,
@@ -165,8 +165,7 @@ class Predictor:
         self._cov_stack = np.concatenate(list(self._cov_sqrt), axis=1)
 
     def _design_from_base(self, base) -> np.ndarray:
-        if not (isinstance(base, np.ndarray) and base.ndim == 2 and base.dtype == np.float64):
-            base = np.atleast_2d(np.asarray(base, dtype=float))
+        base = as_frames(base)
         fac = getattr(self, "_factors", None)
         if fac is None:
             return design_matrix(base, self.feature_map.base_names, self.terms)
@@ -218,10 +217,7 @@ class Predictor:
             Frame times, s. A static regression has no memory, so they are not used; the
             keyword is every predictor's, so the runtime passes the clock to all alike.
         """
-        if not (
-            isinstance(wavelength_nm, np.ndarray) and wavelength_nm.ndim == 2 and wavelength_nm.dtype == float
-        ):
-            wavelength_nm = np.atleast_2d(np.asarray(wavelength_nm, dtype=float))
+        wavelength_nm = as_frames(wavelength_nm)
         if self.exclude:
             # Excluded gratings carry no coefficient; keep NaN from spreading through 0 * NaN.
             cols = [i for i, s in enumerate(self.sensor_names) if s in self.exclude]

@@ -74,50 +74,12 @@ def candidate_terms(feature_set: str, sensor_names) -> list[str]:
     return terms
 
 
-def sensor_elongations_um(
-    wavelength_nm,
-    wavelength_zero_nm,
-    gauge_length_mm,
-    delta_t_C,
-    *,
-    photoelastic,
-    thermo_optic_per_K,
-    fibre_cte_per_K,
-):
-    """Elongations of all sensor paths at once (paper eq. 2-4), µm.
-
-    Parameters
-    ----------
-    wavelength_nm : ndarray, shape (n, S)
-        Bragg wavelengths, nm.
-    wavelength_zero_nm : ndarray, shape (S,)
-        Zero-state wavelengths, nm.
-    gauge_length_mm : ndarray, shape (S,)
-        Sensor path lengths, mm.
-    delta_t_C : ndarray, shape (n, S)
-        Temperature change of each grating since the zero state (0 for uncompensated sensors), K.
-    photoelastic, thermo_optic_per_K, fibre_cte_per_K : ndarray, shape (S,)
-        Fibre constants per sensor.
-    """
-    return optics.elongation_um(
-        wavelength_nm,
-        wavelength_zero_nm,
-        gauge_length_mm,
-        delta_t_C,
-        photoelastic=photoelastic,
-        thermo_optic_per_K=thermo_optic_per_K,
-        fibre_cte_per_K=fibre_cte_per_K,
-    )
-
-
-def temperature_features_C(temperature_C, temperature_zero_C, bulk: int, surf: int, flange: int):
-    """The eq. 13 temperature features (dT_bulk, dT_surf, dT_flange), K, shape (n, 3).
-
-    ``temperature_C`` is (n, P); ``bulk``, ``surf``, ``flange`` index its columns.
-    """
-    delta = np.asarray(temperature_C, dtype=float) - np.asarray(temperature_zero_C, dtype=float)
-    d_bulk = delta[:, bulk]
-    return np.column_stack([d_bulk, d_bulk - delta[:, surf], delta[:, flange] - d_bulk])
+def as_frames(a) -> np.ndarray:
+    """(n, k) float64 of one frame (k,) or of frames (n, k); an array that already is one is
+    returned as it is (the runtime passes such arrays once per frame)."""
+    if isinstance(a, np.ndarray) and a.ndim == 2 and a.dtype == np.float64:
+        return a
+    return np.atleast_2d(np.asarray(a, dtype=float))
 
 
 @dataclass
@@ -189,13 +151,12 @@ class FeatureMap:
     def base(self, wavelength_nm, temperature_C, wavelength_zero_nm, temperature_zero_C):
         """Base features (n, B) in ``base_names`` order: elongations in µm, temperatures in K.
 
-        The arithmetic of :func:`sensor_elongations_um` (eq. 2-4) and
-        :func:`temperature_features_C`, operation for operation (the same bits, tested), written
-        in place into one output with the fibre constants combined once: the runtime calls this
-        per frame, where numpy's per-call cost, not the arithmetic, is the time."""
-        w = np.asarray(wavelength_nm, dtype=float)
-        if w.ndim != 2:
-            w = np.atleast_2d(w)
+        The elongations are :func:`fbgcomp.optics.elongation_um` (eq. 2-4) with each sensor's
+        probe, operation for operation (the same bits, tested), written in place into one
+        output with the fibre constants combined once: the runtime calls this per frame, where
+        numpy's per-call cost, not the arithmetic, is the time. The temperature features are
+        eq. 13's (dT_bulk, dT_bulk - dT_surf, dT_flange - dT_bulk)."""
+        w = as_frames(wavelength_nm)
         n, S = w.shape[0], self._gauge_mm.size
         w0 = np.asarray(wavelength_zero_nm, dtype=float)
         out = np.empty((n, self._width))
@@ -204,9 +165,7 @@ class FeatureMap:
         dl /= w0  # the relative shift
         P = len(self.probe_names)
         if P:
-            t = np.asarray(temperature_C, dtype=float)
-            if t.ndim != 2:
-                t = np.atleast_2d(t)
+            t = as_frames(temperature_C)
             delta = np.empty((n, P + 1))  # the last column: dT = 0 of uncompensated sensors
             np.subtract(t, temperature_zero_C, out=delta[:, :P])
             delta[:, P] = 0.0

@@ -63,12 +63,11 @@ def first_order_filter(x, time_s, tau_s, state=None, nominal_dt_s=1.0):
     if n == 0:
         return x.copy(), state
     if n == 1 and state is not None and state[1] is not None and time_s is not None:
-        # one frame (a runtime batch of 1): the recursion's single step on Python floats, the
-        # same arithmetic as below
+        # one frame (a runtime batch of 1): the recursion's single step, without the interval
+        # arrays below (the same arithmetic)
         y_prev, t_prev = state
         t1 = float(np.ravel(time_s)[0])
-        c = math.exp(-min(max(t1 - t_prev, 0.0) / tau_s, 600.0))
-        y = (c * np.asarray(y_prev, float) + (1.0 - c) * x[0])[None, :]
+        y = first_order_recursion((max(t1 - t_prev, 0.0) / tau_s,), x, y_prev)
         return y, (y[-1].copy(), t1)
     if state is None:
         y_prev, t_prev = x[0].copy(), None

@@ -217,12 +217,16 @@ class AdaptiveLevelFilter:
         return out
 
     # -- per block -----------------------------------------------------------------------
-    def _window(self, ring: np.ndarray, j: int, n: int) -> np.ndarray:
-        """The newest ``n`` values of one axis of a ring (the current block last)."""
+    def _windows(self, ring: np.ndarray, n: int) -> np.ndarray:
+        """The newest ``n`` rows of a ring, all three axes (n, 3) (the current block last)."""
         back = self._back.get(n)
         if back is None:
             back = self._back[n] = np.arange(n)[::-1]
-        return ring[(self.k - back) % self.ring_n, j]
+        return ring[(self.k - back) % self.ring_n]
+
+    def _window(self, ring: np.ndarray, j: int, n: int) -> np.ndarray:
+        """The newest ``n`` values of one axis of a ring (the current block last)."""
+        return self._windows(ring, n)[:, j]
 
     def _fit_point(self, j: int, y: float, u: float) -> None:
         f = self.fit[j]
@@ -259,24 +263,18 @@ class AdaptiveLevelFilter:
         r = _median(self._window(self.b, j, n))
         self._fit_point(j, r, -(n - 1) / 2.0)
 
-    def _excursions(self, j: int, e_ring: np.ndarray, ref: float, n_avail: int) -> np.ndarray:
-        """(fast, slow): how far ``m`` stayed on one side of the level through the last
-        ``fast_n`` blocks, and how far the median of the block means over the last ``slow_n``
-        blocks is from ``ref`` (0 where fewer blocks are available)."""
-        p = np.zeros(2)
-        if n_avail >= self.fast_n:
-            w = self._window(e_ring, j, self.fast_n)
-            p[0] = max(w.min(), -w.max(), 0.0)
-        if n_avail >= self.slow_n:
-            p[1] = abs(_median(self._window(self.b, j, self.slow_n)) - ref)
-        return p
-
-    def _windows(self, ring: np.ndarray, n: int) -> np.ndarray:
-        """The newest ``n`` rows of a ring, all three axes (n, 3)."""
-        back = self._back.get(n)
-        if back is None:
-            back = self._back[n] = np.arange(n)[::-1]
-        return ring[(self.k - back) % self.ring_n]
+    def _excursions(self, e_ring: np.ndarray, ref, n_avail) -> np.ndarray:
+        """(3, 2) per axis (fast, slow): how far ``m`` stayed on one side of the level through
+        the last ``fast_n`` blocks, and how far the median of the block means over the last
+        ``slow_n`` blocks is from ``ref`` ((3,) or one value); 0 where fewer blocks than that
+        are available (``n_avail``, (3,) or one value)."""
+        w = self._windows(e_ring, self.fast_n)
+        fast = np.maximum(np.maximum(w.min(axis=0), -w.max(axis=0)), 0.0)
+        slow = np.abs(_block_medians(self._windows(self.b, self.slow_n), axis=0) - ref)
+        n_avail = np.asarray(n_avail)
+        return np.stack(
+            [np.where(n_avail >= self.fast_n, fast, 0.0), np.where(n_avail >= self.slow_n, slow, 0.0)], axis=1
+        )
 
     def _block(self, bm: np.ndarray) -> None:
         slot = self.k % self.ring_n
@@ -295,7 +293,7 @@ class AdaptiveLevelFilter:
             if n_rest[0] == n_rest[1] == n_rest[2]
             else [_median(self._window(self.b, j, int(n_rest[j]))) for j in range(3)]
         )
-        resting = []  # axes at rest: their excursions below, at once
+        resting = []  # axes at rest: their excursions below, all axes in one call
         for j in range(3):
             mj = mj_all[j]
             if self.episode_end[j] >= 0:
@@ -308,20 +306,10 @@ class AdaptiveLevelFilter:
         if not resting:
             self.k += 1
             return
-        # excursions (_excursions for every axis at rest): how far m stayed on one side of
-        # the level through the last fast_n blocks, and how far the median of the block means
-        # over the last slow_n blocks is from it (0 where fewer blocks are available)
-        w = self._windows(self.e, self.fast_n)
-        fast = np.maximum(np.maximum(w.min(axis=0), -w.max(axis=0)), 0.0).tolist()
-        slow = np.abs(_block_medians(self._windows(self.b, self.slow_n), axis=0) - self.level).tolist()
+        excursions = self._excursions(self.e, self.level, self.fresh)
         for j in resting:
             mj, level = mj_all[j], float(self.level[j])
-            p = np.array(
-                [
-                    fast[j] if self.fresh[j] >= self.fast_n else 0.0,
-                    slow[j] if self.fresh[j] >= self.slow_n else 0.0,
-                ]
-            )
+            p = excursions[j]
             trigger = (
                 0 if first else (self.fast_n if p[0] > thr[j, 0] else self.slow_n if p[1] > thr[j, 1] else 0)
             )
@@ -371,7 +359,7 @@ class AdaptiveLevelFilter:
         slot = self.k % self.ring_n
         self.eb[slot, j] = mj - s["level"]
         self.ep_max[j] = np.maximum(
-            self.ep_max[j], self._excursions(j, self.eb, s["level"], self.k - s["start"] + s["since"])
+            self.ep_max[j], self._excursions(self.eb, s["level"], self.k - s["start"] + s["since"])[j]
         )
         if abs(mj - s["level"]) <= s["thr"]:
             s["within"] += 1

@@ -155,7 +155,7 @@ class TableTemperatures:
         self.loop = loop
         self._tol_for: float | None = None  # the origin the clock tolerance below was computed for
         self._tol = 0.0
-        self._times: list[float] = []  # time_s as Python floats (the one-frame look-up)
+        self._times: list[float] = self.time_s.tolist()  # for the one-frame look-up
 
     @classmethod
     def from_campaign(
@@ -192,7 +192,6 @@ class TableTemperatures:
             # only good to ~0.2 µs), so the sample stamped exactly t is not missed
             self._tol = 8.0 * float(np.spacing(abs(self.origin) + 1.0)) * self.speed + 1e-9
             self._tol_for = self.origin
-            self._times = self.time_s.tolist()
         if np.ndim(time_s) == 1 and len(time_s) == 1 and not self.loop:
             # one frame (a high frame rate): the same arithmetic on a Python float
             i = (
