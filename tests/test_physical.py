@@ -50,6 +50,44 @@ def test_clip_to_envelope_flags_extrapolation():
     assert outside.tolist() == [False, True, True]
 
 
+def test_the_policy_on_one_frame_is_the_array_arithmetic_to_the_bit():
+    """A runtime batch of one frame takes the policy's Python-float path: the same numbers, bit
+    for bit, as the frame taken inside a larger batch, at the edges too (zero, NaN, ±inf, on
+    a threshold or a bound, a zero and an infinite sigma)."""
+    rng = np.random.default_rng(3)
+    sigma = np.array([1.0, 0.0, np.inf, 0.5, 2.0, 1e-300])
+    edge = np.array([0.0, -0.0, np.nan, np.inf, -np.inf, 3.0, 6.0, -3.0, 1.1, -0.1])
+    x = np.concatenate([rng.normal(0, 4, (40, 6)), np.resize(edge, (10, 6))])
+    whole = P.firm(x, sigma, 3.0, 6.0)
+    for i in range(len(x)):
+        np.testing.assert_array_equal(P.firm(x[i : i + 1], sigma, 3.0, 6.0), whole[i : i + 1])
+    low, high = np.array([0, -1, 0, 2, 0, 0.0]), np.array([1, 1, 0, 2, 10, 1e300])
+    clipped, outside = P.clip_to_envelope(x, low, high, margin=0.1)
+    for i in range(len(x)):
+        c1, o1 = P.clip_to_envelope(x[i : i + 1], low, high, margin=0.1)
+        np.testing.assert_array_equal(c1, clipped[i : i + 1])
+        assert o1.tolist() == outside[i : i + 1].tolist()
+
+
+def test_the_thermal_map_features_of_one_frame_equal_the_array_path():
+    """map_features on one frame at a time (the runtime's batch of 1, Python floats) follows
+    the same filters as on a batch, on a jittered clock with a repeated and a backward time."""
+    from fbgcomp.models.physical.thermal import map_features
+
+    rng = np.random.default_rng(5)
+    n = 300
+    t = np.cumsum(rng.uniform(0.05, 3.0, n)) + 1.7e9
+    t[100], t[200] = t[99], t[199] - 0.5
+    e, dT = rng.normal(0, 2, (n, 6)), rng.normal(0, 1, (n, 4))
+    whole, _ = map_features(e, dT, [2], t, None)
+    X, state = map_features(e[:1], dT[:1], [2], t[:1], None)
+    rows = [X]
+    for i in range(1, n):
+        X, state = map_features(e[i : i + 1], dT[i : i + 1], [2], t[i : i + 1], state)
+        rows.append(X)
+    np.testing.assert_allclose(np.vstack(rows), whole, rtol=0, atol=1e-12)
+
+
 def test_lowpass_streams_like_one_call():
     rng = np.random.default_rng(0)
     x = rng.normal(size=(50, 2))
@@ -375,6 +413,42 @@ def test_the_vectorised_steady_stretches_equal_the_per_frame_recursion(twin_mode
         if fast[2] is not None:
             np.testing.assert_array_equal(fast[2], slow[2])  # the same frames refused
             assert not jump or (fast[2][:, 1] & P.LOAD_REFUSED).any()
+
+
+def test_the_one_frame_steady_step_is_the_vectorised_step(twin_model, ram2, monkeypatch):
+    """A batch of one frame without a load transition runs on Python floats
+    (PhysicalPredictor._steady_frame): the same corrections, intervals and refused frames as
+    the vectorised steady run of that one frame, through load steps and a grating that jumps
+    alone, at 10 Hz."""
+    t, w, T, w0, t0 = _raw_frames(twin_model, ram2["static_x"], 10.0)
+    w = w.copy()
+    w[2 * len(w) // 3 :, twin_model.sensor_names.index("S3")] += 0.006
+    taken = []
+    real = PhysicalPredictor._steady_frame
+
+    def counted(self, *a):
+        out = real(self, *a)
+        taken.append(out is not None)
+        return out
+
+    def served():
+        p = PhysicalPredictor(twin_model)
+        parts, flags = [], []
+        for i in range(len(t)):
+            parts.append(p.predict(w[i : i + 1], T[i : i + 1], w0, t0, time_s=t[i : i + 1]))
+            flags.append(p.last_flags)
+        return np.vstack([d for d, _ in parts]), np.vstack([h for _, h in parts]), np.vstack(flags)
+
+    monkeypatch.setattr(PhysicalPredictor, "_steady_frame", counted)
+    fast = served()
+    # the held loads' frames and the quiet ones between them, not the transitions
+    assert 0.4 * len(t) < sum(taken) < len(t)
+    monkeypatch.setattr(PhysicalPredictor, "_steady_frame", lambda self, *a: None)
+    slow = served()
+    np.testing.assert_allclose(fast[0], slow[0], rtol=0, atol=1e-10)
+    np.testing.assert_allclose(fast[1], slow[1], rtol=0, atol=1e-10)
+    np.testing.assert_array_equal(fast[2], slow[2])
+    assert (fast[2][:, 1] & P.LOAD_REFUSED).any()  # the jump was met and refused
 
 
 def test_first_order_closed_form_equals_the_recursion_across_stretches_and_gaps():

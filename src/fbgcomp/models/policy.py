@@ -35,6 +35,14 @@ def clip_to_envelope(x, low, high, margin=0.1):
     ``low`` and ``high`` are the training minimum and maximum of each column (same units as x).
     """
     x = np.atleast_2d(np.asarray(x, dtype=float))
+    if x.shape[0] == 1:  # one frame (a runtime batch of 1): the same arithmetic on Python floats
+        out, outside = [], False
+        for v, a, b in zip(x[0].tolist(), np.ravel(low).tolist(), np.ravel(high).tolist()):
+            span = max(b - a, 0.0)
+            lo, hi = a - margin * span, b + margin * span
+            outside = outside or v < lo or v > hi
+            out.append(min(max(v, lo), hi))
+        return np.array([out]), np.array([outside])
     low, high = np.asarray(low, dtype=float), np.asarray(high, dtype=float)
     span = np.maximum(high - low, 0.0)
     lo, hi = low - margin * span, high + margin * span
@@ -51,6 +59,9 @@ def firm(estimate, sigma, k_low=3.0, k_high=6.0):
     full value) while noise and thermal mismatch below ``k_low`` sigma are never applied.
     """
     x = np.asarray(estimate, dtype=float)
+    if x.ndim == 2 and x.shape[0] == 1 and np.ndim(sigma) == 1:  # one frame, on Python floats
+        sd = np.asarray(sigma, float).tolist()
+        return np.array([[_firm1(v, s, k_low, k_high) for v, s in zip(x[0].tolist(), sd)]])
     s = np.asarray(sigma, dtype=float)
     lo, hi = k_low * s, k_high * s
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -60,6 +71,18 @@ def firm(estimate, sigma, k_low=3.0, k_high=6.0):
         )
     factor = np.where(np.abs(x) >= hi, 1.0, factor)
     return x * factor
+
+
+def _firm1(x, s, k_low, k_high):
+    """:func:`firm` of one number (the same arithmetic)."""
+    lo, hi = k_low * s, k_high * s
+    a = abs(x)
+    if a >= hi:
+        return x
+    if a <= lo:
+        return x * 0.0
+    ramp = (a - lo) / (hi - lo) if hi > lo else 1.0
+    return x * min(max(ramp * hi / (a if x != 0 else 1.0), 0.0), 1.0)
 
 
 def contradiction(chi2, dof, p_value=1e-3, inflation=1.0):

@@ -10,6 +10,8 @@ the per-frame state).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy import stats
 
@@ -63,6 +65,12 @@ def fast_hold_noise(dt, rate, b_fast, b_hold):
         p11 = (c**2 * p00 + 2.0 * c * g * p01 + rate * (b_hold * b_fast) ** 2) / (1.0 - g**2)
         out = p00 + p11 - 2.0 * p01
     return np.where(ok, out, 1.0)
+
+
+def _floats(v):
+    """A state vector as a list of Python floats (the one-frame path's form; the array path
+    reads either)."""
+    return v.tolist() if isinstance(v, np.ndarray) else v
 
 
 def gls_operator(G, Sigma):
@@ -168,6 +176,11 @@ class PhysicalPredictor:
             self.drift_N_per_s = np.asarray(L.get("drift_N_per_s", [0.0] * 3), float)
             self.noise_cov = noise
             self.nuisance_cov = nuisance_cov + np.zeros_like(noise)
+            # the one-frame path's operands as Python floats (_steady_frame)
+            self._G_rows = G.tolist()
+            self._op_rows = self.ops[0].tolist()
+            self._F_sd = self.F_sd.tolist()
+            self._sd2 = [v * v if v > 0 else math.inf for v in self._F_sd]
         self.map = None
         self.cal = None
         self.last_cal_features = None
@@ -244,6 +257,50 @@ class PhysicalPredictor:
             cache[key] = float(stats.chi2.ppf(q, dof) if kind == "chi2" else stats.norm.isf(q))
         return cache[key]
 
+    def _frame_terms(self, dt):
+        """The load tracker's per-frame constants at frame intervals ``dt`` (n,) s: the offset's
+        gain, the recent-shift memory, the fast and hold gains, the noise each low-pass leaves
+        (fast, hold, their difference: :func:`fast_hold_noise`), the drift allowance (n, 3) N
+        and the step test's threshold in sigma."""
+        alpha = 1.0 - np.exp(-dt / self.offset_tau_s)
+        forget = np.exp(-dt / LOAD_HOLD_S)
+        b_fast = 1.0 - np.exp(-dt / LOAD_FAST_S)
+        b_hold = 1.0 - np.exp(-dt / LOAD_HOLD_S)
+        # variance left by a first-order low-pass of white noise, per unit of the training
+        # frame's variance: (frame / dt) b / (2 - b); 1 for a frame without history. A frame
+        # slower than the training's fastest (``noise_frame_dt_s``) carries the training
+        # frame's variance, a faster one its density (PhysicalModel._frame_noise_var).
+        fdt = self.noise_frame_dt_s
+        rate = np.maximum(fdt / np.where(dt > 0, dt, fdt), 1.0)
+        k_fast = np.where(dt > 0, rate * b_fast / (2.0 - b_fast), 1.0)
+        k_hold = np.where(dt > 0, rate * b_hold / (2.0 - b_hold), 1.0)
+        kd = fast_hold_noise(dt, rate, b_fast, b_hold)
+        lag = self.drift_N_per_s[None, :] * np.maximum(dt, self.offset_tau_s)[:, None]
+        look_s, at = np.unique(np.maximum(dt, 2.0 * LOAD_FAST_S), return_inverse=True)
+        k_start = np.maximum(
+            self.k_sigma,
+            np.array([self._quantile("isf", 0.5 * LOAD_FALSE_STARTS_PER_H * s / 3600.0) for s in look_s])[
+                at.ravel()
+            ]
+            if len(dt)
+            else np.zeros(0),
+        )
+        return alpha, forget, b_fast, b_hold, k_fast, k_hold, kd, lag, k_start
+
+    def _one_frame_terms(self, dt):
+        """:meth:`_frame_terms` of one frame interval as Python floats (k_fast, kd, lag (3,),
+        k_start), computed once per distinct interval: an interrogator's frames come at a
+        handful of intervals (a float clock's rounding included), and each is the vectorised
+        arithmetic's own result."""
+        cache = self.__dict__.setdefault("_terms_1", {})
+        hit = cache.get(dt)
+        if hit is None:
+            if len(cache) >= 256:  # a jittered clock: forget, do not grow
+                cache.clear()
+            _, _, _, _, k_fast, _, kd, lag, k_start = self._frame_terms(np.array([dt]))
+            hit = cache[dt] = (float(k_fast[0]), float(kd[0]), lag[0].tolist(), float(k_start[0]))
+        return hit
+
     #: Run stretches without a load transition vectorised (:meth:`_steady_run`); False runs
     #: every frame through the per-frame recursion (the reference the fast path is tested on).
     steady_fast_path = True
@@ -286,6 +343,55 @@ class PhysicalPredictor:
             rec[m - 1].copy(),
             learnt[m - 1].copy(),
         )
+
+    def _steady_frame(self, e, time_s, state, new_state):
+        """One frame of :meth:`_track_load` (a runtime batch of 1) while no load transition is
+        under way: :meth:`_steady_run`'s arithmetic for n = 1 on Python floats, where numpy's
+        per-call cost on 3 to 8 numbers was the time. Returns what :meth:`_track_load` does, or
+        None where it does not apply (no state yet, a transition under way) or where the frame's
+        step test fires: the general path takes that frame, as it would have."""
+        st = state or {}
+        t_last = st.get("t")
+        if st.get("fast") is None or t_last is None or any(v > 0 for v in _floats(st["settle"])):
+            return None
+        t1 = self.nominal_dt_s + t_last if time_s is None else float(np.ravel(time_s)[0])
+        dt = max(t1 - t_last, 0.0)
+        k_fast, kd, lag, k_start = self._one_frame_terms(dt)
+        e = e[0].tolist()
+        offset, xs, applied = _floats(st["offset"]), _floats(st["fast"]), _floats(st["force"])
+        f_hold, recent, noise = _floats(st["hold"]), _floats(st["recent"]), _floats(st["noise"])
+        c_fast = math.exp(-min(dt / LOAD_FAST_S, 600.0))
+        c_off = math.exp(-min(dt / self.offset_tau_s, 600.0))
+        c_hold = math.exp(-min(dt / LOAD_HOLD_S, 600.0))
+        c_noise = math.exp(-min(dt / NOISE_LEARN_S, 600.0))
+        S = len(offset)
+        y = [c_fast * (xs[j] + offset[j]) + (1.0 - c_fast) * e[j] for j in range(S)]
+        u = [e[j] - sum(g * a for g, a in zip(self._G_rows[j], applied)) for j in range(S)]
+        off = [c_off * offset[j] + (1.0 - c_off) * u[j] for j in range(S)]
+        x = [y[j] - offset[j] for j in range(S)]
+        f_fast = [sum(o * v for o, v in zip(row, x)) for row in self._op_rows]
+        hold = [c_hold * f_hold[a] + (1.0 - c_hold) * f_fast[a] for a in range(3)]
+        q = [min((f_fast[a] - hold[a]) ** 2 / (self._sd2[a] * kd), 100.0) for a in range(3)]
+        learnt = [c_noise * noise[a] + dt * q[a] for a in range(3)] + [c_noise * noise[3] + dt]
+        k = self.k_sigma
+        sq = [f * f for f in f_fast]
+        total = sq[0] + sq[1] + sq[2]
+        for a in range(3):
+            excess = max(noise[a] / max(noise[3], 1e-12), 1.0)
+            sd_fast = self._F_sd[a] * math.sqrt(k_fast * excess)
+            cross = self.relative_error * math.sqrt(max(total - sq[a], 0.0)) / k
+            if abs(f_fast[a] - applied[a]) > max(math.hypot(k_start * sd_fast, k * lag[a]), k * cross):
+                return None
+        new_state["load"] = {
+            **st,
+            "offset": off,
+            "fast": [y[j] - off[j] for j in range(S)],
+            "hold": hold,
+            "recent": [c_hold * recent[j] + (off[j] - offset[j]) for j in range(S)],
+            "noise": learnt,
+            "t": t1,
+        }
+        return np.array([applied]), np.zeros(1, bool), np.zeros(1, bool)
 
     def _noise_excess(self, d, dt, kd, noise):
         """Running sums (n, 4) of the live noise estimate after each frame, from ``noise``
@@ -332,6 +438,10 @@ class PhysicalPredictor:
         as a density, variance x interval), so the same signal gives the same correction at any
         frame rate and in batches of any size."""
         n, S = e.shape
+        if n == 1 and self.steady_fast_path and not (raw or listen):
+            one = self._steady_frame(e, time_s, state, new_state)
+            if one is not None:
+                return one
         state = state or {}
         offset = np.array(state.get("offset", np.zeros(S)), float)
         applied = np.array(state.get("force", np.zeros(3)), float)
@@ -355,20 +465,7 @@ class PhysicalPredictor:
         first = xs is None
         xs = np.zeros(S) if first else np.array(xs, float)
         f_hold = np.zeros(3) if f_hold is None else np.array(f_hold, float)
-        alpha = 1.0 - np.exp(-dt / self.offset_tau_s)
-        forget = np.exp(-dt / LOAD_HOLD_S)
-        b_fast = 1.0 - np.exp(-dt / LOAD_FAST_S)
-        b_hold = 1.0 - np.exp(-dt / LOAD_HOLD_S)
-        # variance left by a first-order low-pass of white noise, per unit of the training
-        # frame's variance: (frame / dt) b / (2 - b); 1 for a frame without history. A frame
-        # slower than the training's fastest (``noise_frame_dt_s``) carries the training
-        # frame's variance, a faster one its density (PhysicalModel._frame_noise_var).
-        fdt = self.noise_frame_dt_s
-        rate = np.maximum(fdt / np.where(dt > 0, dt, fdt), 1.0)
-        k_fast = np.where(dt > 0, rate * b_fast / (2.0 - b_fast), 1.0)
-        k_hold = np.where(dt > 0, rate * b_hold / (2.0 - b_hold), 1.0)
-        kd = fast_hold_noise(dt, rate, b_fast, b_hold)
-        lag = self.drift_N_per_s[None, :] * np.maximum(dt, self.offset_tau_s)[:, None]
+        alpha, forget, b_fast, b_hold, k_fast, k_hold, kd, lag, k_start = self._frame_terms(dt)
         op = self.ops[0]
         Ga = self.G
         force = np.zeros((n, 3))
@@ -378,15 +475,6 @@ class PhysicalPredictor:
         act = self.active
         chi2_limit = self._quantile("chi2", 1 - self.p_contra, max(self.dof, 1))
         k = self.k_sigma
-        look_s, at = np.unique(np.maximum(dt, 2.0 * LOAD_FAST_S), return_inverse=True)
-        k_start = np.maximum(
-            k,
-            np.array([self._quantile("isf", 0.5 * LOAD_FALSE_STARTS_PER_H * s / 3600.0) for s in look_s])[
-                at.ravel()
-            ]
-            if n
-            else np.zeros(0),
-        )
         i, slow_until = -1, 0
         while i + 1 < n:
             i += 1
