@@ -123,6 +123,18 @@ def test_model_file_round_trip_and_runtime_contract(campaigns, tmp_path, make):
     dev, half = pred.predict(w_nan, t, w0, t0, time_s=a.time_s)
     assert dev.shape == (len(w), 3) and np.isfinite(dev).all() and np.isfinite(half).all()
     assert np.asarray(pred.expected_rms_error_um).shape == (3,)
+    if back.model_type != "dynamic":
+        # per-frame Z positions (NaN: the description's) give each frame its own Z's chain
+        zs = np.resize([np.nan, 0.0, 300.0, 150.0], len(w))
+        pred.reset() if hasattr(pred, "reset") else None
+        mixed = pred.predict(w, t, w0, t0, time_s=a.time_s, z_axis_mm=zs)
+        for z in (np.nan, 0.0, 300.0, 150.0):
+            pred.reset() if hasattr(pred, "reset") else None
+            alone = pred.predict(w, t, w0, t0, time_s=a.time_s, z_axis_mm=None if np.isnan(z) else z)
+            rows = np.isnan(zs) if np.isnan(z) else zs == z
+            for got, want in zip(mixed, alone):
+                np.testing.assert_allclose(got[rows], want[rows], rtol=1e-12, atol=1e-12)
+        assert not np.array_equal(mixed[0][zs == 0.0], mixed[0][zs == 300.0])
     # Issue 13 deliver 1: every type records the deviations it was fitted on, per axis and
     # campaign, and bounds the runtime's correction by them.
     refs = [

@@ -108,7 +108,7 @@ class CalibratedPredictor(HybridPredictor):
 
     def _closure_var(self, z_axis_mm, elongation_um):
         k = self.kinematic
-        key = None if not np.isfinite(z_axis_mm) else round(float(z_axis_mm), 3)
+        key = None if z_axis_mm is None else round(float(z_axis_mm), 3)
         if key not in self._sens:
             ch = k.chain(key)
             sens = closure_sensitivity(k.machine, ch.sensor_names, key, self._groups, k.closure_factors)[

@@ -63,7 +63,15 @@ class HybridPredictor:
 
     def _total_jacobian(self, chain):
         """TTP µm per µm of each used bar: the chain's plus the residual regression's own
-        elongation terms (which, on dz, largely replace the chain's axial path)."""
+        elongation terms (which, on dz, largely replace the chain's axial path); found once per
+        chain."""
+        cache = self.__dict__.setdefault("_total_J", {})
+        hit = cache.get(id(chain))
+        if hit is None or hit[0] is not chain:
+            hit = cache[id(chain)] = (chain, self._jacobian_of(chain))
+        return hit[1]
+
+    def _jacobian_of(self, chain):
         J = chain.jacobian()[0].copy()
         J[2] = 0.0  # dz: no bar path in the chain's share
         for i, name in enumerate(self.residual.terms, start=1):
@@ -107,11 +115,8 @@ class HybridPredictor:
         if k._housing is not None:
             dT = t[:, self._k_probe][:, k._housing] - t0[self._k_probe][k._housing]
         n = len(dl)
-        zs = np.broadcast_to(np.asarray(np.nan if z_axis_mm is None else z_axis_mm, float), (n,))
         dk = np.empty((n, 3))
-        for z in np.unique(zs):
-            sel = (zs == z) if np.isfinite(z) else ~np.isfinite(zs)
-            ch = k.chain(None if not np.isfinite(z) else z)
+        for sel, z, ch in k.chains_of(z_axis_mm, n):
             dk[sel] = hybrid_chain_part(ch, dl[sel][:, self._used], None if dT is None else dT[sel])
             # The residual regression never saw what the training campaigns did not excite:
             # bars contradicting plane sections widen the interval (see KinematicPredictor).
@@ -120,7 +125,8 @@ class HybridPredictor:
         return dk + dr, self.residual._t[None, :] * np.sqrt(var)
 
     def _closure_var(self, z_axis_mm, elongation_um):
-        """Variance (n, 3) µm² from the closure's own parameters (none here: fit-free)."""
+        """Variance (n, 3) µm² from the closure's own parameters at Z ``z_axis_mm`` (None: the
+        description's); none here: fit-free."""
         return 0.0
 
 

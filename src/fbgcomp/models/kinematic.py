@@ -103,6 +103,19 @@ class KinematicPredictor:
             )
         return self._chains[key]
 
+    def chains_of(self, z_axis_mm, n):
+        """(rows, Z, chain) for the frames at each Z position among ``z_axis_mm`` (None, a
+        number or (n,) mm; NaN: the description's, given as Z None); one group of every row
+        without Z positions."""
+        if z_axis_mm is None:
+            yield slice(None), None, self.chain(None)
+            return
+        zs = np.broadcast_to(np.asarray(z_axis_mm, float), (n,))
+        for z in np.unique(zs):
+            sel = (zs == z) if np.isfinite(z) else ~np.isfinite(zs)
+            key = None if not np.isfinite(z) else float(z)
+            yield sel, key, self.chain(key)
+
     def inconsistency_var(self, chain, elongation_um, jacobian=None):
         """Extra variance (n, 3) µm² when the bars contradict plane sections beyond their noise.
 
@@ -114,24 +127,37 @@ class KinematicPredictor:
         explanation, shrunk by the part of |rho|² the interrogator and probe noise explain at
         95 % (chi² scale 3.84 on its expected power tr(P Σ P')).
         """
-        P = chain.inconsistency_projector
         n = len(elongation_um)
-        if not P.size or np.trace(P) < 0.5:
+        terms = self._inconsistency_terms(chain)
+        if terms is None:
             return np.zeros((n, 3))
-        sigma = (
-            np.diag(self._noise_um**2)
-            + (self._per_probe * self._probe_noise_C) @ (self._per_probe * self._probe_noise_C).T
-        )
-        expected = float(np.trace(P @ sigma @ P.T))
+        P, expected, d, ok = terms
         rho = elongation_um @ P.T
         rho2 = np.sum(rho**2, axis=1)
         shrink = np.where(rho2 > 0, np.maximum(1.0 - 3.84 * expected / np.maximum(rho2, 1e-300), 0.0), 0.0)
-        d = np.diag(P)
-        ok = d > 1e-9
         J = chain.jacobian()[0] if jacobian is None else jacobian
         eps = rho[:, ok] / d[ok]  # (n, k) µm on one bar
         effect = np.max((eps[:, :, None] * J.T[ok][None, :, :]) ** 2, axis=1)
         return effect * shrink[:, None]
+
+    def _inconsistency_terms(self, chain):
+        """What :meth:`inconsistency_var` takes of a chain, found once per chain: the projector
+        P, the noise's expected residual power tr(P Σ P'), P's diagonal and where it is not
+        zero; None where plane sections explain every reading."""
+        cache = self.__dict__.setdefault("_inconsistency", {})
+        hit = cache.get(id(chain))
+        if hit is None or hit[0] is not chain:
+            P = chain.inconsistency_projector
+            terms = None
+            if P.size and np.trace(P) >= 0.5:
+                sigma = (
+                    np.diag(self._noise_um**2)
+                    + (self._per_probe * self._probe_noise_C) @ (self._per_probe * self._probe_noise_C).T
+                )
+                d = np.diag(P)
+                terms = (P, float(np.trace(P @ sigma @ P.T)), d, d > 1e-9)
+            hit = cache[id(chain)] = (chain, terms)
+        return hit[1]
 
     def _noise_var(self, chain):
         J, Jh = chain.jacobian()
@@ -163,12 +189,9 @@ class KinematicPredictor:
         if self._housing is not None:
             t = np.atleast_2d(np.asarray(temperature_C, dtype=float))
             dT = t[:, self._housing] - np.asarray(temperature_zero_C, dtype=float)[self._housing]
-        zs = np.broadcast_to(np.asarray(np.nan if z_axis_mm is None else z_axis_mm, float), (n,))
         dev = np.empty((n, 3))
         half = np.empty((n, 3))
-        for z in np.unique(zs):
-            sel = (zs == z) if np.isfinite(z) else ~np.isfinite(zs)
-            ch = self.chain(None if not np.isfinite(z) else z)
+        for sel, _, ch in self.chains_of(z_axis_mm, n):
             d = ch.ttp_deviation_um(dl[sel], None if dT is None else dT[sel])
             var = (
                 self._noise_var(ch)[None, :]
