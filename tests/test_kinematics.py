@@ -200,15 +200,57 @@ def test_chain_reads_a_ram_guided_on_one_face():
     assert pred[0, 0] == pytest.approx(4000.0 * unit["x"][0], rel=0.10)
 
 
-def test_the_hybrid_chain_part_runs_both_chains_in_one_call_with_the_same_numbers():
-    """hybrid_chain_part evaluates the bars' chain and the housing-only chain (its dz) as one
-    stacked call; every row is the two separate calls' to the bit."""
+def test_the_hybrid_chain_part_is_the_chain_with_the_housing_alone_on_dz():
+    """hybrid_chain_part: dx, dy from the bars' chain (with the housing), to the bit; dz the
+    housing alone, taken through the chain's housing Jacobian: the chain evaluated on the
+    housing alone agrees to its own rounding at mm scale (1e-8 relative), 0.01 to 50 K."""
     from fbgcomp.models.hybrid import hybrid_chain_part
 
     chain = KinematicChain(load_machine())
     rng = np.random.default_rng(1)
     el = rng.normal(0.0, 5.0, (37, len(chain.sensors)))
-    for dT in (rng.normal(0.0, 2.0, 37), None):
-        ref = chain.ttp_deviation_um(el, dT)
-        ref[:, 2] = chain.ttp_deviation_um(np.zeros_like(el), dT)[:, 2]
-        np.testing.assert_array_equal(hybrid_chain_part(chain, el, dT), ref)
+    dTs = rng.normal(0.0, 2.0, 37)
+    dTs[:4] = (0.01, -0.01, 50.0, -50.0)
+    for dT in (dTs, None):
+        got = hybrid_chain_part(chain, el, dT)
+        np.testing.assert_array_equal(got[:, :2], chain.ttp_deviation_um(el, dT)[:, :2])
+        alone = chain.ttp_deviation_um(np.zeros_like(el), dT)[:, 2]
+        np.testing.assert_allclose(got[:, 2], alone, rtol=1e-8, atol=0)
+        assert dT is not None or not got[:, 2].any()
+
+
+def test_one_frame_of_the_chain_is_the_batch_to_the_bit():
+    """A batch of one frame takes the chain's one-frame paths (2-D products for the frames,
+    the closure on Python floats): each row is the whole batch's row, to the bit, from µm to
+    the millimetre, at two Z positions, with and without the housing."""
+    rng = np.random.default_rng(2)
+    for z in (None, 300.0):
+        chain = KinematicChain(load_machine(), z_axis_mm=z)
+        for scale in (1e-3, 1.0, 50.0, 2000.0):
+            el = rng.normal(0.0, scale, (9, len(chain.sensors)))
+            dT = rng.normal(0.0, 5.0, 9)
+            for h in (dT, None):
+                whole = chain.ttp_deviation_um(el, h)
+                rows = [
+                    chain.ttp_deviation_um(el[i : i + 1], None if h is None else h[i : i + 1])
+                    for i in range(9)
+                ]
+                np.testing.assert_array_equal(np.vstack(rows), whole)
+
+
+def test_the_inconsistency_of_one_frame_is_the_batch_s():
+    """KinematicPredictor.inconsistency_var on one frame (Python floats) gives the batch's row
+    to rounding, for the chain's own Jacobian and another, bars that agree and that do not."""
+    from fbgcomp.models import KinematicModel
+
+    p = KinematicModel().fit().predictor()
+    chain = p.chain(None)
+    rng = np.random.default_rng(4)
+    J = chain.jacobian()[0]
+    for jac in (None, J * rng.uniform(0.5, 2.0, J.shape)):
+        for scale in (0.0, 1e-3, 1.0, 50.0):
+            el = rng.normal(0.0, scale, (12, len(p._used)))
+            whole = p.inconsistency_var(chain, el, jac)
+            rows = np.vstack([p.inconsistency_var(chain, el[i : i + 1], jac) for i in range(12)])
+            np.testing.assert_allclose(rows, whole, rtol=1e-12, atol=0)
+            assert scale < 1.0 or whole.max() > 0

@@ -133,9 +133,15 @@ class KinematicPredictor:
             return np.zeros((n, 3))
         P, expected, d, ok = terms
         rho = elongation_um @ P.T
+        J = chain.jacobian()[0] if jacobian is None else jacobian
+        if n == 1:  # one frame (a runtime batch of 1): the same arithmetic on Python floats
+            r = rho[0].tolist()
+            r2 = sum(v * v for v in r)
+            s = max(1.0 - 3.84 * expected / max(r2, 1e-300), 0.0) if r2 > 0 else 0.0
+            bars = [(r[k], float(d[k]), J[:, k].tolist()) for k in np.flatnonzero(ok)]
+            return np.array([[max(((rk / dk) * jk[a]) ** 2 for rk, dk, jk in bars) * s for a in range(3)]])
         rho2 = np.sum(rho**2, axis=1)
         shrink = np.where(rho2 > 0, np.maximum(1.0 - 3.84 * expected / np.maximum(rho2, 1e-300), 0.0), 0.0)
-        J = chain.jacobian()[0] if jacobian is None else jacobian
         eps = rho[:, ok] / d[ok]  # (n, k) µm on one bar
         effect = np.max((eps[:, :, None] * J.T[ok][None, :, :]) ** 2, axis=1)
         return effect * shrink[:, None]
