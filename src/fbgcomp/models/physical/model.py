@@ -451,10 +451,8 @@ class PhysicalModel(EstimatorParams, ModelFile):
                 sd_ref.append(1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0) / np.sqrt(2))
         v0 = np.min(sd_ref, axis=0) ** 2 if sd_ref else np.zeros(3)
         # dT is a reading minus the zero reading: a change within twice the SD of such a
-        # difference (the SD of successive readings' differences; quantised probes make a
-        # robust MAD of them read low) is none
-        d = np.vstack([np.diff(r["dT"], axis=0) for r in rows if len(r["dT"]) > 1])
-        deadband = 2.0 * d.std(axis=0)
+        # difference of two readings (sqrt 2 x each probe's white noise) is none
+        deadband = 2.0 * np.sqrt(2.0) * probe_noise_sd_K(campaigns, self.probe_names_)
         e2, S, act, w, n_eff = [], [], [], [], []
         for r, c in zip(rows, campaigns):
             if r["loaded"]:
