@@ -44,6 +44,11 @@ def hybrid_chain_part(chain, elongation_um, housing_dT_K):
     return out
 
 
+def _probe_columns(t, t0, cols):
+    """Probe readings (n, P) and zero readings (P,) of the columns ``cols`` (None: all)."""
+    return (t, t0) if cols is None else (t[:, cols], t0[cols])
+
+
 class HybridPredictor:
     """Thermally corrected kinematic chain + temperature regression (see :class:`HybridModel`)."""
 
@@ -54,6 +59,10 @@ class HybridPredictor:
         self.probe_names = list(probe_names)
         self._k_probe = [self.probe_names.index(p) for p in kinematic.probe_names]
         self._r_probe = [self.probe_names.index(p) for p in residual.probe_names]
+        # (the usual case: each part reads every probe in order, and no copy is made)
+        every = list(range(len(self.probe_names)))
+        self._k_cols = None if self._k_probe == every else self._k_probe
+        self._r_cols = None if self._r_probe == every else self._r_probe
         self._correction = np.asarray(correction, dtype=float)  # (T, S) µm per feature
         self.expected_rms_error_um = residual.expected_rms_error_um
         self._used = kinematic._used
@@ -102,7 +111,7 @@ class HybridPredictor:
             w = w.copy()
             cols = [i for i, s in enumerate(self.sensor_names) if s in self.exclude]
             w[:, cols] = w0[cols]
-        tr, tr0 = t[:, self._r_probe], t0[self._r_probe]
+        tr, tr0 = _probe_columns(t, t0, self._r_cols)
         design = self.residual.design(w, tr, w0, tr0, time_s)  # const + temperature terms
         dr = design @ self.residual.coef
         var = self.residual._interval_var(design)
@@ -110,11 +119,13 @@ class HybridPredictor:
         base = self.residual.last_base
         temps = base[:, len(self.residual.feature_map.sensor_names) :]
         k = self.kinematic
-        dl = k.feature_map.base(w, t[:, self._k_probe], w0, t0[self._k_probe])
+        tk, tk0 = _probe_columns(t, t0, self._k_cols)
+        dl = k.feature_map.base(w, tk, w0, tk0)
         dl = dl - temps @ self._correction
         dT = None
         if k._housing is not None:
-            dT = t[:, self._k_probe][:, k._housing] - t0[self._k_probe][k._housing]
+            h = self._k_probe[k._housing]
+            dT = t[:, h] - t0[h]
         n = len(dl)
         dk = np.empty((n, 3))
         for sel, z, ch in k.chains_of(z_axis_mm, n):

@@ -138,7 +138,8 @@ class KinematicPredictor:
             r = rho[0].tolist()
             r2 = sum(v * v for v in r)
             s = max(1.0 - 3.84 * expected / max(r2, 1e-300), 0.0) if r2 > 0 else 0.0
-            bars = [(r[k], float(d[k]), J[:, k].tolist()) for k in np.flatnonzero(ok)]
+            Jt = J.T.tolist()
+            bars = [(r[k], dk, Jt[k]) for k, dk in self._inconsistency_bars(chain)]
             return np.array([[max(((rk / dk) * jk[a]) ** 2 for rk, dk, jk in bars) * s for a in range(3)]])
         rho2 = np.sum(rho**2, axis=1)
         shrink = np.where(rho2 > 0, np.maximum(1.0 - 3.84 * expected / np.maximum(rho2, 1e-300), 0.0), 0.0)
@@ -164,6 +165,15 @@ class KinematicPredictor:
                 terms = (P, float(np.trace(P @ sigma @ P.T)), d, d > 1e-9)
             hit = cache[id(chain)] = (chain, terms)
         return hit[1]
+
+    def _inconsistency_bars(self, chain):
+        """(bar, projector diagonal) of the bars where it is not zero, as Python numbers (the
+        one-frame path); found once per chain (:meth:`_inconsistency_terms` keeps the chain)."""
+        cache = self.__dict__.setdefault("_inconsistency_k", {})
+        if id(chain) not in cache:
+            _, _, d, ok = self._inconsistency_terms(chain)
+            cache[id(chain)] = [(int(k), float(d[k])) for k in np.flatnonzero(ok)]
+        return cache[id(chain)]
 
     def _noise_var(self, chain):
         J, Jh = chain.jacobian()
