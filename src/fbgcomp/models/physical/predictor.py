@@ -276,7 +276,11 @@ class PhysicalPredictor:
         k_hold = np.where(dt > 0, rate * b_hold / (2.0 - b_hold), 1.0)
         kd = fast_hold_noise(dt, rate, b_fast, b_hold)
         lag = self.drift_N_per_s[None, :] * np.maximum(dt, self.offset_tau_s)[:, None]
-        look_s, at = np.unique(np.maximum(dt, 2.0 * LOAD_FAST_S), return_inverse=True)
+        look = np.maximum(dt, 2.0 * LOAD_FAST_S)
+        if len(dt) and look.min() == look.max():  # frames faster than the low-pass: one look each
+            look_s, at = look[:1], np.zeros(len(dt), int)
+        else:
+            look_s, at = np.unique(look, return_inverse=True)
         k_start = np.maximum(
             self.k_sigma,
             np.array([self._quantile("isf", 0.5 * LOAD_FALSE_STARTS_PER_H * s / 3600.0) for s in look_s])[

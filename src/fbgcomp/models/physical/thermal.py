@@ -81,10 +81,26 @@ def map_features(e_um, delta_T_K, housing_idx, time_s=None, state=None, nominal_
     if e.shape[0] == 1 and time_s is not None and state and state["in"][1] is not None:
         return _map_features_one(e[0].tolist(), dT[0].tolist(), housing_idx, time_s, state)
     state = state or {}
-    smooth, s_in = first_order_filter(dT, time_s, PROBE_SMOOTHING_S, state.get("in"), nominal_dt_s)
-    e_state = state.get("e") or (np.zeros(e.shape[1]), None)
-    e, s_e = first_order_filter(e, time_s, PROBE_SMOOTHING_S, e_state, nominal_dt_s)
-    new = {"in": s_in, "e": s_e}
+    s_in, s_e = state.get("in"), state.get("e")
+    if s_in is not None and s_e is not None and s_in[1] == s_e[1]:
+        # a running state: probes and gratings through one filter call (the same low-pass and
+        # clock, column by column: the same numbers as two calls)
+        P = dT.shape[1]
+        both, (y, t_end) = first_order_filter(
+            np.hstack([dT, e]),
+            time_s,
+            PROBE_SMOOTHING_S,
+            (np.concatenate([s_in[0], s_e[0]]), s_in[1]),
+            nominal_dt_s,
+        )
+        smooth, e = both[:, :P], both[:, P:]
+        new = {"in": (y[:P], t_end), "e": (y[P:], t_end)}
+    else:
+        smooth, s_in = first_order_filter(dT, time_s, PROBE_SMOOTHING_S, s_in, nominal_dt_s)
+        e, s_e = first_order_filter(
+            e, time_s, PROBE_SMOOTHING_S, s_e or (np.zeros(e.shape[1]), None), nominal_dt_s
+        )
+        new = {"in": s_in, "e": s_e}
     leads = housing_leads(housing_mean(smooth, housing_idx), MAP_LEADS_S, time_s, state, new, nominal_dt_s)
     return np.hstack([e, smooth, leads]), new
 
