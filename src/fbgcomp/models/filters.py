@@ -26,9 +26,8 @@ def first_order_recursion(x, u, y0, gain=True):
     decay stays below e^-600 (so that no weight overflows); every weight is positive, so no
     cancellation beyond the recursion's own."""
     if len(x) == 1:  # one frame (a runtime batch of 1): the recursion's single step, no setup
-        c = math.exp(-min(float(x[0]), 600.0))
-        u0 = np.asarray(u, float)[0]
-        return (c * np.asarray(y0, float) + ((1.0 - c) * u0 if gain else u0))[None, :]
+        u0, y = np.asarray(u, float)[0].tolist(), np.asarray(y0, float).tolist()
+        return np.array([first_order_step(float(x[0]), u0, y, gain)])
     x = np.minimum(np.asarray(x, float), 600.0)  # exp(-600): no memory left either way
     u = np.asarray(u, float)
     w = -np.expm1(-x)[:, None] * u if gain else u
@@ -50,6 +49,17 @@ def first_order_recursion(x, u, y0, gain=True):
         y_prev = out[stop - 1]
         start = stop
     return out
+
+
+def first_order_step(x, u, y0, gain=True):
+    """One row of :func:`first_order_recursion` on Python floats: ``c y0 + (1 - c) u``
+    (``gain=False``: ``c y0 + u``) with ``c = exp(-x)``, for sequences ``u`` and ``y0``; a list.
+    The runtime's batches of one frame take it where numpy's per-call cost on a few numbers
+    was the time; every one-row step of a first-order filter is this arithmetic."""
+    c = math.exp(-min(x, 600.0))  # exp(-600): no memory left either way
+    if gain:
+        return [c * a + (1.0 - c) * b for a, b in zip(y0, u)]
+    return [c * a + b for a, b in zip(y0, u)]
 
 
 def first_order_filter(x, time_s, tau_s, state=None, nominal_dt_s=1.0):

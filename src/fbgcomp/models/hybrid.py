@@ -23,7 +23,7 @@ from fbgcomp.models.base import (
     check_predictors,
 )
 from fbgcomp.models.dynamic import DEFAULT_TAUS_S, DynamicModel, DynamicPredictor
-from fbgcomp.models.kinematic import KinematicModel, KinematicPredictor
+from fbgcomp.models.kinematic import KinematicModel, KinematicPredictor, per_chain
 
 
 def hybrid_chain_part(chain, elongation_um, housing_dT_K):
@@ -75,11 +75,7 @@ class HybridPredictor:
         """TTP µm per µm of each used bar: the chain's plus the residual regression's own
         elongation terms (which, on dz, largely replace the chain's axial path); found once per
         chain."""
-        cache = self.__dict__.setdefault("_total_J", {})
-        hit = cache.get(id(chain))
-        if hit is None or hit[0] is not chain:
-            hit = cache[id(chain)] = (chain, self._jacobian_of(chain))
-        return hit[1]
+        return per_chain(self, "_total_J", chain, lambda: self._jacobian_of(chain))
 
     def _jacobian_of(self, chain):
         J = chain.jacobian()[0].copy()

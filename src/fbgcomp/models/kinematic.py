@@ -46,6 +46,16 @@ KINEMATIC_DEFAULT_RELATIVE = 0.10
 KINEMATIC_DEFAULT_FLOOR_UM = 0.5
 
 
+def per_chain(owner, name, chain, make):
+    """``make()``, computed once per chain and kept in ``owner``'s dict ``name`` (keyed by the
+    chain's identity; the entry holds the chain, so the key stays its own)."""
+    cache = owner.__dict__.setdefault(name, {})
+    hit = cache.get(id(chain))
+    if hit is None or hit[0] is not chain:
+        hit = cache[id(chain)] = (chain, make())
+    return hit[1]
+
+
 class KinematicPredictor:
     """Pure-numpy kinematic prediction for one sensor set; chains compiled per Z position."""
 
@@ -131,7 +141,7 @@ class KinematicPredictor:
         terms = self._inconsistency_terms(chain)
         if terms is None:
             return np.zeros((n, 3))
-        P, expected, d, ok = terms
+        P, expected, d, ok, _ = terms
         rho = elongation_um @ P.T
         J = chain.jacobian()[0] if jacobian is None else jacobian
         if n == 1:  # one frame (a runtime batch of 1): the same arithmetic on Python floats
@@ -139,7 +149,7 @@ class KinematicPredictor:
             r2 = sum(v * v for v in r)
             s = max(1.0 - 3.84 * expected / max(r2, 1e-300), 0.0) if r2 > 0 else 0.0
             Jt = J.T.tolist()
-            bars = [(r[k], dk, Jt[k]) for k, dk in self._inconsistency_bars(chain)]
+            bars = [(r[k], dk, Jt[k]) for k, dk in terms[4]]
             return np.array([[max(((rk / dk) * jk[a]) ** 2 for rk, dk, jk in bars) * s for a in range(3)]])
         rho2 = np.sum(rho**2, axis=1)
         shrink = np.where(rho2 > 0, np.maximum(1.0 - 3.84 * expected / np.maximum(rho2, 1e-300), 0.0), 0.0)
@@ -149,31 +159,24 @@ class KinematicPredictor:
 
     def _inconsistency_terms(self, chain):
         """What :meth:`inconsistency_var` takes of a chain, found once per chain: the projector
-        P, the noise's expected residual power tr(P Σ P'), P's diagonal and where it is not
-        zero; None where plane sections explain every reading."""
-        cache = self.__dict__.setdefault("_inconsistency", {})
-        hit = cache.get(id(chain))
-        if hit is None or hit[0] is not chain:
-            P = chain.inconsistency_projector
-            terms = None
-            if P.size and np.trace(P) >= 0.5:
-                sigma = (
-                    np.diag(self._noise_um**2)
-                    + (self._per_probe * self._probe_noise_C) @ (self._per_probe * self._probe_noise_C).T
-                )
-                d = np.diag(P)
-                terms = (P, float(np.trace(P @ sigma @ P.T)), d, d > 1e-9)
-            hit = cache[id(chain)] = (chain, terms)
-        return hit[1]
+        P, the noise's expected residual power tr(P Σ P'), P's diagonal, where it is not zero,
+        and those bars as (index, diagonal) Python numbers (the one-frame path); None where
+        plane sections explain every reading."""
 
-    def _inconsistency_bars(self, chain):
-        """(bar, projector diagonal) of the bars where it is not zero, as Python numbers (the
-        one-frame path); found once per chain (:meth:`_inconsistency_terms` keeps the chain)."""
-        cache = self.__dict__.setdefault("_inconsistency_k", {})
-        if id(chain) not in cache:
-            _, _, d, ok = self._inconsistency_terms(chain)
-            cache[id(chain)] = [(int(k), float(d[k])) for k in np.flatnonzero(ok)]
-        return cache[id(chain)]
+        def terms():
+            P = chain.inconsistency_projector
+            if not P.size or np.trace(P) < 0.5:
+                return None
+            sigma = (
+                np.diag(self._noise_um**2)
+                + (self._per_probe * self._probe_noise_C) @ (self._per_probe * self._probe_noise_C).T
+            )
+            d = np.diag(P)
+            ok = d > 1e-9
+            bars = [(int(k), float(d[k])) for k in np.flatnonzero(ok)]
+            return P, float(np.trace(P @ sigma @ P.T)), d, ok, bars
+
+        return per_chain(self, "_inconsistency", chain, terms)
 
     def _noise_var(self, chain):
         J, Jh = chain.jacobian()

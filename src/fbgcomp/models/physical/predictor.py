@@ -16,7 +16,7 @@ import numpy as np
 from scipy import stats
 
 import fbgcomp.models.policy as P
-from fbgcomp.models.filters import first_order_recursion
+from fbgcomp.models.filters import first_order_recursion, first_order_step
 from fbgcomp.models.physical.thermal import (
     MAP_LEADS_S,
     grating_map,
@@ -364,19 +364,17 @@ class PhysicalPredictor:
         e = e[0].tolist()
         offset, xs, applied = _floats(st["offset"]), _floats(st["fast"]), _floats(st["force"])
         f_hold, recent, noise = _floats(st["hold"]), _floats(st["recent"]), _floats(st["noise"])
-        c_fast = math.exp(-min(dt / LOAD_FAST_S, 600.0))
-        c_off = math.exp(-min(dt / self.offset_tau_s, 600.0))
-        c_hold = math.exp(-min(dt / LOAD_HOLD_S, 600.0))
-        c_noise = math.exp(-min(dt / NOISE_LEARN_S, 600.0))
         S = len(offset)
-        y = [c_fast * (xs[j] + offset[j]) + (1.0 - c_fast) * e[j] for j in range(S)]
+        y = first_order_step(dt / LOAD_FAST_S, e, [xs[j] + offset[j] for j in range(S)])
         u = [e[j] - sum(g * a for g, a in zip(self._G_rows[j], applied)) for j in range(S)]
-        off = [c_off * offset[j] + (1.0 - c_off) * u[j] for j in range(S)]
+        off = first_order_step(dt / self.offset_tau_s, u, offset)
         x = [y[j] - offset[j] for j in range(S)]
         f_fast = [sum(o * v for o, v in zip(row, x)) for row in self._op_rows]
-        hold = [c_hold * f_hold[a] + (1.0 - c_hold) * f_fast[a] for a in range(3)]
+        hold = first_order_step(dt / LOAD_HOLD_S, f_fast, f_hold)
         q = [min((f_fast[a] - hold[a]) ** 2 / (self._sd2[a] * kd), 100.0) for a in range(3)]
-        learnt = [c_noise * noise[a] + dt * q[a] for a in range(3)] + [c_noise * noise[3] + dt]
+        learnt = first_order_step(
+            dt / NOISE_LEARN_S, [dt * q[0], dt * q[1], dt * q[2], dt], noise, gain=False
+        )
         k = self.k_sigma
         sq = [f * f for f in f_fast]
         total = sq[0] + sq[1] + sq[2]
@@ -391,7 +389,9 @@ class PhysicalPredictor:
             "offset": off,
             "fast": [y[j] - off[j] for j in range(S)],
             "hold": hold,
-            "recent": [c_hold * recent[j] + (off[j] - offset[j]) for j in range(S)],
+            "recent": first_order_step(
+                dt / LOAD_HOLD_S, [off[j] - offset[j] for j in range(S)], recent, gain=False
+            ),
             "noise": learnt,
             "t": t1,
         }

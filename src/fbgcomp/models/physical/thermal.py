@@ -10,12 +10,10 @@ the air.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from fbgcomp.models.features import FeatureMap
-from fbgcomp.models.filters import first_order_filter
+from fbgcomp.models.filters import first_order_filter, first_order_step
 from fbgcomp.optics import wavelength_nm
 from fbgcomp.structure.scenarios import generic_heat_machine, thermal_scenarios
 
@@ -107,14 +105,13 @@ def map_features(e_um, delta_T_K, housing_idx, time_s=None, state=None, nominal_
 
 def _map_features_one(e, dT, housing_idx, time_s, state):
     """:func:`map_features` of one frame (a runtime batch of 1) from a running state, on Python
-    floats: each filter's single step (:func:`~fbgcomp.models.filters.first_order_recursion`,
-    the same arithmetic) where numpy's per-call cost on a dozen numbers was the time."""
+    floats: each filter's single step (:func:`~fbgcomp.models.filters.first_order_step`), where
+    numpy's per-call cost on a dozen numbers was the time."""
     t1 = float(np.ravel(time_s)[0])
 
     def step(x, key, tau_s):
         y_prev, t_prev = state[key]
-        c = math.exp(-min(max(t1 - t_prev, 0.0) / tau_s, 600.0))
-        y = [c * a + (1.0 - c) * b for a, b in zip(y_prev.tolist(), x)]
+        y = first_order_step(max(t1 - t_prev, 0.0) / tau_s, x, y_prev.tolist())
         new[key] = (np.array(y), t1)
         return y
 
