@@ -5,6 +5,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fbgcomp.io.campaign import Campaign
+from fbgcomp.kinematics import housing_probe
 from fbgcomp.models import policy as P
 from fbgcomp.models.filters import first_order_filter as lowpass
 from fbgcomp.models.metrics import validation_metrics
@@ -377,6 +379,47 @@ def test_a_force_the_training_never_applied_is_read_over_the_trained_range(ram2)
     assert fmax[1] == pytest.approx(fmax[0]) and fmax[0] > 3900.0
     a = _metrics(m, xyz)["axes"]["dy"]
     assert a["max_abs_error_um"] < 0.2 * a["peak_um"], a
+
+
+def _without_probe(campaign, probe):
+    """The campaign as if the probe had never been installed (its column and declaration gone)."""
+    meta = campaign.meta.model_dump()
+    meta["temperature_probes"] = [p for p in meta["temperature_probes"] if p["name"] != probe]
+    return Campaign.from_arrays(
+        meta,
+        fbg=campaign.fbg,
+        temperatures=campaign.temperatures.drop(columns=[f"{probe}_C"]),
+        reference=campaign.reference,
+        loads=campaign.loads,
+    )
+
+
+def test_a_machine_without_a_housing_probe_is_fitted_and_does_no_harm(ram2, tmp_path):
+    # A ram whose data sheet lists no probe on the spindle housing: the twin map's housing leads
+    # are zero in every scenario, and the default fit crashed on their zero scale (NaN ridge,
+    # then "array must not contain infs or NaNs" in the interval's NNLS).
+    import yaml
+
+    from fbgcomp.structure import load_machine
+
+    src = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram2.yaml"
+    desc = yaml.safe_load(src.read_text())
+    desc["probes"] = [p for p in desc["probes"] if p["name"] != "T_flange"]
+    path = tmp_path / "ram2-no-housing-probe.yaml"
+    path.write_text(yaml.safe_dump(desc))
+    machine = load_machine(path)
+    assert housing_probe(machine) is None
+    a, xyz, b = (_without_probe(ram2[n], "T_flange") for n in ("thermal_a", "static_xyz", "thermal_b"))
+    m = PhysicalModel(machine=machine, twin_scenarios=8).fit([a, xyz])
+    assert m.housing_probes_ == [] and m.twin_map_ is not None
+    coef = np.asarray(m.twin_map_["coef"])
+    assert np.isfinite(coef).all() and not coef[-2:].any()  # the leads carry nothing
+    assert m.twin_map_.get("calibration") is None  # no housing transient to calibrate
+    out = tmp_path / "m.json"
+    m.save(out)
+    served = load_model(out)
+    for axis, a_ in _metrics(served, b)["axes"].items():
+        assert a_["max_abs_error_um"] <= a_["peak_um"] + 0.5, (axis, a_)
 
 
 def _served(model, t, w, T, w0, t0, batch, fast):

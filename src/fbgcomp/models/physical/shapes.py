@@ -113,7 +113,7 @@ def check_shapes(d: dict, source) -> None:
             ("envelope_high", (k,)),
         ):
             array(tm.get(key), f"twin_map.{key}", shape)
-        need(np.all(np.asarray(tm["scale"], float) > 0), "twin_map.scale", "must be > 0")
+        need(np.all(np.asarray(tm["scale"], float) >= 0), "twin_map.scale", "must be >= 0")
         cal = tm.get("calibration")
         if cal is not None:
             need(isinstance(cal, dict), "twin_map.calibration", "must be a mapping or null")

@@ -154,8 +154,10 @@ def housing_leads(housing_K, taus_s, time_s, state, new_state, nominal_dt_s=1.0)
 
 def ridge_from_moments(gram, xty, scale, keep, lam):
     """Ridge coefficients (k, 3) from second moments ``gram = X'X/n`` and ``xty = X'Y/n`` on the
-    feature columns ``keep`` (others get 0), features standardised by ``scale``, penalty ``lam``."""
-    keep = np.asarray(keep, int)
+    feature columns ``keep`` (others get 0), features standardised by ``scale``, penalty ``lam``.
+    A column that is zero in every scenario (``scale`` 0: the housing leads of a machine without a
+    housing probe) carries nothing and gets 0 as well."""
+    keep = np.asarray([k for k in keep if np.asarray(scale, float)[k] > 0], int)
     sc = np.asarray(scale, float)[keep]
     g = np.asarray(gram, float)[np.ix_(keep, keep)] / np.outer(sc, sc)
     b = np.asarray(xty, float)[keep] / sc[:, None]
