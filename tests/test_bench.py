@@ -102,6 +102,27 @@ def test_same_seed_same_campaign_other_seed_other_noise(machine, twin):
     assert not a.fbg.equals(d.fbg)
 
 
+def test_a_scenario_that_drives_a_source_the_machine_lacks_is_a_clear_error():
+    # A ram whose data sheet declares only its spindle heat: thermal-36h (no radiant history)
+    # crashed with a ValueError traceback because its all-zero radiant history was still fed to
+    # the twin; thermal-36h-b, whose radiant load is real, must name the scenario and field.
+    from pathlib import Path
+
+    import yaml
+
+    from fbgcomp.structure import parse_machine
+
+    path = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram2.yaml"
+    d = yaml.safe_load(path.read_text())
+    d["thermal"]["heat_sources"] = [h for h in d["thermal"]["heat_sources"] if h["kind"] != "radiant"]
+    twin = Twin(parse_machine(d), resolution=COARSE)
+    truth = true_response(twin, load_scenario("thermal-36h"), seed=0)
+    assert np.abs(truth["ttp_um"][:, 2]).max() > 5.0  # the spindle heat still drives it
+    with pytest.raises(InputError, match="field radiant_W_per_m2") as e:
+        true_response(twin, load_scenario("thermal-36h-b"), seed=0)
+    assert "<scenario thermal-36h-b>" in e.value.one_line()
+
+
 def test_scenario_errors_name_the_field(tmp_path):
     bad = tmp_path / "s.yaml"
     bad.write_text("name: x\nkind: thermal\nduration_h: -1\n")

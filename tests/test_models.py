@@ -7,8 +7,8 @@ from scipy import stats
 
 from fbgcomp.bench.synthetic import linear_truth_campaign
 from fbgcomp.errors import InputError
-from fbgcomp.io.campaign import read_campaign, write_campaign
-from fbgcomp.models.features import candidate_terms
+from fbgcomp.io.campaign import Campaign, read_campaign, write_campaign
+from fbgcomp.models.features import TemperatureRoles, candidate_terms, resolve_roles
 from fbgcomp.models.metrics import validation_metrics
 from fbgcomp.models.modelfile import SCHEMA_VERSION
 from fbgcomp.models.mra import MRAModel
@@ -346,3 +346,68 @@ def test_stepwise_on_autocorrelated_drift_keeps_fewer_spurious_terms_than_naive_
     spurious = {k: len(v - {"dL_S1", "dT_flange"}) for k, v in chosen.items()}
     assert spurious["HAC"] < spurious["nonrobust"], chosen
     assert spurious["HAC"] <= 1, chosen
+
+
+def _renamed_probes(campaign, names):
+    """The campaign with its probes renamed (``names``: old -> new) in every file."""
+    meta = campaign.meta.model_dump()
+    for p in meta["temperature_probes"]:
+        p["name"] = names.get(p["name"], p["name"])
+    for s in meta["sensors"]:
+        if s.get("temperature_probe"):
+            s["temperature_probe"] = names.get(s["temperature_probe"], s["temperature_probe"])
+    return Campaign.from_arrays(
+        meta,
+        fbg=campaign.fbg,
+        temperatures=campaign.temperatures.rename(columns={f"{o}_C": f"{n}_C" for o, n in names.items()}),
+        reference=campaign.reference,
+        loads=campaign.loads,
+    )
+
+
+def test_eq13_roles_follow_a_ram_whose_probes_do_not_carry_the_paper_names(truth_campaign, tmp_path):
+    # A data sheet that calls its probes P_wall, P_skin, P_spindle, P_air: eq. 13 failed with
+    # "model needs temperature probe T_flange" (ridge and PLS with a ValueError) for every type
+    # but the physical and kinematic ones. Renaming the probes must not change the model.
+    campaign, _ = truth_campaign
+    names = {"T_bulk": "P_wall", "T_surf": "P_skin", "T_flange": "P_spindle"}
+    renamed = _renamed_probes(campaign, names)
+    assert not {"T_bulk", "T_surf", "T_flange"} & set(renamed.probe_names)
+    ref = MRAModel(features="eq13").fit(campaign)
+    model = MRAModel(features="eq13").fit(renamed)
+    assert model.roles_ == TemperatureRoles(bulk="P_wall", surf="P_skin", flange="P_spindle")
+    loaded = load_model(model.save(tmp_path / "m.json"))
+    np.testing.assert_allclose(loaded.predict(renamed), ref.predict(campaign), rtol=0, atol=1e-9)
+    # explicit roles win over the names
+    swapped = MRAModel(features="eq13", roles={"bulk": "P_skin", "surf": "P_wall", "flange": "P_spindle"})
+    assert swapped.fit(renamed).roles_.bulk == "P_skin"
+
+
+def test_roles_by_position_in_the_description_then_by_name_then_what_is_left():
+    from fbgcomp.structure import load_machine
+
+    machine = load_machine()  # the built-in ram: T_bulk in the wall, T_surf on it, T_flange below
+    pos = {p.name: p for p in machine.probes}
+    renamed = machine.model_copy(
+        update={
+            "probes": [
+                p.model_copy(
+                    update={"name": {"T_bulk": "A", "T_surf": "B", "T_flange": "C"}.get(p.name, p.name)}
+                )
+                for p in machine.probes
+            ]
+        }
+    )
+    assert "T_bulk" in pos and "T_flange" in pos
+    # by position, whatever the names and their order
+    assert resolve_roles(["C", "B", "A"], renamed) == TemperatureRoles(bulk="A", surf="B", flange="C")
+    # by name without a description
+    assert resolve_roles(["air", "head_T", "skin", "core"]) == TemperatureRoles(
+        bulk="core", surf="skin", flange="head_T"
+    )
+    # no housing probe: the air plays the flange, the last resort
+    assert resolve_roles(["T_bulk", "T_surf", "T_amb"]) == TemperatureRoles(flange="T_amb")
+    # nothing fits by position or name: the campaign's order, probes before the air
+    assert resolve_roles(["T_room", "P1", "P2", "P3"]) == TemperatureRoles(bulk="P1", surf="P2", flange="P3")
+    with pytest.raises(ValueError, match="no temperature probe is left for the"):
+        resolve_roles(["P1", "P2"])

@@ -300,7 +300,22 @@ def true_response(twin, scenario: Scenario, seed: int = 0):
         probe_t = np.full((len(time_s), P), scenario.initial_C)
         ttp = np.zeros((len(time_s), 3))
     else:
-        h = twin.thermal(time_s, ambient, spindle, radiant_W_per_m2=radiant, initial_C=scenario.initial_C)
+        kinds = {h.kind for h in twin.machine.thermal.sources}
+        for field, kind, v in (("spindle_W", "volume", spindle), ("radiant_W_per_m2", "radiant", radiant)):
+            if v.any() and kind not in kinds:
+                raise InputError(
+                    f"the scenario drives a {kind} heat source, which the machine description does not "
+                    "declare (add one under thermal.heat_sources, or leave this history out)",
+                    file=f"<scenario {scenario.name}>",
+                    column=f"field {field}",
+                )
+        h = twin.thermal(
+            time_s,
+            ambient,
+            spindle if spindle.any() else None,
+            radiant_W_per_m2=radiant if radiant.any() else None,
+            initial_C=scenario.initial_C,
+        )
         elong = np.asarray(h.sensor_elongation_um)
         sensor_t = np.asarray(h.sensor_temperature_C)
         probe_t = _probe_matrix(h.probe_C, twin.probe_names)

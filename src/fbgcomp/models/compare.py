@@ -161,7 +161,7 @@ class _DesignModel:
     def fit(self, campaigns):
         """Fit on a list of campaigns (penalty or components chosen by blocked CV)."""
         self._mra = MRAModel(features=self.features, zero_window_s=self.zero_window_s, fallbacks="none")
-        self._mra.new_accumulator(list(campaigns[0].meta.sensors), None)
+        self._mra.new_accumulator(list(campaigns[0].meta.sensors), None, roles_from=campaigns[0].probe_names)
         X, Y = [], []
         aligned = [c.aligned(zero_window_s=self.zero_window_s) for c in campaigns]
         # Campaigns pooled like MRAModel.fit (balanced row weights, weighted least squares).

@@ -175,9 +175,9 @@ class DynamicModel(MRAModel):
             self.candidates_ = saved
         return {a: (with_dl[a] if a in self.elongation_axes else without[a]) for a in AXES}
 
-    def new_accumulator(self, sensors, probe_names=None):
+    def new_accumulator(self, sensors, probe_names=None, *, roles_from=None, machine=None):
         """As :meth:`MRAModel.new_accumulator`, with the filtered terms and naive inference."""
-        super().new_accumulator(sensors, probe_names)
+        super().new_accumulator(sensors, probe_names, roles_from=roles_from, machine=machine)
         self.candidates_ = self._candidates([s.name for s in self.sensors_])
         names = [CONSTANT, *self.candidates_]
         return QRAccumulator(len(names), len(AXES), feature_names=names, target_names=list(AXES))

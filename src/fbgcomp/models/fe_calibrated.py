@@ -15,7 +15,7 @@ import pandas as pd
 
 from fbgcomp import optics
 from fbgcomp.models.base import CHUNK_ROWS
-from fbgcomp.models.features import TEMPERATURE_FEATURES, TemperatureRoles, design_matrix
+from fbgcomp.models.features import TEMPERATURE_FEATURES, design_matrix, resolve_roles
 from fbgcomp.models.machines import campaign_sensor_specs
 from fbgcomp.models.mra import MRAModel
 from fbgcomp.models.regression import accumulate_series
@@ -72,7 +72,7 @@ def fe_design(machine, twin, *, n_samples=2000, wavelength_noise_nm=0.001, seed=
     lam = optics.wavelength_nm(host, lam0, gauge, sensor_rise, **consts)
     lam = lam + wavelength_noise_nm * rng.standard_normal(lam.shape)
     read = optics.elongation_um(lam, lam0, gauge, compensating, **consts)
-    roles = TemperatureRoles()
+    roles = resolve_roles([p.name for p in machine.probes], machine)
     rise = {
         r: (probe_rise[:, probe_index[p]] if p in probe_index else np.zeros(n_samples))
         for r, p in roles.as_dict().items()
@@ -116,7 +116,7 @@ def fe_calibrate(
     )
     model = MRAModel(features=features, stepwise=stepwise, fallbacks="loo")
     sensors = campaign_sensor_specs(machine)
-    acc = model.new_accumulator(sensors, [p.name for p in machine.probes])
+    acc = model.new_accumulator(sensors, [p.name for p in machine.probes], machine=machine)
     fmap = model._feature_map()
     keep = [c for c in X.columns if c in fmap.base_names]
     accumulate_series(

@@ -47,6 +47,77 @@ class TemperatureRoles:
         return {"bulk": self.bulk, "surf": self.surf, "flange": self.flange}
 
 
+#: Name keys of each role, used when a campaign's probes do not carry the paper's names; probes
+#: whose name holds an ``AMBIENT_KEYS`` key (or the description's ambient probes) play none.
+ROLE_KEYS = {
+    "flange": ("flange", "housing", "spindle", "bearing", "head"),
+    "bulk": ("bulk", "wall", "core", "mid", "inner", "inside"),
+    "surf": ("surf", "skin", "outer", "face"),
+}
+AMBIENT_KEYS = ("amb", "air", "room", "hall", "env")
+
+
+def resolve_roles(probe_names, machine=None) -> TemperatureRoles:
+    """The probes that play eq. 13's bulk, surface and flange roles for a campaign's probes.
+
+    The paper's names (``T_bulk``, ``T_surf``, ``T_flange``) where the campaign has them. A role
+    whose paper name is missing goes to a free probe that fits it: with a machine description,
+    by position (a point probe in the housing, z ≤ 0, for the flange; one inside the ram's wall
+    for the bulk; one on its outer surface for the surface), else by name (:data:`ROLE_KEYS`).
+    A role still open takes what is left in the campaign's order, a probe on the ram before
+    one in the housing for the bulk and the surface, and the air (the description's ambient
+    probe, else a name in :data:`AMBIENT_KEYS`) only as the last resort: a ram without a
+    housing probe still gets eq. 13's three features. Raises ``ValueError`` when the campaign
+    has fewer than three probes.
+    """
+    names = list(probe_names)
+    default = TemperatureRoles().as_dict()
+    if all(p in names for p in default.values()):
+        return TemperatureRoles()
+    desc = {p.name: p for p in machine.probes} if machine is not None else {}
+
+    def ambient(n):
+        d = desc.get(n)
+        return d.kind == "ambient" if d is not None else any(k in n.lower() for k in AMBIENT_KEYS)
+
+    def where(n):
+        """'housing', 'inside' (the ram wall), 'surface' or None (not described)."""
+        d = desc.get(n)
+        if d is None or d.kind != "point":
+            return None
+        if d.z_mm <= 1e-6:  # the flange itself (z = 0) included, as kinematics.housing_probe has it
+            return "housing"
+        half_w, half_d = machine.ram.outer_width_mm / 2, machine.ram.outer_depth_mm / 2
+        on_face = min(half_w - abs(d.x_mm), half_d - abs(d.y_mm)) <= 1e-6
+        return "surface" if on_face else "inside"
+
+    place = {"flange": "housing", "bulk": "inside", "surf": "surface"}
+    chosen = {r: p for r, p in default.items() if p in names}
+    free = [n for n in names if n not in chosen.values()]
+    solid = [n for n in free if not ambient(n)]
+    # first by position in the description, then by name; then what is left: for the bulk and
+    # the surface a probe on the ram before one in the housing, the air last for every role
+    for role in ("flange", "bulk", "surf"):
+        for n in [n for n in solid if where(n) == place[role]] + [
+            n for n in solid if any(k in n.lower() for k in ROLE_KEYS[role])
+        ]:
+            if role not in chosen and n not in chosen.values():
+                chosen[role] = n
+    for role in ("bulk", "surf", "flange"):
+        if role in chosen:
+            continue
+        left = [n for n in free if n not in chosen.values()]
+        ranked = sorted(left, key=lambda n: (ambient(n), role != "flange" and where(n) == "housing"))
+        if not ranked:
+            raise ValueError(
+                f"no temperature probe is left for the {role} role of eq. 13 among "
+                f"{', '.join(names) or 'none'} (name them with --roles bulk=..,surf=..,flange=.., "
+                "or use --features eq11)"
+            )
+        chosen[role] = ranked[0]
+    return TemperatureRoles(**chosen)
+
+
 def term_name(factors: tuple[str, ...]) -> str:
     """Name of a product term: ``('dT_bulk', 'dT_bulk') -> 'dT_bulk^2'``."""
     if len(factors) == 2 and factors[0] == factors[1]:

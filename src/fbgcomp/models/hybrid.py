@@ -211,7 +211,12 @@ class HybridModel(EstimatorParams, ModelFile):
             self.machine, zero_window_s=self.zero_window_s, fallbacks=self.fallbacks
         ).fit()
         res = self._residual_estimator()
-        res.new_accumulator(list(campaigns[0].meta.sensors), None)
+        res.new_accumulator(
+            list(campaigns[0].meta.sensors),
+            None,
+            roles_from=campaigns[0].probe_names,
+            machine=self.kinematic_.machine_,
+        )
         self.residual_ = res
         self.sensors_ = self.kinematic_.sensors_
         self.probe_names_ = list(dict.fromkeys(list(res.probe_names_) + list(self.kinematic_.probe_names_)))

@@ -50,6 +50,7 @@ from fbgcomp.models.features import (
     TemperatureRoles,
     candidate_terms,
     design_matrix,
+    resolve_roles,
 )
 from fbgcomp.models.modelfile import MODEL_FORMAT, SCHEMA_VERSION, short_text
 from fbgcomp.models.regression import QRAccumulator, accumulate_series, ols_from_factor, stepwise
@@ -288,11 +289,29 @@ class MRAModel(EstimatorParams, ModelFile):
 
     # -- fitting -------------------------------------------------------------------------
     def _roles(self) -> TemperatureRoles:
+        """The eq. 13 roles: those resolved at fit time (``roles_``), else the ``roles`` given,
+        else the paper's names."""
+        fitted = getattr(self, "roles_", None)
+        if fitted is not None:
+            return fitted
         if self.roles is None:
             return TemperatureRoles()
         if isinstance(self.roles, TemperatureRoles):
             return self.roles
         return TemperatureRoles(**self.roles)
+
+    def _resolve_roles(self, probe_names, machine=None) -> TemperatureRoles:
+        """``roles`` when given; else the probes of ``probe_names`` that play eq. 13's roles
+        (:func:`~fbgcomp.models.features.resolve_roles`, by the machine description's probe
+        positions when one is given): a ram whose probes do not carry the paper's names gets
+        its eq. 13 features too."""
+        self.roles_ = None
+        if self.roles is not None or probe_names is None or self.features == "eq11":
+            return self._roles()
+        try:
+            return resolve_roles(probe_names, machine)
+        except ValueError as exc:
+            raise InputError(str(exc), column="field temperature_probes") from None
 
     def _check_params(self):
         if self.features not in FEATURE_SETS:
@@ -355,7 +374,7 @@ class MRAModel(EstimatorParams, ModelFile):
         campaigns = as_campaign_list(X)
         if not campaigns:
             raise ValueError("fit needs at least one campaign")
-        acc = self.new_accumulator(list(campaigns[0].meta.sensors), None)
+        acc = self.new_accumulator(list(campaigns[0].meta.sensors), None, roles_from=campaigns[0].probe_names)
         names = list(acc.feature_names)
         for c in campaigns:
             check_compatible(self, c)
@@ -391,15 +410,18 @@ class MRAModel(EstimatorParams, ModelFile):
         return self.fit_factor(acc, info)
 
     # -- fitting from statistics reduced elsewhere (fbgcomp.io.dataset, fbgcomp.models.distributed) ------
-    def new_accumulator(self, sensors, probe_names=None):
+    def new_accumulator(self, sensors, probe_names=None, *, roles_from=None, machine=None):
         """Fix the sensor set (``SensorSpec`` list) and return an empty QR accumulator whose
         columns are this model's terms (``const`` first) and whose targets are dx, dy, dz.
 
         ``probe_names`` lists the probes the data offers; a missing required probe is an
-        InputError. Partitions accumulated on other processes with an estimator configured the
-        same way merge into it (:meth:`fbgcomp.models.regression.QRAccumulator.merge`).
+        InputError. The eq. 13 roles (``roles_``) are resolved among ``roles_from`` (default:
+        ``probe_names``), by the ``machine`` description's probe positions when given.
+        Partitions accumulated on other processes with an estimator configured the same way
+        merge into it (:meth:`fbgcomp.models.regression.QRAccumulator.merge`).
         """
         self._check_params()
+        self.roles_ = self._resolve_roles(probe_names if roles_from is None else roles_from, machine)
         self.sensors_ = list(sensors)
         self.probe_names_ = FeatureMap.required_probes(self.sensors_, self.features != "eq11", self._roles())
         if probe_names is not None:
