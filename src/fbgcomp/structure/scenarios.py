@@ -23,6 +23,8 @@ import numpy as np
 from fbgcomp.structure.machine import Machine, parse_machine
 
 FACES = ("+X", "-X", "+Y", "-Y")
+#: Name prefix of the undeclared sources :func:`generic_heat_machine` adds.
+GENERIC_PREFIX = "generic_"
 
 
 def generic_heat_machine(machine: Machine, flux_W_per_m2: float = 60.0) -> Machine:
@@ -35,7 +37,7 @@ def generic_heat_machine(machine: Machine, flux_W_per_m2: float = 60.0) -> Machi
         tag = ("p" if face[0] == "+" else "m") + face[1]
         sources.append(
             {
-                "name": f"generic_radiant_{tag}",
+                "name": f"{GENERIC_PREFIX}radiant_{tag}",
                 "kind": "radiant",
                 "face": face,
                 "z_mm": None,

@@ -19,11 +19,12 @@ import fbgcomp.models.policy as P
 from fbgcomp.models.filters import first_order_recursion, first_order_step
 from fbgcomp.models.physical.thermal import (
     MAP_LEADS_S,
+    consensus,
     grating_map,
     housing_leads,
     housing_mean,
     map_features,
-    ridge_from_moments,
+    map_members,
     thermal_regressors,
 )
 
@@ -189,16 +190,18 @@ class PhysicalPredictor:
             S = len(self.sensor_names)
             k = len(tm["scale"])
             cols = [i for i in range(k) if i >= S or i in keep]
-            coef = (
-                np.asarray(tm["coef"], float)
-                if len(cols) == k
-                else ridge_from_moments(tm["gram"], tm["xty"], tm["scale"], cols, float(m.map_ridge))
-            )
+            members = map_members(tm, cols, float(m.map_ridge))
+            if len(cols) == k:
+                members[0] = np.asarray(tm["coef"], float)
+            coef = members[0]
             lo, hi = np.asarray(tm["envelope_low"], float), np.asarray(tm["envelope_high"], float)
             nz = np.asarray(tm.get("noise_gram", np.zeros((k, k))), float)
             self.map_noise_sd_um = np.sqrt(np.clip(np.einsum("ka,kl,la->a", coef, nz, coef), 0, None))
             self.map = {
                 "coef": coef,
+                # (k, 3 m): every member's coefficients side by side, one product per batch
+                "members": np.concatenate(list(members), axis=1),
+                "n_members": len(members),
                 "low": lo,
                 "high": hi,
                 "G": (np.asarray(m.load_["G_um_per_N"], float) if m.load_ is not None else np.zeros((S, 3))),
@@ -671,7 +674,11 @@ class PhysicalPredictor:
                     thermal = thermal + L @ self.cal["coef"]
             else:
                 Xc, outside = P.clip_to_envelope(X, self.map["low"], self.map["high"], self.margin)
-                thermal = Xc @ self.map["coef"]
+                if self.map["n_members"] > 1:
+                    each = (Xc @ self.map["members"]).reshape(n, self.map["n_members"], 3)
+                    thermal = consensus(each.transpose(1, 0, 2))
+                else:
+                    thermal = Xc @ self.map["coef"]
                 if L is not None:
                     Lc, out_l = P.clip_to_envelope(L, self.cal["low"], self.cal["high"], self.margin)
                     thermal = thermal + Lc @ self.cal["coef"]

@@ -114,6 +114,12 @@ def check_shapes(d: dict, source) -> None:
         ):
             array(tm.get(key), f"twin_map.{key}", shape)
         need(np.all(np.asarray(tm["scale"], float) >= 0), "twin_map.scale", "must be >= 0")
+        without = tm.get("without", [])
+        need(isinstance(without, list), "twin_map.without", "must be a list")
+        for i, w in enumerate(without):
+            need(isinstance(w, dict), f"twin_map.without[{i}]", "must be a mapping")
+            array(w.get("gram"), f"twin_map.without[{i}].gram", (k, k))
+            array(w.get("xty"), f"twin_map.without[{i}].xty", (k, 3))
         cal = tm.get("calibration")
         if cal is not None:
             need(isinstance(cal, dict), "twin_map.calibration", "must be a mapping or null")

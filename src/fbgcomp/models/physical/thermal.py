@@ -15,7 +15,7 @@ import numpy as np
 from fbgcomp.models.features import FeatureMap
 from fbgcomp.models.filters import first_order_filter, first_order_step
 from fbgcomp.optics import wavelength_nm
-from fbgcomp.structure.scenarios import generic_heat_machine, thermal_scenarios
+from fbgcomp.structure.scenarios import GENERIC_PREFIX, generic_heat_machine, thermal_scenarios
 
 #: Low-pass of the probe temperatures before the thermal regressors, s.
 PROBE_SMOOTHING_S = 60.0
@@ -166,6 +166,30 @@ def ridge_from_moments(gram, xty, scale, keep, lam):
     return coef
 
 
+def map_members(tm, cols, lam):
+    """Coefficients (m, k, 3) of the twin map's members on the feature columns ``cols``: the
+    map of the whole population first, then one map per undeclared source, fitted on the same
+    scenarios with that source taken out (``tm["without"]``)."""
+    out = [ridge_from_moments(tm["gram"], tm["xty"], tm["scale"], cols, lam)]
+    for w in tm.get("without", []):
+        g = np.asarray(w["gram"], float)
+        out.append(ridge_from_moments(g, w["xty"], np.sqrt(np.clip(np.diag(g), 0, None)), cols, lam))
+    return np.stack(out)
+
+
+def consensus(members_um):
+    """Per frame and axis, the correction every member agrees on (m, n, 3) -> (n, 3): the
+    smallest in magnitude when all have the same sign, else 0.
+
+    The gratings cannot always tell an undeclared heat source from a declared one (a face with
+    one grating reads the same whether the whole face or a zone of it warms), and the TTP
+    moves differently for each: the twin map then answers with its scenarios' prior, which a
+    real shop need not share. What every prior without one of those sources agrees on is what
+    the sensors, not the prior, say."""
+    lo, hi = members_um.min(axis=0), members_um.max(axis=0)
+    return np.where(lo > 0.0, lo, np.where(hi < 0.0, hi, 0.0))
+
+
 def twin_thermal_population(
     machine,
     sensors,
@@ -188,7 +212,7 @@ def twin_thermal_population(
         p not in mprobes and p not in ref_of for p in probe_names
     ):
         return None
-    from fbgcomp.structure import Twin  # noqa: PLC0415 - optional extra: scikit-fem (the FE twin)
+    from fbgcomp.structure import ThermalResponse, Twin  # noqa: PLC0415 - optional extra: scikit-fem (the FE twin)
 
     twin = Twin(generic_heat_machine(machine))
     idx = [twin.sensor_names.index(s.name) for s in sensors]
@@ -234,25 +258,50 @@ def twin_thermal_population(
     gram, xty, noise, n = np.zeros((k, k)), np.zeros((k, 3)), np.zeros((k, k)), 0
     lo, hi = np.full(k, np.inf), np.full(k, -np.inf)
     ylo, yhi = np.full(3, np.inf), np.full(3, -np.inf)
-    for _inputs, r in thermal_scenarios(twin, n_scenarios, seed):
+    # The moments of the same scenarios with each undeclared (generic) source taken out: the twin
+    # is linear, so a scenario without it is the scenario minus that source's response alone
+    # (same inputs otherwise, same noise), and the members differ by that source only.
+    Tref = twin.machine.reference_temperature_C
+    generic = [h.name for h in twin.machine.thermal.sources if h.name.startswith(GENERIC_PREFIX)]
+    without = {g: [np.zeros((k, k)), np.zeros((k, 3))] for g in generic}
+    for inputs, r in thermal_scenarios(twin, n_scenarios, seed):
         r = r.change_from_start()
         t = r.time_s
         el0 = r.sensor_elongation_um[:, idx]
-        el = el0 + rng.normal(0, grating_noise_um, (t.size, len(idx)))
+        el_noise = rng.normal(0, grating_noise_um, (t.size, len(idx)))
+        el = el0 + el_noise
         # probe noise, and the error of a zero state read from a single slow probe sample
         dT0 = thermometers(r)
-        dT = (
-            dT0
-            + rng.normal(0, probe_noise_K, (t.size, len(sources)))
-            + rng.normal(0, probe_noise_K, len(sources))
+        dT_noise = rng.normal(0, probe_noise_K, (t.size, len(sources))) + rng.normal(
+            0, probe_noise_K, len(sources)
         )
+        dT = dT0 + dT_noise
         X = features(r, el, dT)
         N = X - features(r, el0, dT0)
         noise += N.T @ N
         Y = r.ttp_um
-        gram += X.T @ X
-        xty += X.T @ Y
+        XtX, XtY = X.T @ X, X.T @ Y
+        gram += XtX
+        xty += XtY
         n += t.size
+        for g, acc in without.items():
+            if not np.any(inputs["heat"][g]):
+                acc[0] += XtX
+                acc[1] += XtY
+                continue
+            alone = twin.thermal(t, Tref, heat={g: inputs["heat"][g]}, initial_C=Tref).change_from_start()
+            rest = ThermalResponse(
+                t,
+                r.sensor_elongation_um - alone.sensor_elongation_um,
+                r.sensor_temperature_C - alone.sensor_temperature_C,
+                r.probe_C - alone.probe_C,
+                r.ttp_um - alone.ttp_um,
+                r.sensor_names,
+                r.probe_names,
+            )
+            Xg = features(rest, rest.sensor_elongation_um[:, idx] + el_noise, thermometers(rest) + dT_noise)
+            acc[0] += Xg.T @ Xg
+            acc[1] += Xg.T @ rest.ttp_um
         lo, hi = np.minimum(lo, X.min(axis=0)), np.maximum(hi, X.max(axis=0))
         ylo, yhi = np.minimum(ylo, Y.min(axis=0)), np.maximum(yhi, Y.max(axis=0))
     gram, xty, noise = gram / n, xty / n, noise / n
@@ -260,6 +309,9 @@ def twin_thermal_population(
         "gram": gram.tolist(),
         "xty": xty.tolist(),
         "scale": np.sqrt(np.diag(gram)).tolist(),
+        "without": [
+            {"source": g, "gram": (a[0] / n).tolist(), "xty": (a[1] / n).tolist()} for g, a in without.items()
+        ],
         "noise_gram": noise.tolist(),
         "n_samples": n,
         "n_scenarios": n_scenarios,
