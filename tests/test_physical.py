@@ -397,7 +397,7 @@ def test_consensus_applies_what_every_member_agrees_on():
 
 
 @pytest.mark.slow
-def test_a_declared_zone_on_a_face_with_one_grating_does_no_harm(tmp_path):
+def test_a_declared_zone_on_a_face_with_one_grating_does_no_harm():
     # ram2 as a user would describe it with its radiant load on the lower half of -X, where only
     # S2 sits: S2 reads the same whether that zone or the whole face warms (the twin's generic
     # whole-face pulses), and the TTP moves differently for each. With the one map of the whole
@@ -421,6 +421,13 @@ def test_a_declared_zone_on_a_face_with_one_grating_does_no_harm(tmp_path):
     m = PhysicalModel(machine=machine).fit(train)
     assert len(m.twin_map_["without"]) == 4  # one member per generic face
     for axis, a in _metrics(m, held)["axes"].items():
+        assert a["max_abs_error_um"] <= a["peak_um"] + 0.5, (axis, a)
+    # Trained on the thermal campaign alone (no loads): the gratings' frame noise was only read
+    # on loaded campaigns, the step test fell back to 0.05 µm (a sixth of this noise) and noise
+    # started loads on every frame: dx 471 µm here, 1123 µm on the built-in twin.
+    alone = PhysicalModel(machine=machine).fit(train[:1])
+    np.testing.assert_allclose(alone.load_["noise_var_um2"], m.load_["noise_var_um2"], rtol=0.5)
+    for axis, a in _metrics(alone, held)["axes"].items():
         assert a["max_abs_error_um"] <= a["peak_um"] + 0.5, (axis, a)
 
 

@@ -242,8 +242,11 @@ class PhysicalModel(EstimatorParams, ModelFile):
         G = C = None
         max_force = np.full(3, 5000.0)
         active = np.zeros(3, bool)
-        noise_var = np.full(S, np.nan)
-        frame_dt = self.nominal_dt_s_
+        # the gratings' frame noise, read on every training campaign, loaded or not: a training
+        # set without loads left it NaN and the step test fell back to 0.05 µm, a sixth of the
+        # twin's frame noise, so noise started loads on every held-out frame (the twin's
+        # thermal-36h-b fitted on thermal-36h alone: dx 1123 µm against 3.1 uncompensated)
+        noise_var, frame_dt = self._frame_noise_var(campaigns, aligned, rows, fmap)
         if loaded_rows:
             Xs, Es_, Ys, ws_ = [], [], [], []
             k = len(loaded_rows)
@@ -266,7 +269,6 @@ class PhysicalModel(EstimatorParams, ModelFile):
             C = np.zeros((3, 3))
             G[:, active] = Bg[k : k + active.sum()].T
             C[:, active] = By[k : k + active.sum()].T
-            noise_var, frame_dt = self._frame_noise_var(campaigns, aligned, rows, fmap)
             # a component the training never excited (its column is load-cell noise) is
             # believed over the range of those it did: its signature comes from the twin
             max_force = np.abs(Fall).max(axis=0)
