@@ -354,6 +354,24 @@ def test_non_finite_coefficient_is_refused(model, tmp_path):
         load_model(path)
 
 
+def test_the_map_members_are_stored_and_checked(twin_model, tmp_path):
+    import json
+
+    from fbgcomp.errors import InputError
+
+    d = twin_model.to_dict()
+    assert [w["source"] for w in d["twin_map"]["without"]] == [
+        f"generic_radiant_{t}" for t in ("pX", "mX", "pY", "mY")
+    ]
+    loaded = load_model(twin_model.save(tmp_path / "m.json"))
+    assert loaded.predictor().map["n_members"] == 5
+    d["twin_map"]["without"][1]["gram"] = d["twin_map"]["without"][1]["gram"][:-1]
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps(d))
+    with pytest.raises(InputError, match=r"twin_map.without\[1\].gram"):
+        load_model(path)
+
+
 def test_generic_scenarios_work_on_a_machine_that_declares_no_heat_sources():
     # The built-in machine relies on the default sources (spindle heat in the housing and a
     # radiant face); `fbgcomp fit --machine` crashed on it with a TypeError.

@@ -120,6 +120,18 @@ def check_shapes(d: dict, source) -> None:
             need(isinstance(w, dict), f"twin_map.without[{i}]", "must be a mapping")
             array(w.get("gram"), f"twin_map.without[{i}].gram", (k, k))
             array(w.get("xty"), f"twin_map.without[{i}].xty", (k, 3))
+            if "ttp_ms_um2" in w:
+                need(
+                    np.all(array(w["ttp_ms_um2"], f"twin_map.without[{i}].ttp_ms_um2", (3,)) >= 0),
+                    f"twin_map.without[{i}].ttp_ms_um2",
+                    "must be >= 0",
+                )
+        if "ttp_ms_um2" in tm:
+            need(
+                np.all(array(tm["ttp_ms_um2"], "twin_map.ttp_ms_um2", (3,)) >= 0),
+                "twin_map.ttp_ms_um2",
+                "must be >= 0",
+            )
         cal = tm.get("calibration")
         if cal is not None:
             need(isinstance(cal, dict), "twin_map.calibration", "must be a mapping or null")
