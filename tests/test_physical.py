@@ -355,11 +355,12 @@ def test_non_finite_coefficient_is_refused(model, tmp_path):
 
 
 def test_the_map_members_are_stored_and_checked(twin_model, tmp_path):
+    import copy
     import json
 
     from fbgcomp.errors import InputError
 
-    d = twin_model.to_dict()
+    d = copy.deepcopy(twin_model.to_dict())  # to_dict shares the model's lists
     assert [w["source"] for w in d["twin_map"]["without"]] == [
         f"generic_radiant_{t}" for t in ("pX", "mX", "pY", "mY")
     ]
