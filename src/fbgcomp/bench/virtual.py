@@ -309,13 +309,7 @@ def true_response(twin, scenario: Scenario, seed: int = 0):
                     file=f"<scenario {scenario.name}>",
                     column=f"field {field}",
                 )
-        h = twin.thermal(
-            time_s,
-            ambient,
-            spindle if spindle.any() else None,
-            radiant_W_per_m2=radiant if radiant.any() else None,
-            initial_C=scenario.initial_C,
-        )
+        h = twin.thermal(time_s, ambient, spindle, radiant_W_per_m2=radiant, initial_C=scenario.initial_C)
         elong = np.asarray(h.sensor_elongation_um)
         sensor_t = np.asarray(h.sensor_temperature_C)
         probe_t = _probe_matrix(h.probe_C, twin.probe_names)

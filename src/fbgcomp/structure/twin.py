@@ -59,6 +59,19 @@ class ThermalResponse:
         """Temperature history (°C) of one probe."""
         return self.probe_C[:, self.probe_names.index(name)]
 
+    def __sub__(self, other: ThermalResponse) -> ThermalResponse:
+        """The response minus ``other`` on the same clock: the twin is linear, so a campaign
+        minus one input's response alone is the campaign without that input."""
+        return ThermalResponse(
+            self.time_s,
+            self.sensor_elongation_um - other.sensor_elongation_um,
+            self.sensor_temperature_C - other.sensor_temperature_C,
+            self.probe_C - other.probe_C,
+            self.ttp_um - other.ttp_um,
+            self.sensor_names,
+            self.probe_names,
+        )
+
     def change_from_start(self) -> ThermalResponse:
         """The same response with every output referred to its first sample."""
         return ThermalResponse(
@@ -550,13 +563,14 @@ class Twin:
     def _inputs(self, time_s, ambient_C, spindle_heat_W, radiant_W_per_m2, heat=None):
         """Input matrix (n, m). ``spindle_heat_W`` feeds the first volume source and
         ``radiant_W_per_m2`` the first radiant one; ``heat`` maps any source (by name or input
-        name) to its history. Sources given nothing stay at zero."""
+        name) to its history. Sources given nothing stay at zero; an all-zero ``spindle_heat_W``
+        or ``radiant_W_per_m2`` is nothing, so it needs no such source."""
         t = np.asarray(time_s, dtype=float).ravel()
         sources = self.machine.thermal.sources
         values: dict[int, object] = {}
         for kind, v in (("volume", spindle_heat_W), ("radiant", radiant_W_per_m2)):
             first = next((i for i, h in enumerate(sources) if h.kind == kind), None)
-            if v is not None:
+            if v is not None and np.any(v):
                 if first is None:
                     raise ValueError(f"the machine declares no {kind} heat source")
                 values[first] = v

@@ -157,8 +157,9 @@ def ridge_from_moments(gram, xty, scale, keep, lam):
     feature columns ``keep`` (others get 0), features standardised by ``scale``, penalty ``lam``.
     A column that is zero in every scenario (``scale`` 0: the housing leads of a machine without a
     housing probe) carries nothing and gets 0 as well."""
-    keep = np.asarray([k for k in keep if np.asarray(scale, float)[k] > 0], int)
-    sc = np.asarray(scale, float)[keep]
+    scale = np.asarray(scale, float)
+    keep = np.asarray([k for k in keep if scale[k] > 0], int)
+    sc = scale[keep]
     g = np.asarray(gram, float)[np.ix_(keep, keep)] / np.outer(sc, sc)
     b = np.asarray(xty, float)[keep] / sc[:, None]
     coef = np.zeros((len(scale), np.asarray(xty).shape[1]))
@@ -231,7 +232,7 @@ def twin_thermal_population(
         p not in mprobes and p not in ref_of for p in probe_names
     ):
         return None
-    from fbgcomp.structure import ThermalResponse, Twin  # noqa: PLC0415 - optional extra: scikit-fem (the FE twin)
+    from fbgcomp.structure import Twin  # noqa: PLC0415 - optional extra: scikit-fem (the FE twin)
 
     twin = Twin(generic_heat_machine(machine))
     idx = [twin.sensor_names.index(s.name) for s in sensors]
@@ -311,15 +312,7 @@ def twin_thermal_population(
                 acc[1] += XtY
                 continue
             alone = twin.thermal(t, Tref, heat={g: inputs["heat"][g]}, initial_C=Tref).change_from_start()
-            rest = ThermalResponse(
-                t,
-                r.sensor_elongation_um - alone.sensor_elongation_um,
-                r.sensor_temperature_C - alone.sensor_temperature_C,
-                r.probe_C - alone.probe_C,
-                r.ttp_um - alone.ttp_um,
-                r.sensor_names,
-                r.probe_names,
-            )
+            rest = r - alone
             Xg = features(rest, rest.sensor_elongation_um[:, idx] + el_noise, thermometers(rest) + dT_noise)
             acc[0] += Xg.T @ Xg
             acc[1] += Xg.T @ rest.ttp_um
