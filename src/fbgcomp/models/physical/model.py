@@ -296,8 +296,6 @@ class PhysicalModel(EstimatorParams, ModelFile):
             separable = cos < self.separability_cos
             active = active & separable
         if G is not None and active.any():
-            if np.isnan(noise_var).any():
-                noise_var = np.full(S, 0.05**2)
             self.load_ = {
                 "G_um_per_N": G.tolist(),
                 "C_um_per_N": C.tolist(),
