@@ -98,11 +98,13 @@ def resolve_roles(probe_names, machine=None) -> TemperatureRoles:
     # first by position in the description, then by name; then what is left: for the bulk and
     # the surface a probe on the ram before one in the housing, the air last for every role
     for role in ("flange", "bulk", "surf"):
-        for n in [n for n in solid if where(n) == place[role]] + [
-            n for n in solid if any(k in n.lower() for k in ROLE_KEYS[role])
-        ]:
-            if role not in chosen and n not in chosen.values():
-                chosen[role] = n
+        if role in chosen:
+            continue
+        fits = [n for n in solid if where(n) == place[role]]
+        fits += [n for n in solid if any(k in n.lower() for k in ROLE_KEYS[role])]
+        pick = next((n for n in fits if n not in chosen.values()), None)
+        if pick is not None:
+            chosen[role] = pick
     for role in ("bulk", "surf", "flange"):
         if role in chosen:
             continue

@@ -289,11 +289,11 @@ class MRAModel(EstimatorParams, ModelFile):
 
     # -- fitting -------------------------------------------------------------------------
     def _roles(self) -> TemperatureRoles:
-        """The eq. 13 roles: those resolved at fit time (``roles_``), else the ``roles`` given,
-        else the paper's names."""
-        fitted = getattr(self, "roles_", None)
-        if fitted is not None:
-            return fitted
+        """The eq. 13 roles: those resolved at fit time (``roles_``), else :meth:`_given_roles`."""
+        return getattr(self, "roles_", None) or self._given_roles()
+
+    def _given_roles(self) -> TemperatureRoles:
+        """The ``roles`` hyper-parameter as :class:`TemperatureRoles` (None: the paper's names)."""
         if self.roles is None:
             return TemperatureRoles()
         if isinstance(self.roles, TemperatureRoles):
@@ -305,9 +305,8 @@ class MRAModel(EstimatorParams, ModelFile):
         (:func:`~fbgcomp.models.features.resolve_roles`, by the machine description's probe
         positions when one is given): a ram whose probes do not carry the paper's names gets
         its eq. 13 features too."""
-        self.roles_ = None
         if self.roles is not None or probe_names is None or self.features == "eq11":
-            return self._roles()
+            return self._given_roles()
         try:
             return resolve_roles(probe_names, machine)
         except ValueError as exc:
