@@ -24,7 +24,6 @@ Prints per variant and held-out campaign the max |error| against the uncompensat
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import os
 import subprocess
@@ -65,11 +64,10 @@ def _four(d):
 
 
 def _eight(d):
-    extra = []
-    for s in d["sensors"][:4]:
-        t = dict(s, name=s["name"] + "b", offset_mm=80.0, lambda0_nm=s["lambda0_nm"] + 30.0)
-        extra.append(t)
-    d["sensors"] += extra
+    d["sensors"] += [
+        dict(s, name=s["name"] + "b", offset_mm=80.0, lambda0_nm=s["lambda0_nm"] + 30.0)
+        for s in d["sensors"][:4]
+    ]
 
 
 def _no_housing_probe(d):
@@ -89,10 +87,16 @@ def _other_sources(d):
             "x_mm": [-60.0, 60.0],
             "y_mm": [-60.0, 60.0],
             "z_mm": [-60.0, 0.0],
-        }
-        | {"nominal_W": 40.0},
-        {"name": "radiant", "kind": "radiant", "face": "-X", "z_mm": [0.0, 700.0], "absorptivity": 0.8}
-        | {"nominal_W_per_m2": 120.0},
+            "nominal_W": 40.0,
+        },
+        {
+            "name": "radiant",
+            "kind": "radiant",
+            "face": "-X",
+            "z_mm": [0.0, 700.0],
+            "absorptivity": 0.8,
+            "nominal_W_per_m2": 120.0,
+        },
     ]
 
 
@@ -128,7 +132,7 @@ def variant(name, work: Path) -> dict:
     folder = work / name
     folder.mkdir(parents=True, exist_ok=True)
     machine = folder / "machine.yaml"
-    machine.write_text(yaml.safe_dump(copy.deepcopy(d), sort_keys=False))
+    machine.write_text(yaml.safe_dump(d, sort_keys=False))
     for scenario, seed in SCENARIOS:
         if not (folder / scenario).is_dir():
             _run(
