@@ -411,3 +411,30 @@ def test_roles_by_position_in_the_description_then_by_name_then_what_is_left():
     assert resolve_roles(["T_room", "P1", "P2", "P3"]) == TemperatureRoles(bulk="P1", surf="P2", flange="P3")
     with pytest.raises(ValueError, match="no temperature probe is left for the"):
         resolve_roles(["P1", "P2"])
+
+
+def test_every_model_takes_the_same_housing_probe():
+    # Three rules used to decide which probe is "on the housing" (nearest its centre in the
+    # kinematic chain, z < 0 then a name in the physical model, z <= 0 and the campaign's order in
+    # eq. 13's roles); with two housing probes they picked different ones.
+    from fbgcomp.kinematics import housing_probe
+    from fbgcomp.models.physical.thermal import housing_probe_names
+    from fbgcomp.structure import load_machine
+
+    machine = load_machine()
+    h = machine.housing
+    extra = machine.probes[0].model_copy(
+        update={"name": "P_core", "kind": "point", "x_mm": 10.0, "y_mm": 0.0, "z_mm": -h.height_mm / 2}
+    )
+    two = machine.model_copy(update={"probes": [*machine.probes, extra]})
+    names = ["T_bulk", "T_surf", "T_flange", "P_core", "T_amb"]
+    # nearest the housing's centre first; the flange face (z = 0) counts as the housing
+    assert two.housing_probe_names() == ["P_core", "T_flange"]
+    assert housing_probe(two) == "P_core"
+    assert housing_probe_names(names, two) == ["P_core", "T_flange"]
+    renamed = {"T_flange": "A", "P_core": "B"}
+    probes = [p.model_copy(update={"name": renamed.get(p.name, p.name)}) for p in two.probes]
+    described = two.model_copy(update={"probes": probes})
+    assert resolve_roles(["T_bulk", "T_surf", "A", "B", "T_amb"], described).flange == "B"
+    # a probe in the ram wall is never a housing probe
+    assert "T_bulk" not in two.housing_probe_names()

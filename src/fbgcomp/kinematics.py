@@ -308,18 +308,10 @@ class _Segment:
 
 
 def housing_probe(machine) -> str | None:
-    """The point probe inside (or on) the steel housing, nearest to its centre; None if none."""
-    h = machine.housing
-    best, dist = None, np.inf
-    for p in machine.probes:
-        if p.kind != "point" or p.z_mm > 1e-6 or p.z_mm < -h.height_mm - 1e-6:
-            continue
-        if abs(p.x_mm) > h.width_mm / 2 + 1e-6 or abs(p.y_mm) > h.depth_mm / 2 + 1e-6:
-            continue
-        d = np.hypot(np.hypot(p.x_mm, p.y_mm), p.z_mm + h.height_mm / 2)
-        if d < dist:
-            best, dist = p.name, d
-    return best
+    """The point probe inside (or on) the steel housing, nearest to its centre; None if none
+    (:meth:`fbgcomp.structure.Machine.housing_probe_names`)."""
+    names = machine.housing_probe_names()
+    return names[0] if names else None
 
 
 #: Compliance factors of the beam closure (:class:`KinematicChain` ``closure_factors``).

@@ -62,8 +62,9 @@ def resolve_roles(probe_names, machine=None) -> TemperatureRoles:
 
     The paper's names (``T_bulk``, ``T_surf``, ``T_flange``) where the campaign has them. A role
     whose paper name is missing goes to a free probe that fits it: with a machine description,
-    by position (a point probe in the housing, z ≤ 0, for the flange; one inside the ram's wall
-    for the bulk; one on its outer surface for the surface), else by name (:data:`ROLE_KEYS`).
+    by position (a point probe in or on the housing, the one nearest its centre, for the flange;
+    one inside the ram's wall for the bulk; one on its outer surface for the surface), else by
+    name (:data:`ROLE_KEYS`).
     A role still open takes what is left in the campaign's order, a probe on the ram before
     one in the housing for the bulk and the surface, and the air (the description's ambient
     probe, else a name in :data:`AMBIENT_KEYS`) only as the last resort: a ram without a
@@ -75,6 +76,8 @@ def resolve_roles(probe_names, machine=None) -> TemperatureRoles:
     if all(p in names for p in default.values()):
         return TemperatureRoles()
     desc = {p.name: p for p in machine.probes} if machine is not None else {}
+    # the housing probes nearest the housing's centre first, as every model ranks them
+    housing = machine.housing_probe_names() if machine is not None else []
 
     def ambient(n):
         d = desc.get(n)
@@ -85,7 +88,7 @@ def resolve_roles(probe_names, machine=None) -> TemperatureRoles:
         d = desc.get(n)
         if d is None or d.kind != "point":
             return None
-        if d.z_mm <= 1e-6:  # the flange itself (z = 0) included, as kinematics.housing_probe has it
+        if n in housing:
             return "housing"
         half_w, half_d = machine.ram.outer_width_mm / 2, machine.ram.outer_depth_mm / 2
         on_face = min(half_w - abs(d.x_mm), half_d - abs(d.y_mm)) <= 1e-6
@@ -101,6 +104,8 @@ def resolve_roles(probe_names, machine=None) -> TemperatureRoles:
         if role in chosen:
             continue
         fits = [n for n in solid if where(n) == place[role]]
+        if role == "flange":
+            fits.sort(key=housing.index)
         fits += [n for n in solid if any(k in n.lower() for k in ROLE_KEYS[role])]
         pick = next((n for n in fits if n not in chosen.values()), None)
         if pick is not None:

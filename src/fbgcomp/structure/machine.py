@@ -570,6 +570,21 @@ class Machine(_Strict):
             return inside_outer and not in_cavity
         return False
 
+    def housing_probe_names(self, tol_mm: float = 1e-6) -> list[str]:
+        """The point probes in or on the steel housing (z <= 0: the flange face at z = 0 counts),
+        nearest to the housing's centre first. The one rule every model uses for "the housing
+        probe" (eq. 13's flange role, the kinematic chain's steel expansion, the physical model's
+        housing transient)."""
+        h = self.housing
+        found = []
+        for p in self.probes:
+            if p.kind != "point" or p.z_mm > tol_mm or p.z_mm < -h.height_mm - tol_mm:
+                continue
+            if abs(p.x_mm) > h.width_mm / 2 + tol_mm or abs(p.y_mm) > h.depth_mm / 2 + tol_mm:
+                continue
+            found.append((float(np.hypot(np.hypot(p.x_mm, p.y_mm), p.z_mm + h.height_mm / 2)), p.name))
+        return [name for _, name in sorted(found, key=lambda f: f[0])]
+
     @property
     def ttp_z_mm(self) -> float:
         """Z of the tool tip point in the ram frame (mm)."""

@@ -359,14 +359,11 @@ def grating_map(sensors, probe_names):
 
 
 def housing_probe_names(probe_names, machine=None):
-    """Probes on the spindle housing (the machine description's point probes below z = 0, else
-    names containing 'flange', 'housing' or 'spindle')."""
+    """Probes on the spindle housing (the machine description's point probes in or on it, nearest
+    its centre first: :meth:`~fbgcomp.structure.Machine.housing_probe_names`; without one, names
+    containing 'flange', 'housing' or 'spindle')."""
     if machine is not None:
-        found = [
-            p.name
-            for p in machine.probes
-            if p.kind == "point" and p.z_mm is not None and p.z_mm < 0 and p.name in probe_names
-        ]
+        found = [n for n in machine.housing_probe_names() if n in probe_names]
         if found:
             return found
     keys = ("flange", "housing", "spindle")
