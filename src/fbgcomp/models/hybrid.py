@@ -9,6 +9,7 @@ contradict plane sections. :mod:`fbgcomp.models.calibrated` extends it with a fi
 
 from __future__ import annotations
 
+import copy
 from typing import Self
 
 import numpy as np
@@ -307,7 +308,7 @@ class HybridModel(EstimatorParams, ModelFile):
                 },
                 "z_axis_mm": self.kinematic_.machine_.supports.z_axis_mm,
                 "fallback_policy": self.fallbacks,
-                "training": self.training_,
+                "training": copy.deepcopy(self.training_),
             }
         )
         return d

@@ -15,6 +15,8 @@ half-width (n, 3) µm of its 95 % prediction interval, plus ``expected_rms_error
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 from scipy import stats
 from scipy.optimize import nnls
@@ -400,7 +402,7 @@ class KinematicModel(EstimatorParams, ModelFile):
                 },
                 "z_axis_mm": self.machine_.supports.z_axis_mm,
                 "fallback_policy": self.fallbacks,
-                "training": self.training_,
+                "training": copy.deepcopy(self.training_),
             }
         )
         return d

@@ -19,6 +19,7 @@ sensors it expects, the training campaigns and fit statistics.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, field
 
@@ -618,7 +619,7 @@ class MRAModel(EstimatorParams, ModelFile):
             ],
             "fallback_policy": self.fallbacks,
             "campaign_weights": getattr(self, "campaign_weights", "samples"),
-            "training": self.training_,
+            "training": copy.deepcopy(self.training_),
             "inference": {
                 "cov_type": getattr(self, "cov_type", "nonrobust"),
                 "hac_maxlags": getattr(self, "hac_maxlags", "auto"),
