@@ -355,12 +355,11 @@ def test_non_finite_coefficient_is_refused(model, tmp_path):
 
 
 def test_the_map_members_are_stored_and_checked(twin_model, tmp_path):
-    import copy
     import json
 
     from fbgcomp.errors import InputError
 
-    d = copy.deepcopy(twin_model.to_dict())  # to_dict shares the model's lists
+    d = twin_model.to_dict()  # the model's file content, a copy: editing it leaves the model alone
     assert [w["source"] for w in d["twin_map"]["without"]] == [
         f"generic_radiant_{t}" for t in ("pX", "mX", "pY", "mY")
     ]
@@ -371,6 +370,7 @@ def test_the_map_members_are_stored_and_checked(twin_model, tmp_path):
     path.write_text(json.dumps(d))
     with pytest.raises(InputError, match=r"twin_map.without\[1\].gram"):
         load_model(path)
+    assert twin_model.to_dict()["twin_map"] == loaded.to_dict()["twin_map"]
 
 
 def test_generic_scenarios_work_on_a_machine_that_declares_no_heat_sources():
@@ -605,3 +605,23 @@ def test_lowpass_on_a_jittered_clock_is_the_per_sample_recursion():
         ref.append(yp)
     np.testing.assert_allclose(y, np.array(ref), rtol=0, atol=1e-11)
     assert state[1] == t[-1]
+
+
+def test_a_training_set_too_short_to_read_the_grating_noise_is_refused(tmp_path):
+    """The step test needs each grating's frame noise; with fewer than 10 interrogator frames in
+    every training campaign it was taken as zero, so every frame's noise would count as a load."""
+    import shutil
+
+    from fbgcomp.errors import InputError
+    from fbgcomp.io.campaign import read_campaign
+    from fbgcomp_testing import RAM2_DIR
+
+    src = RAM2_DIR / "data" / "static_x"
+    tiny = tmp_path / "tiny"
+    tiny.mkdir()
+    shutil.copy(src / "campaign.yaml", tiny)
+    for name, rows in (("fbg", 9), ("loads", 9), ("temperatures", 3), ("reference", 3)):
+        lines = (src / f"{name}.csv").read_text().splitlines()[:rows]
+        (tiny / f"{name}.csv").write_text("\n".join(lines) + "\n")
+    with pytest.raises(InputError, match=r"tiny: fbg.csv: .* at least 10 interrogator frames"):
+        PhysicalModel().fit(read_campaign(tiny))

@@ -11,6 +11,7 @@ The design is described in :mod:`fbgcomp.models.physical`.
 
 from __future__ import annotations
 
+import copy
 from itertools import combinations
 
 import numpy as np
@@ -515,7 +516,8 @@ class PhysicalModel(EstimatorParams, ModelFile):
         for loads. The step test takes a frame slower than the fastest one as carrying this
         variance (an interrogator's sweep has its noise whatever the rate; the twin's frames at
         0.1 s and 1 s agree) and a faster one as the same density (variance x interval, the
-        safe side for an interrogator that averages sweeps into its exported frames)."""
+        safe side for an interrogator that averages sweeps into its exported frames). InputError
+        when no training campaign has 10 frames to read it from."""
         out = np.zeros(len(self.sensor_names))
         fastest = np.inf
         for c, a, r in zip(campaigns, aligned, rows):
@@ -526,7 +528,14 @@ class PhysicalModel(EstimatorParams, ModelFile):
             mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0)
             out = np.maximum(out, (1.4826 * mad) ** 2 / 2.0)
             fastest = min(fastest, float(np.median(np.diff(ft))))
-        return out, (fastest if np.isfinite(fastest) else self.nominal_dt_s_)
+        if not np.isfinite(fastest):
+            # zero noise would make the step test take every frame's noise for a load
+            where = ", ".join(str(c.path if c.path is not None else c.name) for c in campaigns)
+            raise InputError(
+                f"{where}: fbg.csv: the physical model reads each grating's noise from at least 10 "
+                "interrogator frames, and no training campaign has 10"
+            )
+        return out, fastest
 
     def _calibrate_drift(self, rows):
         """How far heat (and noise) move the force reading the step test sees, on the load-free
@@ -728,10 +737,10 @@ class PhysicalModel(EstimatorParams, ModelFile):
                     "resid_sd_um": np.asarray(self.thermal_resid_sd_um_).tolist(),
                     "noise_sd_um": np.asarray(self.thermal_noise_sd_um_).tolist(),
                 },
-                "twin_map": self.twin_map_,
-                "interval": getattr(self, "interval_", None),
-                "load": self.load_,
-                "training": self.training_,
+                "twin_map": copy.deepcopy(self.twin_map_),
+                "interval": copy.deepcopy(getattr(self, "interval_", None)),
+                "load": copy.deepcopy(self.load_),
+                "training": copy.deepcopy(self.training_),
                 "uncertainty": {
                     "level": 0.95,
                     "method": (
