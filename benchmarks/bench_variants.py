@@ -2,9 +2,10 @@
 
 TWIN-ONLY figures (our own simulator): they show whether the default fit runs and does no harm
 on machine descriptions that differ from ram2's in the ways issue 12 lists (rails on adjacent or
-opposite faces, fewer or more gratings, no housing or ambient probe, other heat sources), not
-the accuracy a user can expect. Each variant is ``examples/machines/ram2.yaml`` changed as a
-user with that data sheet would write it; for each, as a user runs it:
+opposite faces, fewer or more gratings, no housing or ambient probe, other heat sources) and in
+the ram itself (size, materials, layup, a cast-iron box), not the accuracy a user can expect.
+Each variant is ``examples/machines/ram2.yaml`` changed as a user with that data sheet would
+write it; for each, as a user runs it:
 
     fbgcomp simulate --machine V.yaml --scenario thermal-36h   --seed 0   (training)
     fbgcomp simulate --machine V.yaml --scenario static-xyz    --seed 0   (training)
@@ -100,6 +101,83 @@ def _other_sources(d):
     ]
 
 
+def _bigger(d):
+    """A longer, wider, rectangular ram: 400 x 250 mm, 20 mm walls, 2000 mm long, a 250 mm
+    housing, its heat sources and probes moved to match, the radiant on +Y."""
+    d["ram"].update(outer_width_mm=400.0, outer_depth_mm=250.0, wall_mm=20.0, length_mm=2000.0)
+    d["housing"].update(width_mm=400.0, depth_mm=250.0, height_mm=250.0)
+    d["tool"].update(ttp_below_housing_mm=150.0, nose_patch_mm=[150.0, 150.0])
+    where = {"T_bulk": (190.0, 0.0, 1000.0), "T_surf": (0.0, 125.0, 400.0), "T_flange": (-200.0, 0.0, -125.0)}
+    for p in d["probes"]:
+        if p["name"] in where:
+            p["x_mm"], p["y_mm"], p["z_mm"] = where[p["name"]]
+    for s in d["sensors"][4:]:
+        s.update(z_start_mm=1000.0, z_end_mm=1500.0)
+    sup = d["supports"]
+    sup["rails"] = [
+        {"face": "-Y", "across_mm": [-200.0, -150.0], "locating": True},
+        {"face": "-Y", "across_mm": [150.0, 200.0], "locating": False},
+    ]
+    sup["carriages"] = [
+        {"name": "lower", "z_range_mm": [1200.0, 1320.0]},
+        {"name": "upper", "z_range_mm": [1850.0, 2000.0]},
+    ]
+    sup["nut"]["z_mm"] = 2000.0
+    spindle, radiant = d["thermal"]["heat_sources"]
+    spindle.update(x_mm=[-40.0, 40.0], y_mm=[-40.0, 40.0], z_mm=[-250.0, -150.0], nominal_W=200.0)
+    radiant.update(face="+Y", z_mm=[800.0, 2000.0], absorptivity=0.9, nominal_W_per_m2=80.0)
+
+
+def _other_materials(d):
+    """A stiffer, negative-CTE carbon fibre (E_L 135 GPa, alpha_L -0.3e-6 /K) and a cast-iron
+    housing (120 GPa, 10.5e-6 /K)."""
+    d["materials"]["cfrp"].update(
+        E_L_GPa=135.0,
+        E_T_GPa=8.5,
+        G_LT_GPa=5.0,
+        cte_L_per_K=-0.3e-6,
+        cte_T_per_K=32e-6,
+        k_L_W_per_mK=4.5,
+        k_T_W_per_mK=0.5,
+        density_kg_per_m3=1550.0,
+        specific_heat_J_per_kgK=1000.0,
+    )
+    d["materials"]["steel"].update(
+        E_GPa=120.0,
+        cte_per_K=10.5e-6,
+        k_W_per_mK=50.0,
+        density_kg_per_m3=7200.0,
+        specific_heat_J_per_kgK=500.0,
+    )
+
+
+def _layup(d):
+    """A layup with off-axis plies: alpha_L 2e-6 /K, so the gratings see real thermal
+    elongation; softer along Z, stiffer across."""
+    d["materials"]["cfrp"].update(
+        E_L_GPa=60.0, E_T_GPa=25.0, cte_L_per_K=2.0e-6, cte_T_per_K=8e-6, k_L_W_per_mK=3.0, k_T_W_per_mK=0.8
+    )
+
+
+def _cast_iron(d):
+    """Not CFRP: an isotropic cast-iron box (120 GPa, 10.5e-6 /K, 50 W/(m K)), 20 mm walls, so the
+    gratings read its real thermal elongation."""
+    d["ram"]["wall_mm"] = 20.0
+    d["materials"]["cfrp"].update(
+        E_L_GPa=120.0,
+        E_T_GPa=120.0,
+        G_LT_GPa=46.0,
+        nu_LT=0.3,
+        nu_TT=0.3,
+        cte_L_per_K=10.5e-6,
+        cte_T_per_K=10.5e-6,
+        k_L_W_per_mK=50.0,
+        k_T_W_per_mK=50.0,
+        density_kg_per_m3=7200.0,
+        specific_heat_J_per_kgK=500.0,
+    )
+
+
 #: name -> (what it changes, edit of the description)
 VARIANTS = {
     "adjacent-rails": ("locating rail on -Y, floating rail on -X", _adjacent),
@@ -109,6 +187,10 @@ VARIANTS = {
     "no-housing-probe": ("no T_flange", _no_housing_probe),
     "no-ambient-probe": ("no T_amb", _no_ambient_probe),
     "other-sources": ("spindle, a 40 W motor zone, radiant on the lower half of -X", _other_sources),
+    "bigger-ram": ("400 x 250 x 2000 mm ram, 250 mm housing, 200 W spindle, radiant on +Y", _bigger),
+    "other-materials": ("CFRP with alpha_L -0.3e-6 /K, cast-iron housing", _other_materials),
+    "off-axis-layup": ("CFRP with alpha_L 2e-6 /K (off-axis plies)", _layup),
+    "cast-iron-ram": ("an isotropic cast-iron box instead of CFRP, 20 mm walls", _cast_iron),
 }
 
 
