@@ -8,6 +8,8 @@ told from a weak model:
 * ``measured``: the campaign's probes (quantised 0.1 K, 10 s), low-passed over 60 s, with the
   flange's leads ``T - lowpass(T, tau)`` for tau in 300..2400 s, at the reference times;
 * ``truth``: the same features from ram2's noise-free FE probe temperatures (``truth/``, 300 s);
+* ``measured, every instr.``: every probe and every grating (a grating on CFRP is a thermometer
+  of its gauge), low-passed over 60 s, with the flange's and each grating's leads;
 * ``truth + spindle power``: adding the bearings' power (low-passed at 300..3600 s), which a
   CNC knows and the campaigns do not carry.
 
@@ -71,6 +73,32 @@ def measured(ram2, name):
     return X[at], dz - dz[0]
 
 
+def measured_all(ram2, name):
+    """Every instrument the campaign carries: the four probes and the six gratings (wavelength
+    shifts in pm, each low-passed over 60 s), with the flange's and every grating's leads. A
+    grating on CFRP is a good thermometer of its gauge (~10.5 pm/K), so this asks whether the
+    box's own temperatures tell the housing's transient that the flange probe shows late."""
+    base = ram2 / "data" / name
+    temps = pd.read_csv(base / "temperatures.csv")
+    fbg = pd.read_csv(base / "fbg.csv")
+    ref = pd.read_csv(base / "reference.csv")
+    rt = ref["time_s"].to_numpy(float)
+    cols = [np.ones_like(rt)]
+    for frame, scale, leads_of in ((temps, 1.0, ("T_flange_C",)), (fbg, 1e3, None)):
+        t = frame["time_s"].to_numpy(float)
+        for c in frame.columns.drop("time_s"):
+            x = frame[c].to_numpy(float) * scale
+            x = lowpass(x - x[0], t, 60.0)
+            cols.append(np.interp(rt, t, x))
+            if leads_of is None or c in leads_of:
+                cols += [np.interp(rt, t, x - lowpass(x, t, tau)) for tau in LEADS_S]
+    dz = ref["dz_um"].to_numpy(float)
+    if (base / "loads.csv").exists():  # thermal_c: net of the applied force (Fz = 0 there)
+        loads = pd.read_csv(base / "loads.csv")
+        dz = dz - 0.826e-3 * np.interp(rt, loads["time_s"], loads["fz_N"])
+    return np.column_stack(cols), dz - dz[0]
+
+
 def truth(ram2, name, power):
     d = pd.read_csv(ram2 / "truth" / f"{name}.csv")
     t = d["time_s"].to_numpy(float)
@@ -102,6 +130,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     sources = {
         "measured": lambda n: measured(args.ram2, n),
+        "measured, every instr.": lambda n: measured_all(args.ram2, n),
         "truth": lambda n: truth(args.ram2, n, False),
         "truth + spindle power": lambda n: truth(args.ram2, n, True),
     }
