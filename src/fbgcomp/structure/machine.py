@@ -440,7 +440,7 @@ class MeshSettings(_Strict):
     # hex8: trilinear hexahedra; hex8i: with condensed incompatible modes (like C3D8I), which do
     # not lock in bending and need no mesh refinement for thin plate-bending walls. hex8i is the
     # default: a description written from a data sheet has no mesh section, and with hex8 the
-    # twin of ram2 came out 8.4 % too stiff in X (docs/twin.md). The built-in ram names hex8.
+    # twin of ram2 came out 9.6 % too stiff in X (docs/twin.md). The built-in ram names hex8.
     element: Literal["hex8", "hex8i"] = "hex8i"
 
 
