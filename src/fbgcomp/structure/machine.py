@@ -580,11 +580,14 @@ class Machine(_Strict):
         h = self.housing
         found = []
         for p in self.probes:
-            if p.kind != "point" or p.z_mm > tol_mm or p.z_mm < -h.height_mm - tol_mm:
+            if p.kind != "point" or p.x_mm is None or p.y_mm is None or p.z_mm is None:
+                continue  # the air (a point probe always has its three coordinates)
+            x, y, z = p.x_mm, p.y_mm, p.z_mm
+            if z > tol_mm or z < -h.height_mm - tol_mm:
                 continue
-            if abs(p.x_mm) > h.width_mm / 2 + tol_mm or abs(p.y_mm) > h.depth_mm / 2 + tol_mm:
+            if abs(x) > h.width_mm / 2 + tol_mm or abs(y) > h.depth_mm / 2 + tol_mm:
                 continue
-            found.append((float(np.hypot(np.hypot(p.x_mm, p.y_mm), p.z_mm + h.height_mm / 2)), p.name))
+            found.append((float(np.hypot(np.hypot(x, y), z + h.height_mm / 2)), p.name))
         return [name for _, name in sorted(found, key=lambda f: f[0])]
 
     @property
