@@ -623,5 +623,7 @@ def test_a_training_set_too_short_to_read_the_grating_noise_is_refused(tmp_path)
     for name, rows in (("fbg", 9), ("loads", 9), ("temperatures", 3), ("reference", 3)):
         lines = (src / f"{name}.csv").read_text().splitlines()[:rows]
         (tiny / f"{name}.csv").write_text("\n".join(lines) + "\n")
-    with pytest.raises(InputError, match=r"tiny: fbg.csv: .* at least 10 interrogator frames"):
+    with pytest.raises(
+        InputError, match=r"tiny/fbg.csv: the physical model .* at least 10 interrogator frames"
+    ):
         PhysicalModel().fit(read_campaign(tiny))

@@ -530,10 +530,11 @@ class PhysicalModel(EstimatorParams, ModelFile):
             fastest = min(fastest, float(np.median(np.diff(ft))))
         if not np.isfinite(fastest):
             # zero noise would make the step test take every frame's noise for a load
-            where = ", ".join(str(c.path if c.path is not None else c.name) for c in campaigns)
+            first = campaigns[0]
             raise InputError(
-                f"{where}: fbg.csv: the physical model reads each grating's noise from at least 10 "
-                "interrogator frames, and no training campaign has 10"
+                "the physical model reads each grating's noise from at least 10 interrogator "
+                f"frames, and no training campaign has 10 ({len(campaigns)} given)",
+                file=first.path / "fbg.csv" if first.path is not None else first.name,
             )
         return out, fastest
 
