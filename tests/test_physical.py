@@ -627,3 +627,37 @@ def test_a_training_set_too_short_to_read_the_grating_noise_is_refused(tmp_path)
         InputError, match=r"tiny/fbg.csv: the physical model .* at least 10 interrogator frames"
     ):
         PhysicalModel().fit(read_campaign(tiny))
+
+
+def test_a_static_campaign_without_its_loads_file_is_kept_out_of_the_thermal_part(ram2, tmp_path):
+    # A user whose static campaign has no load-cell record (no loads.csv): its 558 µm of load
+    # deflection were taken for thermal drift, the housing transient was calibrated on them
+    # (residual 189 µm) and thermal_b came out 348 µm off on dy against 18 uncompensated.
+    from fbgcomp.io.campaign import read_campaign, write_campaign
+    from fbgcomp.models.metrics import static_level_metrics
+
+    xyz = ram2["static_xyz"]
+    meta = xyz.meta.model_dump()
+    assert meta["kind"] == "static" and xyz.loads is not None
+    unrecorded = Campaign.from_arrays(
+        meta, fbg=xyz.fbg, temperatures=xyz.temperatures, reference=xyz.reference, loads=None
+    )
+    write_campaign(unrecorded, tmp_path / "static_xyz")
+    assert not (tmp_path / "static_xyz" / "loads.csv").exists()
+    unrecorded = read_campaign(tmp_path / "static_xyz")
+    machine = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram2.yaml"
+    m = PhysicalModel(machine=machine, twin_scenarios=8).fit([ram2["thermal_a"], unrecorded])
+    runs = {r["name"]: r for r in m.training_["campaigns"]}
+    assert runs["static_xyz"]["loaded"] and runs["static_xyz"]["forces_unknown"]
+    assert "forces_unknown" not in runs["thermal_a"]
+    assert "static_xyz: static or combined without loads.csv" in m.summary()
+    # the load signature comes from the twin alone, and reads the held-out static campaign
+    c = ram2["static_x"]
+    pred, _ = m.predict_interval(c)
+    al = c.aligned(zero_window_s=m.zero_window_s)
+    assert (
+        static_level_metrics(al.loads_N, al.reference_um, pred)["axes"]["dx"]["error_pct_of_deflection"] < 1.0
+    )
+    for name in ("thermal_b", "static_x"):
+        for axis, a in _metrics(m, ram2[name])["axes"].items():
+            assert a["max_abs_error_um"] <= a["peak_um"] + 0.5, (name, axis, a)

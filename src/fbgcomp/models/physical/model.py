@@ -202,7 +202,12 @@ class PhysicalModel(EstimatorParams, ModelFile):
                 a.time_s,
             )
             F = a.loads_N
-            loaded = F is not None and np.nanmax(np.abs(np.nan_to_num(F))) > 50.0
+            # A static or combined campaign without loads.csv was loaded by forces nobody
+            # recorded: its deviations are no thermal drift, so it is kept out of everything
+            # thermal (and, without forces, out of the load regression). Taken as load-free,
+            # ram2's static_xyz without its loads.csv made thermal_b dy 348 µm off on 18.
+            forces_unknown = F is None and c.meta.kind in ("static", "combined")
+            loaded = forces_unknown or (F is not None and np.nanmax(np.abs(np.nan_to_num(F))) > 50.0)
             rows.append(
                 {
                     "name": c.meta.name,
@@ -214,10 +219,11 @@ class PhysicalModel(EstimatorParams, ModelFile):
                     "zero": (w0, t0),  # the zero state's wavelengths and temperatures
                     "F": None if F is None else np.nan_to_num(F),
                     "loaded": loaded,
+                    "forces_unknown": forces_unknown,
                 }
             )
         thermal_rows = [r for r in rows if not r["loaded"]]
-        loaded_rows = [r for r in rows if r["loaded"]]
+        loaded_rows = [r for r in rows if r["loaded"] and not r["forces_unknown"]]
         nh = rows[0]["H"].shape[1]
         S = len(self.sensor_names)
 
@@ -361,7 +367,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
         # Load-part uncertainty calibrated on loaded campaigns: the load part's residual.
         self.training_ = {
             "campaigns": [
-                {"name": r["name"], "loaded": bool(r["loaded"]), "n_samples": len(r["y"])} for r in rows
+                {"name": r["name"], "loaded": bool(r["loaded"]), "n_samples": len(r["y"])}
+                | ({"forces_unknown": True} if r["forces_unknown"] else {})
+                for r in rows
             ],
             "n_samples": int(sum(len(r["y"]) for r in rows)),
         }
@@ -663,8 +671,14 @@ class PhysicalModel(EstimatorParams, ModelFile):
             f"{', '.join(c['name'] for c in self.training_['campaigns'])}",
             f"housing probes: {', '.join(self.housing_probes_) or 'none'}; ambient: "
             f"{', '.join(self.ambient_probes_) or 'none'}",
-            "",
         ]
+        out += [
+            f"{c['name']}: static or combined without loads.csv, so its forces are unknown: "
+            "kept out of the thermal calibration and the force regression"
+            for c in self.training_["campaigns"]
+            if c.get("forces_unknown")
+        ]
+        out.append("")
         tm = self.twin_map_
         if tm is None:
             out += [
