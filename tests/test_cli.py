@@ -319,3 +319,49 @@ def test_serve_refuses_a_model_with_an_absurd_coefficient(campaigns, mra_model, 
         tmp_path / "log",
     )
     _one_line_error(r, "bad.json", "field fallbacks[0].axes.dy.params[0]")
+
+
+@pytest.mark.parametrize(
+    ("rename", "field", "named"),
+    [(("S3", "FBG3"), "sensors", "gratings S3"), (("T_flange", "T_spindle"), "probes", "probes T_flange")],
+)
+def test_a_machine_description_that_names_the_instruments_otherwise_is_refused(
+    tmp_path, rename, field, named
+):
+    # A description written from a data sheet that calls the campaign's S3 "FBG3" (or its
+    # T_flange "T_spindle") left the default fit without the twin's load signature and thermal
+    # map, silently: ram2 thermal_b dx 30.3 µm on 30.6, no compensation. The fit now refuses.
+    from pathlib import Path
+
+    from fbgcomp_testing import RAM2_DIR
+
+    src = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram2.yaml"
+    text = src.read_text()
+    old, new = rename
+    assert f"name: {old}," in text
+    machine = tmp_path / "from-the-data-sheet.yaml"
+    machine.write_text(text.replace(f"name: {old},", f"name: {new},"))
+    out = tmp_path / "m.json"
+    r = run("fit", RAM2_DIR / "data" / "static_x", "--machine", machine, "-o", out)
+    _one_line_error(r, "from-the-data-sheet.yaml", field)
+    assert f"{named} are not in the machine description" in r.stderr
+    assert not out.exists()
+
+
+def test_a_machine_description_that_bonds_a_grating_elsewhere_is_refused(tmp_path):
+    # campaign.yaml says where each of ram2's gratings is bonded; a description that puts S2 on
+    # +Y instead of -X would give the fit the twin's signature of another grating.
+    from pathlib import Path
+
+    from fbgcomp_testing import RAM2_DIR
+
+    src = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram2.yaml"
+    text = src.read_text()
+    assert 'name: S2, face: "-X"' in text
+    machine = tmp_path / "from-the-data-sheet.yaml"
+    machine.write_text(text.replace('name: S2, face: "-X"', 'name: S2, face: "+Y"'))
+    out = tmp_path / "m.json"
+    r = run("fit", RAM2_DIR / "data" / "static_x", "--machine", machine, "-o", out)
+    line = _one_line_error(r, "from-the-data-sheet.yaml", "sensors[1].face")
+    assert "grating S2 is on face +Y here but on -X in the campaign static_x's campaign.yaml" in line
+    assert not out.exists()

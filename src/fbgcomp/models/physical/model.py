@@ -178,6 +178,8 @@ class PhysicalModel(EstimatorParams, ModelFile):
         self.probe_names_ = list(dict.fromkeys(sensor_probes + self.housing_probes_ + self.ambient_probes_))
         for c in campaigns:
             check_compatible(self, c)
+        if machine is not None:
+            self._check_described(machine, first)
         aligned = [c.aligned(zero_window_s=self.zero_window_s) for c in campaigns]
         dts = [np.median(np.diff(a.time_s)) for a in aligned if len(a.time_s) > 1]
         self.nominal_dt_s_ = float(np.median(dts)) if dts else 1.0
@@ -577,6 +579,56 @@ class PhysicalModel(EstimatorParams, ModelFile):
         span = max(float(self.offset_tau_s), float(self.nominal_dt_s_))
         self.load_["drift_N_per_s"] = np.maximum(q / span, 0.1).tolist()
         self._predictors = {}
+
+    def _check_described(self, machine, campaign):
+        """InputError unless the machine description declares every grating and probe the model
+        reads, by the campaign's names: the twin's load signature and thermal map are built for
+        the description's names, and a data sheet's "FBG1" for the campaign's "S1" silently left
+        the fit without either (ram2 thermal_b dx 30.3 µm on 30.6: no compensation at all)."""
+        sensors = [s.name for s in machine.sensors]
+        probes = [p.name for p in machine.probes] + [f"{n}_ref" for n in sensors]
+        missing = [s.name for s in self.sensors_ if s.name not in sensors]
+        field, have = "sensors", sensors
+        if not missing:
+            missing = [p for p in self.probe_names_ if p not in probes]
+            field, have = "probes", [p.name for p in machine.probes]
+        where = self.machine if not isinstance(self.machine, Machine) else "<machine>"
+        if missing:
+            raise InputError(
+                f"the campaign {campaign.meta.name}'s {'gratings' if field == 'sensors' else 'probes'} "
+                f"{', '.join(missing)} are not in the machine description (it has "
+                f"{', '.join(have) or 'none'}); name them as the campaign files do",
+                file=where,
+                column=field,
+            )
+        # where campaign.yaml also says where a grating is bonded, it must be where the
+        # description puts it: the twin's signature of a grating on the wrong face is another
+        # grating's
+        for spec in self.sensors_:
+            i = sensors.index(spec.name)
+            ms = machine.sensors[i]
+            said = [
+                ("face", spec.face, ms.face, spec.face is not None and spec.face != ms.face),
+                *(
+                    (key, v, mv, v is not None and abs(v - mv) > 1.0)
+                    for key, v, mv in (
+                        ("z_start_mm", spec.z_start_mm, ms.z_start_mm),
+                        ("z_end_mm", spec.z_end_mm, ms.z_end_mm),
+                        ("gauge_length_mm", spec.gauge_length_mm, ms.gauge_length),
+                    )
+                ),
+            ]
+            for key, v, mv, differs in said:
+                if differs:
+                    raise InputError(
+                        f"grating {spec.name} has {key} {mv:g} here but {v:g} in the campaign "
+                        f"{campaign.meta.name}'s campaign.yaml; describe the grating where it is bonded"
+                        if key != "face"
+                        else f"grating {spec.name} is on face {mv} here but on {v} in the campaign "
+                        f"{campaign.meta.name}'s campaign.yaml; describe the grating where it is bonded",
+                        file=where,
+                        column=f"sensors[{i}].{key}",
+                    )
 
     def _twin_signature(self, machine):
         """(G, C) from the FE twin, or None without a machine description or a matching sensor set."""
