@@ -661,3 +661,25 @@ def test_a_static_campaign_without_its_loads_file_is_kept_out_of_the_thermal_par
     for name in ("thermal_b", "static_x"):
         for axis, a in _metrics(m, ram2[name])["axes"].items():
             assert a["max_abs_error_um"] <= a["peak_um"] + 0.5, (name, axis, a)
+
+
+def test_an_interrogators_epoch_clock_gives_the_same_correction(twin_model, ram2):
+    # Many interrogators log Unix time: every file of ram2's thermal_b shifted by 1.773e9 s (a
+    # date in 2026) must give the same correction and interval as the campaign's own clock.
+    b = ram2["thermal_b"]
+    shift = 1.773e9
+
+    def shifted(df):
+        return df.assign(time_s=df["time_s"] + shift)
+
+    epoch = Campaign.from_arrays(
+        b.meta.model_dump(),
+        fbg=shifted(b.fbg),
+        temperatures=shifted(b.temperatures),
+        reference=shifted(b.reference),
+        loads=None if b.loads is None else shifted(b.loads),
+    )
+    pred, half = twin_model.predict_interval(b)
+    pred_e, half_e = twin_model.predict_interval(epoch)
+    np.testing.assert_allclose(pred_e, pred, rtol=0, atol=1e-3)
+    np.testing.assert_allclose(half_e, half, rtol=0, atol=1e-3)
