@@ -456,6 +456,7 @@ class PhysicalPredictor:
         f_hold = state.get("hold")  # slow estimate of the force (3,)
         mean_sum = np.array(state.get("mean_sum", np.zeros(3)), float)  # since the load stopped
         mean_w = np.array(state.get("mean_w", np.zeros(3)), float)
+        level_from = np.array(state.get("from", np.zeros(3)), float)  # when the transition began
         # what the offset took in over the last ~LOAD_HOLD_S: a load's first moments, before its
         # step is taken, are given back when it is (else each step leaves ~1 % in the offset)
         recent = np.array(state.get("recent", np.zeros(S)), float)
@@ -565,6 +566,7 @@ class PhysicalPredictor:
                     xs += recent
                     f_fast = op @ xs
                     recent[:] = 0.0
+                level_from = np.where(take & ~(settle > 0), applied, level_from)
                 settle = np.where(take, self.settle_s, settle)
                 f_hold = np.where(take, f_fast, f_hold)
             moving = settle > 0
@@ -580,11 +582,14 @@ class PhysicalPredictor:
                 settle = np.maximum(settle - dt[i], 0.0)
                 ended = moving & (settle <= 0) & (mean_w > 0)
                 applied = np.where(ended, mean_sum / np.where(mean_w > 0, mean_w, 1.0), applied)
-                # a level the step test could not tell from zero is zero: it would not have
-                # started a load from rest, and held it stays for good (the offset takes in what
-                # it leaves). On the twin's combined campaign a 2000 N release settled at 117 N
-                # of correlated noise and held 24.6 µm of dy for the remaining six hours.
-                applied = np.where(ended & (np.abs(applied) <= limit), 0.0, applied)
+                # a release that ends at a level the step test could not tell from zero ends at
+                # zero: that level would not have started a load from rest, and held it stays
+                # for good (the offset takes in what it leaves). On the twin's combined campaign
+                # a 2000 N release settled at 117 N of correlated noise and held 24.6 µm of dy
+                # for the remaining six hours. Only a release: a small load just taken stays
+                # (zeroed, the offset would take it in and its removal start a false load).
+                release = ended & (np.abs(applied) <= limit) & (np.abs(applied) < np.abs(level_from))
+                applied = np.where(release, 0.0, applied)
                 mean_sum = np.where(moving & ~(settle > 0), 0.0, mean_sum)
                 mean_w = np.where(moving & ~(settle > 0), 0.0, mean_w)
             big = np.abs(applied) > self.max_force_N
@@ -605,6 +610,7 @@ class PhysicalPredictor:
             "hold": f_hold,
             "mean_sum": mean_sum,
             "mean_w": mean_w,
+            "from": level_from,
             "recent": recent,
             "noise": noise,
             "t": float(t[-1]) if n else t_last,
