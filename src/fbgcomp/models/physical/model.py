@@ -599,7 +599,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
                 f"{', '.join(missing)} are not in the machine description (it has "
                 f"{', '.join(have) or 'none'}); name them as the campaign files do",
                 file=where,
-                column=field,
+                column=f"field {field}",
             )
         # where campaign.yaml also says where a grating is bonded, it must be where the
         # description puts it: the twin's signature of a grating on the wrong face is another
@@ -627,7 +627,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
                         else f"grating {spec.name} is on face {mv} here but on {v} in the campaign "
                         f"{campaign.meta.name}'s campaign.yaml; describe the grating where it is bonded",
                         file=where,
-                        column=f"sensors[{i}].{key}",
+                        column=f"field sensors[{i}].{key}",
                     )
 
     def _twin_signature(self, machine):
