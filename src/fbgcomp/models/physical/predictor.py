@@ -23,6 +23,7 @@ from fbgcomp.models.physical.thermal import (
     grating_map,
     housing_leads,
     housing_mean,
+    housing_rest,
     map_features,
     map_members,
     thermal_regressors,
@@ -663,21 +664,34 @@ class PhysicalPredictor:
             if self.cal is not None:
                 S = len(self.sensor_names)
                 smooth = X[:, S : S + len(self.probe_names)]
-                new_state["cal"] = {}
-                housing = housing_mean(smooth, self._h_idx)
-                L = np.hstack(
-                    [
-                        housing,
-                        housing_leads(
-                            housing,
-                            self.cal["leads_s"],
-                            time_s,
-                            state.get("cal", {}),
-                            new_state["cal"],
-                            self.nominal_dt_s,
-                        ),
-                    ]
+                new_state["cal"], new_state["rest"] = {}, {}
+                raw_h = dT[:, self._h_idx].mean(axis=1) if self._h_idx else np.zeros(n)
+                housing, past = housing_rest(
+                    raw_h,
+                    housing_mean(smooth, self._h_idx),
+                    time_s,
+                    state.get("rest", {}),
+                    new_state["rest"],
+                    nominal_dt_s=self.nominal_dt_s,
                 )
+                L = np.zeros((n, 1 + len(self.cal["leads_s"])))
+                if past.any():  # the leads start at the first frame past the rest window
+                    tp = None if time_s is None else np.asarray(time_s, float).ravel()[past]
+                    L[past] = np.hstack(
+                        [
+                            housing[past],
+                            housing_leads(
+                                housing[past],
+                                self.cal["leads_s"],
+                                tp,
+                                state.get("cal", {}),
+                                new_state["cal"],
+                                self.nominal_dt_s,
+                            ),
+                        ]
+                    )
+                else:
+                    new_state["cal"] = dict(state.get("cal", {}))
             self.last_cal_features = L
             if raw or not thermal_policy:
                 thermal = X @ self.map["coef"]

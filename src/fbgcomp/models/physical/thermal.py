@@ -128,6 +128,47 @@ def _map_features_one(e, dT, housing_idx, time_s, state):
 #: against the measured load-free campaigns, s.
 CAL_LEADS_S = (300.0, 900.0)
 
+#: The housing's rest level for the calibrated leads: the mean of its probes over the first
+#: ``HOUSING_REST_S`` seconds (12 samples of a probe read every 10 s), s.
+HOUSING_REST_S = 120.0
+
+
+def housing_rest(raw_K, housing_K, time_s, state, new_state, rest_s=HOUSING_REST_S, nominal_dt_s=1.0):
+    """The housing ΔT relative to its rest level (n, 1) K and the frames past the rest window (n,).
+
+    The zero state is the mean of the first 10 s, one sample of a probe read every 10 s, so it
+    carries the probe's whole noise (0.1 K); a leads' transient detector with 11 µm of dz per K
+    read that as a spindle start: 1.4-4 µm of dz on 3 of 7 simulated static campaigns of ram2,
+    where nothing moves (0.2 µm). The rest level is the mean of the raw housing ΔT ``raw_K``
+    (n,) over the first ``rest_s`` seconds; within them the leads are not formed (zeros),
+    after them ``housing_K`` (n, 1), the low-passed mean housing ΔT, is taken relative to it.
+    ``state`` holds the first frame's time, the running sum and count, and the level once fixed.
+    """
+    raw = np.asarray(raw_K, float).ravel()
+    n = raw.size
+    t0, total, count = state.get("t0"), float(state.get("sum", 0.0)), float(state.get("n", 0.0))
+    level = state.get("level")
+    if time_s is None:
+        done = float(state.get("frames", 0))
+        t = (done + np.arange(n)) * nominal_dt_s
+        new_state["frames"] = done + n
+    else:
+        t = np.asarray(time_s, float).ravel()
+    if t0 is None and n:
+        t0 = float(t[0])
+    past = (t - t0 > rest_s) if n else np.zeros(0, bool)
+    if level is None:
+        inside = ~past
+        total += float(raw[inside].sum())
+        count += float(inside.sum())
+        if past.any():
+            level = total / max(count, 1.0)
+    new_state.update({"t0": t0, "sum": total, "n": count, "level": level})
+    rel = np.zeros((n, 1))
+    if level is not None:
+        rel[past] = np.asarray(housing_K, float).reshape(n, -1)[past, :1] - level
+    return rel, past
+
 
 def housing_mean(smooth_K, housing_idx):
     """Mean ΔT (n, 1) K of the housing probes among probe ΔTs already low-passed over
