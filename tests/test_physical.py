@@ -731,7 +731,7 @@ def test_a_noisy_zero_of_the_housing_probe_is_no_spindle_start(tmp_path):
     # ram2's description on the twin: a static campaign along X (seed 3) whose housing probe's
     # one zero-window sample sits 0.26 K (2.6 sigma) below its level. The calibrated housing
     # leads (11 µm of dz per K) read the step as a spindle start: dz 1.71 µm on an axis that
-    # moves 0.23 µm (harm). Past a 120 s rest window the leads start from the housing's rest
+    # moves 0.23 µm (harm). Past a 300 s rest window the leads start from the housing's rest
     # level.
     import yaml
 

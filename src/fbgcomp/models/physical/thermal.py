@@ -129,8 +129,12 @@ def _map_features_one(e, dT, housing_idx, time_s, state):
 CAL_LEADS_S = (300.0, 900.0)
 
 #: The housing's rest level for the calibrated leads: the mean of its probes over the first
-#: ``HOUSING_REST_S`` seconds (12 samples of a probe read every 10 s), s.
-HOUSING_REST_S = 120.0
+#: ``HOUSING_REST_S`` seconds, s. One fastest lead's time constant: 30 samples of a probe read
+#: every 10 s put the level within 0.1 K / sqrt(30) = 0.018 K, 3 sigma of which make 0.6 µm
+#: of dz through the 11 µm/K lead; a spindle started in the window moves the housing probe
+#: 0.01-0.02 K by its end (ram2). 120 s (0.029 K) still left 0.61 µm on the worst of 17
+#: simulated static campaigns and moved ram2's thermal_c dz coverage to 0.8998; 60 s left 1.05.
+HOUSING_REST_S = 300.0
 
 
 def housing_rest(raw_K, housing_K, time_s, state, new_state, rest_s=HOUSING_REST_S, nominal_dt_s=1.0):
