@@ -607,36 +607,35 @@ class PhysicalModel(EstimatorParams, ModelFile):
         for spec in self.sensors_:
             i = sensors.index(spec.name)
             ms = machine.sensors[i]
-            said = [
-                ("face", spec.face, ms.face, spec.face is not None and spec.face != ms.face),
-                *(
-                    (key, v, mv, v is not None and abs(v - mv) > 1.0)
-                    for key, v, mv in (
-                        ("z_start_mm", spec.z_start_mm, ms.z_start_mm),
-                        ("z_end_mm", spec.z_end_mm, ms.z_end_mm),
-                        ("gauge_length_mm", spec.gauge_length_mm, ms.gauge_length),
-                    )
-                ),
-            ]
-            for key, v, mv, differs in said:
-                if differs:
-                    raise InputError(
-                        f"grating {spec.name} has {key} {mv:g} here but {v:g} in the campaign "
-                        f"{campaign.meta.name}'s campaign.yaml; describe the grating where it is bonded"
-                        if key != "face"
-                        else f"grating {spec.name} is on face {mv} here but on {v} in the campaign "
-                        f"{campaign.meta.name}'s campaign.yaml; describe the grating where it is bonded",
-                        file=where,
-                        column=f"field sensors[{i}].{key}",
-                    )
+            for key, said, here in (
+                ("face", spec.face, ms.face),
+                ("z_start_mm", spec.z_start_mm, ms.z_start_mm),
+                ("z_end_mm", spec.z_end_mm, ms.z_end_mm),
+                ("gauge_length_mm", spec.gauge_length_mm, ms.gauge_length),
+            ):
+                if said is None:
+                    continue
+                if key == "face":
+                    if said == here:
+                        continue
+                    what = f"is on face {here} here but on {said}"
+                elif abs(said - here) <= 1.0:
+                    continue
+                else:
+                    what = f"has {key} {here:g} here but {said:g}"
+                raise InputError(
+                    f"grating {spec.name} {what} in the campaign {campaign.meta.name}'s "
+                    "campaign.yaml; describe the grating where it is bonded",
+                    file=where,
+                    column=f"field sensors[{i}].{key}",
+                )
 
     def _twin_signature(self, machine):
-        """(G, C) from the FE twin, or None without a machine description or a matching sensor set."""
+        """(G, C) from the FE twin, or None without a machine description (``fit`` has checked
+        that the description names every grating: :meth:`_check_described`)."""
         if machine is None:
             return None
         names = [s.name for s in machine.sensors]
-        if any(s not in names for s in self.sensor_names):
-            return None
         from fbgcomp.structure import Twin  # noqa: PLC0415 - optional extra: scikit-fem (the FE twin)
 
         twin = Twin(machine)

@@ -665,9 +665,8 @@ class PhysicalPredictor:
                 S = len(self.sensor_names)
                 smooth = X[:, S : S + len(self.probe_names)]
                 new_state["cal"], new_state["rest"] = {}, {}
-                raw_h = dT[:, self._h_idx].mean(axis=1) if self._h_idx else np.zeros(n)
                 housing, past = housing_rest(
-                    raw_h,
+                    housing_mean(dT, self._h_idx),
                     housing_mean(smooth, self._h_idx),
                     time_s,
                     state.get("rest", {}),

@@ -144,7 +144,7 @@ def housing_rest(raw_K, housing_K, time_s, state, new_state, rest_s=HOUSING_REST
     carries the probe's whole noise (0.1 K); a leads' transient detector with 11 µm of dz per K
     read that as a spindle start: 1.4-4 µm of dz on 3 of 7 simulated static campaigns of ram2,
     where nothing moves (0.2 µm). The rest level is the mean of the raw housing ΔT ``raw_K``
-    (n,) over the first ``rest_s`` seconds; within them the leads are not formed (zeros),
+    (n,) or (n, 1) over the first ``rest_s`` seconds; within them the leads are not formed (zeros),
     after them ``housing_K`` (n, 1), the low-passed mean housing ΔT, is taken relative to it.
     ``state`` holds the first frame's time, the running sum and count, and the level once fixed.
     """
