@@ -225,3 +225,38 @@ def test_the_scenario_example_in_the_docs_runs(machine, twin):
     assert campaign.meta.kind == "thermal" and campaign.loads is not None
     assert np.abs(truth["force_N"][:, 1]).max() == pytest.approx(2000.0)
     assert campaign.aligned().reference_um.shape[0] > 1000
+
+
+def test_loads_superposed_on_a_campaign_are_read_back_exactly():
+    # a linear structure's load response adds to what the campaign recorded: the gratings read
+    # its elongation through eq. 2-4, the reference its deflection, loads.csv its forces
+    from fbgcomp.bench.superpose import force_history_N, superpose_loads
+    from fbgcomp.bench.synthetic import linear_truth_campaign
+
+    base, _ = linear_truth_campaign(duration_s=3 * 3600.0, seed=2)
+    sensors = base.meta.sensors
+    rng = np.random.default_rng(0)
+    C, G = rng.normal(0, 0.1, (3, 3)), rng.normal(0, 0.003, (3, len(sensors)))
+    steps = [(0.5, 1.0, (1000.0, 0.0, 0.0)), (0.8, 2.0, (0.0, -500.0, 200.0))]
+    c = superpose_loads(base, C, G, steps, load_noise_N=0.0)
+    assert c.meta.kind == "combined" and c.meta.name.endswith("-loaded")
+    t = c.fbg["time_s"].to_numpy(float)
+    F = force_history_N(t, steps)
+    assert F[np.searchsorted(t, 0.9 * 3600)].tolist() == [1000.0, -500.0, 200.0]
+    for j, s in enumerate(sensors):
+        col = f"{s.name}_nm"
+        de = [
+            optics.elongation_um(c_.fbg[col], s.lambda0_nm, s.gauge_length_mm, photoelastic=s.photoelastic)
+            for c_ in (c, base)
+        ]
+        de = de[0] - de[1]  # eq. 2-4 are linear in the shift from the zero state's wavelength
+        np.testing.assert_allclose(de, F @ G[:, j], atol=1e-6)
+    tr = c.reference["time_s"].to_numpy(float)
+    got = (
+        c.reference[["dx_um", "dy_um", "dz_um"]].to_numpy()
+        - base.reference[["dx_um", "dy_um", "dz_um"]].to_numpy()
+    )
+    np.testing.assert_allclose(got, force_history_N(tr, steps) @ C, atol=1e-9)
+    np.testing.assert_allclose(c.loads[["fx_N", "fy_N", "fz_N"]].to_numpy(), F)
+    with pytest.raises(ValueError, match="unit responses"):
+        superpose_loads(base, C, G[:, :2], steps)

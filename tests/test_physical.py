@@ -12,7 +12,7 @@ from fbgcomp.models.filters import first_order_filter as lowpass
 from fbgcomp.models.metrics import validation_metrics
 from fbgcomp.models.physical import PhysicalModel, PhysicalPredictor
 from fbgcomp.models.registry import load_model
-from fbgcomp_testing import read_ram2
+from fbgcomp_testing import RAM2_DIR, read_ram2
 
 
 @pytest.fixture(scope="module")
@@ -700,6 +700,33 @@ def test_a_released_load_leaves_nothing_applied(twin_model, ram2):
     assert after.sum() > 1000
     bias = (pred - al.reference_um)[after].mean(axis=0)
     assert abs(bias[0]) < 0.5, bias
+
+
+def test_a_small_load_under_thermal_drift_ends_at_its_level(twin_model, ram2):
+    # thermal_b at 10 h, under its radiant load: the gratings drift by -1 N/s of Fx. A 300 N
+    # Fx step ended 46 N low, 6.2 µm of dx held for its half hour: the level was the mean
+    # reading of its transition, which held the ramp, the thermal offset's lag behind the
+    # drift (r x offset_tau_s) and the drift while the offset was frozen.
+    import json
+
+    from fbgcomp.bench.superpose import ram2_unit_responses, superpose_loads
+
+    C, G = ram2_unit_responses(json.loads((RAM2_DIR / "results.json").read_text()))
+    # exact: ram2 is linear (its README), the loads superpose on the thermal solution
+    c = superpose_loads(ram2["thermal_b"], C, G, [(10.0, 10.5, (300.0, 0.0, 0.0))])
+    pred, _ = twin_model.predict_interval(c)
+    al = c.aligned(zero_window_s=twin_model.zero_window_s)
+    t = al.time_s
+    plateau = (t > 10.0 * 3600 + 60.0) & (t < 10.5 * 3600 - 10.0)
+    assert plateau.sum() > 50 and np.allclose(al.loads_N[plateau, 0], 300.0, atol=3.0)
+    err = (pred - al.reference_um)[plateau]
+    assert np.abs(err[:, 0]).max() < 2.0, np.abs(err).max(axis=0)  # 300 N is 41.9 µm of dx
+    # dy and dz: thermal_b's own errors there (a spindle change at 10 h), nothing added
+    b = ram2["thermal_b"]
+    base = (
+        twin_model.predict_interval(b)[0] - b.aligned(zero_window_s=twin_model.zero_window_s).reference_um
+    )[plateau]
+    assert (np.abs(err[:, 1:]).max(axis=0) <= np.abs(base[:, 1:]).max(axis=0) + 0.3).all()
 
 
 def test_the_housing_rest_level_is_the_mean_of_its_window_in_any_batching():

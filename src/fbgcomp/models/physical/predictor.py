@@ -36,6 +36,15 @@ FORCE_AXES = ("fx", "fy", "fz")
 LOAD_FAST_S = 0.5
 # Slower low-pass, s: a transition ends when the fast reading agrees with it, at its value.
 LOAD_HOLD_S = 3.0
+#: Memory of the load reading's thermal lag, s: between transitions the thermal offset follows
+#: the gratings' drift ``offset_tau_s`` behind, so the reading stands ``r offset_tau_s`` off
+#: the applied force for a drift of r N/s, and through a transition (offset frozen) it drifts
+#: on by r per second. Both are taken off the level a transition ends at. Long against the
+#: frame noise (1.4 N of lag at 1 s frames on ram2), short against the heat's hours. It learns
+#: only ``3 offset_tau_s`` after a transition: until then the reading still carries the offset
+#: taking in what the last level left (a signature's cross-talk on the twin's static-xyz, read
+#: as drift, moved the next levels by 10 µm of dy) and the lag building up again.
+LOAD_TREND_S = 120.0
 #: Expected false load starts per hour of load-free running: a step test is one look per frame
 #: (at most one per 2 LOAD_FAST_S, the low-pass's memory), so its threshold in sigma grows with
 #: the number of looks an hour holds (5.1 sigma at 1 look/s) instead of a fixed 3 sigma that
@@ -313,17 +322,21 @@ class PhysicalPredictor:
     #: every frame through the per-frame recursion (the reference the fast path is tested on).
     steady_fast_path = True
 
-    def _steady_run(self, e, dt, applied, offset, xs, f_hold, recent, k_fast, k_start, lag, kd, noise):
+    def _steady_run(
+        self, e, dt, applied, offset, xs, f_hold, recent, trend, quiet, k_fast, k_start, lag, kd, noise
+    ):
         """Frames of :meth:`_track_load` while no load transition is under way, vectorised.
 
         With the applied force fixed the recursion is linear: the low-passed gratings
         ``y = xs + offset`` follow ``e`` (``LOAD_FAST_S``), the thermal offset follows
         ``e - G applied`` (``offset_tau_s``), the slow force estimate follows the fast one
-        (``LOAD_HOLD_S``) and ``recent`` sums the offset's shifts with a ``LOAD_HOLD_S``
-        memory; the live noise estimate (:meth:`_noise_excess`) learns from every frame. They
-        are formed for every frame, the step test is evaluated on all of them, and the frames
-        before the first one whose test fires are accepted. Returns the number of frames
-        accepted and the state after them (offset, xs, f_hold, recent, noise)."""
+        (``LOAD_HOLD_S``), ``recent`` sums the offset's shifts with a ``LOAD_HOLD_S``
+        memory and ``trend`` low-passes the reading's lag behind the applied force
+        (``LOAD_TREND_S``) from ``3 offset_tau_s`` after the last transition (``quiet``, s since
+        it); the live noise estimate (:meth:`_noise_excess`) learns from every
+        frame. They are formed for every frame, the step test is evaluated on all of them, and
+        the frames before the first one whose test fires are accepted. Returns the number of
+        frames accepted and the state after them (offset, xs, f_hold, recent, trend, quiet, noise)."""
         e = np.asarray(e, float)
         y = first_order_recursion(dt / LOAD_FAST_S, e, xs + offset)
         off = first_order_recursion(dt / self.offset_tau_s, e - self.G @ applied, offset)
@@ -340,15 +353,20 @@ class PhysicalPredictor:
         fires = (np.abs(f_fast - applied[None, :]) > limit).any(axis=1)
         m = int(np.argmax(fires)) if fires.any() else len(e)
         if m == 0:
-            return 0, offset, xs, f_hold, recent, noise
+            return 0, offset, xs, f_hold, recent, trend, quiet, noise
         shift = off[:m] - off_prev[:m]
         rec = first_order_recursion(dt[:m] / LOAD_HOLD_S, shift, recent, gain=False)
+        q = quiet + np.cumsum(dt[:m])
+        learn = np.where(q >= 3.0 * self.offset_tau_s, dt[:m] / LOAD_TREND_S, 0.0)
+        tr = first_order_recursion(learn, f_fast[:m] - applied[None, :], trend)
         return (
             m,
             off[m - 1].copy(),
             y[m - 1] - off[m - 1],
             hold[m - 1].copy(),
             rec[m - 1].copy(),
+            tr[m - 1].copy(),
+            float(q[-1]),
             learnt[m - 1].copy(),
         )
 
@@ -369,6 +387,7 @@ class PhysicalPredictor:
         offset, xs, applied = _floats(st["offset"]), _floats(st["fast"]), _floats(st["force"])
         f_hold, recent, noise = _floats(st["hold"]), _floats(st["recent"]), _floats(st["noise"])
         S = len(offset)
+        quiet = float(st.get("quiet", 0.0)) + dt
         y = first_order_step(dt / LOAD_FAST_S, e, [xs[j] + offset[j] for j in range(S)])
         u = [e[j] - sum(g * a for g, a in zip(self._G_rows[j], applied)) for j in range(S)]
         off = first_order_step(dt / self.offset_tau_s, u, offset)
@@ -393,6 +412,12 @@ class PhysicalPredictor:
             "offset": off,
             "fast": [y[j] - off[j] for j in range(S)],
             "hold": hold,
+            "trend": first_order_step(
+                dt / LOAD_TREND_S if quiet >= 3.0 * self.offset_tau_s else 0.0,
+                [f_fast[a] - applied[a] for a in range(3)],
+                _floats(st.get("trend", [0.0, 0.0, 0.0])),
+            ),
+            "quiet": quiet,
             "recent": first_order_step(
                 dt / LOAD_HOLD_S, [off[j] - offset[j] for j in range(S)], recent, gain=False
             ),
@@ -458,6 +483,12 @@ class PhysicalPredictor:
         mean_sum = np.array(state.get("mean_sum", np.zeros(3)), float)  # since the load stopped
         mean_w = np.array(state.get("mean_w", np.zeros(3)), float)
         level_from = np.array(state.get("from", np.zeros(3)), float)  # when the transition began
+        # the reading's thermal lag behind the applied force (LOAD_TREND_S), the seconds since
+        # the offset froze for a transition, and their time-weighted sum over the mean's window
+        trend = np.array(state.get("trend", np.zeros(3)), float)
+        quiet = float(state.get("quiet", 0.0))  # s since the last transition
+        since = np.array(state.get("since", np.zeros(3)), float)
+        mean_tsum = np.array(state.get("mean_tsum", np.zeros(3)), float)
         # what the offset took in over the last ~LOAD_HOLD_S: a load's first moments, before its
         # step is taken, are given back when it is (else each step leaves ~1 % in the offset)
         recent = np.array(state.get("recent", np.zeros(S)), float)
@@ -475,6 +506,7 @@ class PhysicalPredictor:
         xs = np.zeros(S) if first else np.array(xs, float)
         f_hold = np.zeros(3) if f_hold is None else np.array(f_hold, float)
         alpha, forget, b_fast, b_hold, k_fast, k_hold, kd, lag, k_start = self._frame_terms(dt)
+        b_trend = 1.0 - np.exp(-dt / LOAD_TREND_S)
         op = self.ops[0]
         Ga = self.G
         force = np.zeros((n, 3))
@@ -499,7 +531,7 @@ class PhysicalPredictor:
                 # bit: tests/test_physical.py). Where a test fires at once (a refused step
                 # repeating), the next STEADY_BACKOFF frames go through the recursion.
                 w = slice(i, min(i + STEADY_WINDOW, n))
-                m, offset, xs, f_hold, recent, noise = self._steady_run(
+                m, offset, xs, f_hold, recent, trend, quiet, noise = self._steady_run(
                     e[w],
                     dt[w],
                     applied,
@@ -507,6 +539,8 @@ class PhysicalPredictor:
                     xs,
                     f_hold,
                     recent,
+                    trend,
+                    quiet,
                     k_fast[w],
                     k_start[w],
                     lag[w],
@@ -551,6 +585,11 @@ class PhysicalPredictor:
             take = (~moving) & (np.abs(step) > limit)
             if not (take.any() or moving.any()):  # a steady frame: the noise estimate learns
                 noise = self._noise_excess((f_fast - f_hold)[None, :], dt[i : i + 1], kd[i : i + 1], noise)[0]
+                quiet += dt[i]
+                if quiet >= 3.0 * self.offset_tau_s:
+                    trend += b_trend[i] * (f_fast - applied - trend)
+            else:
+                quiet = 0.0
             if take.any() and self.dof >= 1:
                 # a step no load explains (one grating jumps: a fibre slips, a connector is
                 # re-seated) is refused, and the offset absorbs it
@@ -568,8 +607,11 @@ class PhysicalPredictor:
                     f_fast = op @ xs
                     recent[:] = 0.0
                 level_from = np.where(take & ~(settle > 0), applied, level_from)
+                since = np.where(take & ~(settle > 0), 0.0, since)
                 settle = np.where(take, self.settle_s, settle)
-                f_hold = np.where(take, f_fast, f_hold)
+                # the slow estimate runs on from before the step: while it lags the fast one the
+                # load is still moving, so a ramp does not enter the level's mean (it was set to
+                # the fast reading here, and a 300 N step taken mid-ramp ended at 281 N)
             moving = settle > 0
             if moving.any():
                 # in a transition: follow the low-passed force; still moving while the fast and
@@ -577,12 +619,25 @@ class PhysicalPredictor:
                 sd_hold = self.F_sd * np.sqrt(k_hold[i] * excess)
                 still = moving & (np.abs(f_fast - f_hold) > k * np.maximum(np.hypot(sd_fast, sd_hold), cross))
                 settle = np.where(still, self.settle_s, settle)
+                since = np.where(moving, since + dt[i], since)
                 mean_sum = np.where(still, 0.0, mean_sum + dt[i] * f_fast)
+                mean_tsum = np.where(still, 0.0, mean_tsum + dt[i] * since)
                 mean_w = np.where(still, 0.0, mean_w + dt[i])
                 applied = np.where(moving, f_fast, applied)
                 settle = np.maximum(settle - dt[i], 0.0)
                 ended = moving & (settle <= 0) & (mean_w > 0)
-                applied = np.where(ended, mean_sum / np.where(mean_w > 0, mean_w, 1.0), applied)
+                # the level is the mean reading less the thermal lag it carried into the
+                # transition (trend = r offset_tau_s) and the drift since the offset froze
+                # (r x the window's mean time since then): under thermal_b's radiant drift
+                # (-1 N/s of Fx) a 300 N step ended 35 N low, 5 µm of dx held for its duration
+                # (the lag's own noise is not applied: firm shrinkage at k sigma of the noise
+                # the LOAD_TREND_S low-pass leaves; on ram2's thermal_c, 2.6 N at rest)
+                rate = max(self.noise_frame_dt_s / dt[i], 1.0) if dt[i] > 0 else 1.0
+                sd_trend = self.F_sd * np.sqrt(rate * b_trend[i] / (2.0 - b_trend[i]) * excess)
+                lagged = P.firm(trend, sd_trend, k, 2 * k)
+                mw = np.where(mean_w > 0, mean_w, 1.0)
+                level = mean_sum / mw - lagged * (1.0 + mean_tsum / mw / self.offset_tau_s)
+                applied = np.where(ended, level, applied)
                 # a release that ends at a level the step test could not tell from zero ends at
                 # zero: that level would not have started a load from rest, and held it stays
                 # for good (the offset takes in what it leaves). On the twin's combined campaign
@@ -592,6 +647,7 @@ class PhysicalPredictor:
                 release = ended & (np.abs(applied) <= limit) & (np.abs(applied) < np.abs(level_from))
                 applied = np.where(release, 0.0, applied)
                 mean_sum = np.where(moving & ~(settle > 0), 0.0, mean_sum)
+                mean_tsum = np.where(moving & ~(settle > 0), 0.0, mean_tsum)
                 mean_w = np.where(moving & ~(settle > 0), 0.0, mean_w)
             big = np.abs(applied) > self.max_force_N
             if big.any():
@@ -613,6 +669,10 @@ class PhysicalPredictor:
             "mean_w": mean_w,
             "from": level_from,
             "recent": recent,
+            "trend": trend,
+            "quiet": quiet,
+            "since": since,
+            "mean_tsum": mean_tsum,
             "noise": noise,
             "t": float(t[-1]) if n else t_last,
         }
