@@ -21,7 +21,8 @@ Then, with ram2 as published: load histories superposed on its thermal campaigns
 unit responses (exact: ram2 is linear, README section 6; :mod:`fbgcomp.bench.superpose`), so that
 the load tracker is judged on independent thermal drift: small and large steps along each axis
 under thermal_b's radiant load, a held Fy, an Fz (which the gratings cannot tell from a warming),
-mixed forces, and thermal_c with an Fy as well as its Fx.
+mixed forces, thermal_c with an Fy as well as its Fx, 72 short cutting loads, a load held 20 h
+and loads applied as the spindle starts and stops.
 
 Figures are given in ram2's own axes (a turned variant's dy is ram2's dx). Per variant: thermal_b
 max |error| per axis, thermal_c's loaded axis in % of its peak and its dz, static_x's load
@@ -320,6 +321,14 @@ LOADED = {
         ],
     ),
     "c+Fy": ("thermal_c", [(1.0, 2.0, (0.0, -1500.0, 0.0)), (8.0, 10.0, (0.0, 2000.0, 0.0))]),
+    # cutting: 200 N for 2 min every 5 min through the radiant load (8-14 h)
+    "b+cutting": (
+        "thermal_b",
+        [(8.0 + k / 12.0, 8.0 + k / 12.0 + 2.0 / 60.0, (200.0, 0.0, 0.0)) for k in range(72)],
+    ),
+    "b+held-20h": ("thermal_b", [(2.0, 22.0, (0.0, 1500.0, 0.0))]),
+    # applied as the spindle starts (0.42 h) and as it stops (4.92 h)
+    "b+spindle": ("thermal_b", [(0.4, 1.0, (1000.0, 0.0, 0.0)), (4.9, 5.3, (0.0, 800.0, 0.0))]),
 }
 
 

@@ -365,3 +365,35 @@ def test_a_machine_description_that_bonds_a_grating_elsewhere_is_refused(tmp_pat
     line = _one_line_error(r, "from-the-data-sheet.yaml", "sensors[1].face")
     assert "grating S2 is on face +Y here but on -X in the campaign static_x's campaign.yaml" in line
     assert not out.exists()
+
+
+def test_a_load_applied_while_the_zero_state_is_taken_is_refused(tmp_path):
+    # ram2's thermal_b with 2000 N of Fx applied in its first 5 s (logging started mid-load):
+    # each instrument's zero is another mix of loaded and unloaded samples on its own clock
+    # (the gratings at 1450 N, the interferometer's one sample at 120 N), and the correction
+    # came out 185 µm off for the three hours the load held. fit and validate refuse it in one
+    # line naming the file, row and column; inspect lists it.
+    import json as _json
+    from pathlib import Path
+
+    from fbgcomp.bench.superpose import ram2_unit_responses, superpose_loads
+    from fbgcomp.io.campaign import read_campaign
+    from fbgcomp_testing import RAM2_DIR
+
+    C, G = ram2_unit_responses(_json.loads((RAM2_DIR / "results.json").read_text()))
+    base = read_campaign(RAM2_DIR / "data" / "thermal_b")
+    late = write_campaign(superpose_loads(base, C, G, [(0.0, 3.0, (2000.0, 0.0, 0.0))]), tmp_path / "late")
+    out = tmp_path / "m.json"
+    r = run("fit", RAM2_DIR / "data" / "thermal_a", late, "-o", out)
+    line = _one_line_error(r, str(Path(late) / "loads.csv"), "row 2 (line 3)", "column fx_N")
+    assert "within the zero window (the first 10 s)" in line and "+400 N" in line
+    assert not out.exists()
+    r = run("inspect", late)
+    assert r.returncode == 0 and "fit and validate refuse a zero state not taken at rest" in r.stdout
+    # the same load applied a minute in is a load like any other
+    ok = write_campaign(
+        superpose_loads(base, C, G, [(60.0 / 3600.0, 3.0, (2000.0, 0.0, 0.0))]), tmp_path / "ok"
+    )
+    assert run("inspect", ok).returncode == 0
+    assert "zero state not taken at rest" not in run("inspect", ok).stdout
+    assert read_campaign(ok).aligned().loads_N is not None

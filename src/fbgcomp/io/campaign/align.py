@@ -97,6 +97,35 @@ def zero_state(time_s: np.ndarray, values: np.ndarray, window_s: float) -> np.nd
     return values[:n].mean(axis=0)
 
 
+#: A load the load cell sees change by more than this within the zero window, N, beyond six
+#: times its own noise, means the zero state was not taken at rest.
+REST_LOAD_CHANGE_N = 20.0
+
+
+def moving_in_window(time_s, values, window_s, floor=REST_LOAD_CHANGE_N):
+    """Where a column of ``values`` (n, k) moves inside the zero window (the first ``window_s``
+    seconds): the first row (0-based) and column whose value stands more than ``floor`` and six
+    times the column's own noise (robust SD of successive differences over the whole record,
+    over sqrt 2) away from the window's first sample, and that change; None when every column
+    holds still. A load applied while the zero state is taken (logging started mid-ramp) makes
+    every instrument's zero a different mix of loaded and unloaded samples on its own clock:
+    on ram2's thermal_b, a 2000 N step in the first 5 s left the gratings zeroed at 1450 N and
+    the interferometer at 120 N, and the correction 185 µm off for as long as the load held."""
+    t = np.asarray(time_s, float)
+    v = np.asarray(values, float)
+    n = int(np.searchsorted(t, t[0] + window_s, side="right")) if t.size else 0
+    if n < 2:
+        return None
+    d = np.diff(v, axis=0)
+    noise = 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0) / math.sqrt(2.0)
+    limit = np.maximum(floor, 6.0 * noise)
+    away = np.abs(v[:n] - v[0]) > limit
+    if not away.any():
+        return None
+    row, col = np.argwhere(away)[0]
+    return int(row), int(col), float(v[row, col] - v[0, col])
+
+
 def check_window(zero_window_s) -> float:
     """``zero_window_s`` as a float; InputError unless it is a finite number of seconds >= 0."""
     try:

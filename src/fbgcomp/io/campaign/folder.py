@@ -19,6 +19,7 @@ from fbgcomp.io.campaign.align import (
     AlignedCampaign,
     check_window,
     interp_columns,
+    moving_in_window,
     onto_reference,
     zero_state,
 )
@@ -190,6 +191,18 @@ class Campaign:
         if self.loads is not None:
             loads_t = self.loads[TIME_COLUMN].to_numpy()
             loads_v = self.loads[list(LOAD_COLUMNS)].to_numpy(dtype=np.float64)
+            moving = moving_in_window(loads_t, loads_v, window)
+            if moving is not None:
+                row, col, change = moving
+                where = LOADS_FILE if self.path is None else Path(self.path) / LOADS_FILE
+                raise InputError(
+                    f"the load changes by {change:+.0f} N within the zero window (the first "
+                    f"{window:g} s): the zero state must be taken at rest; start the campaign "
+                    "before the load is applied, or drop the rows recorded while it moved",
+                    file=where,
+                    row=row + 1,
+                    column=LOAD_COLUMNS[col],
+                )
             loads_N = interp_columns(time_s, loads_t, loads_v, outside=np.nan)
             loads_outside = int(np.isnan(loads_N[:, 0]).sum())
 
@@ -312,6 +325,17 @@ class Campaign:
             overlap, before, after = None, int(ref_t.size), 0
             problems.append("fbg.csv, temperatures.csv and reference.csv do not overlap in time")
 
+        if self.loads is not None:
+            moving = moving_in_window(
+                self.loads[TIME_COLUMN].to_numpy(), self.loads[list(LOAD_COLUMNS)].to_numpy(float), 10.0
+            )
+            if moving is not None:
+                row, col, change = moving
+                problems.append(
+                    f"{LOADS_FILE}: column {LOAD_COLUMNS[col]} changes by {change:+.0f} N at row "
+                    f"{row + 1}, within the default 10 s zero window: fit and validate refuse a "
+                    "zero state not taken at rest"
+                )
         for probe in self.undeclared_probes:
             problems.append(
                 f"{TEMPERATURES_FILE}: column {probe}_C is not declared in "
