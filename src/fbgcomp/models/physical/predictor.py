@@ -484,10 +484,11 @@ class PhysicalPredictor:
         mean_w = np.array(state.get("mean_w", np.zeros(3)), float)
         level_from = np.array(state.get("from", np.zeros(3)), float)  # when the transition began
         # the reading's thermal lag behind the applied force (LOAD_TREND_S), the seconds since
-        # the offset froze for a transition, and their time-weighted sum over the mean's window
+        # the offset froze for a transition (one clock: it freezes for every component while
+        # any moves), and their time-weighted sum over each component's mean window
         trend = np.array(state.get("trend", np.zeros(3)), float)
         quiet = float(state.get("quiet", 0.0))  # s since the last transition
-        since = np.array(state.get("since", np.zeros(3)), float)
+        since = float(state.get("since", 0.0))
         mean_tsum = np.array(state.get("mean_tsum", np.zeros(3)), float)
         # what the offset took in over the last ~LOAD_HOLD_S: a load's first moments, before its
         # step is taken, are given back when it is (else each step leaves ~1 % in the offset)
@@ -601,13 +602,13 @@ class PhysicalPredictor:
                     refused[i] = True
                     take[:] = False
             if take.any():
-                if not (settle > 0).any():
+                if not (settle > 0).any():  # the offset freezes from this frame on
                     offset -= recent
                     xs += recent
                     f_fast = op @ xs
                     recent[:] = 0.0
+                    since = 0.0
                 level_from = np.where(take & ~(settle > 0), applied, level_from)
-                since = np.where(take & ~(settle > 0), 0.0, since)
                 settle = np.where(take, self.settle_s, settle)
                 # the slow estimate runs on from before the step: while it lags the fast one the
                 # load is still moving, so a ramp does not enter the level's mean (it was set to
@@ -619,7 +620,7 @@ class PhysicalPredictor:
                 sd_hold = self.F_sd * np.sqrt(k_hold[i] * excess)
                 still = moving & (np.abs(f_fast - f_hold) > k * np.maximum(np.hypot(sd_fast, sd_hold), cross))
                 settle = np.where(still, self.settle_s, settle)
-                since = np.where(moving, since + dt[i], since)
+                since += dt[i]
                 mean_sum = np.where(still, 0.0, mean_sum + dt[i] * f_fast)
                 mean_tsum = np.where(still, 0.0, mean_tsum + dt[i] * since)
                 mean_w = np.where(still, 0.0, mean_w + dt[i])
