@@ -42,8 +42,8 @@ LOAD_HOLD_S = 3.0
 #: on by r per second. Both are taken off the level a transition ends at. Long against the
 #: frame noise (1.4 N of lag at 1 s frames on ram2), short against the heat's hours. It learns
 #: only ``3 offset_tau_s`` after a transition: until then the reading still carries the offset
-#: taking in what the last level left (a signature's cross-talk on the twin's static-xyz, read
-#: as drift, moved the next levels by 10 µm of dy) and the lag building up again.
+#: taking in what the last level left (a signature's cross-talk) and the lag building up again,
+#: neither of which is the drift.
 LOAD_TREND_S = 120.0
 #: Expected false load starts per hour of load-free running: a step test is one look per frame
 #: (at most one per 2 LOAD_FAST_S, the low-pass's memory), so its threshold in sigma grows with
