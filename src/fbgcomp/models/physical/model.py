@@ -22,6 +22,7 @@ from scipy.optimize import nnls
 from fbgcomp.errors import InputError
 from fbgcomp.io.campaign import SensorSpec
 from fbgcomp.models.base import EstimatorParams, ModelFile, as_campaign_list, check_compatible
+from fbgcomp.models.filters import first_order_filter
 from fbgcomp.models.physical.predictor import FORCE_AXES, PhysicalPredictor, excursion2
 from fbgcomp.models.physical.shapes import check_shapes
 from fbgcomp.models.physical.thermal import (
@@ -36,6 +37,10 @@ from fbgcomp.models.physical.thermal import (
 )
 from fbgcomp.structure.machine import Machine, load_machine
 from fbgcomp.units import AXES
+
+#: High-pass of a combined campaign's signals before its load signature is read, s: heat moves
+#: the gratings by minutes to hours, a load step within seconds.
+SIGNATURE_HIGHPASS_S = 60.0
 
 
 def effective_samples(x) -> float:
@@ -222,6 +227,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
                     "F": None if F is None else np.nan_to_num(F),
                     "loaded": loaded,
                     "forces_unknown": forces_unknown,
+                    "heated": c.meta.kind == "combined",
                 }
             )
         thermal_rows = [r for r in rows if not r["loaded"]]
@@ -259,17 +265,32 @@ class PhysicalModel(EstimatorParams, ModelFile):
         if loaded_rows:
             Xs, Es_, Ys, ws_ = [], [], [], []
             k = len(loaded_rows)
+            F_raw = []
             for i, r in enumerate(loaded_rows):
                 n = len(r["e"])
                 onehot = np.zeros((n, k))
                 onehot[:, i] = 1.0
-                Xs.append(np.hstack([onehot, r["F"], r["H"][:, 1:]]))
-                Es_.append(r["e"])
-                Ys.append(r["y"])
+                F, E, Y, H = r["F"], r["e"], r["y"], r["H"][:, 1:]
+                if r["heated"]:
+                    # A combined campaign heats while it loads: the gratings' thermal reading that
+                    # no probe sees (a face warmer than its opposite) moves with the hours a load is
+                    # held and went into the signature (ram2 thermal_c as the only loaded training:
+                    # Fx read 0.2-0.3 µm/kN on S3 and S4, which see none, and thermal_c's own dy
+                    # came out 5.8 µm off on 3.7). Its signature is read from the load changes
+                    # alone: every signal less its SIGNATURE_HIGHPASS_S low-pass, which heat
+                    # hardly moves and a load step does at once.
+                    F, E, Y, H = (
+                        v - first_order_filter(v, r["t"], SIGNATURE_HIGHPASS_S)[0] for v in (F, E, Y, H)
+                    )
+                    onehot[:] = 0.0
+                F_raw.append(r["F"])
+                Xs.append(np.hstack([onehot, F, H]))
+                Es_.append(E)
+                Ys.append(Y)
                 ws_.append(np.full(n, 1.0 / n))
             X = np.vstack(Xs)
             w_all = np.concatenate(ws_)
-            Fall = X[:, k : k + 3]
+            Fall = np.vstack(F_raw)
             active = np.sqrt(np.average(Fall**2, axis=0, weights=w_all)) > 100.0
             cols = list(range(k)) + [k + j for j in range(3) if active[j]] + list(range(k + 3, X.shape[1]))
             Bg, _ = weighted_lstsq(X[:, cols], np.vstack(Es_), w_all)
