@@ -6,12 +6,12 @@ Nothing here writes a file; :mod:`fbgcomp.report.html` renders the sections and 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from fbgcomp.io.campaign import WAVELENGTH_BAND_NM
+from fbgcomp.io.campaign.align import diff_noise_sd
 from fbgcomp.models.base import check_compatible
 from fbgcomp.models.features import FeatureMap
 from fbgcomp.models.metrics import validation_metrics
@@ -49,11 +49,9 @@ def _robust_noise(values: np.ndarray) -> float:
     """Sample-to-sample noise SD from the median absolute first difference (robust to steps
     and slow drift: a smooth signal has tiny differences, white noise sigma gives
     MAD(diff) * 1.4826 / sqrt 2 = sigma)."""
-    d = np.diff(values)
-    if d.size == 0:
+    if np.size(values) < 2:
         return float("nan")
-    mad = np.median(np.abs(d - np.median(d)))
-    return float(1.4826 * mad / math.sqrt(2.0))
+    return float(diff_noise_sd(values))
 
 
 def _longest_constant_run_s(time_s: np.ndarray, values: np.ndarray) -> float:

@@ -97,6 +97,15 @@ def zero_state(time_s: np.ndarray, values: np.ndarray, window_s: float) -> np.nd
     return values[:n].mean(axis=0)
 
 
+def diff_noise_sd(values, axis=0):
+    """White-noise SD of each series along ``axis`` from its successive differences, robustly:
+    MAD(diff) x 1.4826 / sqrt 2 (steps and slow drift hardly move the median difference; white
+    noise of SD sigma gives sigma)."""
+    d = np.diff(np.asarray(values, float), axis=axis)
+    mad = np.median(np.abs(d - np.median(d, axis=axis, keepdims=True)), axis=axis)
+    return 1.4826 * mad / math.sqrt(2.0)
+
+
 #: A load the load cell sees change by more than this within the zero window, N, beyond six
 #: times its own noise, means the zero state was not taken at rest.
 REST_LOAD_CHANGE_N = 20.0
@@ -116,9 +125,7 @@ def moving_in_window(time_s, values, window_s, floor=REST_LOAD_CHANGE_N):
     n = int(np.searchsorted(t, t[0] + window_s, side="right")) if t.size else 0
     if n < 2:
         return None
-    d = np.diff(v, axis=0)
-    noise = 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0) / math.sqrt(2.0)
-    limit = np.maximum(floor, 6.0 * noise)
+    limit = np.maximum(floor, 6.0 * diff_noise_sd(v))
     away = np.abs(v[:n] - v[0]) > limit
     if not away.any():
         return None

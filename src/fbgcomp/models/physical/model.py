@@ -21,6 +21,7 @@ from scipy.optimize import nnls
 
 from fbgcomp.errors import InputError
 from fbgcomp.io.campaign import SensorSpec
+from fbgcomp.io.campaign.align import diff_noise_sd
 from fbgcomp.models.base import EstimatorParams, ModelFile, as_campaign_list, check_compatible
 from fbgcomp.models.filters import first_order_filter
 from fbgcomp.models.physical.predictor import FORCE_AXES, PhysicalPredictor, excursion2
@@ -478,9 +479,8 @@ class PhysicalModel(EstimatorParams, ModelFile):
         scale = np.maximum(np.abs(np.vstack(dTs)).max(axis=0), 0.5)
         sd_ref = []
         for r in rows:
-            d = np.diff(r["y"], axis=0)
-            if len(d) > 10:
-                sd_ref.append(1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0) / np.sqrt(2))
+            if len(r["y"]) > 11:
+                sd_ref.append(diff_noise_sd(r["y"]))
         v0 = np.min(sd_ref, axis=0) ** 2 if sd_ref else np.zeros(3)
         # dT is a reading minus the zero reading: a change within twice the SD of such a
         # difference of two readings (sqrt 2 x each probe's white noise) is none
@@ -555,9 +555,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
             ft, w, t = self.frame_arrays(c, a)
             if ft.size < 10:
                 continue
-            d = np.diff(fmap.base(w, t, *r["zero"]), axis=0)
-            mad = np.median(np.abs(d - np.median(d, axis=0)), axis=0)
-            out = np.maximum(out, (1.4826 * mad) ** 2 / 2.0)
+            out = np.maximum(out, diff_noise_sd(fmap.base(w, t, *r["zero"])) ** 2)
             fastest = min(fastest, float(np.median(np.diff(ft))))
         if not np.isfinite(fastest):
             # zero noise would make the step test take every frame's noise for a load
