@@ -184,6 +184,8 @@ class PhysicalPredictor:
             self.offset_tau_s = float(m.offset_tau_s)
             # a transition ends this long after the load stops, at the mean reading since then
             self.settle_s = float(m.offset_tau_s)
+            # the thermal lag is learnt only this long after a transition (LOAD_TREND_S)
+            self.trend_after_s = 3.0 * self.offset_tau_s
             self.drift_N_per_s = np.asarray(L.get("drift_N_per_s", [0.0] * 3), float)
             self.noise_cov = noise
             self.nuisance_cov = nuisance_cov + np.zeros_like(noise)
@@ -273,8 +275,9 @@ class PhysicalPredictor:
     def _frame_terms(self, dt):
         """The load tracker's per-frame constants at frame intervals ``dt`` (n,) s: the offset's
         gain, the recent-shift memory, the fast and hold gains, the noise each low-pass leaves
-        (fast, hold, their difference: :func:`fast_hold_noise`), the drift allowance (n, 3) N
-        and the step test's threshold in sigma."""
+        (fast, hold, their difference: :func:`fast_hold_noise`), the drift allowance (n, 3) N,
+        the step test's threshold in sigma, and the thermal lag's gain (``LOAD_TREND_S``) and
+        the noise its low-pass leaves (0 where dt = 0: nothing learnt)."""
         alpha = 1.0 - np.exp(-dt / self.offset_tau_s)
         forget = np.exp(-dt / LOAD_HOLD_S)
         b_fast = 1.0 - np.exp(-dt / LOAD_FAST_S)
@@ -288,6 +291,8 @@ class PhysicalPredictor:
         k_fast = np.where(dt > 0, rate * b_fast / (2.0 - b_fast), 1.0)
         k_hold = np.where(dt > 0, rate * b_hold / (2.0 - b_hold), 1.0)
         kd = fast_hold_noise(dt, rate, b_fast, b_hold)
+        b_trend = 1.0 - np.exp(-dt / LOAD_TREND_S)
+        k_trend = rate * b_trend / (2.0 - b_trend)
         lag = self.drift_N_per_s[None, :] * np.maximum(dt, self.offset_tau_s)[:, None]
         look = np.maximum(dt, 2.0 * LOAD_FAST_S)
         if len(dt) and look.min() == look.max():  # frames faster than the low-pass: one look each
@@ -302,7 +307,7 @@ class PhysicalPredictor:
             if len(dt)
             else np.zeros(0),
         )
-        return alpha, forget, b_fast, b_hold, k_fast, k_hold, kd, lag, k_start
+        return alpha, forget, b_fast, b_hold, k_fast, k_hold, kd, lag, k_start, b_trend, k_trend
 
     def _one_frame_terms(self, dt):
         """:meth:`_frame_terms` of one frame interval as Python floats (k_fast, kd, lag (3,),
@@ -314,7 +319,7 @@ class PhysicalPredictor:
         if hit is None:
             if len(cache) >= 256:  # a jittered clock: forget, do not grow
                 cache.clear()
-            _, _, _, _, k_fast, _, kd, lag, k_start = self._frame_terms(np.array([dt]))
+            _, _, _, _, k_fast, _, kd, lag, k_start, _, _ = self._frame_terms(np.array([dt]))
             hit = cache[dt] = (float(k_fast[0]), float(kd[0]), lag[0].tolist(), float(k_start[0]))
         return hit
 
@@ -357,7 +362,7 @@ class PhysicalPredictor:
         shift = off[:m] - off_prev[:m]
         rec = first_order_recursion(dt[:m] / LOAD_HOLD_S, shift, recent, gain=False)
         q = quiet + np.cumsum(dt[:m])
-        learn = np.where(q >= 3.0 * self.offset_tau_s, dt[:m] / LOAD_TREND_S, 0.0)
+        learn = np.where(q >= self.trend_after_s, dt[:m] / LOAD_TREND_S, 0.0)
         tr = first_order_recursion(learn, f_fast[:m] - applied[None, :], trend)
         return (
             m,
@@ -413,7 +418,7 @@ class PhysicalPredictor:
             "fast": [y[j] - off[j] for j in range(S)],
             "hold": hold,
             "trend": first_order_step(
-                dt / LOAD_TREND_S if quiet >= 3.0 * self.offset_tau_s else 0.0,
+                dt / LOAD_TREND_S if quiet >= self.trend_after_s else 0.0,
                 [f_fast[a] - applied[a] for a in range(3)],
                 _floats(st.get("trend", [0.0, 0.0, 0.0])),
             ),
@@ -506,8 +511,9 @@ class PhysicalPredictor:
         first = xs is None
         xs = np.zeros(S) if first else np.array(xs, float)
         f_hold = np.zeros(3) if f_hold is None else np.array(f_hold, float)
-        alpha, forget, b_fast, b_hold, k_fast, k_hold, kd, lag, k_start = self._frame_terms(dt)
-        b_trend = 1.0 - np.exp(-dt / LOAD_TREND_S)
+        alpha, forget, b_fast, b_hold, k_fast, k_hold, kd, lag, k_start, b_trend, k_trend = self._frame_terms(
+            dt
+        )
         op = self.ops[0]
         Ga = self.G
         force = np.zeros((n, 3))
@@ -587,7 +593,7 @@ class PhysicalPredictor:
             if not (take.any() or moving.any()):  # a steady frame: the noise estimate learns
                 noise = self._noise_excess((f_fast - f_hold)[None, :], dt[i : i + 1], kd[i : i + 1], noise)[0]
                 quiet += dt[i]
-                if quiet >= 3.0 * self.offset_tau_s:
+                if quiet >= self.trend_after_s:
                     trend += b_trend[i] * (f_fast - applied - trend)
             else:
                 quiet = 0.0
@@ -633,9 +639,7 @@ class PhysicalPredictor:
                 # (-1 N/s of Fx) a 300 N step ended 35 N low, 5 µm of dx held for its duration
                 # (the lag's own noise is not applied: firm shrinkage at k sigma of the noise
                 # the LOAD_TREND_S low-pass leaves; on ram2's thermal_c, 2.6 N at rest)
-                rate = max(self.noise_frame_dt_s / dt[i], 1.0) if dt[i] > 0 else 1.0
-                sd_trend = self.F_sd * np.sqrt(rate * b_trend[i] / (2.0 - b_trend[i]) * excess)
-                lagged = P.firm(trend, sd_trend, k, 2 * k)
+                lagged = P.firm(trend, self.F_sd * np.sqrt(k_trend[i] * excess), k, 2 * k)
                 mw = np.where(mean_w > 0, mean_w, 1.0)
                 level = mean_sum / mw - lagged * (1.0 + mean_tsum / mw / self.offset_tau_s)
                 applied = np.where(ended, level, applied)
