@@ -485,7 +485,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         # dT is a reading minus the zero reading: a change within twice the SD of such a
         # difference of two readings (sqrt 2 x each probe's white noise) is none
         deadband = 2.0 * np.sqrt(2.0) * probe_noise_sd_K(campaigns, self.probe_names_)
-        e2, S, act, w, n_eff = [], [], [], [], []
+        e2, S, act, w, n_eff, amb = [], [], [], [], [], []
         for r, c in zip(rows, campaigns):
             if r["loaded"]:
                 continue
@@ -494,13 +494,18 @@ class PhysicalModel(EstimatorParams, ModelFile):
             n_eff.append([effective_samples(pred[:, j] - r["y"][:, j]) for j in range(3)])
             S.append(excursion2(r["dT"], scale, deadband))
             act.append(p.last_activity[at])
+            amb.append(p.last_spread[at] ** 2)
             w.append(np.full(len(pred), 1.0 / len(pred)))  # campaigns weighted equally
         e2, s2, act, w = np.vstack(e2), np.concatenate(S), np.concatenate(act), np.concatenate(w)
+        z2 = stats.norm.ppf(0.975) ** 2
+        # the members' disagreement is a variance of its own (PhysicalPredictor._variance): what
+        # is left for the state terms is the error beyond it and the instrument's noise
+        base = v0[None, :] + np.vstack(amb) / z2
         a_scale = max(float(np.abs(act).max()), 1e-3)
         A = np.column_stack([np.sqrt(s2), s2, (act / a_scale) ** 2])
         sw = np.sqrt(w)[:, None]
         v = np.array(
-            [nnls(A * sw, (e2[:, j] - v0[j]) * sw[:, 0])[0] for j in range(3)]
+            [nnls(A * sw, (e2[:, j] - base[:, j]) * sw[:, 0])[0] for j in range(3)]
         )  # (axes, [vs, v1, v2])
         # The errors are not Gaussian (heavy tails from the transients): scale the state terms
         # so that the 95 % interval covers 95 % of the training samples (campaigns weighted
@@ -511,7 +516,6 @@ class PhysicalModel(EstimatorParams, ModelFile):
         # independent errors (:func:`effective_samples`): thermal errors stay correlated for
         # hours, so a 36 h campaign holds a few dozen of them, not 130 000, and the plain 95th
         # percentile covered 88 % on ram2's unseen thermal_b (dy).
-        z2 = stats.norm.ppf(0.975) ** 2
         shape = A @ v.T  # (n, 3) state variance
         n_ind = np.sum(n_eff, axis=0)
         level = np.minimum(np.ceil((n_ind + 1.0) * 0.95) / np.maximum(n_ind, 1.0), 0.975)
@@ -519,7 +523,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
             if not np.any(shape[:, j] > 0):
                 continue
             with np.errstate(divide="ignore", invalid="ignore"):
-                need = np.where(e2[:, j] / z2 <= v0[j], 0.0, (e2[:, j] / z2 - v0[j]) / shape[:, j])
+                need = np.where(e2[:, j] / z2 <= base[:, j], 0.0, (e2[:, j] / z2 - base[:, j]) / shape[:, j])
             order = np.argsort(need)
             # (a share of exactly 0.95 counts as reached: the cumulative sum's rounding must not
             # push the level to the next sample)

@@ -218,6 +218,7 @@ class PhysicalPredictor:
                 "high": hi,
                 "G": (np.asarray(m.load_["G_um_per_N"], float) if m.load_ is not None else np.zeros((S, 3))),
             }
+            self._map_box = (lo, hi, self.margin)
             cal = tm.get("calibration")
             self.cal = (
                 None
@@ -700,6 +701,7 @@ class PhysicalPredictor:
         wl = np.atleast_2d(np.asarray(wavelength_nm, dtype=float))
         n = wl.shape[0]
         flags = np.zeros((n, 3), np.uint8)
+        spread = np.zeros((n, 3))
         state = self.state or {}
         new_state = {}
         dT = np.atleast_2d(np.asarray(temperature_C, float)) - np.asarray(temperature_zero_C, float)
@@ -757,17 +759,19 @@ class PhysicalPredictor:
                 else:
                     new_state["cal"] = dict(state.get("cal", {}))
             self.last_cal_features = L
+            if self.map["n_members"] > 1:
+                # (on the features the policy clips, as the consensus sees them)
+                Xm = X if raw or not thermal_policy else P.clip_to_envelope(X, *self._map_box)[0]
+                each = (Xm @ self.map["members"]).reshape(n, self.map["n_members"], 3)
+                spread = each.max(axis=1) - each.min(axis=1)
             if raw or not thermal_policy:
                 thermal = X @ self.map["coef"]
                 if L is not None:
                     thermal = thermal + L @ self.cal["coef"]
             else:
-                Xc, outside = P.clip_to_envelope(X, self.map["low"], self.map["high"], self.margin)
-                if self.map["n_members"] > 1:
-                    each = (Xc @ self.map["members"]).reshape(n, self.map["n_members"], 3)
-                    thermal = consensus(each.transpose(1, 0, 2))
-                else:
-                    thermal = Xc @ self.map["coef"]
+                Xc, outside = P.clip_to_envelope(X, *self._map_box)
+                multi = self.map["n_members"] > 1
+                thermal = consensus(each.transpose(1, 0, 2)) if multi else Xc @ self.map["coef"]
                 if L is not None:
                     Lc, out_l = P.clip_to_envelope(L, self.cal["low"], self.cal["high"], self.margin)
                     thermal = thermal + Lc @ self.cal["coef"]
@@ -797,15 +801,23 @@ class PhysicalPredictor:
         self.last_force_N = force
         deviation = thermal + load
         self.last_activity = activity
-        return deviation, self._t * np.sqrt(self._variance(dT, activity, force))
+        self.last_spread = spread
+        return deviation, self._t * np.sqrt(self._variance(dT, activity, force, spread))
 
-    def _variance(self, dT, activity, force):
+    def _variance(self, dT, activity, force, spread=0.0):
         """Predictive variance (n, 3) µm²: the thermal part's error at the current thermal
         excursion, plus, while a load is applied, the force estimate's noise and the signature's
-        relative error through the compliance."""
+        relative error through the compliance.
+
+        Plus the twin map's members' disagreement ``spread`` (n, 3) µm (max - min, see
+        :func:`~fbgcomp.models.physical.thermal.consensus`) as a half-width of its own: where
+        the gratings cannot tell one heat source from another, the truth may lie anywhere the
+        members do, whatever the training campaigns' residuals say (they never saw that
+        ambiguity: on ram2 without S5 and S6, the radiant load of thermal_b, 0.90 -> 0.99 on dx)."""
         n = dT.shape[0]
+        amb = (np.asarray(spread, float) / self._t) ** 2 + np.zeros((n, 3))
         if self.interval is None:
-            return self.expected_rms_error_um[None, :] ** 2 + np.zeros((n, 3))
+            return self.expected_rms_error_um[None, :] ** 2 + amb
         iv = self.interval
         s2 = excursion2(dT, iv["scale"], iv["deadband"])
         a2 = (np.asarray(activity, float) / iv["activity_scale"]) ** 2
@@ -814,6 +826,7 @@ class PhysicalPredictor:
             + iv["vs"][None, :] * np.sqrt(s2)[:, None]
             + iv["v1"][None, :] * s2[:, None]
             + iv["v2"][None, :] * a2[:, None]
+            + amb
         )
         if self.has_load:
             on = (force != 0.0).astype(float)  # components applied
