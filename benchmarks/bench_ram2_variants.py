@@ -1,4 +1,4 @@
-"""The default model on ram2's own independent data, logged, oriented and instrumented otherwise.
+"""The default model on ram2's own independent data, logged, oriented, instrumented and described otherwise.
 
 A hidden ram differs from ram2 in its physics and in much that is not: how its files are logged,
 how it stands in its machine frame, which instruments it carries. This benchmark keeps ram2's
@@ -15,7 +15,10 @@ files and data sheet would have it. For each variant, as a user runs it:
   towards +Y, the radiant load on +Y, thermal_c's force along Y) and mirrored (x' = -x); the
   physics is the same, so every figure must be ram2's with the axes exchanged;
 * instruments: ram2 without S5 and S6 (four gratings), without S2 and S4 (gratings on +X and +Y
-  only), without S1, and without each probe but T_surf (whose gratings then name T_bulk).
+  only), without S1, and without each probe but T_surf (whose gratings then name T_bulk);
+* the description a less careful data sheet gives, ram2's files as published: no radiant source
+  declared, the radiant source on another face and zone, the bearing heat centred in the housing
+  (80 W), one film coefficient everywhere, handbook materials, and the last three together.
 
 Then, with ram2 as published: load histories superposed on its thermal campaigns through its
 unit responses (exact: ram2 is linear, README section 6; :mod:`fbgcomp.bench.superpose`), so that
@@ -222,6 +225,84 @@ for _name, _what, _gone, _fb in (
 ):
     _t, _m, _d = _without(*_gone, fallback=_fb)
     VARIANTS[_name] = _variant(_what, table=_t, meta=_m, machine=_d)
+
+
+# --- the description a less careful data sheet gives (ram2's files as published) ----------------
+
+
+def _no_radiant(d):
+    d["thermal"]["heat_sources"] = [h for h in d["thermal"]["heat_sources"] if h["kind"] != "radiant"]
+
+
+def _radiant_elsewhere(d):
+    for h in d["thermal"]["heat_sources"]:
+        if h["kind"] == "radiant":
+            h["face"], h["z_mm"] = "-X", [0.0, 700.0]
+
+
+def _spindle_centred(d):
+    for h in d["thermal"]["heat_sources"]:
+        if h["kind"] == "volume":
+            h["x_mm"], h["y_mm"], h["z_mm"], h["nominal_W"] = (
+                [-75.0, 75.0],
+                [-75.0, 75.0],
+                [-180.0, 0.0],
+                80.0,
+            )
+
+
+def _films_uniform(d):
+    d["thermal"]["films_W_per_m2K"] = dict.fromkeys(d["thermal"]["films_W_per_m2K"], 8.0)
+
+
+def _handbook_materials(d):
+    d["materials"]["cfrp"].update(
+        {
+            "E_L_GPa": 125.0,
+            "E_T_GPa": 8.0,
+            "cte_L_per_K": 0.0,
+            "cte_T_per_K": 30.0e-6,
+            "k_L_W_per_mK": 5.0,
+            "k_T_W_per_mK": 0.5,
+        }
+    )
+    d["materials"]["steel"].update({"cte_per_K": 12.0e-6, "k_W_per_mK": 50.0})
+
+
+def _rough(d):
+    for f in (_spindle_centred, _films_uniform, _handbook_materials):
+        f(d)
+
+
+for _name, _what, _f in (
+    (
+        "no-radiant-declared",
+        "description: no radiant source (the data sheet lists the spindle only)",
+        _no_radiant,
+    ),
+    (
+        "radiant-elsewhere",
+        "description: the radiant source on -X, z 0-700 (thermal_b heats +X, 300-1400)",
+        _radiant_elsewhere,
+    ),
+    (
+        "spindle-centred",
+        "description: the bearing heat over the whole housing's middle, 80 W (not offset to +X)",
+        _spindle_centred,
+    ),
+    ("films-uniform", "description: one film coefficient, 8 W/m2K, on every surface", _films_uniform),
+    (
+        "handbook-materials",
+        "description: handbook CFRP (E 125/8 GPa, CTE 0/30e-6, k 5/0.5) and steel (12e-6, 50 W/mK)",
+        _handbook_materials,
+    ),
+    (
+        "rough-description",
+        "description: spindle centred, uniform films and handbook materials together",
+        _rough,
+    ),
+):
+    VARIANTS[_name] = _variant(_what, machine=_f)
 
 
 def write_variant(name, data: Path, folder: Path) -> Path:

@@ -42,6 +42,7 @@ def bench(tmp_path_factory):
             "mirrored",
             "four-gratings",
             "no-T_flange",
+            "spindle-centred",
         ],
         capture_output=True,
         text=True,
@@ -85,6 +86,20 @@ def test_a_ram_with_fewer_instruments_is_compensated_without_harm(bench, variant
         v = fig["thermal_b"]["axes"][a]
         assert v["max_abs_error_um"] <= 0.5 * v["peak_um"], (variant, a, v)
     assert fig["thermal_b"]["axes"]["dz"]["peak_um"] == base["thermal_b"]["axes"]["dz"]["peak_um"]
+
+
+def test_a_rougher_description_of_the_same_ram_does_no_harm(bench):
+    # The bearing heat described centred in the housing (a data sheet rarely places it): the map
+    # leaves the housing transient to the calibration, whose 300 s lead then takes 18.7 µm/K of
+    # dz (11.5 as described) and amplifies the flange probe's 0.1 K scatter; the policy's noise
+    # floor knew the map alone (0.29 µm) and let 1.8 µm through on static_x, whose dz moves
+    # 0.2 µm. It is now the whole thermal part's noise, calibration included.
+    fig = bench[0]["results"]["spindle-centred"]
+    for held in HELD:
+        for a in AXES:
+            v = fig[held]["axes"][a]
+            assert v["max_abs_error_um"] <= v["peak_um"] + 0.5, (held, a, v)
+    assert fig["static_x"]["axes"]["dz"]["max_abs_error_um"] < 0.5, fig["static_x"]["axes"]["dz"]
 
 
 def test_the_interval_widens_where_the_gratings_cannot_tell_the_heat_sources_apart(bench):

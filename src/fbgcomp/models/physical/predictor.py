@@ -220,6 +220,10 @@ class PhysicalPredictor:
             }
             self._map_box = (lo, hi, self.margin)
             cal = tm.get("calibration")
+            if cal is not None and "noise_sd_um" in cal:
+                # the whole thermal part's noise, the housing calibration's leads included
+                # (PhysicalModel._noise_floor): the policy holds back what noise alone makes
+                self.map_noise_sd_um = np.maximum(self.map_noise_sd_um, np.asarray(cal["noise_sd_um"], float))
             self.cal = (
                 None
                 if cal is None

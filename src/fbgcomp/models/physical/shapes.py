@@ -146,3 +146,9 @@ def check_shapes(d: dict, source) -> None:
             array(cal.get("coef"), "twin_map.calibration.coef", (1 + leads.size, 3))
             for key in ("envelope_low", "envelope_high"):
                 array(cal.get(key), f"twin_map.calibration.{key}", (1 + leads.size,))
+            if "noise_sd_um" in cal:
+                need(
+                    np.all(array(cal["noise_sd_um"], "twin_map.calibration.noise_sd_um", (3,)) >= 0),
+                    "twin_map.calibration.noise_sd_um",
+                    "must be >= 0",
+                )
