@@ -18,7 +18,9 @@ files and data sheet would have it. For each variant, as a user runs it:
   only), without S1, and without each probe but T_surf (whose gratings then name T_bulk);
 * the description a less careful data sheet gives, ram2's files as published: no radiant source
   declared, the radiant source on another face and zone, the bearing heat centred in the housing
-  (80 W), one film coefficient everywhere, handbook materials, and the last three together.
+  (80 W), one film coefficient everywhere, handbook materials, and the last three together; the
+  housing probe at the housing's centre, a longer tool, another nominal bearing power, both rails
+  locating, the carriage stations lower, every film doubled, no mesh section or nose patch.
 
 Then, with ram2 as published: load histories superposed on its thermal campaigns through its
 unit responses (exact: ram2 is linear, README section 6; :mod:`fbgcomp.bench.superpose`), so that
@@ -274,7 +276,55 @@ def _rough(d):
         f(d)
 
 
+def _flange_probe_centred(d):
+    for q in d["probes"]:
+        if q["name"] == "T_flange":
+            q["x_mm"], q["y_mm"] = 0.0, 0.0  # "in the spindle housing"
+
+
+def _longer_tool(d):
+    d["tool"]["ttp_below_housing_mm"] = 150.0
+
+
+def _spindle_200w(d):
+    for h in d["thermal"]["heat_sources"]:
+        if h["kind"] == "volume":
+            h["nominal_W"] = 200.0
+
+
+def _both_rails_locating(d):
+    for r in d["supports"]["rails"]:
+        r["locating"] = True
+
+
+def _stations_off(d):
+    d["supports"]["carriages"] = [
+        {"name": "lower", "z_range_mm": [900.0, 1000.0]},
+        {"name": "upper", "z_range_mm": [1250.0, 1350.0]},
+    ]
+
+
+def _films_doubled(d):
+    d["thermal"]["films_W_per_m2K"] = {k: 2.0 * v for k, v in d["thermal"]["films_W_per_m2K"].items()}
+
+
+def _defaults_only(d):
+    d.pop("mesh", None)
+    d["tool"].pop("nose_patch_mm", None)
+
+
 for _name, _what, _f in (
+    (
+        "flange-probe-centred",
+        "description: T_flange at the housing's centre (the sheet: in the housing)",
+        _flange_probe_centred,
+    ),
+    ("tool-150", "description: the TTP 150 mm below the housing (120 in ram2)", _longer_tool),
+    ("spindle-200W", "description: the bearing heat's nominal power 200 W (120)", _spindle_200w),
+    ("rails-both-locating", "description: both rails locating (one floats in ram2)", _both_rails_locating),
+    ("stations-off", "description: carriage stations 50 mm lower than ram2's", _stations_off),
+    ("films-doubled", "description: every film coefficient doubled", _films_doubled),
+    ("defaults", "description: no mesh section and no nose patch (the defaults)", _defaults_only),
     (
         "no-radiant-declared",
         "description: no radiant source (the data sheet lists the spindle only)",
