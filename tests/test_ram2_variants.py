@@ -43,6 +43,7 @@ def bench(tmp_path_factory):
             "four-gratings",
             "no-T_flange",
             "spindle-centred",
+            "rails-both-locating",
         ],
         capture_output=True,
         text=True,
@@ -100,6 +101,17 @@ def test_a_rougher_description_of_the_same_ram_does_no_harm(bench):
             v = fig[held]["axes"][a]
             assert v["max_abs_error_um"] <= v["peak_um"] + 0.5, (held, a, v)
     assert fig["static_x"]["axes"]["dz"]["max_abs_error_um"] < 0.5, fig["static_x"]["axes"]["dz"]
+
+
+def test_a_uniform_warming_the_description_gets_wrong_is_learnt_from_the_ambient(bench):
+    # Both rails described as locating (one floats in ram2): the twin's lateral drift under a
+    # uniform warming is wrong, and thermal_b's dx error tracked the hall's temperature (-3.3
+    # µm/K, correlation -0.97, as on thermal_a): 10.85 µm on 30.56. thermal_a's day cycle
+    # teaches it through the calibration's ambient term; the air follows no heat source.
+    fig = bench[0]["results"]["rails-both-locating"]["thermal_b"]["axes"]["dx"]
+    assert fig["max_abs_error_um"] <= 0.25 * fig["peak_um"], fig
+    base = bench[0]["results"]["as-published"]["thermal_b"]["axes"]["dx"]
+    assert base["max_abs_error_um"] <= 0.1 * base["peak_um"], base
 
 
 def test_the_interval_widens_where_the_gratings_cannot_tell_the_heat_sources_apart(bench):

@@ -27,6 +27,7 @@ from fbgcomp.models.filters import first_order_filter
 from fbgcomp.models.physical.predictor import FORCE_AXES, PhysicalPredictor, excursion2
 from fbgcomp.models.physical.shapes import check_shapes
 from fbgcomp.models.physical.thermal import (
+    CAL_AMBIENT_TAU_S,
     CAL_LEADS_S,
     HOUSING_REST_S,
     ambient_probe_names,
@@ -496,10 +497,12 @@ class PhysicalModel(EstimatorParams, ModelFile):
         the probe sit in the steel, which a data sheet rarely gives to the millimetre; every
         spindle duty cycle excites it, so the measured campaigns can teach it. The face-gradient
         coefficients stay the twin's (no campaign without a gradient can teach them)."""
-        k = 1 + len(CAL_LEADS_S)
+        amb = {"ambient_tau_s": CAL_AMBIENT_TAU_S} if self.ambient_probes_ else {}
+        k = 1 + len(CAL_LEADS_S) + len(amb)
         # the map as it stands, with the leads computed alongside (zero coefficients)
         self.twin_map_["calibration"] = {
             "leads_s": list(CAL_LEADS_S),
+            **amb,
             "coef": np.zeros((k, 3)).tolist(),
             "envelope_low": [-1e9] * k,
             "envelope_high": [1e9] * k,
@@ -520,6 +523,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         L = np.vstack(feats)
         return {
             "leads_s": list(CAL_LEADS_S),
+            **amb,
             "coef": coef.tolist(),
             "source": "measured load-free campaigns",
             "envelope_low": L.min(axis=0).tolist(),

@@ -16,7 +16,7 @@ import numpy as np
 from scipy import stats
 
 import fbgcomp.models.policy as P
-from fbgcomp.models.filters import first_order_recursion, first_order_step
+from fbgcomp.models.filters import first_order_filter, first_order_recursion, first_order_step
 from fbgcomp.models.physical.thermal import (
     MAP_LEADS_S,
     consensus,
@@ -229,6 +229,7 @@ class PhysicalPredictor:
                 if cal is None
                 else {
                     "leads_s": tuple(float(x) for x in cal["leads_s"]),
+                    "ambient_tau_s": cal.get("ambient_tau_s"),
                     "coef": np.asarray(cal["coef"], float),
                     "low": np.asarray(cal["envelope_low"], float),
                     "high": np.asarray(cal["envelope_high"], float),
@@ -744,10 +745,36 @@ class PhysicalPredictor:
                     new_state["rest"],
                     nominal_dt_s=self.nominal_dt_s,
                 )
-                L = np.zeros((n, 1 + len(self.cal["leads_s"])))
+                tau_a = self.cal["ambient_tau_s"]
+                k_h = 1 + len(self.cal["leads_s"])
+                L = np.zeros((n, k_h + (tau_a is not None)))
+                if tau_a is not None:
+                    # the ambient relative to its own rest level, low-passed as the ram's walls
+                    # follow it: the calibrated uniform warming
+                    new_state["rest_amb"] = {}
+                    air, past_a = housing_rest(
+                        housing_mean(dT, self._a_idx),
+                        housing_mean(smooth, self._a_idx),
+                        time_s,
+                        state.get("rest_amb", {}),
+                        new_state["rest_amb"],
+                        nominal_dt_s=self.nominal_dt_s,
+                    )
+                    if past_a.any():
+                        ta = None if time_s is None else np.asarray(time_s, float).ravel()[past_a]
+                        slow, new_state["amb"] = first_order_filter(
+                            air[past_a],
+                            ta,
+                            float(tau_a),
+                            state.get("amb") or (np.zeros(1), None),  # the walls at rest: from 0
+                            self.nominal_dt_s,
+                        )
+                        L[past_a, k_h:] = slow
+                    elif "amb" in state:
+                        new_state["amb"] = state["amb"]
                 if past.any():  # the leads start at the first frame past the rest window
                     tp = None if time_s is None else np.asarray(time_s, float).ravel()[past]
-                    L[past] = np.hstack(
+                    L[past, :k_h] = np.hstack(
                         [
                             housing[past],
                             housing_leads(

@@ -143,9 +143,14 @@ def check_shapes(d: dict, source) -> None:
                 "twin_map.calibration.leads_s",
                 "must be positive time constants",
             )
-            array(cal.get("coef"), "twin_map.calibration.coef", (1 + leads.size, 3))
+            k = 1 + leads.size
+            if "ambient_tau_s" in cal:
+                tau = array([cal["ambient_tau_s"]], "twin_map.calibration.ambient_tau_s", (1,))
+                need(tau[0] > 0, "twin_map.calibration.ambient_tau_s", "must be a positive time constant")
+                k += 1
+            array(cal.get("coef"), "twin_map.calibration.coef", (k, 3))
             for key in ("envelope_low", "envelope_high"):
-                array(cal.get(key), f"twin_map.calibration.{key}", (1 + leads.size,))
+                array(cal.get(key), f"twin_map.calibration.{key}", (k,))
             if "noise_sd_um" in cal:
                 need(
                     np.all(array(cal["noise_sd_um"], "twin_map.calibration.noise_sd_um", (3,)) >= 0),

@@ -128,6 +128,12 @@ def _map_features_one(e, dT, housing_idx, time_s, state):
 #: against the measured load-free campaigns, s.
 CAL_LEADS_S = (300.0, 900.0)
 
+#: Time constant of the ambient's low-pass on which the twin map's uniform warming is calibrated
+#: against the measured load-free campaigns, s: about a CFRP wall's own (ram2: rho c t / h =
+#: 1580 x 950 x 0.015 / 7 = 3200 s). The air follows no heat source, so the term cannot take a
+#: radiant load or the spindle for a change of the hall's temperature.
+CAL_AMBIENT_TAU_S = 3600.0
+
 #: The housing's rest level for the calibrated leads: the mean of its probes over the first
 #: ``HOUSING_REST_S`` seconds, s. One fastest lead's time constant: 30 samples of a probe read
 #: every 10 s put the level within 0.1 K / sqrt(30) = 0.018 K, 3 sigma of which make 0.6 µm
