@@ -410,7 +410,6 @@ class PhysicalModel(EstimatorParams, ModelFile):
             self._calibrate_drift(rows)
         if self.twin_map_ is not None and thermal_rows and self.housing_probes_ and self.calibrate_housing:
             self.twin_map_["calibration"] = self._calibrate_housing(rows, campaigns)
-            self._predictors = {}
             self.twin_map_["calibration"]["noise_sd_um"] = self._noise_floor(campaigns).tolist()
             self._predictors = {}
         if self.twin_map_ is not None and thermal_rows:
@@ -490,8 +489,11 @@ class PhysicalModel(EstimatorParams, ModelFile):
 
     def _calibrate_housing(self, rows, campaigns):
         """Least squares (no intercept, campaigns weighted equally) of the twin map's error on
-        the measured load-free campaigns against the housing's mean ΔT (K) and its leads at
-        ``CAL_LEADS_S`` (K).
+        the measured load-free campaigns against the housing's mean ΔT (K), its leads at
+        ``CAL_LEADS_S`` (K) and, with an ambient probe, the ambient's mean ΔT low-passed over
+        ``CAL_AMBIENT_TAU_S`` (K): the uniform warming, which a training campaign's day cycle
+        excites and a description can get wrong (ram2 with both rails described as locating:
+        thermal_b dx 10.85 µm, 5.01 with the term).
 
         How late the housing probe sees the bearings' heat depends on where the bearings and
         the probe sit in the steel, which a data sheet rarely gives to the millimetre; every
@@ -551,7 +553,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         # dT is a reading minus the zero reading: a change within twice the SD of such a
         # difference of two readings (sqrt 2 x each probe's white noise) is none
         deadband = 2.0 * np.sqrt(2.0) * probe_noise_sd_K(campaigns, self.probe_names_)
-        e2, S, act, w, n_eff, amb = [], [], [], [], [], []
+        e2, S, act, w, n_eff, spread2 = [], [], [], [], [], []
         for r, c in zip(rows, campaigns):
             if r["loaded"]:
                 continue
@@ -560,13 +562,13 @@ class PhysicalModel(EstimatorParams, ModelFile):
             n_eff.append([effective_samples(pred[:, j] - r["y"][:, j]) for j in range(3)])
             S.append(excursion2(r["dT"], scale, deadband))
             act.append(p.last_activity[at])
-            amb.append(p.last_spread[at] ** 2)
+            spread2.append(p.last_spread[at] ** 2)
             w.append(np.full(len(pred), 1.0 / len(pred)))  # campaigns weighted equally
         e2, s2, act, w = np.vstack(e2), np.concatenate(S), np.concatenate(act), np.concatenate(w)
         z2 = stats.norm.ppf(0.975) ** 2
         # the members' disagreement is a variance of its own (PhysicalPredictor._variance): what
         # is left for the state terms is the error beyond it and the instrument's noise
-        base = v0[None, :] + np.vstack(amb) / z2
+        base = v0[None, :] + np.vstack(spread2) / z2
         a_scale = max(float(np.abs(act).max()), 1e-3)
         A = np.column_stack([np.sqrt(s2), s2, (act / a_scale) ** 2])
         sw = np.sqrt(w)[:, None]

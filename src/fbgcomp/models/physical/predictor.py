@@ -846,9 +846,9 @@ class PhysicalPredictor:
         members do, whatever the training campaigns' residuals say (they never saw that
         ambiguity: on ram2 without S5 and S6, the radiant load of thermal_b, 0.90 -> 0.99 on dx)."""
         n = dT.shape[0]
-        amb = (np.asarray(spread, float) / self._t) ** 2 + np.zeros((n, 3))
+        ambiguity = (np.asarray(spread, float) / self._t) ** 2 + np.zeros((n, 3))
         if self.interval is None:
-            return self.expected_rms_error_um[None, :] ** 2 + amb
+            return self.expected_rms_error_um[None, :] ** 2 + ambiguity
         iv = self.interval
         s2 = excursion2(dT, iv["scale"], iv["deadband"])
         a2 = (np.asarray(activity, float) / iv["activity_scale"]) ** 2
@@ -857,7 +857,7 @@ class PhysicalPredictor:
             + iv["vs"][None, :] * np.sqrt(s2)[:, None]
             + iv["v1"][None, :] * s2[:, None]
             + iv["v2"][None, :] * a2[:, None]
-            + amb
+            + ambiguity
         )
         if self.has_load:
             on = (force != 0.0).astype(float)  # components applied
