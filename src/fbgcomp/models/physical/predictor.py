@@ -748,7 +748,18 @@ class PhysicalPredictor:
                 tau_a = self.cal["ambient_tau_s"]
                 k_h = 1 + len(self.cal["leads_s"])
                 L = np.zeros((n, k_h + (tau_a is not None)))
-                if tau_a is not None:
+                rest_a = state.get("rest_amb", {})
+                if tau_a is not None and n == 1 and time_s is not None and rest_a.get("level") is not None:
+                    # one frame past the rest window (a runtime batch of 1): the same step on
+                    # Python floats, where numpy's per-call cost on one number was the time
+                    sm = smooth[0]
+                    air = sum(float(sm[i]) for i in self._a_idx) / len(self._a_idx) - rest_a["level"]
+                    y_prev, t_prev = state["amb"]
+                    t1 = float(np.ravel(time_s)[0])
+                    (y,) = first_order_step(max(t1 - t_prev, 0.0) / float(tau_a), (air,), (float(y_prev[0]),))
+                    new_state["rest_amb"], new_state["amb"] = rest_a, (np.array([y]), t1)
+                    L[0, k_h] = y
+                elif tau_a is not None:
                     # the ambient relative to its own rest level, low-passed as the ram's walls
                     # follow it: the calibrated uniform warming
                     new_state["rest_amb"] = {}
@@ -790,17 +801,17 @@ class PhysicalPredictor:
                 else:
                     new_state["cal"] = dict(state.get("cal", {}))
             self.last_cal_features = L
+            policy = not (raw or not thermal_policy)
+            # the features the policy clips, as the consensus sees them
+            Xc, outside = P.clip_to_envelope(X, *self._map_box) if policy else (X, None)
             if self.map["n_members"] > 1:
-                # (on the features the policy clips, as the consensus sees them)
-                Xm = X if raw or not thermal_policy else P.clip_to_envelope(X, *self._map_box)[0]
-                each = (Xm @ self.map["members"]).reshape(n, self.map["n_members"], 3)
+                each = (Xc @ self.map["members"]).reshape(n, self.map["n_members"], 3)
                 spread = each.max(axis=1) - each.min(axis=1)
-            if raw or not thermal_policy:
+            if not policy:
                 thermal = X @ self.map["coef"]
                 if L is not None:
                     thermal = thermal + L @ self.cal["coef"]
             else:
-                Xc, outside = P.clip_to_envelope(X, *self._map_box)
                 multi = self.map["n_members"] > 1
                 thermal = consensus(each.transpose(1, 0, 2)) if multi else Xc @ self.map["coef"]
                 if L is not None:
