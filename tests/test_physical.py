@@ -161,7 +161,9 @@ def test_default_beats_the_simplest_physical_model_on_dz(twin_model, ram2):
     Xb, yb = design(ram2["thermal_b"])
     baseline = np.abs(Xb @ coef - yb).max()
     cal = twin_model.twin_map_["calibration"]
-    assert np.asarray(cal["coef"]).shape == (1 + len(cal["leads_s"]), 3)
+    # the housing's ΔT, its leads and (ram2 has an ambient probe) the ambient's hour low-pass
+    assert cal["ambient_tau_s"] > 0
+    assert np.asarray(cal["coef"]).shape == (2 + len(cal["leads_s"]), 3)
     got = _metrics(twin_model, ram2["thermal_b"])["axes"]["dz"]["max_abs_error_um"]
     assert got < 0.95 * baseline, (got, baseline)
 
