@@ -32,13 +32,13 @@ from fbgcomp.models.physical.thermal import (
     HOUSING_REST_S,
     ambient_probe_names,
     grating_map,
+    grating_wavelengths_nm,
     housing_probe_names,
     ridge_from_moments,
     thermal_regressors,
     twin_thermal_population,
     weighted_lstsq,
 )
-from fbgcomp.optics import wavelength_nm
 from fbgcomp.structure.machine import Machine, load_machine
 from fbgcomp.units import AXES
 
@@ -468,19 +468,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
             np.sqrt(np.asarray(self.load_["noise_var_um2"], float)) if self.load_ is not None else np.zeros(S)
         )
         el = rng.normal(0.0, 1.0, (t.size, S)) * el_sd
-        wl = np.column_stack(
-            [
-                wavelength_nm(
-                    el[:, i],
-                    s.lambda0_nm,
-                    s.gauge_length_mm,
-                    photoelastic=s.photoelastic,
-                    thermo_optic_per_K=s.thermo_optic_per_K,
-                    fibre_cte_per_K=s.fibre_cte_per_K,
-                )
-                for i, s in enumerate(self.sensors_)
-            ]
-        )
+        wl = grating_wavelengths_nm(self.sensors_, el)
         p = PhysicalPredictor(self)
         out, _ = p.predict(wl, temps, lam0, np.zeros(P), time_s=t, thermal_policy=False)
         thermal = out - p.last_force_N @ p.C.T if p.has_load else out

@@ -308,20 +308,7 @@ def twin_thermal_population(
 
     def features(r, el, dT):
         """The map's features of the scenario ``r`` from the elongations ``el`` and thermometers ``dT``."""
-        wl = np.column_stack(
-            [
-                wavelength_nm(
-                    el[:, j],
-                    s.lambda0_nm,
-                    s.gauge_length_mm,
-                    r.sensor_temperature_C[:, i],
-                    photoelastic=s.photoelastic,
-                    thermo_optic_per_K=s.thermo_optic_per_K,
-                    fibre_cte_per_K=s.fibre_cte_per_K,
-                )
-                for j, (i, s) in enumerate(zip(idx, sensors))
-            ]
-        )
+        wl = grating_wavelengths_nm(sensors, el, r.sensor_temperature_C[:, idx])
         return map_features(fmap.base(wl, dT, lam0, np.zeros(len(sources))), dT, h_idx, r.time_s)[0]
 
     rng = np.random.default_rng(seed)
@@ -397,6 +384,21 @@ def twin_thermal_population(
         + [f"dT_{p}" for p in probe_names]
         + [f"lead{tau:g}s_housing" for tau in MAP_LEADS_S],
     }
+
+
+def grating_wavelengths_nm(sensors, elongation_um, gauge_delta_t_K=0.0):
+    """Bragg wavelengths (n, S) nm of the campaign's gratings ``sensors`` (SensorSpec) whose
+    paths elongate by ``elongation_um`` (n, S) with their gauges ``gauge_delta_t_K`` (n, S) warmer
+    than at the zero state (paper eq. 2-4, :func:`fbgcomp.optics.wavelength_nm`)."""
+    return wavelength_nm(
+        elongation_um,
+        np.array([s.lambda0_nm for s in sensors], float),
+        np.array([s.gauge_length_mm for s in sensors], float),
+        gauge_delta_t_K,
+        photoelastic=np.array([s.photoelastic for s in sensors], float),
+        thermo_optic_per_K=np.array([s.thermo_optic_per_K for s in sensors], float),
+        fibre_cte_per_K=np.array([s.fibre_cte_per_K for s in sensors], float),
+    )
 
 
 def grating_map(sensors, probe_names):
