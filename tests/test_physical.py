@@ -375,6 +375,43 @@ def test_the_map_members_are_stored_and_checked(twin_model, tmp_path):
     assert twin_model.to_dict()["twin_map"] == loaded.to_dict()["twin_map"]
 
 
+def test_the_unseen_part_is_what_the_map_makes_of_directions_the_training_never_moved_along():
+    from fbgcomp.models.physical.thermal import unseen_basis, unseen_operator
+
+    rng = np.random.default_rng(0)
+    scale = np.array([2.0, 0.5, 1.0, 0.0])  # the last column: one the twin never moves
+    # training frames move the first two features together and the third alone, never their
+    # difference: (1, -1, 0) in standardised units is unseen (and the dead column carries nothing)
+    a, b = rng.normal(size=(2, 500))
+    X = np.column_stack([2.0 * a, 0.5 * a, b, np.zeros(500)])
+    U = unseen_basis(X, np.ones(500), scale)
+    assert U.shape == (4, 1)
+    np.testing.assert_allclose(np.abs(U[:, 0]), [np.sqrt(0.5), np.sqrt(0.5), 0.0, 0.0], atol=1e-9)
+    coef = rng.normal(size=(4, 3))
+    W = unseen_operator(U, scale, coef)
+    # nothing of a trained state, all of the untrained direction's share
+    np.testing.assert_allclose(X @ W, 0.0, atol=1e-9)
+    x = np.array([[2.0, -0.5, 0.0, 0.0]])  # (1, -1, 0, 0) standardised
+    np.testing.assert_allclose(x @ W, x @ coef, atol=1e-12)
+    # a well-spread training leaves nothing unseen
+    assert unseen_basis(rng.normal(size=(500, 4)) * [1, 1, 1, 0], np.ones(500), scale).shape == (4, 0)
+
+
+def test_the_interval_carries_the_part_of_the_correction_the_training_never_checked(twin_model, ram2):
+    # thermal_a never heats one face more than the opposite one; thermal_b's radiant load does,
+    # and the map's answer to it comes from the twin alone. ram2's thermal_a leaves 7 of the 12
+    # standardised feature directions unseen; on thermal_b the unseen part reaches tens of µm
+    # on dx, on thermal_a it stays within the noise.
+    tm = twin_model.twin_map_
+    assert np.asarray(tm["unseen_basis"]).shape == (12, 7)
+    for name, lo, hi in (("thermal_a", 0.0, 0.5), ("thermal_b", 10.0, 100.0)):
+        _, _, p, at = twin_model._served(ram2[name])
+        u = np.abs(p.last_unseen[at]).max(axis=0)
+        assert lo <= u[0] <= hi, (name, u)
+    a = _metrics(twin_model, ram2["thermal_b"])["axes"]
+    assert all(0.95 <= a[k]["pi95_coverage"] <= 0.995 for k in ("dx", "dy", "dz")), a
+
+
 def test_generic_scenarios_work_on_a_machine_that_declares_no_heat_sources():
     # The built-in machine relies on the default sources (spindle heat in the housing and a
     # radiant face); `fbgcomp fit --machine` crashed on it with a TypeError.

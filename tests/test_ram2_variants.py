@@ -44,6 +44,7 @@ def bench(tmp_path_factory):
             "no-T_flange",
             "spindle-centred",
             "rails-both-locating",
+            "no-radiant-declared",
         ],
         capture_output=True,
         text=True,
@@ -119,12 +120,29 @@ def test_the_interval_widens_where_the_gratings_cannot_tell_the_heat_sources_apa
     # twin map's members (each without one undeclared source) disagree on what it does to dx
     # and dy; the training campaign never showed that ambiguity, so an interval fitted on its
     # residuals alone covered 0.90 of dx and 0.81 of dy. The members' spread is a half-width.
+    # (dy covers 0.98 since the unseen part of the correction entered the interval, below)
     fig = bench[0]["results"]["four-gratings"]["thermal_b"]["axes"]
     assert fig["dx"]["pi95_coverage"] >= 0.95, fig["dx"]
-    assert fig["dy"]["pi95_coverage"] >= 0.84, fig["dy"]
+    assert fig["dy"]["pi95_coverage"] >= 0.95, fig["dy"]
     # and ram2 as published, where the members agree, keeps its interval
     base = bench[0]["results"]["as-published"]["thermal_b"]["axes"]
     assert all(0.95 <= base[a]["pi95_coverage"] <= 0.995 for a in AXES), base
+
+
+def test_the_interval_holds_where_the_description_misses_a_heat_source(bench):
+    # The data sheet lists the spindle only: thermal_b's radiant load is read through the
+    # twin's generic face sources, which warm S1's gauge alike but move the TTP otherwise
+    # (dx 11.7 and dz 12.2 µm off). An interval fitted on thermal_a's residuals, which never
+    # saw a face warmer than its opposite, covered 0.86 of dx and 0.815 of dz. The part of the
+    # correction resting on directions the training never moved along enters it at 20 %.
+    fig = bench[0]["results"]["no-radiant-declared"]
+    for a in AXES:
+        v = fig["thermal_b"]["axes"][a]
+        assert 0.90 <= v["pi95_coverage"] <= 0.995, (a, v)
+    for held in HELD:
+        for a in AXES:
+            v = fig[held]["axes"][a]
+            assert v["max_abs_error_um"] <= v["peak_um"] + 0.5, (held, a, v)
 
 
 def test_loads_superposed_on_ram2s_thermal_drift_are_followed_without_harm(bench):

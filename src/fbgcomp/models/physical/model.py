@@ -37,6 +37,7 @@ from fbgcomp.models.physical.thermal import (
     ridge_from_moments,
     thermal_regressors,
     twin_thermal_population,
+    unseen_basis,
     weighted_lstsq,
 )
 from fbgcomp.structure.machine import Machine, load_machine
@@ -135,6 +136,11 @@ class PhysicalModel(EstimatorParams, ModelFile):
     separability_cos : float
         A force whose grating signature has |cos| above this with the gratings' warming pattern
         is not read from the gratings.
+    unseen_relative_error : float
+        Relative error (one SD) of the part of the twin map's correction that rests on feature
+        directions no load-free training campaign moved along (:func:`unseen_basis`): how far
+        the twin's response to such a state is trusted, which is as far as the machine's
+        description is right. It widens the interval only, never the correction.
     """
 
     model_type = "physical"
@@ -154,6 +160,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         separability_cos=0.95,
         offset_tau_s=20.0,
         calibrate_housing=True,
+        unseen_relative_error=0.2,
     ):
         self.machine = machine
         self.zero_window_s = zero_window_s
@@ -168,6 +175,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         self.separability_cos = separability_cos
         self.offset_tau_s = offset_tau_s
         self.calibrate_housing = calibrate_housing
+        self.unseen_relative_error = unseen_relative_error
 
     # -- fitting -----------------------------------------------------------------------------
     def _machine(self):
@@ -413,6 +421,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
             self.twin_map_["calibration"]["noise_sd_um"] = self._noise_floor(campaigns).tolist()
             self._predictors = {}
         if self.twin_map_ is not None and thermal_rows:
+            self.twin_map_["unseen_basis"] = self._unseen_basis(rows, campaigns).tolist()
+            self._predictors = {}
+        if self.twin_map_ is not None and thermal_rows:
             # the map's error on the measured load-free campaigns (only the housing transient is
             # fitted there)
             # sets its interval and widens the validated range to what the twin covers
@@ -475,6 +486,19 @@ class PhysicalModel(EstimatorParams, ModelFile):
         past = t > HOUSING_REST_S
         return np.sqrt(np.mean(thermal[past] ** 2, axis=0))
 
+    def _unseen_basis(self, rows, campaigns):
+        """The standardised feature directions (k, r) of the twin map that no load-free training
+        campaign moved along (:func:`unseen_basis`), every frame of each campaign weighted
+        equally."""
+        X, w = [], []
+        for r, c in zip(rows, campaigns):
+            if r["loaded"]:
+                continue
+            _, _, p, _ = self._served(c, policy=False)
+            X.append(p.last_map_features)
+            w.append(np.full(len(p.last_map_features), 1.0 / len(p.last_map_features)))
+        return unseen_basis(np.vstack(X), np.concatenate(w), self.twin_map_["scale"])
+
     def _calibrate_housing(self, rows, campaigns):
         """Least squares (no intercept, campaigns weighted equally) of the twin map's error on
         the measured load-free campaigns against the housing's mean ΔT (K), its leads at
@@ -532,6 +556,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         load-free training campaign (campaigns weighted equally): what grows with the thermal
         state and its transients."""
         dTs = [r["dT"] for r in rows if not r["loaded"]]
+        z2 = stats.norm.ppf(0.975) ** 2
         scale = np.maximum(np.abs(np.vstack(dTs)).max(axis=0), 0.5)
         sd_ref = []
         for r in rows:
@@ -542,6 +567,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         # difference of two readings (sqrt 2 x each probe's white noise) is none
         deadband = 2.0 * np.sqrt(2.0) * probe_noise_sd_K(campaigns, self.probe_names_)
         e2, S, act, w, n_eff, spread2 = [], [], [], [], [], []
+        rho = float(self.unseen_relative_error)
         for r, c in zip(rows, campaigns):
             if r["loaded"]:
                 continue
@@ -550,10 +576,10 @@ class PhysicalModel(EstimatorParams, ModelFile):
             n_eff.append([effective_samples(pred[:, j] - r["y"][:, j]) for j in range(3)])
             S.append(excursion2(r["dT"], scale, deadband))
             act.append(p.last_activity[at])
-            spread2.append(p.last_spread[at] ** 2)
+            # the members' disagreement as a 95 % half-width, the unseen part's error as an SD
+            spread2.append(p.last_spread[at] ** 2 + z2 * (rho * p.last_unseen[at]) ** 2)
             w.append(np.full(len(pred), 1.0 / len(pred)))  # campaigns weighted equally
         e2, s2, act, w = np.vstack(e2), np.concatenate(S), np.concatenate(act), np.concatenate(w)
-        z2 = stats.norm.ppf(0.975) ** 2
         # the members' disagreement is a variance of its own (PhysicalPredictor._variance): what
         # is left for the state terms is the error beyond it and the instrument's noise
         base = v0[None, :] + np.vstack(spread2) / z2

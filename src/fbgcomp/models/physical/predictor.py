@@ -27,6 +27,7 @@ from fbgcomp.models.physical.thermal import (
     map_features,
     map_members,
     thermal_regressors,
+    unseen_operator,
 )
 
 #: Names of the TTP force components, in the order of every force array.
@@ -197,6 +198,7 @@ class PhysicalPredictor:
         self.map = None
         self.cal = None
         self.last_cal_features = None
+        self.last_map_features = None
         if getattr(m, "twin_map_", None) is not None:
             tm = m.twin_map_
             S = len(self.sensor_names)
@@ -219,6 +221,13 @@ class PhysicalPredictor:
                 "G": (np.asarray(m.load_["G_um_per_N"], float) if m.load_ is not None else np.zeros((S, 3))),
             }
             self._map_box = (lo, hi, self.margin)
+            basis = tm.get("unseen_basis")
+            if basis is not None and np.asarray(basis, float).size:
+                # the part of the correction only the twin's physics vouches for, and what the
+                # gratings' and probes' noise alone makes of it
+                W = unseen_operator(basis, tm["scale"], coef)
+                self.map["unseen"] = W
+                self.map["unseen_noise_sd"] = np.sqrt(np.clip(np.einsum("ka,kl,la->a", W, nz, W), 0, None))
             cal = tm.get("calibration")
             if cal is not None and "noise_sd_um" in cal:
                 # the whole thermal part's noise, the housing calibration's leads included
@@ -240,6 +249,8 @@ class PhysicalPredictor:
             var = var + (self.C**2 @ self.F_sds[1] ** 2)
         self.expected_rms_error_um = np.sqrt(var)
         self._t = stats.norm.ppf(0.975)
+        self.unseen_relative_error = float(getattr(m, "unseen_relative_error", 0.0))
+        self.last_unseen = np.zeros((0, 3))
         self.state = None
         self.last_flags = np.zeros((0, 3), np.uint8)
         self.last_force_N = np.zeros((0, 3))
@@ -707,6 +718,7 @@ class PhysicalPredictor:
         n = wl.shape[0]
         flags = np.zeros((n, 3), np.uint8)
         spread = np.zeros((n, 3))
+        unseen = np.zeros((n, 3))
         state = self.state or {}
         new_state = {}
         dT = np.atleast_2d(np.asarray(temperature_C, float)) - np.asarray(temperature_zero_C, float)
@@ -801,12 +813,17 @@ class PhysicalPredictor:
                 else:
                     new_state["cal"] = dict(state.get("cal", {}))
             self.last_cal_features = L
+            self.last_map_features = X
             policy = not (raw or not thermal_policy)
             # the features the policy clips, as the consensus sees them
             Xc, outside = P.clip_to_envelope(X, *self._map_box) if policy else (X, None)
             if self.map["n_members"] > 1:
                 each = (Xc @ self.map["members"]).reshape(n, self.map["n_members"], 3)
                 spread = each.max(axis=1) - each.min(axis=1)
+            if "unseen" in self.map:
+                unseen = P.firm(
+                    Xc @ self.map["unseen"], self.map["unseen_noise_sd"], self.k_sigma, 2 * self.k_sigma
+                )
             if not policy:
                 thermal = X @ self.map["coef"]
                 if L is not None:
@@ -844,9 +861,10 @@ class PhysicalPredictor:
         deviation = thermal + load
         self.last_activity = activity
         self.last_spread = spread
-        return deviation, self._t * np.sqrt(self._variance(dT, activity, force, spread))
+        self.last_unseen = unseen
+        return deviation, self._t * np.sqrt(self._variance(dT, activity, force, spread, unseen))
 
-    def _variance(self, dT, activity, force, spread=0.0):
+    def _variance(self, dT, activity, force, spread=0.0, unseen=0.0):
         """Predictive variance (n, 3) µm²: the thermal part's error at the current thermal
         excursion, plus, while a load is applied, the force estimate's noise and the signature's
         relative error through the compliance.
@@ -855,9 +873,17 @@ class PhysicalPredictor:
         :func:`~fbgcomp.models.physical.thermal.consensus`) as a half-width of its own: where
         the gratings cannot tell one heat source from another, the truth may lie anywhere the
         members do, whatever the training campaigns' residuals say (they never saw that
-        ambiguity: on ram2 without S5 and S6, the radiant load of thermal_b, 0.90 -> 0.99 on dx)."""
+        ambiguity: on ram2 without S5 and S6, the radiant load of thermal_b, 0.90 -> 0.99 on dx).
+
+        Plus the part ``unseen`` (n, 3) µm of the map's correction that comes from feature
+        directions no training campaign moved along (a face warmer than its opposite one, see
+        :func:`~fbgcomp.models.physical.thermal.unseen_operator`) as an SD of
+        ``unseen_relative_error`` times itself: the training residuals cannot speak for a
+        response they never exercised, and it is only as good as the machine's description."""
         n = dT.shape[0]
-        ambiguity = (np.asarray(spread, float) / self._t) ** 2 + np.zeros((n, 3))
+        ambiguity = (np.asarray(spread, float) / self._t) ** 2 + (
+            self.unseen_relative_error * np.asarray(unseen, float)
+        ) ** 2 * np.ones((n, 3))
         if self.interval is None:
             return self.expected_rms_error_um[None, :] ** 2 + ambiguity
         iv = self.interval

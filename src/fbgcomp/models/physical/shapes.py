@@ -114,6 +114,11 @@ def check_shapes(d: dict, source) -> None:
         ):
             array(tm.get(key), f"twin_map.{key}", shape)
         need(np.all(np.asarray(tm["scale"], float) >= 0), "twin_map.scale", "must be >= 0")
+        if "unseen_basis" in tm:
+            ub = tm["unseen_basis"]
+            r = len(ub[0]) if isinstance(ub, list) and ub and isinstance(ub[0], list) else -1
+            need(0 <= r <= k, "twin_map.unseen_basis", f"must be a list of {k} rows of at most {k} numbers")
+            array(ub, "twin_map.unseen_basis", (k, r))
         without = tm.get("without", [])
         need(isinstance(without, list), "twin_map.without", "must be a list")
         for i, w in enumerate(without):

@@ -248,6 +248,48 @@ def map_members(tm, cols, lam):
     return np.stack(out)
 
 
+#: A direction of the map's standardised features is unseen by the training when the load-free
+#: training campaigns move along it by less than this share of the variance of their most
+#: excited direction (1e-3: 3 % in SD). ram2's thermal_a leaves 7 of 12 unseen: every face
+#: warmer than its opposite one, which no training campaign without a gradient shows.
+UNSEEN_VARIANCE_RATIO = 1e-3
+
+
+def unseen_basis(features, weights, scale, ratio=UNSEEN_VARIANCE_RATIO):
+    """Orthonormal basis (k, r) of the standardised feature directions the training left unseen.
+
+    ``features`` (n, k) are the twin map's features on the load-free training frames,
+    ``weights`` (n,) the frames' weights (campaigns weighted equally), ``scale`` (k,) the
+    map's standardisation. The second moments are taken about zero, as the map is (every
+    campaign starts at its zero state). A direction whose weighted mean square is below
+    ``ratio`` times the largest is unseen; columns the twin never moves (scale 0) carry
+    nothing and are left out of both."""
+    sc = np.asarray(scale, float)
+    live = sc > 0
+    if not live.any():
+        return np.zeros((sc.size, 0))
+    Z = np.asarray(features, float)[:, live] / sc[live]
+    w = np.asarray(weights, float)
+    lam, V = np.linalg.eigh((Z * (w / w.sum())[:, None]).T @ Z)
+    unseen = lam < ratio * lam.max()
+    out = np.zeros((sc.size, int(unseen.sum())))
+    out[live] = V[:, unseen]
+    return out
+
+
+def unseen_operator(basis, scale, coef):
+    """The map's prediction from its features' unseen part: the matrix (k, 3) that takes
+    features (n, k) to the correction (n, 3) µm the map makes of the part of them along the
+    standardised ``basis`` (:func:`unseen_basis`), ``coef`` (k, 3) the map's coefficients.
+
+    That part of a correction rests on the twin's physics alone: no measured campaign ever
+    checked it."""
+    sc = np.asarray(scale, float)
+    inv = np.where(sc > 0, 1.0 / np.where(sc > 0, sc, 1.0), 0.0)
+    U = np.asarray(basis, float)
+    return inv[:, None] * (U @ (U.T @ (sc[:, None] * np.asarray(coef, float))))
+
+
 def consensus(members_um):
     """Per frame and axis, the correction every member agrees on (m, n, 3) -> (n, 3): the
     smallest in magnitude when all have the same sign, else 0.
