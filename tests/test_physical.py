@@ -404,6 +404,9 @@ def test_the_interval_carries_the_part_of_the_correction_the_training_never_chec
     # on dx, on thermal_a it stays within the noise.
     tm = twin_model.twin_map_
     assert np.asarray(tm["unseen_basis"]).shape == (12, 7)
+    text = twin_model.summary()
+    assert "unseen by the training: 7 of 12 feature directions" in text
+    assert "ambient3600s" in text  # every calibrated term is listed, the ambient's too
     for name, lo, hi in (("thermal_a", 0.0, 0.5), ("thermal_b", 10.0, 100.0)):
         _, _, p, at = twin_model._served(ram2[name])
         u = np.abs(p.last_unseen[at]).max(axis=0)

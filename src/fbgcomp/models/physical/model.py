@@ -855,10 +855,18 @@ class PhysicalModel(EstimatorParams, ModelFile):
                     "(µm per K)",
                     f"{'term':<22}" + "".join(f"{a:>11}" for a in AXES),
                 ]
-                for name, row in zip(
-                    ["dT_housing"] + [f"lead{t:g}s_housing" for t in cal["leads_s"]], np.asarray(cal["coef"])
-                ):
+                names = ["dT_housing"] + [f"lead{t:g}s_housing" for t in cal["leads_s"]]
+                if "ambient_tau_s" in cal:
+                    names.append(f"ambient{cal['ambient_tau_s']:g}s")
+                for name, row in zip(names, np.asarray(cal["coef"]), strict=True):
                     out.append(f"{name:<22}" + "".join(f"{v:>11.4g}" for v in row))
+            basis = np.asarray(tm.get("unseen_basis", []), float)
+            if basis.ndim == 2 and basis.shape[1]:
+                out.append(
+                    f"unseen by the training: {basis.shape[1]} of {basis.shape[0]} feature directions; "
+                    f"the correction made from them enters the interval at "
+                    f"{100 * float(self.unseen_relative_error):g} % of itself (1 SD)"
+                )
         out.append(f"{'residual SD µm':<22}" + "".join(f"{v:>11.3g}" for v in self.thermal_resid_sd_um_))
         lo, hi = self.thermal_range_um_
         out.append(
