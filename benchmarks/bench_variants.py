@@ -240,7 +240,8 @@ def variant(name, work: Path) -> dict:
         for held in HELD:
             j = judge(m, read_campaign(folder / held))
             out[fit][held] = {
-                a: {k: j["axes"][a][k] for k in ("peak_um", "max_abs_error_um", "harm")} for a in AXES
+                a: {k: j["axes"][a][k] for k in ("peak_um", "max_abs_error_um", "pi95_coverage", "harm")}
+                for a in AXES
             }
     return out
 
@@ -258,7 +259,9 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     print("TWIN-ONLY: the default model on variants of ram2's description (our own simulator)")
     print(
-        f"{'variant':18} {'fit':15} {'held out':14} " + "  ".join(f"{a + ' max/peak (µm)':>22}" for a in AXES)
+        f"{'variant':18} {'fit':15} {'held out':14} "
+        + "  ".join(f"{a + ' max/peak (µm)':>22}" for a in AXES)
+        + "  PI95 dx/dy/dz"
     )
     for name in args.only or VARIANTS:
         results[name] = variant(name, work)
@@ -273,7 +276,8 @@ def main(argv=None) -> int:
                     )
                     if x["harm"]:
                         harms.append(f"{name} ({fit}) {held} {a}")
-                print(f"{name:18} {fit:15} {held:14} " + "  ".join(cells))
+                cover = "/".join(f"{axes[a]['pi95_coverage']:.2f}" for a in AXES)
+                print(f"{name:18} {fit:15} {held:14} " + "  ".join(cells) + f"  {cover}")
     print(f"do-no-harm: {'every axis of every variant' if not harms else 'BROKEN on ' + ', '.join(harms)}")
     print(
         json.dumps(
