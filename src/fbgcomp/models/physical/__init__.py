@@ -37,6 +37,17 @@ to the range it was validated on (``CLAMPED``).
 Every prediction therefore carries its applicability flags (``last_flags`` after each call,
 bits of :mod:`fbgcomp.models.policy`), which the runtime publishes with the correction.
 
+**Interval** (95 %, per axis). The thermal part's error variance grows with the probes'
+excursion and the housing's transient, fitted on the load-free training campaigns' errors and
+scaled to cover 95 % of them (:meth:`PhysicalModel._fit_interval`). Two terms speak for what
+those campaigns cannot: the twin map's members' disagreement (where the gratings cannot tell
+one heat source from another) and the part of the correction made from feature directions no
+training campaign moved along (a face warmer than its opposite one, see
+:func:`~fbgcomp.models.physical.thermal.unseen_basis`), at ``unseen_relative_error`` of itself,
+since only the twin and the description vouch for it.
+While a load is applied, the force estimate's noise and the signature's relative error are
+added through the compliance.
+
 The package: :mod:`~fbgcomp.models.physical.thermal` (thermal regressors and the twin-learned
 map), :mod:`~fbgcomp.models.physical.predictor` (load tracking, thermal part and policy of one
 sensor set), :mod:`~fbgcomp.models.physical.shapes` (the model file's shape checks) and
