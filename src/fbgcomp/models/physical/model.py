@@ -421,18 +421,21 @@ class PhysicalModel(EstimatorParams, ModelFile):
             self.twin_map_["calibration"]["noise_sd_um"] = self._noise_floor(campaigns).tolist()
             self._predictors = {}
         if self.twin_map_ is not None and thermal_rows:
-            self.twin_map_["unseen_basis"] = self._unseen_basis(rows, campaigns).tolist()
-            self._predictors = {}
-        if self.twin_map_ is not None and thermal_rows:
             # the map's error on the measured load-free campaigns (only the housing transient is
-            # fitted there)
-            # sets its interval and widens the validated range to what the twin covers
-            res = []
+            # fitted there) sets its interval and widens the validated range to what the twin
+            # covers; the features they move along leave the rest unseen (:func:`unseen_basis`,
+            # every frame of each campaign weighted equally)
+            res, X, w = [], [], []
             for r, c in zip(rows, campaigns):
                 if r["loaded"]:
                     continue
-                pred, _ = self.predict_interval(c, policy=False)
+                pred, _, p, _ = self._served(c, policy=False)
                 res.append(pred - r["y"])
+                X.append(p.last_map_features)
+                w.append(np.full(len(X[-1]), 1.0 / len(X[-1])))
+            basis = unseen_basis(np.vstack(X), np.concatenate(w), self.twin_map_["scale"])
+            self.twin_map_["unseen_basis"] = basis.tolist()
+            self._predictors = {}
             res = np.vstack(res)
             self.thermal_resid_sd_um_ = np.sqrt(np.mean(res**2, axis=0))
             lo, hi = np.asarray(self.twin_map_["ttp_low_um"]), np.asarray(self.twin_map_["ttp_high_um"])
@@ -485,19 +488,6 @@ class PhysicalModel(EstimatorParams, ModelFile):
         thermal = out - p.last_force_N @ p.C.T if p.has_load else out
         past = t > HOUSING_REST_S
         return np.sqrt(np.mean(thermal[past] ** 2, axis=0))
-
-    def _unseen_basis(self, rows, campaigns):
-        """The standardised feature directions (k, r) of the twin map that no load-free training
-        campaign moved along (:func:`unseen_basis`), every frame of each campaign weighted
-        equally."""
-        X, w = [], []
-        for r, c in zip(rows, campaigns):
-            if r["loaded"]:
-                continue
-            _, _, p, _ = self._served(c, policy=False)
-            X.append(p.last_map_features)
-            w.append(np.full(len(p.last_map_features), 1.0 / len(p.last_map_features)))
-        return unseen_basis(np.vstack(X), np.concatenate(w), self.twin_map_["scale"])
 
     def _calibrate_housing(self, rows, campaigns):
         """Least squares (no intercept, campaigns weighted equally) of the twin map's error on
