@@ -9,7 +9,7 @@ from fbgcomp.io.campaign import Campaign
 from fbgcomp.kinematics import housing_probe
 from fbgcomp.models import policy as P
 from fbgcomp.models.filters import first_order_filter as lowpass
-from fbgcomp.models.metrics import validation_metrics
+from fbgcomp.models.metrics import static_level_metrics, validation_metrics
 from fbgcomp.models.physical import PhysicalModel, PhysicalPredictor
 from fbgcomp.models.registry import load_model
 from fbgcomp_testing import RAM2_DIR, read_ram2
@@ -207,6 +207,48 @@ def test_interval_is_the_interferometers_at_rest_and_grows_with_the_thermal_stat
     for name in ("thermal_b", "static_x"):
         for axis, a in _metrics(twin_model, ram2[name])["axes"].items():
             assert 0.90 <= a["pi95_coverage"] <= 0.995, (name, axis, a["pi95_coverage"])
+
+
+def test_the_quick_and_fast_readings_differ_by_the_noise_their_filters_leave():
+    from fbgcomp.models.physical.predictor import LOAD_FAST_S, LOAD_FOLLOW_S, quick_fast_noise
+
+    rng = np.random.default_rng(1)
+    x = rng.standard_normal(400_000)
+    for dt in (0.1, 1.0):
+        bq, bf = 1.0 - np.exp(-dt / LOAD_FOLLOW_S), 1.0 - np.exp(-dt / LOAD_FAST_S)
+        q, f = np.zeros_like(x), np.zeros_like(x)
+        yq = yf = 0.0
+        for i, v in enumerate(x[:100_000]):
+            yq += bq * (v - yq)
+            yf += bf * (v - yf)
+            q[i], f[i] = yq, yf
+        d = (q - f)[1000:100_000]
+        assert abs(d.var() / quick_fast_noise(bq, bf) - 1.0) < 0.05, (dt, d.var(), quick_fast_noise(bq, bf))
+
+
+def test_a_load_ramp_is_followed_without_the_fast_readings_lag(twin_model, ram2):
+    """static_x's 5 s ramps of 200 N/s, read at 10 Hz: the 0.5 s low-pass the step test judges
+    on lagged them by 0.48 s, 13.9 µm of dx at the samples on a ramp. While the load moves the
+    transition follows a 0.1 s reading; what is left is the ramp's first frames, before the step
+    test fires. The interval's load terms are scaled to what static_xyz showed (their 3 %
+    signature error prior made +-18.7 µm of dx around plateau errors of 0.3 µm), and static_x's
+    coverage stays in issue 12's band, with its plateaus as they were."""
+    c = ram2["static_x"]
+    pred, half = twin_model.predict_interval(c)
+    al = c.aligned(zero_window_s=twin_model.zero_window_s)
+    err = np.abs(pred - al.reference_um)
+    assert err[:, 0].max() < 9.0, err[:, 0].max()  # 13.85 µm with the 0.5 s reading
+    ramp = np.abs(np.gradient(al.loads_N[:, 0], al.time_s)) > 50.0
+    assert ramp.sum() > 10 and np.median(err[ramp, 0]) < 5.0, np.median(err[ramp, 0])
+    m = _metrics(twin_model, c)
+    assert 0.90 <= m["axes"]["dx"]["pi95_coverage"] <= 0.99, m["axes"]["dx"]
+    levels = static_level_metrics(al.loads_N, al.reference_um, pred)
+    assert levels["axes"]["dx"]["error_pct_of_deflection"] < 0.1, levels["axes"]["dx"]  # 0.05 %
+    scale = np.asarray(twin_model.load_["interval_scale"])
+    assert scale[0] < 0.5 and np.all(scale <= 1.0), scale
+    held = (np.abs(al.loads_N[:, 0]) > 1500.0) & ~ramp
+    # held at 2-4 kN: the priors gave +-19 to 33 µm of dx around plateau errors of 0.3 µm
+    assert np.median(half[held, 0]) < 10.0, np.median(half[held, 0])
 
 
 def test_a_grating_that_jumps_alone_is_not_read_as_a_load(twin_model, ram2):

@@ -37,6 +37,12 @@ FORCE_AXES = ("fx", "fy", "fz")
 LOAD_FAST_S = 0.5
 # Slower low-pass, s: a transition ends when the fast reading agrees with it, at its value.
 LOAD_HOLD_S = 3.0
+#: Low-pass, s, of the reading a transition follows while the load still moves (the fast and
+#: hold readings disagree): a first-order low-pass lags a ramp by its time constant, and at the
+#: interrogator's 10 Hz the fast reading's 0.5 s held ram2's static_x 97 N (13.6 µm of dx) behind
+#: its 200 N/s ramps. 0.1 s passes a 1 s frame whole and a 10 Hz one at 0.63; once the load has
+#: stopped the transition follows the fast reading again, which is then as settled as it is.
+LOAD_FOLLOW_S = 0.1
 #: Memory of the load reading's thermal lag, s: between transitions the thermal offset follows
 #: the gratings' drift ``offset_tau_s`` behind, so the reading stands ``r offset_tau_s`` off
 #: the applied force for a drift of r N/s, and through a transition (offset frozen) it drifts
@@ -77,6 +83,15 @@ def fast_hold_noise(dt, rate, b_fast, b_hold):
         p11 = (c**2 * p00 + 2.0 * c * g * p01 + rate * (b_hold * b_fast) ** 2) / (1.0 - g**2)
         out = p00 + p11 - 2.0 * p01
     return np.where(ok, out, 1.0)
+
+
+def quick_fast_noise(b_quick, b_fast):
+    """Variance of the quick minus the fast reading (two first-order low-passes of the same
+    white noise, gains ``b_quick`` and ``b_fast`` per frame) per unit of the frame's noise
+    variance: their stationary variances less twice their covariance."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cov = np.where(b_fast > 0, b_quick * b_fast / (1.0 - (1.0 - b_quick) * (1.0 - b_fast)), 0.0)
+    return b_quick / (2.0 - b_quick) + b_fast / (2.0 - b_fast) - 2.0 * cov
 
 
 def _floats(v):
@@ -188,6 +203,9 @@ class PhysicalPredictor:
             # the thermal lag is learnt only this long after a transition (LOAD_TREND_S)
             self.trend_after_s = 3.0 * self.offset_tau_s
             self.drift_N_per_s = np.asarray(L.get("drift_N_per_s", [0.0] * 3), float)
+            # the load terms' share of the interval, per axis, as the loaded training campaigns
+            # showed it (PhysicalModel._fit_load_interval; 1 in files without it)
+            self.load_interval_scale = np.asarray(L.get("interval_scale", [1.0] * 3), float)
             self.noise_cov = noise
             self.nuisance_cov = nuisance_cov + np.zeros_like(noise)
             # the one-frame path's operands as Python floats (_steady_frame)
@@ -310,6 +328,8 @@ class PhysicalPredictor:
         kd = fast_hold_noise(dt, rate, b_fast, b_hold)
         b_trend = 1.0 - np.exp(-dt / LOAD_TREND_S)
         k_trend = rate * b_trend / (2.0 - b_trend)
+        b_follow = 1.0 - np.exp(-dt / LOAD_FOLLOW_S)
+        k_follow = np.where(dt > 0, rate * quick_fast_noise(b_follow, b_fast), 1.0)
         lag = self.drift_N_per_s[None, :] * np.maximum(dt, self.offset_tau_s)[:, None]
         look = np.maximum(dt, 2.0 * LOAD_FAST_S)
         if len(dt) and look.min() == look.max():  # frames faster than the low-pass: one look each
@@ -324,7 +344,21 @@ class PhysicalPredictor:
             if len(dt)
             else np.zeros(0),
         )
-        return alpha, forget, b_fast, b_hold, k_fast, k_hold, kd, lag, k_start, b_trend, k_trend
+        return (
+            alpha,
+            forget,
+            b_fast,
+            b_hold,
+            k_fast,
+            k_hold,
+            kd,
+            lag,
+            k_start,
+            b_trend,
+            k_trend,
+            b_follow,
+            k_follow,
+        )
 
     def _one_frame_terms(self, dt):
         """:meth:`_frame_terms` of one frame interval as Python floats (k_fast, kd, lag (3,),
@@ -336,7 +370,7 @@ class PhysicalPredictor:
         if hit is None:
             if len(cache) >= 256:  # a jittered clock: forget, do not grow
                 cache.clear()
-            _, _, _, _, k_fast, _, kd, lag, k_start, _, _ = self._frame_terms(np.array([dt]))
+            _, _, _, _, k_fast, _, kd, lag, k_start, _, _, _, _ = self._frame_terms(np.array([dt]))
             hit = cache[dt] = (float(k_fast[0]), float(kd[0]), lag[0].tolist(), float(k_start[0]))
         return hit
 
@@ -446,6 +480,7 @@ class PhysicalPredictor:
             "noise": learnt,
             "t": t1,
         }
+        self.last_transition = np.zeros((1, 3), bool)
         return np.array([applied]), np.zeros(1, bool), np.zeros(1, bool)
 
     def _noise_excess(self, d, dt, kd, noise):
@@ -501,6 +536,9 @@ class PhysicalPredictor:
         offset = np.array(state.get("offset", np.zeros(S)), float)
         applied = np.array(state.get("force", np.zeros(3)), float)
         xs = state.get("fast")  # low-passed e - offset (S,)
+        # e - offset low-passed over LOAD_FOLLOW_S, kept only through a transition (S,) or None
+        xq = state.get("quick")
+        xq = None if xq is None else np.array(xq, float)
         f_hold = state.get("hold")  # slow estimate of the force (3,)
         mean_sum = np.array(state.get("mean_sum", np.zeros(3)), float)  # since the load stopped
         mean_w = np.array(state.get("mean_w", np.zeros(3)), float)
@@ -528,12 +566,25 @@ class PhysicalPredictor:
         first = xs is None
         xs = np.zeros(S) if first else np.array(xs, float)
         f_hold = np.zeros(3) if f_hold is None else np.array(f_hold, float)
-        alpha, forget, b_fast, b_hold, k_fast, k_hold, kd, lag, k_start, b_trend, k_trend = self._frame_terms(
-            dt
-        )
+        (
+            alpha,
+            forget,
+            b_fast,
+            b_hold,
+            k_fast,
+            k_hold,
+            kd,
+            lag,
+            k_start,
+            b_trend,
+            k_trend,
+            b_follow,
+            k_follow,
+        ) = self._frame_terms(dt)
         op = self.ops[0]
         Ga = self.G
         force = np.zeros((n, 3))
+        transition = np.zeros((n, 3), bool)  # components following the reading, per frame
         clamped = np.zeros(n, bool)
         settle = np.array(state.get("settle", np.zeros(3)), float)  # s left of a load transition
         refused = np.zeros(n, bool)
@@ -588,6 +639,8 @@ class PhysicalPredictor:
             # first frame: one raw frame carries the whole frame noise, which the step test,
             # judging low-passed noise, took for a load (a twin static campaign of ram2's
             # description, seed 16: -40 N of Fy at 2 s, held as dy -8.5 to +4 µm throughout)
+            base = xs if xq is None else xq
+            xq = base + b_follow[i] * (x_now - base)
             xs += b_fast[i] * (x_now - xs)
             f_fast = op @ xs
             f_hold += b_hold[i] * (f_fast - f_hold)
@@ -596,6 +649,7 @@ class PhysicalPredictor:
                 shift = alpha[i] * (e[i] - Ga @ applied - offset)
                 offset += shift
                 xs -= shift
+                xq = None
                 continue
             excess = self._excess(noise)
             sd_fast = self.F_sd * np.sqrt(k_fast[i] * excess)
@@ -628,6 +682,7 @@ class PhysicalPredictor:
                 if not (settle > 0).any():  # the offset freezes from this frame on
                     offset -= recent
                     xs += recent
+                    xq += recent
                     f_fast = op @ xs
                     recent[:] = 0.0
                     since = 0.0
@@ -637,6 +692,7 @@ class PhysicalPredictor:
                 # load is still moving, so a ramp does not enter the level's mean (it was set to
                 # the fast reading here, and a 300 N step taken mid-ramp ended at 281 N)
             moving = settle > 0
+            transition[i] = moving
             if moving.any():
                 # in a transition: follow the low-passed force; still moving while the fast and
                 # slow estimates disagree beyond their noise
@@ -647,7 +703,12 @@ class PhysicalPredictor:
                 mean_sum = np.where(still, 0.0, mean_sum + dt[i] * f_fast)
                 mean_tsum = np.where(still, 0.0, mean_tsum + dt[i] * since)
                 mean_w = np.where(still, 0.0, mean_w + dt[i])
-                applied = np.where(moving, f_fast, applied)
+                # while the load ramps (the quick reading stands clear of the fast one beyond
+                # their difference's noise) the quick reading; else the fast one
+                f_quick = op @ xq
+                sd_qf = self.F_sd * np.sqrt(k_follow[i] * excess)
+                ramping = still & (np.abs(f_quick - f_fast) > k * sd_qf)
+                applied = np.where(ramping, f_quick, np.where(moving, f_fast, applied))
                 settle = np.maximum(settle - dt[i], 0.0)
                 ended = moving & (settle <= 0) & (mean_w > 0)
                 # the level is the mean reading less the thermal lag it carried into the
@@ -680,12 +741,14 @@ class PhysicalPredictor:
                 offset += shift
                 xs -= shift  # xs is relative to the offset
                 recent = recent * forget[i] + shift
+                xq = None  # no transition: the quick reading starts anew from xs at the next
             force[i] = applied
         new_state["load"] = {
             "offset": offset,
             "force": applied,
             "settle": settle,
             "fast": xs,
+            "quick": xq,
             "hold": f_hold,
             "mean_sum": mean_sum,
             "mean_w": mean_w,
@@ -698,6 +761,7 @@ class PhysicalPredictor:
             "noise": noise,
             "t": float(t[-1]) if n else t_last,
         }
+        self.last_transition = transition
         return force, clamped, refused
 
     def predict(
@@ -729,6 +793,7 @@ class PhysicalPredictor:
         e_all = self._fmap.base(w, temperature_C, w0, temperature_zero_C)
         load = np.zeros((n, 3))
         force = np.zeros((n, 3))
+        moving = np.zeros((n, 3), bool)
         if self.has_load:
             force, clamped, refused = self._track_load(
                 e_all[:, self._keep], time_s, state.get("load"), new_state, raw
@@ -736,6 +801,7 @@ class PhysicalPredictor:
             flags[clamped] |= P.CLAMPED
             flags[refused] |= P.LOAD_REFUSED
             load = force @ self.C.T
+            moving = self.last_transition
         if self.map is not None:
             # the gratings minus the load read from them are thermometers of their gauges
             e_th = e_all - force @ self.map["G"].T
@@ -858,13 +924,14 @@ class PhysicalPredictor:
         self.state = new_state
         self.last_flags = flags
         self.last_force_N = force
+        self.last_moving = moving
         deviation = thermal + load
         self.last_activity = activity
         self.last_spread = spread
         self.last_unseen = unseen
-        return deviation, self._t * np.sqrt(self._variance(dT, activity, force, spread, unseen))
+        return deviation, self._t * np.sqrt(self._variance(dT, activity, force, spread, unseen, moving))
 
-    def _variance(self, dT, activity, force, spread=0.0, unseen=0.0):
+    def _variance(self, dT, activity, force, spread=0.0, unseen=0.0, moving=False):
         """Predictive variance (n, 3) µm²: the thermal part's error at the current thermal
         excursion, plus, while a load is applied, the force estimate's noise and the signature's
         relative error through the compliance.
@@ -885,6 +952,7 @@ class PhysicalPredictor:
             self.unseen_relative_error * np.asarray(unseen, float)
         ) ** 2 * np.ones((n, 3))
         if self.interval is None:
+            self.last_s2 = None
             return self.expected_rms_error_um[None, :] ** 2 + ambiguity
         iv = self.interval
         s2 = excursion2(dT, iv["scale"], iv["deadband"])
@@ -896,11 +964,30 @@ class PhysicalPredictor:
             + iv["v2"][None, :] * a2[:, None]
             + ambiguity
         )
+        self.last_s2 = s2
         if self.has_load:
-            on = (force != 0.0).astype(float)  # components applied
-            var = (
-                var
-                + (on * self.F_sds[1] ** 2) @ (self.C**2).T
-                + (self.relative_error * force @ self.C.T) ** 2
-            )
+            heat, own = self.load_variance(force, moving, s2)
+            var = var + heat + self.load_interval_scale[None, :] * own
         return var
+
+    def load_variance(self, force, moving=False, s2=None):
+        """The load terms of the predictive variance while a component is applied, through the
+        compliance, in two parts (n, 3) µm² each:
+
+        - what heat adds to the force estimate's error: its GLS variance at the training's
+          thermal extreme less that at rest, in proportion to the thermal excursion ``s2`` (n,)
+          up to that extreme (None: at it);
+        - the load part's own error, before its calibrated scale (``load_interval_scale``,
+          :meth:`PhysicalModel._fit_load_interval`): the estimate's noise at rest and the
+          signature's relative error. A component following the reading (``moving`` (n, 3): a
+          load transition) carries a frame's noise; one held at its level, the mean of the
+          ``settle_s`` of readings it ended on, which hold ``settle_s / (2 LOAD_FAST_S)``
+          independent ones."""
+        on = np.asarray(force) != 0.0
+        C2 = (self.C**2).T
+        s = np.ones(on.shape[0]) if s2 is None else np.minimum(np.asarray(s2, float), 1.0)
+        heat = (on * s[:, None] * np.clip(self.F_sds[1] ** 2 - self.F_sds[0] ** 2, 0.0, None)) @ C2
+        held = 2.0 * LOAD_FAST_S / max(self.settle_s, 2.0 * LOAD_FAST_S)
+        share = np.where(np.asarray(moving, bool), 1.0, held) * on
+        own = (share * self.F_sds[0] ** 2) @ C2 + (self.relative_error * force @ self.C.T) ** 2
+        return heat, own

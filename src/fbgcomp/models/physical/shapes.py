@@ -79,6 +79,12 @@ def check_shapes(d: dict, source) -> None:
         for key in ("max_force_N", "drift_N_per_s"):
             if key in L:
                 array(L[key], f"load.{key}", (3,))
+        if "interval_scale" in L:
+            need(
+                np.all(array(L["interval_scale"], "load.interval_scale", (3,)) > 0),
+                "load.interval_scale",
+                "must be > 0",
+            )
         need(np.all(np.asarray(L["noise_var_um2"], float) >= 0), "load.noise_var_um2", "must be >= 0")
     iv = d.get("interval")
     if iv is not None:
