@@ -39,6 +39,7 @@ LOAD_LABELS = ("F_x", "F_y", "F_z")
 # defaults, repeated so the offline report does not import the runtime) plus a noise bound.
 MAX_JUMP_NM = 0.1  # ~80 µε or ~10 K between two samples: not physical for the ram
 STUCK_S = 2.0  # exactly the same wavelength this long = stuck interrogator channel
+STUCK_REPEATS = 5  # ... repeated at least this many times in a row (1 frame/s: chance repeats)
 NOISE_WARN_PM = 5.0  # sample-to-sample noise above this swamps sub-µm elongations
 MAX_TEMPERATURE_JUMP_C = 2.0  # a probe jumping 2 K between samples is a contact/wiring fault
 TEMPERATURE_STUCK_S = 600.0  # a probe logging the very same value for 10 min is suspicious
@@ -54,22 +55,24 @@ def _robust_noise(values: np.ndarray) -> float:
     return float(diff_noise_sd(values))
 
 
-def _longest_constant_run_s(time_s: np.ndarray, values: np.ndarray) -> float:
-    """Longest time span over which the value stays exactly the same, s."""
+def _longest_constant_run_s(time_s: np.ndarray, values: np.ndarray, min_repeats: int = 0) -> float:
+    """Longest time span over which the value stays exactly the same, s, among the runs that
+    repeat it at least ``min_repeats`` times (0 when none does)."""
     if values.size < 2:
         return 0.0
     change = np.flatnonzero(np.diff(values) != 0)
     # run boundaries: sample indices where a new value starts
     starts = np.concatenate([[0], change + 1])
     ends = np.concatenate([change, [values.size - 1]])
-    return float(np.max(time_s[ends] - time_s[starts]))
+    long = (ends - starts) >= min_repeats
+    return float(np.max(time_s[ends[long]] - time_s[starts[long]])) if long.any() else 0.0
 
 
-def _channel_health(time_s, values, *, noise_unit_scale, noise_warn, jump, stuck_s):
+def _channel_health(time_s, values, *, noise_unit_scale, noise_warn, jump, stuck_s, stuck_repeats=0):
     noise = _robust_noise(values) * noise_unit_scale
     d = np.abs(np.diff(values))
     jumps = int(np.sum(d > jump))
-    stuck = _longest_constant_run_s(time_s, values)
+    stuck = _longest_constant_run_s(time_s, values, stuck_repeats)
     problems = []
     if np.isfinite(noise) and noise > noise_warn:
         problems.append(f"noisy ({noise:.3g} > {noise_warn:g})")
@@ -102,7 +105,13 @@ def sensor_health(time_s, wavelength_nm, lambda0_nm, sensor_names, *, band_nm=5.
     for j, name in enumerate(sensor_names):
         v = wl[:, j]
         noise, jumps, stuck, problems = _channel_health(
-            t, v, noise_unit_scale=1000.0, noise_warn=NOISE_WARN_PM, jump=MAX_JUMP_NM, stuck_s=STUCK_S
+            t,
+            v,
+            noise_unit_scale=1000.0,
+            noise_warn=NOISE_WARN_PM,
+            jump=MAX_JUMP_NM,
+            stuck_s=STUCK_S,
+            stuck_repeats=STUCK_REPEATS,
         )
         excursion = np.abs(v - lam0[j])
         outside = float(np.mean(excursion > band_nm)) if v.size else float("nan")

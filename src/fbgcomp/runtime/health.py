@@ -46,6 +46,10 @@ class HealthConfig:
 
     max_jump_nm: float = 0.1  # ~80 µε or ~10 K in one sample: not physical for the ram
     stuck_s: float = 2.0  # exactly constant wavelength this long = stuck channel (0: off)
+    # ... and for at least this many repeats of the value in a row: at 1 frame/s, 2 s is two
+    # repeats, which a live grating recorded to 1 fm makes by chance (ram2's thermal_b: once in
+    # 36 h, and the full model then stood out of service for 70 s); five is ~1e-15 a frame
+    stuck_repeats: int = 5
     recover_s: float = 1.0  # a recovered sensor must stay good this long
     # re-admission: the models with and without the grating agree within this many combined
     # expected errors (sqrt(rms_with^2 + rms_without^2)) per axis; 0 = no check
@@ -60,6 +64,7 @@ class SensorChecks:
         self.last_value = np.full(n_sensors, np.nan)  # last finite wavelength, nm
         self.last_raw = np.full(n_sensors, np.nan)  # last sample as received
         self.last_change_s = np.full(n_sensors, -np.inf)  # time the value last changed
+        self.repeats = np.zeros(n_sensors, np.int64)  # repeats of the last value in a row
         self.last_bad_s = np.full(n_sensors, -np.inf)  # time of the last bad sample
         self.never_zeroed = np.zeros(n_sensors, bool)  # (a property: its any() is kept)
         self.offset_nm = np.zeros(n_sensors)  # summed mode-hop steps, nm
@@ -102,6 +107,7 @@ class SensorChecks:
         last = wavelength_nm[-1].copy()
         self.last_raw = last
         self.last_value = last
+        self.repeats.fill(0)
         # every sample changed: check's running maximum of the change times
         self.last_change_s = np.maximum(
             self.last_change_s, float(time_s[0]) if n == 1 else float(time_s.max())
@@ -161,13 +167,21 @@ class SensorChecks:
         with np.errstate(invalid="ignore"):
             jump = finite & (np.abs(wavelength_nm - prev_val) > cfg.max_jump_nm)
 
-        # Stuck: exactly the same value as the previous sample for at least stuck_s.
+        # Stuck: exactly the same value as the previous sample for at least stuck_s and
+        # stuck_repeats samples.
         prev_raw = np.vstack([self.last_raw[None, :], wavelength_nm[:-1]])
         changed = ~(finite & (wavelength_nm == prev_raw))
         t_change = np.maximum.accumulate(np.where(changed, t, -np.inf), axis=0)
         t_change = np.maximum(t_change, self.last_change_s)
+        row = np.arange(n)[:, None]
+        last_row = np.maximum.accumulate(np.where(changed, row, -1), axis=0)
+        repeats = np.where(last_row >= 0, row - last_row, row + 1 + self.repeats)
         # a live grating always shows some noise; noise-free replays must set stuck_s = 0
-        stuck = finite & ((t - t_change) >= cfg.stuck_s) if cfg.stuck_s > 0 else np.zeros((n, S), bool)
+        stuck = (
+            finite & ((t - t_change) >= cfg.stuck_s) & (repeats >= cfg.stuck_repeats)
+            if cfg.stuck_s > 0
+            else np.zeros((n, S), bool)
+        )
 
         # Re-zero rule: a jump between consecutive finite samples (no gap) is a step of the
         # reading, not of the machine; from that frame on it is subtracted (offset_nm). A jump
@@ -199,6 +213,7 @@ class SensorChecks:
             self.offset_nm = self.row_offset_nm[-1].copy()
             self.last_raw = wavelength_nm[-1].copy()
             self.last_change_s = t_change[-1].copy()
+            self.repeats = repeats[-1].copy()
             self.last_bad_s = last_bad[-1].copy()
             if last_fin is None:  # all finite
                 self.last_value = wavelength_nm[-1].copy()
