@@ -43,6 +43,7 @@ stages that stand alone already live beside it (:mod:`.health`, :mod:`.output_fi
 
 from __future__ import annotations
 
+import copy
 import inspect
 import itertools
 from collections.abc import Mapping
@@ -175,6 +176,7 @@ class Pipeline:
         self.frame_dt_s: float | None = None  # nominal frame interval (the rate limit's cap)
         self._prev_mask = np.zeros(S, bool)  # faulted sensors on the last predicted frame
         self._prev_choice = 0  # model set of the last predicted frame
+        self._ran = -1  # model set whose predictor ran the last predicted frame
         self._inconsistent_until = np.full(S, -np.inf)  # kept out by the re-admission check
         self.readmissions_refused = 0
         self._no_fault = np.zeros(S, bool)  # read only: _prev_mask, no fault
@@ -223,9 +225,18 @@ class Pipeline:
 
     # -- model selection
     def predictor(self, k: int) -> Any:
-        """The predictor of model set ``k`` (``model_sets[k]`` excluded), made once and kept."""
+        """The predictor of model set ``k`` (``model_sets[k]`` excluded), made once and kept.
+
+        A predictor with state (filters, a load tracker: it has ``reset``) is this pipeline's
+        own copy, from a fresh state: the model keeps one predictor per sensor set, so a
+        second pipeline on the same model (a replay beside a live run, a test) went on from
+        the first one's state, and the load the first had read was applied again."""
         if k not in self._predictors:
-            self._predictors[k] = self.model.predictor(exclude=self.model_sets[k])
+            p = self.model.predictor(exclude=self.model_sets[k])
+            if callable(getattr(p, "reset", None)):
+                p = copy.copy(p)
+                p.reset()
+            self._predictors[k] = p
         return self._predictors[k]
 
     def _choose(self, excluded_mask: np.ndarray) -> int:
@@ -317,6 +328,8 @@ class Pipeline:
         None (nothing changed) for any other batch."""
         if self._prev_choice != 0 and self._prev_mask.any() and self.config.health.readmit_k_sigma > 0:
             return None  # the previous frame was on a fallback: a re-admission
+        if self._ran > 0:
+            return None  # a fallback ran last: the full model takes over from its state
         if temperature_C.shape[1] and not np.isfinite(temperature_C).all():
             return None
         if self._z is not None and self.uses_z and not np.isfinite(self._z).all():
@@ -332,6 +345,7 @@ class Pipeline:
         p = self._predictors.get(0)
         if p is None:
             p = self.predictor(0)
+        self._ran = 0
         d, h = p.predict(
             wavelength_nm,
             temperature_C,
@@ -425,11 +439,19 @@ class Pipeline:
             self._prev_mask = faulted[-1].copy()
             self._prev_choice = int(choice[-1])
             model_set[rows] = choice
-            for k in np.unique(choice):
+            # runs of frames on one model set, in time order: a model with memory that takes
+            # over from another goes on from its state (take_state), not from its own of the
+            # last time it ran, nor from a fresh one mid-run
+            cuts = np.flatnonzero(np.diff(choice)) + 1
+            for lo, hi in zip(np.concatenate([[0], cuts]), np.concatenate([cuts, [choice.size]])):
+                k = int(choice[lo])
                 if k < 0:
                     continue
-                sel = np.flatnonzero(choice == k) + start
-                p = self.predictor(int(k))
+                sel = np.arange(lo, hi) + start
+                p = self.predictor(k)
+                if k != self._ran and self._ran >= 0 and callable(getattr(p, "take_state", None)):
+                    p.take_state(self.predictor(self._ran))
+                self._ran = k
                 d, h = p.predict(
                     wavelength_nm[sel],
                     temperature_C[sel],
@@ -480,7 +502,14 @@ class Pipeline:
         return np.where(temp_ok, choice, -1)
 
     def _predict_one(self, k: int, time_s, wavelength_nm, temperature_C, row: int):
-        p = self.predictor(int(k))
+        """One frame on model set ``k`` by a copy of its predictor (the check must not move a
+        model's state: the frames before ``row`` in this batch are still to come), taking
+        over from the set that ran last as the batch would."""
+        p = copy.copy(self.predictor(int(k)))
+        if hasattr(p, "state"):
+            p.state = copy.deepcopy(p.state)
+            if int(k) != self._ran and self._ran >= 0 and callable(getattr(p, "take_state", None)):
+                p.take_state(self.predictor(self._ran))
         sel = slice(row, row + 1)
         d, _ = p.predict(
             wavelength_nm[sel],

@@ -10,6 +10,7 @@ the per-frame state).
 
 from __future__ import annotations
 
+import copy
 import math
 
 import numpy as np
@@ -270,12 +271,88 @@ class PhysicalPredictor:
         self.unseen_relative_error = float(getattr(m, "unseen_relative_error", 0.0))
         self.last_unseen = np.zeros((0, 3))
         self.state = None
+        self._handed_over = False  # take_state left readings to take from the next frame
         self.last_flags = np.zeros((0, 3), np.uint8)
         self.last_force_N = np.zeros((0, 3))
 
     def reset(self):
         """Forget the filter and load-tracking state (a new zero state, a new campaign)."""
         self.state = None
+        self._handed_over = False
+
+    def take_state(self, other: PhysicalPredictor) -> None:
+        """Go on from ``other``'s state: a predictor of the same model on another sensor set,
+        which ran up to the frame before this one's next (the runtime's switch to a fallback
+        when a grating is lost, and back when it returns).
+
+        A fallback started from a fresh state in the middle of a run reads the gratings'
+        thermal drift since the zero state as a load step and restarts every low-pass from
+        zero: on ram2's thermal_b, a grating lost after 14 h left dx 38-158 µm off on a drift
+        of 30.6. What both sets read carries over: the probes' and the housing's filters,
+        the applied force and the step test's state, and each grating's low-passed reading and
+        thermal offset. A grating this set leaves out reads zero, as it always does here; one
+        it takes that ``other`` left out (a re-admission) starts from its first frame, its
+        thermal offset then being all the reading the applied force does not explain."""
+        st = copy.deepcopy(other.state) if other.state else None
+        if not st:
+            self.reset()
+            return
+        names = self.sensor_names
+        mine = [s not in self.exclude for s in names]
+        theirs = [s not in other.exclude for s in names]
+        m = st.get("map")
+        if m is not None and m.get("e") is not None:
+            y, t = m["e"]
+            y = np.array(y, float)
+            for i, (a, b) in enumerate(zip(mine, theirs)):
+                y[i] = 0.0 if not a else (np.nan if not b else y[i])
+            m["e"] = (y, t)
+        if not self.has_load:
+            st.pop("load", None)
+        else:
+            old = st.get("load") if other.has_load else None
+            where = {names[i]: j for j, i in enumerate(other._keep)} if old else {}
+            L = dict(old or {})
+            for key, fill in (("offset", np.nan), ("fast", 0.0), ("quick", 0.0), ("recent", 0.0)):
+                v = L.get(key)
+                if v is None:
+                    if key == "offset":
+                        L[key] = np.full(len(self._keep), np.nan)
+                    continue
+                v = np.asarray(v, float)
+                L[key] = np.array([v[where[names[i]]] if names[i] in where else fill for i in self._keep])
+            st["load"] = L
+        self.state = st
+        self._handed_over = True
+
+    def _resume(self, state, e_keep0, e_all0):
+        """``state`` with what :meth:`take_state` left pending (NaN) taken from the first frame:
+        ``e_keep0`` (the kept gratings' elongations), ``e_all0`` (every grating's) µm."""
+        L = state.get("load")
+        if L is not None and np.isnan(np.asarray(L["offset"], float)).any():
+            L = dict(L)
+            applied = np.asarray(L.get("force", np.zeros(3)), float)
+            off = np.array(L["offset"], float)
+            todo = np.isnan(off)
+            read = self.G @ applied  # a held load's share of each reading
+            off[todo] = (e_keep0 - read)[todo]
+            L["offset"] = off
+            for key in ("fast", "quick"):
+                if L.get(key) is not None:
+                    v = np.array(L[key], float)
+                    v[todo] = read[todo]
+                    L[key] = v
+            if L.get("recent") is not None:
+                L["recent"] = np.where(todo, 0.0, np.asarray(L["recent"], float))
+            state = {**state, "load": L}
+        m = state.get("map")
+        if m is not None and m.get("e") is not None and np.isnan(np.asarray(m["e"][0], float)).any():
+            y, t = m["e"]
+            force = np.asarray((state.get("load") or {}).get("force", np.zeros(3)), float)
+            now = e_all0 - (self.map["G"] @ force if self.has_load else 0.0)
+            y = np.where(np.isnan(y), now, y)
+            state = {**state, "map": {**m, "e": (y, t)}}
+        return state
 
     def _one_grating(self, y, cov) -> bool:
         """Whether the misfit of the reading ``y`` (S,) is one grating's alone: with some single
@@ -450,7 +527,11 @@ class PhysicalPredictor:
         x = [y[j] - offset[j] for j in range(S)]
         f_fast = [sum(o * v for o, v in zip(row, x)) for row in self._op_rows]
         hold = first_order_step(dt / LOAD_HOLD_S, f_fast, f_hold)
-        q = [min((f_fast[a] - hold[a]) ** 2 / (self._sd2[a] * kd), 100.0) for a in range(3)]
+        # as _noise_excess: a frame after a gap longer than the filters' memory counts as 1
+        q = [
+            min((f_fast[a] - hold[a]) ** 2 / (self._sd2[a] * kd), 100.0) if self._sd2[a] * kd > 0 else 1.0
+            for a in range(3)
+        ]
         learnt = first_order_step(
             dt / NOISE_LEARN_S, [dt * q[0], dt * q[1], dt * q[2], dt], noise, gain=False
         )
@@ -494,7 +575,12 @@ class PhysicalPredictor:
         less) has its steps judged against its own noise instead of starting false loads;
         a quieter one keeps the training's threshold (:meth:`_excess`)."""
         sd2 = np.where(self.F_sd > 0, self.F_sd**2, np.inf)
-        q = np.minimum(d**2 / (sd2[None, :] * kd[:, None]), 100.0)  # (10 sigma: a spike no more)
+        den = sd2[None, :] * kd[:, None]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            # (10 sigma: a spike no more). A frame after a gap longer than both filters' memory
+            # (kd = 0: the fast and hold readings are the same frame) tells nothing of the
+            # noise and counts as the training's; its 0/0 made the estimate NaN for good
+            q = np.where(den > 0, np.minimum(d**2 / den, 100.0), 1.0)
         return first_order_recursion(
             dt / NOISE_LEARN_S, dt[:, None] * np.hstack([q, np.ones((len(dt), 1))]), noise, gain=False
         )
@@ -791,6 +877,9 @@ class PhysicalPredictor:
         lost = [i for i, s in enumerate(self.sensor_names) if s in self.exclude]
         w[:, lost] = w0[lost]
         e_all = self._fmap.base(w, temperature_C, w0, temperature_zero_C)
+        if self._handed_over and n:
+            state = self._resume(state, e_all[0, self._keep], e_all[0])
+            self._handed_over = False
         load = np.zeros((n, 3))
         force = np.zeros((n, 3))
         moving = np.zeros((n, 3), bool)
