@@ -268,3 +268,39 @@ def test_block_medians_are_numpys_bit_for_bit():
     for n in (1, 2, 5, 50, 51):
         b = rng.normal(0.0, 30.0, (4, n, 3))
         np.testing.assert_array_equal(_block_medians(b), np.median(b, axis=1))
+
+
+def test_frames_the_model_follows_are_published_as_they_are_in_any_batching():
+    """A model that confirmed a motion itself (a load transition: ``follow``) is not confirmed
+    once more: those frames pass as they are, and the filter is at rest at the new level after
+    them; the output does not depend on how the frames are batched."""
+    rng = np.random.default_rng(4)
+    n = 3000  # 100 Hz: a block is 5 frames
+    x = 0.05 * rng.standard_normal((n, 3))
+    ramp = np.clip((np.arange(n) - 1000) / 500.0, 0.0, 1.0) * 100.0  # a 5 s ramp of 100 µm on dx
+    x[:, 0] += ramp
+    follow = np.zeros((n, 3), bool)
+    follow[1000:1520, 0] = True  # the model's transition (its step test took it a little late)
+    outs = []
+    for sizes in ([1], [3, 50], [n]):
+        f = AdaptiveLevelFilter(OutputFilterConfig(), 0.01, 0.05)
+        parts, i, k = [], 0, 0
+        while i < n:
+            j = min(n, i + sizes[k % len(sizes)])
+            parts.append(f.process(x[i:j], follow[i:j]))
+            i, k = j, k + 1
+        outs.append(np.vstack(parts))
+    for o in outs[1:]:
+        np.testing.assert_array_equal(o, outs[0])
+    out = outs[0]
+    np.testing.assert_array_equal(out[follow], x[follow])  # passed as they are
+    assert np.abs(out[1600:, 0] - 100.0).max() < 0.2  # at rest at the new level at once
+    assert np.abs(out[1600:, 0] - out[1600, 0]).max() < 0.1  # and still there
+    assert np.abs(out[:1000, 1:]).max() < 0.1  # the other axes hold still
+    # without the model's flags the ramp is confirmed by the filter: it lags
+    f = AdaptiveLevelFilter(OutputFilterConfig(), 0.01, 0.05)
+    lagged = f.process(x)
+    assert (
+        np.abs(lagged[1000:1500, 0] - ramp[1000:1500]).max()
+        > 2.0 * np.abs(out[1000:1500, 0] - ramp[1000:1500]).max()
+    )

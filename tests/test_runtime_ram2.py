@@ -122,8 +122,32 @@ def test_chance_repeats_of_a_slow_interrogator_are_not_a_stuck_channel():
     wl[12:] = wl[12]  # stuck from 12 s on
     one = np.ones((20, 1), np.int8)
     status = np.vstack(
-        [checks.check(t[i : i + 3], wl[i : i + 3], one[i : i + 3], 0 * one[i : i + 3])[0] for i in range(0, 20, 3)]
+        [
+            checks.check(t[i : i + 3], wl[i : i + 3], one[i : i + 3], 0 * one[i : i + 3])[0]
+            for i in range(0, 20, 3)
+        ]
     )
     assert (status[:12, 0] == H.OK).all()
     # 5 repeats (at 17 s) and 2 s: stuck from there on
     assert (status[17:, 0] == H.STUCK).all() and (status[12:17, 0] == H.OK).all()
+
+
+def test_the_runtime_follows_a_load_ramp_as_the_model_does(model, ram2):
+    """The output filter publishes the frames of a load transition the model's step test took
+    as they are: before, it confirmed the motion once more and lagged the ramps (static_x dx
+    19.2 µm at 10 Hz, thermal_c dx 17.6 µm = 5.0 % of its peak at 1 frame/s, against 8.4 and
+    10.4 offline). Served in batches of 1, 7 and 100 the output is the same (to the predictor's
+    own rounding: its one-frame path is on Python floats)."""
+    for name, bound in (("static_x", 9.0), ("thermal_c", 0.03 * 353.8)):
+        corr, ref, _ = _served(model, ram2[name])
+        offline, _ = model.predict_interval(ram2[name])
+        err = np.abs(ref + corr).max(axis=0)
+        assert err[0] <= bound, (name, err)
+        assert err[0] <= np.abs(ref - offline).max(axis=0)[0] + 0.2, (name, err)
+    c = ram2["static_x"]
+    al = c.aligned(zero_window_s=model.zero_window_s)
+    ft, w, temp = model.frame_arrays(c, al)
+    runs = [
+        run_in_batches(Pipeline(model, PipelineConfig()), ft, w, temp, sizes) for sizes in ([1], [7, 100])
+    ]
+    np.testing.assert_allclose(runs[1]["correction_um"], runs[0]["correction_um"], rtol=0, atol=1e-8)

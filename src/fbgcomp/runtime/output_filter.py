@@ -131,6 +131,8 @@ class AdaptiveLevelFilter:
         self.eb = np.zeros((self.ring_n, 3))  # m - level before the episode (ring)
         self.k = 0  # completed blocks
         self._part = np.empty((self.block_n, 3))  # frames of the block not yet complete ...
+        self._pf = np.zeros((self.block_n, 3), bool)  # ... their follow flags (process)
+        self._part_follow_any = False
         self._held = 0  # ... this many of them
         self.level: np.ndarray | None = None  # (3,) after the first block
         self.since = np.zeros(3, np.int64)  # blocks the rest median may use
@@ -176,20 +178,41 @@ class AdaptiveLevelFilter:
         return np.maximum(cfg.margin * self.env, base[:, None])
 
     # -- per frame -----------------------------------------------------------------------
-    def process(self, x: np.ndarray) -> np.ndarray:
-        """Filtered correction (m, 3) for raw corrections ``x`` (m, 3), all finite."""
+    def process(self, x: np.ndarray, follow: np.ndarray | None = None) -> np.ndarray:
+        """Filtered correction (m, 3) for raw corrections ``x`` (m, 3), all finite.
+
+        ``follow`` (m, 3) bool, optional: frames and axes on which the model itself follows a
+        motion it has confirmed (a load transition its step test took). They are published as
+        they are, and the rest fit restarts from the block that holds the last of them: a
+        second confirmation here lagged a 200 N/s ramp by the short median's half-width (at
+        10 Hz, ram2's static_x dx 8.4 -> 19.2 µm) and, at 1 frame/s, by two frames (thermal_c
+        dx 10.5 -> 17.6 µm at the force's release)."""
         m = x.shape[0]
         out = np.empty_like(x)
         if m == 0:
             return out
         held = self._held
+        any_follow = follow is not None and bool(follow.any())
         if self.level is not None and held + m < self.block_n:
             # no block closes (the usual small batch): every frame sees the current level
             out[:] = self.level
             self._part[held : held + m] = x
+            if any_follow or self._part_follow_any:
+                f = np.zeros((m, 3), bool) if follow is None else follow
+                if not self._part_follow_any:
+                    self._pf[:held] = False  # (not kept while no frame of the block followed)
+                self._pf[held : held + m] = f
+                self._part_follow_any = True
+                out = np.where(f, x, out)
             self._held = held + m
             return out
         allx = np.vstack([self.partial, x]) if held else x
+        if any_follow or self._part_follow_any:
+            f = np.zeros((m, 3), bool) if follow is None else follow
+            pf = self._pf[:held] if self._part_follow_any else np.zeros((held, 3), bool)
+            allf = np.vstack([pf, f]) if held else f
+        else:
+            allf = None
         nb = allx.shape[0] // self.block_n
         # block medians, not means: a model that flickers for a few frames (ram2's load
         # refusals: 4-12 frames, 370 µm each) moves no block
@@ -209,11 +232,20 @@ class AdaptiveLevelFilter:
             else:
                 out[lo:hi] = self.level
             if q < nb:
-                self._block(med[q])
+                fb = None if allf is None else allf[q * self.block_n : (q + 1) * self.block_n].any(axis=0)
+                self._block(med[q], fb)
                 out[hi - 1] = self.level  # the frame that closes a block sees it
         rest = allx[nb * self.block_n :]
         self._part[: rest.shape[0]] = rest
         self._held = rest.shape[0]
+        if allf is not None:
+            left = allf[nb * self.block_n :]
+            self._pf[: left.shape[0]] = left
+            self._part_follow_any = bool(left.any())
+            if any_follow:
+                out = np.where(allf[held:], x, out)
+        else:
+            self._part_follow_any = False
         return out
 
     # -- per block -----------------------------------------------------------------------
@@ -276,7 +308,7 @@ class AdaptiveLevelFilter:
             [np.where(n_avail >= self.fast_n, fast, 0.0), np.where(n_avail >= self.slow_n, slow, 0.0)], axis=1
         )
 
-    def _block(self, bm: np.ndarray) -> None:
+    def _block(self, bm: np.ndarray, followed: np.ndarray | None = None) -> None:
         slot = self.k % self.ring_n
         self.b[slot] = bm
         first = self.level is None
@@ -296,6 +328,16 @@ class AdaptiveLevelFilter:
         resting = []  # axes at rest: their excursions below, all axes in one call
         for j in range(3):
             mj = mj_all[j]
+            if followed is not None and followed[j]:
+                # the model follows a motion it confirmed: its value is the level, and the
+                # rest fit starts from this block (nothing of it is noise to learn)
+                self.episode_end[j] = -1
+                self.saved[j] = None
+                self.pending[:, j] = 0.0
+                self._restart(j, 1)
+                self.level[j] = bm[j]
+                self.e[slot, j] = 0.0
+                continue
             if self.episode_end[j] >= 0:
                 self.level[j] = self._track(j, mj)
                 continue

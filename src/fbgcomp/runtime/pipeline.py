@@ -375,9 +375,9 @@ class Pipeline:
             and self._filter_set == 0
             and (in_bounds or np.isfinite(target).all())
         ):
-            correction = self.output_filter.process(target)  # no switch: one segment
+            correction = self.output_filter.process(target, getattr(p, "last_follow", None))  # one segment
         else:
-            correction = self._filter(time_s, target, rms, model_set)
+            correction = self._filter(time_s, target, rms, model_set, getattr(p, "last_follow", None))
         if np.isfinite(correction).all():  # nothing to hold
             self._hold_start_s = None
             self._last_correction = correction[-1].copy()
@@ -412,6 +412,7 @@ class Pipeline:
         health = np.full(n, HEALTH_ZEROING, np.uint8)
         model_set = np.full(n, -1, np.int16)
         flags = np.zeros((n, 3), np.uint8)
+        follow = None  # (n, 3) frames a model publishes as they are (its confirmed motion)
         start = 0
         if not self.zeroed:
             start = self._accumulate_zero(time_s, wavelength_nm, status, temperature_C)
@@ -464,11 +465,16 @@ class Pipeline:
                 own = getattr(p, "last_flags", None)  # the model's own output policy
                 if own is not None:
                     flags[sel] |= np.asarray(own, np.uint8).reshape(sel.size, 3) & H.MODEL_FLAGS
+                moving = getattr(p, "last_follow", None)
+                if moving is not None and moving.any():
+                    if follow is None:
+                        follow = np.zeros((n, 3), bool)
+                    follow[sel] = moving
             health[rows] = np.where(
                 choice == 0, HEALTH_OK, np.where(choice > 0, HEALTH_DEGRADED, HEALTH_ALARM)
             )
         target = self._envelope(-dev, health, flags)
-        correction = self._filter(time_s, target, rms, model_set)
+        correction = self._filter(time_s, target, rms, model_set, follow)
         correction = self._hold_and_ramp(time_s, correction, health)
         correction = self._shape(time_s, correction, enabled, flags, self._gap_cap(time_s))
         return BatchResult(
@@ -598,7 +604,12 @@ class Pipeline:
         return np.inf if self.frame_dt_s is None else 2.0 * self.frame_dt_s
 
     def _filter(
-        self, t: np.ndarray, corr: np.ndarray, rms: np.ndarray, model_set: np.ndarray | None = None
+        self,
+        t: np.ndarray,
+        corr: np.ndarray,
+        rms: np.ndarray,
+        model_set: np.ndarray | None = None,
+        follow: np.ndarray | None = None,
     ) -> np.ndarray:
         """Adaptive output filter over the rows with a prediction (the others stay NaN).
 
@@ -607,7 +618,8 @@ class Pipeline:
         again on re-admission, is published at its own level at once (the rate limit still
         bounds the change), not after the filter confirmed the models' difference as a step -
         which kept the fallback's level published with Health OK for ~0.3 s after a mode hop's
-        re-admission (tests/test_runtime_modehop.py)."""
+        re-admission (tests/test_runtime_modehop.py). ``follow`` (n, 3): the frames a model
+        publishes as they are (:meth:`AdaptiveLevelFilter.process`)."""
         if not self.config.output_filter.enabled:
             return corr
         good = np.isfinite(corr).all(axis=1)
@@ -629,7 +641,8 @@ class Pipeline:
         for a, b in itertools.pairwise(edges):
             if a in switch:
                 self.output_filter = self.output_filter.reseated()
-            out[rows[a:b]] = self.output_filter.process(corr[rows[a:b]])
+            f = None if follow is None else follow[rows[a:b]]
+            out[rows[a:b]] = self.output_filter.process(corr[rows[a:b]], f)
         self._filter_set = int(sets[-1])
         return out
 

@@ -167,6 +167,9 @@ class PhysicalPredictor:
             L = m.load_
             G = np.asarray(L["G_um_per_N"])[keep]
             self.C = np.asarray(L["C_um_per_N"])  # (3 axes, 3 forces)
+            # the axes each force moves: at least a tenth of its largest compliance (last_follow)
+            mag = np.abs(self.C)
+            self._moves = (mag >= 0.1 * mag.max(axis=0, keepdims=True)) & (mag > 0)
             self.noise_var = np.asarray(L["noise_var_um2"], float)[keep]
             # (model files before the frame noise was measured: the nominal interval)
             self.noise_frame_dt_s = float(L.get("noise_frame_dt_s", m.nominal_dt_s_))
@@ -1014,6 +1017,14 @@ class PhysicalPredictor:
         self.last_flags = flags
         self.last_force_N = force
         self.last_moving = moving
+        # per axis, the frames whose correction follows a load transition the step test
+        # confirmed (a component moving that moves this axis): the runtime's output filter
+        # publishes them as they are instead of confirming the motion once more
+        self.last_follow = (
+            (moving.astype(np.uint8) @ self._moves.T.astype(np.uint8)) > 0
+            if self.has_load and moving.any()
+            else np.zeros((n, 3), bool)
+        )
         deviation = thermal + load
         self.last_activity = activity
         self.last_spread = spread
