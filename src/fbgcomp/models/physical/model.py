@@ -197,7 +197,13 @@ class PhysicalModel(EstimatorParams, ModelFile):
         self.housing_probes_ = housing_probe_names(common, machine)
         self.ambient_probes_ = ambient_probe_names(common, machine)
         sensor_probes = [s.temperature_probe for s in self.sensors_ if s.temperature_probe]
-        self.probe_names_ = list(dict.fromkeys(sensor_probes + self.housing_probes_ + self.ambient_probes_))
+        # a strain-free reference grating reads its gauge's own temperature: a thermometer
+        # the twin map takes beside the probes even where the sensor names a probe to
+        # compensate it (that choice is the paper's eq. 4, not the map's)
+        references = [s.reference_probe for s in self.sensors_ if s.reference_probe in common]
+        self.probe_names_ = list(
+            dict.fromkeys(sensor_probes + references + self.housing_probes_ + self.ambient_probes_)
+        )
         for c in campaigns:
             check_compatible(self, c)
         if machine is not None:
