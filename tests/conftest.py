@@ -106,7 +106,7 @@ SLOW = {
     "tests/test_physical.py::test_twin_learned_thermal_map_meets_the_lateral_targets": 20.3,
     "tests/test_runtime_hyperion.py::test_temporary_faults_end_and_garbage_makes_the_source_reconnect": 1.0,
     "tests/test_runtime_pipeline.py::test_model_reload_keeps_the_re_admission_check": 1.8,
-    "tests/test_runtime_ram2.py": 114.0,
+    "tests/test_runtime_ram2.py": 71.0,
 }
 
 

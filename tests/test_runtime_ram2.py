@@ -51,18 +51,30 @@ def _served(model, campaign, lost=None, at_fraction=0.4, pipe=None):
     return out["correction_um"][at], al.reference_um, out
 
 
+@pytest.fixture(scope="module")
+def full_error(model, ram2):
+    """Max |error| (3,) per campaign served with every grating (computed once)."""
+    out = {}
+
+    def get(name):
+        if name not in out:
+            corr, ref, _ = _served(model, ram2[name])
+            out[name] = np.abs(ref + corr).max(axis=0)
+        return out[name]
+
+    return get
+
+
 @pytest.mark.parametrize(
     "name, lost",
     [
         ("thermal_b", "S2"),  # the radiant load's opposite face: 147.8 µm of dx before the hand-over
         ("thermal_b", "S4"),  # the guide face
-        ("thermal_b", "S5"),
         ("thermal_c", "S1"),  # under load and heat
-        ("thermal_c", "S5"),
-        ("static_x", "S1"),
+        ("static_x", "S5"),
     ],
 )
-def test_a_grating_lost_at_runtime_does_no_harm(model, ram2, name, lost):
+def test_a_grating_lost_at_runtime_does_no_harm(model, ram2, full_error, name, lost):
     """A grating lost mid-run: the runtime switches to the fallback without it on that frame,
     and the fallback goes on from the full model's state (PhysicalPredictor.take_state). A
     fallback started afresh mid-run read the gratings' drift since the zero state as a load
@@ -74,12 +86,11 @@ def test_a_grating_lost_at_runtime_does_no_harm(model, ram2, name, lost):
     err = np.abs(ref + corr).max(axis=0)
     uncompensated = np.abs(ref).max(axis=0)
     assert (err <= uncompensated + NOISE_ALLOWANCE_UM).all(), (name, lost, err, uncompensated)
-    full, _, _ = _served(model, ram2[name])
     # and no axis far from what the full set of gratings gives (thermal_b S4 dx: 5.7 against 2.8)
-    assert (err <= 2.0 * np.abs(ref + full).max(axis=0) + 3.0).all(), (err, np.abs(ref + full).max(axis=0))
+    assert (err <= 2.0 * full_error(name) + 3.0).all(), (err, full_error(name))
 
 
-def test_a_grating_that_returns_is_taken_back_from_its_first_frame(model, ram2):
+def test_a_grating_that_returns_is_taken_back_from_its_first_frame(model, ram2, full_error):
     """Lost for an hour of thermal_b, then back: the full model takes over from the fallback's
     state, the returned grating's thermal offset taken from its first frame back, and the
     correction stays as good as without the loss."""
@@ -97,8 +108,7 @@ def test_a_grating_that_returns_is_taken_back_from_its_first_frame(model, ram2):
     assert (out["health"][back] == HEALTH_OK).all()
     at = np.clip(np.searchsorted(ft, al.time_s, side="right") - 1, 0, ft.size - 1)
     err = np.abs(al.reference_um + out["correction_um"][at]).max(axis=0)
-    full, _, _ = _served(model, c)
-    np.testing.assert_array_less(err, np.abs(al.reference_um + full).max(axis=0) + 1.0)
+    np.testing.assert_array_less(err, full_error("thermal_b") + 1.0)
 
 
 def test_two_pipelines_on_one_model_do_not_share_state(model, ram2):
@@ -132,16 +142,16 @@ def test_chance_repeats_of_a_slow_interrogator_are_not_a_stuck_channel():
     assert (status[17:, 0] == H.STUCK).all() and (status[12:17, 0] == H.OK).all()
 
 
-def test_the_runtime_follows_a_load_ramp_as_the_model_does(model, ram2):
+def test_the_runtime_follows_a_load_ramp_as_the_model_does(model, ram2, full_error):
     """The output filter publishes the frames of a load transition the model's step test took
     as they are: before, it confirmed the motion once more and lagged the ramps (static_x dx
     19.2 µm at 10 Hz, thermal_c dx 17.6 µm = 5.0 % of its peak at 1 frame/s, against 8.4 and
     10.4 offline). Served in batches of 1, 7 and 100 the output is the same (to the predictor's
     own rounding: its one-frame path is on Python floats)."""
     for name, bound in (("static_x", 9.0), ("thermal_c", 0.03 * 353.8)):
-        corr, ref, _ = _served(model, ram2[name])
         offline, _ = model.predict_interval(ram2[name])
-        err = np.abs(ref + corr).max(axis=0)
+        ref = ram2[name].aligned(zero_window_s=model.zero_window_s).reference_um
+        err = full_error(name)
         assert err[0] <= bound, (name, err)
         assert err[0] <= np.abs(ref - offline).max(axis=0)[0] + 0.2, (name, err)
     c = ram2["static_x"]
