@@ -107,6 +107,7 @@ SLOW = {
     "tests/test_runtime_hyperion.py::test_temporary_faults_end_and_garbage_makes_the_source_reconnect": 1.0,
     "tests/test_runtime_pipeline.py::test_model_reload_keeps_the_re_admission_check": 1.8,
     "tests/test_runtime_ram2.py": 71.0,
+    "tests/test_physical.py::test_a_fallback_holds_back_what_its_lost_gratings_told_the_full_map": 40.0,
 }
 
 

@@ -25,6 +25,7 @@ from fbgcomp.models.physical.thermal import (
     housing_leads,
     housing_mean,
     housing_rest,
+    lost_information_sd,
     map_features,
     map_members,
     thermal_regressors,
@@ -62,6 +63,14 @@ LOAD_FALSE_STARTS_PER_H = 1e-3
 # recursion takes after a stretch stopped at once (PhysicalPredictor._steady_run).
 STEADY_WINDOW = 4096
 STEADY_BACKOFF = 64
+#: How many SDs of a fallback's lost information (thermal.lost_information_sd) its policy holds
+#: back, where the noise counts at ``k_sigma`` (3): the noise is white over ~1e5 frames a campaign,
+#: the map's error a slow, systematic one with a few independent values, for which 2 SDs is the
+#: usual significance. Measured on the runtime's fallbacks (bench_lost_grating): at 3, ram2's
+#: thermal_b lost S2 and S4 at dx 13.9 µm (5.8 and 5.7 without the term); at 0, the built-in
+#: twin's thermal-36h-b without S4 had dy 0.87 µm on a drift of 0.19 (harm).
+LOST_K_SIGMA = 2.0
+
 #: Memory of the live noise estimate, s, and the weight, s, of its prior (the training noise):
 #: the step test learns how far the stream's own low-passed noise exceeds the training's
 #: (an interrogator averaging differently, noise correlated over many frames) and never
@@ -221,6 +230,7 @@ class PhysicalPredictor:
         self.cal = None
         self.last_cal_features = None
         self.last_map_features = None
+        self.map_lost_sd_um = np.zeros(3)
         if getattr(m, "twin_map_", None) is not None:
             tm = m.twin_map_
             S = len(self.sensor_names)
@@ -255,6 +265,13 @@ class PhysicalPredictor:
                 # the whole thermal part's noise, the housing calibration's leads included
                 # (PhysicalModel._noise_floor): the policy holds back what noise alone makes
                 self.map_noise_sd_um = np.maximum(self.map_noise_sd_um, np.asarray(cal["noise_sd_um"], float))
+            self.map_lost_sd_um = lost_information_sd(tm, cols, float(m.map_ridge))
+            # a fallback's map errs by what the lost gratings told the full one: the policy
+            # holds back what that error alone could make, as it does the noise's, at
+            # LOST_K_SIGMA of it where the noise counts at k_sigma
+            self.map_noise_sd_um = np.hypot(
+                self.map_noise_sd_um, LOST_K_SIGMA / float(m.load_k_sigma) * self.map_lost_sd_um
+            )
             self.cal = (
                 None
                 if cal is None
@@ -266,7 +283,7 @@ class PhysicalPredictor:
                     "high": np.asarray(cal["envelope_high"], float),
                 }
             )
-        var = self.thermal_resid_var.copy()
+        var = self.thermal_resid_var + self.map_lost_sd_um**2
         if self.has_load:
             var = var + (self.C**2 @ self.F_sds[1] ** 2)
         self.expected_rms_error_um = np.sqrt(var)
@@ -1063,6 +1080,7 @@ class PhysicalPredictor:
             + iv["v1"][None, :] * s2[:, None]
             + iv["v2"][None, :] * a2[:, None]
             + ambiguity
+            + self.map_lost_sd_um[None, :] ** 2  # a fallback's lost gratings (0 for the full set)
         )
         self.last_s2 = s2
         if self.has_load:
