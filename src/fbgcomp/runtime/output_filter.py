@@ -232,7 +232,11 @@ class AdaptiveLevelFilter:
             else:
                 out[lo:hi] = self.level
             if q < nb:
-                fb = None if allf is None else allf[q * self.block_n : (q + 1) * self.block_n].any(axis=0)
+                fb = (
+                    None
+                    if allf is None
+                    else np.asarray(allf[q * self.block_n : (q + 1) * self.block_n].any(axis=0))
+                )
                 self._block(med[q], fb)
                 out[hi - 1] = self.level  # the frame that closes a block sees it
         rest = allx[nb * self.block_n :]
