@@ -28,6 +28,10 @@ from fbgcomp.cnc.fbgcomp_hal import (
 from fbgcomp.runtime.outputs.linuxcnc import CncConfig, LinuxCncOutput
 from test_runtime_support import fbgcomp_process
 
+# LinuxCNC runs one instance per machine (its shared memory): every test that starts it runs on
+# one worker when the suite runs in parallel (pytest-xdist, --dist loadgroup)
+pytestmark = pytest.mark.xdist_group("linuxcnc")
+
 COUNT_MM = 0.0001  # one eoffset count of the example machine (0.1 µm)
 
 

@@ -26,11 +26,10 @@ def model(ram2):
 
 
 @pytest.fixture(scope="module")
-def twin_model(ram2):
+def twin_model(ram2_default_model):
     """The default fit as the README gives it: with the machine description (twin-learned
-    thermal map)."""
-    machine = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram2.yaml"
-    return PhysicalModel(machine=machine).fit([ram2["thermal_a"], ram2["static_xyz"]])
+    thermal map; conftest's session fixture)."""
+    return ram2_default_model
 
 
 def _metrics(model, campaign, exclude=frozenset()):

@@ -17,6 +17,10 @@ import pytest
 import fbgcomp_testing
 from test_runtime_support import free_port
 
+# LinuxCNC runs one instance per machine (its shared memory): every test that starts it runs on
+# one worker when the suite runs in parallel (pytest-xdist, --dist loadgroup)
+pytestmark = pytest.mark.xdist_group("linuxcnc")
+
 README = Path(__file__).resolve().parents[1] / "README.md"
 
 
