@@ -265,7 +265,7 @@ class PhysicalPredictor:
                 # the whole thermal part's noise, the housing calibration's leads included
                 # (PhysicalModel._noise_floor): the policy holds back what noise alone makes
                 self.map_noise_sd_um = np.maximum(self.map_noise_sd_um, np.asarray(cal["noise_sd_um"], float))
-            self.map_lost_sd_um = lost_information_sd(tm, cols, float(m.map_ridge))
+            self.map_lost_sd_um = lost_information_sd(tm, cols, coef, float(m.map_ridge))
             # a fallback's map errs by what the lost gratings told the full one: the policy
             # holds back what that error alone could make, as it does the noise's, at
             # LOST_K_SIGMA of it where the noise counts at k_sigma

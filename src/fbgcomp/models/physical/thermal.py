@@ -231,13 +231,7 @@ def map_members(tm, cols, lam):
     map's 0.48 µm, and their members were 1.3-1.6 µm further off on dz)."""
     full = ridge_from_moments(tm["gram"], tm["xty"], tm["scale"], cols, lam)
     out = [full]
-    g0, b0 = np.asarray(tm["gram"], float), np.asarray(tm["xty"], float)
-    ms = tm.get("ttp_ms_um2")
-    err2 = (
-        None
-        if ms is None
-        else np.asarray(ms, float) - 2 * np.sum(full * b0, axis=0) + np.einsum("ka,kl,la->a", full, g0, full)
-    )
+    err2 = population_mse(tm, full)
     for w in tm.get("without", []):
         g = np.asarray(w["gram"], float)
         c = ridge_from_moments(g, w["xty"], np.sqrt(np.clip(np.diag(g), 0, None)), cols, lam)
@@ -248,26 +242,29 @@ def map_members(tm, cols, lam):
     return np.stack(out)
 
 
-def lost_information_sd(tm, cols, lam):
-    """SD (3,) µm of the error the twin map on the feature columns ``cols`` makes beyond the
-    full map's, over the twin's population (0 for the full set or without the population's
-    TTP moments): what the left-out gratings told the full map. Without S4 the built-in
-    twin's map errs by 0.77 µm more on dy, and ram2's by 6.1 µm on dx.
-
-    From the population's second moments: the mean square error of coefficients c is
-    ``E[y²] - 2 c·E[x y] + c' E[x x'] c`` per axis."""
-    k = len(tm["scale"])
+def population_mse(tm, coef):
+    """Mean square error (3,) µm² of the map coefficients ``coef`` (k, 3) over the twin's
+    population, from its second moments: ``E[y²] - 2 c·E[x y] + c' E[x x'] c`` per axis; None
+    without the population's TTP moments (``ttp_ms_um2``)."""
     ms = tm.get("ttp_ms_um2")
-    if ms is None or len(cols) == k:
+    if ms is None:
+        return None
+    g, b = np.asarray(tm["gram"], float), np.asarray(tm["xty"], float)
+    return np.asarray(ms, float) - 2 * np.sum(coef * b, axis=0) + np.einsum("ka,kl,la->a", coef, g, coef)
+
+
+def lost_information_sd(tm, cols, coef, lam):
+    """SD (3,) µm of the error the twin map ``coef`` on the feature columns ``cols`` (the first
+    of :func:`map_members`) makes beyond the full map's, over the twin's population (0 for the
+    full set or without the population's TTP moments): what the left-out gratings told the
+    full map. Without S4 the built-in twin's map errs by 0.77 µm more on dy, and ram2's by
+    6.1 µm on dx."""
+    k = len(tm["scale"])
+    part = population_mse(tm, coef)
+    if part is None or len(cols) == k:
         return np.zeros(3)
-    g, b, ms = np.asarray(tm["gram"], float), np.asarray(tm["xty"], float), np.asarray(ms, float)
-
-    def err2(c):
-        return ms - 2.0 * np.sum(c * b, axis=0) + np.einsum("ka,kl,la->a", c, g, c)
-
-    full = ridge_from_moments(tm["gram"], tm["xty"], tm["scale"], list(range(k)), lam)
-    part = ridge_from_moments(tm["gram"], tm["xty"], tm["scale"], list(cols), lam)
-    return np.sqrt(np.clip(err2(part) - err2(full), 0.0, None))
+    full = population_mse(tm, ridge_from_moments(tm["gram"], tm["xty"], tm["scale"], list(range(k)), lam))
+    return np.sqrt(np.clip(part - full, 0.0, None))
 
 
 #: A direction of the map's standardised features is unseen by the training when the load-free
