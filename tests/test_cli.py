@@ -367,6 +367,38 @@ def test_a_machine_description_that_bonds_a_grating_elsewhere_is_refused(tmp_pat
     assert not out.exists()
 
 
+def test_a_machine_description_that_puts_an_embedded_grating_on_the_surface_is_refused(tmp_path):
+    # campaign.yaml may say how deep in its wall a grating is (embedded in the laminate, or on
+    # the cavity side); a description that puts it on the outer surface would give the fit the
+    # twin's signature of a grating further from the axis. Said the same way, the fit runs.
+    import shutil
+    from pathlib import Path
+
+    from fbgcomp_testing import RAM2_DIR
+
+    campaign = tmp_path / "static_x"
+    shutil.copytree(RAM2_DIR / "data" / "static_x", campaign)
+    meta = campaign / "campaign.yaml"
+    text = meta.read_text()
+    assert "face: -X, z_start_mm: 100," in text
+    meta.write_text(text.replace("face: -X, z_start_mm: 100,", "face: -X, depth_mm: 7.5, z_start_mm: 100,"))
+    src = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram2.yaml"
+    out = tmp_path / "m.json"
+    r = run("fit", campaign, "--machine", src, "-o", out)
+    line = _one_line_error(r, "ram2.yaml", "sensors[1].depth_mm")
+    assert "grating S2 has depth_mm 0 here but 7.5 in the campaign static_x's campaign.yaml" in line
+    assert not out.exists()
+    machine = tmp_path / "embedded.yaml"
+    machine.write_text(
+        src.read_text().replace(
+            'name: S2, face: "-X", offset_mm: 0.0,', 'name: S2, face: "-X", offset_mm: 0.0, depth_mm: 7.5,'
+        )
+    )
+    r = run("fit", campaign, "--machine", machine, "-o", out)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert out.exists()
+
+
 def test_a_load_applied_while_the_zero_state_is_taken_is_refused(tmp_path):
     # ram2's thermal_b with 2000 N of Fx applied in its first 5 s (logging started mid-load):
     # each instrument's zero is another mix of loaded and unloaded samples on its own clock

@@ -254,3 +254,14 @@ def test_the_inconsistency_of_one_frame_is_the_batch_s():
             rows = np.vstack([p.inconsistency_var(chain, el[i : i + 1], jac) for i in range(12)])
             np.testing.assert_allclose(rows, whole, rtol=1e-12, atol=0)
             assert scale < 1.0 or whole.max() > 0
+
+
+def test_embedded_gratings_sit_nearer_the_axis_in_the_chain():
+    """A grating ``depth_mm`` into its wall is a bar at (half width - depth) from the axis."""
+    machine = load_machine()
+    deep = machine.model_copy(
+        update={"sensors": tuple(s.model_copy(update={"depth_mm": 8.0}) for s in machine.sensors)}
+    )
+    hw = machine.ram.outer_width_mm / 2
+    np.testing.assert_allclose(np.abs(KinematicChain(machine).bar_xy_mm).max(axis=1), hw)
+    np.testing.assert_allclose(np.abs(KinematicChain(deep).bar_xy_mm).max(axis=1), hw - 8.0)

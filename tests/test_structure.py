@@ -272,6 +272,28 @@ def test_extra_paths_reproduce_the_built_in_sensors(twin, machine):
     assert np.allclose(temp, h.sensor_temperature_C, atol=1e-9)
 
 
+def test_embedded_paths_bend_with_their_distance_from_the_axis(twin, machine):
+    """A grating ``depth_mm`` into the wall reads the bending strain at (half width - depth): away
+    from the housing and the carriages, beam theory's ratio to the surface path's; an axial force
+    stretches every depth alike; and the thermal rows read the laminate at that depth."""
+    hw, wall = machine.ram.outer_width_mm / 2, machine.ram.wall_mm
+    base = machine.sensors[0]
+    paths = [
+        base.model_copy(
+            update={"name": f"d{d:g}", "face": "+X", "depth_mm": d, "z_start_mm": 250.0, "z_end_mm": 450.0}
+        )
+        for d in (0.0, wall / 2, wall)
+    ]
+    g = twin.path_influence(paths).per_force_um_per_N  # (paths, Fx/Fy/Fz)
+    for k, d in enumerate((0.0, wall / 2, wall)):
+        assert g[k, 0] / g[0, 0] == pytest.approx((hw - d) / hw, rel=0.04)
+        assert g[k, 2] == pytest.approx(g[0, 2], rel=0.01)
+    rows = twin.path_influence(paths).temperature_rows
+    outer, inner = rows[0].toarray().ravel(), rows[2].toarray().ravel()
+    p = twin.mesh.mesh.p
+    assert np.allclose(outer @ p[0], hw) and np.allclose(inner @ p[0], hw - wall)
+
+
 # --------------------------------------------------------------- generalised machine descriptions
 RAM2_YAML = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram2.yaml"
 
@@ -340,6 +362,8 @@ def test_built_in_ram_keeps_its_legacy_inputs(machine):
         ),
         (lambda d: d["tool"].__setitem__("nose_patch_mm", [400.0, 135.0]), "field tool.nose_patch_mm"),
         (lambda d: d["mesh"].__setitem__("element", "hex20"), "field mesh.element"),
+        (lambda d: d["sensors"][2].__setitem__("depth_mm", 15.5), "field sensors[2].depth_mm"),
+        (lambda d: d["sensors"][0].__setitem__("depth_mm", -1.0), "field sensors[0].depth_mm"),
     ],
 )
 def test_generalised_schema_names_the_bad_field(tmp_path, edit, field):

@@ -142,12 +142,15 @@ def ttp_position_mm(m_0n, ttp_local_mm=(0.0, 0.0, 0.0)):
 
 
 # ------------------------------------------------------------------------ bars on the section
-def bar_position_mm(face: str, offset_mm: float, half_width_mm: float, half_depth_mm: float):
-    """Cross-section position (x, y) in mm of a path on an outer face (as the twin meshes it)."""
+def bar_position_mm(
+    face: str, offset_mm: float, half_width_mm: float, half_depth_mm: float, depth_mm: float = 0.0
+):
+    """Cross-section position (x, y) in mm of a path in a wall, ``depth_mm`` in from the face's
+    outer surface (as the twin meshes it)."""
     sign = 1.0 if face[0] == "+" else -1.0
     if face[1] == "X":
-        return sign * half_width_mm, float(offset_mm)
-    return float(offset_mm), sign * half_depth_mm
+        return sign * (half_width_mm - depth_mm), float(offset_mm)
+    return float(offset_mm), sign * (half_depth_mm - depth_mm)
 
 
 def bar_elongation_um(alpha_rad, beta_rad, c_um, bar_xy_mm, length_mm):
@@ -377,7 +380,7 @@ class KinematicChain:
         K = len(self.segments)
         hw, hd = m.ram.outer_width_mm / 2, m.ram.outer_depth_mm / 2
         self.bar_xy_mm = np.array(
-            [bar_position_mm(sn.face, sn.offset_mm, hw, hd) for sn in self.sensors]
+            [bar_position_mm(sn.face, sn.offset_mm, hw, hd, sn.depth_mm) for sn in self.sensors]
         ).reshape(-1, 2)
         self.cover = np.array(
             [

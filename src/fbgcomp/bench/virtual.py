@@ -444,6 +444,7 @@ def campaign_meta(machine, scenario: Scenario, seed: int, start=None) -> dict:
                 "face": s.face,
                 "z_start_mm": s.z_start_mm,
                 "z_end_mm": s.z_end_mm,
+                **({"depth_mm": s.depth_mm} if s.depth_mm else {}),
                 "temperature_probe": s.temperature_probe,
                 **(
                     {"reference_lambda0_nm": s.reference_lambda0_nm}

@@ -38,6 +38,7 @@ def campaign_sensor_specs(machine: Machine) -> list:
             face=s.face,
             z_start_mm=s.z_start_mm,
             z_end_mm=s.z_end_mm,
+            depth_mm=s.depth_mm or None,
             temperature_probe=s.temperature_probe,
         )
         for s in machine.sensors

@@ -263,12 +263,16 @@ class Supports(_Strict):
 
 
 class Sensor(_Strict):
-    """One FBG path on an outer face: position across the face and end points along z (mm), nominal
-    wavelength (nm), optical and fibre coefficients, its temperature probe."""
+    """One FBG path in a ram wall, along z: its face, position across the face, depth into the
+    wall and end points along z (mm), nominal wavelength (nm), optical and fibre coefficients, its
+    temperature probe."""
 
     name: str = Field(min_length=1)
     face: Face
     offset_mm: float = 0.0
+    #: distance from the face's outer surface into the wall, mm: 0 bonded on the outer surface,
+    #: the wall thickness on the inner (cavity) surface, in between embedded in the laminate
+    depth_mm: float = Field(default=0.0, ge=0)
     z_start_mm: float
     z_end_mm: float
     lambda0_nm: float = Field(gt=0)
@@ -483,6 +487,11 @@ class Machine(_Strict):
                 if abs(s.offset_mm) > across:
                     raise _FieldError(
                         f"{group}[{i}].offset_mm", f"offset {s.offset_mm:g} mm lies off the {s.face} face"
+                    )
+                if s.depth_mm > self.ram.wall_mm:
+                    raise _FieldError(
+                        f"{group}[{i}].depth_mm",
+                        f"depth {s.depth_mm:g} mm lies beyond the {self.ram.wall_mm:g} mm wall",
                     )
                 if s.z_start_mm < 0 or s.z_end_mm > self.ram.length_mm:
                     raise _FieldError(

@@ -127,21 +127,22 @@ class RamMesh:
                             vals.append(w)
         return sp.csr_matrix((vals, (rows, cols)), shape=(len(pts), self.n_nodes))
 
-    def face_point_mm(self, face: str, offset_mm: float, z_mm) -> np.ndarray:
-        """Points (n, 3) on an outer face of the ram: ``offset_mm`` across the face, at heights z."""
+    def face_point_mm(self, face: str, offset_mm: float, z_mm, depth_mm: float = 0.0) -> np.ndarray:
+        """Points (n, 3) in a wall of the ram: ``offset_mm`` across the face, ``depth_mm`` in from
+        its outer surface, at heights z."""
         z = np.atleast_1d(np.asarray(z_mm, dtype=float))
         sign = 1.0 if face[0] == "+" else -1.0
         xy = (
-            (sign * self.half_width_mm, offset_mm)
+            (sign * (self.half_width_mm - depth_mm), offset_mm)
             if face[1] == "X"
-            else (offset_mm, sign * self.half_depth_mm)
+            else (offset_mm, sign * (self.half_depth_mm - depth_mm))
         )
         return np.column_stack([np.full_like(z, xy[0]), np.full_like(z, xy[1]), z])
 
     def path_mean_rows(
-        self, face: str, offset_mm: float, z_start_mm: float, z_end_mm: float
+        self, face: str, offset_mm: float, z_start_mm: float, z_end_mm: float, depth_mm: float = 0.0
     ) -> sp.csr_matrix:
-        """(1, n_nodes) row: mean of a nodal field along a straight path on an outer face.
+        """(1, n_nodes) row: mean of a nodal field along a straight path in a wall, along z.
 
         Trapezoid over the grid's z-lines inside the path: exact, as the trilinear field is linear
         in z between them.
@@ -153,7 +154,7 @@ class RamMesh:
         w[:-1] += dz / 2
         w[1:] += dz / 2
         w /= z_end_mm - z_start_mm
-        rows = self.point_rows(self.face_point_mm(face, offset_mm, z))
+        rows = self.point_rows(self.face_point_mm(face, offset_mm, z, depth_mm))
         return sp.csr_matrix(w[None, :] @ rows)
 
     def facets_where(self, predicate) -> np.ndarray:

@@ -386,7 +386,9 @@ class Twin:
         uz = vb.nodal_dofs[2]
         el_rows = []
         for s in machine.sensors:
-            ends = rm.point_rows(rm.face_point_mm(s.face, s.offset_mm, [s.z_start_mm, s.z_end_mm]))
+            ends = rm.point_rows(
+                rm.face_point_mm(s.face, s.offset_mm, [s.z_start_mm, s.z_end_mm], s.depth_mm)
+            )
             d = (ends[1] - ends[0]).toarray().ravel()
             row = np.zeros(vb.N)
             row[uz] = d
@@ -404,7 +406,10 @@ class Twin:
         W = np.asarray((Th.T @ X).T)  # (S + 3, n_nodes) µm/K
 
         Tsens = sp.vstack(
-            [rm.path_mean_rows(s.face, s.offset_mm, s.z_start_mm, s.z_end_mm) for s in machine.sensors]
+            [
+                rm.path_mean_rows(s.face, s.offset_mm, s.z_start_mm, s.z_end_mm, s.depth_mm)
+                for s in machine.sensors
+            ]
         ).tocsr()
         pts = [
             [machine.probes[i].x_mm, machine.probes[i].y_mm, machine.probes[i].z_mm]
@@ -501,12 +506,14 @@ class Twin:
             return PathInfluence((), np.zeros((0, 3)), empty, sp.csr_matrix(empty))
         rows = np.zeros((len(sensors), vb.N))
         for i, s in enumerate(sensors):
-            ends = rm.point_rows(rm.face_point_mm(s.face, s.offset_mm, [s.z_start_mm, s.z_end_mm]))
+            ends = rm.point_rows(
+                rm.face_point_mm(s.face, s.offset_mm, [s.z_start_mm, s.z_end_mm], s.depth_mm)
+            )
             rows[i, vb.nodal_dofs[2]] = UM_PER_MM * (ends[1] - ends[0]).toarray().ravel()
         X = self._elastic.solve(rows.T)
         ttp_rows = self._R[-3:] / UM_PER_MM
         temps = sp.vstack(
-            [rm.path_mean_rows(s.face, s.offset_mm, s.z_start_mm, s.z_end_mm) for s in sensors]
+            [rm.path_mean_rows(s.face, s.offset_mm, s.z_start_mm, s.z_end_mm, s.depth_mm) for s in sensors]
         ).tocsr()
         return PathInfluence(
             tuple(s.name for s in sensors), X.T @ ttp_rows.T, np.asarray((self._Th.T @ X).T), temps

@@ -84,6 +84,12 @@ class SensorSpec(BaseModel):
     face: Literal["+X", "-X", "+Y", "-Y", "+Z", "-Z"] | None = None
     z_start_mm: _FiniteFloat | None = None
     z_end_mm: _FiniteFloat | None = None
+    depth_mm: _FiniteFloat | None = Field(
+        default=None,
+        ge=0,
+        description="distance from the face's outer surface into the wall, mm (0: bonded on the "
+        "outer surface; the wall thickness: on the inner surface)",
+    )
     temperature_probe: _Name | None = Field(
         default=None, description="probe used for temperature compensation; none: uncompensated"
     )
@@ -403,7 +409,7 @@ def to_builtins(value):
     return value
 
 
-_OPTIONAL_SENSOR_KEYS = ("face", "z_start_mm", "z_end_mm", "temperature_probe")
+_OPTIONAL_SENSOR_KEYS = ("face", "z_start_mm", "z_end_mm", "depth_mm", "temperature_probe")
 
 
 def meta_yaml(meta: CampaignMeta, file) -> str:

@@ -765,6 +765,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
                 ("face", spec.face, ms.face),
                 ("z_start_mm", spec.z_start_mm, ms.z_start_mm),
                 ("z_end_mm", spec.z_end_mm, ms.z_end_mm),
+                ("depth_mm", spec.depth_mm, ms.depth_mm),
                 ("gauge_length_mm", spec.gauge_length_mm, ms.gauge_length),
             ):
                 if said is None:
