@@ -14,7 +14,10 @@ axis, on robust statistics of the raw correction:
   ``rest_tau_s``, to the *median* of the block medians over the last ``rest_median_s`` (at most
   since the last restart) and read at the newest block. The median drops pops shorter than half
   its window, the long fit averages what is left, and the line follows a steady thermal drift
-  without lag or staircase. Its slope counts only as far as the data show it: it is shrunk by
+  without staircase. The fit lags a drift whose rate changes (a housing cooling after the
+  spindle stops) by a part of its time constant, so that is short; on an axis whose robust noise
+  SD exceeds ``rest_noise_um`` it grows as the SD squared (the level's jitter goes as SD /
+  sqrt(tau)), up to ``rest_tau_max_s``. Its slope counts only as far as the data show it: it is shrunk by
   t² / (t² + ``trend_t2``), t its ratio to its standard error (one independent point per median
   window), and is zero with fewer than three windows since the last restart;
 * **step**: the *short* median ``m`` (block medians over ``short_s``) is compared with the level.
@@ -76,7 +79,9 @@ class OutputFilterConfig:
     block_s: float = 0.05  # frames averaged per decision block
     short_s: float = 0.6  # fast robust statistic: median of the block medians over this
     rest_median_s: float = 8.0  # slow robust statistic feeding the rest fit
-    rest_tau_s: float = 600.0  # rest fit: exponential weights of this time constant
+    rest_tau_s: float = 150.0  # rest fit: exponential weights of this time constant ...
+    rest_noise_um: float = 5.0  # ... while the robust noise SD is at most this; beyond, ∝ SD² ...
+    rest_tau_max_s: float = 600.0  # ... up to this
     trend_t2: float = 25.0  # a trend of t = 5 standard errors counts half
     fast_confirm_s: float = 0.15  # beyond the large threshold this long: a step
     slow_confirm_s: float = 1.6  # the median over this long beyond the small threshold: a step
@@ -118,7 +123,7 @@ class AdaptiveLevelFilter:
         self.fast_n = max(2, math.ceil(cfg.fast_confirm_s / blk - 1e-9))
         self.slow_n = max(self.fast_n + 1, math.ceil(cfg.slow_confirm_s / blk - 1e-9))
         self.hold_n = max(1, math.ceil(cfg.hold_s / blk - 1e-9))
-        self.lam = math.exp(-blk / cfg.rest_tau_s) if cfg.rest_tau_s > 0 else 0.0
+        self._blk = blk
         self.env_decay = math.exp(-blk / cfg.envelope_tau_s) if cfg.envelope_tau_s > 0 else 0.0
         self.noise_n = max(1, round(cfg.noise_block_s / blk))
         self.noise_gain = min(1.0, cfg.noise_block_s / cfg.noise_tau_s) if cfg.noise_tau_s > 0 else 1.0
@@ -264,9 +269,18 @@ class AdaptiveLevelFilter:
         """The newest ``n`` values of one axis of a ring (the current block last)."""
         return self._windows(ring, n)[:, j]
 
+    def rest_tau(self, j: int) -> float:
+        """The rest fit's time constant on axis ``j``, s: ``rest_tau_s`` while the axis's robust
+        noise SD is at most ``rest_noise_um``, longer as the SD squared beyond it (the level's
+        jitter goes as SD / sqrt(tau)), at most ``rest_tau_max_s``."""
+        cfg = self.config
+        grow = (self.sd[j] / cfg.rest_noise_um) ** 2 if cfg.rest_noise_um > 0 else 1.0
+        return min(cfg.rest_tau_s * max(grow, 1.0), max(cfg.rest_tau_max_s, cfg.rest_tau_s))
+
     def _fit_point(self, j: int, y: float, u: float) -> None:
         f = self.fit[j]
-        f *= self.lam
+        tau = self.rest_tau(j)
+        f *= math.exp(-self._blk / tau) if tau > 0 else 0.0
         f += (1.0, u, u * u, y, u * y, y * y)
 
     def _fit_level(self, j: int) -> float:
