@@ -927,3 +927,22 @@ def test_a_fallback_holds_back_what_its_lost_gratings_told_the_full_map():
     for exclude in (frozenset(), frozenset({"S4"}), frozenset({"S2"})):
         for axis, a in _metrics(m, runs["thermal-36h-b"], exclude)["axes"].items():
             assert a["max_abs_error_um"] <= a["peak_um"] + 0.5, (set(exclude), axis, a)
+
+
+def test_a_load_that_stopped_is_published_at_its_settled_level_not_a_frames_noise(twin_model, ram2):
+    """thermal_c recorded by a noisier interrogator (1 pm more white noise a frame, a common
+    instrument's figure): ~130 N of Fx a frame at 1 frame/s. Once the -2500 N release has
+    stopped, the tracker published the fast reading, a frame's noise, for its whole settling
+    time (dx 14 µm off 10 s after the release, the twin's combined dy 27-68 µm for 15 s); it now
+    publishes the level the frames since the stop give, zero for a release to a level the step
+    test cannot tell from zero."""
+    c = ram2["thermal_c"]
+    t, w, T, w0, t0 = _interpolated_frames(twin_model, c, 1.0, t_to_s=26000.0)
+    w = w + np.random.default_rng(5).normal(0.0, 1e-3, w.shape)
+    _, forces, _ = _forces(twin_model, t, w, T, w0, t0)
+    F = np.interp(t, c.loads["time_s"], c.loads["fx_N"])
+    stopped = t[np.abs(F) > 10.0].max()  # the release's last frame under load
+    assert (forces[(t > 11000.0) & (t < stopped - 20.0), 0] < -2000.0).all()  # the load was held
+    after = (t >= stopped + 5.0) & (t <= stopped + 120.0)
+    assert after.sum() > 100
+    assert (forces[after, 0] == 0.0).all(), forces[after, 0][forces[after, 0] != 0.0][:5]

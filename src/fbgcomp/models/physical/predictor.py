@@ -814,7 +814,6 @@ class PhysicalPredictor:
                 f_quick = op @ xq
                 sd_qf = self.F_sd * np.sqrt(k_follow[i] * excess)
                 ramping = still & (np.abs(f_quick - f_fast) > k * sd_qf)
-                applied = np.where(ramping, f_quick, np.where(moving, f_fast, applied))
                 settle = np.maximum(settle - dt[i], 0.0)
                 ended = moving & (settle <= 0) & (mean_w > 0)
                 # the level is the mean reading less the thermal lag it carried into the
@@ -826,7 +825,24 @@ class PhysicalPredictor:
                 lagged = P.firm(trend, self.F_sd * np.sqrt(k_trend[i] * excess), k, 2 * k)
                 mw = np.where(mean_w > 0, mean_w, 1.0)
                 level = mean_sum / mw - lagged * (1.0 + mean_tsum / mw / self.offset_tau_s)
-                applied = np.where(ended, level, applied)
+                # while the load moves, the reading (the quick one while it ramps); once it has
+                # stopped, the level it will end at, as far as the frames since then tell it,
+                # and zero where that is a release to a level the step test cannot tell from
+                # zero (as at the end, below). The fast reading alone carried a frame's noise
+                # through the whole settling time: at 1 frame/s on the twin's combined campaign
+                # (165 N of Fy a frame) its 2000 N release wandered 27-68 µm of dy for 15 s after
+                # the load was off; the running mean alone, correlated noise, 17-32 µm.
+                settling = moving & ~still & (mean_w > 0)
+                to_zero = (np.abs(level) <= limit) & (np.abs(level) < np.abs(level_from))
+                applied = np.where(
+                    ramping,
+                    f_quick,
+                    np.where(
+                        still,
+                        f_fast,
+                        np.where(settling, np.where(to_zero, 0.0, level), np.where(moving, f_fast, applied)),
+                    ),
+                )
                 # a release that ends at a level the step test could not tell from zero ends at
                 # zero: that level would not have started a load from rest, and held it stays
                 # for good (the offset takes in what it leaves). On the twin's combined campaign
