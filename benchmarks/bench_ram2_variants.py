@@ -10,7 +10,8 @@ files and data sheet would have it. For each variant, as a user runs it:
 
 * files: a Unix-epoch clock; every column and campaign.yaml list in reverse order; 2 % of the
   interrogator and probe rows missing; a 0.2 Hz thermal interrogator with probes every 60 s; 1 Hz
-  static interrogators; static_xyz without its loads.csv;
+  static interrogators; static_xyz without its loads.csv; an interrogator with 1 pm more white
+  noise on every wavelength (ram2's own is ~0.24 pm; 1 pm is a common instrument's figure);
 * orientation: the whole ram turned 90° about Z (x' = -y, y' = x: rails on +X, spindle heat
   towards +Y, the radiant load on +Y, thermal_c's force along Y) and mirrored (x' = -x); the
   physics is the same, so every figure must be ram2's with the axes exchanged;
@@ -68,6 +69,7 @@ THERMAL = ("thermal_a", "thermal_b", "thermal_c")
 STATIC = ("static_x", "static_xyz")
 LOADED_UM = 5.0
 EPOCH_S = 1.773e9
+NOISY_INTERROGATOR_NM = 1e-3  # a common interrogator's per-frame wavelength noise (1 pm)
 
 # --- what a variant rewrites: f(campaign name, file name, table) and g(machine description) ----
 
@@ -99,6 +101,15 @@ def _slow_thermal(name, fname, df):
         return df.iloc[::5]  # 1 s -> 5 s
     if name in THERMAL and fname == "temperatures.csv":
         return df.iloc[::6]  # 10 s -> 60 s
+    return df
+
+
+def _noisy_interrogator(name, fname, df):
+    if fname != "fbg.csv":
+        return df
+    rng = np.random.default_rng(zlib.crc32(f"{name}/{fname}/noise".encode()))
+    for col in [c for c in df.columns if c.endswith("_nm")]:
+        df[col] = (df[col] + rng.normal(0.0, NOISY_INTERROGATOR_NM, len(df))).round(6)
     return df
 
 
@@ -202,6 +213,9 @@ VARIANTS = {
     "rows-dropped": _variant("2 % of interrogator and probe rows missing", table=_drop),
     "slow-thermal": _variant("thermal interrogator 0.2 Hz, probes every 60 s", table=_slow_thermal),
     "slow-static": _variant("static interrogators 1 Hz (10 Hz published)", table=_slow_static),
+    "noisy-interrogator": _variant(
+        "1 pm more white noise on every wavelength (ram2's own is ~0.24 pm)", table=_noisy_interrogator
+    ),
     "no-loads-file": _variant("static_xyz without loads.csv", drop=(("static_xyz", "loads.csv"),)),
     "turned-90": _variant(
         "the ram turned 90° about Z: rails on +X, heat towards +Y, thermal_c's force along Y",
