@@ -57,14 +57,7 @@ def compensated_by(campaign: Campaign, how: str) -> Campaign:
         )
         for s in campaign.meta.sensors
     ]
-    meta = campaign.meta.model_copy(update={"sensors": sensors})
-    return Campaign.from_arrays(
-        meta,
-        fbg=campaign.fbg,
-        temperatures=campaign.temperatures,
-        reference=campaign.reference,
-        loads=campaign.loads,
-    )
+    return campaign.replaced(meta=campaign.meta.model_copy(update={"sensors": sensors}))
 
 
 def without_reference_gratings(campaign: Campaign) -> Campaign:
@@ -73,9 +66,7 @@ def without_reference_gratings(campaign: Campaign) -> Campaign:
     sensors = [s.model_copy(update={"reference_lambda0_nm": None}) for s in campaign.meta.sensors]
     meta = campaign.meta.model_copy(update={"sensors": sensors})
     fbg = campaign.fbg[[c for c in campaign.fbg.columns if not c.endswith("_ref_nm")]]
-    return Campaign.from_arrays(
-        meta, fbg=fbg, temperatures=campaign.temperatures, reference=campaign.reference, loads=campaign.loads
-    )
+    return campaign.replaced(meta=meta, fbg=fbg)
 
 
 def elongation_errors(campaign: Campaign, truth: dict) -> dict:

@@ -52,14 +52,7 @@ def at_depth(machine, depth_mm: float):
 def without_depth(campaign: Campaign) -> Campaign:
     """The same measurements with campaign.yaml silent on the gratings' depth."""
     sensors = [s.model_copy(update={"depth_mm": None}) for s in campaign.meta.sensors]
-    meta = campaign.meta.model_copy(update={"sensors": sensors})
-    return Campaign.from_arrays(
-        meta,
-        fbg=campaign.fbg,
-        temperatures=campaign.temperatures,
-        reference=campaign.reference,
-        loads=campaign.loads,
-    )
+    return campaign.replaced(meta=campaign.meta.model_copy(update={"sensors": sensors}))
 
 
 def judged(model, campaign: Campaign) -> dict:

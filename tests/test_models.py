@@ -7,7 +7,7 @@ from scipy import stats
 
 from fbgcomp.bench.synthetic import linear_truth_campaign
 from fbgcomp.errors import InputError
-from fbgcomp.io.campaign import Campaign, read_campaign, write_campaign
+from fbgcomp.io.campaign import read_campaign, write_campaign
 from fbgcomp.models.features import TemperatureRoles, candidate_terms, resolve_roles
 from fbgcomp.models.metrics import validation_metrics
 from fbgcomp.models.modelfile import SCHEMA_VERSION
@@ -356,12 +356,9 @@ def _renamed_probes(campaign, names):
     for s in meta["sensors"]:
         if s.get("temperature_probe"):
             s["temperature_probe"] = names.get(s["temperature_probe"], s["temperature_probe"])
-    return Campaign.from_arrays(
-        meta,
-        fbg=campaign.fbg,
+    return campaign.replaced(
+        meta=meta,
         temperatures=campaign.temperatures.rename(columns={f"{o}_C": f"{n}_C" for o, n in names.items()}),
-        reference=campaign.reference,
-        loads=campaign.loads,
     )
 
 

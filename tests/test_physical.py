@@ -537,13 +537,7 @@ def _without_probe(campaign, probe):
     """The campaign as if the probe had never been installed (its column and declaration gone)."""
     meta = campaign.meta.model_dump()
     meta["temperature_probes"] = [p for p in meta["temperature_probes"] if p["name"] != probe]
-    return Campaign.from_arrays(
-        meta,
-        fbg=campaign.fbg,
-        temperatures=campaign.temperatures.drop(columns=[f"{probe}_C"]),
-        reference=campaign.reference,
-        loads=campaign.loads,
-    )
+    return campaign.replaced(meta=meta, temperatures=campaign.temperatures.drop(columns=[f"{probe}_C"]))
 
 
 def test_a_machine_without_a_housing_probe_is_fitted_and_does_no_harm(ram2, tmp_path):

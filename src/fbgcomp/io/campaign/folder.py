@@ -116,12 +116,18 @@ class Campaign:
     def validate(self) -> Campaign:
         """Re-run every check on the in-memory tables (after editing them); returns a campaign
         with canonical column order."""
+        return self.replaced()
+
+    def replaced(self, *, meta=None, fbg=None, temperatures=None, reference=None, loads=None) -> Campaign:
+        """A validated campaign with the parts given replaced and the others as they are: the
+        same measurements under another campaign.yaml (``meta``, a CampaignMeta or mapping), or
+        the same campaign with one table edited. ``loads`` cannot be removed this way."""
         return Campaign.from_arrays(
-            self.meta,
-            fbg=self.fbg,
-            temperatures=self.temperatures,
-            reference=self.reference,
-            loads=self.loads,
+            self.meta if meta is None else meta,
+            fbg=self.fbg if fbg is None else fbg,
+            temperatures=self.temperatures if temperatures is None else temperatures,
+            reference=self.reference if reference is None else reference,
+            loads=self.loads if loads is None else loads,
             path=self.path,
         )
 
