@@ -171,6 +171,11 @@ def test_adaptive_filter_is_still_at_rest_and_follows_a_step():
     rms = np.sqrt((dev[rest] ** 2).mean(axis=0))
     raw = np.sqrt(((x[rest] - x[rest].mean(axis=0)) ** 2).mean(axis=0))
     assert (rms[:2] < 0.2).all() and raw[0] > 15 and raw[1] > 4.5
+    # that noisy an axis averages longer than a quiet one (150 s gave it 0.22 µm RMS here)
+    assert (
+        f.rest_tau(0) == OutputFilterConfig().rest_tau_max_s
+        and f.rest_tau(2) == OutputFilterConfig().rest_tau_s
+    )
     # follows the 300 µm step to 90 % within 1 s on every axis, and does not overshoot it:
     # right after the step the level is a median of a second or so of 20 µm noise, later an
     # average of ever more of it
@@ -304,3 +309,19 @@ def test_frames_the_model_follows_are_published_as_they_are_in_any_batching():
         np.abs(lagged[1000:1500, 0] - ramp[1000:1500]).max()
         > 2.0 * np.abs(out[1000:1500, 0] - ramp[1000:1500]).max()
     )
+
+
+def test_the_rest_fit_follows_a_drift_whose_rate_changes():
+    """A housing cooling after the spindle stops: the correction relaxes by 5 µm with a 20 min
+    time constant, in 0.05 µm of noise at 1 frame/s. The rest fit lags a changing drift by a part
+    of its time constant: with 600 s it stood 0.71 µm behind (ram2's thermal_b served dz 5.37 µm
+    against 4.62 offline); with 150 s, within 0.4 µm."""
+    rng = np.random.default_rng(1)
+    t = np.arange(0.0, 7200.0, 1.0)
+    truth = np.where(t < 1800.0, 5.0, 5.0 * np.exp(-(t - 1800.0) / 1200.0))
+    x = np.column_stack([truth + rng.normal(0.0, 0.05, t.size), 0 * t, 0 * t])
+    f = AdaptiveLevelFilter(OutputFilterConfig(), 1.0, noise_um=np.full(3, 0.05))
+    y = f.process(x)
+    after = t > 1800.0
+    assert np.abs(y[after, 0] - truth[after]).max() < 0.4
+    assert [f.rest_tau(j) for j in range(3)] == [150.0] * 3  # quiet axes keep the short fit
