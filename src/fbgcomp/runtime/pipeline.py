@@ -450,8 +450,7 @@ class Pipeline:
                     continue
                 sel = np.arange(lo, hi) + start
                 p = self.predictor(k)
-                if k != self._ran and self._ran >= 0 and callable(getattr(p, "take_state", None)):
-                    p.take_state(self.predictor(self._ran))
+                self._take_over(p, k)
                 self._ran = k
                 d, h = p.predict(
                     wavelength_nm[sel],
@@ -507,6 +506,12 @@ class Pipeline:
             choice = np.zeros(f.shape[0], int)
         return np.where(temp_ok, choice, -1)
 
+    def _take_over(self, p, k: int) -> None:
+        """Predictor ``p`` of model set ``k`` goes on from the state of the set that ran last,
+        if another one did and ``p`` has memory to hand over (``take_state``)."""
+        if k != self._ran and self._ran >= 0 and callable(getattr(p, "take_state", None)):
+            p.take_state(self.predictor(self._ran))
+
     def _predict_one(self, k: int, time_s, wavelength_nm, temperature_C, row: int):
         """One frame on model set ``k`` by a copy of its predictor (the check must not move a
         model's state: the frames before ``row`` in this batch are still to come), taking
@@ -514,8 +519,7 @@ class Pipeline:
         p = copy.copy(self.predictor(int(k)))
         if hasattr(p, "state"):
             p.state = copy.deepcopy(p.state)
-            if int(k) != self._ran and self._ran >= 0 and callable(getattr(p, "take_state", None)):
-                p.take_state(self.predictor(self._ran))
+            self._take_over(p, int(k))
         sel = slice(row, row + 1)
         d, _ = p.predict(
             wavelength_nm[sel],

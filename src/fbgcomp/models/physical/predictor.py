@@ -834,14 +834,10 @@ class PhysicalPredictor:
                 # the load was off; the running mean alone, correlated noise, 17-32 µm.
                 settling = moving & ~still & (mean_w > 0)
                 to_zero = (np.abs(level) <= limit) & (np.abs(level) < np.abs(level_from))
-                applied = np.where(
-                    ramping,
-                    f_quick,
-                    np.where(
-                        still,
-                        f_fast,
-                        np.where(settling, np.where(to_zero, 0.0, level), np.where(moving, f_fast, applied)),
-                    ),
+                applied = np.select(
+                    [ramping, still, settling & to_zero, settling, moving],
+                    [f_quick, f_fast, 0.0, level, f_fast],
+                    applied,
                 )
                 # a release that ends at a level the step test could not tell from zero ends at
                 # zero: that level would not have started a load from rest, and held it stays
