@@ -26,10 +26,10 @@ import time
 
 import numpy as np
 
+from fbgcomp.bench.served import served
 from fbgcomp.cli.demo import RAM2_MACHINE, find_ram2
 from fbgcomp.io.campaign import read_campaign
 from fbgcomp.models.physical import PhysicalModel
-from fbgcomp.runtime.pipeline import Pipeline, PipelineConfig
 
 HELD_OUT = ("thermal_b", "thermal_c", "static_x")
 LOST_FROM = 0.4  # of the run
@@ -37,33 +37,11 @@ ALLOWANCE_UM = 0.5
 BATCH = 100
 
 
-def served(model, campaign, lost=None):
+def served_error(model, campaign, lost=None):
     """Max |error| (3,) µm of the published correction at the reference times, and the
     uncompensated peak (3,)."""
-    al = campaign.aligned(zero_window_s=model.zero_window_s)
-    ft, w, temp = model.frame_arrays(campaign, al)
-    counts = np.ones(w.shape, np.int8)
-    if lost is not None:
-        j = model.sensor_names.index(lost)
-        gone = ft >= ft[0] + LOST_FROM * (ft[-1] - ft[0])
-        w = w.copy()
-        w[gone, j] = np.nan
-        counts[gone, j] = 0
-    pipe = Pipeline(model, PipelineConfig())
-    corr = np.vstack(
-        [
-            pipe.process(
-                ft[i : i + BATCH],
-                w[i : i + BATCH],
-                counts[i : i + BATCH],
-                0 * counts[i : i + BATCH],
-                temp[i : i + BATCH],
-            ).correction_um
-            for i in range(0, ft.size, BATCH)
-        ]
-    )
-    at = np.clip(np.searchsorted(ft, al.time_s, side="right") - 1, 0, ft.size - 1)
-    return np.abs(al.reference_um + corr[at]).max(axis=0), np.abs(al.reference_um).max(axis=0)
+    corr, ref, _ = served(model, campaign, lost=lost, lost_from=LOST_FROM, sizes=(BATCH,))
+    return np.abs(ref + corr).max(axis=0), np.abs(ref).max(axis=0)
 
 
 def judge(label, model, held_out) -> list:
@@ -73,7 +51,7 @@ def judge(label, model, held_out) -> list:
     print(f"{'campaign':<15}{'lost':<6}{'dx':>9}{'dy':>9}{'dz':>9}   uncompensated dx/dy/dz")
     for name, c in held_out.items():
         for lost in [None, *model.sensor_names]:
-            err, peak = served(model, c, lost)
+            err, peak = served_error(model, c, lost)
             worse = bool((err > peak + ALLOWANCE_UM).any())
             rows.append(
                 {

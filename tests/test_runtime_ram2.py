@@ -10,6 +10,7 @@ each reference time, as ``validate`` judges the model offline.
 import numpy as np
 import pytest
 
+from fbgcomp.bench.served import served
 from fbgcomp.runtime import health as H
 from fbgcomp.runtime.pipeline import HEALTH_DEGRADED, HEALTH_OK, Pipeline, PipelineConfig
 from fbgcomp_testing import read_ram2
@@ -29,24 +30,6 @@ def model(ram2_default_model):
     return ram2_default_model
 
 
-def _served(model, campaign, lost=None, at_fraction=0.4, pipe=None):
-    """Published correction at each reference time (the last frame's), the reference, the
-    uncompensated peak per axis and the batch results; grating ``lost`` gone from
-    ``at_fraction`` of the run on."""
-    al = campaign.aligned(zero_window_s=model.zero_window_s)
-    ft, w, temp = model.frame_arrays(campaign, al)
-    counts = np.ones(w.shape, np.int8)
-    if lost is not None:
-        j = model.sensor_names.index(lost)
-        gone = ft >= ft[0] + at_fraction * (ft[-1] - ft[0])
-        w = w.copy()
-        w[gone, j] = np.nan
-        counts[gone, j] = 0
-    out = run_in_batches(pipe or Pipeline(model, PipelineConfig()), ft, w, temp, [100], counts)
-    at = np.clip(np.searchsorted(ft, al.time_s, side="right") - 1, 0, ft.size - 1)
-    return out["correction_um"][at], al.reference_um, out
-
-
 @pytest.fixture(scope="module")
 def full_error(model, ram2):
     """Max |error| (3,) per campaign served with every grating (computed once)."""
@@ -54,7 +37,7 @@ def full_error(model, ram2):
 
     def get(name):
         if name not in out:
-            corr, ref, _ = _served(model, ram2[name])
+            corr, ref, _ = served(model, ram2[name])
             out[name] = np.abs(ref + corr).max(axis=0)
         return out[name]
 
@@ -74,7 +57,7 @@ def test_a_grating_lost_at_runtime_does_no_harm(model, ram2, full_error, name, l
     and the fallback goes on from the full model's state (PhysicalPredictor.take_state). A
     fallback started afresh mid-run read the gratings' drift since the zero state as a load
     step: thermal_b dx 38-158 µm and dy 15-107 µm against 30.6 and 18.2 uncompensated."""
-    corr, ref, out = _served(model, ram2[name], lost)
+    corr, ref, out = served(model, ram2[name], lost=lost)
     assert (out["health"] == HEALTH_DEGRADED).sum() > 0.5 * out["health"].size  # the fallback ran
     lost_col = out["sensor_status"][:, model.sensor_names.index(lost)]
     assert (lost_col[out["health"] == HEALTH_DEGRADED] != H.OK).all()
@@ -115,8 +98,8 @@ def test_two_pipelines_on_one_model_do_not_share_state(model, ram2):
     """The model keeps one predictor per sensor set; a pipeline's own predictors start fresh. A
     second pipeline on the same model went on from the first one's load and filters (static_x
     after static_x: dx 450 µm off on an axis that moved 0.2)."""
-    first, ref, _ = _served(model, ram2["static_x"])
-    again, _, _ = _served(model, ram2["static_x"])
+    first, ref, _ = served(model, ram2["static_x"])
+    again, _, _ = served(model, ram2["static_x"])
     np.testing.assert_allclose(again, first, atol=1e-9)
     assert np.abs(ref + again).max(axis=0)[1] <= 0.17 + NOISE_ALLOWANCE_UM
 

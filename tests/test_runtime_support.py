@@ -97,28 +97,11 @@ async def secure_client(url: str, state: Path, user: str | None = None, password
 
 def run_in_batches(pipe, time_s, wl, temp, sizes, counts=None) -> dict:
     """Feed frames to ``pipe.process`` in batches cycling through ``sizes`` (one peak per
-    grating unless ``counts``); the batch results' fields, concatenated."""
-    import numpy as np
+    grating unless ``counts``); the batch results' fields, concatenated
+    (:func:`fbgcomp.bench.served.process_in_batches`)."""
+    from fbgcomp.bench.served import process_in_batches
 
-    out, i, k = [], 0, 0
-    counts = np.ones(wl.shape, np.int8) if counts is None else counts
-    while i < time_s.size:
-        j = min(time_s.size, i + sizes[k % len(sizes)])
-        out.append(pipe.process(time_s[i:j], wl[i:j], counts[i:j], np.zeros_like(counts[i:j]), temp[i:j]))
-        i, k = j, k + 1
-    return {
-        n: np.concatenate([getattr(r, n) for r in out])
-        for n in (
-            "deviation_um",
-            "half_width_um",
-            "correction_um",
-            "health",
-            "sensor_status",
-            "model_set",
-            "expected_rms_um",
-            "output_flags",
-        )
-    }
+    return process_in_batches(pipe, time_s, wl, temp, sizes, counts)
 
 
 def fallback_peak_um(model_path, campaign_path, lost: str):

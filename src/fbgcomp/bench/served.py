@@ -1,0 +1,65 @@
+"""A recorded campaign served through the runtime core, as the machine would have received it.
+
+``fbgcomp validate`` judges a model's own prediction; what a CNC receives is that prediction
+through the runtime's output policy (output filter, per-axis maximum and rate limit) and its
+fault handling (a grating lost switches to a fallback). :func:`served` feeds a campaign's own
+interrogator frames to a :class:`~fbgcomp.runtime.pipeline.Pipeline` in batches, on the
+interrogator's clock, optionally with one grating lost from some point of the run on, and
+returns the published correction at the reference instrument's samples (the last frame's, as
+``validate`` compares). ``benchmarks/bench_lost_grating.py`` and the runtime tests on ram2 judge
+the runtime this way.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from fbgcomp.runtime.pipeline import Pipeline, PipelineConfig
+
+#: The batch results :func:`process_in_batches` concatenates (``BatchResult`` fields).
+BATCH_FIELDS = (
+    "deviation_um",
+    "half_width_um",
+    "correction_um",
+    "health",
+    "sensor_status",
+    "model_set",
+    "expected_rms_um",
+    "output_flags",
+)
+
+
+def process_in_batches(pipe, time_s, wavelength_nm, temperature_C, sizes=(100,), counts=None) -> dict:
+    """Feed frames to ``pipe.process`` in batches whose sizes cycle through ``sizes`` (one peak
+    per grating unless ``counts`` (n, S)); returns :data:`BATCH_FIELDS`, concatenated."""
+    out, i, k = [], 0, 0
+    counts = np.ones(wavelength_nm.shape, np.int8) if counts is None else counts
+    while i < time_s.size:
+        j = min(time_s.size, i + sizes[k % len(sizes)])
+        out.append(
+            pipe.process(
+                time_s[i:j], wavelength_nm[i:j], counts[i:j], np.zeros_like(counts[i:j]), temperature_C[i:j]
+            )
+        )
+        i, k = j, k + 1
+    return {n: np.concatenate([getattr(r, n) for r in out]) for n in BATCH_FIELDS}
+
+
+def served(model, campaign, pipe=None, lost=None, lost_from=0.4, sizes=(100,)):
+    """``campaign`` served through ``pipe`` (default: a fresh ``Pipeline`` of ``model`` with
+    the default configuration), grating ``lost`` gone (no peak) from the fraction ``lost_from``
+    of the run on. Returns the published correction (m, 3) µm at the reference samples, the
+    reference (m, 3) µm (the aligned campaign's) and the batch results
+    (:func:`process_in_batches`)."""
+    al = campaign.aligned(zero_window_s=model.zero_window_s)
+    ft, w, temp = model.frame_arrays(campaign, al)
+    counts = np.ones(w.shape, np.int8)
+    if lost is not None:
+        j = model.sensor_names.index(lost)
+        gone = ft >= ft[0] + lost_from * (ft[-1] - ft[0])
+        w = w.copy()
+        w[gone, j] = np.nan
+        counts[gone, j] = 0
+    out = process_in_batches(pipe or Pipeline(model, PipelineConfig()), ft, w, temp, sizes, counts)
+    at = np.clip(np.searchsorted(ft, al.time_s, side="right") - 1, 0, ft.size - 1)
+    return out["correction_um"][at], al.reference_um, out
