@@ -1,0 +1,244 @@
+"""A thermal state observer on the machine's FE twin: a Kalman filter over its reduced thermal model.
+
+Issue 12 names this route beside the default's twin-learned map (:mod:`.thermal`). The twin's
+reduced thermal model (:class:`fbgcomp.structure.thermal.ReducedThermal`) is a set of decoupled
+first-order modes q driven by the inputs u = [ambient ΔT, heat source 1, ...]:
+
+    q' = -λ q + Φᵀ B u,      y = O Φ q + D u
+
+(y: the gratings' elongations, the TTP, the gratings' mean gauge temperatures and the point probes;
+D the static correction of the truncated modes). The heat sources are unknown: each is a state
+that walks at random (``heat_walk``), the ambient is measured and enters as a known input. Both
+the probes and the gratings are measurements: on CFRP a grating's uncompensated reading is mostly
+a thermometer of its gauge, ``elongation + ΔT_gauge · L · ((α_f + ξ)/(1 − p_e) − α_f)`` (paper eq.
+2-4 with ΔT = 0, :func:`fbgcomp.optics.elongation_um`). The TTP is then read off the estimated
+state, with its standard deviation from the filter's covariance.
+
+Pure numpy; the step is fixed (``step_s``) and inputs are held over it (zero-order hold). A
+missing measurement (NaN: a lost grating, a probe row not there) is left out of that step's update.
+Measured on ram2 in ``benchmarks/bench_observer.py`` and docs/accuracy.md; not the default model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from fbgcomp.optics import elongation_um
+
+
+@dataclass(frozen=True)
+class ObserverResult:
+    """What :meth:`ThermalObserver.run` estimates, one row per step.
+
+    ttp_um : (n, 3) TTP displacement (dx, dy, dz) change from the first step, µm
+    ttp_sd_um : (n, 3) its standard deviation from the filter's covariance, µm
+    heat : (n, m) the heat inputs' estimates, in the order of ``input_names`` (W or W/m²)
+    """
+
+    time_s: np.ndarray
+    ttp_um: np.ndarray
+    ttp_sd_um: np.ndarray
+    heat: np.ndarray
+    input_names: tuple[str, ...]
+
+
+def discretised(lam_per_s, phi_b, step_s):
+    """The augmented model over one step of ``step_s`` (zero-order hold): z = [q, w] with q the
+    modes (N,) and w the unknown heat inputs (m - 1,) as random walks.
+
+    Returns A (N + m - 1, N + m - 1) and the ambient's input column b (N + m - 1,):
+    z[k+1] = A z[k] + b · ambient[k]."""
+    lam = np.asarray(lam_per_s, float)
+    phi_b = np.asarray(phi_b, float)
+    n, m = phi_b.shape
+    e = np.exp(-lam * step_s)
+    g = -np.expm1(-lam * step_s) / lam  # ∫₀ʰ e^(-λs) ds
+    a = np.zeros((n + m - 1, n + m - 1))
+    a[:n, :n] = np.diag(e)
+    a[:n, n:] = g[:, None] * phi_b[:, 1:]
+    a[n:, n:] = np.eye(m - 1)
+    b = np.concatenate([g * phi_b[:, 0], np.zeros(m - 1)])
+    return a, b
+
+
+def grating_thermal_um_per_K(gauge_length_mm, photoelastic, thermo_optic_per_K, fibre_cte_per_K):
+    """µm of uncompensated elongation per K of a grating's gauge (paper eq. 2-4, ΔT read as strain)."""
+    pe = np.asarray(photoelastic, float)
+    af = np.asarray(fibre_cte_per_K, float)
+    return (
+        np.asarray(gauge_length_mm, float)
+        * 1e3
+        * ((af + np.asarray(thermo_optic_per_K, float)) / (1 - pe) - af)
+    )
+
+
+class ThermalObserver:
+    """Kalman filter of the twin's thermal state from probes and gratings.
+
+    Parameters
+    ----------
+    twin : fbgcomp.structure.Twin
+        The machine's twin (usually of :func:`fbgcomp.structure.scenarios.generic_heat_machine`,
+        so that a heat source the description does not declare has a whole-face source to go to).
+    sensors : sequence
+        The campaign's gratings (``name``, ``gauge_length_mm``, ``photoelastic``,
+        ``thermo_optic_per_K``, ``fibre_cte_per_K``), each a grating of the twin.
+    probes : sequence of str
+        Point probes of the twin read by the campaign, in the order of the measurements.
+    step_s : float
+        Filter step, s.
+    heat_walk_W : float
+        Random-walk intensity of each volume heat source, W per √s.
+    flux_walk_W_per_m2 : float
+        Random-walk intensity of each radiant source, W/m² per √s.
+    probe_sd_K : float
+        Probe noise and model error, K (one SD).
+    grating_sd_um : float
+        Grating noise and model error over a step, µm of uncompensated elongation (one SD).
+    """
+
+    def __init__(
+        self,
+        twin,
+        sensors,
+        probes,
+        step_s=10.0,
+        heat_walk_W=5.0,
+        flux_walk_W_per_m2=0.5,
+        probe_sd_K=0.15,
+        grating_sd_um=0.1,
+        nonnegative=False,
+    ):
+        red = twin.reduced
+        self.step_s = float(step_s)
+        self.input_names = tuple(twin.input_names[1:])
+        s_all = list(twin.sensor_names)
+        point = [p.name for p in twin.machine.probes if p.kind == "point"]
+        S, P = len(s_all), len(point)
+        el = [s_all.index(s.name) for s in sensors]
+        ts = [S + 3 + i for i in el]
+        pr = [2 * S + 3 + point.index(p) for p in probes]
+        ttp = [S, S + 1, S + 2]
+        assert red.OPhi.shape[0] == 2 * S + 3 + P
+        c_t = grating_thermal_um_per_K(
+            [s.gauge_length_mm for s in sensors],
+            [s.photoelastic for s in sensors],
+            [s.thermo_optic_per_K for s in sensors],
+            [s.fibre_cte_per_K for s in sensors],
+        )
+
+        def rows(o, d):  # measurement rows on z = [q, w] and the ambient's column
+            return np.hstack([o, d[:, 1:]]), d[:, 0]
+
+        o_phi, dd = red.OPhi, red.D
+        cp, dp = rows(o_phi[pr], dd[pr])
+        cg, dg = rows(o_phi[el] + c_t[:, None] * o_phi[ts], dd[el] + c_t[:, None] * dd[ts])
+        self.C, self.d = np.vstack([cp, cg]), np.concatenate([dp, dg])
+        self.C_ttp, self.d_ttp = rows(o_phi[ttp], dd[ttp])
+        self.A, self.b = discretised(red.lam_per_s, red.PhiB, self.step_s)
+        n = red.lam_per_s.size
+        walk = [heat_walk_W if name.endswith("_W") else flux_walk_W_per_m2 for name in self.input_names]
+        self.Q = np.diag(np.concatenate([np.zeros(n), np.square(walk) * self.step_s]))
+        self.R = np.concatenate(
+            [np.full(len(probes), probe_sd_K**2), np.full(len(sensors), grating_sd_um**2)]
+        )
+        self.n_modes = n
+        self.nonnegative = bool(nonnegative)
+
+    def run(self, ambient_K, probes_K, gratings_um):
+        """Filter a campaign on the observer's clock (one row per ``step_s``, from the zero state).
+
+        ambient_K : (n,) ambient temperature change from the zero state, K
+        probes_K : (n, P) point-probe changes, K (NaN: missing)
+        gratings_um : (n, S) uncompensated elongation changes net of any applied load, µm (NaN: missing)
+        """
+        amb = np.asarray(ambient_K, float)
+        meas = np.hstack([np.atleast_2d(probes_K), np.atleast_2d(gratings_um)])
+        n = amb.size
+        k = self.A.shape[0]
+        z = np.zeros(k)
+        cov = np.zeros((k, k))
+        cov[self.n_modes :, self.n_modes :] = np.diag(np.diag(self.Q)[self.n_modes :])
+        out = np.empty((n, 3))
+        sd = np.empty((n, 3))
+        heat = np.empty((n, k - self.n_modes))
+        eye = np.eye(k)
+        for i in range(n):
+            if i:
+                z = self.A @ z + self.b * amb[i - 1]
+                cov = self.A @ cov @ self.A.T + self.Q
+            ok = np.isfinite(meas[i])
+            if ok.any():
+                c = self.C[ok]
+                s = c @ cov @ c.T + np.diag(self.R[ok])
+                gain = np.linalg.solve(s, c @ cov).T
+                z = z + gain @ (meas[i, ok] - c @ z - self.d[ok] * amb[i])
+                ikc = eye - gain @ c
+                cov = ikc @ cov @ ikc.T + (gain * self.R[ok]) @ gain.T  # Joseph form: stays PSD
+                cov = 0.5 * (cov + cov.T)
+            if self.nonnegative:
+                z[self.n_modes :] = np.maximum(z[self.n_modes :], 0.0)
+            out[i] = self.C_ttp @ z + self.d_ttp * amb[i]
+            sd[i] = np.sqrt(np.clip(np.einsum("ij,jk,ik->i", self.C_ttp, cov, self.C_ttp), 0.0, None))
+            heat[i] = z[self.n_modes :]
+        t = np.arange(n) * self.step_s
+        return ObserverResult(t, out - out[:1], sd, heat, self.input_names)
+
+
+def campaign_inputs(
+    campaign,
+    sensors,
+    probes,
+    ambient,
+    step_s=10.0,
+    zero_s=60.0,
+    force_N=None,
+    force_time_s=None,
+    sensor_per_force_um_per_N=None,
+):
+    """A campaign's measurements on the observer's clock: step k covers (t0 + k h, t0 + (k+1) h]
+    of the interrogator's clock and is stamped at its end (causal).
+
+    Gratings: the mean uncompensated elongation change over each step (µm; the zero state is the
+    mean of the first ``zero_s``), less ``sensor_per_force_um_per_N @ force_N`` where an applied
+    force per interrogator frame is given. Probes and the ambient: the last reading up to the step's
+    end, as changes from their mean over the first ``zero_s`` (K). Returns (end times (n,), ambient
+    (n,), probes (n, P), gratings (n, S)); a step without a frame is NaN (left out of the update)."""
+    fbg, temps = campaign.fbg, campaign.temperatures
+    tf = fbg["time_s"].to_numpy(float)
+    t0 = tf[0]
+    n = int(np.floor((min(tf[-1], temps["time_s"].iloc[-1]) - t0) / step_s))
+    ends = t0 + step_s * np.arange(1, n + 1)
+    wl = fbg[[f"{s.name}_nm" for s in sensors]].to_numpy(float)
+    first = tf <= t0 + zero_s
+    el = elongation_um(
+        wl,
+        wl[first].mean(axis=0),
+        np.array([s.gauge_length_mm for s in sensors]),
+        0.0,
+        photoelastic=np.array([s.photoelastic for s in sensors]),
+    )
+    if force_N is not None:
+        f = np.column_stack([np.interp(tf, force_time_s, np.asarray(force_N)[:, j]) for j in range(3)])
+        el = el - f @ np.asarray(sensor_per_force_um_per_N, float).T
+    k = np.clip(np.ceil((tf - t0) / step_s).astype(int) - 1, 0, None)  # the step each frame falls in
+    keep = k < n
+    total = np.zeros((n, el.shape[1]))
+    count = np.bincount(k[keep], minlength=n).astype(float)
+    np.add.at(total, k[keep], el[keep])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        gratings = total / count[:, None]
+    tt = temps["time_s"].to_numpy(float)
+    at = np.searchsorted(tt, ends, side="right") - 1
+    zero = tt <= tt[0] + zero_s
+
+    def read(names):
+        v = temps[[f"{p}_C" for p in names]].to_numpy(float)
+        out = v[np.clip(at, 0, None)] - v[zero].mean(axis=0)
+        out[at < 0] = np.nan
+        return out
+
+    amb = read(ambient).mean(axis=1) if len(ambient) else np.zeros(n)
+    return ends, np.nan_to_num(amb), read(probes), gratings
