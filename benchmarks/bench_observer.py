@@ -5,6 +5,9 @@ M`), judged on thermal_b, thermal_c and static_x. Two thermal parts are compared
 part (the default's load tracker, as served frame by frame):
 
 * ``default``: the default model as it is (twin-learned map, housing calibration, policy);
+* ``gated``: the observer while every heat input it estimates stays within 3 times its
+  source's nominal value (:func:`~fbgcomp.models.physical.observer.plausible`), the default's
+  correction from the first step it does not (latched);
 * ``observer``: :class:`fbgcomp.models.physical.observer.ThermalObserver`, a Kalman filter over
   the twin's reduced thermal model (the description's heat sources plus a whole-face source per
   face as random walks, probes and gratings as measurements), with no calibration on the
@@ -51,12 +54,15 @@ DESCRIPTIONS = (
 )
 AXES = ("dx", "dy", "dz")
 HARM_ALLOWANCE_UM = 0.5
+#: The applicability gate: the observer is trusted while every heat estimate stays within this
+#: many times its source's nominal value, else the default's correction (latched).
+GATE_K = 3.0
 
 
 def observer_prediction(model, campaign, twin, machine):
     """The default's served prediction and the observer's (the default's load part plus the
     observer's thermal part), at the reference samples (n, 3) each, and the reference (n, 3)."""
-    from fbgcomp.models.physical.observer import ThermalObserver, campaign_inputs
+    from fbgcomp.models.physical.observer import ThermalObserver, campaign_inputs, plausible
 
     pred, _, p, at = model._served(campaign)  # at the reference samples
     aligned = campaign.aligned(zero_window_s=model.zero_window_s)
@@ -83,7 +89,10 @@ def observer_prediction(model, campaign, twin, machine):
     t_ref = aligned.time_s
     k = np.searchsorted(ends, t_ref, side="right") - 1
     thermal = np.where(k[:, None] >= 0, r.ttp_um[np.clip(k, 0, None)], 0.0)
-    return pred, load + thermal, aligned.reference_um, r
+    nominal = [h.nominal for h in twin.machine.thermal.sources]
+    trusted = plausible(r.heat, nominal, GATE_K)[np.clip(k, 0, None)]
+    gated = np.where(trusted[:, None], load + thermal, pred)
+    return pred, load + thermal, gated, aligned.reference_um, r
 
 
 def run(name, ram2: Path, work: Path) -> dict:
@@ -107,9 +116,9 @@ def run(name, ram2: Path, work: Path) -> dict:
     twin = Twin(generic_heat_machine(machine))
     out = {}
     for held in HELD:
-        d, o, ref, r = observer_prediction(model, read_campaign(ram2 / held), twin, machine)
+        d, o, g, ref, r = observer_prediction(model, read_campaign(ram2 / held), twin, machine)
         peak = np.abs(ref).max(axis=0)
-        e_d, e_o = np.abs(d - ref).max(axis=0), np.abs(o - ref).max(axis=0)
+        e_d, e_o, e_g = (np.abs(x - ref).max(axis=0) for x in (d, o, g))
         out[held] = {
             a: {
                 "uncompensated_um": float(peak[j]),
@@ -117,6 +126,8 @@ def run(name, ram2: Path, work: Path) -> dict:
                 "observer_um": float(e_o[j]),
                 "default_harm": bool(e_d[j] > peak[j] + HARM_ALLOWANCE_UM),
                 "observer_harm": bool(e_o[j] > peak[j] + HARM_ALLOWANCE_UM),
+                "gated_um": float(e_g[j]),
+                "gated_harm": bool(e_g[j] > peak[j] + HARM_ALLOWANCE_UM),
             }
             for j, a in enumerate(AXES)
         }
@@ -137,8 +148,11 @@ def main(argv=None):
         return 2
     start = time.perf_counter()
     results = {}
-    print("max |error| (µm) on ram2: uncompensated / default / observer (WORSE: above uncompensated + 0.5)")
-    print(f"{'description':<22}{'campaign':<11}" + "".join(f"{a:>26}" for a in AXES))
+    print(
+        "max |error| (µm) on ram2: uncompensated / default / observer / gated observer "
+        "(!: above uncompensated + 0.5, per observer, gated, default)"
+    )
+    print(f"{'description':<22}{'campaign':<11}" + "".join(f"{a:>36}" for a in AXES))
     with tempfile.TemporaryDirectory(prefix="bench-observer-") as tmp:
         for name in args.only or DESCRIPTIONS:
             res = run(name, data, Path(tmp))
@@ -147,20 +161,23 @@ def main(argv=None):
                 cells = []
                 for a in AXES:
                     c = res[held][a]
-                    flag = "!" if c["observer_harm"] else " "
-                    flag += "!" if c["default_harm"] else " "
-                    cells.append(
-                        f"{c['uncompensated_um']:8.2f} /{c['default_um']:7.2f} /{c['observer_um']:7.2f}{flag}"
+                    flag = "".join(
+                        "!" if c[k] else " " for k in ("observer_harm", "gated_harm", "default_harm")
                     )
-                print(f"{name:<22}{held:<11}" + "".join(f"{x:>26}" for x in cells), flush=True)
-    harm = {
-        k: sorted({f"{h}:{a}" for h in HELD for a in AXES if results[k][h][a]["observer_harm"]})
-        for k in results
-    }
-    print(
-        "observer WORSE than uncompensated (!): "
-        + ("; ".join(f"{k} {', '.join(v)}" for k, v in harm.items() if v) or "none")
-    )
+                    cells.append(
+                        f"{c['uncompensated_um']:8.2f} /{c['default_um']:7.2f} /{c['observer_um']:7.2f}"
+                        f" /{c['gated_um']:7.2f}{flag}"
+                    )
+                print(f"{name:<22}{held:<11}" + "".join(f"{x:>36}" for x in cells), flush=True)
+    for who in ("observer", "gated", "default"):
+        harm = {
+            k: sorted({f"{h}:{a}" for h in HELD for a in AXES if results[k][h][a][f"{who}_harm"]})
+            for k in results
+        }
+        print(
+            f"{who} WORSE than uncompensated: "
+            + ("; ".join(f"{k} {', '.join(v)}" for k, v in harm.items() if v) or "none")
+        )
     print(
         json.dumps(
             {

@@ -130,3 +130,14 @@ def test_on_ram2_the_observer_with_the_data_sheet_description_beats_the_default(
     # the radiant load of 90 W/m² on +X was not in the training, and it is found
     radiant = obs.input_names.index("radiant_W_per_m2")
     assert 60.0 < est.heat[:, radiant].max() < 130.0
+
+
+def test_the_observer_is_trusted_until_it_needs_an_implausible_heat_input():
+    """The gate latches: one step with an input beyond k x nominal and the rest is untrusted;
+    a source without a nominal value is not judged."""
+    from fbgcomp.models.physical.observer import plausible
+
+    heat = np.array([[100.0, 5.0, 1e6], [350.0, -20.0, 0.0], [370.0, 0.0, 0.0], [50.0, 0.0, 0.0]])
+    np.testing.assert_array_equal(plausible(heat, [120.0, 60.0, 0.0], k=3.0), [True, True, False, False])
+    np.testing.assert_array_equal(plausible(heat, [120.0, 60.0, 0.0], k=4.0), [True, True, True, True])
+    np.testing.assert_array_equal(plausible(heat[:, :2], [120.0, 5.0], k=3.0), [True, False, False, False])
