@@ -141,3 +141,26 @@ def test_the_observer_is_trusted_until_it_needs_an_implausible_heat_input():
     np.testing.assert_array_equal(plausible(heat, [120.0, 60.0, 0.0], k=3.0), [True, True, False, False])
     np.testing.assert_array_equal(plausible(heat, [120.0, 60.0, 0.0], k=4.0), [True, True, True, True])
     np.testing.assert_array_equal(plausible(heat[:, :2], [120.0, 5.0], k=3.0), [True, False, False, False])
+
+
+@pytest.mark.slow
+def test_held_non_negative_no_heat_input_goes_below_zero(ram2_twin):
+    """``nonnegative``: a cooling the readings suggest is not read as negative spindle power."""
+    tw = ram2_twin
+    t = np.arange(0.0, 2 * 3600.0, 10.0)
+    r = tw.thermal(t, np.interp(t, [0, 1800, 1e9], [22.0, 22.0, 20.0]), initial_C=22.0).change_from_start()
+    sensors = [SimpleNamespace(**s.model_dump()) for s in tw.machine.sensors]
+    point = [p.name for p in tw.machine.probes if p.kind == "point"]
+    c_t = grating_thermal_um_per_K(
+        *(
+            np.array([getattr(s, k) for s in sensors])
+            for k in ("gauge_length_mm", "photoelastic", "thermo_optic_per_K", "fibre_cte_per_K")
+        )
+    )
+    gratings = r.sensor_elongation_um + c_t * r.sensor_temperature_C - 0.5  # a reading off by -0.1 K
+    probes = np.column_stack([r.probe(p) for p in point]) - 0.3
+    amb = np.interp(t, [0, 1800, 1e9], [0.0, 0.0, -2.0])
+    free = ThermalObserver(tw, sensors, point).run(amb, probes, gratings)
+    held = ThermalObserver(tw, sensors, point, nonnegative=True).run(amb, probes, gratings)
+    assert free.heat.min() < -1.0  # the offsets are read as cooling sources
+    assert held.heat.min() >= 0.0

@@ -97,6 +97,9 @@ class ThermalObserver:
         Probe noise and model error, K (one SD).
     grating_sd_um : float
         Grating noise and model error over a step, µm of uncompensated elongation (one SD).
+    nonnegative : bool
+        Hold every heat input at or above zero after each update (a projection). On ram2 with a
+        wrong description it halves the worst errors and harms still (docs/accuracy.md).
     """
 
     def __init__(
