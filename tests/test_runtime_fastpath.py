@@ -6,20 +6,10 @@ channel, missing probes, the envelope and the rate limit - and the same whatever
 import numpy as np
 import pytest
 
+from fbgcomp.bench.served import BATCH_FIELDS as FIELDS
 from fbgcomp.runtime import health as H
 from fbgcomp.runtime.pipeline import Pipeline, PipelineConfig
 from test_runtime_support import run_in_batches
-
-FIELDS = (
-    "deviation_um",
-    "half_width_um",
-    "correction_um",
-    "health",
-    "sensor_status",
-    "model_set",
-    "expected_rms_um",
-    "output_flags",
-)
 
 
 class GeneralOnly(Pipeline):
