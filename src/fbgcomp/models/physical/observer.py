@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fbgcomp.optics import elongation_um
+from fbgcomp.optics import elongation_um, wavelength_nm
 
 
 @dataclass(frozen=True)
@@ -64,14 +64,13 @@ def discretised(lam_per_s, phi_b, step_s):
 
 
 def grating_thermal_um_per_K(gauge_length_mm, photoelastic, thermo_optic_per_K, fibre_cte_per_K):
-    """µm of uncompensated elongation per K of a grating's gauge (paper eq. 2-4, ΔT read as strain)."""
-    pe = np.asarray(photoelastic, float)
-    af = np.asarray(fibre_cte_per_K, float)
-    return (
-        np.asarray(gauge_length_mm, float)
-        * 1e3
-        * ((af + np.asarray(thermo_optic_per_K, float)) / (1 - pe) - af)
+    """µm of uncompensated elongation per K of a grating's gauge: the optics' forward model
+    (paper eq. 2-4) of 1 K on a strain-free path, read back with ΔT = 0."""
+    pe, xi, af = (np.asarray(v, float) for v in (photoelastic, thermo_optic_per_K, fibre_cte_per_K))
+    shifted = wavelength_nm(
+        0.0, 1.0, gauge_length_mm, 1.0, photoelastic=pe, thermo_optic_per_K=xi, fibre_cte_per_K=af
     )
+    return elongation_um(shifted, 1.0, gauge_length_mm, 0.0, photoelastic=pe)
 
 
 class ThermalObserver:
