@@ -429,3 +429,16 @@ def test_a_load_applied_while_the_zero_state_is_taken_is_refused(tmp_path):
     assert run("inspect", ok).returncode == 0
     assert "zero state not taken at rest" not in run("inspect", ok).stdout
     assert read_campaign(ok).aligned().loads_N is not None
+
+
+def test_fit_observer_without_a_machine_is_one_line_naming_the_option(campaigns, tmp_path):
+    """The thermal observer filters the twin's thermal state: without --machine (or with the
+    paper's regression) `fit --observer` refuses in one line, and writes no model."""
+    train, _ = campaigns
+    model = tmp_path / "model.json"
+    for extra in ((), ("--features", "eq13", "--machine", "examples/machines/ram2.yaml")):
+        r = run("fit", train, "--observer", *extra, "-o", model)
+        assert r.returncode != 0
+        assert "option --observer" in r.stderr and "Traceback" not in r.stderr
+        assert len(r.stderr.strip().splitlines()) == 1
+        assert not model.exists()

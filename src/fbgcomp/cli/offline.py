@@ -120,6 +120,14 @@ def fit(
         "--machine",
         help="Machine description YAML for kinematic/hybrid/calibrated (default: the built-in ram).",
     ),
+    observer: bool = typer.Option(
+        False,
+        "--observer",
+        help=(
+            "physical with --machine: average the thermal map with a thermal state observer on the "
+            "twin while its heat estimates stay plausible (docs/accuracy.md; off by default)."
+        ),
+    ),
 ):
     """Fit the TTP-deviation model and print its coefficient tables.
 
@@ -151,6 +159,7 @@ def fit(
             fallbacks,
             dask,
             machine,
+            observer,
         )
 
 
@@ -172,9 +181,16 @@ def _fit(
     fallbacks,
     dask,
     machine,
+    observer=False,
 ):
     from fbgcomp.models.mra import MRAModel
 
+    if observer and (model_type != "physical" or machine is None):
+        raise InputError(
+            "--observer needs the physical model and a --machine (it filters the twin's thermal state)",
+            file="<command line>",
+            column="option --observer",
+        )
     if model_type == "physical":
         from fbgcomp.models.physical import PhysicalModel
 
@@ -182,7 +198,7 @@ def _fit(
         data = read_campaigns(campaigns)
         stage("fitting the physical model (twin scenarios, housing thermal, policy)")
         with _numeric_failures(campaigns):
-            model = PhysicalModel(machine=machine, zero_window_s=zero_window).fit(data)
+            model = PhysicalModel(machine=machine, zero_window_s=zero_window, observer=observer).fit(data)
         stage(f"writing {output}")
         model.save(output)  # only a model that loads back replaces an existing file
         typer.echo(model.summary())

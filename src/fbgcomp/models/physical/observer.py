@@ -114,14 +114,17 @@ class ThermalObserver:
         nonnegative=False,
     ):
         red = twin.reduced
-        self.step_s = float(step_s)
-        self.input_names = tuple(twin.input_names[1:])
         s_all = list(twin.sensor_names)
         point = [p.name for p in twin.machine.probes if p.kind == "point"]
         S, P = len(s_all), len(point)
         el = [s_all.index(s.name) for s in sensors]
         ts = [S + 3 + i for i in el]
-        pr = [2 * S + 3 + point.index(p) for p in probes]
+        # a point probe's row, or a strain-free reference grating's (<sensor>_ref): its gauge's
+        # mean temperature
+        pr = [
+            2 * S + 3 + point.index(p) if p in point else S + 3 + s_all.index(p[: -len("_ref")])
+            for p in probes
+        ]
         ttp = [S, S + 1, S + 2]
         assert red.OPhi.shape[0] == 2 * S + 3 + P
         c_t = grating_thermal_um_per_K(
@@ -137,17 +140,102 @@ class ThermalObserver:
         o_phi, dd = red.OPhi, red.D
         cp, dp = rows(o_phi[pr], dd[pr])
         cg, dg = rows(o_phi[el] + c_t[:, None] * o_phi[ts], dd[el] + c_t[:, None] * dd[ts])
-        self.C, self.d = np.vstack([cp, cg]), np.concatenate([dp, dg])
-        self.C_ttp, self.d_ttp = rows(o_phi[ttp], dd[ttp])
-        self.A, self.b = discretised(red.lam_per_s, red.PhiB, self.step_s)
-        n = red.lam_per_s.size
-        walk = [heat_walk_W if name.endswith("_W") else flux_walk_W_per_m2 for name in self.input_names]
-        self.Q = np.diag(np.concatenate([np.zeros(n), np.square(walk) * self.step_s]))
-        self.R = np.concatenate(
-            [np.full(len(probes), probe_sd_K**2), np.full(len(sensors), grating_sd_um**2)]
+        names = tuple(twin.input_names[1:])
+        walk = [heat_walk_W if name.endswith("_W") else flux_walk_W_per_m2 for name in names]
+        self._setup(
+            red.lam_per_s,
+            red.PhiB,
+            np.vstack([cp, cg]),
+            np.concatenate([dp, dg]),
+            *rows(o_phi[ttp], dd[ttp]),
+            walk,
+            np.concatenate([np.full(len(probes), probe_sd_K**2), np.full(len(sensors), grating_sd_um**2)]),
+            step_s,
+            names,
+            [h.nominal for h in twin.machine.thermal.sources],
+            nonnegative,
         )
-        self.n_modes = n
+
+    def _setup(self, lam, phi_b, C, d, C_ttp, d_ttp, walk, R, step_s, names, nominal, nonnegative):
+        self.lam_per_s, self.phi_b = np.asarray(lam, float), np.asarray(phi_b, float)
+        self.C, self.d = np.asarray(C, float), np.asarray(d, float)
+        self.C_ttp, self.d_ttp = np.asarray(C_ttp, float), np.asarray(d_ttp, float)
+        self.walk = np.asarray(walk, float)
+        self.R = np.asarray(R, float)
+        self.step_s = float(step_s)
+        self.input_names = tuple(names)
+        self.nominal = np.asarray(nominal, float)
         self.nonnegative = bool(nonnegative)
+        self.A, self.b = discretised(self.lam_per_s, self.phi_b, self.step_s)
+        n = self.lam_per_s.size
+        self.Q = np.diag(np.concatenate([np.zeros(n), np.square(self.walk) * self.step_s]))
+        self.n_modes = n
+
+    def to_dict(self) -> dict:
+        """The observer as a model file holds it (the reduced model's modes and the measured
+        rows, not the discretised matrices: :func:`discretised` rebuilds them)."""
+        return {
+            "step_s": self.step_s,
+            "lam_per_s": self.lam_per_s.tolist(),
+            "phi_b": self.phi_b.tolist(),
+            "C": self.C.tolist(),
+            "d": self.d.tolist(),
+            "C_ttp": self.C_ttp.tolist(),
+            "d_ttp": self.d_ttp.tolist(),
+            "walk": self.walk.tolist(),
+            "R": self.R.tolist(),
+            "input_names": list(self.input_names),
+            "nominal": self.nominal.tolist(),
+            "nonnegative": self.nonnegative,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ThermalObserver:
+        """The observer of :meth:`to_dict`'s dict."""
+        obs = cls.__new__(cls)
+        obs._setup(
+            d["lam_per_s"],
+            d["phi_b"],
+            d["C"],
+            d["d"],
+            d["C_ttp"],
+            d["d_ttp"],
+            d["walk"],
+            d["R"],
+            d["step_s"],
+            d["input_names"],
+            d["nominal"],
+            d.get("nonnegative", False),
+        )
+        return obs
+
+    def _start(self):
+        k = self.A.shape[0]
+        cov = np.zeros((k, k))
+        cov[self.n_modes :, self.n_modes :] = np.diag(np.diag(self.Q)[self.n_modes :])
+        return np.zeros(k), cov
+
+    def _step(self, z, cov, meas, amb_prev, amb, first, extra_var=0.0):
+        """One step of the filter: propagate from the last step (ambient ``amb_prev``) unless
+        ``first``, then take the step's measurements ``meas`` (NaN: missing) at ambient ``amb``,
+        their variance the noise's ``R`` plus ``extra_var``."""
+        if not first:
+            z = self.A @ z + self.b * amb_prev
+            cov = self.A @ cov @ self.A.T + self.Q
+        ok = np.isfinite(meas)
+        if ok.any():
+            c = self.C[ok]
+            r = (self.R + extra_var)[ok]
+            s = c @ cov @ c.T + np.diag(r)
+            gain = np.linalg.solve(s, c @ cov).T
+            z = z + gain @ (meas[ok] - c @ z - self.d[ok] * amb)
+            ikc = np.eye(z.size) - gain @ c
+            cov = ikc @ cov @ ikc.T + (gain * r) @ gain.T  # Joseph form: stays PSD
+            cov = 0.5 * (cov + cov.T)
+        if self.nonnegative:
+            z = z.copy()
+            z[self.n_modes :] = np.maximum(z[self.n_modes :], 0.0)
+        return z, cov
 
     def run(self, ambient_K, probes_K, gratings_um):
         """Filter a campaign on the observer's clock (one row per ``step_s``, from the zero state).
@@ -159,34 +247,103 @@ class ThermalObserver:
         amb = np.asarray(ambient_K, float)
         meas = np.hstack([np.atleast_2d(probes_K), np.atleast_2d(gratings_um)])
         n = amb.size
-        k = self.A.shape[0]
-        z = np.zeros(k)
-        cov = np.zeros((k, k))
-        cov[self.n_modes :, self.n_modes :] = np.diag(np.diag(self.Q)[self.n_modes :])
+        z, cov = self._start()
         out = np.empty((n, 3))
         sd = np.empty((n, 3))
-        heat = np.empty((n, k - self.n_modes))
-        eye = np.eye(k)
+        heat = np.empty((n, z.size - self.n_modes))
         for i in range(n):
-            if i:
-                z = self.A @ z + self.b * amb[i - 1]
-                cov = self.A @ cov @ self.A.T + self.Q
-            ok = np.isfinite(meas[i])
-            if ok.any():
-                c = self.C[ok]
-                s = c @ cov @ c.T + np.diag(self.R[ok])
-                gain = np.linalg.solve(s, c @ cov).T
-                z = z + gain @ (meas[i, ok] - c @ z - self.d[ok] * amb[i])
-                ikc = eye - gain @ c
-                cov = ikc @ cov @ ikc.T + (gain * self.R[ok]) @ gain.T  # Joseph form: stays PSD
-                cov = 0.5 * (cov + cov.T)
-            if self.nonnegative:
-                z[self.n_modes :] = np.maximum(z[self.n_modes :], 0.0)
+            z, cov = self._step(z, cov, meas[i], amb[i - 1] if i else 0.0, amb[i], i == 0)
             out[i] = self.C_ttp @ z + self.d_ttp * amb[i]
             sd[i] = np.sqrt(np.clip(np.einsum("ij,jk,ik->i", self.C_ttp, cov, self.C_ttp), 0.0, None))
             heat[i] = z[self.n_modes :]
         t = np.arange(n) * self.step_s
         return ObserverResult(t, out - out[:1], sd, heat, self.input_names)
+
+    def stream(self, state, time_s, ambient_K, probes_K, gratings_um, gate_k=3.0, gratings_var_um2=None):
+        """The filter on the interrogator's own frames, carried between calls (the runtime's
+        form of :meth:`run`): frames in (end - step_s, end] make one step, whose gratings are
+        their mean and whose probes and ambient are its last frame's; a step ends at the first
+        frame past it, and a step with no frame updates nothing (a gap in the feed).
+
+        time_s (n,) s; ambient_K (n,) K; probes_K (n, P) K; gratings_um (n, S) µm of
+        uncompensated elongation net of the applied load (NaN: missing), all as changes from the
+        zero state. ``gratings_var_um2`` (n, S) µm²: each reading's error beyond the noise (the
+        applied load's share, known to its signature's relative error), the step's largest added
+        to the gratings' ``R``. ``state``: None for a new run, else the last call's.
+
+        Returns the TTP (n, 3) µm each frame sees (the last finished step's estimate, as a change
+        from the first step's; 0 before it), whether every heat estimate has stayed within
+        ``gate_k`` times its nominal value so far (n,) bool (:func:`plausible`, latched), and
+        the new state."""
+        t = np.asarray(time_s, float).ravel()
+        amb = np.asarray(ambient_K, float).ravel()
+        pr = np.atleast_2d(np.asarray(probes_K, float))
+        gr = np.atleast_2d(np.asarray(gratings_um, float))
+        n = t.size
+        if state is None:
+            z, cov = self._start()
+            state = {
+                "z": z,
+                "cov": cov,
+                "end": float(t[0]) + self.step_s if n else None,
+                "sum": np.zeros(gr.shape[1]),
+                "count": np.zeros(gr.shape[1]),
+                "var": np.zeros(gr.shape[1]),
+                "last": None,  # the step's last frame: (probes, ambient)
+                "amb_prev": 0.0,
+                "steps": 0,
+                "out": np.zeros(3),
+                "zero": None,
+                "ok": True,
+            }
+        else:
+            state = dict(state)
+        judged = self.nominal > 0
+        out = np.empty((n, 3))
+        ok = np.empty(n, bool)
+        i = 0
+        while i < n:
+            if t[i] > state["end"]:  # close the step before this frame
+                cnt = state["count"]
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    g = np.where(cnt > 0, state["sum"] / np.where(cnt > 0, cnt, 1.0), np.nan)
+                if state["last"] is None:
+                    meas, a = np.full(self.C.shape[0], np.nan), state["amb_prev"]
+                else:
+                    meas, a = np.concatenate([state["last"][0], g]), state["last"][1]
+                extra = np.concatenate([np.zeros(self.C.shape[0] - cnt.size), state["var"]])
+                state["z"], state["cov"] = self._step(
+                    state["z"], state["cov"], meas, state["amb_prev"], a, state["steps"] == 0, extra
+                )
+                y = self.C_ttp @ state["z"] + self.d_ttp * a
+                if state["zero"] is None:
+                    state["zero"] = y
+                state["out"] = y - state["zero"]
+                heat = state["z"][self.n_modes :]
+                if (np.abs(heat[judged]) > gate_k * self.nominal[judged]).any():
+                    state["ok"] = False
+                state.update(
+                    amb_prev=a,
+                    steps=state["steps"] + 1,
+                    end=state["end"] + self.step_s,
+                    sum=np.zeros_like(state["sum"]),
+                    count=np.zeros_like(state["count"]),
+                    var=np.zeros_like(state["var"]),
+                    last=None,
+                )
+                continue
+            j = int(np.searchsorted(t, state["end"], side="right"))  # frames i..j-1 in this step
+            out[i:j] = state["out"]
+            ok[i:j] = state["ok"]
+            seg = gr[i:j]
+            fin = np.isfinite(seg)
+            state["sum"] = state["sum"] + np.where(fin, seg, 0.0).sum(axis=0)
+            state["count"] = state["count"] + fin.sum(axis=0)
+            if gratings_var_um2 is not None:
+                state["var"] = np.maximum(state["var"], np.asarray(gratings_var_um2, float)[i:j].max(axis=0))
+            state["last"] = (pr[j - 1], float(amb[j - 1]))
+            i = j
+        return out, ok, state
 
 
 def campaign_inputs(

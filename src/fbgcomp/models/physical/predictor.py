@@ -18,6 +18,7 @@ from scipy import stats
 
 import fbgcomp.models.policy as P
 from fbgcomp.models.filters import first_order_filter, first_order_recursion, first_order_step
+from fbgcomp.models.physical.observer import ThermalObserver
 from fbgcomp.models.physical.thermal import (
     MAP_LEADS_S,
     consensus,
@@ -70,6 +71,9 @@ STEADY_BACKOFF = 64
 #: thermal_b lost S2 and S4 at dx 13.9 µm (5.8 and 5.7 without the term); at 0, the built-in
 #: twin's thermal-36h-b without S4 had dy 0.87 µm on a drift of 0.19 (harm).
 LOST_K_SIGMA = 2.0
+#: The thermal observer's applicability gate: it is trusted while every heat input it estimates
+#: stays within this many times its source's nominal value (latched; observer.plausible).
+OBSERVER_GATE_K = 3.0
 
 #: Memory of the live noise estimate, s, and the weight, s, of its prior (the training noise):
 #: the step test learns how far the stream's own low-passed noise exceeds the training's
@@ -283,6 +287,15 @@ class PhysicalPredictor:
                     "high": np.asarray(cal["envelope_high"], float),
                 }
             )
+        # the thermal state observer (a Kalman filter on the twin's reduced thermal model), the
+        # map's partner while its heat estimates stay plausible
+        ob = getattr(m, "observer_", None)
+        self.obs = None
+        if ob is not None and self.map is not None:
+            self.obs = ThermalObserver.from_dict(ob)
+            self._obs_p = [self.probe_names.index(q) for q in ob["probes"]]
+            self._obs_a = [self.probe_names.index(q) for q in ob["ambient"]]
+        self.last_observer_ok = np.ones(0, bool)
         var = self.thermal_resid_var + self.map_lost_sd_um**2
         if self.has_load:
             var = var + (self.C**2 @ self.F_sds[1] ** 2)
@@ -1027,6 +1040,11 @@ class PhysicalPredictor:
                 thermal, clamped = P.clamp_axes(thermal, self.t_low, self.t_high)
                 flags[outside] |= P.SHRUNK
                 flags[clamped] |= P.CLAMPED
+            if self.obs is not None:
+                thermal, spread, closed = self._with_observer(
+                    thermal, spread, e_th, force, moving, dT, time_s, lost, state, new_state, policy
+                )
+                flags[closed] |= P.SHRUNK
         else:
             # no twin: the housing fit on the measured load-free campaigns
             H, new_state["h"] = thermal_regressors(
@@ -1059,6 +1077,43 @@ class PhysicalPredictor:
         self.last_spread = spread
         self.last_unseen = unseen
         return deviation, self._t * np.sqrt(self._variance(dT, activity, force, spread, unseen, moving))
+
+    def _with_observer(
+        self, thermal, spread, e_th, force, moving, dT, time_s, lost, state, new_state, policy
+    ):
+        """The map's thermal correction (n, 3) µm averaged with the observer's while the
+        observer's heat estimates stay plausible (:data:`OBSERVER_GATE_K`; always without the
+        policy), and their disagreement added to the members' ``spread`` (n, 3) µm: two
+        estimates of one drift from different physics (a regression over the twin's scenarios,
+        a filter of its thermal state), each wrong in its own way. Returns the thermal part,
+        the spread and the frames (n,) where the gate has closed and the map alone is applied."""
+        n = thermal.shape[0]
+        if time_s is None:
+            done = state.get("obs_frames", 0)
+            t = (done + np.arange(n)) * self.nominal_dt_s
+            new_state["obs_frames"] = done + n
+        else:
+            t = np.asarray(time_s, float).ravel()
+        g = np.array(e_th, float)
+        g[:, lost] = np.nan  # a lost grating is left out of the filter's update
+        # so are the gratings while a load is in transition: the force read lags the reading
+        g[np.asarray(moving, bool).reshape(n, -1).any(axis=1)] = np.nan
+        amb = dT[:, self._obs_a].mean(axis=1) if self._obs_a else np.zeros(n)
+        # a reading net of the applied load errs by the load signature's relative error
+        var = (self.relative_error * force @ self.map["G"].T) ** 2 if self.has_load else None
+        obs, ok, new_state["obs"] = self.obs.stream(
+            state.get("obs"), t, amb, dT[:, self._obs_p], g, OBSERVER_GATE_K, var
+        )
+        self.last_observer_um = obs
+        if policy:
+            obs = P.clamp_axes(obs, self.t_low, self.t_high)[0]
+        else:
+            ok = np.ones(n, bool)
+        self.last_observer_ok = ok
+        both = ok[:, None]
+        blended = np.where(both, 0.5 * (thermal + obs), thermal)
+        spread = np.where(both, np.hypot(spread, np.abs(thermal - obs)), spread)
+        return blended, spread, ~ok
 
     def _variance(self, dT, activity, force, spread=0.0, unseen=0.0, moving=False):
         """Predictive variance (n, 3) µm²: the thermal part's error at the current thermal

@@ -168,3 +168,36 @@ def check_shapes(d: dict, source) -> None:
                     "twin_map.calibration.noise_sd_um",
                     "must be >= 0",
                 )
+    ob = d.get("observer")
+    if ob is not None:
+        need(isinstance(ob, dict), "observer", "must be a mapping or null")
+        obs_p = names(ob.get("probes"), "observer.probes")
+        need(all(q in probes for q in obs_p), "observer.probes", "names a probe the model does not read")
+        amb = names(ob.get("ambient"), "observer.ambient")
+        need(all(q in probes for q in amb), "observer.ambient", "names a probe the model does not read")
+        step = ob.get("step_s")
+        need(
+            isinstance(step, (int, float)) and not isinstance(step, bool) and step > 0,
+            "observer.step_s",
+            "must be a positive number",
+        )
+        lam = np.asarray(ob.get("lam_per_s"), dtype=object)
+        need(lam.ndim == 1 and lam.size > 0, "observer.lam_per_s", "must be a non-empty list of rates")
+        n = lam.size
+        inputs = names(ob.get("input_names"), "observer.input_names")
+        m = len(inputs) + 1
+        k = n + m - 1
+        need(
+            np.all(array(ob["lam_per_s"], "observer.lam_per_s", (n,)) > 0),
+            "observer.lam_per_s",
+            "must be > 0",
+        )
+        array(ob.get("phi_b"), "observer.phi_b", (n, m))
+        rows = len(obs_p) + S
+        array(ob.get("C"), "observer.C", (rows, k))
+        array(ob.get("d"), "observer.d", (rows,))
+        array(ob.get("C_ttp"), "observer.C_ttp", (3, k))
+        array(ob.get("d_ttp"), "observer.d_ttp", (3,))
+        need(np.all(array(ob.get("walk"), "observer.walk", (m - 1,)) >= 0), "observer.walk", "must be >= 0")
+        need(np.all(array(ob.get("R"), "observer.R", (rows,)) > 0), "observer.R", "must be > 0")
+        array(ob.get("nominal"), "observer.nominal", (m - 1,))
