@@ -16,7 +16,8 @@ state, with its standard deviation from the filter's covariance.
 
 Pure numpy; the step is fixed (``step_s``) and inputs are held over it (zero-order hold). A
 missing measurement (NaN: a lost grating, a probe row not there) is left out of that step's update.
-Measured on ram2 in ``benchmarks/bench_observer.py`` and docs/accuracy.md; not the default model.
+Measured on ram2 in ``benchmarks/bench_observer.py`` and docs/accuracy.md; in the physical model with
+``fbgcomp fit --observer`` (:meth:`ThermalObserver.stream`), not by default.
 """
 
 from __future__ import annotations
