@@ -148,8 +148,8 @@ class PhysicalModel(EstimatorParams, ModelFile):
         on the twin's reduced thermal model, :mod:`.observer`) while the observer's heat
         estimates stay within 3x their sources' nominal values, the two's disagreement widening
         the interval (``fbgcomp fit --observer``). Off by default: on ram2 it takes thermal_b's
-        dz from 4.62 to 3.93 µm and thermal_c's from 5.22 to 3.76, but on a second independent
-        ram it takes the loaded thermal campaign's dy from 8.27 to 11.44 (docs/accuracy.md).
+        dz from 4.62 to 3.88 µm and thermal_c's from 5.22 to 3.93, but on a second independent
+        ram it takes the loaded thermal campaign's dy from 8.27 to 9.17 (docs/accuracy.md).
     """
 
     model_type = "physical"
@@ -470,7 +470,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
         # the thermal state observer, the map's partner (PhysicalPredictor._with_observer): the
         # intervals above are the map's own, calibrated before it joins; the two members'
         # disagreement widens them
-        self.observer_ = self._observer(machine) if self.twin_map_ is not None and self.observer else None
+        self.observer_ = (
+            self._observer(machine, campaigns) if self.twin_map_ is not None and self.observer else None
+        )
         self._predictors = {}
         return self
 
@@ -802,7 +804,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
                     column=f"field sensors[{i}].{key}",
                 )
 
-    def _observer(self, machine):
+    def _observer(self, machine, campaigns):
         """The thermal observer of the campaigns' gratings and thermometers on the twin the map
         learned from (:class:`~fbgcomp.models.physical.observer.ThermalObserver`), as the model
         file holds it; its measurements are the point probes and strain-free reference gratings
@@ -813,7 +815,10 @@ class PhysicalModel(EstimatorParams, ModelFile):
         point = {q.name for q in machine.probes if q.kind == "point"}
         refs = {f"{s}_ref" for s in twin.sensor_names}
         probes = [q for q in self.probe_names_ if q in point or q in refs]
-        obs = ThermalObserver(twin, self.sensors_, probes)
+        # each probe's zero is its readings' mean over the zero window: off by about one
+        # reading's noise, which the filter estimates as a constant
+        bias = probe_noise_sd_K(campaigns, self.probe_names_)[[self.probe_names_.index(q) for q in probes]]
+        obs = ThermalObserver(twin, self.sensors_, probes, probe_bias_K=bias)
         return obs.to_dict() | {"probes": probes, "ambient": list(self.ambient_probes_)}
 
     def _twin_signature(self, machine):

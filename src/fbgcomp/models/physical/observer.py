@@ -100,6 +100,10 @@ class ThermalObserver:
     nonnegative : bool
         Hold every heat input at or above zero after each update (a projection). On ram2 with a
         wrong description it halves the worst errors and harms still (docs/accuracy.md).
+    probe_bias_K : float or (P,) array
+        SD of each probe's zero-state error, K: a constant state per probe the filter estimates
+        (0: none). A zero read from one quantised sample is 0.1 K off, which the filter would
+        otherwise explain with a heat input held for the whole run.
     """
 
     def __init__(
@@ -113,6 +117,7 @@ class ThermalObserver:
         probe_sd_K=0.15,
         grating_sd_um=0.1,
         nonnegative=False,
+        probe_bias_K=0.0,
     ):
         red = twin.reduced
         s_all = list(twin.sensor_names)
@@ -155,22 +160,58 @@ class ThermalObserver:
             names,
             [h.nominal for h in twin.machine.thermal.sources],
             nonnegative,
+            len(probes),
+            probe_bias_K,
         )
 
-    def _setup(self, lam, phi_b, C, d, C_ttp, d_ttp, walk, R, step_s, names, nominal, nonnegative):
+    def _setup(
+        self,
+        lam,
+        phi_b,
+        C,
+        d,
+        C_ttp,
+        d_ttp,
+        walk,
+        R,
+        step_s,
+        names,
+        nominal,
+        nonnegative,
+        n_probes=0,
+        probe_bias_K=0.0,
+    ):
         self.lam_per_s, self.phi_b = np.asarray(lam, float), np.asarray(phi_b, float)
-        self.C, self.d = np.asarray(C, float), np.asarray(d, float)
-        self.C_ttp, self.d_ttp = np.asarray(C_ttp, float), np.asarray(d_ttp, float)
+        self.C_rows, self.d = np.asarray(C, float), np.asarray(d, float)
+        self.C_ttp_rows, self.d_ttp = np.asarray(C_ttp, float), np.asarray(d_ttp, float)
+        self.n_probes = int(n_probes)
+        self.probe_bias_K = np.broadcast_to(np.asarray(probe_bias_K, float), (self.n_probes,)).copy()
         self.walk = np.asarray(walk, float)
         self.R = np.asarray(R, float)
         self.step_s = float(step_s)
         self.input_names = tuple(names)
         self.nominal = np.asarray(nominal, float)
         self.nonnegative = bool(nonnegative)
-        self.A, self.b = discretised(self.lam_per_s, self.phi_b, self.step_s)
+        a, b = discretised(self.lam_per_s, self.phi_b, self.step_s)
         n = self.lam_per_s.size
-        self.Q = np.diag(np.concatenate([np.zeros(n), np.square(self.walk) * self.step_s]))
+        # each probe's zero-state error as a constant state (a quantised probe's zero is one
+        # reading: 0.1 K off reads as a heat input for as long as the run lasts)
+        nb = self.n_probes if (self.probe_bias_K > 0).any() else 0
+        k = a.shape[0]
+        self.A = np.eye(k + nb)
+        self.A[:k, :k] = a
+        self.b = np.concatenate([b, np.zeros(nb)])
+        self.C = np.hstack([self.C_rows, np.zeros((self.C_rows.shape[0], nb))])
+        self.C[np.arange(nb), k + np.arange(nb)] = 1.0
+        self.C_ttp = np.hstack([self.C_ttp_rows, np.zeros((3, nb))])
+        self.Q = np.diag(np.concatenate([np.zeros(n), np.square(self.walk) * self.step_s, np.zeros(nb)]))
         self.n_modes = n
+        self.n_heat = k - n
+        self.P0 = np.diag(
+            np.concatenate(
+                [np.zeros(n), np.square(self.walk) * self.step_s, np.square(self.probe_bias_K[:nb])]
+            )
+        )
 
     def to_dict(self) -> dict:
         """The observer as a model file holds it (the reduced model's modes and the measured
@@ -179,15 +220,17 @@ class ThermalObserver:
             "step_s": self.step_s,
             "lam_per_s": self.lam_per_s.tolist(),
             "phi_b": self.phi_b.tolist(),
-            "C": self.C.tolist(),
+            "C": self.C_rows.tolist(),
             "d": self.d.tolist(),
-            "C_ttp": self.C_ttp.tolist(),
+            "C_ttp": self.C_ttp_rows.tolist(),
             "d_ttp": self.d_ttp.tolist(),
             "walk": self.walk.tolist(),
             "R": self.R.tolist(),
             "input_names": list(self.input_names),
             "nominal": self.nominal.tolist(),
             "nonnegative": self.nonnegative,
+            "n_probes": self.n_probes,
+            "probe_bias_K": self.probe_bias_K.tolist(),
         }
 
     @classmethod
@@ -207,14 +250,13 @@ class ThermalObserver:
             d["input_names"],
             d["nominal"],
             d.get("nonnegative", False),
+            d.get("n_probes", 0),
+            d.get("probe_bias_K", 0.0),
         )
         return obs
 
     def _start(self):
-        k = self.A.shape[0]
-        cov = np.zeros((k, k))
-        cov[self.n_modes :, self.n_modes :] = np.diag(np.diag(self.Q)[self.n_modes :])
-        return np.zeros(k), cov
+        return np.zeros(self.A.shape[0]), self.P0.copy()
 
     def _step(self, z, cov, meas, amb_prev, amb, first, extra_var=0.0):
         """One step of the filter: propagate from the last step (ambient ``amb_prev``) unless
@@ -235,7 +277,9 @@ class ThermalObserver:
             cov = 0.5 * (cov + cov.T)
         if self.nonnegative:
             z = z.copy()
-            z[self.n_modes :] = np.maximum(z[self.n_modes :], 0.0)
+            z[self.n_modes : self.n_modes + self.n_heat] = np.maximum(
+                z[self.n_modes : self.n_modes + self.n_heat], 0.0
+            )
         return z, cov
 
     def run(self, ambient_K, probes_K, gratings_um):
@@ -251,12 +295,12 @@ class ThermalObserver:
         z, cov = self._start()
         out = np.empty((n, 3))
         sd = np.empty((n, 3))
-        heat = np.empty((n, z.size - self.n_modes))
+        heat = np.empty((n, self.n_heat))
         for i in range(n):
             z, cov = self._step(z, cov, meas[i], amb[i - 1] if i else 0.0, amb[i], i == 0)
             out[i] = self.C_ttp @ z + self.d_ttp * amb[i]
             sd[i] = np.sqrt(np.clip(np.einsum("ij,jk,ik->i", self.C_ttp, cov, self.C_ttp), 0.0, None))
-            heat[i] = z[self.n_modes :]
+            heat[i] = z[self.n_modes : self.n_modes + self.n_heat]
         t = np.arange(n) * self.step_s
         return ObserverResult(t, out - out[:1], sd, heat, self.input_names)
 
@@ -320,7 +364,7 @@ class ThermalObserver:
                 if state["zero"] is None:
                     state["zero"] = y
                 state["out"] = y - state["zero"]
-                heat = state["z"][self.n_modes :]
+                heat = state["z"][self.n_modes : self.n_modes + self.n_heat]
                 if (np.abs(heat[judged]) > gate_k * self.nominal[judged]).any():
                     state["ok"] = False
                 state.update(

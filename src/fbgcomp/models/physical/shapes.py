@@ -201,3 +201,11 @@ def check_shapes(d: dict, source) -> None:
         need(np.all(array(ob.get("walk"), "observer.walk", (m - 1,)) >= 0), "observer.walk", "must be >= 0")
         need(np.all(array(ob.get("R"), "observer.R", (rows,)) > 0), "observer.R", "must be > 0")
         array(ob.get("nominal"), "observer.nominal", (m - 1,))
+        if "n_probes" in ob:
+            need(
+                ob["n_probes"] == len(obs_p),
+                "observer.n_probes",
+                f"must be {len(obs_p)}, the probes it reads",
+            )
+            bias = array(ob.get("probe_bias_K"), "observer.probe_bias_K", (len(obs_p),))
+            need(np.all(bias >= 0), "observer.probe_bias_K", "must be >= 0")
