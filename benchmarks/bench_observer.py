@@ -12,7 +12,10 @@ part (the default's load tracker, as served frame by frame):
   the twin's reduced thermal model (the description's heat sources plus a whole-face source per
   face as random walks, probes and gratings as measurements), with no calibration on the
   measured campaigns and no policy. Its parameters are the module's defaults, set from the
-  instruments' data-sheet noise and the size of a spindle's power steps, not fitted to ram2.
+  instruments' data-sheet noise and the size of a spindle's power steps, not fitted to ram2;
+* ``--observer``: the model ``fbgcomp fit --observer`` writes, served as the runtime serves it
+  (the observer streamed on the frames with its probes' zero errors as states, averaged with the
+  default's map while the gate holds), with its own 95 % interval coverage.
 
 Each description variant is ram2.yaml changed as a less careful data sheet would give it (the
 same changes as ``bench_ram2_variants.py``): the observer trusts the twin's dynamics, so these
@@ -112,13 +115,19 @@ def run(name, ram2: Path, work: Path) -> dict:
     model_path = folder / "model.json"
     _fbgcomp("fit", *(ram2 / t for t in TRAIN), "--machine", mpath, "-o", model_path)
     model = load_model(model_path)
+    obs_path = folder / "model-observer.json"
+    _fbgcomp("fit", *(ram2 / t for t in TRAIN), "--machine", mpath, "--observer", "-o", obs_path)
+    in_model = load_model(obs_path)
     machine = load_machine(mpath)
     twin = Twin(generic_heat_machine(machine))
     out = {}
     for held in HELD:
-        d, o, g, ref, r = observer_prediction(model, read_campaign(ram2 / held), twin, machine)
+        campaign = read_campaign(ram2 / held)
+        d, o, g, ref, r = observer_prediction(model, campaign, twin, machine)
+        m, half = in_model.predict_interval(campaign)
         peak = np.abs(ref).max(axis=0)
-        e_d, e_o, e_g = (np.abs(x - ref).max(axis=0) for x in (d, o, g))
+        e_d, e_o, e_g, e_m = (np.abs(x - ref).max(axis=0) for x in (d, o, g, m))
+        cover = (np.abs(m - ref) <= half).mean(axis=0)
         out[held] = {
             a: {
                 "uncompensated_um": float(peak[j]),
@@ -128,6 +137,9 @@ def run(name, ram2: Path, work: Path) -> dict:
                 "observer_harm": bool(e_o[j] > peak[j] + HARM_ALLOWANCE_UM),
                 "gated_um": float(e_g[j]),
                 "gated_harm": bool(e_g[j] > peak[j] + HARM_ALLOWANCE_UM),
+                "in_model_um": float(e_m[j]),
+                "in_model_harm": bool(e_m[j] > peak[j] + HARM_ALLOWANCE_UM),
+                "in_model_pi95": float(cover[j]),
             }
             for j, a in enumerate(AXES)
         }
@@ -169,7 +181,16 @@ def main(argv=None):
                         f" /{c['gated_um']:7.2f}{flag}"
                     )
                 print(f"{name:<22}{held:<11}" + "".join(f"{x:>36}" for x in cells), flush=True)
-    for who in ("observer", "gated", "default"):
+    print("\nfbgcomp fit --observer, served: max |error| µm (PI95 coverage); !: above uncompensated + 0.5")
+    for name, res in results.items():
+        for held in HELD:
+            cells = [
+                f"{res[held][a]['in_model_um']:7.2f} ({res[held][a]['in_model_pi95']:.3f})"
+                + ("!" if res[held][a]["in_model_harm"] else " ")
+                for a in AXES
+            ]
+            print(f"{name:<22}{held:<11}" + "".join(f"{x:>20}" for x in cells), flush=True)
+    for who in ("observer", "gated", "default", "in_model"):
         harm = {
             k: sorted({f"{h}:{a}" for h in HELD for a in AXES if results[k][h][a][f"{who}_harm"]})
             for k in results
