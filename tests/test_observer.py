@@ -333,3 +333,41 @@ def test_a_probes_zero_state_error_is_estimated_not_read_as_heat(ram2_twin):
     # the model file's copy carries the bias states
     again = ThermalObserver.from_dict(biased.to_dict()).run(np.zeros(t.size), probes, gratings)
     np.testing.assert_allclose(again.ttp_um, est.ttp_um, atol=1e-12)
+
+
+@pytest.mark.slow
+def test_a_measured_spindle_power_is_followed_at_once(ram2_twin):
+    """``measured_inputs``: the spindle's heat read each step (as a CNC reads its spindle's power)
+    is one more measurement, on the input's own state. On its own twin (twin-only: the plumbing)
+    a 120 W start with the instruments' noise: inferred, the filter needs minutes of probe and
+    grating readings to see it; read, dz follows from the first step. A step without the reading
+    (NaN) falls back to inferring it."""
+    tw = ram2_twin
+    h = 10.0
+    t = np.arange(0.0, 4 * 3600.0, h)
+    power = np.interp(t, [0, 3600, 3780, 1e9], [0, 0, 120.0, 120.0])
+    r = tw.thermal(t, 22.0, spindle_heat_W=power, initial_C=22.0).change_from_start()
+    sensors = [SimpleNamespace(**s.model_dump()) for s in tw.machine.sensors]
+    point = [p.name for p in tw.machine.probes if p.kind == "point"]
+    c_t = grating_thermal_um_per_K(
+        *(
+            np.array([getattr(s, k) for s in sensors])
+            for k in ("gauge_length_mm", "photoelastic", "thermo_optic_per_K", "fibre_cte_per_K")
+        )
+    )
+    rng = np.random.default_rng(11)
+    gratings = (
+        r.sensor_elongation_um + c_t * r.sensor_temperature_C + rng.normal(0, 0.05, (t.size, len(sensors)))
+    )
+    probes = np.column_stack([r.probe(p) for p in point]) + rng.normal(0, 0.05, (t.size, len(point)))
+    inferred = ThermalObserver(tw, sensors, point, step_s=h).run(np.zeros(t.size), probes, gratings)
+    read = ThermalObserver(tw, sensors, point, step_s=h, measured_inputs=("spindle_heat_W",))
+    est = read.run(np.zeros(t.size), probes, np.column_stack([gratings, power]))
+    start = (t >= 3600) & (t < 3600 + 1800)  # the first half hour of the start
+    err_inferred = np.abs(inferred.ttp_um - r.ttp_um)[start, 2].max()
+    err_read = np.abs(est.ttp_um - r.ttp_um)[start, 2].max()
+    assert err_read < 0.5 * err_inferred, (err_read, err_inferred)
+    assert est.heat[start, 0] == pytest.approx(power[start], abs=10.0)
+    # the reading lost for the whole run: the same filter as without it
+    lost = read.run(np.zeros(t.size), probes, np.column_stack([gratings, np.full(t.size, np.nan)]))
+    np.testing.assert_allclose(lost.ttp_um, inferred.ttp_um, atol=1e-9)

@@ -100,6 +100,12 @@ class ThermalObserver:
     nonnegative : bool
         Hold every heat input at or above zero after each update (a projection). On ram2 with a
         wrong description it halves the worst errors and harms still (docs/accuracy.md).
+    measured_inputs : sequence of str
+        Heat inputs (of ``input_names``) that are measured, e.g. the spindle's power from the CNC:
+        each is one more measurement, after the gratings in :meth:`run`'s ``gratings_um``
+        columns, in the input's unit (W or W/m²); NaN where not read.
+    measured_sd : float
+        SD of such a reading as the heat the twin's source gives (W or W/m²).
     probe_bias_K : float or (P,) array
         SD of each probe's zero-state error, K: a constant state per probe the filter estimates
         (0: none). A zero read from one quantised sample is 0.1 K off, which the filter would
@@ -118,6 +124,8 @@ class ThermalObserver:
         grating_sd_um=0.1,
         nonnegative=False,
         probe_bias_K=0.0,
+        measured_inputs=(),
+        measured_sd=5.0,
     ):
         red = twin.reduced
         s_all = list(twin.sensor_names)
@@ -148,14 +156,26 @@ class ThermalObserver:
         cg, dg = rows(o_phi[el] + c_t[:, None] * o_phi[ts], dd[el] + c_t[:, None] * dd[ts])
         names = tuple(twin.input_names[1:])
         walk = [heat_walk_W if name.endswith("_W") else flux_walk_W_per_m2 for name in names]
+        # a heat input read directly (a CNC's spindle power): a row on its own state
+        cm = np.zeros((len(measured_inputs), cp.shape[1]))
+        cm[
+            np.arange(len(measured_inputs)),
+            red.lam_per_s.size + np.array([names.index(h) for h in measured_inputs], int),
+        ] = 1.0
         self._setup(
             red.lam_per_s,
             red.PhiB,
-            np.vstack([cp, cg]),
-            np.concatenate([dp, dg]),
+            np.vstack([cp, cg, cm]),
+            np.concatenate([dp, dg, np.zeros(len(measured_inputs))]),
             *rows(o_phi[ttp], dd[ttp]),
             walk,
-            np.concatenate([np.full(len(probes), probe_sd_K**2), np.full(len(sensors), grating_sd_um**2)]),
+            np.concatenate(
+                [
+                    np.full(len(probes), probe_sd_K**2),
+                    np.full(len(sensors), grating_sd_um**2),
+                    np.full(len(measured_inputs), float(measured_sd) ** 2),
+                ]
+            ),
             step_s,
             names,
             [h.nominal for h in twin.machine.thermal.sources],
@@ -287,7 +307,8 @@ class ThermalObserver:
 
         ambient_K : (n,) ambient temperature change from the zero state, K
         probes_K : (n, P) point-probe changes, K (NaN: missing)
-        gratings_um : (n, S) uncompensated elongation changes net of any applied load, µm (NaN: missing)
+        gratings_um : (n, S) uncompensated elongation changes net of any applied load, µm (NaN: missing),
+            then a column per ``measured_inputs`` (W or W/m²)
         """
         amb = np.asarray(ambient_K, float)
         meas = np.hstack([np.atleast_2d(probes_K), np.atleast_2d(gratings_um)])
