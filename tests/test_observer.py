@@ -42,6 +42,20 @@ def test_a_gratings_thermal_reading_is_what_the_optics_reads_as_elongation():
     assert 4.5 < read < 5.5  # ram2's README: ~10.5 pm/K against ~2 pm per µm over 600 mm
 
 
+def _twin_instruments(tw):
+    """The twin's gratings (as a campaign names them), its point probes, and each grating's
+    µm of uncompensated reading per K of its gauge."""
+    sensors = [SimpleNamespace(**s.model_dump()) for s in tw.machine.sensors]
+    point = [p.name for p in tw.machine.probes if p.kind == "point"]
+    c_t = grating_thermal_um_per_K(
+        *(
+            np.array([getattr(s, k) for s in sensors])
+            for k in ("gauge_length_mm", "photoelastic", "thermo_optic_per_K", "fibre_cte_per_K")
+        )
+    )
+    return sensors, point, c_t
+
+
 @pytest.fixture(scope="module")
 def ram2_twin():
     from fbgcomp.structure import load_machine
@@ -61,15 +75,8 @@ def test_the_observer_recovers_a_spindle_start_and_the_ttp_of_its_own_twin(ram2_
     t = np.arange(0.0, 8 * 3600.0, h)
     power = np.interp(t, [0, 3600, 3780, 1e9], [0, 0, 120.0, 120.0])
     r = tw.thermal(t, 22.0, spindle_heat_W=power, initial_C=22.0).change_from_start()
-    sensors = [SimpleNamespace(**s.model_dump()) for s in tw.machine.sensors]
-    point = [p.name for p in tw.machine.probes if p.kind == "point"]
+    sensors, point, c_t = _twin_instruments(tw)
     rng = np.random.default_rng(3)
-    c_t = grating_thermal_um_per_K(
-        *(
-            np.array([getattr(s, k) for s in sensors])
-            for k in ("gauge_length_mm", "photoelastic", "thermo_optic_per_K", "fibre_cte_per_K")
-        )
-    )
     exact = r.sensor_elongation_um + c_t * r.sensor_temperature_C
     probes_exact = np.column_stack([r.probe(p) for p in point])
     obs = ThermalObserver(tw, sensors, point, step_s=h)
@@ -150,14 +157,7 @@ def test_held_non_negative_no_heat_input_goes_below_zero(ram2_twin):
     tw = ram2_twin
     t = np.arange(0.0, 2 * 3600.0, 10.0)
     r = tw.thermal(t, np.interp(t, [0, 1800, 1e9], [22.0, 22.0, 20.0]), initial_C=22.0).change_from_start()
-    sensors = [SimpleNamespace(**s.model_dump()) for s in tw.machine.sensors]
-    point = [p.name for p in tw.machine.probes if p.kind == "point"]
-    c_t = grating_thermal_um_per_K(
-        *(
-            np.array([getattr(s, k) for s in sensors])
-            for k in ("gauge_length_mm", "photoelastic", "thermo_optic_per_K", "fibre_cte_per_K")
-        )
-    )
+    sensors, point, c_t = _twin_instruments(tw)
     gratings = r.sensor_elongation_um + c_t * r.sensor_temperature_C - 0.5  # a reading off by -0.1 K
     probes = np.column_stack([r.probe(p) for p in point]) - 0.3
     amb = np.interp(t, [0, 1800, 1e9], [0.0, 0.0, -2.0])
@@ -173,8 +173,7 @@ def test_streamed_on_the_interrogators_frames_it_is_the_same_filter_as_run(ram2_
     the estimate ``run`` has for the last finished 10 s step; a model file's copy
     (``to_dict``/``from_dict``) is the same filter; a step without frames is a gap."""
     tw = ram2_twin
-    sensors = [SimpleNamespace(**s.model_dump()) for s in tw.machine.sensors]
-    point = [p.name for p in tw.machine.probes if p.kind == "point"]
+    sensors, point, _ = _twin_instruments(tw)
     obs = ThermalObserver(tw, sensors, point)
     n_steps = 400
     rng = np.random.default_rng(5)
@@ -311,14 +310,7 @@ def test_a_probes_zero_state_error_is_estimated_not_read_as_heat(ram2_twin):
     h = 10.0
     t = np.arange(0.0, 8 * 3600.0, h)
     r = tw.thermal(t, 22.0, spindle_heat_W=np.full(t.size, 80.0), initial_C=22.0).change_from_start()
-    sensors = [SimpleNamespace(**s.model_dump()) for s in tw.machine.sensors]
-    point = [p.name for p in tw.machine.probes if p.kind == "point"]
-    c_t = grating_thermal_um_per_K(
-        *(
-            np.array([getattr(s, k) for s in sensors])
-            for k in ("gauge_length_mm", "photoelastic", "thermo_optic_per_K", "fibre_cte_per_K")
-        )
-    )
+    sensors, point, c_t = _twin_instruments(tw)
     gratings = r.sensor_elongation_um + c_t * r.sensor_temperature_C
     probes = np.column_stack([r.probe(p) for p in point])
     flange = point.index("T_flange")
@@ -347,14 +339,7 @@ def test_a_measured_spindle_power_is_followed_at_once(ram2_twin):
     t = np.arange(0.0, 4 * 3600.0, h)
     power = np.interp(t, [0, 3600, 3780, 1e9], [0, 0, 120.0, 120.0])
     r = tw.thermal(t, 22.0, spindle_heat_W=power, initial_C=22.0).change_from_start()
-    sensors = [SimpleNamespace(**s.model_dump()) for s in tw.machine.sensors]
-    point = [p.name for p in tw.machine.probes if p.kind == "point"]
-    c_t = grating_thermal_um_per_K(
-        *(
-            np.array([getattr(s, k) for s in sensors])
-            for k in ("gauge_length_mm", "photoelastic", "thermo_optic_per_K", "fibre_cte_per_K")
-        )
-    )
+    sensors, point, c_t = _twin_instruments(tw)
     rng = np.random.default_rng(11)
     gratings = (
         r.sensor_elongation_um + c_t * r.sensor_temperature_C + rng.normal(0, 0.05, (t.size, len(sensors)))
