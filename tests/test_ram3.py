@@ -70,7 +70,8 @@ def test_the_twin_of_ram3s_description_meets_the_twin_check_against_its_results(
 
     reference = twin_check.load_reference(ram3_dir() / "results.json")
     assert reference.sensor_names == ("S1", "S2", "S3", "S4", "S5")
-    rows = twin_check.compare(Twin(load_machine(RAM3_MACHINE)), reference)
+    # coarser than the description's own mesh (hex8i converges fast): one FE build of seconds
+    rows = twin_check.compare(Twin(load_machine(RAM3_MACHINE), resolution=0.5), reference)
     judged = [r for r in rows if r.passed is not None]
     assert len(judged) == 25
     assert all(r.passed for r in judged), [r for r in judged if not r.passed]
