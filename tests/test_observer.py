@@ -206,6 +206,9 @@ def test_streamed_on_the_interrogators_frames_it_is_the_same_filter_as_run(ram2_
         gate = plausible(est.heat, obs.nominal, 3.0)
         np.testing.assert_array_equal(np.concatenate(ok)[seen], gate[done[seen] - 1])
         assert gate[0] and not gate[-1]
+    # an empty batch first (a runtime's idle read) starts nothing; the frames after it do
+    y, ok, state = obs.stream(None, [], [], np.zeros((0, 3)), np.zeros((0, 6)))
+    assert state is None and y.shape == (0, 3) and ok.shape == (0,)
     # a gap of 100 s: the steps inside it only propagate, and the next frames go on
     y, _, state = obs.stream(None, [1.0, 2.0, 150.0, 151.0], [0, 0, 0, 0], np.zeros((4, 3)), np.zeros((4, 6)))
     assert state["steps"] == 14 and np.isfinite(y).all()

@@ -346,12 +346,14 @@ class ThermalObserver:
         pr = np.atleast_2d(np.asarray(probes_K, float))
         gr = np.atleast_2d(np.asarray(gratings_um, float))
         n = t.size
+        if state is None and not n:  # an empty batch before the first frame: nothing to start
+            return np.zeros((0, 3)), np.ones(0, bool), None
         if state is None:
             z, cov = self._start()
             state = {
                 "z": z,
                 "cov": cov,
-                "end": float(t[0]) + self.step_s if n else None,
+                "end": float(t[0]) + self.step_s,
                 "sum": np.zeros(gr.shape[1]),
                 "count": np.zeros(gr.shape[1]),
                 "var": np.zeros(gr.shape[1]),
