@@ -227,11 +227,8 @@ class ThermalObserver:
         self.Q = np.diag(np.concatenate([np.zeros(n), np.square(self.walk) * self.step_s, np.zeros(nb)]))
         self.n_modes = n
         self.n_heat = k - n
-        self.P0 = np.diag(
-            np.concatenate(
-                [np.zeros(n), np.square(self.walk) * self.step_s, np.square(self.probe_bias_K[:nb])]
-            )
-        )
+        # the start: the heat inputs as uncertain as one step's walk, each probe's zero by its bias
+        self.P0 = self.Q + np.diag(np.concatenate([np.zeros(k), np.square(self.probe_bias_K[:nb])]))
 
     def to_dict(self) -> dict:
         """The observer as a model file holds it (the reduced model's modes and the measured
@@ -366,7 +363,6 @@ class ThermalObserver:
             }
         else:
             state = dict(state)
-        judged = self.nominal > 0
         out = np.empty((n, 3))
         ok = np.empty(n, bool)
         i = 0
@@ -388,8 +384,7 @@ class ThermalObserver:
                     state["zero"] = y
                 state["out"] = y - state["zero"]
                 heat = state["z"][self.n_modes : self.n_modes + self.n_heat]
-                if (np.abs(heat[judged]) > gate_k * self.nominal[judged]).any():
-                    state["ok"] = False
+                state["ok"] = state["ok"] and bool(plausible(heat, self.nominal, gate_k)[0])
                 state.update(
                     amb_prev=a,
                     steps=state["steps"] + 1,

@@ -1104,7 +1104,6 @@ class PhysicalPredictor:
         obs, ok, new_state["obs"] = self.obs.stream(
             state.get("obs"), t, amb, dT[:, self._obs_p], g, OBSERVER_GATE_K, var
         )
-        self.last_observer_um = obs
         if policy:
             obs = P.clamp_axes(obs, self.t_low, self.t_high)[0]
         else:
