@@ -53,8 +53,6 @@ TWIN_TRAIN = ("thermal-36h", "static-y")
 TWIN_ROLES = {"thermal_b": "thermal-36h-b", "thermal_c": "combined", "static_x": "static-xyz"}
 RAM2_ROLES = {"thermal_b": "thermal_b", "thermal_c": "thermal_c", "static_x": "static_x"}
 RAM3_ROLES = {"thermal_b": "thermal_b", "thermal_c": "thermal_c", "static_x": "static_y"}
-RAM3_ARCHIVE = REPO / "tests" / "data" / "ram3.tar.xz"
-RAM3_MACHINE = REPO / "examples" / "machines" / "ram3.yaml"
 LOADED_UM = 5.0
 COVERAGE = (0.90, 0.99)
 
@@ -290,12 +288,10 @@ def main(argv=None) -> int:
         }
 
     if not args.no_ram3:
-        import tarfile
+        from _ram3 import RAM3_MACHINE, unpack_ram3
 
         t0 = time.perf_counter()
-        with tarfile.open(RAM3_ARCHIVE) as tar:
-            tar.extractall(work / "ram3", filter="data")
-        data3 = work / "ram3" / "data"
+        data3 = unpack_ram3(work / "ram3") / "data"
         fbgcomp_fit(
             [data3 / "thermal_a", data3 / "static_xyz"], work / "ram3.json", "--machine", RAM3_MACHINE
         )

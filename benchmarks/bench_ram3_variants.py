@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tarfile
 import tempfile
 import time
 from datetime import UTC, datetime
@@ -30,10 +29,9 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from _ram3 import RAM3_MACHINE, unpack_ram3
 from bench_ram2_variants import VARIANTS, _fbgcomp
 
-REPO = Path(__file__).resolve().parents[1]
-MACHINE = REPO / "examples" / "machines" / "ram3.yaml"
 HELD = ("thermal_b", "thermal_c", "static_y")
 AXES = ("dx", "dy", "dz")
 SLIPS = (
@@ -55,7 +53,7 @@ def run(name, data: Path, work: Path) -> dict:
     from fbgcomp.io.campaign import read_campaign
     from fbgcomp.models.registry import load_model
 
-    desc = yaml.safe_load(MACHINE.read_text())
+    desc = yaml.safe_load(RAM3_MACHINE.read_text())
     if name != "as-published":
         VARIANTS[name]["machine"](desc)
     folder = work / name
@@ -99,9 +97,7 @@ def main(argv=None) -> int:
     results = {}
     print("ram3, default fit: max |error| µm (PI95) per axis dx / dy / dz; WORSE: above uncompensated + 0.5")
     with tempfile.TemporaryDirectory(prefix="bench-ram3-variants-") as tmp:
-        with tarfile.open(REPO / "tests" / "data" / "ram3.tar.xz") as tar:
-            tar.extractall(tmp, filter="data")
-        data = Path(tmp) / "data"
+        data = unpack_ram3(Path(tmp)) / "data"
         for name in args.only or SLIPS:
             res = run(name, data, Path(tmp) / "work")
             results[name] = res

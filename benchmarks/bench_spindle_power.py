@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tarfile
 import tempfile
 import time
 from datetime import UTC, datetime
@@ -30,6 +29,10 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _ram3 import RAM3_MACHINE, unpack_ram3
 
 REPO = Path(__file__).resolve().parents[1]
 CAMPAIGNS = ("thermal_a", "thermal_b")
@@ -81,9 +84,7 @@ def main(argv=None) -> int:
     start = time.perf_counter()
     results = {}
     with tempfile.TemporaryDirectory(prefix="bench-spindle-power-") as tmp:
-        with tarfile.open(REPO / "tests" / "data" / "ram3.tar.xz") as tar:
-            tar.extractall(tmp, filter="data")
-        rams = {"ram3": (Path(tmp), REPO / "examples" / "machines" / "ram3.yaml")}
+        rams = {"ram3": (unpack_ram3(Path(tmp)), RAM3_MACHINE)}
         if (args.ram2 / "truth").is_dir():
             rams = {"ram2": (args.ram2, REPO / "examples" / "machines" / "ram2.yaml"), **rams}
         else:
