@@ -14,24 +14,12 @@ while the matrix is block tridiagonal in blocks of about one layer: ``Factorised
 
 from __future__ import annotations
 
-import contextlib
-
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-
-def _one_blas_thread():
-    """Threaded OpenBLAS dpbtrf spends its time synchronising (4-30x slower on a shared 2-core
-    machine): factorise single-threaded when threadpoolctl is there to say so."""
-    try:
-        from threadpoolctl import threadpool_limits  # noqa: PLC0415 - optional: threadpoolctl
-
-        return threadpool_limits(1)
-    except ImportError:
-        return contextlib.nullcontext()
-
+from fbgcomp.threads import one_blas_thread
 
 # Above this many band entries (8 bytes each) the banded factor would not fit comfortably.
 _MAX_BAND_ENTRIES = 400_000_000
@@ -150,14 +138,14 @@ class Factorised:
                 Ap = (Ap + sp.triu(Ap.T, k=1)).tocsr()
                 self._perm = perm
                 self._inv = inv
-                with _one_blas_thread():
+                with one_blas_thread():
                     self._blocks = _BlockTridiagonalCholesky(Ap, bounds)
                 self.backend = f"block-cholesky({len(m)} blocks <= {int(m.max())})"
                 return
         if (bw + 1) * n <= _MAX_BAND_ENTRIES:
             ab = np.zeros((bw + 1, n))
             ab[bw + row - col, col] = data
-            with _one_blas_thread():
+            with one_blas_thread():
                 self._band = sla.cholesky_banded(ab, lower=False, overwrite_ab=True, check_finite=False)
             self._perm = perm
             self._inv = inv
@@ -180,7 +168,7 @@ class Factorised:
         if self.backend == "superlu":
             return self._lu.solve(b)
         if self.backend.startswith("block"):
-            with _one_blas_thread():
+            with one_blas_thread():
                 return self._blocks.solve(b[self._perm])[self._inv]
         x = sla.cho_solve_banded((self._band, False), b[self._perm], check_finite=False)
         return x[self._inv]

@@ -22,11 +22,13 @@ Measured on ram2 in ``benchmarks/bench_observer.py`` and docs/accuracy.md; in th
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 
 import numpy as np
 
 from fbgcomp.optics import elongation_um, wavelength_nm
+from fbgcomp.threads import one_blas_thread
 
 
 @dataclass(frozen=True)
@@ -314,11 +316,12 @@ class ThermalObserver:
         out = np.empty((n, 3))
         sd = np.empty((n, 3))
         heat = np.empty((n, self.n_heat))
-        for i in range(n):
-            z, cov = self._step(z, cov, meas[i], amb[i - 1] if i else 0.0, amb[i], i == 0)
-            out[i] = self.C_ttp @ z + self.d_ttp * amb[i]
-            sd[i] = np.sqrt(np.clip(np.einsum("ij,jk,ik->i", self.C_ttp, cov, self.C_ttp), 0.0, None))
-            heat[i] = z[self.n_modes : self.n_modes + self.n_heat]
+        with one_blas_thread():
+            for i in range(n):
+                z, cov = self._step(z, cov, meas[i], amb[i - 1] if i else 0.0, amb[i], i == 0)
+                out[i] = self.C_ttp @ z + self.d_ttp * amb[i]
+                sd[i] = np.sqrt(np.clip(np.einsum("ij,jk,ik->i", self.C_ttp, cov, self.C_ttp), 0.0, None))
+                heat[i] = z[self.n_modes : self.n_modes + self.n_heat]
         t = np.arange(n) * self.step_s
         return ObserverResult(t, out - out[:1], sd, heat, self.input_names)
 
@@ -365,6 +368,14 @@ class ThermalObserver:
             state = dict(state)
         out = np.empty((n, 3))
         ok = np.empty(n, bool)
+        # single-threaded BLAS only when a step closes in this batch (entering costs ~0.1 ms)
+        with one_blas_thread() if n and t[-1] > state["end"] else contextlib.nullcontext():
+            self._frames(state, t, amb, pr, gr, gate_k, gratings_var_um2, out, ok)
+        return out, ok, state
+
+    def _frames(self, state, t, amb, pr, gr, gate_k, gratings_var_um2, out, ok):
+        """:meth:`stream`'s pass over the batch's frames, updating ``state``, ``out`` and ``ok``."""
+        n = t.size
         i = 0
         while i < n:
             if t[i] > state["end"]:  # close the step before this frame
@@ -406,7 +417,6 @@ class ThermalObserver:
                 state["var"] = np.maximum(state["var"], np.asarray(gratings_var_um2, float)[i:j].max(axis=0))
             state["last"] = (pr[j - 1], float(amb[j - 1]))
             i = j
-        return out, ok, state
 
 
 def campaign_inputs(
