@@ -9,7 +9,7 @@ import pytest
 
 #: Stages from the bottom up; a module may import its own stage and those below it.
 LAYERS = [
-    {"errors", "atomic", "units", "tables", "progress", "cluster", "cnc"},
+    {"errors", "atomic", "units", "tables", "progress", "cluster", "cnc", "threads"},
     {"optics"},
     {"structure"},
     {"kinematics"},
