@@ -356,6 +356,12 @@ def test_built_in_ram_keeps_its_legacy_inputs(machine):
             lambda d: d["thermal"]["heat_sources"][0].__setitem__("x_mm", [400.0, 500.0]),
             "field thermal.heat_sources[0]",
         ),
+        (  # wholly in the cavity: no material to heat
+            lambda d: d["thermal"]["heat_sources"][0].update(
+                x_mm=[-100.0, 100.0], y_mm=[-100.0, 100.0], z_mm=[500.0, 600.0]
+            ),
+            "field thermal.heat_sources[0]",
+        ),
         (
             lambda d: d["thermal"]["heat_sources"][1].__setitem__("name", "spindle_heat"),
             "field thermal.heat_sources[1].name",
@@ -383,6 +389,38 @@ def test_rails_on_adjacent_faces_and_more_stations_are_valid(ram2):
 
     m = parse_machine(d)
     assert len(m.supports.station_ranges_mm()) == 3
+
+
+def test_a_heat_zone_may_ring_the_cavity_and_heats_the_walls_only(ram2):
+    """A data sheet's "nut and motor heat in the top 100 mm of the box": the zone's centre is in
+    the air of the cavity, its heat goes into the four walls of that band, all of it."""
+    from fbgcomp.structure import parse_machine
+    from fbgcomp.structure.mesh import machine_mesh
+    from fbgcomp.structure.thermal import assemble_thermal
+
+    d = ram2.model_dump(mode="json")
+    d["thermal"]["heat_sources"].append(
+        {
+            "name": "nut_motor",
+            "kind": "volume",
+            "x_mm": [-150, 150],
+            "y_mm": [-150, 150],
+            "z_mm": [1300, 1400],
+        }
+    )
+    m = parse_machine(d)
+    assert [h.input_name for h in m.thermal.sources][-1] == "nut_motor_W"
+    rm = machine_mesh(m, 0.5, m.supports.z_axis_mm)
+    _, _, B = assemble_thermal(rm, m)
+    col = B[:, -1]
+    assert col.sum() == pytest.approx(1.0)
+    x, y, z = rm.mesh.p
+    heated = col > 0
+    assert z[heated].min() == pytest.approx(1300.0) and z[heated].max() == pytest.approx(1400.0)
+    in_cavity = (np.abs(x) < 135.0 - 1e-6) & (np.abs(y) < 135.0 - 1e-6)
+    assert not np.any(heated & in_cavity)
+    for face in (x > 150 - 15, x < -150 + 15, y > 150 - 15, y < -150 + 15):  # every wall gets its share
+        assert col[heated & face].sum() > 0.15
 
 
 @pytest.fixture(scope="module")

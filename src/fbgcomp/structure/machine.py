@@ -550,9 +550,10 @@ class Machine(_Strict):
         lo, hi = self.volume_source_box_mm(h)
         if hi[2] <= lo[2] or hi[0] <= lo[0] or hi[1] <= lo[1]:
             raise _FieldError(where, f"heat zone of {h.name!r} has no volume in the housing")
-        centre = 0.5 * (lo + hi)
-        if not self.contains_point(*centre):
-            raise _FieldError(where, f"the centre of heat zone {h.name!r} is not in the material")
+        if not self.zone_holds_material(lo, hi):
+            raise _FieldError(
+                where, f"heat zone {h.name!r} holds no material of the housing or the ram walls"
+            )
 
     def volume_source_box_mm(self, h):
         """(low, high) corners (mm) of a volume heat zone; omitted ranges span the housing."""
@@ -561,6 +562,26 @@ class Machine(_Strict):
         y = h.y_mm or (-hd, hd)
         z = h.z_mm or (-H, 0.0)
         return np.array([x[0], y[0], z[0]], float), np.array([x[1], y[1], z[1]], float)
+
+    def zone_holds_material(self, lo_mm, hi_mm) -> bool:
+        """True when the box ``lo_mm``..``hi_mm`` (x, y, z corners, mm) overlaps the housing or the
+        ram's walls with a volume: a heat zone may span the walls around the cavity (a ring at
+        the nut, a motor flange), its centre in the air."""
+        lo, hi = np.asarray(lo_mm, float), np.asarray(hi_mm, float)
+        r, h = self.ram, self.housing
+
+        def overlap(a_lo, a_hi) -> bool:
+            return bool(np.all(np.minimum(hi, a_hi) > np.maximum(lo, a_lo)))
+
+        hw, hd = h.width_mm / 2, h.depth_mm / 2
+        if overlap((-hw, -hd, -h.height_mm), (hw, hd, 0.0)):
+            return True
+        ow, od = r.outer_width_mm / 2, r.outer_depth_mm / 2
+        iw, id_ = ow - r.wall_mm, od - r.wall_mm
+        if not overlap((-ow, -od, 0.0), (ow, od, r.length_mm)):
+            return False
+        # inside the outer box: material unless the zone lies wholly in the cavity
+        return not (lo[0] >= -iw and hi[0] <= iw and lo[1] >= -id_ and hi[1] <= id_)
 
     def contains_point(self, x_mm: float, y_mm: float, z_mm: float, tol_mm: float = 1e-6) -> bool:
         """True when the point lies in the ram wall or the housing (boundary included)."""
