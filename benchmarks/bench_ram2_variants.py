@@ -306,6 +306,12 @@ def _spindle_200w(d):
             h["nominal_W"] = 200.0
 
 
+def _spindle_60w(d):
+    for h in d["thermal"]["heat_sources"]:
+        if h["kind"] == "volume":
+            h["nominal_W"] = 60.0
+
+
 def _both_rails_locating(d):
     for r in d["supports"]["rails"]:
         r["locating"] = True
@@ -335,6 +341,7 @@ for _name, _what, _f in (
     ),
     ("tool-150", "description: the TTP 150 mm below the housing (120 in ram2)", _longer_tool),
     ("spindle-200W", "description: the bearing heat's nominal power 200 W (120)", _spindle_200w),
+    ("spindle-60W", "description: the bearing heat's nominal power 60 W (120)", _spindle_60w),
     ("rails-both-locating", "description: both rails locating (one floats in ram2)", _both_rails_locating),
     ("stations-off", "description: carriage stations 50 mm lower than ram2's", _stations_off),
     ("films-doubled", "description: every film coefficient doubled", _films_doubled),
