@@ -16,7 +16,9 @@ import yaml
 
 from fbgcomp_testing import RAM2_DIR
 
-pytestmark = pytest.mark.slow
+# one worker runs the module: its fixture (eight fits of ram2, ~3 min) is built once per worker
+# that runs a test of it, and pytest-xdist had sent the tests to both
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("ram2_variants")]
 
 REPO = Path(__file__).resolve().parents[1]
 AXES = ("dx", "dy", "dz")

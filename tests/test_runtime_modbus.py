@@ -15,6 +15,9 @@ import pytest
 import fbgcomp_testing
 from test_runtime_support import free_port, modbus_serve_config, serve_with_simulator
 
+# one worker runs the module: its served scenario (a module fixture, ~20 s) is then served once
+pytestmark = pytest.mark.xdist_group("runtime_modbus")
+
 ENV = {"FBGCOMP_OPCUA_USER": "operator", "FBGCOMP_OPCUA_PASSWORD": "modbus-pass-123"}
 
 

@@ -21,6 +21,9 @@ import pytest
 import fbgcomp_testing
 from test_runtime_support import serve_with_simulator
 
+# one worker runs the module: its served scenario (a module fixture, ~20 s) is then served once
+pytestmark = pytest.mark.xdist_group("runtime_modehop")
+
 ENV = {"FBGCOMP_OPCUA_USER": "operator", "FBGCOMP_OPCUA_PASSWORD": "modehop-pass-123"}
 AXES = ("X", "Y", "Z")
 NAMES = [
