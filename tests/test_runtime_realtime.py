@@ -45,3 +45,15 @@ def test_blas_threads_zero_keeps_the_library_setting():
     got = _apply(0)
     assert got["after"] == got["before"] == [2]
     assert not any("BLAS" in line for line in got["lines"])
+
+
+def test_blas_threads_is_a_realtime_key_of_serves_configuration(tmp_path):
+    from fbgcomp.errors import InputError
+    from fbgcomp.runtime.service import RuntimeConfig
+
+    assert RuntimeConfig().realtime.blas_threads == 1
+    (tmp_path / "serve.toml").write_text("[realtime]\nblas_threads = 0\n")
+    assert RuntimeConfig.from_toml(tmp_path / "serve.toml").realtime.blas_threads == 0
+    (tmp_path / "bad.toml").write_text('[realtime]\nblas_threads = "one"\n')
+    with pytest.raises(InputError, match=r"realtime\.blas_threads"):
+        RuntimeConfig.from_toml(tmp_path / "bad.toml")
