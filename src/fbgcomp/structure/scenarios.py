@@ -98,9 +98,15 @@ def _pulses(rng, n, design):
     return out
 
 
-def thermal_scenarios(twin, n_scenarios: int = 40, seed: int = 0, design: ScenarioDesign = ScenarioDesign()):
+def thermal_scenarios(
+    twin, n_scenarios: int = 40, seed: int = 0, design: ScenarioDesign = ScenarioDesign(), nominal_W=None
+):
     """Yield ``(inputs, ThermalResponse)`` for ``n_scenarios`` seeded scenarios of ``twin``
-    (built on :func:`generic_heat_machine`), each from the uniform reference temperature."""
+    (built on :func:`generic_heat_machine`), each from the uniform reference temperature.
+
+    ``nominal_W`` ({volume source name: W}) sets the power a source's duty levels scale with in
+    place of its declared ``nominal_W`` (for one a training campaign showed)."""
+    given = dict(nominal_W or {})
     rng = np.random.default_rng(seed)
     machine = twin.machine
     Tref = machine.reference_temperature_C
@@ -109,7 +115,7 @@ def thermal_scenarios(twin, n_scenarios: int = 40, seed: int = 0, design: Scenar
         heat = {}
         for h in machine.thermal.sources:
             if h.kind == "volume":
-                heat[h.name] = _duty(rng, t.size, h.nominal_W or 100.0, design)
+                heat[h.name] = _duty(rng, t.size, given.get(h.name) or h.nominal_W or 100.0, design)
             else:
                 heat[h.name] = _pulses(rng, t.size, design)
         ambient = Tref + _day_cycle(rng, t, design)

@@ -331,11 +331,14 @@ def twin_thermal_population(
     seed=0,
     grating_noise_um=0.1,
     probe_noise_K=0.1,
+    nominal_W=None,
 ):
     """Second moments of (map features, TTP) over the twin's generic thermal scenarios
     (:mod:`fbgcomp.structure.scenarios`), or None when the machine description lacks one of
     the campaign's gratings or probes. Measurement noise is added as the instruments have it
-    (seeded), so the map does not lean on differences finer than the sensors resolve."""
+    (seeded), so the map does not lean on differences finer than the sensors resolve.
+    ``nominal_W`` ({volume source: W}) sets the scenarios' bearing power in place of the
+    description's (:func:`fbgcomp.structure.scenarios.thermal_scenarios`)."""
     names = [s.name for s in machine.sensors]
     mprobes = [p.name for p in machine.probes]
     # a strain-free reference grating (<sensor>_ref) reads the temperature of its sensor's gauge
@@ -384,7 +387,7 @@ def twin_thermal_population(
     generic = [h.name for h in twin.machine.thermal.sources if h.name.startswith(GENERIC_PREFIX)]
     without = {g: [np.zeros((k, k)), np.zeros((k, 3)), np.zeros(3)] for g in generic}
     yy = np.zeros(3)
-    for inputs, r in thermal_scenarios(twin, n_scenarios, seed):
+    for inputs, r in thermal_scenarios(twin, n_scenarios, seed, nominal_W=nominal_W):
         r = r.change_from_start()
         t = r.time_s
         el0 = r.sensor_elongation_um[:, idx]
