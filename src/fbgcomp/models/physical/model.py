@@ -820,17 +820,23 @@ class PhysicalModel(EstimatorParams, ModelFile):
         learned from (:class:`~fbgcomp.models.physical.observer.ThermalObserver`), as the model
         file holds it; its measurements are the point probes and strain-free reference gratings
         the description places, its known input the ambient probes' mean."""
+        refs = {f"{s.name}_ref" for s in machine.sensors}
+        obs, probes = self._thermal_observer(machine, campaigns, refs)
+        return obs.to_dict() | {"probes": probes, "ambient": list(self.ambient_probes_)}
+
+    def _thermal_observer(self, machine, campaigns, references=frozenset()):
+        """(:class:`ThermalObserver`, its thermometers) on the twin the map learns from: the
+        campaigns' point probes the description places, and those of ``references`` (strain-free
+        reference gratings, ``<sensor>_ref``) the campaigns carry."""
         from fbgcomp.structure import Twin  # noqa: PLC0415 - optional extra: scikit-fem (the FE twin)
 
-        twin = Twin(generic_heat_machine(machine))
         point = {q.name for q in machine.probes if q.kind == "point"}
-        refs = {f"{s}_ref" for s in twin.sensor_names}
-        probes = [q for q in self.probe_names_ if q in point or q in refs]
+        probes = [q for q in self.probe_names_ if q in point or q in references]
         # each probe's zero is its readings' mean over the zero window: off by about one
         # reading's noise, which the filter estimates as a constant
         bias = probe_noise_sd_K(campaigns, self.probe_names_)[[self.probe_names_.index(q) for q in probes]]
-        obs = ThermalObserver(twin, self.sensors_, probes, probe_bias_K=bias)
-        return obs.to_dict() | {"probes": probes, "ambient": list(self.ambient_probes_)}
+        twin = Twin(generic_heat_machine(machine))
+        return ThermalObserver(twin, self.sensors_, probes, probe_bias_K=bias), probes
 
     def _heat_prior(self, machine, campaigns, rows) -> dict:
         """{volume source: W} the twin's scenarios run each volume heat source at, from the load-free
@@ -840,17 +846,12 @@ class PhysicalModel(EstimatorParams, ModelFile):
         training), and every source when no load-free campaign or no point probe is there,
         keeps its declared nominal (``benchmarks/bench_heat_prior.py``: ram2 74.0 W inferred
         against 70.6, ram3 80.1 against 80.1)."""
-        from fbgcomp.structure import Twin  # noqa: PLC0415 - optional extra: scikit-fem (the FE twin)
-
         volume = [h for h in machine.thermal.sources if h.kind == "volume"]
         point = {q.name for q in machine.probes if q.kind == "point"}
-        probes = [q for q in self.probe_names_ if q in point]
         free = [c for c, r in zip(campaigns, rows, strict=True) if not r["loaded"]]
-        if not volume or not probes or not free:
+        if not volume or not any(q in point for q in self.probe_names_) or not free:
             return {}
-        twin = Twin(generic_heat_machine(machine))
-        bias = probe_noise_sd_K(campaigns, self.probe_names_)[[self.probe_names_.index(q) for q in probes]]
-        obs = ThermalObserver(twin, self.sensors_, probes, probe_bias_K=bias)
+        obs, probes = self._thermal_observer(machine, campaigns)
         total, steps = np.zeros(obs.n_heat), 0
         for c in free:
             _, amb, pr, gr = campaign_inputs(
