@@ -229,6 +229,11 @@ class ThermalObserver:
         self.Q = np.diag(np.concatenate([np.zeros(n), np.square(self.walk) * self.step_s, np.zeros(nb)]))
         self.n_modes = n
         self.n_heat = k - n
+        # A = [[diag(e), G], [0, I]] (modes decay, the heat walks and probe zeros hold):
+        # :meth:`_step` propagates the covariance block-wise, O(n² (k - n)) not O(k³)
+        self._e = np.diag(self.A)[:n].copy()
+        self._g = self.A[:n, n:].copy()
+        self._q = np.diag(self.Q).copy()
         # the start: the heat inputs as uncertain as one step's walk, each probe's zero by its bias
         self.P0 = self.Q + np.diag(np.concatenate([np.zeros(k), np.square(self.probe_bias_K[:nb])]))
 
@@ -282,18 +287,33 @@ class ThermalObserver:
         ``first``, then take the step's measurements ``meas`` (NaN: missing) at ambient ``amb``,
         their variance the noise's ``R`` plus ``extra_var``."""
         if not first:
-            z = self.A @ z + self.b * amb_prev
-            cov = self.A @ cov @ self.A.T + self.Q
+            n, e, g = self.n_modes, self._e, self._g
+            z = np.concatenate([e * z[:n] + g @ z[n:], z[n:]]) + self.b * amb_prev
+            # A cov Aᵀ by blocks (modes | the rest): the rest's rows and columns stay, the
+            # modes' block is E P11 E + E P12 Gᵀ + G P21 E + G P22 Gᵀ
+            p12 = e[:, None] * cov[:n, n:] + g @ cov[n:, n:]
+            p11 = (e[:, None] * cov[:n, :n] + g @ cov[n:, :n]) * e[None, :] + p12 @ g.T
+            cov = cov.copy()
+            cov[:n, :n] = p11
+            cov[:n, n:] = p12
+            cov[n:, :n] = p12.T
+            cov.flat[:: cov.shape[0] + 1] += self._q
         ok = np.isfinite(meas)
         if ok.any():
             c = self.C[ok]
             r = (self.R + extra_var)[ok]
-            s = c @ cov @ c.T + np.diag(r)
-            gain = np.linalg.solve(s, c @ cov).T
+            m = c @ cov  # (p, k)
+            s = m @ c.T + np.diag(r)
+            gain = np.linalg.solve(s, m).T
             z = z + gain @ (meas[ok] - c @ z - self.d[ok] * amb)
-            ikc = np.eye(z.size) - gain @ c
-            cov = ikc @ cov @ ikc.T + (gain * r) @ gain.T  # Joseph form: stays PSD
-            cov = 0.5 * (cov + cov.T)
+            # Joseph form (I - K C) P (I - K C)ᵀ + K R Kᵀ, expanded so that it costs O(k² p):
+            # P - K M - Mᵀ Kᵀ + K S Kᵀ with M = C P
+            km = gain @ m
+            cov = cov - km
+            cov -= km.T
+            cov += (gain @ s) @ gain.T
+            cov += cov.T
+            cov *= 0.5
         if self.nonnegative:
             z = z.copy()
             z[self.n_modes : self.n_modes + self.n_heat] = np.maximum(
@@ -320,7 +340,7 @@ class ThermalObserver:
             for i in range(n):
                 z, cov = self._step(z, cov, meas[i], amb[i - 1] if i else 0.0, amb[i], i == 0)
                 out[i] = self.C_ttp @ z + self.d_ttp * amb[i]
-                sd[i] = np.sqrt(np.clip(np.einsum("ij,jk,ik->i", self.C_ttp, cov, self.C_ttp), 0.0, None))
+                sd[i] = np.sqrt(np.clip(((self.C_ttp @ cov) * self.C_ttp).sum(axis=1), 0.0, None))
                 heat[i] = z[self.n_modes : self.n_modes + self.n_heat]
         t = np.arange(n) * self.step_s
         return ObserverResult(t, out - out[:1], sd, heat, self.input_names)
