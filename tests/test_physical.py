@@ -448,6 +448,11 @@ def test_the_interval_carries_the_part_of_the_correction_the_training_never_chec
     text = twin_model.summary()
     assert "unseen by the training: 7 of 12 feature directions" in text
     assert "ambient3600s" in text  # every calibrated term is listed, the ambient's too
+    # the bearings' power the scenarios ran at, inferred on thermal_a (ram2's truth: 70.6 W
+    # mean, at a mean duty level of 0.64 -> about 110 W nominal)
+    prior = tm["heat_prior_W"]["spindle_heat"]
+    assert 90.0 <= prior <= 140.0, prior
+    assert f"spindle_heat {prior:.1f} W nominal" in text
     for name, lo, hi in (("thermal_a", 0.0, 0.5), ("thermal_b", 10.0, 100.0)):
         _, _, p, at = twin_model._served(ram2[name])
         u = np.abs(p.last_unseen[at]).max(axis=0)

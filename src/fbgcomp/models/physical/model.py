@@ -986,6 +986,17 @@ class PhysicalModel(EstimatorParams, ModelFile):
                 f"thermal part: ridge map learned on {tm['n_scenarios']} thermal scenarios of the "
                 f"machine's FE twin ({len(tm['features'])} features: {', '.join(tm['features'])})"
             )
+            prior = tm.get("heat_prior_W") or {}
+            out.append(
+                "scenarios' volume heat sources at "
+                + (
+                    ", ".join(f"{k} {v:.1f} W" for k, v in prior.items())
+                    + " nominal (the thermal observer's mean on the load-free training campaigns over "
+                    + f"the scenarios' mean duty level, {np.mean(ScenarioDesign().duty_fraction_levels):.2f})"
+                    if prior
+                    else "their declared nominal power"
+                )
+            )
             cal = tm.get("calibration")
             if cal is not None:
                 out += [
