@@ -12,15 +12,33 @@ import pytest
 sys.path.insert(0, os.path.dirname(__file__))
 
 
-@pytest.fixture(scope="session", autouse=True)
-def twin_cache_dir():
-    """The twin cache (fbgcomp.structure.cache) of the test session: a fresh folder, removed at
-    the end, so tests never read nor write the user's cache (~/.cache/fbgcomp) and start cold.
-    Subprocesses (CLI tests) inherit it."""
+# The twin cache (fbgcomp.structure.cache) of the whole run: a fresh folder the controller makes
+# before the xdist workers start (they and every CLI subprocess inherit the variable), removed at
+# the end, so tests never read nor write the user's cache (~/.cache/fbgcomp) and start cold. One
+# folder for every worker, with room for the suite's ~35 twins: each is built once in the run
+# (the build lock makes a second worker wait for the first's), not once per worker and again
+# after the user's limit of 8 entries pushed it out (87 builds, ~400 CPU-seconds, before).
+_CACHE_ENV = {"FBGCOMP_CACHE_MAX_ENTRIES": "64", "FBGCOMP_CACHE_MAX_BYTES": str(8 << 30)}
+
+
+def pytest_configure(config):
+    if hasattr(config, "workerinput"):  # an xdist worker: the controller's folder, inherited
+        return
     folder = tempfile.mkdtemp(prefix="fbgcomp-test-cache-")
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("FBGCOMP_CACHE_DIR", folder)
-        yield folder
+    config._fbgcomp_env = {k: os.environ.get(k) for k in ("FBGCOMP_CACHE_DIR", *_CACHE_ENV)}
+    config._fbgcomp_cache = folder
+    os.environ.update({"FBGCOMP_CACHE_DIR": folder, **_CACHE_ENV})
+
+
+def pytest_unconfigure(config):
+    folder = getattr(config, "_fbgcomp_cache", None)
+    if folder is None:
+        return
+    for k, v in config._fbgcomp_env.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
     shutil.rmtree(folder, ignore_errors=True)
 
 

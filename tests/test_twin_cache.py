@@ -3,6 +3,7 @@ keyed by the machine's content and the code, atomic, a bad entry rebuilt, off me
 
 from __future__ import annotations
 
+import os
 import threading
 from pathlib import Path
 
@@ -250,6 +251,64 @@ def test_old_entries_are_pruned_to_the_most_recently_used(cache_dir):
     assert [p.name[:-5] for p in _entries(cache_dir)] == [keys[-1]]
 
 
+def test_the_limits_come_from_the_environment_and_a_bad_value_keeps_the_default(
+    cache_dir, monkeypatch, caplog
+):
+    keys = [f"{i:064x}" for i in range(4)]
+    for i, k in enumerate(keys):
+        path = twin_cache.store(k, {"x": np.zeros(3)}, folder=cache_dir)
+        os.utime(path, (1e9 + i, 1e9 + i))
+    monkeypatch.setenv(twin_cache.ENV_MAX_ENTRIES, "two")
+    twin_cache.prune(cache_dir)
+    assert len(_entries(cache_dir)) == 4  # the default (8) kept them all
+    assert "FBGCOMP_CACHE_MAX_ENTRIES='two' is not a positive integer; using 8" in caplog.text
+    monkeypatch.setenv(twin_cache.ENV_MAX_ENTRIES, "2")
+    twin_cache.prune(cache_dir)
+    assert [p.name[:-5] for p in _entries(cache_dir)] == sorted(keys[2:])
+    monkeypatch.setenv(twin_cache.ENV_MAX_ENTRIES, "64")
+    monkeypatch.setenv(twin_cache.ENV_MAX_BYTES, "1")
+    twin_cache.prune(cache_dir)
+    assert [p.name[:-5] for p in _entries(cache_dir)] == [keys[-1]]
+
+
+def test_a_stale_lock_of_a_gone_entry_is_pruned_and_a_live_ones_lock_kept(cache_dir):
+    kept, gone = "a" * 64, "b" * 64
+    twin_cache.store(kept, {"x": np.zeros(3)}, folder=cache_dir)
+    for key in (kept, gone):
+        with twin_cache.build_lock(key, cache_dir):
+            pass
+        os.utime(cache_dir / twin_cache.LOCKS / f"{key}.lock", (1e9, 1e9))
+    fresh = "c" * 64
+    with twin_cache.build_lock(fresh, cache_dir):
+        pass
+    twin_cache.prune(cache_dir)
+    left = sorted(p.name for p in (cache_dir / twin_cache.LOCKS).iterdir())
+    assert left == [f"{kept}.lock", f"{fresh}.lock"]
+
+
+def test_the_build_lock_excludes_a_second_holder(cache_dir):
+    """A second process asking for the lock of a key another holds waits until it is released."""
+    import subprocess
+    import sys
+    import time
+
+    key = "d" * 64
+    code = (
+        "import sys, time; from pathlib import Path; from fbgcomp.structure import cache; "
+        "print('asking', flush=True); t = time.time(); "
+        f"ctx = cache.build_lock({key!r}, Path(sys.argv[1])); ctx.__enter__(); print(time.time() - t)"
+    )
+    with twin_cache.build_lock(key, cache_dir):
+        proc = subprocess.Popen(
+            [sys.executable, "-c", code, str(cache_dir)], stdout=subprocess.PIPE, text=True
+        )
+        assert proc.stdout.readline().strip() == "asking"
+        time.sleep(1.0)
+        assert proc.poll() is None  # still waiting for the lock
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0 and float(out) >= 1.0
+
+
 def test_entries_hold_no_pickle(cache_dir):
     with pytest.raises(TypeError):
         twin_cache.dumps("0" * 64, {"x": np.array([object()], dtype=object)})
@@ -258,7 +317,8 @@ def test_entries_hold_no_pickle(cache_dir):
 @pytest.mark.slow
 def test_concurrent_builder_processes_leave_one_whole_entry(Twin, machine, cache_dir, good_entry):
     """Two processes build the same twin at once into one cache folder: both finish, one complete
-    entry remains, and it loads into the twin the reference build gives."""
+    entry remains, and it loads into the twin the reference build gives. The build lock makes
+    one of them build it and the other load that build."""
     import os
     import subprocess
     import sys
@@ -276,7 +336,9 @@ def test_concurrent_builder_processes_leave_one_whole_entry(Twin, machine, cache
     ]
     outs = [p.communicate(timeout=300) for p in procs]
     assert [p.returncode for p in procs] == [0, 0], [o[1][-2000:] for o in outs]
-    assert [p.name for p in cache_dir.iterdir()] == [good_entry[0]]  # no temporary file
+    assert sorted(o[0].split()[-1] for o in outs) == ["False", "True"]  # built once, loaded once
+    # the entry, and the lock folder: no temporary file
+    assert sorted(p.name for p in cache_dir.iterdir()) == sorted([good_entry[0], twin_cache.LOCKS])
     warm = Twin(machine, resolution=RES)
     assert warm.times.from_cache
     # the entry is another process's build: a threaded BLAS may round its sums differently
@@ -288,7 +350,8 @@ def test_concurrent_builder_processes_leave_one_whole_entry(Twin, machine, cache
 
 
 def test_the_test_session_never_uses_the_users_cache():
-    """tests/conftest.py points FBGCOMP_CACHE_DIR at a temporary folder of the session."""
+    """tests/conftest.py points FBGCOMP_CACHE_DIR at a temporary folder of the run, the same for
+    every xdist worker."""
     import os
     import tempfile
 
@@ -297,6 +360,7 @@ def test_the_test_session_never_uses_the_users_cache():
     folder = os.environ.get("FBGCOMP_CACHE_DIR", "")
     assert folder and Path(folder).resolve().is_relative_to(Path(tempfile.gettempdir()).resolve())
     assert not Path(folder).resolve().is_relative_to(Path(platformdirs.user_cache_dir("fbgcomp")).resolve())
+    assert os.environ.get(twin_cache.ENV_MAX_ENTRIES) == "64"  # room for the suite's twins
 
 
 def test_a_machine_with_an_infinite_value_has_a_key_of_its_own(machine):

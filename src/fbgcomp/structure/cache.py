@@ -27,10 +27,15 @@ Format and safety
     truncated or corrupt file, an entry of an older format) is ignored and rebuilt; a cache that
     cannot be read or written never stops a build (the twin is built as without a cache).
     Entries are written to a temporary file in the same folder, flushed to disk and renamed over
-    the target (:func:`fbgcomp.atomic.write_bytes`), so concurrent builders of the same twin each
-    write a complete file and the last rename wins; a reader sees a whole entry or none. The
+    the target (:func:`fbgcomp.atomic.write_bytes`), so a reader sees a whole entry or none.
+    Concurrent builders of the same twin (a test suite's workers, a fleet's processes) take an
+    exclusive lock on ``locks/<key>.lock`` (:func:`build_lock`, POSIX ``flock``) for the look-up
+    and the build: the first builds and stores, the others wait and load its entry. Where no
+    lock can be taken each builds, writes a complete file, and the last rename wins. The
     folder keeps the most recently used entries, at most :data:`MAX_ENTRIES` (8) of them and
-    :data:`MAX_BYTES` (1 GiB) in all; delete the folder at any time to empty the cache.
+    :data:`MAX_BYTES` (1 GiB) in all, or the counts the environment variables
+    ``FBGCOMP_CACHE_MAX_ENTRIES`` and ``FBGCOMP_CACHE_MAX_BYTES`` give (a machine builder with
+    many machines, a test suite with dozens); delete the folder at any time to empty the cache.
 """
 
 from __future__ import annotations
@@ -64,6 +69,9 @@ SUFFIX = ".twin"
 # newest entry always stays): the default twin's entry is 64 MiB, a finer mesh's more.
 MAX_ENTRIES = 8
 MAX_BYTES = 1 << 30
+ENV_MAX_ENTRIES = "FBGCOMP_CACHE_MAX_ENTRIES"
+ENV_MAX_BYTES = "FBGCOMP_CACHE_MAX_BYTES"
+LOCKS = "locks"
 # A temporary file this old was left by a writer that died; it is removed when pruning.
 _STALE_TMP_S = 3600.0
 
@@ -79,6 +87,55 @@ def cache_dir() -> Path | None:
         else Path(platformdirs.user_cache_dir("fbgcomp"))
     )
     return root / "twin"
+
+
+def _limit(env: str, default: int) -> int:
+    """The positive integer of environment variable ``env``, else ``default`` (a value that is
+    not one is logged and ignored: a cache setting never stops a build)."""
+    value = os.environ.get(env, "").strip()
+    if not value:
+        return default
+    try:
+        n = int(value)
+    except ValueError:
+        n = 0
+    if n < 1:
+        log.warning("twin cache: %s=%r is not a positive integer; using %d", env, value[:40], default)
+        return default
+    return n
+
+
+@contextlib.contextmanager
+def build_lock(key: str, folder: Path):
+    """Hold an exclusive lock on ``key``'s entry in ``folder`` (``locks/<key>.lock``, POSIX
+    ``flock``) while it is looked up and built, so that concurrent builders of one twin build it
+    once: the others wait, then find the entry. Where the lock cannot be taken (no ``fcntl``, a
+    folder that cannot be written, a file system without locks) it yields without one: each
+    builder builds, as before the lock (logged at debug level)."""
+    try:
+        import fcntl  # noqa: PLC0415 - POSIX only
+    except ImportError:  # pragma: no cover - not POSIX
+        yield
+        return
+    path = folder / LOCKS / f"{key}.lock"
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fh = open(path, "a+b")  # noqa: SIM115 - held open for the lock's lifetime
+    except OSError as err:
+        log.debug("twin cache: no build lock %s (%s)", path, err)
+        yield
+        return
+    with fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX)
+        except OSError as err:
+            log.debug("twin cache: no build lock %s (%s)", path, err)
+            yield
+            return
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
 
 
 @functools.lru_cache(maxsize=1)
@@ -238,8 +295,8 @@ def prune(folder: Path, keep: int | None = None, max_bytes: int | None = None) -
     """Keep the most recently used entries, at most ``keep`` (default :data:`MAX_ENTRIES`) and
     ``max_bytes`` (default :data:`MAX_BYTES`; the newest entry always stays); remove temporary
     files of dead writers."""
-    keep = MAX_ENTRIES if keep is None else keep
-    max_bytes = MAX_BYTES if max_bytes is None else max_bytes
+    keep = _limit(ENV_MAX_ENTRIES, MAX_ENTRIES) if keep is None else keep
+    max_bytes = _limit(ENV_MAX_BYTES, MAX_BYTES) if max_bytes is None else max_bytes
     try:
         entries = []
         now = time.time()
@@ -258,5 +315,12 @@ def prune(folder: Path, keep: int | None = None, max_bytes: int | None = None) -
             total += size
             if i >= keep or (i > 0 and total > max_bytes):
                 p.unlink(missing_ok=True)
+        # a lock of an entry that is gone, made long ago: no builder holds it any more
+        locks = folder / LOCKS
+        if locks.is_dir():
+            for p in locks.iterdir():
+                key = p.name.removesuffix(".lock")
+                if not _entry_path(folder, key).exists() and now - p.stat().st_mtime > _STALE_TMP_S:
+                    p.unlink(missing_ok=True)
     except OSError as err:
         log.debug("twin cache: pruning %s failed (%s)", folder, err)

@@ -326,16 +326,22 @@ class Twin:
         folder = twin_cache.cache_dir() if cache else None
         # the entry's name, needed only when the cache is on
         key = twin_cache.twin_key(machine, resolution, n_shifts) if folder is not None else ""
-        arrays = None
-        if folder is not None:
-            t0 = time.perf_counter()
-            arrays = twin_cache.load(key, self._ARRAYS, folder)
-            if arrays is not None and not self._fits(arrays):
-                arrays = None
-            self.times.cache_load_s = time.perf_counter() - t0
+        if folder is None:
+            self._adopt(*self._build(n_shifts))
+            return
+        # one builder per twin at a time: the others wait and load its entry
+        with twin_cache.build_lock(key, folder):
+            self._load_or_build(folder, key, n_shifts)
+
+    def _load_or_build(self, folder, key, n_shifts):
+        """Adopt the cached entry of ``key`` in ``folder``, or build the twin and store it."""
+        t0 = time.perf_counter()
+        arrays = twin_cache.load(key, self._ARRAYS, folder)
+        if arrays is not None and not self._fits(arrays):
+            arrays = None
+        self.times.cache_load_s = time.perf_counter() - t0
         if arrays is not None:
             self.times.from_cache = True
-            assert folder is not None  # arrays come from the cache only when it is on
             self.times.cache_path = str(folder / f"{key}{twin_cache.SUFFIX}")
             self.times.extra["cold_build_s"] = dict(
                 zip(
@@ -347,11 +353,10 @@ class Twin:
             return
         arrays, thermal_factor = self._build(n_shifts)
         self._adopt(arrays, thermal_factor)
-        if folder is not None:
-            t0 = time.perf_counter()
-            path = twin_cache.store(key, arrays, folder)
-            self.times.cache_store_s = time.perf_counter() - t0
-            self.times.cache_path = None if path is None else str(path)
+        t0 = time.perf_counter()
+        path = twin_cache.store(key, arrays, folder)
+        self.times.cache_store_s = time.perf_counter() - t0
+        self.times.cache_path = None if path is None else str(path)
 
     def _fits(self, arrays) -> bool:
         """Sanity check of a cache entry against this twin's mesh and outputs (the key already
