@@ -843,10 +843,18 @@ class PhysicalModel(EstimatorParams, ModelFile):
         training campaigns: the mean heat the thermal observer infers there over the scenarios'
         mean duty level (``ScenarioDesign.duty_fraction_levels``), within 1/4-4x the declared
         nominal. A source whose inferred mean is under a tenth of its declared duty mean (idle in
-        training), and every source when no load-free campaign or no point probe is there,
-        keeps its declared nominal (``benchmarks/bench_heat_prior.py``: ram2 74.0 W inferred
-        against 70.6, ram3 80.1 against 80.1)."""
-        volume = [h for h in machine.thermal.sources if h.kind == "volume"]
+        training), a source in the housing when no probe of the campaigns is in or on the
+        housing, and every source when no load-free campaign or no point probe is there, keeps
+        its declared nominal (``benchmarks/bench_heat_prior.py``: ram2 74.0 W inferred against
+        70.6, ram3 80.1 against 80.1; without its housing probe ram2's estimate is 20.8 W, the
+        bearings' heat taken for the other inputs', and neither the inputs' separability nor
+        the filter's innovations tell that case apart: docs/accuracy.md)."""
+        in_housing = set(machine.housing_probe_names()) & set(self.probe_names_)
+        volume = [
+            h
+            for h in machine.thermal.sources
+            if h.kind == "volume" and (in_housing or (h.z_mm is not None and h.z_mm[1] > 0.0))
+        ]
         point = {q.name for q in machine.probes if q.kind == "point"}
         free = [c for c, r in zip(campaigns, rows, strict=True) if not r["loaded"]]
         if not volume or not any(q in point for q in self.probe_names_) or not free:
