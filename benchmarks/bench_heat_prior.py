@@ -59,7 +59,7 @@ def estimate(root: Path, desc: dict) -> dict:
     r = obs.run(amb, pr, gr)
     heat = r.heat[:, list(r.input_names).index(SOURCE)]
     true = np.interp(ends - float(c.fbg["time_s"].iloc[0]), truth["time_s"], truth["spindle_W"])
-    mean_level = float(np.mean(ScenarioDesign().duty_fraction_levels))
+    mean_level = ScenarioDesign().mean_duty_fraction
     return {
         "estimated_mean_W": float(heat.mean()),
         "estimated_p90_W": float(np.percentile(heat, 90)),

@@ -63,6 +63,12 @@ class ScenarioDesign:
     radiant_probability: float = 0.5  # chance that a face sees a pulse at all
     radiant_width_steps: tuple[int, int] = (60, 600)
 
+    @property
+    def mean_duty_fraction(self) -> float:
+        """The duty levels' mean: a volume source runs at this fraction of its nominal power on
+        average over the scenarios."""
+        return float(np.mean(self.duty_fraction_levels))
+
 
 def _day_cycle(rng, t, design):
     amp = design.ambient_day_amplitude_K

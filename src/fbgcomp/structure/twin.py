@@ -324,11 +324,10 @@ class Twin:
         self.times.mesh_s = time.perf_counter() - t0
 
         folder = twin_cache.cache_dir() if cache else None
-        # the entry's name, needed only when the cache is on
-        key = twin_cache.twin_key(machine, resolution, n_shifts) if folder is not None else ""
         if folder is None:
             self._adopt(*self._build(n_shifts))
             return
+        key = twin_cache.twin_key(machine, resolution, n_shifts)
         # one builder per twin at a time: the others wait and load its entry
         with twin_cache.build_lock(key, folder):
             self._load_or_build(folder, key, n_shifts)

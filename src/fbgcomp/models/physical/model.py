@@ -416,8 +416,14 @@ class PhysicalModel(EstimatorParams, ModelFile):
         # campaign without a gradient can teach).
         self.twin_map_ = None
         self.observer_ = None
+        heat_twin = None  # the twin of generic_heat_machine: the map's, the prior's, the observer's
         if machine is not None and self.twin_scenarios > 0:
-            prior = self._heat_prior(machine, campaigns, rows) if self.heat_prior == "training" else {}
+            from fbgcomp.structure import Twin  # noqa: PLC0415 - optional extra: scikit-fem (the FE twin)
+
+            heat_twin = Twin(generic_heat_machine(machine))
+            prior = (
+                self._heat_prior(machine, campaigns, rows, heat_twin) if self.heat_prior == "training" else {}
+            )
             pop = twin_thermal_population(
                 machine,
                 self.sensors_,
@@ -426,6 +432,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
                 n_scenarios=self.twin_scenarios,
                 seed=0,
                 nominal_W=prior,
+                twin=heat_twin,
             )
             if pop is not None:
                 pop["heat_prior_W"] = prior
@@ -482,7 +489,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
         # intervals above are the map's own, calibrated before it joins; the two members'
         # disagreement widens them
         self.observer_ = (
-            self._observer(machine, campaigns) if self.twin_map_ is not None and self.observer else None
+            self._observer(machine, campaigns, heat_twin)
+            if self.twin_map_ is not None and self.observer
+            else None
         )
         self._predictors = {}
         return self
@@ -815,33 +824,32 @@ class PhysicalModel(EstimatorParams, ModelFile):
                     column=f"field sensors[{i}].{key}",
                 )
 
-    def _observer(self, machine, campaigns):
+    def _observer(self, machine, campaigns, twin):
         """The thermal observer of the campaigns' gratings and thermometers on the twin the map
         learned from (:class:`~fbgcomp.models.physical.observer.ThermalObserver`), as the model
         file holds it; its measurements are the point probes and strain-free reference gratings
-        the description places, its known input the ambient probes' mean."""
+        the description places, its known input the ambient probes' mean. ``twin``: the twin
+        of :func:`generic_heat_machine` of ``machine``."""
         refs = {f"{s.name}_ref" for s in machine.sensors}
-        obs, probes = self._thermal_observer(machine, campaigns, refs)
+        obs, probes = self._thermal_observer(machine, campaigns, twin, refs)
         return obs.to_dict() | {"probes": probes, "ambient": list(self.ambient_probes_)}
 
-    def _thermal_observer(self, machine, campaigns, references=frozenset()):
-        """(:class:`ThermalObserver`, its thermometers) on the twin the map learns from: the
-        campaigns' point probes the description places, and those of ``references`` (strain-free
-        reference gratings, ``<sensor>_ref``) the campaigns carry."""
-        from fbgcomp.structure import Twin  # noqa: PLC0415 - optional extra: scikit-fem (the FE twin)
-
+    def _thermal_observer(self, machine, campaigns, twin, references=frozenset()):
+        """(:class:`ThermalObserver`, its thermometers) on ``twin``, the one the map learns from
+        (of :func:`generic_heat_machine`): the campaigns' point probes the description places,
+        and those of ``references`` (strain-free reference gratings, ``<sensor>_ref``) the
+        campaigns carry."""
         point = {q.name for q in machine.probes if q.kind == "point"}
         probes = [q for q in self.probe_names_ if q in point or q in references]
         # each probe's zero is its readings' mean over the zero window: off by about one
         # reading's noise, which the filter estimates as a constant
         bias = probe_noise_sd_K(campaigns, self.probe_names_)[[self.probe_names_.index(q) for q in probes]]
-        twin = Twin(generic_heat_machine(machine))
         return ThermalObserver(twin, self.sensors_, probes, probe_bias_K=bias), probes
 
-    def _heat_prior(self, machine, campaigns, rows) -> dict:
+    def _heat_prior(self, machine, campaigns, rows, twin) -> dict:
         """{volume source: W} the twin's scenarios run each volume heat source at, from the load-free
         training campaigns: the mean heat the thermal observer infers there over the scenarios'
-        mean duty level (``ScenarioDesign.duty_fraction_levels``), within 1/4-4x the declared
+        mean duty level (``ScenarioDesign.mean_duty_fraction``), within 1/4-4x the declared
         nominal. A source whose inferred mean is under a tenth of its declared duty mean (idle in
         training), a source in the housing when no probe of the campaigns is in or on the
         housing, and every source when no load-free campaign or no point probe is there, keeps
@@ -859,7 +867,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         free = [c for c, r in zip(campaigns, rows, strict=True) if not r["loaded"]]
         if not volume or not any(q in point for q in self.probe_names_) or not free:
             return {}
-        obs, probes = self._thermal_observer(machine, campaigns)
+        obs, probes = self._thermal_observer(machine, campaigns, twin)
         total, steps = np.zeros(obs.n_heat), 0
         for c in free:
             _, amb, pr, gr = campaign_inputs(
@@ -872,7 +880,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
             steps += len(heat)
         if steps == 0:
             return {}
-        mean_level = float(np.mean(ScenarioDesign().duty_fraction_levels))
+        mean_level = ScenarioDesign().mean_duty_fraction
         prior = {}
         for h in volume:
             declared = h.nominal_W or 100.0
@@ -1000,7 +1008,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
                 + (
                     ", ".join(f"{k} {v:.1f} W" for k, v in prior.items())
                     + " nominal (the thermal observer's mean on the load-free training campaigns over "
-                    + f"the scenarios' mean duty level, {np.mean(ScenarioDesign().duty_fraction_levels):.2f})"
+                    + f"the scenarios' mean duty level, {ScenarioDesign().mean_duty_fraction:.2f})"
                     if prior
                     else "their declared nominal power"
                 )

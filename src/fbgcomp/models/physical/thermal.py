@@ -332,13 +332,16 @@ def twin_thermal_population(
     grating_noise_um=0.1,
     probe_noise_K=0.1,
     nominal_W=None,
+    twin=None,
 ):
     """Second moments of (map features, TTP) over the twin's generic thermal scenarios
     (:mod:`fbgcomp.structure.scenarios`), or None when the machine description lacks one of
     the campaign's gratings or probes. Measurement noise is added as the instruments have it
     (seeded), so the map does not lean on differences finer than the sensors resolve.
     ``nominal_W`` ({volume source: W}) sets the scenarios' bearing power in place of the
-    description's (:func:`fbgcomp.structure.scenarios.thermal_scenarios`)."""
+    description's (:func:`fbgcomp.structure.scenarios.thermal_scenarios`). ``twin``: the twin of
+    :func:`~fbgcomp.structure.scenarios.generic_heat_machine` of ``machine``, when the caller
+    has it (else it is built)."""
     names = [s.name for s in machine.sensors]
     mprobes = [p.name for p in machine.probes]
     # a strain-free reference grating (<sensor>_ref) reads the temperature of its sensor's gauge
@@ -349,7 +352,7 @@ def twin_thermal_population(
         return None
     from fbgcomp.structure import Twin  # noqa: PLC0415 - optional extra: scikit-fem (the FE twin)
 
-    twin = Twin(generic_heat_machine(machine))
+    twin = Twin(generic_heat_machine(machine)) if twin is None else twin
     idx = [twin.sensor_names.index(s.name) for s in sensors]
     # each thermometer's column in the twin's response: a probe's, or its gauge's temperature
     sources = [
