@@ -106,6 +106,9 @@ class RunLog:
         self.status_names = list(meta.get("status_names") or STATUS_NAMES)
         self.sensor_names = list(meta["sensor_names"])
         self.probe_names = list(meta["probe_names"])
+        heat = set(meta.get("heat_inputs") or [])
+        # a probe's column <probe>_C, a measured heat input's its name (<source>_W)
+        self._input_cols = [p if p in heat else f"{p}_C" for p in self.probe_names]
         self.flush_s = flush_s
         self.fsync = fsync
         self.dropped_rows = 0
@@ -162,8 +165,8 @@ class RunLog:
             cols[f"{s}_peaks"] = pk[:, j]
             cols[f"{s}_status"] = _labels(st[:, j], self.status_names)
         temp = cat([x.temperature_C for x in r])
-        for j, p in enumerate(self.probe_names):
-            cols[f"{p}_C"] = temp[:, j]
+        for j, col in enumerate(self._input_cols):
+            cols[col] = temp[:, j]
         for name, attr in (("dev", "deviation_um"), ("half", "half_width_um"), ("corr", "correction_um")):
             v = cat([getattr(x, attr) for x in r])
             for j, a in enumerate(AXES):
@@ -324,7 +327,8 @@ def export_campaign(
         for d in meta.get("sensors") or []
         if d.get("reference_lambda0_nm") is not None and f"{d['name']}_ref" in probes
     }
-    probes = [p for p in probes if p not in refs]
+    heat = [p for p in meta.get("heat_inputs") or [] if p in probes]
+    probes = [p for p in probes if p not in refs and p not in heat]
     ok = np.ones(len(df), bool)
     for s in sensors:
         ok &= (df[f"{s}_status"].to_numpy() == 0) & np.isfinite(df[f"{s}_nm"].to_numpy())
@@ -346,6 +350,10 @@ def export_campaign(
     temps = pd.DataFrame({"time_s": t[tok]})
     for p in probes:
         temps[f"{p}_C"] = df[f"{p}_C"].to_numpy()[tok]
+    heat_table = None
+    if heat:
+        hok = np.all(np.isfinite(df[heat].to_numpy(float)), axis=1)
+        heat_table = pd.DataFrame({"time_s": t[hok], **{h: df[h].to_numpy()[hok] for h in heat}})
     reference_spec = dict(meta.get("reference") or {"point": "TTP", "units": "um"})
     if reference_csv is not None:
         reference = pd.read_csv(reference_csv)
@@ -372,7 +380,7 @@ def export_campaign(
         "temperature_probes": [known.get(p, {"name": p, "location": "unknown"}) for p in probes],
         "reference": reference_spec,
     }
-    campaign = Campaign.from_arrays(cmeta, fbg=fbg, temperatures=temps, reference=reference)
+    campaign = Campaign.from_arrays(cmeta, fbg=fbg, temperatures=temps, reference=reference, heat=heat_table)
     write_campaign(campaign, out)
     return campaign
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from fbgcomp.dashboard import Dashboard, DashboardConfig
 from fbgcomp.errors import InputError
-from fbgcomp.io.campaign import read_campaign
+from fbgcomp.io.campaign import HEAT_SUFFIX, read_campaign
 from fbgcomp.models.registry import load_model
 from fbgcomp.runtime import health as H
 from fbgcomp.runtime import realtime
@@ -155,6 +155,8 @@ def model_meta(model, pipeline: Pipeline, temperature_probes=None) -> dict:
         "model_id": model.model_id,
         "sensor_names": pipeline.sensor_names,
         "probe_names": pipeline.probe_names,
+        # the slow inputs that are measured heat inputs (W, heat.csv), not probes (°C)
+        "heat_inputs": [f"{h}{HEAT_SUFFIX}" for h in getattr(model, "heat_inputs_", None) or []],
         "sensors": [dump(s) for s in model.sensors],
         "temperature_probes": temperature_probes,
         "model_sets": [sorted(s) for s in pipeline.model_sets],

@@ -29,6 +29,7 @@ import pandas as pd
 from fbgcomp import optics
 from fbgcomp.errors import InputError
 from fbgcomp.io.campaign import read_campaign
+from fbgcomp.io.campaign.layout import input_column
 from fbgcomp.runtime import hyperion
 from fbgcomp.runtime.windows import PeakMapper, SensorBatch
 
@@ -163,7 +164,7 @@ class TableTemperatures:
     ) -> TableTemperatures:
         """The temperatures of a campaign folder."""
         c = read_campaign(folder)
-        return cls.from_frame(c.temperatures, probe_names, speed, str(folder), loop=loop)
+        return cls.from_frame(c.slow_inputs(), probe_names, speed, str(folder), loop=loop)
 
     @classmethod
     def from_csv(
@@ -177,7 +178,8 @@ class TableTemperatures:
         """The temperatures of a table with ``time_s`` and ``<probe>_C`` columns; InputError
         naming ``where`` when a column is missing.
         """
-        cols = [f"{p}_C" for p in probe_names]
+        # a probe's <probe>_C first: a probe may be named like a heat input (T_W)
+        cols = [f"{p}_C" if f"{p}_C" in df.columns else input_column(p) for p in probe_names]
         missing = [c for c in [*cols, "time_s"] if c not in df.columns]
         if missing:
             raise InputError(f"temperature table lacks column(s) {', '.join(missing)}", file=where)
@@ -355,7 +357,7 @@ class ReplaySource:
         self.loop = loop
         self.origin_s = time.time() - self.time_s[0] / self.speed
         self.temperatures = (
-            TableTemperatures.from_frame(c.temperatures, probe_names, speed, str(folder), loop=loop)
+            TableTemperatures.from_frame(c.slow_inputs(), probe_names, speed, str(folder), loop=loop)
             if probe_names
             else NoTemperatures([])
         )

@@ -8,6 +8,8 @@ thermal run) stored as a folder::
     <campaign>/temperatures.csv    time_s, <probe>_C ...       probe temperatures, degC
     <campaign>/reference.csv       time_s, dx_um, dy_um, dz_um TTP displacement (interferometer), um
     <campaign>/loads.csv           time_s, fx_N, fy_N, fz_N    optional: forces at the TTP, N
+    <campaign>/heat.csv            time_s, <source>_W ...      optional: measured heat inputs, W
+                                                               (a spindle's power, as the CNC reads it)
 
 Each CSV has its own clock and rate. :func:`read_campaign` validates everything at this boundary
 and raises :class:`fbgcomp.errors.InputError` naming file, row and column, so the physics modules
@@ -19,7 +21,8 @@ Decisions the rest of the package relies on
 -------------------------------------------
 * Column order is canonical after reading: ``time_s`` first, then sensors in ``campaign.yaml``
   order (fbg), declared probes then undeclared ``<probe>_C`` columns in file order (temperatures),
-  dx/dy/dz (reference), fx/fy/fz (loads).
+  dx/dy/dz (reference), fx/fy/fz (loads), ``<source>_W`` columns in file order (heat; other
+  columns there are read, checked and left out).
 * Temperature columns not declared in ``campaign.yaml`` are kept as probes
   (:attr:`Campaign.probe_names` lists them after the declared ones) and reported by
   :meth:`Campaign.summary`; ``meta`` itself stays exactly what the YAML says, so it round-trips.
@@ -39,8 +42,8 @@ Limits (the reader is bounded whatever a file holds)
   ``campaign.yaml`` may be at most :data:`MAX_META_BYTES` (1 MiB).
 * Every number must lie within its column's physical bounds (:data:`VALUE_BOUNDS`): wavelengths
   in (0, 10000) nm, temperatures in [-273.15, 1000] degC, displacements in (-1e6, 1e6) um, forces
-  in (-1e7, 1e7) N, times in (-1e10, 1e10) s. Anything else is refused as a bad cell of the file
-  it is in, so no overflow can reach the physics and surface against a derived quantity.
+  in (-1e7, 1e7) N, powers in (-1e7, 1e7) W, times in (-1e10, 1e10) s. Anything else is refused
+  as a bad cell of the file it is in, so no overflow can reach the physics and surface against a derived quantity.
 * Errors quote at most the offending cell or column name, cut short, and only names that are
   printable text: never a header line (``fbg.csv`` may be a link to some other file).
 
@@ -56,6 +59,8 @@ from fbgcomp.io.campaign.align import AVERAGE_MIN_SAMPLES, AlignedCampaign
 from fbgcomp.io.campaign.folder import GAP_FACTOR, Campaign, read_campaign, write_campaign
 from fbgcomp.io.campaign.layout import (
     FBG_FILE,
+    HEAT_FILE,
+    HEAT_SUFFIX,
     LOAD_COLUMNS,
     LOADS_FILE,
     META_FILE,
@@ -87,6 +92,8 @@ __all__ = [
     "AVERAGE_MIN_SAMPLES",
     "FBG_FILE",
     "GAP_FACTOR",
+    "HEAT_FILE",
+    "HEAT_SUFFIX",
     "LOADS_FILE",
     "LOAD_COLUMNS",
     "MAX_CELL_BYTES",

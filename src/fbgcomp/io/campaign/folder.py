@@ -25,6 +25,8 @@ from fbgcomp.io.campaign.align import (
 )
 from fbgcomp.io.campaign.layout import (
     FBG_FILE,
+    HEAT_FILE,
+    HEAT_SUFFIX,
     LOAD_COLUMNS,
     LOADS_FILE,
     META_FILE,
@@ -53,6 +55,7 @@ class Campaign:
     temperatures: pd.DataFrame
     reference: pd.DataFrame
     loads: pd.DataFrame | None = None
+    heat: pd.DataFrame | None = None
 
     # -- names -------------------------------------------------------------------------------
     @property
@@ -76,13 +79,30 @@ class Campaign:
         declared = {p.column for p in self.meta.temperature_probes}
         return [c[:-2] for c in self.temperatures.columns if c != TIME_COLUMN and c not in declared]
 
+    @property
+    def heat_names(self) -> list[str]:
+        """Measured heat inputs (heat.csv's ``<source>_W`` columns, file order); [] without heat.csv."""
+        if self.heat is None:
+            return []
+        return [c[: -len(HEAT_SUFFIX)] for c in self.heat.columns if c != TIME_COLUMN]
+
+    def heat_inputs(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The measured heat inputs on heat.csv's clock: ``(time_s (n,), values (n, k) W)`` in
+        :attr:`heat_names` order, or None without heat.csv."""
+        if self.heat is None:
+            return None
+        cols = [f"{h}{HEAT_SUFFIX}" for h in self.heat_names]
+        return self.heat[TIME_COLUMN].to_numpy(), self.heat[cols].to_numpy(dtype=np.float64)
+
     def __repr__(self) -> str:
         loads = "none" if self.loads is None else f"{len(self.loads)} rows"
         return (
             f"Campaign(name={self.name!r}, kind={self.meta.kind!r}, path={self.path}, "
             f"fbg={len(self.fbg)} rows x {len(self.sensor_names)} sensors, "
             f"temperatures={len(self.temperatures)} rows x {len(self.probe_names)} probes, "
-            f"reference={len(self.reference)} rows, loads={loads})"
+            f"reference={len(self.reference)} rows, loads={loads}"
+            + ("" if self.heat is None else f", heat={len(self.heat)} rows x {len(self.heat_names)} inputs")
+            + ")"
         )
 
     # -- construction ------------------------------------------------------------------------
@@ -95,6 +115,7 @@ class Campaign:
         temperatures,
         reference,
         loads=None,
+        heat=None,
         path: str | Path | None = None,
     ) -> Campaign:
         """Build a validated campaign from DataFrames or mappings ``{column: 1-D array}``.
@@ -111,6 +132,7 @@ class Campaign:
             temperatures=table_from_input(TEMPERATURES_FILE, temperatures, meta, TEMPERATURES_FILE),
             reference=table_from_input(REFERENCE_FILE, reference, meta, REFERENCE_FILE),
             loads=None if loads is None else table_from_input(LOADS_FILE, loads, meta, LOADS_FILE),
+            heat=None if heat is None else table_from_input(HEAT_FILE, heat, meta, HEAT_FILE),
         )
 
     def validate(self) -> Campaign:
@@ -118,16 +140,19 @@ class Campaign:
         with canonical column order."""
         return self.replaced()
 
-    def replaced(self, *, meta=None, fbg=None, temperatures=None, reference=None, loads=None) -> Campaign:
+    def replaced(
+        self, *, meta=None, fbg=None, temperatures=None, reference=None, loads=None, heat=None
+    ) -> Campaign:
         """A validated campaign with the parts given replaced and the others as they are: the
         same measurements under another campaign.yaml (``meta``, a CampaignMeta or mapping), or
-        the same campaign with one table edited. ``loads`` cannot be removed this way."""
+        the same campaign with one table edited. ``loads`` and ``heat`` cannot be removed this way."""
         return Campaign.from_arrays(
             self.meta if meta is None else meta,
             fbg=self.fbg if fbg is None else fbg,
             temperatures=self.temperatures if temperatures is None else temperatures,
             reference=self.reference if reference is None else reference,
             loads=self.loads if loads is None else loads,
+            heat=self.heat if heat is None else heat,
             path=self.path,
         )
 
@@ -261,11 +286,31 @@ class Campaign:
             out[probes] = (self.fbg[TIME_COLUMN].to_numpy(), dT)
         return out
 
+    def slow_inputs(self) -> pd.DataFrame:
+        """temperatures.csv and heat.csv on one clock, as a runtime replays them: ``time_s``,
+        the ``<probe>_C`` columns, then the ``<source>_W`` ones; each column holds its own
+        file's last reading at every time stamp of either file (NaN before its first)."""
+        if self.heat is None:
+            return self.temperatures
+        parts = [self.temperatures, self.heat]
+        t = np.union1d(*(f[TIME_COLUMN].to_numpy() for f in parts))
+        out = {TIME_COLUMN: t}
+        for f in parts:
+            ft = f[TIME_COLUMN].to_numpy()
+            held = np.searchsorted(ft, t, side="right") - 1
+            for col in f.columns:
+                if col != TIME_COLUMN:
+                    v = f[col].to_numpy(dtype=np.float64)[np.maximum(held, 0)]
+                    out[col] = np.where(held >= 0, v, np.nan)
+        return pd.DataFrame(out)
+
     # -- inspection --------------------------------------------------------------------------
     def _tables(self) -> dict[str, pd.DataFrame]:
         tables = {FBG_FILE: self.fbg, TEMPERATURES_FILE: self.temperatures, REFERENCE_FILE: self.reference}
         if self.loads is not None:
             tables[LOADS_FILE] = self.loads
+        if self.heat is not None:
+            tables[HEAT_FILE] = self.heat
         return tables
 
     def summary(self) -> dict:
@@ -436,8 +481,15 @@ def read_campaign(path: str | Path) -> Campaign:
     temperatures = read_table(folder, TEMPERATURES_FILE, meta)
     reference = read_table(folder, REFERENCE_FILE, meta)
     loads = read_table(folder, LOADS_FILE, meta) if (folder / LOADS_FILE).exists() else None
+    heat = read_table(folder, HEAT_FILE, meta) if (folder / HEAT_FILE).exists() else None
     return Campaign(
-        path=folder, meta=meta, fbg=fbg, temperatures=temperatures, reference=reference, loads=loads
+        path=folder,
+        meta=meta,
+        fbg=fbg,
+        temperatures=temperatures,
+        reference=reference,
+        loads=loads,
+        heat=heat,
     )
 
 
@@ -463,6 +515,8 @@ def write_campaign(campaign: Campaign, path: str | Path) -> Path:
         write_csv(checked.reference, staging / REFERENCE_FILE)
         if checked.loads is not None:
             write_csv(checked.loads, staging / LOADS_FILE)
+        if checked.heat is not None:
+            write_csv(checked.heat, staging / HEAT_FILE)
         # Metadata last: a folder with campaign.yaml is a complete one.
         # Written like the tables (into the staging folder, so not atomic itself) so that every
         # file of the folder gets the same permissions.

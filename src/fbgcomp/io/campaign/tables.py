@@ -1,4 +1,4 @@
-"""The campaign CSV tables (fbg, temperatures, reference, loads): streamed, bounded reading, and
+"""The campaign CSV tables (fbg, temperatures, reference, loads, heat): streamed, bounded reading, and
 the checks every table passes, read from a file or given in memory.
 
 Errors are :class:`fbgcomp.errors.InputError` naming the file, the 1-based data row and the column.
@@ -21,6 +21,8 @@ import pandas as pd
 from fbgcomp.errors import InputError
 from fbgcomp.io.campaign.layout import (
     FBG_FILE,
+    HEAT_FILE,
+    HEAT_SUFFIX,
     LOAD_COLUMNS,
     REFERENCE_COLUMNS,
     REFERENCE_FILE,
@@ -66,13 +68,14 @@ _CHUNK_BYTES = 4 << 20
 #: logger's overflow, a corrupted file), not a measurement. ``(low, high, ends included,
 #: quantity, unit)``; a wavelength must be inside (0, 10000) nm, a temperature inside
 #: [-273.15, 1000] degC, a displacement inside (-1e6, 1e6) um (1 m), a force inside
-#: (-1e7, 1e7) N and a time inside (-1e10, 1e10) s (about 317 years).
+#: (-1e7, 1e7) N, a power inside (-1e7, 1e7) W and a time inside (-1e10, 1e10) s (about 317 years).
 VALUE_BOUNDS = {
     TIME_COLUMN: (-1e10, 1e10, False, "time", "s"),
     "_nm": (0.0, 1e4, False, "wavelength", "nm"),
     "_C": (-273.15, 1000.0, True, "temperature", "degC"),
     "_um": (-1e6, 1e6, False, "displacement", "um"),
     "_N": (-1e7, 1e7, False, "force", "N"),
+    HEAT_SUFFIX: (-1e7, 1e7, False, "power", "W"),
 }
 
 
@@ -88,6 +91,8 @@ def _role_columns(role: str, meta: CampaignMeta) -> tuple[list[str], str]:
         return ([TIME_COLUMN] + [p.column for p in meta.temperature_probes], "time_s and <probe>_C columns")
     if role == REFERENCE_FILE:
         return [TIME_COLUMN, *REFERENCE_COLUMNS], "time_s, dx_um, dy_um, dz_um"
+    if role == HEAT_FILE:
+        return [TIME_COLUMN], "time_s and one <heat source>_W column per measured heat input"
     return [TIME_COLUMN, *LOAD_COLUMNS], "time_s, fx_N, fy_N, fz_N"
 
 
@@ -134,11 +139,22 @@ def _check_columns(role: str, names: list[str], meta: CampaignMeta, file) -> lis
                 file=file,
                 column=label,
             )
+    if role == HEAT_FILE and not any(_is_heat_column(n) for _, n in extra):
+        raise InputError(
+            f"no heat input column; {role} must hold {holds} (e.g. spindle_heat_W)",
+            file=file,
+        )
     # Any other extra column (a status flag, a second interferometer axis, ...) is read, checked
     # like the rest, and left out of the campaign; summary() reports it. The format names the
     # columns a file must hold, not the only ones it may hold. Undeclared <probe>_C columns are
     # kept as probes (and reported by summary()).
+    if role == HEAT_FILE:
+        return required + [n for _, n in extra if _is_heat_column(n)]
     return required + [n for _, n in extra if role == TEMPERATURES_FILE and n.endswith("_C") and len(n) > 2]
+
+
+def _is_heat_column(name: str) -> bool:
+    return name.endswith(HEAT_SUFFIX) and len(name) > len(HEAT_SUFFIX) and name.isprintable()
 
 
 def _cell_problem(text: str) -> str | None:
@@ -426,7 +442,7 @@ def _parse_body(file, names: list[str], body: bytes, first_row: int = 1) -> np.n
 def _bounds_of(column: str):
     if column == TIME_COLUMN:
         return VALUE_BOUNDS[TIME_COLUMN]
-    for suffix in ("_nm", "_C", "_um", "_N"):
+    for suffix in ("_nm", "_C", "_um", "_N", HEAT_SUFFIX):
         if column.endswith(suffix):
             return VALUE_BOUNDS[suffix]
     return None

@@ -12,6 +12,7 @@ The design is described in :mod:`fbgcomp.models.physical`.
 from __future__ import annotations
 
 import copy
+import logging
 from itertools import combinations
 
 import numpy as np
@@ -20,8 +21,8 @@ from scipy.ndimage import uniform_filter1d
 from scipy.optimize import nnls
 
 from fbgcomp.errors import InputError
-from fbgcomp.io.campaign import SensorSpec
-from fbgcomp.io.campaign.align import diff_noise_sd
+from fbgcomp.io.campaign import HEAT_FILE, HEAT_SUFFIX, SensorSpec
+from fbgcomp.io.campaign.align import diff_noise_sd, zero_state
 from fbgcomp.models.base import EstimatorParams, ModelFile, as_campaign_list, check_compatible
 from fbgcomp.models.filters import first_order_filter
 from fbgcomp.models.physical.observer import ThermalObserver, campaign_inputs
@@ -30,6 +31,7 @@ from fbgcomp.models.physical.shapes import check_shapes
 from fbgcomp.models.physical.thermal import (
     CAL_AMBIENT_TAU_S,
     CAL_LEADS_S,
+    HEAT_TAUS_S,
     HOUSING_REST_S,
     ambient_probe_names,
     grating_map,
@@ -44,6 +46,8 @@ from fbgcomp.models.physical.thermal import (
 from fbgcomp.structure.machine import Machine, load_machine
 from fbgcomp.structure.scenarios import ScenarioDesign, generic_heat_machine
 from fbgcomp.units import AXES
+
+log = logging.getLogger(__name__)
 
 #: High-pass of a combined campaign's signals before its load signature is read, s: heat moves
 #: the gratings by minutes to hours, a load step within seconds.
@@ -156,6 +160,15 @@ class PhysicalModel(EstimatorParams, ModelFile):
         load-free training campaigns, divided by the scenarios' mean duty level, within 1/4-4x
         the declared ``nominal_W`` (the declared value where the campaigns show the source
         idle); "declared": the description's ``nominal_W``.
+    heat_inputs : bool
+        Take the measured heat inputs of the campaigns (``heat.csv``: a spindle's power as the
+        CNC reads it) into the housing calibration, low-passed at ``HEAT_TAUS_S``, when every
+        thermal or combined training campaign carries them (:meth:`_calibrate_housing`). The
+        model then reads them after its probes (``probe_names``: ``<source>_W``), and every
+        campaign it judges but a static one must carry them. The housing probe sees a power
+        step minutes late, the power itself at once: ram2's thermal_b dz 4.62 -> 1.88 µm with
+        its bearings' heat read (docs/accuracy.md). Off by default and offline only for now:
+        the runtime refuses such a model (its pipeline is not yet verified with them).
     """
 
     model_type = "physical"
@@ -178,6 +191,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         unseen_relative_error=0.2,
         observer=False,
         heat_prior="training",
+        heat_inputs=False,
     ):
         self.machine = machine
         self.zero_window_s = zero_window_s
@@ -195,6 +209,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         self.unseen_relative_error = unseen_relative_error
         self.observer = observer
         self.heat_prior = heat_prior
+        self.heat_inputs = heat_inputs
 
     # -- fitting -----------------------------------------------------------------------------
     def _machine(self):
@@ -223,6 +238,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         self.probe_names_ = list(
             dict.fromkeys(sensor_probes + references + self.housing_probes_ + self.ambient_probes_)
         )
+        self.heat_inputs_ = self._heat_input_names(campaigns, machine)
         for c in campaigns:
             check_compatible(self, c)
         if machine is not None:
@@ -452,9 +468,23 @@ class PhysicalModel(EstimatorParams, ModelFile):
         self._predictors = {}
         if self.load_ is not None:
             self._calibrate_drift(rows)
-        if self.twin_map_ is not None and thermal_rows and self.housing_probes_ and self.calibrate_housing:
+        calibrating = (
+            self.twin_map_ is not None and thermal_rows and self.housing_probes_ and self.calibrate_housing
+        )
+        if self.heat_inputs_ and not calibrating:
+            # only the housing calibration takes the heat inputs
+            log.warning(
+                "heat.csv (%s) not used: the housing calibration takes it, and it runs only with a "
+                "machine description, a housing probe and a load-free training campaign",
+                ", ".join(self.heat_inputs_),
+            )
+            self.heat_inputs_ = []
+        if calibrating:
             self.twin_map_["calibration"] = self._calibrate_housing(rows, campaigns)
-            self.twin_map_["calibration"]["noise_sd_um"] = self._noise_floor(campaigns).tolist()
+            noise, heat_noise = self._noise_floor(campaigns)
+            self.twin_map_["calibration"]["noise_sd_um"] = noise.tolist()
+            if self.heat_inputs_:
+                self.twin_map_["calibration"]["heat_noise_sd_um"] = heat_noise.tolist()
             self._predictors = {}
         if self.twin_map_ is not None and thermal_rows:
             # the map's error on the measured load-free campaigns (only the housing transient is
@@ -547,8 +577,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
         return scale
 
     def _noise_floor(self, campaigns, duration_s=NOISE_FLOOR_S):
-        """SD (3,) µm of the thermal part (twin map and housing calibration, unclipped) that
-        the instruments' white noise alone makes, nothing moving: each probe at its own noise
+        """SD (3,) µm of the thermal part (twin map and housing calibration, unclipped), and of
+        its measured heat inputs' part alone (3,), that the instruments' white noise alone
+        makes, nothing moving: each probe at its own noise
         (:func:`probe_noise_sd_K`) on its own sampling interval, held on the frame clock as a live
         feed is, each grating at its frame noise, ``duration_s`` of frames past the housing's
         rest window (seeded: the same model file for the same data).
@@ -575,6 +606,21 @@ class PhysicalModel(EstimatorParams, ModelFile):
         for j in range(P):
             held = np.floor(t / max(every[j], dt)).astype(int)
             temps[:, j] = rng.normal(0.0, sd[j], held.max() + 1)[held]
+        # the measured heat inputs at their own white noise (from successive differences,
+        # the largest any campaign shows) on their own sampling interval
+        H = len(self.heat_inputs_)
+        heat = np.zeros((t.size, H))
+        for j, h in enumerate(self.heat_inputs_):
+            sd_h, every_h = 0.0, dt
+            for c in campaigns:
+                if h in c.heat_names:
+                    ht, hv = c.heat_inputs()
+                    if len(ht) > 11:
+                        sd_h = max(sd_h, float(diff_noise_sd(hv[:, c.heat_names.index(h)])))
+                        every_h = float(np.median(np.diff(ht)))
+            held = np.floor(t / max(every_h, dt)).astype(int)
+            heat[:, j] = rng.normal(0.0, sd_h, held.max() + 1)[held]
+        temps = np.hstack([temps, heat])
         lam0 = np.array([s.lambda0_nm for s in self.sensors_])
         el_sd = (
             np.sqrt(np.asarray(self.load_["noise_var_um2"], float)) if self.load_ is not None else np.zeros(S)
@@ -582,10 +628,13 @@ class PhysicalModel(EstimatorParams, ModelFile):
         el = rng.normal(0.0, 1.0, (t.size, S)) * el_sd
         wl = grating_wavelengths_nm(self.sensors_, el)
         p = PhysicalPredictor(self)
-        out, _ = p.predict(wl, temps, lam0, np.zeros(P), time_s=t, thermal_policy=False)
+        out, _ = p.predict(wl, temps, lam0, np.zeros(P + H), time_s=t, thermal_policy=False)
         thermal = out - p.last_force_N @ p.C.T if p.has_load else out
         past = t > HOUSING_REST_S
-        return np.sqrt(np.mean(thermal[past] ** 2, axis=0))
+        cal = self.twin_map_["calibration"]
+        k0 = 1 + len(cal["leads_s"]) + ("ambient_tau_s" in cal)
+        heat_part = p.last_cal_features[past, k0:] @ np.asarray(cal["coef"], float)[k0:]
+        return np.sqrt(np.mean(thermal[past] ** 2, axis=0)), np.sqrt(np.mean(heat_part**2, axis=0))
 
     def _calibrate_housing(self, rows, campaigns):
         """Least squares (no intercept, campaigns weighted equally) of the twin map's error on
@@ -600,11 +649,13 @@ class PhysicalModel(EstimatorParams, ModelFile):
         spindle duty cycle excites it, so the measured campaigns can teach it. The face-gradient
         coefficients stay the twin's (no campaign without a gradient can teach them)."""
         amb = {"ambient_tau_s": CAL_AMBIENT_TAU_S} if self.ambient_probes_ else {}
-        k = 1 + len(CAL_LEADS_S) + len(amb)
+        heat = {"heat_taus_s": list(HEAT_TAUS_S)} if self.heat_inputs_ else {}
+        k = 1 + len(CAL_LEADS_S) + len(amb) + len(HEAT_TAUS_S) * len(self.heat_inputs_)
         # the map as it stands, with the leads computed alongside (zero coefficients)
         self.twin_map_["calibration"] = {
             "leads_s": list(CAL_LEADS_S),
             **amb,
+            **heat,
             "coef": np.zeros((k, 3)).tolist(),
             "envelope_low": [-1e9] * k,
             "envelope_high": [1e9] * k,
@@ -626,6 +677,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         return {
             "leads_s": list(CAL_LEADS_S),
             **amb,
+            **heat,
             "coef": coef.tolist(),
             "source": "measured load-free campaigns",
             "envelope_low": L.min(axis=0).tolist(),
@@ -727,6 +779,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         fastest = np.inf
         for c, a, r in zip(campaigns, aligned, rows):
             ft, w, t = self.frame_arrays(c, a)
+            t = t[:, : len(self.probe_names_)]  # the probes (the heat inputs follow them)
             if ft.size < 10:
                 continue
             out = np.maximum(out, diff_noise_sd(fmap.base(w, t, *r["zero"])) ** 2)
@@ -938,6 +991,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         p = PhysicalPredictor(self, exclude)  # fresh filter state per campaign
         _, _, w0, t0 = self.instrument_arrays(aligned)
         frame_t, w, t = self.frame_arrays(campaign, aligned)
+        t0 = np.concatenate([t0, self._heat_zero_W(campaign)])
         mean, half = p.predict(w, t, w0, t0, time_s=frame_t, raw=raw, thermal_policy=policy)
         at = np.clip(np.searchsorted(frame_t, aligned.time_s, side="right") - 1, 0, frame_t.size - 1)
         return mean[at], half[at], p, at
@@ -947,7 +1001,8 @@ class PhysicalModel(EstimatorParams, ModelFile):
         overlap, with each probe's last reading at that frame (held, as a live feed is).
 
         Returns frame times (s), wavelengths (n, sensors) nm and temperatures (n, probes) degC
-        in the model's order. The load tracker runs on this clock (its filters are set in
+        in the model's order, then its measured heat inputs (W, :meth:`_heat_frames`). The load
+        tracker runs on this clock (its filters are set in
         seconds), so validation sees the correction the runtime would publish, not one computed
         from gratings averaged over each reference interval.
         """
@@ -964,7 +1019,76 @@ class PhysicalModel(EstimatorParams, ModelFile):
             for j, p in enumerate(names):
                 if p in self.probe_names_:
                     temps[:, self.probe_names_.index(p)] = tv[held, j]
-        return ft, w, temps
+        return ft, w, np.hstack([temps, self._heat_frames(campaign, ft)])
+
+    # -- measured heat inputs (heat.csv) -----------------------------------------------------
+    @property
+    def probe_names(self) -> list:
+        """The slow inputs the model reads, in its order: its probes (°C), then its measured
+        heat inputs as ``<source>_W`` (W); the runtime feeds them as it feeds probes."""
+        return list(self.probe_names_) + [f"{h}{HEAT_SUFFIX}" for h in getattr(self, "heat_inputs_", [])]
+
+    def _heat_input_names(self, campaigns, machine) -> list:
+        """The heat inputs every thermal or combined training campaign carries (heat.csv), in
+        the first one's order; [] when one carries none, or ``heat_inputs`` is off. A static
+        campaign is one at rest: the spindle stopped, with or without heat.csv."""
+        moving = [c for c in campaigns if c.meta.kind != "static"]
+        if not self.heat_inputs or not moving:
+            return []
+        names = [h for h in moving[0].heat_names if all(h in c.heat_names for c in moving[1:])]
+        clash = [q for q in self.probe_names_ if q.endswith(HEAT_SUFFIX)]
+        if names and clash:
+            c = moving[0]
+            raise InputError(
+                f"probe {clash[0]} ends in {HEAT_SUFFIX}, the runtime's mark of a heat input; rename "
+                "the probe or fit with heat_inputs off",
+                file=(c.path / "temperatures.csv") if c.path is not None else c.name,
+                column=f"{clash[0]}_C",
+            )
+        unknown = [
+            h for h in names if machine is not None and h not in {src.name for src in machine.thermal.sources}
+        ]
+        if unknown:
+            log.warning(
+                "heat.csv input(s) %s name no heat source of the machine description; taken as measured "
+                "inputs all the same",
+                ", ".join(unknown),
+            )
+        return names
+
+    def _check_heat(self, campaign):
+        """InputError unless ``campaign`` carries the model's heat inputs (a static one may not)."""
+        missing = [h for h in self.heat_inputs_ if h not in campaign.heat_names]
+        if missing and (campaign.heat is not None or campaign.meta.kind != "static"):
+            where = campaign.path / HEAT_FILE if campaign.path is not None else campaign.name
+            raise InputError(
+                f"the model was fitted with the measured heat input {missing[0]} and the campaign "
+                f"does not carry it (a {campaign.meta.kind} campaign must, as a column "
+                f"{missing[0]}{HEAT_SUFFIX} of {HEAT_FILE})",
+                file=where,
+                column=f"{missing[0]}{HEAT_SUFFIX}",
+            )
+        return not missing
+
+    def _heat_frames(self, campaign, frame_t) -> np.ndarray:
+        """The model's heat inputs (W) at each frame, each its last reading (held, as a live
+        feed is); zeros for a static campaign without heat.csv (at rest)."""
+        H = len(getattr(self, "heat_inputs_", []))
+        if not H or not self._check_heat(campaign):
+            return np.zeros((np.size(frame_t), H))
+        ht, hv = campaign.heat_inputs()
+        cols = [campaign.heat_names.index(h) for h in self.heat_inputs_]
+        held = np.clip(np.searchsorted(ht, frame_t, side="right") - 1, 0, ht.size - 1)
+        return hv[held][:, cols]
+
+    def _heat_zero_W(self, campaign) -> np.ndarray:
+        """The heat inputs' zero state (W): their mean over the zero window, as the probes'."""
+        H = len(getattr(self, "heat_inputs_", []))
+        if not H or not self._check_heat(campaign):
+            return np.zeros(H)
+        ht, hv = campaign.heat_inputs()
+        cols = [campaign.heat_names.index(h) for h in self.heat_inputs_]
+        return zero_state(ht, hv[:, cols], self.zero_window_s)
 
     # -- reporting and persistence -----------------------------------------------------------
     def summary(self) -> str:
@@ -1017,12 +1141,18 @@ class PhysicalModel(EstimatorParams, ModelFile):
             if cal is not None:
                 out += [
                     f"housing transient calibrated on the {cal.get('source', 'measured campaigns')} "
-                    "(µm per K)",
+                    "(µm per K"
+                    + (
+                        f"; measured heat inputs {', '.join(self.heat_inputs_)} low-passed, µm per W)"
+                        if cal.get("heat_taus_s")
+                        else ")"
+                    ),
                     f"{'term':<22}" + "".join(f"{a:>11}" for a in AXES),
                 ]
                 names = ["dT_housing"] + [f"lead{t:g}s_housing" for t in cal["leads_s"]]
                 if "ambient_tau_s" in cal:
                     names.append(f"ambient{cal['ambient_tau_s']:g}s")
+                names += [f"{h}_lp{t:g}s" for t in cal.get("heat_taus_s") or () for h in self.heat_inputs_]
                 for name, row in zip(names, np.asarray(cal["coef"]), strict=True):
                     out.append(f"{name:<22}" + "".join(f"{v:>11.4g}" for v in row))
             basis = np.asarray(tm.get("unseen_basis", []), float)
@@ -1077,6 +1207,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
                 "zero_state": {"method": "mean_of_first_window", "window_s": self.zero_window_s},
                 "sensors": [s.model_dump(mode="json") for s in self.sensors_],
                 "probes": list(self.probe_names_),
+                "heat_inputs": list(self.heat_inputs_),
                 "housing_probes": list(self.housing_probes_),
                 "ambient_probes": list(self.ambient_probes_),
                 "nominal_dt_s": self.nominal_dt_s_,
@@ -1114,6 +1245,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         m = cls(**d.get("params", {}))
         m.sensors_ = [SensorSpec(**s) for s in d["sensors"]]
         m.probe_names_ = list(d["probes"])
+        m.heat_inputs_ = list(d.get("heat_inputs") or [])
         m.housing_probes_ = list(d["housing_probes"])
         m.ambient_probes_ = list(d["ambient_probes"])
         m.nominal_dt_s_ = float(d["nominal_dt_s"])
@@ -1131,7 +1263,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         m._predictors = {}
         # what loaded must predict finite numbers with every sensor set the runtime may use
         w0 = np.array([s.lambda0_nm for s in m.sensors_])
-        t0 = np.full(len(m.probe_names_), 20.0)
+        t0 = np.full(len(m.probe_names), 20.0)
         for exclude in [frozenset(), *m.fallback_sets]:
             dev, half = PhysicalPredictor(m, exclude).predict(w0[None, :] + 0.01, t0[None, :] + 0.5, w0, t0)
             if not (np.isfinite(dev).all() and np.isfinite(half).all()):

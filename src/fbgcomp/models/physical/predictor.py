@@ -144,6 +144,8 @@ class PhysicalPredictor:
         self.exclude = frozenset(exclude)
         self.sensor_names = list(m.sensor_names)
         self.probe_names = list(m.probe_names_)
+        # measured heat inputs (W), read after the probes in the slow inputs' columns
+        self.heat_names = list(getattr(m, "heat_inputs_", None) or [])
         self._fmap = grating_map(m.sensors_, m.probe_names_)
         self._h_idx = [self.probe_names.index(p) for p in m.housing_probes_]
         self._a_idx = [self.probe_names.index(p) for p in m.ambient_probes_]
@@ -282,6 +284,10 @@ class PhysicalPredictor:
                 else {
                     "leads_s": tuple(float(x) for x in cal["leads_s"]),
                     "ambient_tau_s": cal.get("ambient_tau_s"),
+                    "heat_taus_s": tuple(float(x) for x in cal.get("heat_taus_s") or ()),
+                    # the columns before the heat inputs' (housing, its leads, the ambient)
+                    "k_probes": 1 + len(cal["leads_s"]) + (cal.get("ambient_tau_s") is not None),
+                    "heat_noise_sd": np.asarray(cal.get("heat_noise_sd_um", [0.0] * 3), float),
                     "coef": np.asarray(cal["coef"], float),
                     "low": np.asarray(cal["envelope_low"], float),
                     "high": np.asarray(cal["envelope_high"], float),
@@ -908,9 +914,17 @@ class PhysicalPredictor:
         thermal_policy=True,
     ):
         """Applied TTP deviation (n, 3) µm and 95 % half-width (n, 3) µm; ``raw=True`` skips
-        the policy (envelope clipping, axis clamp, load gating) for diagnosis."""
+        the policy (envelope clipping, axis clamp, load gating) for diagnosis.
+
+        ``temperature_C`` holds the probes (°C) and, after them, the measured heat inputs (W)
+        of a model fitted with them (``heat_names``); ``temperature_zero_C`` likewise."""
         wl = np.atleast_2d(np.asarray(wavelength_nm, dtype=float))
         n = wl.shape[0]
+        P_ = len(self.probe_names)
+        heat_W = np.atleast_2d(np.asarray(temperature_C, float))[:, P_:]
+        heat_zero_W = np.asarray(temperature_zero_C, float)[P_:]
+        temperature_C = np.atleast_2d(np.asarray(temperature_C, float))[:, :P_]
+        temperature_zero_C = np.asarray(temperature_zero_C, float)[:P_]
         flags = np.zeros((n, 3), np.uint8)
         spread = np.zeros((n, 3))
         unseen = np.zeros((n, 3))
@@ -1012,6 +1026,8 @@ class PhysicalPredictor:
                     )
                 else:
                     new_state["cal"] = dict(state.get("cal", {}))
+                if self.cal["heat_taus_s"]:
+                    L = np.hstack([L, self._heat_features(heat_W - heat_zero_W, time_s, state, new_state)])
             self.last_cal_features = L
             self.last_map_features = X
             policy = not (raw or not thermal_policy)
@@ -1031,12 +1047,25 @@ class PhysicalPredictor:
             else:
                 multi = self.map["n_members"] > 1
                 thermal = consensus(each.transpose(1, 0, 2)) if multi else Xc @ self.map["coef"]
+                heat_part = 0.0
                 if L is not None:
                     Lc, out_l = P.clip_to_envelope(L, self.cal["low"], self.cal["high"], self.margin)
-                    thermal = thermal + Lc @ self.cal["coef"]
+                    k0 = self.cal["k_probes"]
+                    thermal = thermal + Lc[:, :k0] @ self.cal["coef"][:k0]
                     outside = outside | out_l
+                    if k0 < L.shape[1]:
+                        # the measured heat inputs' part: what their own noise alone makes
+                        # of it is held back, not what the probes' and gratings' noise makes
+                        # of the rest (a spindle start the power shows at once would otherwise
+                        # wait behind the map's threshold)
+                        heat_part = P.firm(
+                            Lc[:, k0:] @ self.cal["coef"][k0:],
+                            self.cal["heat_noise_sd"],
+                            self.k_sigma,
+                            2 * self.k_sigma,
+                        )
                 # what the sensors' noise alone would make of the map is not applied
-                thermal = P.firm(thermal, self.map_noise_sd_um, self.k_sigma, 2 * self.k_sigma)
+                thermal = P.firm(thermal, self.map_noise_sd_um, self.k_sigma, 2 * self.k_sigma) + heat_part
                 thermal, clamped = P.clamp_axes(thermal, self.t_low, self.t_high)
                 flags[outside] |= P.SHRUNK
                 flags[clamped] |= P.CLAMPED
@@ -1077,6 +1106,24 @@ class PhysicalPredictor:
         self.last_spread = spread
         self.last_unseen = unseen
         return deviation, self._t * np.sqrt(self._variance(dT, activity, force, spread, unseen, moving))
+
+    def _heat_features(self, dP_W, time_s, state, new_state):
+        """The measured heat inputs' changes since the zero state (W) low-passed at each of the
+        calibration's ``heat_taus_s``: (n, taus x inputs), tau-major. The filters start at 0
+        (the machine at rest in its zero state) and run from the first frame."""
+        n, H = dP_W.shape
+        if len(self.heat_names) != H:
+            raise ValueError(
+                f"expected {len(self.heat_names)} heat input column(s) after the probes, got {H}"
+            )
+        prev = state.get("heat", {})
+        new_state["heat"] = {}
+        out = np.zeros((n, H * len(self.cal["heat_taus_s"])))
+        for k, tau in enumerate(self.cal["heat_taus_s"]):
+            out[:, k * H : (k + 1) * H], new_state["heat"][tau] = first_order_filter(
+                dP_W, time_s, tau, prev.get(tau) or (np.zeros(H), None), self.nominal_dt_s
+            )
+        return out
 
     def _with_observer(
         self, thermal, spread, e_th, force, moving, dT, time_s, lost, state, new_state, policy

@@ -43,6 +43,8 @@ def check_shapes(d: dict, source) -> None:
     for key in ("housing_probes", "ambient_probes"):
         got = names(d.get(key), key)
         need(all(p in probes for p in got), key, "names a probe the model does not read")
+    heat = names(d.get("heat_inputs", []), "heat_inputs")
+    need(not set(heat) & set(probes), "heat_inputs", "names a probe")
     S, P = len(sensor_names), len(probes)
     nh = 1 + len(d["housing_probes"]) + len(d["ambient_probes"]) + (1 if d["housing_probes"] else 0)
     need(
@@ -159,6 +161,16 @@ def check_shapes(d: dict, source) -> None:
                 tau = array([cal["ambient_tau_s"]], "twin_map.calibration.ambient_tau_s", (1,))
                 need(tau[0] > 0, "twin_map.calibration.ambient_tau_s", "must be a positive time constant")
                 k += 1
+            taus = cal.get("heat_taus_s") or []
+            need(
+                isinstance(taus, list) and (len(taus) > 0) == (len(heat) > 0),
+                "twin_map.calibration.heat_taus_s",
+                "must be a list of time constants exactly when the model has heat_inputs",
+            )
+            if taus:
+                taus = array(taus, "twin_map.calibration.heat_taus_s", (len(taus),))
+                need(np.all(taus > 0), "twin_map.calibration.heat_taus_s", "must be positive time constants")
+                k += taus.size * len(heat)
             array(cal.get("coef"), "twin_map.calibration.coef", (k, 3))
             for key in ("envelope_low", "envelope_high"):
                 array(cal.get(key), f"twin_map.calibration.{key}", (k,))

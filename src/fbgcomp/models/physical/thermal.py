@@ -134,6 +134,15 @@ CAL_LEADS_S = (300.0, 900.0)
 #: radiant load or the spindle for a change of the hall's temperature.
 CAL_AMBIENT_TAU_S = 3600.0
 
+#: Time constants of the measured heat inputs' low-passes (heat.csv: a spindle's power as the
+#: CNC reads it) on which the housing calibration takes them, s: a steel housing's response to a
+#: power step, from the bearings' own zone (tens of seconds) to the housing and the ram's end
+#: (half an hour). The housing's probe sees a power step minutes late; the power itself at once.
+#: Measured (the bearings' heat of ram2's and ram3's truth files, read at 1 s with 5 W of noise,
+#: fitted on thermal_a): thermal_b dz 4.62 -> 0.66 µm (ram2) and 7.40 -> 0.94 µm (ram3); sets
+#: of three time constants from 60 to 3600 s gave within 0.1 µm of these.
+HEAT_TAUS_S = (30.0, 120.0, 600.0, 1800.0)
+
 #: The housing's rest level for the calibrated leads: the mean of its probes over the first
 #: ``HOUSING_REST_S`` seconds, s. One fastest lead's time constant: 30 samples of a probe read
 #: every 10 s put the level within 0.1 K / sqrt(30) = 0.018 K, 3 sigma of which make 0.6 µm
