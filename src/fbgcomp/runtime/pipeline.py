@@ -52,7 +52,6 @@ from typing import Any
 
 import numpy as np
 
-from fbgcomp.errors import InputError
 from fbgcomp.runtime import health as H
 from fbgcomp.runtime.output_filter import AdaptiveLevelFilter, OutputFilterConfig
 from fbgcomp.runtime.outputs.cnc_form import reference_z_mm, takes_z
@@ -134,13 +133,6 @@ class Pipeline:
     """Stateful batch processor around a loaded model (see ``fbgcomp.models.base.load_model``)."""
 
     def __init__(self, model, config: PipelineConfig | None = None):
-        heat = getattr(model, "heat_inputs_", None)
-        if heat:
-            raise InputError(
-                f"the model was fitted with measured heat inputs ({', '.join(heat)}, heat.csv), "
-                "which the runtime does not serve yet; fit it with heat_inputs=False to serve it",
-                column="model heat_inputs",
-            )
         self.model = model
         self.config = config or PipelineConfig()
         self.sensor_names = list(model.sensor_names)

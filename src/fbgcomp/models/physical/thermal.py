@@ -135,13 +135,15 @@ CAL_LEADS_S = (300.0, 900.0)
 CAL_AMBIENT_TAU_S = 3600.0
 
 #: Time constants of the measured heat inputs' low-passes (heat.csv: a spindle's power as the
-#: CNC reads it) on which the housing calibration takes them, s: a steel housing's response to a
-#: power step, from the bearings' own zone (tens of seconds) to the housing and the ram's end
-#: (half an hour). The housing's probe sees a power step minutes late; the power itself at once.
-#: Measured (the bearings' heat of ram2's and ram3's truth files, read at 1 s with 5 W of noise,
-#: fitted on thermal_a): thermal_b dz 4.62 -> 0.66 µm (ram2) and 7.40 -> 0.94 µm (ram3); sets
-#: of three time constants from 60 to 3600 s gave within 0.1 µm of these.
-HEAT_TAUS_S = (30.0, 120.0, 600.0, 1800.0)
+#: CNC reads it) on which the housing calibration takes them, s: the bearings' own zone (about a
+#: minute) and the steel housing (about ten). The housing's probe sees a power step minutes late,
+#: the power itself at once; what is slower the probes see in time. Measured (the bearings' heat
+#: of ram2's and ram3's truth files read at 1 s with 5 W of noise, fitted on thermal_a +
+#: static_xyz, 2026-11-28): thermal_b dz 4.62 -> 1.84 µm (ram2) and 7.40 -> 2.96 (ram3). Four
+#: (30-1800 s) fitted one campaign's duty history too closely: ram3's thermal_c dy, unloaded,
+#: 0.53 -> 2.15 µm of median error (1.35 with these two); one (300 s) left ram3's thermal_b dy
+#: at 4.67 µm against 4.41.
+HEAT_TAUS_S = (60.0, 600.0)
 
 #: The housing's rest level for the calibrated leads: the mean of its probes over the first
 #: ``HOUSING_REST_S`` seconds, s. One fastest lead's time constant: 30 samples of a probe read
