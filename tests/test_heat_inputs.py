@@ -16,10 +16,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from fbgcomp.bench.served import served
 from fbgcomp.errors import InputError
 from fbgcomp.io.campaign import read_campaign, write_campaign
 from fbgcomp.models.physical import PhysicalModel
-from fbgcomp.bench.served import served
 from fbgcomp.runtime.sources import TableTemperatures
 from fbgcomp_testing import RAM2_DIR
 
@@ -51,9 +51,7 @@ def ram2_heat(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def heat_model(ram2_heat):
-    return PhysicalModel(machine=MACHINE).fit(
-        [ram2_heat["thermal_a"], ram2_heat["static_xyz"]]
-    )
+    return PhysicalModel(machine=MACHINE).fit([ram2_heat["thermal_a"], ram2_heat["static_xyz"]])
 
 
 def test_heat_csv_is_read_checked_and_written_back(tmp_path):
@@ -108,7 +106,7 @@ def test_the_measured_power_takes_dz_below_2_um_on_ram2_served_by_the_runtime(ra
     assert m.heat_inputs_ == ["spindle_heat"]
     assert m.probe_names[-1] == "spindle_heat_W"  # the runtime's slow inputs: probes, then the power
     assert "spindle_heat_lp60s" in m.summary()
-    corr, ref, out = served(m, ram2_heat["thermal_b"])
+    corr, ref, _ = served(m, ram2_heat["thermal_b"])
     err, uncomp = np.abs(ref + corr).max(axis=0), np.abs(ref).max(axis=0)
     # without the power the default leaves 4.6 µm of thermal_b's dz (docs/accuracy.md)
     assert err[2] <= 2.0, err
@@ -140,7 +138,9 @@ def test_a_model_with_heat_inputs_round_trips_and_refuses_a_campaign_without_the
 
 
 def test_heat_inputs_can_be_left_out(ram2_heat):
-    off = PhysicalModel(machine=MACHINE, heat_inputs=False).fit([ram2_heat["thermal_a"], ram2_heat["static_xyz"]])
+    off = PhysicalModel(machine=MACHINE, heat_inputs=False).fit(
+        [ram2_heat["thermal_a"], ram2_heat["static_xyz"]]
+    )
     assert off.heat_inputs_ == [] and off.probe_names == off.probe_names_
     assert "heat_taus_s" not in off.twin_map_["calibration"]
 
@@ -161,7 +161,9 @@ def test_fit_and_validate_with_heat_csv_through_the_console(ram2_heat, tmp_path)
         )
 
     model = tmp_path / "m.json"
-    r = run("fit", ram2_heat["thermal_a"].path, ram2_heat["static_xyz"].path, "--machine", MACHINE, "-o", model)
+    r = run(
+        "fit", ram2_heat["thermal_a"].path, ram2_heat["static_xyz"].path, "--machine", MACHINE, "-o", model
+    )
     assert r.returncode == 0, r.stderr
     assert json.loads(model.read_text())["heat_inputs"] == ["spindle_heat"]
     metrics = tmp_path / "metrics.json"
@@ -174,3 +176,40 @@ def test_fit_and_validate_with_heat_csv_through_the_console(ram2_heat, tmp_path)
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
     assert "heat.csv" in lines[0] and "spindle_heat_W" in lines[0], lines[0]
+
+
+def test_serve_replays_the_power_logs_it_and_exports_it_as_heat_csv(ram2_heat, heat_model, tmp_path):
+    """``fbgcomp serve`` on thermal_b replayed at 200x for 14 s (the power feeds the model like a
+    probe; the zero window is 10 s of the replay's clock), logged; ``fbgcomp log export`` gives
+    the power back as heat.csv."""
+    from fbgcomp.cli.app import main
+    from fbgcomp.runtime.log import read_log
+
+    model = tmp_path / "m.json"
+    heat_model.save(model)
+    folder = ram2_heat["thermal_b"].path
+    code = main(
+        [
+            *("serve", "--model", str(model), "--source", f"replay://{folder}?speed=200", "--opcua", "off"),
+            *("--log", str(tmp_path / "log"), "--duration", "14"),
+        ]
+    )
+    assert code == 0
+    meta, df = read_log(tmp_path / "log")
+    assert meta["heat_inputs"] == ["spindle_heat_W"] and "spindle_heat_W" in df.columns
+    assert "spindle_heat_W_C" not in df.columns
+    logged = df["spindle_heat_W"].to_numpy()
+    assert np.isfinite(logged).all() and logged.max() > 50.0  # thermal_b starts its spindle at once
+    # what was served is the campaign's power at each frame's campaign time
+    c = ram2_heat["thermal_b"]
+    t, p = c.heat_inputs()
+    camp_t = (df["time_s"].to_numpy() - df["time_s"].to_numpy()[0]) * 200.0
+    held = p[np.clip(np.searchsorted(t, camp_t + t[0], side="right") - 1, 0, t.size - 1), 0]
+    assert np.mean(np.abs(held - logged) < 20.0) > 0.9
+    health = np.asarray(df["health"])  # codes of HEALTH_NAMES: OK 0, ZEROING 3
+    assert (health[-100:] == 0).all(), np.unique(health, return_counts=True)
+    out = tmp_path / "exported"
+    assert main(["log", "export", str(tmp_path / "log"), "-o", str(out)]) == 0
+    back = read_campaign(out)
+    assert back.heat_names == ["spindle_heat"]
+    np.testing.assert_allclose(back.heat_inputs()[1][:, 0], logged[: len(back.heat)])
