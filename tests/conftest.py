@@ -140,6 +140,11 @@ SLOW = {
     "tests/test_runtime_hyperion.py::test_temporary_faults_end_and_garbage_makes_the_source_reconnect": 1.0,
     "tests/test_runtime_pipeline.py::test_model_reload_keeps_the_re_admission_check": 1.8,
     "tests/test_runtime_ram2.py": 71.0,
+    "tests/test_heat_inputs.py::test_the_measured_power_takes_dz_below_2_um_on_ram2_served_by_the_runtime": 40.0,
+    "tests/test_heat_inputs.py::test_a_model_with_heat_inputs_round_trips_and_refuses_a_campaign_without_them": 5.0,
+    "tests/test_heat_inputs.py::test_heat_inputs_can_be_left_out": 8.0,
+    "tests/test_heat_inputs.py::test_fit_and_validate_with_heat_csv_through_the_console": 28.0,
+    "tests/test_heat_inputs.py::test_serve_replays_the_power_logs_it_and_exports_it_as_heat_csv": 20.0,
     "tests/test_physical.py::test_a_fallback_holds_back_what_its_lost_gratings_told_the_full_map": 16.0,
 }
 
