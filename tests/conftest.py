@@ -145,6 +145,7 @@ SLOW = {
     "tests/test_heat_inputs.py::test_heat_inputs_can_be_left_out": 8.0,
     "tests/test_heat_inputs.py::test_fit_and_validate_with_heat_csv_through_the_console": 28.0,
     "tests/test_heat_inputs.py::test_serve_replays_the_power_logs_it_and_exports_it_as_heat_csv": 20.0,
+    "tests/test_heat_inputs.py::test_serve_reads_the_spindle_power_over_opcua_and_holds_when_it_goes_stale": 60.0,
     "tests/test_physical.py::test_a_fallback_holds_back_what_its_lost_gratings_told_the_full_map": 16.0,
 }
 

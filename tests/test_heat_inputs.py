@@ -10,6 +10,7 @@ default model and judge it on campaigns it never saw, served through the runtime
 from __future__ import annotations
 
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -213,3 +214,69 @@ def test_serve_replays_the_power_logs_it_and_exports_it_as_heat_csv(ram2_heat, h
     back = read_campaign(out)
     assert back.heat_names == ["spindle_heat"]
     np.testing.assert_allclose(back.heat_inputs()[1][:, 0], logged[: len(back.heat)])
+
+
+def test_serve_reads_the_spindle_power_over_opcua_and_holds_when_it_goes_stale(
+    ram2_heat, heat_model, tmp_path
+):
+    """The real ``fbgcomp serve`` fed by the real ``sim-interrogator`` (ram2's thermal_b), its
+    probes from the campaign and the spindle's power from a real asyncua server, as a CNC
+    publishes it: the power reaches the model (the logged correction is the offline pipeline's on
+    the logged inputs, and differs from it with the power at 0) and a stale power is a missing
+    input (ALARM, held)."""
+    import fbgcomp_testing
+    from fbgcomp.models.registry import load_model
+    from fbgcomp.runtime.pipeline import Pipeline
+    from test_runtime_live_inputs import ENV, OpcUaTestServer
+    from test_runtime_support import serve_with_simulator
+
+    fbgcomp_testing.require("asyncua")
+    model = tmp_path / "m.json"
+    heat_model.save(model)
+    campaign = ram2_heat["thermal_b"].path
+    with OpcUaTestServer({"Spindle_P": 0.0}) as cnc:
+        toml = f"""
+[temperatures.opcua]
+endpoint = "{cnc.endpoint}"
+nodes = {{ spindle_heat_W = "ns=2;s=Spindle_P" }}
+stale_s = 1.5
+"""
+        with serve_with_simulator(
+            tmp_path, toml, model, campaign, ENV, sim_args=("--rate", "50", "--speed", "20")
+        ) as run:
+            seen = run.watch(["Health"], 40, lambda s: any(n == "Health" and v == "OK" for n, v, *_ in s))
+            assert any(n == "Health" and v == "OK" for n, v, *_ in seen), seen
+            cnc.values["Spindle_P"] = 150.0  # the spindle starts
+            time.sleep(4.0)
+            cnc.frozen.add("Spindle_P")  # the CNC's OPC UA server stops updating it
+            t_frozen = time.time()
+            seen = run.watch(["Health"], 20, lambda s: any(n == "Health" and v == "ALARM" for n, v, *_ in s))
+            run.serve.terminate()
+            run.serve.wait(20)
+    assert any(n == "Health" and v == "ALARM" for n, v, *_ in seen), seen
+    assert next(r[3] - t_frozen for r in seen if r[1] == "ALARM") > 1.0
+    df = pd.read_parquet(tmp_path / "log" / "data").sort_values("time_s").reset_index(drop=True)
+    health = df["health"].astype(str).to_numpy()
+    ok = health == "OK"
+    assert set(df.loc[ok, "spindle_heat_W"]) == {0.0, 150.0}
+    assert df.loc[(health == "ALARM"), "spindle_heat_W"].isna().any()
+
+    def offline(power):
+        m = load_model(model)
+        cols = [f"{p}_C" for p in m.probe_names_] + ["spindle_heat_W"]
+        slow = df[cols].to_numpy(float).copy()
+        slow[:, -1] = power
+        w = df[[f"{s}_nm" for s in m.sensor_names]].to_numpy(float)
+        counts = df[[f"{s}_peaks" for s in m.sensor_names]].to_numpy(np.int8)
+        pipe, t, out = Pipeline(m), df["time_s"].to_numpy(float), []
+        for i in range(0, t.size, 50):
+            s_ = slice(i, i + 50)
+            out.append(
+                pipe.process(t[s_], w[s_], counts[s_], np.zeros_like(counts[s_]), slow[s_]).deviation_um
+            )
+        return np.concatenate(out)
+
+    dev = df[["dev_dx_um", "dev_dy_um", "dev_dz_um"]].to_numpy()
+    np.testing.assert_allclose(dev[ok], offline(df["spindle_heat_W"].to_numpy(float))[ok], atol=1e-9)
+    idle = offline(0.0)
+    assert np.abs(dev[ok, 2] - idle[ok, 2]).max() > 0.1  # the power moved dz
