@@ -209,6 +209,12 @@ def test_serve_replays_the_power_logs_it_and_exports_it_as_heat_csv(ram2_heat, h
     assert np.mean(np.abs(held - logged) < 20.0) > 0.9
     health = np.asarray(df["health"])  # codes of HEALTH_NAMES: OK 0, ZEROING 3
     assert (health[-100:] == 0).all(), np.unique(health, return_counts=True)
+    # the dashboard's drift history reads the log; its temperature chart leaves the power out
+    from fbgcomp.dashboard.history import LogHistory
+
+    drift = LogHistory(tmp_path / "log").window(600.0, budget_s=30.0)
+    assert drift["probes"] == heat_model.probe_names_
+    assert "T_amb_C" in drift["series"] and not any("spindle" in k for k in drift["series"])
     out = tmp_path / "exported"
     assert main(["log", "export", str(tmp_path / "log"), "-o", str(out)]) == 0
     back = read_campaign(out)

@@ -166,6 +166,9 @@ class LogHistory:
             meta = read_meta(self.folder)
             probes = list(meta.get("probe_names") or [])
             sensors = list(meta.get("sensor_names") or [])
+            # the temperature chart's probes: not the measured heat inputs (W), logged as <source>_W
+            heat = set(meta.get("heat_inputs") or [])
+            probes = [p for p in probes if p not in heat]
             values = (
                 [f"corr_{a}_um" for a in AXES] + [f"dev_{a}_um" for a in AXES] + [f"{p}_C" for p in probes]
             )
