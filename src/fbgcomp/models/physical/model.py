@@ -467,14 +467,19 @@ class PhysicalModel(EstimatorParams, ModelFile):
         self._predictors = {}
         if self.load_ is not None:
             self._calibrate_drift(rows)
+        # the housing calibration: of the housing probe's leads, or of the measured heat inputs
+        # alone where no probe is on the housing (its columns are then zeros)
         calibrating = (
-            self.twin_map_ is not None and thermal_rows and self.housing_probes_ and self.calibrate_housing
+            self.twin_map_ is not None
+            and bool(thermal_rows)
+            and bool(self.housing_probes_ or self.heat_inputs_)
+            and self.calibrate_housing
         )
         if self.heat_inputs_ and not calibrating:
             # only the housing calibration takes the heat inputs
             log.warning(
                 "heat.csv (%s) not used: the housing calibration takes it, and it runs only with a "
-                "machine description, a housing probe and a load-free training campaign",
+                "machine description, a load-free training campaign and calibrate_housing on",
                 ", ".join(self.heat_inputs_),
             )
             self.heat_inputs_ = []
