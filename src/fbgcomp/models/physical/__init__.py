@@ -30,6 +30,9 @@ late its probe sees the bearings' heat, which every spindle duty cycle excites) 
 on the measured load-free campaigns (:meth:`PhysicalModel._calibrate_housing`). Without one: per axis a least-squares
 fit, on the load-free training campaigns, of the TTP on the housing and ambient probes and the
 housing's lead (the steel housing's mean temperature, which a probe on its far face sees late).
+Where the campaigns carry the spindle's measured power (heat.csv, ``<source>_W``), the housing
+calibration also takes its change since the zero state low-passed at ``HEAT_TAUS_S`` (the housing
+probe sees a power step minutes late, the power at once), and the model reads it after its probes.
 Either way the inputs are clipped to the envelope they were learned on (``SHRUNK``), what the
 sensors' noise alone makes of the part is not applied (firm shrinkage) and each axis is clamped
 to the range it was validated on (``CLAMPED``).
