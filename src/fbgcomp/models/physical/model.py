@@ -34,6 +34,7 @@ from fbgcomp.models.physical.thermal import (
     HEAT_TAUS_S,
     HOUSING_REST_S,
     ambient_probe_names,
+    calibration_probe_columns,
     grating_map,
     grating_wavelengths_nm,
     housing_probe_names,
@@ -637,7 +638,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         thermal = out - p.last_force_N @ p.C.T if p.has_load else out
         past = t > HOUSING_REST_S
         cal = self.twin_map_["calibration"]
-        k0 = 1 + len(cal["leads_s"]) + ("ambient_tau_s" in cal)
+        k0 = calibration_probe_columns(cal)
         heat_part = p.last_cal_features[past, k0:] @ np.asarray(cal["coef"], float)[k0:]
         return np.sqrt(np.mean(thermal[past] ** 2, axis=0)), np.sqrt(np.mean(heat_part**2, axis=0))
 

@@ -21,6 +21,7 @@ from fbgcomp.models.filters import first_order_filter, first_order_recursion, fi
 from fbgcomp.models.physical.observer import ThermalObserver
 from fbgcomp.models.physical.thermal import (
     MAP_LEADS_S,
+    calibration_probe_columns,
     consensus,
     grating_map,
     housing_leads,
@@ -286,7 +287,7 @@ class PhysicalPredictor:
                     "ambient_tau_s": cal.get("ambient_tau_s"),
                     "heat_taus_s": tuple(float(x) for x in cal.get("heat_taus_s") or ()),
                     # the columns before the heat inputs' (housing, its leads, the ambient)
-                    "k_probes": 1 + len(cal["leads_s"]) + (cal.get("ambient_tau_s") is not None),
+                    "k_probes": calibration_probe_columns(cal),
                     "heat_noise_sd": np.asarray(cal.get("heat_noise_sd_um", [0.0] * 3), float),
                     "coef": np.asarray(cal["coef"], float),
                     "low": np.asarray(cal["envelope_low"], float),

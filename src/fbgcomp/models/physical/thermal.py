@@ -191,6 +191,12 @@ def housing_rest(raw_K, housing_K, time_s, state, new_state, rest_s=HOUSING_REST
     return rel, past
 
 
+def calibration_probe_columns(cal: dict) -> int:
+    """Columns of a housing calibration (the model file's ``twin_map.calibration``) before its
+    measured heat inputs' low-passes: the housing's ΔT, its leads and the ambient's low-pass."""
+    return 1 + len(cal["leads_s"]) + (cal.get("ambient_tau_s") is not None)
+
+
 def housing_mean(smooth_K, housing_idx):
     """Mean ΔT (n, 1) K of the housing probes among probe ΔTs already low-passed over
     ``PROBE_SMOOTHING_S`` (zeros without a housing probe)."""
