@@ -177,6 +177,16 @@ def test_fit_and_validate_with_heat_csv_through_the_console(ram2_heat, tmp_path)
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in r.stderr, r.stderr
     assert "heat.csv" in lines[0] and "spindle_heat_W" in lines[0], lines[0]
+    # --no-heat-inputs: the same campaigns, the power left out; that model judges thermal_b bare
+    bare = tmp_path / "bare.json"
+    r = run(
+        "fit", ram2_heat["thermal_a"].path, ram2_heat["static_xyz"].path, "--machine", MACHINE, "-o", bare,
+        "--no-heat-inputs",
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert json.loads(bare.read_text())["heat_inputs"] == []
+    r = run("validate", bare, RAM2_DIR / "data" / "thermal_b")
+    assert r.returncode == 0, r.stderr
 
 
 def test_serve_replays_the_power_logs_it_and_exports_it_as_heat_csv(ram2_heat, heat_model, tmp_path):

@@ -128,6 +128,14 @@ def fit(
             "twin while its heat estimates stay plausible (docs/accuracy.md; off by default)."
         ),
     ),
+    heat_inputs: bool = typer.Option(
+        True,
+        "--heat-inputs/--no-heat-inputs",
+        help=(
+            "physical: take the campaigns' measured spindle power (heat.csv) into the housing "
+            "calibration when every thermal training campaign carries it (docs/campaign-guide.md)."
+        ),
+    ),
 ):
     """Fit the TTP-deviation model and print its coefficient tables.
 
@@ -160,6 +168,7 @@ def fit(
             dask,
             machine,
             observer,
+            heat_inputs,
         )
 
 
@@ -182,6 +191,7 @@ def _fit(
     dask,
     machine,
     observer=False,
+    heat_inputs=True,
 ):
     from fbgcomp.models.mra import MRAModel
 
@@ -198,7 +208,9 @@ def _fit(
         data = read_campaigns(campaigns)
         stage("fitting the physical model (twin scenarios, housing thermal, policy)")
         with _numeric_failures(campaigns):
-            model = PhysicalModel(machine=machine, zero_window_s=zero_window, observer=observer).fit(data)
+            model = PhysicalModel(
+                machine=machine, zero_window_s=zero_window, observer=observer, heat_inputs=heat_inputs
+            ).fit(data)
         stage(f"writing {output}")
         model.save(output)  # only a model that loads back replaces an existing file
         typer.echo(model.summary())
