@@ -364,6 +364,12 @@ class HeatSource(_Strict):
         return self
 
     @property
+    def in_housing(self) -> bool:
+        """A volume source whose zone lies in the steel housing: its z range at or below the
+        flange face (z <= 0), or omitted (it then spans the housing)."""
+        return self.kind == "volume" and (self.z_mm is None or self.z_mm[1] <= 0.0)
+
+    @property
     def input_name(self) -> str:
         """Name of the twin's input channel: ``<name>_W`` or ``<name>_W_per_m2``."""
         return f"{self.name}_W" if self.kind == "volume" else f"{self.name}_W_per_m2"
@@ -601,6 +607,11 @@ class Machine(_Strict):
             )
             return inside_outer and not in_cavity
         return False
+
+    @property
+    def point_probe_names(self) -> list[str]:
+        """The probes at a point of the structure (not the air), in description order."""
+        return [p.name for p in self.probes if p.kind == "point"]
 
     def housing_probe_names(self, tol_mm: float = 1e-6) -> list[str]:
         """The point probes in or on the steel housing (z <= 0: the flange face at z = 0 counts),

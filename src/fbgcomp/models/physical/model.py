@@ -937,7 +937,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         (of :func:`generic_heat_machine`): the campaigns' point probes the description places,
         and those of ``references`` (strain-free reference gratings, ``<sensor>_ref``) the
         campaigns carry."""
-        point = {q.name for q in machine.probes if q.kind == "point"}
+        point = set(machine.point_probe_names)
         probes = [q for q in self.probe_names_ if q in point or q in references]
         # each probe's zero is its readings' mean over the zero window: off by about one
         # reading's noise, which the filter estimates as a constant
@@ -957,11 +957,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
         the filter's innovations tell that case apart: docs/accuracy.md)."""
         in_housing = set(machine.housing_probe_names()) & set(self.probe_names_)
         volume = [
-            h
-            for h in machine.thermal.sources
-            if h.kind == "volume" and (in_housing or (h.z_mm is not None and h.z_mm[1] > 0.0))
+            h for h in machine.thermal.sources if h.kind == "volume" and (in_housing or not h.in_housing)
         ]
-        point = {q.name for q in machine.probes if q.kind == "point"}
+        point = set(machine.point_probe_names)
         free = [c for c, r in zip(campaigns, rows, strict=True) if not r["loaded"]]
         if not volume or not any(q in point for q in self.probe_names_) or not free:
             return {}

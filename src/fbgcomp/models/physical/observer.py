@@ -131,7 +131,7 @@ class ThermalObserver:
     ):
         red = twin.reduced
         s_all = list(twin.sensor_names)
-        point = [p.name for p in twin.machine.probes if p.kind == "point"]
+        point = twin.machine.point_probe_names
         S, P = len(s_all), len(point)
         el = [s_all.index(s.name) for s in sensors]
         ts = [S + 3 + i for i in el]
