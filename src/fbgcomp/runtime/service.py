@@ -24,7 +24,7 @@ import numpy as np
 
 from fbgcomp.dashboard import Dashboard, DashboardConfig
 from fbgcomp.errors import InputError
-from fbgcomp.io.campaign import HEAT_SUFFIX, read_campaign
+from fbgcomp.io.campaign import read_campaign
 from fbgcomp.models.registry import load_model
 from fbgcomp.runtime import health as H
 from fbgcomp.runtime import realtime
@@ -156,7 +156,7 @@ def model_meta(model, pipeline: Pipeline, temperature_probes=None) -> dict:
         "sensor_names": pipeline.sensor_names,
         "probe_names": pipeline.probe_names,
         # the slow inputs that are measured heat inputs (W, heat.csv), not probes (°C)
-        "heat_inputs": [f"{h}{HEAT_SUFFIX}" for h in getattr(model, "heat_inputs_", None) or []],
+        "heat_inputs": list(getattr(model, "heat_channels", [])),
         "sensors": [dump(s) for s in model.sensors],
         "temperature_probes": temperature_probes,
         "model_sets": [sorted(s) for s in pipeline.model_sets],

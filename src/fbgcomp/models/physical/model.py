@@ -777,8 +777,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
         half of it (in time) predicted by a housing calibration fitted without that half: with
         measured heat inputs only ({} otherwise).
 
-        Their low-passes add four coefficients per input to the calibration, fitted on the very
-        campaigns the interval is scaled on; the in-sample errors then understate what a new
+        Their low-passes add one coefficient per input and ``HEAT_TAUS_S`` entry to the
+        calibration, fitted on the very campaigns the interval is scaled on; the in-sample
+        errors then understate what a new
         campaign shows (ram2, its bearings' heat read: thermal_a's dz RMS 0.17 µm in-sample
         against thermal_c's 0.38 held out, whose dz interval covered 0.89; ram3's thermal_c dy
         0.68). Errors of a half the calibration did not see carry that slow bias."""
@@ -1069,7 +1070,12 @@ class PhysicalModel(EstimatorParams, ModelFile):
     def probe_names(self) -> list:
         """The slow inputs the model reads, in its order: its probes (°C), then its measured
         heat inputs as ``<source>_W`` (W); the runtime feeds them as it feeds probes."""
-        return list(self.probe_names_) + [f"{h}{HEAT_SUFFIX}" for h in getattr(self, "heat_inputs_", [])]
+        return list(self.probe_names_) + self.heat_channels
+
+    @property
+    def heat_channels(self) -> list[str]:
+        """The runtime's names of the measured heat inputs (``<source>_W``, W), in model order."""
+        return [f"{h}{HEAT_SUFFIX}" for h in getattr(self, "heat_inputs_", [])]
 
     def _heat_input_names(self, campaigns, machine) -> list:
         """The heat inputs every thermal or combined training campaign carries (heat.csv), in
@@ -1099,8 +1105,10 @@ class PhysicalModel(EstimatorParams, ModelFile):
             )
         return names
 
-    def _check_heat(self, campaign):
-        """InputError unless ``campaign`` carries the model's heat inputs (a static one may not)."""
+    def _heat_table(self, campaign):
+        """The model's heat inputs in ``campaign``: ``(time_s (n,), values (n, H) W)`` on
+        heat.csv's clock in model order, or None for a static campaign without them (at rest);
+        InputError for any other campaign that lacks one."""
         missing = [h for h in self.heat_inputs_ if h not in campaign.heat_names]
         if missing and (campaign.heat is not None or campaign.meta.kind != "static"):
             where = campaign.path / HEAT_FILE if campaign.path is not None else campaign.name
@@ -1111,27 +1119,27 @@ class PhysicalModel(EstimatorParams, ModelFile):
                 file=where,
                 column=f"{missing[0]}{HEAT_SUFFIX}",
             )
-        return not missing
+        if missing or not self.heat_inputs_:
+            return None
+        ht, hv = campaign.heat_inputs()
+        return ht, hv[:, [campaign.heat_names.index(h) for h in self.heat_inputs_]]
 
     def _heat_frames(self, campaign, frame_t) -> np.ndarray:
         """The model's heat inputs (W) at each frame, each its last reading (held, as a live
         feed is); zeros for a static campaign without heat.csv (at rest)."""
-        H = len(getattr(self, "heat_inputs_", []))
-        if not H or not self._check_heat(campaign):
-            return np.zeros((np.size(frame_t), H))
-        ht, hv = campaign.heat_inputs()
-        cols = [campaign.heat_names.index(h) for h in self.heat_inputs_]
-        held = np.clip(np.searchsorted(ht, frame_t, side="right") - 1, 0, ht.size - 1)
-        return hv[held][:, cols]
+        table = self._heat_table(campaign)
+        if table is None:
+            return np.zeros((np.size(frame_t), len(self.heat_inputs_)))
+        ht, hv = table
+        return hv[np.clip(np.searchsorted(ht, frame_t, side="right") - 1, 0, ht.size - 1)]
 
     def _heat_zero_W(self, campaign) -> np.ndarray:
         """The heat inputs' zero state (W): their mean over the zero window, as the probes'."""
-        H = len(getattr(self, "heat_inputs_", []))
-        if not H or not self._check_heat(campaign):
-            return np.zeros(H)
-        ht, hv = campaign.heat_inputs()
-        cols = [campaign.heat_names.index(h) for h in self.heat_inputs_]
-        return zero_state(ht, hv[:, cols], self.zero_window_s)
+        table = self._heat_table(campaign)
+        if table is None:
+            return np.zeros(len(self.heat_inputs_))
+        ht, hv = table
+        return zero_state(ht, hv, self.zero_window_s)
 
     # -- reporting and persistence -----------------------------------------------------------
     def summary(self) -> str:
