@@ -15,8 +15,10 @@ are; the figures say whether the missing input is the reason.
 Second part, what the product does with it: each ram's campaigns copied with a heat.csv written
 from the truth's power (``spindle_heat_W``, read every 1 s with 5 W of noise, 0.1 W resolution,
 seeded), the default fit (``PhysicalModel(machine=...)``: thermal_a + static_xyz) with and
-without it (``heat_inputs=False``, the baseline), judged on the held-out campaigns: max |error|,
-and 95 % interval coverage.
+without it (``heat_inputs=False``, the baseline), and the same with the thermal observer
+(``observer=True``, ``fbgcomp fit --observer``: the filter then reads the power as a measurement
+of the bearings' heat), judged on the held-out campaigns: max |error|, and 95 % interval
+coverage.
 
     nice -n 10 .venv/bin/python benchmarks/bench_spindle_power.py [--ram2 PATH] [--skip-observer]
 
@@ -113,8 +115,13 @@ def run_default(root: Path, machine_yaml: Path, tmp: Path) -> dict:
     camp = {n: read_campaign(data / n) for n in names}
     train = [camp["thermal_a"], camp["static_xyz"]]
     out = {}
-    for case, heat in (("without", False), ("with", True)):
-        m = PhysicalModel(machine=machine_yaml, heat_inputs=heat).fit(train)
+    for case, heat, observer in (
+        ("without", False, False),
+        ("with", True, False),
+        ("observer without", False, True),
+        ("observer with", True, True),
+    ):
+        m = PhysicalModel(machine=machine_yaml, heat_inputs=heat, observer=observer).fit(train)
         out[case] = {}
         for n in names:
             if n in ("thermal_a", "static_xyz"):
@@ -158,18 +165,26 @@ def main(argv=None) -> int:
                     print(
                         f"{ram} {name:<10}" + "".join(f"  {a} {c}" for a, c in zip(AXES, cells)), flush=True
                     )
-        print("default fit without / with heat.csv: max |error| µm of the uncompensated peak [PI95 coverage]")
         for ram, (root, machine) in rams.items():
             res = run_default(root, machine, Path(tmp) / f"{ram}-heat")
             results.setdefault(ram, {})["default"] = res
-            for name in res["with"]:
-                a, b = res["without"][name], res["with"][name]
-                cells = [
-                    f"{a['max_um'][j]:5.2f} / {b['max_um'][j]:5.2f} of {a['uncompensated_um'][j]:5.1f}"
-                    f" [{a['coverage'][j]:.3f} / {b['coverage'][j]:.3f}]"
-                    for j in range(3)
-                ]
-                print(f"{ram} {name:<10}" + "".join(f"  {ax} {c}" for ax, c in zip(AXES, cells)), flush=True)
+            for fit, (off, on) in (
+                ("default fit", ("without", "with")),
+                ("fit --observer", ("observer without", "observer with")),
+            ):
+                print(
+                    f"{ram}, {fit} without / with heat.csv: max |error| µm of the uncompensated peak [PI95]"
+                )
+                for name in res[on]:
+                    a, b = res[off][name], res[on][name]
+                    cells = [
+                        f"{a['max_um'][j]:5.2f} / {b['max_um'][j]:5.2f} of {a['uncompensated_um'][j]:5.1f}"
+                        f" [{a['coverage'][j]:.3f} / {b['coverage'][j]:.3f}]"
+                        for j in range(3)
+                    ]
+                    print(
+                        f"{ram} {name:<10}" + "".join(f"  {ax} {c}" for ax, c in zip(AXES, cells)), flush=True
+                    )
     print(
         json.dumps(
             {

@@ -143,6 +143,7 @@ SLOW = {
     "tests/test_heat_inputs.py::test_the_measured_power_takes_dz_below_2_um_on_ram2_served_by_the_runtime": 40.0,
     "tests/test_heat_inputs.py::test_a_model_with_heat_inputs_round_trips_and_refuses_a_campaign_without_them": 5.0,
     "tests/test_heat_inputs.py::test_heat_inputs_can_be_left_out": 8.0,
+    "tests/test_heat_inputs.py::test_the_thermal_observer_reads_the_measured_power": 54.0,
     "tests/test_heat_inputs.py::test_fit_and_validate_with_heat_csv_through_the_console": 28.0,
     "tests/test_heat_inputs.py::test_serve_replays_the_power_logs_it_and_exports_it_as_heat_csv": 20.0,
     "tests/test_heat_inputs.py::test_serve_reads_the_spindle_power_over_opcua_and_holds_when_it_goes_stale": 60.0,

@@ -146,6 +146,36 @@ def test_heat_inputs_can_be_left_out(ram2_heat):
     assert "heat_taus_s" not in off.twin_map_["calibration"]
 
 
+def test_the_thermal_observer_reads_the_measured_power(ram2_heat):
+    """``observer=True`` with heat.csv: the Kalman filter takes the spindle's power as a
+    measurement of its heat input instead of inferring it, through the runtime as served."""
+    from fbgcomp.models.physical.observer import ThermalObserver
+
+    train = [ram2_heat["thermal_a"], ram2_heat["static_xyz"]]
+    m = PhysicalModel(machine=MACHINE, observer=True).fit(train)
+    assert m.observer_["measured"] == ["spindle_heat"]
+    obs = ThermalObserver.from_dict(m.observer_)
+    # one measurement row per probe the filter reads, per grating and for the power
+    assert obs.C.shape[0] == len(m.observer_["probes"]) + len(m.sensor_names) + 1
+    again = PhysicalModel.from_dict(m.to_dict())
+    a, _, _, _ = m._served(ram2_heat["thermal_b"])
+    b, _, _, _ = again._served(ram2_heat["thermal_b"])
+    np.testing.assert_allclose(a, b, atol=1e-9)
+    blind = PhysicalModel(machine=MACHINE, observer=True, heat_inputs=False).fit(train)
+    assert "measured" not in blind.observer_ or blind.observer_["measured"] == []
+    errs = {}
+    for name, model in (("read", m), ("inferred", blind)):
+        corr, ref, _ = served(model, ram2_heat["thermal_b"])
+        errs[name], uncomp = np.abs(ref + corr).max(axis=0), np.abs(ref).max(axis=0)
+        assert np.all(errs[name] <= uncomp + 0.5), (name, errs[name], uncomp)
+    # the filter that must infer the bearings' heat leaves 3.9 µm of dz (docs/accuracy.md)
+    assert errs["read"][2] <= 2.0 < errs["inferred"][2], errs
+    # at rest (static_x: no heat.csv, the spindle stopped) it adds nothing
+    corr, ref, _ = served(m, ram2_heat["static_x"])
+    err, uncomp = np.abs(ref + corr).max(axis=0), np.abs(ref).max(axis=0)
+    assert np.all(err[1:] <= uncomp[1:] + 0.5), (err, uncomp)
+
+
 def test_fit_and_validate_with_heat_csv_through_the_console(ram2_heat, tmp_path):
     import json
     import os

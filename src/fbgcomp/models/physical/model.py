@@ -930,20 +930,27 @@ class PhysicalModel(EstimatorParams, ModelFile):
         the description places, its known input the ambient probes' mean. ``twin``: the twin
         of :func:`generic_heat_machine` of ``machine``."""
         refs = {f"{s.name}_ref" for s in machine.sensors}
-        obs, probes = self._thermal_observer(machine, campaigns, twin, refs)
-        return obs.to_dict() | {"probes": probes, "ambient": list(self.ambient_probes_)}
+        # the measured heat inputs (heat.csv) of the twin's own volume sources are measurements
+        # of those inputs' states: the spindle's power read, its heat need not be inferred
+        inputs = set(twin.input_names[1:])
+        measured = [h for h in self.heat_inputs_ if f"{h}_W" in inputs]
+        obs, probes = self._thermal_observer(machine, campaigns, twin, refs, measured)
+        return obs.to_dict() | {"probes": probes, "ambient": list(self.ambient_probes_), "measured": measured}
 
-    def _thermal_observer(self, machine, campaigns, twin, references=frozenset()):
+    def _thermal_observer(self, machine, campaigns, twin, references=frozenset(), measured=()):
         """(:class:`ThermalObserver`, its thermometers) on ``twin``, the one the map learns from
         (of :func:`generic_heat_machine`): the campaigns' point probes the description places,
         and those of ``references`` (strain-free reference gratings, ``<sensor>_ref``) the
-        campaigns carry."""
+        campaigns carry; ``measured``: volume sources whose heat the campaigns read (heat.csv)."""
         point = set(machine.point_probe_names)
         probes = [q for q in self.probe_names_ if q in point or q in references]
         # each probe's zero is its readings' mean over the zero window: off by about one
         # reading's noise, which the filter estimates as a constant
         bias = probe_noise_sd_K(campaigns, self.probe_names_)[[self.probe_names_.index(q) for q in probes]]
-        return ThermalObserver(twin, self.sensors_, probes, probe_bias_K=bias), probes
+        obs = ThermalObserver(
+            twin, self.sensors_, probes, probe_bias_K=bias, measured_inputs=[f"{h}_W" for h in measured]
+        )
+        return obs, probes
 
     def _heat_prior(self, machine, campaigns, rows, twin) -> dict:
         """{volume source: W} the twin's scenarios run each volume heat source at, from the load-free

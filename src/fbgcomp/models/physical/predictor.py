@@ -302,6 +302,8 @@ class PhysicalPredictor:
             self.obs = ThermalObserver.from_dict(ob)
             self._obs_p = [self.probe_names.index(q) for q in ob["probes"]]
             self._obs_a = [self.probe_names.index(q) for q in ob["ambient"]]
+            # the measured heat inputs the filter reads, columns of the heat inputs
+            self._obs_h = [self.heat_names.index(h) for h in ob.get("measured", [])]
         self.last_observer_ok = np.ones(0, bool)
         var = self.thermal_resid_var + self.map_lost_sd_um**2
         if self.has_load:
@@ -1072,7 +1074,18 @@ class PhysicalPredictor:
                 flags[clamped] |= P.CLAMPED
             if self.obs is not None:
                 thermal, spread, closed = self._with_observer(
-                    thermal, spread, e_th, force, moving, dT, time_s, lost, state, new_state, policy
+                    thermal,
+                    spread,
+                    e_th,
+                    force,
+                    moving,
+                    dT,
+                    time_s,
+                    lost,
+                    state,
+                    new_state,
+                    policy,
+                    (heat_W - heat_zero_W)[:, self._obs_h],
                 )
                 flags[closed] |= P.SHRUNK
         else:
@@ -1127,14 +1140,16 @@ class PhysicalPredictor:
         return out
 
     def _with_observer(
-        self, thermal, spread, e_th, force, moving, dT, time_s, lost, state, new_state, policy
+        self, thermal, spread, e_th, force, moving, dT, time_s, lost, state, new_state, policy, dP_W
     ):
         """The map's thermal correction (n, 3) µm averaged with the observer's while the
         observer's heat estimates stay plausible (:data:`OBSERVER_GATE_K`; always without the
         policy), and their disagreement added to the members' ``spread`` (n, 3) µm: two
         estimates of one drift from different physics (a regression over the twin's scenarios,
         a filter of its thermal state), each wrong in its own way. Returns the thermal part,
-        the spread and the frames (n,) where the gate has closed and the map alone is applied."""
+        the spread and the frames (n,) where the gate has closed and the map alone is applied.
+        ``dP_W`` (n, H): the measured heat inputs the filter reads, as changes since the zero
+        state."""
         n = thermal.shape[0]
         if time_s is None:
             done = state.get("obs_frames", 0)
@@ -1149,6 +1164,9 @@ class PhysicalPredictor:
         amb = dT[:, self._obs_a].mean(axis=1) if self._obs_a else np.zeros(n)
         # a reading net of the applied load errs by the load signature's relative error
         var = (self.relative_error * force @ self.map["G"].T) ** 2 if self.has_load else None
+        if dP_W.shape[1]:
+            g = np.hstack([g, dP_W])
+            var = None if var is None else np.hstack([var, np.zeros_like(dP_W)])
         obs, ok, new_state["obs"] = self.obs.stream(
             state.get("obs"), t, amb, dT[:, self._obs_p], g, OBSERVER_GATE_K, var
         )

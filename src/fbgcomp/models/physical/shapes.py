@@ -205,7 +205,14 @@ def check_shapes(d: dict, source) -> None:
             "must be > 0",
         )
         array(ob.get("phi_b"), "observer.phi_b", (n, m))
-        rows = len(obs_p) + S
+        # the measured heat inputs it reads (absent from files written before them)
+        measured = names(ob.get("measured", []), "observer.measured")
+        need(
+            all(h in heat for h in measured),
+            "observer.measured",
+            "names a heat input the model does not read",
+        )
+        rows = len(obs_p) + S + len(measured)
         array(ob.get("C"), "observer.C", (rows, k))
         array(ob.get("d"), "observer.d", (rows,))
         array(ob.get("C_ttp"), "observer.C_ttp", (3, k))
