@@ -432,7 +432,14 @@ def run_variant(name, data: Path, work: Path) -> dict:
         axes = {
             back.get(a, a): {
                 k: j["axes"][a].get(k)
-                for k in ("peak_um", "max_abs_error_um", "rms_error_um", "pi95_coverage", "harm")
+                for k in (
+                    "peak_um",
+                    "max_abs_error_um",
+                    "rms_error_um",
+                    "pi95_coverage",
+                    "pi95_mean_halfwidth_um",
+                    "harm",
+                )
             }
             for a in AXES
         }

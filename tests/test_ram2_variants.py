@@ -92,6 +92,22 @@ def test_a_ram_with_fewer_instruments_is_compensated_without_harm(bench, variant
     assert fig["thermal_b"]["axes"]["dz"]["peak_um"] == base["thermal_b"]["axes"]["dz"]["peak_um"]
 
 
+def test_an_interval_blind_to_the_spindle_housing_stays_the_size_of_the_drift(bench):
+    # Without T_flange nothing the model reads sees a spindle start: the TTP moves while no
+    # state of the interval does, and the few samples of each start scaled its state terms
+    # 1000x (a mean dz half-width of ~400 µm on thermal_b's 59.9, and 0.80 coverage on
+    # thermal_c all the same). Such a model's interval carries a constant term.
+    fig = bench[0]["results"]["no-T_flange"]
+    for held in ("thermal_b", "thermal_c"):
+        for a in AXES:
+            v = fig[held]["axes"][a]
+            assert v["pi95_mean_halfwidth_um"] <= 0.5 * v["peak_um"], (held, a, v)
+            assert v["pi95_coverage"] >= 0.83, (held, a, v)
+    # a model that sees the housing keeps its interval: the interferometer's at rest
+    base = bench[0]["results"]["as-published"]["static_x"]["axes"]["dz"]
+    assert base["pi95_mean_halfwidth_um"] <= 0.5, base
+
+
 def test_a_rougher_description_of_the_same_ram_does_no_harm(bench):
     # The bearing heat described centred in the housing (a data sheet rarely places it): the map
     # leaves the housing transient to the calibration, whose 300 s lead then takes 18.7 µm/K of

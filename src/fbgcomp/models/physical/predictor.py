@@ -158,7 +158,7 @@ class PhysicalPredictor:
         self.margin = float(m.envelope_margin)
         self.k_sigma = float(m.load_k_sigma)  # also the thermal part's noise shrinkage
         self.thermal_resid_var = np.asarray(m.thermal_resid_sd_um_) ** 2
-        # interval of the thermal part: variance = v0 + vs s + v1 s^2 + v2 a^2 (s the thermal
+        # interval of the thermal part: variance = v0 + vs s + v1 s^2 + v2 a^2 + vc (s the thermal
         # excursion, a the housing's lead), fitted on the load-free training campaigns
         # (``PhysicalModel._fit_interval``); a constant without it
         iv = getattr(m, "interval_", None)
@@ -173,6 +173,8 @@ class PhysicalPredictor:
                 "activity_scale": float(iv["activity_scale_K"]),
                 "vs": np.asarray(iv.get("vs_um2", np.zeros(3)), float),
                 "deadband": np.asarray(iv.get("deadband_K", 0.0), float),
+                # a model blind to the housing's constant term (absent from older files)
+                "vc": np.asarray(iv.get("vc_um2", np.zeros(3)), float),
             }
         )
         self.thermal_noise_sd_um = np.asarray(getattr(m, "thermal_noise_sd_um_", np.zeros(3)), float)
@@ -1211,6 +1213,7 @@ class PhysicalPredictor:
             + iv["vs"][None, :] * np.sqrt(s2)[:, None]
             + iv["v1"][None, :] * s2[:, None]
             + iv["v2"][None, :] * a2[:, None]
+            + iv["vc"][None, :]
             + ambiguity
             + self.map_lost_sd_um[None, :] ** 2  # a fallback's lost gratings (0 for the full set)
         )

@@ -91,8 +91,8 @@ def check_shapes(d: dict, source) -> None:
     iv = d.get("interval")
     if iv is not None:
         need(isinstance(iv, dict), "interval", "must be a mapping or null")
-        # vs_um2 is absent from files written before the interval's linear term
-        for key in ("v0_um2", "v1_um2", "v2_um2") + (("vs_um2",) if "vs_um2" in iv else ()):
+        # vs_um2 and vc_um2 are absent from files written before those terms
+        for key in ("v0_um2", "v1_um2", "v2_um2", *(k for k in ("vs_um2", "vc_um2") if k in iv)):
             need(np.all(array(iv.get(key), f"interval.{key}", (3,)) >= 0), f"interval.{key}", "must be >= 0")
         need(
             np.all(array(iv.get("dT_scale_K"), "interval.dT_scale_K", (P,)) > 0),
