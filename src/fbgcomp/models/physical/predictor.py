@@ -173,7 +173,7 @@ class PhysicalPredictor:
                 "activity_scale": float(iv["activity_scale_K"]),
                 "vs": np.asarray(iv.get("vs_um2", np.zeros(3)), float),
                 "deadband": np.asarray(iv.get("deadband_K", 0.0), float),
-                # a model blind to the housing's constant term (absent from older files)
+                # the constant term of a model blind to the housing (absent from older files)
                 "vc": np.asarray(iv.get("vc_um2", np.zeros(3)), float),
             }
         )
