@@ -99,8 +99,10 @@ def probe_noise_sd_K(campaigns, probe_names) -> np.ndarray:
 
 
 #: Frames of instrument noise the thermal part's noise floor is measured on, past the housing's
-#: rest window (:meth:`PhysicalModel._noise_floor`), s.
-NOISE_FLOOR_S = 7200.0
+#: rest window (:meth:`PhysicalModel._noise_floor`), s: its slow parts (the ambient's hour
+#: low-pass, the housing's leads) hold few independent samples in two hours, and ram2's floor
+#: drawn with five seeds spread 1.22x over 7200 s, 1.04x over 24 h (0.4 s of a fit).
+NOISE_FLOOR_S = 86400.0
 
 
 class PhysicalModel(EstimatorParams, ModelFile):
@@ -486,8 +488,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
             self.heat_inputs_ = []
         if calibrating:
             self.twin_map_["calibration"] = self._calibrate_housing(rows, campaigns)
-            noise, heat_noise = self._noise_floor(campaigns)
-            self.twin_map_["calibration"]["noise_sd_um"] = noise.tolist()
+            noise, heat_noise, k = self._noise_floor(campaigns)
+            self.twin_map_["calibration"]["floor_sd_um"] = noise.tolist()
+            self.twin_map_["calibration"]["floor_k"] = k.tolist()
             if self.heat_inputs_:
                 self.twin_map_["calibration"]["heat_noise_sd_um"] = heat_noise.tolist()
             self._predictors = {}
@@ -583,9 +586,10 @@ class PhysicalModel(EstimatorParams, ModelFile):
         return scale
 
     def _noise_floor(self, campaigns, duration_s=NOISE_FLOOR_S):
-        """SD (3,) µm of the thermal part (twin map and housing calibration, unclipped), and of
-        its measured heat inputs' part alone (3,), that the instruments' white noise alone
-        makes, nothing moving: each probe at its own noise
+        """SD (3,) µm of the thermal part (twin map and housing calibration, unclipped), SD (3,)
+        of its measured heat inputs' part alone, and the universal threshold (3,) in SDs of that
+        noise over ``duration_s``: what the instruments' white noise alone
+        makes, nothing moving, with the zero state's own error: each probe at its own noise
         (:func:`probe_noise_sd_K`) on its own sampling interval, held on the frame clock as a live
         feed is, each grating at its frame noise, ``duration_s`` of frames past the housing's
         rest window (seeded: the same model file for the same data).
@@ -597,7 +601,15 @@ class PhysicalModel(EstimatorParams, ModelFile):
         the map's noise estimate fell from 0.61 to 0.29 µm, and 1.7 µm of probe noise passed
         the policy onto static_x's dz, which moves 0.2 µm (harm)."""
         rng = np.random.default_rng(0)
-        dt = float(self.nominal_dt_s_)
+        # on the interrogator's own clock in thermal operation: the load-free training
+        # campaigns' frame interval (the reference's, 15.5 s on ram2, made each grating's noise
+        # pass the 60 s low-pass at 4x its SD and its zero look like one frame's)
+        frames = [
+            float(np.median(np.diff(c.fbg["time_s"].to_numpy(dtype=float))))
+            for c in campaigns
+            if c.meta.kind != "static" and len(c.fbg) > 1
+        ]
+        dt = max(frames) if frames else float(self.nominal_dt_s_)
         t = np.arange(0.0, HOUSING_REST_S + duration_s, dt)
         P, S = len(self.probe_names_), len(self.sensors_)
         sd = probe_noise_sd_K(campaigns, self.probe_names_)
@@ -640,7 +652,26 @@ class PhysicalModel(EstimatorParams, ModelFile):
         cal = self.twin_map_["calibration"]
         k0 = calibration_probe_columns(cal)
         heat_part = p.last_cal_features[past, k0:] @ np.asarray(cal["coef"], float)[k0:]
-        return np.sqrt(np.mean(thermal[past] ** 2, axis=0)), np.sqrt(np.mean(heat_part**2, axis=0))
+        # The zero state is a mean of each signal's first zero_window_s on its own clock, off by
+        # its noise over the samples there (one or two of a probe read every 10 s): a constant
+        # for the whole run, which the map's level terms turn into a constant correction (the
+        # housing's and the ambient's calibrated terms start from their own rest levels, and a
+        # lead of a constant is 0)
+        window = float(self.zero_window_s)
+        coef = np.asarray(self.twin_map_["coef"], float)
+        zero_sd = np.concatenate(
+            [
+                el_sd / np.sqrt(np.floor(window / dt) + 1.0),
+                sd / np.sqrt(np.floor(window / np.maximum(every, dt)) + 1.0),
+            ]
+        )
+        offset2 = ((coef[: S + P] * zero_sd[:, None]) ** 2).sum(axis=0)
+        jitter2 = np.mean(thermal[past] ** 2, axis=0)
+        # the universal threshold (Donoho & Johnstone) of a day of frames: the largest excursion
+        # the noise alone is expected to reach over as many independent samples as it holds
+        n_eff = np.array([effective_samples(thermal[past, j]) for j in range(3)])
+        k = np.maximum(np.sqrt(2.0 * np.log(np.maximum(n_eff, 2.0))), float(self.load_k_sigma))
+        return np.sqrt(jitter2 + offset2), np.sqrt(np.mean(heat_part**2, axis=0)), k
 
     def _calibrate_housing(self, rows, campaigns):
         """Least squares (no intercept, campaigns weighted equally) of the twin map's error on

@@ -174,12 +174,13 @@ def check_shapes(d: dict, source) -> None:
             array(cal.get("coef"), "twin_map.calibration.coef", (k, 3))
             for key in ("envelope_low", "envelope_high"):
                 array(cal.get(key), f"twin_map.calibration.{key}", (k,))
-            if "noise_sd_um" in cal:
-                need(
-                    np.all(array(cal["noise_sd_um"], "twin_map.calibration.noise_sd_um", (3,)) >= 0),
-                    "twin_map.calibration.noise_sd_um",
-                    "must be >= 0",
-                )
+            for key in ("noise_sd_um", "floor_sd_um", "floor_k"):
+                if key in cal:
+                    need(
+                        np.all(array(cal[key], f"twin_map.calibration.{key}", (3,)) >= 0),
+                        f"twin_map.calibration.{key}",
+                        "must be >= 0",
+                    )
     ob = d.get("observer")
     if ob is not None:
         need(isinstance(ob, dict), "observer", "must be a mapping or null")
