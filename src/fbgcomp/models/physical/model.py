@@ -475,7 +475,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         calibrating = (
             self.twin_map_ is not None
             and bool(thermal_rows)
-            and bool(self.housing_probes_ or self.heat_inputs_)
+            and self._sees_housing
             and self.calibrate_housing
         )
         if self.heat_inputs_ and not calibrating:
@@ -773,7 +773,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         # start decided the state terms' scale alone (ram2 without T_flange: 1000x, a median
         # dz half-width of 400 µm on thermal_b around errors under 16 µm, and 0.80 coverage
         # on thermal_c all the same).
-        blind = not (self.housing_probes_ or self.heat_inputs_)
+        blind = not self._sees_housing
         A = np.column_stack([np.sqrt(s2), s2, (act / a_scale) ** 2, np.full_like(s2, float(blind))])
         sw = np.sqrt(w)[:, None]
         v = np.array(
@@ -972,24 +972,23 @@ class PhysicalModel(EstimatorParams, ModelFile):
         refs = {f"{s.name}_ref" for s in machine.sensors}
         # the measured heat inputs (heat.csv) of the twin's own volume sources are measurements
         # of those inputs' states: the spindle's power read, its heat need not be inferred
-        inputs = set(twin.input_names[1:])
-        measured = [h for h in self.heat_inputs_ if f"{h}_W" in inputs]
-        obs, probes = self._thermal_observer(machine, campaigns, twin, refs, measured)
+        sources = {h.name: h.input_name for h in twin.machine.thermal.sources if h.kind == "volume"}
+        measured = [h for h in self.heat_inputs_ if h in sources]
+        obs, probes = self._thermal_observer(machine, campaigns, twin, refs, [sources[h] for h in measured])
         return obs.to_dict() | {"probes": probes, "ambient": list(self.ambient_probes_), "measured": measured}
 
-    def _thermal_observer(self, machine, campaigns, twin, references=frozenset(), measured=()):
+    def _thermal_observer(self, machine, campaigns, twin, references=frozenset(), measured_inputs=()):
         """(:class:`ThermalObserver`, its thermometers) on ``twin``, the one the map learns from
         (of :func:`generic_heat_machine`): the campaigns' point probes the description places,
         and those of ``references`` (strain-free reference gratings, ``<sensor>_ref``) the
-        campaigns carry; ``measured``: volume sources whose heat the campaigns read (heat.csv)."""
+        campaigns carry; ``measured_inputs``: the twin's input channels (``<source>_W``) whose heat
+        the campaigns read (heat.csv)."""
         point = set(machine.point_probe_names)
         probes = [q for q in self.probe_names_ if q in point or q in references]
         # each probe's zero is its readings' mean over the zero window: off by about one
         # reading's noise, which the filter estimates as a constant
         bias = probe_noise_sd_K(campaigns, self.probe_names_)[[self.probe_names_.index(q) for q in probes]]
-        obs = ThermalObserver(
-            twin, self.sensors_, probes, probe_bias_K=bias, measured_inputs=[f"{h}_W" for h in measured]
-        )
+        obs = ThermalObserver(twin, self.sensors_, probes, probe_bias_K=bias, measured_inputs=measured_inputs)
         return obs, probes
 
     def _heat_prior(self, machine, campaigns, rows, twin) -> dict:
@@ -1118,6 +1117,13 @@ class PhysicalModel(EstimatorParams, ModelFile):
         """The slow inputs the model reads, in its order: its probes (°C), then its measured
         heat inputs as ``<source>_W`` (W); the runtime feeds them as it feeds probes."""
         return list(self.probe_names_) + self.heat_channels
+
+    @property
+    def _sees_housing(self) -> bool:
+        """Whether an instrument reads the spindle housing's heat: a probe in or on the housing,
+        or a measured heat input (what the housing calibration needs, and what a spindle start
+        shows in)."""
+        return bool(self.housing_probes_ or self.heat_inputs_)
 
     @property
     def heat_channels(self) -> list[str]:

@@ -261,6 +261,9 @@ class PhysicalPredictor:
                 "low": lo,
                 "high": hi,
                 "G": (np.asarray(m.load_["G_um_per_N"], float) if m.load_ is not None else np.zeros((S, 3))),
+                # the map's weights on the gratings at their sizes: what a load signature's error
+                # on each grating can make of the thermal part (its threshold during a load)
+                "leak_weights": np.abs(coef[:S]),
             }
             self._map_box = (lo, hi, self.margin)
             basis = tm.get("unseen_basis")
@@ -1093,10 +1096,7 @@ class PhysicalPredictor:
                 # threshold that knew the noise alone
                 sd = self.map_noise_sd_um
                 if self.has_load and np.any(force):
-                    S = len(self.sensor_names)
-                    leak = (
-                        self.relative_error * np.abs(force @ self.map["G"].T) @ np.abs(self.map["coef"][:S])
-                    )
+                    leak = self.relative_error * np.abs(force @ self.map["G"].T) @ self.map["leak_weights"]
                     sd = np.hypot(sd, leak)
                 sd = sd * self._floor_scale
                 thermal = P.firm(thermal, sd, self.k_sigma, 2 * self.k_sigma) + heat_part
