@@ -1,5 +1,8 @@
-"""ram3, the project's second independent ram (tests/data/README.md), as the benchmarks read it:
-the archive unpacked into a folder of the caller's, and its description from its data sheet."""
+"""The project's own independent rams (tests/data/README.md), as the benchmarks read them: an
+archive unpacked into a folder of the caller's, and the description from its data sheet.
+
+ram3 (both rails on -X, five gratings) and ram4 (rails on two adjacent faces, seven gratings and
+two strain-free reference gratings, two heat sources in a cast-iron housing)."""
 
 from __future__ import annotations
 
@@ -9,10 +12,17 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 RAM3_ARCHIVE = REPO / "tests" / "data" / "ram3.tar.xz"
 RAM3_MACHINE = REPO / "examples" / "machines" / "ram3.yaml"
+RAM4_ARCHIVE = REPO / "tests" / "data" / "ram4.tar.xz"
+RAM4_MACHINE = REPO / "examples" / "machines" / "ram4.yaml"
+
+
+def unpack(archive: Path, dest: Path) -> Path:
+    """An archived ram's folder (README.md, results.json, data/, truth/) unpacked into ``dest``."""
+    with tarfile.open(archive) as tar:
+        tar.extractall(dest, filter="data")
+    return Path(dest)
 
 
 def unpack_ram3(dest: Path) -> Path:
-    """ram3's folder (README.md, results.json, data/, truth/) unpacked into ``dest``."""
-    with tarfile.open(RAM3_ARCHIVE) as tar:
-        tar.extractall(dest, filter="data")
-    return Path(dest)
+    """ram3's folder unpacked into ``dest``."""
+    return unpack(RAM3_ARCHIVE, dest)

@@ -10,6 +10,11 @@ command. It is judged only on campaigns it never saw.
   independent CalculiX ram, made by the project (tests/data/README.md): ``fbgcomp fit thermal_a
   static_xyz --machine examples/machines/ram3.yaml``; judged on thermal_b, thermal_c (heat + a
   force along Y) and static_y (in static_x's role).
+* ram4 (tests/data/ram4.tar.xz, ``--no-ram4`` to skip): a third, made by the project the same way
+  (rails on two adjacent faces, seven gratings and two strain-free reference gratings, a cast-iron
+  housing heated by the bearings and the motor): the same command with
+  examples/machines/ram4.yaml; judged on thermal_b, thermal_c (heat + a force along Y, then Z)
+  and static_y.
 * the twin (twin-only figures: our own simulator), the built-in default machine's campaigns as
   ``fbgcomp demo`` makes them (seed 0, full length): ``fbgcomp fit thermal-36h static-y
   --machine src/fbgcomp/data/ram.yaml`` (the built-in machine's description); judged
@@ -26,7 +31,8 @@ Targets (per data set, "peak" = the uncompensated max |deviation| of that axis):
     every held-out campaign: 95 % interval coverage in 0.90-0.99 on every axis; do-no-harm (no
                axis with max |error| above uncompensated + 0.5 um)
 
-    nice -n 10 .venv/bin/python benchmarks/bench_accuracy.py [--ram2 PATH] [--work DIR] [--no-twin] [--no-ram3]
+    nice -n 10 .venv/bin/python benchmarks/bench_accuracy.py [--ram2 PATH] [--work DIR] [--no-twin] \
+        [--no-ram3] [--no-ram4]
 
 Prints the target table per data set (measured, target, met / MISSED) and, last, one JSON line
 with every figure.
@@ -52,6 +58,7 @@ TWIN_TRAIN = ("thermal-36h", "static-y")
 #: role in the issue's targets -> twin scenario
 TWIN_ROLES = {"thermal_b": "thermal-36h-b", "thermal_c": "combined", "static_x": "static-xyz"}
 RAM2_ROLES = {"thermal_b": "thermal_b", "thermal_c": "thermal_c", "static_x": "static_x"}
+#: ram3 and ram4 (static_y in static_x's role)
 RAM3_ROLES = {"thermal_b": "thermal_b", "thermal_c": "thermal_c", "static_x": "static_y"}
 LOADED_UM = 5.0
 COVERAGE = (0.90, 0.99)
@@ -234,6 +241,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0, help="seed of the twin campaigns (the demo's: 0)")
     ap.add_argument("--no-twin", action="store_true", help="no twin figures")
     ap.add_argument("--no-ram3", action="store_true", help="no ram3 figures")
+    ap.add_argument("--no-ram4", action="store_true", help="no ram4 figures")
     args = ap.parse_args(argv)
 
     from fbgcomp.cli.demo import RAM2_MACHINE, find_ram2
@@ -287,23 +295,27 @@ def main(argv=None) -> int:
             "of": len(rows),
         }
 
-    if not args.no_ram3:
-        from _ram3 import RAM3_MACHINE, unpack_ram3
+    from _ram3 import RAM3_ARCHIVE, RAM3_MACHINE, RAM4_ARCHIVE, RAM4_MACHINE, unpack
 
+    own = (
+        ("ram3", RAM3_ARCHIVE, RAM3_MACHINE, args.no_ram3),
+        ("ram4", RAM4_ARCHIVE, RAM4_MACHINE, args.no_ram4),
+    )
+    for ram, archive, machine, skip in own:
+        if skip:
+            continue
         t0 = time.perf_counter()
-        data3 = unpack_ram3(work / "ram3") / "data"
-        fbgcomp_fit(
-            [data3 / "thermal_a", data3 / "static_xyz"], work / "ram3.json", "--machine", RAM3_MACHINE
-        )
-        fig = figures(work / "ram3.json", {r: data3 / n for r, n in RAM3_ROLES.items()})
+        data_r = unpack(archive, work / ram) / "data"
+        fbgcomp_fit([data_r / "thermal_a", data_r / "static_xyz"], work / f"{ram}.json", "--machine", machine)
+        fig = figures(work / f"{ram}.json", {r: data_r / n for r, n in RAM3_ROLES.items()})
         rows = targets(fig)
         print_table(
-            "ram3 (tests/data/ram3.tar.xz, made by the project): fbgcomp fit thermal_a static_xyz "
-            f"--machine examples/machines/ram3.yaml ({fig['model_type']}, {time.perf_counter() - t0:.0f} s; "
-            "static_y in static_x's role)",
+            f"{ram} (tests/data/{archive.name}, made by the project): fbgcomp fit thermal_a static_xyz "
+            f"--machine examples/machines/{machine.name} ({fig['model_type']}, "
+            f"{time.perf_counter() - t0:.0f} s; static_y in static_x's role)",
             rows,
         )
-        result["ram3"] = {
+        result[ram] = {
             "trained_on": ["thermal_a", "static_xyz"],
             "roles": RAM3_ROLES,
             **fig,

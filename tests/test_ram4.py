@@ -1,0 +1,65 @@
+"""The default model on a third independent ram (tests/data/ram4.tar.xz): a CalculiX ram guided on
+two adjacent faces (a locating rail on -X, a floating one on -Y), seven gratings of which two carry a
+strain-free reference grating, a cast-iron housing heated by the bearings and the motor at once, a
+radiant load on +X in thermal_b and a force along Y then Z in thermal_c; described from its data
+sheet (examples/machines/ram4.yaml)."""
+
+import numpy as np
+import pytest
+
+from fbgcomp_testing import RAM4_ARCHIVE, RAM4_MACHINE, read_ram4, unpacked
+
+HELD = ("thermal_b", "thermal_c", "static_y")
+
+
+@pytest.mark.slow
+def test_the_twin_of_ram4s_data_sheet_meets_the_twin_check_against_its_results():
+    """`fbgcomp twin-check examples/machines/ram4.yaml --against ram4/results.json`: the unit-load
+    compliances and grating responses within 3 %, the uniform +10 K dz within 2 %, on a ram held
+    by rails on two adjacent faces (2026-11-29 at the description's mesh: 31 of 31; dz 0.37 %)."""
+    from fbgcomp.structure import Twin, load_machine, twin_check
+
+    reference = twin_check.load_reference(unpacked(RAM4_ARCHIVE) / "results.json")
+    assert reference.sensor_names == ("S1", "S2", "S3", "S4", "S5", "S6", "S7")
+    # coarser than the description's own mesh (hex8i converges fast): one FE build of seconds
+    rows = twin_check.compare(Twin(load_machine(RAM4_MACHINE), resolution=0.5), reference)
+    judged = [r for r in rows if r.passed is not None]
+    assert len(judged) == 31
+    assert all(r.passed for r in judged), [r for r in judged if not r.passed]
+    dz = next(r for r in rows if r.quantity == "+10 K dz (um)")
+    assert abs(dz.twin / dz.independent - 1) <= 0.02
+
+
+@pytest.fixture(scope="module")
+def ram4():
+    return read_ram4("thermal_a", "static_xyz", *HELD)
+
+
+@pytest.mark.slow
+def test_the_default_fit_harms_no_axis_of_ram4s_held_out_campaigns(ram4):
+    """``fbgcomp fit thermal_a static_xyz --machine examples/machines/ram4.yaml``, judged on the
+    campaigns it never saw: no axis ends with a larger max |error| than uncompensated (+0.5 µm,
+    the interferometer's noise), every axis moving over 50 µm is within 10 % of its peak, and the
+    reference gratings are read (2026-11-29: thermal_b dx / dy / dz 0.98 / 2.69 / 1.50 µm on
+    10.3 / 20.1 / 74.1; thermal_c dy 7.6 on 154, dz 2.3 on 71.9; static_y dy 8.7 on 294). The
+    intervals cover 0.90-0.99 of the samples on every axis but thermal_b's dx: 0.84, an error
+    of ~0.5 µm that outlasts the radiant load by ten hours (docs/accuracy.md)."""
+    from fbgcomp.models.physical import PhysicalModel
+
+    m = PhysicalModel(machine=RAM4_MACHINE).fit([ram4["thermal_a"], ram4["static_xyz"]])
+    assert {"S1_ref", "S3_ref"} <= set(m.probe_names_)
+    for name in HELD:
+        c = ram4[name]
+        ref = c.aligned(zero_window_s=m.zero_window_s).reference_um
+        pred, half = m.predict_interval(c)
+        err = np.abs(pred - ref).max(axis=0)
+        peak = np.abs(ref).max(axis=0)
+        assert (err <= peak + 0.5).all(), (name, err, peak)
+        moving = peak > 50.0
+        assert (err[moving] < 0.10 * peak[moving]).all(), (name, err, peak)
+        cover = (np.abs(pred - ref) <= half).mean(axis=0)
+        band = np.ones(3, bool)
+        if name == "thermal_b":
+            band[0] = False
+            assert cover[0] >= 0.80, cover
+        assert (cover[band] >= 0.90).all() and (cover[band] <= 0.99).all(), (name, cover)
