@@ -1,4 +1,4 @@
-"""The default model on ram3 described less carefully: does any slip of the description harm?
+"""The default model on ram3 (or ram4) described less carefully: does any slip of the description harm?
 
 ram3 (tests/data/ram3.tar.xz, the project's second independent ram) fitted as a user would,
 ``fbgcomp fit thermal_a static_xyz --machine M``, with M = examples/machines/ram3.yaml changed
@@ -9,7 +9,10 @@ locating, no mesh section, and three of them together). Judged on thermal_b, the
 static_y: max |error| per axis (WORSE where above uncompensated + 0.5 µm, issue 12's rule) and
 the 95 % interval coverage.
 
-    nice -n 10 .venv/bin/python benchmarks/bench_ram3_variants.py [--only NAME ...]
+    nice -n 10 .venv/bin/python benchmarks/bench_ram3_variants.py [--ram ram4] [--only NAME ...]
+
+``--ram ram4``: the same slips of examples/machines/ram4.yaml on ram4 (tests/data/ram4.tar.xz;
+"spindle" slips act on both of its housing sources).
 
 Prints the table and, last, one JSON line.
 """
@@ -29,9 +32,10 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _ram3 import RAM3_MACHINE, unpack_ram3
+from _ram3 import RAM3_ARCHIVE, RAM3_MACHINE, RAM4_ARCHIVE, RAM4_MACHINE, unpack
 from bench_ram2_variants import VARIANTS, _fbgcomp
 
+RAMS = {"ram3": (RAM3_ARCHIVE, RAM3_MACHINE), "ram4": (RAM4_ARCHIVE, RAM4_MACHINE)}
 HELD = ("thermal_b", "thermal_c", "static_y")
 AXES = ("dx", "dy", "dz")
 SLIPS = (
@@ -50,11 +54,11 @@ SLIPS = (
 )
 
 
-def run(name, data: Path, work: Path) -> dict:
+def run(name, data: Path, work: Path, machine: Path = RAM3_MACHINE) -> dict:
     from fbgcomp.io.campaign import read_campaign
     from fbgcomp.models.registry import load_model
 
-    desc = yaml.safe_load(RAM3_MACHINE.read_text())
+    desc = yaml.safe_load(machine.read_text())
     if name != "as-published":
         VARIANTS[name]["machine"](desc)
     folder = work / name
@@ -93,14 +97,18 @@ def run(name, data: Path, work: Path) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--only", nargs="+", choices=SLIPS)
+    ap.add_argument("--ram", choices=sorted(RAMS), default="ram3")
     args = ap.parse_args(argv)
     start = time.perf_counter()
     results = {}
-    print("ram3, default fit: max |error| µm (PI95) per axis dx / dy / dz; WORSE: above uncompensated + 0.5")
+    archive, machine = RAMS[args.ram]
+    print(
+        f"{args.ram}, default fit: max |error| µm (PI95) per axis dx / dy / dz; WORSE: above uncompensated + 0.5"
+    )
     with tempfile.TemporaryDirectory(prefix="bench-ram3-variants-") as tmp:
-        data = unpack_ram3(Path(tmp)) / "data"
+        data = unpack(archive, Path(tmp)) / "data"
         for name in args.only or SLIPS:
-            res = run(name, data, Path(tmp) / "work")
+            res = run(name, data, Path(tmp) / "work", machine)
             results[name] = res
             for held in HELD:
                 cells = [
@@ -115,6 +123,7 @@ def main(argv=None) -> int:
         json.dumps(
             {
                 "benchmark": "bench_ram3_variants",
+                "ram": args.ram,
                 "date_utc": datetime.now(UTC).isoformat(timespec="seconds"),
                 "seconds": round(time.perf_counter() - start, 1),
                 "results": results,
