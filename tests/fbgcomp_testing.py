@@ -100,3 +100,31 @@ def read_ram4(*names: str) -> dict:
 
     data = unpacked(RAM4_ARCHIVE) / "data"
     return {n: read_campaign(data / n) for n in names}
+
+
+def held_out_figures(model, campaign):
+    """A model judged on a campaign it never saw, as ``fbgcomp validate`` judges it: per axis
+    (3,) the max |error| µm, the uncompensated peak µm and the 95 % interval's coverage."""
+    import numpy as np
+
+    ref = campaign.aligned(zero_window_s=model.zero_window_s).reference_um
+    pred, half = model.predict_interval(campaign)
+    err = np.abs(pred - ref)
+    return err.max(axis=0), np.abs(ref).max(axis=0), (err <= half).mean(axis=0)
+
+
+def assert_twin_check(machine, results_json, sensor_names, n_judged):
+    """``fbgcomp twin-check MACHINE --against RESULTS``, asserted: the independent model names
+    ``sensor_names``, and every one of its ``n_judged`` judged quantities is within target (unit
+    loads 3 %, uniform +10 K dz 2 %). The twin is built coarser than the description's own mesh
+    (hex8i converges fast): one FE build of seconds."""
+    from fbgcomp.structure import Twin, load_machine, twin_check
+
+    reference = twin_check.load_reference(results_json)
+    assert reference.sensor_names == tuple(sensor_names)
+    rows = twin_check.compare(Twin(load_machine(machine), resolution=0.5), reference)
+    judged = [r for r in rows if r.passed is not None]
+    assert len(judged) == n_judged
+    assert all(r.passed for r in judged), [r for r in judged if not r.passed]
+    dz = next(r for r in rows if r.quantity == "+10 K dz (um)")
+    assert abs(dz.twin / dz.independent - 1) <= 0.02

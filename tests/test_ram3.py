@@ -6,7 +6,7 @@ thermal_b, a force along Y in thermal_c), described from its data sheet
 import numpy as np
 import pytest
 
-from fbgcomp_testing import RAM3_MACHINE, read_ram3
+from fbgcomp_testing import RAM3_MACHINE, held_out_figures, read_ram3
 
 HELD = ("thermal_b", "thermal_c", "static_y")
 
@@ -34,12 +34,8 @@ def test_the_default_fit_harms_no_axis_of_ram3s_held_out_campaigns(ram3, default
     static_y dy 14.75 on 435)."""
     for name in HELD:
         c = ram3[name]
-        ref = c.aligned(zero_window_s=default_model.zero_window_s).reference_um
-        pred, half = default_model.predict_interval(c)
-        err = np.abs(pred - ref).max(axis=0)
-        peak = np.abs(ref).max(axis=0)
+        err, peak, cover = held_out_figures(default_model, c)
         assert (err <= peak + 0.5).all(), (name, err, peak)
-        cover = (np.abs(pred - ref) <= half).mean(axis=0)
         assert (cover >= 0.90).all() and (cover <= 0.99).all(), (name, cover)
         moving = peak > 50.0
         assert (err[moving] < 0.15 * peak[moving]).all(), (name, err, peak)
@@ -65,15 +61,6 @@ def test_the_twin_of_ram3s_description_meets_the_twin_check_against_its_results(
     """`fbgcomp twin-check examples/machines/ram3.yaml --against ram3/results.json`: the unit-load
     compliances and grating responses within 3 %, the uniform +10 K dz within 2 % (issue 12's
     targets), on a ram whose rails are both on one face and whose gauges are 500-600 mm."""
-    from fbgcomp.structure import Twin, load_machine, twin_check
-    from fbgcomp_testing import ram3_dir
+    from fbgcomp_testing import assert_twin_check, ram3_dir
 
-    reference = twin_check.load_reference(ram3_dir() / "results.json")
-    assert reference.sensor_names == ("S1", "S2", "S3", "S4", "S5")
-    # coarser than the description's own mesh (hex8i converges fast): one FE build of seconds
-    rows = twin_check.compare(Twin(load_machine(RAM3_MACHINE), resolution=0.5), reference)
-    judged = [r for r in rows if r.passed is not None]
-    assert len(judged) == 25
-    assert all(r.passed for r in judged), [r for r in judged if not r.passed]
-    dz = next(r for r in rows if r.quantity == "+10 K dz (um)")
-    assert abs(dz.twin / dz.independent - 1) <= 0.02
+    assert_twin_check(RAM3_MACHINE, ram3_dir() / "results.json", ("S1", "S2", "S3", "S4", "S5"), 25)

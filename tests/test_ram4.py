@@ -7,7 +7,14 @@ sheet (examples/machines/ram4.yaml)."""
 import numpy as np
 import pytest
 
-from fbgcomp_testing import RAM4_ARCHIVE, RAM4_MACHINE, read_ram4, unpacked
+from fbgcomp_testing import (
+    RAM4_ARCHIVE,
+    RAM4_MACHINE,
+    assert_twin_check,
+    held_out_figures,
+    read_ram4,
+    unpacked,
+)
 
 HELD = ("thermal_b", "thermal_c", "static_y")
 
@@ -17,17 +24,8 @@ def test_the_twin_of_ram4s_data_sheet_meets_the_twin_check_against_its_results()
     """`fbgcomp twin-check examples/machines/ram4.yaml --against ram4/results.json`: the unit-load
     compliances and grating responses within 3 %, the uniform +10 K dz within 2 %, on a ram held
     by rails on two adjacent faces (2026-11-29 at the description's mesh: 31 of 31; dz 0.37 %)."""
-    from fbgcomp.structure import Twin, load_machine, twin_check
-
-    reference = twin_check.load_reference(unpacked(RAM4_ARCHIVE) / "results.json")
-    assert reference.sensor_names == ("S1", "S2", "S3", "S4", "S5", "S6", "S7")
-    # coarser than the description's own mesh (hex8i converges fast): one FE build of seconds
-    rows = twin_check.compare(Twin(load_machine(RAM4_MACHINE), resolution=0.5), reference)
-    judged = [r for r in rows if r.passed is not None]
-    assert len(judged) == 31
-    assert all(r.passed for r in judged), [r for r in judged if not r.passed]
-    dz = next(r for r in rows if r.quantity == "+10 K dz (um)")
-    assert abs(dz.twin / dz.independent - 1) <= 0.02
+    sensors = ("S1", "S2", "S3", "S4", "S5", "S6", "S7")
+    assert_twin_check(RAM4_MACHINE, unpacked(RAM4_ARCHIVE) / "results.json", sensors, 31)
 
 
 @pytest.fixture(scope="module")
@@ -50,14 +48,10 @@ def test_the_default_fit_harms_no_axis_of_ram4s_held_out_campaigns(ram4):
     assert {"S1_ref", "S3_ref"} <= set(m.probe_names_)
     for name in HELD:
         c = ram4[name]
-        ref = c.aligned(zero_window_s=m.zero_window_s).reference_um
-        pred, half = m.predict_interval(c)
-        err = np.abs(pred - ref).max(axis=0)
-        peak = np.abs(ref).max(axis=0)
+        err, peak, cover = held_out_figures(m, c)
         assert (err <= peak + 0.5).all(), (name, err, peak)
         moving = peak > 50.0
         assert (err[moving] < 0.10 * peak[moving]).all(), (name, err, peak)
-        cover = (np.abs(pred - ref) <= half).mean(axis=0)
         band = np.ones(3, bool)
         if name == "thermal_b":
             band[0] = False
