@@ -86,20 +86,22 @@ def ram3_dir() -> Path:
     return unpacked(RAM3_ARCHIVE)
 
 
-def read_ram3(*names: str) -> dict:
-    """ram3's campaigns by name."""
+def read_unpacked(archive: Path, *names: str) -> dict:
+    """An archived ram's campaigns by name (:func:`unpacked`)."""
     from fbgcomp.io.campaign import read_campaign
 
-    data = ram3_dir() / "data"
+    data = unpacked(archive) / "data"
     return {n: read_campaign(data / n) for n in names}
+
+
+def read_ram3(*names: str) -> dict:
+    """ram3's campaigns by name."""
+    return read_unpacked(RAM3_ARCHIVE, *names)
 
 
 def read_ram4(*names: str) -> dict:
     """ram4's campaigns by name."""
-    from fbgcomp.io.campaign import read_campaign
-
-    data = unpacked(RAM4_ARCHIVE) / "data"
-    return {n: read_campaign(data / n) for n in names}
+    return read_unpacked(RAM4_ARCHIVE, *names)
 
 
 def held_out_figures(model, campaign):
