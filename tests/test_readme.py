@@ -85,6 +85,17 @@ def toured(tmp_path_factory):
     script = _tour()
     for port in ("51972", "4840", "8080"):
         script = re.sub(rf"(?<![\d.]){port}\b", str(free_port()), script)
+    # the instrument's command port is the protocol's default (51971), which the tour leaves
+    # unsaid: a free one here too, for the instrument and the source that reads it (a test on
+    # another worker or any process holding 51971 failed the tour, 2026-11-29)
+    cp = str(free_port())
+    script, n_sim = re.subn(
+        r"(fbgcomp sim-interrogator [^\n&]*)", rf"\1 --command-port {cp}", script, count=1
+    )
+    script, n_src = re.subn(
+        r"(--source hyperion://127\.0\.0\.1:\d+)", rf"\1?command_port={cp}", script, count=1
+    )
+    assert n_sim == n_src == 1, "the tour's instrument and source lines changed: update this test"
     env = dict(
         os.environ,
         PATH=f"{bin_dir}{os.pathsep}{os.environ['PATH']}",
