@@ -397,6 +397,49 @@ def test_non_finite_coefficient_is_refused(model, tmp_path):
         load_model(path)
 
 
+def test_the_population_moments_at_other_expansion_coefficients_are_those_of_its_responses():
+    """population_at: the features are Z0 + sum_j alpha_j Z_j and the TTP sum_j alpha_j Y_j; the
+    moments it assembles from the per-part blocks are those of the features and TTP themselves."""
+    from fbgcomp.models.physical.thermal import population_at
+
+    rng = np.random.default_rng(3)
+    n, k, P_ = 200, 5, 3
+    Z = rng.normal(size=(1 + P_, n, k))
+    Y = rng.normal(size=(P_, n, 3))
+    Ya = rng.normal(size=(P_, n, 3))
+
+    def blocks(Z, Y, Ya):
+        return {
+            "zz": np.einsum("inK,jnL->ijKL", Z, Z) / n,
+            "zy": np.einsum("inK,jna->ijKa", Z, Y) / n,
+            "yy": np.einsum("ina,jna->ija", Y, Y) / n,
+            "alone_yy": np.einsum("ina,jna->ija", Ya, Ya) / n,
+        }
+
+    tm = {"cte": {"blocks": blocks(Z, Y, Ya), "without": [blocks(Z[::-1], Y, Ya)]}}
+    alpha = np.array([1.0e-6, 24e-6, 10.5e-6]) * 1e5
+    X = Z[0] + np.tensordot(alpha, Z[1:], axes=1)
+    T = np.tensordot(alpha, Y, axes=1)
+    got = population_at(tm, alpha)
+    np.testing.assert_allclose(got["gram"], X.T @ X / n, rtol=1e-12)
+    np.testing.assert_allclose(got["xty"], X.T @ T / n, rtol=1e-12)
+    np.testing.assert_allclose(got["ttp_ms_um2"], (T**2).mean(axis=0), rtol=1e-12)
+    np.testing.assert_allclose(got["scale"], np.sqrt((X**2).mean(axis=0)), rtol=1e-12)
+    Ta = np.tensordot(alpha, Ya, axes=1)
+    np.testing.assert_allclose(got["without"][0]["ttp_ms_um2"], (Ta**2).mean(axis=0), rtol=1e-12)
+
+
+def test_a_description_the_training_does_not_contradict_keeps_its_expansion(twin_model):
+    """ram2 as published: the CFRP's axial expansion the training asks for is within what its
+    noise allows of the data sheet's, so the map keeps the description's (ram2's thermal_b dx
+    went from 2.3 to 9.1 µm when the estimate, 0.09e-6 against 0.4e-6 /K, was taken)."""
+    cte = twin_model.twin_map_["cte"]
+    assert cte["parts"] == ["cfrp_L", "cfrp_T", "steel"]
+    assert not cte["contradicted"] and cte["deviance"] < cte["threshold"], cte
+    assert cte["used_per_K"] == cte["described_per_K"] == pytest.approx([0.4e-6, 26.0e-6, 11.5e-6])
+    assert np.isfinite(cte["estimated_per_K"]).all()
+
+
 def test_the_map_members_are_stored_and_checked(twin_model, tmp_path):
     import json
 

@@ -12,6 +12,7 @@ import yaml
 import fbgcomp_testing
 from fbgcomp.errors import InputError
 from fbgcomp.structure import load_machine
+from fbgcomp.structure.machine import parse_machine
 
 DEFAULT_YAML = Path(__file__).resolve().parents[1] / "src" / "fbgcomp" / "data" / "ram.yaml"
 
@@ -242,6 +243,32 @@ def test_thermal_steady_state_equals_static_temperature_superposition(twin):
     uniform = twin.static_temperature_response("uniform", 25.0 - Tref)
     assert h.ttp_um[-1] == pytest.approx(uniform.ttp_um, abs=1e-6 * np.abs(uniform.ttp_um).max())
     assert h.sensor_temperature_C[-1] == pytest.approx(np.full(5, 25.0))
+
+
+def test_the_response_per_expansion_coefficient_sums_to_the_response(twin, fe):
+    """The thermal parts of each material's expansion, weighted by the description's
+    coefficients, are the twin's own elongations and TTP; weighted by others, those of a twin
+    built with them (the temperatures do not depend on the coefficients)."""
+    t = np.arange(0.0, 6 * 3600.0, 300.0)
+    ambient = 20.0 + 2.0 * np.sin(t / 7200.0)
+    Tref = twin.machine.reference_temperature_C
+    heat = {twin.machine.thermal.sources[0].name: np.full(t.shape, 150.0)}
+    r, parts = twin.thermal_parts(t, ambient, heat=heat, initial_C=Tref)
+    assert parts.shape == (t.size, len(fe.elastic.CTE_PARTS), len(twin.sensor_names) + 3)
+    want = twin.thermal(t, ambient, heat=heat, initial_C=Tref)
+    np.testing.assert_allclose(r.probe_C, want.probe_C, atol=1e-9)
+    both = np.hstack([want.sensor_elongation_um, want.ttp_um])
+    np.testing.assert_allclose(
+        np.einsum("npk,p->nk", parts, twin.cte_per_K), both, atol=1e-9 * np.abs(both).max()
+    )
+    # another CFRP axial coefficient: a twin built with it answers what the parts say
+    d = twin.machine.model_dump()
+    d["materials"]["cfrp"]["cte_L_per_K"] = twin.cte_per_K[0] + 1.0e-6
+    other = fe.Twin(parse_machine(d), resolution=0.5, cache=False)
+    got = other.thermal(t, ambient, heat=heat, initial_C=Tref)
+    alpha = twin.cte_per_K + np.array([1.0e-6, 0.0, 0.0])
+    both = np.hstack([got.sensor_elongation_um, got.ttp_um])
+    np.testing.assert_allclose(np.einsum("npk,p->nk", parts, alpha), both, atol=1e-6 * np.abs(both).max())
 
 
 @pytest.mark.slow

@@ -64,6 +64,27 @@ def steel_cte_voigt_per_K(m: Steel) -> np.ndarray:
     return np.array([m.cte_per_K] * 3 + [0.0] * 3)
 
 
+#: The expansion coefficients a thermo-elastic response is linear in: the CFRP's along its fibres
+#: (Z) and across them, and the housing steel's. A displacement is sum_k alpha_k u_k, u_k the
+#: response with alpha_k = 1 /K and the others 0 (same stiffness).
+CTE_PARTS = ("cfrp_L", "cfrp_T", "steel")
+
+
+def cte_values_per_K(cfrp: CFRP, steel: Steel) -> np.ndarray:
+    """The materials' expansion coefficients (per K) in :data:`CTE_PARTS` order."""
+    return np.array([cfrp.cte_L_per_K, cfrp.cte_T_per_K, steel.cte_per_K])
+
+
+def unit_cte_materials(cfrp: CFRP, steel: Steel, part: str) -> tuple[CFRP, Steel]:
+    """The two materials with expansion 1 /K in ``part`` (one of :data:`CTE_PARTS`) and none
+    elsewhere, stiffness unchanged: their thermal load operator is d Th / d alpha_part."""
+    unit = dict.fromkeys(CTE_PARTS, 0.0) | {part: 1.0}
+    return (
+        cfrp.model_copy(update={"cte_L_per_K": unit["cfrp_L"], "cte_T_per_K": unit["cfrp_T"]}),
+        steel.model_copy(update={"cte_per_K": unit["steel"]}),
+    )
+
+
 def _voigt(e):
     return (e[0, 0], e[1, 1], e[2, 2], 2 * e[1, 2], 2 * e[0, 2], 2 * e[0, 1])
 

@@ -105,10 +105,17 @@ def _pulses(rng, n, design):
 
 
 def thermal_scenarios(
-    twin, n_scenarios: int = 40, seed: int = 0, design: ScenarioDesign = ScenarioDesign(), nominal_W=None
+    twin,
+    n_scenarios: int = 40,
+    seed: int = 0,
+    design: ScenarioDesign = ScenarioDesign(),
+    nominal_W=None,
+    parts: bool = False,
 ):
     """Yield ``(inputs, ThermalResponse)`` for ``n_scenarios`` seeded scenarios of ``twin``
-    (built on :func:`generic_heat_machine`), each from the uniform reference temperature.
+    (built on :func:`generic_heat_machine`), each from the uniform reference temperature;
+    with ``parts``, ``(inputs, (ThermalResponse, parts))`` with the response per unit expansion
+    coefficient of each material (:meth:`~fbgcomp.structure.twin.Twin.thermal_parts`).
 
     ``nominal_W`` ({volume source name: W}) sets the power a source's duty levels scale with in
     place of its declared ``nominal_W`` (for one a training campaign showed)."""
@@ -126,4 +133,7 @@ def thermal_scenarios(
                 heat[h.name] = _pulses(rng, t.size, design)
         ambient = Tref + _day_cycle(rng, t, design)
         inputs = {"time_s": t, "ambient_C": ambient, "heat": heat}
-        yield inputs, twin.thermal(t, ambient, heat=heat, initial_C=Tref)
+        if parts:
+            yield inputs, twin.thermal_parts(t, ambient, heat=heat, initial_C=Tref)
+        else:
+            yield inputs, twin.thermal(t, ambient, heat=heat, initial_C=Tref)

@@ -290,6 +290,7 @@ class Twin:
         "Bt",
         "force",
         "W",
+        "W_parts",
         "Tsens",
         "Tprobe",
         "build_times_s",
@@ -365,6 +366,7 @@ class Twin:
             arrays["Kt"].shape == (n, n)
             and arrays["K"].shape == (3 * n, 3 * n)
             and arrays["W"].shape == (S + 3, n)
+            and arrays["W_parts"].shape == (len(elastic.CTE_PARTS), S + 3, n)
             and arrays["Th"].shape == (3 * n, n)
             and arrays["Tprobe"].shape == (len(self._point_probes), n)
         )
@@ -375,10 +377,18 @@ class Twin:
         machine, rm = self.machine, self.mesh
         t0 = time.perf_counter()
         mats = machine.materials
-        if machine.mesh.element == "hex8i":
-            vb, _sb, K, Th = elastic.assemble_box_elasticity(rm, mats.cfrp, mats.steel)
-        else:
-            vb, _sb, K, Th = elastic.assemble_elasticity(rm, mats.cfrp, mats.steel)
+        assemble = (
+            elastic.assemble_box_elasticity
+            if machine.mesh.element == "hex8i"
+            else elastic.assemble_elasticity
+        )
+        vb, _sb, K, Th = assemble(rm, mats.cfrp, mats.steel)
+        # the thermal load per unit expansion coefficient of each material (d Th / d alpha_k):
+        # a response is linear in the coefficients, so the twin answers for any of them
+        Th_parts = [
+            assemble(rm, *elastic.unit_cte_materials(mats.cfrp, mats.steel, part))[3]
+            for part in elastic.CTE_PARTS
+        ]
         rigid = RIGID_PENALTY * float(K.diagonal().max())
         rows, k = support_rows(rm, vb, machine, self.z_axis_mm, rigid)
         K = (K + elastic.spring_matrix(rows, k)).tocsr()
@@ -408,6 +418,7 @@ class Twin:
         self.times.elastic_factor_s = time.perf_counter() - t0
         force = X.T @ ttp_rows.T  # (S + 3, 3) µm/N
         W = np.asarray((Th.T @ X).T)  # (S + 3, n_nodes) µm/K
+        W_parts = np.stack([np.asarray((T.T @ X).T) for T in Th_parts])  # (P, S + 3, n_nodes) µm/K per 1/K
 
         Tsens = sp.vstack(
             [
@@ -438,6 +449,7 @@ class Twin:
             "Bt": Bt,
             "force": force,
             "W": W,
+            "W_parts": W_parts,
             "Tsens": Tsens,
             "Tprobe": Tprobe,
             "build_times_s": np.array([b.mesh_s, b.assemble_s, b.elastic_factor_s, b.thermal_reduction_s]),
@@ -455,6 +467,8 @@ class Twin:
         Kt, Ct, Bt = arrays["Kt"], arrays["Ct"], arrays["Bt"]
         self._thermal_K, self._thermal_C, self._thermal_B = Kt, Ct, Bt
         self._O = np.vstack([W, Tsens.toarray(), Tprobe.toarray()])
+        self._W_parts = arrays["W_parts"]
+        self._parts_outputs = None  # the parts' rows projected on the reduced basis, on first use
         self.reduced = thermal.ReducedThermal.from_arrays(
             Kt, Bt, {n: arrays[f"reduced_{n}"] for n in thermal.ReducedThermal.ARRAYS}, factor=thermal_factor
         )
@@ -636,6 +650,32 @@ class Twin:
         t, u = self._inputs(time_s, ambient_C, spindle_heat_W, radiant_W_per_m2, heat)
         y = self.reduced.simulate(t, u, self._initial_theta(initial_C))
         return self._split(t, u, y)
+
+    @property
+    def cte_per_K(self) -> np.ndarray:
+        """The description's expansion coefficients (per K) in
+        :data:`~fbgcomp.structure.elastic.CTE_PARTS` order: :meth:`thermal_parts` weighted by
+        them is :meth:`thermal`'s elongations and TTP."""
+        mats = self.machine.materials
+        return elastic.cte_values_per_K(mats.cfrp, mats.steel)
+
+    def thermal_parts(
+        self, time_s, ambient_C, heat=None, initial_C=None
+    ) -> tuple[ThermalResponse, np.ndarray]:
+        """A thermal campaign (inputs as :meth:`thermal`) and its elongations and TTP per unit
+        expansion coefficient of each material, (n, P, S + 3) µm per 1/K
+        (P = :data:`~fbgcomp.structure.elastic.CTE_PARTS`; the S sensors' elongations, then dx,
+        dy, dz), from one simulation. The temperatures do not depend on the coefficients, so
+        ``sum_k alpha_k parts[:, k]`` is the response of the same ram with coefficients alpha
+        (with the description's, :attr:`cte_per_K`, the response's own)."""
+        t, u = self._inputs(time_s, ambient_C, None, None, heat)
+        P, m, n = self._W_parts.shape
+        if self._parts_outputs is None:
+            OPhi, D = self.reduced.projected_outputs(self._W_parts.reshape(P * m, n))
+            self._parts_outputs = (np.vstack([self.reduced.OPhi, OPhi]), np.vstack([self.reduced.D, D]))
+        y = self.reduced.simulate(t, u, self._initial_theta(initial_C), outputs=self._parts_outputs)
+        k = self.reduced.OPhi.shape[0]
+        return self._split(t, u, y[:, :k]), y[:, k:].reshape(len(t), P, m)
 
     def thermal_direct(
         self, time_s, ambient_C, spindle_heat_W=None, radiant_W_per_m2=None, initial_C=None, heat=None

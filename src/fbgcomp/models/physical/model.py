@@ -16,7 +16,7 @@ import logging
 from itertools import combinations
 
 import numpy as np
-from scipy import stats
+from scipy import optimize, stats
 from scipy.ndimage import uniform_filter1d
 from scipy.optimize import nnls
 
@@ -38,6 +38,7 @@ from fbgcomp.models.physical.thermal import (
     grating_map,
     grating_wavelengths_nm,
     housing_probe_names,
+    population_at,
     ridge_from_moments,
     thermal_regressors,
     twin_thermal_population,
@@ -49,6 +50,13 @@ from fbgcomp.structure.scenarios import ScenarioDesign, generic_heat_machine
 from fbgcomp.units import AXES
 
 log = logging.getLogger(__name__)
+
+#: The expansion calibration (:meth:`PhysicalModel._calibrate_cte`) moves a coefficient by at
+#: most this many of its prior SDs from the description's value,
+CTE_PRIOR_BOUND = 3.0
+#: and only where the estimate is further than this many prior SDs from it (a data sheet's
+#: tolerance: 0.5e-6 /K on a CFRP's axial expansion with the default prior).
+CTE_TOLERANCE_SD = 0.5
 
 #: High-pass of a combined campaign's signals before its load signature is read, s: heat moves
 #: the gratings by minutes to hours, a load step within seconds.
@@ -171,6 +179,20 @@ class PhysicalModel(EstimatorParams, ModelFile):
         feeds them as it feeds probes), and every campaign it judges but a static one must carry
         them. The housing probe sees a power step minutes late, the power itself at once: ram2's
         thermal_b dz 4.62 -> 1.84 µm with its bearings' heat read (docs/accuracy.md).
+    calibrate_cte : bool
+        Test the description's expansion coefficients against the measured load-free campaigns
+        and, where they contradict it, set the twin map to the coefficients they ask for
+        (:meth:`_calibrate_cte`): the face-gradient response no training campaign checks turns
+        on them.
+    cte_prior_sd_per_K : (3,) floats
+        The prior's SDs of those coefficients (per K), in the order CFRP along the fibres, CFRP
+        across, housing; 0 keeps one as described. The default estimates the CFRP's axial
+        coefficient alone, the near-zero number data sheets give loosely: with the other two
+        free as well, ram2's training took its transverse coefficient from 26e-6 to 12e-6 /K
+        and its thermal_b dx from 2.3 to 29 µm.
+    cte_test_p : float
+        False-alarm probability of the test that the training contradicts the description
+        (likelihood ratio, chi-square with one degree per estimated coefficient).
     """
 
     model_type = "physical"
@@ -194,6 +216,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
         observer=False,
         heat_prior="training",
         heat_inputs=True,
+        calibrate_cte=True,
+        cte_prior_sd_per_K=(1.0e-6, 0.0, 0.0),
+        cte_test_p=1e-3,
     ):
         self.machine = machine
         self.zero_window_s = zero_window_s
@@ -212,6 +237,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
         self.observer = observer
         self.heat_prior = heat_prior
         self.heat_inputs = heat_inputs
+        self.calibrate_cte = calibrate_cte
+        self.cte_prior_sd_per_K = cte_prior_sd_per_K
+        self.cte_test_p = cte_test_p
 
     # -- fitting -----------------------------------------------------------------------------
     def _machine(self):
@@ -434,6 +462,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         # campaign without a gradient can teach).
         self.twin_map_ = None
         self.observer_ = None
+        self._cte_moments = None
         heat_twin = None  # the twin of generic_heat_machine: the map's, the prior's, the observer's
         if machine is not None and self.twin_scenarios > 0:
             from fbgcomp.structure import Twin  # noqa: PLC0415 - optional extra: scikit-fem (the FE twin)
@@ -454,6 +483,8 @@ class PhysicalModel(EstimatorParams, ModelFile):
             )
             if pop is not None:
                 pop["heat_prior_W"] = prior
+                # the per-material moments serve the expansion calibration below, not the file
+                self._cte_moments = pop.pop("cte")
                 pop["coef"] = ridge_from_moments(
                     pop["gram"], pop["xty"], pop["scale"], range(len(pop["scale"])), self.map_ridge
                 ).tolist()
@@ -488,6 +519,11 @@ class PhysicalModel(EstimatorParams, ModelFile):
             self.heat_inputs_ = []
         if calibrating:
             self.twin_map_["calibration"] = self._calibrate_housing(rows, campaigns)
+            if self.calibrate_cte and self._cte_moments is not None:
+                self.twin_map_["cte"] = self._calibrate_cte(rows)
+                self._predictors = {}
+                # the housing transient again, on the map of the calibrated coefficients
+                self.twin_map_["calibration"] = self._calibrate_housing(rows, campaigns)
             noise, heat_noise, k = self._noise_floor(campaigns)
             self.twin_map_["calibration"]["floor_sd_um"] = noise.tolist()
             self.twin_map_["calibration"]["floor_k"] = k.tolist()
@@ -532,8 +568,118 @@ class PhysicalModel(EstimatorParams, ModelFile):
             else None
         )
         self._predictors = {}
-        self._cal_rows = None
+        self._cal_rows = self._map_rows = self._cte_moments = None
         return self
+
+    def _calibrate_cte(self, rows) -> dict:
+        """The materials' expansion coefficients the measured load-free campaigns ask of the
+        twin map, and the map's population moments and coefficients set to them.
+
+        The twin's face-gradient response, which no training campaign checks, turns on the
+        expansion coefficients: on a CFRP ram its sign follows the fibres' own, a number near
+        zero that data sheets give loosely (ram4 with the CFRP's axial coefficient as 0 /K
+        instead of its 1.0e-6: thermal_b dx 17.2 µm against 10.3 uncompensated). The response
+        the training does check, the uniform warming and the housing's, turns on the same
+        coefficients. So they are estimated, maximum a posteriori with the description's values
+        as the prior's mean (``cte_prior_sd_per_K`` its SD) and, per axis, the profile
+        likelihood ``n_eff/2 log J(alpha)`` of the training residual left once the housing
+        calibration has taken its part (``J``, the mean square; ``n_eff`` the residual's
+        effective sample count, :func:`effective_samples`); and used only where the training
+        contradicts the description (``cte_test_p``) by more than a data sheet's tolerance
+        (``CTE_TOLERANCE_SD``). The map is linear in the coefficients'
+        moments (:func:`population_at`), so each trial costs one ridge solve."""
+        tm, cte = self.twin_map_, self._cte_moments
+        tm["cte"] = cte  # population_at reads it here
+        A = np.vstack(self._cal_rows[0])
+        Q = np.linalg.qr(A)[0] if A.shape[1] else np.zeros((A.shape[0], 0))
+        X = np.vstack([r[0] for r in self._map_rows])
+        Y = np.vstack([r[1] for r in self._map_rows])
+        alpha0 = np.asarray(cte["nominal_per_K"], float)
+        sd = np.asarray(self.cte_prior_sd_per_K, float)
+        k = X.shape[1]
+
+        def at(alpha):
+            pa = population_at(tm, alpha)
+            return pa, ridge_from_moments(pa["gram"], pa["xty"], pa["scale"], range(k), self.map_ridge)
+
+        def residual(alpha):
+            R = Y - X @ at(alpha)[1]
+            return R - Q @ (Q.T @ R)
+
+        # the residual's effective sample count per axis, at the described coefficients, summed
+        # over the campaigns (each weighted equally in J)
+        R0 = residual(alpha0)
+        n_eff, start = np.zeros(3), 0
+        for r in self._map_rows:
+            n = len(r[0])
+            n_eff += [effective_samples(R0[start : start + n, j]) for j in range(3)]
+            start += n
+        floor = 1e-12 + 1e-9 * np.sum(Y**2, axis=0)
+
+        def objective(u):
+            J = np.sum(residual(alpha0 + sd * u) ** 2, axis=0) + floor
+            return 0.5 * float(np.sum(n_eff * np.log(J))) + 0.5 * float(u @ u)
+
+        free = np.flatnonzero(sd > 0)
+        u = np.zeros(len(alpha0))
+        if free.size == 1:
+            j = free[0]
+
+            def along(v):
+                u[j] = v
+                return objective(u)
+
+            res = optimize.minimize_scalar(
+                along, bounds=(-CTE_PRIOR_BOUND, CTE_PRIOR_BOUND), method="bounded", options={"xatol": 1e-3}
+            )
+            u[j] = res.x
+        elif free.size:
+
+            def some(v):
+                u[free] = v
+                return objective(u)
+
+            res = optimize.minimize(
+                some, np.zeros(free.size), method="Nelder-Mead", options={"xatol": 1e-3, "fatol": 1e-4}
+            )
+            u[free] = np.clip(res.x, -CTE_PRIOR_BOUND, CTE_PRIOR_BOUND)
+        # kept unless the training contradicts the description: a likelihood-ratio test of the
+        # described coefficients against the calibrated ones at cte_test_p. On ram2, ram3 and
+        # ram4 as published the residual's small gains (0.8 % of ram2's dx mean square, taken
+        # from another part of the twin's error) moved the CFRP's coefficient by 0.2-0.3e-6 /K
+        # and ram2's thermal_b dx from 2.3 to 9.1 µm; a description off by 1e-6 /K is
+        # contradicted many times over (ram4: D = 22)
+        J0 = np.sum(R0**2, axis=0) + floor
+        J1 = np.sum(residual(alpha0 + sd * u) ** 2, axis=0) + floor
+        D = float(np.sum(n_eff * np.log(J0 / J1)))
+        threshold = float(stats.chi2.ppf(1.0 - self.cte_test_p, max(free.size, 1)))
+        # and only by more than a data sheet's tolerance: on the built-in twin, whose residual is
+        # its instruments' white noise (n_eff ~1200), a shift of 0.16e-6 /K passed the test
+        # alone (D = 39) and took 0.5 µm of dy from what a lost S4 is known to cost
+        material = bool(np.any(np.abs(u) > CTE_TOLERANCE_SD))
+        contradicted = bool(free.size) and threshold < D and material
+        alpha = alpha0 + sd * u if contradicted else alpha0
+        pa, coef = at(alpha)
+        for key in ("gram", "xty", "ttp_ms_um2", "scale"):
+            tm[key] = np.asarray(pa[key]).tolist()
+        for w, pw in zip(tm["without"], pa["without"]):
+            for key in ("gram", "xty", "ttp_ms_um2"):
+                w[key] = np.asarray(pw[key]).tolist()
+        tm["coef"] = coef.tolist()
+        return {
+            "parts": list(cte["parts"]),
+            "described_per_K": alpha0.tolist(),
+            "estimated_per_K": (alpha0 + sd * u).tolist(),
+            "used_per_K": alpha.tolist(),
+            "contradicted": contradicted,
+            "deviance": D,
+            "tolerance_per_K": (CTE_TOLERANCE_SD * sd).tolist(),
+            "threshold": threshold,
+            "prior_sd_per_K": sd.tolist(),
+            "n_eff": n_eff.tolist(),
+            "training_rms_described_um": np.sqrt(J0).tolist(),
+            "training_rms_estimated_um": np.sqrt(J1).tolist(),
+        }
 
     def _fit_load_interval(self, rows, campaigns):
         """Scale (3,) of the load terms of the interval (:meth:`PhysicalPredictor.load_variance`),
@@ -698,7 +844,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
             "envelope_high": [1e9] * k,
         }
         self._predictors = {}
-        A_rows, b_rows, feats = [], [], []
+        A_rows, b_rows, feats, map_rows = [], [], [], []
         for r, c in zip(rows, campaigns):
             if r["loaded"]:
                 continue
@@ -708,6 +854,8 @@ class PhysicalModel(EstimatorParams, ModelFile):
             A_rows.append(L * w)
             b_rows.append((r["y"] - pred) * w)
             feats.append(L)
+            map_rows.append((p.last_map_features[at] * w, r["y"] * w, pred * w))
+        self._map_rows = map_rows
         # kept for the interval's held-out errors (:meth:`_held_out_served`)
         self._cal_rows = (A_rows, b_rows)
         A, b = np.vstack(A_rows), np.vstack(b_rows)
@@ -1259,6 +1407,23 @@ class PhysicalModel(EstimatorParams, ModelFile):
                 names += [f"{h}_lp{t:g}s" for t in cal.get("heat_taus_s") or () for h in self.heat_inputs_]
                 for name, row in zip(names, np.asarray(cal["coef"]), strict=True):
                     out.append(f"{name:<22}" + "".join(f"{v:>11.4g}" for v in row))
+            cte = tm.get("cte")
+            if cte is not None:
+                free = [i for i, v in enumerate(cte["prior_sd_per_K"]) if v > 0]
+                said = ", ".join(
+                    f"{cte['parts'][i]} {cte['described_per_K'][i]:.3g} described, "
+                    f"{cte['estimated_per_K'][i]:.3g} estimated"
+                    for i in free
+                )
+                verdict = (
+                    "contradicted: the map uses the estimate"
+                    if cte["contradicted"]
+                    else "not contradicted: the map uses the description's"
+                )
+                out.append(
+                    f"expansion coefficients (1/K) tested on the training: {said}; "
+                    f"deviance {cte['deviance']:.3g} against {cte['threshold']:.3g}, {verdict}"
+                )
             basis = np.asarray(tm.get("unseen_basis", []), float)
             if basis.ndim == 2 and basis.shape[1]:
                 out.append(

@@ -15,6 +15,7 @@ import numpy as np
 from fbgcomp.models.features import FeatureMap
 from fbgcomp.models.filters import first_order_filter, first_order_step
 from fbgcomp.optics import wavelength_nm
+from fbgcomp.structure.elastic import CTE_PARTS
 from fbgcomp.structure.scenarios import GENERIC_PREFIX, generic_heat_machine, thermal_scenarios
 
 #: Low-pass of the probe temperatures before the thermal regressors, s.
@@ -395,8 +396,37 @@ def twin_thermal_population(
         wl = grating_wavelengths_nm(sensors, el, r.sensor_temperature_C[:, idx])
         return map_features(fmap.base(wl, dT, lam0, np.zeros(len(sources))), dT, h_idx, r.time_s)[0]
 
+    n_parts = len(twin.cte_per_K)
+    n_twin_sensors = len(twin.sensor_names)
+
+    def cte_blocks(r, parts, el_noise, dT):
+        """The scenario's features as (1 + P, n, k) blocks, the gratings' noise alone and then
+        each material's part per 1/K of its expansion coefficient, and its TTP per part
+        (P, n, 3): the features are affine in the elongations, so with coefficients alpha they
+        are ``Z[0] + sum_j alpha_j Z[1 + j]`` and the TTP ``sum_j alpha_j Y[j]``."""
+        zero = features(r, np.zeros_like(el_noise), dT)
+        Z = [features(r, el_noise, dT)] + [
+            features(r, parts[:, j, :n_twin_sensors][:, idx], dT) - zero for j in range(n_parts)
+        ]
+        return np.stack(Z), parts[:, :, n_twin_sensors:].transpose(1, 0, 2)
+
+    def add_blocks(acc, Z, Y):
+        acc["zz"] += np.einsum("inK,jnL->ijKL", Z, Z)
+        acc["zy"] += np.einsum("inK,jna->ijKa", Z, Y)
+        acc["yy"] += np.einsum("ina,jna->ija", Y, Y)
+
     rng = np.random.default_rng(seed)
     k = len(sensors) + len(probe_names) + len(MAP_LEADS_S)
+
+    def new_blocks():
+        return {
+            "zz": np.zeros((1 + n_parts, 1 + n_parts, k, k)),
+            "zy": np.zeros((1 + n_parts, n_parts, k, 3)),
+            "yy": np.zeros((n_parts, n_parts, 3)),
+            "alone_yy": np.zeros((n_parts, n_parts, 3)),  # a member's source's own TTP
+        }
+
+    blocks = new_blocks()
     gram, xty, noise, n = np.zeros((k, k)), np.zeros((k, 3)), np.zeros((k, k)), 0
     lo, hi = np.full(k, np.inf), np.full(k, -np.inf)
     ylo, yhi = np.full(3, np.inf), np.full(3, -np.inf)
@@ -405,10 +435,11 @@ def twin_thermal_population(
     # (same inputs otherwise, same noise), and the members differ by that source only.
     Tref = twin.machine.reference_temperature_C
     generic = [h.name for h in twin.machine.thermal.sources if h.name.startswith(GENERIC_PREFIX)]
-    without = {g: [np.zeros((k, k)), np.zeros((k, 3)), np.zeros(3)] for g in generic}
+    without = {g: [np.zeros((k, k)), np.zeros((k, 3)), np.zeros(3), new_blocks()] for g in generic}
     yy = np.zeros(3)
-    for inputs, r in thermal_scenarios(twin, n_scenarios, seed, nominal_W=nominal_W):
+    for inputs, (r, parts) in thermal_scenarios(twin, n_scenarios, seed, nominal_W=nominal_W, parts=True):
         r = r.change_from_start()
+        parts = parts - parts[:1]
         t = r.time_s
         el0 = r.sensor_elongation_um[:, idx]
         el_noise = rng.normal(0, grating_noise_um, (t.size, len(idx)))
@@ -423,6 +454,7 @@ def twin_thermal_population(
         N = X - features(r, el0, dT0)
         noise += N.T @ N
         Y = r.ttp_um
+        add_blocks(blocks, *cte_blocks(r, parts, el_noise, dT))
         XtX, XtY = X.T @ X, X.T @ Y
         gram += XtX
         xty += XtY
@@ -432,17 +464,35 @@ def twin_thermal_population(
             if not np.any(inputs["heat"][g]):
                 acc[0] += XtX
                 acc[1] += XtY
+                add_blocks(acc[3], *cte_blocks(r, parts, el_noise, dT))
                 continue
-            alone = twin.thermal(t, Tref, heat={g: inputs["heat"][g]}, initial_C=Tref).change_from_start()
+            alone, alone_parts = twin.thermal_parts(t, Tref, heat={g: inputs["heat"][g]}, initial_C=Tref)
+            alone = alone.change_from_start()
             rest = r - alone
-            Xg = features(rest, rest.sensor_elongation_um[:, idx] + el_noise, thermometers(rest) + dT_noise)
+            dT_rest = thermometers(rest) + dT_noise
+            Xg = features(rest, rest.sensor_elongation_um[:, idx] + el_noise, dT_rest)
             acc[0] += Xg.T @ Xg
             acc[1] += Xg.T @ rest.ttp_um
             acc[2] += (alone.ttp_um**2).sum(axis=0)
+            alone_parts = alone_parts - alone_parts[:1]
+            add_blocks(acc[3], *cte_blocks(rest, parts - alone_parts, el_noise, dT_rest))
+            Ya = alone_parts[:, :, n_twin_sensors:]
+            acc[3]["alone_yy"] += np.einsum("nia,nja->ija", Ya, Ya)
         lo, hi = np.minimum(lo, X.min(axis=0)), np.maximum(hi, X.max(axis=0))
         ylo, yhi = np.minimum(ylo, Y.min(axis=0)), np.maximum(yhi, Y.max(axis=0))
     gram, xty, noise = gram / n, xty / n, noise / n
+    for b in [blocks] + [a[3] for a in without.values()]:
+        for key in b:
+            b[key] /= n
     return {
+        # the moments per material expansion part (:func:`population_at`): kept in memory for
+        # the fit's calibration of the coefficients, not written to a model file
+        "cte": {
+            "parts": list(CTE_PARTS),
+            "nominal_per_K": twin.cte_per_K.tolist(),
+            "blocks": blocks,
+            "without": [a[3] for a in without.values()],
+        },
         "gram": gram.tolist(),
         "xty": xty.tolist(),
         "scale": np.sqrt(np.diag(gram)).tolist(),
@@ -468,6 +518,30 @@ def twin_thermal_population(
         + [f"dT_{p}" for p in probe_names]
         + [f"lead{tau:g}s_housing" for tau in MAP_LEADS_S],
     }
+
+
+def population_at(tm, cte_per_K) -> dict:
+    """The twin map's population moments (``gram``, ``xty``, ``ttp_ms_um2`` and each member's
+    in ``without``) for a ram whose materials expand by ``cte_per_K`` (P,) in
+    ``tm["cte"]["parts"]`` order instead of the description's, from the per-part moments
+    :func:`twin_thermal_population` keeps: the temperatures do not depend on the coefficients,
+    the elongations and the TTP are linear in them."""
+    alpha = np.asarray(cte_per_K, float)
+    a = np.concatenate([[1.0], alpha])
+
+    def at(b, ms="yy"):
+        gram = np.einsum("i,j,ijKL->KL", a, a, b["zz"])
+        return {
+            "gram": gram,
+            "xty": np.einsum("i,j,ijKa->Ka", a, alpha, b["zy"]),
+            "ttp_ms_um2": np.clip(np.einsum("i,j,ija->a", alpha, alpha, b[ms]), 0.0, None),
+            "scale": np.sqrt(np.clip(np.diag(gram), 0.0, None)),
+        }
+
+    cte = tm["cte"]
+    out = at(cte["blocks"])
+    out["without"] = [at(b, "alone_yy") for b in cte["without"]]
+    return out
 
 
 def grating_wavelengths_nm(sensors, elongation_um, gauge_delta_t_K=0.0):
