@@ -65,7 +65,7 @@ def test_a_data_sheet_that_gets_the_fibres_expansion_wrong_is_contradicted_and_d
     sheet's 1.0e-6, and the other values a handbook gives): the twin then answers a warmer +X
     face with the opposite sign, and the default fit corrected thermal_b's dx to 17.2 µm off
     on 10.3 uncompensated. The training contradicts that description (likelihood-ratio test at
-    1e-3), the coefficient it asks for is near the data sheet's, and no axis is harmed
+    1e-2), the coefficient it asks for is near the data sheet's, and no axis is harmed
     (2026-11-29: estimated 1.45e-6 /K; thermal_b dx 4.5 µm)."""
     import yaml
 
