@@ -468,7 +468,8 @@ class Twin:
         self._thermal_K, self._thermal_C, self._thermal_B = Kt, Ct, Bt
         self._O = np.vstack([W, Tsens.toarray(), Tprobe.toarray()])
         self._W_parts = arrays["W_parts"]
-        self._parts_outputs = None  # the parts' rows projected on the reduced basis, on first use
+        # the parts' rows projected on the reduced basis, on first use
+        self._parts_outputs: tuple[np.ndarray, np.ndarray] | None = None
         self.reduced = thermal.ReducedThermal.from_arrays(
             Kt, Bt, {n: arrays[f"reduced_{n}"] for n in thermal.ReducedThermal.ARRAYS}, factor=thermal_factor
         )

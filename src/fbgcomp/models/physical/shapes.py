@@ -139,6 +139,12 @@ def check_shapes(d: dict, source) -> None:
                     f"twin_map.without[{i}].ttp_ms_um2",
                     "must be >= 0",
                 )
+        members = tm.get("cte_members", [])
+        need(isinstance(members, list), "twin_map.cte_members", "must be a list")
+        for i, w in enumerate(members):
+            need(isinstance(w, dict), f"twin_map.cte_members[{i}]", "must be a mapping")
+            array(w.get("gram"), f"twin_map.cte_members[{i}].gram", (k, k))
+            array(w.get("xty"), f"twin_map.cte_members[{i}].xty", (k, 3))
         if "ttp_ms_um2" in tm:
             need(
                 np.all(array(tm["ttp_ms_um2"], "twin_map.ttp_ms_um2", (3,)) >= 0),

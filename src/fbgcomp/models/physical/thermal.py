@@ -239,7 +239,8 @@ def ridge_from_moments(gram, xty, scale, keep, lam):
 def map_members(tm, cols, lam):
     """Coefficients (m, k, 3) of the twin map's members on the feature columns ``cols``: the
     map of the whole population first, then one map per undeclared source, fitted on the same
-    scenarios with that source taken out (``tm["without"]``).
+    scenarios with that source taken out (``tm["without"]``), then the map of an expansion
+    coefficient the training asked for (``tm["cte_members"]``).
 
     A member speaks only for the axes its source moves: on an axis where the source's own TTP
     response (RMS over the population) is within the full map's error there, the member's
@@ -257,6 +258,11 @@ def map_members(tm, cols, lam):
             quiet = np.asarray(w["ttp_ms_um2"], float) <= err2
             c[:, quiet] = full[:, quiet]
         out.append(c)
+    # the map of the expansion coefficient the training asked for, where it contradicted the
+    # description's (PhysicalModel._calibrate_cte): only what both answer is applied
+    for w in tm.get("cte_members", []):
+        g = np.asarray(w["gram"], float)
+        out.append(ridge_from_moments(g, w["xty"], np.sqrt(np.clip(np.diag(g), 0, None)), cols, lam))
     return np.stack(out)
 
 
