@@ -88,3 +88,9 @@ def test_a_data_sheet_that_gets_the_fibres_expansion_wrong_is_contradicted_and_d
     for name in ("thermal_b", "thermal_c"):
         err, peak, _ = held_out_figures(m, ram4[name])
         assert (err <= peak + 0.5).all(), (name, err, peak)
+    # the member travels in the model file, checked on load, and the runtime applies the same
+    from fbgcomp.models.registry import load_model
+
+    loaded = load_model(m.save(tmp_path / "m.json"))
+    assert len(loaded.twin_map_["cte_members"]) == 1
+    np.testing.assert_array_equal(loaded.predict(ram4["thermal_b"]), m.predict(ram4["thermal_b"]))

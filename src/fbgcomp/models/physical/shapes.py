@@ -127,24 +127,20 @@ def check_shapes(d: dict, source) -> None:
             r = len(ub[0]) if isinstance(ub, list) and ub and isinstance(ub[0], list) else -1
             need(0 <= r <= k, "twin_map.unseen_basis", f"must be a list of {k} rows of at most {k} numbers")
             array(ub, "twin_map.unseen_basis", (k, r))
-        without = tm.get("without", [])
-        need(isinstance(without, list), "twin_map.without", "must be a list")
-        for i, w in enumerate(without):
-            need(isinstance(w, dict), f"twin_map.without[{i}]", "must be a mapping")
-            array(w.get("gram"), f"twin_map.without[{i}].gram", (k, k))
-            array(w.get("xty"), f"twin_map.without[{i}].xty", (k, 3))
-            if "ttp_ms_um2" in w:
-                need(
-                    np.all(array(w["ttp_ms_um2"], f"twin_map.without[{i}].ttp_ms_um2", (3,)) >= 0),
-                    f"twin_map.without[{i}].ttp_ms_um2",
-                    "must be >= 0",
-                )
-        members = tm.get("cte_members", [])
-        need(isinstance(members, list), "twin_map.cte_members", "must be a list")
-        for i, w in enumerate(members):
-            need(isinstance(w, dict), f"twin_map.cte_members[{i}]", "must be a mapping")
-            array(w.get("gram"), f"twin_map.cte_members[{i}].gram", (k, k))
-            array(w.get("xty"), f"twin_map.cte_members[{i}].xty", (k, 3))
+        # the consensus members: one per undeclared source, and an estimated expansion's
+        for field in ("without", "cte_members"):
+            members = tm.get(field, [])
+            need(isinstance(members, list), f"twin_map.{field}", "must be a list")
+            for i, w in enumerate(members):
+                need(isinstance(w, dict), f"twin_map.{field}[{i}]", "must be a mapping")
+                array(w.get("gram"), f"twin_map.{field}[{i}].gram", (k, k))
+                array(w.get("xty"), f"twin_map.{field}[{i}].xty", (k, 3))
+                if "ttp_ms_um2" in w:
+                    need(
+                        np.all(array(w["ttp_ms_um2"], f"twin_map.{field}[{i}].ttp_ms_um2", (3,)) >= 0),
+                        f"twin_map.{field}[{i}].ttp_ms_um2",
+                        "must be >= 0",
+                    )
         if "ttp_ms_um2" in tm:
             need(
                 np.all(array(tm["ttp_ms_um2"], "twin_map.ttp_ms_um2", (3,)) >= 0),
