@@ -570,8 +570,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
         return self
 
     def _calibrate_cte(self, rows) -> dict:
-        """The materials' expansion coefficients the measured load-free campaigns ask of the
-        twin map, and the map's population moments and coefficients set to them.
+        """The test of the description's expansion coefficients against the measured load-free
+        campaigns (returned for the model file), and, where they contradict it, the map of the
+        coefficients they ask for as one more consensus member (``twin_map["cte_members"]``).
 
         The twin's face-gradient response, which no training campaign checks, turns on the
         expansion coefficients: on a CFRP ram its sign follows the fibres' own, a number near
@@ -582,10 +583,10 @@ class PhysicalModel(EstimatorParams, ModelFile):
         as the prior's mean (``cte_prior_sd_per_K`` its SD) and, per axis, the profile
         likelihood ``n_eff/2 log J(alpha)`` of the training residual left once the housing
         calibration has taken its part (``J``, the mean square; ``n_eff`` the residual's
-        effective sample count, :func:`effective_samples`); and used only where the training
-        contradicts the description (``cte_test_p``) by more than a data sheet's tolerance
-        (``CTE_TOLERANCE_SD``). The map is linear in the coefficients'
-        moments (:func:`population_at`), so each trial costs one ridge solve."""
+        effective sample count, :func:`effective_samples`); and put beside the description's
+        map only where the training contradicts the description (``cte_test_p``) by more than
+        a data sheet's tolerance (``CTE_TOLERANCE_SD``). The map is linear in the
+        coefficients' moments (:func:`population_at`), so each trial costs one ridge solve."""
         tm, cte = self.twin_map_, self._cte_moments
         tm["cte"] = cte  # population_at reads it here
         A = np.vstack(self._cal_rows[0])
