@@ -181,9 +181,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
         thermal_b dz 4.62 -> 1.84 µm with its bearings' heat read (docs/accuracy.md).
     calibrate_cte : bool
         Test the description's expansion coefficients against the measured load-free campaigns
-        and, where they contradict it, set the twin map to the coefficients they ask for
-        (:meth:`_calibrate_cte`): the face-gradient response no training campaign checks turns
-        on them.
+        and, where they contradict it, put the map of the coefficients they ask for beside the
+        description's as a consensus member (:meth:`_calibrate_cte`): the face-gradient
+        response no training campaign checks turns on them.
     cte_prior_sd_per_K : (3,) floats
         The prior's SDs of those coefficients (per K), in the order CFRP along the fibres, CFRP
         across, housing; 0 keeps one as described. The default estimates the CFRP's axial
