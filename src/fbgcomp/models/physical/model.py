@@ -854,7 +854,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
             A_rows.append(L * w)
             b_rows.append((r["y"] - pred) * w)
             feats.append(L)
-            map_rows.append((p.last_map_features[at] * w, r["y"] * w, pred * w))
+            map_rows.append((p.last_map_features[at] * w, r["y"] * w))
         self._map_rows = map_rows
         # kept for the interval's held-out errors (:meth:`_held_out_served`)
         self._cal_rows = (A_rows, b_rows)
