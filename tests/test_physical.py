@@ -441,6 +441,28 @@ def test_a_description_the_training_does_not_contradict_keeps_its_expansion(twin
     assert "cte_members" not in twin_model.twin_map_  # the map's consensus is the description's
 
 
+def test_a_fit_without_the_expansion_test_skips_the_moments_per_material(twin_model):
+    # calibrate_cte=False: the population's moments per material serve nothing, and cost most
+    # of its time; without them every moment the map and its members use is the same
+    from fbgcomp.models.physical.thermal import twin_thermal_population
+    from fbgcomp.structure import Twin, load_machine
+    from fbgcomp.structure.scenarios import generic_heat_machine
+
+    machine = load_machine(twin_model.machine)
+    twin = Twin(generic_heat_machine(machine))
+    args = (machine, twin_model.sensors_, twin_model.probe_names_, twin_model.housing_probes_)
+    kw = {"n_scenarios": 6, "twin": twin, "nominal_W": twin_model.twin_map_["heat_prior_W"]}
+    full = twin_thermal_population(*args, **kw)
+    lean = twin_thermal_population(*args, per_material=False, **kw)
+    assert "cte" in full and "cte" not in lean
+    for key in ("gram", "xty", "ttp_ms_um2", "noise_gram", "envelope_low", "envelope_high"):
+        np.testing.assert_array_equal(lean[key], full[key], err_msg=key)
+    assert [w["source"] for w in lean["without"]] == [w["source"] for w in full["without"]]
+    for a, b in zip(lean["without"], full["without"], strict=True):
+        for key in ("gram", "xty", "ttp_ms_um2"):
+            np.testing.assert_array_equal(a[key], b[key], err_msg=(a["source"], key))
+
+
 def test_the_map_members_are_stored_and_checked(twin_model, tmp_path):
     import json
 

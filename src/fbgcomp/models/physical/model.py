@@ -480,11 +480,12 @@ class PhysicalModel(EstimatorParams, ModelFile):
                 seed=0,
                 nominal_W=prior,
                 twin=heat_twin,
+                per_material=bool(self.calibrate_cte),
             )
             if pop is not None:
                 pop["heat_prior_W"] = prior
                 # the per-material moments serve the expansion calibration below, not the file
-                self._cte_moments = pop.pop("cte")
+                self._cte_moments = pop.pop("cte", None)
                 pop["coef"] = ridge_from_moments(
                     pop["gram"], pop["xty"], pop["scale"], range(len(pop["scale"])), self.map_ridge
                 ).tolist()
