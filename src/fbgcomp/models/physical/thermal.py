@@ -6,6 +6,11 @@ the features of the ridge map learned on the machine's FE twin (:func:`map_featu
 :func:`twin_thermal_population`, :func:`ridge_from_moments`), the housing leads its transient is
 calibrated on, the gratings' uncompensated feature map and which probes sit on the housing or in
 the air.
+
+Over 600 lines as one unit: every function here reads or writes the map's feature columns (the
+gratings, the probes, the housing leads in ``MAP_LEADS_S`` order), and the population's moments
+are right only while they are formed by the same :func:`map_features` the predictor streams.
+Splitting it into the features and the population (about 300 lines each) is the next step.
 """
 
 from __future__ import annotations
