@@ -510,19 +510,21 @@ def twin_thermal_population(
         lo, hi = np.minimum(lo, X.min(axis=0)), np.maximum(hi, X.max(axis=0))
         ylo, yhi = np.minimum(ylo, Y.min(axis=0)), np.maximum(yhi, Y.max(axis=0))
     gram, xty, noise = gram / n, xty / n, noise / n
-    for b in [blocks] + [a[3] for a in without.values()]:
-        for key in b:
-            b[key] /= n
     # the moments per material expansion part (:func:`population_at`): kept in memory for the
     # fit's calibration of the coefficients, not written to a model file
-    cte = {
-        "parts": list(CTE_PARTS),
-        "nominal_per_K": twin.cte_per_K.tolist(),
-        "blocks": blocks,
-        "without": [a[3] for a in without.values()],
-    }
+    cte = {}
+    if per_material:
+        for b in [blocks] + [a[3] for a in without.values()]:
+            for key in b:
+                b[key] /= n
+        cte["cte"] = {
+            "parts": list(CTE_PARTS),
+            "nominal_per_K": twin.cte_per_K.tolist(),
+            "blocks": blocks,
+            "without": [a[3] for a in without.values()],
+        }
     return {
-        **({"cte": cte} if per_material else {}),
+        **cte,
         "gram": gram.tolist(),
         "xty": xty.tolist(),
         "scale": np.sqrt(np.diag(gram)).tolist(),
