@@ -1,11 +1,12 @@
-"""The default model served through the runtime core on ram2, with a grating lost mid-run.
+"""The default model served through the runtime core on ram2, with a grating or a probe lost mid-run.
 
 Issue 12: "a grating lost at runtime still obeys [the do-no-harm rule]". The default fit
 (``fbgcomp fit thermal_a static_xyz --machine examples/machines/ram2.yaml``) is served through
 ``Pipeline`` with its default output policy (output filter, per-axis maximum and rate limit),
 frame by frame on the interrogator's own clock, in batches of 100 frames. For each held-out
-campaign it runs once with every grating and once per grating lost from 40 % of the run on
-(the runtime switches to the fallback without it on that frame). Printed per run: max
+campaign it runs once with every grating and once per grating and per probe lost from 40 % of
+the run on (the runtime switches to the fallback without it on that frame; a probe lost is one
+without a reading, as a live input gone stale is). Printed per run: max
 |interferometer + published correction| per axis at the reference times against the
 uncompensated peak, and whether any axis ends worse than uncompensated (+0.5 µm, the
 interferometer's noise on an axis that hardly moves). Last line: one JSON object.
@@ -48,9 +49,9 @@ def judge(label, model, held_out) -> list:
     """Every run of the module docstring on the campaigns ``held_out`` {name: Campaign}."""
     rows = []
     print(f"\n{label}")
-    print(f"{'campaign':<15}{'lost':<6}{'dx':>9}{'dy':>9}{'dz':>9}   uncompensated dx/dy/dz")
+    print(f"{'campaign':<15}{'lost':<10}{'dx':>9}{'dy':>9}{'dz':>9}   uncompensated dx/dy/dz")
     for name, c in held_out.items():
-        for lost in [None, *model.sensor_names]:
+        for lost in [None, *model.sensor_names, *model.probe_names_]:
             err, peak = served_error(model, c, lost)
             worse = bool((err > peak + ALLOWANCE_UM).any())
             rows.append(
@@ -62,7 +63,7 @@ def judge(label, model, held_out) -> list:
                     "worse": worse,
                 }
             )
-            line = f"{name:<15}{lost or '-':<6}" + "".join(f"{v:>9.2f}" for v in err)
+            line = f"{name:<15}{lost or '-':<10}" + "".join(f"{v:>9.2f}" for v in err)
             print(line + "   " + "/".join(f"{v:.2f}" for v in peak) + ("   WORSE" if worse else ""))
     harm = sum(r["worse"] for r in rows)
     print(f"{harm} of {len(rows)} runs with an axis worse than uncompensated")

@@ -45,21 +45,28 @@ def process_in_batches(pipe, time_s, wavelength_nm, temperature_C, sizes=(100,),
     return {n: np.concatenate([getattr(r, n) for r in out]) for n in BATCH_FIELDS}
 
 
-def served(model, campaign, pipe=None, lost=None, lost_from=0.4, sizes=(100,)):
+def served(model, campaign, pipe=None, lost=None, lost_from=0.4, sizes=(100,), lost_until=None):
     """``campaign`` served through ``pipe`` (default: a fresh ``Pipeline`` of ``model`` with
-    the default configuration), grating ``lost`` gone (no peak) from the fraction ``lost_from``
-    of the run on. Returns the published correction (m, 3) µm at the reference samples, the
-    reference (m, 3) µm (the aligned campaign's) and the batch results
-    (:func:`process_in_batches`)."""
+    the default configuration), grating or probe ``lost`` gone (no peak; no reading) from the
+    fraction ``lost_from`` of the run on, up to the fraction ``lost_until`` (None: to the end).
+    Returns the published correction (m, 3) µm at the reference samples, the reference (m, 3)
+    µm (the aligned campaign's) and the batch results (:func:`process_in_batches`)."""
     al = campaign.aligned(zero_window_s=model.zero_window_s)
     ft, w, temp = model.frame_arrays(campaign, al)
     counts = np.ones(w.shape, np.int8)
     if lost is not None:
-        j = model.sensor_names.index(lost)
-        gone = ft >= ft[0] + lost_from * (ft[-1] - ft[0])
-        w = w.copy()
-        w[gone, j] = np.nan
-        counts[gone, j] = 0
+        span = ft[-1] - ft[0]
+        gone = ft >= ft[0] + lost_from * span
+        if lost_until is not None:
+            gone &= ft < ft[0] + lost_until * span
+        if lost in model.sensor_names:
+            j = model.sensor_names.index(lost)
+            w = w.copy()
+            w[gone, j] = np.nan
+            counts[gone, j] = 0
+        else:
+            temp = temp.copy()
+            temp[gone, list(model.probe_names).index(lost)] = np.nan
     out = process_in_batches(pipe or Pipeline(model, PipelineConfig()), ft, w, temp, sizes, counts)
     at = np.clip(np.searchsorted(ft, al.time_s, side="right") - 1, 0, ft.size - 1)
     return out["correction_um"][at], al.reference_um, out

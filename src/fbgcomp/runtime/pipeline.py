@@ -5,8 +5,9 @@ what a running machine needs, vectorised over every frame of a batch:
 
 * zero state: mean of the first ``model.zero_window_s`` seconds of each signal;
 * sensor checks (:mod:`fbgcomp.runtime.health`) and, from the first bad sample on, the
-  fallback model fitted without the faulted sensor(s) (smallest stored excluded set covering
-  them) - the switch happens on the very sample the fault appears;
+  fallback model fitted without the faulted sensor(s) and lost probes (a probe without a
+  reading or a zero: smallest stored excluded set covering them) - the switch happens on the
+  very sample the fault appears;
 * when no usable model remains: hold the last correction and ramp it linearly to zero over
   ``ramp_s`` (alarm);
 * the output policy, in this order: the adaptive output filter (:mod:`fbgcomp.runtime.output_filter`,
@@ -240,9 +241,12 @@ class Pipeline:
         return self._predictors[k]
 
     def _choose(self, excluded_mask: np.ndarray) -> int:
+        """The smallest model set that leaves out every instrument of ``excluded_mask``: the
+        gratings (S,), or the gratings then the probes (S + P,); -1 for none."""
         key = excluded_mask.tobytes()
         if key not in self._choice_cache:
-            excluded = frozenset(n for n, m in zip(self.sensor_names, excluded_mask) if m)
+            names = self.sensor_names + self.probe_names
+            excluded = frozenset(n for n, m in zip(names, excluded_mask) if m)
             choice = -1
             for k, s in enumerate(self.model_sets):  # sorted smallest first
                 if excluded <= s:
@@ -304,7 +308,8 @@ class Pipeline:
         ``z_axis_mm`` is the Z-axis position, mm (scalar or (n,)), passed to the model's
         ``predict`` on every frame; None (no position source) leaves the model at the Z it
         assumes. For a model whose prediction depends on Z (a kinematic chain), a non-finite Z
-        is a missing input, as a missing temperature is: no model usable, ALARM, hold / ramp.
+        is a missing input: no model usable, ALARM, hold / ramp (a missing temperature is a lost
+        probe, for which the model may store a set without it).
         A model without Z dependence ignores it."""
         self._z = (
             None
@@ -330,8 +335,10 @@ class Pipeline:
             return None  # the previous frame was on a fallback: a re-admission
         if self._ran > 0:
             return None  # a fallback ran last: the full model takes over from its state
-        if temperature_C.shape[1] and not np.isfinite(temperature_C).all():
-            return None
+        if temperature_C.shape[1] and not (
+            np.isfinite(temperature_C).all() and np.isfinite(np.asarray(self.temperature_zero_C, float)).all()
+        ):
+            return None  # a probe lost: the set without it, if the model has one
         if self._z is not None and self.uses_z and not np.isfinite(self._z).all():
             return None
         if not self.checks.all_good(time_s, wavelength_nm, peak_count):
@@ -425,17 +432,18 @@ class Pipeline:
         if start < n:
             rows = slice(start, n)
             f = faulted[rows]
-            temp_ok = (
-                np.all(np.isfinite(temperature_C[rows]), axis=1)
-                if temperature_C.shape[1]
-                else np.ones(n - start, bool)
+            # a probe without a reading (or without a zero) is lost: a model set without it
+            # (the model's stored ones) or none
+            lost_p = ~np.isfinite(temperature_C[rows]) | ~np.isfinite(
+                np.asarray(self.temperature_zero_C, float)
             )
+            temp_ok = np.ones(n - start, bool)
             if self._z is not None and self.uses_z:  # a Z-dependent model without its Z
                 temp_ok &= np.isfinite(self._z[rows])
-            choice = self._choices(f, temp_ok)
+            choice = self._choices(f, temp_ok, lost_p)
             if self.config.health.readmit_k_sigma > 0:
                 choice = self._check_readmissions(
-                    time_s, wavelength_nm, temperature_C, start, status, faulted, temp_ok, choice
+                    time_s, wavelength_nm, temperature_C, start, status, faulted, temp_ok, choice, lost_p
                 )
             self._prev_mask = faulted[-1].copy()
             self._prev_choice = int(choice[-1])
@@ -497,8 +505,11 @@ class Pipeline:
             self._uses_z = reference_z_mm(self.predictor(0)) is not None
         return self._uses_z
 
-    def _choices(self, f: np.ndarray, temp_ok: np.ndarray) -> np.ndarray:
-        """Model set per row for the faulted mask ``f`` (-1: none usable)."""
+    def _choices(self, f: np.ndarray, temp_ok: np.ndarray, lost_p: np.ndarray | None = None) -> np.ndarray:
+        """Model set per row for the faulted gratings ``f`` (n, S) and lost probes ``lost_p``
+        (n, P) (-1: none usable, or ``temp_ok`` False)."""
+        if lost_p is not None and lost_p.any():
+            f = np.hstack([f, lost_p])
         if f.any():
             patterns, inverse = np.unique(f, axis=0, return_inverse=True)
             choice = np.array([self._choose(p) for p in patterns])[inverse.reshape(-1)]
@@ -531,7 +542,7 @@ class Pipeline:
         return np.asarray(d, float).reshape(3), np.asarray(p.expected_rms_error_um, float)
 
     def _check_readmissions(
-        self, time_s, wavelength_nm, temperature_C, start, status, faulted, temp_ok, choice
+        self, time_s, wavelength_nm, temperature_C, start, status, faulted, temp_ok, choice, lost_p=None
     ) -> np.ndarray:
         """Keep out a grating whose re-admission the other gratings contradict.
 
@@ -572,7 +583,7 @@ class Pipeline:
             self.checks.last_bad_s[js] = np.maximum(self.checks.last_bad_s[js], float(t[r]))
             self._inconsistent_until[js] = until
             self.readmissions_refused += 1
-            choice[r:] = self._choices(f[r:], temp_ok[r:])
+            choice[r:] = self._choices(f[r:], temp_ok[r:], None if lost_p is None else lost_p[r:])
             i = r + 1
         return choice
 

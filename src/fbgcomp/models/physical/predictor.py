@@ -180,6 +180,12 @@ class PhysicalPredictor:
         self.thermal_noise_sd_um = np.asarray(getattr(m, "thermal_noise_sd_um_", np.zeros(3)), float)
         keep = [i for i, s in enumerate(self.sensor_names) if s not in self.exclude]
         self._keep = keep
+        # probes this set goes without (one lost at runtime): the map leaves out their columns
+        # (and the housing's leads and calibration with a housing probe, the calibration with
+        # an ambient one it reads); their reading is held at its last value for the filters
+        self._lost_p = [j for j, q in enumerate(self.probe_names) if q in self.exclude]
+        lost_housing = any(j in self._h_idx for j in self._lost_p)
+        lost_ambient = any(j in self._a_idx for j in self._lost_p)
         self.has_load = m.load_ is not None and len(keep) >= 1
         if self.has_load:
             L = m.load_
@@ -245,7 +251,10 @@ class PhysicalPredictor:
             tm = m.twin_map_
             S = len(self.sensor_names)
             k = len(tm["scale"])
-            cols = [i for i in range(k) if i >= S or i in keep]
+            drop = {S + j for j in self._lost_p}
+            if lost_housing:
+                drop |= set(range(k - len(MAP_LEADS_S), k))
+            cols = [i for i in range(k) if (i >= S or i in keep) and i not in drop]
             members = map_members(tm, cols, float(m.map_ridge))
             if len(cols) == k:
                 members[0] = np.asarray(tm["coef"], float)
@@ -301,9 +310,14 @@ class PhysicalPredictor:
             self.map_noise_sd_um = np.hypot(
                 self.map_noise_sd_um, LOST_K_SIGMA / float(m.load_k_sigma) * self.map_lost_sd_um
             )
+            # without a probe it reads, the housing calibration is left out (its features then
+            # pass through this set's state unchanged: take_state)
+            cal_lost = cal is not None and (
+                lost_housing or (lost_ambient and cal.get("ambient_tau_s") is not None)
+            )
             self.cal = (
                 None
-                if cal is None
+                if cal is None or cal_lost
                 else {
                     "leads_s": tuple(float(x) for x in cal["leads_s"]),
                     "ambient_tau_s": cal.get("ambient_tau_s"),
@@ -320,7 +334,7 @@ class PhysicalPredictor:
         # map's partner while its heat estimates stay plausible
         ob = getattr(m, "observer_", None)
         self.obs = None
-        if ob is not None and self.map is not None:
+        if ob is not None and self.map is not None and not self._lost_p:
             self.obs = ThermalObserver.from_dict(ob)
             self._obs_p = [self.probe_names.index(q) for q in ob["probes"]]
             self._obs_a = [self.probe_names.index(q) for q in ob["ambient"]]
@@ -356,11 +370,17 @@ class PhysicalPredictor:
         the applied force and the step test's state, and each grating's low-passed reading and
         thermal offset. A grating this set leaves out reads zero, as it always does here; one
         it takes that ``other`` left out (a re-admission) starts from its first frame, its
-        thermal offset then being all the reading the applied force does not explain."""
+        thermal offset then being all the reading the applied force does not explain.
+
+        A probe ``other`` went without (held at its last reading) that this set reads is taken
+        back on this set's first frame (:meth:`_rebase_probes`)."""
         st = copy.deepcopy(other.state) if other.state else None
         if not st:
             self.reset()
             return
+        back = [j for j, q in enumerate(self.probe_names) if q in other.exclude and q not in self.exclude]
+        if back:
+            st["probe_rebase"] = back
         names = self.sensor_names
         mine = [s not in self.exclude for s in names]
         theirs = [s not in other.exclude for s in names]
@@ -388,6 +408,33 @@ class PhysicalPredictor:
             st["load"] = L
         self.state = st
         self._handed_over = True
+
+    def _rebase_probes(self, state, dT0):
+        """``state`` with the probes :meth:`take_state` marked as back taken at their reading
+        ``dT0`` (P,) K on the first frame: the set that went without them ran its filters on
+        their last reading, held; each filter state they enter is moved by the probe's change
+        over the gap, so the gap reads as a slow change the filters had followed, not as a
+        step (a housing probe back after an hour of warming would otherwise be a lead of that
+        hour's warming: ~10 µm of dz per K on ram2). States the set without them passed on
+        unchanged (the housing calibration's) are time-stamped: their filters step over the
+        gap by themselves."""
+        back = state.get("probe_rebase")
+        if not back:
+            return state
+        state = {k: v for k, v in state.items() if k != "probe_rebase"}
+        held = np.asarray(state.get("probe_last", np.zeros(len(self.probe_names))), float)
+        jump = np.zeros(len(self.probe_names))
+        jump[back] = np.nan_to_num(np.asarray(dT0, float)[back] - held[back])
+        m = state.get("map")
+        if m is not None:
+            m = dict(m)
+            dh = float(housing_mean(jump[None, :], self._h_idx)[0, 0])
+            for key, by in [("in", jump)] + [(f"lead{tau:g}", dh) for tau in MAP_LEADS_S]:
+                if m.get(key) is not None and m[key][1] is not None:
+                    y, t = m[key]
+                    m[key] = (np.asarray(y, float) + by, t)
+            state["map"] = m
+        return state
 
     def _resume(self, state, e_keep0, e_all0):
         """``state`` with what :meth:`take_state` left pending (NaN) taken from the first frame:
@@ -955,7 +1002,16 @@ class PhysicalPredictor:
         unseen = np.zeros((n, 3))
         state = self.state or {}
         new_state = {}
+        lost_p = self._lost_p
+        if lost_p:  # a lost probe reads its last change (0 before it had one), held
+            held = np.asarray(state.get("probe_last", np.zeros(P_)), float)[lost_p]
+            zero = np.nan_to_num(temperature_zero_C[lost_p])
+            temperature_zero_C = temperature_zero_C.copy()
+            temperature_zero_C[lost_p] = zero
+            temperature_C = temperature_C.copy()
+            temperature_C[:, lost_p] = zero + held
         dT = np.atleast_2d(np.asarray(temperature_C, float)) - np.asarray(temperature_zero_C, float)
+        new_state["probe_last"] = dT[-1].copy() if n else state.get("probe_last")
         w = wl.copy()
         w0 = np.asarray(wavelength_zero_nm, float)
         lost = [i for i, s in enumerate(self.sensor_names) if s in self.exclude]
@@ -963,6 +1019,7 @@ class PhysicalPredictor:
         e_all = self._fmap.base(w, temperature_C, w0, temperature_zero_C)
         if self._handed_over and n:
             state = self._resume(state, e_all[0, self._keep], e_all[0])
+            state = self._rebase_probes(state, dT[0])
             self._handed_over = False
         load = np.zeros((n, 3))
         force = np.zeros((n, 3))
@@ -1134,6 +1191,12 @@ class PhysicalPredictor:
                 thermal, clamped = P.clamp_axes(thermal, self.t_low, self.t_high)
                 flags[outside] |= P.SHRUNK
                 flags[clamped] |= P.CLAMPED
+        if lost_p:
+            # what this set does not run (the housing calibration without its probe) passes on
+            # as it was, for the set that reads the probe again (take_state)
+            for key, v in state.items():
+                if key != "probe_rebase":
+                    new_state.setdefault(key, v)
         self.state = new_state
         self.last_flags = flags
         self.last_force_N = force

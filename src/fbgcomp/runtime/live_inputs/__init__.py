@@ -5,10 +5,11 @@ A real machine's probes are read by its PLC or a logger; the axis position is th
 reader runs as an asyncio task beside the frame loop and never blocks it: it only keeps, per
 input, the latest value and the monotonic time it was received. At every batch the service
 asks for the latest temperatures and Z; a value older than its ``stale_s`` (or never received,
-or received with a bad status) is *missing*: NaN, which the pipeline handles as it handles a
-missing temperature - no usable model, health ALARM, the last correction held and ramped to
-zero (the do-no-harm fallback). A missing Z matters only to a model whose prediction depends on
-Z (kinematic, hybrid, calibrated); the others ignore it. :attr:`LiveInputs.status` names the
+or received with a bad status) is *missing*: NaN, which the pipeline handles as a lost probe -
+the model's stored set without it (DEGRADED), or without one, no usable model: health ALARM,
+the last correction held and ramped to zero (the do-no-harm fallback). A missing Z matters
+only to a model whose prediction depends on Z (kinematic, hybrid, calibrated); the others
+ignore it. :attr:`LiveInputs.status` names the
 stale inputs (OPC UA ``SourceStatus``, the log).
 
 Configuration (serve TOML; any subset)::

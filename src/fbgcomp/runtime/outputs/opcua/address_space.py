@@ -80,7 +80,8 @@ DESCRIPTIONS = {
     "ModelId": "model_id of the model file in use.",
     "Health": "ZEROING, OK, DEGRADED or ALARM; apply the correction only in OK or DEGRADED.",
     "Alarm": "True: compensator fault (health ALARM); ramp the applied correction to zero.",
-    "FallbackInUse": "Sensors excluded by the fallback model in use, e.g. S3; empty for the full model.",
+    "FallbackInUse": "Sensors (and lost probes) excluded by the fallback model in use, e.g. S3 or "
+    "T_flange; empty for the full model.",
     "Limited": "True: the published correction is held back on some axis (a flag is set).",
     "OutputFlagsText": "The output flags as text, e.g. Y:RATE_LIMITED Z:SHRUNK; empty when "
     "nothing is held back.",
