@@ -148,6 +148,7 @@ class Pipeline:
         self._t_first: float | None = None
         self.wavelength_zero_nm: np.ndarray | None = None
         self.temperature_zero_C: np.ndarray | None = None
+        self._probe_unzeroed = np.zeros(P, bool)  # probes without a zero-state value: lost
         # model_sets[0] is the full model; the rest the stored fallbacks
         self.model_sets: list[frozenset[str]] = [
             frozenset(),
@@ -205,6 +206,7 @@ class Pipeline:
         self._tzero_sum, self._tzero_n = old._tzero_sum, old._tzero_n
         self.wavelength_zero_nm = old.wavelength_zero_nm
         self.temperature_zero_C = old.temperature_zero_C
+        self._probe_unzeroed = old._probe_unzeroed
         self._last_correction, self._hold_start_s = old._last_correction, old._hold_start_s
         self._hold_from = old._hold_from
         self._smoothed, self._last_t = old._smoothed, old._last_t
@@ -286,6 +288,7 @@ class Pipeline:
             with np.errstate(invalid="ignore", divide="ignore"):
                 self.wavelength_zero_nm = np.where(self._zero_n > 0, self._zero_sum / self._zero_n, np.nan)
                 self.temperature_zero_C = np.where(self._tzero_n > 0, self._tzero_sum / self._tzero_n, np.nan)
+            self._probe_unzeroed = ~np.isfinite(self.temperature_zero_C)
             self.checks.never_zeroed = ~np.isfinite(self.wavelength_zero_nm)
             t_last = self._t_zero_last  # set once a frame was used (_zero_frames > 0)
             if self._zero_frames > 1 and t_last is not None and t_last > t_first:
@@ -335,9 +338,7 @@ class Pipeline:
             return None  # the previous frame was on a fallback: a re-admission
         if self._ran > 0:
             return None  # a fallback ran last: the full model takes over from its state
-        if temperature_C.shape[1] and not (
-            np.isfinite(temperature_C).all() and np.isfinite(np.asarray(self.temperature_zero_C, float)).all()
-        ):
+        if temperature_C.shape[1] and (self._probe_unzeroed.any() or not np.isfinite(temperature_C).all()):
             return None  # a probe lost: the set without it, if the model has one
         if self._z is not None and self.uses_z and not np.isfinite(self._z).all():
             return None
@@ -434,16 +435,14 @@ class Pipeline:
             f = faulted[rows]
             # a probe without a reading (or without a zero) is lost: a model set without it
             # (the model's stored ones) or none
-            lost_p = ~np.isfinite(temperature_C[rows]) | ~np.isfinite(
-                np.asarray(self.temperature_zero_C, float)
-            )
-            temp_ok = np.ones(n - start, bool)
+            lost_p = ~np.isfinite(temperature_C[rows]) | self._probe_unzeroed
+            z_ok = np.ones(n - start, bool)
             if self._z is not None and self.uses_z:  # a Z-dependent model without its Z
-                temp_ok &= np.isfinite(self._z[rows])
-            choice = self._choices(f, temp_ok, lost_p)
+                z_ok &= np.isfinite(self._z[rows])
+            choice = self._choices(f, z_ok, lost_p)
             if self.config.health.readmit_k_sigma > 0:
                 choice = self._check_readmissions(
-                    time_s, wavelength_nm, temperature_C, start, status, faulted, temp_ok, choice, lost_p
+                    time_s, wavelength_nm, temperature_C, start, status, faulted, z_ok, choice, lost_p
                 )
             self._prev_mask = faulted[-1].copy()
             self._prev_choice = int(choice[-1])
@@ -505,9 +504,9 @@ class Pipeline:
             self._uses_z = reference_z_mm(self.predictor(0)) is not None
         return self._uses_z
 
-    def _choices(self, f: np.ndarray, temp_ok: np.ndarray, lost_p: np.ndarray | None = None) -> np.ndarray:
+    def _choices(self, f: np.ndarray, z_ok: np.ndarray, lost_p: np.ndarray | None = None) -> np.ndarray:
         """Model set per row for the faulted gratings ``f`` (n, S) and lost probes ``lost_p``
-        (n, P) (-1: none usable, or ``temp_ok`` False)."""
+        (n, P) (-1: none usable, or ``z_ok`` False: a Z-dependent model without its Z)."""
         if lost_p is not None and lost_p.any():
             f = np.hstack([f, lost_p])
         if f.any():
@@ -515,7 +514,7 @@ class Pipeline:
             choice = np.array([self._choose(p) for p in patterns])[inverse.reshape(-1)]
         else:
             choice = np.zeros(f.shape[0], int)
-        return np.where(temp_ok, choice, -1)
+        return np.where(z_ok, choice, -1)
 
     def _take_over(self, p, k: int) -> None:
         """Predictor ``p`` of model set ``k`` goes on from the state of the set that ran last,
@@ -542,7 +541,7 @@ class Pipeline:
         return np.asarray(d, float).reshape(3), np.asarray(p.expected_rms_error_um, float)
 
     def _check_readmissions(
-        self, time_s, wavelength_nm, temperature_C, start, status, faulted, temp_ok, choice, lost_p=None
+        self, time_s, wavelength_nm, temperature_C, start, status, faulted, z_ok, choice, lost_p=None
     ) -> np.ndarray:
         """Keep out a grating whose re-admission the other gratings contradict.
 
@@ -583,7 +582,7 @@ class Pipeline:
             self.checks.last_bad_s[js] = np.maximum(self.checks.last_bad_s[js], float(t[r]))
             self._inconsistent_until[js] = until
             self.readmissions_refused += 1
-            choice[r:] = self._choices(f[r:], temp_ok[r:], None if lost_p is None else lost_p[r:])
+            choice[r:] = self._choices(f[r:], z_ok[r:], None if lost_p is None else lost_p[r:])
             i = r + 1
         return choice
 

@@ -9,8 +9,7 @@ or received with a bad status) is *missing*: NaN, which the pipeline handles as 
 the model's stored set without it (DEGRADED), or without one, no usable model: health ALARM,
 the last correction held and ramped to zero (the do-no-harm fallback). A missing Z matters
 only to a model whose prediction depends on Z (kinematic, hybrid, calibrated); the others
-ignore it. :attr:`LiveInputs.status` names the
-stale inputs (OPC UA ``SourceStatus``, the log).
+ignore it. :attr:`LiveInputs.status` names the stale inputs (OPC UA ``SourceStatus``, the log).
 
 Configuration (serve TOML; any subset)::
 
