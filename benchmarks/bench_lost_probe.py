@@ -15,7 +15,9 @@ with the probe lost
 
 Printed per run: max |interferometer + published correction| per axis at the reference times
 against the uncompensated peak, whether any axis ends worse than uncompensated (+0.5 µm, the
-interferometer's noise on an axis that hardly moves), and the frames served DEGRADED / ALARM.
+interferometer's noise on an axis that hardly moves), the frames served DEGRADED / ALARM, and the
+share of reference samples the published 95 % interval covers (|reference - deviation| <=
+half-width), per axis.
 Last line: one JSON object.
 
     nice -n 10 .venv/bin/python benchmarks/bench_lost_probe.py [--ram2 PATH] [--rams ram2,ram3,ram4]
@@ -52,7 +54,10 @@ def judge(ram: str, data: Path, machine) -> list:
     """Every run of the module docstring on one ram's held-out campaigns."""
     model = PhysicalModel(machine=machine).fit([read_campaign(data / n) for n in ("thermal_a", "static_xyz")])
     print(f"\n{ram} ({data}): fit thermal_a static_xyz; probes {', '.join(model.probe_names_)}")
-    print(f"{'campaign':<12}{'lost':<10}{'when':<8}{'dx':>8}{'dy':>8}{'dz':>8}  DEGRADED / ALARM frames")
+    print(
+        f"{'campaign':<12}{'lost':<10}{'when':<8}{'dx':>8}{'dy':>8}{'dz':>8}"
+        "  DEGRADED / ALARM frames  PI95 coverage dx / dy / dz"
+    )
     rows = []
     for name in HELD_OUT[ram]:
         c = read_campaign(data / name)
@@ -69,6 +74,8 @@ def judge(ram: str, data: Path, machine) -> list:
             for label, lost_from, lost_until in PATTERNS:
                 corr, ref, out = served(model, c, lost=probe, lost_from=lost_from, lost_until=lost_until)
                 e = np.abs(ref + corr).max(axis=0)
+                at = out["at"]
+                cov = (np.abs(ref - out["deviation_um"][at]) <= out["half_width_um"][at]).mean(axis=0)
                 worse = bool((e > peak + ALLOWANCE_UM).any())
                 h = out["health"]
                 deg, alarm = int((h == HEALTH_DEGRADED).sum()), int((h == HEALTH_ALARM).sum())
@@ -83,10 +90,12 @@ def judge(ram: str, data: Path, machine) -> list:
                         "worse": worse,
                         "degraded_frames": deg,
                         "alarm_frames": alarm,
+                        "coverage": cov.round(3).tolist(),
                     }
                 )
                 line = f"{name:<12}{probe:<10}{label:<8}" + "".join(f"{v:>8.2f}" for v in e)
-                print(line + f"  {deg} / {alarm}" + ("   WORSE" if worse else ""), flush=True)
+                line += f"  {deg} / {alarm}  " + " / ".join(f"{v:.2f}" for v in cov)
+                print(line + ("   WORSE" if worse else ""), flush=True)
     return rows
 
 
@@ -118,10 +127,21 @@ def main(argv=None) -> int:
                 return 2
     worse = sum(r["worse"] for r in rows)
     alarm = sum(r["alarm_frames"] > 0 for r in rows)
+    short = sum(min(r["coverage"]) < 0.90 for r in rows)
     seconds = round(time.perf_counter() - t0, 1)
     print(f"\n{worse} of {len(rows)} runs with an axis worse than uncompensated;", end=" ")
-    print(f"{alarm} with ALARM frames ({seconds:.0f} s)")
-    print(json.dumps({"runs": rows, "worse": worse, "with_alarm": alarm, "seconds": seconds}))
+    print(f"{alarm} with ALARM frames; {short} with an axis's PI95 coverage under 0.90 ({seconds:.0f} s)")
+    print(
+        json.dumps(
+            {
+                "runs": rows,
+                "worse": worse,
+                "with_alarm": alarm,
+                "coverage_under_0.90": short,
+                "seconds": seconds,
+            }
+        )
+    )
     return 0
 
 

@@ -50,7 +50,8 @@ def served(model, campaign, pipe=None, lost=None, lost_from=0.4, sizes=(100,), l
     the default configuration), grating or probe ``lost`` gone (no peak; no reading) from the
     fraction ``lost_from`` of the run on, up to the fraction ``lost_until`` (None: to the end).
     Returns the published correction (m, 3) µm at the reference samples, the reference (m, 3)
-    µm (the aligned campaign's) and the batch results (:func:`process_in_batches`)."""
+    µm (the aligned campaign's) and the batch results (:func:`process_in_batches`), with ``at``:
+    the frame index of each reference sample."""
     al = campaign.aligned(zero_window_s=model.zero_window_s)
     ft, w, temp = model.frame_arrays(campaign, al)
     counts = np.ones(w.shape, np.int8)
@@ -69,4 +70,5 @@ def served(model, campaign, pipe=None, lost=None, lost_from=0.4, sizes=(100,), l
             temp[gone, list(model.probe_names).index(lost)] = np.nan
     out = process_in_batches(pipe or Pipeline(model, PipelineConfig()), ft, w, temp, sizes, counts)
     at = np.clip(np.searchsorted(ft, al.time_s, side="right") - 1, 0, ft.size - 1)
+    out["at"] = at
     return out["correction_um"][at], al.reference_um, out

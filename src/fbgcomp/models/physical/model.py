@@ -558,6 +558,16 @@ class PhysicalModel(EstimatorParams, ModelFile):
         if self.load_ is not None and self.interval_ is not None:
             self.load_["interval_scale"] = self._fit_load_interval(rows, campaigns).tolist()
             self._predictors = {}
+        if self.interval_ is not None and self.twin_map_ is not None and not self.observer:
+            # each probe's fallback (fallback_sets) errs by more than the full model: without the
+            # housing probe it loses the housing calibration as well, which the twin population's
+            # lost information does not count (ram2 thermal_c served from the start without
+            # T_flange: dz covered 0.85, without T_amb 0.47). Its own interval, fitted as the
+            # full model's on its own training errors, speaks for it
+            self.interval_["without_probe"] = {
+                q: self._fit_interval(rows, campaigns, exclude=frozenset({q})) for q in self.probe_names_
+            }
+            self._predictors = {}
         # the thermal state observer, the map's partner (PhysicalPredictor._with_observer): the
         # intervals above are the map's own, calibrated before it joins; the two members'
         # disagreement widens them
@@ -872,11 +882,13 @@ class PhysicalModel(EstimatorParams, ModelFile):
             "envelope_high": L.max(axis=0).tolist(),
         }
 
-    def _fit_interval(self, rows, campaigns):
+    def _fit_interval(self, rows, campaigns, exclude=frozenset()):
         """Thermal part's error variance as v0 + vs s + v1 s² + v2 a² (+ vc for a model blind to
         the spindle housing), s² the squared probe
         excursion (:func:`excursion2`) and a the housing's fastest lead (a transient) over its
-        training maximum, per axis.
+        training maximum, per axis; of the sensor set without ``exclude`` (a probe's fallback:
+        that probe held at its zero, as from a loss at the start; with its training errors'
+        RMS, ``resid_sd_um``).
 
         v0 is the reference instrument's own noise, measured on the training campaigns (robust
         SD of successive differences, the quietest campaign): a machine at rest and zeroed has
@@ -897,16 +909,19 @@ class PhysicalModel(EstimatorParams, ModelFile):
         deadband = 2.0 * np.sqrt(2.0) * probe_noise_sd_K(campaigns, self.probe_names_)
         e2, S, act, w, n_eff, spread2 = [], [], [], [], [], []
         rho = float(self.unseen_relative_error)
-        held_out = self._held_out_served(rows, campaigns)
+        held_out = self._held_out_served(rows, campaigns, exclude)
+        lost = [self.probe_names_.index(q) for q in exclude if q in self.probe_names_]
         for i, (r, c) in enumerate(zip(rows, campaigns)):
             if r["loaded"]:
                 continue
-            pred, _, p, at = self._served(c)
+            pred, _, p, at = self._served(c, exclude)
             if i in held_out:
                 pred = held_out[i]
             e2.append((pred - r["y"]) ** 2)
             n_eff.append([effective_samples(pred[:, j] - r["y"][:, j]) for j in range(3)])
-            S.append(excursion2(r["dT"], scale, deadband))
+            dT = r["dT"].copy()
+            dT[:, lost] = 0.0  # a lost probe's reading is held (PhysicalPredictor.predict)
+            S.append(excursion2(dT, scale, deadband))
             act.append(p.last_activity[at])
             # the members' disagreement as a 95 % half-width, the unseen part's error as an SD
             spread2.append(p.last_spread[at] ** 2 + z2 * (rho * p.last_unseen[at]) ** 2)
@@ -922,7 +937,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         # start decided the state terms' scale alone (ram2 without T_flange: 1000x, a median
         # dz half-width of 400 µm on thermal_b around errors under 16 µm, and 0.80 coverage
         # on thermal_c all the same).
-        blind = not self._sees_housing
+        blind = not (set(self.housing_probes_) - set(exclude) or self.heat_inputs_)
         A = np.column_stack([np.sqrt(s2), s2, (act / a_scale) ** 2, np.full_like(s2, float(blind))])
         sw = np.sqrt(w)[:, None]
         v = np.array(
@@ -959,9 +974,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
             "dT_scale_K": scale.tolist(),
             "deadband_K": deadband.tolist(),
             "activity_scale_K": a_scale,
-        }
+        } | ({"resid_sd_um": np.sqrt(np.average(e2, axis=0, weights=w)).tolist()} if exclude else {})
 
-    def _held_out_served(self, rows, campaigns) -> dict:
+    def _held_out_served(self, rows, campaigns, exclude=frozenset()) -> dict:
         """{row index: applied prediction (m, 3)} of each load-free training campaign, each
         half of it (in time) predicted by a housing calibration fitted without that half: with
         measured heat inputs only ({} otherwise).
@@ -988,7 +1003,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
                     b = np.vstack([v if k != j else v[~half] for k, v in enumerate(b_rows)])
                     cal["coef"] = np.linalg.lstsq(A, b, rcond=None)[0].tolist()
                     self._predictors = {}
-                    p_half, _, _, _ = self._served(campaigns[i])
+                    p_half, _, _, _ = self._served(campaigns[i], exclude)
                     pred[half] = p_half[half]
                 out[i] = pred
         finally:

@@ -133,6 +133,38 @@ def excursion2(dT, scale_K, deadband_K=0.0):
     return np.sum((dT / np.asarray(scale_K, float)) ** 2, axis=1)
 
 
+def _interval_terms(iv) -> dict:
+    """The thermal interval's terms (:meth:`PhysicalModel._fit_interval`) as arrays."""
+    return {
+        "v0": np.asarray(iv["v0_um2"], float),
+        "v1": np.asarray(iv["v1_um2"], float),
+        "scale": np.asarray(iv["dT_scale_K"], float),
+        "v2": np.asarray(iv["v2_um2"], float),
+        "activity_scale": float(iv["activity_scale_K"]),
+        "vs": np.asarray(iv.get("vs_um2", np.zeros(3)), float),
+        "deadband": np.asarray(iv.get("deadband_K", 0.0), float),
+        # the constant term of a model blind to the housing (absent from older files)
+        "vc": np.asarray(iv.get("vc_um2", np.zeros(3)), float),
+    }
+
+
+def _state_variance(iv, dT, activity, lost_sd_um):
+    """The thermal part's error variance (n, 3) µm² of interval terms ``iv`` at probe changes
+    ``dT`` (n, P) K and housing lead ``activity`` (n,) K, plus ``lost_sd_um`` (3,) squared; and
+    the squared excursion s² (n,)."""
+    s2 = excursion2(dT, iv["scale"], iv["deadband"])
+    a2 = (np.asarray(activity, float) / iv["activity_scale"]) ** 2
+    var = (
+        iv["v0"][None, :]
+        + iv["vs"][None, :] * np.sqrt(s2)[:, None]
+        + iv["v1"][None, :] * s2[:, None]
+        + iv["v2"][None, :] * a2[:, None]
+        + iv["vc"][None, :]
+        + np.asarray(lost_sd_um, float)[None, :] ** 2
+    )
+    return var, s2
+
+
 class PhysicalPredictor:
     """Vectorised, stateful predictor of one sensor set (full, or without excluded gratings).
 
@@ -162,21 +194,13 @@ class PhysicalPredictor:
         # excursion, a the housing's lead), fitted on the load-free training campaigns
         # (``PhysicalModel._fit_interval``); a constant without it
         iv = getattr(m, "interval_", None)
-        self.interval = (
-            None
-            if iv is None
-            else {
-                "v0": np.asarray(iv["v0_um2"], float),
-                "v1": np.asarray(iv["v1_um2"], float),
-                "scale": np.asarray(iv["dT_scale_K"], float),
-                "v2": np.asarray(iv["v2_um2"], float),
-                "activity_scale": float(iv["activity_scale_K"]),
-                "vs": np.asarray(iv.get("vs_um2", np.zeros(3)), float),
-                "deadband": np.asarray(iv.get("deadband_K", 0.0), float),
-                # the constant term of a model blind to the housing (absent from older files)
-                "vc": np.asarray(iv.get("vc_um2", np.zeros(3)), float),
-            }
-        )
+        self.interval = None if iv is None else _interval_terms(iv)
+        # a probe's fallback also has its own, fitted on its own training errors (absent from
+        # files before it): it answers for the housing calibration the fallback goes without,
+        # the full model's (with the map's lost information) for what the training never moved
+        lost_probes = [q for q in self.probe_names if q in self.exclude]
+        own = ((iv or {}).get("without_probe") or {}).get(lost_probes[0]) if len(lost_probes) == 1 else None
+        self._own_interval = None if own is None else _interval_terms(own)
         self.thermal_noise_sd_um = np.asarray(getattr(m, "thermal_noise_sd_um_", np.zeros(3)), float)
         keep = [i for i, s in enumerate(self.sensor_names) if s not in self.exclude]
         self._keep = keep
@@ -246,6 +270,7 @@ class PhysicalPredictor:
         self.last_cal_features = None
         self.last_map_features = None
         self.map_lost_sd_um = np.zeros(3)
+        self._interval_lost_sd_um = None  # the interval's share of it (None: all of it)
         self._floor_scale = np.ones(3)
         if getattr(m, "twin_map_", None) is not None:
             tm = m.twin_map_
@@ -304,6 +329,14 @@ class PhysicalPredictor:
                 floor = cal.get("floor_sd_um", cal.get("noise_sd_um"))
                 self.map_noise_sd_um = np.maximum(self.map_noise_sd_um, np.asarray(floor, float))
             self.map_lost_sd_um = lost_information_sd(tm, cols, coef, float(m.map_ridge))
+            if own is not None:
+                # the probe's own interval holds what losing the probe costs; the gratings lost
+                # with it add what they told the map beyond it
+                probe_cols = [i for i in range(k) if i not in drop]
+                alone = lost_information_sd(
+                    tm, probe_cols, map_members(tm, probe_cols, float(m.map_ridge))[0], float(m.map_ridge)
+                )
+                self._interval_lost_sd_um = np.sqrt(np.clip(self.map_lost_sd_um**2 - alone**2, 0.0, None))
             # a fallback's map errs by what the lost gratings told the full one: the policy
             # holds back what that error alone could make, as it does the noise's, at
             # LOST_K_SIGMA of it where the noise counts at k_sigma
@@ -342,6 +375,9 @@ class PhysicalPredictor:
             self._obs_h = [self.heat_names.index(h) for h in ob.get("measured", [])]
         self.last_observer_ok = np.ones(0, bool)
         var = self.thermal_resid_var + self.map_lost_sd_um**2
+        if own is not None and self._interval_lost_sd_um is not None:
+            # a probe's fallback: its own training errors, and its lost gratings' share
+            var = np.maximum(var, np.asarray(own["resid_sd_um"], float) ** 2 + self._interval_lost_sd_um**2)
         if self.has_load:
             var = var + (self.C**2 @ self.F_sds[1] ** 2)
         self.expected_rms_error_um = np.sqrt(var)
@@ -1297,18 +1333,14 @@ class PhysicalPredictor:
         if self.interval is None:
             self.last_s2 = None
             return self.expected_rms_error_um[None, :] ** 2 + ambiguity
-        iv = self.interval
-        s2 = excursion2(dT, iv["scale"], iv["deadband"])
-        a2 = (np.asarray(activity, float) / iv["activity_scale"]) ** 2
-        var = (
-            iv["v0"][None, :]
-            + iv["vs"][None, :] * np.sqrt(s2)[:, None]
-            + iv["v1"][None, :] * s2[:, None]
-            + iv["v2"][None, :] * a2[:, None]
-            + iv["vc"][None, :]
-            + ambiguity
-            + self.map_lost_sd_um[None, :] ** 2  # a fallback's lost gratings (0 for the full set)
-        )
+        # (a fallback's lost gratings: 0 for the full set)
+        var, s2 = _state_variance(self.interval, dT, activity, self.map_lost_sd_um)
+        if self._own_interval is not None and self._interval_lost_sd_um is not None:
+            # a probe's fallback: the wider of the full model's and its own
+            var = np.maximum(
+                var, _state_variance(self._own_interval, dT, activity, self._interval_lost_sd_um)[0]
+            )
+        var = var + ambiguity
         self.last_s2 = s2
         if self.has_load:
             heat, own = self.load_variance(force, moving, s2)

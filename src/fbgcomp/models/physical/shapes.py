@@ -88,25 +88,41 @@ def check_shapes(d: dict, source) -> None:
                 "must be > 0",
             )
         need(np.all(np.asarray(L["noise_var_um2"], float) >= 0), "load.noise_var_um2", "must be >= 0")
-    iv = d.get("interval")
-    if iv is not None:
-        need(isinstance(iv, dict), "interval", "must be a mapping or null")
+
+    def interval(iv, at):
+        need(isinstance(iv, dict), at, "must be a mapping or null")
         # vs_um2 and vc_um2 are absent from files written before those terms
-        for key in ("v0_um2", "v1_um2", "v2_um2", *(k for k in ("vs_um2", "vc_um2") if k in iv)):
-            need(np.all(array(iv.get(key), f"interval.{key}", (3,)) >= 0), f"interval.{key}", "must be >= 0")
+        for key in (
+            "v0_um2",
+            "v1_um2",
+            "v2_um2",
+            *(k for k in ("vs_um2", "vc_um2", "resid_sd_um") if k in iv),
+        ):
+            need(np.all(array(iv.get(key), f"{at}.{key}", (3,)) >= 0), f"{at}.{key}", "must be >= 0")
         need(
-            np.all(array(iv.get("dT_scale_K"), "interval.dT_scale_K", (P,)) > 0),
-            "interval.dT_scale_K",
+            np.all(array(iv.get("dT_scale_K"), f"{at}.dT_scale_K", (P,)) > 0),
+            f"{at}.dT_scale_K",
             "must be > 0",
         )
         if "deadband_K" in iv:
-            array(iv["deadband_K"], "interval.deadband_K", (P,))
+            array(iv["deadband_K"], f"{at}.deadband_K", (P,))
         a = iv.get("activity_scale_K")
         need(
             isinstance(a, (int, float)) and not isinstance(a, bool) and a > 0,
-            "interval.activity_scale_K",
+            f"{at}.activity_scale_K",
             "must be a positive number",
         )
+
+    iv = d.get("interval")
+    if iv is not None:
+        interval(iv, "interval")
+        # each probe's fallback's own interval (absent from files written before them)
+        own = iv.get("without_probe", {})
+        need(isinstance(own, dict), "interval.without_probe", "must be a mapping")
+        for q, sub in own.items():
+            need(q in probes, f"interval.without_probe.{q}", "names a probe the model does not read")
+            interval(sub, f"interval.without_probe.{q}")
+            need("resid_sd_um" in sub, f"interval.without_probe.{q}.resid_sd_um", "is missing")
     tm = d.get("twin_map")
     if tm is not None:
         need(isinstance(tm, dict), "twin_map", "must be a mapping or null")
