@@ -17,17 +17,17 @@ from fbgcomp.structure import Twin, load_machine
 COARSE = 0.4
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def machine():
     return load_machine(None)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def twin(machine):
     return Twin(machine, resolution=COARSE)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def static_y(machine, twin, tmp_path_factory):
     campaign, truth = simulate(machine, load_scenario("static-y"), seed=3, twin=twin)
     path = write_campaign(campaign, tmp_path_factory.mktemp("bench") / "static-y")

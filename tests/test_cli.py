@@ -13,7 +13,7 @@ from fbgcomp.io.campaign import write_campaign
 FBGCOMP = [sys.executable, "-m", "fbgcomp"]
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def campaigns(tmp_path_factory):
     root = tmp_path_factory.mktemp("campaigns")
     train, _ = linear_truth_campaign(
@@ -199,7 +199,7 @@ def _one_line_error(r, *fragments):
     return lines[0]
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def mra_model(campaigns, tmp_path_factory):
     from fbgcomp.models.mra import MRAModel
 

@@ -33,12 +33,12 @@ def run(*args, env=None):
     )
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def ram2():
     return read_ram2("thermal_a", "static_xyz", "static_x", "thermal_c")
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def compared(tmp_path_factory):
     """The real command on ram2: every model type, judged on static_x and thermal_c."""
     out = tmp_path_factory.mktemp("compare")

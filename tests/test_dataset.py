@@ -36,7 +36,7 @@ def run(*args):
     )
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def campaigns(tmp_path_factory):
     require("pyarrow")
     root = tmp_path_factory.mktemp("campaigns")

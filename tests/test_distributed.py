@@ -31,7 +31,7 @@ def client():
         yield c
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def data(tmp_path_factory):
     require("pyarrow")
     root = tmp_path_factory.mktemp("fleet")
@@ -47,7 +47,7 @@ def data(tmp_path_factory):
     return folders, ds
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def reference_fit(data):
     """The in-process fit of the campaign folders (eq13, stepwise, no fallbacks)."""
     folders, _ = data

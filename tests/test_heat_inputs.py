@@ -42,7 +42,7 @@ def _with_heat(tmp: Path, name: str, heat: bool = True) -> Path:
     return folder
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def ram2_heat(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("ram2-heat")
     return {
@@ -50,7 +50,7 @@ def ram2_heat(tmp_path_factory):
     }
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def heat_model(ram2_heat):
     return PhysicalModel(machine=MACHINE).fit([ram2_heat["thermal_a"], ram2_heat["static_xyz"]])
 

@@ -95,7 +95,7 @@ def test_underdetermined_segments_are_reported_not_zero_filled():
     assert np.abs(chain.param_map[k5]).max() > 0
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def isotropic_twin():
     """The default ram with one isotropic CTE everywhere: a linear temperature field across X is
     then stress-free, i.e. a pure bending (uniform curvature, no shear, no moment)."""

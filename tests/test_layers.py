@@ -26,7 +26,7 @@ ALLOWED_UPWARD = {
 }
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def graph():
     return grimp.build_graph("fbgcomp")
 

@@ -44,7 +44,7 @@ def _short(name, hours=HOURS, **update):
     return Scenario.model_validate(data)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def campaigns(tmp_path_factory):
     root = tmp_path_factory.mktemp("bench")
     machine = load_machine()
@@ -321,7 +321,7 @@ def _box(machine, width_mm, wall_mm):
     return Machine.model_validate(d)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def closure_campaigns(tmp_path_factory):
     """Full-length thermal-36h + static-y (+ static-xyz) on a coarse twin (0.5) of the default
     box and of a slender one. The thermal campaign is the built-in one, not compressed: the

@@ -16,7 +16,7 @@ from fbgcomp.models.registry import load_model
 from fbgcomp.units import AXES
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def truth_campaign(tmp_path_factory):
     c, truth = linear_truth_campaign("truth", seed=1, duration_s=4 * 3600, noise_um=0.05)
     path = write_campaign(c, tmp_path_factory.mktemp("c") / "truth")

@@ -56,7 +56,7 @@ def _twin_instruments(tw):
     return sensors, point, c_t
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def ram2_twin():
     from fbgcomp.structure import load_machine
     from fbgcomp.structure.scenarios import generic_heat_machine
@@ -214,7 +214,7 @@ def test_streamed_on_the_interrogators_frames_it_is_the_same_filter_as_run(ram2_
     assert state["steps"] == 14 and np.isfinite(y).all()
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def ram2_observer_model():
     from fbgcomp.models.physical import PhysicalModel
     from fbgcomp_testing import read_ram2

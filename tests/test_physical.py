@@ -15,17 +15,17 @@ from fbgcomp.models.registry import load_model
 from fbgcomp_testing import RAM2_DIR, read_ram2
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def ram2():
     return read_ram2("thermal_a", "static_xyz", "thermal_b", "static_x", "thermal_c")
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def model(ram2):
     return PhysicalModel().fit([ram2["thermal_a"], ram2["static_xyz"]])
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def twin_model(ram2_default_model):
     """The default fit as the README gives it: with the machine description (twin-learned
     thermal map; conftest's session fixture)."""

@@ -27,7 +27,7 @@ GRID = {
 }
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def design():
     machine = load_machine()
     return machine, placement_design(machine, candidate_grid(machine, **GRID), resolution=0.3)

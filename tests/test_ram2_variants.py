@@ -25,7 +25,10 @@ AXES = ("dx", "dy", "dz")
 HELD = ("thermal_b", "thermal_c", "static_x")
 
 
-@pytest.fixture(scope="module")
+# session scope: the module's tests share one worker (xdist_group), but the worker may run other
+# modules' tests between them, and a module-scoped fixture was then built again (CI of
+# 2026-11-29: twice: 337 and 291 s)
+@pytest.fixture(scope="session")
 def bench(tmp_path_factory):
     if not (RAM2_DIR / "data").is_dir():
         pytest.fail(f"the independent reference data set is missing: {RAM2_DIR / 'data'}")

@@ -11,12 +11,12 @@ from fbgcomp_testing import RAM3_MACHINE, held_out_figures, read_ram3
 HELD = ("thermal_b", "thermal_c", "static_y")
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def ram3():
     return read_ram3("thermal_a", "static_xyz", *HELD)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def default_model(ram3):
     """``fbgcomp fit thermal_a static_xyz --machine examples/machines/ram3.yaml``."""
     from fbgcomp.models.physical import PhysicalModel

@@ -28,7 +28,7 @@ def test_the_twin_of_ram4s_data_sheet_meets_the_twin_check_against_its_results()
     assert_twin_check(RAM4_MACHINE, unpacked(RAM4_ARCHIVE) / "results.json", sensors, 31)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def ram4():
     return read_ram4("thermal_a", "static_xyz", *HELD)
 

@@ -68,7 +68,10 @@ def test_every_fbgcomp_command_of_the_readme_is_in_the_tour():
     assert "…" not in tour and "..." not in tour
 
 
-@pytest.fixture(scope="module")
+# session scope: the module's tests share one worker (xdist_group), but the worker may run other
+# modules' tests between them, and a module-scoped fixture is then built again (258 s each time,
+# CI of 2026-11-29)
+@pytest.fixture(scope="session")
 def toured(tmp_path_factory):
     for module in ("asyncua", "pyarrow", "aiohttp", "dask.distributed", "cryptography"):
         fbgcomp_testing.require(module)

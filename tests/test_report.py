@@ -67,7 +67,7 @@ def static_campaign(name="static_y", seed=5, hold_s=40.0, dt_s=1.0) -> Campaign:
     )
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def setup(tmp_path_factory):
     fbgcomp_testing.require("matplotlib")
     base = tmp_path_factory.mktemp("report")

@@ -39,7 +39,7 @@ def _health_sequence(seen):
     return out
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def scenario(tmp_path_factory, runtime_model_and_campaign):
     fbgcomp_testing.require("asyncua")
     fbgcomp_testing.require("pyarrow")

@@ -9,7 +9,7 @@ from fbgcomp.runtime.pipeline import HEALTH_ALARM, HEALTH_OK, Pipeline, Pipeline
 from test_runtime_support import run_in_batches
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def setup(runtime_model_and_arrays):
     return runtime_model_and_arrays
 

@@ -19,7 +19,7 @@ class GeneralOnly(Pipeline):
         return None
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def setup(runtime_model_and_arrays):
     model, time_s, w, t = runtime_model_and_arrays
     rng = np.random.default_rng(4)

@@ -10,13 +10,13 @@ from fbgcomp.cli.app import main
 from fbgcomp.io.campaign import read_campaign
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def paths(runtime_model_and_campaign):
     fbgcomp_testing.require("pyarrow")
     return runtime_model_and_campaign
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def replayed(paths, tmp_path_factory):
     """``fbgcomp serve`` on a campaign replayed at 20x for 3 s, OPC UA off, logged."""
     model, campaign = paths

@@ -211,7 +211,10 @@ def test_busy_port_is_a_one_line_error():
 
 
 # ------------------------------------------------------------------ a real serve, end to end
-@pytest.fixture(scope="module")
+# session scope: the module's tests share one worker (xdist_group), but the worker may run other
+# modules' tests between them, and a module-scoped fixture was then built again (CI of
+# 2026-11-29: twice: 30 and 29 s)
+@pytest.fixture(scope="session")
 def served(tmp_path_factory, runtime_model_and_campaign):
     fbgcomp_testing.require("asyncua")
     fbgcomp_testing.require("pyarrow")

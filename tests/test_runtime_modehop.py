@@ -75,7 +75,10 @@ def _s3_for(states, seconds):
     return done
 
 
-@pytest.fixture(scope="module")
+# session scope: the module's tests share one worker (xdist_group), but the worker may run other
+# modules' tests between them, and a module-scoped fixture was then built again (CI of
+# 2026-11-29: twice, 32 and 28 s)
+@pytest.fixture(scope="session")
 def hop(tmp_path_factory, runtime_model_and_campaign):
     return _serve(
         tmp_path_factory,
@@ -260,7 +263,7 @@ def test_a_grating_back_shifted_from_a_gap_stays_out(sizes, runtime_model_and_ca
     assert p0.readmissions_refused == 0 and (r0["health"][after] == HEALTH_OK).all()
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def gap(tmp_path_factory, runtime_model_and_campaign):
     return _serve(
         tmp_path_factory,

@@ -162,7 +162,7 @@ def test_without_modbus_the_same_limits_apply(server_factory, tmp_path):  # noqa
     assert [alarm[n] for n in NAMES] == [0.0] * 6 + [700.0]
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def served_both(tmp_path_factory, runtime_model_and_campaign):
     """A real serve with OPC UA and [modbus], fed by the real simulated interrogator; an OPC UA
     subscription to the offset variables while a PLC-side pymodbus client polls the registers."""

@@ -11,7 +11,7 @@ from fbgcomp.runtime.pipeline import HEALTH_DEGRADED, Pipeline, PipelineConfig
 from test_runtime_support import run_in_batches
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def setup(runtime_model_and_campaign):
     model_path, campaign_path = runtime_model_and_campaign
     campaign = read_campaign(campaign_path)

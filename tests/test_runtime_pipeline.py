@@ -21,7 +21,7 @@ from test_runtime_support import run_in_batches
 RAW = dict(output_filter=OutputFilterConfig(enabled=False), max_slew_um_per_s=0, max_correction_um=0)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def setup(runtime_model_and_campaign):
     model_path, campaign_path = runtime_model_and_campaign
     model = load_model(model_path)

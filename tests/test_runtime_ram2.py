@@ -20,17 +20,17 @@ from test_runtime_support import run_in_batches
 NOISE_ALLOWANCE_UM = 0.5
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def ram2():
     return read_ram2("thermal_b", "thermal_c", "static_x")
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def model(ram2_default_model):
     return ram2_default_model
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def full_error(model, ram2):
     """Max |error| (3,) per campaign served with every grating (computed once)."""
     out = {}

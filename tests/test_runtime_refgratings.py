@@ -79,7 +79,7 @@ def with_reference_gratings(campaign, seed):
     )
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def campaigns(tmp_path_factory):
     from fbgcomp.bench.synthetic import linear_truth_campaign
     from fbgcomp.io.campaign import write_campaign
@@ -100,7 +100,7 @@ def campaigns(tmp_path_factory):
     return dict(base=base, train=train_dir, serve=serve_dir, model=model)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def served(campaigns, tmp_path_factory):
     fbgcomp_testing.require("asyncua")
     fbgcomp_testing.require("pyarrow")

@@ -126,7 +126,7 @@ def test_serve_refuses_a_missing_models_folder(tmp_path):
     _one_line_error(code, err, "no-such-folder")
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def models(tmp_path_factory):
     base = tmp_path_factory.mktemp("reload")
     folder = base / "models"

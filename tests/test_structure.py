@@ -17,12 +17,12 @@ from fbgcomp.structure.machine import parse_machine
 DEFAULT_YAML = Path(__file__).resolve().parents[1] / "src" / "fbgcomp" / "data" / "ram.yaml"
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def machine():
     return load_machine()
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def fe():
     """The FE parts: scikit-fem is the optional ``fe`` extra."""
     fbgcomp_testing.require("skfem")
@@ -37,7 +37,7 @@ def fe():
     )
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def twin(machine, fe):
     return fe.Twin(machine, resolution=0.5)
 
@@ -325,7 +325,7 @@ def test_embedded_paths_bend_with_their_distance_from_the_axis(twin, machine):
 RAM2_YAML = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram2.yaml"
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def ram2():
     return load_machine(RAM2_YAML)
 
@@ -450,7 +450,7 @@ def test_a_heat_zone_may_ring_the_cavity_and_heats_the_walls_only(ram2):
         assert col[heated & face].sum() > 0.15
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def ram2_twin(ram2, fe):
     return fe.Twin(ram2, resolution=0.5)
 

@@ -112,7 +112,7 @@ def _assert_aligned(block: str):
             assert line[e - 1] != " " and (e == len(line) or line[e : e + 2] == "  "), (header, line)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def campaigns(tmp_path_factory):
     work = tmp_path_factory.mktemp("tables")
     for scenario, seed, name in (("thermal-36h", 1, "thermal_a"), ("static-y", 2, "static_y")):

@@ -33,7 +33,7 @@ def cache_dir(tmp_path, monkeypatch):
     return tmp_path / "cache" / "twin"
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def machine():
     return load_machine()
 
@@ -118,7 +118,7 @@ def test_code_version_covers_the_structure_sources_and_invalidates_the_key(machi
     assert twin_cache.twin_key(machine, RES, 12) != key
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def good_entry(machine, tmp_path_factory):
     """(file name, bytes) of a complete entry of the RES twin, and that twin's responses."""
     fbgcomp_testing.require("skfem")

@@ -24,14 +24,14 @@ RAM2_YAML = ROOT / "examples" / "machines" / "ram2.yaml"
 RESOLUTION = 0.5
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def reference():
     if not RESULTS.exists():
         pytest.skip(f"independent reference not found at {RESULTS}")
     return twin_check.load_reference(RESULTS)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def rows(reference):
     fbgcomp_testing.require("skfem")
     from fbgcomp.structure import Twin, load_machine
