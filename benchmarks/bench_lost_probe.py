@@ -38,8 +38,10 @@ from _ram3 import RAM3_ARCHIVE, RAM3_MACHINE, RAM4_ARCHIVE, RAM4_MACHINE, unpack
 from fbgcomp.bench.served import served
 from fbgcomp.cli.demo import RAM2_MACHINE, find_ram2
 from fbgcomp.io.campaign import read_campaign
+from fbgcomp.models.metrics import validation_metrics
 from fbgcomp.models.physical import PhysicalModel
 from fbgcomp.runtime.pipeline import HEALTH_ALARM, HEALTH_DEGRADED
+from fbgcomp.units import AXES
 
 ALLOWANCE_UM = 0.5
 PATTERNS = (("40%->", 0.4, None), ("40-60%", 0.4, 0.6), ("start", 0.0, None))
@@ -75,7 +77,8 @@ def judge(ram: str, data: Path, machine) -> list:
                 corr, ref, out = served(model, c, lost=probe, lost_from=lost_from, lost_until=lost_until)
                 e = np.abs(ref + corr).max(axis=0)
                 at = out["at"]
-                cov = (np.abs(ref - out["deviation_um"][at]) <= out["half_width_um"][at]).mean(axis=0)
+                axes = validation_metrics(ref, out["deviation_um"][at], out["half_width_um"][at])["axes"]
+                cov = np.array([axes[a]["pi95_coverage"] for a in AXES])
                 worse = bool((e > peak + ALLOWANCE_UM).any())
                 h = out["health"]
                 deg, alarm = int((h == HEALTH_DEGRADED).sum()), int((h == HEALTH_ALARM).sum())

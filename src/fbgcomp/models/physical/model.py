@@ -937,7 +937,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         # start decided the state terms' scale alone (ram2 without T_flange: 1000x, a median
         # dz half-width of 400 µm on thermal_b around errors under 16 µm, and 0.80 coverage
         # on thermal_c all the same).
-        blind = not (set(self.housing_probes_) - set(exclude) or self.heat_inputs_)
+        blind = not self._sees_housing_without(exclude)
         A = np.column_stack([np.sqrt(s2), s2, (act / a_scale) ** 2, np.full_like(s2, float(blind))])
         sw = np.sqrt(w)[:, None]
         v = np.array(
@@ -1293,7 +1293,11 @@ class PhysicalModel(EstimatorParams, ModelFile):
         """Whether an instrument reads the spindle housing's heat: a probe in or on the housing,
         or a measured heat input (what the housing calibration needs, and what a spindle start
         shows in)."""
-        return bool(self.housing_probes_ or self.heat_inputs_)
+        return self._sees_housing_without()
+
+    def _sees_housing_without(self, exclude=frozenset()) -> bool:
+        """:attr:`_sees_housing` of the sensor set without the probes of ``exclude``."""
+        return bool(set(self.housing_probes_) - set(exclude) or self.heat_inputs_)
 
     @property
     def heat_channels(self) -> list[str]:

@@ -193,21 +193,22 @@ class PhysicalPredictor:
         # interval of the thermal part: variance = v0 + vs s + v1 s^2 + v2 a^2 + vc (s the thermal
         # excursion, a the housing's lead), fitted on the load-free training campaigns
         # (``PhysicalModel._fit_interval``); a constant without it
+        # probes this set goes without (one lost at runtime): the map leaves out their columns
+        # (and the housing's leads and calibration with a housing probe, the calibration with
+        # an ambient one it reads); their reading is held at its last value for the filters
+        self._lost_p = [j for j, q in enumerate(self.probe_names) if q in self.exclude]
         iv = getattr(m, "interval_", None)
         self.interval = None if iv is None else _interval_terms(iv)
         # a probe's fallback also has its own, fitted on its own training errors (absent from
         # files before it): it answers for the housing calibration the fallback goes without,
         # the full model's (with the map's lost information) for what the training never moved
-        lost_probes = [q for q in self.probe_names if q in self.exclude]
-        own = ((iv or {}).get("without_probe") or {}).get(lost_probes[0]) if len(lost_probes) == 1 else None
+        own = None
+        if len(self._lost_p) == 1:
+            own = ((iv or {}).get("without_probe") or {}).get(self.probe_names[self._lost_p[0]])
         self._own_interval = None if own is None else _interval_terms(own)
         self.thermal_noise_sd_um = np.asarray(getattr(m, "thermal_noise_sd_um_", np.zeros(3)), float)
         keep = [i for i, s in enumerate(self.sensor_names) if s not in self.exclude]
         self._keep = keep
-        # probes this set goes without (one lost at runtime): the map leaves out their columns
-        # (and the housing's leads and calibration with a housing probe, the calibration with
-        # an ambient one it reads); their reading is held at its last value for the filters
-        self._lost_p = [j for j, q in enumerate(self.probe_names) if q in self.exclude]
         lost_housing = any(j in self._h_idx for j in self._lost_p)
         lost_ambient = any(j in self._a_idx for j in self._lost_p)
         self.has_load = m.load_ is not None and len(keep) >= 1
@@ -270,7 +271,8 @@ class PhysicalPredictor:
         self.last_cal_features = None
         self.last_map_features = None
         self.map_lost_sd_um = np.zeros(3)
-        self._interval_lost_sd_um = None  # the interval's share of it (None: all of it)
+        # the share of it a probe's fallback adds to its own interval: its lost gratings'
+        self._interval_lost_sd_um = np.zeros(3)
         self._floor_scale = np.ones(3)
         if getattr(m, "twin_map_", None) is not None:
             tm = m.twin_map_
@@ -375,7 +377,7 @@ class PhysicalPredictor:
             self._obs_h = [self.heat_names.index(h) for h in ob.get("measured", [])]
         self.last_observer_ok = np.ones(0, bool)
         var = self.thermal_resid_var + self.map_lost_sd_um**2
-        if own is not None and self._interval_lost_sd_um is not None:
+        if own is not None:
             # a probe's fallback: its own training errors, and its lost gratings' share
             var = np.maximum(var, np.asarray(own["resid_sd_um"], float) ** 2 + self._interval_lost_sd_um**2)
         if self.has_load:
@@ -1335,7 +1337,7 @@ class PhysicalPredictor:
             return self.expected_rms_error_um[None, :] ** 2 + ambiguity
         # (a fallback's lost gratings: 0 for the full set)
         var, s2 = _state_variance(self.interval, dT, activity, self.map_lost_sd_um)
-        if self._own_interval is not None and self._interval_lost_sd_um is not None:
+        if self._own_interval is not None:
             # a probe's fallback: the wider of the full model's and its own
             var = np.maximum(
                 var, _state_variance(self._own_interval, dT, activity, self._interval_lost_sd_um)[0]
