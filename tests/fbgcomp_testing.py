@@ -35,8 +35,11 @@ def require_program(name: str) -> str:
     return path
 
 
-#: The independent reference ram (../shared/reference/ram2 beside the repository; CI has it).
-RAM2_DIR = Path(__file__).resolve().parents[2] / "shared" / "reference" / "ram2"
+#: The independent reference ram: ``$FBGCOMP_RAM2`` (the data set's root, as ``fbgcomp demo`` and
+#: the benchmarks read it), else ../shared/reference/ram2 beside the repository (CI has it).
+RAM2_DIR = Path(
+    os.environ.get("FBGCOMP_RAM2") or Path(__file__).resolve().parents[2] / "shared" / "reference" / "ram2"
+)
 
 
 def read_ram2(*names: str) -> dict:
