@@ -67,8 +67,12 @@ def _block_medians(blocks, axis=1) -> np.ndarray:
 
 
 def _median(v) -> float:
-    """Median of a short 1-D window (:func:`_block_medians` along its only axis)."""
-    return float(_block_medians(np.asarray(v, float), axis=0))
+    """Median of a short window (a list of floats, or 1-D), the same value as ``np.median``
+    (NaN-free input), on Python floats: the filter's per-block windows hold a few values."""
+    s = sorted(v)
+    n = len(s)
+    mid = s[n // 2]
+    return float(mid if n % 2 else 0.5 * (s[n // 2 - 1] + mid))
 
 
 @dataclass
@@ -98,7 +102,7 @@ class _Episode(TypedDict):
     """The rest state kept while an axis follows a change, restored if it was noise."""
 
     level: float  # the rest level when the change was seen
-    fit: np.ndarray  # the rest fit's weighted sums then
+    fit: list[float]  # the rest fit's weighted sums then
     origin: float  # ... and the block index they count from
     since: int  # blocks the rest median could use then
     start: int  # block index of the trigger
@@ -108,14 +112,20 @@ class _Episode(TypedDict):
 
 
 class AdaptiveLevelFilter:
-    """Per-axis rest / step filter of the correction (3 axes), state carried between batches."""
+    """Per-axis rest / step filter of the correction (3 axes), state carried between batches.
+
+    The per-block state is kept in Python lists and floats, one list per axis: a block's
+    decisions read windows of a few to a few hundred values, where numpy's per-call overhead
+    was the cost: 212 µs a block in numpy, 88 % of the runtime core's time serving ram2's
+    thermal_b at 1 frame/s (a block a frame); 43 µs on Python floats
+    (benchmarks/bench_output_filter.py). The arithmetic is the same, operation for operation,
+    so the output is too, to the bit."""
 
     def __init__(self, config: OutputFilterConfig, frame_interval_s: float, noise_um):
         cfg = self.config = config
         dt = float(min(max(frame_interval_s, 1e-5), 10.0))
         self.frame_interval_s = dt
         self.block_n = max(1, round(cfg.block_s / dt))
-        self._back: dict[int, np.ndarray] = {}  # n -> n-1, ..., 0 (ring offsets of a window)
         blk = self.block_n * dt  # block duration, s
         self.block_duration_s = blk
         self.short_n = max(1, round(cfg.short_s / blk))
@@ -128,28 +138,30 @@ class AdaptiveLevelFilter:
         self.noise_n = max(1, round(cfg.noise_block_s / blk))
         self.noise_gain = min(1.0, cfg.noise_block_s / cfg.noise_tau_s) if cfg.noise_tau_s > 0 else 1.0
         noise = np.nan_to_num(np.asarray(noise_um, float) * np.ones(3), nan=1.0)
-        self.sd = np.maximum(np.abs(noise), SD_FLOOR_UM)
-        self.noise_blocks = np.zeros(3, np.int64)
+        self.sd: list[float] = np.maximum(np.abs(noise), SD_FLOOR_UM).tolist()
+        self.noise_blocks = [0, 0, 0]
+        self._decay = [self._fit_decay(j) for j in range(3)]  # the rest fit's, per block
         self.ring_n = max(self.rest_n, self.slow_n, self.short_n) + 1
-        self.b = np.zeros((self.ring_n, 3))  # block means (ring)
-        self.e = np.zeros((self.ring_n, 3))  # m - level (ring)
-        self.eb = np.zeros((self.ring_n, 3))  # m - level before the episode (ring)
+        r = self.ring_n
+        self.b = [[0.0] * r for _ in range(3)]  # block medians (a ring per axis)
+        self.e = [[0.0] * r for _ in range(3)]  # m - level (ring)
+        self.eb = [[0.0] * r for _ in range(3)]  # m - level before the episode (ring)
         self.k = 0  # completed blocks
         self._part = np.empty((self.block_n, 3))  # frames of the block not yet complete ...
         self._pf = np.zeros((self.block_n, 3), bool)  # ... their follow flags (process)
         self._part_follow_any = False
         self._held = 0  # ... this many of them
-        self.level: np.ndarray | None = None  # (3,) after the first block
-        self.since = np.zeros(3, np.int64)  # blocks the rest median may use
-        self.fresh = np.zeros(3, np.int64)  # blocks compared with the level since a restart
-        self.fit = np.zeros((3, 6))  # weighted sums: w, w u, w u², w y, w u y, w y²
-        self.fit_origin = np.zeros(3)  # block index u is counted from
-        self.env = np.zeros((3, 2))  # excursion envelopes (fast, slow), µm
-        self.pending = np.zeros((self.hold_n, 3, 2))  # excursions waiting to be learnt
+        self.level: list[float] | None = None  # per axis, after the first block
+        self.since = [0, 0, 0]  # blocks the rest median may use
+        self.fresh = [0, 0, 0]  # blocks compared with the level since a restart
+        self.fit = [[0.0] * 6 for _ in range(3)]  # weighted sums: w, w u, w u², w y, w u y, w y²
+        self.fit_origin = [0.0, 0.0, 0.0]  # block index u is counted from
+        self.env = [[0.0, 0.0] for _ in range(3)]  # excursion envelopes (fast, slow), µm
+        self.pending = [[(0.0, 0.0)] * self.hold_n for _ in range(3)]  # excursions to be learnt
         self.abs_dev: list[list[float]] = [[], [], []]
-        self.episode_end = np.full(3, -1, np.int64)  # block index; -1: not in an episode
+        self.episode_end = [-1, -1, -1]  # block index; -1: not in an episode
         self.saved: list[_Episode | None] = [None, None, None]
-        self.ep_max = np.zeros((3, 2))
+        self.ep_max = [[0.0, 0.0] for _ in range(3)]
         self.restarts = np.zeros(3, np.int64)
         self.undone = np.zeros(3, np.int64)
 
@@ -162,8 +174,8 @@ class AdaptiveLevelFilter:
         keep the old model's level published for up to ``slow_confirm_s``, and the episode
         would then be learnt as a pop, raising the thresholds for ``envelope_tau_s``."""
         new = AdaptiveLevelFilter(self.config, self.frame_interval_s, self.sd)
-        new.noise_blocks = self.noise_blocks.copy()
-        new.env = self.env.copy()
+        new.noise_blocks = list(self.noise_blocks)
+        new.env = [list(e) for e in self.env]
         return new
 
     @property
@@ -174,13 +186,19 @@ class AdaptiveLevelFilter:
     @property
     def noise_sd_um(self) -> np.ndarray:
         """The per-axis noise standard deviation the thresholds are built on, µm (a copy)."""
-        return self.sd.copy()
+        return np.array(self.sd)
 
     def thresholds(self) -> np.ndarray:
         """(3, 2): the fast (large) and slow (small) step thresholds per axis, µm."""
+        return np.array(self._thresholds())
+
+    def _thresholds(self) -> list[list[float]]:
         cfg = self.config
-        base = np.maximum(cfg.threshold_sd * self.sd, cfg.min_threshold_um)
-        return np.maximum(cfg.margin * self.env, base[:, None])
+        out = []
+        for sd, env in zip(self.sd, self.env):
+            base = max(cfg.threshold_sd * sd, cfg.min_threshold_um)
+            out.append([max(cfg.margin * env[0], base), max(cfg.margin * env[1], base)])
+        return out
 
     # -- per frame -----------------------------------------------------------------------
     def process(self, x: np.ndarray, follow: np.ndarray | None = None) -> np.ndarray:
@@ -224,6 +242,7 @@ class AdaptiveLevelFilter:
         med = (
             _block_medians(allx[: nb * self.block_n].reshape(nb, self.block_n, 3)) if nb else np.empty((0, 3))
         )
+        med_rows = med.tolist()
         for q in range(nb + 1):
             lo, hi = q * self.block_n - held, min((q + 1) * self.block_n - held, m)
             lo = max(lo, 0)
@@ -242,7 +261,7 @@ class AdaptiveLevelFilter:
                     if allf is None
                     else np.asarray(allf[q * self.block_n : (q + 1) * self.block_n].any(axis=0))
                 )
-                self._block(med[q], fb)
+                self._block(med_rows[q], fb)
                 out[hi - 1] = self.level  # the frame that closes a block sees it
         rest = allx[nb * self.block_n :]
         self._part[: rest.shape[0]] = rest
@@ -258,16 +277,15 @@ class AdaptiveLevelFilter:
         return out
 
     # -- per block -----------------------------------------------------------------------
-    def _windows(self, ring: np.ndarray, n: int) -> np.ndarray:
-        """The newest ``n`` rows of a ring, all three axes (n, 3) (the current block last)."""
-        back = self._back.get(n)
-        if back is None:
-            back = self._back[n] = np.arange(n)[::-1]
-        return ring[(self.k - back) % self.ring_n]
-
-    def _window(self, ring: np.ndarray, j: int, n: int) -> np.ndarray:
-        """The newest ``n`` values of one axis of a ring (the current block last)."""
-        return self._windows(ring, n)[:, j]
+    def _newest(self, ring: list[float], n: int) -> list[float]:
+        """The newest ``n`` values of one axis's ring (in ring order: the windows are read by
+        medians, minima and maxima only)."""
+        hi = self.k % self.ring_n + 1  # the current block's slot, inclusive
+        if n <= hi:
+            return ring[hi - n : hi]
+        if n <= self.ring_n:
+            return ring[:hi] + ring[self.ring_n - (n - hi) :]
+        return [ring[(self.k - i) % self.ring_n] for i in range(n)]  # a window longer than the ring
 
     def rest_tau(self, j: int) -> float:
         """The rest fit's time constant on axis ``j``, s: ``rest_tau_s`` while the axis's robust
@@ -277,11 +295,15 @@ class AdaptiveLevelFilter:
         grow = (self.sd[j] / cfg.rest_noise_um) ** 2 if cfg.rest_noise_um > 0 else 1.0
         return min(cfg.rest_tau_s * max(grow, 1.0), max(cfg.rest_tau_max_s, cfg.rest_tau_s))
 
-    def _fit_point(self, j: int, y: float, u: float) -> None:
-        f = self.fit[j]
+    def _fit_decay(self, j: int) -> float:
+        """The rest fit's weight decay per block on axis ``j`` (it changes with the noise SD)."""
         tau = self.rest_tau(j)
-        f *= math.exp(-self._blk / tau) if tau > 0 else 0.0
-        f += (1.0, u, u * u, y, u * y, y * y)
+        return math.exp(-self._blk / tau) if tau > 0 else 0.0
+
+    def _fit_point(self, j: int, y: float, u: float) -> None:
+        d = self._decay[j]
+        w, su, suu, sy, suy, syy = self.fit[j]
+        self.fit[j] = [w * d + 1.0, su * d + u, suu * d + u * u, sy * d + y, suy * d + u * y, syy * d + y * y]
 
     def _fit_level(self, j: int) -> float:
         """The rest fit read at the newest block: weighted mean plus the fitted trend, the
@@ -300,7 +322,7 @@ class AdaptiveLevelFilter:
             return ybar
         var_slope = resid / ((n_eff - 2.0) * var_u)
         t2 = slope * slope / var_slope if var_slope > 0 else math.inf
-        if math.isfinite(t2):
+        if math.isfinite(t2) and t2 + self.config.trend_t2 > 0:
             slope *= t2 / (t2 + self.config.trend_t2)
         return ybar + slope * ((self.k - self.fit_origin[j]) - ubar)
 
@@ -308,103 +330,97 @@ class AdaptiveLevelFilter:
         """The rest fit starts again from the median of the newest ``n`` blocks only."""
         self.since[j] = n
         self.fresh[j] = 0
-        self.fit[j] = 0.0
-        self.fit_origin[j] = self.k
-        r = _median(self._window(self.b, j, n))
-        self._fit_point(j, r, -(n - 1) / 2.0)
+        self.fit[j] = [0.0] * 6
+        self.fit_origin[j] = float(self.k)
+        self._fit_point(j, _median(self._newest(self.b[j], n)), -(n - 1) / 2.0)
 
-    def _excursions(self, e_ring: np.ndarray, ref, n_avail) -> np.ndarray:
-        """(3, 2) per axis (fast, slow): how far ``m`` stayed on one side of the level through
-        the last ``fast_n`` blocks, and how far the median of the block means over the last
-        ``slow_n`` blocks is from ``ref`` ((3,) or one value); 0 where fewer blocks than that
-        are available (``n_avail``, (3,) or one value)."""
-        w = self._windows(e_ring, self.fast_n)
-        fast = np.maximum(np.maximum(w.min(axis=0), -w.max(axis=0)), 0.0)
-        slow = np.abs(_block_medians(self._windows(self.b, self.slow_n), axis=0) - ref)
-        n_avail = np.asarray(n_avail)
-        return np.stack(
-            [np.where(n_avail >= self.fast_n, fast, 0.0), np.where(n_avail >= self.slow_n, slow, 0.0)], axis=1
-        )
+    def _excursion(self, j: int, e_ring: list[float], ref: float, n_avail: int) -> tuple[float, float]:
+        """(fast, slow) on axis ``j``: how far ``m`` stayed on one side of the level through the
+        last ``fast_n`` blocks (``e_ring``: m minus the level), and how far the median of the
+        block medians over the last ``slow_n`` blocks is from ``ref``; 0 where fewer blocks than
+        that are available (``n_avail``)."""
+        fast = slow = 0.0
+        if n_avail >= self.fast_n:
+            w = self._newest(e_ring, self.fast_n)
+            fast = max(max(min(w), -max(w)), 0.0)
+        if n_avail >= self.slow_n:
+            slow = abs(_median(self._newest(self.b[j], self.slow_n)) - ref)
+        return fast, slow
 
-    def _block(self, bm: np.ndarray, followed: np.ndarray | None = None) -> None:
+    def _block(self, bm: list[float], followed=None) -> None:
         slot = self.k % self.ring_n
-        self.b[slot] = bm
+        for j in range(3):
+            self.b[j][slot] = bm[j]
         first = self.level is None
         if self.level is None:
-            self.level = bm.copy()
-        thr = self.thresholds()
-        self.since += 1
-        self.fresh += 1
-        # the window medians of the three axes at once (each axis reads only its own column)
-        mj_all = _block_medians(self._windows(self.b, min(self.short_n, self.k + 1)), axis=0).tolist()
-        n_rest = np.minimum(self.rest_n, self.since)
-        rest = (
-            _block_medians(self._windows(self.b, int(n_rest[0])), axis=0).tolist()
-            if n_rest[0] == n_rest[1] == n_rest[2]
-            else [_median(self._window(self.b, j, int(n_rest[j]))) for j in range(3)]
-        )
-        resting = []  # axes at rest: their excursions below, all axes in one call
+            self.level = list(bm)
+        level = self.level
+        thr = self._thresholds()
+        n_short = min(self.short_n, self.k + 1)
+        resting = []  # axes at rest, with their short medians
         for j in range(3):
-            mj = mj_all[j]
+            self.since[j] += 1
+            self.fresh[j] += 1
+            mj = _median(self._newest(self.b[j], n_short))
             if followed is not None and followed[j]:
                 # the model follows a motion it confirmed: its value is the level, and the
                 # rest fit starts from this block (nothing of it is noise to learn)
                 self.episode_end[j] = -1
                 self.saved[j] = None
-                self.pending[:, j] = 0.0
+                self.pending[j] = [(0.0, 0.0)] * self.hold_n
                 self._restart(j, 1)
-                self.level[j] = bm[j]
-                self.e[slot, j] = 0.0
+                level[j] = bm[j]
+                self.e[j][slot] = 0.0
                 continue
             if self.episode_end[j] >= 0:
-                self.level[j] = self._track(j, mj)
+                level[j] = self._track(j, mj)
                 continue
-            self._fit_point(j, rest[j], (self.k - self.fit_origin[j]) - (int(n_rest[j]) - 1) / 2.0)
-            self.level[j] = self._fit_level(j)
-            self.e[slot, j] = mj - self.level[j]
-            resting.append(j)
-        if not resting:
-            self.k += 1
-            return
-        excursions = self._excursions(self.e, self.level, self.fresh)
-        for j in resting:
-            mj, level = mj_all[j], float(self.level[j])
-            p = excursions[j]
+            n_rest = min(self.rest_n, self.since[j])
+            rest = _median(self._newest(self.b[j], n_rest))
+            self._fit_point(j, rest, (self.k - self.fit_origin[j]) - (n_rest - 1) / 2.0)
+            level[j] = self._fit_level(j)
+            self.e[j][slot] = mj - level[j]
+            resting.append((j, mj))
+        for j, mj in resting:
+            lv = level[j]
+            p = self._excursion(j, self.e[j], lv, self.fresh[j])
             trigger = (
-                0 if first else (self.fast_n if p[0] > thr[j, 0] else self.slow_n if p[1] > thr[j, 1] else 0)
+                0 if first else (self.fast_n if p[0] > thr[j][0] else self.slow_n if p[1] > thr[j][1] else 0)
             )
             if trigger:
                 # a change the noise does not explain: follow it (track) for hold_s, keeping
                 # the rest state in case it was noise after all
                 self.saved[j] = {
-                    "level": level,
-                    "fit": self.fit[j].copy(),
-                    "origin": float(self.fit_origin[j]),
-                    "since": int(self.since[j]),
+                    "level": lv,
+                    "fit": list(self.fit[j]),
+                    "origin": self.fit_origin[j],
+                    "since": self.since[j],
                     "start": self.k,
                     "first": self.k - trigger + 1,
-                    "thr": float(thr[j, 1]),
+                    "thr": thr[j][1],
                     "within": 0,
                 }
-                self.ep_max[j] = p
-                self.eb[:, j] = self.e[:, j]
-                self.pending[:, j] = 0.0  # a step follows: nothing recent was noise
+                self.ep_max[j] = list(p)
+                self.eb[j] = list(self.e[j])
+                self.pending[j] = [(0.0, 0.0)] * self.hold_n  # a step follows: nothing recent was noise
                 self.episode_end[j] = self.k + self.hold_n
                 self.restarts[j] += 1
-                self.level[j] = _median(self._window(self.b, j, trigger))
+                level[j] = _median(self._newest(self.b[j], trigger))
             elif not first:
                 # learn from rest: the excursion of hold_n blocks ago (no step since), and the
                 # robust spread of m about the level
                 ps = self.k % self.hold_n
-                self.env[j] = np.maximum(self.env[j] * self.env_decay, self.pending[ps, j])
-                self.pending[ps, j] = p
+                old, env = self.pending[j][ps], self.env[j]
+                self.env[j] = [max(env[0] * self.env_decay, old[0]), max(env[1] * self.env_decay, old[1])]
+                self.pending[j][ps] = p
                 dev = self.abs_dev[j]
-                dev.append(abs(mj - level))
+                dev.append(abs(mj - lv))
                 if len(dev) >= self.noise_n:
                     sd = 1.4826 * _median(dev)
                     self.noise_blocks[j] += 1
                     g = max(self.noise_gain, 1.0 / self.noise_blocks[j])
                     self.sd[j] = max(self.sd[j] + g * (sd - self.sd[j]), SD_FLOOR_UM)
+                    self._decay[j] = self._fit_decay(j)
                     dev.clear()
         self.k += 1
 
@@ -415,12 +431,11 @@ class AdaptiveLevelFilter:
         s = self.saved[j]
         assert s is not None  # an axis in an episode has its rest state saved
         n = min(self.short_n, self.k - s["first"] + 1)
-        level = _median(self._window(self.b, j, n))
-        slot = self.k % self.ring_n
-        self.eb[slot, j] = mj - s["level"]
-        self.ep_max[j] = np.maximum(
-            self.ep_max[j], self._excursions(self.eb, s["level"], self.k - s["start"] + s["since"])[j]
-        )
+        level = _median(self._newest(self.b[j], n))
+        self.eb[j][self.k % self.ring_n] = mj - s["level"]
+        p = self._excursion(j, self.eb[j], s["level"], self.k - s["start"] + s["since"])
+        m = self.ep_max[j]
+        self.ep_max[j] = [max(m[0], p[0]), max(m[1], p[1])]
         if abs(mj - s["level"]) <= s["thr"]:
             s["within"] += 1
         if self.k < self.episode_end[j]:
@@ -432,7 +447,8 @@ class AdaptiveLevelFilter:
             self.fit[j], self.fit_origin[j] = s["fit"], s["origin"]
             self.since[j] = s["since"] + (self.k - s["start"])
             self.fresh[j] = 0  # the episode's comparisons were with other levels
-            self.env[j] = np.maximum(self.env[j], self.ep_max[j])
+            env, m = self.env[j], self.ep_max[j]
+            self.env[j] = [max(env[0], m[0]), max(env[1], m[1])]
             self.undone[j] += 1
             return self._fit_level(j)
         self._restart(j, min(2 * self.short_n, self.k - s["first"] + 1))
