@@ -70,6 +70,14 @@ def _standardise(X, w):
 RIDGE_LAMBDAS = np.logspace(-6, 2, 17)
 
 
+def _fold_rows(n, folds):
+    """The training rows (everything outside the fold) of each contiguous fold, in order."""
+    return [
+        np.concatenate([np.arange(0, f[0]), np.arange(f[-1] + 1, n)]) if f.size else np.arange(n)
+        for f in folds
+    ]
+
+
 def ridge_fit(X, Y, w=None, lambdas=RIDGE_LAMBDAS):
     """Weighted ridge on standardised columns (the constant unpenalised), penalty by blocked CV.
 
@@ -78,24 +86,31 @@ def ridge_fit(X, Y, w=None, lambdas=RIDGE_LAMBDAS):
     """
     w_all = np.ones(len(X)) if w is None else np.asarray(w, dtype=float)
 
-    def solve(Xs, Ys, lam, ws):
+    def prepare(Xs, Ys, ws):
+        # everything of a fold's solve but the penalty: formed once per fold, not per lambda
         mu, sd = _standardise(Xs, ws)
         Z = (Xs[:, 1:] - mu) / sd
         ym = np.average(Ys, axis=0, weights=ws)
-        A = (Z * ws[:, None]).T @ Z + lam * ws.sum() * np.eye(Z.shape[1])
-        b = np.linalg.solve(A, (Z * ws[:, None]).T @ (Ys - ym))
-        coef = np.vstack([ym - (mu / sd) @ b, b / sd[:, None]])
-        return coef
+        Zw = Z * ws[:, None]
+        return mu, sd, ym, Zw.T @ Z, Zw.T @ (Ys - ym), ws.sum()
+
+    def solve(prepared, lam):
+        mu, sd, ym, G, rhs, ws_sum = prepared
+        A = G + lam * ws_sum * np.eye(G.shape[0])
+        b = np.linalg.solve(A, rhs)
+        return np.vstack([ym - (mu / sd) @ b, b / sd[:, None]])
 
     folds = _blocks(len(X))
+    prepared = [(f, prepare(X[t], Y[t], w_all[t])) for f, t in zip(folds, _fold_rows(len(X), folds))]
     err = np.zeros((len(lambdas), Y.shape[1]))
     for i, lam in enumerate(lambdas):
-        for f in folds:
-            train = np.setdiff1d(np.arange(len(X)), f)
-            c = solve(X[train], Y[train], lam, w_all[train])
+        for f, prep in prepared:
+            c = solve(prep, lam)
             err[i] += np.sum(w_all[f, None] * (X[f] @ c - Y[f]) ** 2, axis=0)
     best = np.argmin(err, axis=0)
-    coef = np.column_stack([solve(X, Y[:, [j]], lambdas[best[j]], w_all)[:, 0] for j in range(Y.shape[1])])
+    coef = np.column_stack(
+        [solve(prepare(X, Y[:, [j]], w_all), lambdas[best[j]])[:, 0] for j in range(Y.shape[1])]
+    )
     return coef, lambdas[best]
 
 
@@ -108,15 +123,20 @@ def pls_fit(X, Y, w=None, max_components=None):
     max_components = min(p, max_components or p)
     w_all = np.ones(len(X)) if w is None else np.asarray(w, dtype=float)
 
-    def solve(Xs, ys, k, ws):
+    def standardised(Xs, ws):
         mu, sd = _standardise(Xs, ws)
         r = np.sqrt(ws)
         # Weighted least squares = ordinary on rows scaled by sqrt(weight), after weighted centring.
-        Z = (Xs[:, 1:] - mu) / sd * r[:, None]
+        return mu, sd, r, (Xs[:, 1:] - mu) / sd * r[:, None]
+
+    def solve_all(std, ys, k_max, ws):
+        """The coefficients with 1..k_max components (NIPALS's first k components do not
+        depend on how many follow: one run gives them all)."""
+        mu, sd, r, Z = std
         ym = np.average(ys, weights=ws)
         E, f = Z.copy(), (ys - ym) * r
         W, P, q = [], [], []
-        for _ in range(k):
+        for _ in range(k_max):
             w = E.T @ f
             nw = np.linalg.norm(w)
             if nw == 0:
@@ -131,23 +151,28 @@ def pls_fit(X, Y, w=None, max_components=None):
             E = E - np.outer(t, pk)
             f = f - qk * t
             W.append(w), P.append(pk), q.append(qk)
-        if not W:
-            return np.concatenate([[ym], np.zeros(p)])
-        W, P, q = np.array(W).T, np.array(P).T, np.array(q)
-        b = W @ np.linalg.solve(P.T @ W, q)
-        return np.concatenate([[ym - (mu / sd) @ b], b / sd])
+        out = []
+        for k in range(1, k_max + 1):
+            m = min(k, len(W))
+            if not m:
+                out.append(np.concatenate([[ym], np.zeros(p)]))
+                continue
+            Wk, Pk, qk_ = np.array(W[:m]).T, np.array(P[:m]).T, np.array(q[:m])
+            b = Wk @ np.linalg.solve(Pk.T @ Wk, qk_)
+            out.append(np.concatenate([[ym - (mu / sd) @ b], b / sd]))
+        return out
 
     folds = _blocks(len(X))
+    train = _fold_rows(len(X), folds)
+    fold_std = [standardised(X[t], w_all[t]) for t in train]
     coefs, ncomp = [], []
     for j in range(Y.shape[1]):
         err = np.zeros(max_components)
-        for k in range(1, max_components + 1):
-            for f in folds:
-                train = np.setdiff1d(np.arange(len(X)), f)
-                c = solve(X[train], Y[train, j], k, w_all[train])
+        for f, t, std in zip(folds, train, fold_std):
+            for k, c in enumerate(solve_all(std, Y[t, j], max_components, w_all[t]), start=1):
                 err[k - 1] += np.sum(w_all[f] * (X[f] @ c - Y[f, j]) ** 2)
         k = int(np.argmin(err)) + 1
-        coefs.append(solve(X, Y[:, j], k, w_all))
+        coefs.append(solve_all(standardised(X, w_all), Y[:, j], k, w_all)[k - 1])
         ncomp.append(k)
     return np.column_stack(coefs), np.array(ncomp)
 
