@@ -491,17 +491,19 @@ LOADED = {
 }
 
 
-def run_loaded(data: Path, work: Path) -> dict:
-    """The default fit of ram2 as published, judged on its thermal campaigns with loads superposed."""
+def run_loaded(data: Path, work: Path, model: Path | None = None) -> dict:
+    """The default fit of ram2 as published (``model``: the as-published variant's, when it ran:
+    the same campaigns and description), judged on its thermal campaigns with loads superposed."""
     from fbgcomp.bench.superpose import ram2_unit_responses, superpose_loads
     from fbgcomp.cli.demo import judge
     from fbgcomp.io.campaign import read_campaign
     from fbgcomp.models.registry import load_model
 
-    folder = work / "loaded"
-    folder.mkdir(parents=True, exist_ok=True)
-    model = folder / "model.json"
-    _fbgcomp("fit", *(data / t for t in TRAIN), "--machine", MACHINE, "-o", model)
+    if model is None:
+        folder = work / "loaded"
+        folder.mkdir(parents=True, exist_ok=True)
+        model = folder / "model.json"
+        _fbgcomp("fit", *(data / t for t in TRAIN), "--machine", MACHINE, "-o", model)
     m = load_model(model)
     C, G = ram2_unit_responses(json.loads((data.parent / "results.json").read_text()))
     out = {}
@@ -576,7 +578,8 @@ def main(argv=None) -> int:
             f"{r['thermal_c_dz_um']:>8.2f} µm {r['static_x_plateau_pct']:>7.2f} % "
             f"{r['pi95_range'][0]:.3f}-{r['pi95_range'][1]:.3f}  {', '.join(r['harm']) or 'none'}"
         )
-    loaded = run_loaded(data, work)
+    published = work / "as-published" / "model.json"
+    loaded = run_loaded(data, work, published if "as-published" in results else None)
     print(
         "\nram2 as published, judged on its thermal campaigns with loads superposed (exact, ram2 is linear)"
     )

@@ -33,15 +33,27 @@ def model(ram2_default_model):
 
 
 @pytest.fixture(scope="session")
-def full_error(model, ram2):
-    """Max |error| (3,) per campaign served with every grating (computed once)."""
+def full_served(model, ram2):
+    """(published correction, reference) (m, 3) µm per campaign served with every instrument
+    (computed once)."""
     out = {}
 
     def get(name):
         if name not in out:
             corr, ref, _ = served(model, ram2[name])
-            out[name] = np.abs(ref + corr).max(axis=0)
+            out[name] = corr, ref
         return out[name]
+
+    return get
+
+
+@pytest.fixture(scope="session")
+def full_error(full_served):
+    """Max |error| (3,) per campaign served with every instrument."""
+
+    def get(name):
+        corr, ref = full_served(name)
+        return np.abs(ref + corr).max(axis=0)
 
     return get
 
@@ -141,7 +153,7 @@ def test_a_probe_lost_from_the_start_keeps_an_interval_that_covers(model, ram2):
     assert (err <= np.abs(ref).max(axis=0) + NOISE_ALLOWANCE_UM).all(), err
 
 
-def test_a_probe_that_returns_is_taken_back_without_a_step(model, ram2, full_error):
+def test_a_probe_that_returns_is_taken_back_without_a_step(model, ram2, full_served, full_error):
     """The housing's probe lost for the first hour of thermal_b's spindle duty (the housing warms
     by 5 K meanwhile), then back. The fallback ran the probe's filters on its last reading; the
     full model moves them by the probe's change over the gap (PhysicalPredictor._rebase_probes),
@@ -160,7 +172,7 @@ def test_a_probe_that_returns_is_taken_back_without_a_step(model, ram2, full_err
     assert (out["health"][ft >= 7200.0] == HEALTH_OK).all()
     at = np.clip(np.searchsorted(ft, al.time_s, side="right") - 1, 0, ft.size - 1)
     corr = out["correction_um"][at]
-    full, _, _ = served(model, c)
+    full, _ = full_served("thermal_b")
     after = (al.time_s >= 7200.0) & (al.time_s < 14_400.0)
     assert np.abs(corr - full)[after].max(axis=0)[2] <= 7.0
     late = al.time_s >= 14_400.0  # the return forgotten: the uninterrupted run's correction
