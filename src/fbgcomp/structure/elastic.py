@@ -389,13 +389,21 @@ def _strain_matrix(dN: np.ndarray) -> np.ndarray:
     return B
 
 
-def assemble_box_elasticity(rm, cfrp: CFRP, steel: Steel, incompatible: bool = True):
+def assemble_box_elasticity(
+    rm, cfrp: CFRP, steel: Steel, incompatible: bool = True, *, bases=None, stiffness: bool = True
+):
     """K (n_u x n_u, N/mm) and Th (n_u x n_nodes, N/K) of the structured box mesh, assembled from
     closed-form element matrices (one per element size and material), DOFs numbered like
-    :func:`assemble_elasticity`'s vector basis. Returns (vbasis, sbasis, K, Th)."""
-    e = vector_element()
-    vbasis = Basis(rm.mesh, e, intorder=INTORDER)
-    sbasis = Basis(rm.mesh, ElementHex1(), intorder=INTORDER)
+    :func:`assemble_elasticity`'s vector basis. Returns (vbasis, sbasis, K, Th).
+
+    ``bases``: the (vbasis, sbasis) of an earlier call on the same mesh, reused; ``stiffness``
+    False: Th alone (K None), for the thermal load of other expansion coefficients (the global
+    K is most of the cost)."""
+    if bases is None:
+        vbasis = Basis(rm.mesh, vector_element(), intorder=INTORDER)
+        sbasis = Basis(rm.mesh, ElementHex1(), intorder=INTORDER)
+    else:
+        vbasis, sbasis = bases
     p, t = rm.mesh.p, rm.mesh.t
     xyz = p[:, t]  # (3, 8, n_e)
     lo, hi = xyz.min(axis=1), xyz.max(axis=1)
@@ -417,12 +425,14 @@ def assemble_box_elasticity(rm, cfrp: CFRP, steel: Steel, incompatible: bool = T
     G = vbasis.nodal_dofs[:, t].transpose(2, 1, 0).reshape(t.shape[1], 24)  # (n_e, 24)
     kind_of = kind_of.ravel()
     n_u, n = vbasis.N, rm.n_nodes
-    K = sp.coo_matrix(
-        (Ke[kind_of].ravel(), (np.repeat(G, 24, axis=1).ravel(), np.tile(G, (1, 24)).ravel())),
-        shape=(n_u, n_u),
-    )
+    K = None
+    if stiffness:
+        K = sp.coo_matrix(
+            (Ke[kind_of].ravel(), (np.repeat(G, 24, axis=1).ravel(), np.tile(G, (1, 24)).ravel())),
+            shape=(n_u, n_u),
+        ).tocsc()
     Th = sp.coo_matrix(
         (Te[kind_of].ravel(), (np.repeat(G, 8, axis=1).ravel(), np.tile(t.T, (1, 24)).ravel())),
         shape=(n_u, n),
     )
-    return vbasis, sbasis, K.tocsc(), Th.tocsr()
+    return vbasis, sbasis, K, Th.tocsr()

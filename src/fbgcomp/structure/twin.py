@@ -377,18 +377,18 @@ class Twin:
         machine, rm = self.machine, self.mesh
         t0 = time.perf_counter()
         mats = machine.materials
-        assemble = (
-            elastic.assemble_box_elasticity
-            if machine.mesh.element == "hex8i"
-            else elastic.assemble_elasticity
-        )
-        vb, _sb, K, Th = assemble(rm, mats.cfrp, mats.steel)
         # the thermal load per unit expansion coefficient of each material (d Th / d alpha_k):
         # a response is linear in the coefficients, so the twin answers for any of them
-        Th_parts = [
-            assemble(rm, *elastic.unit_cte_materials(mats.cfrp, mats.steel, part))[3]
-            for part in elastic.CTE_PARTS
-        ]
+        units = [elastic.unit_cte_materials(mats.cfrp, mats.steel, part) for part in elastic.CTE_PARTS]
+        if machine.mesh.element == "hex8i":
+            vb, _sb, K, Th = elastic.assemble_box_elasticity(rm, mats.cfrp, mats.steel)
+            # the same bases, and no stiffness matrix for the unit loads (3 of its 4 assemblies)
+            Th_parts = [
+                elastic.assemble_box_elasticity(rm, *u, bases=(vb, _sb), stiffness=False)[3] for u in units
+            ]
+        else:
+            vb, _sb, K, Th = elastic.assemble_elasticity(rm, mats.cfrp, mats.steel)
+            Th_parts = [elastic.assemble_elasticity(rm, *u)[3] for u in units]
         rigid = RIGID_PENALTY * float(K.diagonal().max())
         rows, k = support_rows(rm, vb, machine, self.z_axis_mm, rigid)
         K = (K + elastic.spring_matrix(rows, k)).tocsr()
