@@ -75,6 +75,11 @@ def _median(v) -> float:
     return float(mid if n % 2 else 0.5 * (s[n // 2 - 1] + mid))
 
 
+def _pair_max(a, b) -> list[float]:
+    """Element-wise maximum of two (fast, slow) pairs."""
+    return [max(a[0], b[0]), max(a[1], b[1])]
+
+
 @dataclass
 class OutputFilterConfig:
     """Settings of the adaptive output filter (``[pipeline.output_filter]``, docs/runtime.md)."""
@@ -410,8 +415,10 @@ class AdaptiveLevelFilter:
                 # learn from rest: the excursion of hold_n blocks ago (no step since), and the
                 # robust spread of m about the level
                 ps = self.k % self.hold_n
-                old, env = self.pending[j][ps], self.env[j]
-                self.env[j] = [max(env[0] * self.env_decay, old[0]), max(env[1] * self.env_decay, old[1])]
+                env = self.env[j]
+                self.env[j] = _pair_max(
+                    (env[0] * self.env_decay, env[1] * self.env_decay), self.pending[j][ps]
+                )
                 self.pending[j][ps] = p
                 dev = self.abs_dev[j]
                 dev.append(abs(mj - lv))
@@ -434,8 +441,7 @@ class AdaptiveLevelFilter:
         level = _median(self._newest(self.b[j], n))
         self.eb[j][self.k % self.ring_n] = mj - s["level"]
         p = self._excursion(j, self.eb[j], s["level"], self.k - s["start"] + s["since"])
-        m = self.ep_max[j]
-        self.ep_max[j] = [max(m[0], p[0]), max(m[1], p[1])]
+        self.ep_max[j] = _pair_max(self.ep_max[j], p)
         if abs(mj - s["level"]) <= s["thr"]:
             s["within"] += 1
         if self.k < self.episode_end[j]:
@@ -447,8 +453,7 @@ class AdaptiveLevelFilter:
             self.fit[j], self.fit_origin[j] = s["fit"], s["origin"]
             self.since[j] = s["since"] + (self.k - s["start"])
             self.fresh[j] = 0  # the episode's comparisons were with other levels
-            env, m = self.env[j], self.ep_max[j]
-            self.env[j] = [max(env[0], m[0]), max(env[1], m[1])]
+            self.env[j] = _pair_max(self.env[j], self.ep_max[j])
             self.undone[j] += 1
             return self._fit_level(j)
         self._restart(j, min(2 * self.short_n, self.k - s["first"] + 1))
