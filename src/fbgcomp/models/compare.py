@@ -86,13 +86,17 @@ def ridge_fit(X, Y, w=None, lambdas=RIDGE_LAMBDAS):
     """
     w_all = np.ones(len(X)) if w is None else np.asarray(w, dtype=float)
 
-    def prepare(Xs, Ys, ws):
-        # everything of a fold's solve but the penalty: formed once per fold, not per lambda
+    def design(Xs, ws):
+        # everything of a solve that depends on the rows alone: once per fold, not per lambda
         mu, sd = _standardise(Xs, ws)
         Z = (Xs[:, 1:] - mu) / sd
-        ym = np.average(Ys, axis=0, weights=ws)
         Zw = Z * ws[:, None]
-        return mu, sd, ym, Zw.T @ Z, Zw.T @ (Ys - ym), ws.sum()
+        return mu, sd, Zw, Zw.T @ Z, ws
+
+    def prepare(d, Ys):
+        mu, sd, Zw, G, ws = d
+        ym = np.average(Ys, axis=0, weights=ws)
+        return mu, sd, ym, G, Zw.T @ (Ys - ym), ws.sum()
 
     def solve(prepared, lam):
         mu, sd, ym, G, rhs, ws_sum = prepared
@@ -101,15 +105,16 @@ def ridge_fit(X, Y, w=None, lambdas=RIDGE_LAMBDAS):
         return np.vstack([ym - (mu / sd) @ b, b / sd[:, None]])
 
     folds = _blocks(len(X))
-    prepared = [(f, prepare(X[t], Y[t], w_all[t])) for f, t in zip(folds, _fold_rows(len(X), folds))]
+    prepared = [(f, prepare(design(X[t], w_all[t]), Y[t])) for f, t in zip(folds, _fold_rows(len(X), folds))]
     err = np.zeros((len(lambdas), Y.shape[1]))
     for i, lam in enumerate(lambdas):
         for f, prep in prepared:
             c = solve(prep, lam)
             err[i] += np.sum(w_all[f, None] * (X[f] @ c - Y[f]) ** 2, axis=0)
     best = np.argmin(err, axis=0)
+    full = design(X, w_all)
     coef = np.column_stack(
-        [solve(prepare(X, Y[:, [j]], w_all), lambdas[best[j]])[:, 0] for j in range(Y.shape[1])]
+        [solve(prepare(full, Y[:, [j]]), lambdas[best[j]])[:, 0] for j in range(Y.shape[1])]
     )
     return coef, lambdas[best]
 
@@ -165,6 +170,7 @@ def pls_fit(X, Y, w=None, max_components=None):
     folds = _blocks(len(X))
     train = _fold_rows(len(X), folds)
     fold_std = [standardised(X[t], w_all[t]) for t in train]
+    full_std = standardised(X, w_all)
     coefs, ncomp = [], []
     for j in range(Y.shape[1]):
         err = np.zeros(max_components)
@@ -172,7 +178,7 @@ def pls_fit(X, Y, w=None, max_components=None):
             for k, c in enumerate(solve_all(std, Y[t, j], max_components, w_all[t]), start=1):
                 err[k - 1] += np.sum(w_all[f] * (X[f] @ c - Y[f, j]) ** 2)
         k = int(np.argmin(err)) + 1
-        coefs.append(solve_all(standardised(X, w_all), Y[:, j], k, w_all)[k - 1])
+        coefs.append(solve_all(full_std, Y[:, j], k, w_all)[k - 1])
         ncomp.append(k)
     return np.column_stack(coefs), np.array(ncomp)
 
