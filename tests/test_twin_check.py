@@ -17,8 +17,7 @@ from fbgcomp.errors import InputError
 from fbgcomp.structure import twin_check
 
 ROOT = Path(__file__).resolve().parents[1]
-RAM2 = Path(__file__).resolve().parents[2] / "shared" / "reference" / "ram2"
-RESULTS = RAM2 / "results.json"
+RESULTS = fbgcomp_testing.RAM2_DIR / "results.json"
 RAM2_YAML = ROOT / "examples" / "machines" / "ram2.yaml"
 # Coarser than the machine's own mesh (hex8i converges fast): one FE build of a few seconds.
 RESOLUTION = 0.5
@@ -27,6 +26,8 @@ RESOLUTION = 0.5
 @pytest.fixture(scope="session")
 def reference():
     if not RESULTS.exists():
+        if fbgcomp_testing.require_all():
+            pytest.fail(f"the independent reference is required in CI: {RESULTS} not found")
         pytest.skip(f"independent reference not found at {RESULTS}")
     return twin_check.load_reference(RESULTS)
 
