@@ -465,6 +465,47 @@ def test_a_fit_without_the_expansion_test_skips_the_moments_per_material(twin_mo
             np.testing.assert_allclose(a[key], b[key], rtol=1e-12, atol=1e-12, err_msg=(a["source"], key))
 
 
+def test_a_second_fit_reads_the_population_from_the_twin_cache(twin_model, tmp_path, monkeypatch):
+    # the scenarios' moments are the same for every fit of this machine, gratings, probes and
+    # heat prior: the second computation is a read, and gives the first's numbers to the bit
+    from fbgcomp.models.physical import thermal
+    from fbgcomp.structure import Twin, load_machine
+    from fbgcomp.structure.scenarios import generic_heat_machine
+
+    machine = load_machine(twin_model.machine)
+    twin = Twin(generic_heat_machine(machine))  # from the session's cache, before it moves
+    monkeypatch.setenv("FBGCOMP_CACHE_DIR", str(tmp_path / "cache"))
+    args = (machine, twin_model.sensors_, twin_model.probe_names_, twin_model.housing_probes_)
+    kw = {"n_scenarios": 3, "twin": twin, "nominal_W": twin_model.twin_map_["heat_prior_W"]}
+    calls = []
+    compute = thermal._population
+    monkeypatch.setattr(thermal, "_population", lambda *a: calls.append(1) or compute(*a))
+    cold = thermal.twin_thermal_population(*args, **kw)
+    warm = thermal.twin_thermal_population(*args, **kw)
+    assert len(calls) == 1 and len(list((tmp_path / "cache" / "derived").glob("*.twin"))) == 1
+
+    def same(a, b, where="pop"):
+        assert type(a) is type(b), where
+        if isinstance(a, dict):
+            assert a.keys() == b.keys(), where
+            for k in a:
+                same(a[k], b[k], f"{where}.{k}")
+        elif isinstance(a, list):
+            assert len(a) == len(b), where
+            for i, (x, y) in enumerate(zip(a, b)):
+                same(x, y, f"{where}[{i}]")
+        elif isinstance(a, np.ndarray):
+            assert a.dtype == b.dtype and np.array_equal(a, b), where
+        else:
+            assert a == b or (a != a and b != b), where  # NaN stays NaN
+
+    same(cold, warm)
+    assert isinstance(warm["cte"]["blocks"]["zz"], np.ndarray)
+    # another seed or heat prior is another population
+    thermal.twin_thermal_population(*args, **{**kw, "seed": 1})
+    assert len(calls) == 2
+
+
 def test_the_map_members_are_stored_and_checked(twin_model, tmp_path):
     import json
 

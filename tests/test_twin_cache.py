@@ -374,3 +374,58 @@ def test_a_machine_with_an_infinite_value_has_a_key_of_its_own(machine):
     data["supports"]["carriage_stiffness_N_per_um"] = 1e300
     assert inf_key != twin_cache.twin_key(parse_machine(data), RES, 12)
     assert inf_key != twin_cache.twin_key(machine, RES, 12)
+
+
+def test_a_derived_result_is_computed_once_and_read_back_exactly(cache_dir):
+    calls = []
+    value = {
+        "f64": np.array([[0.1, np.nan], [np.inf, -1e-300]]),
+        "i32": np.arange(3, dtype=np.int32),
+        "list": [0.1 + 0.2, float("nan"), 3, "S1", None, True],
+        "nested": [{"a": np.ones((0, 2))}],
+    }
+
+    def compute():
+        calls.append(1)
+        return value
+
+    first = twin_cache.cached_json("test", {"machine": "m", "seed": 0}, compute)
+    again = twin_cache.cached_json("test", {"seed": 0, "machine": "m"}, compute)  # same ident
+    assert first is value and len(calls) == 1
+    assert again["f64"].dtype == np.float64 and np.array_equal(again["f64"], value["f64"], equal_nan=True)
+    assert again["i32"].dtype == np.int32 and again["i32"].tolist() == [0, 1, 2]
+    assert again["list"][0] == 0.1 + 0.2 and again["list"][1] != again["list"][1]
+    assert again["list"][2:] == [3, "S1", None, True]
+    assert again["nested"][0]["a"].shape == (0, 2)
+    (entry,) = _entries(cache_dir.parent / twin_cache.DERIVED)
+    assert b"pickle" not in entry.read_bytes()
+    twin_cache.cached_json("test", {"machine": "m", "seed": 1}, compute)  # another ident
+    twin_cache.cached_json("other", {"machine": "m", "seed": 0}, compute)  # another kind
+    assert len(calls) == 3
+
+
+def test_a_damaged_derived_entry_is_computed_again(cache_dir):
+    calls = []
+
+    def compute():
+        calls.append(1)
+        return {"x": np.arange(4.0)}
+
+    twin_cache.cached_json("test", {"k": 1}, compute)
+    (entry,) = _entries(cache_dir.parent / twin_cache.DERIVED)
+    data = entry.read_bytes()
+    entry.write_bytes(data[: len(data) // 2])
+    again = twin_cache.cached_json("test", {"k": 1}, compute)
+    assert len(calls) == 2 and again["x"].tolist() == [0.0, 1.0, 2.0, 3.0]
+    assert entry.read_bytes() == data  # rewritten whole
+    assert twin_cache.cached_json("test", {"k": 1}, compute)["x"].tolist() == [0.0, 1.0, 2.0, 3.0]
+    assert len(calls) == 2
+
+
+def test_with_the_cache_off_a_derived_result_is_always_computed(tmp_path, monkeypatch):
+    monkeypatch.setenv("FBGCOMP_CACHE_DIR", "off")
+    monkeypatch.chdir(tmp_path)
+    calls = []
+    for _ in range(2):
+        twin_cache.cached_json("test", {"k": 1}, lambda: calls.append(1) or [1.0])
+    assert len(calls) == 2 and list(tmp_path.iterdir()) == []

@@ -1,4 +1,6 @@
-"""On-disk cache of built twins: the mesh-independent arrays of :class:`~fbgcomp.structure.Twin`.
+"""On-disk cache of built twins: the mesh-independent arrays of :class:`~fbgcomp.structure.Twin`,
+and of results derived from a twin that a fit needs again (:func:`cached_json`, in ``derived``
+beside ``twin``: the physical model's thermal-map population).
 
 Building the default twin (58 660 DOF) takes seconds (assembly, a banded Cholesky of the elastic
 matrix, the rational-Krylov thermal reduction); every ``demo``, ``simulate``, ``fe-calibrate``
@@ -160,6 +162,17 @@ def machine_content(machine) -> str:
     # allow_nan: an infinite value (if a field allows one) is written Infinity, not refused,
     # and stays distinct from null.
     return json.dumps(machine.model_dump(mode="json"), sort_keys=True, separators=(",", ":"), allow_nan=True)
+
+
+@functools.lru_cache(maxsize=1)
+def package_version() -> str:
+    """:func:`code_version` with a hash of every fbgcomp source file: anything that could change
+    a result derived from a twin (:func:`cached_json`) for the same inputs."""
+    h = hashlib.sha256(code_version().encode())
+    root = Path(fbgcomp.__file__).resolve().parent
+    for path in sorted(root.rglob("*.py")):
+        h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
+    return h.hexdigest()
 
 
 def twin_key(machine, resolution: float, n_shifts: int) -> str:
@@ -324,3 +337,66 @@ def prune(folder: Path, keep: int | None = None, max_bytes: int | None = None) -
                     p.unlink(missing_ok=True)
     except OSError as err:
         log.debug("twin cache: pruning %s failed (%s)", folder, err)
+
+
+# ------------------------------------------------------------------------------ derived results
+#: Sub-folder (beside ``twin``) of the results derived from a twin (:func:`cached_json`).
+DERIVED = "derived"
+
+
+def _to_json(value):
+    """``value`` with every ndarray as ``{"__ndarray__": nested list, "dtype": str, "shape": list}``
+    (the shape for arrays with an empty axis, which a nested list does not keep)."""
+    if isinstance(value, np.ndarray):
+        if value.dtype == object:
+            raise TypeError("object arrays are not cached")
+        return {"__ndarray__": value.tolist(), "dtype": value.dtype.str, "shape": list(value.shape)}
+    if isinstance(value, dict):
+        return {str(k): _to_json(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_to_json(v) for v in value]
+    return value
+
+
+def _from_json(value):
+    if isinstance(value, dict):
+        if "__ndarray__" in value:
+            a = np.asarray(value["__ndarray__"], dtype=np.dtype(value["dtype"]))
+            return a.reshape(value["shape"])
+        return {k: _from_json(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_from_json(v) for v in value]
+    return value
+
+
+def cached_json(kind: str, ident, compute):
+    """``compute()``'s result, kept on disk per ``kind`` and ``ident`` beside the twins (a
+    twin-derived result a fit needs again for the same machine and sensors: the thermal map's
+    scenario population). ``ident`` is JSON-able and names every input the result depends on
+    (a twin's by its cache key); the key adds :func:`package_version`, so any edit of fbgcomp
+    invalidates every entry. The result is a dict or list of JSON values and ndarrays, written
+    as JSON (floats exactly, ndarrays with their dtype) in an entry of the twins' format
+    (digest, no pickle, atomic, locked while computed, pruned like them); a cache that is off,
+    unreadable or unwritable only means the result is computed."""
+    folder = cache_dir()
+    ident_json = json.dumps(ident, sort_keys=True, allow_nan=True)
+    if folder is None:
+        return compute()
+    folder = folder.parent / DERIVED
+    key = hashlib.sha256(
+        json.dumps(
+            {"format": FORMAT_VERSION, "kind": kind, "code": package_version(), "ident": ident_json},
+            sort_keys=True,
+        ).encode()
+    ).hexdigest()
+    with build_lock(key, folder):
+        arrays = load(key, ("json",), folder)
+        if arrays is not None:
+            try:
+                return _from_json(json.loads(arrays["json"].tobytes().decode()))
+            except ValueError as err:
+                log.warning("twin cache: ignoring %s entry %s (%s); computing", kind, key[:12], err)
+        value = compute()
+        text = json.dumps(_to_json(value), allow_nan=True)
+        store(key, {"json": np.frombuffer(text.encode(), dtype=np.uint8)}, folder)
+        return value

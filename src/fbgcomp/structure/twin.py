@@ -324,11 +324,14 @@ class Twin:
         self.mesh = machine_mesh(machine, resolution, self.z_axis_mm)
         self.times.mesh_s = time.perf_counter() - t0
 
+        # the twin's identity (machine content, resolution, shifts, code): results derived from
+        # it are cached under it too (twin_cache.cached_json)
+        self.cache_key = twin_cache.twin_key(machine, resolution, n_shifts)
         folder = twin_cache.cache_dir() if cache else None
         if folder is None:
             self._adopt(*self._build(n_shifts))
             return
-        key = twin_cache.twin_key(machine, resolution, n_shifts)
+        key = self.cache_key
         # one builder per twin at a time: the others wait and load its entry
         with twin_cache.build_lock(key, folder):
             self._load_or_build(folder, key, n_shifts)
