@@ -3,6 +3,24 @@
 from __future__ import annotations
 
 import contextlib
+import functools
+
+
+@functools.lru_cache(maxsize=1)
+def _controller():
+    """The loaded thread pools as threadpoolctl sees them, listed once (None without threadpoolctl).
+
+    Forming it reads /proc/self/maps and opens every pool's library: ~5 ms in a process with
+    scipy, pandas and the rest loaded, which ``threadpool_limits`` paid on every entry (6 of
+    37 s of ram2's thermal_b served with the observer, 1296 batches). SciPy's linear algebra,
+    which brings its own OpenBLAS, is imported first so that its pool is in the view."""
+    try:
+        from threadpoolctl import ThreadpoolController  # noqa: PLC0415 - optional: threadpoolctl
+    except ImportError:
+        return None
+    import scipy.linalg  # noqa: F401, PLC0415 - load SciPy's BLAS before the pools are listed
+
+    return ThreadpoolController()
 
 
 def one_blas_thread():
@@ -11,13 +29,10 @@ def one_blas_thread():
     Threaded OpenBLAS spends its time synchronising on small or banded problems: the FE twin's
     banded factorisation ran 4-30x slower threaded on a shared 2-core machine; the thermal
     observer's 100-state Kalman step gains nothing from threads either
-    (benchmarks/bench_observer_speed.py). Entering it costs about 0.1 ms."""
-    try:
-        from threadpoolctl import threadpool_limits  # noqa: PLC0415 - optional: threadpoolctl
-
-        return threadpool_limits(1)
-    except ImportError:
-        return contextlib.nullcontext()
+    (benchmarks/bench_observer_speed.py). Entering it costs a few µs: the pools are listed
+    once per process (:func:`_controller`)."""
+    controller = _controller()
+    return contextlib.nullcontext() if controller is None else controller.limit(limits=1)
 
 
 def limit_blas_threads(threads: int) -> str:

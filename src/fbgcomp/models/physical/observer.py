@@ -388,7 +388,7 @@ class ThermalObserver:
             state = dict(state)
         out = np.empty((n, 3))
         ok = np.empty(n, bool)
-        # single-threaded BLAS only when a step closes in this batch (entering costs ~0.1 ms)
+        # single-threaded BLAS only when a step closes in this batch (entering costs ~30 µs)
         with one_blas_thread() if n and t[-1] > state["end"] else contextlib.nullcontext():
             self._frames(state, t, amb, pr, gr, gate_k, gratings_var_um2, out, ok)
         return out, ok, state
