@@ -506,6 +506,32 @@ def test_a_second_fit_reads_the_population_from_the_twin_cache(twin_model, tmp_p
     assert len(calls) == 2
 
 
+def test_a_second_fit_reads_the_heat_priors_observer_run_from_the_twin_cache(
+    twin_model, ram2, tmp_path, monkeypatch
+):
+    # the heat prior's Kalman filter over thermal_a (12 960 steps) gives the same sums for the
+    # same observer and data: the second prior reads them, the same watts to the bit
+    from fbgcomp.models.physical.observer import ThermalObserver
+    from fbgcomp.structure import Twin, load_machine
+    from fbgcomp.structure.scenarios import generic_heat_machine
+
+    machine = load_machine(twin_model.machine)
+    twin = Twin(generic_heat_machine(machine))  # from the session's cache, before it moves
+    monkeypatch.setenv("FBGCOMP_CACHE_DIR", str(tmp_path / "cache"))
+    runs = []
+    real = ThermalObserver.run
+    monkeypatch.setattr(ThermalObserver, "run", lambda self, *a: runs.append(1) or real(self, *a))
+    campaigns = [ram2["thermal_a"], ram2["static_xyz"]]
+    rows = [{"loaded": False}, {"loaded": True}]
+    first = twin_model._heat_prior(machine, campaigns, rows, twin)
+    assert len(runs) == 1  # the load-free campaign only
+    again = twin_model._heat_prior(machine, campaigns, rows, twin)
+    assert len(runs) == 1 and again == first == twin_model.twin_map_["heat_prior_W"] and first
+    # other data is another run
+    twin_model._heat_prior(machine, [ram2["thermal_b"], ram2["static_xyz"]], rows, twin)
+    assert len(runs) == 2
+
+
 def test_the_map_members_are_stored_and_checked(twin_model, tmp_path):
     import json
 

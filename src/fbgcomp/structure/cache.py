@@ -1,6 +1,6 @@
 """On-disk cache of built twins: the mesh-independent arrays of :class:`~fbgcomp.structure.Twin`,
 and of results derived from a twin that a fit needs again (:func:`cached_json`, in ``derived``
-beside ``twin``: the physical model's thermal-map population).
+beside ``twin``: the physical model's thermal-map population and its heat prior's observer run).
 
 Building the default twin (58 660 DOF) takes seconds (assembly, a banded Cholesky of the elastic
 matrix, the rational-Krylov thermal reduction); every ``demo``, ``simulate``, ``fe-calibrate``
@@ -367,6 +367,15 @@ def _from_json(value):
     if isinstance(value, list):
         return [_from_json(v) for v in value]
     return value
+
+
+def array_digest(*arrays) -> str:
+    """SHA-256 of arrays' dtypes, shapes and values: data in a :func:`cached_json` identity."""
+    h = hashlib.sha256()
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(f"{a.dtype.str}{a.shape}".encode() + b"\0" + a.tobytes())
+    return h.hexdigest()
 
 
 def cached_json(kind: str, ident, compute):

@@ -1174,7 +1174,17 @@ class PhysicalModel(EstimatorParams, ModelFile):
         free = [c for c, r in zip(campaigns, rows, strict=True) if not r["loaded"]]
         if not volume or not any(q in point for q in self.probe_names_) or not free:
             return {}
+        from fbgcomp.structure.cache import array_digest, cached_json  # noqa: PLC0415 - with the twin
+
         obs, probes = self._thermal_observer(machine, campaigns, twin)
+        # the filter's run is kept in the twin cache under the observer's and the data's identity:
+        # a second fit on the same campaigns reads it (ram2 thermal_a: 12 960 Kalman steps, ~3 s)
+        ident = {
+            "twin": twin.cache_key,
+            "sensors": [s.model_dump(mode="json") for s in self.sensors_],
+            "probes": probes,
+            "probe_bias_K": np.asarray(obs.probe_bias_K, float).tolist(),
+        }
         total, steps = np.zeros(obs.n_heat), 0
         for c in free:
             _, amb, pr, gr = campaign_inputs(
@@ -1182,9 +1192,13 @@ class PhysicalModel(EstimatorParams, ModelFile):
             )
             if len(amb) == 0:
                 continue
-            heat = obs.run(amb, pr, gr).heat
-            total += heat.sum(axis=0)
-            steps += len(heat)
+            run = cached_json(
+                "observer-heat-sum",
+                {**ident, "inputs": array_digest(amb, pr, gr)},
+                lambda a=amb, p=pr, g=gr: {"sum": obs.run(a, p, g).heat.sum(axis=0), "steps": len(a)},
+            )
+            total += run["sum"]
+            steps += run["steps"]
         if steps == 0:
             return {}
         mean_level = ScenarioDesign().mean_duty_fraction
