@@ -422,6 +422,26 @@ def test_a_damaged_derived_entry_is_computed_again(cache_dir):
     assert len(calls) == 2
 
 
+def test_numpy_scalars_are_kept_and_a_result_json_cannot_hold_is_computed_each_time(cache_dir):
+    calls = []
+
+    def scalars():
+        calls.append(1)
+        return {"n": np.int64(7), "x": np.float64(0.1), "ok": np.bool_(True)}
+
+    twin_cache.cached_json("test", {"k": 2}, scalars)
+    back = twin_cache.cached_json("test", {"k": 2}, scalars)
+    assert len(calls) == 1 and back == {"n": 7, "x": 0.1, "ok": True} and type(back["n"]) is int
+
+    def opaque():
+        calls.append(1)
+        return {"f": object()}
+
+    for _ in range(2):
+        assert set(twin_cache.cached_json("test", {"k": 3}, opaque)) == {"f"}
+    assert len(calls) == 3
+
+
 def test_with_the_cache_off_a_derived_result_is_always_computed(tmp_path, monkeypatch):
     monkeypatch.setenv("FBGCOMP_CACHE_DIR", "off")
     monkeypatch.chdir(tmp_path)

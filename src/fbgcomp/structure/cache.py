@@ -355,6 +355,8 @@ def _to_json(value):
         return {str(k): _to_json(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
         return [_to_json(v) for v in value]
+    if isinstance(value, np.generic):  # a numpy scalar: its Python number (json refuses np.int64)
+        return value.item()
     return value
 
 
@@ -384,9 +386,10 @@ def cached_json(kind: str, ident, compute):
     scenario population). ``ident`` is JSON-able and names every input the result depends on
     (a twin's by its cache key); the key adds :func:`package_version`, so any edit of fbgcomp
     invalidates every entry. The result is a dict or list of JSON values and ndarrays, written
-    as JSON (floats exactly, ndarrays with their dtype) in an entry of the twins' format
-    (digest, no pickle, atomic, locked while computed, pruned like them); a cache that is off,
-    unreadable or unwritable only means the result is computed."""
+    as JSON (floats exactly, ndarrays with their dtype; tuples come back as lists, numpy
+    scalars as Python numbers, keys as strings) in an entry of the twins' format (digest, no
+    pickle, atomic, locked while computed, pruned like them); a cache that is off, unreadable
+    or unwritable, or a result JSON cannot hold, only means the result is computed."""
     folder = cache_dir()
     ident_json = json.dumps(ident, sort_keys=True, allow_nan=True)
     if folder is None:
@@ -406,6 +409,10 @@ def cached_json(kind: str, ident, compute):
             except ValueError as err:
                 log.warning("twin cache: ignoring %s entry %s (%s); computing", kind, key[:12], err)
         value = compute()
-        text = json.dumps(_to_json(value), allow_nan=True)
+        try:
+            text = json.dumps(_to_json(value), allow_nan=True)
+        except (TypeError, ValueError) as err:  # not a value JSON holds: computed each time
+            log.warning("twin cache: %s result not kept (%s)", kind, err)
+            return value
         store(key, {"json": np.frombuffer(text.encode(), dtype=np.uint8)}, folder)
         return value
