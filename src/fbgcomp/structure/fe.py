@@ -9,7 +9,8 @@ COLAMD. CHOLMOD (scikit-sparse), then SuperLU, take over when the band would be 
 The band must reach across two node layers wherever a support's mean constraint couples them,
 while the matrix is block tridiagonal in blocks of about one layer: ``Factorised(blocked=True)``
 (the twin's elastic matrix) factorises those blocks with dense LAPACK instead, ~2x faster
-(1.6 s for the default twin's factor and its 8 adjoint solves).
+(1.6 s for the default twin's factor and its 8 adjoint solves), and 1.5x on the independent
+rams' twins, whose blocks cost a little more flops than their band (benchmarks/bench_factor.py).
 """
 
 from __future__ import annotations
@@ -23,6 +24,12 @@ from fbgcomp.threads import one_blas_thread
 
 # Above this many band entries (8 bytes each) the banded factor would not fit comfortably.
 _MAX_BAND_ENTRIES = 400_000_000
+# Factorised(blocked=True) takes the block-by-block factor while its flop count is below this
+# multiple of the band's (n bw^2): dense LAPACK on whole blocks runs faster per flop than the
+# banded dpbtrf. benchmarks/bench_factor.py: ram2's twin at a ratio of 1.12 factorises 1.5x
+# faster by blocks (7.9 -> 5.3 s), ram3's and ram4's at 0.95 1.5x; 0.8 (the rule before) left
+# all three banded.
+_BLOCKED_WORK_RATIO = 1.25
 
 
 def layer_order(points_mm: np.ndarray, dofs_per_node: np.ndarray | None = None) -> np.ndarray:
@@ -133,7 +140,7 @@ class Factorised:
             # flops: potrf m^3/3 + trsm and update m_k m_{k-1}^2 + m_k^2 m_{k-1} per block,
             # against n bw^2 for the band
             work = (m**3 / 3).sum() + (m[1:] * m[:-1] ** 2 + m[1:] ** 2 * m[:-1]).sum()
-            if work < 0.8 * n * float(bw) ** 2:
+            if work < _BLOCKED_WORK_RATIO * n * float(bw) ** 2:
                 Ap = sp.csr_matrix((data, (col, row)), shape=A.shape)  # lower triangle
                 Ap = (Ap + sp.triu(Ap.T, k=1)).tocsr()
                 self._perm = perm
