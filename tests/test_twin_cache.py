@@ -94,6 +94,47 @@ def test_cold_build_writes_one_entry_and_the_warm_load_is_bit_identical(Twin, ma
     assert len(_entries(cache_dir)) == 1
 
 
+def test_a_twin_without_its_thermal_reduction_gives_the_same_bits_and_its_entry_is_completed(
+    Twin, machine, cache_dir
+):
+    """``reduce_thermal=False`` (twin-check) leaves the reduced thermal model until something
+    needs it; the static operators and the steady gain are those of a full twin to the bit, and
+    so is the reduction made on first use. Its entry, stored without the reduction, is read by a
+    twin that needs it, which reduces and completes it."""
+    from fbgcomp.structure import thermal
+
+    full = Twin(machine, resolution=RES, cache=False)
+    static = Twin(machine, resolution=RES, reduce_thermal=False)
+    assert static._reduced is None and not static.times.from_cache
+    (entry,) = _entries(cache_dir)
+    key = entry.name[: -len(".twin")]
+    assert twin_cache.load(key, Twin._STATIC_ARRAYS) is not None
+    assert twin_cache.load(key, Twin._ARRAYS) is None  # no reduction stored
+    inf, ref = static.influence, full.influence
+    for a in (
+        "sensor_per_force_um_per_N",
+        "ttp_per_force_um_per_N",
+        "elastic_per_temperature",
+        "steady_per_input",
+    ):
+        assert np.array_equal(getattr(inf, a), getattr(ref, a)), a
+    _assert_identical(
+        list(static.static_temperature_response("uniform", 10.0)),
+        list(full.static_temperature_response("uniform", 10.0)),
+    )
+    assert static._reduced is None  # none of that needed it
+    # a twin that needs the reduction completes the entry, and a later one loads it whole
+    completed = Twin(machine, resolution=RES)
+    assert completed.times.from_cache and completed._reduced is not None
+    assert twin_cache.load(key, Twin._ARRAYS) is not None
+    whole = Twin(machine, resolution=RES)
+    assert whole.times.from_cache and whole.times.cache_store_s == 0.0
+    for twin in (static, completed, whole):  # the first reduces on first use
+        for name in thermal.ReducedThermal.ARRAYS:
+            assert np.array_equal(getattr(twin.reduced, name), getattr(full.reduced, name)), name
+    _assert_identical(_responses(static), _responses(full))
+
+
 def test_key_follows_the_machine_content_not_its_file(tmp_path, machine):
     data = yaml.safe_load(DEFAULT_YAML.read_text())
     same = tmp_path / "elsewhere" / "same.yaml"

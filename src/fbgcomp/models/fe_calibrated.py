@@ -110,7 +110,7 @@ def fe_calibrate(
     """
     from fbgcomp.structure import Twin  # noqa: PLC0415 - optional extra: scikit-fem (the FE twin)
 
-    twin = twin or Twin(machine)
+    twin = twin or Twin(machine, reduce_thermal=False)  # load cases only: static operators
     X, y, cases = fe_design(
         machine, twin, n_samples=n_samples, wavelength_noise_nm=wavelength_noise_nm, seed=seed
     )
@@ -148,7 +148,7 @@ def resolution_report(machine, twin=None, wavelength_noise_nm=0.001):
     """
     from fbgcomp.structure import Twin  # noqa: PLC0415 - optional extra: scikit-fem (the FE twin)
 
-    twin = twin or Twin(machine)
+    twin = twin or Twin(machine, reduce_thermal=False)  # load cases only: static operators
     cases = load_case_responses(twin)
     elong, ttp = cases["sensor_elongation_um"], cases["ttp_um"]
     noise = elongation_noise_um(machine.sensors, wavelength_noise_nm)

@@ -121,7 +121,8 @@ def placement_design(
 
     pool, m = sensor_pool(machine, candidates)
     if twin is None:
-        twin = Twin(m, resolution=resolution, z_axis_mm=z_axis_mm)
+        # load cases only (static forces and temperature fields): no reduced thermal model
+        twin = Twin(m, resolution=resolution, z_axis_mm=z_axis_mm, reduce_thermal=False)
     cases = load_case_responses(twin)
     names, elong, ttp = cases["names"], cases["sensor_elongation_um"], cases["ttp_um"]
     return PlacementDesign(

@@ -130,7 +130,8 @@ def plan_design(
     from fbgcomp.structure import Twin  # noqa: PLC0415 - optional heavy extra: skfem (the fe extra)
 
     pool, m = sensor_pool(machine, candidates)
-    twin = twin or Twin(m, resolution=resolution, z_axis_mm=z_axis_mm)
+    # load cases only (static forces and temperature fields): no reduced thermal model
+    twin = twin or Twin(m, resolution=resolution, z_axis_mm=z_axis_mm, reduce_thermal=False)
     cases = load_case_responses(twin)
     design = PlacementDesign(
         [s.name for s in pool],

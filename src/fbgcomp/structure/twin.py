@@ -275,6 +275,12 @@ class Twin:
         store a new build there. A reloaded twin gives bit-identical responses; its elastic
         factor is recomputed only when something needs it (``path_influence``). ``False``:
         always build, read and write nothing.
+    reduce_thermal : bool, default True
+        ``False``: leave the reduced thermal model (:attr:`reduced`, about a third of a build)
+        until something needs it. The static operators (loads, prescribed temperature fields,
+        the influence matrices and their exact steady thermal gain) are all there: what
+        ``fbgcomp twin-check`` reads. Its cache entry lacks the reduction until a twin of the same
+        machine that needs it reduces and completes it.
     """
 
     # Arrays a built twin is made of (everything else is rebuilt in milliseconds from them and
@@ -296,6 +302,8 @@ class Twin:
         "build_times_s",
         *(f"reduced_{n}" for n in thermal.ReducedThermal.ARRAYS),
     )
+    # ... of which an entry stored by a twin built with reduce_thermal=False holds these
+    _STATIC_ARRAYS = tuple(a for a in _ARRAYS if not a.startswith("reduced_"))
 
     def __init__(
         self,
@@ -304,6 +312,7 @@ class Twin:
         z_axis_mm: float | None = None,
         n_shifts: int | None = None,
         cache: bool = True,
+        reduce_thermal: bool = True,
     ):
         if z_axis_mm is not None:
             # Re-validate: the carriage stations must stay on the ram at this axis position.
@@ -319,6 +328,10 @@ class Twin:
         self._ambient_probes = [i for i, p in enumerate(machine.probes) if p.kind == "ambient"]
         self._vbasis_built: Basis | None = None
         self._elastic_built: Factorised | None = None
+        self._n_shifts = n_shifts
+        self._reduced: thermal.ReducedThermal | None = None
+        # the thermal matrix factorised, kept from a build for the reduction made on first use
+        self._thermal_factor_kept: Factorised | None = None
 
         t0 = time.perf_counter()
         self.mesh = machine_mesh(machine, resolution, self.z_axis_mm)
@@ -329,17 +342,19 @@ class Twin:
         self.cache_key = twin_cache.twin_key(machine, resolution, n_shifts)
         folder = twin_cache.cache_dir() if cache else None
         if folder is None:
-            self._adopt(*self._build(n_shifts))
+            self._adopt(*self._build(n_shifts, reduce_thermal))
             return
         key = self.cache_key
         # one builder per twin at a time: the others wait and load its entry
         with twin_cache.build_lock(key, folder):
-            self._load_or_build(folder, key, n_shifts)
+            self._load_or_build(folder, key, n_shifts, reduce_thermal)
 
-    def _load_or_build(self, folder, key, n_shifts):
-        """Adopt the cached entry of ``key`` in ``folder``, or build the twin and store it."""
+    def _load_or_build(self, folder, key, n_shifts, reduce_thermal=True):
+        """Adopt the cached entry of ``key`` in ``folder``, or build the twin and store it
+        (``reduce_thermal=False``: without the reduction; a twin that needs it completes such an
+        entry)."""
         t0 = time.perf_counter()
-        arrays = twin_cache.load(key, self._ARRAYS, folder)
+        arrays = twin_cache.load(key, self._STATIC_ARRAYS, folder)
         if arrays is not None and not self._fits(arrays):
             arrays = None
         self.times.cache_load_s = time.perf_counter() - t0
@@ -353,9 +368,14 @@ class Twin:
                 )
             )
             self._adopt(arrays)
-            return
-        arrays, thermal_factor = self._build(n_shifts)
-        self._adopt(arrays, thermal_factor)
+            if not reduce_thermal or self._reduced is not None:
+                return
+            # an entry a twin-check stored: reduce now and complete it
+            arrays.update({f"reduced_{n}": a for n, a in self.reduced.arrays().items()})
+            arrays["build_times_s"] = np.array([*arrays["build_times_s"][:3], self.times.thermal_reduction_s])
+        else:
+            arrays, thermal_factor = self._build(n_shifts, reduce_thermal)
+            self._adopt(arrays, thermal_factor)
         t0 = time.perf_counter()
         path = twin_cache.store(key, arrays, folder)
         self.times.cache_store_s = time.perf_counter() - t0
@@ -374,9 +394,10 @@ class Twin:
             and arrays["Tprobe"].shape == (len(self._point_probes), n)
         )
 
-    def _build(self, n_shifts: int):
+    def _build(self, n_shifts: int, reduce_thermal: bool = True):
         """Assemble, factorise and reduce: the expensive part, returned as plain arrays (and the
-        thermal factor, kept in memory for the reduction)."""
+        thermal factor, kept in memory for the reduction; ``reduce_thermal=False``: no
+        ``reduced_*`` arrays, the reduction is made on first use)."""
         machine, rm = self.machine, self.mesh
         t0 = time.perf_counter()
         mats = machine.materials
@@ -438,7 +459,9 @@ class Twin:
 
         t0 = time.perf_counter()
         thermal_factor = Factorised(Kt)  # the mesh's node order is already layer-wise
-        reduced = thermal.ReducedThermal(Kt, Ct, Bt, O, n_shifts, factor=thermal_factor)
+        reduced = (
+            thermal.ReducedThermal(Kt, Ct, Bt, O, n_shifts, factor=thermal_factor) if reduce_thermal else None
+        )
         self.times.thermal_reduction_s = time.perf_counter() - t0
         b = self.times
         arrays = {
@@ -457,7 +480,8 @@ class Twin:
             "Tprobe": Tprobe,
             "build_times_s": np.array([b.mesh_s, b.assemble_s, b.elastic_factor_s, b.thermal_reduction_s]),
         }
-        arrays.update({f"reduced_{n}": a for n, a in reduced.arrays().items()})
+        if reduced is not None:
+            arrays.update({f"reduced_{n}": a for n, a in reduced.arrays().items()})
         return arrays, thermal_factor
 
     def _adopt(self, arrays, thermal_factor: Factorised | None = None) -> None:
@@ -473,9 +497,19 @@ class Twin:
         self._W_parts = arrays["W_parts"]
         # the parts' rows projected on the reduced basis, on first use
         self._parts_outputs: tuple[np.ndarray, np.ndarray] | None = None
-        self.reduced = thermal.ReducedThermal.from_arrays(
-            Kt, Bt, {n: arrays[f"reduced_{n}"] for n in thermal.ReducedThermal.ARRAYS}, factor=thermal_factor
-        )
+        if all(f"reduced_{n}" in arrays for n in thermal.ReducedThermal.ARRAYS):
+            self._reduced = thermal.ReducedThermal.from_arrays(
+                Kt,
+                Bt,
+                {n: arrays[f"reduced_{n}"] for n in thermal.ReducedThermal.ARRAYS},
+                factor=thermal_factor,
+            )
+            steady = self._reduced.steady_gain
+        else:  # reduced on first use (reduce_thermal=False); the exact steady gain as it forms it
+            if thermal_factor is None:  # an entry such a twin stored
+                thermal_factor = Factorised(Kt)
+            self._thermal_factor_kept = thermal_factor
+            steady = self._O @ thermal_factor.solve(Bt)
         names = (
             [f"{n}_elongation_um" for n in self.sensor_names]
             + ["dx_um", "dy_um", "dz_um"]
@@ -488,7 +522,7 @@ class Twin:
             elastic_per_temperature=W,
             sensor_temperature_rows=Tsens,
             probe_temperature_rows=Tprobe,
-            steady_per_input=self.reduced.steady_gain,
+            steady_per_input=steady,
             output_names=tuple(names),
             input_names=thermal.input_names(self.machine),
         )
@@ -511,7 +545,26 @@ class Twin:
         return self._elastic_built
 
     @property
+    def reduced(self) -> thermal.ReducedThermal:
+        """The reduced thermal model: from the build or the cache entry, or made on first use
+        (a twin built with ``reduce_thermal=False``; the same arrays as a build makes)."""
+        if self._reduced is None:
+            t0 = time.perf_counter()
+            self._reduced = thermal.ReducedThermal(
+                self._thermal_K,
+                self._thermal_C,
+                self._thermal_B,
+                self._O,
+                self._n_shifts,
+                factor=self._thermal_factor_kept,
+            )
+            self.times.thermal_reduction_s += time.perf_counter() - t0
+        return self._reduced
+
+    @property
     def _thermal_factor(self) -> Factorised:
+        if self._reduced is None and self._thermal_factor_kept is not None:
+            return self._thermal_factor_kept
         return self.reduced.factor
 
     # ----------------------------------------------------------------------- other paths

@@ -209,7 +209,8 @@ def run(machine_path: str | Path, against: str | Path, resolution: float | None 
 
     ref = load_reference(against)
     machine = load_machine(machine_path)
-    twin = Twin(machine, resolution=resolution)
+    # the comparison reads static operators only: no reduced thermal model (a third of a build)
+    twin = Twin(machine, resolution=resolution, reduce_thermal=False)
     rows = compare(twin, ref, str(machine_path))
     return {
         "machine": str(machine_path),
