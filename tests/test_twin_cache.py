@@ -108,7 +108,7 @@ def test_a_twin_without_its_thermal_reduction_gives_the_same_bits_and_its_entry_
     assert static._reduced is None and not static.times.from_cache
     (entry,) = _entries(cache_dir)
     key = entry.name[: -len(".twin")]
-    assert twin_cache.load(key, Twin._STATIC_ARRAYS) is not None
+    assert twin_cache.load(key, Twin._UNREDUCED_ARRAYS) is not None
     assert twin_cache.load(key, Twin._ARRAYS) is None  # no reduction stored
     inf, ref = static.influence, full.influence
     for a in (
@@ -133,6 +133,36 @@ def test_a_twin_without_its_thermal_reduction_gives_the_same_bits_and_its_entry_
         for name in thermal.ReducedThermal.ARRAYS:
             assert np.array_equal(getattr(twin.reduced, name), getattr(full.reduced, name)), name
     _assert_identical(_responses(static), _responses(full))
+
+
+def test_a_twin_that_differs_in_its_thermal_description_only_shares_the_static_half(Twin, machine):
+    """The physical model's generic-heat twin (the machine's, with a radiant source on every
+    face) has the machine twin's mesh, elasticity and instruments: built after it in the same
+    process it takes that half as it is, and answers to the bit as when built alone. Another
+    grating or a heat zone that refines the mesh is another static half."""
+    from fbgcomp.structure import twin as twin_module
+    from fbgcomp.structure.scenarios import generic_heat_machine
+
+    heat_machine = generic_heat_machine(machine)
+    twin_module._last_static.clear()
+    alone = Twin(heat_machine, resolution=RES, cache=False)
+    assert "static_half_shared" not in alone.times.extra
+    Twin(machine, resolution=RES, cache=False)
+    shared = Twin(heat_machine, resolution=RES, cache=False)
+    assert shared.times.extra["static_half_shared"] and shared.times.elastic_factor_s == 0.0
+    _assert_identical(_responses(shared), _responses(alone))
+    assert np.array_equal(shared.influence.steady_per_input, alone.influence.steady_per_input)
+    # a grating moved: its own static half
+    d = machine.model_dump()
+    d["sensors"][0]["offset_mm"] = d["sensors"][0]["offset_mm"] + 10.0
+    from fbgcomp.structure.machine import parse_machine
+
+    assert "static_half_shared" not in Twin(parse_machine(d), resolution=RES, cache=False).times.extra
+    # a lamp on part of a face: its zone's ends are grid lines, another mesh, its own half too
+    d = heat_machine.model_dump()
+    lamp = {"name": "lamp", "kind": "radiant", "face": "+Y", "z_mm": [300.0, 777.0], "nominal_W_per_m2": 50.0}
+    d["thermal"]["heat_sources"] = [*d["thermal"]["heat_sources"], lamp]
+    assert "static_half_shared" not in Twin(parse_machine(d), resolution=RES, cache=False).times.extra
 
 
 def test_key_follows_the_machine_content_not_its_file(tmp_path, machine):

@@ -14,6 +14,8 @@ thermal campaign never solves the elastic problem again (section 2.3, FE load de
 
 from __future__ import annotations
 
+import hashlib
+import json
 import time
 from dataclasses import dataclass, field
 
@@ -156,6 +158,45 @@ class BuildTimes:
 # DOF then moves by ~1e-7 of what the structure alone would let it, and the banded Cholesky
 # (which sees the penalty only on the diagonal) stays accurate.
 RIGID_PENALTY = 1e7
+
+# The static half of a twin: elastic operators, adjoint responses and the instruments'
+# temperature rows. None depends on the thermal description (films, heat sources) but through
+# the mesh, which heat zones may refine.
+_STATIC_HALF = (
+    "K",
+    "Th",
+    "R",
+    "support_rows_mm",
+    "support_stiffness_N_per_mm",
+    "force",
+    "W",
+    "W_parts",
+    "Tsens",
+    "Tprobe",
+)
+# The last twin built or loaded in this process, under its static identity (_static_key): a new
+# twin of the same ram, mesh and instruments, whatever its thermal description, takes that half
+# from it (the same arrays, so the same bits) instead of assembling and factorising it again;
+# the physical model's fit builds the machine's twin and then its generic-heat twin. One entry:
+# it keeps at most one twin alive.
+_last_static: list[tuple[str, Twin]] = []
+
+
+def _static_key(machine: Machine, resolution: float, rm: RamMesh) -> str:
+    """The identity of a twin's static half: the description without its thermal section, the
+    resolution, the mesh itself and the code (twin_cache.code_version)."""
+    d = machine.model_dump(mode="json")
+    d.pop("thermal", None)
+    h = hashlib.sha256(
+        json.dumps(
+            {"machine": d, "resolution": repr(float(resolution)), "code": twin_cache.code_version()},
+            sort_keys=True,
+            allow_nan=True,
+        ).encode()
+    )
+    for a in (rm.mesh.p, rm.mesh.t, rm.steel_elements):
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
 
 
 def _node_weights(vbasis, facets) -> tuple[np.ndarray, np.ndarray]:
@@ -303,7 +344,7 @@ class Twin:
         *(f"reduced_{n}" for n in thermal.ReducedThermal.ARRAYS),
     )
     # ... of which an entry stored by a twin built with reduce_thermal=False holds these
-    _STATIC_ARRAYS = tuple(a for a in _ARRAYS if not a.startswith("reduced_"))
+    _UNREDUCED_ARRAYS = tuple(a for a in _ARRAYS if not a.startswith("reduced_"))
 
     def __init__(
         self,
@@ -336,6 +377,7 @@ class Twin:
         t0 = time.perf_counter()
         self.mesh = machine_mesh(machine, resolution, self.z_axis_mm)
         self.times.mesh_s = time.perf_counter() - t0
+        self._static_key = _static_key(machine, resolution, self.mesh)
 
         # the twin's identity (machine content, resolution, shifts, code): results derived from
         # it are cached under it too (twin_cache.cached_json)
@@ -354,7 +396,7 @@ class Twin:
         (``reduce_thermal=False``: without the reduction; a twin that needs it completes such an
         entry)."""
         t0 = time.perf_counter()
-        arrays = twin_cache.load(key, self._STATIC_ARRAYS, folder)
+        arrays = twin_cache.load(key, self._UNREDUCED_ARRAYS, folder)
         if arrays is not None and not self._fits(arrays):
             arrays = None
         self.times.cache_load_s = time.perf_counter() - t0
@@ -399,6 +441,40 @@ class Twin:
         thermal factor, kept in memory for the reduction; ``reduce_thermal=False``: no
         ``reduced_*`` arrays, the reduction is made on first use)."""
         machine, rm = self.machine, self.mesh
+        shared = next((t for k, t in _last_static if k == self._static_key), None)
+        if shared is None:
+            part = self._build_static()
+        else:  # the same ram, mesh and instruments: its static half as it is
+            part = shared._static_part
+            self._vbasis_built, self._elastic_built = shared._vbasis_built, shared._elastic_built
+            self.times.extra["static_half_shared"] = True
+        t0 = time.perf_counter()
+        Kt, Ct, Bt = thermal.assemble_thermal(rm, machine)
+        self.times.assemble_s += time.perf_counter() - t0
+        O = np.vstack([part["W"], part["Tsens"].toarray(), part["Tprobe"].toarray()])  # noqa: E741 - O: the output matrix of (K, C, B, O)
+
+        t0 = time.perf_counter()
+        thermal_factor = Factorised(Kt)  # the mesh's node order is already layer-wise
+        reduced = (
+            thermal.ReducedThermal(Kt, Ct, Bt, O, n_shifts, factor=thermal_factor) if reduce_thermal else None
+        )
+        self.times.thermal_reduction_s = time.perf_counter() - t0
+        b = self.times
+        arrays = {
+            **part,
+            "Kt": Kt,
+            "Ct": Ct,
+            "Bt": Bt,
+            "build_times_s": np.array([b.mesh_s, b.assemble_s, b.elastic_factor_s, b.thermal_reduction_s]),
+        }
+        if reduced is not None:
+            arrays.update({f"reduced_{n}": a for n, a in reduced.arrays().items()})
+        return arrays, thermal_factor
+
+    def _build_static(self) -> dict:
+        """The static half (:data:`_STATIC_HALF`): assemble the elasticity, factorise it and
+        solve it for the adjoint rows; the instruments' temperature rows."""
+        machine, rm = self.machine, self.mesh
         t0 = time.perf_counter()
         mats = machine.materials
         # the thermal load per unit expansion coefficient of each material (d Th / d alpha_k):
@@ -416,7 +492,6 @@ class Twin:
         rigid = RIGID_PENALTY * float(K.diagonal().max())
         rows, k = support_rows(rm, vb, machine, self.z_axis_mm, rigid)
         K = (K + elastic.spring_matrix(rows, k)).tocsr()
-        Kt, Ct, Bt = thermal.assemble_thermal(rm, machine)
         self._vbasis_built = vb
         self.times.assemble_s = time.perf_counter() - t0
 
@@ -455,34 +530,18 @@ class Twin:
             for i in self._point_probes
         ]
         Tprobe = (rm.point_rows(pts) if pts else sp.csr_matrix((0, rm.n_nodes))).tocsr()
-        O = np.vstack([W, Tsens.toarray(), Tprobe.toarray()])  # noqa: E741 - O: the output matrix of (K, C, B, O)
-
-        t0 = time.perf_counter()
-        thermal_factor = Factorised(Kt)  # the mesh's node order is already layer-wise
-        reduced = (
-            thermal.ReducedThermal(Kt, Ct, Bt, O, n_shifts, factor=thermal_factor) if reduce_thermal else None
-        )
-        self.times.thermal_reduction_s = time.perf_counter() - t0
-        b = self.times
-        arrays = {
+        return {
             "K": K,
             "Th": Th,
             "R": R,
             "support_rows_mm": rows,
             "support_stiffness_N_per_mm": k,
-            "Kt": Kt,
-            "Ct": Ct,
-            "Bt": Bt,
             "force": force,
             "W": W,
             "W_parts": W_parts,
             "Tsens": Tsens,
             "Tprobe": Tprobe,
-            "build_times_s": np.array([b.mesh_s, b.assemble_s, b.elastic_factor_s, b.thermal_reduction_s]),
         }
-        if reduced is not None:
-            arrays.update({f"reduced_{n}": a for n, a in reduced.arrays().items()})
-        return arrays, thermal_factor
 
     def _adopt(self, arrays, thermal_factor: Factorised | None = None) -> None:
         """Set the twin's operators from its arrays (a fresh build or a cache entry alike)."""
@@ -495,6 +554,8 @@ class Twin:
         self._thermal_K, self._thermal_C, self._thermal_B = Kt, Ct, Bt
         self._O = np.vstack([W, Tsens.toarray(), Tprobe.toarray()])
         self._W_parts = arrays["W_parts"]
+        self._static_part = {n: arrays[n] for n in _STATIC_HALF}
+        _last_static[:] = [(self._static_key, self)]
         # the parts' rows projected on the reduced basis, on first use
         self._parts_outputs: tuple[np.ndarray, np.ndarray] | None = None
         if all(f"reduced_{n}" in arrays for n in thermal.ReducedThermal.ARRAYS):
