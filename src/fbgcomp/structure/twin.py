@@ -176,9 +176,9 @@ _STATIC_HALF = (
 )
 # The last twin built or loaded in this process, under its static identity (_static_key): a new
 # twin of the same ram, mesh and instruments, whatever its thermal description, takes that half
-# from it (the same arrays, so the same bits) instead of assembling and factorising it again;
-# the physical model's fit builds the machine's twin and then its generic-heat twin. One entry:
-# it keeps at most one twin alive.
+# from it (the same arrays, so the same bits) instead of assembling and factorising it again:
+# the physical model's generic-heat twin after the machine's own twin (demo, compare --machine,
+# a script that simulates and then fits). One entry: it keeps at most one twin alive.
 _last_static: list[tuple[str, Twin]] = []
 
 
