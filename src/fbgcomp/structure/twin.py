@@ -622,12 +622,6 @@ class Twin:
             self.times.thermal_reduction_s += time.perf_counter() - t0
         return self._reduced
 
-    @property
-    def _thermal_factor(self) -> Factorised:
-        if self._reduced is None and self._thermal_factor_kept is not None:
-            return self._thermal_factor_kept
-        return self.reduced.factor
-
     # ----------------------------------------------------------------------- other paths
     def path_influence(self, sensors=None) -> PathInfluence:
         """Operators of FBG paths given like the YAML's sensors (default: candidate_sensors).
