@@ -26,9 +26,9 @@ from fbgcomp.threads import one_blas_thread
 _MAX_BAND_ENTRIES = 400_000_000
 # Factorised(blocked=True) takes the block-by-block factor while its flop count is below this
 # multiple of the band's (n bw^2): dense LAPACK on whole blocks runs faster per flop than the
-# banded dpbtrf. benchmarks/bench_factor.py: ram2's twin at a ratio of 1.12 factorises 1.5x
-# faster by blocks (7.9 -> 5.3 s), ram3's and ram4's at 0.95 1.5x; 0.8 (the rule before) left
-# all three banded.
+# banded dpbtrf. benchmarks/bench_factor.py (2026-11-30): ram2's twin at a ratio of 1.12
+# factorises 1.5x faster by blocks (9.1 -> 6.0 s), ram3's and ram4's at 0.95-0.96 1.6-1.7x; 0.8
+# (the rule before) left all three banded.
 _BLOCKED_WORK_RATIO = 1.25
 
 
