@@ -25,12 +25,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from pydantic import ValidationError
-from scipy import stats
 
 from fbgcomp import __version__
 from fbgcomp.atomic import write_json
 from fbgcomp.errors import InputError
 from fbgcomp.io.campaign import Campaign, SensorSpec, check_sensors_match, read_campaign
+from fbgcomp.models.distributions import t_ppf
 from fbgcomp.models.features import CONSTANT, FeatureMap, as_frames, design_matrix, parse_term
 from fbgcomp.models.modelfile import (
     MODEL_FORMAT,
@@ -135,7 +135,7 @@ class Predictor:
             root = v * np.sqrt(np.clip(w, 0.0, None))
             self._cov_sqrt[j][np.ix_(idx, range(len(idx)))] = root
             self._resid_var[j] = fit.resid_sd**2
-            self._t[j] = stats.t.ppf(1 - alpha / 2, fit.df_resid)
+            self._t[j] = t_ppf(1 - alpha / 2, fit.df_resid)
         self.expected_rms_error_um = np.sqrt(self._resid_var)
         self._compile()
 

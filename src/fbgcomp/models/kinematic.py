@@ -18,8 +18,6 @@ from __future__ import annotations
 import copy
 
 import numpy as np
-from scipy import stats
-from scipy.optimize import nnls
 
 from fbgcomp.errors import InputError
 from fbgcomp.kinematics import CLOSURE_FACTORS, KinematicChain
@@ -34,13 +32,14 @@ from fbgcomp.models.base import (
     fallback_sets,
     plain,
 )
+from fbgcomp.models.distributions import norm_ppf
 from fbgcomp.models.features import FeatureMap, TemperatureRoles
 from fbgcomp.models.machines import campaign_sensor_specs, resolve_machine
 from fbgcomp.optics import elongation_noise_um
 from fbgcomp.structure.machine import parse_machine
 from fbgcomp.units import AXES
 
-_Z95 = float(stats.norm.ppf(0.975))
+_Z95 = float(norm_ppf(0.975))
 #: Default model-form error of the kinematic chain before any campaign (relative to the
 #: prediction, and a floor in µm): the beam closure reproduces the FE twin's tool-tip
 #: compliance to ~6 % (tests/test_kinematics.py); 10 % leaves room for another structure.
@@ -444,6 +443,8 @@ class KinematicModel(EstimatorParams, ModelFile):
 
 def error_model(resid, pred):
     """Per-axis (floor µm, relative) with e² ≈ floor² + (relative · pred)², non-negative LS."""
+    from scipy.optimize import nnls  # noqa: PLC0415 - start-up: fit-time only
+
     floor, rel = np.zeros(3), np.zeros(3)
     for j in range(3):
         A = np.column_stack([np.ones(len(pred)), pred[:, j] ** 2])

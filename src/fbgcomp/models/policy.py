@@ -21,7 +21,8 @@ other; the load part was dropped).
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
+
+from fbgcomp.models.distributions import chi2_ppf
 
 SHRUNK = np.uint8(1)
 CLAMPED = np.uint8(2)
@@ -91,7 +92,7 @@ def contradiction(chi2, dof, p_value=1e-3, inflation=1.0):
     chi2 = np.asarray(chi2, dtype=float)
     if dof < 1:
         return np.zeros(chi2.shape, bool)
-    return chi2 > inflation * stats.chi2.ppf(1.0 - p_value, dof)
+    return chi2 > inflation * chi2_ppf(1.0 - p_value, dof)
 
 
 def clamp_axes(deviation_um, low_um, high_um):

@@ -736,16 +736,17 @@ class Pipeline:
         tau = self.config.smoothing_tau_s
         if tau <= 0 or t.size == 0:
             return corr
-        # scipy.signal takes seconds to import, and only this optional smoothing needs it: not
-        # at module top, which the OPC UA server process and the log readers also load
-        from scipy.signal import lfilter  # noqa: PLC0415 - start-up: scipy.signal takes seconds
-
         prev_t = self._last_t if self._last_t is not None else t[0]
         dt = np.diff(np.concatenate([[prev_t], t]))
         dt_typ = float(np.median(dt)) if dt.size else 0.0
         a = float(np.exp(-max(dt_typ, 1e-9) / tau))
         y0 = self._smoothed if self._smoothed is not None else corr[0]
-        y, _ = lfilter([1.0 - a], [1.0, -a], corr, axis=0, zi=(a * y0)[None, :])
+        # the recursion scipy.signal.lfilter ran here, whose import (seconds, with scipy.stats)
+        # came on the first batch served with smoothing on; the models are loaded by now, and
+        # the OPC UA server process and the log readers, which load this module, need none
+        from fbgcomp.models.filters import decay_scan  # noqa: PLC0415 - keep this module light
+
+        y = decay_scan(a, (1.0 - a) * corr, y0)
         self._smoothed = y[-1].copy()
         self._last_t = float(t[-1])
         return y

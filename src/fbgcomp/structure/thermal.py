@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.linalg
-import scipy.signal
 import scipy.sparse as sp
 from skfem import Basis, BilinearForm, ElementHex1, FacetBasis, LinearForm, asm
 from skfem.helpers import dot, grad
@@ -274,6 +273,8 @@ class ReducedThermal:
             if np.ptp(h) <= 1e-9 * h[0]:
                 E, g0, g1 = _foh_weights(self.lam_per_s, h[0])
                 f = g0[:, None] * b[:, :-1] + g1[:, None] * b[:, 1:]
+                import scipy.signal  # noqa: PLC0415 - start-up: with scipy.stats ~0.6 s, needed by twin runs alone
+
                 for i in range(self.n_modes):  # one C-level recursion per mode, not per sample
                     q[i, 1:], _ = scipy.signal.lfilter([1.0], [1.0, -E[i]], f[i], zi=[E[i] * q0[i]])
             else:

@@ -16,14 +16,12 @@ import logging
 from itertools import combinations
 
 import numpy as np
-from scipy import optimize, stats
-from scipy.ndimage import uniform_filter1d
-from scipy.optimize import nnls
 
 from fbgcomp.errors import InputError
 from fbgcomp.io.campaign import HEAT_FILE, HEAT_SUFFIX, SensorSpec
 from fbgcomp.io.campaign.align import diff_noise_sd, zero_state
 from fbgcomp.models.base import EstimatorParams, ModelFile, as_campaign_list, check_compatible
+from fbgcomp.models.distributions import chi2_ppf, norm_ppf
 from fbgcomp.models.filters import first_order_filter
 from fbgcomp.models.physical.observer import ThermalObserver, campaign_inputs
 from fbgcomp.models.physical.predictor import FORCE_AXES, PhysicalPredictor, excursion2
@@ -627,6 +625,8 @@ class PhysicalModel(EstimatorParams, ModelFile):
             J = np.sum(residual(alpha0 + sd * u) ** 2, axis=0) + floor
             return 0.5 * float(np.sum(n_eff * np.log(J))) + 0.5 * float(u @ u)
 
+        from scipy import optimize  # noqa: PLC0415 - start-up: fit-time only
+
         free = np.flatnonzero(sd > 0)
         u = np.zeros(len(alpha0))
         if free.size == 1:
@@ -661,7 +661,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         J0 = np.sum(R0**2, axis=0) + floor
         J1 = np.sum(residual(alpha0 + sd * u) ** 2, axis=0) + floor
         D = float(np.sum(n_eff * np.log(J0 / J1)))
-        threshold = float(stats.chi2.ppf(1.0 - self.cte_test_p, max(free.size, 1)))
+        threshold = float(chi2_ppf(1.0 - self.cte_test_p, max(free.size, 1)))
         # and only by more than a data sheet's tolerance: on the built-in twin, whose residual is
         # its instruments' white noise (n_eff ~1200), a shift of 0.16e-6 /K passed the test
         # alone (D = 39) and took 0.5 µm of dy from what a lost S4 is known to cost
@@ -705,7 +705,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         signature, read on its static campaign, is right to 0.05 % of a plateau, so on static_x
         they made an interval of +-18.7 µm of dx at 2 kN around errors of 0.3 µm: the band was
         met only by the samples on load ramps."""
-        z2 = stats.norm.ppf(0.975) ** 2
+        z2 = norm_ppf(0.975) ** 2
         need, w, n_eff = [[], [], []], [[], [], []], np.zeros(3)
         for r, c in zip(rows, campaigns):
             if not r["loaded"] or r["forces_unknown"]:
@@ -897,7 +897,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         load-free training campaign (campaigns weighted equally): what grows with the thermal
         state and its transients."""
         dTs = [r["dT"] for r in rows if not r["loaded"]]
-        z2 = stats.norm.ppf(0.975) ** 2
+        z2 = norm_ppf(0.975) ** 2
         scale = np.maximum(np.abs(np.vstack(dTs)).max(axis=0), 0.5)
         sd_ref = []
         for r in rows:
@@ -937,6 +937,8 @@ class PhysicalModel(EstimatorParams, ModelFile):
         # start decided the state terms' scale alone (ram2 without T_flange: 1000x, a median
         # dz half-width of 400 µm on thermal_b around errors under 16 µm, and 0.80 coverage
         # on thermal_c all the same).
+        from scipy.optimize import nnls  # noqa: PLC0415 - start-up: fit-time only
+
         blind = not self._sees_housing_without(exclude)
         A = np.column_stack([np.sqrt(s2), s2, (act / a_scale) ** 2, np.full_like(s2, float(blind))])
         sw = np.sqrt(w)[:, None]
@@ -1060,6 +1062,8 @@ class PhysicalModel(EstimatorParams, ModelFile):
         heat was 30 N, and a 1000 N step stood 1.1 allowances clear: the first 0 -> 1000 N step
         was missed, the offset took it in, and the tracker stayed one level behind (+188 µm
         at 0 N)."""
+        from scipy.ndimage import uniform_filter1d  # noqa: PLC0415 - start-up: fit-time only
+
         p = self.predictor()
         seen = [np.zeros((0, 3))]
         for r in rows:

@@ -14,9 +14,9 @@ import copy
 import math
 
 import numpy as np
-from scipy import stats
 
 import fbgcomp.models.policy as P
+from fbgcomp.models.distributions import chi2_ppf, norm_isf, norm_ppf
 from fbgcomp.models.filters import first_order_filter, first_order_recursion, first_order_step
 from fbgcomp.models.physical.observer import ThermalObserver
 from fbgcomp.models.physical.thermal import (
@@ -383,7 +383,7 @@ class PhysicalPredictor:
         if self.has_load:
             var = var + (self.C**2 @ self.F_sds[1] ** 2)
         self.expected_rms_error_um = np.sqrt(var)
-        self._t = stats.norm.ppf(0.975)
+        self._t = norm_ppf(0.975)
         self.unseen_relative_error = float(getattr(m, "unseen_relative_error", 0.0))
         self.last_unseen = np.zeros((0, 3))
         self.state = None
@@ -515,7 +515,7 @@ class PhysicalPredictor:
         dof = S - 1 - Ga.shape[1]
         if dof < 1:
             return True
-        limit = stats.chi2.ppf(1 - self.p_contra, dof)
+        limit = chi2_ppf(1 - self.p_contra, dof)
         for j in range(S):
             keep = np.arange(S) != j
             op, _, _ = gls_operator(Ga[keep], cov[np.ix_(keep, keep)])
@@ -525,12 +525,12 @@ class PhysicalPredictor:
         return False
 
     def _quantile(self, kind, q, dof=None):
-        """scipy.stats quantiles the load tracker asks for on every batch, each computed once
+        """Quantiles the load tracker asks for on every batch, each computed once
         (``chi2``: the ``q`` quantile with ``dof``; ``isf``: the normal's upper ``q``)."""
         cache = self.__dict__.setdefault("_quantiles", {})
         key = (kind, float(q), dof)
         if key not in cache:
-            cache[key] = float(stats.chi2.ppf(q, dof) if kind == "chi2" else stats.norm.isf(q))
+            cache[key] = float(chi2_ppf(q, dof) if kind == "chi2" else norm_isf(q))
         return cache[key]
 
     def _frame_terms(self, dt):

@@ -12,9 +12,10 @@ import math
 from collections.abc import Sequence
 
 import numpy as np
-from scipy import linalg, stats
+from scipy import linalg
 
 from fbgcomp.errors import InputError
+from fbgcomp.models.distributions import f_sf, t_ppf, t_sf
 from fbgcomp.models.regression.factor import field_array
 from fbgcomp.models.regression.hac import COV_TYPES
 
@@ -165,7 +166,7 @@ class OLSResults:
                 else np.sqrt(np.clip(np.diag(self._robust_cov), 0.0, None))
             )
             self._tvalues = self._params / self._bse
-            self._pvalues = 2.0 * stats.t.sf(np.abs(self._tvalues), self.df_resid)
+            self._pvalues = 2.0 * t_sf(np.abs(self._tvalues), self.df_resid)
             tss = self.centered_tss if self.k_constant else self.uncentered_tss
             self.ess = tss - self.ssr
             self.rsquared = 1.0 - self.ssr / tss if tss > 0 else math.nan
@@ -179,7 +180,7 @@ class OLSResults:
                 self.fvalue = float(self.mse_model / self.mse_resid)
                 if self._robust_cov is not None:
                     self.fvalue = self._wald_f(self._robust_cov)
-                self.f_pvalue = float(stats.f.sf(self.fvalue, self.df_model, self.df_resid))
+                self.f_pvalue = float(f_sf(self.fvalue, self.df_model, self.df_resid))
             else:
                 self.mse_model = self.fvalue = self.f_pvalue = math.nan
 
@@ -261,7 +262,7 @@ class OLSResults:
         """(m, 2) two-sided 1 - alpha Student-t intervals for the coefficients: an array, or a
         DataFrame indexed by the term names with columns 0 and 1 when the fit is named (as
         statsmodels)."""
-        q = stats.t.ppf(1.0 - alpha / 2.0, self.df_resid)
+        q = t_ppf(1.0 - alpha / 2.0, self.df_resid)
         ci = np.column_stack([self._params - q * self._bse, self._params + q * self._bse])
         if not self.named:
             return ci
@@ -296,7 +297,7 @@ class OLSResults:
         else:
             cov_s = self._robust_cov * np.outer(self._scale, self._scale)
             var_fit = np.clip(np.einsum("ni,ij,nj->n", zs, cov_s, zs), 0.0, None)
-        half = stats.t.ppf(1.0 - alpha / 2.0, self.df_resid) * np.sqrt(self.mse_resid + var_fit)
+        half = t_ppf(1.0 - alpha / 2.0, self.df_resid) * np.sqrt(self.mse_resid + var_fit)
         yhat = X @ self._params
         return yhat - half, yhat + half
 

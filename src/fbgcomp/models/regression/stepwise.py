@@ -14,8 +14,9 @@ from dataclasses import dataclass, field
 from typing import cast
 
 import numpy as np
-from scipy import linalg, stats
+from scipy import linalg
 
+from fbgcomp.models.distributions import f_sf as f_survival
 from fbgcomp.models.regression.accumulator import QRAccumulator
 from fbgcomp.models.regression.doubledouble import (
     dd_add,
@@ -332,7 +333,7 @@ def stepwise(
         return StepState(acc, cols, [c for c in cand if c not in model], t, exact)
 
     def f_sf(f: float, df: int) -> float:
-        return float(stats.f.sf(f, 1, df)) if df > 0 and not math.isnan(f) else math.nan
+        return float(f_survival(f, 1, df)) if df > 0 and not math.isnan(f) else math.nan
 
     def partial_f(diff: np.ndarray, ssr_big, df_big: int) -> np.ndarray:
         """Partial F = (SSR_small - SSR_big) / (SSR_big / df_big), vectorised over the
