@@ -4,8 +4,8 @@ Each is the :mod:`scipy.special` function that :mod:`scipy.stats` itself evaluat
 distribution (``norm.ppf`` is ``ndtri``, ``t.sf`` is ``stdtr(df, -x)``, ...), with its handling of
 invalid parameters and of the support's ends, so the values are the same to the bit
 (tests/test_distributions.py checks it on grids with the edge cases). What they spare is the
-import: scipy.stats (with scipy.signal, which imports it) is about 0.6 s of every ``fbgcomp``
-command's start-up, against ~0.9 s for everything else a model needs
+import: without scipy.stats and scipy.signal (which imports it), scipy.optimize and
+scipy.ndimage, the imports of the commands that load a model take 1.52 s instead of 2.27
 (``benchmarks/bench_startup.py``).
 
 Arguments broadcast like numpy's; a 0-d result comes back as a numpy float, as scipy.stats

@@ -58,9 +58,9 @@ def decay_scan(a: float, b: np.ndarray, y0: np.ndarray) -> np.ndarray:
     """``y_i = a y_{i-1} + b_i`` over the rows of ``b`` (n, k) from ``y_{-1} = y0`` (k,), for a
     decay ``0 <= a <= 1``: what ``scipy.signal.lfilter([1], [1, -a], b, axis=0, zi=a y0)``
     computes, as accurately (each row a sum of at most 64 decayed terms and the carried state,
-    ~1e-15 relative against an extended-precision recursion; tests/test_filters.py), without
-    scipy.signal, whose import (with scipy.stats, which it imports) was about 0.6 s of every
-    command's start-up (``benchmarks/bench_startup.py``).
+    ~1e-15 relative against an extended-precision recursion; tests/test_distributions.py),
+    without scipy.signal, whose import (with scipy.stats, which it imports) was most of the
+    0.75 s that the model stack's imports lost (``benchmarks/bench_startup.py``).
 
     Blocks of :data:`_SCAN_BLOCK` rows: inside a block the response from rest is one product with
     the matrix ``T[i, j] = a^(i-j)`` (i >= j); the states at the blocks' ends follow the same

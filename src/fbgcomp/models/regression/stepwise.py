@@ -16,7 +16,7 @@ from typing import cast
 import numpy as np
 from scipy import linalg
 
-from fbgcomp.models.distributions import f_sf as f_survival
+from fbgcomp.models.distributions import f_sf
 from fbgcomp.models.regression.accumulator import QRAccumulator
 from fbgcomp.models.regression.doubledouble import (
     dd_add,
@@ -332,9 +332,6 @@ def stepwise(
         cols = ordered(model)
         return StepState(acc, cols, [c for c in cand if c not in model], t, exact)
 
-    def f_sf(f: float, df: int) -> float:
-        return float(f_survival(f, 1, df)) if df > 0 and not math.isnan(f) else math.nan
-
     def partial_f(diff: np.ndarray, ssr_big, df_big: int) -> np.ndarray:
         """Partial F = (SSR_small - SSR_big) / (SSR_big / df_big), vectorised over the
         candidates (F only; p is monotone in F at a fixed df)."""
@@ -409,7 +406,7 @@ def stepwise(
         i = pick(f, largest=True)
         if i is None:
             return False
-        pval = f_sf(float(f[i]), df_big)
+        pval = float(f_sf(f[i], 1, df_big))  # NaN where df_big < 1 or F is NaN
         if not pval < p_enter:
             return False
         model.append(int(cols[i]))
@@ -443,7 +440,7 @@ def stepwise(
         i = pick(f, largest=False)
         if i is None:
             return False
-        pval = f_sf(float(f[i]), df_big)
+        pval = float(f_sf(f[i], 1, df_big))  # NaN where df_big < 1 or F is NaN
         if not pval > p_remove:
             return False
         model.remove(int(cols[i]))
