@@ -189,6 +189,38 @@ def test_link_loss_ticks_hold_then_ramp_and_data_resumes(setup):
     assert (back.health == HEALTH_OK).all()
 
 
+def test_a_hold_never_ramps_back_up_when_late_frames_follow_a_no_data_tick(setup):
+    """The frames that arrive after a stall carry older instrument times than the no-data tick
+    published during it (timed by the wall clock): the held correction must not grow back."""
+    model, _campaign, aligned, w, t = setup
+    n, ramp_s = 400, 5.0
+    time_s = aligned.time_s
+    pipe = Pipeline(model, PipelineConfig(ramp_s=ramp_s, **RAW))
+    held = run_in_batches(pipe, time_s[:n], w[:n], t[:n], [50])["correction_um"][-1]
+    assert np.abs(held).max() > 0.1
+
+    def lost(a, b):  # every grating lost: no model usable, ALARM
+        k = b - a
+        nan = np.full((k, w.shape[1]), np.nan)
+        zeros = np.zeros((k, w.shape[1]), np.int8)
+        return pipe.process(time_s[a:b], nan, zeros, zeros, t[a:b])
+
+    first = lost(n, n + 10)
+    tick = pipe.no_data(float(time_s[n + 20]))  # the stall's tick, ahead of the late frames
+    late = lost(n + 10, n + 30)
+    corr = np.vstack([first.correction_um, tick.correction_um, late.correction_um])
+    assert (np.concatenate([first.health, tick.health, late.health]) == HEALTH_ALARM).all()
+    frac = 1.0 - (time_s[n + 20] - time_s[n]) / ramp_s
+    assert 0.3 < frac < 0.9
+    np.testing.assert_allclose(tick.correction_um[0], held * frac, atol=1e-12)
+    assert np.all(np.diff(np.abs(corr), axis=0) <= 1e-12)  # never grows while held
+    # the late frames stay at the tick's value until their time passes it, then ramp on
+    behind = time_s[n + 10 : n + 30] <= time_s[n + 20]
+    np.testing.assert_allclose(late.correction_um[behind], np.tile(held * frac, (behind.sum(), 1)), atol=1e-12)
+    last_frac = 1.0 - (time_s[n + 29] - time_s[n]) / ramp_s
+    np.testing.assert_allclose(late.correction_um[-1], held * last_frac, atol=1e-12)
+
+
 def test_model_reload_keeps_the_re_admission_check(setup, runtime_model_and_campaign):
     """A model reload (``Service.reload``, as OPC UA ReloadModel calls it) in the middle of a
     refused re-admission changes nothing: the grating back shifted from a gap stays

@@ -160,6 +160,7 @@ class Pipeline:
         self._choice_cache: dict[bytes, int] = {}
         self._last_correction = np.zeros(3)
         self._hold_start_s: float | None = None
+        self._hold_frac = 1.0  # the ramp's fraction reached in the current hold (only falls)
         self._hold_from = np.zeros(3)
         self._smoothed: np.ndarray | None = None
         self._last_t: float | None = None
@@ -208,6 +209,7 @@ class Pipeline:
         self.temperature_zero_C = old.temperature_zero_C
         self._probe_unzeroed = old._probe_unzeroed
         self._last_correction, self._hold_start_s = old._last_correction, old._hold_start_s
+        self._hold_frac = old._hold_frac
         self._hold_from = old._hold_from
         self._smoothed, self._last_t = old._smoothed, old._last_t
         self._slew_y, self._slew_t = old._slew_y, old._slew_t
@@ -388,6 +390,7 @@ class Pipeline:
             correction = self._filter(time_s, target, rms, model_set, getattr(p, "last_follow", None))
         if np.isfinite(correction).all():  # nothing to hold
             self._hold_start_s = None
+            self._hold_frac = 1.0
             self._last_correction = correction[-1].copy()
         else:
             correction = self._hold_and_ramp(time_s, correction, health)
@@ -721,14 +724,21 @@ class Pipeline:
             )
             ramp = self.config.ramp_s
             frac = np.clip(1.0 - (t - first_hold_t) / ramp, 0.0, 1.0) if ramp > 0 else np.zeros(n)
+            # a hold carried over from earlier calls never ramps back up: a no-data tick is
+            # timed by the wall clock (less the last offset seen), and the frames that arrive
+            # after a stall carry older instrument times than it; without this they published
+            # a larger correction than the tick before them
+            frac = np.where(from_batch, frac, np.minimum(frac, self._hold_frac))
             out = np.where(hold[:, None], held_value * frac[:, None], out)
             if hold[-1]:
                 self._hold_start_s = float(first_hold_t[-1])
                 self._last_correction = held_value[-1]
+                self._hold_frac = float(frac[-1])
         if good.any():
             last = np.flatnonzero(good)[-1]
             if last == n - 1:
                 self._hold_start_s = None
+                self._hold_frac = 1.0
             self._last_correction = corr[last].copy()
         return out
 
