@@ -216,7 +216,9 @@ def test_a_hold_never_ramps_back_up_when_late_frames_follow_a_no_data_tick(setup
     assert np.all(np.diff(np.abs(corr), axis=0) <= 1e-12)  # never grows while held
     # the late frames stay at the tick's value until their time passes it, then ramp on
     behind = time_s[n + 10 : n + 30] <= time_s[n + 20]
-    np.testing.assert_allclose(late.correction_um[behind], np.tile(held * frac, (behind.sum(), 1)), atol=1e-12)
+    np.testing.assert_allclose(
+        late.correction_um[behind], np.tile(held * frac, (behind.sum(), 1)), atol=1e-12
+    )
     last_frac = 1.0 - (time_s[n + 29] - time_s[n]) / ramp_s
     np.testing.assert_allclose(late.correction_um[-1], held * last_frac, atol=1e-12)
 
