@@ -160,7 +160,7 @@ class Pipeline:
         self._choice_cache: dict[bytes, int] = {}
         self._last_correction = np.zeros(3)
         self._hold_start_s: float | None = None
-        self._hold_frac = 1.0  # the ramp's fraction reached in the current hold (only falls)
+        self._hold_frac = 1.0  # the ramp's fraction reached by the hold _hold_start_s begins
         self._hold_from = np.zeros(3)
         self._smoothed: np.ndarray | None = None
         self._last_t: float | None = None
@@ -390,7 +390,6 @@ class Pipeline:
             correction = self._filter(time_s, target, rms, model_set, getattr(p, "last_follow", None))
         if np.isfinite(correction).all():  # nothing to hold
             self._hold_start_s = None
-            self._hold_frac = 1.0
             self._last_correction = correction[-1].copy()
         else:
             correction = self._hold_and_ramp(time_s, correction, health)
@@ -728,7 +727,8 @@ class Pipeline:
             # timed by the wall clock (less the last offset seen), and the frames that arrive
             # after a stall carry older instrument times than it; without this they published
             # a larger correction than the tick before them
-            frac = np.where(from_batch, frac, np.minimum(frac, self._hold_frac))
+            carried = self._hold_frac if self._hold_start_s is not None else 1.0
+            frac = np.where(from_batch, frac, np.minimum(frac, carried))
             out = np.where(hold[:, None], held_value * frac[:, None], out)
             if hold[-1]:
                 self._hold_start_s = float(first_hold_t[-1])
@@ -738,7 +738,6 @@ class Pipeline:
             last = np.flatnonzero(good)[-1]
             if last == n - 1:
                 self._hold_start_s = None
-                self._hold_frac = 1.0
             self._last_correction = corr[last].copy()
         return out
 
