@@ -166,17 +166,29 @@ def pytest_collection_modifyitems(config, items):
             )
             print(msg, file=sys.stderr)  # a worker's error reaches the console only as xdist's own
             raise pytest.UsageError(msg)
-    used = set()
-    for item in items:
-        path, _, name = item.nodeid.partition("::")
-        for key in (path, f"{path}::{name.split('[', 1)[0].split('@', 1)[0]}"):
-            if key in SLOW:
-                item.add_marker(pytest.mark.slow)
-                used.add(key)
+
     # a renamed test would silently join the fast subset: say so
-    collected = {item.nodeid.partition("::")[0] for item in items}
+    used, collected = config.stash.get(_SLOW_SEEN, (set(), set()))
     stale = [k for k in SLOW if k not in used and k.partition("::")[0] in collected]
     if stale:
         config.issue_config_time_warning(
             pytest.PytestConfigWarning(f"tests/conftest.py SLOW names no collected test: {stale}"), 2
         )
+
+
+# (SLOW keys matched, test files collected), as each test is collected
+_SLOW_SEEN = pytest.StashKey[tuple[set, set]]()
+
+
+# as each test is collected, before the mark plugin's -m and -k deselect it: -m "not slow" leaves
+# out the tests SLOW names, and the stale check sees every test collected, not only those -k kept
+# (marked in pytest_collection_modifyitems after the deselection before, the fast subset held
+# every SLOW test, and -k warned of stale names that were only deselected)
+def pytest_itemcollected(item):
+    used, collected = item.config.stash.setdefault(_SLOW_SEEN, (set(), set()))
+    path, _, name = item.nodeid.partition("::")
+    collected.add(path)
+    for key in (path, f"{path}::{name.split('[', 1)[0].split('@', 1)[0]}"):
+        if key in SLOW:
+            item.add_marker(pytest.mark.slow)
+            used.add(key)
