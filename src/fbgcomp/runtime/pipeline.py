@@ -315,7 +315,9 @@ class Pipeline:
         assumes. For a model whose prediction depends on Z (a kinematic chain), a non-finite Z
         is a missing input: no model usable, ALARM, hold / ramp (a missing temperature is a lost
         probe, for which the model may store a set without it).
-        A model without Z dependence ignores it."""
+        The default (physical) model holds dx and dy back at a Z more than its
+        ``z_tolerance_mm`` from the positions it was trained at, or a non-finite one; a
+        regression ignores it."""
         self._z = (
             None
             if z_axis_mm is None
@@ -500,8 +502,9 @@ class Pipeline:
 
     @property
     def uses_z(self) -> bool:
-        """Whether the model's prediction depends on the Z position (it has a kinematic chain:
-        kinematic, hybrid, calibrated); the regression and the default model do not."""
+        """Whether the model's prediction follows the Z position (it has a kinematic chain:
+        kinematic, hybrid, calibrated); the regression does not, and the default model only
+        checks it (dx and dy held back at a Z its training never saw, or an unknown one)."""
         if self._uses_z is None:
             self._uses_z = reference_z_mm(self.predictor(0)) is not None
         return self._uses_z

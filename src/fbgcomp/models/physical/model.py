@@ -20,7 +20,13 @@ import numpy as np
 from fbgcomp.errors import InputError
 from fbgcomp.io.campaign import HEAT_FILE, HEAT_SUFFIX, SensorSpec
 from fbgcomp.io.campaign.align import diff_noise_sd, zero_state
-from fbgcomp.models.base import EstimatorParams, ModelFile, as_campaign_list, check_compatible
+from fbgcomp.models.base import (
+    EstimatorParams,
+    ModelFile,
+    as_campaign_list,
+    campaign_z_axis_mm,
+    check_compatible,
+)
 from fbgcomp.models.distributions import chi2_ppf, norm_ppf
 from fbgcomp.models.filters import first_order_filter
 from fbgcomp.models.physical.observer import ThermalObserver, campaign_inputs
@@ -111,6 +117,15 @@ def probe_noise_sd_K(campaigns, probe_names) -> np.ndarray:
 NOISE_FLOOR_S = 86400.0
 
 
+def trained_z_axis_mm(campaigns, machine=None) -> list[float]:
+    """The Z-axis positions (mm) the training campaigns were measured at, sorted: each one's
+    ``z_axis_mm``, or for a campaign that records none the description's ``supports.z_axis_mm``
+    (0 without a description), the position its twin is built at too."""
+    default = float(machine.supports.z_axis_mm) if machine is not None else 0.0
+    zs = (campaign_z_axis_mm(c) for c in campaigns)
+    return sorted({default if z is None else z for z in zs})
+
+
 class PhysicalModel(EstimatorParams, ModelFile):
     """Load-signature + housing-thermal model with a do-no-harm policy (the default model).
 
@@ -191,6 +206,16 @@ class PhysicalModel(EstimatorParams, ModelFile):
     cte_test_p : float
         False-alarm probability of the test that the training contradicts the description
         (likelihood ratio, chi-square with one degree per estimated coefficient).
+    z_tolerance_mm : float
+        How far (mm) the Z-axis position a frame is predicted at may lie from every position
+        the training was measured at (``trained_z_axis_mm_``) before its lateral correction is
+        held back (dx and dy, flag ``SHRUNK``; the interval takes in the correction held back).
+        The ram slides through its carriages: its overhang, and with it the TTP's compliance
+        and the lateral thermal drift, change with Z (on the built-in twin, trained at Z = 0,
+        static-xyz at Z = 300 mm came out dx 564 µm off on 467 uncompensated,
+        ``benchmarks/bench_z_position.py``). dz is kept: the ball-screw nut travels with the
+        ram, and neither the axial compliance nor the housing's and box's growth depends on Z.
+        10 mm: about 3 % of a load's deflection on a 1 m overhang (compliance ~ overhang^3).
     """
 
     model_type = "physical"
@@ -217,6 +242,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         calibrate_cte=True,
         cte_prior_sd_per_K=(1.0e-6, 0.0, 0.0),
         cte_test_p=1e-2,
+        z_tolerance_mm=10.0,
     ):
         self.machine = machine
         self.zero_window_s = zero_window_s
@@ -238,6 +264,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         self.calibrate_cte = calibrate_cte
         self.cte_prior_sd_per_K = cte_prior_sd_per_K
         self.cte_test_p = cte_test_p
+        self.z_tolerance_mm = z_tolerance_mm
 
     # -- fitting -----------------------------------------------------------------------------
     def _machine(self):
@@ -267,6 +294,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
             dict.fromkeys(sensor_probes + references + self.housing_probes_ + self.ambient_probes_)
         )
         self.heat_inputs_ = self._heat_input_names(campaigns, machine)
+        self.trained_z_axis_mm_ = trained_z_axis_mm(campaigns, machine)
         for c in campaigns:
             check_compatible(self, c)
         if machine is not None:
@@ -1270,7 +1298,16 @@ class PhysicalModel(EstimatorParams, ModelFile):
         _, _, w0, t0 = self.instrument_arrays(aligned)
         frame_t, w, t = self.frame_arrays(campaign, aligned)
         t0 = np.concatenate([t0, self._heat_zero_W(campaign)])
-        mean, half = p.predict(w, t, w0, t0, time_s=frame_t, raw=raw, thermal_policy=policy)
+        mean, half = p.predict(
+            w,
+            t,
+            w0,
+            t0,
+            time_s=frame_t,
+            z_axis_mm=campaign_z_axis_mm(campaign),
+            raw=raw,
+            thermal_policy=policy,
+        )
         at = np.clip(np.searchsorted(frame_t, aligned.time_s, side="right") - 1, 0, frame_t.size - 1)
         return mean[at], half[at], p, at
 
@@ -1402,6 +1439,13 @@ class PhysicalModel(EstimatorParams, ModelFile):
             f"housing probes: {', '.join(self.housing_probes_) or 'none'}; ambient: "
             f"{', '.join(self.ambient_probes_) or 'none'}",
         ]
+        tz = getattr(self, "trained_z_axis_mm_", None)
+        if tz:
+            out.append(
+                f"trained at Z = {', '.join(f'{z:g}' for z in tz)} mm: dx and dy are held back at a Z "
+                f"more than {self.z_tolerance_mm:g} mm from it"
+                + (" (the load part is those positions' compromise)" if len(tz) > 1 else "")
+            )
         out += [
             f"{c['name']}: static or combined without loads.csv, so its forces are unknown: "
             "kept out of the thermal calibration and the force regression"
@@ -1546,6 +1590,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
                     ),
                 },
                 "z_axis_mm": None,
+                "trained_z_axis_mm": list(getattr(self, "trained_z_axis_mm_", None) or []) or None,
             }
         )
         return d
@@ -1562,6 +1607,8 @@ class PhysicalModel(EstimatorParams, ModelFile):
         m.housing_probes_ = list(d["housing_probes"])
         m.ambient_probes_ = list(d["ambient_probes"])
         m.nominal_dt_s_ = float(d["nominal_dt_s"])
+        tz = d.get("trained_z_axis_mm")  # absent from files before it: no Z check
+        m.trained_z_axis_mm_ = None if tz is None else [float(z) for z in tz]
         th = d["thermal"]
         m.thermal_coef_ = np.asarray(th["coef"], float)
         m.thermal_envelope_ = (np.asarray(th["envelope_low"], float), np.asarray(th["envelope_high"], float))

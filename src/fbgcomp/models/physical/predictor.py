@@ -36,6 +36,10 @@ from fbgcomp.models.physical.thermal import (
 
 #: Names of the TTP force components, in the order of every force array.
 FORCE_AXES = ("fx", "fy", "fz")
+#: 95 % half-width at a Z the training never saw, per µm of lateral correction held back: the
+#: deflection left is about that correction, give or take how far the compliance moved with Z
+#: (about (1 + dL / L)^3 for an overhang L lengthened by dL: 1.5x for 15 % of it)
+UNTRAINED_Z_HALF = 1.5
 # Low-pass of the gratings' load reading, s: a step is judged on it (so frame rate and batching
 # do not matter) and a load transition follows it.
 LOAD_FAST_S = 0.5
@@ -256,6 +260,7 @@ class PhysicalPredictor:
             # the thermal lag is learnt only this long after a transition (LOAD_TREND_S)
             self.trend_after_s = 3.0 * self.offset_tau_s
             self.drift_N_per_s = np.asarray(L.get("drift_N_per_s", [0.0] * 3), float)
+
             # the load terms' share of the interval, per axis, as the loaded training campaigns
             # showed it (PhysicalModel._fit_load_interval; 1 in files without it)
             self.load_interval_scale = np.asarray(L.get("interval_scale", [1.0] * 3), float)
@@ -384,6 +389,10 @@ class PhysicalPredictor:
             var = var + (self.C**2 @ self.F_sds[1] ** 2)
         self.expected_rms_error_um = np.sqrt(var)
         self._t = norm_ppf(0.975)
+        # the Z positions the training was measured at (files before them: no check)
+        tz = getattr(m, "trained_z_axis_mm_", None)
+        self.trained_z_mm = None if tz is None else np.asarray(tz, float)
+        self.z_tolerance_mm = float(getattr(m, "z_tolerance_mm", 10.0))
         self.unseen_relative_error = float(getattr(m, "unseen_relative_error", 0.0))
         self.last_unseen = np.zeros((0, 3))
         self.state = None
@@ -1247,11 +1256,36 @@ class PhysicalPredictor:
             if self.has_load and moving.any()
             else np.zeros((n, 3), bool)
         )
-        deviation = thermal + load
         self.last_activity = activity
         self.last_spread = spread
         self.last_unseen = unseen
-        return deviation, self._t * np.sqrt(self._variance(dT, activity, force, spread, unseen, moving))
+        var = self._variance(dT, activity, force, spread, unseen, moving)
+        deviation = thermal + load
+        off_z = None if raw else self._untrained_z(z_axis_mm, n)
+        if off_z is not None:
+            # a Z the training never saw: the overhang below the carriages is another one, and
+            # so are the lateral compliance and thermal drift (the load's mismatch also reads
+            # as a thermal state), so dx and dy are held back and what they would have
+            # corrected is the error; dz (the nut travels with the ram) is kept
+            held = deviation[off_z, :2]
+            deviation = deviation.copy()
+            deviation[off_z, :2] = 0.0
+            var = var.copy()
+            var[off_z, :2] += (UNTRAINED_Z_HALF * held / self._t) ** 2
+            flags[np.ix_(off_z, [0, 1])] |= P.SHRUNK
+        return deviation, self._t * np.sqrt(var)
+
+    def _untrained_z(self, z_axis_mm, n):
+        """The frames (n,) bool whose Z position (mm, scalar or (n,)) is more than
+        ``z_tolerance_mm`` from every trained position or unknown (NaN: a live Z gone stale),
+        or None when none is (no Z given at all: the trained position assumed, as before Z was
+        checked; a model file without its trained positions)."""
+        if z_axis_mm is None or self.trained_z_mm is None or not self.trained_z_mm.size:
+            return None
+        z = np.broadcast_to(np.asarray(z_axis_mm, float), (n,))
+        gap = np.abs(z[:, None] - self.trained_z_mm[None, :]).min(axis=1)
+        off = ~(gap <= self.z_tolerance_mm)  # NaN: held
+        return off if off.any() else None
 
     def _heat_features(self, dP_W, time_s, state, new_state):
         """The measured heat inputs' changes since the zero state (W) low-passed at each of the

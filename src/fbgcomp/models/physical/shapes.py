@@ -54,6 +54,11 @@ def check_shapes(d: dict, source) -> None:
         "nominal_dt_s",
         "must be a positive number",
     )
+    if d.get("trained_z_axis_mm") is not None:  # absent from files before it
+        node = d["trained_z_axis_mm"]
+        need(isinstance(node, list) and len(node) >= 1, "trained_z_axis_mm", "must be a list of positions")
+        z = array(node, "trained_z_axis_mm", (len(node),))
+        need(np.all(np.isfinite(z)), "trained_z_axis_mm", "must be finite")
     th = d.get("thermal")
     if not isinstance(th, dict):
         raise InputError("must be a mapping", file=source, column="field thermal")
