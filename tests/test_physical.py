@@ -1163,3 +1163,5 @@ def test_the_runtime_holds_the_lateral_correction_at_a_live_z_the_training_never
     assert np.abs(out[None][:, 0]).max() > 400.0
     assert np.abs(out[300.0][:, 0]).max() < 1.0
     assert np.abs(out[np.nan][:, 0]).max() < 1.0
+    # and serve says so when a position source is configured
+    assert "trained at Z = 0 mm" in Pipeline(m).z_note

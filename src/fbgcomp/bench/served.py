@@ -47,8 +47,9 @@ def process_in_batches(pipe, time_s, wavelength_nm, temperature_C, sizes=(100,),
 
 def served(model, campaign, pipe=None, lost=None, lost_from=0.4, sizes=(100,), lost_until=None):
     """``campaign`` served through ``pipe`` (default: a fresh ``Pipeline`` of ``model`` with
-    the default configuration), grating or probe ``lost`` gone (no peak; no reading) from the
-    fraction ``lost_from`` of the run on, up to the fraction ``lost_until`` (None: to the end).
+    the default configuration), grating or probe ``lost`` (a name, or several lost together)
+    gone (no peak; no reading) from the fraction ``lost_from`` of the run on, up to the
+    fraction ``lost_until`` (None: to the end).
     Returns the published correction (m, 3) µm at the reference samples, the reference (m, 3)
     µm (the aligned campaign's) and the batch results (:func:`process_in_batches`), with ``at``:
     the frame index of each reference sample."""
@@ -60,14 +61,14 @@ def served(model, campaign, pipe=None, lost=None, lost_from=0.4, sizes=(100,), l
         gone = ft >= ft[0] + lost_from * span
         if lost_until is not None:
             gone &= ft < ft[0] + lost_until * span
-        if lost in model.sensor_names:
-            j = model.sensor_names.index(lost)
-            w = w.copy()
-            w[gone, j] = np.nan
-            counts[gone, j] = 0
-        else:
-            temp = temp.copy()
-            temp[gone, list(model.probe_names).index(lost)] = np.nan
+        w, temp = w.copy(), temp.copy()
+        for name in [lost] if isinstance(lost, str) else lost:  # one name, or several at once
+            if name in model.sensor_names:
+                j = model.sensor_names.index(name)
+                w[gone, j] = np.nan
+                counts[gone, j] = 0
+            else:
+                temp[gone, list(model.probe_names).index(name)] = np.nan
     out = process_in_batches(pipe or Pipeline(model, PipelineConfig()), ft, w, temp, sizes, counts)
     at = np.clip(np.searchsorted(ft, al.time_s, side="right") - 1, 0, ft.size - 1)
     out["at"] = at

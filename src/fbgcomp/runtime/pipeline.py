@@ -509,6 +509,18 @@ class Pipeline:
             self._uses_z = reference_z_mm(self.predictor(0)) is not None
         return self._uses_z
 
+    @property
+    def z_note(self) -> str:
+        """What the Z position does to a model that does not follow it (serve's start-up note)."""
+        trained = getattr(self.model, "trained_z_axis_mm_", None)
+        if not trained:
+            return "this model's prediction does not depend on Z; the position is read but changes nothing"
+        return (
+            f"this model was trained at Z = {', '.join(f'{z:g}' for z in trained)} mm; at a Z more than "
+            f"{getattr(self.model, 'z_tolerance_mm', 10.0):g} mm from it, or an unknown one, dx and dy "
+            "are held back (SHRUNK)"
+        )
+
     def _choices(self, f: np.ndarray, z_ok: np.ndarray, lost_p: np.ndarray | None = None) -> np.ndarray:
         """Model set per row for the faulted gratings ``f`` (n, S) and lost probes ``lost_p``
         (n, P) (-1: none usable, or ``z_ok`` False: a Z-dependent model without its Z)."""

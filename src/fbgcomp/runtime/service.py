@@ -229,20 +229,7 @@ class Service:
         live = LiveInputs(self.config.temperatures, self.config.position, probes, self.cnc)
         self.live = live if live else None
         if self.live is not None and self.live.has_position and not self.pipeline.uses_z:
-            trained = getattr(self.pipeline.model, "trained_z_axis_mm_", None)
-            if trained:  # the default model: dx and dy held back away from its trained Z
-                tol = getattr(self.pipeline.model, "z_tolerance_mm", 10.0)
-                log.warning(
-                    "[position]: this model was trained at Z = %s mm; at a Z more than %g mm from "
-                    "it, or an unknown one, dx and dy are held back (SHRUNK)",
-                    ", ".join(f"{z:g}" for z in trained),
-                    tol,
-                )
-            else:
-                log.warning(
-                    "[position]: this model's prediction does not depend on Z; the position "
-                    "is read but changes nothing"
-                )
+            log.warning("[position]: %s", self.pipeline.z_note)
         # the probes no live input supplies come from --temperatures (or the replayed campaign)
         probes = [p for p in probes if p not in live.probe_reader]
         temps = None

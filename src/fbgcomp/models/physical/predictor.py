@@ -260,7 +260,6 @@ class PhysicalPredictor:
             # the thermal lag is learnt only this long after a transition (LOAD_TREND_S)
             self.trend_after_s = 3.0 * self.offset_tau_s
             self.drift_N_per_s = np.asarray(L.get("drift_N_per_s", [0.0] * 3), float)
-
             # the load terms' share of the interval, per axis, as the loaded training campaigns
             # showed it (PhysicalModel._fit_load_interval; 1 in files without it)
             self.load_interval_scale = np.asarray(L.get("interval_scale", [1.0] * 3), float)
