@@ -137,6 +137,27 @@ def test_a_probe_lost_at_runtime_does_no_harm(model, ram2, name, lost):
     assert (err[moves] <= 0.5 * uncompensated[moves]).all(), (err, uncompensated)
 
 
+def test_a_probe_lost_with_two_gratings_at_once_keeps_a_model(model, ram2):
+    """A fibre break takes every grating past it, a strain-free reference grating (a probe) with
+    its sensor: a probe lost with two gratings had no stored set until 2026-12-02 (ALARM, the
+    correction held and ramped to zero). Measured then on every probe with every pair of
+    gratings, lost from the start and from 40 %, on ram2's three held-out campaigns and ram4's
+    reference gratings: 612 runs, none worse than uncompensated, none in ALARM."""
+    lost = ("T_flange", "S1", "S5")  # the housing's probe, and two gratings of the +X face
+    corr, ref, out = served(model, ram2["thermal_c"], lost=lost)
+    health = out["health"]
+    assert (health != HEALTH_ALARM).all()
+    deg = health == HEALTH_DEGRADED
+    assert deg.sum() > 0.5 * health.size
+    sets = Pipeline(model).model_sets
+    assert all(set(lost) <= sets[k] for k in np.unique(out["model_set"][deg]))
+    err = np.abs(ref + corr).max(axis=0)
+    uncompensated = np.abs(ref).max(axis=0)
+    assert (err <= uncompensated + NOISE_ALLOWANCE_UM).all(), (err, uncompensated)
+    # the load along X is still read from the other gratings: thermal_c's 354 µm within 5 %
+    assert err[0] <= 0.05 * uncompensated[0], err
+
+
 def test_a_probe_lost_from_the_start_keeps_an_interval_that_covers(model, ram2):
     """The fallback without the hall's air probe goes without the housing calibration, which
     reads it. Its interval was the full model's plus what the twin population says the probe
