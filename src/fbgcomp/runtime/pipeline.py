@@ -517,7 +517,7 @@ class Pipeline:
             return "this model's prediction does not depend on Z; the position is read but changes nothing"
         return (
             f"this model was trained at Z = {', '.join(f'{z:g}' for z in trained)} mm; at a Z more than "
-            f"{getattr(self.model, 'z_tolerance_mm', 10.0):g} mm from it, or an unknown one, dx and dy "
+            f"{self.model.z_tolerance_mm:g} mm from it, or an unknown one, dx and dy "
             "are held back (SHRUNK)"
         )
 

@@ -1592,7 +1592,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
                     ),
                 },
                 "z_axis_mm": None,
-                "trained_z_axis_mm": list(getattr(self, "trained_z_axis_mm_", None) or []) or None,
+                "trained_z_axis_mm": self.trained_z_axis_mm_,
             }
         )
         return d

@@ -391,7 +391,7 @@ class PhysicalPredictor:
         # the Z positions the training was measured at (files before them: no check)
         tz = getattr(m, "trained_z_axis_mm_", None)
         self.trained_z_mm = None if tz is None else np.asarray(tz, float)
-        self.z_tolerance_mm = float(getattr(m, "z_tolerance_mm", 10.0))
+        self.z_tolerance_mm = float(m.z_tolerance_mm)
         self.unseen_relative_error = float(getattr(m, "unseen_relative_error", 0.0))
         self.last_unseen = np.zeros((0, 3))
         self.state = None
@@ -1267,9 +1267,7 @@ class PhysicalPredictor:
             # as a thermal state), so dx and dy are held back and what they would have
             # corrected is the error; dz (the nut travels with the ram) is kept
             held = deviation[off_z, :2]
-            deviation = deviation.copy()
-            deviation[off_z, :2] = 0.0
-            var = var.copy()
+            deviation[off_z, :2] = 0.0  # both arrays are this call's own
             var[off_z, :2] += (UNTRAINED_Z_HALF * held / self._t) ** 2
             flags[np.ix_(off_z, [0, 1])] |= P.SHRUNK
         return deviation, self._t * np.sqrt(var)
@@ -1279,7 +1277,7 @@ class PhysicalPredictor:
         ``z_tolerance_mm`` from every trained position or unknown (NaN: a live Z gone stale),
         or None when none is (no Z given at all: the trained position assumed, as before Z was
         checked; a model file without its trained positions)."""
-        if z_axis_mm is None or self.trained_z_mm is None or not self.trained_z_mm.size:
+        if z_axis_mm is None or self.trained_z_mm is None:
             return None
         z = np.broadcast_to(np.asarray(z_axis_mm, float), (n,))
         gap = np.abs(z[:, None] - self.trained_z_mm[None, :]).min(axis=1)
