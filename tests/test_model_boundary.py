@@ -243,6 +243,14 @@ def _physical_dict() -> dict:
         (lambda d: d["load"]["G_um_per_N"][0].append(0.0), "load.G_um_per_N"),
         (lambda d: d["interval"]["v0_um2"].__setitem__(1, -0.1), "interval.v0_um2"),
         (lambda d: d["interval"]["dT_scale_K"].pop(), "interval.dT_scale_K"),
+        (
+            lambda d: d["interval"]["without_probes"][0]["probes"].__setitem__(0, "T_nowhere"),
+            "interval.without_probes[0].probes",
+        ),
+        (
+            lambda d: d["interval"]["without_probes"][1].pop("resid_sd_um"),
+            "interval.without_probes[1].resid_sd_um",
+        ),
         (lambda d: d["thermal"]["coef"].append([0.0, 0.0, 0.0]), "thermal.coef"),
         (lambda d: d["housing_probes"].append("T_nowhere"), "housing_probes"),
         (lambda d: d["probes"].append(d["probes"][0]), "probes"),

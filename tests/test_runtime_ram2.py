@@ -158,6 +158,30 @@ def test_a_probe_lost_with_two_gratings_at_once_keeps_a_model(model, ram2):
     assert err[0] <= 0.05 * uncompensated[0], err
 
 
+def test_two_probes_lost_at_once_keep_a_model_and_an_interval_that_covers(model, ram2):
+    """Two probes on one input module (here the hall's air and the +Y wall's surface), lost from
+    the first frame: there was no stored set without both until 2026-12-02 (ALARM, the
+    correction held and ramped to zero), and the set without them, run offline, covered dz on
+    thermal_c with 0.52 of the reference samples: the interval it had was the full model's.
+    Each pair's set now carries an interval fitted on its own training errors, as each
+    probe's does."""
+    lost = ("T_amb", "T_surf")
+    corr, ref, out = served(model, ram2["thermal_c"], lost=lost, lost_from=0.0)
+    health = out["health"]
+    assert (health != HEALTH_ALARM).all()
+    sets = Pipeline(model).model_sets
+    ran = out["model_set"][out["model_set"] >= 0]  # (-1: the zero window's first frames)
+    assert ran.size > 0.99 * health.size
+    assert all(set(lost) <= sets[k] for k in np.unique(ran))
+    err = np.abs(ref + corr).max(axis=0)
+    uncompensated = np.abs(ref).max(axis=0)
+    assert (err <= uncompensated + NOISE_ALLOWANCE_UM).all(), (err, uncompensated)
+    at = out["at"]
+    axes = validation_metrics(ref, out["deviation_um"][at], out["half_width_um"][at])["axes"]
+    covered = np.array([axes[a]["pi95_coverage"] for a in AXES])
+    assert (covered >= 0.90).all(), covered
+
+
 def test_a_probe_lost_from_the_start_keeps_an_interval_that_covers(model, ram2):
     """The fallback without the hall's air probe goes without the housing calibration, which
     reads it. Its interval was the full model's plus what the twin population says the probe

@@ -593,6 +593,12 @@ class PhysicalModel(EstimatorParams, ModelFile):
             self.interval_["without_probe"] = {
                 q: self._fit_interval(rows, campaigns, exclude=frozenset({q})) for q in self.probe_names_
             }
+            # and each pair's (two probes on one lost input module, or a fibre past both of
+            # ram4's reference gratings), for the same reason
+            self.interval_["without_probes"] = [
+                {"probes": list(pair)} | self._fit_interval(rows, campaigns, exclude=frozenset(pair))
+                for pair in combinations(sorted(self.probe_names_), 2)
+            ]
             self._predictors = {}
         # the thermal state observer, the map's partner (PhysicalPredictor._with_observer): the
         # intervals above are the map's own, calibrated before it joins; the two members'
@@ -1261,16 +1267,20 @@ class PhysicalModel(EstimatorParams, ModelFile):
         """Every sensor set without one or more gratings (the load part needs none of them),
         then, on a model with a twin map, the full set and each set without one or two
         gratings, without one probe as well (a probe lost at runtime: the map without its
-        columns; not with the thermal observer, whose states are the probes' own). A fibre
-        break takes a reference grating with its sensor and the gratings past it: with two,
-        ram2's default stores 151 sets (91 with one) and loads in 0.25 s (0.11); two probes
-        lost at once have no set."""
+        columns; not with the thermal observer, whose states are the probes' own), and each set
+        without one grating at most, without two probes (a lost input module, or a fibre past
+        two reference gratings). A fibre break takes a reference grating with its sensor and the
+        gratings past it: with two, ram2's default stores 151 sets (91 with one) and loads in
+        0.25 s (0.11)."""
         names = self.sensor_names
         out = []
         for k in range(1, len(names) + 1):
             out += [frozenset(c) for c in combinations(names, k)]
         if getattr(self, "twin_map_", None) is not None and getattr(self, "observer_", None) is None:
+            singles = [frozenset(), *out[: len(names)]]
+            pairs = [frozenset(c) for c in combinations(self.probe_names_, 2)]
             out += [s | {q} for q in self.probe_names_ for s in [frozenset(), *out] if len(s) <= 2]
+            out += [s | pair for pair in pairs for s in singles]
         return out
 
     def predictor(self, exclude=frozenset()) -> PhysicalPredictor:

@@ -207,8 +207,12 @@ class PhysicalPredictor:
         # files before it): it answers for the housing calibration the fallback goes without,
         # the full model's (with the map's lost information) for what the training never moved
         own = None
-        if len(self._lost_p) == 1:
-            own = ((iv or {}).get("without_probe") or {}).get(self.probe_names[self._lost_p[0]])
+        lost_names = sorted(self.probe_names[j] for j in self._lost_p)
+        if len(lost_names) == 1:
+            own = ((iv or {}).get("without_probe") or {}).get(lost_names[0])
+        elif len(lost_names) == 2:  # a pair's (absent from files written before them)
+            pairs = (iv or {}).get("without_probes") or ()
+            own = next((e for e in pairs if sorted(e["probes"]) == lost_names), None)
         self._own_interval = None if own is None else _interval_terms(own)
         self.thermal_noise_sd_um = np.asarray(getattr(m, "thermal_noise_sd_um_", np.zeros(3)), float)
         keep = [i for i, s in enumerate(self.sensor_names) if s not in self.exclude]

@@ -128,6 +128,19 @@ def check_shapes(d: dict, source) -> None:
             need(q in probes, f"interval.without_probe.{q}", "names a probe the model does not read")
             interval(sub, f"interval.without_probe.{q}")
             need("resid_sd_um" in sub, f"interval.without_probe.{q}.resid_sd_um", "is missing")
+        # each pair of probes' (absent from files written before them)
+        pairs = iv.get("without_probes", [])
+        need(isinstance(pairs, list), "interval.without_probes", "must be a list")
+        for i, sub in enumerate(pairs):
+            at = f"interval.without_probes[{i}]"
+            need(isinstance(sub, dict), at, "must be a mapping")
+            two = sub.get("probes")
+            need(
+                isinstance(two, list) and len(set(map(str, two))) == 2, f"{at}.probes", "must name two probes"
+            )
+            need(all(q in probes for q in two), f"{at}.probes", "names a probe the model does not read")
+            interval(sub, at)
+            need("resid_sd_um" in sub, f"{at}.resid_sd_um", "is missing")
     tm = d.get("twin_map")
     if tm is not None:
         need(isinstance(tm, dict), "twin_map", "must be a mapping or null")
