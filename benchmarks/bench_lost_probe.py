@@ -13,6 +13,9 @@ with the probe lost
 * ``40-60%``: from 40 % to 60 % of the run, then back (the full model takes it back);
 * ``start``: from the first frame (no zero-state value: the whole run on the set without it).
 
+``--pairs``: each pair of probes lost at once instead (a lost input module, or a fibre past two
+reference gratings), on the stored set without both.
+
 Printed per run: max |interferometer + published correction| per axis at the reference times
 against the uncompensated peak, whether any axis ends worse than uncompensated (+0.5 µm, the
 interferometer's noise on an axis that hardly moves), the frames served DEGRADED / ALARM, and the
@@ -20,7 +23,7 @@ share of reference samples the published 95 % interval covers (|reference - devi
 half-width), per axis.
 Last line: one JSON object.
 
-    nice -n 10 .venv/bin/python benchmarks/bench_lost_probe.py [--ram2 PATH] [--rams ram2,ram3,ram4]
+    nice -n 10 .venv/bin/python benchmarks/bench_lost_probe.py [--ram2 PATH] [--rams ram2,ram3,ram4] [--pairs]
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ import json
 import sys
 import tempfile
 import time
+from itertools import combinations
 from pathlib import Path
 
 import numpy as np
@@ -52,12 +56,14 @@ HELD_OUT = {
 }
 
 
-def judge(ram: str, data: Path, machine) -> list:
+def judge(ram: str, data: Path, machine, pairs: bool = False) -> list:
     """Every run of the module docstring on one ram's held-out campaigns."""
     model = PhysicalModel(machine=machine).fit([read_campaign(data / n) for n in ("thermal_a", "static_xyz")])
+    lost_sets = list(combinations(model.probe_names_, 2)) if pairs else [(q,) for q in model.probe_names_]
+    width = max(10, *(len("+".join(s)) + 2 for s in lost_sets))
     print(f"\n{ram} ({data}): fit thermal_a static_xyz; probes {', '.join(model.probe_names_)}")
     print(
-        f"{'campaign':<12}{'lost':<10}{'when':<8}{'dx':>8}{'dy':>8}{'dz':>8}"
+        f"{'campaign':<12}{'lost':<{width}}{'when':<8}{'dx':>8}{'dy':>8}{'dz':>8}"
         "  DEGRADED / ALARM frames  PI95 coverage dx / dy / dz"
     )
     rows = []
@@ -67,14 +73,15 @@ def judge(ram: str, data: Path, machine) -> list:
         peak = np.abs(ref).max(axis=0)
         err = np.abs(ref + corr).max(axis=0)
         print(
-            f"{name:<12}{'-':<10}{'':<8}"
+            f"{name:<12}{'-':<{width}}{'':<8}"
             + "".join(f"{v:>8.2f}" for v in err)
             + "   uncompensated "
             + " / ".join(f"{v:.2f}" for v in peak)
         )
-        for probe in model.probe_names_:
+        for lost in lost_sets:
+            probe = "+".join(lost)
             for label, lost_from, lost_until in PATTERNS:
-                corr, ref, out = served(model, c, lost=probe, lost_from=lost_from, lost_until=lost_until)
+                corr, ref, out = served(model, c, lost=list(lost), lost_from=lost_from, lost_until=lost_until)
                 e = np.abs(ref + corr).max(axis=0)
                 at = out["at"]
                 axes = validation_metrics(ref, out["deviation_um"][at], out["half_width_um"][at])["axes"]
@@ -96,7 +103,7 @@ def judge(ram: str, data: Path, machine) -> list:
                         "coverage": cov.round(3).tolist(),
                     }
                 )
-                line = f"{name:<12}{probe:<10}{label:<8}" + "".join(f"{v:>8.2f}" for v in e)
+                line = f"{name:<12}{probe:<{width}}{label:<8}" + "".join(f"{v:>8.2f}" for v in e)
                 line += f"  {deg} / {alarm}  " + " / ".join(f"{v:.2f}" for v in cov)
                 print(line + ("   WORSE" if worse else ""), flush=True)
     return rows
@@ -108,6 +115,7 @@ def main(argv=None) -> int:
         "--ram2", help="the ram2 data set (default: $FBGCOMP_RAM2, else ../shared/reference/ram2)"
     )
     ap.add_argument("--rams", default="ram2,ram3,ram4", help="comma-separated subset of ram2,ram3,ram4")
+    ap.add_argument("--pairs", action="store_true", help="each pair of probes lost at once")
     args = ap.parse_args(argv)
     rams = [r.strip() for r in args.rams.split(",") if r.strip()]
     t0 = time.perf_counter()
@@ -119,12 +127,12 @@ def main(argv=None) -> int:
                 if data is None:
                     print(f"ram2 not found at {looked}", file=sys.stderr)
                     return 2
-                rows += judge(ram, data, RAM2_MACHINE)
+                rows += judge(ram, data, RAM2_MACHINE, args.pairs)
             elif ram in ("ram3", "ram4"):
                 archive, machine = (
                     (RAM3_ARCHIVE, RAM3_MACHINE) if ram == "ram3" else (RAM4_ARCHIVE, RAM4_MACHINE)
                 )
-                rows += judge(ram, unpack(archive, Path(tmp) / ram) / "data", machine)
+                rows += judge(ram, unpack(archive, Path(tmp) / ram) / "data", machine, args.pairs)
             else:
                 print(f"--rams: unknown ram {ram!r} (ram2, ram3, ram4)", file=sys.stderr)
                 return 2
