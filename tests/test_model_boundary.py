@@ -248,6 +248,10 @@ def _physical_dict() -> dict:
             "interval.without_probes[0].probes",
         ),
         (
+            lambda d: d["interval"]["without_probes"][0]["probes"].append(d["probes"][0]),
+            "interval.without_probes[0].probes",
+        ),
+        (
             lambda d: d["interval"]["without_probes"][1].pop("resid_sd_um"),
             "interval.without_probes[1].resid_sd_um",
         ),

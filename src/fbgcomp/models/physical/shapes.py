@@ -136,7 +136,9 @@ def check_shapes(d: dict, source) -> None:
             need(isinstance(sub, dict), at, "must be a mapping")
             two = sub.get("probes")
             need(
-                isinstance(two, list) and len(set(map(str, two))) == 2, f"{at}.probes", "must name two probes"
+                isinstance(two, list) and len(two) == 2 and len(set(map(str, two))) == 2,
+                f"{at}.probes",
+                "must name two probes",
             )
             need(all(q in probes for q in two), f"{at}.probes", "names a probe the model does not read")
             interval(sub, at)
