@@ -60,7 +60,7 @@ def judge(ram: str, data: Path, machine, pairs: bool = False) -> list:
     """Every run of the module docstring on one ram's held-out campaigns."""
     model = PhysicalModel(machine=machine).fit([read_campaign(data / n) for n in ("thermal_a", "static_xyz")])
     lost_sets = list(combinations(model.probe_names_, 2)) if pairs else [(q,) for q in model.probe_names_]
-    width = max(10, *(len("+".join(s)) + 2 for s in lost_sets))
+    width = max([10, *(len("+".join(s)) + 2 for s in lost_sets)])  # (none: a model with one probe)
     print(f"\n{ram} ({data}): fit thermal_a static_xyz; probes {', '.join(model.probe_names_)}")
     print(
         f"{'campaign':<12}{'lost':<{width}}{'when':<8}{'dx':>8}{'dy':>8}{'dz':>8}"
