@@ -165,6 +165,44 @@ def test_a_twin_that_differs_in_its_thermal_description_only_shares_the_static_h
     assert "static_half_shared" not in Twin(parse_machine(d), resolution=RES, cache=False).times.extra
 
 
+def test_another_process_takes_the_static_half_from_the_cached_entry_of_a_twin_that_has_it(
+    Twin, machine, cache_dir
+):
+    """A process that builds a twin whose description differs from a cached one's in its thermal
+    section only (an edited film, the physical model's generic-heat twin after a simulate) finds
+    the static half in that entry: it assembles and factorises no elasticity, and answers to the
+    bit as when built alone. A pruned entry takes its record with it, and the next such twin
+    builds its own half."""
+    from fbgcomp.structure import twin as twin_module
+    from fbgcomp.structure.scenarios import generic_heat_machine
+
+    heat_machine = generic_heat_machine(machine)
+    alone = Twin(heat_machine, resolution=RES, cache=False)
+    twin_module._last_static.clear()
+    first = Twin(machine, resolution=RES)
+    assert "static_half_from_cache" not in first.times.extra
+    (record,) = (cache_dir / twin_cache.STATIC).iterdir()
+    assert record.name == first._static_key and record.read_text() == first.cache_key
+    twin_module._last_static.clear()  # as in another process
+    taken = Twin(heat_machine, resolution=RES)
+    assert not taken.times.from_cache and taken.times.extra["static_half_from_cache"]
+    assert taken.times.elastic_factor_s == 0.0
+    assert len(_entries(cache_dir)) == 2  # its own entry, stored whole
+    _assert_identical(_responses(taken), _responses(alone))
+    # the record now names the newer entry; with the older pruned away it still holds
+    (cache_dir / f"{first.cache_key}.twin").unlink()
+    twin_cache.prune(cache_dir)
+    assert twin_cache.static_entry(first._static_key, cache_dir) == taken.cache_key
+    # with no entry left that holds it, the record is gone and the half is built again
+    (cache_dir / f"{taken.cache_key}.twin").unlink()
+    assert twin_cache.static_entry(first._static_key, cache_dir) is None
+    twin_cache.prune(cache_dir)
+    assert not list((cache_dir / twin_cache.STATIC).iterdir())
+    twin_module._last_static.clear()
+    again = Twin(heat_machine, resolution=RES)
+    assert "static_half_from_cache" not in again.times.extra and again.times.elastic_factor_s > 0.0
+
+
 def test_key_follows_the_machine_content_not_its_file(tmp_path, machine):
     data = yaml.safe_load(DEFAULT_YAML.read_text())
     same = tmp_path / "elsewhere" / "same.yaml"
@@ -408,8 +446,11 @@ def test_concurrent_builder_processes_leave_one_whole_entry(Twin, machine, cache
     outs = [p.communicate(timeout=300) for p in procs]
     assert [p.returncode for p in procs] == [0, 0], [o[1][-2000:] for o in outs]
     assert sorted(o[0].split()[-1] for o in outs) == ["False", "True"]  # built once, loaded once
-    # the entry, and the lock folder: no temporary file
-    assert sorted(p.name for p in cache_dir.iterdir()) == sorted([good_entry[0], twin_cache.LOCKS])
+    # the entry, the lock folder and its static half's record: no temporary file
+    assert sorted(p.name for p in cache_dir.iterdir()) == sorted(
+        [good_entry[0], twin_cache.LOCKS, twin_cache.STATIC]
+    )
+    assert not [p for p in (cache_dir / twin_cache.STATIC).iterdir() if p.name.startswith(".")]
     warm = Twin(machine, resolution=RES)
     assert warm.times.from_cache
     # the entry is another process's build: a threaded BLAS may round its sums differently

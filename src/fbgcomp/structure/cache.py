@@ -38,6 +38,13 @@ Format and safety
     :data:`MAX_BYTES` (1 GiB) in all, or the counts the environment variables
     ``FBGCOMP_CACHE_MAX_ENTRIES`` and ``FBGCOMP_CACHE_MAX_BYTES`` give (a machine builder with
     many machines, a test suite with dozens); delete the folder at any time to empty the cache.
+
+Static halves
+    ``static/<static key>`` (a few bytes, written atomically) names an entry that holds the static
+    half of its twin (:func:`static_entry`, :func:`record_static`; the key: the description
+    without its thermal section, the mesh and the code), so that a twin that differs from it in
+    its thermal section only loads that half instead of assembling and factorising it. A record
+    whose entry is gone is removed when pruning; one that names a missing or bad entry is a miss.
 """
 
 from __future__ import annotations
@@ -74,6 +81,11 @@ MAX_BYTES = 1 << 30
 ENV_MAX_ENTRIES = "FBGCOMP_CACHE_MAX_ENTRIES"
 ENV_MAX_BYTES = "FBGCOMP_CACHE_MAX_BYTES"
 LOCKS = "locks"
+# Sub-folder of one small file per static half (the elasticity, its adjoint responses and the
+# instruments' rows; fbgcomp.structure.twin._static_key): ``static/<static key>`` holds the key
+# of an entry that contains it, so that a twin that differs from a cached one in its thermal
+# description only (another film, heat source or ambient) takes that half from its entry.
+STATIC = "static"
 # A temporary file this old was left by a writer that died; it is removed when pruning.
 _STALE_TMP_S = 3600.0
 
@@ -264,6 +276,32 @@ def loads(key: str, data: bytes, required=()) -> dict:
     return arrays
 
 
+# ------------------------------------------------------------------------------ static halves
+def static_entry(static_key: str, folder: Path | None = None) -> str | None:
+    """The key of a cached entry that holds the static half ``static_key``, or None (cache off,
+    none recorded, or its entry since pruned)."""
+    folder = cache_dir() if folder is None else folder
+    if folder is None:
+        return None
+    try:
+        key = (folder / STATIC / static_key).read_text(encoding="ascii").strip()
+    except (OSError, UnicodeDecodeError):
+        return None
+    return key if key and _entry_path(folder, key).is_file() else None
+
+
+def record_static(static_key: str, key: str, folder: Path | None = None) -> None:
+    """Record that entry ``key`` holds the static half ``static_key`` (atomic; a failed write is
+    logged and the cache goes on without it)."""
+    folder = cache_dir() if folder is None else folder
+    if folder is None:
+        return
+    try:
+        write_bytes(folder / STATIC / static_key, key.encode("ascii"))
+    except OSError as err:
+        log.debug("twin cache: cannot record the static half %s (%s)", static_key, err)
+
+
 # ------------------------------------------------------------------------------ load / store
 def load(key: str, required=(), folder: Path | None = None) -> dict | None:
     """The cached arrays of ``key``, or None (cache off, no entry, or a bad entry: logged)."""
@@ -328,6 +366,20 @@ def prune(folder: Path, keep: int | None = None, max_bytes: int | None = None) -
             total += size
             if i >= keep or (i > 0 and total > max_bytes):
                 p.unlink(missing_ok=True)
+        # the record of a static half whose entry is gone
+        static = folder / STATIC
+        if static.is_dir():
+            for p in static.iterdir():
+                if p.name.startswith("."):  # a dead writer's temporary file
+                    if p.name.endswith(".tmp") and now - p.stat().st_mtime > _STALE_TMP_S:
+                        p.unlink(missing_ok=True)
+                    continue
+                try:
+                    key = p.read_text(encoding="ascii").strip()
+                except (OSError, UnicodeDecodeError):
+                    key = ""
+                if not key or not _entry_path(folder, key).exists():
+                    p.unlink(missing_ok=True)
         # a lock of an entry that is gone, made long ago: no builder holds it any more
         locks = folder / LOCKS
         if locks.is_dir():

@@ -18,6 +18,7 @@ import hashlib
 import json
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
@@ -384,7 +385,7 @@ class Twin:
         self.cache_key = twin_cache.twin_key(machine, resolution, n_shifts)
         folder = twin_cache.cache_dir() if cache else None
         if folder is None:
-            self._adopt(*self._build(n_shifts, reduce_thermal))
+            self._adopt(*self._build(n_shifts, reduce_thermal, None))
             return
         key = self.cache_key
         # one builder per twin at a time: the others wait and load its entry
@@ -416,10 +417,12 @@ class Twin:
             arrays.update({f"reduced_{n}": a for n, a in self.reduced.arrays().items()})
             arrays["build_times_s"] = np.array([*arrays["build_times_s"][:3], self.times.thermal_reduction_s])
         else:
-            arrays, thermal_factor = self._build(n_shifts, reduce_thermal)
+            arrays, thermal_factor = self._build(n_shifts, reduce_thermal, folder)
             self._adopt(arrays, thermal_factor)
         t0 = time.perf_counter()
         path = twin_cache.store(key, arrays, folder)
+        if path is not None:
+            twin_cache.record_static(self._static_key, key, folder)
         self.times.cache_store_s = time.perf_counter() - t0
         self.times.cache_path = None if path is None else str(path)
 
@@ -436,14 +439,20 @@ class Twin:
             and arrays["Tprobe"].shape == (len(self._point_probes), n)
         )
 
-    def _build(self, n_shifts: int, reduce_thermal: bool = True):
+    def _build(self, n_shifts: int, reduce_thermal: bool, folder: Path | None):
         """Assemble, factorise and reduce: the expensive part, returned as plain arrays (and the
         thermal factor, kept in memory for the reduction; ``reduce_thermal=False``: no
-        ``reduced_*`` arrays, the reduction is made on first use)."""
+        ``reduced_*`` arrays, the reduction is made on first use). The static half comes from
+        the last twin of this process, or from the cached entry (``folder``: the cache's) of
+        another twin that has it, when either is of the same ram, mesh and instruments."""
         machine, rm = self.machine, self.mesh
         shared = next((t for k, t in _last_static if k == self._static_key), None)
         if shared is None:
-            part = self._build_static()
+            part = self._cached_static(folder)
+            if part is None:
+                part = self._build_static()
+            else:
+                self.times.extra["static_half_from_cache"] = True
         else:  # the same ram, mesh and instruments: its static half as it is
             part = shared._static_part
             self._vbasis_built, self._elastic_built = shared._vbasis_built, shared._elastic_built
@@ -470,6 +479,31 @@ class Twin:
         if reduced is not None:
             arrays.update({f"reduced_{n}": a for n, a in reduced.arrays().items()})
         return arrays, thermal_factor
+
+    def _cached_static(self, folder: Path | None) -> dict | None:
+        """The static half of this twin, from the cached entry of another twin that holds it (one that
+        differs in its thermal description only: an edited film, heat source or ambient), or
+        None. Its identity covers the description but its thermal section, the mesh and the
+        code, as for the sharing within a process; the shapes are checked as for a whole entry.
+        The elastic factor, which no entry stores, is made again on first use, as for a twin
+        loaded from its own entry."""
+        if folder is None:
+            return None
+        other = twin_cache.static_entry(self._static_key, folder)
+        arrays = None if other is None else twin_cache.load(other, _STATIC_HALF, folder)
+        if arrays is None:
+            return None
+        n, S = self.mesh.n_nodes, len(self.sensor_names)
+        part = {name: arrays[name] for name in _STATIC_HALF}
+        if (
+            part["K"].shape != (3 * n, 3 * n)
+            or part["Th"].shape != (3 * n, n)
+            or part["W"].shape != (S + 3, n)
+            or part["W_parts"].shape != (len(elastic.CTE_PARTS), S + 3, n)
+            or part["Tprobe"].shape != (len(self._point_probes), n)
+        ):
+            return None
+        return part
 
     def _build_static(self) -> dict:
         """The static half (:data:`_STATIC_HALF`): assemble the elasticity, factorise it and
