@@ -77,9 +77,9 @@ def main(argv=None) -> int:
         work = Path(tmp)
         edited = work / "ram2-film-edited.yaml"
         text = MACHINE.read_text()
-        edited.write_text(text.replace('"+X": 7.0', '"+X": 8.0', 1))
-        if edited.read_text() == text:
+        if '"+X": 7.0' not in text:
             raise SystemExit(f"{MACHINE}: no '\"+X\": 7.0' film to edit")
+        edited.write_text(text.replace('"+X": 7.0', '"+X": 8.0', 1))
         files = {}
         for rep in range(args.reps):
             folder = work / f"cache{rep}"

@@ -374,11 +374,7 @@ def prune(folder: Path, keep: int | None = None, max_bytes: int | None = None) -
                     if p.name.endswith(".tmp") and now - p.stat().st_mtime > _STALE_TMP_S:
                         p.unlink(missing_ok=True)
                     continue
-                try:
-                    key = p.read_text(encoding="ascii").strip()
-                except (OSError, UnicodeDecodeError):
-                    key = ""
-                if not key or not _entry_path(folder, key).exists():
+                if static_entry(p.name, folder) is None:
                     p.unlink(missing_ok=True)
         # a lock of an entry that is gone, made long ago: no builder holds it any more
         locks = folder / LOCKS

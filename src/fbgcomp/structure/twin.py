@@ -429,10 +429,14 @@ class Twin:
     def _fits(self, arrays) -> bool:
         """Sanity check of a cache entry against this twin's mesh and outputs (the key already
         covers machine and code; this only guards against an entry of the wrong shape)."""
+        n = self.mesh.n_nodes
+        return arrays["Kt"].shape == (n, n) and self._static_fits(arrays)
+
+    def _static_fits(self, arrays) -> bool:
+        """:meth:`_fits` for the static half alone."""
         n, S = self.mesh.n_nodes, len(self.sensor_names)
         return (
-            arrays["Kt"].shape == (n, n)
-            and arrays["K"].shape == (3 * n, 3 * n)
+            arrays["K"].shape == (3 * n, 3 * n)
             and arrays["W"].shape == (S + 3, n)
             and arrays["W_parts"].shape == (len(elastic.CTE_PARTS), S + 3, n)
             and arrays["Th"].shape == (3 * n, n)
@@ -491,19 +495,9 @@ class Twin:
             return None
         other = twin_cache.static_entry(self._static_key, folder)
         arrays = None if other is None else twin_cache.load(other, _STATIC_HALF, folder)
-        if arrays is None:
+        if arrays is None or not self._static_fits(arrays):
             return None
-        n, S = self.mesh.n_nodes, len(self.sensor_names)
-        part = {name: arrays[name] for name in _STATIC_HALF}
-        if (
-            part["K"].shape != (3 * n, 3 * n)
-            or part["Th"].shape != (3 * n, n)
-            or part["W"].shape != (S + 3, n)
-            or part["W_parts"].shape != (len(elastic.CTE_PARTS), S + 3, n)
-            or part["Tprobe"].shape != (len(self._point_probes), n)
-        ):
-            return None
-        return part
+        return {name: arrays[name] for name in _STATIC_HALF}
 
     def _build_static(self) -> dict:
         """The static half (:data:`_STATIC_HALF`): assemble the elasticity, factorise it and
