@@ -363,6 +363,16 @@ def test_built_in_ram_keeps_its_legacy_inputs(machine):
         ),
         (lambda d: d["supports"]["rails"][0].__setitem__("locating", False), "field supports.rails"),
         (lambda d: d["supports"]["rails"][1].__setitem__("face", "+Z"), "field supports.rails[1].face"),
+        (lambda d: d["supports"]["rails"][0].__setitem__("floats", "normal"), "field supports.rails[0]"),
+        (
+            lambda d: d["supports"]["rails"][1].__setitem__("floats", "sideways"),
+            "field supports.rails[1].floats",
+        ),
+        # both rails on -Y floating along its normal: nothing holds the ram along Y
+        (
+            lambda d: [r.update(locating=False, floats="normal") for r in d["supports"]["rails"]],
+            "field supports.rails",
+        ),
         (
             lambda d: d["supports"]["carriages"][1].__setitem__("z_range_mm", [1300.0, 1450.0]),
             "field supports.carriages[1].z_mm",
@@ -486,6 +496,42 @@ def test_uniform_warming_moves_ram2_away_from_its_reference_face_and_locating_ra
     assert dx == pytest.approx(1e3 * cte_T * dT * 127.5, rel=0.15)  # strip centre 127.5 mm off axis
     cf, st = ram2.materials.cfrp, ram2.materials.steel
     assert dz == pytest.approx(-1e3 * dT * (cf.cte_L_per_K * 1400 + st.cte_per_K * 180), rel=0.01)
+
+
+def _opposite_rails(ram2, floats):
+    """ram2 guided on two opposite faces: a locating rail on +Y, the other on -Y floating
+    ``floats`` (across the face, or along its normal: the carriages let the box grow)."""
+    d = ram2.model_dump(mode="json")
+    d["supports"]["rails"] = [
+        {"face": "+Y", "across_mm": [-40.0, 40.0], "locating": True},
+        {"face": "-Y", "across_mm": [-40.0, 40.0], "floats": floats},
+    ]
+    return parse_machine(d)
+
+
+@pytest.mark.slow
+def test_a_rail_floating_along_its_normal_lets_the_box_grow_towards_it(ram2, fe):
+    """Rails on opposite faces, the -Y one floating along its normal: its carriage patches hold
+    u_x only, and a uniform warming moves the axis away from the +Y locating face (dy < 0), not
+    in X. The same rail holding its normal (floating across, the default) pins the box's width
+    at both faces and leaves a fraction of that drift."""
+    free = fe.Twin(_opposite_rails(ram2, "normal"), resolution=0.5)
+    rm, vb = free.mesh, free._vbasis
+    held = np.zeros(vb.N)
+    held[free.support_rows_mm.indices] = 1.0
+    p = rm.mesh.p
+    in_station = ((p[2] >= 950 - 1e-6) & (p[2] <= 1050 + 1e-6)) | (p[2] >= 1300 - 1e-6)
+    strip = in_station & (np.abs(p[0]) <= 40 + 1e-6)
+    minus_y, plus_y = strip & (np.abs(p[1] + 150) < 1e-6), strip & (np.abs(p[1] - 150) < 1e-6)
+    assert minus_y.any() and plus_y.any()
+    assert held[vb.nodal_dofs[0, minus_y | plus_y]].all() and held[vb.nodal_dofs[1, plus_y]].all()
+    assert not held[vb.nodal_dofs[1, minus_y]].any()
+
+    dx, dy, _ = free.static_temperature_response("uniform", 10.0).ttp_um
+    assert dy < -10.0 and abs(dx) < 0.05 * abs(dy), (dx, dy)
+    pinned = fe.Twin(_opposite_rails(ram2, "across"), resolution=0.5)
+    dy_pinned = pinned.static_temperature_response("uniform", 10.0).ttp_um[1]
+    assert abs(dy_pinned) < 0.3 * abs(dy), (dy_pinned, dy)
 
 
 @pytest.mark.slow

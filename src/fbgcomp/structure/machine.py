@@ -163,17 +163,37 @@ class Carriage(_Strict):
 
 class Rail(_Strict):
     """A guide rail along Z on one outer face; ``across_mm`` is its strip across the face
-    (y on the +-X faces, x on the +-Y faces). Every rail holds the face-normal direction; a
-    locating rail also holds the in-plane lateral direction (the one across the face)."""
+    (y on the +-X faces, x on the +-Y faces).
+
+    A locating rail holds both directions of the cross-section at its carriages: the face normal
+    and the in-plane lateral one (across the face). A floating rail releases one of them,
+    ``floats``: ``across`` (the default) holds the face normal only, as the second rail on the
+    same face does (ram2's); ``normal`` holds across the face only, as the second of two rails
+    on opposite faces whose carriages let the box grow towards them (a floating bearing)."""
 
     face: Face
     across_mm: tuple[float, float]
     locating: bool = False
+    floats: Literal["across", "normal"] | None = None
 
     @field_validator("across_mm")
     @classmethod
     def _strip(cls, v):
         return _ordered_range(v, "across_mm")
+
+    @model_validator(mode="after")
+    def _one_meaning(self):
+        if self.locating and self.floats is not None:
+            raise ValueError("a locating rail floats in no direction: drop floats or set locating: false")
+        return self
+
+    @property
+    def held_axes(self) -> tuple[int, ...]:
+        """The directions its carriages hold: 0 = X, 1 = Y (the face normal first)."""
+        normal = 0 if self.face[1] == "X" else 1
+        if self.locating:
+            return (normal, 1 - normal)
+        return (1 - normal,) if self.floats == "normal" else (normal,)
 
 
 class Nut(_Strict):
@@ -228,9 +248,8 @@ class Supports(_Strict):
             raise _FieldError("supports.rails", "give at least one rail")
         holds = {"X": False, "Y": False}
         for r in self.rails:
-            holds[r.face[1]] = True
-            if r.locating:
-                holds["Y" if r.face[1] == "X" else "X"] = True
+            for axis in r.held_axes:
+                holds["XY"[axis]] = True
         for axis, held in holds.items():
             if not held:
                 raise _FieldError(

@@ -215,8 +215,9 @@ def _stiffness_N_per_mm(value, rigid_N_per_mm: float) -> float:
 def nodal_support_rows(rm: RamMesh, vbasis, machine: Machine, z_axis_mm: float | None, rigid_N_per_mm: float):
     """Sparse (n_c, n_u) rows (one supported DOF each) and stiffnesses (N/mm) of rail supports.
 
-    Every node of each carriage patch (rail strip x station z range) is held along its face
-    normal, and also across the face on a locating rail; a patch's stiffness (per direction) is
+    Every node of each carriage patch (rail strip x station z range) is held in the directions
+    its rail holds (:attr:`Rail.held_axes`: the face normal, across the face on a locating rail,
+    across only on a rail floating along its normal); a patch's stiffness (per direction) is
     shared among its nodes by tributary area. The nut holds u_z at its cross-section: by the
     mean (one spring) or at every node.
     """
@@ -232,9 +233,8 @@ def nodal_support_rows(rm: RamMesh, vbasis, machine: Machine, z_axis_mm: float |
                     f"the carriage patch z = {lo:g}..{hi:g} mm"
                 )
             nodes, frac = _node_weights(vbasis, facets)
-            normal = 0 if rail.face[1] == "X" else 1
             k_patch = _stiffness_N_per_mm(s.carriage_stiffness_N_per_um, rigid_N_per_mm)
-            for axis in [normal, 1 - normal] if rail.locating else [normal]:
+            for axis in rail.held_axes:
                 dofs.append(vbasis.nodal_dofs[axis, nodes])
                 ks.append(rigid_N_per_mm if k_patch == rigid_N_per_mm else k_patch * frac)
     rows = [sp.csr_matrix((np.ones(len(d)), (np.arange(len(d)), d)), shape=(len(d), vbasis.N)) for d in dofs]
