@@ -59,6 +59,14 @@ def _opposite(d):
     ]
 
 
+def _opposite_floating(d):
+    # the usual opposite-face guide: the floating side lets the box grow towards it
+    d["supports"]["rails"] = [
+        {"face": "+Y", "across_mm": [-40.0, 40.0], "locating": True},
+        {"face": "-Y", "across_mm": [-40.0, 40.0], "floats": "normal"},
+    ]
+
+
 def _four(d):
     d["sensors"] = d["sensors"][:4]
     d["probes"] = [p for p in d["probes"] if p["name"] != "T_bulk"]
@@ -182,6 +190,10 @@ def _cast_iron(d):
 VARIANTS = {
     "adjacent-rails": ("locating rail on -Y, floating rail on -X", _adjacent),
     "opposite-rails": ("locating rail on -Y, floating rail on +Y", _opposite),
+    "opposite-rails-floating": (
+        "locating rail on +Y, the -Y rail floating along its normal (central strips)",
+        _opposite_floating,
+    ),
     "four-gratings": ("S1-S4 only, no T_bulk", _four),
     "eight-gratings": ("S1-S6 and four more, 80 mm off the face centre", _eight),
     "no-housing-probe": ("no T_flange", _no_housing_probe),
