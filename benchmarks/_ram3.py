@@ -1,8 +1,9 @@
 """The project's own independent rams (tests/data/README.md), as the benchmarks read them: an
 archive unpacked into a folder of the caller's, and the description from its data sheet.
 
-ram3 (both rails on -X, five gratings) and ram4 (rails on two adjacent faces, seven gratings and
-two strain-free reference gratings, two heat sources in a cast-iron housing)."""
+ram3 (both rails on -X, five gratings), ram4 (rails on two adjacent faces, seven gratings and
+two strain-free reference gratings, two heat sources in a cast-iron housing) and ram5 (rails on
+two opposite faces, the -Y one floating along its normal, five gratings, five probes)."""
 
 from __future__ import annotations
 
@@ -14,6 +15,8 @@ RAM3_ARCHIVE = REPO / "tests" / "data" / "ram3.tar.xz"
 RAM3_MACHINE = REPO / "examples" / "machines" / "ram3.yaml"
 RAM4_ARCHIVE = REPO / "tests" / "data" / "ram4.tar.xz"
 RAM4_MACHINE = REPO / "examples" / "machines" / "ram4.yaml"
+RAM5_ARCHIVE = REPO / "tests" / "data" / "ram5.tar.xz"
+RAM5_MACHINE = REPO / "examples" / "machines" / "ram5.yaml"
 
 
 def unpack(archive: Path, dest: Path) -> Path:

@@ -61,6 +61,10 @@ RAM3_MACHINE = Path(__file__).resolve().parents[1] / "examples" / "machines" / "
 #: gratings, a cast-iron housing with two heat sources), held the same way.
 RAM4_ARCHIVE = Path(__file__).resolve().parent / "data" / "ram4.tar.xz"
 RAM4_MACHINE = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram4.yaml"
+#: A fourth (CalculiX, rails on two opposite faces, the -Y one floating along its normal, five
+#: gratings, five probes), held the same way.
+RAM5_ARCHIVE = Path(__file__).resolve().parent / "data" / "ram5.tar.xz"
+RAM5_MACHINE = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram5.yaml"
 
 
 def unpacked(archive: Path) -> Path:
@@ -107,6 +111,11 @@ def read_ram4(*names: str) -> dict:
     return read_unpacked(RAM4_ARCHIVE, *names)
 
 
+def read_ram5(*names: str) -> dict:
+    """ram5's campaigns by name."""
+    return read_unpacked(RAM5_ARCHIVE, *names)
+
+
 def held_out_figures(model, campaign):
     """A model judged on a campaign it never saw, as ``fbgcomp validate`` judges it: per axis
     (3,) the max |error| µm, the uncompensated peak µm and the 95 % interval's coverage."""
@@ -118,16 +127,18 @@ def held_out_figures(model, campaign):
     return err.max(axis=0), np.abs(ref).max(axis=0), (err <= half).mean(axis=0)
 
 
-def assert_twin_check(machine, results_json, sensor_names, n_judged):
+def assert_twin_check(machine, results_json, sensor_names, n_judged, resolution=0.5):
     """``fbgcomp twin-check MACHINE --against RESULTS``, asserted: the independent model names
     ``sensor_names``, and every one of its ``n_judged`` judged quantities is within target (unit
     loads 3 %, uniform +10 K dz 2 %). The twin is built coarser than the description's own mesh
-    (hex8i converges fast): one FE build of seconds."""
+    by default (hex8i converges fast): one FE build of seconds."""
     from fbgcomp.structure import Twin, load_machine, twin_check
 
     reference = twin_check.load_reference(results_json)
     assert reference.sensor_names == tuple(sensor_names)
-    rows = twin_check.compare(Twin(load_machine(machine), resolution=0.5, reduce_thermal=False), reference)
+    rows = twin_check.compare(
+        Twin(load_machine(machine), resolution=resolution, reduce_thermal=False), reference
+    )
     judged = [r for r in rows if r.passed is not None]
     assert len(judged) == n_judged
     assert all(r.passed for r in judged), [r for r in judged if not r.passed]
