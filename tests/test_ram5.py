@@ -26,8 +26,9 @@ def test_the_twin_of_ram5s_data_sheet_meets_the_twin_check_against_its_results()
     compliances and grating responses within 3 %, the uniform +10 K dz within 2 % (2026-12-04 at
     the description's mesh: 25 of 25, dz 0.09 %; with the -Y rail described as locating, the
     closest the description came before a rail could float along its normal, 18 of 25: Fy dy
-    -23.7 %). At the description's own mesh: at resolution 0.5 S5's small cross response to Fy
-    (0.33 µm/kN, a sixth of S4's) is 3.7 % off, 1.5 % at 1."""
+    -23.7 %). The twin is built at the description's resolution (1), not the coarser 0.5 of the
+    other rams' checks: at 0.5 S5's small cross response to Fy (0.33 µm/kN, a sixth of S4's) is
+    3.7 % off, at 1 it is 1.5 %."""
     results = unpacked(RAM5_ARCHIVE) / "results.json"
     assert_twin_check(RAM5_MACHINE, results, ("S1", "S2", "S3", "S4", "S5"), 25, resolution=1.0)
 
