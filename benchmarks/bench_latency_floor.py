@@ -1,0 +1,141 @@
+"""The error no causal correction can avoid on a load ramp: the reference clock runs ahead of the
+last interrogator frame.
+
+The runtime publishes the correction of the last frame it has read; validation judges it at the
+interferometer's samples, which sit between frames (ram2, ram3, ram4, ram5: +0.3 s or +0.5 s after
+a 1 s frame). While a force ramps, the TTP moves on after that frame, and a tracker that knew the
+force at every frame exactly would still be that far behind. This script measures that floor with
+no model at all:
+
+* the compliance C (3 x 3, µm/N) by least squares of the interferometer on the load cell over the
+  ram's static training campaign (static_xyz: uniform temperature, so the reference is C F plus
+  the interferometer's noise);
+* per judged campaign with loads, at each reference time t_r: C (F(t_r) - F(t_f)), F(t_r) the
+  load cell interpolated to t_r (the ramps are linear) and t_f the last frame at or before t_r;
+* printed per axis: that floor's max |.| (µm) and as % of the axis's uncompensated peak (the
+  target's measure: thermal_c's loaded lateral axis <= 3 % of its peak), and the time it falls.
+
+A target below the floor cannot be met by any causal correction at the campaign's frame rate: the
+gratings at the last frame do not yet carry what the TTP does at t_r. Compare with the default
+model's figures in bench_accuracy.py.
+
+    nice -n 10 .venv/bin/python benchmarks/bench_latency_floor.py [--ram2 PATH] [--rams ram2,ram3,ram4,ram5]
+
+Last line: one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from _ram3 import RAM3_ARCHIVE, RAM4_ARCHIVE, RAM5_ARCHIVE, unpack
+from fbgcomp.cli.demo import find_ram2
+
+AXES = ("dx", "dy", "dz")
+FORCES = ("fx_N", "fy_N", "fz_N")
+#: ram -> (static training campaign, judged campaigns with loads)
+JUDGED = {
+    "ram2": ("static_xyz", ("thermal_c", "static_x")),
+    "ram3": ("static_xyz", ("thermal_c", "static_y")),
+    "ram4": ("static_xyz", ("thermal_c", "static_y")),
+    "ram5": ("static_xyz", ("thermal_c", "static_x")),
+}
+ARCHIVES = {"ram3": RAM3_ARCHIVE, "ram4": RAM4_ARCHIVE, "ram5": RAM5_ARCHIVE}
+
+
+def read(folder: Path):
+    """Frame times (s), load cell (times, (n, 3) N) and reference (times, (n, 3) µm) of a campaign."""
+    fbg_t = pd.read_csv(folder / "fbg.csv", usecols=["time_s"])["time_s"].to_numpy(float)
+    loads = pd.read_csv(folder / "loads.csv")
+    ref = pd.read_csv(folder / "reference.csv")
+    return (
+        fbg_t,
+        loads["time_s"].to_numpy(float),
+        loads[list(FORCES)].to_numpy(float),
+        ref["time_s"].to_numpy(float),
+        ref[[f"{a}_um" for a in AXES]].to_numpy(float),
+    )
+
+
+def at(t_src, values, t):
+    """``values`` (n, 3) interpolated linearly to times ``t``."""
+    return np.column_stack([np.interp(t, t_src, values[:, j]) for j in range(values.shape[1])])
+
+
+def compliance(folder: Path):
+    """C (3 x 3) µm/N: the reference on the load cell, least squares with a constant."""
+    _, lt, f, rt, r = read(folder)
+    A = np.column_stack([at(lt, f, rt), np.ones(rt.size)])
+    coef = np.linalg.lstsq(A, r, rcond=None)[0]
+    return coef[:3].T  # (axes, forces)
+
+
+def floor(folder: Path, C):
+    """Per axis: max |C (F(t_r) - F(t_f))| µm, the reference time it falls at, and the peak."""
+    fbg_t, lt, f, rt, r = read(folder)
+    inside = rt >= fbg_t[0]
+    rt, r = rt[inside], r[inside]
+    tf = fbg_t[np.clip(np.searchsorted(fbg_t, rt, side="right") - 1, 0, fbg_t.size - 1)]
+    ahead = (at(lt, f, rt) - at(lt, f, tf)) @ C.T  # (n, 3) µm the TTP moves after the frame
+    peak = np.abs(r - r[0]).max(axis=0)
+    worst = np.abs(ahead).argmax(axis=0)
+    return {
+        a: {
+            "floor_um": round(float(abs(ahead[worst[j], j])), 3),
+            "at_s": float(rt[worst[j]]),
+            "peak_um": round(float(peak[j]), 2),
+            "floor_pct": round(100.0 * float(abs(ahead[worst[j], j])) / max(float(peak[j]), 1e-9), 2),
+            "lead_s": round(float(np.median(rt - tf)), 2),
+        }
+        for j, a in enumerate(AXES)
+    }
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument(
+        "--ram2", help="the ram2 data set (default: $FBGCOMP_RAM2, else ../shared/reference/ram2)"
+    )
+    ap.add_argument(
+        "--rams", default="ram2,ram3,ram4,ram5", help="comma-separated subset of ram2,ram3,ram4,ram5"
+    )
+    args = ap.parse_args(argv)
+    out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for ram in [r.strip() for r in args.rams.split(",") if r.strip()]:
+            if ram == "ram2":
+                data, looked = find_ram2(args.ram2)
+                if data is None:
+                    print(f"ram2 not found at {looked}", file=sys.stderr)
+                    return 2
+            elif ram in ARCHIVES:
+                data = unpack(ARCHIVES[ram], Path(tmp) / ram) / "data"
+            else:
+                print(f"--rams: unknown ram {ram!r} (ram2, ram3, ram4, ram5)", file=sys.stderr)
+                return 2
+            static, judged = JUDGED[ram]
+            C = compliance(data / static)
+            for name in judged:
+                res = floor(data / name, C)
+                out[f"{ram}/{name}"] = res
+                lead = res["dx"]["lead_s"]
+                print(f"{ram}/{name} (reference {lead:+.1f} s after the last frame)")
+                for a in AXES:
+                    f = res[a]
+                    print(
+                        f"  {a}: floor {f['floor_um']:7.3f} µm = {f['floor_pct']:5.2f} % of peak "
+                        f"{f['peak_um']:7.2f} µm (t = {f['at_s']:.1f} s)"
+                    )
+    print(json.dumps({"latency_floor": out}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
