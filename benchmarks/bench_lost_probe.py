@@ -1,4 +1,4 @@
-"""The default model served through the runtime core with a probe lost: ram2, ram3 and ram4.
+"""The default model served through the runtime core with a probe lost: ram2, ram3, ram4 and ram5.
 
 A probe without a reading (a broken thermocouple, a live input gone stale, a lost strain-free
 reference grating) used to leave no usable model: ALARM, the correction held and ramped to zero.
@@ -23,7 +23,7 @@ share of reference samples the published 95 % interval covers (|reference - devi
 half-width), per axis.
 Last line: one JSON object.
 
-    nice -n 10 .venv/bin/python benchmarks/bench_lost_probe.py [--ram2 PATH] [--rams ram2,ram3,ram4] [--pairs]
+    nice -n 10 .venv/bin/python benchmarks/bench_lost_probe.py [--ram2 PATH] [--rams ram2,ram3,ram4,ram5] [--pairs]
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _ram3 import RAM3_ARCHIVE, RAM3_MACHINE, RAM4_ARCHIVE, RAM4_MACHINE, unpack
+from _ram3 import RAM3_ARCHIVE, RAM3_MACHINE, RAM4_ARCHIVE, RAM4_MACHINE, RAM5_ARCHIVE, RAM5_MACHINE, unpack
 from fbgcomp.bench.served import served
 from fbgcomp.cli.demo import RAM2_MACHINE, find_ram2
 from fbgcomp.io.campaign import read_campaign
@@ -53,6 +53,13 @@ HELD_OUT = {
     "ram2": ("thermal_b", "thermal_c", "static_x"),
     "ram3": ("thermal_b", "thermal_c", "static_y"),
     "ram4": ("thermal_b", "thermal_c", "static_y"),
+    "ram5": ("thermal_b", "thermal_c", "static_x"),
+}
+#: the project's own rams: archive and description
+OWN_RAMS = {
+    "ram3": (RAM3_ARCHIVE, RAM3_MACHINE),
+    "ram4": (RAM4_ARCHIVE, RAM4_MACHINE),
+    "ram5": (RAM5_ARCHIVE, RAM5_MACHINE),
 }
 
 
@@ -114,7 +121,9 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--ram2", help="the ram2 data set (default: $FBGCOMP_RAM2, else ../shared/reference/ram2)"
     )
-    ap.add_argument("--rams", default="ram2,ram3,ram4", help="comma-separated subset of ram2,ram3,ram4")
+    ap.add_argument(
+        "--rams", default="ram2,ram3,ram4,ram5", help="comma-separated subset of ram2,ram3,ram4,ram5"
+    )
     ap.add_argument("--pairs", action="store_true", help="each pair of probes lost at once")
     args = ap.parse_args(argv)
     rams = [r.strip() for r in args.rams.split(",") if r.strip()]
@@ -128,13 +137,11 @@ def main(argv=None) -> int:
                     print(f"ram2 not found at {looked}", file=sys.stderr)
                     return 2
                 rows += judge(ram, data, RAM2_MACHINE, args.pairs)
-            elif ram in ("ram3", "ram4"):
-                archive, machine = (
-                    (RAM3_ARCHIVE, RAM3_MACHINE) if ram == "ram3" else (RAM4_ARCHIVE, RAM4_MACHINE)
-                )
+            elif ram in OWN_RAMS:
+                archive, machine = OWN_RAMS[ram]
                 rows += judge(ram, unpack(archive, Path(tmp) / ram) / "data", machine, args.pairs)
             else:
-                print(f"--rams: unknown ram {ram!r} (ram2, ram3, ram4)", file=sys.stderr)
+                print(f"--rams: unknown ram {ram!r} (ram2, ram3, ram4, ram5)", file=sys.stderr)
                 return 2
     worse = sum(r["worse"] for r in rows)
     alarm = sum(r["alarm_frames"] > 0 for r in rows)
