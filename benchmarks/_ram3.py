@@ -29,3 +29,26 @@ def unpack(archive: Path, dest: Path) -> Path:
 def unpack_ram3(dest: Path) -> Path:
     """ram3's folder unpacked into ``dest``."""
     return unpack(RAM3_ARCHIVE, dest)
+
+
+#: each independent ram's held-out campaigns (thermal_b, thermal_c, the static one in static_x's role)
+HELD_OUT = {
+    "ram2": ("thermal_b", "thermal_c", "static_x"),
+    "ram3": ("thermal_b", "thermal_c", "static_y"),
+    "ram4": ("thermal_b", "thermal_c", "static_y"),
+    "ram5": ("thermal_b", "thermal_c", "static_x"),
+}
+#: the project's own rams: archive and description
+OWN_RAMS = {
+    "ram3": (RAM3_ARCHIVE, RAM3_MACHINE),
+    "ram4": (RAM4_ARCHIVE, RAM4_MACHINE),
+    "ram5": (RAM5_ARCHIVE, RAM5_MACHINE),
+}
+
+
+def add_ram_arguments(ap, default: str) -> None:
+    """The ``--ram2 PATH`` and ``--rams a,b`` options of the benchmarks that judge several rams."""
+    ap.add_argument(
+        "--ram2", help="the ram2 data set (default: $FBGCOMP_RAM2, else ../shared/reference/ram2)"
+    )
+    ap.add_argument("--rams", default=default, help="comma-separated subset of ram2,ram3,ram4,ram5")

@@ -35,19 +35,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from _ram3 import RAM3_ARCHIVE, RAM4_ARCHIVE, RAM5_ARCHIVE, unpack
+from _ram3 import HELD_OUT, OWN_RAMS, add_ram_arguments, unpack
 from fbgcomp.cli.demo import find_ram2
 
 AXES = ("dx", "dy", "dz")
 FORCES = ("fx_N", "fy_N", "fz_N")
-#: ram -> (static training campaign, judged campaigns with loads)
-JUDGED = {
-    "ram2": ("static_xyz", ("thermal_c", "static_x")),
-    "ram3": ("static_xyz", ("thermal_c", "static_y")),
-    "ram4": ("static_xyz", ("thermal_c", "static_y")),
-    "ram5": ("static_xyz", ("thermal_c", "static_x")),
-}
-ARCHIVES = {"ram3": RAM3_ARCHIVE, "ram4": RAM4_ARCHIVE, "ram5": RAM5_ARCHIVE}
+#: ram -> (static training campaign, judged campaigns with loads: thermal_c and the static one)
+JUDGED = {ram: ("static_xyz", held[1:]) for ram, held in HELD_OUT.items()}
 
 
 def read(folder: Path):
@@ -100,12 +94,7 @@ def floor(folder: Path, C):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument(
-        "--ram2", help="the ram2 data set (default: $FBGCOMP_RAM2, else ../shared/reference/ram2)"
-    )
-    ap.add_argument(
-        "--rams", default="ram2,ram3,ram4,ram5", help="comma-separated subset of ram2,ram3,ram4,ram5"
-    )
+    add_ram_arguments(ap, "ram2,ram3,ram4,ram5")
     args = ap.parse_args(argv)
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
@@ -115,8 +104,8 @@ def main(argv=None) -> int:
                 if data is None:
                     print(f"ram2 not found at {looked}", file=sys.stderr)
                     return 2
-            elif ram in ARCHIVES:
-                data = unpack(ARCHIVES[ram], Path(tmp) / ram) / "data"
+            elif ram in OWN_RAMS:
+                data = unpack(OWN_RAMS[ram][0], Path(tmp) / ram) / "data"
             else:
                 print(f"--rams: unknown ram {ram!r} (ram2, ram3, ram4, ram5)", file=sys.stderr)
                 return 2

@@ -33,24 +33,12 @@ from pathlib import Path
 
 import numpy as np
 
-from _ram3 import RAM3_ARCHIVE, RAM3_MACHINE, RAM4_ARCHIVE, RAM4_MACHINE, RAM5_ARCHIVE, RAM5_MACHINE, unpack
+from _ram3 import HELD_OUT, OWN_RAMS, add_ram_arguments, unpack
 from fbgcomp.bench.served import served
 from fbgcomp.cli.demo import RAM2_MACHINE, find_ram2
 from fbgcomp.io.campaign import read_campaign
 from fbgcomp.models.physical import PhysicalModel
 
-HELD_OUT = {
-    "ram2": ("thermal_b", "thermal_c", "static_x"),
-    "ram3": ("thermal_b", "thermal_c", "static_y"),
-    "ram4": ("thermal_b", "thermal_c", "static_y"),
-    "ram5": ("thermal_b", "thermal_c", "static_x"),
-}
-#: the project's own rams: archive and description
-OWN_RAMS = {
-    "ram3": (RAM3_ARCHIVE, RAM3_MACHINE),
-    "ram4": (RAM4_ARCHIVE, RAM4_MACHINE),
-    "ram5": (RAM5_ARCHIVE, RAM5_MACHINE),
-}
 LOST_FROM = 0.4  # of the run
 ALLOWANCE_UM = 0.5
 BATCH = 100
@@ -90,10 +78,7 @@ def judge(label, model, held_out) -> list:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument(
-        "--ram2", help="the ram2 data set (default: $FBGCOMP_RAM2, else ../shared/reference/ram2)"
-    )
-    ap.add_argument("--rams", default="ram2", help="comma-separated subset of ram2,ram3,ram4,ram5")
+    add_ram_arguments(ap, "ram2")
     ap.add_argument("--no-twin", action="store_true", help="the rams only")
     args = ap.parse_args(argv)
     rams = [r.strip() for r in args.rams.split(",") if r.strip()]

@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _ram3 import RAM3_ARCHIVE, RAM3_MACHINE, RAM4_ARCHIVE, RAM4_MACHINE, RAM5_ARCHIVE, RAM5_MACHINE, unpack
+from _ram3 import HELD_OUT, OWN_RAMS, add_ram_arguments, unpack
 from fbgcomp.bench.served import served
 from fbgcomp.cli.demo import RAM2_MACHINE, find_ram2
 from fbgcomp.io.campaign import read_campaign
@@ -49,18 +49,6 @@ from fbgcomp.units import AXES
 
 ALLOWANCE_UM = 0.5
 PATTERNS = (("40%->", 0.4, None), ("40-60%", 0.4, 0.6), ("start", 0.0, None))
-HELD_OUT = {
-    "ram2": ("thermal_b", "thermal_c", "static_x"),
-    "ram3": ("thermal_b", "thermal_c", "static_y"),
-    "ram4": ("thermal_b", "thermal_c", "static_y"),
-    "ram5": ("thermal_b", "thermal_c", "static_x"),
-}
-#: the project's own rams: archive and description
-OWN_RAMS = {
-    "ram3": (RAM3_ARCHIVE, RAM3_MACHINE),
-    "ram4": (RAM4_ARCHIVE, RAM4_MACHINE),
-    "ram5": (RAM5_ARCHIVE, RAM5_MACHINE),
-}
 
 
 def judge(ram: str, data: Path, machine, pairs: bool = False) -> list:
@@ -118,12 +106,7 @@ def judge(ram: str, data: Path, machine, pairs: bool = False) -> list:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument(
-        "--ram2", help="the ram2 data set (default: $FBGCOMP_RAM2, else ../shared/reference/ram2)"
-    )
-    ap.add_argument(
-        "--rams", default="ram2,ram3,ram4,ram5", help="comma-separated subset of ram2,ram3,ram4,ram5"
-    )
+    add_ram_arguments(ap, "ram2,ram3,ram4,ram5")
     ap.add_argument("--pairs", action="store_true", help="each pair of probes lost at once")
     args = ap.parse_args(argv)
     rams = [r.strip() for r in args.rams.split(",") if r.strip()]
