@@ -52,3 +52,20 @@ def add_ram_arguments(ap, default: str) -> None:
         "--ram2", help="the ram2 data set (default: $FBGCOMP_RAM2, else ../shared/reference/ram2)"
     )
     ap.add_argument("--rams", default=default, help="comma-separated subset of ram2,ram3,ram4,ram5")
+
+
+def ram_folder(ram: str, dest: Path, ram2=None):
+    """(``data`` folder, description) of ``ram``: ram2 where ``--ram2``/$FBGCOMP_RAM2 or the
+    shared reference puts it, the project's own rams unpacked into ``dest``/ram. ValueError with
+    the one line to print where the ram is unknown or ram2 is not found."""
+    if ram == "ram2":
+        from fbgcomp.cli.demo import RAM2_MACHINE, find_ram2
+
+        data, looked = find_ram2(ram2)
+        if data is None:
+            raise ValueError(f"ram2 not found at {looked}")
+        return data, RAM2_MACHINE
+    if ram not in OWN_RAMS:
+        raise ValueError(f"--rams: unknown ram {ram!r} (ram2, ram3, ram4, ram5)")
+    archive, machine = OWN_RAMS[ram]
+    return unpack(archive, Path(dest) / ram) / "data", machine

@@ -35,8 +35,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from _ram3 import HELD_OUT, OWN_RAMS, add_ram_arguments, unpack
-from fbgcomp.cli.demo import find_ram2
+from _ram3 import HELD_OUT, add_ram_arguments, ram_folder
 
 AXES = ("dx", "dy", "dz")
 FORCES = ("fx_N", "fy_N", "fz_N")
@@ -99,15 +98,10 @@ def main(argv=None) -> int:
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
         for ram in [r.strip() for r in args.rams.split(",") if r.strip()]:
-            if ram == "ram2":
-                data, looked = find_ram2(args.ram2)
-                if data is None:
-                    print(f"ram2 not found at {looked}", file=sys.stderr)
-                    return 2
-            elif ram in OWN_RAMS:
-                data = unpack(OWN_RAMS[ram][0], Path(tmp) / ram) / "data"
-            else:
-                print(f"--rams: unknown ram {ram!r} (ram2, ram3, ram4, ram5)", file=sys.stderr)
+            try:
+                data, _ = ram_folder(ram, tmp, args.ram2)
+            except ValueError as e:
+                print(e, file=sys.stderr)
                 return 2
             static, judged = JUDGED[ram]
             C = compliance(data / static)

@@ -29,13 +29,11 @@ import json
 import sys
 import tempfile
 import time
-from pathlib import Path
 
 import numpy as np
 
-from _ram3 import HELD_OUT, OWN_RAMS, add_ram_arguments, unpack
+from _ram3 import HELD_OUT, add_ram_arguments, ram_folder
 from fbgcomp.bench.served import served
-from fbgcomp.cli.demo import RAM2_MACHINE, find_ram2
 from fbgcomp.io.campaign import read_campaign
 from fbgcomp.models.physical import PhysicalModel
 
@@ -90,15 +88,11 @@ def main(argv=None) -> int:
     result: dict = {}
     with tempfile.TemporaryDirectory() as tmp:
         for ram in rams:
-            if ram == "ram2":
-                data, looked = find_ram2(args.ram2)
-                if data is None:
-                    print(f"ram2 not found at {looked}", file=sys.stderr)
-                    return 2
-                machine = RAM2_MACHINE
-            else:
-                archive, machine = OWN_RAMS[ram]
-                data = unpack(archive, Path(tmp) / ram) / "data"
+            try:
+                data, machine = ram_folder(ram, tmp, args.ram2)
+            except ValueError as e:
+                print(e, file=sys.stderr)
+                return 2
             model = PhysicalModel(machine=machine).fit(
                 [read_campaign(data / n) for n in ("thermal_a", "static_xyz")]
             )

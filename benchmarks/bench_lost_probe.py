@@ -38,9 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-from _ram3 import HELD_OUT, OWN_RAMS, add_ram_arguments, unpack
+from _ram3 import HELD_OUT, add_ram_arguments, ram_folder
 from fbgcomp.bench.served import served
-from fbgcomp.cli.demo import RAM2_MACHINE, find_ram2
 from fbgcomp.io.campaign import read_campaign
 from fbgcomp.models.metrics import validation_metrics
 from fbgcomp.models.physical import PhysicalModel
@@ -114,18 +113,12 @@ def main(argv=None) -> int:
     rows: list = []
     with tempfile.TemporaryDirectory() as tmp:
         for ram in rams:
-            if ram == "ram2":
-                data, looked = find_ram2(args.ram2)
-                if data is None:
-                    print(f"ram2 not found at {looked}", file=sys.stderr)
-                    return 2
-                rows += judge(ram, data, RAM2_MACHINE, args.pairs)
-            elif ram in OWN_RAMS:
-                archive, machine = OWN_RAMS[ram]
-                rows += judge(ram, unpack(archive, Path(tmp) / ram) / "data", machine, args.pairs)
-            else:
-                print(f"--rams: unknown ram {ram!r} (ram2, ram3, ram4, ram5)", file=sys.stderr)
+            try:
+                data, machine = ram_folder(ram, tmp, args.ram2)
+            except ValueError as e:
+                print(e, file=sys.stderr)
                 return 2
+            rows += judge(ram, data, machine, args.pairs)
     worse = sum(r["worse"] for r in rows)
     alarm = sum(r["alarm_frames"] > 0 for r in rows)
     short = sum(min(r["coverage"]) < 0.90 for r in rows)
