@@ -225,6 +225,49 @@ def test_the_quick_and_fast_readings_differ_by_the_noise_their_filters_leave():
         assert abs(d.var() / quick_fast_noise(bq, bf) - 1.0) < 0.05, (dt, d.var(), quick_fast_noise(bq, bf))
 
 
+def test_the_ramp_line_averages_a_ramps_frames_and_restarts_where_the_ramp_ends():
+    """ramp_line on 1 s frames of a 220 N/s ramp (ram5's thermal_c) with 66 N of frame noise:
+    on the ramp its value at the last frame carries (4n - 2) / (n (n + 1)) of a frame's variance
+    (0.35 at ten frames); the first frame after the ramp ends leaves the line by ~3 sigma and
+    starts it anew, so the flat frames after it are not read on the ramp's slope (the slope run
+    on would put them 220 N further off per frame)."""
+    from fbgcomp.models.physical.predictor import RAMP_LINE_MIN, ramp_line
+
+    rng = np.random.default_rng(3)
+    sd, n_ramp, reps = 66.0, 10, 2000
+    on = np.array([False, True, False])
+    last, raw, after = [], [], []
+    for _ in range(reps):
+        line = np.zeros((3, 6))
+        t = np.arange(n_ramp + 4, dtype=float)
+        truth = np.minimum(220.0 * t, 220.0 * (n_ramp - 1))
+        y = truth + rng.normal(0.0, sd, len(t))
+        est, count = [], []
+        for ti, yi in zip(t, y, strict=True):
+            e, line = ramp_line(line, on, ti, np.array([0.0, yi, 0.0]), np.full(3, sd), 3.0)
+            est.append(e[1])
+            count.append(line[1, 0])
+            assert np.isnan(e[[0, 2]]).all()
+        if count[n_ramp - 1] == n_ramp:  # no noisy frame restarted it on the ramp (~2 %)
+            last.append(est[n_ramp - 1] - truth[n_ramp - 1])
+            raw.append(y[n_ramp - 1] - truth[n_ramp - 1])
+        after.append(est[-1] - truth[-1])
+        assert np.isnan(est[: RAMP_LINE_MIN - 1]).all()
+    assert len(last) > 0.9 * reps, len(last)
+    ratio = np.var(last) / np.var(raw)
+    assert abs(ratio - (4 * n_ramp - 2) / (n_ramp * (n_ramp + 1))) < 0.05, ratio
+    # four flat frames after the end: restarted, the line there is the flat frames' (or NaN
+    # where the restart came late and fewer than RAMP_LINE_MIN frames are on it), not the slope's
+    after = np.asarray(after)
+    ok = np.isfinite(after)
+    far = np.abs(after[ok])
+    assert ok.mean() > 0.9 and np.sqrt(np.mean(far**2)) < sd and (far > 440.0).mean() < 0.005, (
+        ok.mean(),
+        np.sqrt(np.mean(far**2)),
+        (far > 440.0).mean(),
+    )
+
+
 def test_a_load_ramp_is_followed_without_the_fast_readings_lag(twin_model, ram2):
     """static_x's 5 s ramps of 200 N/s, read at 10 Hz: the 0.5 s low-pass the step test judges
     on lagged them by 0.48 s, 13.9 µm of dx at the samples on a ramp. While the load moves the

@@ -44,7 +44,11 @@ def test_the_default_fit_harms_no_axis_of_ram5s_held_out_campaigns(ram5, tmp_pat
     campaigns it never saw: no axis ends with a larger max |error| than uncompensated (+0.5 µm),
     thermal_b's dz is within 2 µm and its lateral axes within 20 % of their peaks, and every axis
     moving over 50 µm within 10 % (2026-12-04: thermal_b dx / dy / dz 0.28 / 1.38 / 1.64 µm on
-    5.35 / 17.7 / 66.7; thermal_c 3.68 / 16.5 / 1.70 on 95.2 / 193 / 54.6; static_x dx 6.3 on 254).
+    5.35 / 17.7 / 66.7; thermal_c 3.68 / 6.96 / 1.70 on 95.2 / 193 / 54.6; static_x dx 6.3 on 254).
+    thermal_c's loaded dy is within 5 % of its peak (3.6 %; the floor no causal correction goes
+    below, benchmarks/bench_latency_floor.py, is 3.1 %): on its 1 s frames a transition publishes
+    the line through the ramp's frames (ramp_line), not the last frame alone, which put one frame's
+    noise, 200 N, on the sample that ended the 2200 N ramp (16.5 µm, 8.5 %).
     The rail floating along its normal is what the lateral drift rests on: described as
     locating, thermal_b's dy is 7.84 µm off (44 % of its peak)."""
     from fbgcomp.models.physical import PhysicalModel
@@ -57,6 +61,8 @@ def test_the_default_fit_harms_no_axis_of_ram5s_held_out_campaigns(ram5, tmp_pat
         assert (err <= peak + 0.5).all(), (name, err, peak)
         moving = peak > 50.0
         assert (err[moving] < 0.10 * peak[moving]).all(), (name, err, peak)
+    err_c, peak_c, _ = figures["thermal_c"]
+    assert err_c[1] < 0.05 * peak_c[1], (err_c, peak_c)
     err, peak, cover = figures["thermal_b"]
     assert err[2] <= 2.0 and (err[:2] <= 0.2 * peak[:2]).all(), (err, peak)
     assert 0.90 <= cover[0] <= 0.99, cover

@@ -51,6 +51,16 @@ LOAD_HOLD_S = 3.0
 #: its 200 N/s ramps. 0.1 s passes a 1 s frame whole and a 10 Hz one at 0.63; once the load has
 #: stopped the transition follows the fast reading again, which is then as settled as it is.
 LOAD_FOLLOW_S = 0.1
+#: Frames a load transition's line (:func:`ramp_line`) needs before it is published: with 2 it
+#: passes through both, no better than the last frame.
+RAMP_LINE_MIN = 3
+#: Shortest frame interval, s, at which a transition publishes its line: ``LOAD_FAST_S``. What
+#: ends the line at a ramp's end is a frame that leaves it by k sigma. At frames of the fast
+#: low-pass or longer that is the first frame after the end; at 10 Hz one frame's step off the
+#: line is a tenth of a ramp's second, under its noise, and the line ran on past each end of
+#: ram2's static_xyz ramps (in-sample samples 2-4 µm further off, the load interval's dx scale
+#: 0.136 -> 0.216 and the test of static_x's ramps failed; docs/accuracy.md).
+RAMP_LINE_DT_S = LOAD_FAST_S
 #: Memory of the load reading's thermal lag, s: between transitions the thermal offset follows
 #: the gratings' drift ``offset_tau_s`` behind, so the reading stands ``r offset_tau_s`` off
 #: the applied force for a drift of r N/s, and through a transition (offset frozen) it drifts
@@ -102,6 +112,48 @@ def fast_hold_noise(dt, rate, b_fast, b_hold):
         p11 = (c**2 * p00 + 2.0 * c * g * p01 + rate * (b_hold * b_fast) ** 2) / (1.0 - g**2)
         out = p00 + p11 - 2.0 * p01
     return np.where(ok, out, 1.0)
+
+
+def ramp_line(line, on, t, y, sd, k):
+    """One frame of the least-squares line through a moving load's quick reading.
+
+    ``line`` (3, 6) holds per force component the frame count, the line's time origin (s) and the
+    sums of tau, tau², y and tau y (tau = t - origin); ``on`` (3,) marks the components still
+    moving. Components not moving start anew (count 0). A frame whose reading ``y`` (3,) N
+    leaves the line by more than ``k`` times its prediction's SD (``sd`` (3,) N, the reading's
+    noise) starts it anew from that frame: the ramp ended, or turned. Returns the line's value
+    at ``t`` where it holds ``RAMP_LINE_MIN`` frames (NaN elsewhere) and the updated sums.
+
+    On a ramp the frames lie on a line, so its value at the last one carries less noise than
+    that frame: (4n - 2) / (n (n + 1)) of its variance for n frames, 0.35 at ten. At 1 s frames
+    the tracker had followed each frame's reading alone, and one frame's noise (3 sigma, 200 N
+    of ram5's 2200 N) landed on the sample that ended the ramp (benchmarks/bench_latency_floor.py
+    and docs/accuracy.md)."""
+    line = np.array(line, float)
+    est = np.full(3, np.nan)
+    for a in range(3):
+        if not on[a]:
+            line[a] = 0.0
+            continue
+        n, t0, St, Stt, Sy, Sty = line[a]
+        if n == 0:
+            t0 = t
+        tau = t - t0
+        if n >= RAMP_LINE_MIN:
+            sxx = Stt - St * St / n
+            if sxx > 0:
+                b = (Sty - St * Sy / n) / sxx
+                c = (Sy - b * St) / n
+                v = sd[a] ** 2 * (1.0 + 1.0 / n + (tau - St / n) ** 2 / sxx)
+                if abs(y[a] - (c + b * tau)) > k * math.sqrt(v):
+                    n, t0, St, Stt, Sy, Sty, tau = 0.0, t, 0.0, 0.0, 0.0, 0.0, 0.0
+        n, St, Stt, Sy, Sty = n + 1, St + tau, Stt + tau * tau, Sy + y[a], Sty + tau * y[a]
+        line[a] = (n, t0, St, Stt, Sy, Sty)
+        if n >= RAMP_LINE_MIN:
+            sxx = Stt - St * St / n
+            b = (Sty - St * Sy / n) / sxx if sxx > 0 else 0.0
+            est[a] = (Sy - b * St) / n + b * tau
+    return est, line
 
 
 def quick_fast_noise(b_quick, b_fast):
@@ -797,6 +849,8 @@ class PhysicalPredictor:
         quiet = float(state.get("quiet", 0.0))  # s since the last transition
         since = float(state.get("since", 0.0))
         mean_tsum = np.array(state.get("mean_tsum", np.zeros(3)), float)
+        # the line through each moving component's quick reading (ramp_line)
+        line = np.array(state.get("line", np.zeros((3, 6))), float)
         # what the offset took in over the last ~LOAD_HOLD_S: a load's first moments, before its
         # step is taken, are given back when it is (else each step leaves ~1 % in the offset)
         recent = np.array(state.get("recent", np.zeros(S)), float)
@@ -934,6 +988,7 @@ class PhysicalPredictor:
                     recent[:] = 0.0
                     since = 0.0
                 level_from = np.where(take & ~(settle > 0), applied, level_from)
+                line[take & ~(settle > 0)] = 0.0
                 settle = np.where(take, self.settle_s, settle)
                 # the slow estimate runs on from before the step: while it lags the fast one the
                 # load is still moving, so a ramp does not enter the level's mean (it was set to
@@ -980,6 +1035,21 @@ class PhysicalPredictor:
                     [f_quick, f_fast, 0.0, level, f_fast],
                     applied,
                 )
+                # while it still moves, at frames of RAMP_LINE_DT_S or longer, the line through
+                # the quick reading since the transition began, once it holds RAMP_LINE_MIN
+                # frames (ramp_line); its noise is the quick low-pass's (b / (2 - b) of a
+                # frame's variance) where k_fast holds the fast one's
+                b_q, b_f = b_follow[i], b_fast[i]
+                k_q = k_fast[i] * (b_q / (2.0 - b_q)) / (b_f / (2.0 - b_f)) if b_f > 0 else 1.0
+                drawn, line = ramp_line(
+                    line,
+                    still & (dt[i] >= RAMP_LINE_DT_S),
+                    float(t[i]),
+                    f_quick,
+                    self.F_sd * np.sqrt(k_q * excess),
+                    k,
+                )
+                applied = np.where(still & np.isfinite(drawn), drawn, applied)
                 # a release that ends at a level the step test could not tell from zero ends at
                 # zero: that level would not have started a load from rest, and held it stays
                 # for good (the offset takes in what it leaves). On the twin's combined campaign
@@ -1017,6 +1087,7 @@ class PhysicalPredictor:
             "quiet": quiet,
             "since": since,
             "mean_tsum": mean_tsum,
+            "line": line,
             "noise": noise,
             "t": float(t[-1]) if n else t_last,
         }
