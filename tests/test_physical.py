@@ -1208,3 +1208,33 @@ def test_the_runtime_holds_the_lateral_correction_at_a_live_z_the_training_never
     assert np.abs(out[np.nan][:, 0]).max() < 1.0
     # and serve says so when a position source is configured
     assert "trained at Z = 0 mm" in Pipeline(m).z_note
+
+
+def test_the_interval_carries_the_whole_thermal_correction_at_its_relative_error(twin_model, ram2):
+    # The training's residuals cannot show the error a heat taking another path leaves; the
+    # interval takes the whole thermal correction at thermal_relative_error of itself, in
+    # quadrature, after the scaling on the training (so the rest of the interval is unchanged).
+    import copy
+
+    from fbgcomp.models.distributions import norm_ppf
+
+    rho = twin_model.thermal_relative_error
+    assert rho == 0.005
+    assert "the whole thermal correction enters the interval at 0.5 % of itself" in twin_model.summary()
+    d = copy.deepcopy(twin_model.to_dict())
+    del d["params"]["thermal_relative_error"]  # a model file from before the term
+    before = PhysicalModel.from_dict(d)
+    assert before.thermal_relative_error == 0.0
+    c = ram2["thermal_b"]
+    mean, half, p, at = twin_model._served(c)
+    mean0, half0, _, _ = before._served(c)
+    np.testing.assert_array_equal(mean, mean0)  # the correction is not touched
+    thermal = p.last_thermal[at]
+    assert np.abs(thermal[:, 2]).max() > 40.0  # thermal_b's dz drift, 59.9 µm
+    np.testing.assert_allclose(
+        half**2 - half0**2, (norm_ppf(0.975) * rho * thermal) ** 2, rtol=1e-9, atol=1e-9
+    )
+    # where the housing has warmed by 40 µm of dz, the term alone is a half-width of 0.4 µm
+    hot = np.abs(thermal[:, 2]) > 40.0
+    assert np.all(np.sqrt(half[hot, 2] ** 2 - half0[hot, 2] ** 2) >= 0.39)
+    assert np.all(half[hot, 2] > half0[hot, 2])

@@ -47,7 +47,11 @@ those campaigns cannot: the twin map's members' disagreement (where the gratings
 one heat source from another) and the part of the correction made from feature directions no
 training campaign moved along (a face warmer than its opposite one, see
 :func:`~fbgcomp.models.physical.thermal.unseen_basis`), at ``unseen_relative_error`` of itself,
-since only the twin and the description vouch for it.
+since only the twin and the description vouch for it. A third, added after the scaling, speaks
+for what the training's own trajectory of heat cannot show at all: the whole thermal
+correction at ``thermal_relative_error`` (0.5 %) of itself, about what the twin driven by a ram's
+true inputs is off (ram5: 0.2-0.7 % of dz); a heat taking another path than in training leaves
+that much (ram5's thermal_c: 0.45 µm of dz for six hours on 54 µm, inside +-0.3 µm before).
 While a load is applied, the force estimate's noise and the signature's relative error are
 added through the compliance.
 

@@ -171,6 +171,13 @@ class PhysicalModel(EstimatorParams, ModelFile):
         directions no load-free training campaign moved along (:func:`unseen_basis`): how far
         the twin's response to such a state is trusted, which is as far as the machine's
         description is right. It widens the interval only, never the correction.
+    thermal_relative_error : float
+        Relative error (one SD) of the whole thermal correction, however well the training
+        campaigns' residuals say it is known: a housing warming another way than in training
+        (another duty cycle, walls at another temperature) leaves an error of a fraction of a
+        percent of the correction that no training residual shows (ram5's thermal_c: dz 0.45
+        µm off for six hours on 54 µm, inside an interval of +-0.3 µm). It widens the interval
+        only, never the correction. 0 in model files from before it.
     observer : bool
         Average the map's thermal correction with a thermal state observer's (a Kalman filter
         on the twin's reduced thermal model, :mod:`.observer`) while the observer's heat
@@ -236,6 +243,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         offset_tau_s=20.0,
         calibrate_housing=True,
         unseen_relative_error=0.2,
+        thermal_relative_error=0.005,
         observer=False,
         heat_prior="training",
         heat_inputs=True,
@@ -258,6 +266,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         self.offset_tau_s = offset_tau_s
         self.calibrate_housing = calibrate_housing
         self.unseen_relative_error = unseen_relative_error
+        self.thermal_relative_error = thermal_relative_error
         self.observer = observer
         self.heat_prior = heat_prior
         self.heat_inputs = heat_inputs
@@ -1531,6 +1540,11 @@ class PhysicalModel(EstimatorParams, ModelFile):
                     f"the correction made from them enters the interval at "
                     f"{100 * float(self.unseen_relative_error):g} % of itself (1 SD)"
                 )
+            if float(self.thermal_relative_error):
+                out.append(
+                    f"the whole thermal correction enters the interval at "
+                    f"{100 * float(self.thermal_relative_error):g} % of itself (1 SD)"
+                )
             ob = getattr(self, "observer_", None)
             if ob is not None:
                 out.append(
@@ -1612,7 +1626,8 @@ class PhysicalModel(EstimatorParams, ModelFile):
         """The model of a model file's dict; InputError unless its shapes agree and every sensor
         set predicts finite numbers."""
         check_shapes(d, source)
-        m = cls(**d.get("params", {}))
+        # (files from before the thermal part's relative error: none)
+        m = cls(**({"thermal_relative_error": 0.0} | d.get("params", {})))
         m.sensors_ = [SensorSpec(**s) for s in d["sensors"]]
         m.probe_names_ = list(d["probes"])
         m.heat_inputs_ = list(d.get("heat_inputs") or [])

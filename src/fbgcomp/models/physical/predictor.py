@@ -449,6 +449,8 @@ class PhysicalPredictor:
         self.trained_z_mm = None if tz is None else np.asarray(tz, float)
         self.z_tolerance_mm = float(m.z_tolerance_mm)
         self.unseen_relative_error = float(getattr(m, "unseen_relative_error", 0.0))
+        self.thermal_relative_error = float(getattr(m, "thermal_relative_error", 0.0))
+        self.last_thermal = np.zeros((0, 3))
         self.last_unseen = np.zeros((0, 3))
         self.state = None
         self._handed_over = False  # take_state left readings to take from the next frame
@@ -1333,7 +1335,8 @@ class PhysicalPredictor:
         self.last_activity = activity
         self.last_spread = spread
         self.last_unseen = unseen
-        var = self._variance(dT, activity, force, spread, unseen, moving)
+        self.last_thermal = thermal
+        var = self._variance(dT, activity, force, spread, unseen, moving, thermal)
         deviation = thermal + load
         off_z = None if raw else self._untrained_z(z_axis_mm, n)
         if off_z is not None:
@@ -1418,7 +1421,7 @@ class PhysicalPredictor:
         spread = np.where(both, np.hypot(spread, np.abs(thermal - obs)), spread)
         return blended, spread, ~ok
 
-    def _variance(self, dT, activity, force, spread=0.0, unseen=0.0, moving=False):
+    def _variance(self, dT, activity, force, spread=0.0, unseen=0.0, moving=False, thermal=0.0):
         """Predictive variance (n, 3) µm²: the thermal part's error at the current thermal
         excursion, plus, while a load is applied, the force estimate's noise and the signature's
         relative error through the compliance.
@@ -1433,11 +1436,16 @@ class PhysicalPredictor:
         directions no training campaign moved along (a face warmer than its opposite one, see
         :func:`~fbgcomp.models.physical.thermal.unseen_operator`) as an SD of
         ``unseen_relative_error`` times itself: the training residuals cannot speak for a
-        response they never exercised, and it is only as good as the machine's description."""
+        response they never exercised, and it is only as good as the machine's description.
+
+        Plus the thermal correction ``thermal`` (n, 3) µm itself at ``thermal_relative_error``
+        of it (one SD): a heat taking another path than in training leaves a fraction of a
+        percent of it, which no training residual shows."""
         n = dT.shape[0]
         ambiguity = (np.asarray(spread, float) / self._t) ** 2 + (
-            self.unseen_relative_error * np.asarray(unseen, float)
-        ) ** 2 * np.ones((n, 3))
+            (self.unseen_relative_error * np.asarray(unseen, float)) ** 2
+            + (self.thermal_relative_error * np.asarray(thermal, float)) ** 2
+        ) * np.ones((n, 3))
         if self.interval is None:
             self.last_s2 = None
             return self.expected_rms_error_um[None, :] ** 2 + ambiguity
