@@ -50,6 +50,7 @@ def bench(tmp_path_factory):
             "spindle-centred",
             "rails-both-locating",
             "no-radiant-declared",
+            "two-faces",
         ],
         capture_output=True,
         text=True,
@@ -153,20 +154,55 @@ def test_the_interval_widens_where_the_gratings_cannot_tell_the_heat_sources_apa
 def test_the_interval_holds_where_the_description_misses_a_heat_source(bench):
     # The data sheet lists the spindle only: thermal_b's radiant load is read through the
     # twin's generic face sources, which warm S1's gauge alike but move the TTP otherwise
-    # (dx 11.7 and dz 12.2 µm off). An interval fitted on thermal_a's residuals, which never
+    # (dx 11.7 and dz 12.5 µm off). An interval fitted on thermal_a's residuals, which never
     # saw a face warmer than its opposite, covered 0.86 of dx and 0.815 of dz. The part of the
     # correction resting on directions the training never moved along enters it at 20 %.
-    # The missing source also makes thermal_a reject the CFRP's axial expansion (deviance 7.5,
-    # an estimate of -1.0e-6 /K against 0.4e-6), whose map then joins the consensus: dx is
-    # held back to its uncompensated 30.56 µm (11.65 before), and dy covers 0.895 (2026-11-29;
-    # docs/accuracy.md): the one axis of the band missed, by a hair, on a slipped description.
     fig = bench[0]["results"]["no-radiant-declared"]
     for a in AXES:
         v = fig["thermal_b"]["axes"][a]
-        assert (0.89 if a == "dy" else 0.90) <= v["pi95_coverage"] <= 0.995, (a, v)
+        assert 0.90 <= v["pi95_coverage"] <= 0.99, (a, v)
     for held in HELD:
         for a in AXES:
             v = fig[held]["axes"][a]
+            assert v["max_abs_error_um"] <= v["peak_um"] + 0.5, (held, a, v)
+
+
+def test_an_expansion_one_axis_contradicts_is_not_taken_for_the_descriptions(bench):
+    # The missing radiant source also leaves thermal_a a misfit that a CFRP axial expansion of
+    # -1.0e-6 /K (0.4e-6 described and true) absorbs on dx and dz (deviances +9.8, +9.6) while
+    # it fits dy worse by more than the test asks of the description (-11.9, dy's training RMS
+    # 0.13 -> 0.36 µm). One coefficient for every axis: that estimate is not one the training
+    # asks for. Taken into the consensus (2026-11-29 to 2026-12-06) it held thermal_b's dx at
+    # its uncompensated 30.56 µm and took dz to 18.8 and dy's coverage to 0.898.
+    from fbgcomp.models.registry import load_model
+
+    work = bench[1]
+    cte = load_model(work / "no-radiant-declared" / "model.json").twin_map_["cte"]
+    assert cte["deviance"] > cte["threshold"], cte  # the sum alone would reject the description
+    assert min(cte["deviance_per_axis"]) < -cte["threshold"], cte
+    assert not cte["contradicted"], cte
+    v = bench[0]["results"]["no-radiant-declared"]["thermal_b"]["axes"]["dx"]
+    assert v["max_abs_error_um"] <= 0.5 * v["peak_um"], v
+
+
+def test_an_estimated_expansion_speaks_only_for_the_axes_it_fits_better(bench):
+    # Without S2 and S4 the training contradicts the description (deviance 21 from dx and dy)
+    # but fits dz a little worse at the estimate (-2.4): its map joins the consensus on dx and
+    # dy only, and dz keeps the description's answer (thermal_b 6.83 µm when it joined on dz
+    # too, 4.62 as published)
+    from fbgcomp.models.registry import load_model
+
+    work, res = bench[1], bench[0]["results"]
+    m = load_model(work / "two-faces" / "model.json")
+    cte = m.twin_map_["cte"]
+    assert cte["contradicted"], cte
+    (member,) = m.twin_map_["cte_members"]
+    assert member["axes"] == [v > 0 for v in cte["deviance_per_axis"]] == [True, True, False], cte
+    dz = res["two-faces"]["thermal_b"]["axes"]["dz"]["max_abs_error_um"]
+    assert dz == pytest.approx(res["as-published"]["thermal_b"]["axes"]["dz"]["max_abs_error_um"], abs=0.1)
+    for held in HELD:
+        for a in AXES:
+            v = res["two-faces"][held]["axes"][a]
             assert v["max_abs_error_um"] <= v["peak_um"] + 0.5, (held, a, v)
 
 

@@ -177,6 +177,13 @@ def check_shapes(d: dict, source) -> None:
                         f"twin_map.{field}[{i}].ttp_ms_um2",
                         "must be >= 0",
                     )
+                if "axes" in w:
+                    axes = w["axes"]
+                    need(
+                        isinstance(axes, list) and len(axes) == 3 and all(isinstance(a, bool) for a in axes),
+                        f"twin_map.{field}[{i}].axes",
+                        "must be a list of 3 booleans (dx, dy, dz)",
+                    )
         if "ttp_ms_um2" in tm:
             need(
                 np.all(array(tm["ttp_ms_um2"], "twin_map.ttp_ms_um2", (3,)) >= 0),

@@ -252,7 +252,9 @@ def map_members(tm, cols, lam):
     coefficients are the full map's. Taking a source out leaves feature directions no scenario
     excites, and the member's answer on an axis the source hardly moves is that conditioning,
     not physics (the built-in twin: the face pulses move dz by 0.04-0.08 µm RMS against the
-    map's 0.48 µm, and their members were 1.3-1.6 µm further off on dz)."""
+    map's 0.48 µm, and their members were 1.3-1.6 µm further off on dz). The expansion
+    coefficient's member speaks for the axes whose training residual it fits better
+    (``axes``, :meth:`~fbgcomp.models.physical.PhysicalModel._calibrate_cte`)."""
     full = ridge_from_moments(tm["gram"], tm["xty"], tm["scale"], cols, lam)
     out = [full]
     err2 = population_mse(tm, full)
@@ -265,9 +267,14 @@ def map_members(tm, cols, lam):
         out.append(c)
     # the map of the expansion coefficient the training asked for, where it contradicted the
     # description's (PhysicalModel._calibrate_cte): only what both answer is applied
+    # (on the axes whose training it fits better, ``axes``; every axis in files before it)
     for w in tm.get("cte_members", []):
         g = np.asarray(w["gram"], float)
-        out.append(ridge_from_moments(g, w["xty"], np.sqrt(np.clip(np.diag(g), 0, None)), cols, lam))
+        c = ridge_from_moments(g, w["xty"], np.sqrt(np.clip(np.diag(g), 0, None)), cols, lam)
+        if "axes" in w:
+            other = ~np.asarray(w["axes"], bool)
+            c[:, other] = full[:, other]
+        out.append(c)
     return np.stack(out)
 
 
