@@ -1542,10 +1542,11 @@ class PhysicalModel(EstimatorParams, ModelFile):
                 )
                 per_axis = cte.get("deviance_per_axis")
                 against = [a for a, v in zip(AXES, per_axis or []) if v < -cte["threshold"]]
+                speaks = [a for a, v in zip(AXES, per_axis or []) if v > 0]
                 if cte["contradicted"]:
                     verdict = "contradicted: the estimate's map joins the consensus"
-                    if per_axis and not all(v > 0 for v in per_axis):
-                        verdict += " on " + ", ".join(a for a, v in zip(AXES, per_axis) if v > 0)
+                    if per_axis and len(speaks) < len(AXES):
+                        verdict += " on " + ", ".join(speaks)
                 elif against and cte["deviance"] > cte["threshold"]:
                     verdict = f"not contradicted: {', '.join(against)} contradicts the estimate in turn"
                 else:

@@ -256,25 +256,25 @@ def map_members(tm, cols, lam):
     coefficient's member speaks for the axes whose training residual it fits better
     (``axes``, :meth:`~fbgcomp.models.physical.PhysicalModel._calibrate_cte`)."""
     full = ridge_from_moments(tm["gram"], tm["xty"], tm["scale"], cols, lam)
-    out = [full]
     err2 = population_mse(tm, full)
-    for w in tm.get("without", []):
+
+    def member(w, speaks):
+        """A member's map from its moments, the full map's on the axes it does not speak for."""
         g = np.asarray(w["gram"], float)
         c = ridge_from_moments(g, w["xty"], np.sqrt(np.clip(np.diag(g), 0, None)), cols, lam)
-        if err2 is not None and "ttp_ms_um2" in w:
-            quiet = np.asarray(w["ttp_ms_um2"], float) <= err2
-            c[:, quiet] = full[:, quiet]
-        out.append(c)
+        c[:, ~speaks] = full[:, ~speaks]
+        return c
+
+    every = np.ones(3, bool)
+    out = [full]
+    for w in tm.get("without", []):
+        moved = err2 is not None and "ttp_ms_um2" in w
+        out.append(member(w, ~(np.asarray(w["ttp_ms_um2"], float) <= err2) if moved else every))
     # the map of the expansion coefficient the training asked for, where it contradicted the
     # description's (PhysicalModel._calibrate_cte): only what both answer is applied
     # (on the axes whose training it fits better, ``axes``; every axis in files before it)
     for w in tm.get("cte_members", []):
-        g = np.asarray(w["gram"], float)
-        c = ridge_from_moments(g, w["xty"], np.sqrt(np.clip(np.diag(g), 0, None)), cols, lam)
-        if "axes" in w:
-            other = ~np.asarray(w["axes"], bool)
-            c[:, other] = full[:, other]
-        out.append(c)
+        out.append(member(w, np.asarray(w.get("axes", every), bool)))
     return np.stack(out)
 
 
