@@ -315,6 +315,8 @@ def _spindle_60w(d):
 def _both_rails_locating(d):
     for r in d["supports"]["rails"]:
         r["locating"] = True
+        # a locating rail floats in no direction (ram5's -Y rail floats along its normal)
+        r.pop("floats", None)
 
 
 def _stations_off(d):
