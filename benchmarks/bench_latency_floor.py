@@ -19,7 +19,10 @@ A target below the floor cannot be met by any causal correction at the campaign'
 gratings at the last frame do not yet carry what the TTP does at t_r. Compare with the default
 model's figures in bench_accuracy.py.
 
-    nice -n 10 .venv/bin/python benchmarks/bench_latency_floor.py [--ram2 PATH] [--rams ram2,ram3,ram4,ram5]
+    nice -n 10 .venv/bin/python benchmarks/bench_latency_floor.py [--ram2 PATH] [--rams ram2,ram3,ram4,ram5] [--twin]
+
+``--twin`` (TWIN-ONLY): also the built-in machine's ``combined`` campaign (thermal_c's role in
+bench_accuracy.py, seed 0 as ``fbgcomp demo`` makes it), its compliance from ``static-xyz``.
 
 Last line: one JSON object.
 """
@@ -91,12 +94,31 @@ def floor(folder: Path, C):
     }
 
 
+def twin_folder(dest: Path, seed: int = 0) -> Path:
+    """The built-in machine's static-xyz and combined campaigns (one twin, ``seed``, full length,
+    as ``fbgcomp demo`` and bench_accuracy.py make them) written into ``dest``."""
+    from fbgcomp.bench.virtual import load_scenario, simulate
+    from fbgcomp.io.campaign import write_campaign
+    from fbgcomp.structure import Twin, load_machine
+
+    machine = load_machine()
+    twin = Twin(machine)
+    for name in ("static-xyz", "combined"):
+        campaign, _ = simulate(machine, load_scenario(name), seed=seed, twin=twin)
+        write_campaign(campaign, dest / name)
+    return dest
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_ram_arguments(ap, "ram2,ram3,ram4,ram5")
+    ap.add_argument(
+        "--twin", action="store_true", help="also the built-in machine's combined campaign (TWIN-ONLY)"
+    )
     args = ap.parse_args(argv)
     out = {}
     with tempfile.TemporaryDirectory() as tmp:
+        cases = []
         for ram in [r.strip() for r in args.rams.split(",") if r.strip()]:
             try:
                 data, _ = ram_folder(ram, tmp, args.ram2)
@@ -104,12 +126,17 @@ def main(argv=None) -> int:
                 print(e, file=sys.stderr)
                 return 2
             static, judged = JUDGED[ram]
+            cases.append((ram, data, static, judged))
+        if args.twin:
+            cases.append(("twin", twin_folder(Path(tmp) / "twin"), "static-xyz", ("combined",)))
+        for ram, data, static, judged in cases:
             C = compliance(data / static)
             for name in judged:
                 res = floor(data / name, C)
                 out[f"{ram}/{name}"] = res
                 lead = res["dx"]["lead_s"]
-                print(f"{ram}/{name} (reference {lead:+.1f} s after the last frame)")
+                label = " TWIN-ONLY" if ram == "twin" else ""
+                print(f"{ram}/{name}{label} (reference {lead:+.1f} s after the last frame)")
                 for a in AXES:
                     f = res[a]
                     print(
