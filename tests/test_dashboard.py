@@ -704,7 +704,20 @@ def test_beyond_loopback_every_read_needs_a_login_over_tls(tmp_path, runtime_mod
                     ignore_https_errors=True, viewport={"width": 1280, "height": 1000}
                 )
                 page = context.new_page()
+                # until the service has said whether a login is possible (/api/meta, held
+                # here), the page shows no login form: it came with the HTML, and on a loaded
+                # host the form stood before the link said LOGIN (CI of 2026-12-06)
+                held = []
+                page.route("**/api/meta", lambda route: held.append(route))
                 page.goto(base + "/")
+                deadline = time.monotonic() + 20
+                while not held and time.monotonic() < deadline:
+                    page.wait_for_timeout(50)
+                assert held, "the page never asked /api/meta"
+                assert page.is_hidden("#login-form")
+                assert page.get_attribute("#link", "data-state") == "CONNECTING"
+                held[0].continue_()
+                page.unroute("**/api/meta")  # (continues any request it still holds)
                 page.wait_for_selector("#login-form:not([hidden])")
                 assert page.get_attribute("#link", "data-state") == "LOGIN"
                 assert page.evaluate("fbgcomp.updates") == 0
