@@ -222,8 +222,10 @@ def print_table(title: str, rows: list) -> None:
     print(f"  {sum(r['met'] for r in rows)} of {len(rows)} targets met")
 
 
-def twin_campaigns(work: Path, seed: int) -> dict:
-    """The built-in machine's campaigns as fbgcomp demo makes them (one twin, seed 0, full length)."""
+def twin_campaigns(work: Path, seed: int, names=None) -> dict:
+    """The built-in machine's campaigns ``names`` (default: the training's and every role's) as
+    fbgcomp demo makes them (one twin, ``seed``, full length), written into ``work``/twin;
+    name -> folder."""
     from fbgcomp.bench.virtual import load_scenario, simulate
     from fbgcomp.io.campaign import write_campaign
     from fbgcomp.structure import Twin, load_machine
@@ -231,7 +233,7 @@ def twin_campaigns(work: Path, seed: int) -> dict:
     machine = load_machine()
     twin = Twin(machine)
     paths = {}
-    for name in TWIN_TRAIN + tuple(TWIN_ROLES.values()):
+    for name in names or TWIN_TRAIN + tuple(TWIN_ROLES.values()):
         campaign, _ = simulate(machine, load_scenario(name), seed=seed, twin=twin)
         paths[name] = write_campaign(campaign, work / "twin" / name)
     return paths

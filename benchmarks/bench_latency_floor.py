@@ -39,6 +39,7 @@ import numpy as np
 import pandas as pd
 
 from _ram3 import HELD_OUT, add_ram_arguments, ram_folder
+from bench_accuracy import TWIN_ROLES, twin_campaigns
 
 AXES = ("dx", "dy", "dz")
 FORCES = ("fx_N", "fy_N", "fz_N")
@@ -94,21 +95,6 @@ def floor(folder: Path, C):
     }
 
 
-def twin_folder(dest: Path, seed: int = 0) -> Path:
-    """The built-in machine's static-xyz and combined campaigns (one twin, ``seed``, full length,
-    as ``fbgcomp demo`` and bench_accuracy.py make them) written into ``dest``."""
-    from fbgcomp.bench.virtual import load_scenario, simulate
-    from fbgcomp.io.campaign import write_campaign
-    from fbgcomp.structure import Twin, load_machine
-
-    machine = load_machine()
-    twin = Twin(machine)
-    for name in ("static-xyz", "combined"):
-        campaign, _ = simulate(machine, load_scenario(name), seed=seed, twin=twin)
-        write_campaign(campaign, dest / name)
-    return dest
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_ram_arguments(ap, "ram2,ram3,ram4,ram5")
@@ -128,7 +114,9 @@ def main(argv=None) -> int:
             static, judged = JUDGED[ram]
             cases.append((ram, data, static, judged))
         if args.twin:
-            cases.append(("twin", twin_folder(Path(tmp) / "twin"), "static-xyz", ("combined",)))
+            static, judged = TWIN_ROLES["static_x"], (TWIN_ROLES["thermal_c"],)
+            twin = twin_campaigns(Path(tmp), 0, (static, *judged))[static].parent
+            cases.append(("twin", twin, static, judged))
         for ram, data, static, judged in cases:
             C = compliance(data / static)
             for name in judged:
