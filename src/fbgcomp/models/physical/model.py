@@ -558,8 +558,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
             if self.calibrate_cte and self._cte_moments is not None:
                 self.twin_map_["cte"] = self._calibrate_cte(rows)
                 self._predictors = {}
-            noise, heat_noise, k = self._noise_floor(campaigns)
+            noise, heat_noise, k, zero = self._noise_floor(campaigns)
             self.twin_map_["calibration"]["floor_sd_um"] = noise.tolist()
+            self.twin_map_["calibration"]["zero_sd_um"] = zero.tolist()
             self.twin_map_["calibration"]["floor_k"] = k.tolist()
             if self.heat_inputs_:
                 self.twin_map_["calibration"]["heat_noise_sd_um"] = heat_noise.tolist()
@@ -887,7 +888,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         # the noise alone is expected to reach over as many independent samples as it holds
         n_eff = np.array([effective_samples(thermal[past, j]) for j in range(3)])
         k = np.maximum(np.sqrt(2.0 * np.log(np.maximum(n_eff, 2.0))), float(self.load_k_sigma))
-        return np.sqrt(jitter2 + offset2), np.sqrt(np.mean(heat_part**2, axis=0)), k
+        return np.sqrt(jitter2 + offset2), np.sqrt(np.mean(heat_part**2, axis=0)), k, np.sqrt(offset2)
 
     def _calibrate_housing(self, rows, campaigns):
         """Least squares (no intercept, campaigns weighted equally) of the twin map's error on
@@ -966,7 +967,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         # dT is a reading minus the zero reading: a change within twice the SD of such a
         # difference of two readings (sqrt 2 x each probe's white noise) is none
         deadband = 2.0 * np.sqrt(2.0) * probe_noise_sd_K(campaigns, self.probe_names_)
-        e2, S, act, w, n_eff, spread2 = [], [], [], [], [], []
+        e2, S, act, w, n_eff, spread2, zero2 = [], [], [], [], [], [], []
         rho = float(self.unseen_relative_error)
         held_out = self._held_out_served(rows, campaigns, exclude)
         lost = [self.probe_names_.index(q) for q in exclude if q in self.probe_names_]
@@ -984,11 +985,13 @@ class PhysicalModel(EstimatorParams, ModelFile):
             act.append(p.last_activity[at])
             # the members' disagreement as a 95 % half-width, the unseen part's error as an SD
             spread2.append(p.last_spread[at] ** 2 + z2 * (rho * p.last_unseen[at]) ** 2)
+            # the zero state's error, at the share of the correction the threshold passes
+            zero2.append((p.zero_sd_um * p.last_passed[at]) ** 2)
             w.append(np.full(len(pred), 1.0 / len(pred)))  # campaigns weighted equally
         e2, s2, act, w = np.vstack(e2), np.concatenate(S), np.concatenate(act), np.concatenate(w)
         # the members' disagreement is a variance of its own (PhysicalPredictor._variance): what
         # is left for the state terms is the error beyond it and the instrument's noise
-        base = v0[None, :] + np.vstack(spread2) / z2
+        base = v0[None, :] + np.vstack(spread2) / z2 + np.vstack(zero2)
         a_scale = max(float(np.abs(act).max()), 1e-3)
         # A model that sees nothing of the spindle housing (no probe in or on it, no measured
         # heat input) cannot tell a spindle start from rest: the TTP moves while no state it
@@ -1564,6 +1567,14 @@ class PhysicalModel(EstimatorParams, ModelFile):
                     f"unseen by the training: {basis.shape[1]} of {basis.shape[0]} feature directions; "
                     f"the correction made from them enters the interval at "
                     f"{100 * float(self.unseen_relative_error):g} % of itself (1 SD)"
+                )
+            zero = (cal or {}).get("zero_sd_um")
+            if zero is not None:
+                out.append(
+                    "the zero state's error (each probe and grating zeroed on the zero window's samples) "
+                    "enters the interval once the correction passes the noise threshold: "
+                    + ", ".join(f"{a} {v:.3g}" for a, v in zip(AXES, zero))
+                    + " µm (1 SD)"
                 )
             if float(self.thermal_relative_error):
                 out.append(

@@ -334,6 +334,8 @@ class PhysicalPredictor:
         # the share of it a probe's fallback adds to its own interval: its lost gratings'
         self._interval_lost_sd_um = np.zeros(3)
         self._floor_scale = np.ones(3)
+        # the zero state's error through the map (PhysicalModel._noise_floor), (3,) µm
+        self.zero_sd_um = np.zeros(3)
         if getattr(m, "twin_map_", None) is not None:
             tm = m.twin_map_
             S = len(self.sensor_names)
@@ -370,6 +372,8 @@ class PhysicalPredictor:
                 self.map["unseen"] = W
                 self.map["unseen_noise_sd"] = np.sqrt(np.clip(np.einsum("ka,kl,la->a", W, nz, W), 0, None))
             cal = tm.get("calibration")
+            if cal is not None and "zero_sd_um" in cal:
+                self.zero_sd_um = np.asarray(cal["zero_sd_um"], float)
             if cal is not None and "floor_sd_um" in cal and len(cols) == k and not self.heat_names:
                 # the whole thermal part's noise at the instruments' own rates, the housing
                 # calibration's leads and the zero state's error included
@@ -452,6 +456,7 @@ class PhysicalPredictor:
         self.thermal_relative_error = float(getattr(m, "thermal_relative_error", 0.0))
         self.last_thermal = np.zeros((0, 3))
         self.last_unseen = np.zeros((0, 3))
+        self.last_passed = np.zeros((0, 3))
         self.state = None
         self._handed_over = False  # take_state left readings to take from the next frame
         self.last_flags = np.zeros((0, 3), np.uint8)
@@ -1123,6 +1128,7 @@ class PhysicalPredictor:
         flags = np.zeros((n, 3), np.uint8)
         spread = np.zeros((n, 3))
         unseen = np.zeros((n, 3))
+        passed = np.ones((n, 3))  # without the policy's threshold the whole correction passes
         state = self.state or {}
         new_state = {}
         lost_p = self._lost_p
@@ -1279,7 +1285,13 @@ class PhysicalPredictor:
                     leak = self.relative_error * np.abs(force @ self.map["G"].T) @ self.map["leak_weights"]
                     sd = np.hypot(sd, leak)
                 sd = sd * self._floor_scale
-                thermal = P.firm(thermal, sd, self.k_sigma, 2 * self.k_sigma) + heat_part
+                before = thermal
+                thermal = P.firm(thermal, sd, self.k_sigma, 2 * self.k_sigma)
+                # the share of the map's correction the threshold lets through: the zero
+                # state's error passes with it (_variance)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    passed = np.where(before != 0.0, np.abs(thermal) / np.abs(before), 0.0)
+                thermal = thermal + heat_part
                 thermal, clamped = P.clamp_axes(thermal, self.t_low, self.t_high)
                 flags[outside] |= P.SHRUNK
                 flags[clamped] |= P.CLAMPED
@@ -1335,8 +1347,9 @@ class PhysicalPredictor:
         self.last_activity = activity
         self.last_spread = spread
         self.last_unseen = unseen
+        self.last_passed = passed
         self.last_thermal = thermal
-        var = self._variance(dT, activity, force, spread, unseen, moving, thermal)
+        var = self._variance(dT, activity, force, spread, unseen, moving, thermal, passed)
         deviation = thermal + load
         off_z = None if raw else self._untrained_z(z_axis_mm, n)
         if off_z is not None:
@@ -1421,7 +1434,7 @@ class PhysicalPredictor:
         spread = np.where(both, np.hypot(spread, np.abs(thermal - obs)), spread)
         return blended, spread, ~ok
 
-    def _variance(self, dT, activity, force, spread=0.0, unseen=0.0, moving=False, thermal=0.0):
+    def _variance(self, dT, activity, force, spread=0.0, unseen=0.0, moving=False, thermal=0.0, passed=0.0):
         """Predictive variance (n, 3) µm²: the thermal part's error at the current thermal
         excursion, plus, while a load is applied, the force estimate's noise and the signature's
         relative error through the compliance.
@@ -1440,11 +1453,20 @@ class PhysicalPredictor:
 
         Plus the thermal correction ``thermal`` (n, 3) µm itself at ``thermal_relative_error``
         of it (one SD): a heat taking another path than in training leaves a fraction of a
-        percent of it, which no training residual shows."""
+        percent of it, which no training residual shows.
+
+        Plus the zero state's error (``zero_sd_um``: each probe and grating zeroed on the few
+        samples of the zero window, through the map's coefficients;
+        :meth:`~fbgcomp.models.physical.PhysicalModel._noise_floor`) at the share ``passed``
+        (n, 3) of the map's correction the policy's threshold lets through: a constant error
+        for the whole run once the correction passes, which the instrument's noise ``v0`` does
+        not hold (ram5's thermal_c: dz 0.37 µm off for 8 h, from probes read 0.1 K off at the
+        start, against a 95 % half-width of 0.4 µm)."""
         n = dT.shape[0]
         ambiguity = (np.asarray(spread, float) / self._t) ** 2 + (
             (self.unseen_relative_error * np.asarray(unseen, float)) ** 2
             + (self.thermal_relative_error * np.asarray(thermal, float)) ** 2
+            + (self.zero_sd_um * np.asarray(passed, float)) ** 2
         ) * np.ones((n, 3))
         if self.interval is None:
             self.last_s2 = None

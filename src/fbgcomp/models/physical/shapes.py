@@ -219,7 +219,7 @@ def check_shapes(d: dict, source) -> None:
             array(cal.get("coef"), "twin_map.calibration.coef", (k, 3))
             for key in ("envelope_low", "envelope_high"):
                 array(cal.get(key), f"twin_map.calibration.{key}", (k,))
-            for key in ("noise_sd_um", "floor_sd_um", "floor_k"):
+            for key in ("noise_sd_um", "floor_sd_um", "floor_k", "zero_sd_um"):
                 if key in cal:
                     need(
                         np.all(array(cal[key], f"twin_map.calibration.{key}", (3,)) >= 0),
