@@ -20,6 +20,11 @@ command. It is judged only on campaigns it never saw.
   one floating along its normal, five gratings, five probes, a radiant load on -X): the same
   command with examples/machines/ram5.yaml; judged on thermal_b, thermal_c (heat + forces along
   Y and X) and static_x.
+* ram6 (tests/data/ram6.tar.xz, ``--no-ram6`` to skip): a fifth, made the same way (a CFRP of
+  negative axial expansion, rails on two adjacent faces, the +Y one floating along its normal,
+  six gratings, a second heat source at the top of the box, a radiant load on +Y): the same
+  command with examples/machines/ram6.yaml; judged on thermal_b, thermal_c (heat + forces along
+  X and Y) and static_x.
 * the twin (twin-only figures: our own simulator), the built-in default machine's campaigns as
   ``fbgcomp demo`` makes them (seed 0, full length): ``fbgcomp fit thermal-36h static-y
   --machine src/fbgcomp/data/ram.yaml`` (the built-in machine's description); judged
@@ -37,7 +42,7 @@ Targets (per data set, "peak" = the uncompensated max |deviation| of that axis):
                axis with max |error| above uncompensated + 0.5 um)
 
     nice -n 10 .venv/bin/python benchmarks/bench_accuracy.py [--ram2 PATH] [--work DIR] [--no-twin] \
-        [--no-ram3] [--no-ram4] [--no-ram5]
+        [--no-ram3] [--no-ram4] [--no-ram5] [--no-ram6]
 
 Prints the target table per data set (measured, target, met / MISSED) and, last, one JSON line
 with every figure.
@@ -250,6 +255,7 @@ def main(argv=None) -> int:
     ap.add_argument("--no-ram3", action="store_true", help="no ram3 figures")
     ap.add_argument("--no-ram4", action="store_true", help="no ram4 figures")
     ap.add_argument("--no-ram5", action="store_true", help="no ram5 figures")
+    ap.add_argument("--no-ram6", action="store_true", help="no ram6 figures")
     args = ap.parse_args(argv)
 
     from fbgcomp.cli.demo import RAM2_MACHINE, find_ram2
@@ -310,6 +316,8 @@ def main(argv=None) -> int:
         RAM4_MACHINE,
         RAM5_ARCHIVE,
         RAM5_MACHINE,
+        RAM6_ARCHIVE,
+        RAM6_MACHINE,
         unpack,
     )
 
@@ -317,6 +325,7 @@ def main(argv=None) -> int:
         ("ram3", RAM3_ARCHIVE, RAM3_MACHINE, RAM3_ROLES, args.no_ram3),
         ("ram4", RAM4_ARCHIVE, RAM4_MACHINE, RAM3_ROLES, args.no_ram4),
         ("ram5", RAM5_ARCHIVE, RAM5_MACHINE, RAM2_ROLES, args.no_ram5),
+        ("ram6", RAM6_ARCHIVE, RAM6_MACHINE, RAM2_ROLES, args.no_ram6),
     )
     for ram, archive, machine, roles, skip in own:
         if skip:

@@ -19,7 +19,7 @@ A target below the floor cannot be met by any causal correction at the campaign'
 gratings at the last frame do not yet carry what the TTP does at t_r. Compare with the default
 model's figures in bench_accuracy.py.
 
-    nice -n 10 .venv/bin/python benchmarks/bench_latency_floor.py [--ram2 PATH] [--rams ram2,ram3,ram4,ram5] [--twin]
+    nice -n 10 .venv/bin/python benchmarks/bench_latency_floor.py [--ram2 PATH] [--rams ram2,...,ram6] [--twin]
 
 ``--twin`` (TWIN-ONLY): also the built-in machine's ``combined`` campaign (thermal_c's role in
 bench_accuracy.py, seed 0 as ``fbgcomp demo`` makes it), its compliance from ``static-xyz``.
@@ -97,7 +97,7 @@ def floor(folder: Path, C):
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    add_ram_arguments(ap, "ram2,ram3,ram4,ram5")
+    add_ram_arguments(ap, "ram2,ram3,ram4,ram5,ram6")
     ap.add_argument(
         "--twin", action="store_true", help="also the built-in machine's combined campaign (TWIN-ONLY)"
     )

@@ -23,7 +23,7 @@ share of reference samples the published 95 % interval covers (|reference - devi
 half-width), per axis.
 Last line: one JSON object.
 
-    nice -n 10 .venv/bin/python benchmarks/bench_lost_probe.py [--ram2 PATH] [--rams ram2,ram3,ram4,ram5] [--pairs]
+    nice -n 10 .venv/bin/python benchmarks/bench_lost_probe.py [--ram2 PATH] [--rams ram2,ram3,ram4,ram5,ram6] [--pairs]
 """
 
 from __future__ import annotations
@@ -105,7 +105,7 @@ def judge(ram: str, data: Path, machine, pairs: bool = False) -> list:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    add_ram_arguments(ap, "ram2,ram3,ram4,ram5")
+    add_ram_arguments(ap, "ram2,ram3,ram4,ram5,ram6")
     ap.add_argument("--pairs", action="store_true", help="each pair of probes lost at once")
     args = ap.parse_args(argv)
     rams = [r.strip() for r in args.rams.split(",") if r.strip()]
