@@ -1460,8 +1460,8 @@ class PhysicalPredictor:
         :meth:`~fbgcomp.models.physical.PhysicalModel._noise_floor`) at the share ``passed``
         (n, 3) of the map's correction the policy's threshold lets through: a constant error
         for the whole run once the correction passes, which the instrument's noise ``v0`` does
-        not hold (ram5's thermal_c: dz 0.37 µm off for 8 h, from probes read 0.1 K off at the
-        start, against a 95 % half-width of 0.4 µm)."""
+        not hold and one training campaign's residuals sample only once (0.26 µm SD on ram5's
+        dz, 0.16 on ram2's)."""
         n = dT.shape[0]
         ambiguity = (np.asarray(spread, float) / self._t) ** 2 + (
             (self.unseen_relative_error * np.asarray(unseen, float)) ** 2
