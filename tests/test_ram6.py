@@ -23,6 +23,14 @@ def ram6():
     return read_ram6("thermal_a", "static_xyz", *HELD)
 
 
+@pytest.fixture(scope="session")
+def ram6_model(ram6):
+    """``fbgcomp fit thermal_a static_xyz --machine examples/machines/ram6.yaml``."""
+    from fbgcomp.models.physical import PhysicalModel
+
+    return PhysicalModel(machine=RAM6_MACHINE).fit([ram6["thermal_a"], ram6["static_xyz"]])
+
+
 def test_ram6s_data_sheet_describes_what_its_campaigns_carry():
     """The archive holds the data sheet, the checks and every campaign the description names."""
     import yaml
@@ -38,16 +46,14 @@ def test_ram6s_data_sheet_describes_what_its_campaigns_carry():
 
 
 @pytest.mark.slow
-def test_the_default_fit_harms_no_axis_of_ram6s_held_out_campaigns(ram6):
+def test_the_default_fit_harms_no_axis_of_ram6s_held_out_campaigns(ram6, ram6_model):
     """``fbgcomp fit thermal_a static_xyz --machine examples/machines/ram6.yaml``, judged on the
     campaigns it never saw: no axis ends with a larger max |error| than uncompensated (+0.5 µm);
     thermal_b's dz within 3 µm and its lateral axes within 20 % of their peaks; the loaded axes
     of thermal_c and static_x within 5 % (2026-12-06: thermal_b dx / dy / dz 1.68 / 2.62 / 2.92 µm
     on 13.7 / 31.1 / 49.6; thermal_c 4.71 / 8.65 / 2.24 on 185 / 266 / 41.3; static_x dx 9.35 on
     296, dy 6.23 on 195)."""
-    from fbgcomp.models.physical import PhysicalModel
-
-    m = PhysicalModel(machine=RAM6_MACHINE).fit([ram6["thermal_a"], ram6["static_xyz"]])
+    m = ram6_model
     figures = {}
     for name in HELD:
         err, peak, cover = held_out_figures(m, ram6[name])
@@ -59,3 +65,24 @@ def test_the_default_fit_harms_no_axis_of_ram6s_held_out_campaigns(ram6):
     for name in ("thermal_c", "static_x"):
         err, peak, _ = figures[name]
         assert (err[:2] <= 0.05 * peak[:2]).all(), (name, err, peak)
+
+
+@pytest.mark.slow
+def test_a_housing_probe_lost_and_back_on_a_static_campaign_moves_nothing(ram6, ram6_model):
+    """Served through the runtime core with the housing probe lost for 40-60 % of static_x
+    (uniform temperature: dz moves 0.16 µm), then back. The probe is held at its low-passed
+    reading while lost: held at its last sample, 0.25 K below its level (noise and 0.1 K
+    quantisation), the housing's leads took that step for 116 s and dz ended 1.84 µm off
+    (benchmarks/bench_lost_probe.py --rams ram6, 2026-12-06)."""
+    from fbgcomp.bench.served import served
+    from fbgcomp.runtime.pipeline import HEALTH_DEGRADED
+
+    c = ram6["static_x"]
+    corr, ref, _ = served(ram6_model, c)
+    corr_lost, ref_lost, out = served(ram6_model, c, lost=["T_housing"], lost_from=0.4, lost_until=0.6)
+    peak = np.abs(ref).max(axis=0)
+    every = np.abs(ref + corr).max(axis=0)
+    lost = np.abs(ref_lost + corr_lost).max(axis=0)
+    assert (out["health"] == HEALTH_DEGRADED).any()  # the fallback ran
+    assert (lost <= peak + 0.5).all(), (lost, peak)
+    assert lost[2] <= every[2] + 0.1, (lost, every)

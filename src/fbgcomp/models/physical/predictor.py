@@ -1168,6 +1168,13 @@ class PhysicalPredictor:
             X, new_state["map"] = map_features(
                 e_th, dT, self._h_idx, time_s, state.get("map"), self.nominal_dt_s
             )
+            if n and new_state["map"].get("in") is not None:
+                # a probe lost after this frame is held at its low-passed reading, not at its
+                # last sample: the filters that go on without it then see no step at the loss.
+                # Held at a sample 0.25 K below its level (its noise and 0.1 K quantisation),
+                # ram6's housing probe put that step into the housing's leads for the 116 s it
+                # was lost, and dz was 1.84 µm off on a static campaign that moves 0.16 µm.
+                new_state["probe_last"] = np.asarray(new_state["map"]["in"][0], float).copy()
             activity = X[:, -len(MAP_LEADS_S)]  # the housing's fastest lead, K
             L = None
             if self.cal is not None:
