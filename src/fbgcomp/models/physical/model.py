@@ -967,7 +967,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         # dT is a reading minus the zero reading: a change within twice the SD of such a
         # difference of two readings (sqrt 2 x each probe's white noise) is none
         deadband = 2.0 * np.sqrt(2.0) * probe_noise_sd_K(campaigns, self.probe_names_)
-        e2, S, act, w, n_eff, spread2, zero2 = [], [], [], [], [], [], []
+        e2, S, act, w, n_eff, spread2 = [], [], [], [], [], []
         rho = float(self.unseen_relative_error)
         held_out = self._held_out_served(rows, campaigns, exclude)
         lost = [self.probe_names_.index(q) for q in exclude if q in self.probe_names_]
@@ -983,15 +983,17 @@ class PhysicalModel(EstimatorParams, ModelFile):
             dT[:, lost] = 0.0  # a lost probe's reading is held (PhysicalPredictor.predict)
             S.append(excursion2(dT, scale, deadband))
             act.append(p.last_activity[at])
-            # the members' disagreement as a 95 % half-width, the unseen part's error as an SD
-            spread2.append(p.last_spread[at] ** 2 + z2 * (rho * p.last_unseen[at]) ** 2)
-            # the zero state's error, at the share of the correction the threshold passes
-            zero2.append((p.zero_sd_um * p.last_passed[at]) ** 2)
+            # the members' disagreement as a 95 % half-width; the unseen part's error and the
+            # zero state's (at the share of the correction the threshold passes) as SDs
+            spread2.append(
+                p.last_spread[at] ** 2
+                + z2 * ((rho * p.last_unseen[at]) ** 2 + (p.zero_sd_um * p.last_passed[at]) ** 2)
+            )
             w.append(np.full(len(pred), 1.0 / len(pred)))  # campaigns weighted equally
         e2, s2, act, w = np.vstack(e2), np.concatenate(S), np.concatenate(act), np.concatenate(w)
         # the members' disagreement is a variance of its own (PhysicalPredictor._variance): what
         # is left for the state terms is the error beyond it and the instrument's noise
-        base = v0[None, :] + np.vstack(spread2) / z2 + np.vstack(zero2)
+        base = v0[None, :] + np.vstack(spread2) / z2
         a_scale = max(float(np.abs(act).max()), 1e-3)
         # A model that sees nothing of the spindle housing (no probe in or on it, no measured
         # heat input) cannot tell a spindle start from rest: the TTP moves while no state it
