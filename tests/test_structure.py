@@ -467,7 +467,9 @@ def ram2_twin(ram2, fe):
 
 @pytest.mark.slow
 def test_ram2_supports_hold_the_carriage_patches(ram2_twin, ram2):
-    """Every node of the four carriage patches is held in Y; the locating strip's also in X."""
+    """Every node of the four carriage patches is held in Y; the locating strip's also in X; no
+    node behind the face is held (the facets' assembled trace leaves round-off there, which once
+    held the wall through its thickness: ram6's lateral compliance came out 25 % stiff)."""
     rm, vb = ram2_twin.mesh, ram2_twin._vbasis
     held = np.zeros(vb.N)
     held[ram2_twin.support_rows_mm.indices] = 1.0
@@ -479,6 +481,7 @@ def test_ram2_supports_hold_the_carriage_patches(ram2_twin, ram2):
     assert held[vb.nodal_dofs[1, strip_loc | strip_float]].all()
     assert held[vb.nodal_dofs[0, strip_loc]].all()
     assert not held[vb.nodal_dofs[0, strip_float]].any()
+    assert not held[vb.nodal_dofs[:2, ~on_face]].any()
     top = np.abs(p[2] - 1400.0) < 1e-6
     assert held[vb.nodal_dofs[2, top]].all() and held[vb.nodal_dofs[2]].sum() == top.sum()
 
@@ -500,12 +503,12 @@ def test_uniform_warming_moves_ram2_away_from_its_reference_face_and_locating_ra
 
 def _opposite_rails(ram2, floats):
     """ram2 guided on two opposite faces: a locating rail on +Y, the other on -Y floating
-    ``floats`` (across the face, or along its normal: the carriages let the box grow)."""
+    ``floats`` (across the face, or along its normal: the carriages let the box grow), or
+    locating too (``floats`` None)."""
     d = ram2.model_dump(mode="json")
-    d["supports"]["rails"] = [
-        {"face": "+Y", "across_mm": [-40.0, 40.0], "locating": True},
-        {"face": "-Y", "across_mm": [-40.0, 40.0], "floats": floats},
-    ]
+    minus = {"face": "-Y", "across_mm": [-40.0, 40.0]}
+    minus |= {"floats": floats} if floats else {"locating": True}
+    d["supports"]["rails"] = [{"face": "+Y", "across_mm": [-40.0, 40.0], "locating": True}, minus]
     return parse_machine(d)
 
 
@@ -513,8 +516,10 @@ def _opposite_rails(ram2, floats):
 def test_a_rail_floating_along_its_normal_lets_the_box_grow_towards_it(ram2, fe):
     """Rails on opposite faces, the -Y one floating along its normal: its carriage patches hold
     u_x only, and a uniform warming moves the axis away from the +Y locating face (dy < 0), not
-    in X. The same rail holding its normal (floating across, the default) pins the box's width
-    at both faces and leaves a fraction of that drift."""
+    in X. The same rail holding its normal and X as well (a second locating rail) pins the box's
+    width at both faces, and the two faces' symmetry leaves the axis where it was. (Holding the
+    normal alone on -Y, floating across, is not symmetric: the +Y strip's transverse expansion
+    is held in X and the -Y strip's is not, and that bends the box: +7.9 µm of dy.)"""
     free = fe.Twin(_opposite_rails(ram2, "normal"), resolution=0.5)
     rm, vb = free.mesh, free._vbasis
     held = np.zeros(vb.N)
@@ -529,9 +534,9 @@ def test_a_rail_floating_along_its_normal_lets_the_box_grow_towards_it(ram2, fe)
 
     dx, dy, _ = free.static_temperature_response("uniform", 10.0).ttp_um
     assert dy < -10.0 and abs(dx) < 0.05 * abs(dy), (dx, dy)
-    pinned = fe.Twin(_opposite_rails(ram2, "across"), resolution=0.5)
+    pinned = fe.Twin(_opposite_rails(ram2, None), resolution=0.5)
     dy_pinned = pinned.static_temperature_response("uniform", 10.0).ttp_um[1]
-    assert abs(dy_pinned) < 0.3 * abs(dy), (dy_pinned, dy)
+    assert abs(dy_pinned) < 1e-3 * abs(dy), (dy_pinned, dy)
 
 
 @pytest.mark.slow
