@@ -1,21 +1,21 @@
 """The twin driven by an independent ram's own inputs: how far its TTP, elongations and probe
 temperatures are from what the independent FE model reports, nothing fitted.
 
-On ram2 (../shared/reference/ram2 or ``--ram2``) and ram3 (tests/data/ram3.tar.xz), each
-described from its data sheet (examples/machines/ram2.yaml, ram3.yaml): the thermal campaigns'
-truth files (``truth/<campaign>.csv``) hold the inputs the FE model was given (ambient, the
-spindle bearings' heat, thermal_c's force at the TTP, ram3's radiant flux; ram2's radiant load
-of thermal_b is not in its truth file and is rebuilt from its README: a 90 W/m² half-sine from
-8 to 14 h). The twin
-(``Twin.thermal``) runs them and its changes from the first sample are compared with the truth's.
-ram3's bearings are off-centre (towards -Y); the same heat declared centred and mirrored shows
-how much a source's position matters against how well the twin follows it.
+On ram2 (../shared/reference/ram2, ``--ram2`` or $FBGCOMP_RAM2) and the project's own rams
+(tests/data/ram3..ram6.tar.xz), each described from its data sheet (examples/machines/ramN.yaml):
+the thermal campaigns' truth files (``truth/<campaign>.csv``) hold the inputs the FE model was
+given (ambient, each heat source's power or flux, thermal_c's force at the TTP; ram2's radiant
+load of thermal_b is not in its truth file and is rebuilt from its README: a 90 W/m² half-sine
+from 8 to 14 h). The twin (``Twin.thermal``, each declared source driven by name) runs them and
+its changes from the first sample are compared with the truth's. ram3's bearings are off-centre
+(towards -Y); the same heat declared centred and mirrored shows how much a source's position
+matters against how well the twin follows it.
 
 This separates the twin's physics from the models built on it: a model's error on these
 campaigns that the forward twin does not have comes from what the model has to infer (the heat
 inputs it does not read), not from the twin's response.
 
-    nice -n 10 .venv/bin/python benchmarks/bench_twin_forward.py [--ram2 PATH] [--no-variants]
+    nice -n 10 .venv/bin/python benchmarks/bench_twin_forward.py [--rams ram2,ram3] [--no-variants]
 
 Prints per ram, campaign and declaration the max |error| per axis against the uncompensated
 peak, the worst elongation and housing-probe errors, and, last, one JSON line.
@@ -38,7 +38,7 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _ram3 import RAM3_MACHINE, unpack_ram3
+from _ram3 import OWN_RAMS, add_ram_arguments, unpack
 
 REPO = Path(__file__).resolve().parents[1]
 AXES = ("dx", "dy", "dz")
@@ -53,13 +53,23 @@ def ram2_radiant_W_per_m2(campaign: str, time_s: np.ndarray) -> np.ndarray:
     return np.where((phase > 0) & (phase < 1), 90.0 * np.sin(np.pi * np.clip(phase, 0, 1)), 0.0)
 
 
-def forward(desc: dict, truth: pd.DataFrame, radiant, housing_probe: str) -> dict:
+#: per ram: the description's heat source driven by each truth column, and the housing probe
+SOURCES = {
+    "ram2": ({"spindle_heat": "spindle_W"}, "T_flange"),
+    "ram3": ({"spindle_heat": "spindle_W", "radiant": "radiant_W_per_m2"}, "T_housing"),
+    "ram4": ({"bearings": "spindle_W", "motor": "motor_W", "radiant": "radiant_W_per_m2"}, "T_head"),
+    "ram5": ({"bearings": "spindle_W", "radiant": "radiant_W_per_m2"}, "T_spindle"),
+    "ram6": ({"bearings": "spindle_W", "nut": "nut_W", "radiant": "radiant_W_per_m2"}, "T_housing"),
+}
+
+
+def forward(desc: dict, truth: pd.DataFrame, heat: dict, housing_probe: str) -> dict:
     from fbgcomp.structure.machine import parse_machine
     from fbgcomp.structure.twin import Twin
 
     twin = Twin(parse_machine(desc))
     t = truth["time_s"].to_numpy(float)
-    r = twin.thermal(t, truth["T_amb_C"].to_numpy(float), truth["spindle_W"].to_numpy(float), radiant)
+    r = twin.thermal(t, truth["T_amb_C"].to_numpy(float), heat=heat)
     loaded = twin.static(truth[["fx_N", "fy_N", "fz_N"]].to_numpy(float))  # thermal_c's force
     ttp = r.ttp_um + loaded.ttp_um
     ttp = ttp - ttp[0]
@@ -77,7 +87,7 @@ def forward(desc: dict, truth: pd.DataFrame, radiant, housing_probe: str) -> dic
         "uncompensated_um": dict(zip(AXES, np.abs(ref).max(axis=0).tolist(), strict=True)),
         "elongation_max_error_um": float(np.abs(el - el_ref).max()),
         "elongation_peak_um": float(np.abs(el_ref).max()),
-        "housing_probe_max_error_K": float(np.abs(probe - truth[housing_probe].to_numpy(float)).max()),
+        "housing_probe_max_error_K": float(np.abs(probe - truth[f"{housing_probe}_C"].to_numpy(float)).max()),
     }
 
 
@@ -89,7 +99,7 @@ def _moved(desc: dict, y_mm) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--ram2", type=Path, default=REPO.parent / "shared" / "reference" / "ram2")
+    add_ram_arguments(ap, "ram2,ram3,ram4,ram5,ram6")
     ap.add_argument("--no-variants", action="store_true", help="ram3's declared bearings only")
     args = ap.parse_args(argv)
     start = time.perf_counter()
@@ -99,29 +109,36 @@ def main(argv=None) -> int:
     )
     with tempfile.TemporaryDirectory(prefix="bench-twin-forward-") as tmp:
         rams = []
-        if (args.ram2 / "truth").is_dir():
-            desc2 = yaml.safe_load((REPO / "examples" / "machines" / "ram2.yaml").read_text())
-            rams.append(
-                ("ram2", args.ram2, {"declared": desc2}, "T_flange_C", "T_flange", ram2_radiant_W_per_m2)
-            )
-        else:
-            print(f"ram2 not found at {args.ram2}: ram3 only", file=sys.stderr)
-        desc3 = yaml.safe_load(RAM3_MACHINE.read_text())
-        variants3 = {"declared": desc3}
-        if not args.no_variants:
-            variants3["centred"] = _moved(desc3, (-45.0, 45.0))
-            variants3["mirrored"] = _moved(desc3, (-10.0, 80.0))
-        rams.append(("ram3", unpack_ram3(Path(tmp)), variants3, "T_housing_C", "T_housing", None))
-        for ram, root, variants, probe_col, probe, radiant_of in rams:
+        for ram in [r for r in args.rams.split(",") if r]:
+            if ram == "ram2":
+                from fbgcomp.cli.demo import find_ram2
+
+                data, looked = find_ram2(args.ram2)
+                if data is None:
+                    print(f"ram2 not found at {looked}: skipped", file=sys.stderr)
+                    continue
+                root, machine = data.parent, REPO / "examples" / "machines" / "ram2.yaml"
+            elif ram in OWN_RAMS:
+                archive, machine = OWN_RAMS[ram]
+                root = unpack(archive, Path(tmp) / ram)
+            else:
+                ap.error(f"--rams: unknown ram {ram!r}")
+            desc = yaml.safe_load(machine.read_text())
+            variants = {"declared": desc}
+            if ram == "ram3" and not args.no_variants:
+                variants["centred"] = _moved(desc, (-45.0, 45.0))
+                variants["mirrored"] = _moved(desc, (-10.0, 80.0))
+            rams.append((ram, root, variants))
+        for ram, root, variants in rams:
+            columns, probe = SOURCES[ram]
             for campaign in ("thermal_a", "thermal_b", "thermal_c"):
                 truth = pd.read_csv(root / "truth" / f"{campaign}.csv")
-                if radiant_of is not None:
-                    radiant = radiant_of(campaign, truth["time_s"].to_numpy(float))
-                else:
-                    radiant = truth["radiant_W_per_m2"].to_numpy(float)
-                truth = truth.rename(columns={probe_col: probe})
+                t = truth["time_s"].to_numpy(float)
+                heat = {src: truth[col].to_numpy(float) for src, col in columns.items() if col in truth}
+                if ram == "ram2":
+                    heat["radiant"] = ram2_radiant_W_per_m2(campaign, t)
                 for name, desc in variants.items():
-                    res = forward(desc, truth, radiant, probe)
+                    res = forward(desc, truth, heat, probe)
                     results[f"{ram}/{campaign}/{name}"] = res
                     cells = " / ".join(
                         f"{res['max_error_um'][a]:5.2f} ({res['uncompensated_um'][a]:5.1f})" for a in AXES
