@@ -146,14 +146,17 @@ def test_cli_prints_the_table_and_writes_the_figures(tmp_path, reference, monkey
         (json.dumps({"checks": {"uniform10": {}}}), "field checks.uniform10.fe_elong_um"),
         ("DROP", "field unit_response_um_per_N.y"),
         ("SHORT", "field unit_response_um_per_N.x"),
+        ("STEPS", "field unit_thermal_step_responses_at_36h_um.bearings"),
     ],
 )
 def test_bad_results_name_the_file_and_field(tmp_path, reference, content, column):
     path = tmp_path / "results.json"
-    if content in ("DROP", "SHORT"):
+    if content in ("DROP", "SHORT", "STEPS"):
         data = json.loads(RESULTS.read_text())
         if content == "DROP":
             del data["unit_response_um_per_N"]["y"]
+        elif content == "STEPS":
+            data["unit_thermal_step_responses_at_36h_um"] = {"bearings": {"dx": 0.1, "dz": "far"}}
         else:
             data["unit_response_um_per_N"]["x"] = data["unit_response_um_per_N"]["x"][:5]
         content = json.dumps(data)
@@ -178,3 +181,19 @@ def test_installed_command_reports_bad_input_on_one_line(tmp_path):
     assert proc.returncode == 2, proc.stderr
     (line,) = proc.stderr.strip().splitlines()
     assert line.startswith("error:") and str(missing) in line
+
+
+def test_a_results_step_input_finds_its_source_and_size():
+    """Unit thermal steps name the description's source exactly or by a unique part of its name,
+    and take their size from the definition (W, W/m², K), else 100 W, 100 W/m² or 1 K."""
+    from types import SimpleNamespace
+
+    sources = [SimpleNamespace(name="spindle_heat"), SimpleNamespace(name="radiant")]
+    assert twin_check.step_source("radiant", sources) == "radiant"
+    assert twin_check.step_source("spindle", sources) == "spindle_heat"
+    assert twin_check.step_source("motor", sources) is None
+    assert twin_check.step_size("100 W/m2 step on +Y face z 150..900", "radiant") == 100.0
+    assert twin_check.step_size("50 W step in the top 40 mm of the box walls", "volume") == 50.0
+    assert twin_check.step_size("+2 K step of T_amb", "ambient") == 2.0
+    assert twin_check.step_size(None, "volume") == 100.0
+    assert twin_check.step_size(None, "ambient") == 1.0

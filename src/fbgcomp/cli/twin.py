@@ -212,7 +212,8 @@ def twin_check(
         None, "--resolution", help="Mesh refinement factor (default: the machine's mesh.resolution)."
     ),
 ):
-    """Compare the FE twin with an independent model: TTP compliance, sensor responses, +10 K."""
+    """Compare the FE twin with an independent model: TTP compliance, sensor responses, +10 K,
+    and (reported) the 36 h unit thermal steps where the results carry them."""
     from fbgcomp.atomic import write_json
     from fbgcomp.structure.twin_check import Row, run
     from fbgcomp.structure.twin_check import format_table as format_rows

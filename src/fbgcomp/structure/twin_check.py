@@ -12,12 +12,24 @@ cross component that small is compared absolutely, against the target times the 
 TTP component (TTP rows) or largest sensor reading (sensor rows): a 0.001 µm/kN cross compliance
 has no meaningful percentage. Targets: unit-load TTP compliances and sensor responses 3 %,
 uniform +10 K dz 2 %; the uniform dx, dy and elongations are reported without a target.
+
+Where the results also carry the response 36 h after a unit step of each heat input
+(``unit_thermal_step_responses_at_36h_um``: per input, dx, dy, dz and the sensors in µm; the
+optional ``unit_thermal_step_definition`` says what each step is, e.g. "100 W step"), the twin
+runs the same steps from rest through its reduced thermal model and each figure is reported
+without a target: a transient thermal check of the description's heat sources, films and
+materials that the uniform case cannot give. An input is the description's heat source of the
+same name (or the one source whose name contains it, or is contained in it: "spindle" for
+"spindle_heat"), or the ambient ("ambient"); an input the description has no source for is left
+out. The step's size is read from its definition (W, W/m², K), else 100 W for a volume source,
+100 W/m² for a radiant one and +1 K for the ambient.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+import re
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +43,8 @@ UNIFORM_DZ_TARGET = 0.02  # relative, uniform +10 K dz
 MAIN_SENSOR_FRACTION = 0.1  # a sensor reading below this share of the largest is a cross term
 UNIFORM_DT_K = 10.0
 PER_KN = 1000.0  # the table shows µm per 1000 N
+STEP_HOURS = 36.0  # the unit thermal steps are read 36 h after the step
+STEPS_FIELD = "unit_thermal_step_responses_at_36h_um"
 
 
 @dataclass(frozen=True)
@@ -41,6 +55,9 @@ class Reference:
     unit_um_per_N: dict  # axis -> (3 + S,) dx, dy, dz, sensors
     uniform_ttp_um: np.ndarray  # (3,)
     uniform_elongation_um: np.ndarray  # (S,)
+    # input -> {dx, dy, dz, sensor: µm} 36 h after a unit step, and what each step is
+    thermal_steps_um: dict = field(default_factory=dict)
+    thermal_step_definitions: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -120,7 +137,20 @@ def load_reference(path: str | Path) -> Reference:
         )
         for a in "xyz"
     }
-    return Reference(names, unit, uniform_ttp, uniform_elong)
+    steps: dict = {}
+    raw = data.get(STEPS_FIELD)
+    if raw is not None:
+        if not isinstance(raw, dict):
+            raise InputError("expected an object of inputs", file=file, column=f"field {STEPS_FIELD}")
+        for case, figures in raw.items():
+            path = f"{STEPS_FIELD}.{case}"
+            if not isinstance(figures, dict) or not figures:
+                raise InputError("expected an object of figures (um)", file=file, column=f"field {path}")
+            values = _numbers(list(figures.values()), path, file)
+            steps[str(case)] = dict(zip((str(k) for k in figures), values.tolist(), strict=True))
+    defs = data.get("unit_thermal_step_definition")
+    definitions = {str(k): str(v) for k, v in defs.items()} if isinstance(defs, dict) else {}
+    return Reference(names, unit, uniform_ttp, uniform_elong, steps, definitions)
 
 
 def _row(quantity, independent, twin, target_rel, scale=None, report_only=False) -> Row:
@@ -135,6 +165,53 @@ def _row(quantity, independent, twin, target_rel, scale=None, report_only=False)
     return Row(
         quantity, independent, twin, diff_pct, f"+-{tol:.3g}", "absolute", abs(twin - independent) <= tol
     )
+
+
+def step_source(case: str, sources) -> str | None:
+    """The description's heat source a results' step input names (None: none does)."""
+    names = [h.name for h in sources]
+    if case in names:
+        return case
+    near = [n for n in names if case in n or n in case]
+    return near[0] if len(near) == 1 else None
+
+
+def step_size(definition: str | None, kind: str) -> float:
+    """A unit step's size: the first number with its unit (W, W/m², K) in ``definition``, else
+    100 W (volume), 100 W/m² (radiant) or 1 K (ambient)."""
+    unit = {"ambient": "K", "radiant": "W/m"}.get(kind, "W")
+    for number, found in re.findall(r"([+-]?\d+(?:\.\d+)?)\s*(W/m|W|K)", definition or ""):
+        if found == unit:
+            return float(number)
+    return 1.0 if kind == "ambient" else 100.0
+
+
+def thermal_step_responses(twin, ref: Reference) -> dict:
+    """{input: {dx, dy, dz, sensor: µm}} of the twin 36 h after each of the results' unit steps,
+    from rest (the inputs no source of the description answers are left out)."""
+    machine = twin.machine
+    sources = machine.thermal.sources
+    t0 = machine.reference_temperature_C
+    t = np.concatenate([[0.0], np.geomspace(1.0, STEP_HOURS * 3600.0, 400)])
+    out = {}
+    for case in ref.thermal_steps_um:
+        heat = {h.name: np.zeros_like(t) for h in sources}
+        ambient = np.full_like(t, t0)
+        if case == "ambient":
+            ambient[1:] += step_size(ref.thermal_step_definitions.get(case), "ambient")
+        else:
+            name = step_source(case, sources)
+            if name is None:
+                continue
+            kind = next(h.kind for h in sources if h.name == name)
+            heat[name][1:] = step_size(ref.thermal_step_definitions.get(case), kind)
+        r = twin.thermal(t, ambient, heat=heat, initial_C=t0)
+        ttp = r.ttp_um[-1] - r.ttp_um[0]
+        el = r.sensor_elongation_um[-1] - r.sensor_elongation_um[0]
+        out[case] = dict(zip(("dx", "dy", "dz"), ttp.tolist(), strict=True)) | dict(
+            zip(twin.sensor_names, el.tolist(), strict=True)
+        )
+    return out
 
 
 def compare(twin, ref: Reference, machine_file: str | None = None) -> list[Row]:
@@ -176,6 +253,12 @@ def compare(twin, ref: Reference, machine_file: str | None = None) -> list[Row]:
         )
     for name, a, i in zip(ref.sensor_names, ref.uniform_elongation_um, idx):
         rows.append(_row(f"+10 K {name} (um)", a, u.sensor_elongation_um[i], 0.0, report_only=True))
+    for case, figures in thermal_step_responses(twin, ref).items():
+        for k, v in ref.thermal_steps_um[case].items():
+            if k in figures:
+                rows.append(
+                    _row(f"{STEP_HOURS:g} h {case} step {k} (um)", v, figures[k], 0.0, report_only=True)
+                )
     return rows
 
 
@@ -209,8 +292,9 @@ def run(machine_path: str | Path, against: str | Path, resolution: float | None 
 
     ref = load_reference(against)
     machine = load_machine(machine_path)
-    # the comparison reads static operators only: no reduced thermal model (a third of a build)
-    twin = Twin(machine, resolution=resolution, reduce_thermal=False)
+    # the unit loads and the uniform case read static operators only: the reduced thermal model
+    # (a third of a build) only for results with thermal steps
+    twin = Twin(machine, resolution=resolution, reduce_thermal=bool(ref.thermal_steps_um))
     rows = compare(twin, ref, str(machine_path))
     return {
         "machine": str(machine_path),
