@@ -38,9 +38,8 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _ram3 import OWN_RAMS, add_ram_arguments, unpack
+from _ram3 import add_ram_arguments, ram_folder
 
-REPO = Path(__file__).resolve().parents[1]
 AXES = ("dx", "dy", "dz")
 H = 3600.0
 
@@ -110,19 +109,14 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="bench-twin-forward-") as tmp:
         rams = []
         for ram in [r for r in args.rams.split(",") if r]:
-            if ram == "ram2":
-                from fbgcomp.cli.demo import find_ram2
-
-                data, looked = find_ram2(args.ram2)
-                if data is None:
-                    print(f"ram2 not found at {looked}: skipped", file=sys.stderr)
-                    continue
-                root, machine = data.parent, REPO / "examples" / "machines" / "ram2.yaml"
-            elif ram in OWN_RAMS:
-                archive, machine = OWN_RAMS[ram]
-                root = unpack(archive, Path(tmp) / ram)
-            else:
-                ap.error(f"--rams: unknown ram {ram!r}")
+            try:
+                data, machine = ram_folder(ram, Path(tmp), args.ram2)
+            except ValueError as exc:
+                if ram != "ram2":
+                    ap.error(str(exc))
+                print(f"{exc}: skipped", file=sys.stderr)
+                continue
+            root = data.parent
             desc = yaml.safe_load(machine.read_text())
             variants = {"declared": desc}
             if ram == "ram3" and not args.no_variants:
