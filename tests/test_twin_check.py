@@ -101,6 +101,20 @@ def test_cross_components_are_judged_against_the_main_one():
     assert not twin_check._row("Fx dx", 139.6, 130.0, 0.03).passed
 
 
+def test_a_figure_that_is_round_off_of_zero_has_no_percentage():
+    # a ram symmetric about its rails: the independent model's Fz dx is 1e-13 µm/kN, the twin's
+    # 3e-12; their ratio (3031 %) said nothing, and the table printed it beside two zeros
+    noise = twin_check._row("Fz dx", 1.1e-13, 3.4e-12, 0.03, scale=1.011)
+    assert noise.difference_pct is None and noise.passed
+    step = twin_check._row("36 h radiant step dx", 2e-14, -1e-12, 0.0, report_only=True, largest=9.43)
+    assert step.difference_pct is None and step.passed is None
+    # a small figure that is a figure keeps its percentage
+    real = twin_check._row("36 h radiant step S4", 0.1061, 0.1242, 0.0, report_only=True, largest=9.43)
+    assert abs(real.difference_pct - 17.06) < 0.01
+    table = twin_check.format_table([noise, step, real])
+    assert "3031" not in table and "17.06" in table
+
+
 def _app():
     app = typer.Typer()
     app.command("twin-check")(twin_check_command)

@@ -153,9 +153,18 @@ def load_reference(path: str | Path) -> Reference:
     return Reference(names, unit, uniform_ttp, uniform_elong, steps, definitions)
 
 
-def _row(quantity, independent, twin, target_rel, scale=None, report_only=False) -> Row:
-    """Relative judgement, or absolute against ``target_rel * scale`` when ``scale`` is given."""
-    diff_pct = 100.0 * (twin / independent - 1.0) if independent != 0 else None
+#: an independent figure below this share of its case's largest is round-off of a zero (a
+#: symmetric ram's lateral response, 1e-13 µm): its difference in % is noise, not shown
+NEGLIGIBLE_SHARE = 1e-9
+
+
+def _row(quantity, independent, twin, target_rel, scale=None, report_only=False, largest=None) -> Row:
+    """Relative judgement, or absolute against ``target_rel * scale`` when ``scale`` is given.
+    ``largest``: the case's largest independent figure (default ``scale``), below
+    :data:`NEGLIGIBLE_SHARE` of which the difference in % is None."""
+    size = abs(largest if largest is not None else (scale if scale is not None else 0.0))
+    negligible = abs(independent) <= NEGLIGIBLE_SHARE * size
+    diff_pct = 100.0 * (twin / independent - 1.0) if independent != 0 and not negligible else None
     if report_only:
         return Row(quantity, independent, twin, diff_pct, "-", "report", None)
     if scale is None:
@@ -249,15 +258,24 @@ def compare(twin, ref: Reference, machine_file: str | None = None) -> list[Row]:
                 u.ttp_um[k],
                 UNIFORM_DZ_TARGET,
                 report_only=comp != "dz",
+                largest=np.abs(ref.uniform_ttp_um).max(),
             )
         )
     for name, a, i in zip(ref.sensor_names, ref.uniform_elongation_um, idx):
         rows.append(_row(f"+10 K {name} (um)", a, u.sensor_elongation_um[i], 0.0, report_only=True))
     for case, figures in thermal_step_responses(twin, ref).items():
-        for k, v in ref.thermal_steps_um[case].items():
+        step = ref.thermal_steps_um[case]
+        for k, v in step.items():
             if k in figures:
                 rows.append(
-                    _row(f"{STEP_HOURS:g} h {case} step {k} (um)", v, figures[k], 0.0, report_only=True)
+                    _row(
+                        f"{STEP_HOURS:g} h {case} step {k} (um)",
+                        v,
+                        figures[k],
+                        0.0,
+                        report_only=True,
+                        largest=max(abs(x) for x in step.values()),
+                    )
                 )
     return rows
 
