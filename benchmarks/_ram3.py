@@ -5,7 +5,8 @@ ram3 (both rails on -X, five gratings), ram4 (rails on two adjacent faces, seven
 two strain-free reference gratings, two heat sources in a cast-iron housing) and ram5 (rails on
 two opposite faces, the -Y one floating along its normal, five gratings, five probes) and ram6
 (rails on two adjacent faces, the +Y one floating along its normal, a CFRP that shortens when
-warmed, six gratings, a heat source at the top of the box)."""
+warmed, six gratings, a heat source at the top of the box) and ram7 (a long box on two opposite
+faces, both rails locating at three carriage stations, an aluminium housing, five gratings)."""
 
 from __future__ import annotations
 
@@ -21,6 +22,8 @@ RAM5_ARCHIVE = REPO / "tests" / "data" / "ram5.tar.xz"
 RAM5_MACHINE = REPO / "examples" / "machines" / "ram5.yaml"
 RAM6_ARCHIVE = REPO / "tests" / "data" / "ram6.tar.xz"
 RAM6_MACHINE = REPO / "examples" / "machines" / "ram6.yaml"
+RAM7_ARCHIVE = REPO / "tests" / "data" / "ram7.tar.xz"
+RAM7_MACHINE = REPO / "examples" / "machines" / "ram7.yaml"
 
 
 def unpack(archive: Path, dest: Path) -> Path:
@@ -42,6 +45,7 @@ HELD_OUT = {
     "ram4": ("thermal_b", "thermal_c", "static_y"),
     "ram5": ("thermal_b", "thermal_c", "static_x"),
     "ram6": ("thermal_b", "thermal_c", "static_x"),
+    "ram7": ("thermal_b", "thermal_c", "static_x"),
 }
 #: the project's own rams: archive and description
 OWN_RAMS = {
@@ -49,6 +53,7 @@ OWN_RAMS = {
     "ram4": (RAM4_ARCHIVE, RAM4_MACHINE),
     "ram5": (RAM5_ARCHIVE, RAM5_MACHINE),
     "ram6": (RAM6_ARCHIVE, RAM6_MACHINE),
+    "ram7": (RAM7_ARCHIVE, RAM7_MACHINE),
 }
 
 
@@ -57,7 +62,7 @@ def add_ram_arguments(ap, default: str) -> None:
     ap.add_argument(
         "--ram2", help="the ram2 data set (default: $FBGCOMP_RAM2, else ../shared/reference/ram2)"
     )
-    ap.add_argument("--rams", default=default, help="comma-separated subset of ram2,ram3,ram4,ram5,ram6")
+    ap.add_argument("--rams", default=default, help="comma-separated subset of ram2,ram3,ram4,ram5,ram6,ram7")
 
 
 def ram_folder(ram: str, dest: Path, ram2=None):
@@ -72,6 +77,6 @@ def ram_folder(ram: str, dest: Path, ram2=None):
             raise ValueError(f"ram2 not found at {looked}")
         return data, RAM2_MACHINE
     if ram not in OWN_RAMS:
-        raise ValueError(f"--rams: unknown ram {ram!r} (ram2, ram3, ram4, ram5, ram6)")
+        raise ValueError(f"--rams: unknown ram {ram!r} (ram2, ram3, ram4, ram5, ram6, ram7)")
     archive, machine = OWN_RAMS[ram]
     return unpack(archive, Path(dest) / ram) / "data", machine

@@ -25,6 +25,10 @@ command. It is judged only on campaigns it never saw.
   six gratings, a second heat source at the top of the box, a radiant load on +Y): the same
   command with examples/machines/ram6.yaml; judged on thermal_b, thermal_c (heat + forces along
   X and Y) and static_x.
+* ram7 (tests/data/ram7.tar.xz, ``--no-ram7`` to skip): a sixth, made the same way (a long box
+  on two opposite faces, both rails locating at three carriage stations, an aluminium housing,
+  five gratings, a radiant load on -Y): the same command with examples/machines/ram7.yaml; judged
+  on thermal_b, thermal_c (heat + forces along Y and Z) and static_x.
 * the twin (twin-only figures: our own simulator), the built-in default machine's campaigns as
   ``fbgcomp demo`` makes them (seed 0, full length): ``fbgcomp fit thermal-36h static-y
   --machine src/fbgcomp/data/ram.yaml`` (the built-in machine's description); judged
@@ -42,7 +46,7 @@ Targets (per data set, "peak" = the uncompensated max |deviation| of that axis):
                axis with max |error| above uncompensated + 0.5 um)
 
     nice -n 10 .venv/bin/python benchmarks/bench_accuracy.py [--ram2 PATH] [--work DIR] [--no-twin] \
-        [--no-ram3] [--no-ram4] [--no-ram5] [--no-ram6]
+        [--no-ram3] [--no-ram4] [--no-ram5] [--no-ram6] [--no-ram7]
 
 Prints the target table per data set (measured, target, met / MISSED) and, last, one JSON line
 with every figure.
@@ -256,6 +260,7 @@ def main(argv=None) -> int:
     ap.add_argument("--no-ram4", action="store_true", help="no ram4 figures")
     ap.add_argument("--no-ram5", action="store_true", help="no ram5 figures")
     ap.add_argument("--no-ram6", action="store_true", help="no ram6 figures")
+    ap.add_argument("--no-ram7", action="store_true", help="no ram7 figures")
     args = ap.parse_args(argv)
 
     from fbgcomp.cli.demo import RAM2_MACHINE, find_ram2
@@ -318,6 +323,8 @@ def main(argv=None) -> int:
         RAM5_MACHINE,
         RAM6_ARCHIVE,
         RAM6_MACHINE,
+        RAM7_ARCHIVE,
+        RAM7_MACHINE,
         unpack,
     )
 
@@ -326,6 +333,7 @@ def main(argv=None) -> int:
         ("ram4", RAM4_ARCHIVE, RAM4_MACHINE, RAM3_ROLES, args.no_ram4),
         ("ram5", RAM5_ARCHIVE, RAM5_MACHINE, RAM2_ROLES, args.no_ram5),
         ("ram6", RAM6_ARCHIVE, RAM6_MACHINE, RAM2_ROLES, args.no_ram6),
+        ("ram7", RAM7_ARCHIVE, RAM7_MACHINE, RAM2_ROLES, args.no_ram7),
     )
     for ram, archive, machine, roles, skip in own:
         if skip:

@@ -2,7 +2,7 @@
 temperatures are from what the independent FE model reports, nothing fitted.
 
 On ram2 (../shared/reference/ram2, ``--ram2`` or $FBGCOMP_RAM2) and the project's own rams
-(tests/data/ram3..ram6.tar.xz), each described from its data sheet (examples/machines/ramN.yaml):
+(tests/data/ram3..ram7.tar.xz), each described from its data sheet (examples/machines/ramN.yaml):
 the thermal campaigns' truth files (``truth/<campaign>.csv``) hold the inputs the FE model was
 given (ambient, each heat source's power or flux, thermal_c's force at the TTP; ram2's radiant
 load of thermal_b is not in its truth file and is rebuilt from its README: a 90 W/m² half-sine
@@ -59,6 +59,7 @@ SOURCES = {
     "ram4": ({"bearings": "spindle_W", "motor": "motor_W", "radiant": "radiant_W_per_m2"}, "T_head"),
     "ram5": ({"bearings": "spindle_W", "radiant": "radiant_W_per_m2"}, "T_spindle"),
     "ram6": ({"bearings": "spindle_W", "nut": "nut_W", "radiant": "radiant_W_per_m2"}, "T_housing"),
+    "ram7": ({"bearings": "spindle_W", "radiant": "radiant_W_per_m2"}, "T_spindle"),
 }
 
 
@@ -98,7 +99,7 @@ def _moved(desc: dict, y_mm) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    add_ram_arguments(ap, "ram2,ram3,ram4,ram5,ram6")
+    add_ram_arguments(ap, "ram2,ram3,ram4,ram5,ram6,ram7")
     ap.add_argument("--no-variants", action="store_true", help="ram3's declared bearings only")
     args = ap.parse_args(argv)
     start = time.perf_counter()

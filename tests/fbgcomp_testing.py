@@ -69,6 +69,10 @@ RAM5_MACHINE = Path(__file__).resolve().parents[1] / "examples" / "machines" / "
 #: that shortens when warmed, six gratings, a heat source at the top), held the same way.
 RAM6_ARCHIVE = Path(__file__).resolve().parent / "data" / "ram6.tar.xz"
 RAM6_MACHINE = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram6.yaml"
+#: A sixth (CalculiX, a long box on two opposite faces, both rails locating at three carriage
+#: stations, five gratings, an aluminium housing), held the same way.
+RAM7_ARCHIVE = Path(__file__).resolve().parent / "data" / "ram7.tar.xz"
+RAM7_MACHINE = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram7.yaml"
 
 
 def unpacked(archive: Path) -> Path:
@@ -123,6 +127,11 @@ def read_ram5(*names: str) -> dict:
 def read_ram6(*names: str) -> dict:
     """ram6's campaigns by name."""
     return read_unpacked(RAM6_ARCHIVE, *names)
+
+
+def read_ram7(*names: str) -> dict:
+    """ram7's campaigns by name."""
+    return read_unpacked(RAM7_ARCHIVE, *names)
 
 
 def held_out_figures(model, campaign):
