@@ -955,7 +955,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
         no thermal error, so its interval is the interferometer's. vs, v1 and v2 come from
         non-negative least squares of the applied prediction's squared error beyond v0 on each
         load-free training campaign (campaigns weighted equally): what grows with the thermal
-        state and its transients."""
+        state and its transients. With a housing calibration, that error is 1/3 in-sample and 2/3
+        of each half of the campaign predicted by a calibration fitted without it
+        (:meth:`_held_out_served`): what a fit on all of the data errs by on data it did not see."""
         dTs = [r["dT"] for r in rows if not r["loaded"]]
         z2 = norm_ppf(0.975) ** 2
         scale = np.maximum(np.abs(np.vstack(dTs)).max(axis=0), 0.5)
@@ -975,9 +977,14 @@ class PhysicalModel(EstimatorParams, ModelFile):
             if r["loaded"]:
                 continue
             pred, _, p, at = self._served(c, exclude)
+            err2 = (pred - r["y"]) ** 2
             if i in held_out:
+                # what a model fitted on all of the data errs by on data it did not see: least
+                # squares' in-sample errors are low by about p/n, those of a half predicted by a
+                # fit without it high by about 2p/n, so 1/3 of the one and 2/3 of the other
                 pred = held_out[i]
-            e2.append((pred - r["y"]) ** 2)
+                err2 = err2 / 3.0 + 2.0 * (pred - r["y"]) ** 2 / 3.0
+            e2.append(err2)
             n_eff.append([effective_samples(pred[:, j] - r["y"][:, j]) for j in range(3)])
             dT = r["dT"].copy()
             dT[:, lost] = 0.0  # a lost probe's reading is held (PhysicalPredictor.predict)
@@ -1044,18 +1051,20 @@ class PhysicalModel(EstimatorParams, ModelFile):
 
     def _held_out_served(self, rows, campaigns, exclude=frozenset()) -> dict:
         """{row index: applied prediction (m, 3)} of each load-free training campaign, each
-        half of it (in time) predicted by a housing calibration fitted without that half: with
-        measured heat inputs only ({} otherwise).
+        half of it (in time) predicted by a housing calibration fitted without that half ({}
+        without a housing calibration).
 
-        Their low-passes add one coefficient per input and ``HEAT_TAUS_S`` entry to the
-        calibration, fitted on the very campaigns the interval is scaled on; the in-sample
-        errors then understate what a new
-        campaign shows (ram2, its bearings' heat read: thermal_a's dz RMS 0.17 µm in-sample
-        against thermal_c's 0.38 held out, whose dz interval covered 0.89; ram3's thermal_c dy
-        0.68). Errors of a half the calibration did not see carry that slow bias."""
+        The calibration is fitted on the very campaigns the interval is scaled on, and its
+        in-sample errors understate what a new campaign shows. With measured heat inputs, whose
+        low-passes add one coefficient per input and ``HEAT_TAUS_S`` entry: ram2, its bearings'
+        heat read, thermal_a's dz RMS 0.17 µm in-sample against thermal_c's 0.38 held out,
+        whose dz interval covered 0.89; ram3's thermal_c dy 0.68. Without them as well: on
+        2026-12-06, scaled on in-sample errors alone, ram7's held-out dz covered 0.883 and 0.763,
+        ram6's thermal_c dy and dz 0.887 and 0.851, ram4's thermal_b dx 0.843
+        (:meth:`_fit_interval` takes 1/3 of the in-sample errors and 2/3 of these)."""
         cal = (self.twin_map_ or {}).get("calibration") or {}
-        if not cal.get("heat_taus_s") or getattr(self, "_cal_rows", None) is None:
-            return {}
+        if getattr(self, "_cal_rows", None) is None or not self._sees_housing_without(exclude):
+            return {}  # (a set blind to the housing runs without the calibration)
         A_rows, b_rows = self._cal_rows
         keep = cal["coef"]
         free = [i for i, r in enumerate(rows) if not r["loaded"]]
