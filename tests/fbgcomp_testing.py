@@ -134,6 +134,21 @@ def read_ram7(*names: str) -> dict:
     return read_unpacked(RAM7_ARCHIVE, *names)
 
 
+def assert_data_sheet_describes(archive: Path, machine: Path, campaigns, phrase: str) -> None:
+    """An archived ram holds its data sheet (README.md, which says ``phrase``) and every campaign
+    in ``campaigns``, each naming the description's gratings and probes in its order."""
+    import yaml
+
+    folder = unpacked(archive)
+    assert phrase in (folder / "README.md").read_text()
+    desc = yaml.safe_load(Path(machine).read_text())
+    for name in campaigns:
+        meta = yaml.safe_load((folder / "data" / name / "campaign.yaml").read_text())
+        assert [s["name"] for s in meta["sensors"]] == [s["name"] for s in desc["sensors"]]
+        header = (folder / "data" / name / "temperatures.csv").read_text().splitlines()[0]
+        assert header.split(",")[1:] == [f"{p['name']}_C" for p in desc["probes"]]
+
+
 def held_out_figures(model, campaign):
     """A model judged on a campaign it never saw, as ``fbgcomp validate`` judges it: per axis
     (3,) the max |error| µm, the uncompensated peak µm and the 95 % interval's coverage."""

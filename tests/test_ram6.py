@@ -15,6 +15,7 @@ import pytest
 from fbgcomp_testing import (
     RAM6_ARCHIVE,
     RAM6_MACHINE,
+    assert_data_sheet_describes,
     assert_twin_check,
     held_out_figures,
     read_ram6,
@@ -50,16 +51,7 @@ def ram6_model(ram6):
 
 def test_ram6s_data_sheet_describes_what_its_campaigns_carry():
     """The archive holds the data sheet, the checks and every campaign the description names."""
-    import yaml
-
-    folder = unpacked(RAM6_ARCHIVE)
-    assert "negative" in (folder / "README.md").read_text()
-    desc = yaml.safe_load(RAM6_MACHINE.read_text())
-    for name in ("thermal_a", "static_xyz", *HELD):
-        meta = yaml.safe_load((folder / "data" / name / "campaign.yaml").read_text())
-        assert [s["name"] for s in meta["sensors"]] == [s["name"] for s in desc["sensors"]]
-        header = (folder / "data" / name / "temperatures.csv").read_text().splitlines()[0]
-        assert header.split(",")[1:] == [f"{p['name']}_C" for p in desc["probes"]]
+    assert_data_sheet_describes(RAM6_ARCHIVE, RAM6_MACHINE, ("thermal_a", "static_xyz", *HELD), "negative")
 
 
 @pytest.mark.slow

@@ -15,6 +15,7 @@ import pytest
 from fbgcomp_testing import (
     RAM7_ARCHIVE,
     RAM7_MACHINE,
+    assert_data_sheet_describes,
     assert_twin_check,
     held_out_figures,
     read_ram7,
@@ -49,16 +50,9 @@ def ram7_model(ram7):
 
 def test_ram7s_data_sheet_describes_what_its_campaigns_carry():
     """The archive holds the data sheet, the checks and every campaign the description names."""
-    import yaml
-
-    folder = unpacked(RAM7_ARCHIVE)
-    assert "both locating" in (folder / "README.md").read_text()
-    desc = yaml.safe_load(RAM7_MACHINE.read_text())
-    for name in ("thermal_a", "static_xyz", *HELD):
-        meta = yaml.safe_load((folder / "data" / name / "campaign.yaml").read_text())
-        assert [s["name"] for s in meta["sensors"]] == [s["name"] for s in desc["sensors"]]
-        header = (folder / "data" / name / "temperatures.csv").read_text().splitlines()[0]
-        assert header.split(",")[1:] == [f"{p['name']}_C" for p in desc["probes"]]
+    assert_data_sheet_describes(
+        RAM7_ARCHIVE, RAM7_MACHINE, ("thermal_a", "static_xyz", *HELD), "both locating"
+    )
 
 
 @pytest.mark.slow
