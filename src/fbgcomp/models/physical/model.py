@@ -1063,8 +1063,8 @@ class PhysicalModel(EstimatorParams, ModelFile):
         ram6's thermal_c dy and dz 0.887 and 0.851, ram4's thermal_b dx 0.843
         (:meth:`_fit_interval` takes 1/3 of the in-sample errors and 2/3 of these)."""
         cal = (self.twin_map_ or {}).get("calibration") or {}
-        if getattr(self, "_cal_rows", None) is None or not self._sees_housing_without(exclude):
-            return {}  # (a set blind to the housing runs without the calibration)
+        if getattr(self, "_cal_rows", None) is None or PhysicalPredictor(self, exclude).cal is None:
+            return {}  # the set runs without the calibration (a housing or ambient probe lost)
         A_rows, b_rows = self._cal_rows
         keep = cal["coef"]
         free = [i for i, r in enumerate(rows) if not r["loaded"]]
