@@ -282,7 +282,11 @@ def _handbook_materials(d):
             "k_T_W_per_mK": 0.5,
         }
     )
-    d["materials"]["steel"].update({"cte_per_K": 12.0e-6, "k_W_per_mK": 50.0})
+    housing = d["materials"]["housing"]
+    if housing["cte_per_K"] > 18e-6:  # an aluminium alloy's handbook values (ram7)
+        housing.update({"cte_per_K": 23.1e-6, "k_W_per_mK": 160.0})
+    else:  # a steel's or cast iron's
+        housing.update({"cte_per_K": 12.0e-6, "k_W_per_mK": 50.0})
 
 
 def _rough(d):

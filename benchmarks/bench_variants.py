@@ -150,7 +150,7 @@ def _other_materials(d):
         density_kg_per_m3=1550.0,
         specific_heat_J_per_kgK=1000.0,
     )
-    d["materials"]["steel"].update(
+    d["materials"]["housing"].update(
         E_GPa=120.0,
         cte_per_K=10.5e-6,
         k_W_per_mK=50.0,

@@ -74,7 +74,7 @@ def test_a_data_sheet_that_gets_the_fibres_expansion_wrong_is_contradicted_and_d
         {"E_L_GPa": 125.0, "E_T_GPa": 8.0, "cte_L_per_K": 0.0, "cte_T_per_K": 30.0e-6, "k_L_W_per_mK": 5.0}
     )
     d["materials"]["cfrp"]["k_T_W_per_mK"] = 0.5
-    d["materials"]["steel"].update({"cte_per_K": 12.0e-6, "k_W_per_mK": 50.0})
+    d["materials"]["housing"].update({"cte_per_K": 12.0e-6, "k_W_per_mK": 50.0})
     machine = tmp_path / "ram4-handbook.yaml"
     machine.write_text(yaml.safe_dump(d, sort_keys=False))
     m = PhysicalModel(machine=machine).fit([ram4["thermal_a"], ram4["static_xyz"]])

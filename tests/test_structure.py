@@ -93,10 +93,34 @@ def _assert_names_file_and_field(tmp_path, source_yaml, edit, field):
             lambda d: d["supports"]["carriages"][1].__setitem__("z_mm", 1300.0),
             "field supports.carriages[1].z_mm",
         ),
+        (lambda d: d["materials"].pop("housing"), "field materials.housing"),
+        (lambda d: d["materials"]["housing"].pop("cte_per_K"), "field materials.housing.cte_per_K"),
+        # the housing's material under both its names: which one holds is not the reader's guess
+        (lambda d: d["materials"].__setitem__("steel", dict(d["materials"]["housing"])), "field materials"),
     ],
 )
 def test_yaml_errors_name_the_file_and_field(tmp_path, edit, field):
     _assert_names_file_and_field(tmp_path, DEFAULT_YAML, edit, field)
+
+
+def test_the_housings_material_under_its_older_name_is_the_same_machine(tmp_path):
+    """Descriptions written before ``materials.housing`` named it ``materials.steel``: read
+    as the same machine, down to the key its twin is cached under."""
+    from fbgcomp.structure.cache import twin_key
+
+    data = yaml.safe_load(DEFAULT_YAML.read_text())
+    data["materials"]["steel"] = data["materials"].pop("housing")
+    data["materials"]["steel"]["cte_per_K"] = 23.0e-6  # an aluminium housing
+    older = tmp_path / "older.yaml"
+    older.write_text(yaml.safe_dump(data))
+    data["materials"]["housing"] = data["materials"].pop("steel")
+    newer = tmp_path / "newer.yaml"
+    newer.write_text(yaml.safe_dump(data))
+    a, b = load_machine(older), load_machine(newer)
+    assert a == b
+    assert a.materials.steel.cte_per_K == 23.0e-6
+    assert twin_key(a, 1.0, 1) == twin_key(b, 1.0, 1)
+    assert twin_key(a, 1.0, 1) != twin_key(load_machine(DEFAULT_YAML), 1.0, 1)
 
 
 def test_unreadable_yaml_is_an_input_error(tmp_path):

@@ -18,6 +18,7 @@ from typing import Annotated, Literal
 import numpy as np
 import yaml
 from pydantic import (
+    AliasChoices,
     BaseModel,
     BeforeValidator,
     ConfigDict,
@@ -104,10 +105,19 @@ class Steel(_Strict):
 
 
 class Materials(_Strict):
-    """The two materials: the ram's CFRP and the housing's steel."""
+    """The two materials: the ram's CFRP and the housing's metal, whatever it is (steel, cast
+    iron, aluminium). The YAML names the housing's ``housing`` or, as descriptions written before
+    that name did, ``steel``; in code it is ``steel`` either way."""
 
     cfrp: CFRP
-    steel: Steel
+    steel: Steel = Field(validation_alias=AliasChoices("housing", "steel"))
+
+    @model_validator(mode="before")
+    @classmethod
+    def _one_housing(cls, data):
+        if isinstance(data, dict) and "housing" in data and "steel" in data:
+            raise ValueError("give the housing's material once, as `housing` (`steel` is its older name)")
+        return data
 
 
 def _stiffness(v):
