@@ -315,7 +315,8 @@ def test_the_rest_fit_follows_a_drift_whose_rate_changes():
     """A housing cooling after the spindle stops: the correction relaxes by 5 µm with a 20 min
     time constant, in 0.05 µm of noise at 1 frame/s. The rest fit lags a changing drift by a part
     of its time constant: with 600 s it stood 0.71 µm behind (ram2's thermal_b served dz 5.37 µm
-    against 4.62 offline); with 150 s, within 0.4 µm."""
+    against 4.62 offline); with 150 s 0.32 µm (ram7's thermal_b served dz 2.98 against 1.78);
+    with 30 s, 0.11."""
     rng = np.random.default_rng(1)
     t = np.arange(0.0, 7200.0, 1.0)
     truth = np.where(t < 1800.0, 5.0, 5.0 * np.exp(-(t - 1800.0) / 1200.0))
@@ -323,5 +324,5 @@ def test_the_rest_fit_follows_a_drift_whose_rate_changes():
     f = AdaptiveLevelFilter(OutputFilterConfig(), 1.0, noise_um=np.full(3, 0.05))
     y = f.process(x)
     after = t > 1800.0
-    assert np.abs(y[after, 0] - truth[after]).max() < 0.4
-    assert [f.rest_tau(j) for j in range(3)] == [150.0] * 3  # quiet axes keep the short fit
+    assert np.abs(y[after, 0] - truth[after]).max() < 0.15
+    assert [f.rest_tau(j) for j in range(3)] == [30.0] * 3  # quiet axes keep the short fit
