@@ -62,6 +62,39 @@ def test_fit_then_validate_through_the_console(campaigns, tmp_path):
 
 
 @pytest.mark.slow
+def test_validate_served_judges_what_the_runtime_publishes(campaigns, tmp_path):
+    """``validate --served``: the campaign's interrogator frames through the runtime's default
+    pipeline, judged as the CNC would receive the correction: the figures of the published
+    correction (``fbgcomp.bench.served``), not of the model's own prediction."""
+    import numpy as np
+
+    from fbgcomp.bench.served import served
+    from fbgcomp.io.campaign import read_campaign
+    from fbgcomp.models.registry import load_model
+
+    train, test = campaigns
+    model = tmp_path / "model.json"
+    assert run("fit", train, "--features", "eq13", "-o", model).returncode == 0
+    offline, at_machine = tmp_path / "offline.json", tmp_path / "served.json"
+    assert run("validate", model, test, "--json", offline).returncode == 0
+    r = run("validate", model, test, "--served", "--json", at_machine)
+    assert r.returncode == 0, r.stderr
+    assert "campaign test (served through the runtime)" in r.stdout
+    got = json.loads(at_machine.read_text())
+    assert got["served"] is True and json.loads(offline.read_text())["served"] is False
+    correction, reference, _ = served(load_model(model), read_campaign(test))
+    want = np.abs(reference + correction).max(axis=0)
+    np.testing.assert_allclose(
+        [got["axes"][a]["max_abs_error_um"] for a in ("dx", "dy", "dz")], want, rtol=1e-9
+    )
+    # the output filter holds the published correction still where the model's own wanders
+    mine = json.loads(offline.read_text())
+    assert any(
+        got["axes"][a]["max_abs_error_um"] != mine["axes"][a]["max_abs_error_um"] for a in ("dx", "dy", "dz")
+    )
+
+
+@pytest.mark.slow
 def test_fit_chooses_the_regression_inference(campaigns, tmp_path):
     """--cov-type nonrobust gives the paper's i.i.d. tables; the default is Newey-West with the
     bandwidth --hac-maxlags fixes; a bad value is a one-line error naming the option."""

@@ -54,7 +54,10 @@ def served(model, campaign, pipe=None, lost=None, lost_from=0.4, sizes=(100,), l
     µm (the aligned campaign's) and the batch results (:func:`process_in_batches`), with ``at``:
     the frame index of each reference sample."""
     al = campaign.aligned(zero_window_s=model.zero_window_s)
-    ft, w, temp = model.frame_arrays(campaign, al)
+    if hasattr(model, "frame_arrays"):  # the physical model: its measured heat inputs too
+        ft, w, temp = model.frame_arrays(campaign, al)
+    else:
+        ft, w, temp = campaign.frames(al, model.sensor_names, model.probe_names)
     counts = np.ones(w.shape, np.int8)
     if lost is not None:
         span = ft[-1] - ft[0]

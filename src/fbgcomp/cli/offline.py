@@ -309,11 +309,19 @@ def validate(
     model_file: Path = typer.Argument(..., help="Model file (JSON)."),
     campaigns: list[Path] = typer.Argument(..., help="Campaign folders to judge the model on."),
     json_out: Path | None = typer.Option(None, "--json", help="Write the metrics as JSON."),
+    served: bool = typer.Option(
+        False,
+        "--served",
+        help="Judge the correction the runtime publishes (`fbgcomp serve`'s default pipeline: "
+        "output filter, per-axis limit and rate), fed the campaign's own interrogator frames.",
+    ),
 ):
     """Judge a model on campaigns: per axis peak, max |error|, RMS, % of peak, compensation ratio.
 
     The model is loaded through the checks every consumer uses (fbgcomp.models.base.load_model): a
-    model with non-finite or absurd numbers, or parts that disagree, exits 2 with one line."""
+    model with non-finite or absurd numbers, or parts that disagree, exits 2 with one line.
+    ``--served`` judges what a CNC would receive instead of the model's own prediction: the two
+    differ where the runtime's output filter holds the correction still (docs/runtime.md)."""
     import numpy as np
 
     from fbgcomp.atomic import write_json
@@ -328,11 +336,18 @@ def validate(
     model = load_model(model_file)
     refs, preds, halves, per_campaign = [], [], [], {}
     for c in progress.track(read_campaigns(campaigns), "validating", unit="campaign"):
-        pred, half = model.predict_interval(c)
-        ref = c.aligned(zero_window_s=model.zero_window_s).reference_um
+        if served:
+            from fbgcomp.bench.served import served as serve_campaign
+
+            correction, ref, out = serve_campaign(model, c)
+            pred, half = -correction, out["half_width_um"][out["at"]]  # the correction undoes it
+        else:
+            pred, half = model.predict_interval(c)
+            ref = c.aligned(zero_window_s=model.zero_window_s).reference_um
         m = validation_metrics(ref, pred, half)
         per_campaign[c.meta.name] = m
-        typer.echo(format_metrics(m, title=f"campaign {c.meta.name}"))
+        how = " (served through the runtime)" if served else ""
+        typer.echo(format_metrics(m, title=f"campaign {c.meta.name}{how}"))
         loads = c.aligned(zero_window_s=model.zero_window_s).loads_N
         if loads is not None:
             m["static_levels"] = static_level_metrics(loads, ref, pred)
@@ -346,6 +361,7 @@ def validate(
         typer.echo(format_metrics(pooled, title="all campaigns"))
     pooled["campaigns"] = per_campaign
     pooled["model_id"] = model.model_id
+    pooled["served"] = served
     if json_out is not None:
         write_json(json_out, pooled)
         typer.echo(f"metrics written to {json_out}")

@@ -259,6 +259,27 @@ class Campaign:
             zero_window_s=window,
         )
 
+    def frames(self, aligned, sensor_names, probe_names):
+        """The campaign as a runtime sees it: every interrogator frame inside ``aligned``'s
+        overlap (:meth:`aligned`), with each probe's last reading at that frame (held, as a live
+        feed is). Frame times (n,) s, wavelengths (n, sensors) nm and temperatures (n, probes)
+        degC in the order of ``sensor_names`` and ``probe_names``; a probe this campaign does not
+        carry is NaN (no reading)."""
+        ft = self.fbg[TIME_COLUMN].to_numpy(dtype=float)
+        t_lo, t_hi = aligned.dropped["overlap_s"]
+        keep = (ft >= t_lo - 1e-9) & (ft <= t_hi + 1e-9)
+        if not keep.any():
+            keep[:] = True
+        ft = ft[keep]
+        w = self.fbg[[f"{s}_nm" for s in sensor_names]].to_numpy(dtype=float)[keep]
+        temps = np.full((ft.size, len(probe_names)), np.nan)
+        for names, (tt, tv) in self.thermometers().items():
+            held = np.clip(np.searchsorted(tt, ft, side="right") - 1, 0, tt.size - 1)
+            for j, name in enumerate(names):
+                if name in probe_names:
+                    temps[:, list(probe_names).index(name)] = tv[held, j]
+        return ft, w, temps
+
     def thermometers(self) -> dict[tuple, tuple[np.ndarray, np.ndarray]]:
         """Every temperature reading on its own clock: ``{probe names: (time_s (n,), values
         (n, k) degC)}``. Probes come from temperatures.csv; a strain-free reference grating

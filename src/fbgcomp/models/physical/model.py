@@ -1372,19 +1372,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         seconds), so validation sees the correction the runtime would publish, not one computed
         from gratings averaged over each reference interval.
         """
-        ft = campaign.fbg["time_s"].to_numpy(dtype=float)
-        t_lo, t_hi = aligned.dropped["overlap_s"]
-        keep = (ft >= t_lo - 1e-9) & (ft <= t_hi + 1e-9)
-        if not keep.any():
-            keep[:] = True
-        ft = ft[keep]
-        w = campaign.fbg[[f"{s}_nm" for s in self.sensor_names]].to_numpy(dtype=float)[keep]
-        temps = np.empty((ft.size, len(self.probe_names_)))
-        for names, (tt, tv) in campaign.thermometers().items():
-            held = np.clip(np.searchsorted(tt, ft, side="right") - 1, 0, tt.size - 1)
-            for j, p in enumerate(names):
-                if p in self.probe_names_:
-                    temps[:, self.probe_names_.index(p)] = tv[held, j]
+        ft, w, temps = campaign.frames(aligned, self.sensor_names, self.probe_names_)
         return ft, w, np.hstack([temps, self._heat_frames(campaign, ft)])
 
     # -- measured heat inputs (heat.csv) -----------------------------------------------------
