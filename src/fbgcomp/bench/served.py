@@ -76,3 +76,11 @@ def served(model, campaign, pipe=None, lost=None, lost_from=0.4, sizes=(100,), l
     at = np.clip(np.searchsorted(ft, al.time_s, side="right") - 1, 0, ft.size - 1)
     out["at"] = at
     return out["correction_um"][at], al.reference_um, out
+
+
+def published(model, campaign):
+    """What the runtime publishes on ``campaign``, as a model's prediction is judged: the
+    deviation (m, 3) µm the published correction undoes, its 95 % half-width (m, 3) µm and the
+    reference (m, 3) µm, at the reference samples (:func:`served` with the default pipeline)."""
+    correction, reference, out = served(model, campaign)
+    return -correction, out["half_width_um"][out["at"]], reference

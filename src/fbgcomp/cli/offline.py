@@ -337,10 +337,9 @@ def validate(
     refs, preds, halves, per_campaign = [], [], [], {}
     for c in progress.track(read_campaigns(campaigns), "validating", unit="campaign"):
         if served:
-            from fbgcomp.bench.served import served as serve_campaign
+            from fbgcomp.bench.served import published
 
-            correction, ref, out = serve_campaign(model, c)
-            pred, half = -correction, out["half_width_um"][out["at"]]  # the correction undoes it
+            pred, half, ref = published(model, c)
         else:
             pred, half = model.predict_interval(c)
             ref = c.aligned(zero_window_s=model.zero_window_s).reference_um
