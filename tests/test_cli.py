@@ -82,8 +82,16 @@ def test_validate_served_judges_what_the_runtime_publishes(campaigns, tmp_path):
     assert "campaign test (served through the runtime)" in r.stdout
     got = json.loads(at_machine.read_text())
     assert got["served"] is True and json.loads(offline.read_text())["served"] is False
-    correction, reference, _ = served(load_model(model), read_campaign(test))
+    correction, reference, out = served(load_model(model), read_campaign(test))
     want = np.abs(reference + correction).max(axis=0)
+    # the correction's interval: the model's half-width, moved by as much as the output policy
+    # moved the correction off the model's deviation
+    at = out["at"]
+    half = out["half_width_um"][at] + np.abs(-correction - out["deviation_um"][at])
+    cover = (np.abs(reference + correction) <= half).mean(axis=0)
+    np.testing.assert_allclose(
+        [got["axes"][a]["pi95_coverage"] for a in ("dx", "dy", "dz")], cover, rtol=1e-12
+    )
     np.testing.assert_allclose(
         [got["axes"][a]["max_abs_error_um"] for a in ("dx", "dy", "dz")], want, rtol=1e-9
     )

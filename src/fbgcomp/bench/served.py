@@ -81,6 +81,15 @@ def served(model, campaign, pipe=None, lost=None, lost_from=0.4, sizes=(100,), l
 def published(model, campaign):
     """What the runtime publishes on ``campaign``, as a model's prediction is judged: the
     deviation (m, 3) µm the published correction undoes, its 95 % half-width (m, 3) µm and the
-    reference (m, 3) µm, at the reference samples (:func:`served` with the default pipeline)."""
+    reference (m, 3) µm, at the reference samples (:func:`served` with the default pipeline).
+
+    The runtime's half-width is the model's, about the model's own deviation; where the output
+    policy holds the correction elsewhere (the filter at rest, a limit, a hold), the correction's
+    interval is that half-width plus the departure: the model's 95 % interval, moved by as much
+    as the policy moved its centre. Without it, a quiet axis the filter holds still covered 0.28
+    on ram4's static_y (dx, a cross-talk of 3 µm the filter confirms late)."""
     correction, reference, out = served(model, campaign)
-    return -correction, out["half_width_um"][out["at"]], reference
+    deviation = -correction
+    model_deviation = out["deviation_um"][out["at"]]
+    half = out["half_width_um"][out["at"]] + np.abs(deviation - model_deviation)
+    return deviation, half, reference
