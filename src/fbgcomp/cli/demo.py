@@ -73,19 +73,26 @@ def fit_default(campaigns, machine=None, zero_window_s=10.0):
     return PhysicalModel(machine=machine, zero_window_s=zero_window_s).fit(list(campaigns))
 
 
+def prediction(model, campaign, served=False):
+    """Deviation and 95 % half-width (m, 3) µm of ``model`` on ``campaign`` at its reference
+    samples, as validation judges them: the model's own, or (``served``) those of the correction
+    the runtime publishes (:func:`fbgcomp.bench.served.published`)."""
+    if not served:
+        return model.predict_interval(campaign)
+    from fbgcomp.bench.served import published  # the runtime stack: only when served
+
+    pred, half, _ = published(model, campaign)
+    return pred, half
+
+
 def judge(model, campaign, zero_window_s=None, served=False) -> dict:
     """validation_metrics of ``model`` on ``campaign``, with load-plateau errors when it has loads
-    (``served``: of the correction the runtime publishes, :func:`fbgcomp.bench.served.published`)."""
+    (``served``: of the correction the runtime publishes, :func:`prediction`)."""
     from fbgcomp.models.metrics import static_level_metrics, validation_metrics
 
     zero = model.zero_window_s if zero_window_s is None else zero_window_s
     aligned = campaign.aligned(zero_window_s=zero)
-    if served:
-        from fbgcomp.bench.served import published
-
-        pred, half, _ = published(model, campaign)
-    else:
-        pred, half = model.predict_interval(campaign)
+    pred, half = prediction(model, campaign, served)
     m = validation_metrics(aligned.reference_um, pred, half)
     if aligned.loads_N is not None:
         m["static_levels"] = static_level_metrics(aligned.loads_N, aligned.reference_um, pred)

@@ -325,6 +325,7 @@ def validate(
     import numpy as np
 
     from fbgcomp.atomic import write_json
+    from fbgcomp.cli.demo import prediction
     from fbgcomp.models.metrics import (
         format_metrics,
         format_static_metrics,
@@ -336,18 +337,13 @@ def validate(
     model = load_model(model_file)
     refs, preds, halves, per_campaign = [], [], [], {}
     for c in progress.track(read_campaigns(campaigns), "validating", unit="campaign"):
-        if served:
-            from fbgcomp.bench.served import published
-
-            pred, half, ref = published(model, c)
-        else:
-            pred, half = model.predict_interval(c)
-            ref = c.aligned(zero_window_s=model.zero_window_s).reference_um
+        pred, half = prediction(model, c, served)
+        aligned = c.aligned(zero_window_s=model.zero_window_s)
+        ref, loads = aligned.reference_um, aligned.loads_N
         m = validation_metrics(ref, pred, half)
         per_campaign[c.meta.name] = m
         how = " (served through the runtime)" if served else ""
         typer.echo(format_metrics(m, title=f"campaign {c.meta.name}{how}"))
-        loads = c.aligned(zero_window_s=model.zero_window_s).loads_N
         if loads is not None:
             m["static_levels"] = static_level_metrics(loads, ref, pred)
             typer.echo(format_static_metrics(m["static_levels"]))
