@@ -260,8 +260,15 @@ stale_s = 1.5
                 ),
             )
             opc.frozen.discard("T_surf")  # and resumes
+            # Health and SourceStatus come from one snapshot but may reach the client in two
+            # publish responses: wait for both
             seen_back = run.watch(
-                ["Health", "SourceStatus"], 20, lambda s: any(n == "Health" and v == "OK" for n, v, *_ in s)
+                ["Health", "SourceStatus"],
+                20,
+                lambda s: (
+                    any(n == "Health" and v == "OK" for n, v, *_ in s)
+                    and any(n == "SourceStatus" and "inputs OK" in v for n, v, *_ in s)
+                ),
             )
             run.serve.terminate()
             run.serve.wait(20)
