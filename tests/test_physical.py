@@ -118,6 +118,40 @@ def test_static_load_is_read_through_the_load_signature(model, ram2):
     assert st["axes"]["dy"]["max_plateau_error_um"] < 1.0
 
 
+def test_a_force_the_gratings_cannot_read_is_said_by_fit_and_validate(twin_model, tmp_path):
+    """On ram2 Fz compresses every grating alike, as a warming does: the fit leaves it unread.
+    The displacement it moves is then in neither the correction nor its interval (static_xyz's
+    dz: 3.4 µm off, 0.43 covered), and the user is told so, with the size, by the fit's summary
+    and by validate on each campaign that applies it (none on static_x, which loads X only)."""
+    import json
+    import subprocess
+    import sys
+
+    assert twin_model.load_["not_separable"] == ["fz"]
+    assert "fz is not read: its signature is the gratings' warming pattern" in twin_model.summary()
+    path = tmp_path / "model.json"
+    twin_model.save(path)
+    data = RAM2_DIR / "data"
+    args = ["validate", path, data / "static_xyz", data / "static_x", "--json", tmp_path / "v.json"]
+    r = subprocess.run(
+        [sys.executable, "-m", "fbgcomp", *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stderr[-2000:]
+    notes = [ln for ln in r.stdout.splitlines() if ln.startswith("note: fz")]
+    assert len(notes) == 1 and "neither the correction nor its interval" in notes[0], r.stdout
+    got = json.loads((tmp_path / "v.json").read_text())["campaigns"]
+    assert "unread_forces" not in got["static_x"]
+    fz = got["static_xyz"]["unread_forces"]["fz"]
+    assert fz["max_abs_N"] == pytest.approx(4000.0, rel=0.01)
+    # what the note says Fz moves is what the model missed on the plateaus: all of dz
+    missed = got["static_xyz"]["static_levels"]["axes"]["dz"]["max_plateau_error_um"]
+    assert fz["ttp_um"]["dz"] == pytest.approx(missed, rel=0.1), (fz, missed)
+    assert max(fz["ttp_um"]["dx"], fz["ttp_um"]["dy"]) < 0.05 * fz["ttp_um"]["dz"]
+
+
 def test_unseen_radiant_load_does_no_harm_on_dx_and_dz(model, ram2):
     """thermal_b's radiant load takes the +X wall 8 K beyond training: the gratings' thermal
     reading leaves its envelope, the load part is refused and the thermal part is clipped."""

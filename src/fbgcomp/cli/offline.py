@@ -347,6 +347,9 @@ def validate(
         if loads is not None:
             m["static_levels"] = static_level_metrics(loads, ref, pred)
             typer.echo(format_static_metrics(m["static_levels"]))
+            unread = _unread_forces(model, loads)
+            if unread:
+                m["unread_forces"] = unread
         typer.echo("")
         refs.append(ref)
         preds.append(pred)
@@ -360,6 +363,25 @@ def validate(
     if json_out is not None:
         write_json(json_out, pooled)
         typer.echo(f"metrics written to {json_out}")
+
+
+def _unread_forces(model, loads_N) -> dict:
+    """The force components the campaign applies (beyond ``UNREAD_FORCE_N``) that the model
+    cannot read from the gratings, each said in one line (what it moves, and that neither the
+    correction nor its interval holds it); {} for a model that reads every one it is given."""
+    from fbgcomp.models.physical.model import UNREAD_FORCE_N
+
+    if not hasattr(model, "unread_forces"):
+        return {}
+    out = {f: u for f, u in model.unread_forces(loads_N).items() if u["max_abs_N"] > UNREAD_FORCE_N}
+    for f, u in out.items():
+        moves = ", ".join(f"{a} {v:.3g}" for a, v in u["ttp_um"].items())
+        typer.echo(
+            f"note: {f} (up to {u['max_abs_N']:.4g} N here) is not read from the gratings: its "
+            f"signature is their warming pattern. It moves the TTP {moves} µm through the load "
+            "signature, which neither the correction nor its interval holds."
+        )
+    return out
 
 
 def simulate(

@@ -66,6 +66,10 @@ CTE_TOLERANCE_SD = 0.5
 #: the gratings by minutes to hours, a load step within seconds.
 SIGNATURE_HIGHPASS_S = 60.0
 
+#: A force component the gratings cannot read counts as applied beyond this |force|, N (below
+#: it: a load cell's noise on a component no one loads).
+UNREAD_FORCE_N = 50.0
+
 
 def effective_samples(x) -> float:
     """Effective number of independent samples in the series ``x``: n / tau, with tau the
@@ -778,7 +782,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
             # a force the gratings cannot read (a nuisance: Fz on ram2) moves the TTP unseen;
             # the load terms are not what it is, so its samples do not scale them
             unread = (
-                (np.abs(r["F"][:, ~p.active]) > 50.0).any(axis=1) if p.has_load else np.zeros(len(e2), bool)
+                (np.abs(r["F"][:, ~p.active]) > UNREAD_FORCE_N).any(axis=1)
+                if p.has_load
+                else np.zeros(len(e2), bool)
             )
             for j in range(3):
                 on = (ld[:, j] > 0) & ~unread
@@ -1389,6 +1395,27 @@ class PhysicalModel(EstimatorParams, ModelFile):
         shows in)."""
         return self._sees_housing_without()
 
+    def unread_forces(self, loads_N=None) -> dict:
+        """The force components the gratings cannot read on this machine (their signature is
+        the gratings' own warming pattern, ``load_["not_separable"]``: Fz on a CFRP ram), each
+        with the largest |force| N of ``loads_N`` (n, 3) (without it: the training's largest)
+        and the TTP µm per axis that force moves through the load signature. Neither the
+        correction nor its interval holds that displacement: the model cannot see the force.
+        {} when every component is read, or the model has no load part."""
+        L = self.load_
+        if L is None or not L.get("not_separable"):
+            return {}
+        C = np.abs(np.asarray(L["C_um_per_N"], float))
+        out = {}
+        for f in L["not_separable"]:
+            j = FORCE_AXES.index(f)
+            if loads_N is None:
+                big = float(L["max_force_N"][j])
+            else:
+                big = float(np.nanmax(np.abs(np.asarray(loads_N, float)[:, j]), initial=0.0))
+            out[f] = {"max_abs_N": big, "ttp_um": dict(zip(AXES, (C[:, j] * big).tolist()))}
+        return out
+
     def _sees_housing_without(self, exclude=frozenset()) -> bool:
         """:attr:`_sees_housing` of the sensor set without the probes of ``exclude``."""
         return bool(set(self.housing_probes_) - set(exclude) or self.heat_inputs_)
@@ -1602,6 +1629,13 @@ class PhysicalModel(EstimatorParams, ModelFile):
                 f"\nload part ({L['source']}); forces estimated: "
                 + ", ".join(f for f, on in zip(FORCE_AXES, L["active_forces"]) if on)
             )
+            for f, u in self.unread_forces().items():
+                moves = ", ".join(f"{a} {v:.3g}" for a, v in u["ttp_um"].items())
+                out.append(
+                    f"{f} is not read: its signature is the gratings' warming pattern; at the "
+                    f"training's {u['max_abs_N']:.4g} N it moves the TTP {moves} µm, which neither "
+                    "the correction nor its interval holds"
+                )
             out.append(f"{'':<8}" + "".join(f"{f + ' µm/kN':>13}" for f in FORCE_AXES))
             for s, row in zip(self.sensor_names, np.asarray(L["G_um_per_N"])):
                 out.append(f"{s:<8}" + "".join(f"{1e3 * v:>13.4g}" for v in row))
