@@ -366,14 +366,12 @@ def validate(
 
 
 def _unread_forces(model, loads_N) -> dict:
-    """The force components the campaign applies (beyond ``UNREAD_FORCE_N``) that the model
-    cannot read from the gratings, each said in one line (what it moves, and that neither the
-    correction nor its interval holds it); {} for a model that reads every one it is given."""
-    from fbgcomp.models.physical.model import UNREAD_FORCE_N
-
+    """The force components the campaign applies that the model cannot read from the gratings
+    (:meth:`PhysicalModel.unread_forces`), each said in one line (what it moves, and that neither
+    the correction nor its interval holds it); {} for a model that reads every one it is given."""
     if not hasattr(model, "unread_forces"):
         return {}
-    out = {f: u for f, u in model.unread_forces(loads_N).items() if u["max_abs_N"] > UNREAD_FORCE_N}
+    out = model.unread_forces(loads_N)
     for f, u in out.items():
         moves = ", ".join(f"{a} {v:.3g}" for a, v in u["ttp_um"].items())
         typer.echo(

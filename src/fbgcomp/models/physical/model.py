@@ -1398,10 +1398,11 @@ class PhysicalModel(EstimatorParams, ModelFile):
     def unread_forces(self, loads_N=None) -> dict:
         """The force components the gratings cannot read on this machine (their signature is
         the gratings' own warming pattern, ``load_["not_separable"]``: Fz on a CFRP ram), each
-        with the largest |force| N of ``loads_N`` (n, 3) (without it: the training's largest)
-        and the TTP µm per axis that force moves through the load signature. Neither the
-        correction nor its interval holds that displacement: the model cannot see the force.
-        {} when every component is read, or the model has no load part."""
+        with the largest |force| N of ``loads_N`` (n, 3) (only those it applies beyond
+        :data:`UNREAD_FORCE_N`; without it: the training's largest) and the TTP µm per axis that
+        force moves through the load signature. Neither the correction nor its interval holds
+        that displacement: the model cannot see the force. {} when every component is read, or
+        the model has no load part."""
         L = self.load_
         if L is None or not L.get("not_separable"):
             return {}
@@ -1413,6 +1414,8 @@ class PhysicalModel(EstimatorParams, ModelFile):
                 big = float(L["max_force_N"][j])
             else:
                 big = float(np.nanmax(np.abs(np.asarray(loads_N, float)[:, j]), initial=0.0))
+                if big <= UNREAD_FORCE_N:
+                    continue
             out[f] = {"max_abs_N": big, "ttp_um": dict(zip(AXES, (C[:, j] * big).tolist()))}
         return out
 
