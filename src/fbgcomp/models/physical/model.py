@@ -51,6 +51,7 @@ from fbgcomp.models.physical.thermal import (
 )
 from fbgcomp.structure.machine import Machine, load_machine
 from fbgcomp.structure.scenarios import ScenarioDesign, generic_heat_machine
+from fbgcomp.threads import one_blas_thread
 from fbgcomp.units import AXES
 
 log = logging.getLogger(__name__)
@@ -1355,16 +1356,21 @@ class PhysicalModel(EstimatorParams, ModelFile):
         _, _, w0, t0 = self.instrument_arrays(aligned)
         frame_t, w, t = self.frame_arrays(campaign, aligned)
         t0 = np.concatenate([t0, self._heat_zero_W(campaign)])
-        mean, half = p.predict(
-            w,
-            t,
-            w0,
-            t0,
-            time_s=frame_t,
-            z_axis_mm=campaign_z_axis_mm(campaign),
-            raw=raw,
-            thermal_policy=policy,
-        )
+        # BLAS on one thread: the products here are (frames x ~12) by (~12 x 15), too thin for
+        # threads to pay. On ram2's default fit (22 campaigns' worth of frames) threaded OpenBLAS
+        # took 15.0 CPU-s for the 9.7 s a single thread does in 8.3 (the same model file), and
+        # two such fits side by side (the test suite's workers) then fought for the cores
+        with one_blas_thread():
+            mean, half = p.predict(
+                w,
+                t,
+                w0,
+                t0,
+                time_s=frame_t,
+                z_axis_mm=campaign_z_axis_mm(campaign),
+                raw=raw,
+                thermal_policy=policy,
+            )
         at = np.clip(np.searchsorted(frame_t, aligned.time_s, side="right") - 1, 0, frame_t.size - 1)
         return mean[at], half[at], p, at
 

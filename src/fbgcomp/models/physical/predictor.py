@@ -21,8 +21,8 @@ from fbgcomp.models.filters import first_order_filter, first_order_recursion, fi
 from fbgcomp.models.physical.observer import ThermalObserver
 from fbgcomp.models.physical.thermal import (
     MAP_LEADS_S,
+    agreed,
     calibration_probe_columns,
-    consensus,
     grating_map,
     housing_leads,
     housing_mean,
@@ -30,6 +30,7 @@ from fbgcomp.models.physical.thermal import (
     lost_information_sd,
     map_features,
     map_members,
+    member_bounds,
     thermal_regressors,
     unseen_operator,
 )
@@ -1253,7 +1254,8 @@ class PhysicalPredictor:
             Xc, outside = P.clip_to_envelope(X, *self._map_box) if policy else (X, None)
             if self.map["n_members"] > 1:
                 each = (Xc @ self.map["members"]).reshape(n, self.map["n_members"], 3)
-                spread = each.max(axis=1) - each.min(axis=1)
+                lo, hi = member_bounds(each.transpose(1, 0, 2))
+                spread = hi - lo
             if "unseen" in self.map:
                 unseen = P.firm(
                     Xc @ self.map["unseen"], self.map["unseen_noise_sd"], self.k_sigma, 2 * self.k_sigma
@@ -1264,7 +1266,7 @@ class PhysicalPredictor:
                     thermal = thermal + L @ self.cal["coef"]
             else:
                 multi = self.map["n_members"] > 1
-                thermal = consensus(each.transpose(1, 0, 2)) if multi else Xc @ self.map["coef"]
+                thermal = agreed(lo, hi) if multi else Xc @ self.map["coef"]
                 heat_part = 0.0
                 if L is not None:
                     Lc, out_l = P.clip_to_envelope(L, self.cal["low"], self.cal["high"], self.margin)

@@ -354,8 +354,26 @@ def consensus(members_um):
     moves differently for each: the twin map then answers with its scenarios' prior, which a
     real shop need not share. What every prior without one of those sources agrees on is what
     the sensors, not the prior, say."""
-    lo, hi = members_um.min(axis=0), members_um.max(axis=0)
-    return np.where(lo > 0.0, lo, np.where(hi < 0.0, hi, 0.0))
+    return agreed(*member_bounds(np.asarray(members_um, float)))
+
+
+def member_bounds(members_um):
+    """Smallest and largest member per frame and axis, (m, n, 3) -> two (n, 3) arrays.
+
+    One elementwise pass per member: numpy's reduction across the members of an (n, m, 3)
+    product (the predictor's layout, a strided short axis) took 3.5x as long on ram2's 5 members
+    and 130 000 frames."""
+    lo = np.array(members_um[0], float)
+    hi = lo.copy()
+    for member in members_um[1:]:
+        np.minimum(lo, member, out=lo)
+        np.maximum(hi, member, out=hi)
+    return lo, hi
+
+
+def agreed(lo_um, hi_um):
+    """:func:`consensus` from the members' bounds (:func:`member_bounds`)."""
+    return np.where(lo_um > 0.0, lo_um, np.where(hi_um < 0.0, hi_um, 0.0))
 
 
 def twin_thermal_population(
