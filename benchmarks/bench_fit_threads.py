@@ -38,6 +38,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from _loopback import git_commit
+from bench_fit_cache import content
 
 REPO = Path(__file__).resolve().parents[1]
 MACHINE = REPO / "examples" / "machines" / "ram2.yaml"
@@ -108,22 +109,16 @@ def in_process(data: Path, reps: int) -> dict:
     return out
 
 
-def content(path: Path) -> dict:
-    """The model file without the fields that name the run (creation time, the id derived from it)."""
-    d = json.loads(path.read_text())
-    for k in ("created_utc", "model_id"):
-        d.pop(k, None)
-    return d
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--ram2", type=Path, default=REPO.parent / "shared" / "reference" / "ram2")
+    ap.add_argument("--ram2", type=Path, help="the ram2 data set (default: as fbgcomp demo finds it)")
     ap.add_argument("--reps", type=int, default=3)
     args = ap.parse_args(argv)
-    data = args.ram2 / "data"
-    if not data.is_dir():
-        raise SystemExit(f"ram2 not found at {args.ram2} (give --ram2)")
+    from fbgcomp.cli.demo import find_ram2
+
+    data, looked = find_ram2(args.ram2)
+    if data is None:
+        raise SystemExit(f"ram2 not found at {looked} (give --ram2)")
     started = datetime.now(UTC)
     print(
         f"{started:%Y-%m-%d %H:%M} UTC, code of {git_commit()}, {os.cpu_count()} cores, "
