@@ -125,6 +125,26 @@ def test_map_over_cluster_keeps_order_in_process_and_on_workers(client):
     assert os.getpid() not in {p for _, p in trims}
 
 
+def test_two_local_clusters_at_once_take_no_fixed_port_and_warn_nothing(client):
+    """dask's scheduler serves HTTP (health, metrics) even without a dashboard, on 8787 unless
+    told otherwise: the second cluster on a machine (this module's ``client`` fixture is the
+    first) warned on stderr that the port was taken. fbgcomp's clusters take a free loopback
+    port each."""
+    import warnings
+
+    from fbgcomp.cluster import local_cluster
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # dask's "Port 8787 is already in use" fails the test
+        with local_cluster(1) as a, local_cluster(1) as b:
+            ports = []
+            for lc in (a, client.cluster, b):
+                bound = [s.getsockname() for s in lc.scheduler.http_server._sockets.values()]
+                assert bound and all(host == "127.0.0.1" for host, _ in bound), bound
+                ports += [port for _, port in bound]
+    assert 8787 not in ports and len(set(ports)) == len(ports), ports
+
+
 def run(*args):
     return subprocess.run(
         [*FBGCOMP, *map(str, args)],

@@ -53,12 +53,21 @@ def local_cluster(n_workers: int, **kwargs):
     glibc's dynamic mmap threshold: every multi-MB temporary of a 10^5-row chunk is then a
     fresh mmap, and the page faults doubled the CPU of a fit (0.52 -> 1.19 CPU-s per 10^6
     rows, measured). fbgcomp's tasks hold one chunk at a time, so their workers keep glibc's
-    defaults. Extra keyword arguments go to ``LocalCluster``.
+    defaults. The scheduler's HTTP server (its health and metrics routes: dask starts one even
+    without a dashboard) listens on a free loopback port: dask's default, 8787, was taken by
+    the first cluster on the machine, and every other one warned on stderr. Extra keyword
+    arguments go to ``LocalCluster``.
     """
     import dask  # noqa: PLC0415 - the scale extra (Dask) is optional: imported when a cluster is used
     from distributed import LocalCluster  # noqa: PLC0415 - as above
 
-    options = {"threads_per_worker": 1, "processes": True, "dashboard_address": None, "silence_logs": 40}
+    options = {
+        "threads_per_worker": 1,
+        "processes": True,
+        "dashboard_address": None,
+        "scheduler_kwargs": {"dashboard_address": "127.0.0.1:0"},
+        "silence_logs": 40,
+    }
     options.update(kwargs)
     with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}):
         return LocalCluster(n_workers=n_workers, **options)
