@@ -1357,9 +1357,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
         frame_t, w, t = self.frame_arrays(campaign, aligned)
         t0 = np.concatenate([t0, self._heat_zero_W(campaign)])
         # BLAS on one thread: the products here are (frames x ~12) by (~12 x 15), too thin for
-        # threads to pay. On ram2's default fit (22 campaigns' worth of frames) threaded OpenBLAS
-        # took 15.0 CPU-s for the 9.7 s a single thread does in 8.3 (the same model file), and
-        # two such fits side by side (the test suite's workers) then fought for the cores
+        # threads to pay. ram2's default fit (22 campaigns' worth of frames) spent 12.2 CPU-s
+        # with them threaded against 7.4 on one thread, in the same wall time and to the same
+        # model (benchmarks/bench_fit_threads.py)
         with one_blas_thread():
             mean, half = p.predict(
                 w,
