@@ -62,6 +62,11 @@ def test_the_policy_on_one_frame_is_the_array_arithmetic_to_the_bit():
     whole = P.firm(x, sigma, 3.0, 6.0)
     for i in range(len(x)):
         np.testing.assert_array_equal(P.firm(x[i : i + 1], sigma, 3.0, 6.0), whole[i : i + 1])
+        # a row as a vector of a few numbers (the load tracker's forces in a transition), with
+        # its sigmas or one for all: the float path too
+        np.testing.assert_array_equal(P.firm(x[i], sigma, 3.0, 6.0), whole[i])
+        one = P.firm(x[i : i + 1], np.full(6, 0.7), 3.0, 6.0)[0]
+        np.testing.assert_array_equal(P.firm(x[i], 0.7, 3.0, 6.0), one)
     low, high = np.array([0, -1, 0, 2, 0, 0.0]), np.array([1, 1, 0, 2, 10, 1e300])
     clipped, outside = P.clip_to_envelope(x, low, high, margin=0.1)
     for i in range(len(x)):

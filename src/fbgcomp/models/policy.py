@@ -52,6 +52,10 @@ def clip_to_envelope(x, low, high, margin=0.1):
     return clipped, outside
 
 
+# at most this many numbers go through firm's Python-float path
+_FLOAT_PATH = 8
+
+
 def firm(estimate, sigma, k_low=3.0, k_high=6.0):
     """Firm shrinkage (Gao & Bruce 1997), element-wise: zero within ``k_low`` sigma, the
     estimate itself beyond ``k_high`` sigma, a linear ramp in between.
@@ -63,6 +67,12 @@ def firm(estimate, sigma, k_low=3.0, k_high=6.0):
     if x.ndim == 2 and x.shape[0] == 1 and np.ndim(sigma) == 1:  # one frame, on Python floats
         sd = np.asarray(sigma, float).tolist()
         return np.array([[_firm1(v, s, k_low, k_high) for v, s in zip(x[0].tolist(), sd)]])
+    if x.ndim == 1 and x.size <= _FLOAT_PATH and np.shape(sigma) in ((), x.shape):
+        # a few numbers (the load tracker's three force components, each frame of a load
+        # transition): the same arithmetic on Python floats, where numpy's per-call cost was
+        # the time
+        sd = [float(sigma)] * x.size if np.ndim(sigma) == 0 else np.asarray(sigma, float).tolist()
+        return np.array([_firm1(v, s, k_low, k_high) for v, s in zip(x.tolist(), sd)])
     s = np.asarray(sigma, dtype=float)
     lo, hi = k_low * s, k_high * s
     with np.errstate(divide="ignore", invalid="ignore"):
