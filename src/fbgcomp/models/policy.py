@@ -64,15 +64,16 @@ def firm(estimate, sigma, k_low=3.0, k_high=6.0):
     full value) while noise and thermal mismatch below ``k_low`` sigma are never applied.
     """
     x = np.asarray(estimate, dtype=float)
-    if x.ndim == 2 and x.shape[0] == 1 and np.ndim(sigma) == 1:  # one frame, on Python floats
-        sd = np.asarray(sigma, float).tolist()
-        return np.array([[_firm1(v, s, k_low, k_high) for v, s in zip(x[0].tolist(), sd)]])
-    if x.ndim == 1 and x.size <= _FLOAT_PATH and np.shape(sigma) in ((), x.shape):
-        # a few numbers (the load tracker's three force components, each frame of a load
-        # transition): the same arithmetic on Python floats, where numpy's per-call cost was
-        # the time
-        sd = [float(sigma)] * x.size if np.ndim(sigma) == 0 else np.asarray(sigma, float).tolist()
-        return np.array([_firm1(v, s, k_low, k_high) for v, s in zip(x.tolist(), sd)])
+    # On Python floats, where numpy's per-call cost on a few numbers was the time (the same
+    # arithmetic, _firm1): one frame (1, n) with a sigma per column (a runtime batch of one), or
+    # a vector of a few numbers with one sigma or one each (the load tracker's three force
+    # components, each frame of a load transition)
+    one_frame = x.ndim == 2 and x.shape[0] == 1 and np.ndim(sigma) == 1
+    few = x.ndim == 1 and x.size <= _FLOAT_PATH and np.shape(sigma) in ((), x.shape)
+    if one_frame or few:
+        v = x.ravel().tolist()
+        sd = [float(sigma)] * len(v) if np.ndim(sigma) == 0 else np.asarray(sigma, float).tolist()
+        return np.array([_firm1(a, b, k_low, k_high) for a, b in zip(v, sd)]).reshape(*x.shape[:-1], -1)
     s = np.asarray(sigma, dtype=float)
     lo, hi = k_low * s, k_high * s
     with np.errstate(divide="ignore", invalid="ignore"):

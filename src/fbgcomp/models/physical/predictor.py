@@ -1039,21 +1039,13 @@ class PhysicalPredictor:
                 settling = moving & ~still & (mean_w > 0)
                 to_zero = (np.abs(level) <= limit) & (np.abs(level) < np.abs(level_from))
                 # the first that holds of: ramping, still, settling to zero, settling, moving
-                # (np.select's order; nested np.where is the same choice at a tenth of its
-                # per-frame cost on three numbers: select broadcast every choice each frame)
-                applied = np.where(
-                    ramping,
-                    f_quick,
-                    np.where(
-                        still,
-                        f_fast,
-                        np.where(
-                            settling & to_zero,
-                            0.0,
-                            np.where(settling, level, np.where(moving, f_fast, applied)),
-                        ),
-                    ),
-                )
+                # (np.select's order, taken from the last: np.where on three numbers costs a
+                # tenth of np.select, which broadcast every choice each frame)
+                chosen = np.where(moving, f_fast, applied)
+                chosen = np.where(settling, level, chosen)
+                chosen = np.where(settling & to_zero, 0.0, chosen)
+                chosen = np.where(still, f_fast, chosen)
+                applied = np.where(ramping, f_quick, chosen)
                 # while it still moves, at frames of RAMP_LINE_DT_S or longer, the line through
                 # the quick reading since the transition began, once it holds RAMP_LINE_MIN
                 # frames (ramp_line); its noise is the quick low-pass's (b / (2 - b) of a
