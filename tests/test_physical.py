@@ -871,6 +871,56 @@ def test_the_one_frame_steady_step_is_the_vectorised_step(twin_model, ram2, monk
     assert (fast[2][:, 1] & P.LOAD_REFUSED).any()  # the jump was met and refused
 
 
+def test_a_fits_served_predictions_share_the_load_trackers_run_to_the_bit(twin_model, ram2, monkeypatch):
+    """During a fit, served predictions of one campaign take the load tracker's run from rest
+    once for each set of gratings (PhysicalModel.fit's memo): the tracker reads them
+    uncompensated, so a lost probe shares the full set's run, and a lost grating does not. What
+    they serve, and the tracker's state and transitions they go on from, are those of runs
+    of their own, bit for bit."""
+    import copy
+
+    m = copy.copy(twin_model)  # the session's model stays as it is
+    c = ram2["thermal_c"]  # heat, and a load on and off: transitions
+    runs = []
+    real = PhysicalPredictor._track_load
+
+    def counted(self, *a, **k):
+        runs.append(1)
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(PhysicalPredictor, "_track_load", counted)
+    sets = [frozenset(), frozenset({"T_amb"}), frozenset({"T_surf"}), frozenset({"S2"}), frozenset()]
+
+    def serve_each():
+        out = []
+        for ex in sets:
+            mean, half, p, _ = m._served(c, ex)
+            out.append((mean, half, p.state["load"], p.last_transition, p.last_flags, p.last_force_N))
+        return out
+
+    own = serve_each()
+    assert len(runs) == len(sets)
+    runs.clear()
+    m._served_memo = {"frames": {}, "load": {}}
+    shared = serve_each()
+    assert len(runs) == 2  # the full set's and that without S2
+    assert own[0][5].any() and own[0][3].any()  # a load applied, transitions met
+    for a, b in zip(own, shared):
+        for x, y in zip(a, b):
+            if isinstance(x, dict):
+                assert x.keys() == y.keys()
+                for k in x:
+                    np.testing.assert_array_equal(np.asarray(x[k], float), np.asarray(y[k], float))
+            else:
+                np.testing.assert_array_equal(x, y)
+    # a memo's state is the caller's own: going on from it leaves the memo as it was
+    shared[1][2]["offset"] += 1.0
+    shared[1][3][:] = False
+    again = m._served(c, sets[1])[2]
+    np.testing.assert_array_equal(again.state["load"]["offset"], own[1][2]["offset"])
+    np.testing.assert_array_equal(again.last_transition, own[1][3])
+
+
 def test_first_order_closed_form_equals_the_recursion_across_stretches_and_gaps():
     from fbgcomp.models.filters import first_order_recursion as _first_order
 

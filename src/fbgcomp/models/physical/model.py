@@ -231,6 +231,8 @@ class PhysicalModel(EstimatorParams, ModelFile):
     """
 
     model_type = "physical"
+    #: what a fit's served predictions share, during the fit only (:meth:`fit`)
+    _served_memo: dict | None = None
 
     def __init__(
         self,
@@ -288,6 +290,17 @@ class PhysicalModel(EstimatorParams, ModelFile):
 
     def fit(self, X, y=None, *, progress=None):
         """Fit on campaigns (``X`` a campaign, a path or a list of them; ``y`` must be None)."""
+        # A fit serves each load-free training campaign ~20 times (ram2: the intervals of every
+        # probe's and pair's fallback, the held-out halves). What those share is taken once and
+        # dropped with the fit: each campaign's frames (_served) and the load tracker's results
+        # from rest (PhysicalPredictor._track_load_from_rest).
+        self._served_memo = {"frames": {}, "load": {}}
+        try:
+            return self._fit_campaigns(X, y, progress)
+        finally:
+            self._served_memo = None
+
+    def _fit_campaigns(self, X, y, progress):
         if y is not None:
             raise ValueError("PhysicalModel fits on campaigns (y must be None)")
         campaigns = as_campaign_list(X)
@@ -1351,11 +1364,21 @@ class PhysicalModel(EstimatorParams, ModelFile):
         last frame's output, carried forward: the reference clock is offset from the
         interrogator's, e.g. +0.3 s), the predictor that ran, and the frame index of each
         reference time."""
-        aligned = campaign.aligned(zero_window_s=self.zero_window_s)
+        memo = self._served_memo  # a fit's (fit)
+        key = (id(campaign), self.zero_window_s, tuple(self.sensor_names), tuple(self.probe_names))
+        if memo is not None and key in memo["frames"]:
+            _, aligned, w0, t0, frame_t, w, t = memo["frames"][key]
+        else:
+            aligned = campaign.aligned(zero_window_s=self.zero_window_s)
+            _, _, w0, t0 = self.instrument_arrays(aligned)
+            frame_t, w, t = self.frame_arrays(campaign, aligned)
+            t0 = np.concatenate([t0, self._heat_zero_W(campaign)])
+            if memo is not None:  # (the campaign kept with them: its id is not reused)
+                for a in (w0, t0, frame_t, w, t):
+                    a.flags.writeable = False  # shared by every call: none may change them
+                memo["frames"][key] = (campaign, aligned, w0, t0, frame_t, w, t)
         p = PhysicalPredictor(self, exclude)  # fresh filter state per campaign
-        _, _, w0, t0 = self.instrument_arrays(aligned)
-        frame_t, w, t = self.frame_arrays(campaign, aligned)
-        t0 = np.concatenate([t0, self._heat_zero_W(campaign)])
+        p.load_memo = None if memo is None else memo["load"]
         # BLAS on one thread: the products here are (frames x ~12) by (~12 x 15), too thin for
         # threads to pay. ram2's default fit (22 campaigns' worth of frames) spent 12.2 CPU-s
         # with them threaded against 7.4 on one thread, in the same wall time and to the same

@@ -11,6 +11,7 @@ the per-frame state).
 from __future__ import annotations
 
 import copy
+import hashlib
 import math
 
 import numpy as np
@@ -812,6 +813,49 @@ class PhysicalPredictor:
         (…, 4): the live estimate's ratio, never below 1."""
         return np.maximum(noise[..., :3] / np.maximum(noise[..., 3:], 1e-12), 1.0)
 
+    #: a fit's memo of load-tracker results from rest (:meth:`_track_load_from_rest`), or None
+    load_memo: dict | None = None
+
+    #: what the load tracker reads of the predictor besides its input (:meth:`_load_key`)
+    _LOAD_ATTRS = (
+        "G", "ops", "F_sd", "active", "dof", "k_sigma", "p_contra", "relative_error", "max_force_N",
+        "noise_cov", "nuisance_cov", "nominal_dt_s", "noise_frame_dt_s", "offset_tau_s", "settle_s",
+        "trend_after_s", "drift_N_per_s", "steady_fast_path",
+    )  # fmt: skip
+
+    def _load_key(self) -> str:
+        """Digest of every parameter the load tracker reads (``_LOAD_ATTRS``)."""
+        h = hashlib.blake2b(digest_size=20)
+        for name in self._LOAD_ATTRS:
+            v = np.asarray(getattr(self, name), float)
+            h.update(name.encode() + repr(v.shape).encode() + np.ascontiguousarray(v).tobytes())
+        return h.hexdigest()
+
+    def _track_load_from_rest(self, e, time_s, state, new_state, raw=False):
+        """:meth:`_track_load`, or its result on the same inputs from a fit's memo (``load_memo``).
+
+        The load tracker reads the gratings alone, uncompensated (:func:`grating_map`). A fit
+        serves each load-free training campaign once per probe set and calibration (the
+        intervals of every probe's and pair's fallback, the held-out halves): ~20 times on
+        ram2, where the probes and the housing calibration change what follows and not the
+        tracker's input. From rest (no state), the same elongations, clock and load parameters
+        give the same result: it is taken once per fit and set of gratings."""
+        memo = self.load_memo
+        if memo is None or state:
+            return self._track_load(e, time_s, state, new_state, raw)
+        t = None if time_s is None else np.ascontiguousarray(time_s, float)
+        h = hashlib.blake2b(digest_size=20)
+        for part in (np.ascontiguousarray(e, float), t):
+            h.update(b"-" if part is None else repr(part.shape).encode() + part.tobytes())
+        key = (h.hexdigest(), bool(raw), self._load_key())
+        if key not in memo:
+            out = self._track_load(e, time_s, state, new_state, raw)
+            memo[key] = (out, new_state["load"], self.last_transition)
+        (force, clamped, refused), load_state, transition = memo[key]
+        new_state["load"] = copy.deepcopy(load_state)
+        self.last_transition = transition.copy()
+        return force.copy(), clamped.copy(), refused.copy()
+
     def _track_load(self, e, time_s, state, new_state, raw=False, listen=False):
         """Applied force per frame (n, 3) N, and the frames where a force was clamped (n,) and
         where a step was refused (n,). ``listen=True`` returns instead the low-passed force
@@ -1158,7 +1202,7 @@ class PhysicalPredictor:
         force = np.zeros((n, 3))
         moving = np.zeros((n, 3), bool)
         if self.has_load:
-            force, clamped, refused = self._track_load(
+            force, clamped, refused = self._track_load_from_rest(
                 e_all[:, self._keep], time_s, state.get("load"), new_state, raw
             )
             flags[clamped] |= P.CLAMPED
