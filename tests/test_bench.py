@@ -162,6 +162,14 @@ def test_fe_calibrated_model_and_resolution(machine, twin, static_y, tmp_path):
 
 @pytest.mark.slow
 def test_demo_runs_end_to_end(tmp_path):
+    """``fbgcomp demo`` (quick, coarse mesh): the twin's models and their table, then the
+    independent check on ram2 beside it (the default fit on thermal_a + static_xyz, judged on
+    the campaigns it never saw)."""
+    from fbgcomp.cli.demo import RAM2_HELD_OUT
+    from fbgcomp_testing import RAM2_DIR
+
+    if not (RAM2_DIR / "data").is_dir():
+        pytest.fail(f"the independent reference data set is missing: {RAM2_DIR / 'data'}")
     out = tmp_path / "demo"
     r = subprocess.run(
         [
@@ -172,6 +180,8 @@ def test_demo_runs_end_to_end(tmp_path):
             "--quick",
             "--mesh-resolution",
             str(COARSE),
+            "--ram2",
+            str(RAM2_DIR),
             "-o",
             str(out),
         ],
@@ -205,6 +215,17 @@ def test_demo_runs_end_to_end(tmp_path):
     assert "default (physical)" in r.stdout.split("independent check")[0]  # in the twin's table
     for name in ("thermal-36h", "static-y", "thermal-36h-b", "static-xyz"):
         read_campaign(out / "campaigns" / name)
+    # the independent check: every held-out campaign of ram2 judged, with its own table
+    got = m["ram2"]
+    assert "skipped" not in got and set(got["validation"]) == set(RAM2_HELD_OUT)
+    assert got["model_type"] == "physical" and (out / "ram2_model.json").exists()
+    text = r.stdout.split("independent check — ram2", 1)[1]
+    for camp in RAM2_HELD_OUT:
+        assert f"{camp} dx" in text
+    # static_x: plateau means, the uncompensated row is 100 % of the largest plateau deflection
+    assert any(ln.strip().startswith("uncompensated") and "100 % of 558" in ln for ln in text.splitlines())
+    harmed = [f"{c} {a}" for c, v in got["validation"].items() for a, x in v["axes"].items() if x["harm"]]
+    assert ("worse than uncompensated per sample: none" in text) == (not harmed)
 
 
 @pytest.mark.slow

@@ -186,31 +186,6 @@ def test_demo_fits_what_fbgcomp_fit_fits(monkeypatch, tmp_path, ram2):
     assert not (tmp_path / "m.json").exists()
 
 
-def test_demo_ram2_section(tmp_path):
-    from fbgcomp.cli.demo import RAM2_HELD_OUT, _summary_text, run_ram2
-
-    got = run_ram2(RAM2.parent, tmp_path)
-    assert "skipped" not in got and set(got["validation"]) == set(RAM2_HELD_OUT)
-    assert got["model_type"] == "physical" and (tmp_path / "ram2_model.json").exists()
-    summary = {
-        "machine": "built-in default ram",
-        "n_dof": 1,
-        "trained_on": ["a"],
-        "zero_window_s": 30,
-        "models": {},
-        "ram2": got,
-    }
-    res = {"axes": {a: {"resolution_um": 1.0} for a in ("dx", "dy", "dz")}, "rank": 3, "sensors": [1]}
-    text = _summary_text(summary, res, tmp_path)
-    assert "independent check — ram2" in text
-    for camp in RAM2_HELD_OUT:
-        assert f"{camp} dx" in text
-    # static_x: plateau means, the uncompensated row is 100 % of the largest plateau deflection
-    assert any(ln.strip().startswith("uncompensated") and "100 % of 558" in ln for ln in text.splitlines())
-    harmed = [f"{c} {a}" for c, m in got["validation"].items() for a, v in m["axes"].items() if v["harm"]]
-    assert ("worse than uncompensated per sample: none" in text) == (not harmed)
-
-
 def test_demo_without_ram2_says_so_in_one_line_and_carries_on(tmp_path):
     missing = tmp_path / "no-ram2"
     r = run(
