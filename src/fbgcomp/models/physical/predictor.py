@@ -11,7 +11,6 @@ the per-frame state).
 from __future__ import annotations
 
 import copy
-import hashlib
 import math
 
 import numpy as np
@@ -816,20 +815,12 @@ class PhysicalPredictor:
     #: a fit's memo of load-tracker results from rest (:meth:`_track_load_from_rest`), or None
     load_memo: dict | None = None
 
-    #: what the load tracker reads of the predictor besides its input (:meth:`_load_key`)
+    #: what the load tracker reads of the predictor besides its input (a memo's key)
     _LOAD_ATTRS = (
         "G", "ops", "F_sd", "active", "dof", "k_sigma", "p_contra", "relative_error", "max_force_N",
         "noise_cov", "nuisance_cov", "nominal_dt_s", "noise_frame_dt_s", "offset_tau_s", "settle_s",
         "trend_after_s", "drift_N_per_s", "steady_fast_path",
     )  # fmt: skip
-
-    def _load_key(self) -> str:
-        """Digest of every parameter the load tracker reads (``_LOAD_ATTRS``)."""
-        h = hashlib.blake2b(digest_size=20)
-        for name in self._LOAD_ATTRS:
-            v = np.asarray(getattr(self, name), float)
-            h.update(name.encode() + repr(v.shape).encode() + np.ascontiguousarray(v).tobytes())
-        return h.hexdigest()
 
     def _track_load_from_rest(self, e, time_s, state, new_state, raw=False):
         """:meth:`_track_load`, or its result on the same inputs from a fit's memo (``load_memo``).
@@ -843,11 +834,11 @@ class PhysicalPredictor:
         memo = self.load_memo
         if memo is None or state:
             return self._track_load(e, time_s, state, new_state, raw)
-        t = None if time_s is None else np.ascontiguousarray(time_s, float)
-        h = hashlib.blake2b(digest_size=20)
-        for part in (np.ascontiguousarray(e, float), t):
-            h.update(b"-" if part is None else repr(part.shape).encode() + part.tobytes())
-        key = (h.hexdigest(), bool(raw), self._load_key())
+        from fbgcomp.structure.cache import array_digest  # noqa: PLC0415 - fit-time only
+
+        clock = () if time_s is None else (np.asarray(time_s, float),)
+        params = (getattr(self, name) for name in self._LOAD_ATTRS)
+        key = (array_digest(np.asarray(e, float), *clock, *params), bool(raw))
         if key not in memo:
             out = self._track_load(e, time_s, state, new_state, raw)
             memo[key] = (out, new_state["load"], self.last_transition)
