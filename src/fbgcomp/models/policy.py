@@ -65,7 +65,7 @@ def firm(estimate, sigma, k_low=3.0, k_high=6.0):
     """
     x = np.asarray(estimate, dtype=float)
     # On Python floats, where numpy's per-call cost on a few numbers was the time (the same
-    # arithmetic, _firm1): one frame (1, n) with a sigma per column (a runtime batch of one), or
+    # arithmetic, firm1): one frame (1, n) with a sigma per column (a runtime batch of one), or
     # a vector of a few numbers with one sigma or one each (the load tracker's three force
     # components, each frame of a load transition)
     one_frame = x.ndim == 2 and x.shape[0] == 1 and np.ndim(sigma) == 1
@@ -73,7 +73,7 @@ def firm(estimate, sigma, k_low=3.0, k_high=6.0):
     if one_frame or few:
         v = x.ravel().tolist()
         sd = [float(sigma)] * len(v) if np.ndim(sigma) == 0 else np.asarray(sigma, float).tolist()
-        return np.array([_firm1(a, b, k_low, k_high) for a, b in zip(v, sd)]).reshape(*x.shape[:-1], -1)
+        return np.array([firm1(a, b, k_low, k_high) for a, b in zip(v, sd)]).reshape(*x.shape[:-1], -1)
     s = np.asarray(sigma, dtype=float)
     lo, hi = k_low * s, k_high * s
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -85,8 +85,9 @@ def firm(estimate, sigma, k_low=3.0, k_high=6.0):
     return x * factor
 
 
-def _firm1(x, s, k_low, k_high):
-    """:func:`firm` of one number (the same arithmetic)."""
+def firm1(x, s, k_low, k_high):
+    """:func:`firm` of one number ``x`` with its sigma ``s``, on Python floats (the same
+    arithmetic): the load tracker's per-frame path."""
     lo, hi = k_low * s, k_high * s
     a = abs(x)
     if a >= hi:

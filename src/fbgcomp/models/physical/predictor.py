@@ -130,11 +130,26 @@ def ramp_line(line, on, t, y, sd, k):
     the tracker had followed each frame's reading alone, and one frame's noise (3 sigma, 200 N
     of ram5's 2200 N) landed on the sample that ended the ramp (benchmarks/bench_latency_floor.py
     and docs/accuracy.md)."""
-    line = np.array(line, float)
-    est = np.full(3, np.nan)
+    est, new = ramp_line_floats(
+        np.asarray(line, float).tolist(),
+        [bool(v) for v in on],
+        float(t),
+        np.asarray(y, float).tolist(),
+        np.asarray(sd, float).tolist(),
+        k,
+    )
+    return np.array(est), np.array(new)
+
+
+def ramp_line_floats(line, on, t, y, sd, k):
+    """:func:`ramp_line` on Python floats (lists: ``line`` 3 x 6, ``on``, ``y``, ``sd`` 3), the
+    load tracker's per-frame form; the same arithmetic. Returns the estimates (NaN where the
+    line is not yet published) and the new sums, as lists."""
+    est = [math.nan] * 3
+    out = []
     for a in range(3):
         if not on[a]:
-            line[a] = 0.0
+            out.append([0.0] * 6)
             continue
         n, t0, St, Stt, Sy, Sty = line[a]
         if n == 0:
@@ -149,12 +164,12 @@ def ramp_line(line, on, t, y, sd, k):
                 if abs(y[a] - (c + b * tau)) > k * math.sqrt(v):
                     n, t0, St, Stt, Sy, Sty, tau = 0.0, t, 0.0, 0.0, 0.0, 0.0, 0.0
         n, St, Stt, Sy, Sty = n + 1, St + tau, Stt + tau * tau, Sy + y[a], Sty + tau * y[a]
-        line[a] = (n, t0, St, Stt, Sy, Sty)
+        out.append([n, t0, St, Stt, Sy, Sty])
         if n >= RAMP_LINE_MIN:
             sxx = Stt - St * St / n
             b = (Sty - St * Sy / n) / sxx if sxx > 0 else 0.0
             est[a] = (Sy - b * St) / n + b * tau
-    return est, line
+    return est, out
 
 
 def quick_fast_noise(b_quick, b_fast):
@@ -676,6 +691,19 @@ class PhysicalPredictor:
     #: every frame through the per-frame recursion (the reference the fast path is tested on).
     steady_fast_path = True
 
+    def _linear_run(self, e, dt, applied, offset, xs, f_hold):
+        """The load tracker's filters over frames ``e`` (n, S) at intervals ``dt`` (n,) while the
+        applied force stays ``applied`` (3,), vectorised: the low-passed gratings
+        ``y = xs + offset`` (``LOAD_FAST_S``), the thermal offset following ``e - G applied``
+        (``offset_tau_s``) and the one before each frame, the fast force estimate (n, 3) and its
+        slow estimate (``LOAD_HOLD_S``). Linear, so equal to the per-frame recursion to rounding."""
+        e = np.asarray(e, float)
+        y = first_order_recursion(dt / LOAD_FAST_S, e, xs + offset)
+        off = first_order_recursion(dt / self.offset_tau_s, e - self.G @ applied, offset)
+        off_prev = np.vstack([offset[None, :], off[:-1]])
+        f_fast = (y - off_prev) @ self.ops[0].T
+        return y, off, off_prev, f_fast, first_order_recursion(dt / LOAD_HOLD_S, f_fast, f_hold)
+
     def _steady_run(
         self, e, dt, applied, offset, xs, f_hold, recent, trend, quiet, k_fast, k_start, lag, kd, noise
     ):
@@ -691,12 +719,7 @@ class PhysicalPredictor:
         frame. They are formed for every frame, the step test is evaluated on all of them, and
         the frames before the first one whose test fires are accepted. Returns the number of
         frames accepted and the state after them (offset, xs, f_hold, recent, trend, quiet, noise)."""
-        e = np.asarray(e, float)
-        y = first_order_recursion(dt / LOAD_FAST_S, e, xs + offset)
-        off = first_order_recursion(dt / self.offset_tau_s, e - self.G @ applied, offset)
-        off_prev = np.vstack([offset[None, :], off[:-1]])
-        f_fast = (y - off_prev) @ self.ops[0].T
-        hold = first_order_recursion(dt / LOAD_HOLD_S, f_fast, f_hold)
+        y, off, off_prev, f_fast, hold = self._linear_run(e, dt, applied, offset, xs, f_hold)
         learnt = self._noise_excess(f_fast - hold, dt, kd, noise)
         excess = self._excess(np.vstack([noise[None, :], learnt[:-1]]))
         k = self.k_sigma
@@ -932,17 +955,38 @@ class PhysicalPredictor:
         clamped = np.zeros(n, bool)
         settle = np.array(state.get("settle", np.zeros(3)), float)  # s left of a load transition
         refused = np.zeros(n, bool)
+        if raw:  # the GLS reading beyond the tracked offset, which stays as it was
+            force[:] = (e - offset) @ op.T
+        elif listen and n:  # no step is taken: the filters alone, vectorised
+            y, off, _, f_fast, hold = self._linear_run(e, dt, applied, offset, xs, f_hold)
+            force[:] = f_fast - applied
+            offset, xs, f_hold, xq = off[-1], y[-1] - off[-1], hold[-1], None
         act = self.active
         chi2_limit = self._quantile("chi2", 1 - self.p_contra, max(self.dof, 1))
         k = self.k_sigma
+        # Frame by frame the state is held in Python floats, one list per vector (3 force
+        # components, S gratings): numpy's per-call cost on a few numbers was the time of a load
+        # transition's frame (ram2's static_xyz at 100 Hz, 85 % of its frames in a transition:
+        # 198 µs a frame on arrays, 38 on floats; benchmarks/bench_load_tracker.py). The
+        # arithmetic is numpy's, operation for operation; only the sums of the GLS and signature
+        # products run in another order (tests/test_physical.py compares the vectorised steady
+        # stretches with it to 1e-8).
+        rel, F, sd2, max_f = self.relative_error, self._F_sd, self._sd2, self.max_force_N.tolist()
+        op_rows, G_rows, settle_s = self._op_rows, self._G_rows, self.settle_s
+        A, J = range(3), range(S)
+        offset, applied, xs, f_hold = offset.tolist(), applied.tolist(), xs.tolist(), f_hold.tolist()
+        xq = None if xq is None else xq.tolist()
+        mean_sum, mean_w, mean_tsum = mean_sum.tolist(), mean_w.tolist(), mean_tsum.tolist()
+        level_from, trend, line = level_from.tolist(), trend.tolist(), line.tolist()
+        recent, noise, settle = recent.tolist(), noise.tolist(), settle.tolist()
         i, slow_until = -1, 0
-        while i + 1 < n:
+        while i + 1 < (0 if raw or listen else n):
             i += 1
             if (
                 self.steady_fast_path
                 and i >= slow_until
-                and not (raw or listen or (first and i == 0))
-                and not (settle > 0).any()
+                and not (first and i == 0)
+                and not any(s > 0 for s in settle)
             ):
                 # No transition under way: the recursion is linear until the first frame whose
                 # step test fires, so run it vectorised up to that frame, at most STEADY_WINDOW
@@ -950,22 +994,24 @@ class PhysicalPredictor:
                 # bit: tests/test_physical.py). Where a test fires at once (a refused step
                 # repeating), the next STEADY_BACKOFF frames go through the recursion.
                 w = slice(i, min(i + STEADY_WINDOW, n))
-                m, offset, xs, f_hold, recent, trend, quiet, noise = self._steady_run(
+                m, *run = self._steady_run(
                     e[w],
                     dt[w],
-                    applied,
-                    offset,
-                    xs,
-                    f_hold,
-                    recent,
-                    trend,
+                    np.array(applied),
+                    np.array(offset),
+                    np.array(xs),
+                    np.array(f_hold),
+                    np.array(recent),
+                    np.array(trend),
                     quiet,
                     k_fast[w],
                     k_start[w],
                     lag[w],
                     kd[w],
-                    noise,
+                    np.array(noise),
                 )
+                offset, xs, f_hold, recent, trend = (v.tolist() for v in run[:5])
+                quiet, noise = run[5], run[6].tolist()
                 force[i : i + m] = applied
                 if m == 0:
                     slow_until = i + STEADY_BACKOFF
@@ -975,95 +1021,108 @@ class PhysicalPredictor:
                 if m == w.stop - w.start:  # the window ran out before any test fired
                     i -= 1
                     continue
-            x_now = e[i] - offset
-            if raw:
-                force[i] = op @ x_now
-                continue
+            dti = float(dt[i])
+            ei = e[i].tolist()
+            x_now = [ei[j] - offset[j] for j in J]
             # the low-pass starts at the zero state (no load, by its definition), not at the
             # first frame: one raw frame carries the whole frame noise, which the step test,
             # judging low-passed noise, took for a load (a twin static campaign of ram2's
             # description, seed 16: -40 N of Fy at 2 s, held as dy -8.5 to +4 µm throughout)
             base = xs if xq is None else xq
-            xq = base + b_follow[i] * (x_now - base)
-            xs += b_fast[i] * (x_now - xs)
-            f_fast = op @ xs
-            f_hold += b_hold[i] * (f_fast - f_hold)
-            if listen:
-                force[i] = f_fast - applied
-                shift = alpha[i] * (e[i] - Ga @ applied - offset)
-                offset += shift
-                xs -= shift
-                xq = None
-                continue
-            excess = self._excess(noise)
-            sd_fast = self.F_sd * np.sqrt(k_fast[i] * excess)
-            other = np.sqrt(np.maximum((f_fast**2).sum() - f_fast**2, 0.0))
-            cross = self.relative_error * other / k
-            moving = settle > 0
-            step = f_fast - applied
+            bq, bf, bh = float(b_follow[i]), float(b_fast[i]), float(b_hold[i])
+            xq = [base[j] + bq * (x_now[j] - base[j]) for j in J]
+            xs = [xs[j] + bf * (x_now[j] - xs[j]) for j in J]
+            f_fast = [sum(o * v for o, v in zip(row, xs)) for row in op_rows]
+            f_hold = [f_hold[a] + bh * (f_fast[a] - f_hold[a]) for a in A]
+            excess = [max(noise[a] / max(noise[3], 1e-12), 1.0) for a in A]
+            kf = float(k_fast[i])
+            sd_fast = [F[a] * math.sqrt(kf * excess[a]) for a in A]
+            sq = [f * f for f in f_fast]
+            total = sq[0] + sq[1] + sq[2]
+            cross = [rel * math.sqrt(max(total - sq[a], 0.0)) / k for a in A]
+            moving = [s > 0 for s in settle]
             # noise is judged at the false-start rate; the drift allowance (already a 99th
             # percentile of what heat did in training) and cross-talk at k sigma
-            limit = np.maximum(np.hypot(k_start[i] * sd_fast, k * lag[i]), k * cross)
-            take = (~moving) & (np.abs(step) > limit)
-            if not (take.any() or moving.any()):  # a steady frame: the noise estimate learns
-                noise = self._noise_excess((f_fast - f_hold)[None, :], dt[i : i + 1], kd[i : i + 1], noise)[0]
-                quiet += dt[i]
+            ks, lg = float(k_start[i]), lag[i].tolist()
+            limit = [max(math.hypot(ks * sd_fast[a], k * lg[a]), k * cross[a]) for a in A]
+            take = [not moving[a] and abs(f_fast[a] - applied[a]) > limit[a] for a in A]
+            if not (any(take) or any(moving)):  # a steady frame: the noise estimate learns
+                kdi = float(kd[i])
+                q = [
+                    min((f_fast[a] - f_hold[a]) ** 2 / (sd2[a] * kdi), 100.0) if sd2[a] * kdi > 0 else 1.0
+                    for a in A
+                ]
+                noise = first_order_step(
+                    dti / NOISE_LEARN_S, [dti * q[0], dti * q[1], dti * q[2], dti], noise, gain=False
+                )
+                quiet += dti
                 if quiet >= self.trend_after_s:
-                    trend += b_trend[i] * (f_fast - applied - trend)
+                    bt = float(b_trend[i])
+                    trend = [trend[a] + bt * (f_fast[a] - applied[a] - trend[a]) for a in A]
             else:
                 quiet = 0.0
-            if take.any() and self.dof >= 1:
+            if any(take) and self.dof >= 1:
                 # a step no load explains (one grating jumps: a fibre slips, a connector is
                 # re-seated) is refused, and the offset absorbs it
-                new = np.where(take | moving, f_fast, applied)  # moving ones follow too
-                r = xs - Ga @ new
-                g = self.relative_error * (Ga[:, act] @ (new - applied)[act])
-                cov = self.noise_cov * k_fast[i] * excess.max() + self.nuisance_cov + np.outer(g, g)
-                if r @ np.linalg.lstsq(cov, r, rcond=None)[0] > chi2_limit and self._one_grating(xs, cov):
+                new = np.array(
+                    [f_fast[a] if take[a] or moving[a] else applied[a] for a in A]
+                )  # moving ones follow too
+                y = np.array(xs)
+                r = y - Ga @ new
+                g = rel * (Ga[:, act] @ (new - np.array(applied))[act])
+                cov = self.noise_cov * kf * max(excess) + self.nuisance_cov + np.outer(g, g)
+                if r @ np.linalg.lstsq(cov, r, rcond=None)[0] > chi2_limit and self._one_grating(y, cov):
                     refused[i] = True
-                    take[:] = False
-            if take.any():
-                if not (settle > 0).any():  # the offset freezes from this frame on
-                    offset -= recent
-                    xs += recent
-                    xq += recent
-                    f_fast = op @ xs
-                    recent[:] = 0.0
+                    take = [False, False, False]
+            if any(take):
+                if not any(s > 0 for s in settle):  # the offset freezes from this frame on
+                    offset = [offset[j] - recent[j] for j in J]
+                    xs = [xs[j] + recent[j] for j in J]
+                    xq = [xq[j] + recent[j] for j in J]
+                    f_fast = [sum(o * v for o, v in zip(row, xs)) for row in op_rows]
+                    recent = [0.0] * S
                     since = 0.0
-                level_from = np.where(take & ~(settle > 0), applied, level_from)
-                line[take & ~(settle > 0)] = 0.0
-                settle = np.where(take, self.settle_s, settle)
+                fresh = [take[a] and not settle[a] > 0 for a in A]
+                level_from = [applied[a] if fresh[a] else level_from[a] for a in A]
+                line = [[0.0] * 6 if fresh[a] else line[a] for a in A]
+                settle = [settle_s if take[a] else settle[a] for a in A]
                 # the slow estimate runs on from before the step: while it lags the fast one the
                 # load is still moving, so a ramp does not enter the level's mean (it was set to
                 # the fast reading here, and a 300 N step taken mid-ramp ended at 281 N)
-            moving = settle > 0
+            moving = [s > 0 for s in settle]
             transition[i] = moving
-            if moving.any():
+            if any(moving):
                 # in a transition: follow the low-passed force; still moving while the fast and
                 # slow estimates disagree beyond their noise
-                sd_hold = self.F_sd * np.sqrt(k_hold[i] * excess)
-                still = moving & (np.abs(f_fast - f_hold) > k * np.maximum(np.hypot(sd_fast, sd_hold), cross))
-                settle = np.where(still, self.settle_s, settle)
-                since += dt[i]
-                mean_sum = np.where(still, 0.0, mean_sum + dt[i] * f_fast)
-                mean_tsum = np.where(still, 0.0, mean_tsum + dt[i] * since)
-                mean_w = np.where(still, 0.0, mean_w + dt[i])
+                kh = float(k_hold[i])
+                sd_hold = [F[a] * math.sqrt(kh * excess[a]) for a in A]
+                still = [
+                    moving[a]
+                    and abs(f_fast[a] - f_hold[a]) > k * max(math.hypot(sd_fast[a], sd_hold[a]), cross[a])
+                    for a in A
+                ]
+                settle = [settle_s if still[a] else settle[a] for a in A]
+                since += dti
+                mean_sum = [0.0 if still[a] else mean_sum[a] + dti * f_fast[a] for a in A]
+                mean_tsum = [0.0 if still[a] else mean_tsum[a] + dti * since for a in A]
+                mean_w = [0.0 if still[a] else mean_w[a] + dti for a in A]
                 # while the load ramps (the quick reading stands clear of the fast one beyond
                 # their difference's noise) the quick reading; else the fast one
-                f_quick = op @ xq
-                sd_qf = self.F_sd * np.sqrt(k_follow[i] * excess)
-                ramping = still & (np.abs(f_quick - f_fast) > k * sd_qf)
-                settle = np.maximum(settle - dt[i], 0.0)
-                ended = moving & (settle <= 0) & (mean_w > 0)
+                f_quick = [sum(o * v for o, v in zip(row, xq)) for row in op_rows]
+                kq = float(k_follow[i])
+                ramping = [
+                    still[a] and abs(f_quick[a] - f_fast[a]) > k * (F[a] * math.sqrt(kq * excess[a]))
+                    for a in A
+                ]
+                settle = [max(settle[a] - dti, 0.0) for a in A]
+                ended = [moving[a] and settle[a] <= 0 and mean_w[a] > 0 for a in A]
                 # the level is the mean reading less the thermal lag it carried into the
                 # transition (trend = r offset_tau_s) and the drift since the offset froze
                 # (r x the window's mean time since then): under thermal_b's radiant drift
                 # (-1 N/s of Fx) a 300 N step ended 35 N low, 5 µm of dx held for its duration
                 # (the lag's own noise is not applied: firm shrinkage at k sigma of the noise
                 # the LOAD_TREND_S low-pass leaves; on ram2's thermal_c, 2.6 N at rest)
-                lagged = P.firm(trend, self.F_sd * np.sqrt(k_trend[i] * excess), k, 2 * k)
-                mw = np.where(mean_w > 0, mean_w, 1.0)
-                level = mean_sum / mw - lagged * (1.0 + mean_tsum / mw / self.offset_tau_s)
+                kt = float(k_trend[i])
                 # while the load moves, the reading (the quick one while it ramps); once it has
                 # stopped, the level it will end at, as far as the frames since then tell it,
                 # and zero where that is a release to a level the step test cannot tell from
@@ -1071,71 +1130,76 @@ class PhysicalPredictor:
                 # through the whole settling time: at 1 frame/s on the twin's combined campaign
                 # (165 N of Fy a frame) its 2000 N release wandered 27-68 µm of dy for 15 s after
                 # the load was off; the running mean alone, correlated noise, 17-32 µm.
-                settling = moving & ~still & (mean_w > 0)
-                to_zero = (np.abs(level) <= limit) & (np.abs(level) < np.abs(level_from))
-                # the first that holds of: ramping, still, settling to zero, settling, moving
-                # (np.select's order, taken from the last: np.where on three numbers costs a
-                # tenth of np.select, which broadcast every choice each frame)
-                chosen = np.where(moving, f_fast, applied)
-                chosen = np.where(settling, level, chosen)
-                chosen = np.where(settling & to_zero, 0.0, chosen)
-                chosen = np.where(still, f_fast, chosen)
-                applied = np.where(ramping, f_quick, chosen)
+                chosen = []
+                for a in A:
+                    lagged = P.firm1(trend[a], F[a] * math.sqrt(kt * excess[a]), k, 2 * k)
+                    mw = mean_w[a] if mean_w[a] > 0 else 1.0
+                    level = mean_sum[a] / mw - lagged * (1.0 + mean_tsum[a] / mw / self.offset_tau_s)
+                    settling = moving[a] and not still[a] and mean_w[a] > 0
+                    if ramping[a]:
+                        chosen.append(f_quick[a])
+                    elif still[a]:
+                        chosen.append(f_fast[a])
+                    elif settling and abs(level) <= limit[a] and abs(level) < abs(level_from[a]):
+                        chosen.append(0.0)
+                    elif settling:
+                        chosen.append(level)
+                    else:
+                        chosen.append(f_fast[a] if moving[a] else applied[a])
                 # while it still moves, at frames of RAMP_LINE_DT_S or longer, the line through
                 # the quick reading since the transition began, once it holds RAMP_LINE_MIN
                 # frames (ramp_line); its noise is the quick low-pass's (b / (2 - b) of a
                 # frame's variance) where k_fast holds the fast one's
-                b_q, b_f = b_follow[i], b_fast[i]
-                k_q = k_fast[i] * (b_q / (2.0 - b_q)) / (b_f / (2.0 - b_f)) if b_f > 0 else 1.0
-                drawn, line = ramp_line(
+                k_q = kf * (bq / (2.0 - bq)) / (bf / (2.0 - bf)) if bf > 0 else 1.0
+                drawn, line = ramp_line_floats(
                     line,
-                    still & (dt[i] >= RAMP_LINE_DT_S),
+                    [still[a] and dti >= RAMP_LINE_DT_S for a in A],
                     float(t[i]),
                     f_quick,
-                    self.F_sd * np.sqrt(k_q * excess),
+                    [F[a] * math.sqrt(k_q * excess[a]) for a in A],
                     k,
                 )
-                applied = np.where(still & np.isfinite(drawn), drawn, applied)
+                applied = [drawn[a] if still[a] and math.isfinite(drawn[a]) else chosen[a] for a in A]
                 # a release that ends at a level the step test could not tell from zero ends at
                 # zero: that level would not have started a load from rest, and held it stays
                 # for good (the offset takes in what it leaves). On the twin's combined campaign
                 # a 2000 N release settled at 117 N of correlated noise and held 24.6 µm of dy
                 # for the remaining six hours. Only a release: a small load just taken stays
                 # (zeroed, the offset would take it in and its removal start a false load).
-                release = ended & (np.abs(applied) <= limit) & (np.abs(applied) < np.abs(level_from))
-                applied = np.where(release, 0.0, applied)
-                mean_sum = np.where(moving & ~(settle > 0), 0.0, mean_sum)
-                mean_tsum = np.where(moving & ~(settle > 0), 0.0, mean_tsum)
-                mean_w = np.where(moving & ~(settle > 0), 0.0, mean_w)
-            big = np.abs(applied) > self.max_force_N
-            if big.any():
+                for a in A:
+                    if ended[a] and abs(applied[a]) <= limit[a] and abs(applied[a]) < abs(level_from[a]):
+                        applied[a] = 0.0
+                    if moving[a] and not settle[a] > 0:
+                        mean_sum[a] = mean_tsum[a] = mean_w[a] = 0.0
+            if any(abs(applied[a]) > max_f[a] for a in A):
                 clamped[i] = True
-                applied = np.clip(applied, -self.max_force_N, self.max_force_N)
-            if not (settle > 0).any():
-                shift = alpha[i] * (e[i] - Ga @ applied - offset)
-                offset += shift
-                xs -= shift  # xs is relative to the offset
-                recent = recent * forget[i] + shift
+                applied = [min(max(applied[a], -max_f[a]), max_f[a]) for a in A]
+            if not any(s > 0 for s in settle):
+                al, fg = float(alpha[i]), float(forget[i])
+                shift = [al * (ei[j] - sum(g * a for g, a in zip(G_rows[j], applied)) - offset[j]) for j in J]
+                offset = [offset[j] + shift[j] for j in J]
+                xs = [xs[j] - shift[j] for j in J]  # xs is relative to the offset
+                recent = [recent[j] * fg + shift[j] for j in J]
                 xq = None  # no transition: the quick reading starts anew from xs at the next
             force[i] = applied
         new_state["load"] = {
-            "offset": offset,
-            "force": applied,
-            "settle": settle,
-            "fast": xs,
-            "quick": xq,
-            "hold": f_hold,
-            "mean_sum": mean_sum,
-            "mean_w": mean_w,
-            "from": level_from,
-            "recent": recent,
-            "trend": trend,
+            "offset": np.array(offset),
+            "force": np.array(applied),
+            "settle": np.array(settle),
+            "fast": np.array(xs),
+            "quick": None if xq is None else np.array(xq),
+            "hold": np.array(f_hold),
+            "mean_sum": np.array(mean_sum),
+            "mean_w": np.array(mean_w),
+            "from": np.array(level_from),
+            "recent": np.array(recent),
+            "trend": np.array(trend),
             "quiet": quiet,
             "since": since,
-            "mean_tsum": mean_tsum,
-            "line": line,
-            "noise": noise,
-            "t": float(t[-1]) if n else t_last,
+            "mean_tsum": np.array(mean_tsum),
+            "line": np.array(line),
+            "noise": np.array(noise),
+            "t": float(t[-1]) if len(t) else t_last,
         }
         self.last_transition = transition
         return force, clamped, refused
