@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import importlib
+import io
 import os
 import shutil
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -33,6 +36,40 @@ def require_program(name: str) -> str:
             pytest.fail(f"program {name!r} is required in CI but not on PATH")
         pytest.skip(f"{name} not on PATH")
     return path
+
+
+def cli(*args, cwd=None, env=None) -> subprocess.CompletedProcess:
+    """``fbgcomp ARGS`` run in this process by the console script's own function
+    (:func:`fbgcomp.cli.app.main`): its exit code, stdout and stderr, as ``subprocess.run`` gives
+    them. What a command does, prints and writes is the same as in a process of its own, without
+    that process's ~1.5 s of imports (the suite's short commands: ~85 processes). What only a
+    process shows (the console script itself, signals, a kill, a server's lifetime) is tested in
+    one. A traceback fails the test here, where a process would print it. ``cwd``: the working
+    folder of the call; ``env``: variables set for the call (``None`` removes one)."""
+    from fbgcomp.cli.app import main
+
+    argv = [str(a) for a in args]
+    out, err = io.StringIO(), io.StringIO()
+    saved = {k: os.environ.get(k) for k in env or {}}
+    try:
+        for k, v in (env or {}).items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = str(v)
+        with contextlib.ExitStack() as stack:
+            if cwd is not None:
+                stack.enter_context(contextlib.chdir(cwd))
+            stack.enter_context(contextlib.redirect_stdout(out))
+            stack.enter_context(contextlib.redirect_stderr(err))
+            code = main(argv)
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    return subprocess.CompletedProcess(["fbgcomp", *argv], code, out.getvalue(), err.getvalue())
 
 
 #: The independent reference ram: ``$FBGCOMP_RAM2`` (the data set's root, as ``fbgcomp demo`` and

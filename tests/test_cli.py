@@ -9,6 +9,7 @@ import pytest
 from fbgcomp.bench.synthetic import linear_truth_campaign
 from fbgcomp.cli.app import main
 from fbgcomp.io.campaign import write_campaign
+from fbgcomp_testing import cli
 
 FBGCOMP = [sys.executable, "-m", "fbgcomp"]
 
@@ -24,11 +25,15 @@ def campaigns(tmp_path_factory):
 
 
 def run(*args, cwd=None):
+    return cli(*args, cwd=cwd)
+
+
+def run_process(*args):
+    """``python -m fbgcomp ARGS`` as a process of its own (what a shell or a CNC's script runs)."""
     return subprocess.run(
         [*FBGCOMP, *map(str, args)],
         capture_output=True,
         text=True,
-        cwd=cwd,
         timeout=300,
         env={**os.environ, "PYTHONWARNINGS": "ignore"},
     )
@@ -208,10 +213,10 @@ def test_bad_input_is_one_line_exit_2_no_traceback(campaigns, tmp_path, capsys, 
 @pytest.mark.slow
 def test_console_script_bad_input_and_missing_folder(campaigns, tmp_path):
     broken = _broken_copy(campaigns[0], tmp_path / "broken", "fbg.csv", _replace_cell(5, 2, "abc"))
-    r = run("validate", tmp_path / "nope.json", broken)
+    r = run_process("validate", tmp_path / "nope.json", broken)
     assert r.returncode == 2 and r.stderr.startswith("error: ") and "nope.json" in r.stderr
     assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
-    r = run("inspect", tmp_path / "no-such-campaign")
+    r = run_process("inspect", tmp_path / "no-such-campaign")
     assert r.returncode == 2 and "no-such-campaign" in r.stderr and "Traceback" not in r.stderr
 
 

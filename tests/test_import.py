@@ -6,10 +6,7 @@ Excel workbooks and the daylight-saving cases are written by the tests themselve
 
 import csv
 import datetime as dt
-import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 from zoneinfo import ZoneInfo
 
@@ -20,9 +17,9 @@ import yaml
 
 from fbgcomp.io.campaign import read_campaign
 from fbgcomp.io.vendor_import import PRESETS
+from fbgcomp_testing import cli
 
 DATA = Path(__file__).parent / "data" / "import"
-FBGCOMP = [sys.executable, "-m", "fbgcomp"]
 BERLIN = ZoneInfo("Europe/Berlin")
 
 #: Every shipped preset and the sample export written from its cited document.
@@ -30,13 +27,7 @@ PRESET_SAMPLES = {"hioki-lr8431-csv": "hioki_lr8431_written_from_manual_appendix
 
 
 def run(*args):
-    return subprocess.run(
-        [*FBGCOMP, *map(str, args)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env={**os.environ, "PYTHONWARNINGS": "ignore"},
-    )
+    return cli(*args)
 
 
 def mapping_dict():

@@ -2,9 +2,6 @@
 contract, streaming filters, prediction intervals on held-out campaigns, CLI."""
 
 import json
-import os
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -29,8 +26,8 @@ from fbgcomp.models import (
 from fbgcomp.models.filters import first_order_filter
 from fbgcomp.models.metrics import static_level_metrics, validation_metrics
 from fbgcomp.structure import Twin, load_machine
+from fbgcomp_testing import cli
 
-FBGCOMP = [sys.executable, "-m", "fbgcomp"]
 HOURS = 3.0
 
 
@@ -199,13 +196,7 @@ def test_v1_model_file_is_migrated(campaigns, tmp_path):
 
 
 def run(*args):
-    return subprocess.run(
-        [*FBGCOMP, *map(str, args)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env={**os.environ, "PYTHONWARNINGS": "ignore"},
-    )
+    return cli(*args)
 
 
 def test_cli_fit_model_types_and_validate_prints_coverage(campaigns, tmp_path):

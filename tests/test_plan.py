@@ -1,11 +1,9 @@
 """fbgcomp plan: predicted TTP accuracy of a machine description's layout against a target,
-through the real CLI (``python -m fbgcomp plan``) on the built-in ram and on
+through the CLI (``fbgcomp plan``, run in the test's process: fbgcomp_testing.cli) on the built-in ram and on
 examples/machines/ram2.yaml (the independent ram2 data sheet, written as a user would)."""
 
 import json
 import math
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -14,11 +12,11 @@ import yaml
 from fbgcomp.structure import load_machine
 from fbgcomp.structure.placement import placement_design, predicted_error_um
 from fbgcomp.structure.plan import noise_scan, plan_design
+from fbgcomp_testing import cli
 
 ROOT = Path(__file__).resolve().parents[1]
 RAM2 = ROOT / "examples" / "machines" / "ram2.yaml"
 BUILTIN = ROOT / "src" / "fbgcomp" / "data" / "ram.yaml"
-FBGCOMP = [sys.executable, "-m", "fbgcomp"]
 AXES = ("dx", "dy", "dz")
 
 # every test here runs `fbgcomp plan` (1-26 s each under load)
@@ -26,9 +24,7 @@ pytestmark = pytest.mark.slow
 
 
 def run_plan(*args, check=True):
-    proc = subprocess.run(
-        [*FBGCOMP, "plan", *map(str, args)], capture_output=True, text=True, cwd=ROOT, timeout=600
-    )
+    proc = cli("plan", *args, cwd=ROOT)
     if check:
         assert proc.returncode == 0, proc.stderr
     return proc

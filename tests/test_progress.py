@@ -1,32 +1,20 @@
 """Progress of long commands (issue 15, item 2): named stages on stderr when forced with
 FBGCOMP_PROGRESS=1 (or on a terminal), nothing with FBGCOMP_PROGRESS=0 or --quiet, and stdout
-the same either way - through the real CLI."""
+the same either way - through the CLI (run in the test's process: fbgcomp_testing.cli; its stderr,
+like a pipe's, is not a terminal)."""
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-
 import pytest
+
+from fbgcomp_testing import cli
 
 # both tests run the real CLI several times (3-30 s under load)
 pytestmark = pytest.mark.slow
 
 
 def _run(args, cwd, progress=None):
-    env = dict(os.environ)
-    env.pop("FBGCOMP_PROGRESS", None)
-    if progress is not None:
-        env["FBGCOMP_PROGRESS"] = progress
-    return subprocess.run(
-        [sys.executable, "-m", "fbgcomp", *map(str, args)],
-        cwd=cwd,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=900,
-    )
+    return cli(*args, cwd=cwd, env={"FBGCOMP_PROGRESS": progress})
 
 
 def test_stages_on_stderr_only_and_stdout_unchanged(tmp_path):

@@ -3,13 +3,13 @@ server (tests/test_runtime_opcua.py has them against the real server and a real 
 
 import datetime as dt
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+
+from fbgcomp_testing import cli
 
 pytest.importorskip("cryptography")
 
@@ -44,9 +44,7 @@ def _certificate(days=365, uri="urn:test:plc", cn="plc-7"):
 
 
 def _fbgcomp(*args):
-    p = subprocess.run(
-        [sys.executable, "-m", "fbgcomp", *map(str, args)], capture_output=True, text=True, timeout=120
-    )
+    p = cli(*args)
     return p.returncode, p.stdout, p.stderr
 
 

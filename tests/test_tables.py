@@ -7,13 +7,12 @@ from __future__ import annotations
 import json
 import math
 import re
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
 from fbgcomp.tables import MISSING, Column, format_number, format_table, text
+from fbgcomp_testing import cli
 
 
 @pytest.mark.parametrize(
@@ -91,13 +90,7 @@ def test_table_columns_align_headers_carry_units():
 
 
 def _run(*args, cwd):
-    return subprocess.run(
-        [sys.executable, "-m", "fbgcomp", *map(str, args)],
-        cwd=cwd,
-        capture_output=True,
-        text=True,
-        timeout=900,
-    )
+    return cli(*args, cwd=cwd)
 
 
 def _assert_aligned(block: str):
