@@ -1,6 +1,7 @@
 """Loopback helpers shared by the benchmarks that start real processes (bench_runtime,
 bench_soak): a free TCP port and waiting for a listener; and what the runtime benchmarks
-share: busy background processes, the code commit, the runtime's real-time settings."""
+share: busy background processes, the code commit, the runtime's real-time settings; and a
+baseline commit's code checked out beside this one (bench_startup, bench_load_tracker)."""
 
 from __future__ import annotations
 
@@ -70,6 +71,18 @@ def git_commit() -> str:
         return head + ("+dirty" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
+
+
+@contextlib.contextmanager
+def baseline_worktree(rev: str, folder: Path):
+    """A detached git worktree of ``rev`` at ``folder``, removed on exit: a baseline commit's code
+    beside this checkout's, run with its ``src`` first on ``PYTHONPATH``."""
+    root = Path(__file__).resolve().parent.parent
+    subprocess.run(["git", "worktree", "add", "--detach", "-q", str(folder), rev], cwd=root, check=True)
+    try:
+        yield folder
+    finally:
+        subprocess.run(["git", "worktree", "remove", "--force", str(folder)], cwd=root, check=False)
 
 
 def realtime_settings(cpu: int | None, fifo: bool) -> str:

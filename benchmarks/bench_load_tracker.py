@@ -106,7 +106,7 @@ def main(argv=None) -> int:
         return 0
     import numpy as np
 
-    from _loopback import git_commit
+    from _loopback import baseline_worktree, git_commit
     from fbgcomp.cli.demo import RAM2_MACHINE, find_ram2
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -117,39 +117,35 @@ def main(argv=None) -> int:
     data, looked = find_ram2(args.ram2)
     if data is None:
         raise SystemExit(f"ram2 not found at {looked} (give --ram2)")
-    with tempfile.TemporaryDirectory(prefix="bench-load-tracker-") as tmp:
-        tmp = Path(tmp)
-        base = tmp / "baseline"
+    with (
+        tempfile.TemporaryDirectory(prefix="bench-load-tracker-") as folder,
+        baseline_worktree(args.baseline, Path(folder) / "baseline") as base,
+    ):
+        tmp = Path(folder)
+        model = tmp / "model.json"
+        fit = [sys.executable, "-m", "fbgcomp", "-q", "fit", data / "thermal_a", data / "static_xyz"]
         subprocess.run(
-            ["git", "worktree", "add", "--detach", "-q", str(base), args.baseline], cwd=REPO, check=True
+            [*map(str, fit), "--machine", str(RAM2_MACHINE), "-o", str(model)],
+            check=True,
+            capture_output=True,
         )
-        try:
-            model = tmp / "model.json"
-            fit = [sys.executable, "-m", "fbgcomp", "-q", "fit", data / "thermal_a", data / "static_xyz"]
-            subprocess.run(
-                [*map(str, fit), "--machine", str(RAM2_MACHINE), "-o", str(model)],
-                check=True,
-                capture_output=True,
-            )
-            runs: dict[tuple[str, str], list[dict]] = {}
-            for rep in range(args.reps):
-                for case in CASES:
-                    for who, src in (("baseline", base / "src"), ("now", REPO / "src")):
-                        out = tmp / f"{who}-{case.replace('/', '_')}-{rep}.npy"
-                        runs.setdefault((who, case), []).append(_run(src, model, data, case, out))
-            worst = {
-                case: float(
-                    np.max(
-                        np.abs(
-                            np.load(tmp / f"now-{case.replace('/', '_')}-0.npy")
-                            - np.load(tmp / f"baseline-{case.replace('/', '_')}-0.npy")
-                        )
+        runs: dict[tuple[str, str], list[dict]] = {}
+        for rep in range(args.reps):
+            for case in CASES:
+                for who, src in (("baseline", base / "src"), ("now", REPO / "src")):
+                    out = tmp / f"{who}-{case.replace('/', '_')}-{rep}.npy"
+                    runs.setdefault((who, case), []).append(_run(src, model, data, case, out))
+        worst = {
+            case: float(
+                np.max(
+                    np.abs(
+                        np.load(tmp / f"now-{case.replace('/', '_')}-0.npy")
+                        - np.load(tmp / f"baseline-{case.replace('/', '_')}-0.npy")
                     )
                 )
-                for case in CASES
-            }
-        finally:
-            subprocess.run(["git", "worktree", "remove", "--force", str(base)], cwd=REPO, check=False)
+            )
+            for case in CASES
+        }
     load = os.getloadavg()[0]
     print(f"load tracker, median of {args.reps} (load average {load:.1f}); baseline {args.baseline}")
     head = ("case", "frames", "moving", "baseline", "now", "ratio", "us/frame", "max |dF| N")

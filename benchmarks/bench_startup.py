@@ -29,7 +29,7 @@ import time
 from datetime import UTC, datetime
 from pathlib import Path
 
-from _loopback import git_commit
+from _loopback import baseline_worktree, git_commit
 
 REPO = Path(__file__).resolve().parents[1]
 MODULES = (
@@ -65,28 +65,24 @@ def main(argv=None) -> int:
     data, looked = find_ram2(args.ram2)
     if data is None:
         raise SystemExit(f"ram2 not found at {looked} (give --ram2)")
-    with tempfile.TemporaryDirectory(prefix="bench-startup-") as tmp:
-        base = Path(tmp) / "baseline"
-        subprocess.run(
-            ["git", "worktree", "add", "--detach", "-q", str(base), args.baseline], cwd=REPO, check=True
-        )
-        try:
-            model = Path(tmp) / "mra.json"
-            fbgcomp = [sys.executable, "-m", "fbgcomp", "-q"]
-            timed([*fbgcomp, "fit", data / "thermal_a", "--features", "eq13", "-o", model], REPO / "src")
-            imports = [sys.executable, "-c", "import " + ", ".join(MODULES)]
-            validate = [*fbgcomp, "validate", model, data / "static_x"]
-            runs = {("now", k): [] for k in ("imports", "validate")}
-            runs |= {("baseline", k): [] for k in ("imports", "validate")}
-            tables = {}
-            for _ in range(args.reps):
-                for who, src in (("baseline", base / "src"), ("now", REPO / "src")):
-                    runs[who, "imports"].append(timed(imports, src)[0])
-                    s, out = timed(validate, src)
-                    runs[who, "validate"].append(s)
-                    tables.setdefault(who, out)
-        finally:
-            subprocess.run(["git", "worktree", "remove", "--force", str(base)], cwd=REPO, check=False)
+    with (
+        tempfile.TemporaryDirectory(prefix="bench-startup-") as tmp,
+        baseline_worktree(args.baseline, Path(tmp) / "baseline") as base,
+    ):
+        model = Path(tmp) / "mra.json"
+        fbgcomp = [sys.executable, "-m", "fbgcomp", "-q"]
+        timed([*fbgcomp, "fit", data / "thermal_a", "--features", "eq13", "-o", model], REPO / "src")
+        imports = [sys.executable, "-c", "import " + ", ".join(MODULES)]
+        validate = [*fbgcomp, "validate", model, data / "static_x"]
+        runs = {("now", k): [] for k in ("imports", "validate")}
+        runs |= {("baseline", k): [] for k in ("imports", "validate")}
+        tables = {}
+        for _ in range(args.reps):
+            for who, src in (("baseline", base / "src"), ("now", REPO / "src")):
+                runs[who, "imports"].append(timed(imports, src)[0])
+                s, out = timed(validate, src)
+                runs[who, "validate"].append(s)
+                tables.setdefault(who, out)
     med = {f"{who}_{k}_s": round(statistics.median(v), 3) for (who, k), v in runs.items()}
     load = os.getloadavg()[0]
     print(f"start-up, median of {args.reps} (load average {load:.1f}); baseline {args.baseline}")
