@@ -181,6 +181,12 @@ def quick_fast_noise(b_quick, b_fast):
     return b_quick / (2.0 - b_quick) + b_fast / (2.0 - b_fast) - 2.0 * cov
 
 
+def _row_products(rows, v) -> list[float]:
+    """A matrix (its rows as lists) times a vector, on Python floats: the load tracker's GLS
+    and signature products of one frame."""
+    return [sum(r * x for r, x in zip(row, v)) for row in rows]
+
+
 def _floats(v):
     """A state vector as a list of Python floats (the one-frame path's form; the array path
     reads either)."""
@@ -766,19 +772,13 @@ class PhysicalPredictor:
         S = len(offset)
         quiet = float(st.get("quiet", 0.0)) + dt
         y = first_order_step(dt / LOAD_FAST_S, e, [xs[j] + offset[j] for j in range(S)])
-        u = [e[j] - sum(g * a for g, a in zip(self._G_rows[j], applied)) for j in range(S)]
+        Ga = _row_products(self._G_rows, applied)
+        u = [e[j] - Ga[j] for j in range(S)]
         off = first_order_step(dt / self.offset_tau_s, u, offset)
         x = [y[j] - offset[j] for j in range(S)]
-        f_fast = [sum(o * v for o, v in zip(row, x)) for row in self._op_rows]
+        f_fast = _row_products(self._op_rows, x)
         hold = first_order_step(dt / LOAD_HOLD_S, f_fast, f_hold)
-        # as _noise_excess: a frame after a gap longer than the filters' memory counts as 1
-        q = [
-            min((f_fast[a] - hold[a]) ** 2 / (self._sd2[a] * kd), 100.0) if self._sd2[a] * kd > 0 else 1.0
-            for a in range(3)
-        ]
-        learnt = first_order_step(
-            dt / NOISE_LEARN_S, [dt * q[0], dt * q[1], dt * q[2], dt], noise, gain=False
-        )
+        learnt = self._noise_step(f_fast, hold, dt, kd, noise)
         k = self.k_sigma
         sq = [f * f for f in f_fast]
         total = sq[0] + sq[1] + sq[2]
@@ -807,6 +807,18 @@ class PhysicalPredictor:
         }
         self.last_transition = np.zeros((1, 3), bool)
         return np.array([applied]), np.zeros(1, bool), np.zeros(1, bool)
+
+    def _noise_step(self, f_fast, f_hold, dt, kd, noise):
+        """:meth:`_noise_excess` of one frame on Python floats: the running sums (4,) after a
+        frame of fast and hold readings ``f_fast``, ``f_hold`` (3,) N at interval ``dt`` s and
+        difference noise ``kd``."""
+        sd2 = self._sd2
+        # as _noise_excess: a frame after a gap longer than the filters' memory counts as 1
+        q = [
+            min((f_fast[a] - f_hold[a]) ** 2 / (sd2[a] * kd), 100.0) if sd2[a] * kd > 0 else 1.0
+            for a in range(3)
+        ]
+        return first_order_step(dt / NOISE_LEARN_S, [dt * q[0], dt * q[1], dt * q[2], dt], noise, gain=False)
 
     def _noise_excess(self, d, dt, kd, noise):
         """Running sums (n, 4) of the live noise estimate after each frame, from ``noise``
@@ -971,7 +983,7 @@ class PhysicalPredictor:
         # arithmetic is numpy's, operation for operation; only the sums of the GLS and signature
         # products run in another order (tests/test_physical.py compares the vectorised steady
         # stretches with it to 1e-8).
-        rel, F, sd2, max_f = self.relative_error, self._F_sd, self._sd2, self.max_force_N.tolist()
+        rel, F, max_f = self.relative_error, self._F_sd, self.max_force_N.tolist()
         op_rows, G_rows, settle_s = self._op_rows, self._G_rows, self.settle_s
         A, J = range(3), range(S)
         offset, applied, xs, f_hold = offset.tolist(), applied.tolist(), xs.tolist(), f_hold.tolist()
@@ -1032,7 +1044,7 @@ class PhysicalPredictor:
             bq, bf, bh = float(b_follow[i]), float(b_fast[i]), float(b_hold[i])
             xq = [base[j] + bq * (x_now[j] - base[j]) for j in J]
             xs = [xs[j] + bf * (x_now[j] - xs[j]) for j in J]
-            f_fast = [sum(o * v for o, v in zip(row, xs)) for row in op_rows]
+            f_fast = _row_products(op_rows, xs)
             f_hold = [f_hold[a] + bh * (f_fast[a] - f_hold[a]) for a in A]
             excess = [max(noise[a] / max(noise[3], 1e-12), 1.0) for a in A]
             kf = float(k_fast[i])
@@ -1047,14 +1059,7 @@ class PhysicalPredictor:
             limit = [max(math.hypot(ks * sd_fast[a], k * lg[a]), k * cross[a]) for a in A]
             take = [not moving[a] and abs(f_fast[a] - applied[a]) > limit[a] for a in A]
             if not (any(take) or any(moving)):  # a steady frame: the noise estimate learns
-                kdi = float(kd[i])
-                q = [
-                    min((f_fast[a] - f_hold[a]) ** 2 / (sd2[a] * kdi), 100.0) if sd2[a] * kdi > 0 else 1.0
-                    for a in A
-                ]
-                noise = first_order_step(
-                    dti / NOISE_LEARN_S, [dti * q[0], dti * q[1], dti * q[2], dti], noise, gain=False
-                )
+                noise = self._noise_step(f_fast, f_hold, dti, float(kd[i]), noise)
                 quiet += dti
                 if quiet >= self.trend_after_s:
                     bt = float(b_trend[i])
@@ -1079,7 +1084,7 @@ class PhysicalPredictor:
                     offset = [offset[j] - recent[j] for j in J]
                     xs = [xs[j] + recent[j] for j in J]
                     xq = [xq[j] + recent[j] for j in J]
-                    f_fast = [sum(o * v for o, v in zip(row, xs)) for row in op_rows]
+                    f_fast = _row_products(op_rows, xs)
                     recent = [0.0] * S
                     since = 0.0
                 fresh = [take[a] and not settle[a] > 0 for a in A]
@@ -1108,7 +1113,7 @@ class PhysicalPredictor:
                 mean_w = [0.0 if still[a] else mean_w[a] + dti for a in A]
                 # while the load ramps (the quick reading stands clear of the fast one beyond
                 # their difference's noise) the quick reading; else the fast one
-                f_quick = [sum(o * v for o, v in zip(row, xq)) for row in op_rows]
+                f_quick = _row_products(op_rows, xq)
                 kq = float(k_follow[i])
                 ramping = [
                     still[a] and abs(f_quick[a] - f_fast[a]) > k * (F[a] * math.sqrt(kq * excess[a]))
@@ -1176,7 +1181,8 @@ class PhysicalPredictor:
                 applied = [min(max(applied[a], -max_f[a]), max_f[a]) for a in A]
             if not any(s > 0 for s in settle):
                 al, fg = float(alpha[i]), float(forget[i])
-                shift = [al * (ei[j] - sum(g * a for g, a in zip(G_rows[j], applied)) - offset[j]) for j in J]
+                Ga_applied = _row_products(G_rows, applied)
+                shift = [al * (ei[j] - Ga_applied[j] - offset[j]) for j in J]
                 offset = [offset[j] + shift[j] for j in J]
                 xs = [xs[j] - shift[j] for j in J]  # xs is relative to the offset
                 recent = [recent[j] * fg + shift[j] for j in J]
