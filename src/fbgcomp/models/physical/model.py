@@ -610,7 +610,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
         self.interval_ = self._fit_interval(rows, campaigns) if thermal_rows else None
         self._predictors = {}
         if self.load_ is not None and self.interval_ is not None:
-            self.load_["interval_scale"] = self._fit_load_interval(rows, campaigns).tolist()
+            scale, trained = self._fit_load_interval(rows, campaigns)
+            self.load_["interval_scale"] = scale.tolist()
+            self.load_["interval_trained"] = trained.tolist()
             self._predictors = {}
         if self.interval_ is not None and self.twin_map_ is not None and not self.observer:
             # each probe's fallback (fallback_sets) errs by more than the full model: without the
@@ -777,6 +779,11 @@ class PhysicalModel(EstimatorParams, ModelFile):
         conformal share of their loaded samples (the weighted 95th percentile, with the
         finite-sample correction for the effective number of independent errors, at most the
         97.5th), within [1e-3, 1e3]; 1 on an axis no load moved or without such a campaign.
+        Then the force components (3,) bool those campaigns applied beyond
+        :data:`UNREAD_FORCE_N`: the scale speaks for their terms only. A component the training
+        never applied keeps its prior (1): on a steel ram trained under Fy alone (our twin), dx's
+        scale came out 1e-3 from the few tenths of a µm Fy moves it, and under Fx the interval
+        was +-0.3 µm around errors of up to 2 µm on the plateaus (0.56 covered).
 
         The load terms are priors: a frame's force noise at the training's thermal extreme and
         a 3 % signature error. A load held is read as the mean of many frames, and ram2's
@@ -785,13 +792,15 @@ class PhysicalModel(EstimatorParams, ModelFile):
         met only by the samples on load ramps."""
         z2 = norm_ppf(0.975) ** 2
         need, w, n_eff = [[], [], []], [[], [], []], np.zeros(3)
+        trained = np.zeros(3, bool)
         for r, c in zip(rows, campaigns):
             if not r["loaded"] or r["forces_unknown"]:
                 continue
+            trained |= (np.abs(r["F"]) > UNREAD_FORCE_N).any(axis=0)
             pred, half, p, at = self._served(c)
-            _, ld = p.load_variance(p.last_force_N[at], p.last_moving[at], p.last_s2[at])
-            ld = ld * p.load_interval_scale[None, :]
-            rest = (half**2) / z2 - ld
+            force, moving, s2 = p.last_force_N[at], p.last_moving[at], p.last_s2[at]
+            _, ld = p.load_variance(force, moving, s2)
+            rest = (half**2) / z2 - p.load_variance(force, moving, s2, scaled=True)[1]
             e2 = (pred - r["y"]) ** 2
             # a force the gratings cannot read (a nuisance: Fz on ram2) moves the TTP unseen;
             # the load terms are not what it is, so its samples do not scale them
@@ -820,7 +829,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
             # the priors are the widest the load terms get: a scale above 1 would be the
             # training's in-sample errors speaking for loads it never held
             scale[j] = np.clip(nj[order][min(at, len(order) - 1)], 1e-3, 1.0)
-        return scale
+        return scale, trained
 
     def _noise_floor(self, campaigns, duration_s=NOISE_FLOOR_S):
         """SD (3,) µm of the thermal part (twin map and housing calibration, unclipped), SD (3,)

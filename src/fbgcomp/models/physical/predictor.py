@@ -341,6 +341,9 @@ class PhysicalPredictor:
             # the load terms' share of the interval, per axis, as the loaded training campaigns
             # showed it (PhysicalModel._fit_load_interval; 1 in files without it)
             self.load_interval_scale = np.asarray(L.get("interval_scale", [1.0] * 3), float)
+            # ... which speaks for the terms of the force components the training applied; the
+            # others keep their prior (all of them in files without it)
+            self.load_interval_trained = np.asarray(L.get("interval_trained", [True] * 3), bool)
             self.noise_cov = noise
             self.nuisance_cov = nuisance_cov + np.zeros_like(noise)
             # the one-frame path's operands as Python floats (_steady_frame)
@@ -1598,11 +1601,11 @@ class PhysicalPredictor:
         var = var + ambiguity
         self.last_s2 = s2
         if self.has_load:
-            heat, own = self.load_variance(force, moving, s2)
-            var = var + heat + self.load_interval_scale[None, :] * own
+            heat, own = self.load_variance(force, moving, s2, scaled=True)
+            var = var + heat + own
         return var
 
-    def load_variance(self, force, moving=False, s2=None):
+    def load_variance(self, force, moving=False, s2=None, scaled=False):
         """The load terms of the predictive variance while a component is applied, through the
         compliance, in two parts (n, 3) µm² each:
 
@@ -1614,12 +1617,21 @@ class PhysicalPredictor:
           signature's relative error. A component following the reading (``moving`` (n, 3): a
           load transition) carries a frame's noise; one held at its level, the mean of the
           ``settle_s`` of readings it ended on, which hold ``settle_s / (2 LOAD_FAST_S)``
-          independent ones."""
+          independent ones. ``scaled``: times its calibrated scale, per axis for the terms of
+          the force components the training applied (``load_interval_trained``), 1 for the
+          others."""
         on = np.asarray(force) != 0.0
         C2 = (self.C**2).T
         s = np.ones(on.shape[0]) if s2 is None else np.minimum(np.asarray(s2, float), 1.0)
         heat = (on * s[:, None] * np.clip(self.F_sds[1] ** 2 - self.F_sds[0] ** 2, 0.0, None)) @ C2
         held = 2.0 * LOAD_FAST_S / max(self.settle_s, 2.0 * LOAD_FAST_S)
         share = np.where(np.asarray(moving, bool), 1.0, held) * on
-        own = (share * self.F_sds[0] ** 2) @ C2 + (self.relative_error * force @ self.C.T) ** 2
+        if not scaled or self.load_interval_trained.all():
+            own = (share * self.F_sds[0] ** 2) @ C2 + (self.relative_error * force @ self.C.T) ** 2
+            return heat, own * self.load_interval_scale[None, :] if scaled else own
+        # S[k, j]: axis j's scale on force component k's terms
+        S = np.where(self.load_interval_trained[:, None], self.load_interval_scale[None, :], 1.0)
+        own = (share * self.F_sds[0] ** 2) @ (C2 * S) + (
+            self.relative_error * force @ (self.C.T * np.sqrt(S))
+        ) ** 2
         return heat, own

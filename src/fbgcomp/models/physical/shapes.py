@@ -92,6 +92,13 @@ def check_shapes(d: dict, source) -> None:
                 "load.interval_scale",
                 "must be > 0",
             )
+        if "interval_trained" in L:
+            t = L["interval_trained"]
+            need(
+                isinstance(t, list) and len(t) == 3 and all(isinstance(v, bool) for v in t),
+                "load.interval_trained",
+                "must be a list of 3 booleans",
+            )
         need(np.all(np.asarray(L["noise_var_um2"], float) >= 0), "load.noise_var_um2", "must be >= 0")
 
     def interval(iv, at):
