@@ -1196,6 +1196,33 @@ def test_a_combined_campaign_gives_its_load_signature_from_the_load_changes(ram2
             assert a["max_abs_error_um"] <= a["peak_um"] + 0.5, (name, axis, a)
 
 
+@pytest.mark.slow
+def test_a_combined_campaign_is_thermal_training_where_no_force_acts(ram2):
+    """thermal_c (spindle heat, -2500 N of Fx from 3 h to 7 h of 12) and static_xyz as the only
+    training: a combined campaign with known forces was no thermal training at all, so the model
+    had no thermal part, left every axis of thermal_b uncompensated and gave it the 0.1 µm
+    interval of a model with nothing to say (dz covered 0.012). Its samples 120 s or more from
+    any force are thermal training now: thermal_b 2.35 / 0.69 / 4.73 µm on 30.6 / 18.2 / 59.9,
+    as with thermal_a (2.30 / 0.61 / 4.62); the intervals on the wide side (0.995-0.997 covered:
+    8 h of training hold few independent errors)."""
+    machine = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram2.yaml"
+    m = PhysicalModel(machine=machine).fit([ram2["thermal_c"], ram2["static_xyz"]])
+    (c,) = [c for c in m.training_["campaigns"] if c["name"] == "thermal_c"]
+    n = c["n_samples"]
+    assert 0.6 * n < c["thermal_samples"] < 0.7 * n, c  # 8 h of 12, less the margins
+    assert "thermal_c: combined, its thermal training" in m.summary()
+    for name in ("thermal_b", "thermal_a", "static_x"):
+        fig = _metrics(m, ram2[name])["axes"]
+        for axis, a in fig.items():
+            assert a["max_abs_error_um"] <= a["peak_um"] + 0.5, (name, axis, a)
+            assert a["pi95_coverage"] >= 0.90, (name, axis, a)
+        if name != "static_x":
+            assert fig["dz"]["max_abs_error_um"] < 0.1 * fig["dz"]["peak_um"], (name, fig["dz"])
+    fig = _metrics(m, ram2["thermal_b"])["axes"]
+    assert fig["dx"]["max_abs_error_um"] < 0.1 * fig["dx"]["peak_um"], fig["dx"]
+    assert fig["dy"]["max_abs_error_um"] < 0.1 * fig["dy"]["peak_um"], fig["dy"]
+
+
 def test_a_fallback_holds_back_what_its_lost_gratings_told_the_full_map():
     """Without S4 the built-in twin's map errs on dy by 0.77 µm more over its population (the
     -Y face is then read from +Y alone). On the twin's thermal-36h-b, whose dy moves 0.19 µm, the

@@ -71,6 +71,33 @@ SIGNATURE_HIGHPASS_S = 60.0
 #: it: a load cell's noise on a component no one loads).
 UNREAD_FORCE_N = 50.0
 
+#: A combined campaign with known forces is thermal training where no force acts: its samples
+#: without a component beyond UNREAD_FORCE_N, this long (s) before and after any that has one
+#: (the load tracker's transition settles in a few offset_tau_s).
+THERMAL_LOAD_MARGIN_S = 120.0
+
+
+def load_free_samples(loads_N, time_s, margin_s=THERMAL_LOAD_MARGIN_S) -> np.ndarray:
+    """(n,) bool: the samples of a campaign with known forces ``loads_N`` (n, 3) N at
+    ``time_s`` (n,) s that lie more than ``margin_s`` from any sample with a force component
+    beyond :data:`UNREAD_FORCE_N`."""
+    t = np.asarray(time_s, float)
+    on = (np.abs(np.nan_to_num(np.asarray(loads_N, float))) > UNREAD_FORCE_N).any(axis=1)
+    if not on.any():
+        return np.ones(t.size, bool)
+    t_on = t[on]
+    # the nearest loaded sample's time on either side of each sample
+    k = np.searchsorted(t_on, t)
+    before = np.where(k > 0, t - t_on[np.maximum(k - 1, 0)], np.inf)
+    after = np.where(k < t_on.size, t_on[np.minimum(k, t_on.size - 1)] - t, np.inf)
+    return (np.minimum(before, after) > margin_s) & ~on
+
+
+def _free(row, a):
+    """A training campaign's per-sample array ``a`` at its thermal training samples (the row's
+    ``free`` mask; all of them where it is None)."""
+    return a if row["free"] is None else a[row["free"]]
+
 
 def effective_samples(x) -> float:
     """Effective number of independent samples in the series ``x``: n / tau, with tau the
@@ -356,6 +383,18 @@ class PhysicalModel(EstimatorParams, ModelFile):
             # ram2's static_xyz without its loads.csv made thermal_b dy 348 µm off on 18.
             forces_unknown = F is None and c.meta.kind in ("static", "combined")
             loaded = forces_unknown or (F is not None and np.nanmax(np.abs(np.nan_to_num(F))) > 50.0)
+            # the samples that are thermal training: every one of a load-free campaign (None);
+            # those where no force acts of a combined campaign with known forces (ram2's
+            # thermal_c, -2500 N from 3 h to 7 h of 12, with static_xyz as the only other
+            # training: no thermal part at all, every axis uncompensated on thermal_b and an
+            # interval of 0.1 µm that covered 0.012 of dz); none of a static campaign
+            free = None
+            if loaded:
+                free = np.zeros(len(a.time_s), bool)
+                if c.meta.kind == "combined" and not forces_unknown:
+                    free = load_free_samples(F, a.time_s)
+                    if free.sum() < 10:
+                        free[:] = False
             rows.append(
                 {
                     "name": c.meta.name,
@@ -367,22 +406,26 @@ class PhysicalModel(EstimatorParams, ModelFile):
                     "zero": (w0, t0),  # the zero state's wavelengths and temperatures
                     "F": None if F is None else np.nan_to_num(F),
                     "loaded": loaded,
+                    "free": free,
+                    "thermal": free is None or bool(free.any()),
                     "forces_unknown": forces_unknown,
                     "heated": c.meta.kind == "combined",
                 }
             )
-        thermal_rows = [r for r in rows if not r["loaded"]]
+        thermal_rows = [r for r in rows if r["thermal"]]
         loaded_rows = [r for r in rows if r["loaded"] and not r["forces_unknown"]]
         nh = rows[0]["H"].shape[1]
         S = len(self.sensor_names)
 
         # Gratings' thermal reading vs the thermal regressors, on load-free campaigns.
         if thermal_rows:
-            Hs = np.vstack([r["H"] for r in thermal_rows])
-            Es = np.vstack([r["e"] for r in thermal_rows])
-            ws = np.concatenate([np.full(len(r["H"]), 1.0 / len(r["H"])) for r in thermal_rows])
+            Hs = np.vstack([_free(r, r["H"]) for r in thermal_rows])
+            Es = np.vstack([_free(r, r["e"]) for r in thermal_rows])
+            ws = np.concatenate(
+                [np.full(len(_free(r, r["H"])), 1.0 / len(_free(r, r["H"]))) for r in thermal_rows]
+            )
             B, _ = weighted_lstsq(Hs, Es, ws)
-            dTs = np.vstack([r["dT"] for r in thermal_rows])
+            dTs = np.vstack([_free(r, r["dT"]) for r in thermal_rows])
             scale = np.maximum(np.abs(dTs).max(axis=0), 0.5)
             s2 = np.sum((dTs / scale) ** 2, axis=1)
             R = Es - Hs @ B
@@ -461,7 +504,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
             # A force whose signature is (nearly) the gratings' own warming pattern cannot be
             # told from a temperature change (on CFRP rams: Fz, a uniform compression, against
             # a uniform warming); it is not read from the gratings at all.
-            u = np.linalg.svd(np.vstack([r["e"] for r in thermal_rows]), full_matrices=False)[2][0]
+            u = np.linalg.svd(np.vstack([_free(r, r["e"]) for r in thermal_rows]), full_matrices=False)[2][0]
             norm = np.linalg.norm(G, axis=0)
             cos = np.abs(u @ G) / np.where(norm > 0, norm, 1.0)
             separable = cos < self.separability_cos
@@ -487,9 +530,11 @@ class PhysicalModel(EstimatorParams, ModelFile):
         self.thermal_resid_sd_um_ = np.full(3, 0.1)
         self.thermal_noise_sd_um_ = np.zeros(3)
         if thermal_rows:
-            Hs = np.vstack([r["H"] for r in thermal_rows])
-            Ys = np.vstack([r["y"] for r in thermal_rows])
-            ws = np.concatenate([np.full(len(r["H"]), 1.0 / len(r["H"])) for r in thermal_rows])
+            Hs = np.vstack([_free(r, r["H"]) for r in thermal_rows])
+            Ys = np.vstack([_free(r, r["y"]) for r in thermal_rows])
+            ws = np.concatenate(
+                [np.full(len(_free(r, r["H"])), 1.0 / len(_free(r, r["H"]))) for r in thermal_rows]
+            )
             # through the origin: every campaign is zeroed at its start (dT = 0, y = 0), so a
             # fitted intercept is a bias applied to every frame of every campaign (on the twin
             # -0.33 µm of dz, more than a static campaign's whole dz: a correction that harms)
@@ -548,6 +593,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
             "campaigns": [
                 {"name": r["name"], "loaded": bool(r["loaded"]), "n_samples": len(r["y"])}
                 | ({"forces_unknown": True} if r["forces_unknown"] else {})
+                | ({"thermal_samples": int(r["free"].sum())} if r["loaded"] and r["thermal"] else {})
                 for r in rows
             ],
             "n_samples": int(sum(len(r["y"]) for r in rows)),
@@ -590,11 +636,14 @@ class PhysicalModel(EstimatorParams, ModelFile):
             # every frame of each campaign weighted equally)
             res, X, w = [], [], []
             for r, c in zip(rows, campaigns):
-                if r["loaded"]:
+                if not r["thermal"]:
                     continue
-                pred, _, p, _ = self._served(c, policy=False)
-                res.append(pred - r["y"])
-                X.append(p.last_map_features)
+                pred, _, p, at = self._served(c, policy=False)
+                res.append(_free(r, pred - r["y"]))
+                if r["free"] is None:
+                    X.append(p.last_map_features)
+                else:  # the frames of the load-free reference times
+                    X.append(p.last_map_features[np.unique(at[r["free"]])])
                 w.append(np.full(len(X[-1]), 1.0 / len(X[-1])))
             basis = unseen_basis(np.vstack(X), np.concatenate(w), self.twin_map_["scale"])
             self.twin_map_["unseen_basis"] = basis.tolist()
@@ -946,15 +995,15 @@ class PhysicalModel(EstimatorParams, ModelFile):
         self._predictors = {}
         A_rows, b_rows, feats, map_rows = [], [], [], []
         for r, c in zip(rows, campaigns):
-            if r["loaded"]:
+            if not r["thermal"]:
                 continue
             pred, _, p, at = self._served(c, policy=False)
-            L = p.last_cal_features[at]
+            L = _free(r, p.last_cal_features[at])
             w = np.sqrt(1.0 / len(L))
             A_rows.append(L * w)
-            b_rows.append((r["y"] - pred) * w)
+            b_rows.append(_free(r, r["y"] - pred) * w)
             feats.append(L)
-            map_rows.append((p.last_map_features[at] * w, r["y"] * w))
+            map_rows.append((_free(r, p.last_map_features[at]) * w, _free(r, r["y"]) * w))
         self._map_rows = map_rows
         # kept for the interval's held-out errors (:meth:`_held_out_served`)
         self._cal_rows = (A_rows, b_rows)
@@ -987,7 +1036,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         state and its transients. With a housing calibration, that error is 1/3 in-sample and 2/3
         of each half of the campaign predicted by a calibration fitted without it
         (:meth:`_held_out_served`): what a fit on all of the data errs by on data it did not see."""
-        dTs = [r["dT"] for r in rows if not r["loaded"]]
+        dTs = [_free(r, r["dT"]) for r in rows if r["thermal"]]
         z2 = norm_ppf(0.975) ** 2
         scale = np.maximum(np.abs(np.vstack(dTs)).max(axis=0), 0.5)
         sd_ref = []
@@ -1003,15 +1052,19 @@ class PhysicalModel(EstimatorParams, ModelFile):
         held_out = self._held_out_served(rows, campaigns, exclude)
         lost = [self.probe_names_.index(q) for q in exclude if q in self.probe_names_]
         for i, (r, c) in enumerate(zip(rows, campaigns)):
-            if r["loaded"]:
+            if not r["thermal"]:
                 continue
             pred, _, p, at = self._served(c, exclude)
             err2 = (pred - r["y"]) ** 2
+            m = r["free"]
+            if m is not None:  # a combined campaign: its load-free samples
+                r = {**r, "y": r["y"][m], "dT": r["dT"][m]}
+                pred, err2, at = pred[m], err2[m], at[m]
             if i in held_out:
                 # what a model fitted on all of the data errs by on data it did not see: least
                 # squares' in-sample errors are low by about p/n, those of a half predicted by a
                 # fit without it high by about 2p/n, so 1/3 of the one and 2/3 of the other
-                pred = held_out[i]
+                pred = held_out[i] if m is None else held_out[i][m]
                 err2 = err2 / 3.0 + 2.0 * (pred - r["y"]) ** 2 / 3.0
             e2.append(err2)
             n_eff.append([effective_samples(pred[:, j] - r["y"][:, j]) for j in range(3)])
@@ -1096,15 +1149,18 @@ class PhysicalModel(EstimatorParams, ModelFile):
             return {}  # the set runs without the calibration (a housing or ambient probe lost)
         A_rows, b_rows = self._cal_rows
         keep = cal["coef"]
-        free = [i for i, r in enumerate(rows) if not r["loaded"]]
+        free = [i for i, r in enumerate(rows) if r["thermal"]]
         out = {}
         try:
             for j, i in enumerate(free):
-                n = len(A_rows[j])
+                # halves in time of the whole campaign; a combined campaign's calibration rows
+                # are its load-free samples (``free``)
+                m, n = rows[i]["free"], len(rows[i]["y"])
                 pred = np.empty((n, 3))
                 for half in (np.arange(n) < n // 2, np.arange(n) >= n // 2):
-                    A = np.vstack([a if k != j else a[~half] for k, a in enumerate(A_rows)])
-                    b = np.vstack([v if k != j else v[~half] for k, v in enumerate(b_rows)])
+                    hm = half if m is None else half[m]
+                    A = np.vstack([a if k != j else a[~hm] for k, a in enumerate(A_rows)])
+                    b = np.vstack([v if k != j else v[~hm] for k, v in enumerate(b_rows)])
                     cal["coef"] = np.linalg.lstsq(A, b, rcond=None)[0].tolist()
                     self._predictors = {}
                     p_half, _, _, _ = self._served(campaigns[i], exclude)
@@ -1558,6 +1614,12 @@ class PhysicalModel(EstimatorParams, ModelFile):
             "kept out of the thermal calibration and the force regression"
             for c in self.training_["campaigns"]
             if c.get("forces_unknown")
+        ]
+        out += [
+            f"{c['name']}: combined, its thermal training the {c['thermal_samples']} of its "
+            f"{c['n_samples']} samples at least {THERMAL_LOAD_MARGIN_S:g} s from any applied force"
+            for c in self.training_["campaigns"]
+            if c.get("thermal_samples")
         ]
         out.append("")
         tm = self.twin_map_
