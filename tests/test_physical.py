@@ -1196,6 +1196,19 @@ def test_a_combined_campaign_gives_its_load_signature_from_the_load_changes(ram2
             assert a["max_abs_error_um"] <= a["peak_um"] + 0.5, (name, axis, a)
 
 
+def test_the_load_free_samples_keep_their_margin_from_any_force_or_gap():
+    from fbgcomp.models.physical.model import load_free_samples
+
+    t = np.arange(0.0, 1000.0, 10.0)
+    F = np.zeros((t.size, 3))
+    F[(t >= 300) & (t < 400), 1] = -2500.0  # held from 300 s to 390 s
+    F[t == 800, 2] = np.nan  # a gap in the load cell's record
+    free = load_free_samples(F, t, margin_s=120.0)
+    np.testing.assert_array_equal(t[~free], t[((t > 170) & (t < 520)) | ((t >= 680) & (t <= 920))])
+    assert load_free_samples(np.zeros((5, 3)), np.arange(5.0)).all()
+    assert not load_free_samples(np.full((5, 3), 60.0), np.arange(5.0)).any()
+
+
 @pytest.mark.slow
 def test_a_combined_campaign_is_thermal_training_where_no_force_acts(ram2):
     """thermal_c (spindle heat, -2500 N of Fx from 3 h to 7 h of 12) and static_xyz as the only

@@ -80,9 +80,9 @@ THERMAL_LOAD_MARGIN_S = 120.0
 def load_free_samples(loads_N, time_s, margin_s=THERMAL_LOAD_MARGIN_S) -> np.ndarray:
     """(n,) bool: the samples of a campaign with known forces ``loads_N`` (n, 3) N at
     ``time_s`` (n,) s that lie more than ``margin_s`` from any sample with a force component
-    beyond :data:`UNREAD_FORCE_N`."""
+    beyond :data:`UNREAD_FORCE_N` or unknown (NaN: the load cell's gap may hold a load)."""
     t = np.asarray(time_s, float)
-    on = (np.abs(np.nan_to_num(np.asarray(loads_N, float))) > UNREAD_FORCE_N).any(axis=1)
+    on = ~(np.abs(np.asarray(loads_N, float)) <= UNREAD_FORCE_N).all(axis=1)
     if not on.any():
         return np.ones(t.size, bool)
     t_on = t[on]
