@@ -417,13 +417,14 @@ class PhysicalModel(EstimatorParams, ModelFile):
         nh = rows[0]["H"].shape[1]
         S = len(self.sensor_names)
 
-        # Gratings' thermal reading vs the thermal regressors, on load-free campaigns.
+        # Gratings' thermal reading vs the thermal regressors, on load-free campaigns: their
+        # thermal samples' regressors Hs, each campaign weighted equally (ws); the TTP's thermal
+        # part below is fitted on the same
         if thermal_rows:
-            Hs = np.vstack([_free(r, r["H"]) for r in thermal_rows])
+            H_rows = [_free(r, r["H"]) for r in thermal_rows]
+            Hs = np.vstack(H_rows)
+            ws = np.concatenate([np.full(len(h), 1.0 / len(h)) for h in H_rows])
             Es = np.vstack([_free(r, r["e"]) for r in thermal_rows])
-            ws = np.concatenate(
-                [np.full(len(_free(r, r["H"])), 1.0 / len(_free(r, r["H"]))) for r in thermal_rows]
-            )
             B, _ = weighted_lstsq(Hs, Es, ws)
             dTs = np.vstack([_free(r, r["dT"]) for r in thermal_rows])
             scale = np.maximum(np.abs(dTs).max(axis=0), 0.5)
@@ -530,11 +531,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         self.thermal_resid_sd_um_ = np.full(3, 0.1)
         self.thermal_noise_sd_um_ = np.zeros(3)
         if thermal_rows:
-            Hs = np.vstack([_free(r, r["H"]) for r in thermal_rows])
             Ys = np.vstack([_free(r, r["y"]) for r in thermal_rows])
-            ws = np.concatenate(
-                [np.full(len(_free(r, r["H"])), 1.0 / len(_free(r, r["H"]))) for r in thermal_rows]
-            )
             # through the origin: every campaign is zeroed at its start (dT = 0, y = 0), so a
             # fitted intercept is a bias applied to every frame of every campaign (on the twin
             # -0.33 µm of dz, more than a static campaign's whole dz: a correction that harms)
