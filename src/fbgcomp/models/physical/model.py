@@ -382,7 +382,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
             # thermal (and, without forces, out of the load regression). Taken as load-free,
             # ram2's static_xyz without its loads.csv made thermal_b dy 348 µm off on 18.
             forces_unknown = F is None and c.meta.kind in ("static", "combined")
-            loaded = forces_unknown or (F is not None and np.nanmax(np.abs(np.nan_to_num(F))) > 50.0)
+            loaded = forces_unknown or (
+                F is not None and np.nanmax(np.abs(np.nan_to_num(F))) > UNREAD_FORCE_N
+            )
             # the samples that are thermal training: every one of a load-free campaign (None);
             # those where no force acts of a combined campaign with known forces (ram2's
             # thermal_c, -2500 N from 3 h to 7 h of 12, with static_xyz as the only other
