@@ -635,6 +635,8 @@ def test_summary_reports_files_overlap_and_problems(tmp_path):
     assert [x["name"] for x in s["sensors"]] == ["S1", "S2", "S3"]
     problems = "\n".join(s["problems"])
     assert "fbg.csv: 1 gap(s)" in problems and "longest 101 s" in problems
+    assert "before row 21 (t = 120 s)" in problems
+    assert c.gaps() == {"fbg.csv": [(19.0, 120.0)]}
     assert "T_amb_C" in problems
     assert "'colour'" in problems
     text = c.summary_text()

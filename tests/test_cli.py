@@ -66,6 +66,49 @@ def test_fit_then_validate_through_the_console(campaigns, tmp_path):
     assert "campaign test" in r.stdout and "comp. ratio" in r.stdout
 
 
+def test_validate_says_which_samples_it_judged_inside_an_interrogator_gap(campaigns, tmp_path):
+    """A campaign whose interrogator stopped for 10 minutes: the gratings are interpolated across
+    the gap, so ``validate`` names the reference samples judged there and their own max |error|
+    (ram2's thermal_b without the interrogator for an hour: dx 10.5 µm there, 2.3 without the
+    gap); an unbroken campaign gets no such note."""
+    import numpy as np
+
+    from fbgcomp.io.campaign import read_campaign
+
+    train, test = campaigns
+    model = tmp_path / "model.json"
+    assert run("fit", train, "--features", "eq13", "-o", model).returncode == 0
+    c = read_campaign(test)
+    t = c.fbg["time_s"].to_numpy()
+    gapped = write_campaign(
+        c.replaced(meta=c.meta.model_copy(update={"name": "gapped"}), fbg=c.fbg[(t < 1200.0) | (t > 1800.0)]),
+        tmp_path / "gapped",
+    )
+    metrics = tmp_path / "metrics.json"
+    r = run("validate", model, gapped, test, "--json", metrics)
+    assert r.returncode == 0, r.stderr
+    ref_t = c.reference["time_s"].to_numpy()
+    # strictly between the last frame before the gap (1199 s) and the first after it (1801 s)
+    n_in = int(((ref_t > 1199.0) & (ref_t < 1801.0)).sum())
+    assert n_in == 601
+    assert f"note: {n_in} of " in r.stdout and "fbg.csv (1, longest 602 s)" in r.stdout
+    assert r.stdout.count("note:") == 1  # the unbroken campaign has none
+    got = json.loads(metrics.read_text())["campaigns"]
+    assert "inside_gaps" not in got["test"]
+    got = got["gapped"]
+    assert got["inside_gaps"]["samples"] == n_in
+    assert got["inside_gaps"]["files"] == {"fbg.csv": [[1199.0, 1801.0]]}
+    # the errors inside the gap are the ones of the whole campaign's samples there
+    from fbgcomp.models.registry import load_model
+
+    m = load_model(model)
+    g = read_campaign(gapped)
+    al = g.aligned(zero_window_s=m.zero_window_s)
+    inside = (al.time_s > 1199.0) & (al.time_s < 1801.0)
+    want = np.abs(m.predict(g) - al.reference_um)[inside].max(axis=0)
+    np.testing.assert_allclose([got["inside_gaps"]["max_abs_error_um"][a] for a in ("dx", "dy", "dz")], want)
+
+
 @pytest.mark.slow
 def test_validate_served_judges_what_the_runtime_publishes(campaigns, tmp_path):
     """``validate --served``: the campaign's interrogator frames through the runtime's default

@@ -334,11 +334,27 @@ class Campaign:
             tables[HEAT_FILE] = self.heat
         return tables
 
+    def gaps(self) -> dict[str, list[tuple[float, float]]]:
+        """Per file, the sampling gaps longer than ``GAP_FACTOR`` x its median interval, each as
+        (last sample before, first sample after) in s; files without one are left out.
+        :meth:`aligned` interpolates across a gap: what it gives inside one is no reading."""
+        out = {}
+        for role, frame in self._tables().items():
+            t = frame[TIME_COLUMN].to_numpy()
+            step = np.diff(t)
+            if not step.size or not np.median(step) > 0:
+                continue
+            at = np.flatnonzero(step > GAP_FACTOR * np.median(step))
+            if at.size:
+                out[role] = [(float(t[i]), float(t[i + 1])) for i in at]
+        return out
+
     def summary(self) -> dict:
         """What ``fbgcomp inspect`` shows: per-file statistics, the alignment overlap and
         non-fatal problems. Only builtins (JSON-serialisable)."""
         problems: list[str] = []
         files = {}
+        gaps = self.gaps()
         for role, frame in self._tables().items():
             t = frame[TIME_COLUMN].to_numpy()
             step = np.diff(t)
@@ -356,18 +372,15 @@ class Campaign:
                     if c != TIME_COLUMN
                 },
             }
-            if median:
-                gaps = np.flatnonzero(step > GAP_FACTOR * median)
-                info["gaps"] = int(gaps.size)
-                if gaps.size:
-                    longest = int(gaps[np.argmax(step[gaps])])
-                    problems.append(
-                        f"{role}: {gaps.size} gap(s) longer than {GAP_FACTOR:g} x the median "
-                        f"interval ({median:g} s); longest {step[longest]:g} s before row "
-                        f"{longest + 2} (t = {t[longest + 1]:g} s)"
-                    )
-            else:
-                info["gaps"] = 0
+            found = gaps.get(role, [])
+            info["gaps"] = len(found)
+            if found:
+                a, b = max(found, key=lambda g: g[1] - g[0])
+                row = int(np.searchsorted(t, b)) + 1  # data rows count from 1
+                problems.append(
+                    f"{role}: {len(found)} gap(s) longer than {GAP_FACTOR:g} x the median "
+                    f"interval ({median:g} s); longest {b - a:g} s before row {row} (t = {b:g} s)"
+                )
             files[role] = info
 
         spans = self._spans()

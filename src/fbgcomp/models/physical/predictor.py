@@ -834,8 +834,9 @@ class PhysicalPredictor:
         less) has its steps judged against its own noise instead of starting false loads;
         a quieter one keeps the training's threshold (:meth:`_excess`)."""
         sd2 = np.where(self.F_sd > 0, self.F_sd**2, np.inf)
-        den = sd2[None, :] * kd[:, None]
         with np.errstate(divide="ignore", invalid="ignore"):
+            # (inf x 0, a component not read after such a gap, is NaN: no noise, as below)
+            den = sd2[None, :] * kd[:, None]
             # (10 sigma: a spike no more). A frame after a gap longer than both filters' memory
             # (kd = 0: the fast and hold readings are the same frame) tells nothing of the
             # noise and counts as the training's; its 0/0 made the estimate NaN for good
