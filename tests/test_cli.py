@@ -80,10 +80,8 @@ def test_validate_says_which_samples_it_judged_inside_an_interrogator_gap(campai
     assert run("fit", train, "--features", "eq13", "-o", model).returncode == 0
     c = read_campaign(test)
     t = c.fbg["time_s"].to_numpy()
-    gapped = write_campaign(
-        c.replaced(meta=c.meta.model_copy(update={"name": "gapped"}), fbg=c.fbg[(t < 1200.0) | (t > 1800.0)]),
-        tmp_path / "gapped",
-    )
+    # (under the same name as the unbroken one: validate tells them apart as compare does)
+    gapped = write_campaign(c.replaced(fbg=c.fbg[(t < 1200.0) | (t > 1800.0)]), tmp_path / "gapped")
     metrics = tmp_path / "metrics.json"
     r = run("validate", model, gapped, test, "--json", metrics)
     assert r.returncode == 0, r.stderr
@@ -94,8 +92,9 @@ def test_validate_says_which_samples_it_judged_inside_an_interrogator_gap(campai
     assert f"note: {n_in} of " in r.stdout and "fbg.csv (1, longest 602 s)" in r.stdout
     assert r.stdout.count("note:") == 1  # the unbroken campaign has none
     got = json.loads(metrics.read_text())["campaigns"]
-    assert "inside_gaps" not in got["test"]
-    got = got["gapped"]
+    assert list(got) == ["test", "test#2"] and "campaign test#2\n" in r.stdout
+    assert "inside_gaps" not in got["test#2"]
+    got = got["test"]
     assert got["inside_gaps"]["samples"] == n_in
     assert got["inside_gaps"]["files"] == {"fbg.csv": [[1199.0, 1801.0]]}
     # the errors inside the gap are the ones of the whole campaign's samples there

@@ -326,6 +326,7 @@ def validate(
 
     from fbgcomp.atomic import write_json
     from fbgcomp.cli.demo import prediction
+    from fbgcomp.models.compare import unique_name
     from fbgcomp.models.metrics import (
         format_metrics,
         format_static_metrics,
@@ -336,14 +337,16 @@ def validate(
 
     model = load_model(model_file)
     refs, preds, halves, per_campaign = [], [], [], {}
+    seen: dict[str, int] = {}
     for c in progress.track(read_campaigns(campaigns), "validating", unit="campaign"):
         pred, half = prediction(model, c, served)
         aligned = c.aligned(zero_window_s=model.zero_window_s)
         ref, loads = aligned.reference_um, aligned.loads_N
         m = validation_metrics(ref, pred, half)
-        per_campaign[c.meta.name] = m
+        name = unique_name(c.meta.name, seen)  # as compare names them
+        per_campaign[name] = m
         how = " (served through the runtime)" if served else ""
-        typer.echo(format_metrics(m, title=f"campaign {c.meta.name}{how}"))
+        typer.echo(format_metrics(m, title=f"campaign {name}{how}"))
         inside = _inside_gaps(c, aligned.time_s, ref, pred, served)
         if inside is not None:
             m["inside_gaps"] = inside

@@ -236,14 +236,17 @@ def _make(kind, features, options, machine, machine_given):
     )
 
 
+def unique_name(name: str, seen: dict) -> str:
+    """``name``, or with a #2, #3 suffix when ``seen`` (name -> count, updated) already holds it:
+    two campaigns of one name (day1/thermal, day2/thermal) each keep their own entry."""
+    seen[name] = seen.get(name, 0) + 1
+    return name if seen[name] == 1 else f"{name}#{seen[name]}"
+
+
 def _campaign_names(campaigns):
-    """Names of the held-out campaigns (campaign.yaml ``name``), made unique by a #2, #3 suffix."""
-    names, seen = [], {}
-    for c in campaigns:
-        n = c.meta.name
-        seen[n] = seen.get(n, 0) + 1
-        names.append(n if seen[n] == 1 else f"{n}#{seen[n]}")
-    return names
+    """Names of the held-out campaigns (campaign.yaml ``name``), made unique (:func:`unique_name`)."""
+    seen: dict = {}
+    return [unique_name(c.meta.name, seen) for c in campaigns]
 
 
 def _campaign_row(campaign, name, kind, features, axis, m, plateau):
