@@ -22,6 +22,7 @@ import pandas as pd
 import pytest
 
 import fbgcomp_testing
+from fbgcomp.runtime.pipeline import Pipeline
 from test_runtime_support import fbgcomp_process, free_port, serve_with_simulator
 
 ENV = {"FBGCOMP_OPCUA_USER": "operator", "FBGCOMP_OPCUA_PASSWORD": "live-pass-123"}
@@ -359,6 +360,99 @@ stale_s = 2
     np.testing.assert_allclose(
         df.loc[rows, ["dev_dx_um", "dev_dy_um", "dev_dz_um"]], off["deviation_um"][rows], atol=1e-9
     )
+
+
+def test_a_lost_interrogator_link_leaves_the_live_probes_correcting(
+    tmp_path_factory, runtime_model_and_campaign
+):
+    """The interrogator's link cut for 3 s (``cut@8:3``) while every probe arrives live over OPC
+    UA (a PLC's server, a path of its own) and stands 2 K above its zero: the default (physical)
+    model's set without gratings goes on from the probes, health DEGRADED, where the correction
+    was held and ramped to zero in ``ramp_s`` (ALARM), a machine's thermal drift then left
+    uncompensated for as long as the link stays down. The frames it runs are logged like any
+    other: the offline pipeline on the logged frames gives the published deviation and
+    correction, through the cut and after it. With ``probes_on_link_loss = false`` the same cut
+    holds and ramps to zero, as before, and no frame runs through it."""
+    fbgcomp_testing.require("asyncua")
+    fbgcomp_testing.require("pyarrow")
+    from fbgcomp.bench.synthetic import linear_truth_campaign
+    from fbgcomp.models.physical import PhysicalModel
+    from fbgcomp.models.registry import load_model
+
+    _, campaign = runtime_model_and_campaign
+    tmp = tmp_path_factory.mktemp("linkloss")
+    train, _ = linear_truth_campaign("train", seed=1, duration_s=2 * 3600, noise_um=0.05)
+    model_path = PhysicalModel(zero_window_s=0.5).fit([train]).save(tmp / "physical.json")
+    model = load_model(model_path)
+    all_gratings = Pipeline(model).model_sets.index(frozenset(model.sensor_names))
+    first = pd.read_csv(campaign / "temperatures.csv").iloc[0]
+    runs = {}
+    for carry in (True, False):
+        run = tmp / str(carry)
+        run.mkdir()
+        with OpcUaTestServer({p: first[f"{p}_C"] for p in model.probe_names}) as opc:
+            nodes = ", ".join(f'{p} = "ns=2;s={p}"' for p in model.probe_names)
+            # the output policy off: the published correction is the model's own, frame by frame
+            toml = f"""
+[source]
+backoff_initial_s = 0.05
+backoff_max_s = 0.2
+no_data_s = 0.3
+probes_on_link_loss = {str(carry).lower()}
+
+[pipeline]
+ramp_s = 0.5
+max_slew_um_per_s = 0
+max_correction_um = [0, 0, 0]
+
+[pipeline.output_filter]
+enabled = false
+
+[temperatures.opcua]
+endpoint = "{opc.endpoint}"
+nodes = {{ {nodes} }}
+stale_s = 5
+"""
+            with serve_and_sim(
+                run,
+                toml,
+                model_path,
+                campaign,
+                ("--duration", "16"),
+                ("--rate", "200", "--speed", "5", "--fault", "cut@8:3"),
+            ) as (serve, _sim):
+                wait_log(run / "log", "OK")  # zeroed: every probe 2 K warmer from here on
+                for p in model.probe_names:
+                    opc.values[p] += 2.0
+                serve.wait(60)
+        assert serve.returncode == 0, run.joinpath("serve.err").read_text()[-3000:]
+        runs[carry] = _log(run / "log")
+    df = runs[True]
+    cut = (df[[f"{s}_peaks" for s in model.sensor_names]].to_numpy() == 0).all(axis=1)
+    # the cut's frames: 50 a second while the link is down, every one on the set without
+    # gratings, DEGRADED, the probes read
+    assert cut.sum() > 50, cut.sum()
+    assert (df.health[cut] == "DEGRADED").all() and (df.model_set[cut] == all_gratings).all()
+    assert np.isfinite(df.loc[cut, [f"{p}_C" for p in model.probe_names]].to_numpy()).all()
+    # back on the full model once the gratings have been good for recover_s (1 s) again
+    t = df.time_s.to_numpy()
+    back = t > t[np.flatnonzero(cut)[-1]] + 1.5
+    assert back.sum() > 200 and (df.health[back] == "OK").all()
+    off = _replay_offline(model, df)
+    axes = ["dx", "dy", "dz"]
+    dev = df[[f"dev_{a}_um" for a in axes]].to_numpy()
+    np.testing.assert_allclose(dev, off["deviation_um"], atol=1e-9)
+    corr = df[[f"corr_{a}_um" for a in axes]].to_numpy()
+    zeroed = (df.health != "ZEROING").to_numpy()
+    np.testing.assert_allclose(corr[zeroed], -dev[zeroed], atol=1e-9)  # the policy off
+    # the correction goes on through the cut: the 2 K's, never ramped to zero
+    assert np.abs(corr[cut]).max(axis=1).min() > 0.5, np.abs(corr[cut]).max(axis=1).min()
+    # without it nothing runs through the cut: the no-data hold and ramp to zero (ALARM,
+    # tests/test_runtime_e2e.py), which publishes and logs no frame
+    old = runs[False]
+    assert not (old[[f"{s}_peaks" for s in model.sensor_names]].to_numpy() == 0).all(axis=1).any()
+    assert np.diff(old.time_s.to_numpy()).max() > 2.5
+    assert np.abs(old[[f"corr_{a}_um" for a in axes]].to_numpy()).max() > 0.5  # the 2 K, before and after
 
 
 def _kinematic_model(base: Path) -> Path:

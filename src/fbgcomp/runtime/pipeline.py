@@ -244,6 +244,12 @@ class Pipeline:
             self._predictors[k] = p
         return self._predictors[k]
 
+    def set_without(self, excluded_mask: np.ndarray) -> int:
+        """Index into ``model_sets`` of the smallest set that leaves out every instrument of
+        ``excluded_mask`` (the gratings, then the probes), -1 for none: whether the model can
+        go on without them."""
+        return self._choose(np.asarray(excluded_mask, bool))
+
     def _choose(self, excluded_mask: np.ndarray) -> int:
         """The smallest model set that leaves out every instrument of ``excluded_mask``: the
         gratings (S,), or the gratings then the probes (S + P,); -1 for none."""

@@ -3,7 +3,9 @@
 The loop reads whatever frames have arrived, processes them as one vectorised batch, hands the
 batch to the run log (non-blocking queue) and the newest sample to the OPC UA server process
 (non-blocking). When no frame arrives for ``no_data_s`` the last correction is held and ramped
-to zero (alarm) while the source reconnects with capped exponential back-off.
+to zero (alarm) while the source reconnects with capped exponential back-off, unless every probe
+is a live input and the model has a set without gratings: that set then runs on the probes
+(degraded) until the frames are back (``probes_on_link_loss``).
 """
 
 from __future__ import annotations
@@ -62,7 +64,10 @@ class SourceConfig:
     backoff_initial_s: float = 0.1
     backoff_max_s: float = 5.0
     stall_timeout_s: float = 2.0
-    no_data_s: float = 0.1  # no frame for this long = hold and ramp (alarm)
+    no_data_s: float = 0.1  # no frame for this long = link lost
+    # link lost while every probe is a live input: the set without gratings goes on from the
+    # probes (DEGRADED); false (or no such set): hold and ramp (ALARM)
+    probes_on_link_loss: bool = True
     temperatures: str | None = None  # campaign folder, temperatures CSV or const:P=°C,...
 
 
@@ -214,6 +219,10 @@ class Service:
         self._stop = asyncio.Event()
         self._offset_s = 0.0  # wall clock - instrument clock, for no-data hold times
         self._no_data_since: float | None = None
+        # the instrument time of the last frame without gratings run while the link was lost
+        # (_probes_through_loss); frames stamped before it are dropped when the link is back
+        self._tick_t: float | None = None
+        self.ticks = 0  # frames without gratings run while the link was lost
 
     @staticmethod
     def _load_model(path):
@@ -465,7 +474,16 @@ class Service:
         (:func:`fbgcomp.runtime.summary.startup_summary`)."""
         return startup_summary(self)
 
-    def _process(self, batch: SensorBatch) -> None:
+    def _process(self, batch: SensorBatch, tick: bool = False) -> None:
+        if not tick and self._tick_t is not None:
+            # the link is back: the model's filters already ran to the last frame without
+            # gratings, so frames stamped before it (a reconnect's first, a clock's jitter) go
+            keep = batch.time_s > self._tick_t
+            if not keep.any():
+                return
+            if not keep.all():
+                batch = batch.take(keep)
+            self._tick_t = None
         if len(batch) == 0:
             return
         t0 = time.perf_counter()
@@ -491,9 +509,12 @@ class Service:
         res = self.pipeline.process(
             batch.time_s, batch.wavelength_nm, batch.peak_count, batch.near_count, temps, enabled, z_axis_mm=z
         )
-        self._offset_s = batch.received_s - float(batch.time_s[-1])
-        self.frames += len(batch)
-        self.batches += 1
+        if tick:
+            self.ticks += len(batch)
+        else:
+            self._offset_s = batch.received_s - float(batch.time_s[-1])
+            self.frames += len(batch)
+            self.batches += 1
         self.last_result = res
         if self.runlog is not None:
             self.runlog.submit(batch, res, enabled, z)
@@ -507,13 +528,44 @@ class Service:
         return z is None or not self.pipeline.uses_z or bool(np.isfinite(z))
 
     def _no_data(self) -> None:
-        """No frame for no_data_s: hold / ramp the last correction (alarm), sensors missing."""
+        """No frame for no_data_s (link lost): the probes carry on where they can
+        (:meth:`_probes_through_loss`); else hold / ramp the last correction (alarm), sensors
+        missing."""
         if not self.pipeline.zeroed:
+            return
+        if self._probes_through_loss():
             return
         S = len(self.pipeline.sensor_names)
         res = self.pipeline.no_data(time.time() - self._offset_s, self.enabled)
         self.last_result = res
         self._publish(res, np.full(S, np.nan), time.time())
+
+    def _probes_through_loss(self) -> bool:
+        """With the interrogator's link lost, one frame without gratings through the pipeline, at
+        the instrument time now, when every probe is a live input (OPC UA, Modbus: a path of its
+        own, stale after its ``stale_s``) and the model stores a set without every grating and
+        without the probes that have no reading. The thermal correction then goes on from the
+        probes (health DEGRADED, the set named) where it was held and ramped to zero in
+        ``ramp_s``: on ram2's thermal_b, 60 µm of dz drift left uncompensated for as long as the
+        link stays down. The load part goes as it did: the set reads no force. Returns whether
+        the frame ran (``source.probes_on_link_loss``)."""
+        temps = self.temps
+        if not self.config.source.probes_on_link_loss or not getattr(temps, "all_live", False):
+            return False
+        now = time.time()
+        t = now - self._offset_s
+        if self._tick_t is not None:
+            t = max(t, self._tick_t + 1e-6)  # the filters' clock never runs back
+        time_s = np.array([t])
+        S, R = len(self.pipeline.sensor_names), len(self.mapper.reference_probes)
+        refs = np.full((1, R), np.nan) if R else None
+        probes = self.thermometers.temperature_C(temps.latest(time_s), refs)
+        if self.pipeline.set_without(np.concatenate([np.ones(S, bool), ~np.isfinite(probes[0])])) < 0:
+            return False
+        none = np.zeros((1, S), np.int8)
+        self._process(SensorBatch(time_s, np.full((1, S), np.nan), none, none, now, refs), tick=True)
+        self._tick_t = t
+        return True
 
     def _publish(self, res, wavelength_nm, received_s) -> None:
         """Newest sample to the outputs; each only stores it (never blocks this loop)."""

@@ -48,6 +48,17 @@ class SensorBatch:
     def __len__(self) -> int:
         return self.time_s.size
 
+    def take(self, keep: np.ndarray) -> SensorBatch:
+        """The frames where ``keep`` (n,) is True."""
+        return SensorBatch(
+            self.time_s[keep],
+            self.wavelength_nm[keep],
+            self.peak_count[keep],
+            self.near_count[keep],
+            self.received_s,
+            None if self.reference_nm is None else self.reference_nm[keep],
+        )
+
     @staticmethod
     def concat(batches: list[SensorBatch]) -> SensorBatch:
         """One batch of several, in order."""

@@ -261,6 +261,12 @@ class LiveTemperatures:
         self._other_cols = [i for i, p in enumerate(self.probe_names) if p not in live.probe_reader]
         self.last_live: dict = {}
 
+    @property
+    def all_live(self) -> bool:
+        """Every probe comes from a live input (none from ``--temperatures``): the temperatures
+        go on arriving when the interrogator's link is lost."""
+        return bool(self._live_cols) and not self._other_cols
+
     def latest(self, time_s: np.ndarray) -> np.ndarray:
         """The temperatures (n, P) for frames at ``time_s``: live probes their newest value
         (kept in ``last_live``), the others from ``fallback``.
