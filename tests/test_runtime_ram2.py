@@ -108,6 +108,37 @@ def test_a_grating_that_returns_is_taken_back_from_its_first_frame(model, ram2, 
     np.testing.assert_array_less(err, full_error("thermal_b") + 1.0)
 
 
+def test_an_hour_without_the_interrogator_under_a_load_runs_on_the_probes_and_reads_the_load_back(
+    model, ram2, full_served
+):
+    """thermal_c's fbg.csv without its fifth hour, under the -2500 N of Fx it holds from 3 h to
+    7 h: an interrogator stopped, the probes logged on (``served`` replays the lost link as serve
+    runs it, ``link_loss_frames``). Through the gap the set without gratings runs on the probes
+    (dz within 3.5 µm; the force unread: dx uncompensated, no worse); after it the gratings are
+    admitted unchecked (no grating in use to check them against) and read the load still held
+    against the offsets they had, as if never gone. Before, the load tracker started afresh from
+    the set without gratings took the 2500 N into its thermal offsets (dx 340 µm off on every
+    later plateau), or the re-admission check, against a set that reads no force, kept the
+    gratings out to the end."""
+    c = ram2["thermal_c"]
+    t = c.fbg["time_s"].to_numpy()
+    gapped = c.replaced(fbg=c.fbg[(t < 4 * 3600.0) | (t >= 5 * 3600.0)])
+    corr, ref, out = served(model, gapped)
+    al = gapped.aligned(zero_window_s=model.zero_window_s)
+    err = np.abs(ref + corr)
+    inside = (al.time_s > 4 * 3600.0) & (al.time_s < 5 * 3600.0)
+    none = Pipeline(model).model_sets.index(frozenset(model.sensor_names))
+    assert (out["model_set"][out["at"][inside]] == none).all()
+    assert (out["health"][out["at"][inside]] == HEALTH_DEGRADED).all()
+    assert err[inside, 2].max() < 3.5, err[inside, 2].max()
+    np.testing.assert_array_less(err[inside].max(axis=0), np.abs(ref).max(axis=0) + NOISE_ALLOWANCE_UM)
+    after = al.time_s > 5 * 3600.0 + 60.0
+    assert (out["health"][out["at"][after]] == HEALTH_OK).all()
+    whole_corr, whole_ref = full_served("thermal_c")
+    whole = np.abs(whole_ref + whole_corr)[after].max(axis=0)
+    np.testing.assert_array_less(err[after].max(axis=0), whole + 1.0)  # 10.4 / 0.6 / 5.3 µm
+
+
 @pytest.mark.parametrize(
     "name, lost",
     [

@@ -6,7 +6,8 @@ fault handling (a grating lost switches to a fallback). :func:`served` feeds a c
 interrogator frames to a :class:`~fbgcomp.runtime.pipeline.Pipeline` in batches, on the
 interrogator's clock, optionally with one grating lost from some point of the run on, and
 returns the published correction at the reference instrument's samples (the last frame's, as
-``validate`` compares). ``benchmarks/bench_lost_grating.py`` and the runtime tests on ram2 judge
+``validate`` compares); inside a gap of the campaign's fbg.csv, the runtime's lost link
+(:func:`link_loss_frames`). ``benchmarks/bench_lost_grating.py`` and the runtime tests on ram2 judge
 the runtime this way.
 """
 
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from fbgcomp.io.campaign.folder import FBG_FILE
 from fbgcomp.runtime.pipeline import Pipeline, PipelineConfig
 
 #: The batch results :func:`process_in_batches` concatenates (``BatchResult`` fields).
@@ -45,6 +47,40 @@ def process_in_batches(pipe, time_s, wavelength_nm, temperature_C, sizes=(100,),
     return {n: np.concatenate([getattr(r, n) for r in out]) for n in BATCH_FIELDS}
 
 
+def link_loss_frames(model, campaign, time_s, wavelength_nm, temperature_C, counts):
+    """The frames with, inside each gap of the campaign's fbg.csv (:meth:`Campaign.gaps`: the
+    interrogator stopped), one frame every median frame interval without any grating, the probes
+    and heat inputs at their last reading: what ``serve`` runs while its link is lost and the
+    probes arrive live (``probes_on_link_loss``; a model without a set for it holds and ramps its
+    correction to zero on them). Returns the four arrays, in time order."""
+    gaps = campaign.gaps().get(FBG_FILE, [])
+    if not gaps or time_s.size < 2:
+        return time_s, wavelength_nm, temperature_C, counts
+    dt = float(np.median(np.diff(time_s)))
+    ticks = np.concatenate([np.arange(a + dt, b - 0.5 * dt, dt) for a, b in gaps])
+    ticks = ticks[(ticks > time_s[0]) & (ticks < time_s[-1])]
+    if not ticks.size:
+        return time_s, wavelength_nm, temperature_C, counts
+    slow = campaign.slow_inputs()  # probes (<probe>_C) and heat inputs (<source>_W)
+    held = np.clip(np.searchsorted(slow["time_s"].to_numpy(), ticks, side="right") - 1, 0, len(slow) - 1)
+    cols = [name if name in slow.columns else f"{name}_C" for name in model.probe_names]
+    # a strain-free reference grating is read through the interrogator: lost with it
+    tick_temp = np.column_stack(
+        [
+            slow[c].to_numpy(np.float64)[held] if c in slow.columns else np.full(ticks.size, np.nan)
+            for c in cols
+        ]
+    ).reshape(ticks.size, len(cols))
+    order = np.argsort(np.concatenate([time_s, ticks]), kind="stable")
+    S = wavelength_nm.shape[1]
+    return (
+        np.concatenate([time_s, ticks])[order],
+        np.vstack([wavelength_nm, np.full((ticks.size, S), np.nan)])[order],
+        np.vstack([temperature_C, tick_temp])[order],
+        np.vstack([counts, np.zeros((ticks.size, S), counts.dtype)])[order],
+    )
+
+
 def served(model, campaign, pipe=None, lost=None, lost_from=0.4, sizes=(100,), lost_until=None):
     """``campaign`` served through ``pipe`` (default: a fresh ``Pipeline`` of ``model`` with
     the default configuration), grating or probe ``lost`` (a name, or several lost together)
@@ -72,6 +108,7 @@ def served(model, campaign, pipe=None, lost=None, lost_from=0.4, sizes=(100,), l
                 counts[gone, j] = 0
             else:
                 temp[gone, list(model.probe_names).index(name)] = np.nan
+    ft, w, temp, counts = link_loss_frames(model, campaign, ft, w, temp, counts)
     out = process_in_batches(pipe or Pipeline(model, PipelineConfig()), ft, w, temp, sizes, counts)
     at = np.clip(np.searchsorted(ft, al.time_s, side="right") - 1, 0, ft.size - 1)
     out["at"] = at

@@ -375,8 +375,8 @@ def validate(
 def _inside_gaps(campaign, time_s, ref, pred, served=False) -> dict | None:
     """The reference samples inside a gap of an input file (:meth:`Campaign.gaps`: fbg.csv,
     temperatures.csv, heat.csv), where the model was fed readings interpolated across it (or,
-    ``served``, the runtime got none and held the last), with their max |error| per axis and a
-    note that says so; None without such a sample.
+    ``served``, the runtime's link was lost: :func:`fbgcomp.bench.served.link_loss_frames`), with
+    their max |error| per axis and a note that says so; None without such a sample.
 
     The gratings interpolated over an hour of ram2's thermal_b without the interrogator took dx
     from 2.30 to 10.53 µm (2026-12-07, docs/accuracy.md): those errors are the gap's, not the
@@ -397,7 +397,8 @@ def _inside_gaps(campaign, time_s, ref, pred, served=False) -> dict | None:
     note = (
         f"note: {int(inside.sum())} of {len(time_s)} reference samples lie in a gap of {files}; "
         + (
-            "the runtime got no new reading there and held the last"
+            "the runtime's link is lost there: it runs its set without gratings on the probes "
+            "(or holds and ramps its correction to zero without one)"
             if served
             else "the readings there are interpolated across it"
         )

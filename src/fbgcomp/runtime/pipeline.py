@@ -573,7 +573,8 @@ class Pipeline:
         that same frame; if they differ by more than ``readmit_k_sigma`` x sqrt(rms_new^2 +
         rms_old^2) on any axis, the returning gratings stay faulted (INCONSISTENT) for another
         ``recover_s`` and the rows are re-chosen. Rare (a re-admission a second at most per
-        grating): two one-frame predictions per re-admission."""
+        grating): two one-frame predictions per re-admission. Gratings that come back to a set
+        that read none are admitted unchecked: no other grating speaks against them."""
         cfg = self.config.health
         f = faulted[start:]
         t = time_s[start:]
@@ -582,6 +583,10 @@ class Pipeline:
             prev_mask = np.vstack([self._prev_mask[None, :], f[:-1]])
             prev_k = np.concatenate([[self._prev_choice], choice[:-1]])
             back = (prev_mask & ~f).any(axis=1) & (prev_k >= 0) & (choice >= 0) & (prev_k != choice)
+            # no grating in use until then (a lost link, every fibre cut): none to contradict
+            # the returning ones, and a set that reads no force would refuse them for good
+            # under a held load (ram2's thermal_c: 350 µm of Fx read by them, none by it)
+            back &= ~prev_mask.all(axis=1)
             back[:i] = False
             if not back.any():
                 break

@@ -525,12 +525,22 @@ class PhysicalPredictor:
             for i, (a, b) in enumerate(zip(mine, theirs)):
                 y[i] = 0.0 if not a else (np.nan if not b else y[i])
             m["e"] = (y, t)
-        if not self.has_load:
-            st.pop("load", None)
-        else:
-            old = st.get("load") if other.has_load else None
-            where = {names[i]: j for j, i in enumerate(other._keep)} if old else {}
+        if self.has_load:
+            # the load tracker's state as the last set that ran it left it: a set without any
+            # grating passes it on untouched (predict), so that the gratings back after a lost
+            # link read a load held through the loss against the offsets it had; started
+            # afresh, they took its whole reading into their thermal offsets and the load was
+            # gone for good (ram2's thermal_c, the link lost for 1 h under 2500 N of Fx: dx
+            # 340 µm off on every later plateau)
+            old = st.get("load")
+            held = None if old is None else old.get("names")
+            if held is None and old is not None and other.has_load:
+                held = [names[i] for i in other._keep]  # (states from before the names)
+            where = {n: j for j, n in enumerate(held)} if held is not None else {}
+            if held is None:
+                old = None
             L = dict(old or {})
+            L["names"] = [names[i] for i in self._keep]
             for key, fill in (("offset", np.nan), ("fast", 0.0), ("quick", 0.0), ("recent", 0.0)):
                 v = L.get(key)
                 if v is None:
@@ -1193,6 +1203,8 @@ class PhysicalPredictor:
                 xq = None  # no transition: the quick reading starts anew from xs at the next
             force[i] = applied
         new_state["load"] = {
+            # the gratings the per-grating arrays are of (take_state maps them by name)
+            "names": [self.sensor_names[i] for i in self._keep],
             "offset": np.array(offset),
             "force": np.array(applied),
             "settle": np.array(settle),
@@ -1453,6 +1465,8 @@ class PhysicalPredictor:
             for key, v in state.items():
                 if key != "probe_rebase":
                     new_state.setdefault(key, v)
+        elif not self.has_load and state.get("load") is not None:
+            new_state["load"] = state["load"]  # ... and the load tracker's, without any grating
         self.state = new_state
         self.last_flags = flags
         self.last_force_N = force
