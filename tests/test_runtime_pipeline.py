@@ -268,3 +268,39 @@ def test_model_reload_keeps_the_re_admission_check(setup, runtime_model_and_camp
     np.testing.assert_array_equal(got["model_set"], ref["model_set"])
     np.testing.assert_allclose(got["correction_um"], ref["correction_um"], rtol=0, atol=1e-9)
     assert svc.pipeline.readmissions_refused == plain.readmissions_refused
+
+
+def test_frames_older_than_the_last_link_loss_tick_are_dropped_unless_the_clock_was_set_back(
+    runtime_model_and_campaign, runtime_model_and_arrays
+):
+    """serve's side of a lost link (the frames it runs without gratings are tested end to end in
+    test_runtime_live_inputs.py): once the link is back, frames stamped before the last frame
+    run without gratings are dropped (the model's filters never run back in time), and frames
+    more than CLOCK_SET_BACK_S older are an instrument clock set back, taken as before."""
+    from fbgcomp.runtime.service import CLOCK_SET_BACK_S, RuntimeConfig, Service
+    from fbgcomp.runtime.sources import ConstantTemperatures
+    from fbgcomp.runtime.windows import SensorBatch
+
+    model_path, _ = runtime_model_and_campaign
+    model, time_s, w, t = runtime_model_and_arrays
+    svc = Service(RuntimeConfig(model=str(model_path), opcua_enabled=False))
+    svc.temps = ConstantTemperatures(list(model.probe_names), dict(zip(model.probe_names, t[0])))
+    S = w.shape[1]
+
+    def batch(rows):
+        ones = np.ones((rows.size, S), np.int8)
+        return SensorBatch(time_s[rows], w[rows], ones, np.zeros_like(ones), 0.0)
+
+    first = int(np.searchsorted(time_s, 20.0))
+    svc._process(batch(np.arange(first)))
+    assert svc.frames == first and svc.pipeline.zeroed
+    # a frame without gratings ran at time_s[first + 5] while the link was lost
+    svc._tick_t = float(time_s[first + 5])
+    svc._process(batch(np.arange(first, first + 10)))
+    assert svc.frames == first + 4 and svc._tick_t is None  # the 4 frames after it
+    assert svc.last_result.time_s.tolist() == time_s[first + 6 : first + 10].tolist()
+    # an instrument clock set back beyond CLOCK_SET_BACK_S: its frames are taken
+    late = float(time_s[first + 9])
+    svc._tick_t = late + CLOCK_SET_BACK_S + 5.0
+    svc._process(batch(np.arange(first + 10, first + 20)))
+    assert svc.frames == first + 14 and svc._tick_t is None

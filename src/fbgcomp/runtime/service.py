@@ -53,6 +53,11 @@ from fbgcomp.runtime.windows import PeakMapper, SensorBatch
 log = logging.getLogger("fbgcomp.runtime")
 
 
+#: A frame stamped this much (s) before the last one run without gratings while the link was
+#: lost is an instrument clock set back, not a reconnect's jitter: it is taken, not dropped.
+CLOCK_SET_BACK_S = 5.0
+
+
 @dataclass
 class SourceConfig:
     """``[source]``: where the wavelengths (and, for replays, the temperatures) come from."""
@@ -477,8 +482,9 @@ class Service:
     def _process(self, batch: SensorBatch, tick: bool = False) -> None:
         if not tick and self._tick_t is not None:
             # the link is back: the model's filters already ran to the last frame without
-            # gratings, so frames stamped before it (a reconnect's first, a clock's jitter) go
-            keep = batch.time_s > self._tick_t
+            # gratings, so frames stamped before it (a reconnect's first, a clock's jitter) go;
+            # frames far older are an instrument clock set back (a reboot), taken as before
+            keep = (batch.time_s > self._tick_t) | (batch.time_s < self._tick_t - CLOCK_SET_BACK_S)
             if not keep.any():
                 return
             if not keep.all():
