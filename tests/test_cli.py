@@ -67,10 +67,11 @@ def test_fit_then_validate_through_the_console(campaigns, tmp_path):
 
 
 def test_validate_says_which_samples_it_judged_inside_an_interrogator_gap(campaigns, tmp_path):
-    """A campaign whose interrogator stopped for 10 minutes: the gratings are interpolated across
-    the gap, so ``validate`` names the reference samples judged there and their own max |error|
-    (ram2's thermal_b without the interrogator for an hour: dx 10.5 µm there, 2.3 without the
-    gap); an unbroken campaign gets no such note."""
+    """A campaign whose interrogator stopped for 10 minutes: the model (here a regression, on
+    readings interpolated across it) is judged there on readings never taken, so ``validate``
+    names the reference samples judged there and their own max |error| (ram2's thermal_b
+    without the interrogator for an hour: dx 10.5 µm there, 2.3 without the gap); an unbroken
+    campaign gets no such note."""
     import numpy as np
 
     from fbgcomp.io.campaign import read_campaign

@@ -1392,7 +1392,7 @@ def test_an_hour_without_the_interrogator_is_predicted_without_a_warning_and_wit
     frame after the gap is an hour away, so the load tracker's fast and slow readings are the same
     frame and its noise test has nothing to learn there. The unread Fz's infinite noise times
     that zero made a NaN, which the test takes as no information, and a RuntimeWarning printed on
-    every ``validate`` of such a campaign. The gratings are interpolated across the gap (the
+    every ``validate`` of such a campaign. The model goes on from the frame before the gap (the
     validation's note names those samples); no axis is worse there than uncompensated."""
     import warnings
 

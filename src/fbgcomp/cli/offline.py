@@ -374,11 +374,12 @@ def validate(
 
 def _inside_gaps(campaign, time_s, ref, pred, served=False) -> dict | None:
     """The reference samples inside a gap of an input file (:meth:`Campaign.gaps`: fbg.csv,
-    temperatures.csv, heat.csv), where the model was fed readings interpolated across it (or,
+    temperatures.csv, heat.csv), where the model had no reading of that file (the default model
+    goes on from the last frame before it, the others from readings interpolated across it; or,
     ``served``, the runtime's link was lost: :func:`fbgcomp.bench.served.link_loss_frames`), with
     their max |error| per axis and a note that says so; None without such a sample.
 
-    The gratings interpolated over an hour of ram2's thermal_b without the interrogator took dx
+    An hour of ram2's thermal_b without the interrogator took the default model's dx
     from 2.30 to 10.53 µm (2026-12-07, docs/accuracy.md): those errors are the gap's, not the
     model's, and the judged figures carry them."""
     import numpy as np
@@ -400,7 +401,8 @@ def _inside_gaps(campaign, time_s, ref, pred, served=False) -> dict | None:
             "the runtime's link is lost there: it runs its set without gratings on the probes "
             "(or holds and ramps its correction to zero without one)"
             if served
-            else "the readings there are interpolated across it"
+            else "no reading of it was taken there (the model goes on from the last, or from "
+            "readings interpolated across it)"
         )
         + ", and the figures above include them "
         f"(max |error| inside: dx {err[0]:.3f}, dy {err[1]:.3f}, dz {err[2]:.3f} µm)"
