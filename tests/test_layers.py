@@ -23,6 +23,8 @@ LAYERS = [
 ALLOWED_UPWARD = {
     # serve's orchestrator starts the live page; the page never imports the service
     ("fbgcomp.runtime.service", "fbgcomp.dashboard"),
+    # ... configured by serve's configuration, whose [dashboard] section is the page's own
+    ("fbgcomp.runtime.config", "fbgcomp.dashboard"),
 }
 
 
