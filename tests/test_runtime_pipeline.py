@@ -304,3 +304,57 @@ def test_frames_older_than_the_last_link_loss_tick_are_dropped_unless_the_clock_
     svc._tick_t = late + CLOCK_SET_BACK_S + 5.0
     svc._process(batch(np.arange(first + 10, first + 20)))
     assert svc.frames == first + 14 and svc._tick_t is None
+
+
+class _LiveProbes:
+    """A temperature source whose every probe is a live input (what ``LiveTemperatures`` is with
+    OPC UA or Modbus behind it; test_runtime_live_inputs.py runs the real one): fixed values."""
+
+    all_live = True
+
+    def __init__(self, values_C):
+        self.values_C = np.asarray(values_C, float)
+
+    def latest(self, time_s):
+        return np.tile(self.values_C, (np.size(time_s), 1))
+
+
+@pytest.mark.parametrize("carry", [True, False])
+def test_a_lost_link_runs_the_set_without_gratings_only_when_configured(
+    tmp_path, runtime_model_and_campaign, runtime_model_and_arrays, carry
+):
+    """serve's no-data tick with every probe live: with ``probes_on_link_loss`` (the default) one
+    frame without gratings runs on the probes, on the physical model's set without every
+    grating; with it false, and for a model without such a set (the regression of the runtime
+    tests), the hold and ramp to zero of before (ALARM)."""
+    import pandas as pd
+
+    from fbgcomp.bench.synthetic import linear_truth_campaign
+    from fbgcomp.models.physical import PhysicalModel
+    from fbgcomp.runtime.pipeline import HEALTH_ALARM, HEALTH_DEGRADED
+    from fbgcomp.runtime.service import RuntimeConfig, Service
+    from fbgcomp.runtime.windows import SensorBatch
+
+    regression, time_s, w, _ = runtime_model_and_arrays
+    first = pd.read_csv(runtime_model_and_campaign[1] / "temperatures.csv").iloc[0]
+    train, _ = linear_truth_campaign("train", seed=1, duration_s=2 * 3600, noise_um=0.05)
+    physical = PhysicalModel(zero_window_s=0.5).fit([train]).save(tmp_path / "physical.json")
+    for path, has_set in ((physical, True), (None, False)):
+        cfg = RuntimeConfig(model=str(path) if path else "", opcua_enabled=False)
+        cfg.source.probes_on_link_loss = carry
+        svc = Service(cfg, model=None if path else regression)
+        svc.temps = _LiveProbes([first[f"{p}_C"] + 2.0 for p in svc.pipeline.probe_names])
+        n = int(np.searchsorted(time_s, 20.0))
+        ones = np.ones((n, w.shape[1]), np.int8)
+        svc._process(SensorBatch(time_s[:n], w[:n], ones, np.zeros_like(ones), 0.0))
+        svc._no_data()
+        ran = carry and has_set
+        assert svc.ticks == int(ran) and svc.frames == n
+        res = svc.last_result
+        assert int(res.health[-1]) == (HEALTH_DEGRADED if ran else HEALTH_ALARM)
+        if ran:
+            everything = frozenset(svc.pipeline.sensor_names)
+            assert svc.pipeline.model_sets[int(res.model_set[-1])] == everything
+            assert np.isfinite(res.deviation_um[-1]).all()
+        else:
+            assert int(res.model_set[-1]) == -1 and np.isnan(res.deviation_um[-1]).all()
