@@ -63,14 +63,12 @@ def link_loss_frames(model, campaign, time_s, wavelength_nm, temperature_C, coun
         return time_s, wavelength_nm, temperature_C, counts
     slow = campaign.slow_inputs()  # probes (<probe>_C) and heat inputs (<source>_W)
     held = np.clip(np.searchsorted(slow["time_s"].to_numpy(), ticks, side="right") - 1, 0, len(slow) - 1)
-    cols = [name if name in slow.columns else f"{name}_C" for name in model.probe_names]
-    # a strain-free reference grating is read through the interrogator: lost with it
-    tick_temp = np.column_stack(
-        [
-            slow[c].to_numpy(np.float64)[held] if c in slow.columns else np.full(ticks.size, np.nan)
-            for c in cols
-        ]
-    ).reshape(ticks.size, len(cols))
+    # (a strain-free reference grating is read through the interrogator: lost with it, NaN)
+    tick_temp = np.full((ticks.size, len(model.probe_names)), np.nan)
+    for j, name in enumerate(model.probe_names):
+        col = name if name in slow.columns else f"{name}_C"
+        if col in slow.columns:
+            tick_temp[:, j] = slow[col].to_numpy(np.float64)[held]
     order = np.argsort(np.concatenate([time_s, ticks]), kind="stable")
     S = wavelength_nm.shape[1]
     return (

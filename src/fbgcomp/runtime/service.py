@@ -384,7 +384,9 @@ class Service:
         (:func:`fbgcomp.runtime.summary.startup_summary`)."""
         return startup_summary(self)
 
-    def _process(self, batch: SensorBatch, tick: bool = False) -> None:
+    def _process(self, batch: SensorBatch, tick: bool = False, temps=None) -> None:
+        """Run ``batch`` through the pipeline, log and publish it; ``tick``: a frame without
+        gratings run while the link is lost (:meth:`_probes_through_loss`), with its ``temps``."""
         if not tick and self._tick_t is not None:
             # the link is back: the model's filters already ran to the last frame without
             # gratings, so frames stamped before it (a reconnect's first, a clock's jitter) go;
@@ -399,7 +401,8 @@ class Service:
             return
         t0 = time.perf_counter()
         enabled = self.enabled
-        temps = self.thermometers.temperature_C(self.temps.latest(batch.time_s), batch.reference_nm)
+        if temps is None:
+            temps = self.thermometers.temperature_C(self.temps.latest(batch.time_s), batch.reference_nm)
         z = None
         if self.live is not None:
             # the newest Z for the whole batch (a batch lasts milliseconds); NaN when stale
@@ -474,7 +477,7 @@ class Service:
         if self.pipeline.set_without(np.concatenate([np.ones(S, bool), ~np.isfinite(probes[0])])) < 0:
             return False
         none = np.zeros((1, S), np.int8)
-        self._process(SensorBatch(time_s, np.full((1, S), np.nan), none, none, now, refs), tick=True)
+        self._process(SensorBatch(time_s, np.full((1, S), np.nan), none, none, now, refs), True, probes)
         self._tick_t = t
         return True
 

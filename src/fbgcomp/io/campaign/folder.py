@@ -44,6 +44,15 @@ __all__ = ["GAP_FACTOR", "Campaign", "read_campaign", "write_campaign"]
 GAP_FACTOR = 5.0
 
 
+def _sampling_gaps(t: np.ndarray) -> list[tuple[float, float]]:
+    """The gaps of time stamps ``t`` (s) longer than ``GAP_FACTOR`` x their median interval, each
+    as (last sample before, first sample after)."""
+    step = np.diff(t)
+    if not step.size or not np.median(step) > 0:
+        return []
+    return [(float(t[i]), float(t[i + 1])) for i in np.flatnonzero(step > GAP_FACTOR * np.median(step))]
+
+
 @dataclass(eq=False)
 class Campaign:
     """A campaign folder in memory: metadata and one DataFrame per instrument, each on its own
@@ -338,23 +347,16 @@ class Campaign:
         """Per file, the sampling gaps longer than ``GAP_FACTOR`` x its median interval, each as
         (last sample before, first sample after) in s; files without one are left out.
         :meth:`aligned` interpolates across a gap: what it gives inside one is no reading."""
-        out = {}
-        for role, frame in self._tables().items():
-            t = frame[TIME_COLUMN].to_numpy()
-            step = np.diff(t)
-            if not step.size or not np.median(step) > 0:
-                continue
-            at = np.flatnonzero(step > GAP_FACTOR * np.median(step))
-            if at.size:
-                out[role] = [(float(t[i]), float(t[i + 1])) for i in at]
-        return out
+        spans = (
+            (role, _sampling_gaps(frame[TIME_COLUMN].to_numpy())) for role, frame in self._tables().items()
+        )
+        return {role: found for role, found in spans if found}
 
     def summary(self) -> dict:
         """What ``fbgcomp inspect`` shows: per-file statistics, the alignment overlap and
         non-fatal problems. Only builtins (JSON-serialisable)."""
         problems: list[str] = []
         files = {}
-        gaps = self.gaps()
         for role, frame in self._tables().items():
             t = frame[TIME_COLUMN].to_numpy()
             step = np.diff(t)
@@ -372,7 +374,7 @@ class Campaign:
                     if c != TIME_COLUMN
                 },
             }
-            found = gaps.get(role, [])
+            found = _sampling_gaps(t)
             info["gaps"] = len(found)
             if found:
                 a, b = max(found, key=lambda g: g[1] - g[0])

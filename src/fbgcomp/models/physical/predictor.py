@@ -533,12 +533,7 @@ class PhysicalPredictor:
             # gone for good (ram2's thermal_c, the link lost for 1 h under 2500 N of Fx: dx
             # 340 µm off on every later plateau)
             old = st.get("load")
-            held = None if old is None else old.get("names")
-            if held is None and old is not None and other.has_load:
-                held = [names[i] for i in other._keep]  # (states from before the names)
-            where = {n: j for j, n in enumerate(held)} if held is not None else {}
-            if held is None:
-                old = None
+            where = {n: j for j, n in enumerate(old["names"])} if old else {}
             L = dict(old or {})
             L["names"] = [names[i] for i in self._keep]
             for key, fill in (("offset", np.nan), ("fast", 0.0), ("quick", 0.0), ("recent", 0.0)):
