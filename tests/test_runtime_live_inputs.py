@@ -441,8 +441,12 @@ stale_s = 5
     corr = df[[f"corr_{a}_um" for a in axes]].to_numpy()
     zeroed = (df.health != "ZEROING").to_numpy()
     np.testing.assert_allclose(corr[zeroed], -dev[zeroed], atol=1e-9)  # the policy off
-    # the correction goes on through the cut: the 2 K's, never ramped to zero
-    assert np.abs(corr[cut]).max(axis=1).min() > 0.5, np.abs(corr[cut]).max(axis=1).min()
+    # the correction goes on through the cut: the 2 K's, never ramped to zero (ramp_s, 0.5 s,
+    # would have it at 0 within the cut's first sixth). How far the model's leads have grown
+    # when the cut comes depends on how soon serve zeroed (0.49-0.87 µm under a loaded CI):
+    # it keeps growing through the cut, from at least 0.2 µm
+    size = np.abs(corr[cut]).max(axis=1)
+    assert size.min() > 0.2 and size[-1] >= size[0], (size.min(), size[0], size[-1])
 
 
 def _kinematic_model(base: Path) -> Path:
