@@ -139,6 +139,45 @@ def test_an_hour_without_the_interrogator_under_a_load_runs_on_the_probes_and_re
     np.testing.assert_array_less(err[after].max(axis=0), whole + 1.0)  # 10.4 / 0.6 / 5.3 µm
 
 
+def test_an_hour_without_the_interrogator_goes_on_from_what_the_gratings_last_read(model, ram2, tmp_path):
+    """thermal_b's fbg.csv without its fourteenth hour, under the radiant load on +X: the probes
+    alone see no gradient between the faces, and the set without gratings published 18.5 µm of
+    dx error (9.7 of dy) from the first frame of the loss, a step of 20 µm where the gratings had
+    read the gradient (``link_loss_tau_s=0``, as before). It now goes on from the gratings' last
+    thermal correction, the difference fading over an hour: no step at the loss, dx 10.2 and dy
+    4.3 µm, and the full set's own correction once the link is back."""
+    from fbgcomp.models.registry import load_model
+
+    c = ram2["thermal_b"]
+    t = c.fbg["time_s"].to_numpy()
+    gapped = c.replaced(fbg=c.fbg[(t < 13 * 3600.0) | (t >= 14 * 3600.0)])
+    al = gapped.aligned(zero_window_s=model.zero_window_s)
+    inside = (al.time_s > 13 * 3600.0) & (al.time_s < 14 * 3600.0)
+    first = np.flatnonzero(inside)[0]
+    after = al.time_s > 14 * 3600.0 + 60.0
+    path = model.save(tmp_path / "m.json")
+    fig = {}
+    for tau in (3600.0, 0.0):
+        assert load_model(path).link_loss_tau_s == 3600.0  # the default, saved with the model
+        corr, ref, out = served(load_model(path).set_params(link_loss_tau_s=tau), gapped)
+        none = Pipeline(model).model_sets.index(frozenset(model.sensor_names))
+        assert (out["model_set"][out["at"][inside]] == none).all()
+        err = np.abs(ref + corr)
+        fig[tau] = {
+            "inside": err[inside].max(axis=0),
+            "step": np.abs(corr[first] - corr[first - 1]),
+            "after": err[after].max(axis=0),
+            "none": np.abs(ref[inside]).max(axis=0),
+        }
+    carried, alone = fig[3600.0], fig[0.0]
+    assert (carried["step"] < 1.0).all() and alone["step"][0] > 5.0, (carried["step"], alone["step"])
+    # the lateral axes: at most 60 % of the probes' error (10.2 / 18.5 and 4.3 / 9.7 measured)
+    np.testing.assert_array_less(carried["inside"][:2], 0.6 * alone["inside"][:2])
+    assert carried["inside"][2] <= alone["inside"][2] + 0.1, (carried, alone)  # dz: the probes'
+    np.testing.assert_array_less(carried["inside"], carried["none"] + NOISE_ALLOWANCE_UM)
+    np.testing.assert_allclose(carried["after"], alone["after"], atol=0.05)  # nothing carried after
+
+
 @pytest.mark.parametrize(
     "name, lost",
     [

@@ -255,6 +255,14 @@ class PhysicalModel(EstimatorParams, ModelFile):
         ``benchmarks/bench_z_position.py``). dz is kept: the ball-screw nut travels with the
         ram, and neither the axial compliance nor the housing's and box's growth depends on Z.
         10 mm: about 3 % of a load's deflection on a 1 m overhang (compliance ~ overhang^3).
+    link_loss_tau_s : float
+        When every grating is lost (the interrogator or its link down) the set without gratings
+        corrects from the probes, which see no gradient between the faces. It goes on from the
+        last thermal correction the gratings gave, the difference fading with this time
+        constant (s): what they read of a gradient persists while the walls keep their
+        temperatures. 3600 s, the hour ram2's walls take to follow the hall (the calibration's
+        ambient time constant); 0 corrects from the probes alone. The load read from the
+        gratings is not carried (no force can be read without them).
     """
 
     model_type = "physical"
@@ -285,6 +293,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         cte_prior_sd_per_K=(1.0e-6, 0.0, 0.0),
         cte_test_p=1e-2,
         z_tolerance_mm=10.0,
+        link_loss_tau_s=3600.0,
     ):
         self.machine = machine
         self.zero_window_s = zero_window_s
@@ -308,6 +317,7 @@ class PhysicalModel(EstimatorParams, ModelFile):
         self.cte_prior_sd_per_K = cte_prior_sd_per_K
         self.cte_test_p = cte_test_p
         self.z_tolerance_mm = z_tolerance_mm
+        self.link_loss_tau_s = link_loss_tau_s
 
     # -- fitting -----------------------------------------------------------------------------
     def _machine(self):

@@ -477,6 +477,7 @@ class PhysicalPredictor:
         tz = getattr(m, "trained_z_axis_mm_", None)
         self.trained_z_mm = None if tz is None else np.asarray(tz, float)
         self.z_tolerance_mm = float(m.z_tolerance_mm)
+        self.link_loss_tau_s = float(getattr(m, "link_loss_tau_s", 0.0))
         self.unseen_relative_error = float(getattr(m, "unseen_relative_error", 0.0))
         self.thermal_relative_error = float(getattr(m, "thermal_relative_error", 0.0))
         self.last_thermal = np.zeros((0, 3))
@@ -1266,7 +1267,8 @@ class PhysicalPredictor:
         lost = [i for i, s in enumerate(self.sensor_names) if s in self.exclude]
         w[:, lost] = w0[lost]
         e_all = self._fmap.base(w, temperature_C, w0, temperature_zero_C)
-        if self._handed_over and n:
+        took_over = self._handed_over and n
+        if took_over:
             state = self._resume(state, e_all[0, self._keep], e_all[0])
             state = self._rebase_probes(state, dT[0])
             self._handed_over = False
@@ -1454,11 +1456,13 @@ class PhysicalPredictor:
                 thermal, clamped = P.clamp_axes(thermal, self.t_low, self.t_high)
                 flags[outside] |= P.SHRUNK
                 flags[clamped] |= P.CLAMPED
+        if not (raw or not thermal_policy):
+            thermal = self._carry_over(thermal, time_s, state, new_state, took_over)
         if lost_p:
             # what this set does not run (the housing calibration without its probe) passes on
             # as it was, for the set that reads the probe again (take_state)
             for key, v in state.items():
-                if key != "probe_rebase":
+                if key not in ("probe_rebase", "carry"):
                     new_state.setdefault(key, v)
         elif not self.has_load and state.get("load") is not None:
             new_state["load"] = state["load"]  # ... and the load tracker's, without any grating
@@ -1492,6 +1496,37 @@ class PhysicalPredictor:
             var[off_z, :2] += (UNTRAINED_Z_HALF * held / self._t) ** 2
             flags[np.ix_(off_z, [0, 1])] |= P.SHRUNK
         return deviation, self._t * np.sqrt(var)
+
+    def _carry_over(self, thermal, time_s, state, new_state, took_over):
+        """``thermal`` (n, 3) µm, carried over from the gratings when this set reads none.
+
+        A set without any grating (every grating lost: the interrogator's link down) reads the
+        probes alone, which see no gradient between the faces; what the gratings read of it at
+        the loss persists while the walls keep their temperatures and fades as they follow their
+        heat inputs. Such a set taking over from one with gratings (``took_over``) goes on from
+        that set's last thermal correction (``thermal_last`` in its state): its own plus the
+        difference on its first frame, fading with ``link_loss_tau_s``. On ram2's thermal_b, an
+        hour without the interrogator from 13 h: dx 18.5 -> 10.2 µm, dy 9.7 -> 4.3 (probes
+        alone -> carried over; docs/runtime.md). A set with gratings never carries one over:
+        it reads the gradient itself."""
+        n = thermal.shape[0]
+        keep = state.get("carry")
+        if self._keep or time_s is None or self.link_loss_tau_s <= 0:
+            keep = None
+        elif took_over and state.get("thermal_last") is not None and state.get("thermal_by_gratings"):
+            t0 = float(np.ravel(time_s)[0])
+            keep = (np.asarray(state["thermal_last"], float) - thermal[0], t0)
+        if keep is not None and n:
+            offset, t0 = keep
+            t = np.asarray(time_s, float).ravel()
+            fade = np.exp(-np.clip(t - t0, 0.0, None) / self.link_loss_tau_s)
+            thermal = thermal + fade[:, None] * np.asarray(offset, float)[None, :]
+            thermal, _ = P.clamp_axes(thermal, self.t_low, self.t_high)
+        if keep is not None:
+            new_state["carry"] = keep
+        new_state["thermal_last"] = thermal[-1].copy() if n else state.get("thermal_last")
+        new_state["thermal_by_gratings"] = bool(self._keep) or keep is not None
+        return thermal
 
     def _untrained_z(self, z_axis_mm, n):
         """The frames (n,) bool whose Z position (mm, scalar or (n,)) is more than
