@@ -327,7 +327,10 @@ endpoint = "opc.tcp://127.0.0.1:{port}"
 nodes = {{ {nodes} }}
 stale_s = 2
 """
-    speed = 10.0
+    # the campaign lasts 300 s, 60 s of the simulator's clock at this speed, which starts with
+    # the simulator: a serve slow to start on a loaded machine (a CI run's other worker) met it
+    # at 10x near its end, where the last sample stands (slope 0.07, 2026-12-07)
+    speed = 5.0
     with serve_and_sim(
         tmp,
         toml,
@@ -353,7 +356,9 @@ stale_s = 2
             for v in ok["T_bulk_C"].to_numpy()[::50]
         ]
     )
-    slope = np.polyfit(ok["time_s"].to_numpy()[::50], camp_time, 1)[0]
+    running = camp_time < temps["time_s"].to_numpy()[-1] - 10.0  # not the held last sample
+    assert running.sum() >= 10, (running.sum(), camp_time)
+    slope = np.polyfit(ok["time_s"].to_numpy()[::50][running], camp_time[running], 1)[0]
     assert slope == pytest.approx(speed, rel=0.15)
     off = _replay_offline(model, df)
     rows = (df.health == "OK").to_numpy()
