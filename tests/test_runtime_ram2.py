@@ -109,7 +109,7 @@ def test_a_grating_that_returns_is_taken_back_from_its_first_frame(model, ram2, 
 
 
 def test_an_hour_without_the_interrogator_under_a_load_runs_on_the_probes_and_reads_the_load_back(
-    model, ram2, full_served
+    model, ram2, full_served, tmp_path
 ):
     """thermal_c's fbg.csv without its fifth hour, under the -2500 N of Fx it holds from 3 h to
     7 h: an interrogator stopped, the probes logged on (``served`` replays the lost link as serve
@@ -137,6 +137,12 @@ def test_an_hour_without_the_interrogator_under_a_load_runs_on_the_probes_and_re
     whole_corr, whole_ref = full_served("thermal_c")
     whole = np.abs(whole_ref + whole_corr)[after].max(axis=0)
     np.testing.assert_array_less(err[after].max(axis=0), whole + 1.0)  # 10.4 / 0.6 / 5.3 µm
+    # under the held force nothing is carried over from the gratings (their thermal reading is
+    # net of a load read with its signature's error): the probes alone, as link_loss_tau_s=0
+    from fbgcomp.models.registry import load_model
+
+    alone, _, _ = served(load_model(model.save(tmp_path / "m.json")).set_params(link_loss_tau_s=0.0), gapped)
+    np.testing.assert_allclose(corr[inside], alone[inside], rtol=0, atol=1e-9)
 
 
 def test_an_hour_without_the_interrogator_goes_on_from_what_the_gratings_last_read(model, ram2, tmp_path):

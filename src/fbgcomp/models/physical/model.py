@@ -262,7 +262,9 @@ class PhysicalModel(EstimatorParams, ModelFile):
         constant (s): what they read of a gradient persists while the walls keep their
         temperatures. 3600 s, the hour ram2's walls take to follow the hall (the calibration's
         ambient time constant); 0 corrects from the probes alone. The load read from the
-        gratings is not carried (no force can be read without them).
+        gratings is not carried (no force can be read without them), and nothing is carried
+        when the link is lost under a held force: the gratings' thermal reading is then net of
+        a load read with its signature's relative error (``benchmarks/bench_link_loss.py``).
     """
 
     model_type = "physical"
