@@ -80,3 +80,20 @@ def ram_folder(ram: str, dest: Path, ram2=None):
         raise ValueError(f"--rams: unknown ram {ram!r} (ram2, ram3, ram4, ram5, ram6, ram7)")
     archive, machine = OWN_RAMS[ram]
     return unpack(archive, Path(dest) / ram) / "data", machine
+
+
+def default_fits(rams, dest: Path, ram2=None):
+    """(ram, ``data`` folder, the default fit on its thermal_a + static_xyz with its description)
+    for each of ``rams``, lazily; ValueError as :func:`ram_folder` for an unknown or missing ram."""
+    from fbgcomp.io.campaign import read_campaign
+    from fbgcomp.models.physical import PhysicalModel
+
+    for ram in rams:
+        data, machine = ram_folder(ram, dest, ram2)
+        yield (
+            ram,
+            data,
+            PhysicalModel(machine=machine).fit(
+                [read_campaign(data / n) for n in ("thermal_a", "static_xyz")]
+            ),
+        )

@@ -29,10 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from _ram3 import add_ram_arguments, ram_folder
+from _ram3 import add_ram_arguments, default_fits
 from fbgcomp.bench.served import served
 from fbgcomp.io.campaign import read_campaign
-from fbgcomp.models.physical import PhysicalModel
 from fbgcomp.models.registry import load_model
 
 ALLOWANCE_UM = 0.5
@@ -89,15 +88,15 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     result: dict = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for ram in rams:
+        fits = default_fits(rams, Path(tmp), args.ram2)
+        while True:
             try:
-                data, machine = ram_folder(ram, tmp, args.ram2)
+                ram, data, fitted = next(fits)
+            except StopIteration:
+                break
             except ValueError as e:
                 print(e, file=sys.stderr)
                 return 2
-            fitted = PhysicalModel(machine=machine).fit(
-                [read_campaign(data / n) for n in ("thermal_a", "static_xyz")]
-            )
             path = fitted.save(Path(tmp) / f"{ram}.json")
             models = {
                 s: load_model(path) if tau is None else load_model(path).set_params(link_loss_tau_s=tau)
