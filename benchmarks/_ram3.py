@@ -82,18 +82,10 @@ def ram_folder(ram: str, dest: Path, ram2=None):
     return unpack(archive, Path(dest) / ram) / "data", machine
 
 
-def default_fits(rams, dest: Path, ram2=None):
-    """(ram, ``data`` folder, the default fit on its thermal_a + static_xyz with its description)
-    for each of ``rams``, lazily; ValueError as :func:`ram_folder` for an unknown or missing ram."""
+def default_fit(data: Path, machine):
+    """The default fit of a ram: the physical model with its description ``machine``, fitted on
+    the campaigns thermal_a and static_xyz of its ``data`` folder."""
     from fbgcomp.io.campaign import read_campaign
     from fbgcomp.models.physical import PhysicalModel
 
-    for ram in rams:
-        data, machine = ram_folder(ram, dest, ram2)
-        yield (
-            ram,
-            data,
-            PhysicalModel(machine=machine).fit(
-                [read_campaign(data / n) for n in ("thermal_a", "static_xyz")]
-            ),
-        )
+    return PhysicalModel(machine=machine).fit([read_campaign(data / n) for n in ("thermal_a", "static_xyz")])

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _ram3 import add_ram_arguments, default_fits
+from _ram3 import add_ram_arguments, default_fit, ram_folder
 from fbgcomp.bench.served import served
 from fbgcomp.io.campaign import read_campaign
 from fbgcomp.models.registry import load_model
@@ -66,7 +66,7 @@ def judge(models: dict, campaign) -> list:
                 model, campaign, lost=list(model.sensor_names), lost_from=a / span, lost_until=b / span
             )
             row[setting] = np.abs(ref + corr)[inside].max(axis=0).tolist()
-            row["uncompensated"] = np.abs(ref[inside]).max(axis=0).tolist()
+        row["uncompensated"] = np.abs(ref[inside]).max(axis=0).tolist()  # the same for every setting
         carried, alone = np.array(row["carried"]), np.array(row["probes alone"])
         row["worse_than_alone"] = bool((carried > alone + WORSE_UM).any())
         row["harm"] = bool((carried > np.array(row["uncompensated"]) + ALLOWANCE_UM).any())
@@ -88,15 +88,13 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     result: dict = {}
     with tempfile.TemporaryDirectory() as tmp:
-        fits = default_fits(rams, Path(tmp), args.ram2)
-        while True:
-            try:
-                ram, data, fitted = next(fits)
-            except StopIteration:
-                break
-            except ValueError as e:
-                print(e, file=sys.stderr)
-                return 2
+        try:
+            folders = [(ram, *ram_folder(ram, tmp, args.ram2)) for ram in rams]
+        except ValueError as e:
+            print(e, file=sys.stderr)
+            return 2
+        for ram, data, machine in folders:
+            fitted = default_fit(data, machine)
             path = fitted.save(Path(tmp) / f"{ram}.json")
             models = {
                 s: load_model(path) if tau is None else load_model(path).set_params(link_loss_tau_s=tau)

@@ -32,7 +32,7 @@ import time
 
 import numpy as np
 
-from _ram3 import HELD_OUT, add_ram_arguments, ram_folder
+from _ram3 import HELD_OUT, add_ram_arguments, default_fit, ram_folder
 from fbgcomp.bench.served import served
 from fbgcomp.io.campaign import read_campaign
 from fbgcomp.models.physical import PhysicalModel
@@ -93,9 +93,7 @@ def main(argv=None) -> int:
             except ValueError as e:
                 print(e, file=sys.stderr)
                 return 2
-            model = PhysicalModel(machine=machine).fit(
-                [read_campaign(data / n) for n in ("thermal_a", "static_xyz")]
-            )
+            model = default_fit(data, machine)
             result[ram] = judge(
                 f"{ram} ({data}): fit thermal_a static_xyz --machine examples/machines/{ram}.yaml",
                 model,

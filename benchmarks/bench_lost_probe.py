@@ -38,11 +38,10 @@ from pathlib import Path
 
 import numpy as np
 
-from _ram3 import HELD_OUT, add_ram_arguments, ram_folder
+from _ram3 import HELD_OUT, add_ram_arguments, default_fit, ram_folder
 from fbgcomp.bench.served import served
 from fbgcomp.io.campaign import read_campaign
 from fbgcomp.models.metrics import validation_metrics
-from fbgcomp.models.physical import PhysicalModel
 from fbgcomp.runtime.pipeline import HEALTH_ALARM, HEALTH_DEGRADED
 from fbgcomp.units import AXES
 
@@ -52,7 +51,7 @@ PATTERNS = (("40%->", 0.4, None), ("40-60%", 0.4, 0.6), ("start", 0.0, None))
 
 def judge(ram: str, data: Path, machine, pairs: bool = False) -> list:
     """Every run of the module docstring on one ram's held-out campaigns."""
-    model = PhysicalModel(machine=machine).fit([read_campaign(data / n) for n in ("thermal_a", "static_xyz")])
+    model = default_fit(data, machine)
     lost_sets = list(combinations(model.probe_names_, 2)) if pairs else [(q,) for q in model.probe_names_]
     width = max([10, *(len("+".join(s)) + 2 for s in lost_sets)])  # (none: a model with one probe)
     print(f"\n{ram} ({data}): fit thermal_a static_xyz; probes {', '.join(model.probe_names_)}")

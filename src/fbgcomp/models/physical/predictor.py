@@ -1513,18 +1513,16 @@ class PhysicalPredictor:
         keep = state.get("carry")
         if self._keep or time_s is None or self.link_loss_tau_s <= 0:
             keep = None
-        elif took_over and state.get("thermal_last") is not None and state.get("thermal_by_gratings"):
-            held = (state.get("load") or {}).get("force")
-            if held is not None and np.any(np.asarray(held, float) != 0.0):
-                # under a force the gratings' thermal reading is net of a load read with its
-                # signature's relative error: carried, that error stays while the force is
-                # no longer read (ram5's thermal_c, the link lost under 2200 N of Fy: dy 2.5 µm
-                # further than the probes alone, both beyond uncompensated). The probes alone.
-                new_state["thermal_last"] = thermal[-1].copy() if n else state.get("thermal_last")
-                new_state["thermal_by_gratings"] = False
-                return thermal
-            t0 = float(np.ravel(time_s)[0])
-            keep = (np.asarray(state["thermal_last"], float) - thermal[0], t0)
+        elif took_over:
+            # under a force the gratings' thermal reading is net of a load read with its
+            # signature's relative error: carried, that error stays while the force is no
+            # longer read (ram5's thermal_c, the link lost under 2200 N of Fy: dy 2.5 µm further
+            # than the probes alone, both beyond uncompensated). The probes alone then.
+            held = np.asarray((state.get("load") or {}).get("force", 0.0), float)
+            last = state.get("thermal_last")
+            keep = None
+            if last is not None and state.get("thermal_by_gratings") and not held.any():
+                keep = (np.asarray(last, float) - thermal[0], float(np.ravel(time_s)[0]))
         if keep is not None and n:
             offset, t0 = keep
             t = np.asarray(time_s, float).ravel()
