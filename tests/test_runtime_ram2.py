@@ -114,7 +114,9 @@ def test_an_hour_without_the_interrogator_under_a_load_runs_on_the_probes_and_re
     """thermal_c's fbg.csv without its fifth hour, under the -2500 N of Fx it holds from 3 h to
     7 h: an interrogator stopped, the probes logged on (``served`` replays the lost link as serve
     runs it, ``link_loss_frames``). Through the gap the set without gratings runs on the probes
-    (dz within 3.5 µm; the force unread: dx uncompensated, no worse); after it the gratings are
+    (dz within 3.5 µm); the force it cannot read may stay or go, so dx, the axis it moves, is
+    held back whole, the thermal correction too, and reads exactly as uncompensated (SHRUNK in
+    the flags, its interval as wide as the held load); after it the gratings are
     admitted unchecked (no grating in use to check them against) and read the load still held
     against the offsets they had, as if never gone. Before, the load tracker started afresh from
     the set without gratings took the 2500 N into its thermal offsets (dx 340 µm off on every
@@ -131,6 +133,13 @@ def test_an_hour_without_the_interrogator_under_a_load_runs_on_the_probes_and_re
     assert (out["model_set"][out["at"][inside]] == none).all()
     assert (out["health"][out["at"][inside]] == HEALTH_DEGRADED).all()
     assert err[inside, 2].max() < 3.5, err[inside, 2].max()
+    # dx, once the output's rate limit has taken the held correction down: nothing published
+    settled = inside & (al.time_s > 4 * 3600.0 + 600.0)
+    assert (corr[settled, 0] == 0.0).all() and (np.abs(corr[settled, 2]) > 1.0).any()
+    shrunk = (out["output_flags"][out["at"][settled]] & H.FLAG_SHRUNK) != 0
+    assert shrunk[:, 0].all() and not shrunk[:, 1].any(), shrunk.sum(axis=0)
+    half = out["half_width_um"][out["at"][settled]]
+    assert (half[:, 0] > 0.9 * np.abs(ref[settled, 0])).all() and half[:, 1].max() < 50.0, half.max(axis=0)
     np.testing.assert_array_less(err[inside].max(axis=0), np.abs(ref).max(axis=0) + NOISE_ALLOWANCE_UM)
     after = al.time_s > 5 * 3600.0 + 60.0
     assert (out["health"][out["at"][after]] == HEALTH_OK).all()

@@ -294,13 +294,16 @@ class PhysicalPredictor:
         lost_housing = any(j in self._h_idx for j in self._lost_p)
         lost_ambient = any(j in self._a_idx for j in self._lost_p)
         self.has_load = m.load_ is not None and len(keep) >= 1
+        self.C = (
+            np.zeros((3, 3)) if m.load_ is None else np.asarray(m.load_["C_um_per_N"])
+        )  # (3 axes, 3 forces)
+        # the axes each force moves: at least a tenth of its largest compliance (last_follow, and
+        # the axes a set without gratings holds back under a force it can no longer read)
+        mag = np.abs(self.C)
+        self._moves = (mag >= 0.1 * mag.max(axis=0, keepdims=True)) & (mag > 0)
         if self.has_load:
             L = m.load_
             G = np.asarray(L["G_um_per_N"])[keep]
-            self.C = np.asarray(L["C_um_per_N"])  # (3 axes, 3 forces)
-            # the axes each force moves: at least a tenth of its largest compliance (last_follow)
-            mag = np.abs(self.C)
-            self._moves = (mag >= 0.1 * mag.max(axis=0, keepdims=True)) & (mag > 0)
             self.noise_var = np.asarray(L["noise_var_um2"], float)[keep]
             # (model files before the frame noise was measured: the nominal interval)
             self.noise_frame_dt_s = float(L.get("noise_frame_dt_s", m.nominal_dt_s_))
@@ -1456,8 +1459,11 @@ class PhysicalPredictor:
                 thermal, clamped = P.clamp_axes(thermal, self.t_low, self.t_high)
                 flags[outside] |= P.SHRUNK
                 flags[clamped] |= P.CLAMPED
+        unread = 0.0
         if not (raw or not thermal_policy):
             thermal = self._carry_over(thermal, time_s, state, new_state, took_over)
+            thermal, unread, unheld = self._hold_loaded_axes(thermal, state)
+            flags[:, unheld] |= P.SHRUNK
         if lost_p:
             # what this set does not run (the housing calibration without its probe) passes on
             # as it was, for the set that reads the probe again (take_state)
@@ -1484,6 +1490,7 @@ class PhysicalPredictor:
         self.last_passed = passed
         self.last_thermal = thermal
         var = self._variance(dT, activity, force, spread, unseen, moving, thermal, passed)
+        var = var + (unread / self._t) ** 2
         deviation = thermal + load
         off_z = None if raw else self._untrained_z(z_axis_mm, n)
         if off_z is not None:
@@ -1534,6 +1541,28 @@ class PhysicalPredictor:
         new_state["thermal_last"] = thermal[-1].copy() if n else state.get("thermal_last")
         new_state["thermal_by_gratings"] = bool(self._keep) or keep is not None
         return thermal
+
+    def _hold_loaded_axes(self, thermal, state):
+        """``thermal`` (n, 3) µm with the axes a held force moves set to 0, what the interval
+        adds there (n, 3) µm (0 on the others), and those axes (3,) bool.
+
+        A set without any grating (the interrogator's link down) cannot read the force: the
+        one held when the link went down (the load tracker's state, passed on untouched) may
+        stay or go. Its correction is not published (0: the force may be gone), and on the axes
+        it moves the thermal correction is held back too: there an unread load dominates, and a
+        thermal correction of the opposite sign to it lengthens the error instead of shortening
+        it (ram5's thermal_c, the link lost for an hour under 2200 N of Fy: dy 196.9 µm against
+        191.8 uncompensated). Those axes read as uncompensated, their interval as wide as the
+        held load and the held-back correction; the other axes (dz, where a lateral force barely
+        reaches) keep theirs."""
+        held = np.asarray((state.get("load") or {}).get("force", np.zeros(3)), float)
+        axes = np.zeros(3, bool) if self._keep else self._moves[:, held != 0].any(axis=1)
+        if not axes.any():
+            return thermal, np.zeros_like(thermal), axes
+        unread = np.where(axes, np.abs(self.C @ held) + np.abs(thermal), 0.0)
+        thermal = thermal.copy()
+        thermal[:, axes] = 0.0
+        return thermal, unread, axes
 
     def _untrained_z(self, z_axis_mm, n):
         """The frames (n,) bool whose Z position (mm, scalar or (n,)) is more than
