@@ -211,6 +211,12 @@ def excursion2(dT, scale_K, deadband_K=0.0):
     return np.sum((dT / np.asarray(scale_K, float)) ** 2, axis=1)
 
 
+def _held_force(state) -> np.ndarray:
+    """The applied force (3,) N the load tracker's part of a predictor's ``state`` holds (0
+    before it has run)."""
+    return np.asarray((state.get("load") or {}).get("force", np.zeros(3)), float)
+
+
 def _interval_terms(iv) -> dict:
     """The thermal interval's terms (:meth:`PhysicalModel._fit_interval`) as arrays."""
     return {
@@ -602,7 +608,7 @@ class PhysicalPredictor:
         m = state.get("map")
         if m is not None and m.get("e") is not None and np.isnan(np.asarray(m["e"][0], float)).any():
             y, t = m["e"]
-            force = np.asarray((state.get("load") or {}).get("force", np.zeros(3)), float)
+            force = _held_force(state)
             now = e_all0 - (self.map["G"] @ force if self.has_load else 0.0)
             y = np.where(np.isnan(y), now, y)
             state = {**state, "map": {**m, "e": (y, t)}}
@@ -1525,7 +1531,7 @@ class PhysicalPredictor:
             # signature's relative error: carried, that error stays while the force is no
             # longer read (ram5's thermal_c, the link lost under 2200 N of Fy: dy 2.5 µm further
             # than the probes alone, both beyond uncompensated). The probes alone then.
-            held = np.asarray((state.get("load") or {}).get("force", 0.0), float)
+            held = _held_force(state)
             last = state.get("thermal_last")
             keep = None
             if last is not None and state.get("thermal_by_gratings") and not held.any():
@@ -1555,8 +1561,8 @@ class PhysicalPredictor:
         191.8 uncompensated). Those axes read as uncompensated, their interval as wide as the
         held load and the held-back correction; the other axes (dz, where a lateral force barely
         reaches) keep theirs."""
-        held = np.asarray((state.get("load") or {}).get("force", np.zeros(3)), float)
-        axes = np.zeros(3, bool) if self._keep else self._moves[:, held != 0].any(axis=1)
+        held = np.zeros(3) if self._keep else _held_force(state)  # a set with gratings reads it
+        axes = self._moves[:, held != 0].any(axis=1)
         if not axes.any():
             return thermal, np.zeros_like(thermal), axes
         unread = np.where(axes, np.abs(self.C @ held) + np.abs(thermal), 0.0)
