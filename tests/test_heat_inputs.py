@@ -24,8 +24,7 @@ from fbgcomp.models.physical import PhysicalModel
 from fbgcomp.runtime.sources import TableTemperatures
 from fbgcomp_testing import RAM2_DIR
 
-# one worker runs the module: its session fixtures (fits, served campaigns) are made once, where
-# two workers made each and one waited on the other's twin build (ram6, ram7: ~40 s each, 2026-12-07)
+# one worker runs the module (CONTRIBUTING): ram2_heat and heat_model are made once
 pytestmark = pytest.mark.xdist_group("heat_inputs")
 
 MACHINE = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram2.yaml"

@@ -16,8 +16,7 @@ from fbgcomp.models.physical.observer import (
 )
 from fbgcomp.optics import elongation_um, wavelength_nm
 
-# one worker runs the module: its session fixtures (fits, served campaigns) are made once, where
-# two workers made each and one waited on the other's twin build (ram6, ram7: ~40 s each, 2026-12-07)
+# one worker runs the module (CONTRIBUTING): ram2_twin and ram2_observer_model are made once
 pytestmark = pytest.mark.xdist_group("observer")
 
 RAM2_YAML = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram2.yaml"

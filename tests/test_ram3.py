@@ -8,8 +8,8 @@ import pytest
 
 from fbgcomp_testing import RAM3_MACHINE, held_out_figures, read_ram3
 
-# one worker runs the module: its session fixtures (fits, served campaigns) are made once, where
-# two workers made each and one waited on the other's twin build (ram6, ram7: ~40 s each, 2026-12-07)
+# one worker runs the module (CONTRIBUTING): the default fit and the observer's share one twin,
+# built there once and not waited on from the other worker
 pytestmark = pytest.mark.xdist_group("ram3")
 
 HELD = ("thermal_b", "thermal_c", "static_y")

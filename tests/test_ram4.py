@@ -16,10 +16,6 @@ from fbgcomp_testing import (
     unpacked,
 )
 
-# one worker runs the module: its session fixtures (fits, served campaigns) are made once, where
-# two workers made each and one waited on the other's twin build (ram6, ram7: ~40 s each, 2026-12-07)
-pytestmark = pytest.mark.xdist_group("ram4")
-
 HELD = ("thermal_b", "thermal_c", "static_y")
 
 

@@ -17,8 +17,8 @@ from fbgcomp_testing import (
     unpacked,
 )
 
-# one worker runs the module: its session fixtures (fits, served campaigns) are made once, where
-# two workers made each and one waited on the other's twin build (ram6, ram7: ~40 s each, 2026-12-07)
+# one worker runs the module (CONTRIBUTING): the twin check (at the description's resolution) and
+# the default fit share one twin, built there once and not waited on from the other worker
 pytestmark = pytest.mark.xdist_group("ram5")
 
 HELD = ("thermal_b", "thermal_c", "static_x")

@@ -22,8 +22,8 @@ from fbgcomp_testing import (
     unpacked,
 )
 
-# one worker runs the module: its session fixtures (fits, served campaigns) are made once, where
-# two workers made each and one waited on the other's twin build (ram6, ram7: ~40 s each, 2026-12-07)
+# one worker runs the module (CONTRIBUTING): ram6_model is fitted once; on two workers each fitted
+# it and one waited ~40 s on the other's twin build (2026-12-07)
 pytestmark = pytest.mark.xdist_group("ram6")
 
 HELD = ("thermal_b", "thermal_c", "static_x")

@@ -18,8 +18,7 @@ from fbgcomp.units import AXES
 from fbgcomp_testing import read_ram2
 from test_runtime_support import run_in_batches
 
-# one worker runs the module: its session fixtures (fits, served campaigns) are made once, where
-# two workers made each and one waited on the other's twin build (ram6, ram7: ~40 s each, 2026-12-07)
+# one worker runs the module (CONTRIBUTING): full_served replays each campaign once
 pytestmark = pytest.mark.xdist_group("runtime_ram2")
 
 # the interferometer's own noise on an axis that hardly moves (issue 12)
