@@ -431,6 +431,27 @@ def test_built_in_ram_keeps_its_legacy_inputs(machine):
         (lambda d: d["mesh"].__setitem__("element", "hex20"), "field mesh.element"),
         (lambda d: d["sensors"][2].__setitem__("depth_mm", 15.5), "field sensors[2].depth_mm"),
         (lambda d: d["sensors"][0].__setitem__("depth_mm", -1.0), "field sensors[0].depth_mm"),
+        # a wall per face: all four faces, each thicker than 0, opposite pairs leaving a cavity,
+        # and a grating no deeper than its own face's wall
+        (
+            lambda d: d["ram"].__setitem__("wall_mm", {"+X": 20.0, "-X": 20.0, "+Y": 12.0}),
+            "field ram.wall_mm",
+        ),
+        (
+            lambda d: d["ram"].__setitem__("wall_mm", {"+X": 20.0, "-X": 20.0, "+Y": 12.0, "-Y": 0.0}),
+            "field ram.wall_mm",
+        ),
+        (
+            lambda d: d["ram"].__setitem__("wall_mm", {"+X": 160.0, "-X": 140.0, "+Y": 12.0, "-Y": 12.0}),
+            "field ram.wall_mm",
+        ),
+        (
+            lambda d: (
+                d["ram"].__setitem__("wall_mm", {"+X": 20.0, "-X": 20.0, "+Y": 10.0, "-Y": 12.0}),
+                d["sensors"][2].__setitem__("depth_mm", 11.0),  # S3, on +Y
+            ),
+            "field sensors[2].depth_mm",
+        ),
     ],
 )
 def test_generalised_schema_names_the_bad_field(tmp_path, edit, field):
@@ -482,6 +503,85 @@ def test_a_heat_zone_may_ring_the_cavity_and_heats_the_walls_only(ram2):
     assert not np.any(heated & in_cavity)
     for face in (x > 150 - 15, x < -150 + 15, y > 150 - 15, y < -150 + 15):  # every wall gets its share
         assert col[heated & face].sum() > 0.15
+
+
+def _ram2_with_walls(walls, **cfrp):
+    data = yaml.safe_load(RAM2_YAML.read_text())
+    data["ram"]["wall_mm"] = walls
+    data["materials"]["cfrp"].update(cfrp)
+    return parse_machine(data, RAM2_YAML)
+
+
+def test_a_wall_per_face_of_one_thickness_is_the_uniform_box(ram2, fe):
+    """``wall_mm`` per face, every face 15 mm, is ram2's box to the last node and facet; a probe
+    in a thicker wall is in the structure, one where that wall would be cavity is not."""
+    from fbgcomp.structure.mesh import machine_mesh
+
+    same = _ram2_with_walls(dict.fromkeys(("+X", "-X", "+Y", "-Y"), 15.0))
+    a, b = machine_mesh(ram2), machine_mesh(same)
+    assert np.array_equal(a.mesh.p, b.mesh.p) and np.array_equal(a.mesh.t, b.mesh.t)
+    assert a.cavity_mm == b.cavity_mm == (-135.0, 135.0, -135.0, 135.0)
+    for facets in ("outer_facets", "inner_facets"):
+        assert np.array_equal(getattr(a, facets)(), getattr(b, facets)())
+    thick = _ram2_with_walls({"+X": 30.0, "-X": 15.0, "+Y": 15.0, "-Y": 15.0})
+    assert thick.contains_point(125.0, 0.0, 700.0) and not ram2.contains_point(125.0, 0.0, 700.0)
+    assert not thick.contains_point(-125.0, 0.0, 700.0)
+    rm = machine_mesh(thick)
+    assert rm.cavity_mm == (-135.0, 120.0, -135.0, 135.0)
+    cells = rm.mesh.p[:, rm.mesh.t].mean(axis=1)
+    in_x_walls = (cells[2] > 0) & (np.abs(cells[1]) < 135.0)
+    assert cells[0, in_x_walls].max() > 120.0 and not np.any(
+        (cells[0] > 120.0) & (cells[0] < 135.0) & ~in_x_walls & (cells[2] > 0) & (np.abs(cells[1]) < 135.0)
+    )
+
+
+@pytest.mark.parametrize("thick_face, centroid_x_mm", [("+X", 17.65), ("-X", -17.65)])
+def test_a_thicker_wall_moves_the_bending_axis_to_the_sections_centroid(fe, thick_face, centroid_x_mm):
+    """The built-in box with one X wall twice the others' (40 against 20 mm) bends under Fx about
+    its section's centroid, 17.65 mm towards the thick wall: the gratings of the two X faces,
+    125 mm either side of the axis, read a strain that vanishes there, and the Y faces' gratings
+    on the axis read the strain 17.65 mm from it. Plane sections hold where the walls are stiff
+    in shear (a quasi-isotropic laminate here); a CFRP 16 times softer in shear than along its
+    fibres shear-lags the flange centres (ram2's laminate with its +X wall doubled: the X
+    gratings' zero at 35 mm against a centroid at 24.4, resolution 1 and 2, one-off, 2026-12-08)."""
+    from fbgcomp.kinematics import ram_centroid_mm
+
+    data = yaml.safe_load(DEFAULT_YAML.read_text())
+    data["ram"]["wall_mm"] = {"+X": 20.0, "-X": 20.0, "+Y": 20.0, "-Y": 20.0} | {thick_face: 40.0}
+    data["materials"]["cfrp"].update(E_L_GPa=120.0, E_T_GPa=120.0, G_LT_GPa=46.0, nu_LT=0.3, nu_TT=0.3)
+    m = parse_machine(data, DEFAULT_YAML)
+    assert ram_centroid_mm(m) == pytest.approx((centroid_x_mm, 0.0), abs=0.01)
+    r = fe.Twin(m, resolution=0.5, reduce_thermal=False, cache=False).static([1000.0, 0.0, 0.0])
+    e = dict(zip(r.sensor_names, r.sensor_elongation_um[0], strict=True))
+    hw = m.ram.outer_width_mm / 2
+    curvature = (e["S1"] - e["S2"]) / (2 * hw)  # µm per mm across the section
+    zero_mm = hw - e["S1"] / curvature
+    assert zero_mm == pytest.approx(centroid_x_mm, abs=0.75)
+    assert e["S3"] == pytest.approx(-curvature * centroid_x_mm, rel=0.04)
+    assert e["S4"] == pytest.approx(-curvature * centroid_x_mm, rel=0.04)
+
+
+def test_the_beam_section_of_uneven_walls_is_the_integral_over_its_area(ram2):
+    """The kinematic chain's ram section (centroid, second moments about it, webs' shear area)
+    against a direct sum over a 0.5 mm grid of the section with its walls."""
+    from fbgcomp.kinematics import ram_centroid_mm, ram_section
+
+    m = _ram2_with_walls({"+X": 30.0, "-X": 12.0, "+Y": 22.0, "-Y": 9.0})
+    x_lo, x_hi, y_lo, y_hi = m.ram.cavity_mm
+    c = np.arange(-150.0, 150.0, 0.5) + 0.25
+    gx, gy = np.meshgrid(c, c, indexing="ij")
+    solid = ~((gx > x_lo) & (gx < x_hi) & (gy > y_lo) & (gy < y_hi))
+    dA = 0.25
+    area = solid.sum() * dA
+    xc, yc = (gx[solid].sum() * dA / area, gy[solid].sum() * dA / area)
+    assert ram_centroid_mm(m) == pytest.approx((xc, yc), abs=1e-6)
+    sec = ram_section(m)
+    E = 1e3 * m.materials.cfrp.E_L_GPa
+    i_x = ((gy[solid] - yc) ** 2).sum() * dA + solid.sum() * dA * 0.5**2 / 12
+    i_y = ((gx[solid] - xc) ** 2).sum() * dA + solid.sum() * dA * 0.5**2 / 12
+    assert sec.EI_x / E == pytest.approx(i_x, rel=1e-9)
+    assert sec.EI_y / E == pytest.approx(i_y, rel=1e-9)
+    assert sec.GA_x == pytest.approx(1e3 * m.materials.cfrp.G_LT_GPa * (22.0 + 9.0) * 300.0)
 
 
 @pytest.fixture(scope="session")

@@ -269,19 +269,38 @@ class Section:
     cte_per_K: float  # axial thermal expansion
 
 
+def ram_centroid_mm(machine) -> tuple[float, float]:
+    """Centroid (x, y) in mm of the ram box's section: the axis it bends about. On the ram axis
+    when opposite walls are equal; towards the thicker wall otherwise."""
+    r = machine.ram
+    W, D = r.outer_width_mm, r.outer_depth_mm
+    x_lo, x_hi, y_lo, y_hi = r.cavity_mm
+    w, d = x_hi - x_lo, y_hi - y_lo
+    area = W * D - w * d
+    return -w * d * 0.5 * (x_lo + x_hi) / area, -w * d * 0.5 * (y_lo + y_hi) / area
+
+
 def ram_section(machine) -> Section:
-    """Beam section of the hollow CFRP ram box: bending with E_L over the box's second moments,
-    shear with G_LT over the two webs (N mm², N)."""
+    """Beam section of the hollow CFRP ram box: bending with E_L over the box's second moments
+    about its centroid (:func:`ram_centroid_mm`), shear with G_LT over the two webs (N mm², N)."""
     r, m = machine.ram, machine.materials.cfrp
-    W, D, t = r.outer_width_mm, r.outer_depth_mm, r.wall_mm
-    w, d = W - 2 * t, D - 2 * t
+    W, D, t = r.outer_width_mm, r.outer_depth_mm, r.walls_mm
+    x_lo, x_hi, y_lo, y_hi = r.cavity_mm
+    w, d = x_hi - x_lo, y_hi - y_lo
+    cx, cy = 0.5 * (x_lo + x_hi), 0.5 * (y_lo + y_hi)
+    xc, yc = ram_centroid_mm(machine)
+    area = W * D - w * d
     E, G = 1e3 * m.E_L_GPa, 1e3 * m.G_LT_GPa
-    # Shear is carried by the walls parallel to the force (the webs).
+    # Second moments about the box centre (the cavity's about its own centre moved by the
+    # parallel-axis term), then about the centroid; shear is carried by the walls parallel to
+    # the force (the webs: the +-Y walls for a force along X).
+    i_x = (W * D**3 - w * d**3) / 12 - w * d * cy**2 - area * yc**2
+    i_y = (D * W**3 - d * w**3) / 12 - w * d * cx**2 - area * xc**2
     return Section(
-        EI_x=E * (W * D**3 - w * d**3) / 12,
-        EI_y=E * (D * W**3 - d * w**3) / 12,
-        GA_x=G * 2 * t * W,
-        GA_y=G * 2 * t * D,
+        EI_x=E * i_x,
+        EI_y=E * i_y,
+        GA_x=G * (t["+Y"] + t["-Y"]) * W,
+        GA_y=G * (t["+X"] + t["-X"]) * D,
         cte_per_K=m.cte_L_per_K,
     )
 
@@ -379,9 +398,10 @@ class KinematicChain:
         self.top_z_mm = float(z[0])
         K = len(self.segments)
         hw, hd = m.ram.outer_width_mm / 2, m.ram.outer_depth_mm / 2
+        # Bars from the section's centroid, the axis the segments bend about.
         self.bar_xy_mm = np.array(
             [bar_position_mm(sn.face, sn.offset_mm, hw, hd, sn.depth_mm) for sn in self.sensors]
-        ).reshape(-1, 2)
+        ).reshape(-1, 2) - np.asarray(ram_centroid_mm(m))
         self.cover = np.array(
             [
                 [

@@ -37,19 +37,68 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+FACES: tuple[Face, ...] = ("+X", "-X", "+Y", "-Y")
+
+
 class Ram(_Strict):
-    """The ram: a hollow CFRP box, its outer section, wall thickness and length (mm)."""
+    """The ram: a hollow CFRP box, its outer section, wall thickness and length (mm).
+
+    ``wall_mm`` is one thickness for every wall, or one per face (``{"+X": 22, "-X": 22, "+Y": 14,
+    "-Y": 14}``: a data sheet's thicker rail faces), each measured in from its outer face; the
+    outer section stays centred on the ram axis and the cavity moves with the walls.
+    """
 
     outer_width_mm: float = Field(gt=0)
     outer_depth_mm: float = Field(gt=0)
-    wall_mm: float = Field(gt=0)
+    wall_mm: float | dict[Face, float]
     length_mm: float = Field(gt=0)
+
+    @field_validator("wall_mm", mode="before")
+    @classmethod
+    def _thickness(cls, v):
+        def one(value, where: str) -> float:
+            if isinstance(value, bool) or not isinstance(value, int | float) or not value > 0:
+                raise ValueError(f"{where} must be a thickness in mm greater than 0, got {value!r}")
+            return float(value)
+
+        if isinstance(v, dict):
+            unknown = [k for k in v if k not in FACES]
+            if unknown:
+                raise ValueError(f"unknown face {unknown[0]!r}; a wall per face names +X, -X, +Y and -Y")
+            missing = [f for f in FACES if f not in v]
+            if missing:
+                raise ValueError(f"a wall per face names all four faces +X, -X, +Y, -Y; missing {missing}")
+            return {f: one(v[f], f"the {f} wall") for f in FACES}
+        return one(v, "the wall")
 
     @model_validator(mode="after")
     def _wall_fits(self):
-        if 2 * self.wall_mm >= min(self.outer_width_mm, self.outer_depth_mm):
-            raise ValueError("wall_mm must be less than half the outer width and depth (hollow box)")
+        w = self.walls_mm
+        if w["+X"] + w["-X"] >= self.outer_width_mm or w["+Y"] + w["-Y"] >= self.outer_depth_mm:
+            raise _FieldError(
+                "ram.wall_mm",
+                "the walls of opposite faces must leave a cavity: each pair thinner than the outer "
+                "width (+-X) or depth (+-Y) (hollow box)",
+            )
         return self
+
+    @property
+    def walls_mm(self) -> dict[str, float]:
+        """Thickness (mm) of each face's wall."""
+        if isinstance(self.wall_mm, dict):
+            return {f: float(self.wall_mm[f]) for f in FACES}
+        return dict.fromkeys(FACES, float(self.wall_mm))
+
+    @property
+    def uniform_wall(self) -> bool:
+        """True when every wall has the same thickness (the section symmetric about both axes)."""
+        return len(set(self.walls_mm.values())) == 1
+
+    @property
+    def cavity_mm(self) -> tuple[float, float, float, float]:
+        """The cavity's bounds (x_lo, x_hi, y_lo, y_hi), mm, in the ram's section frame."""
+        w, hw, hd = self.walls_mm, self.outer_width_mm / 2, self.outer_depth_mm / 2
+        return -hw + w["-X"], hw - w["+X"], -hd + w["-Y"], hd - w["+Y"]
 
 
 class Housing(_Strict):
@@ -523,10 +572,11 @@ class Machine(_Strict):
                     raise _FieldError(
                         f"{group}[{i}].offset_mm", f"offset {s.offset_mm:g} mm lies off the {s.face} face"
                     )
-                if s.depth_mm > self.ram.wall_mm:
+                wall = self.ram.walls_mm[s.face]
+                if s.depth_mm > wall:
                     raise _FieldError(
                         f"{group}[{i}].depth_mm",
-                        f"depth {s.depth_mm:g} mm lies beyond the {self.ram.wall_mm:g} mm wall",
+                        f"depth {s.depth_mm:g} mm lies beyond the {wall:g} mm wall of the {s.face} face",
                     )
                 if s.z_start_mm < 0 or s.z_end_mm > self.ram.length_mm:
                     raise _FieldError(
@@ -612,11 +662,11 @@ class Machine(_Strict):
         if overlap((-hw, -hd, -h.height_mm), (hw, hd, 0.0)):
             return True
         ow, od = r.outer_width_mm / 2, r.outer_depth_mm / 2
-        iw, id_ = ow - r.wall_mm, od - r.wall_mm
+        x_lo, x_hi, y_lo, y_hi = r.cavity_mm
         if not overlap((-ow, -od, 0.0), (ow, od, r.length_mm)):
             return False
         # inside the outer box: material unless the zone lies wholly in the cavity
-        return not (lo[0] >= -iw and hi[0] <= iw and lo[1] >= -id_ and hi[1] <= id_)
+        return not (lo[0] >= x_lo and hi[0] <= x_hi and lo[1] >= y_lo and hi[1] <= y_hi)
 
     def contains_point(self, x_mm: float, y_mm: float, z_mm: float, tol_mm: float = 1e-6) -> bool:
         """True when the point lies in the ram wall or the housing (boundary included)."""
@@ -630,10 +680,8 @@ class Machine(_Strict):
             return True
         if 0 <= z_mm <= r.length_mm + tol_mm:
             inside_outer = ax <= r.outer_width_mm / 2 + tol_mm and ay <= r.outer_depth_mm / 2 + tol_mm
-            in_cavity = (
-                ax < r.outer_width_mm / 2 - r.wall_mm - tol_mm
-                and ay < r.outer_depth_mm / 2 - r.wall_mm - tol_mm
-            )
+            x_lo, x_hi, y_lo, y_hi = r.cavity_mm
+            in_cavity = x_lo + tol_mm < x_mm < x_hi - tol_mm and y_lo + tol_mm < y_mm < y_hi - tol_mm
             return inside_outer and not in_cavity
         return False
 

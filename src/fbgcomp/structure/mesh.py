@@ -44,16 +44,21 @@ def _segment_lines(breaks_mm, step_mm: float, single_spans_mm=()) -> np.ndarray:
     return np.concatenate(lines)
 
 
-def _cross_lines(outer_half_mm: float, wall_mm: float, n_wall: int, n_span: int, extra_mm=()) -> np.ndarray:
-    inner = outer_half_mm - wall_mm
+def _cross_lines(
+    outer_half_mm: float, wall_lo_mm: float, wall_hi_mm: float, n_wall: int, n_span: int, extra_mm=()
+) -> np.ndarray:
+    """Grid lines across the section: ``n_wall`` elements through the wall at each end (its
+    thickness ``wall_lo_mm`` at -outer_half, ``wall_hi_mm`` at +outer_half), ``n_span`` across
+    the cavity, and the ``extra_mm`` lines (the centre 0 among them) not already on the grid."""
+    lo, hi = -outer_half_mm + wall_lo_mm, outer_half_mm - wall_hi_mm
     lines = np.concatenate(
         [
-            np.linspace(-outer_half_mm, -inner, n_wall + 1),
-            np.linspace(-inner, inner, n_span + 1)[1:-1],
-            np.linspace(inner, outer_half_mm, n_wall + 1),
+            np.linspace(-outer_half_mm, lo, n_wall + 1),
+            np.linspace(lo, hi, n_span + 1)[1:-1],
+            np.linspace(hi, outer_half_mm, n_wall + 1),
         ]
     )
-    extra = [e for e in extra_mm if np.min(np.abs(lines - e)) > 1e-3]
+    extra = [e for e in (0.0, *extra_mm) if np.min(np.abs(lines - e)) > 1e-3]
     return np.unique(np.concatenate([lines, np.asarray(extra, dtype=float)]))
 
 
@@ -83,7 +88,7 @@ class RamMesh:
     cfrp_elements: np.ndarray
     half_width_mm: float
     half_depth_mm: float
-    wall_mm: float
+    cavity_mm: tuple[float, float, float, float]  # x_lo, x_hi, y_lo, y_hi of the box cavity
     length_mm: float
 
     @property
@@ -161,31 +166,26 @@ class RamMesh:
         """Boundary facets whose midpoints (3, n) in mm satisfy ``predicate``."""
         return self.mesh.facets_satisfying(predicate, boundaries_only=True)
 
+    def in_cavity(self, x_mm: np.ndarray) -> np.ndarray:
+        """True where points (3, n) in mm lie in the box cavity or on its inner surfaces."""
+        x_lo, x_hi, y_lo, y_hi = self.cavity_mm
+        x, y, z = x_mm[0], x_mm[1], x_mm[2]
+        return (
+            (x > x_lo - _TOL_MM)
+            & (x < x_hi + _TOL_MM)
+            & (y > y_lo - _TOL_MM)
+            & (y < y_hi + _TOL_MM)
+            & (z > -_TOL_MM)
+            & (z < self.length_mm - _TOL_MM)
+        )
+
     def outer_facets(self) -> np.ndarray:
         """Boundary facets exposed to the surrounding air (outside of ram and housing, end faces)."""
-        hw, hd, t = self.half_width_mm, self.half_depth_mm, self.wall_mm
-
-        def in_cavity(x):
-            return (
-                (np.abs(x[0]) < hw - t + _TOL_MM)
-                & (np.abs(x[1]) < hd - t + _TOL_MM)
-                & (x[2] > -_TOL_MM)
-                & (x[2] < self.length_mm - _TOL_MM)
-            )
-
-        return self.facets_where(lambda x: ~in_cavity(x))
+        return self.facets_where(lambda x: ~self.in_cavity(x))
 
     def inner_facets(self) -> np.ndarray:
         """Boundary facets facing the air inside the box (inner walls, housing top in the cavity)."""
-        hw, hd, t = self.half_width_mm, self.half_depth_mm, self.wall_mm
-        return self.facets_where(
-            lambda x: (
-                (np.abs(x[0]) < hw - t + _TOL_MM)
-                & (np.abs(x[1]) < hd - t + _TOL_MM)
-                & (x[2] > -_TOL_MM)
-                & (x[2] < self.length_mm - _TOL_MM)
-            )
-        )
+        return self.facets_where(self.in_cavity)
 
     def face_facets(
         self, face: str, z_lo_mm: float = -np.inf, z_hi_mm: float = np.inf, across_half_mm: float = np.inf
@@ -228,14 +228,9 @@ class RamMesh:
         face, the housing sides (and any housing top outside the box) and the housing bottom."""
         f = self.mesh.boundary_facets()
         mid = self.mesh.p[:, self.mesh.facets[:, f]].mean(axis=1)
-        x, y, z = mid
-        hw, hd, t, L = self.half_width_mm, self.half_depth_mm, self.wall_mm, self.length_mm
-        cavity = (
-            (np.abs(x) < hw - t + _TOL_MM)
-            & (np.abs(y) < hd - t + _TOL_MM)
-            & (z > -_TOL_MM)
-            & (z < L - _TOL_MM)
-        )
+        z = mid[2]
+        hw, hd, L = self.half_width_mm, self.half_depth_mm, self.length_mm
+        cavity = self.in_cavity(mid)
         on_ram = (z > _TOL_MM) & (z < L - _TOL_MM) & ~cavity
         out = {
             "cavity": f[cavity],
@@ -255,7 +250,7 @@ def build_mesh(
     *,
     half_width_mm: float,
     half_depth_mm: float,
-    wall_mm: float,
+    wall_mm: float | dict[str, float],
     length_mm: float,
     housing_half_width_mm: float | None = None,
     housing_half_depth_mm: float | None = None,
@@ -283,8 +278,15 @@ def build_mesh(
             raise ValueError("a housing (housing_height_mm > 0) needs its half width and half depth")
         extra_x += [-housing_half_width_mm, housing_half_width_mm]
         extra_y += [-housing_half_depth_mm, housing_half_depth_mm]
-    xs = _cross_lines(half_width_mm, wall_mm, n_wall, n_span, extra_x)
-    ys = _cross_lines(half_depth_mm, wall_mm, n_wall, n_span, extra_y)
+    walls = wall_mm if isinstance(wall_mm, dict) else dict.fromkeys(("+X", "-X", "+Y", "-Y"), wall_mm)
+    cavity = (
+        float(-half_width_mm + walls["-X"]),
+        float(half_width_mm - walls["+X"]),
+        float(-half_depth_mm + walls["-Y"]),
+        float(half_depth_mm - walls["+Y"]),
+    )
+    xs = _cross_lines(half_width_mm, walls["-X"], walls["+X"], n_wall, n_span, extra_x)
+    ys = _cross_lines(half_depth_mm, walls["-Y"], walls["+Y"], n_wall, n_span, extra_y)
     z0 = -housing_height_mm if has_housing else 0.0
     breaks = [z0, 0.0, length_mm] + [z for z in z_breaks_mm if z0 <= z <= length_mm]
     zs = _segment_lines(breaks, dz_mm, single_spans_mm)
@@ -294,17 +296,17 @@ def build_mesh(
     cx = 0.5 * (xs[:-1] + xs[1:])
     cy = 0.5 * (ys[:-1] + ys[1:])
     cz = 0.5 * (zs[:-1] + zs[1:])
-    CY, CX, CZ = np.meshgrid(cy, cx, cz, indexing="ij")
-    ax, ay = np.abs(CX), np.abs(CY)
+    gy, gx, gz = np.meshgrid(cy, cx, cz, indexing="ij")
+    ax, ay = np.abs(gx), np.abs(gy)
     in_ram = (
-        (CZ > 0)
+        (gz > 0)
         & (ax < half_width_mm)
         & (ay < half_depth_mm)
-        & ~((ax < half_width_mm - wall_mm) & (ay < half_depth_mm - wall_mm))
+        & ~((gx > cavity[0]) & (gx < cavity[1]) & (gy > cavity[2]) & (gy < cavity[3]))
     )
     in_housing = np.zeros_like(in_ram)
     if has_housing:
-        in_housing = (CZ < 0) & (ax < housing_half_width_mm) & (ay < housing_half_depth_mm)
+        in_housing = (gz < 0) & (ax < housing_half_width_mm) & (ay < housing_half_depth_mm)
     kept = in_ram | in_housing
 
     # Map skfem's element order to grid cells through the element centroids.
@@ -335,7 +337,7 @@ def build_mesh(
         cfrp_elements=np.nonzero(zc > 0)[0],
         half_width_mm=half_width_mm,
         half_depth_mm=half_depth_mm,
-        wall_mm=wall_mm,
+        cavity_mm=cavity,
         length_mm=length_mm,
     )
 
@@ -399,7 +401,7 @@ def machine_mesh(
     return build_mesh(
         half_width_mm=hw,
         half_depth_mm=hd,
-        wall_mm=machine.ram.wall_mm,
+        wall_mm=machine.ram.walls_mm,
         length_mm=machine.ram.length_mm,
         housing_half_width_mm=machine.housing.width_mm / 2,
         housing_half_depth_mm=machine.housing.depth_mm / 2,
