@@ -6,7 +6,9 @@ two strain-free reference gratings, two heat sources in a cast-iron housing) and
 two opposite faces, the -Y one floating along its normal, five gratings, five probes) and ram6
 (rails on two adjacent faces, the +Y one floating along its normal, a CFRP that shortens when
 warmed, six gratings, a heat source at the top of the box) and ram7 (a long box on two opposite
-faces, both rails locating at three carriage stations, an aluminium housing, five gratings)."""
+faces, both rails locating at three carriage stations, an aluminium housing, five gratings) and
+ram8 (a box whose +X wall, which carries both rails, is thicker than the others: a wall per face
+in its description; six gratings, a radiant load on the thin -X wall)."""
 
 from __future__ import annotations
 
@@ -24,6 +26,8 @@ RAM6_ARCHIVE = REPO / "tests" / "data" / "ram6.tar.xz"
 RAM6_MACHINE = REPO / "examples" / "machines" / "ram6.yaml"
 RAM7_ARCHIVE = REPO / "tests" / "data" / "ram7.tar.xz"
 RAM7_MACHINE = REPO / "examples" / "machines" / "ram7.yaml"
+RAM8_ARCHIVE = REPO / "tests" / "data" / "ram8.tar.xz"
+RAM8_MACHINE = REPO / "examples" / "machines" / "ram8.yaml"
 
 
 def unpack(archive: Path, dest: Path) -> Path:
@@ -46,6 +50,7 @@ HELD_OUT = {
     "ram5": ("thermal_b", "thermal_c", "static_x"),
     "ram6": ("thermal_b", "thermal_c", "static_x"),
     "ram7": ("thermal_b", "thermal_c", "static_x"),
+    "ram8": ("thermal_b", "thermal_c", "static_x"),
 }
 #: the project's own rams: archive and description
 OWN_RAMS = {
@@ -54,6 +59,7 @@ OWN_RAMS = {
     "ram5": (RAM5_ARCHIVE, RAM5_MACHINE),
     "ram6": (RAM6_ARCHIVE, RAM6_MACHINE),
     "ram7": (RAM7_ARCHIVE, RAM7_MACHINE),
+    "ram8": (RAM8_ARCHIVE, RAM8_MACHINE),
 }
 
 
@@ -62,7 +68,9 @@ def add_ram_arguments(ap, default: str) -> None:
     ap.add_argument(
         "--ram2", help="the ram2 data set (default: $FBGCOMP_RAM2, else ../shared/reference/ram2)"
     )
-    ap.add_argument("--rams", default=default, help="comma-separated subset of ram2,ram3,ram4,ram5,ram6,ram7")
+    ap.add_argument(
+        "--rams", default=default, help="comma-separated subset of ram2,ram3,ram4,ram5,ram6,ram7,ram8"
+    )
 
 
 def ram_folder(ram: str, dest: Path, ram2=None):
@@ -77,7 +85,7 @@ def ram_folder(ram: str, dest: Path, ram2=None):
             raise ValueError(f"ram2 not found at {looked}")
         return data, RAM2_MACHINE
     if ram not in OWN_RAMS:
-        raise ValueError(f"--rams: unknown ram {ram!r} (ram2, ram3, ram4, ram5, ram6, ram7)")
+        raise ValueError(f"--rams: unknown ram {ram!r} (ram2, ram3, ram4, ram5, ram6, ram7, ram8)")
     archive, machine = OWN_RAMS[ram]
     return unpack(archive, Path(dest) / ram) / "data", machine
 

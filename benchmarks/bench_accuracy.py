@@ -29,6 +29,10 @@ command. It is judged only on campaigns it never saw.
   on two opposite faces, both rails locating at three carriage stations, an aluminium housing,
   five gratings, a radiant load on -Y): the same command with examples/machines/ram7.yaml; judged
   on thermal_b, thermal_c (heat + forces along Y and Z) and static_x.
+* ram8 (tests/data/ram8.tar.xz, ``--no-ram8`` to skip): a seventh, made the same way (a box whose
+  +X wall, carrying both rails, is thicker than the -X wall: a wall per face; six gratings, a
+  radiant load on -X): the same command with examples/machines/ram8.yaml; judged on thermal_b,
+  thermal_c (heat + forces along X and Y) and static_x.
 * the twin (twin-only figures: our own simulator), the built-in default machine's campaigns as
   ``fbgcomp demo`` makes them (seed 0, full length): ``fbgcomp fit thermal-36h static-y
   --machine src/fbgcomp/data/ram.yaml`` (the built-in machine's description); judged
@@ -46,7 +50,7 @@ Targets (per data set, "peak" = the uncompensated max |deviation| of that axis):
                axis with max |error| above uncompensated + 0.5 um)
 
     nice -n 10 .venv/bin/python benchmarks/bench_accuracy.py [--ram2 PATH] [--work DIR] [--no-twin] \
-        [--no-ram3] [--no-ram4] [--no-ram5] [--no-ram6] [--no-ram7] [--served]
+        [--no-ram3] [--no-ram4] [--no-ram5] [--no-ram6] [--no-ram7] [--no-ram8] [--served]
 
 ``--served``: the same targets on the correction the runtime publishes (``fbgcomp validate
 --served``: the campaign's own interrogator frames through the default pipeline, output filter
@@ -266,6 +270,7 @@ def main(argv=None) -> int:
     ap.add_argument("--no-ram5", action="store_true", help="no ram5 figures")
     ap.add_argument("--no-ram6", action="store_true", help="no ram6 figures")
     ap.add_argument("--no-ram7", action="store_true", help="no ram7 figures")
+    ap.add_argument("--no-ram8", action="store_true", help="no ram8 figures")
     ap.add_argument(
         "--served",
         action="store_true",
@@ -337,6 +342,8 @@ def main(argv=None) -> int:
         RAM6_MACHINE,
         RAM7_ARCHIVE,
         RAM7_MACHINE,
+        RAM8_ARCHIVE,
+        RAM8_MACHINE,
         unpack,
     )
 
@@ -346,6 +353,7 @@ def main(argv=None) -> int:
         ("ram5", RAM5_ARCHIVE, RAM5_MACHINE, RAM2_ROLES, args.no_ram5),
         ("ram6", RAM6_ARCHIVE, RAM6_MACHINE, RAM2_ROLES, args.no_ram6),
         ("ram7", RAM7_ARCHIVE, RAM7_MACHINE, RAM2_ROLES, args.no_ram7),
+        ("ram8", RAM8_ARCHIVE, RAM8_MACHINE, RAM2_ROLES, args.no_ram8),
     )
     for ram, archive, machine, roles, skip in own:
         if skip:

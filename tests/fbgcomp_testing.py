@@ -110,6 +110,10 @@ RAM6_MACHINE = Path(__file__).resolve().parents[1] / "examples" / "machines" / "
 #: stations, five gratings, an aluminium housing), held the same way.
 RAM7_ARCHIVE = Path(__file__).resolve().parent / "data" / "ram7.tar.xz"
 RAM7_MACHINE = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram7.yaml"
+#: A seventh (CalculiX, a box whose +X wall, carrying both rails, is thicker than the -X wall:
+#: a wall per face in its description; six gratings), held the same way.
+RAM8_ARCHIVE = Path(__file__).resolve().parent / "data" / "ram8.tar.xz"
+RAM8_MACHINE = Path(__file__).resolve().parents[1] / "examples" / "machines" / "ram8.yaml"
 
 
 def unpacked(archive: Path) -> Path:
@@ -169,6 +173,11 @@ def read_ram6(*names: str) -> dict:
 def read_ram7(*names: str) -> dict:
     """ram7's campaigns by name."""
     return read_unpacked(RAM7_ARCHIVE, *names)
+
+
+def read_ram8(*names: str) -> dict:
+    """ram8's campaigns by name."""
+    return read_unpacked(RAM8_ARCHIVE, *names)
 
 
 def assert_data_sheet_describes(archive: Path, machine: Path, campaigns, phrase: str) -> None:
