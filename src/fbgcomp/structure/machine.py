@@ -37,7 +37,29 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+#: The ram's four outer faces, in the order every per-face table of the package uses.
 FACES: tuple[Face, ...] = ("+X", "-X", "+Y", "-Y")
+
+
+def walls_per_face(wall_mm) -> dict[str, float]:
+    """Each face's wall thickness (mm) from one thickness or a mapping of the four faces."""
+    if isinstance(wall_mm, dict):
+        return {f: float(wall_mm[f]) for f in FACES}
+    return dict.fromkeys(FACES, float(wall_mm))
+
+
+def cavity_bounds_mm(
+    half_width_mm: float, half_depth_mm: float, walls_mm
+) -> tuple[float, float, float, float]:
+    """The box cavity's bounds (x_lo, x_hi, y_lo, y_hi), mm, of an outer section centred on the
+    axis whose walls (:func:`walls_per_face`) each run in from their outer face."""
+    w = walls_per_face(walls_mm)
+    return (
+        float(-half_width_mm + w["-X"]),
+        float(half_width_mm - w["+X"]),
+        float(-half_depth_mm + w["-Y"]),
+        float(half_depth_mm - w["+Y"]),
+    )
 
 
 class Ram(_Strict):
@@ -85,20 +107,12 @@ class Ram(_Strict):
     @property
     def walls_mm(self) -> dict[str, float]:
         """Thickness (mm) of each face's wall."""
-        if isinstance(self.wall_mm, dict):
-            return {f: float(self.wall_mm[f]) for f in FACES}
-        return dict.fromkeys(FACES, float(self.wall_mm))
-
-    @property
-    def uniform_wall(self) -> bool:
-        """True when every wall has the same thickness (the section symmetric about both axes)."""
-        return len(set(self.walls_mm.values())) == 1
+        return walls_per_face(self.wall_mm)
 
     @property
     def cavity_mm(self) -> tuple[float, float, float, float]:
         """The cavity's bounds (x_lo, x_hi, y_lo, y_hi), mm, in the ram's section frame."""
-        w, hw, hd = self.walls_mm, self.outer_width_mm / 2, self.outer_depth_mm / 2
-        return -hw + w["-X"], hw - w["+X"], -hd + w["-Y"], hd - w["+Y"]
+        return cavity_bounds_mm(self.outer_width_mm / 2, self.outer_depth_mm / 2, self.wall_mm)
 
 
 class Housing(_Strict):

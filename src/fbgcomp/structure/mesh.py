@@ -15,7 +15,7 @@ import numpy as np
 import scipy.sparse as sp
 from skfem import MeshHex
 
-from fbgcomp.structure.machine import Machine
+from fbgcomp.structure.machine import Machine, cavity_bounds_mm, walls_per_face
 
 _TOL_MM = 1e-6
 
@@ -278,13 +278,8 @@ def build_mesh(
             raise ValueError("a housing (housing_height_mm > 0) needs its half width and half depth")
         extra_x += [-housing_half_width_mm, housing_half_width_mm]
         extra_y += [-housing_half_depth_mm, housing_half_depth_mm]
-    walls = wall_mm if isinstance(wall_mm, dict) else dict.fromkeys(("+X", "-X", "+Y", "-Y"), wall_mm)
-    cavity = (
-        float(-half_width_mm + walls["-X"]),
-        float(half_width_mm - walls["+X"]),
-        float(-half_depth_mm + walls["-Y"]),
-        float(half_depth_mm - walls["+Y"]),
-    )
+    walls = walls_per_face(wall_mm)
+    cavity = cavity_bounds_mm(half_width_mm, half_depth_mm, walls)
     xs = _cross_lines(half_width_mm, walls["-X"], walls["+X"], n_wall, n_span, extra_x)
     ys = _cross_lines(half_depth_mm, walls["-Y"], walls["+Y"], n_wall, n_span, extra_y)
     z0 = -housing_height_mm if has_housing else 0.0

@@ -39,11 +39,9 @@ from fbgcomp.cluster import map_over_cluster
 from fbgcomp.errors import InputError
 from fbgcomp.optics import elongation_noise_um
 from fbgcomp.structure.loadcases import LOAD_CASES, load_case_responses
-from fbgcomp.structure.machine import Sensor
+from fbgcomp.structure.machine import FACES, Sensor
 from fbgcomp.tables import Column, format_table, text
 from fbgcomp.units import AXES
-
-FACES = ("+X", "-X", "+Y", "-Y")
 
 
 def candidate_grid(

@@ -20,9 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from fbgcomp.structure.machine import Machine, parse_machine
+from fbgcomp.structure.machine import FACES, Machine, parse_machine
 
-FACES = ("+X", "-X", "+Y", "-Y")
 #: Name prefix of the undeclared sources :func:`generic_heat_machine` adds.
 GENERIC_PREFIX = "generic_"
 
